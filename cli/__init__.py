@@ -1,0 +1,1 @@
+"""The rvnoise command line (typer). Installed as ``roadview_noise.cli``."""

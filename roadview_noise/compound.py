@@ -1,0 +1,138 @@
+"""Compound noise: chains of models ordered by stage (D3.5 Eq. 1–3) and the table of the 30 CNFs (Table 6).
+
+A CNF is a named two-step chain per sensor; the stage of each model puts it before (Eq. 1), inside (Eq. 2,
+MODIFIER) or after (Eq. 3) the weather. Model defaults are the D3.5 values for their sensor, so a CNF needs no
+parameters of its own.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+from .errors import ModelError, RecipeError
+from .model import Model, Scope, Stage
+from .registry import get_model, load_all
+from .seeding import derive_rng
+from .types import SensorData, sensor_kind
+
+
+@dataclass(frozen=True)
+class Cnf:
+    """One row of D3.5 Table 6: the model ids per sensor, in physical order."""
+
+    factor: str
+    weather: str
+    method: str                                  # "Eq. 1" | "Eq. 2" | "Eq. 3"
+    chains: dict[str, tuple[str, ...]]           # sensor → model ids
+
+
+def _cnf_table() -> dict[str, Cnf]:
+    weathers = ("rain", "fog", "snow")
+    rows: list[tuple[str, str, dict[str, str]]] = [
+        ("lens soiling (mud)", "Eq. 3", {"camera": "soiling.camera"}),
+        ("windscreen distortion", "Eq. 3", {"camera": "windscreen.camera"}),
+        ("motion blur", "Eq. 3", {"camera": "motion_blur.camera"}),
+        ("lossy compression (JPEG)", "Eq. 3", {"camera": "compression.camera"}),
+        ("low light", "Eq. 1", {"camera": "low_light.camera"}),
+        ("wind", "Eq. 2", {"camera": "wind.camera"}),
+        ("laser alignment error", "Eq. 1", {"lidar": "alignment.lidar"}),
+        ("laser power variance", "Eq. 1", {"lidar": "power.lidar"}),
+        ("occlusion / obstruction", "Eq. 3", {"lidar": "occlusion.lidar", "radar": "occlusion.radar"}),
+        ("ray drop", "Eq. 1", {"lidar": "ray_drop.lidar"}),
+    ]
+    table = {}
+    n = 0
+    for factor, method, factor_models in rows:
+        for weather in weathers:
+            n += 1
+            chains = {}
+            for sensor, fm in factor_models.items():
+                w = f"{weather}.{sensor}"
+                chains[sensor] = (w, fm) if method == "Eq. 3" else (fm, w)
+            table[f"CNF{n:02d}"] = Cnf(factor, weather, method, chains)
+    return table
+
+
+CNFS: dict[str, Cnf] = _cnf_table()
+
+
+def cnf_chain(name: str, sensor: str | None = None) -> tuple[str, ...]:
+    """Model ids of a CNF for ``sensor`` (may be omitted when the CNF has one sensor)."""
+    key = name.upper()
+    if key not in CNFS:
+        from .registry import suggest
+        raise RecipeError(f"unknown CNF {name!r}{suggest(key, CNFS)}; CNF01–CNF30 exist", key="cnf")
+    chains = CNFS[key].chains
+    if sensor is None:
+        if len(chains) > 1:
+            raise RecipeError(f"{key} exists for {', '.join(chains)}; say which with `sensor:`", key="sensor")
+        return next(iter(chains.values()))
+    if sensor not in chains:
+        raise RecipeError(f"{key} has no {sensor} variant (has {', '.join(chains)})", key="sensor")
+    return chains[sensor]
+
+
+def order_chain(model_ids: Sequence[str], *, as_written: bool = False, where: str = "chain") -> tuple[str, ...]:
+    """Validate a chain and return it in physical order.
+
+    Refuses (``RecipeError``): unknown or unfinished models, mixed sensors, the same model twice, a modifier
+    without a weather model after it, and — unless ``as_written`` — an order that contradicts the stages."""
+    models = load_all()
+    for i, mid in enumerate(model_ids):
+        if mid not in models:
+            try:
+                get_model(mid)
+            except ModelError as e:
+                raise RecipeError(str(e), key=f"{where}[{i}].model") from None
+    classes = [models[m] for m in model_ids]
+    sensors = {c.sensor for c in classes}
+    if len(sensors) > 1:
+        raise RecipeError(f"a chain acts on one sensor, got models for {', '.join(sorted(sensors))}", key=where)
+    if len(set(model_ids)) != len(model_ids):
+        raise RecipeError("a model appears twice in the chain", key=where)
+    ordered = sorted(range(len(classes)), key=lambda i: classes[i].stage)  # stable: equal stages keep order
+    if not as_written and ordered != list(range(len(classes))):
+        want = " → ".join(model_ids[i] for i in ordered)
+        raise RecipeError(f"order contradicts the sensing chain (physical order: {want}); "
+                          "reorder it, or say `order: as_written` to force it", key=where)
+    for i, c in enumerate(classes):
+        if c.stage == Stage.MODIFIER and not any(d.stage == Stage.MEDIUM for d in classes[i + 1:]):
+            raise RecipeError(f"{c.id} modifies the weather model and needs one after it in the chain",
+                              key=f"{where}[{i}]")
+    return tuple(model_ids)
+
+
+@dataclass
+class StepRecord:
+    """What the manifest keeps of one step."""
+
+    model: str
+    params: dict[str, Any]
+    state: dict[str, Any] = field(default_factory=dict)
+    drawn: dict[str, Any] = field(default_factory=dict)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: str,
+                 sequence_id: str) -> tuple[SensorData, list[StepRecord]]:
+    """Run instantiated models in order on one frame or cloud.
+
+    Frame rng: ``derive_rng(seed, key, step_index, model.id)``; sequence (sensor-instance) rng:
+    ``derive_rng(seed, "sequence", sequence_id, model.id)``. ``key`` identifies the output (input relpath plus
+    sweep variant)."""
+    records = []
+    for i, model in enumerate(models):
+        if model.sensor != sensor_kind(data):
+            raise ModelError(f"acts on {model.sensor} data, got {sensor_kind(data)} data", model=model.id)
+        t0 = time.perf_counter()
+        state = {}
+        if model.scope == Scope.SEQUENCE:
+            state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
+        rng = derive_rng(seed, key, i, model.id)
+        drawn = model.draw(rng, data)
+        data, diagnostics = model.apply(data, state=state, drawn=drawn, rng=rng)
+        records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0))
+    return data, records

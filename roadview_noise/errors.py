@@ -1,0 +1,33 @@
+"""Error tree. Every error names the file and the field it is about, so a user can fix the input."""
+
+from __future__ import annotations
+
+
+class RvNoiseError(ValueError):
+    """Base of every error rvnoise raises on purpose."""
+
+
+class RecipeError(RvNoiseError):
+    """A recipe is invalid: names the recipe file and the key path."""
+
+    def __init__(self, message: str, *, file: str | None = None, key: str | None = None):
+        self.file, self.key = file, key
+        where = ": ".join(p for p in (file, key) if p)
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class InputError(RvNoiseError):
+    """An input file cannot be read or is inconsistent: names the file and the problem."""
+
+    def __init__(self, message: str, *, file: str | None = None):
+        self.file = file
+        super().__init__(f"{file}: {message}" if file else message)
+
+
+class ModelError(RvNoiseError):
+    """A model was given parameters or data it cannot work with: names the model and the field."""
+
+    def __init__(self, message: str, *, model: str | None = None, field: str | None = None):
+        self.model, self.field = model, field
+        where = ".".join(p for p in (model, field) if p)
+        super().__init__(f"{where}: {message}" if where else message)

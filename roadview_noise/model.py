@@ -1,0 +1,140 @@
+"""The model contract: stages (D3.5 compounding positions), scopes, unit-named validated parameters.
+
+A model is a frozen dataclass whose fields are its physical parameters, declared with :func:`param` (unit, range,
+documentation). It implements:
+
+- ``draw_sequence(rng, data) -> dict``: sensor-instance state (scope SEQUENCE only), drawn once per sequence from
+  ``derive_rng(seed, "sequence", sequence_id, model_id)``; JSON-able (lists, floats), recorded in the manifest.
+- ``draw(rng, data) -> dict``: per-frame scalar random choices, recorded in the manifest.
+- ``apply(data, *, state, drawn, rng) -> (data, diagnostics)``: deterministic given ``state`` and ``drawn`` except
+  for high-dimensional noise taken from ``rng``; never mutates ``data``; diagnostics is a JSON-able dict.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from enum import Enum, IntEnum
+from typing import Any, ClassVar, Sequence
+
+import numpy as np
+
+from .errors import ModelError
+
+
+class Stage(IntEnum):
+    """Position in the sensing chain (models.md §1): scene → emitter → medium → window/lens → detector → encoding.
+
+    Eq. 1 factors sit before MEDIUM, Eq. 2 factors are MODIFIERs of the medium, Eq. 3 factors come after it."""
+
+    SCENE = 10         # scene illumination (low light)                                   Eq. 1
+    EMITTER = 20       # beam geometry and power (LiDAR alignment, gain; radar mounting)  Eq. 1
+    RAY_DROP = 30      # returns missing before propagation                               Eq. 1
+    MODIFIER = 40      # changes the weather process itself (wind)                         Eq. 2
+    MEDIUM = 50        # propagation through fog, rain, snow
+    WINDSCREEN = 60    # refraction by the windscreen                                     Eq. 3
+    WINDOW = 70        # lens surface, sensor window, radome (soiling, obstruction)       Eq. 3
+    EXPOSURE = 80      # integration on the detector (motion blur)                        Eq. 3
+    ELECTRONICS = 90   # detector and receiver electronics (bias, noise)                  Eq. 3
+    ENCODING = 100     # ISP and lossy compression                                        Eq. 3
+
+
+class Scope(str, Enum):
+    FRAME = "frame"          # everything drawn per frame
+    SEQUENCE = "sequence"    # has sensor-instance state shared by every frame of a sequence
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """What ``rvnoise show`` prints and the recipe validates for one parameter."""
+
+    name: str
+    unit: str
+    default: Any
+    doc: str
+    ge: float | None = None
+    le: float | None = None
+    gt: float | None = None
+    lt: float | None = None
+    choices: tuple | None = None
+
+    def range_text(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(map(str, self.choices))
+        lo = f"≥ {self.ge:g}" if self.ge is not None else (f"> {self.gt:g}" if self.gt is not None else "")
+        hi = f"≤ {self.le:g}" if self.le is not None else (f"< {self.lt:g}" if self.lt is not None else "")
+        return ", ".join(p for p in (lo, hi) if p) or "any"
+
+    def check(self, value: Any) -> str | None:
+        """None if ``value`` is allowed, else the reason."""
+        if self.choices is not None:
+            return None if value in self.choices else f"must be {self.range_text()}, got {value!r}"
+        if isinstance(self.default, bool):
+            return None if isinstance(value, bool) else f"must be true or false, got {value!r}"
+        if isinstance(self.default, (int, float)) and not isinstance(self.default, bool):
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                return f"must be a number, got {value!r}"
+            if isinstance(self.default, int) and not float(value).is_integer():
+                return f"must be an integer, got {value!r}"
+            v = float(value)
+            if math.isnan(v):
+                return "must not be NaN"
+            for bound, ok in ((self.ge, lambda b: v >= b), (self.le, lambda b: v <= b),
+                              (self.gt, lambda b: v > b), (self.lt, lambda b: v < b)):
+                if bound is not None and not ok(bound):
+                    return f"must be {self.range_text()}, got {value!r}"
+        return None
+
+
+def param(default: Any, *, unit: str = "1", doc: str = "", ge: float | None = None, le: float | None = None,
+          gt: float | None = None, lt: float | None = None, choices: Sequence | None = None) -> Any:
+    """Declare a model parameter (a dataclass field carrying its unit, range and documentation)."""
+    meta = dict(unit=unit, doc=doc, ge=ge, le=le, gt=gt, lt=lt, choices=tuple(choices) if choices else None)
+    if isinstance(default, (list, tuple)):
+        default = tuple(default)
+    return dataclasses.field(default=default, metadata={"rvnoise": meta})
+
+
+@dataclass(frozen=True)
+class Model:
+    """Base class of every noise model; subclasses are frozen dataclasses registered with ``@register``."""
+
+    id: ClassVar[str]
+    stage: ClassVar[Stage]
+    sensor: ClassVar[str]                    # "camera" | "lidar" | "radar"
+    scope: ClassVar[Scope] = Scope.FRAME
+    needs_depth: ClassVar[bool] = False      # camera models that need a depth map
+    summary: ClassVar[str] = ""              # one line for `rvnoise list`
+
+    def __post_init__(self) -> None:
+        for spec in self.param_specs():
+            problem = spec.check(getattr(self, spec.name))
+            if problem:
+                raise ModelError(problem, model=self.id, field=spec.name)
+        self.validate()
+
+    def validate(self) -> None:
+        """Cross-parameter checks; raise ``ModelError`` naming the field."""
+
+    @classmethod
+    def param_specs(cls) -> list[ParamSpec]:
+        specs = []
+        for f in dataclasses.fields(cls):
+            meta = f.metadata.get("rvnoise")
+            if meta is None:
+                continue
+            specs.append(ParamSpec(name=f.name, default=f.default, **meta))
+        return specs
+
+    def params(self) -> dict[str, Any]:
+        return {s.name: getattr(self, s.name) for s in self.param_specs()}
+
+    def draw_sequence(self, rng: np.random.Generator, data: Any) -> dict:
+        return {}
+
+    def draw(self, rng: np.random.Generator, data: Any) -> dict:
+        return {}
+
+    def apply(self, data: Any, *, state: dict, drawn: dict, rng: np.random.Generator) -> tuple[Any, dict]:
+        raise NotImplementedError  # abstract: every registered model overrides it

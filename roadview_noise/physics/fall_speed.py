@@ -1,0 +1,23 @@
+"""Terminal fall speeds of hydrometeors (models.md §2.2, §2.3, §4.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+STANDARD_GRAVITY_M_PER_S2 = 9.80665
+
+
+def atlas_ulbrich_m_per_s(d_mm) -> np.ndarray:
+    """Raindrop terminal speed, Atlas & Ulbrich (1977): ``v = 3.778 D^0.67`` m/s, D in mm (valid 0.5–5 mm)."""
+    return 3.778 * np.asarray(d_mm, dtype=float) ** 0.67
+
+
+def snow_power_law_m_per_s(d_mm, a_m_per_s: float = 0.8, b: float = 0.16) -> np.ndarray:
+    """Snowflake terminal speed ``v = a D^b`` (D in mm); default a = 0.8 m/s, b = 0.16 for unrimed aggregates
+    (models.md §2.3 [PROP]; replaces the reference's garbled constant 0.65 m/s)."""
+    return a_m_per_s * np.asarray(d_mm, dtype=float) ** b
+
+
+def relaxation_time_s(v_terminal_m_per_s) -> np.ndarray:
+    """Time constant with which a particle's horizontal velocity follows the wind, ``τ_p ≈ v_t / g`` (§2.9)."""
+    return np.asarray(v_terminal_m_per_s, dtype=float) / STANDARD_GRAVITY_M_PER_S2

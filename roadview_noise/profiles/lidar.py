@@ -1,0 +1,189 @@
+"""LiDAR sensor profiles (models.md §3.0) and ring (beam index) recovery.
+
+Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, default for the D3.5 CNFs), ``vls-128``
+(Velodyne per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and
+``kitti-hdl64`` (uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Files: an Ouster metadata
+JSON (``beam_altitude_angles``), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML
+profile.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..errors import InputError
+from ..types import IntensityUnit, LidarProfile
+
+_DATA = Path(__file__).with_name("data")
+
+
+def _table(name: str) -> dict:
+    return yaml.safe_load((_DATA / name).read_text())
+
+
+def os1_128() -> LidarProfile:
+    """Ouster OS1-128: 865 nm, 2048 columns, 120 m, signal in photon counts (16-bit); real beam table."""
+    t = _table("os1_128.yaml")
+    return LidarProfile(
+        "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,
+        wavelength_m=865e-9, beam_radius_m=4.75e-3, pulse_half_power_width_s=10e-9, max_range_m=120.0,
+        intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, detection_threshold=2.42,
+        beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static")
+
+
+def vls_128() -> LidarProfile:
+    """Velodyne VLS-128 (Alpha Prime): 903 nm, 1800 columns (0.2°), 245 m, 8-bit intensity, rotating head."""
+    t = _table("vls_128.yaml")
+    return LidarProfile(
+        "vls-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=1800,
+        wavelength_m=903e-9, beam_radius_m=6.0e-3, beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9,
+        max_range_m=245.0, intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0, detection_threshold=1.0,
+        window="rotating")
+
+
+def uniform(name: str, channels: int, fov_up_deg: float, fov_down_deg: float, **kw) -> LidarProfile:
+    """Evenly spaced beams from ``fov_up_deg`` (ring 0) down to ``fov_down_deg``, no azimuth offsets."""
+    elev = np.linspace(fov_up_deg, fov_down_deg, channels)
+    return LidarProfile(name, tuple(float(e) for e in elev), (0.0,) * channels, **kw)
+
+
+def carla_64() -> LidarProfile:
+    """CARLA ray-cast LiDAR: 64 uniform channels +2°…−24.8°, intensity in [0, 1]."""
+    return uniform("carla-64", 64, 2.0, -24.8, columns=2048, wavelength_m=905e-9, max_range_m=100.0,
+                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, detection_threshold=0.005)
+
+
+def kitti_hdl64() -> LidarProfile:
+    """KITTI HDL-64E, uniform approximation (+2°…−24.8°), 905 nm, reflectance-like intensity in [0, 1]."""
+    return uniform("kitti-hdl64", 64, 2.0, -24.8, columns=2083, wavelength_m=905e-9, beam_radius_m=5e-3,
+                   beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9, max_range_m=120.0,
+                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, detection_threshold=0.005,
+                   window="rotating")
+
+
+BUILTIN = {"os1-128": os1_128, "vls-128": vls_128, "carla-64": carla_64, "kitti-hdl64": kitti_hdl64}
+
+
+def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:
+    """Profile from an Ouster sensor metadata JSON (``beam_altitude_angles``, beam-origin and z offsets)."""
+    try:
+        j = json.loads(Path(path).read_text())
+        elev = tuple(float(a) for a in j["beam_altitude_angles"])
+        azim = tuple(float(a) for a in j.get("beam_azimuth_angles", [0.0] * len(elev)))
+        origin = float(j.get("lidar_origin_to_beam_origin_mm", 0.0)) / 1000
+        z = float(j.get("lidar_to_sensor_transform", [0.0] * 12)[11]) / 1000
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as e:
+        raise InputError(f"not an Ouster metadata JSON with beam_altitude_angles ({e})", file=str(path)) from None
+    base = os1_128() if len(elev) == 128 else dataclasses.replace(os1_128(), name=f"ouster-{len(elev)}")
+    return dataclasses.replace(base, name=overrides.pop("name", base.name), beam_elevation_deg=elev,
+                               beam_azimuth_offset_deg=azim, beam_origin_offset_m=origin, sensor_z_offset_m=z,
+                               **overrides)
+
+
+def from_beam_table_csv(path: Path, base: LidarProfile | None = None, **overrides) -> LidarProfile:
+    """Profile from a per-laser CSV ``laser_id, elevation_deg, azimuth_offset_deg`` (rows in laser order)."""
+    try:
+        with open(path, newline="") as fh:
+            rows = sorted(csv.DictReader(fh), key=lambda r: int(r["laser_id"]))
+        elev = tuple(float(r["elevation_deg"]) for r in rows)
+        azim = tuple(float(r.get("azimuth_offset_deg") or 0.0) for r in rows)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"not a beam table CSV with laser_id, elevation_deg ({e})", file=str(path)) from None
+    base = base or vls_128()
+    return dataclasses.replace(base, name=overrides.pop("name", Path(path).stem), beam_elevation_deg=elev,
+                               beam_azimuth_offset_deg=azim, **overrides)
+
+
+def load_lidar_profile(spec: str | dict | None, *, base_dir: Path | None = None) -> LidarProfile:
+    """A built-in name, a file (``.json`` Ouster metadata, ``.csv`` beam table, ``.yaml`` profile) or a mapping
+    ``{base: NAME_OR_FILE, <LidarProfile field>: value, ...}`` overriding fields of a base profile."""
+    if spec is None:
+        return os1_128()
+    if isinstance(spec, dict):
+        spec = dict(spec)
+        base = load_lidar_profile(spec.pop("base", None), base_dir=base_dir)
+        return _override(base, spec, "profile")
+    if spec in BUILTIN:
+        return BUILTIN[spec]()
+    path = Path(spec) if base_dir is None or Path(spec).is_absolute() else base_dir / spec
+    if not path.is_file():
+        raise InputError(f"no LiDAR profile {spec!r}: not a built-in ({', '.join(BUILTIN)}) nor a file",
+                         file=str(path))
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        return from_ouster_metadata(path)
+    if suffix == ".csv":
+        return from_beam_table_csv(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise InputError(f"not valid YAML ({e})", file=str(path)) from None
+    if not isinstance(data, dict):
+        raise InputError("a LiDAR profile file must hold a mapping", file=str(path))
+    base = load_lidar_profile(data.pop("base", None), base_dir=path.parent)
+    return _override(base, data, str(path))
+
+
+def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
+    allowed = {f.name for f in dataclasses.fields(LidarProfile)}
+    unknown = set(fields) - allowed
+    if unknown:
+        raise InputError(f"unknown LiDAR profile keys {sorted(unknown)} (allowed: {sorted(allowed)})", file=source)
+    for k in ("beam_elevation_deg", "beam_azimuth_offset_deg"):
+        if k in fields:
+            fields[k] = tuple(float(v) for v in fields[k])
+    if "beam_elevation_deg" in fields and "beam_azimuth_offset_deg" not in fields:
+        fields["beam_azimuth_offset_deg"] = (0.0,) * len(fields["beam_elevation_deg"])
+    if len(fields.get("beam_elevation_deg", base.beam_elevation_deg)) != len(
+            fields.get("beam_azimuth_offset_deg", base.beam_azimuth_offset_deg)):
+        raise InputError("beam_elevation_deg and beam_azimuth_offset_deg differ in length", file=source)
+    return dataclasses.replace(base, **fields)
+
+
+# --- ring recovery (models.md §3.0) --------------------------------------------------------------------------------
+
+
+def beam_elevation_rad(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    """Elevation of each point as seen from its beam origin: the sensor z offset is removed, and the horizontal
+    beam-origin offset (Ouster) is subtracted from the horizontal range."""
+    p = np.asarray(positions_m, dtype=np.float64)
+    z = p[:, 2] - profile.sensor_z_offset_m
+    rho = np.hypot(p[:, 0], p[:, 1]) - profile.beam_origin_offset_m
+    return np.arctan2(z, rho)
+
+
+@lru_cache(maxsize=16)
+def _sorted_table(elevations: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    e = np.deg2rad(np.asarray(elevations))
+    order = np.argsort(e, kind="stable")
+    return e[order], order
+
+
+def recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    """Ring (index into the profile's beam table) of each point: the beam of nearest elevation (uint16).
+
+    Reliable when elevation noise is below half the beam spacing; assign rings *before* perturbing the cloud."""
+    elev = beam_elevation_rad(positions_m, profile)
+    table, order = _sorted_table(profile.beam_elevation_deg)
+    i = np.clip(np.searchsorted(table, elev), 1, len(table) - 1)
+    nearer_low = (elev - table[i - 1]) < (table[i] - elev)
+    return order[np.where(nearer_low, i - 1, i)].astype(np.uint16)
+
+
+def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
+    """The cloud's ``ring`` field when present (checked against the profile's channel count), else recovered."""
+    profile = profile or cloud.profile
+    if "ring" in cloud.fields:
+        ring = np.asarray(cloud.fields["ring"]).astype(np.int64)
+        if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
+            raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
+                             f"profile {profile.name!r}; give the matching sensor profile")
+        return ring
+    return recover_ring(cloud.positions_m, profile).astype(np.int64)

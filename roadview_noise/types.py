@@ -1,0 +1,353 @@
+"""Data types passed between I/O and models: frames, point clouds, sensor profiles, coupling conditions.
+
+Physics never sees file formats: readers build these objects, models transform them, writers encode them.
+All arrays are owned by the object; models return new objects (``dataclasses.replace``) and never mutate input.
+
+Conventions
+- Vehicle/sensor frame for 3-D vectors (point positions, wind, ego velocity): x forward, y left, z up (ISO 8855).
+- Camera images are linear radiance in RGB order, float32, 1.0 = full scale of the input encoding;
+  sRGB ↔ linear and BGR ↔ RGB happen once, in ``roadview_noise.io``.
+- Raw Bayer frames keep digital numbers (as float32, exact for 16-bit) with the CFA pattern and levels as stated by
+  the file; rounding/clipping happens once, at writing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, Mapping, Union
+
+import numpy as np
+
+# ---------------------------------------------------------------------------------------------------------------
+# Coupling between models (D3.5 Eq. 1 and Eq. 2)
+
+
+@dataclass(frozen=True)
+class Conditions:
+    """Scene conditions that earlier stages hand to the weather model (models.md §1).
+
+    - ``wind_velocity_m_per_s``: steady wind in the sensor frame (x forward, y left, z up); set by ``wind.*``.
+    - ``ego_velocity_m_per_s``: sensor velocity in the sensor frame.
+    - ``luminance_factor``: scene illumination relative to the input (low light sets it < 1); weather models
+      scale airlight and particle radiance estimated from the image by nothing else: they estimate them from the
+      (already darkened) frame, and may use this factor for parameters given in absolute terms.
+    """
+
+    wind_velocity_m_per_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    ego_velocity_m_per_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    luminance_factor: float = 1.0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Sensor profiles
+
+
+@dataclass(frozen=True)
+class CameraProfile:
+    """Pinhole camera: one intrinsic matrix K is the single source of truth (models.md §2.0 [PROP]).
+
+    ``pixel_pitch_m`` and ``focal_length_m`` are used only for defocus (circle of confusion)."""
+
+    name: str
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    exposure_time_s: float = 0.005
+    pixel_pitch_m: float = 4.5e-6
+    focal_length_m: float = 6.0e-3
+    f_number: float = 2.1
+    height_above_ground_m: float = 1.0
+    focus_distance_m: float = math.inf
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def fov_h_deg(self) -> float:
+        return math.degrees(2 * math.atan(self.width_px / (2 * self.fx_px)))
+
+    @property
+    def fov_v_deg(self) -> float:
+        return math.degrees(2 * math.atan(self.height_px / (2 * self.fy_px)))
+
+    @classmethod
+    def from_fov(cls, name: str, width_px: int, height_px: int, fov_h_deg: float, fov_v_deg: float | None = None,
+                 **kw: Any) -> "CameraProfile":
+        """Centred pinhole from field of view; square pixels unless ``fov_v_deg`` is given (CARLA style)."""
+        fx = width_px / (2 * math.tan(math.radians(fov_h_deg) / 2))
+        fy = fx if fov_v_deg is None else height_px / (2 * math.tan(math.radians(fov_v_deg) / 2))
+        return cls(name, width_px, height_px, fx, fy, width_px / 2, height_px / 2, **kw)
+
+    def resized(self, width_px: int, height_px: int) -> "CameraProfile":
+        """The same optics sampled on a different pixel grid (pitch scales with the grid)."""
+        sx, sy = width_px / self.width_px, height_px / self.height_px
+        return dataclasses.replace(self, width_px=width_px, height_px=height_px, fx_px=self.fx_px * sx,
+                                   fy_px=self.fy_px * sy, cx_px=self.cx_px * sx, cy_px=self.cy_px * sy,
+                                   pixel_pitch_m=self.pixel_pitch_m / sx)
+
+
+class IntensityUnit:
+    """Names of LiDAR intensity units (models.md §0.3). Every threshold is expressed in the input's unit."""
+
+    PHOTONS = "photons"  # Ouster signal, photon-count like, up to 2**16
+    UINT8 = "uint8"      # Velodyne 8-bit intensity/reflectivity
+    UNIT = "unit"        # CARLA / KITTI float intensity in [0, 1]
+    ALL = (PHOTONS, UINT8, UNIT)
+
+
+@dataclass(frozen=True)
+class LidarProfile:
+    """A spinning LiDAR (models.md §3.0). Beam tables are indexed by ring (the input's ring/channel number)."""
+
+    name: str
+    beam_elevation_deg: tuple[float, ...]
+    beam_azimuth_offset_deg: tuple[float, ...]
+    columns: int = 2048
+    wavelength_m: float = 865e-9
+    beam_radius_m: float = 4.75e-3
+    beam_divergence_rad: float = 0.0
+    pulse_half_power_width_s: float = 10e-9
+    max_range_m: float = 120.0
+    intensity_unit: str = IntensityUnit.PHOTONS
+    intensity_full_scale: float = 65535.0
+    detection_threshold: float = 2.42          # in intensity_unit
+    beam_origin_offset_m: float = 0.0          # Ouster lidar_origin_to_beam_origin (horizontal)
+    sensor_z_offset_m: float = 0.0             # Ouster lidar_to_sensor_transform z (points are in the sensor frame)
+    window: str = "static"                     # "static" (Ouster) or "rotating" (Velodyne head), §3.8
+
+    @property
+    def channels(self) -> int:
+        return len(self.beam_elevation_deg)
+
+
+@dataclass(frozen=True)
+class RadarProfile:
+    """A 4D imaging radar (models.md §4)."""
+
+    name: str
+    frequency_hz: float = 77e9
+    fov_azimuth_deg: float = 120.0
+    fov_elevation_deg: float = 30.0
+    azimuth_resolution_deg: float = 1.0
+    elevation_resolution_deg: float = 2.0
+    range_resolution_m: float = 0.2
+    max_range_m: float = 200.0
+    if_bandwidth_hz: float = 20e6
+    noise_figure_db: float = 12.0
+    snr_threshold_db: float | None = None     # None: estimated per sequence from the clear data
+    rcs_compensates_weather: bool = False
+
+
+SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]
+
+# ---------------------------------------------------------------------------------------------------------------
+# Camera data
+
+
+@dataclass(frozen=True)
+class ImageEncoding:
+    """How a camera frame is stored, so the writer can put it back the same way."""
+
+    fmt: str = "png"           # png | jpeg | tiff
+    bit_depth: int = 8         # 8 | 16
+    transfer: str = "srgb"     # srgb | linear
+    channels: int = 3          # 3 (colour) | 1 (grey)
+    jpeg_quality: int = 95
+
+
+@dataclass(frozen=True, eq=False)
+class CameraFrame:
+    """Linear RGB radiance (H, W, 3) float32, 1.0 = encoding full scale; depth is range along the pixel ray (m),
+    ``inf`` for sky."""
+
+    linear_rgb: np.ndarray
+    profile: CameraProfile
+    depth_m: np.ndarray | None = None
+    encoding: ImageEncoding = field(default_factory=ImageEncoding)
+    conditions: Conditions = field(default_factory=Conditions)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.linear_rgb.shape[:2]
+
+    # --- per-site API shared with RawFrame: per-channel physics is written once for both ----------------------
+    def signal(self) -> np.ndarray:
+        """Linear signal per site, (H, W, 3)."""
+        return self.linear_rgb
+
+    def channel_index(self) -> np.ndarray:
+        """Colour index (0 R, 1 G, 2 B) of each site, broadcastable to ``signal()``."""
+        return np.arange(3).reshape(1, 1, 3)
+
+    def site_depth_m(self) -> np.ndarray:
+        """Range along the ray per site, broadcastable to ``signal()``."""
+        return self.depth_m[..., None]
+
+    def with_signal(self, signal: np.ndarray) -> "CameraFrame":
+        return dataclasses.replace(self, linear_rgb=np.asarray(signal, dtype=np.float32))
+
+
+CFA_PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
+
+
+def cfa_index_map(pattern: str, height: int, width: int) -> np.ndarray:
+    """(H, W) int8 colour index (0 R, 1 G, 2 B) of each Bayer site for a 2×2 pattern such as ``RGGB``."""
+    if pattern not in CFA_PATTERNS:
+        raise ValueError(f"unknown CFA pattern {pattern!r}; expected one of {CFA_PATTERNS}")
+    cell = np.array([["RGB".index(c) for c in pattern[:2]], ["RGB".index(c) for c in pattern[2:]]], dtype=np.int8)
+    return np.tile(cell, ((height + 1) // 2, (width + 1) // 2))[:height, :width]
+
+
+@dataclass(frozen=True)
+class RawEncoding:
+    fmt: str = "dng"           # dng | raw (plain uint16 + YAML sidecar)
+    bits_per_sample: int = 16
+
+
+@dataclass(frozen=True, eq=False)
+class RawFrame:
+    """Bayer digital numbers (H, W) as float32 (exact for 16-bit), never rescaled; levels as stated by the file."""
+
+    dn: np.ndarray
+    cfa_pattern: str
+    black_level_dn: float
+    white_level_dn: float
+    profile: CameraProfile
+    depth_m: np.ndarray | None = None
+    encoding: RawEncoding = field(default_factory=RawEncoding)
+    conditions: Conditions = field(default_factory=Conditions)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.dn.shape
+
+    def signal(self) -> np.ndarray:
+        """Linear signal per site, (H, W): 0 at black level, 1 at white level."""
+        return ((self.dn - self.black_level_dn) / (self.white_level_dn - self.black_level_dn)).astype(np.float32)
+
+    def channel_index(self) -> np.ndarray:
+        return cfa_index_map(self.cfa_pattern, *self.dn.shape)
+
+    def site_depth_m(self) -> np.ndarray:
+        return self.depth_m
+
+    def with_signal(self, signal: np.ndarray) -> "RawFrame":
+        dn = np.asarray(signal, dtype=np.float32) * (self.white_level_dn - self.black_level_dn) + self.black_level_dn
+        return dataclasses.replace(self, dn=dn.astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Point clouds
+
+
+class PointLabel(IntEnum):
+    """Per-point provenance written by weather/obstruction models (``label`` field), for training denoisers."""
+
+    KEPT = 0          # unchanged by the weather
+    ATTENUATED = 1    # same position, intensity/SNR reduced
+    MOVED = 2         # moved along its ray to a weather particle (soft-target return)
+    ADDED = 3         # new point from a weather particle (on an empty ray, or clutter)
+
+
+@dataclass(frozen=True)
+class CloudLayout:
+    """How a cloud was stored: format and the per-point fields in file order as (canonical name, file name, dtype).
+
+    Canonical names: x, y, z, intensity, ring, time_s, rcs_dbsm, v_r_m_per_s, v_r_comp_m_per_s, snr_db, power_db,
+    label; any other field keeps its file name."""
+
+    fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | npz
+    fields: tuple[tuple[str, str, str], ...]
+    pcd_data: str = "binary"                             # ascii | binary | binary_compressed
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloud:
+    """Positions (N, 3) float64 in metres plus named per-point fields, all aligned.
+
+    ``grid_shape`` is set when the points are a full rows × columns range image in row-major order, including
+    no-return cells (all-zero position): models then keep N fixed and mark removed points with zeros."""
+
+    positions_m: np.ndarray
+    fields: Mapping[str, np.ndarray]
+    sensor: str                                          # "lidar" | "radar"
+    profile: LidarProfile | RadarProfile | None = None
+    layout: CloudLayout | None = None
+    grid_shape: tuple[int, int] | None = None
+    conditions: Conditions = field(default_factory=Conditions)
+
+    def __post_init__(self):
+        n = len(self.positions_m)
+        for name, arr in self.fields.items():
+            if len(arr) != n:
+                raise ValueError(f"field {name!r} has {len(arr)} values for {n} points")
+
+    def __len__(self) -> int:
+        return len(self.positions_m)
+
+    @property
+    def ranges_m(self) -> np.ndarray:
+        return np.linalg.norm(self.positions_m, axis=1)
+
+    def field(self, name: str) -> np.ndarray:
+        try:
+            return self.fields[name]
+        except KeyError:
+            raise KeyError(f"point cloud has no field {name!r} (has {sorted(self.fields)})") from None
+
+    def select(self, mask_or_index: np.ndarray) -> "PointCloud":
+        """Keep the points selected by a boolean mask or an index array; every field stays aligned."""
+        if self.grid_shape is not None:
+            raise ValueError("select() would break a full range-image grid; use drop() instead")
+        return dataclasses.replace(self, positions_m=self.positions_m[mask_or_index],
+                                   fields={k: v[mask_or_index] for k, v in self.fields.items()})
+
+    def drop(self, mask: np.ndarray) -> "PointCloud":
+        """Remove the points in ``mask``: deleted from a list, set to no-return (zeros, ring kept) in a grid."""
+        if self.grid_shape is None:
+            return self.select(~mask)
+        pos = self.positions_m.copy()
+        pos[mask] = 0.0
+        fields = {}
+        for k, v in self.fields.items():
+            if k == "ring":
+                fields[k] = v
+            else:
+                v = v.copy()
+                v[mask] = 0
+                fields[k] = v
+        return dataclasses.replace(self, positions_m=pos, fields=fields)
+
+    def with_fields(self, **fields: np.ndarray) -> "PointCloud":
+        return dataclasses.replace(self, fields={**self.fields, **fields})
+
+    def concat(self, other_positions_m: np.ndarray, other_fields: Mapping[str, np.ndarray]) -> "PointCloud":
+        """Append points (e.g. weather returns); fields missing from ``other_fields`` are zero-filled."""
+        if self.grid_shape is not None:
+            raise ValueError("cannot append points to a full range-image grid")
+        m = len(other_positions_m)
+        fields = {}
+        for k, v in self.fields.items():
+            extra = other_fields.get(k)
+            extra = np.zeros(m, dtype=v.dtype) if extra is None else np.asarray(extra, dtype=v.dtype)
+            fields[k] = np.concatenate([v, extra])
+        unknown = set(other_fields) - set(self.fields)
+        if unknown:
+            raise ValueError(f"fields {sorted(unknown)} are not in the cloud")
+        return dataclasses.replace(self, positions_m=np.concatenate([self.positions_m, other_positions_m]),
+                                   fields=fields)
+
+
+SensorData = Union[CameraFrame, RawFrame, PointCloud]
+
+
+def sensor_kind(data: SensorData) -> str:
+    """'camera' for camera and raw frames, else the cloud's sensor ('lidar' | 'radar')."""
+    return "camera" if isinstance(data, (CameraFrame, RawFrame)) else data.sensor
