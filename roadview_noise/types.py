@@ -158,7 +158,7 @@ class ImageEncoding:
     fmt: str = "png"           # png | jpeg | tiff
     bit_depth: int = 8         # 8 | 16
     transfer: str = "srgb"     # srgb | linear
-    channels: int = 3          # 3 (colour) | 1 (grey)
+    channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
 
 
@@ -172,6 +172,7 @@ class CameraFrame:
     depth_m: np.ndarray | None = None
     encoding: ImageEncoding = field(default_factory=ImageEncoding)
     conditions: Conditions = field(default_factory=Conditions)
+    alpha: np.ndarray | None = None          # (H, W) alpha plane of the file (CARLA BGRA PNG), passed through as is
 
     @property
     def shape(self) -> tuple[int, int]:
