@@ -11,7 +11,7 @@ class RecipeError(RvNoiseError):
     """A recipe is invalid: names the recipe file and the key path."""
 
     def __init__(self, message: str, *, file: str | None = None, key: str | None = None):
-        self.file, self.key = file, key
+        self.file, self.key, self.message = file, key, message
         where = ": ".join(p for p in (file, key) if p)
         super().__init__(f"{where}: {message}" if where else message)
 

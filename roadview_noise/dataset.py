@@ -1,0 +1,224 @@
+"""The input tree: which files a recipe processes (sorted samples with sidecars and sequence ids), how each is read
+into a frame or cloud, and how the result is written back in the input's own format.
+
+Workers receive :class:`Sample` keys, never arrays; all reading and writing happens here and in ``io/``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path, PurePosixPath
+
+from .errors import InputError
+from .io.atomic import TMP_SUFFIX
+from .recipe import InputsSpec, Recipe
+from .types import CameraFrame, LidarProfile, RawEncoding, RawFrame, SensorData
+
+DEFAULT_GLOBS = {
+    "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
+    "raw": ["**/*.dng", "**/*.raw"],
+    "lidar": ["**/*.pcd", "**/*.bin", "**/*.ply"],
+    "radar": ["**/*.pcd", "**/*.bin"],
+}
+MODALITIES = {"camera": ("camera", "raw"), "lidar": ("lidar",), "radar": ("radar",)}
+COMPOUND_SUFFIXES = (".pcd.bin",)
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One input file: POSIX path relative to the input root, modality, sensor instance, sidecar paths."""
+
+    relpath: str
+    modality: str                 # camera | raw | lidar | radar
+    sequence_id: str
+    depth_relpath: str | None = None
+
+
+def split_suffix(relpath: str) -> tuple[str, str]:
+    for s in COMPOUND_SUFFIXES:
+        if relpath.lower().endswith(s):
+            return relpath[: -len(s)], relpath[-len(s):]
+    p = PurePosixPath(relpath)
+    return str(p.with_suffix("")), p.suffix
+
+
+def output_relpath(relpath: str, suffix: str) -> str:
+    """The output path of an input for a sweep variant: ``000001.png`` → ``000001__visibility_m-30.png``."""
+    stem, ext = split_suffix(relpath)
+    return f"{stem}{suffix}{ext}"
+
+
+def depth_relpath_for(relpath: str, pattern: str) -> str:
+    p = PurePosixPath(relpath)
+    stem, _ = split_suffix(p.name)
+    return str(p.parent / pattern.format(stem=stem, name=p.name))
+
+
+def _globs(inputs: InputsSpec, modality: str, explicit: bool) -> list[str]:
+    value = getattr(inputs, modality)
+    if value is None:
+        return [] if explicit else DEFAULT_GLOBS[modality]
+    return [value] if isinstance(value, str) else list(value)
+
+
+def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
+    """Every input of the recipe's sensor under ``in_root``, sorted by path; depth sidecars are not inputs."""
+    inputs = recipe.spec.inputs
+    modalities = MODALITIES[recipe.sensor]
+    explicit = any(getattr(inputs, m) is not None for m in modalities)
+    found: dict[str, str] = {}
+    for modality in modalities:
+        for pattern in _globs(inputs, modality, explicit):
+            for p in in_root.glob(pattern):
+                rel = p.relative_to(in_root).as_posix()
+                if not p.is_file() or TMP_SUFFIX in p.name or any(part.startswith(".") for part in p.parts[-1:]):
+                    continue
+                if any(fnmatch.fnmatch(rel, x) for x in inputs.exclude):
+                    continue
+                found.setdefault(rel, modality)
+    if recipe.sensor == "camera":
+        sidecars = {depth_relpath_for(rel, inputs.depth) for rel in found}
+        found = {rel: m for rel, m in found.items() if rel not in sidecars}
+    samples = []
+    for rel in sorted(found):
+        modality = found[rel]
+        seq = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
+        depth = None
+        if modality in ("camera", "raw"):
+            candidate = depth_relpath_for(rel, inputs.depth)
+            depth = candidate if (in_root / candidate).is_file() else None
+        samples.append(Sample(rel, modality, seq, depth))
+    return samples
+
+
+# --- profiles ------------------------------------------------------------------------------------------------------
+
+
+def _profile_spec(spec, file_dir: Path, recipe: Recipe):
+    """Resolve ``{dir}`` and relative paths of a profile given as a string: recipe folder first, then the file's."""
+    if not isinstance(spec, str):
+        return spec
+    spec = spec.replace("{dir}", str(file_dir))
+    p = Path(spec)
+    if p.is_absolute() or p.suffix == "":
+        return spec
+    for base in (recipe.base_dir, file_dir):
+        if (base / p).is_file():
+            return str(base / p)
+    return spec
+
+
+def _camera_profile(spec, file_dir: Path):
+    """The recipe's camera profile; without one, a ``camera.yaml`` next to the image, else the ROADVIEW Lucid."""
+    from .profiles.camera import load_camera_profile
+
+    if isinstance(spec, dict):
+        return load_camera_profile(spec)
+    if spec is None:
+        sidecar = file_dir / "camera.yaml"
+        spec = str(sidecar) if sidecar.is_file() else None
+    return _camera_profile_cached(spec)
+
+
+@lru_cache(maxsize=64)
+def _camera_profile_cached(spec: str | None):
+    from .profiles.camera import load_camera_profile
+
+    return load_camera_profile(spec)
+
+
+@lru_cache(maxsize=64)
+def _lidar_profile(spec_key, unit, full_scale) -> LidarProfile:
+    from .profiles.lidar import load_lidar_profile
+
+    profile = load_lidar_profile(spec_key if not isinstance(spec_key, tuple) else dict(spec_key))
+    changes = {}
+    if unit is not None:
+        changes["intensity_unit"] = unit
+    if full_scale is not None:
+        changes["intensity_full_scale"] = full_scale
+    return dataclasses.replace(profile, **changes) if changes else profile
+
+
+@lru_cache(maxsize=64)
+def _radar_profile(spec_key):
+    from .profiles.radar import load_radar_profile
+
+    return load_radar_profile(spec_key if not isinstance(spec_key, tuple) else dict(spec_key))
+
+
+def _hashable(spec):
+    return tuple(sorted(spec.items())) if isinstance(spec, dict) else spec
+
+
+# --- reading and writing -------------------------------------------------------------------------------------------
+
+
+def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
+    """Read one sample (and the sidecars the chain needs) into a frame or cloud; InputError names the file."""
+    from .io import depth as depth_io
+    from .io import image as image_io
+    from .io import pointcloud as cloud_io
+    from .io import raw as raw_io
+    from .profiles.camera import fit_to_image
+
+    inputs = recipe.spec.inputs
+    path = in_root / sample.relpath
+    file_dir = path.parent
+    if sample.modality in ("camera", "raw"):
+        profile = _camera_profile(_profile_spec(inputs.camera_profile, file_dir, recipe), file_dir)
+        if sample.modality == "camera":
+            linear, encoding, alpha = image_io.read_image(path)
+            h, w = linear.shape[:2]
+            frame = CameraFrame(linear, fit_to_image(profile, w, h, source=str(path)), encoding=encoding,
+                                alpha=alpha)
+        else:
+            reader = raw_io.read_dng if path.suffix.lower() == ".dng" else raw_io.read_plain_raw
+            dn, pattern, black, white = reader(path)
+            h, w = dn.shape
+            frame = RawFrame(dn.astype("float32"), pattern, float(black), float(white),
+                             fit_to_image(profile, w, h, source=str(path)),
+                             encoding=RawEncoding(fmt="dng" if path.suffix.lower() == ".dng" else "raw"))
+        if recipe.needs_depth():
+            if sample.depth_relpath is None:
+                needing = [m for m in recipe.model_ids if _needs_depth(m)]
+                raise InputError(f"no depth sidecar {depth_relpath_for(sample.relpath, inputs.depth)!r} "
+                                 f"(needed by {', '.join(needing)})", file=str(path))
+            depth = depth_io.read_depth(in_root / sample.depth_relpath, profile=frame.profile,
+                                        expected_shape=(h, w), planar=inputs.depth_kind == "planar")
+            frame = dataclasses.replace(frame, depth_m=depth)
+        return frame
+    if sample.modality == "lidar":
+        spec = _profile_spec(inputs.lidar_profile, file_dir, recipe)
+        profile = _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
+    else:
+        profile = _radar_profile(_hashable(_profile_spec(inputs.radar_profile, file_dir, recipe)))
+    return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
+                                    field_map=dict(inputs.field_map) or None)
+
+
+def _needs_depth(model_id: str) -> bool:
+    from .registry import get_model
+
+    return get_model(model_id).needs_depth
+
+
+def save(data: SensorData, out_path: Path, recipe: Recipe) -> None:
+    """Write a result in the input's own format (atomically, by the io writers)."""
+    from .io import image as image_io
+    from .io import pointcloud as cloud_io
+    from .io import raw as raw_io
+
+    if isinstance(data, CameraFrame):
+        image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
+    elif isinstance(data, RawFrame):
+        import numpy as np
+
+        dn = np.clip(np.rint(data.dn), 0, data.white_level_dn).astype(np.uint16)  # the sensor saturates
+        writer = raw_io.write_dng if data.encoding.fmt == "dng" else raw_io.write_plain_raw
+        writer(out_path, dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn)
+    else:
+        cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)

@@ -1,0 +1,85 @@
+"""The run record: ``manifest.jsonl`` (one line per output) and ``run.json`` (tool, libraries, recipe, counts).
+
+A manifest line holds the input and output paths and sha256, the chain, every step's parameters, sensor-instance
+state, drawn values and diagnostics, the time taken and the status — enough for ``rvnoise replay`` to reproduce the
+output byte for byte."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import sys
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from .io.atomic import write_bytes_atomic
+
+MANIFEST_NAME = "manifest.jsonl"
+RUN_NAME = "run.json"
+
+
+def _default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (set, frozenset)):
+        return sorted(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def dumps(obj: Any) -> str:
+    return json.dumps(obj, default=_default, ensure_ascii=False, allow_nan=True)
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def read_manifest(path: str | Path) -> list[dict]:
+    """Entries of a manifest; a line cut short by a killed run is skipped."""
+    entries = []
+    p = Path(path)
+    if not p.is_file():
+        return entries
+    for line in p.read_text(encoding="utf-8").splitlines():
+        try:
+            entries.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return entries
+
+
+def write_manifest(path: str | Path, entries: Iterable[dict]) -> None:
+    write_bytes_atomic(path, "".join(dumps(e) + "\n" for e in entries).encode("utf-8"))
+
+
+def write_run_json(path: str | Path, record: dict) -> None:
+    write_bytes_atomic(path, (json.dumps(record, indent=2, default=_default) + "\n").encode("utf-8"))
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of everything that can change output bytes."""
+    import cv2
+
+    from . import __version__
+
+    versions = {"rvnoise": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
+                "opencv": cv2.__version__}
+    for name in ("scipy", "open3d", "rawpy", "OpenEXR", "tifffile", "miepython"):
+        try:
+            module = __import__(name)
+            versions[name] = str(getattr(module, "__version__", "unknown"))
+        except Exception:  # an optional library that fails to import only loses its version line
+            versions[name] = "unavailable"
+    versions["platform"] = platform.platform()
+    return versions

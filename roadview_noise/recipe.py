@@ -1,0 +1,283 @@
+"""Recipes: YAML → validated pydantic model → resolved chain, parameter specs and sweep variants.
+
+Unknown keys fail at load with the file, the path of the key and a did-you-mean. Parameter values are fixed or
+explicit distributions (``{uniform: [lo, hi]}``, ``{choice: [a, b, ...]}``, ``{normal: [mean, sd]}``) drawn per
+output file from ``derive_rng(seed, key, "params", step, model)``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from .compound import cnf_chain, order_chain
+from .errors import ModelError, RecipeError
+from .registry import get_model, suggest
+
+SCHEMA = "rvnoise.recipe/1"
+DISTRIBUTIONS = ("uniform", "choice", "normal")
+
+Globs = Union[str, list[str]]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+
+class StepSpec(_Strict):
+    model: str
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class InputsSpec(_Strict):
+    """Which files to read and how (globs relative to the input root)."""
+
+    camera: Globs | None = None
+    raw: Globs | None = None
+    lidar: Globs | None = None
+    radar: Globs | None = None
+    exclude: list[str] = Field(default_factory=list)
+    depth: str = "{stem}_depth.exr"            # sidecar next to each image; {stem}, {name}
+    depth_kind: Literal["range", "planar"] = "range"
+    camera_profile: str | dict[str, Any] | None = None   # built-in, file ({dir} = the input file's folder), mapping
+    lidar_profile: str | dict[str, Any] | None = None
+    radar_profile: str | dict[str, Any] | None = None
+    intensity_unit: Literal["photons", "uint8", "unit"] | None = None
+    intensity_full_scale: float | None = Field(default=None, gt=0)
+    field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
+    sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
+
+
+class OutputSpec(_Strict):
+    format: Literal["same"] = "same"
+    labels: Literal["auto", "none"] = "auto"
+
+
+class RecipeSpec(_Strict):
+    schema_: Literal["rvnoise.recipe/1"] = Field(SCHEMA, alias="schema")
+    description: str = ""
+    cnf: str | None = None
+    sensor: Literal["camera", "lidar", "radar"] | None = None
+    chain: list[StepSpec] | None = None
+    order: Literal["physical", "as_written"] = "physical"
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    sweep: dict[str, list[Any]] = Field(default_factory=dict)
+    seed: int = 0
+    inputs: InputsSpec = Field(default_factory=InputsSpec)
+    output: OutputSpec = Field(default_factory=OutputSpec)
+
+    @field_validator("sweep")
+    @classmethod
+    def _sweep_nonempty(cls, v: dict[str, list[Any]]) -> dict[str, list[Any]]:
+        for k, values in v.items():
+            if not values:
+                raise ValueError(f"sweep {k!r} lists no values")
+        return v
+
+
+# --- resolved form -------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One output variant of a sweep: a file-name suffix and the parameter values it fixes."""
+
+    suffix: str
+    overrides: dict[str, dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A validated recipe: models in physical order with their parameter specs, variants, inputs, seed."""
+
+    spec: RecipeSpec
+    source: str
+    base_dir: Path
+    model_ids: tuple[str, ...]
+    step_params: tuple[dict[str, Any], ...]
+    variants: tuple[Variant, ...]
+
+    @property
+    def sensor(self) -> str:
+        return get_model(self.model_ids[0]).sensor
+
+    @property
+    def seed(self) -> int:
+        return self.spec.seed
+
+    def resolved_dict(self) -> dict[str, Any]:
+        """The recipe as run: explicit chain and parameters (what run.json records and replay re-reads)."""
+        d = self.spec.model_dump(mode="json", by_alias=True)
+        d["chain"] = [{"model": m, "params": p} for m, p in zip(self.model_ids, self.step_params)]
+        d["order"] = "as_written"
+        d["cnf"] = None
+        d["params"] = {}
+        return d
+
+    def sha256(self) -> str:
+        return hashlib.sha256(json.dumps(self.resolved_dict(), sort_keys=True).encode()).hexdigest()
+
+    def needs_depth(self) -> bool:
+        return any(get_model(m).needs_depth for m in self.model_ids)
+
+
+def _loc(loc: tuple) -> str:
+    out = ""
+    for p in loc:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def _allowed_keys(loc: tuple) -> list[str]:
+    """Field names allowed at the parent of ``loc`` (for did-you-mean)."""
+    model: Any = RecipeSpec
+    for p in loc[:-1]:
+        if isinstance(p, int) or model is None:
+            continue
+        fld = model.model_fields.get(p)
+        if fld is None:
+            model = None
+            continue
+        ann = fld.annotation
+        args = getattr(ann, "__args__", ())
+        candidates = [ann, *args, *(a for x in args for a in getattr(x, "__args__", ()))]
+        model = next((c for c in candidates if isinstance(c, type) and issubclass(c, BaseModel)), None)
+    if model is None:
+        return []
+    return [f.alias or n for n, f in model.model_fields.items()]
+
+
+def _check_value(model_id: str, name: str, value: Any, key: str, source: str) -> None:
+    cls = get_model(model_id)
+    specs = {s.name: s for s in cls.param_specs()}
+    if name not in specs:
+        raise RecipeError(f"{model_id} has no parameter {name!r}{suggest(name, specs)}; it has: "
+                          f"{', '.join(specs) or 'none'}", file=source, key=key)
+    values: list[Any]
+    if isinstance(value, dict):
+        if len(value) != 1 or next(iter(value)) not in DISTRIBUTIONS:
+            raise RecipeError(f"a distribution is one of {{uniform: [lo, hi]}}, {{choice: [...]}}, "
+                              f"{{normal: [mean, sd]}}; got {value!r}", file=source, key=key)
+        kind, args = next(iter(value.items()))
+        if not isinstance(args, list) or not args or (kind != "choice" and len(args) != 2):
+            raise RecipeError(f"{kind} needs a list{' of two numbers' if kind != 'choice' else ''}, got {args!r}",
+                              file=source, key=key)
+        if kind == "uniform" and not args[0] <= args[1]:
+            raise RecipeError(f"uniform bounds must be [lo, hi] with lo ≤ hi, got {args}", file=source, key=key)
+        if kind == "normal" and not args[1] >= 0:
+            raise RecipeError(f"normal sd must be ≥ 0, got {args[1]}", file=source, key=key)
+        values = args if kind != "normal" else [args[0]]
+    else:
+        values = [value]
+    for v in values:
+        problem = specs[name].check(tuple(v) if isinstance(v, list) else v)
+        if problem:
+            raise RecipeError(problem, file=source, key=key)
+
+
+def draw_value(value: Any, rng) -> Any:
+    """A fixed value as is, or one draw from an explicit distribution."""
+    if not isinstance(value, dict):
+        return tuple(value) if isinstance(value, list) else value
+    kind, args = next(iter(value.items()))
+    if kind == "uniform":
+        return float(rng.uniform(args[0], args[1]))
+    if kind == "normal":
+        return float(rng.normal(args[0], args[1]))
+    choice = args[int(rng.integers(len(args)))]
+    return tuple(choice) if isinstance(choice, list) else choice
+
+
+def _suffix_text(v: Any) -> str:
+    return str(v).replace("/", "_").replace(" ", "")
+
+
+def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None = None) -> Recipe:
+    """Validate a recipe mapping; raises RecipeError naming the file and key path."""
+    if not isinstance(data, dict):
+        raise RecipeError("a recipe is a YAML mapping", file=source)
+    try:
+        spec = RecipeSpec.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        key = _loc(err["loc"])
+        if err["type"] == "extra_forbidden":
+            name = str(err["loc"][-1])
+            raise RecipeError(f"unknown key {name!r}{suggest(name, _allowed_keys(err['loc']))}",
+                              file=source, key=key) from None
+        raise RecipeError(err["msg"], file=source, key=key) from None
+
+    if (spec.cnf is None) == (spec.chain is None):
+        raise RecipeError("give exactly one of `cnf:` or `chain:`", file=source)
+    try:
+        if spec.cnf is not None:
+            ids = cnf_chain(spec.cnf, spec.sensor)
+            ids = order_chain(ids, where="cnf")
+            step_params = [dict(spec.params.get(m, {})) for m in ids]
+            unknown = set(spec.params) - set(ids)
+            if unknown:
+                m = sorted(unknown)[0]
+                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)})", key=f"params.{m}")
+        else:
+            if not spec.chain:
+                raise RecipeError("the chain is empty", key="chain")
+            ids = order_chain([s.model for s in spec.chain], as_written=spec.order == "as_written")
+            step_params = [dict(s.params) for s in spec.chain]
+            for m, p in spec.params.items():
+                if m not in ids:
+                    raise RecipeError(f"{m!r} is not in the chain{suggest(m, ids)}", key=f"params.{m}")
+                step_params[ids.index(m)].update(p)
+        if spec.sensor is not None and get_model(ids[0]).sensor != spec.sensor:
+            raise RecipeError(f"the chain acts on {get_model(ids[0]).sensor}, not {spec.sensor}", key="sensor")
+    except RecipeError as e:
+        raise RecipeError(e.message, file=source, key=e.key) from None
+    except ModelError as e:
+        raise RecipeError(str(e), file=source) from None
+
+    for i, (m, params) in enumerate(zip(ids, step_params)):
+        where = f"chain[{i}].params" if spec.chain is not None else f"params.{m}"
+        for name, value in params.items():
+            _check_value(m, name, value, f"{where}.{name}", source)
+        fixed = {k: draw_value(v, None) for k, v in params.items() if not isinstance(v, dict)}
+        try:
+            get_model(m)(**fixed)
+        except ModelError as e:
+            raise RecipeError(str(e), file=source, key=where) from None
+
+    axes = []
+    for key, values in spec.sweep.items():
+        model_id, _, name = key.rpartition(".")
+        if model_id not in ids:
+            raise RecipeError(f"sweep key must be MODEL.PARAM with a model of the chain{suggest(model_id, ids)}",
+                              file=source, key=f"sweep.{key}")
+        for v in values:
+            _check_value(model_id, name, v, f"sweep.{key}", source)
+        axes.append([(model_id, name, v) for v in values])
+    variants = []
+    for combo in itertools.product(*axes):
+        overrides: dict[str, dict[str, Any]] = {}
+        for model_id, name, v in combo:
+            overrides.setdefault(model_id, {})[name] = v
+        suffix = "".join(f"__{name}-{_suffix_text(v)}" for _, name, v in combo)
+        variants.append(Variant(suffix, overrides))
+    return Recipe(spec, source, base_dir or Path.cwd(), tuple(ids), tuple(step_params), tuple(variants))
+
+
+def load_recipe(path: str | Path) -> Recipe:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise RecipeError(f"cannot read recipe ({e.strerror})", file=str(path)) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise RecipeError(f"not valid YAML: {e}", file=str(path)) from None
+    return parse_recipe(data, source=str(path), base_dir=path.resolve().parent)

@@ -1,0 +1,86 @@
+"""Recipe validation: unknown keys with did-you-mean, value ranges, unknown models, stage order, distributions."""
+
+from __future__ import annotations
+
+import pytest
+
+from roadview_noise.errors import RecipeError
+from roadview_noise.recipe import draw_value, parse_recipe
+from roadview_noise.seeding import derive_rng
+
+CHAIN = {"chain": [{"model": "compression.camera", "params": {"quality": 15}}], "seed": 1}
+
+
+def err(data) -> RecipeError:
+    with pytest.raises(RecipeError) as e:
+        parse_recipe(data, source="r.yaml")
+    return e.value
+
+
+def test_valid_chain_and_cnf():
+    r = parse_recipe(CHAIN, source="r.yaml")
+    assert r.model_ids == ("compression.camera",) and r.sensor == "camera"
+    r = parse_recipe({"cnf": "cnf22"}, source="r.yaml")
+    assert r.model_ids == ("power.lidar", "rain.lidar")
+
+
+def test_unknown_top_level_key_suggests():
+    e = err({**CHAIN, "sede": 3})
+    assert e.file == "r.yaml" and e.key == "sede" and "'seed'" in str(e)
+
+
+def test_unknown_nested_key_suggests():
+    e = err({**CHAIN, "inputs": {"camra": "*.png"}})
+    assert e.key == "inputs.camra" and "'camera'" in str(e)
+
+
+def test_negative_quality_names_the_key():
+    e = err({"chain": [{"model": "compression.camera", "params": {"quality": -5}}]})
+    assert e.key == "chain[0].params.quality" and "-5" in str(e)
+
+
+def test_unknown_model_and_parameter_suggest():
+    e = err({"chain": [{"model": "compresion.camera"}]})
+    assert "compression.camera" in str(e) and e.key == "chain[0].model"
+    e = err({"chain": [{"model": "compression.camera", "params": {"qualty": 10}}]})
+    assert "'quality'" in str(e)
+
+
+def test_unknown_cnf_and_ambiguous_sensor():
+    assert "CNF30" in str(err({"cnf": "CNF31"})) or "CNF01" in str(err({"cnf": "CNF31"}))
+    e = err({"cnf": "CNF25"})
+    assert e.key == "sensor"
+
+
+def test_physically_impossible_order_refused_unless_as_written():
+    chain = [{"model": "rain.lidar"}, {"model": "alignment.lidar"}]
+    e = err({"chain": chain})
+    assert "alignment.lidar → rain.lidar" in str(e)
+    r = parse_recipe({"chain": chain, "order": "as_written"})
+    assert r.model_ids == ("rain.lidar", "alignment.lidar")
+
+
+def test_mixed_sensors_refused():
+    assert "one sensor" in str(err({"chain": [{"model": "compression.camera"}, {"model": "rain.lidar"}]}))
+
+
+def test_distributions_validated_and_drawn_deterministically():
+    e = err({"chain": [{"model": "compression.camera", "params": {"quality": {"uniform": [0, 50]}}}]})
+    assert "quality" in e.key
+    spec = {"uniform": [10, 90]}
+    a = [draw_value(spec, derive_rng(3, "f", i)) for i in range(50)]
+    b = [draw_value(spec, derive_rng(3, "f", i)) for i in range(50)]
+    assert a == b and all(10 <= v <= 90 for v in a) and len(set(a)) == 50
+    assert draw_value({"choice": [20, 40]}, derive_rng(1)) in (20, 40)
+
+
+def test_sweep_gives_one_variant_per_value():
+    r = parse_recipe({**CHAIN, "sweep": {"compression.camera.quality": [10, 50, 90]}})
+    assert [v.suffix for v in r.variants] == ["__quality-10", "__quality-50", "__quality-90"]
+    e = err({**CHAIN, "sweep": {"compression.camera.quality": [0]}})
+    assert e.key == "sweep.compression.camera.quality"
+
+
+def test_params_for_model_not_in_cnf_refused():
+    e = err({"cnf": "CNF22", "params": {"fog.lidar": {"visibility_m": 10}}})
+    assert e.key == "params.fog.lidar"
