@@ -180,6 +180,8 @@ def recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
 def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
     """The cloud's ``ring`` field when present (checked against the profile's channel count), else recovered."""
     profile = profile or cloud.profile
+    if profile is None:
+        raise InputError("the cloud has no sensor profile; the beam table is needed to know each point's ring")
     if "ring" in cloud.fields:
         ring = np.asarray(cloud.fields["ring"]).astype(np.int64)
         if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):

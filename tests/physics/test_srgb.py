@@ -1,0 +1,50 @@
+"""sRGB transfer function (IEC 61966-2-1) against published values and its own inverse."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from roadview_noise.physics import srgb
+
+
+def test_published_values():
+    # IEC 61966-2-1: the segments meet at linear 0.0031308 / encoded 0.04045; sRGB 0.5 is linear 0.21404;
+    # 18 % grey encodes to 0.46135 (code 118)
+    assert srgb.encode(0.0031308) == pytest.approx(0.04045, abs=1e-6)
+    assert srgb.decode(0.5) == pytest.approx(0.214041, abs=1e-6)
+    assert srgb.encode(0.18) == pytest.approx(0.461356, abs=1e-6)
+    assert srgb.linear_to_code(np.array([0.18]))[0] == 118
+    np.testing.assert_allclose(srgb.encode(np.array([0.0, 1.0])), [0.0, 1.0], atol=1e-12)
+
+
+def test_encode_decode_inverse():
+    v = np.linspace(0, 1, 10001)
+    np.testing.assert_allclose(srgb.decode(srgb.encode(v)), v, atol=1e-12)
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_every_code_round_trips(bits):
+    codes = np.arange(2 ** bits).astype(np.uint8 if bits == 8 else np.uint16)
+    linear = srgb.code_to_linear(codes, bits)
+    assert linear.dtype == np.float32 and np.all(np.diff(linear) > 0)
+    np.testing.assert_array_equal(srgb.linear_to_code(linear, bits), codes)
+
+
+def test_fast_codes_match_float64_rounding():
+    v = np.random.default_rng(3).uniform(-0.1, 1.1, 1_000_000)
+    fast = srgb.linear_to_code(v).astype(int)
+    exact = np.rint(255 * srgb.encode(np.clip(v, 0, 1))).astype(int)
+    assert np.abs(fast - exact).max() <= 1
+    assert np.mean(fast != exact) < 1e-4          # only values within float32 rounding of a code boundary
+
+
+def test_clips_out_of_range():
+    np.testing.assert_array_equal(srgb.linear_to_code(np.array([-3.0, 0.0, 1.0, 7.0])), [0, 0, 255, 255])
+
+
+def test_rejects_wrong_width_or_dtype():
+    with pytest.raises(ValueError):
+        srgb.linear_to_code(np.zeros(3), bits=12)
+    with pytest.raises(ValueError):
+        srgb.code_to_linear(np.zeros(3, dtype=np.uint16), bits=8)
