@@ -33,7 +33,8 @@ def os1_128() -> LidarProfile:
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,
-        wavelength_m=865e-9, beam_radius_m=4.75e-3, pulse_half_power_width_s=10e-9, max_range_m=120.0,
+        wavelength_m=865e-9, beam_radius_m=4.75e-3, beam_divergence_rad=math.radians(0.18),
+        pulse_half_power_width_s=10e-9, max_range_m=120.0,
         intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, detection_threshold=2.42,
         beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static")
 
