@@ -206,8 +206,9 @@ def _needs_depth(model_id: str) -> bool:
     return get_model(model_id).needs_depth
 
 
-def save(data: SensorData, out_path: Path, recipe: Recipe) -> None:
-    """Write a result in the input's own format (atomically, by the io writers)."""
+def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None) -> None:
+    """Write a result in the input's own format (atomically, by the io writers); a DNG keeps the colour metadata
+    of its ``source``."""
     from .io import image as image_io
     from .io import pointcloud as cloud_io
     from .io import raw as raw_io
@@ -218,7 +219,10 @@ def save(data: SensorData, out_path: Path, recipe: Recipe) -> None:
         import numpy as np
 
         dn = np.clip(np.rint(data.dn), 0, data.white_level_dn).astype(np.uint16)  # the sensor saturates
-        writer = raw_io.write_dng if data.encoding.fmt == "dng" else raw_io.write_plain_raw
-        writer(out_path, dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn)
+        if data.encoding.fmt == "dng":
+            raw_io.write_dng(out_path, dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
+                             template=source)
+        else:
+            raw_io.write_plain_raw(out_path, dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn)
     else:
         cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)

@@ -182,15 +182,17 @@ def _check_value(model_id: str, name: str, value: Any, key: str, source: str) ->
             raise RecipeError(problem, file=source, key=key)
 
 
-def draw_value(value: Any, rng) -> Any:
-    """A fixed value as is, or one draw from an explicit distribution."""
+def draw_value(value: Any, rng, *, integer: bool = False) -> Any:
+    """A fixed value as is, or one draw from an explicit distribution (integers for an integer parameter:
+    uniform over the inclusive range, normal rounded)."""
     if not isinstance(value, dict):
         return tuple(value) if isinstance(value, list) else value
     kind, args = next(iter(value.items()))
     if kind == "uniform":
-        return float(rng.uniform(args[0], args[1]))
+        return int(rng.integers(args[0], args[1] + 1)) if integer else float(rng.uniform(args[0], args[1]))
     if kind == "normal":
-        return float(rng.normal(args[0], args[1]))
+        v = rng.normal(args[0], args[1])
+        return int(round(v)) if integer else float(v)
     choice = args[int(rng.integers(len(args)))]
     return tuple(choice) if isinstance(choice, list) else choice
 

@@ -64,10 +64,12 @@ def build_models(recipe: Recipe, task: Task) -> list:
     overrides = recipe.variants[task.variant_index].overrides
     models = []
     for i, (model_id, params) in enumerate(zip(recipe.model_ids, recipe.step_params)):
+        cls = get_model(model_id)
+        integer = {p.name for p in cls.param_specs() if type(p.default) is int}
         rng = derive_rng(recipe.seed, task.out_relpath, "params", i, model_id)
-        values = {k: draw_value(v, rng) for k, v in sorted(params.items())}
+        values = {k: draw_value(v, rng, integer=k in integer) for k, v in sorted(params.items())}
         values.update({k: draw_value(v, None) for k, v in overrides.get(model_id, {}).items()})
-        models.append(get_model(model_id)(**values))
+        models.append(cls(**values))
     return models
 
 
@@ -91,7 +93,7 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
                                      sequence_id=s.sequence_id)
         entry["steps"] = [asdict(r) for r in records]
         out_path = out_root / task.out_relpath
-        save(data, out_path, recipe)
+        save(data, out_path, recipe, source=in_root / s.relpath)
         entry["output_sha256"] = sha256_file(out_path)
         entry["status"] = "ok"
     except RvNoiseError as e:

@@ -156,7 +156,7 @@ class ImageEncoding:
     """How a camera frame is stored, so the writer can put it back the same way."""
 
     fmt: str = "png"           # png | jpeg | tiff
-    bit_depth: int = 8         # 8 | 16
+    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF)
     transfer: str = "srgb"     # srgb | linear
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
@@ -266,7 +266,7 @@ class CloudLayout:
 
     fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | npz
     fields: tuple[tuple[str, str, str], ...]
-    pcd_data: str = "binary"                             # ascii | binary | binary_compressed
+    pcd_data: str = "binary"       # PCD: ascii | binary | binary_compressed; PLY: ascii | binary_little_endian | ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -337,7 +337,7 @@ class PointCloud:
         fields = {}
         for k, v in self.fields.items():
             extra = other_fields.get(k)
-            extra = np.zeros(m, dtype=v.dtype) if extra is None else np.asarray(extra, dtype=v.dtype)
+            extra = np.zeros((m,) + v.shape[1:], dtype=v.dtype) if extra is None else np.asarray(extra, v.dtype)
             fields[k] = np.concatenate([v, extra])
         unknown = set(other_fields) - set(self.fields)
         if unknown:

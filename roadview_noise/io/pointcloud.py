@@ -1,0 +1,576 @@
+"""LiDAR and 4D-radar point-cloud readers/writers.
+
+Formats (by suffix, or ``fmt``):
+- ``pcd``: PCD v0.7 ``ascii`` | ``binary`` | ``binary_compressed``, any fields (COUNT > 1 kept as (N, COUNT) arrays).
+  Parsed here (vectorised header → NumPy structured dtype) rather than with open3d's tensor reader, which keeps
+  dtypes but not the field order (it stores attributes in a hash map) and renames x/y/z, normals and colours.
+  ``binary_compressed`` uses the LZF codec below. An organised cloud (HEIGHT > 1) sets ``grid_shape``.
+- ``ply``: CARLA LiDAR PLY (x, y, z, I) or any PLY whose only non-empty element is ``vertex`` with scalar
+  properties; ``ascii`` | ``binary_little_endian`` | ``binary_big_endian``, kept in ``layout.pcd_data``.
+- ``kitti_bin`` (``.bin``): N×4 float32 x, y, z, intensity.
+- ``nuscenes_bin`` (``.pcd.bin``): N×5 float32 x, y, z, intensity, ring.
+- ``vod_bin`` (``.bin`` with ``sensor="radar"``): View-of-Delft N×7 float32 x, y, z, RCS, v_r, v_r_compensated, time.
+
+File fields get canonical names (types.CloudLayout) through :data:`ALIASES` (first alias present wins; a recipe's
+``field_map`` {file name: canonical} overrides); every other field keeps its file name and is carried through.
+Radar radial velocity is passed through as stored, without a sign change; rvnoise reads it as range rate, positive
+when the target recedes (models.md §0.4), so a dataset with the opposite sign needs its field negated beforehand.
+Writers put every field back in file order and dtype; integer fields are rounded and clipped there, once.
+Not kept: PCD VIEWPOINT/VERSION (written as identity / 0.7) and PLY comments.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+from numba import njit
+
+from ..errors import InputError
+from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
+from .atomic import write_bytes_atomic
+
+FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin")
+
+# canonical name ← file names in priority order (the first one present in the file wins)
+ALIASES: dict[str, tuple[str, ...]] = {
+    "x": ("x",), "y": ("y",), "z": ("z",),
+    "intensity": ("intensity", "signal", "i", "I", "reflectivity"),
+    "ring": ("ring", "channel", "laser_id"),
+    "time_s": ("time_s",),
+    "rcs_dbsm": ("rcs_dbsm", "rcs", "RCS"),
+    "v_r_m_per_s": ("v_r_m_per_s", "v_r", "velocity", "doppler"),
+    "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated"),
+    "snr_db": ("snr_db", "snr"),
+    "power_db": ("power_db", "power"),
+    "label": ("label",),
+}
+
+BIN_FIELDS = {
+    "kitti_bin": ("x", "y", "z", "intensity"),
+    "nuscenes_bin": ("x", "y", "z", "intensity", "ring"),
+    "vod_bin": ("x", "y", "z", "RCS", "v_r", "v_r_compensated", "time"),
+}
+LABEL_DTYPE = "|u1"
+
+_PCD_TYPE = {"F": "f", "U": "u", "I": "i"}
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+_PLY_NAME = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float",
+             "f8": "double"}
+_PLY_ENDIAN = {"ascii": "<", "binary_little_endian": "<", "binary_big_endian": ">"}
+
+Column = tuple[str, str, np.ndarray]          # (file name, file dtype string, values (N,) or (N, COUNT))
+
+
+# --- public API ---------------------------------------------------------------------------------------------------
+
+
+def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
+    """Format id from the file name: ``.pcd``, ``.ply``, ``.pcd.bin`` (nuScenes), ``.bin`` (KITTI, or View-of-Delft
+    for radar)."""
+    name = Path(path).name.lower()
+    if name.endswith(".pcd.bin"):
+        return "nuscenes_bin"
+    if name.endswith(".bin"):
+        return "vod_bin" if sensor == "radar" else "kitti_bin"
+    if name.endswith(".pcd"):
+        return "pcd"
+    if name.endswith(".ply"):
+        return "ply"
+    raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin or .pcd.bin",
+                     file=str(path))
+
+
+def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
+                    profile: LidarProfile | RadarProfile | None = None, field_map: Mapping[str, str] | None = None,
+                    fmt: str | None = None) -> PointCloud:
+    """Read a cloud: float64 positions, fields under canonical names in their file dtype, and the layout to write
+    it back with (see module docstring)."""
+    if sensor not in ("lidar", "radar"):
+        raise ValueError(f"sensor must be 'lidar' or 'radar', got {sensor!r}")
+    path = Path(path)
+    fmt = fmt or cloud_format(path, sensor)
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown point-cloud format {fmt!r}; expected one of {FORMATS}")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read point cloud: {exc.strerror or exc}", file=str(path)) from exc
+    grid_shape = None
+    if fmt == "pcd":
+        columns, mode, grid_shape = _read_pcd(data, path)
+    elif fmt == "ply":
+        columns, mode = _read_ply(data, path)
+    else:
+        columns, mode = _read_bin(data, BIN_FIELDS[fmt], path), "binary"
+    keys = _canonical_keys([c[0] for c in columns], field_map, path)
+    n = len(columns[0][2])
+    if n == 0:
+        raise InputError("the point cloud is empty (0 points)", file=str(path))
+    where = {k: i for i, k in enumerate(keys)}
+    for axis in "xyz":
+        if axis not in where or columns[where[axis]][2].ndim != 1:
+            raise InputError(f"no scalar {axis!r} field (fields: {[c[0] for c in columns]})", file=str(path))
+    positions = np.stack([columns[where[a]][2] for a in "xyz"], axis=1).astype(np.float64)
+    n_bad = int(np.count_nonzero(~np.isfinite(positions).all(axis=1)))
+    if n_bad:
+        raise InputError(f"{n_bad} of {n} points have NaN or infinite coordinates", file=str(path))
+    fields = {k: _native(col) for k, (_, _, col) in zip(keys, columns) if k not in ("x", "y", "z")}
+    layout = CloudLayout(fmt=fmt, fields=tuple((k, name, dt) for k, (name, dt, _) in zip(keys, columns)),
+                         pcd_data=mode)
+    return PointCloud(positions_m=positions, fields=fields, sensor=sensor, profile=profile, layout=layout,
+                      grid_shape=grid_shape)
+
+
+def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, labels: str = "auto") -> None:
+    """Write ``cloud`` in the format, field order and dtypes of ``cloud.layout`` (a default layout from the suffix
+    when it has none), atomically.
+
+    ``labels="auto"``: a ``label`` field that the layout lacks is appended as uint8 (PCD/PLY) or written to the
+    sidecar :func:`label_sidecar_path` (fixed-layout ``.bin``); ``"none"``: it is not written (a ``label`` field that
+    is part of the input layout is always written). Other fields outside the layout, or layout fields missing from
+    the cloud, are refused."""
+    if labels not in ("auto", "none"):
+        raise ValueError(f"labels must be 'auto' or 'none', got {labels!r}")
+    layout = cloud.layout or default_layout(path, cloud)
+    family = _family(layout.fmt)
+    if _family(cloud_format(path, cloud.sensor)) != family:
+        raise ValueError(f"{Path(path).name}: suffix does not match the cloud's layout format {layout.fmt!r}")
+    keys = [k for k, _, _ in layout.fields]
+    add_label = labels == "auto" and "label" in cloud.fields and "label" not in keys
+    extra = sorted(set(cloud.fields) - set(keys) - {"label"})
+    missing = [k for k in keys if k not in ("x", "y", "z") and k not in cloud.fields]
+    if extra or missing:
+        raise ValueError(f"{Path(path).name}: cloud fields do not match the {layout.fmt} layout "
+                         f"(not in layout: {extra}; missing from cloud: {missing})")
+    columns: list[Column] = []
+    for key, name, dt in layout.fields:
+        values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
+        columns.append((name, dt, _cast(values, dt, key)))
+    label = _cast(cloud.fields["label"], LABEL_DTYPE, "label") if add_label else None
+    if label is not None and family != "bin":
+        columns.append(("label", LABEL_DTYPE, label))
+    if layout.fmt == "pcd":
+        data = _pcd_bytes(columns, layout.pcd_data, cloud.grid_shape)
+    elif layout.fmt == "ply":
+        data = _ply_bytes(columns, layout.pcd_data)
+    else:
+        data = np.stack([c for _, _, c in columns], axis=1).astype("<f4").tobytes()
+    write_bytes_atomic(path, data)
+    if label is not None and family == "bin":
+        write_bytes_atomic(label_sidecar_path(path), label.tobytes())
+
+
+def _family(fmt: str) -> str:
+    """``pcd`` | ``ply`` | ``bin``: the formats a file suffix can tell apart."""
+    return fmt if fmt in ("pcd", "ply") else "bin"
+
+
+def label_sidecar_path(path: str | os.PathLike) -> Path:
+    """``<name>.label`` next to a ``.bin``/``.pcd.bin`` cloud: N uint8 point labels (types.PointLabel)."""
+    path = Path(path)
+    name = path.name
+    stem = name[: -len(".pcd.bin")] if name.lower().endswith(".pcd.bin") else path.stem
+    return path.with_name(stem + ".label")
+
+
+def default_layout(path: str | os.PathLike, cloud: PointCloud) -> CloudLayout:
+    """Layout for a cloud built in memory: the fixed ``.bin`` layouts, or float32 x, y, z followed by the cloud's
+    fields in their dtypes (``label`` left to ``labels=``) for PCD (binary) and PLY (binary little-endian)."""
+    fmt = cloud_format(path, cloud.sensor)
+    if fmt in BIN_FIELDS:
+        names = BIN_FIELDS[fmt]
+        keys = _canonical_keys(list(names), None, path)
+        return CloudLayout(fmt, tuple((k, n, "<f4") for k, n in zip(keys, names)))
+    fields = [(a, a, "<f4") for a in "xyz"]
+    fields += [(k, k, _dtype_str(np.asarray(v).dtype, np.asarray(v).shape[1:]))
+               for k, v in cloud.fields.items() if k != "label"]
+    return CloudLayout(fmt, tuple(fields), "binary" if fmt == "pcd" else "binary_little_endian")
+
+
+# --- field names and dtypes ---------------------------------------------------------------------------------------
+
+
+def _canonical_keys(names: list[str], field_map: Mapping[str, str] | None, path) -> list[str]:
+    """In-memory key of each file field: ``field_map`` first, then :data:`ALIASES`, else the file name
+    (repeated file names such as PCL's ``_`` padding become ``_#2``, ``_#3`` …)."""
+    field_map = dict(field_map or {})
+    unknown = [f for f in field_map if f not in names]
+    if unknown:
+        raise InputError(f"field_map names fields {unknown} that the file does not have (fields: {names})",
+                         file=str(path))
+    targets = list(field_map.values())
+    if len(set(targets)) != len(targets):
+        raise InputError(f"field_map maps several fields to one name: {field_map}", file=str(path))
+    keys: list[str | None] = [field_map.get(n) for n in names]
+    taken = set(targets)
+    for canonical, aliases in ALIASES.items():
+        if canonical in taken:
+            continue
+        hit = next((i for a in aliases for i, n in enumerate(names) if n == a and keys[i] is None), None)
+        if hit is not None:
+            keys[hit] = canonical
+            taken.add(canonical)
+    for i, name in enumerate(names):
+        if keys[i] is not None:
+            continue
+        key, k = name, 1
+        if key in taken and names.count(name) == 1:
+            raise InputError(f"field {name!r} clashes with the field mapped to {name!r}; map it to another name in "
+                             "field_map", file=str(path))
+        while key in taken:
+            k += 1
+            key = f"{name}#{k}"
+        keys[i] = key
+        taken.add(key)
+    return keys
+
+
+def _dtype_str(base: np.dtype, shape: tuple[int, ...] = ()) -> str:
+    """Layout dtype string: ``<f4``, ``|u1`` …, or ``(3,)<f4`` for a field with COUNT 3."""
+    if shape:
+        return f"({','.join(map(str, shape))},){base.str}"
+    return base.str
+
+
+def _native(col: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(col, dtype=col.dtype.newbyteorder("="))
+
+
+def _cast(values: np.ndarray, dt: str, key: str) -> np.ndarray:
+    """Values in the file dtype: floats cast, integers rounded and clipped to the type's range."""
+    target = np.dtype(dt)
+    base, shape = (target.subdtype if target.subdtype else (target, ()))
+    values = np.asarray(values)
+    if values.shape[1:] != shape:
+        raise ValueError(f"field {key!r} has per-point shape {values.shape[1:]}, the file field has {shape}")
+    if base.kind in "iu" and values.dtype.kind not in "iu":
+        if np.isnan(values).any():
+            raise ValueError(f"field {key!r} has NaN values but is stored as {base.name}")
+        info = np.iinfo(base)
+        values = np.clip(np.rint(values), info.min, info.max)
+    elif base.kind in "iu" and not np.can_cast(values.dtype, base):
+        info = np.iinfo(base)
+        values = np.clip(values, info.min, info.max)
+    return np.ascontiguousarray(values, dtype=base)
+
+
+# --- PCD ----------------------------------------------------------------------------------------------------------
+
+
+def _read_pcd(data: bytes, path) -> tuple[list[Column], str, tuple[int, int] | None]:
+    header, start = _pcd_header(data, path)
+    names, types = header["FIELDS"], header["TYPE"]
+    try:
+        sizes = [int(s) for s in header["SIZE"]]
+        counts = [int(c) for c in header.get("COUNT", ["1"] * len(names))]
+        width, height = int(header["WIDTH"][0]), int(header.get("HEIGHT", ["1"])[0])
+        n = int(header.get("POINTS", [width * height])[0])
+    except (ValueError, IndexError) as exc:
+        raise InputError(f"bad number in the PCD header ({exc})", file=str(path)) from exc
+    if not len(names) == len(sizes) == len(types) == len(counts):
+        raise InputError(f"PCD header has {len(names)} FIELDS, {len(sizes)} SIZE, {len(types)} TYPE and "
+                         f"{len(counts)} COUNT entries", file=str(path))
+    try:
+        bases = [np.dtype(f"<{_PCD_TYPE[t]}{s}") for t, s in zip(types, sizes)]
+    except (KeyError, TypeError) as exc:
+        raise InputError(f"unsupported PCD TYPE/SIZE in {list(zip(types, sizes))}", file=str(path)) from exc
+    if n != width * height:
+        raise InputError(f"PCD header WIDTH×HEIGHT = {width}×{height} does not match POINTS {n}", file=str(path))
+    mode = header["DATA"][0].lower()
+    dtypes = [np.dtype((b, (c,))) if c > 1 else b for b, c in zip(bases, counts)]
+    record = np.dtype([(f"f{i}", d) for i, d in enumerate(dtypes)])
+    body = memoryview(data)[start:]
+    if mode == "binary":
+        if len(body) < n * record.itemsize:
+            raise InputError(f"truncated PCD: header says {n} points × {record.itemsize} bytes = "
+                             f"{n * record.itemsize} bytes of data, the file has {len(body)}", file=str(path))
+        arr = np.frombuffer(body, record, count=n)
+        values = [arr[f"f{i}"] for i in range(len(names))]
+    elif mode == "binary_compressed":
+        values = _pcd_decompress(body, n, dtypes, record.itemsize, path)
+    elif mode == "ascii":
+        values = _parse_ascii(bytes(body), n, dtypes, path)
+    else:
+        raise InputError(f"unknown PCD DATA mode {mode!r} (ascii | binary | binary_compressed)", file=str(path))
+    columns = [(name, _dtype_str(b, (c,) if c > 1 else ()), np.ascontiguousarray(v))
+               for name, b, c, v in zip(names, bases, counts, values)]
+    return columns, mode, ((height, width) if height > 1 else None)
+
+
+def _pcd_header(data: bytes, path) -> tuple[dict[str, list[str]], int]:
+    header: dict[str, list[str]] = {}
+    pos = 0
+    while pos < len(data):
+        end = data.find(b"\n", pos)
+        end = len(data) if end < 0 else end
+        try:
+            line = data[pos:end].decode("ascii").strip()
+        except UnicodeDecodeError:
+            raise InputError("not a PCD file (binary bytes before the DATA line)", file=str(path)) from None
+        pos = end + 1
+        if not line or line.startswith("#"):
+            continue
+        key, *vals = line.split()
+        header[key.upper()] = vals
+        if key.upper() == "DATA":
+            missing = [k for k in ("FIELDS", "SIZE", "TYPE", "WIDTH") if k not in header]
+            if missing or not vals:
+                raise InputError(f"PCD header lacks {missing or ['DATA mode']}", file=str(path))
+            return header, pos
+    raise InputError("not a PCD file (no DATA line in the header)", file=str(path))
+
+
+def _pcd_decompress(body: memoryview, n: int, dtypes: list[np.dtype], itemsize: int, path) -> list[np.ndarray]:
+    """binary_compressed: uint32 compressed size, uint32 raw size, LZF data of the columns one after another."""
+    if len(body) < 8:
+        raise InputError("truncated PCD: binary_compressed data has no size words", file=str(path))
+    csize, usize = (int(v) for v in np.frombuffer(body[:8], "<u4"))
+    if usize != n * itemsize:
+        raise InputError(f"PCD binary_compressed raw size {usize} ≠ POINTS {n} × {itemsize} bytes", file=str(path))
+    if len(body) < 8 + csize:
+        raise InputError(f"truncated PCD: {csize} compressed bytes announced, {len(body) - 8} present", file=str(path))
+    raw, produced = _lzf_decompress(np.frombuffer(body[8:8 + csize], np.uint8), usize)
+    if produced != usize:
+        raise InputError("corrupt PCD: the LZF-compressed data do not decode to the announced size", file=str(path))
+    out, offset = [], 0
+    for dt in dtypes:
+        out.append(np.frombuffer(raw, dt, count=n, offset=offset))
+        offset += n * dt.itemsize
+    return out
+
+
+def _parse_ascii(text: bytes, n: int, dtypes: list[np.dtype], path) -> list[np.ndarray]:
+    """Whitespace-separated values, one point per line (PCD ascii, PLY ascii)."""
+    widths = [int(np.prod(d.shape)) if d.shape else 1 for d in dtypes]
+    tokens = text.split()
+    total = n * sum(widths)
+    if len(tokens) < total:
+        raise InputError(f"truncated ascii data: header says {n} points × {sum(widths)} values, the file has "
+                         f"{len(tokens)} values", file=str(path))
+    table = np.array(tokens[:total]).reshape(n, sum(widths))
+    out, col = [], 0
+    for dt, w in zip(dtypes, widths):
+        base = dt.base
+        try:
+            vals = table[:, col:col + w].astype(base)
+        except (ValueError, OverflowError) as exc:
+            raise InputError(f"bad ascii value in column {col + 1}: {exc}", file=str(path)) from exc
+        out.append(vals if w > 1 else vals[:, 0])
+        col += w
+    return out
+
+
+def _ascii_bytes(columns: list[Column]) -> bytes:
+    parts = []
+    for _, dt, col in columns:
+        base = np.dtype(dt).base
+        fmt = {"f4": "%.9g", "f8": "%.17g"}.get(f"{base.kind}{base.itemsize}", "%d")
+        flat = col.reshape(len(col), -1)
+        parts += [np.char.mod(fmt, flat[:, j]) for j in range(flat.shape[1])]
+    return ("\n".join(map(" ".join, zip(*parts))) + "\n").encode("ascii")
+
+
+def _pcd_bytes(columns: list[Column], mode: str, grid_shape: tuple[int, int] | None) -> bytes:
+    n = len(columns[0][2])
+    height, width = grid_shape if grid_shape and grid_shape[0] * grid_shape[1] == n else (1, n)
+    bases = [np.dtype(dt).base for _, dt, _ in columns]
+    counts = [int(np.prod(np.dtype(dt).shape)) if np.dtype(dt).shape else 1 for _, dt, _ in columns]
+    kinds = {"f": "F", "u": "U", "i": "I"}
+    if any(b.kind not in kinds for b in bases):
+        raise ValueError(f"PCD cannot store dtypes {[b.str for b in bases]}")
+    header = "\n".join([
+        "# .PCD v0.7 - Point Cloud Data file format", "VERSION 0.7",
+        "FIELDS " + " ".join(name for name, _, _ in columns),
+        "SIZE " + " ".join(str(b.itemsize) for b in bases),
+        "TYPE " + " ".join(kinds[b.kind] for b in bases),
+        "COUNT " + " ".join(map(str, counts)),
+        f"WIDTH {width}", f"HEIGHT {height}", "VIEWPOINT 0 0 0 1 0 0 0", f"POINTS {n}", f"DATA {mode}", ""])
+    if mode == "ascii":
+        body = _ascii_bytes(columns)
+    elif mode == "binary":
+        body = _records(columns, "<").tobytes()
+    elif mode == "binary_compressed":
+        raw = np.frombuffer(b"".join(c.astype(b.newbyteorder("<")).tobytes() for (_, _, c), b in zip(columns, bases)),
+                            np.uint8)
+        packed = _lzf_compress(raw)
+        body = np.array([len(packed), len(raw)], "<u4").tobytes() + packed.tobytes()
+    else:
+        raise ValueError(f"unknown PCD DATA mode {mode!r}")
+    return header.encode("ascii") + body
+
+
+def _records(columns: list[Column], order: str) -> np.ndarray:
+    record = np.dtype([(f"f{i}", np.dtype(dt).newbyteorder(order)) for i, (_, dt, _) in enumerate(columns)])
+    arr = np.empty(len(columns[0][2]), record)
+    for i, (_, _, col) in enumerate(columns):
+        arr[f"f{i}"] = col
+    return arr
+
+
+# --- PLY ----------------------------------------------------------------------------------------------------------
+
+
+def _read_ply(data: bytes, path) -> tuple[list[Column], str]:
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise InputError("not a PLY file (no 'ply' magic or no end_header)", file=str(path))
+    start = data.find(b"\n", end) + 1
+    mode, elements = None, []                  # elements: [name, count, [(property name, type)]]
+    for line in data[:end].decode("ascii", errors="replace").splitlines()[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            mode = words[1] if len(words) > 1 else None
+        elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+            elements.append([words[1], int(words[2]), []])
+        elif words[0] == "property" and elements and len(words) >= 3:
+            if words[1] == "list":
+                raise InputError(f"PLY list property {words[-1]!r} is not supported (point clouds only)",
+                                 file=str(path))
+            if words[1] not in _PLY_TYPES:
+                raise InputError(f"unknown PLY property type {words[1]!r}", file=str(path))
+            elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+        else:
+            raise InputError(f"bad PLY header line {line!r}", file=str(path))
+    if mode not in _PLY_ENDIAN:
+        raise InputError(f"unknown PLY format {mode!r}", file=str(path))
+    if not elements or elements[0][0] != "vertex" or any(e[1] for e in elements[1:]):
+        raise InputError(f"expected one non-empty 'vertex' element first, got {[(e[0], e[1]) for e in elements]}",
+                         file=str(path))
+    _, n, props = elements[0]
+    dtypes = [np.dtype(_PLY_ENDIAN[mode] + t) for _, t in props]
+    if mode == "ascii":
+        values = _parse_ascii(data[start:], n, dtypes, path)
+    else:
+        record = np.dtype([(f"f{i}", d) for i, d in enumerate(dtypes)])
+        if len(data) - start < n * record.itemsize:
+            raise InputError(f"truncated PLY: header says {n} vertices × {record.itemsize} bytes, the file has "
+                             f"{len(data) - start} bytes of data", file=str(path))
+        arr = np.frombuffer(data, record, count=n, offset=start)
+        values = [arr[f"f{i}"] for i in range(len(props))]
+    return [(name, d.str, np.ascontiguousarray(v)) for (name, _), d, v in zip(props, dtypes, values)], mode
+
+
+def _ply_bytes(columns: list[Column], mode: str) -> bytes:
+    if mode not in _PLY_ENDIAN:
+        raise ValueError(f"unknown PLY format {mode!r}")
+    n = len(columns[0][2])
+    props = []
+    for name, dt, _ in columns:
+        base = np.dtype(dt)
+        if base.shape or f"{base.kind}{base.itemsize}" not in _PLY_NAME:
+            raise ValueError(f"PLY cannot store field {name!r} of dtype {dt}")
+        props.append(f"property {_PLY_NAME[f'{base.kind}{base.itemsize}']} {name}")
+    header = "\n".join(["ply", f"format {mode} 1.0", f"element vertex {n}", *props, "end_header", ""])
+    body = _ascii_bytes(columns) if mode == "ascii" else _records(columns, _PLY_ENDIAN[mode]).tobytes()
+    return header.encode("ascii") + body
+
+
+# --- fixed-layout .bin ---------------------------------------------------------------------------------------------
+
+
+def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
+    point = 4 * len(names)
+    if len(data) % point:
+        raise InputError(f"size {len(data)} bytes is not a multiple of the {point}-byte point "
+                         f"({', '.join(names)} as float32)", file=str(path))
+    table = np.frombuffer(data, "<f4").reshape(-1, len(names))
+    return [(name, "<f4", np.ascontiguousarray(table[:, i])) for i, name in enumerate(names)]
+
+
+# --- LZF (liblzf stream format, as used by PCD binary_compressed) ---------------------------------------------------
+# A control byte c < 32 is followed by c + 1 literal bytes; otherwise it is a back-reference of length
+# (c >> 5) + 2 (length field 7: plus the next byte) to distance ((c & 31) << 8) + next byte + 1 behind the output.
+
+
+@njit(cache=True, nogil=True)
+def _lzf_compress(src: np.ndarray) -> np.ndarray:            # pragma: no cover - compiled
+    """Greedy LZF with a 16 k-entry hash of 3-byte prefixes (liblzf's scheme); any LZF decoder reads the output."""
+    n = src.size
+    dst = np.empty(n + n // 32 + 16, np.uint8)
+    table = np.full(1 << 14, -1, np.int64)
+    ip = 0
+    op = 0
+    lit = 0
+    while ip + 2 < n:
+        h = (np.uint32(src[ip]) << 16) | (np.uint32(src[ip + 1]) << 8) | np.uint32(src[ip + 2])
+        h = ((h * np.uint32(2654435761)) & np.uint32(0xFFFFFFFF)) >> np.uint32(18)
+        ref = table[h]
+        table[h] = ip
+        off = ip - ref - 1
+        if ref >= 0 and off < 8192 and src[ref] == src[ip] and src[ref + 1] == src[ip + 1] \
+                and src[ref + 2] == src[ip + 2]:
+            while lit < ip:
+                k = min(32, ip - lit)
+                dst[op] = k - 1
+                dst[op + 1:op + 1 + k] = src[lit:lit + k]
+                op += k + 1
+                lit += k
+            limit = min(264, n - ip)
+            length = 3
+            while length < limit and src[ref + length] == src[ip + length]:
+                length += 1
+            code = length - 2
+            if code < 7:
+                dst[op] = (code << 5) | (off >> 8)
+                op += 1
+            else:
+                dst[op] = (7 << 5) | (off >> 8)
+                dst[op + 1] = code - 7
+                op += 2
+            dst[op] = off & 255
+            op += 1
+            ip += length
+            lit = ip
+        else:
+            ip += 1
+    while lit < n:
+        k = min(32, n - lit)
+        dst[op] = k - 1
+        dst[op + 1:op + 1 + k] = src[lit:lit + k]
+        op += k + 1
+        lit += k
+    return dst[:op]
+
+
+@njit(cache=True, nogil=True)
+def _lzf_decompress(src: np.ndarray, size: int) -> tuple[np.ndarray, int]:   # pragma: no cover - compiled
+    """Decoded bytes and their count; the count is −1 when the stream is corrupt or overruns ``size``."""
+    dst = np.zeros(size, np.uint8)
+    n = src.size
+    ip = 0
+    op = 0
+    while ip < n:
+        c = np.int64(src[ip])
+        ip += 1
+        if c < 32:
+            length = c + 1
+            if ip + length > n or op + length > size:
+                return dst, -1
+            dst[op:op + length] = src[ip:ip + length]
+            ip += length
+            op += length
+        else:
+            length = c >> 5
+            if length == 7:
+                if ip >= n:
+                    return dst, -1
+                length += np.int64(src[ip])
+                ip += 1
+            if ip >= n:
+                return dst, -1
+            ref = op - ((c & 31) << 8) - np.int64(src[ip]) - 1
+            ip += 1
+            length += 2
+            if ref < 0 or op + length > size:
+                return dst, -1
+            for k in range(length):                  # byte by byte: the source may overlap the output
+                dst[op + k] = dst[ref + k]
+            op += length
+    return dst, op

@@ -1,0 +1,221 @@
+"""Raw Bayer frames: DNG (read with rawpy/LibRaw, written with tifffile) and plain ``.raw`` + YAML sidecar.
+
+Digital numbers are returned as stored (uint16, visible area), with the 2×2 CFA pattern and the black/white levels the
+file states. ``RawFrame`` has one black level: per-channel black levels that differ by more than
+``MAX_BLACK_SPREAD_DN`` are refused rather than averaged, since averaging would bias the darker channels; within the
+tolerance their mean is used.
+
+Plain raw sidecar ``<stem>.yaml``: ``width``, ``height``, ``dtype`` (uint16), ``byte_order`` (little | big),
+``cfa_pattern`` (RGGB | BGGR | GRBG | GBRG), ``black_level_dn``, ``white_level_dn``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import rawpy
+import tifffile
+import yaml
+
+from ..errors import InputError
+from ..types import CFA_PATTERNS, RawEncoding
+from .atomic import atomic_path, write_bytes_atomic
+
+MAX_BLACK_SPREAD_DN = 1.0
+MIN_DNG_SIDE_PX = 22            # LibRaw rejects raw images narrower or lower than this
+SIDECAR_KEYS = ("width", "height", "dtype", "byte_order", "cfa_pattern", "black_level_dn", "white_level_dn")
+_BYTE_ORDERS = {"little": "<", "big": ">"}
+# camera/colour tags copied from a template DNG: Make, Model, Orientation, UniqueCameraModel, ColorMatrix1/2,
+# CameraCalibration1/2, AnalogBalance, AsShotNeutral, AsShotWhiteXY, BaselineExposure, CalibrationIlluminant1/2,
+# ForwardMatrix1/2
+TEMPLATE_TAGS = (271, 272, 274, 50708, 50721, 50722, 50723, 50724, 50727, 50728, 50729, 50730, 50778, 50779,
+                 50964, 50965)
+
+RawParts = tuple[np.ndarray, str, float, float]
+
+
+def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, str, float, float, RawEncoding]:
+    """``.dng`` or ``.raw`` (+ sidecar) by suffix: (dn uint16 (H, W), cfa_pattern, black, white, encoding)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".dng":
+        return (*read_dng(path), RawEncoding(fmt="dng"))
+    if suffix == ".raw":
+        return (*read_plain_raw(path), RawEncoding(fmt="raw"))
+    raise InputError(f"unknown raw suffix {Path(path).suffix!r}; expected .dng or .raw", file=str(path))
+
+
+def write_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_level_dn: float,
+              white_level_dn: float, encoding: RawEncoding, *, template: str | os.PathLike | None = None) -> None:
+    """Write in ``encoding.fmt`` (dng | raw); the inverse of :func:`read_raw`. ``template``: the input DNG whose
+    camera metadata :func:`write_dng` copies."""
+    if encoding.fmt == "dng":
+        write_dng(path, dn, cfa_pattern, black_level_dn, white_level_dn, template=template)
+    elif encoding.fmt == "raw":
+        write_plain_raw(path, dn, cfa_pattern, black_level_dn, white_level_dn)
+    else:
+        raise ValueError(f"unknown raw format {encoding.fmt!r}")
+
+
+def read_dng(path: str | os.PathLike) -> RawParts:
+    """Bayer DNG via rawpy: visible raw area, CFA pattern of its top-left site, black and white level (DN)."""
+    try:
+        with rawpy.imread(str(path)) as raw:
+            if raw.raw_pattern is None or raw.raw_pattern.shape != (2, 2):
+                raise InputError("not a 2×2 Bayer CFA raw (linear DNG, X-Trans or other mosaic)", file=str(path))
+            dn = np.array(raw.raw_image_visible, dtype=np.uint16)
+            letters = raw.color_desc.decode("ascii")
+            pattern = "".join(letters[c] for c in raw.raw_colors_visible[:2, :2].ravel())
+            blacks = np.asarray(raw.black_level_per_channel, dtype=float)
+            white = float(raw.white_level)
+    except rawpy.LibRawError as exc:
+        raise InputError(f"LibRaw cannot read this DNG ({type(exc).__name__}: {exc})", file=str(path)) from exc
+    if pattern not in CFA_PATTERNS:
+        raise InputError(f"CFA pattern {pattern!r} is not one of {CFA_PATTERNS}", file=str(path))
+    if np.ptp(blacks) > MAX_BLACK_SPREAD_DN:
+        raise InputError(f"per-channel black levels {blacks.tolist()} differ by more than {MAX_BLACK_SPREAD_DN} DN; "
+                         "rvnoise needs one black level", file=str(path))
+    return dn, pattern, float(blacks.mean()), white
+
+
+def write_dng(path: str | os.PathLike, dn_uint16: np.ndarray, cfa_pattern: str, black_level_dn: float,
+              white_level_dn: float, *, template: str | os.PathLike | None = None) -> None:
+    """Minimal uncompressed DNG 1.4 (CFA photometric 32803) that LibRaw reads back with the same pattern, levels and
+    values. Colour tags are neutral (identity ColorMatrix1, D65, unit AsShotNeutral) unless ``template`` (the input
+    DNG) is given: its camera and colour tags (:data:`TEMPLATE_TAGS`, from its first IFD) are copied so raw
+    converters render the output like the input. Values are rounded and clipped to 0…65535 (not to the white level:
+    the file keeps what the models produced). Both sides must be at least ``MIN_DNG_SIDE_PX``, or LibRaw cannot read
+    the file back."""
+    dn = _to_uint16(dn_uint16)
+    if min(dn.shape) < MIN_DNG_SIDE_PX:
+        raise ValueError(f"DNG of {dn.shape[1]}×{dn.shape[0]} px: LibRaw reads only frames of at least "
+                         f"{MIN_DNG_SIDE_PX} px per side")
+    _check_pattern(cfa_pattern)
+    black, white = _integral_level(black_level_dn, "black"), _integral_level(white_level_dn, "white")
+    cfa = bytes("RGB".index(c) for c in cfa_pattern)
+    identity = (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1)   # 3×3 SRATIONAL numerator/denominator pairs
+    tags = [
+        (33421, "H", 2, (2, 2), True),                  # CFARepeatPatternDim
+        (33422, "B", 4, cfa, True),                     # CFAPattern (0 R, 1 G, 2 B)
+        (50706, "B", 4, (1, 4, 0, 0), True),            # DNGVersion
+        (50707, "B", 4, (1, 1, 0, 0), True),            # DNGBackwardVersion
+        (50708, "s", 0, "rvnoise", True),               # UniqueCameraModel
+        (50710, "B", 3, (0, 1, 2), True),               # CFAPlaneColor
+        (50711, "H", 1, 1, True),                       # CFALayout: rectangular
+        (50713, "H", 2, (1, 1), True),                  # BlackLevelRepeatDim
+        (50714, "I", 1, black, True),                   # BlackLevel
+        (50717, "I", 1, white, True),                   # WhiteLevel
+        (50721, "2i", 9, identity, True),               # ColorMatrix1
+        (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),     # AsShotNeutral
+        (50778, "H", 1, 21, True),                      # CalibrationIlluminant1: D65
+    ]
+    if template is not None:
+        copied = _template_tags(template)
+        tags = [t for t in tags if t[0] not in {c[0] for c in copied}] + copied
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, dn, photometric=32803, extratags=tags, metadata=None, subfiletype=0)
+
+
+def _template_tags(template: str | os.PathLike) -> list[tuple]:
+    try:
+        with tifffile.TiffFile(template) as tif:
+            found = tif.pages[0].tags
+            return [(code, int(tag.dtype), tag.count, _tag_value(tag.value), True)
+                    for code in TEMPLATE_TAGS if (tag := found.get(code)) is not None]
+    except (OSError, tifffile.TiffFileError, IndexError) as exc:
+        raise InputError(f"cannot read DNG metadata: {exc}", file=str(template)) from exc
+
+
+def _tag_value(value):
+    """Tag value as tifffile writes it (enums such as Orientation as their integer)."""
+    return int(value) if isinstance(value, int) else value
+
+
+def read_plain_raw(path: str | os.PathLike) -> RawParts:
+    """``.raw`` samples described by the sidecar ``<stem>.yaml`` (see module docstring)."""
+    path = Path(path)
+    meta = _read_sidecar(path)
+    dtype = np.dtype(meta["dtype"]).newbyteorder(_BYTE_ORDERS[meta["byte_order"]])
+    h, w = meta["height"], meta["width"]
+    size = path.stat().st_size if path.is_file() else None
+    if size is None:
+        raise InputError("raw file does not exist", file=str(path))
+    if size != h * w * dtype.itemsize:
+        raise InputError(f"file has {size} bytes but the sidecar describes {w}×{h} {meta['dtype']} = "
+                         f"{h * w * dtype.itemsize} bytes", file=str(path))
+    dn = np.fromfile(path, dtype=dtype).reshape(h, w).astype(np.uint16)
+    return dn, meta["cfa_pattern"], float(meta["black_level_dn"]), float(meta["white_level_dn"])
+
+
+def write_plain_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_level_dn: float,
+                    white_level_dn: float) -> None:
+    """Little-endian uint16 ``.raw`` plus its YAML sidecar, each written atomically (sidecar last)."""
+    dn16 = _to_uint16(dn)
+    _check_pattern(cfa_pattern)
+    path = Path(path)
+    meta = {"width": int(dn16.shape[1]), "height": int(dn16.shape[0]), "dtype": "uint16", "byte_order": "little",
+            "cfa_pattern": cfa_pattern, "black_level_dn": float(black_level_dn),
+            "white_level_dn": float(white_level_dn)}
+    write_bytes_atomic(path, dn16.astype("<u2").tobytes())
+    write_bytes_atomic(sidecar_path(path), yaml.safe_dump(meta, sort_keys=False).encode())
+
+
+def sidecar_path(path: str | os.PathLike) -> Path:
+    return Path(path).with_suffix(".yaml")
+
+
+def _read_sidecar(path: Path) -> dict:
+    side = sidecar_path(path)
+    try:
+        meta = yaml.safe_load(side.read_text())
+    except FileNotFoundError:
+        raise InputError(f"plain raw needs the sidecar {side.name} (width, height, dtype, byte_order, cfa_pattern, "
+                         "black_level_dn, white_level_dn)", file=str(path)) from None
+    except (OSError, yaml.YAMLError) as exc:
+        raise InputError(f"cannot read sidecar {side.name}: {exc}", file=str(path)) from exc
+    if not isinstance(meta, dict):
+        raise InputError(f"sidecar {side.name} is not a mapping", file=str(path))
+    missing = [k for k in SIDECAR_KEYS if k not in meta]
+    if missing:
+        raise InputError(f"sidecar {side.name} lacks {missing}", file=str(path))
+    problems = []
+    if meta["dtype"] != "uint16":
+        problems.append(f"dtype {meta['dtype']!r} (only uint16)")
+    if meta["byte_order"] not in _BYTE_ORDERS:
+        problems.append(f"byte_order {meta['byte_order']!r} (little | big)")
+    if meta["cfa_pattern"] not in CFA_PATTERNS:
+        problems.append(f"cfa_pattern {meta['cfa_pattern']!r} (one of {CFA_PATTERNS})")
+    for k in ("width", "height"):
+        if not isinstance(meta[k], int) or meta[k] <= 0:
+            problems.append(f"{k} {meta[k]!r} (a positive integer)")
+    for k in ("black_level_dn", "white_level_dn"):
+        if not isinstance(meta[k], (int, float)):
+            problems.append(f"{k} {meta[k]!r} (a number)")
+    if not problems and not meta["black_level_dn"] < meta["white_level_dn"]:
+        problems.append("black_level_dn must be below white_level_dn")
+    if problems:
+        raise InputError(f"sidecar {side.name} has invalid " + "; ".join(problems), file=str(path))
+    return meta
+
+
+def _to_uint16(dn: np.ndarray) -> np.ndarray:
+    dn = np.asarray(dn)
+    if dn.ndim != 2:
+        raise ValueError(f"raw frame must be 2-D (H, W), got shape {dn.shape}")
+    if dn.dtype == np.uint16:
+        return dn
+    if np.isnan(dn).any():
+        raise ValueError("raw frame contains NaN digital numbers")
+    return np.clip(np.rint(dn), 0, 65535).astype(np.uint16)
+
+
+def _check_pattern(pattern: str) -> None:
+    if pattern not in CFA_PATTERNS:
+        raise ValueError(f"unknown CFA pattern {pattern!r}; expected one of {CFA_PATTERNS}")
+
+
+def _integral_level(value: float, what: str) -> int:
+    if value != round(value) or not 0 <= value <= 65535:
+        raise ValueError(f"DNG {what} level must be an integer 0…65535 DN, got {value}")
+    return int(round(value))
