@@ -43,7 +43,8 @@ bench: $(STAMP)
 	@for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
 sample-data: $(STAMP)
-	$(BIN)/python -m roadview_noise.sampledata.generate sample_data --frames 3 --seed 0
+	rm -rf sample_data
+	$(BIN)/python -m roadview_noise.sampledata.generate sample_data --frames 3 --seed 0 --camera-size 484x366 --lidar-columns 256
 
 clean:
 	rm -rf out build *.egg-info .pytest_cache

@@ -149,12 +149,25 @@ def sample_data(
     out_dir: Path = typer.Argument(..., help="Folder to write the synthetic drive into."),
     frames: int = typer.Option(3, "--frames", "-n", min=1, help="Frames in the sequence."),
     seed: int = typer.Option(0, "--seed", help="Scene seed (generation is deterministic)."),
+    camera_size: Optional[str] = typer.Option(None, "--camera-size", help="WxH, e.g. 484x366 [default: 1936x1464]."),
+    lidar_columns: Optional[int] = typer.Option(None, "--lidar-columns", min=16,
+                                                help="Azimuth columns per scan [default: the sensor's]."),
 ) -> None:
-    """Render a small synthetic ideal drive (camera, raw Bayer, LiDAR, radar) from one procedural scene."""
+    """Render a synthetic ideal drive (camera, raw Bayer, LiDAR, radar) from one procedural scene, at the sensors'
+    full resolutions unless told otherwise (about 40 MB per frame)."""
     from roadview_noise.sampledata.generate import generate
 
-    summary = generate(out_dir, frames=frames, seed=seed, progress=True)
-    typer.echo(f"rvnoise: {summary.get('files', '?')} files in {summary.get('seconds', 0):.1f} s → {out_dir}")
+    size = None
+    if camera_size:
+        try:
+            w, h = (int(v) for v in camera_size.lower().split("x"))
+            size = (w, h)
+        except ValueError:
+            _fail(f"--camera-size must be WIDTHxHEIGHT, got {camera_size!r}")
+    summary = generate(out_dir, frames=frames, seed=seed, camera_size=size, lidar_columns=lidar_columns,
+                       progress=True)
+    typer.echo(f"rvnoise: {len(summary['files'])} files, {summary['bytes'] / 1e6:.1f} MB in "
+               f"{summary['seconds']:.1f} s → {out_dir}")
 
 
 if __name__ == "__main__":

@@ -111,16 +111,21 @@ def _profile_spec(spec, file_dir: Path, recipe: Recipe):
     return spec
 
 
+def _sidecar_default(spec, file_dir: Path, name: str):
+    """Without a profile in the recipe, a profile sidecar (``camera.yaml``, ``lidar.yaml``, ``radar.yaml``) in the
+    input file's folder is used; else the built-in default."""
+    if spec is None and (file_dir / name).is_file():
+        return str(file_dir / name)
+    return spec
+
+
 def _camera_profile(spec, file_dir: Path):
-    """The recipe's camera profile; without one, a ``camera.yaml`` next to the image, else the ROADVIEW Lucid."""
+    """The recipe's camera profile, else ``camera.yaml`` next to the image, else the ROADVIEW Lucid."""
     from .profiles.camera import load_camera_profile
 
     if isinstance(spec, dict):
         return load_camera_profile(spec)
-    if spec is None:
-        sidecar = file_dir / "camera.yaml"
-        spec = str(sidecar) if sidecar.is_file() else None
-    return _camera_profile_cached(spec)
+    return _camera_profile_cached(_sidecar_default(spec, file_dir, "camera.yaml"))
 
 
 @lru_cache(maxsize=64)
@@ -192,10 +197,11 @@ def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
             frame = dataclasses.replace(frame, depth_m=depth)
         return frame
     if sample.modality == "lidar":
-        spec = _profile_spec(inputs.lidar_profile, file_dir, recipe)
+        spec = _sidecar_default(_profile_spec(inputs.lidar_profile, file_dir, recipe), file_dir, "lidar.yaml")
         profile = _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
     else:
-        profile = _radar_profile(_hashable(_profile_spec(inputs.radar_profile, file_dir, recipe)))
+        spec = _sidecar_default(_profile_spec(inputs.radar_profile, file_dir, recipe), file_dir, "radar.yaml")
+        profile = _radar_profile(_hashable(spec))
     return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
                                     field_map=dict(inputs.field_map) or None)
 

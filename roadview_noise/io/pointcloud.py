@@ -39,7 +39,7 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "x": ("x",), "y": ("y",), "z": ("z",),
     "intensity": ("intensity", "signal", "i", "I", "reflectivity"),
     "ring": ("ring", "channel", "laser_id"),
-    "time_s": ("time_s",),
+    "time_s": ("time_s", "time"),          # seconds (Velodyne ROS convention); Ouster `t` (ns) keeps its name
     "rcs_dbsm": ("rcs_dbsm", "rcs", "RCS"),
     "v_r_m_per_s": ("v_r_m_per_s", "v_r", "velocity", "doppler"),
     "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated"),

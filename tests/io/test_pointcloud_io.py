@@ -156,7 +156,7 @@ def test_organised_pcd_keeps_grid(tmp_path):
 @pytest.mark.parametrize("name,sensor,columns,fmt,canonical", [
     ("k.bin", "lidar", 4, "kitti_bin", ["x", "y", "z", "intensity"]),
     ("n.pcd.bin", "lidar", 5, "nuscenes_bin", ["x", "y", "z", "intensity", "ring"]),
-    ("v.bin", "radar", 7, "vod_bin", ["x", "y", "z", "rcs_dbsm", "v_r_m_per_s", "v_r_comp_m_per_s", "time"]),
+    ("v.bin", "radar", 7, "vod_bin", ["x", "y", "z", "rcs_dbsm", "v_r_m_per_s", "v_r_comp_m_per_s", "time_s"]),
 ])
 def test_bin_formats_roundtrip(tmp_path, name, sensor, columns, fmt, canonical):
     table = np.random.default_rng(5).normal(0, 20, (111, columns)).astype(np.float32)
