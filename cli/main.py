@@ -80,7 +80,7 @@ def list_models() -> None:
     typer.echo("Models:")
     for mid in sorted(models, key=lambda m: (models[m].sensor, models[m].stage, m)):
         c = models[mid]
-        typer.echo(f"  {mid:<22} {c.sensor:<7} {c.stage.name:<11} {c.scope.value:<9} {c.summary}")
+        typer.echo(f"  {mid:<24} {c.sensor:<7} {c.stage.name:<12} {c.scope.value:<9} {c.summary}")
     typer.echo("\nCompound noise factors (D3.5 Table 6); * = a model not implemented yet:")
     for name, cnf in CNFS.items():
         chains = "; ".join(" → ".join(m if m in models else f"{m}*" for m in ids) for ids in cnf.chains.values())

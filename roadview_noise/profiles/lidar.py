@@ -29,13 +29,16 @@ def _table(name: str) -> dict:
 
 
 def os1_128() -> LidarProfile:
-    """Ouster OS1-128: 865 nm, 2048 columns, 120 m, signal in photon counts (16-bit); real beam table."""
+    """Ouster OS1-128: 865 nm, 2048 columns, 120 m, signal in photon counts (16-bit); real beam table.
+
+    Beam: radius 4.75 mm at the window (D3.4 reference), full divergence 0.18° FWHM (Ouster OS1 datasheet, 128-channel
+    models); without it weather particles far from the sensor would cover the beam 10–100× too much."""
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,
-        wavelength_m=865e-9, beam_radius_m=4.75e-3, beam_divergence_rad=math.radians(0.18),
+        wavelength_m=865e-9, beam_radius_m=4.75e-3, beam_divergence_rad=np.deg2rad(0.18),
         pulse_half_power_width_s=10e-9, max_range_m=120.0,
-        intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, detection_threshold=2.42,
+        intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, detection_threshold=3.28,
         beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static")
 
 
