@@ -15,7 +15,7 @@ from pathlib import Path, PurePosixPath
 from .errors import InputError
 from .io.atomic import TMP_SUFFIX
 from .recipe import InputsSpec, Recipe
-from .types import CameraFrame, LidarProfile, RawEncoding, RawFrame, SensorData
+from .types import CameraFrame, Conditions, LidarProfile, RawEncoding, RawFrame, SensorData
 
 DEFAULT_GLOBS = {
     "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
@@ -163,7 +163,16 @@ def _hashable(spec):
 
 
 def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
-    """Read one sample (and the sidecars the chain needs) into a frame or cloud; InputError names the file."""
+    """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions;
+    InputError names the file."""
+    data = _read(sample, in_root, recipe)
+    ego = recipe.spec.inputs.ego_velocity_m_per_s
+    if ego is not None:
+        data = dataclasses.replace(data, conditions=Conditions(ego_velocity_m_per_s=tuple(map(float, ego))))
+    return data
+
+
+def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
     from .io import depth as depth_io
     from .io import image as image_io
     from .io import pointcloud as cloud_io

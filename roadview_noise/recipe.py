@@ -53,6 +53,7 @@ class InputsSpec(_Strict):
     intensity_full_scale: float | None = Field(default=None, gt=0)
     field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
+    ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
 
 
 class OutputSpec(_Strict):

@@ -138,11 +138,13 @@ class RadarProfile:
     azimuth_resolution_deg: float = 1.0
     elevation_resolution_deg: float = 2.0
     range_resolution_m: float = 0.2
+    velocity_resolution_m_per_s: float = 0.1035    # Doppler bin width (RISE analysis: 512 bins over ±26.5 m/s)
     max_range_m: float = 200.0
     if_bandwidth_hz: float = 20e6
     noise_figure_db: float = 12.0
-    snr_threshold_db: float | None = None     # None: estimated per sequence from the clear data
+    snr_threshold_db: float | None = None     # None: estimated from the clear data
     rcs_compensates_weather: bool = False
+    power_unit: str = "relative"              # "dBm" when the power field is absolute received power
 
 
 SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]

@@ -1,0 +1,127 @@
+"""Detection of radar points: the detection statistic, its threshold, the radar constant, losses and labels
+(models.md §4.1 steps 2–3, §4.3 step 1). Shared by the radar weather and obstruction models.
+
+Detection statistic D (dB), in order of preference:
+
+- ``snr_db`` when the cloud has it;
+- else ``power_db`` (SNR up to the constant receiver noise floor);
+- else ``rcs_dbsm − 40 log10 r`` (SNR up to the radar constant, radar equation ``SNR = C_r σ / r⁴``) — e.g.
+  View-of-Delft, whose files carry RCS but neither SNR nor power.
+
+A loss L (dB) lowers D, SNR and power by L, and the reported RCS by L unless ``profile.rcs_compensates_weather``.
+
+Threshold t: ``profile.snr_threshold_db`` for SNR; ``snr_threshold_db + noise floor`` (−174 dBm/Hz + 10 log10 B +
+NF) for power, read as dBm; otherwise — always for the RCS statistic, whose radar constant is unknown — the ``q``
+quantile of the frame's own D before the model acts (q = 0: the weakest detection). Frames are processed
+independently by parallel workers, so a "per sequence" estimate (models.md §4.1 step 3) would need a pass over the
+whole sequence first, and a SEQUENCE-scope ``draw_sequence`` sees only the current frame, so it would differ
+between frames as well. The per-frame estimate is deterministic per frame and, with q = 0, makes zero loss the
+identity (every input point has D ≥ t). It is an upper bound of the true threshold (slight over-removal, and it
+varies a little from frame to frame); give ``snr_threshold_db`` in the profile for a fixed one.
+
+Radar constant (dB) for synthetic echoes: ``C = median(D − rcs_dbsm + 40 log10 r)`` over points with RCS, so that
+``D = C + 10 log10 σ − 40 log10 r`` (0 for the RCS statistic); unknown without an RCS field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import ModelError
+from ...physics.radar_link import noise_floor_dbm
+from ...profiles.radar import default_radar_profile
+from ...types import PointCloud, PointLabel, RadarProfile
+
+RCS_STATISTIC = "rcs_dbsm-40log10(r)"
+
+
+def profile_of(cloud: PointCloud) -> RadarProfile:
+    return cloud.profile if isinstance(cloud.profile, RadarProfile) else default_radar_profile()
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Detection statistic of every point of a cloud and the threshold that a point must reach."""
+
+    statistic: str                 # "snr_db" | "power_db" | RCS_STATISTIC
+    values_db: np.ndarray
+    threshold_db: float
+    threshold_source: str          # "profile" | "frame quantile q"
+
+    def diagnostics(self) -> dict:
+        return {"detection_statistic": self.statistic, "threshold_db": float(self.threshold_db),
+                "threshold_source": self.threshold_source}
+
+
+def detection(cloud: PointCloud, quantile: float, model_id: str, ranges_m: np.ndarray | None = None) -> Detection:
+    """The detection statistic and threshold of ``cloud`` (see the module docstring); ``ranges_m`` if known."""
+    fields = cloud.fields
+    r = cloud.ranges_m if ranges_m is None else ranges_m
+    if "snr_db" in fields:
+        name, values = "snr_db", np.asarray(fields["snr_db"], dtype=float)
+    elif "power_db" in fields:
+        name, values = "power_db", np.asarray(fields["power_db"], dtype=float)
+    elif "rcs_dbsm" in fields:
+        name, values = RCS_STATISTIC, np.asarray(fields["rcs_dbsm"], dtype=float) - _log_r4(r)
+    else:
+        raise ModelError("a radar cloud needs snr_db, power_db or rcs_dbsm to decide detection "
+                         f"(has {sorted(fields)})", model=model_id)
+    profile = profile_of(cloud)
+    if profile.snr_threshold_db is not None and name != RCS_STATISTIC:
+        threshold = profile.snr_threshold_db
+        if name == "power_db":
+            threshold += noise_floor_dbm(profile.if_bandwidth_hz, profile.noise_figure_db)
+        source = "profile"
+    else:
+        finite = values[np.isfinite(values)]
+        threshold = float(np.quantile(finite, quantile)) if len(finite) else np.inf
+        source = f"frame quantile {quantile:g}"
+    return Detection(name, values, float(threshold), source)
+
+
+def _log_r4(r: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return 40 * np.log10(np.where(r > 0, r, np.nan))
+
+
+def radar_constant_db(cloud: PointCloud, det: Detection, ranges_m: np.ndarray) -> float | None:
+    """``C = median(D − rcs_dbsm + 40 log10 r)`` over the points with RCS (None without an RCS field)."""
+    if "rcs_dbsm" not in cloud.fields:
+        return None
+    c = det.values_db - np.asarray(cloud.fields["rcs_dbsm"], dtype=float) + _log_r4(ranges_m)
+    c = c[np.isfinite(c)]
+    return float(np.median(c)) if len(c) else None
+
+
+def power_minus_snr_db(cloud: PointCloud) -> float | None:
+    """Median ``power_db − snr_db`` (the noise floor in the power unit) when the cloud has both."""
+    if "snr_db" not in cloud.fields or "power_db" not in cloud.fields or not len(cloud):
+        return None
+    return float(np.median(np.asarray(cloud.fields["power_db"], dtype=float) - cloud.fields["snr_db"]))
+
+
+def with_loss(cloud: PointCloud, loss_db: np.ndarray) -> PointCloud:
+    """Lower SNR and power by ``loss_db`` per point, and RCS unless the radar compensates weather losses."""
+    out = {}
+    names = ["snr_db", "power_db"]
+    if not profile_of(cloud).rcs_compensates_weather:
+        names.append("rcs_dbsm")
+    for name in names:
+        if name in cloud.fields:
+            v = cloud.fields[name]
+            out[name] = (v - loss_db).astype(v.dtype, copy=False)
+    return cloud.with_fields(**out) if out else cloud
+
+
+def labels(cloud: PointCloud) -> np.ndarray:
+    """A writable copy of the ``label`` field, or KEPT (uint8) for every point when there is none."""
+    if "label" in cloud.fields:
+        return np.array(cloud.fields["label"], copy=True)
+    return np.full(len(cloud), PointLabel.KEPT, dtype=np.uint8)
+
+
+def mark(label: np.ndarray, mask: np.ndarray, value: PointLabel) -> np.ndarray:
+    """Raise the label of the masked points to ``value`` (an ADDED point stays ADDED)."""
+    return np.where(mask, np.maximum(label, np.asarray(value, dtype=label.dtype)), label).astype(label.dtype)

@@ -1,0 +1,96 @@
+"""4D imaging radar profiles (models.md §4) and their loader.
+
+Built-ins (nominal figures of the radar class, not datasheet values; override any field with a YAML file or a
+mapping):
+
+- ``generic-77ghz`` (default): 77 GHz, 120° × 30° field of view at 1° × 2°, 0.2 m range bins, 200 m, SNR threshold
+  estimated from the data.
+- ``rehearse``: REHEARSE-style long-range 4D radar (ROADVIEW test-track recordings; PCD fields velocity, snr,
+  power, rcs): 77 GHz, 120° × 28°, 300 m.
+- ``vod``: View-of-Delft-style short-range 3+1D radar (ZF FRGen21 class): 77 GHz, 100 m; its files carry RCS and
+  radial velocities but no SNR/power, so detection works on ``rcs_dbsm − 40 log10 r`` (models/radar/detection.py).
+
+Per-point field names of these datasets map to the canonical ``rcs_dbsm``, ``v_r_m_per_s``, ``v_r_comp_m_per_s``,
+``snr_db``, ``power_db`` in the I/O layer; profiles hold sensor parameters only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import yaml
+
+from ..errors import InputError
+from ..types import RadarProfile
+
+
+def generic_77ghz() -> RadarProfile:
+    """Generic 77 GHz 4D imaging radar: the RadarProfile defaults (the ROADVIEW 1° × 2° grid of models.md §4.4)."""
+    return RadarProfile("generic-77ghz")
+
+
+def rehearse() -> RadarProfile:
+    """REHEARSE-style long-range 4D imaging radar (nominal)."""
+    return RadarProfile("rehearse", frequency_hz=77e9, fov_azimuth_deg=120.0, fov_elevation_deg=28.0,
+                        azimuth_resolution_deg=1.0, elevation_resolution_deg=2.0, range_resolution_m=0.2,
+                        max_range_m=300.0, if_bandwidth_hz=20e6, noise_figure_db=12.0)
+
+
+def vod() -> RadarProfile:
+    """View-of-Delft-style short-range 3+1D radar (ZF FRGen21 class, nominal); RCS but no SNR in the data."""
+    return RadarProfile("vod", frequency_hz=77e9, fov_azimuth_deg=120.0, fov_elevation_deg=30.0,
+                        azimuth_resolution_deg=1.5, elevation_resolution_deg=1.5, range_resolution_m=0.2,
+                        max_range_m=100.0, if_bandwidth_hz=20e6, noise_figure_db=12.0)
+
+
+BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod}
+
+
+def default_radar_profile() -> RadarProfile:
+    return generic_77ghz()
+
+
+def load_radar_profile(spec: str | dict | None, *, base_dir: Path | None = None) -> RadarProfile:
+    """A built-in name, a YAML file (a mapping of RadarProfile fields, optionally ``base: NAME_OR_FILE``) or a
+    mapping ``{base: NAME_OR_FILE, <RadarProfile field>: value, ...}`` overriding fields of a base profile."""
+    if spec is None:
+        return default_radar_profile()
+    if isinstance(spec, dict):
+        spec = dict(spec)
+        base = load_radar_profile(spec.pop("base", None), base_dir=base_dir)
+        return _override(base, spec, "profile")
+    if spec in BUILTIN:
+        return BUILTIN[spec]()
+    path = Path(spec) if base_dir is None or Path(spec).is_absolute() else base_dir / spec
+    if not path.is_file():
+        raise InputError(f"no radar profile {spec!r}: not a built-in ({', '.join(BUILTIN)}) nor a file",
+                         file=str(path))
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise InputError(f"not valid YAML ({e})", file=str(path)) from None
+    if not isinstance(data, dict):
+        raise InputError("a radar profile file must hold a mapping", file=str(path))
+    base = load_radar_profile(data.pop("base", None), base_dir=path.parent)
+    return _override(base, data, str(path))
+
+
+def _override(base: RadarProfile, fields: dict, source: str) -> RadarProfile:
+    allowed = {f.name for f in dataclasses.fields(RadarProfile)}
+    unknown = set(fields) - allowed
+    if unknown:
+        raise InputError(f"unknown radar profile keys {sorted(unknown)} (allowed: {sorted(allowed)})", file=source)
+    for key, value in fields.items():
+        if key == "name" or (key == "snr_threshold_db" and value is None):
+            continue
+        if key == "rcs_compensates_weather":
+            if not isinstance(value, bool):
+                raise InputError(f"{key} must be true or false, got {value!r}", file=source)
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(f"{key} must be a number, got {value!r}", file=source)
+        if key != "snr_threshold_db" and key != "noise_figure_db" and value <= 0:
+            raise InputError(f"{key} must be > 0, got {value!r}", file=source)
+        fields[key] = float(value)
+    return dataclasses.replace(base, **fields)
