@@ -112,12 +112,14 @@ class LidarProfile:
     columns: int = 2048
     wavelength_m: float = 865e-9
     beam_radius_m: float = 4.75e-3
-    beam_divergence_rad: float = 0.0
+    beam_divergence_rad: float = 0.0           # full angle: beam radius w(r) = w0 + r·θ/2
     pulse_half_power_width_s: float = 10e-9
     max_range_m: float = 120.0
     intensity_unit: str = IntensityUnit.PHOTONS
     intensity_full_scale: float = 65535.0
-    detection_threshold: float = 2.42          # in intensity_unit
+    intensity_kind: str = "signal"             # "signal": ∝ received power (∝ ρ/R²); "reflectivity": range-compensated
+    sensor_constant: float | None = None       # signal of a ρ = 1 Lambertian target at 1 m (unit·m²); None: full scale
+    detection_threshold: float = 2.42          # received signal at the detection limit, in intensity_unit
     beam_origin_offset_m: float = 0.0          # Ouster lidar_origin_to_beam_origin (horizontal)
     sensor_z_offset_m: float = 0.0             # Ouster lidar_to_sensor_transform z (points are in the sensor frame)
     window: str = "static"                     # "static" (Ouster) or "rotating" (Velodyne head), §3.8

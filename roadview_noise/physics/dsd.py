@@ -70,9 +70,10 @@ def liquid_water_content_g_per_m3(n0: float, lam: float, d_min_mm: float, d_max_
 
 def sample_truncated_exponential(rng: np.random.Generator, lam: float, d_min_mm: float, d_max_mm: float,
                                  size: int) -> np.ndarray:
-    """Diameters (mm) by inverse CDF of ``e^{−ΛD}`` truncated to [Dmin, Dmax] (models.md §3.3 correct version)."""
+    """Diameters (mm) by inverse CDF of ``e^{−ΛD}`` truncated to [Dmin, Dmax] (models.md §3.3 correct version);
+    the bounds may be arrays broadcastable to ``size``."""
     u = rng.random(size)
-    span = 1.0 - math.exp(-lam * (d_max_mm - d_min_mm))
+    span = -np.expm1(-lam * (np.asarray(d_max_mm, dtype=float) - np.asarray(d_min_mm, dtype=float)))
     return d_min_mm - np.log1p(-u * span) / lam
 
 

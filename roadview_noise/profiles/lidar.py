@@ -32,7 +32,10 @@ def os1_128() -> LidarProfile:
     """Ouster OS1-128: 865 nm, 2048 columns, 120 m, signal in photon counts (16-bit); real beam table.
 
     Beam: radius 4.75 mm at the window (D3.4 reference), full divergence 0.18° FWHM (Ouster OS1 datasheet, 128-channel
-    models); without it weather particles far from the sensor would cover the beam 10–100× too much."""
+    models); without it weather particles far from the sensor would cover the beam 10–100× too much. Detection
+    threshold 3.28 photons (5·10⁻⁵ of full scale, the D3.4 rain value): with the weather models' sensor constant
+    K = full scale·m² (``I = K ρ / R²``) it puts the 10 % / 80 % Lambertian range limits at 45 m / 126 m (datasheet:
+    40 m / 120 m); the D3.4 fog value 2.42 would give 52 m / 147 m."""
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,

@@ -1,0 +1,173 @@
+"""Benchmark of the LiDAR weather models fog.lidar, rain.lidar, snow.lidar (one core).
+
+1. A synthetic full 128×2048 OS1-128 range image (ground plane, two facades, parked cars, no-return sky cells),
+   ray-cast analytically with the real beam table, intensities in photons (``K ρ cos θ / r²``, K = full scale).
+2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, reflectivity as 8-bit intensity), if
+   present, plus a table rate → kept / attenuated / moved / removed / added.
+
+Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
+ms per frame (min and median of 15 frames after a warm-up), the tracemalloc peak, the visible particles drawn, and
+the speed-up of the median over the MATLAB reference (18 / 24 / 30 s per frame for fog / rain / snow, models.md §6).
+Run: ``taskset -c 0 .venv/bin/python bench/bench_lidar_weather.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from roadview_noise.compound import apply_models  # noqa: E402
+from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
+from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
+from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
+from roadview_noise.profiles.lidar import os1_128  # noqa: E402
+from roadview_noise.types import PointCloud  # noqa: E402
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "os1-128"
+MATLAB_S = {"fog.lidar": 18.0, "rain.lidar": 24.0, "snow.lidar": 30.0}
+D35 = {"fog.lidar": FogLidar(), "rain.lidar": RainLidar(), "snow.lidar": SnowLidar()}
+REPEATS = 15
+
+
+def synthetic_grid(columns: int = 2048) -> PointCloud:
+    """Street canyon seen by an OS1-128 at 1.8 m: ground z = −1.8, facades y = ±9 m, 6 cars; photons."""
+    prof = dataclasses.replace(os1_128(), columns=columns)
+    rows = prof.channels
+    el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[:, None]
+    az = (np.pi - 2 * np.pi * np.arange(columns)[None, :] / columns
+          - np.deg2rad(np.asarray(prof.beam_azimuth_offset_deg))[:, None])
+    d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), -1)
+    d = d.reshape(-1, 3)
+    best = np.full(len(d), np.inf)
+    rho = np.zeros(len(d))
+    cos_inc = np.zeros(len(d))
+
+    def plane(axis: int, value: float, reflectance: float, lo: tuple, hi: tuple) -> None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = value / d[:, axis]
+        hit = d[:, axis] != 0
+        hit &= t > 0
+        p = d * t[:, None]
+        for k in range(3):
+            if k != axis:
+                hit &= (p[:, k] >= lo[k]) & (p[:, k] <= hi[k])
+        closer = hit & (t < best)
+        best[closer], rho[closer], cos_inc[closer] = t[closer], reflectance, np.abs(d[closer, axis])
+
+    inf = np.inf
+    plane(2, -1.8, 0.12, (-inf, -inf, 0), (inf, inf, 0))                    # asphalt
+    plane(1, 9.0, 0.35, (-80, 0, -1.8), (150, 0, 12))                       # facades
+    plane(1, -9.0, 0.35, (-80, 0, -1.8), (150, 0, 12))
+    for x0 in (-25.0, -8.0, 6.0, 14.0, 30.0, 55.0):                          # cars: boxes 4.5 × 1.8 × 1.5 m
+        y0 = 5.5 if x0 > 0 else -5.5
+        box = dict(lo=(x0, y0 - 0.9, -1.8), hi=(x0 + 4.5, y0 + 0.9, -0.3))
+        for axis, value in ((0, x0), (0, x0 + 4.5), (1, y0 - 0.9), (1, y0 + 0.9), (2, -0.3)):
+            plane(axis, value, 0.6, box["lo"], box["hi"])
+    ok = best <= prof.max_range_m
+    intensity = np.where(ok, prof.intensity_full_scale * rho * cos_inc / np.where(ok, best, 1.0) ** 2, 0.0)
+    pos = np.where(ok[:, None], d * np.where(ok, best, 0.0)[:, None], 0.0)
+    ring = np.repeat(np.arange(rows, dtype=np.uint16), columns)
+    return PointCloud(pos, {"intensity": np.minimum(intensity, prof.intensity_full_scale).astype(np.float32),
+                            "ring": ring}, "lidar", prof, grid_shape=(rows, columns))
+
+
+def real_scan() -> PointCloud | None:
+    path = SHARED / "scan0.bin"
+    if not path.is_file():
+        return None
+    a = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
+    prof = dataclasses.replace(os1_128(), name="os1-128-reflectivity", columns=1024, intensity_unit="uint8",
+                               intensity_full_scale=255.0, detection_threshold=1.0)
+    return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", prof)
+
+
+def time_model(model, cloud: PointCloud) -> tuple[float, float, dict]:
+    """(min, median) ms per frame over REPEATS after one warm-up frame (cached tables), and the diagnostics."""
+    apply_models([model], cloud, seed=1, key="warm", sequence_id="s")
+    times = []
+    for i in range(REPEATS):
+        t0 = time.perf_counter()
+        _, rec = apply_models([model], cloud, seed=1, key=f"bench{i}", sequence_id="s")
+        times.append(time.perf_counter() - t0)
+    return min(times) * 1e3, statistics.median(times) * 1e3, rec[0].diagnostics
+
+
+def peak_memory_mb(model, cloud: PointCloud) -> float:
+    tracemalloc.start()
+    apply_models([model], cloud, seed=1, key="mem", sequence_id="s")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 2 ** 20
+
+
+def measure(scene: str, model_id: str) -> None:
+    """One model on one scene in this (fresh) process: prints a JSON line."""
+    cloud = synthetic_grid() if scene == "synthetic" else real_scan()
+    model = D35[model_id]
+    lo, med, diag = time_model(model, cloud)
+    print(json.dumps({"min_ms": lo, "median_ms": med, "peak_mb": peak_memory_mb(model, cloud), "diag": diag}))
+
+
+def report(name: str, scene: str, cloud: PointCloud) -> None:
+    """Each model in its own process (one core, fresh heap), so no model pays for another's memory layout."""
+    print(f"\n{name}: {len(cloud)} rays, {int(np.count_nonzero(cloud.positions_m.any(axis=1)))} returns")
+    print(f"{'model':12s} {'min ms':>7s} {'median':>7s} {'peak MB':>8s} {'speed-up':>9s}  "
+          "kept/attenuated/moved/removed/added  particles")
+    for mid in D35:
+        res = subprocess.run([sys.executable, __file__, "--measure", scene, mid], capture_output=True, text=True,
+                             check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        r = json.loads(res.stdout.strip().splitlines()[-1])
+        d = r["diag"]
+        counts = "/".join(str(d[k]) for k in ("kept", "attenuated", "moved", "removed", "added"))
+        print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['peak_mb']:8.1f} "
+              f"{MATLAB_S[mid] * 1e3 / r['median_ms']:8.0f}×  {counts}  {d.get('particles_drawn', '')}")
+
+
+def rate_table(cloud: PointCloud) -> None:
+    sweeps = {
+        "fog.lidar": ("visibility_m", [float("inf"), 200.0, 100.0, 50.0, 30.0, 20.0, 10.0], FogLidar),
+        "rain.lidar": ("rain_rate_mm_per_h", [0.0, 5.0, 10.0, 20.0, 50.0, 100.0, 150.0], RainLidar),
+        "snow.lidar": ("snowfall_rate_mm_per_h", [0.0, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0], SnowLidar),
+    }
+    total = float(np.sum(cloud.fields["intensity"]))
+    for mid, (pname, values, cls) in sweeps.items():
+        print(f"\n{mid} on the real scan: {pname} → kept / attenuated / moved / removed / added, "
+              "removed %, lost (removed + moved) %, intensity left in place %")
+        for v in values:
+            out, rec = apply_models([cls(**{pname: v})], cloud, seed=1, key="table", sequence_id="s")
+            d = rec[0].diagnostics
+            in_place = out.fields["label"] <= 1
+            left = float(np.sum(out.fields["intensity"][in_place])) / total
+            removed, lost = d["removed"] / d["points_in"], (d["removed"] + d["moved"]) / d["points_in"]
+            print(f"  {v:7g}: {d['kept']:6d} {d['attenuated']:6d} {d['moved']:6d} {d['removed']:6d} {d['added']:6d}"
+                  f"   {100 * removed:6.2f} {100 * lost:6.2f} {100 * left:7.2f}")
+
+
+def main() -> int:
+    if len(sys.argv) == 4 and sys.argv[1] == "--measure":
+        measure(sys.argv[2], sys.argv[3])
+        return 0
+    report("synthetic OS1-128 128×2048 full grid (photons; D3.5 rates: fog 30 m, rain 20 mm/h, snow 2.5 mm/h)",
+           "synthetic", synthetic_grid())
+    scan = real_scan()
+    if scan is None:
+        print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
+        return 0
+    report("real OS1-128 scan0.bin (reflectivity as 8-bit intensity, threshold 1)", "real", scan)
+    rate_table(scan)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

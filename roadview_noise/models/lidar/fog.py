@@ -1,0 +1,80 @@
+"""LiDAR fog (models.md §3.2 correct version; Hahner et al., "Fog Simulation on Real LiDAR Point Clouds for 3D Object
+Detection in Adverse Weather", ICCV 2021)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from ...model import Model, Stage, param
+from ...physics import lidar_link
+from ...physics.atmosphere import extinction_from_visibility_per_m
+from ...registry import register
+
+
+def fog_coefficients(visibility_m: float, backscatter_times_visibility_per_sr: float = 0.046) -> tuple[float, float]:
+    """Hahner 2021: extinction ``α = ln 20 / MOR`` (m⁻¹) and backscatter ``β = 0.046 / MOR`` (m⁻¹ sr⁻¹)."""
+    return extinction_from_visibility_per_m(visibility_m), backscatter_times_visibility_per_sr / visibility_m
+
+
+@register
+@dataclass(frozen=True)
+class FogLidar(Model):
+    """Homogeneous fog on a LiDAR scan: Hahner et al. 2021 on the shared LiDAR-equation core (models.md §3.1–§3.2).
+
+    - Hard target at R: ``I_hard = I e^{−2αR}``, α = ln 20 / MOR.
+    - Soft target (fog in front of it): ``I_fog = G_max(R) · I R² β/β0`` at the apparent range of the peak, where
+      ``G_max`` is the cached pulse-integral table (s m⁻², :func:`lidar_link.soft_target_table`), β = 0.046/MOR and
+      ``β0 = γ/π`` with γ = 10⁻⁶ — Hahner's calibration, which treats every clear point as the same effective
+      reflector and pairs with G in seconds (a sensor-constant form, ``K π β (c/2) G``, would be ~150× stronger
+      with this sharp R1/R2 overlap; γ is exposed). ``I_fog`` is clipped to full scale.
+    - strongest mode: the point moves to the fog if ``I_fog > I_hard``; first mode: if ``I_fog`` is above threshold.
+      Whatever wins must pass the profile's detection threshold, else the point is removed.
+    - Empty rays of a full range image (no-return cells) get ``R0 = ∞`` and the frame median of ``I R²`` as scale,
+      so fog also appears where the clear scan saw nothing (the reference's zero-range branch was dead code); a point
+      list carries only the rays that returned.
+    - Fixes vs the reference (§3.2, §7): input intensity unit kept (no W/m² output, no 10 fs pulse), the overlap
+      function replaces the [0.1 R, R] droplet hack, deterministic attenuation (no "n = 0 → clear" lottery).
+    ``visibility_m = inf`` is the identity (every label KEPT).
+    """
+
+    id: ClassVar[str] = "fog.lidar"
+    stage: ClassVar[Stage] = Stage.MEDIUM
+    sensor: ClassVar[str] = "lidar"
+    summary: ClassVar[str] = "fog: two-way extinction and soft-target fog returns (Hahner et al. 2021)"
+
+    visibility_m: float = param(30.0, unit="m", gt=0, doc="meteorological optical range (MOR); inf = no fog")
+    backscatter_times_visibility_per_sr: float = param(
+        0.046, unit="sr⁻¹", ge=0, doc="β·MOR: fog backscatter β = value / MOR (Hahner: 0.046, admissible 0.023–0.092)")
+    target_reflectivity: float = param(
+        1e-6, unit="1", gt=0, doc="γ of clear-weather points, β0 = γ/π (Hahner's calibration of fog vs target)")
+    pulse_width: str = param("profile", choices=("profile", "hahner_20ns"),
+                             doc="half-power pulse width: the sensor profile's, or Hahner's 20 ns")
+    return_mode: str = param("strongest", choices=("strongest", "first"), doc="which echo the sensor reports")
+
+    def apply(self, data, *, state, drawn, rng):
+        rays = lidar_link.cloud_rays(data, self.id)
+        if math.isinf(self.visibility_m):
+            out, counts = lidar_link.unchanged(data, rays)
+            return out, {**counts, "alpha_per_m": 0.0, "beta_per_m_sr": 0.0}
+        alpha, beta = fog_coefficients(self.visibility_m, self.backscatter_times_visibility_per_sr)
+        tau_h = (lidar_link.HAHNER_FOG_PULSE_S if self.pulse_width == "hahner_20ns"
+                 else rays.profile.pulse_half_power_width_s)
+        table = lidar_link.soft_target_table(alpha, tau_h)
+        gain = beta / (self.target_reflectivity / math.pi)
+        r = rays.range_m
+        g, fog_range = table.lookup(r)
+        fog = g * rays.signal * (r * r) * gain
+        empty = rays.empty
+        if empty.any() and rays.has_target.any():
+            t = rays.has_target
+            fog[empty] = table.saturated[0] * float(np.median(rays.signal[t] * r[t] ** 2)) * gain
+        np.minimum(fog, 1.0, out=fog)
+        hard = lidar_link.hard_target_signal(rays.signal, alpha, r)
+        returns = lidar_link.pick(hard, r, fog, fog_range, rays.threshold, self.return_mode)
+        out, counts = lidar_link.assemble(data, rays, returns)
+        return out, {**counts, "alpha_per_m": float(alpha), "beta_per_m_sr": float(beta),
+                     "pulse_half_power_width_s": float(tau_h)}

@@ -1,0 +1,360 @@
+"""fog.lidar, rain.lidar, snow.lidar (models.md §3.1–§3.4): oracles, unit invariance, identity, determinism,
+monotonicity, full range images with no-return cells, and the real OS1-128 scan."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from roadview_noise.compound import CNFS, apply_models
+from roadview_noise.errors import ModelError
+from roadview_noise.model import Stage
+from roadview_noise.models.lidar.fog import FogLidar
+from roadview_noise.models.lidar.rain import RainLidar
+from roadview_noise.models.lidar.snow import SnowLidar
+from roadview_noise.profiles.lidar import kitti_hdl64, os1_128
+from roadview_noise.registry import load_all
+from roadview_noise.types import PointCloud, PointLabel
+
+PHOTONS = dataclasses.replace(os1_128(), detection_threshold=2.42)      # the D3.4 fog threshold (models.md §3.0)
+WEATHER = {"fog.lidar": (FogLidar, "visibility_m"), "rain.lidar": (RainLidar, "rain_rate_mm_per_h"),
+           "snow.lidar": (SnowLidar, "snowfall_rate_mm_per_h")}
+HEAVY = {"fog.lidar": FogLidar(visibility_m=30.0), "rain.lidar": RainLidar(rain_rate_mm_per_h=50.0),
+         "snow.lidar": SnowLidar(snowfall_rate_mm_per_h=5.0)}
+
+
+def cloud_at(ranges, intensity, profile=PHOTONS, seed=0, grid=False) -> PointCloud:
+    """Points at the given ranges along random directions (each point its own ray); ``grid``: as a 1 × N range
+    image, so that output point i is input point i."""
+    rng = np.random.default_rng(seed)
+    r = np.asarray(ranges, dtype=float)
+    az, el = rng.uniform(-np.pi, np.pi, len(r)), rng.uniform(-0.3, 0.3, len(r))
+    pos = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], axis=1)
+    return PointCloud(pos, {"intensity": np.broadcast_to(np.asarray(intensity, np.float64), r.shape).copy()},
+                      "lidar", profile, grid_shape=(1, len(r)) if grid else None)
+
+
+def street(n=4000, seed=1, profile=PHOTONS) -> PointCloud:
+    """Targets 1–100 m: half with Lambertian photon intensities ``K ρ / r²`` (K = full scale), half with
+    range-independent intensities 5–300 (like a range-compensated channel, which Hahner's fog scales up with R²)."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(1.0, 100.0, n)
+    lambertian = 65535 * rng.uniform(0.02, 0.9, n) / r ** 2
+    intensity = np.clip(np.where(np.arange(n) % 2 == 0, lambertian, rng.uniform(5, 300, n)), 3.5, 65535)
+    return cloud_at(r, intensity, profile, seed)
+
+
+def run(model, cloud, seed=3):
+    out, rec = apply_models([model], cloud, seed=seed, key="k", sequence_id="s")
+    return out, rec[0].diagnostics
+
+
+def target_kept(out) -> np.ndarray:
+    """Points still at their input position (a grid's removed cells are all-zero)."""
+    return np.isin(out.fields["label"], (PointLabel.KEPT, PointLabel.ATTENUATED)) & np.any(out.positions_m != 0, 1)
+
+
+# --- registration -----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model_id", sorted(WEATHER))
+def test_registered_medium_lidar_models(model_id):
+    cls = load_all()[model_id]
+    assert cls is WEATHER[model_id][0]
+    assert cls.stage == Stage.MEDIUM and cls.sensor == "lidar" and cls.summary
+    assert "§3." in cls.__doc__ and "Hahner" in cls.__doc__ + sys.modules[cls.__module__].__doc__
+    names = {s.name for s in cls.param_specs()}
+    assert WEATHER[model_id][1] in names and "return_mode" in names
+
+
+def test_d35_defaults():
+    assert FogLidar().visibility_m == 30.0
+    assert RainLidar().rain_rate_mm_per_h == 20.0
+    assert SnowLidar().snowfall_rate_mm_per_h == 2.5
+    with pytest.raises(ModelError):
+        RainLidar(min_drop_diameter_mm=7.0)
+
+
+@pytest.mark.parametrize("cnf", ["CNF19", "CNF20", "CNF21", "CNF22", "CNF23", "CNF24"])
+def test_cnf_chains_name_these_models(cnf):
+    chain = CNFS[cnf].chains["lidar"]
+    assert chain[1] in WEATHER and chain[0] in ("alignment.lidar", "power.lidar")
+
+
+# --- fog oracle: surviving range of a hard target -----------------------------------------------------------------
+
+
+def test_fog_surviving_range_of_hard_targets():
+    """I = 100 photons, threshold 2.42 photons, V = 30 m: targets survive (in place) up to ln(I/I_thr)/(2α) = 18.6 m,
+    beyond that they are removed or replaced by fog (models.md §3.2)."""
+    ranges = np.arange(2.0, 60.0, 0.1)
+    out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 100.0, grid=True))
+    alpha = math.log(20) / 30
+    r_max = math.log(100 / 2.42) / (2 * alpha)
+    assert r_max == pytest.approx(18.6, abs=0.05)
+    assert diag["alpha_per_m"] == pytest.approx(0.09986, rel=1e-3)
+    kept = target_kept(out)
+    assert np.all(kept[ranges < r_max - 1e-6]) and not np.any(kept[ranges > r_max + 1e-6])
+    surviving = out.ranges_m[kept]
+    assert surviving.max() == pytest.approx(ranges[ranges < r_max].max())
+    np.testing.assert_allclose(out.fields["intensity"][kept], 100 * np.exp(-2 * alpha * ranges[kept]), rtol=1e-12)
+    # far targets: the fog return (∝ R²) passes the threshold and replaces them near the sensor
+    moved = out.fields["label"] == PointLabel.MOVED
+    assert moved.any() and np.all(out.ranges_m[moved] < 2.0)
+    assert diag["removed"] + diag["moved"] + diag["attenuated"] == len(ranges)
+
+
+def test_fog_moved_points_stay_on_their_ray():
+    cloud = street()
+    out, diag = run(FogLidar(visibility_m=20.0), cloud)
+    moved = out.fields["label"] == PointLabel.MOVED
+    assert moved.sum() == diag["moved"] > 0
+    # every moved point is parallel to one input point, and closer than it
+    u_in = cloud.positions_m / cloud.ranges_m[:, None]
+    u_out = out.positions_m[moved] / out.ranges_m[moved][:, None]
+    cos = u_out @ u_in.T
+    src = np.argmax(cos, axis=1)
+    assert np.all(cos[np.arange(len(src)), src] > 1 - 1e-12)
+    assert np.all(out.ranges_m[moved] < cloud.ranges_m[src])
+
+
+# --- the units: photons, 8-bit and [0, 1] give the same decisions -------------------------------------------------
+
+
+def _scaled(cloud: PointCloud, unit: str, full_scale: float) -> PointCloud:
+    k = full_scale / PHOTONS.intensity_full_scale
+    prof = dataclasses.replace(PHOTONS, intensity_unit=unit, intensity_full_scale=full_scale,
+                               detection_threshold=PHOTONS.detection_threshold * k)
+    return dataclasses.replace(cloud, profile=prof, fields={"intensity": cloud.fields["intensity"] * k})
+
+
+@pytest.mark.parametrize("model_id", sorted(WEATHER))
+def test_same_decisions_in_photons_uint8_and_unit_intensities(model_id):
+    photons = street(3000, seed=4)
+    outs = [run(HEAVY[model_id], c, seed=9)[0] for c in
+            (photons, _scaled(photons, "uint8", 255.0), _scaled(photons, "unit", 1.0))]
+    labels = [o.fields["label"] for o in outs]
+    assert len(outs[0]) == len(outs[1]) == len(outs[2])
+    np.testing.assert_array_equal(labels[0], labels[1])
+    np.testing.assert_array_equal(labels[0], labels[2])
+    np.testing.assert_allclose(outs[0].positions_m, outs[1].positions_m, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(outs[0].positions_m, outs[2].positions_m, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(outs[1].fields["intensity"], outs[0].fields["intensity"] * 255 / 65535, rtol=1e-9)
+    assert 0 < np.mean(target_kept(outs[0])) < 1          # the scene is neither untouched nor wiped out
+
+
+def test_a_unit_scale_cloud_is_not_turned_into_fog():
+    """The classic peer failure: a [0, 1] cloud read with photon thresholds. Refused with a clear message, and with
+    the right profile the same scene keeps the same points as in photons."""
+    unit = _scaled(street(1000, seed=5), "unit", 1.0)
+    wrong = dataclasses.replace(unit, profile=PHOTONS)
+    with pytest.raises(ModelError, match="intensity_unit 'unit'"):
+        run(FogLidar(), wrong)
+    too_big = dataclasses.replace(street(200), profile=kitti_hdl64())
+    with pytest.raises(ModelError, match="full scale"):
+        run(RainLidar(), too_big)
+    out, diag = run(FogLidar(), unit)
+    assert diag["moved"] < 0.5 * len(unit) and diag["attenuated"] > 0
+
+
+# --- identity, determinism, labels, diagnostics --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", [FogLidar(visibility_m=math.inf), RainLidar(rain_rate_mm_per_h=0.0),
+                                   SnowLidar(snowfall_rate_mm_per_h=0.0)], ids=lambda m: m.id)
+def test_zero_strength_is_identity(model):
+    cloud = street(500)
+    out, diag = run(model, cloud)
+    np.testing.assert_array_equal(out.positions_m, cloud.positions_m)
+    np.testing.assert_array_equal(out.fields["intensity"], cloud.fields["intensity"])
+    assert out.fields["label"].dtype == np.uint8 and np.all(out.fields["label"] == PointLabel.KEPT)
+    assert diag["kept"] == len(cloud) and diag["alpha_per_m"] == 0.0
+
+
+@pytest.mark.parametrize("model_id", sorted(WEATHER))
+def test_same_rng_same_output_and_json_diagnostics(model_id):
+    cloud = street(2000, seed=6)
+    a, da = run(HEAVY[model_id], cloud, seed=1)
+    b, db = run(HEAVY[model_id], cloud, seed=1)
+    np.testing.assert_array_equal(a.positions_m, b.positions_m)
+    for k in a.fields:
+        np.testing.assert_array_equal(a.fields[k], b.fields[k])
+    assert da == db
+    json.dumps(da)
+    assert all(isinstance(v, (int, float)) for v in da.values())
+    assert {"kept", "attenuated", "moved", "removed", "added", "alpha_per_m"} <= set(da)
+    assert da["kept"] + da["attenuated"] + da["moved"] + da["removed"] == len(cloud)
+    assert len(a) == len(cloud) - da["removed"]
+    if model_id != "fog.lidar":                             # particles: another seed gives another frame
+        c, _ = run(HEAVY[model_id], cloud, seed=2)
+        assert not np.array_equal(a.fields["label"], c.fields["label"])
+
+
+def test_existing_fields_and_labels_are_carried():
+    cloud = street(1000, seed=7)
+    ring = np.arange(len(cloud), dtype=np.uint16) % 128
+    label = np.full(len(cloud), PointLabel.ADDED, np.uint8)
+    cloud = cloud.with_fields(ring=ring, label=label, intensity=cloud.fields["intensity"].astype(np.float32))
+    out, diag = run(RainLidar(rain_rate_mm_per_h=50.0), cloud)
+    assert out.fields["intensity"].dtype == np.float32 and out.fields["ring"].dtype == np.uint16
+    assert all(len(v) == len(out) for v in out.fields.values())
+    assert np.all(out.fields["intensity"] <= PHOTONS.intensity_full_scale)
+    # changed points get this model's label; untouched ones keep the previous one
+    assert set(np.unique(out.fields["label"])) <= {PointLabel.ATTENUATED, PointLabel.MOVED, PointLabel.ADDED}
+    assert np.all(run(RainLidar(rain_rate_mm_per_h=0.0), cloud)[0].fields["label"] == PointLabel.ADDED)
+    quantised = cloud.with_fields(intensity=np.rint(cloud.fields["intensity"]).astype(np.uint16))
+    out, diag = run(FogLidar(visibility_m=2000.0), quantised)
+    assert out.fields["intensity"].dtype == np.uint16 and diag["kept"] > 0
+    assert np.all(out.fields["label"][out.fields["label"] != PointLabel.ATTENUATED] != PointLabel.KEPT)
+
+
+# --- monotonicity ----------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=12, deadline=None, derandomize=True)
+@given(v1=st.floats(5.0, 500.0), shrink=st.floats(0.2, 0.95))
+def test_denser_fog_never_keeps_more_targets(v1, shrink):
+    """Fog is deterministic: the set of targets kept in place can only shrink as the visibility drops."""
+    cloud = street(1500, seed=8)
+    kept_light = _kept_points(cloud, run(FogLidar(visibility_m=v1), cloud)[0])
+    kept_dense = _kept_points(cloud, run(FogLidar(visibility_m=v1 * shrink), cloud)[0])
+    assert kept_dense <= kept_light
+
+
+def _kept_points(cloud, out) -> set:
+    """Indices of input points still in place (positions are unchanged for KEPT/ATTENUATED points)."""
+    keep = target_kept(out)
+    lookup = {tuple(p): i for i, p in enumerate(cloud.positions_m)}
+    return {lookup[tuple(p)] for p in out.positions_m[keep]}
+
+
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(model_id=st.sampled_from(["rain.lidar", "snow.lidar"]), log_rate=st.floats(-2.0, 4.5),
+       factor=st.floats(2.0, 4.0), seed=st.integers(0, 2 ** 16))
+def test_denser_precipitation_never_keeps_more_targets(model_id, log_rate, factor, seed):
+    """Rain and snow draw particles: at least a doubling of the rate keeps no more targets in place (same seed)."""
+    cls, name = WEATHER[model_id]
+    cloud = street(2500, seed=seed % 7)
+    r1 = math.exp(log_rate) if model_id == "rain.lidar" else math.exp(log_rate) / 10
+    k1 = run(cls(**{name: r1}), cloud, seed=seed)[1]
+    k2 = run(cls(**{name: r1 * factor}), cloud, seed=seed)[1]
+    assert k2["kept"] + k2["attenuated"] <= k1["kept"] + k1["attenuated"]
+    assert k2["alpha_per_m"] > k1["alpha_per_m"]
+
+
+# --- full range image: returns on no-return rays ------------------------------------------------------------------
+
+
+def small_grid(rows=32, cols=256) -> PointCloud:
+    """A full grid (photons) of the first 32 OS1-128 beams: a bright wall (2000 photons) at 15 m over half the
+    azimuths, sky elsewhere."""
+    prof = dataclasses.replace(PHOTONS, beam_elevation_deg=PHOTONS.beam_elevation_deg[:rows],
+                               beam_azimuth_offset_deg=PHOTONS.beam_azimuth_offset_deg[:rows], columns=cols)
+    el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[:, None]
+    az = np.pi - 2 * np.pi * np.arange(cols)[None, :] / cols - np.deg2rad(
+        np.asarray(prof.beam_azimuth_offset_deg))[:, None]
+    d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), -1).reshape(-1, 3)
+    hit = (np.arange(rows * cols) % cols) < cols // 2
+    pos = np.where(hit[:, None], d * 15.0, 0.0)
+    intensity = np.where(hit, 2000.0, 0.0).astype(np.float32)
+    ring = np.repeat(np.arange(rows, dtype=np.uint16), cols)
+    return PointCloud(pos, {"intensity": intensity, "ring": ring}, "lidar", prof, grid_shape=(rows, cols)), d, hit
+
+
+@pytest.mark.parametrize("model", [FogLidar(visibility_m=15.0), SnowLidar(snowfall_rate_mm_per_h=5.0)],
+                         ids=lambda m: m.id)
+def test_weather_returns_on_empty_rays_of_a_full_grid(model):
+    grid, directions, hit = small_grid()
+    out, diag = run(model, grid)
+    assert len(out) == len(grid) and out.grid_shape == grid.grid_shape
+    added = out.fields["label"] == PointLabel.ADDED
+    assert diag["added"] == added.sum() > 0 and not np.any(added & hit)
+    # added points lie on the ray of their cell (beam elevation of the row, azimuth of the column)
+    u = out.positions_m[added] / out.ranges_m[added][:, None]
+    np.testing.assert_allclose(np.sum(u * directions[added], axis=1), 1.0, atol=1e-6)
+    assert np.all(out.ranges_m[added] < 20.0)
+    np.testing.assert_array_equal(out.fields["ring"], grid.fields["ring"])
+    removed = ~np.any(out.positions_m != 0, axis=1) & hit
+    assert np.all(out.fields["intensity"][removed] == 0)
+    assert diag["removed"] == removed.sum()
+
+
+def test_fog_on_empty_rays_uses_the_saturated_table():
+    grid, _, hit = small_grid()
+    out, diag = run(FogLidar(visibility_m=10.0), grid)
+    added = out.fields["label"] == PointLabel.ADDED
+    assert added.sum() == (~hit).sum()                     # dense fog: every sky ray sees the fog
+    assert np.ptp(out.ranges_m[added]) < 1e-9              # homogeneous fog: one range, one intensity
+    assert np.ptp(out.fields["intensity"][added]) == 0
+
+
+# --- the real OS1-128 scan -------------------------------------------------------------------------------------------
+
+
+# the scan's 4th column is 8-bit reflectivity: 8-bit unit, threshold of one count as the vls-128 profile
+REFLECTIVITY = dataclasses.replace(os1_128(), name="os1-128-reflectivity", columns=1024, intensity_unit="uint8",
+                                   intensity_full_scale=255.0, detection_threshold=1.0)
+
+
+def real_scan(shared_data) -> PointCloud:
+    a = np.fromfile(shared_data / "os1-128" / "scan0.bin", dtype=np.float32).reshape(-1, 4)
+    return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", REFLECTIVITY)
+
+
+@pytest.mark.parametrize("model_id, values", [
+    ("fog.lidar", [math.inf, 200.0, 50.0, 30.0, 10.0]),
+    ("rain.lidar", [0.0, 5.0, 20.0, 50.0, 150.0]),
+    ("snow.lidar", [0.0, 0.5, 2.5, 10.0, 30.0])])
+def test_real_scan_loses_more_points_as_the_weather_thickens(shared_data, model_id, values):
+    cloud = real_scan(shared_data)
+    cls, name = WEATHER[model_id]
+    lost, transmission = [], []
+    for v in values:
+        out, d = run(cls(**{name: v}), cloud)
+        assert d["points_in"] == len(cloud) and len(out) == len(cloud) - d["removed"]
+        lost.append((d["removed"] + d["moved"]) / len(cloud))
+        kept = target_kept(out)
+        transmission.append(float(np.sum(out.fields["intensity"][kept])) / float(np.sum(cloud.fields["intensity"])))
+    assert lost[0] == 0 and all(b >= a for a, b in zip(lost, lost[1:])) and lost[-1] > lost[1], lost
+    assert all(b < a for a, b in zip(transmission, transmission[1:])), transmission
+
+
+def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
+    g = np.load(shared_data / "os1-128" / "scan0_grid.npz")
+    xyz = g["xyz_m"].reshape(-1, 3).astype(np.float64)
+    valid = g["range_mm"].reshape(-1) > 0
+    cloud = PointCloud(np.where(valid[:, None], xyz, 0.0),
+                       {"intensity": g["reflectivity"].reshape(-1).astype(np.float32)}, "lidar", REFLECTIVITY,
+                       grid_shape=(128, 1024))
+    # the fitted column azimuths reproduce the directions of the real returns, up to the angle subtended by the
+    # neglected beam-origin offsets (36 mm up, 16 mm out)
+    from roadview_noise.physics.lidar_link import empty_ray_directions
+
+    far = np.flatnonzero(valid & (np.linalg.norm(xyz, axis=1) > 3.0))[::10]
+    r = np.linalg.norm(xyz[far], axis=1)
+    angle = np.arccos(np.clip(np.sum(xyz[far] / r[:, None] * empty_ray_directions(cloud, valid, far), axis=1), -1, 1))
+    offset = math.hypot(REFLECTIVITY.sensor_z_offset_m, REFLECTIVITY.beam_origin_offset_m)
+    assert np.all(angle <= np.arctan(offset / r) + np.deg2rad(0.02))
+    out, diag = run(SnowLidar(snowfall_rate_mm_per_h=10.0), cloud)
+    added = out.fields["label"] == PointLabel.ADDED
+    assert diag["added"] > 0 and not np.any(added & valid) and len(out) == len(cloud)
+    elev = np.degrees(np.arcsin(out.positions_m[added, 2] / out.ranges_m[added]))
+    rows = np.flatnonzero(added) // 1024
+    np.testing.assert_allclose(elev, np.asarray(REFLECTIVITY.beam_elevation_deg)[rows], atol=1e-9)
+
+
+@pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar", "fog.lidar"])
+def test_first_return_mode_reports_weather_in_front_more_often(model_id):
+    cloud = street(3000, seed=10)
+    cls = type(HEAVY[model_id])
+    params = {**HEAVY[model_id].params()}
+    strongest = run(cls(**{**params, "return_mode": "strongest"}), cloud, seed=4)[1]
+    first = run(cls(**{**params, "return_mode": "first"}), cloud, seed=4)[1]
+    assert first["moved"] >= strongest["moved"] and first["moved"] > 0
