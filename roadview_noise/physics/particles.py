@@ -1,0 +1,507 @@
+"""Falling rain drops and snowflakes seen by a camera (models.md §2.2, §2.3, §2.9; Garg & Nayar 2007).
+
+One renderer serves rain and snow; they differ only in size distribution, fall speed and particle radiance.
+
+Geometry. Particles are a marked Poisson process in the camera frustum above the ground plane (models.md §2.2
+[PROP]): per 0.1 mm size class i a Poisson count with mean ``n_i · V_i`` (no floor bias), the planar depth Z by
+inverse CDF of the slab volume (∝ Z² until the ground enters the image) on ``[d_min, Z_i]``, then a uniform image
+position above the ground (flat ground at the camera height, optical axis horizontal) — exactly a uniform volume
+density. The sampled point is the particle's position at mid-exposure; it moves with the relative velocity
+``v_rel = v_particle + wind − ego`` (§2.9: its horizontal velocity equals the steady wind, because its
+relaxation time ``v_t/g`` is much shorter than its fall), so the streak joins the projections (intrinsics K) of
+``P ∓ v_rel T/2``. With no wind and no ego motion this is §2.2's vertical streak of length ``v T f / Z``.
+
+Photometry. A pixel's opacity is the fraction of the exposure during which the particle covers it, weighted by
+the covered fraction of the pixel: ``α = (1/T) ∫ a(t) dt``. This is §2.2's ``τ/T`` (τ = time the drop covers
+the pixel) generalised to partial coverage: ``α ≤ 1`` (τ ≤ T), and the opacity summed over the pixels is exactly
+the particle's image area ``(π/4) D² f_x f_y k / Z²`` (k = range/Z). §2.2 counts a pixel as covered whenever the
+drop touches it, which over-states a sub-pixel drop's opacity by ``(1 + D_px)/D_px``. The footprint is the
+particle's image (``D f/Z``) blurred by the defocus disk ``c = f²|Z − Z_f| / (N Z (Z_f − f) p)`` (§2.2 [PROP];
+focus at infinity: ``f²/(N Z p)``), which spreads near particles and lowers their opacity.
+
+Rasterisation (vectorised: np.add.at on flat indices, no per-particle loop). A streak is a segment of uniform
+line density lengthened by its footprint, integrated exactly over the pixels it crosses along its major axis and
+split linearly between the two nearest pixels across it (Wu-style anti-aliasing). Particles whose footprint
+exceeds ~2.7 px go to a buffer at scale s = 2, 4, … px (chosen so that the 2-tap split plus bilinear upsampling
+has the second moment of the footprint disk across the streak), upsampled and added. Each pixel sample is tested
+against the scene range at its nearest pixel (metres against metres), so streaks are cut at occluding edges.
+Overlapping streaks are summed and clipped to 1 (§2.2).
+
+Hybrid far field (models.md §2.2 [PROP]). A particle is explicit only where it can be seen one by one: the
+expected peak pixel opacity of its streak must reach ``min_opacity`` (small far drops are invisible individually
+but numerous — 3.5·10⁷ in the 0.5–30 m frustum of the Lucid camera at 50 mm/h, 1.5·10⁴ of them explicit). All others — fainter particles, those nearer than ``d_min`` and all beyond
+``d_max`` — form a homogeneous veil with the same particles' extinction ``σ = Σ n_i (π/4) D_i²``: the geometric
+shadow, Q = 1, because a camera pixel collects the forward diffraction lobe (λ/D < 1 mrad for millimetre
+particles), the "extinction paradox" of Bohren & Huffman §4.4; this also makes the veil the exact mean of the
+explicit particles it replaces. The veil's path radiance is the particles' radiance S (Koschmieder with A = S),
+so the mean image does not depend on ``min_opacity``; only the texture of the sub-threshold particles is lost.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from ..profiles.camera import fit_to_image
+from ..types import CameraProfile, Conditions
+from .cfa import SiteLayout
+from .dsd import BRANDES_SNOW_GAMMA, SNOW_LAWS, gamma_dsd, marshall_palmer
+from .fall_speed import atlas_ulbrich_m_per_s
+from .photometry import frame_depth_m
+
+IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
+CLASS_WIDTH_MM = 0.1
+FINE_STEP_MM = 0.005
+QUANTILES_PER_CLASS = 32
+DEPTH_QUANTILES = 4096
+RAIN_DIAMETER_RANGE_MM = (0.5, 6.0)
+SNOW_DIAMETER_RANGE_MM = (0.1, 10.0)
+SNOW_DSDS = ("gunn_marshall", "sekhon_srivastava", "brandes")
+# disk diameters with the second moment, across a streak, of the 2-tap linear split (1.63 px) and of the split at
+# scale s followed by bilinear upsampling (2.31 s px)
+BILINEAR_DISK_PX = 4.0 / math.sqrt(6.0)
+DISK_PER_SCALE_PX = 4.0 / math.sqrt(3.0)
+MAX_LEVEL = 5
+# pixel counts of streaks along their major axis are padded up to one of these (exact to 16, then ≤ 25 % steps)
+# so that streaks fall into few groups; padded samples carry zero weight
+SAMPLE_COUNTS = np.unique(np.concatenate([np.arange(17), np.ceil(16 * 1.25 ** np.arange(1, 28))])).astype(np.int32)
+SAMPLE_BUCKET = np.searchsorted(SAMPLE_COUNTS, np.arange(SAMPLE_COUNTS[-1] + 1)).astype(np.int16)
+LEVEL_INVERSE_SCALE = (0.5 ** np.arange(MAX_LEVEL + 1)).astype(np.float32)
+VEIL_LUT_SIZE = 256
+
+
+# --- size classes ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class SizeClasses:
+    """A particle size distribution cut into 0.1 mm classes.
+
+    Per m³ of air: ``number`` per class, ``shadow_area_m2`` = Σ (π/4) D² per class, ``volume_m3`` = Σ (π/6) D³.
+    ``quantiles_mm`` (classes × 33): the diameters at cumulative fractions 0, 1/32, …, 1 within each class, for
+    inverse-CDF sampling by table lookup (np.interp costs ~75 ns per particle)."""
+
+    edges_mm: np.ndarray
+    number: np.ndarray
+    shadow_area_m2: np.ndarray
+    volume_m3: np.ndarray
+    quantiles_mm: np.ndarray
+
+    @property
+    def rms_d_mm(self) -> np.ndarray:
+        lo, hi = self.edges_mm[:-1], self.edges_mm[1:]
+        return np.where(self.number > 0, np.sqrt(self.shadow_area_m2 / np.maximum(self.number, 1e-300) * 4e6 /
+                                                 math.pi), 0.5 * (lo + hi))
+
+    @property
+    def number_per_m3(self) -> float:
+        return float(self.number.sum())
+
+    def extinction_per_m(self, q_ext: float = IMAGING_Q_EXT) -> float:
+        return q_ext * float(self.shadow_area_m2.sum())
+
+    def liquid_water_g_per_m3(self) -> float:
+        """Mass of liquid-equivalent spheres (ρ_w = 10⁶ g/m³)."""
+        return 1e6 * float(self.volume_m3.sum())
+
+    def sample_diameters_mm(self, cls: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Inverse CDF within each particle's class (``u`` uniform in [0, 1)), float32."""
+        q = self.quantiles_mm.shape[1] - 1
+        return lerp_table(self.quantiles_mm.ravel(), cls * (q + 1), u * np.float32(q), q)
+
+
+def lerp_table(table: np.ndarray, offset: np.ndarray | int, t: np.ndarray, n: int) -> np.ndarray:
+    """Linear interpolation in equally spaced tables: ``table[offset + t]`` for t in [0, n] (float32)."""
+    t = np.asarray(t, dtype=np.float32)
+    j = np.minimum(t.astype(np.int32), n - 1)
+    frac = t - j.astype(np.float32)
+    lo = table[offset + j]
+    return lo + frac * (table[offset + j + 1] - lo)
+
+
+def size_classes(n_of_d: Callable[[np.ndarray], np.ndarray], d_min_mm: float, d_max_mm: float) -> SizeClasses:
+    """Integrate ``N(D)`` (m⁻³ mm⁻¹, D in mm) over 0.1 mm classes with the trapezoid rule on a 5 µm grid."""
+    n_fine = round((d_max_mm - d_min_mm) / FINE_STEP_MM)
+    d = np.linspace(d_min_mm, d_max_mm, n_fine + 1)
+    n = np.asarray(n_of_d(d), dtype=float)
+
+    def cumulative(y):
+        return np.concatenate([[0.0], np.cumsum(0.5 * (y[1:] + y[:-1]) * np.diff(d))])
+
+    per_class = round(CLASS_WIDTH_MM / FINE_STEP_MM)
+    idx = np.arange(0, n_fine + 1, per_class)
+    if idx[-1] != n_fine:
+        idx = np.append(idx, n_fine)
+    c0, c2, c3 = cumulative(n), cumulative(d ** 2 * n), cumulative(d ** 3 * n)
+    frac = np.linspace(0.0, 1.0, QUANTILES_PER_CLASS + 1)
+    targets = c0[idx[:-1], None] + frac[None, :] * np.diff(c0[idx])[:, None]
+    quantiles = np.interp(targets, c0, d)
+    # classes without particles (underflow): the class edges
+    empty = np.diff(c0[idx]) <= 0
+    quantiles[empty] = d[idx[:-1]][empty, None] + frac[None, :] * np.diff(d[idx])[empty, None]
+    return SizeClasses(edges_mm=d[idx], number=np.diff(c0[idx]),
+                       shadow_area_m2=math.pi / 4 * np.diff(c2[idx]) * 1e-6,
+                       volume_m3=math.pi / 6 * np.diff(c3[idx]) * 1e-9,
+                       quantiles_mm=quantiles.astype(np.float32))
+
+
+@lru_cache(maxsize=32)
+def rain_classes(rain_rate_mm_per_h: float) -> SizeClasses:
+    """Marshall–Palmer (1948) drops 0.5–6 mm (models.md §2.2)."""
+    n0, lam = marshall_palmer(rain_rate_mm_per_h)
+    return size_classes(lambda d: n0 * np.exp(-lam * d), *RAIN_DIAMETER_RANGE_MM)
+
+
+@lru_cache(maxsize=32)
+def snow_classes(snowfall_rate_mm_per_h: float, dsd: str) -> SizeClasses:
+    """Snowflakes 0.1–10 mm (models.md §2.3): exponential Gunn–Marshall / Sekhon–Srivastava laws of the
+    liquid-equivalent rate, or the Brandes et al. (2007) measured gamma fits (3.03, 2.70, 2.59 mm/h only)."""
+    if dsd == "brandes":
+        if snowfall_rate_mm_per_h not in BRANDES_SNOW_GAMMA:
+            raise ValueError(f"the Brandes table has only {sorted(BRANDES_SNOW_GAMMA)} mm/h")
+        n0, mu, lam = BRANDES_SNOW_GAMMA[snowfall_rate_mm_per_h]
+        return size_classes(lambda d: gamma_dsd(d, n0, mu, lam), *SNOW_DIAMETER_RANGE_MM)
+    n0, lam = SNOW_LAWS[dsd](snowfall_rate_mm_per_h)
+    return size_classes(lambda d: n0 * np.exp(-lam * d), *SNOW_DIAMETER_RANGE_MM)
+
+
+def rain_fall_speed_m_per_s(d_mm):
+    """Atlas & Ulbrich (1977), the law of models.md §2.2 (valid 0.5–5 mm; few drops are larger)."""
+    return atlas_ulbrich_m_per_s(d_mm)
+
+
+# --- camera geometry --------------------------------------------------------------------------------------------
+
+def sensor_to_optical(v_xyz) -> np.ndarray:
+    """Vehicle/sensor frame (x forward, y left, z up) → camera optical frame (X right, Y down, Z forward)."""
+    x, y, z = (float(c) for c in v_xyz)
+    return np.array([-y, -z, x])
+
+
+def relative_velocity_optical(conditions: Conditions, fall_speed_m_per_s) -> np.ndarray:
+    """``v_rel = (wind − ego) + (0, 0, −v_t)`` in the optical frame, (N, 3) for N fall speeds (models.md §2.9)."""
+    base = sensor_to_optical(np.subtract(conditions.wind_velocity_m_per_s, conditions.ego_velocity_m_per_s))
+    v = np.repeat(base[None, :], np.size(fall_speed_m_per_s), axis=0)
+    v[:, 1] = v[:, 1] + np.ravel(fall_speed_m_per_s)          # falling = +Y (down) in the optical frame
+    return v
+
+
+def focal_px(profile: CameraProfile) -> float:
+    return math.sqrt(profile.fx_px * profile.fy_px)
+
+
+def defocus_px(profile: CameraProfile, z_m) -> np.ndarray:
+    """Circle-of-confusion diameter in pixels at planar distance Z (thin lens, models.md §2.2 [PROP])."""
+    f, n, p, zf = profile.focal_length_m, profile.f_number, profile.pixel_pitch_m, profile.focus_distance_m
+    z = np.asarray(z_m, dtype=np.float32)
+    if math.isinf(zf):
+        return np.float32(f * f / (n * p)) / z
+    return np.float32(f * f / (n * (zf - f) * p)) * np.abs(z - np.float32(zf)) / z
+
+
+@lru_cache(maxsize=8)
+def above_ground_volume_table(profile: CameraProfile, d_min_m: float, d_max_m: float) -> tuple[np.ndarray, ...]:
+    """``(Z grid, V(Z), Z quantiles)``: volume (m³) of the image frustum between planar depths d_min and Z above
+    the ground plane at the camera height (rows below ``c_y + h f_y / Z`` are under the ground), and ``Z³`` at 4097
+    equally spaced fractions of the whole volume (inverse CDF for sampling by table lookup; Z³ is linear in the
+    volume until the ground enters the image, so the lookup is exact there)."""
+    z = np.geomspace(d_min_m, d_max_m, 8192)
+    rows = bottom_row_px(profile, z) + 0.5
+    area = profile.width_px * z * z * rows / (profile.fx_px * profile.fy_px)
+    vol = np.concatenate([[0.0], np.cumsum(0.5 * (area[1:] + area[:-1]) * np.diff(z))])
+    quantiles = (np.interp(np.linspace(0.0, vol[-1], DEPTH_QUANTILES + 1), vol, z) ** 3).astype(np.float32)
+    for a in (z, vol, quantiles):
+        a.flags.writeable = False
+    return z, vol, quantiles
+
+
+def bottom_row_px(profile: CameraProfile, z_m):
+    """Lowest image row (pixel-centre coordinate, bottom edge at H − ½) still above the ground at planar depth Z."""
+    return np.minimum(profile.height_px - 0.5, profile.cy_px + profile.height_above_ground_m * profile.fy_px / z_m)
+
+
+def peak_opacity(profile: CameraProfile, exposure_s: float, d_mm, lateral_speed_m_per_s, z_m) -> np.ndarray:
+    """Expected largest pixel opacity of a particle's rendered streak: its image area times the share of the
+    brightest pixel. Along the streak (motion plus footprint, ℓ px) that share is ``1/ℓ`` for long streaks and
+    ``1 − ℓ/4`` for short ones (a box of length ℓ < 1 at a random sub-pixel offset); across it, the two-pixel
+    split gives ¾ on average, and a footprint spread on a coarse buffer (scale ≈ footprint/2.31) ¾ of 1/scale."""
+    f = focal_px(profile)
+    z = np.asarray(z_m, dtype=float)
+    d_px = np.asarray(d_mm) * 1e-3 * f / z
+    fp = np.hypot(d_px, defocus_px(profile, z))
+    along = np.asarray(lateral_speed_m_per_s) * exposure_s * f / z + fp
+    share_along = np.where(along <= 2.0, 1.0 - along / 4.0, 1.0 / np.maximum(along, 2.0))
+    share_across = np.minimum(0.75, 0.75 * DISK_PER_SCALE_PX / np.maximum(fp, 1e-9))
+    return np.minimum(1.0, math.pi / 4 * d_px ** 2 * share_along * share_across)
+
+
+def explicit_depth_limits(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                          conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float) -> np.ndarray:
+    """Per class, the planar depth up to which particles are rendered explicitly: the farthest Z in
+    ``[d_min, d_max]`` where the peak opacity still reaches ``min_opacity`` (image-plane speed from the lateral
+    components of v_rel, a lower bound, so the test errs towards explicit particles)."""
+    d = classes.rms_d_mm
+    v = relative_velocity_optical(conditions, fall_speed(d))
+    lateral = np.hypot(v[:, 0], v[:, 1])
+    z = np.geomspace(d_min_m, d_max_m, 256)
+    visible = peak_opacity(profile, exposure_s, d[:, None], lateral[:, None], z[None, :]) >= min_opacity
+    last = np.where(visible.any(axis=1), z.size - 1 - np.argmax(visible[:, ::-1], axis=1), -1)
+    limits = np.where(last >= 0, z[np.maximum(last, 0)], d_min_m)
+    return np.where(classes.number > 0, limits, d_min_m)
+
+
+@lru_cache(maxsize=4)
+def ray_factor(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Range / planar depth per pixel, ``sqrt(1 + ((u−c_x)/f_x)² + ((v−c_y)/f_y)²)`` (read-only float32)."""
+    u = (np.arange(width) - cx) / fx
+    v = (np.arange(height) - cy) / fy
+    k = np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2).astype(np.float32)
+    k.flags.writeable = False
+    return k
+
+
+# --- sampling --------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Particles:
+    """Mid-exposure particles in the optical frame (m, float32), diameters (mm) and fall speeds (m/s)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    d_mm: np.ndarray
+    fall_speed_m_per_s: np.ndarray
+
+
+def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: SizeClasses,
+                     z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed) -> tuple[Particles, float]:
+    """Marked Poisson process in the above-ground frustum slabs ``[d_min, Z_i]`` of each class: per-class Poisson
+    counts, Z by inverse CDF of the slab volume (∝ Z² until the ground enters the image), then a uniform image
+    position above the ground. Returns (particles, expected count)."""
+    z_grid, vol, z3_quantiles = above_ground_volume_table(profile, d_min_m, d_max_m)
+    v_lim = np.interp(np.clip(z_limits_m, d_min_m, d_max_m), z_grid, vol)
+    lam = classes.number * v_lim
+    counts = rng.poisson(lam)
+    cls = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+    u = rng.random((4, cls.size), dtype=np.float32)
+    d = classes.sample_diameters_mm(cls, u[0])
+    q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
+    z = np.exp(np.log(lerp_table(z3_quantiles, 0, u[1] * q[cls], DEPTH_QUANTILES)) * np.float32(1 / 3))  # ∛
+    col = u[2] * np.float32(profile.width_px) - np.float32(0.5)
+    row = u[3] * (bottom_row_px(profile, z) + np.float32(0.5)) - np.float32(0.5)
+    x = (col - np.float32(profile.cx_px)) * z / np.float32(profile.fx_px)
+    y = (row - np.float32(profile.cy_px)) * z / np.float32(profile.fy_px)
+    return Particles(x, y, z, d, np.asarray(fall_speed(d), dtype=np.float32)), float(lam.sum())
+
+
+# --- rasterisation ---------------------------------------------------------------------------------------------
+
+def streak_endpoints(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float):
+    """Image positions and planar depths at the start and end of the exposure, ``P ∓ v_rel T/2``:
+    ``(u0, v0, z0, u1, v1, z1)``."""
+    half_t = np.float32(exposure_s / 2)
+    hx, hy_base, hz = (np.float32(c) * half_t for c in relative_velocity_optical(conditions, 0.0)[0])
+    hy = hy_base + particles.fall_speed_m_per_s * half_t
+    fx, fy, cx, cy = (np.float32(c) for c in (profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px))
+    p = particles
+    z0, z1 = p.z - hz, p.z + hz
+    return (fx * (p.x - hx) / z0 + cx, fy * (p.y - hy) / z0 + cy, z0,
+            fx * (p.x + hx) / z1 + cx, fy * (p.y + hy) / z1 + cy, z1)
+
+
+def render_coverage(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
+                    depth_m: np.ndarray, d_min_m: float) -> tuple[np.ndarray, int]:
+    """Per-pixel opacity (H, W) float32 of all explicit particles, clipped to 1; and the number of particles in
+    the image and in front of the scene at the first pixel of their streak.
+
+    Each streak is a segment of uniform line density (total = the particle's image area), lengthened by its
+    footprint, integrated exactly over the pixels it crosses along its major axis and split linearly between
+    the two nearest pixels across it (Wu-style anti-aliasing), on the buffer of its footprint level. A pixel
+    gets nothing where the scene is nearer than the particle (metres against metres)."""
+    h, w = profile.height_px, profile.width_px
+    if particles.z.size == 0:
+        return np.zeros((h, w), dtype=np.float32), 0
+    u0, v0, z0, u1, v1, z1 = streak_endpoints(profile, particles, conditions, exposure_s)
+    z = particles.z
+    r = np.sqrt(particles.x ** 2 + particles.y ** 2 + z * z)                 # range at mid-exposure
+    # image area of a sphere: (π/4) D² f_x f_y / (r² cos³θ) = (π/4) D² f_x f_y k / Z², k = r/Z
+    mass = np.float32(math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px) * particles.d_mm ** 2 * r / (z * z * z)
+    d_px = particles.d_mm * np.float32(1e-3 * focal_px(profile)) / z
+    c_px = defocus_px(profile, z)
+    footprint = np.sqrt(d_px * d_px + c_px * c_px)
+    level = footprint_level(footprint)
+    inv = LEVEL_INVERSE_SCALE[level]
+    # major (a) and minor (b) axis coordinates on the level's grid (arithmetic selects: np.where is 6× slower)
+    du, dv = u1 - u0, v1 - v0
+    vertical = np.abs(dv) >= np.abs(du)
+    a0, b0 = u0 + vertical * (v0 - u0), v0 + vertical * (u0 - v0)
+    da, db = du + vertical * (dv - du), dv + vertical * (du - dv)
+    offset = np.float32(0.5) * inv - np.float32(0.5)
+    a0, b0, da, db = a0 * inv + offset, b0 * inv + offset, da * inv, db * inv
+    slope = db / (da + (da == 0))                      # |slope| ≤ 1; 0 for a particle still in the image
+    half = np.float32(0.5) * footprint * inv           # lengthen by the footprint, from the lower end a0 ≤ a1
+    a_lo = np.minimum(a0, a0 + da)
+    b0 = b0 + slope * (a_lo - half - a0)
+    a0, a1 = a_lo - half, a_lo + np.abs(da) + half
+    density = mass * inv * inv / (a1 - a0)
+    n_major = np.ceil((np.float32(w) + vertical * np.float32(h - w)) * inv)
+    lo, hi = np.maximum(a0, np.float32(-0.5)), np.minimum(a1, n_major - np.float32(0.5))
+    c0 = np.floor(lo + np.float32(0.5))
+    n = (np.minimum(np.floor(hi + np.float32(0.5)), n_major - 1) - c0 + 1).astype(np.int32)
+    n[(hi <= lo) | (np.minimum(z0, z1) <= np.float32(0.5 * d_min_m))] = 0   # off-grid, or crossing the camera plane
+    # group by (level, orientation, padded sample count); one vectorised pass per group
+    n_buckets = SAMPLE_COUNTS.size
+    key = (level.astype(np.int16) * 2 + vertical) * n_buckets + SAMPLE_BUCKET[np.minimum(n, SAMPLE_COUNTS[-1])]
+    order = np.argsort(key, kind="stable")                               # radix sort of small integers
+    key_sorted = key[order]
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(key_sorted)) + 1, [key.size]])
+    a0, lo, hi, b0, slope, density, r, c0 = (x[order] for x in (a0, lo, hi, b0, slope, density, r, c0))
+    grids: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    visible = np.zeros(n.size, dtype=bool)
+    for s, e in zip(starts[:-1], starts[1:]):
+        lv, rest = divmod(int(key_sorted[s]), 2 * n_buckets)
+        vert, bucket = divmod(rest, n_buckets)
+        kk = int(SAMPLE_COUNTS[bucket])
+        if kk == 0:
+            continue
+        if lv not in grids:
+            grids[lv] = _level_grids(depth_m, 1 << lv)
+        buf, depth_l = grids[lv]
+        pw = buf.shape[1]
+        step_major, step_minor = (pw, 1) if vert else (1, pw)
+        n_major_l, n_minor = (buf.shape[0] - 3, pw - 3) if vert else (pw - 3, buf.shape[0] - 3)
+        c = c0[s:e, None] + np.arange(kk, dtype=np.float32)
+        seg_lo = np.maximum(lo[s:e, None], c - np.float32(0.5))
+        seg_hi = np.minimum(hi[s:e, None], c + np.float32(0.5))
+        weight = density[s:e, None] * np.maximum(seg_hi - seg_lo, np.float32(0))   # padded samples get 0
+        bpos = b0[s:e, None] + (np.float32(0.5) * (seg_lo + seg_hi) - a0[s:e, None]) * slope[s:e, None]
+        bf = np.floor(bpos)
+        fb = bpos - bf
+        bi = np.clip(bf, -1, n_minor).astype(np.int32)
+        ci = np.minimum(c, np.float32(n_major_l)).astype(np.int32)     # padded samples: into the border row
+        # nothing where the sample's nearest pixel is outside the image, or the scene there is nearer than the
+        # particle (metres against metres)
+        bn = bi + (fb >= np.float32(0.5))
+        inside = (bn >= 0) & (bn < n_minor)
+        bn = np.clip(bn, 0, n_minor - 1)
+        cn = np.minimum(ci, n_major_l - 1)
+        row, col = (cn, bn) if vert else (bn, cn)
+        in_front = inside & (depth_l.ravel()[row * depth_l.shape[1] + col] > r[s:e, None])
+        weight *= in_front
+        visible[order[s:e]] = in_front[:, 0]
+        idx = ((ci + 1) * step_major + (bi + 1) * step_minor).ravel()
+        np.add.at(buf.ravel(), idx, (weight * (np.float32(1) - fb)).ravel())
+        np.add.at(buf.ravel(), idx + step_minor, (weight * fb).ravel())
+    # collapse the pyramid (buffers hold opacity per full-resolution pixel): each level is upsampled ×2 into the
+    # next finer one
+    coverage = None
+    for lv in range(max(grids, default=0), -1, -1):
+        hs, ws = -(-h // (1 << lv)), -(-w // (1 << lv))
+        own = grids[lv][0][1:1 + hs, 1:1 + ws] if lv in grids else None
+        if coverage is None:
+            coverage = own.copy() if own is not None else np.zeros((hs, ws), dtype=np.float32)
+            continue
+        coverage = cv2.resize(coverage, (2 * coverage.shape[1], 2 * coverage.shape[0]),
+                              interpolation=cv2.INTER_LINEAR)[:hs, :ws]
+        if own is not None:
+            coverage += own
+    return np.minimum(coverage, np.float32(1.0), out=coverage), int(np.count_nonzero(visible))
+
+
+def _level_grids(depth_m: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """A zero opacity buffer on the level's grid, padded by one cell before and two after along each axis, and
+    the depth map on that grid (the pixel nearest each cell centre; edge cells without one repeat their
+    neighbour)."""
+    hs, ws = -(-depth_m.shape[0] // scale), -(-depth_m.shape[1] // scale)
+    depth = depth_m
+    if scale > 1:
+        sub = depth_m[scale // 2::scale, scale // 2::scale]
+        depth = np.pad(sub, ((0, hs - sub.shape[0]), (0, ws - sub.shape[1])), mode="edge")
+    return np.zeros((hs + 3, ws + 3), dtype=np.float32), depth
+
+
+def footprint_level(footprint_px: np.ndarray) -> np.ndarray:
+    """Buffer scale 2^level whose splat kernel best matches a footprint disk (nearest in log diameter)."""
+    coarse = np.clip(np.round(np.log2(np.maximum(footprint_px, 1e-6) / DISK_PER_SCALE_PX)), 1, MAX_LEVEL)
+    return (coarse * (footprint_px >= math.sqrt(BILINEAR_DISK_PX * 2 * DISK_PER_SCALE_PX))).astype(np.int8)
+
+
+# --- far-field veil --------------------------------------------------------------------------------------------
+
+def veil_optical_depth_table(classes: SizeClasses, z_limits_m: np.ndarray, d_min_m: float,
+                             d_max_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(Z grid (256,), H(Z))``: optical depth of the non-explicit particles from the camera to planar depth Z
+    along the optical axis, for Z in [0, d_max]; beyond d_max it grows with the full extinction."""
+    z = np.linspace(0.0, d_max_m, VEIL_LUT_SIZE)
+    sigma_i = IMAGING_Q_EXT * classes.shadow_area_m2
+    # class i is veil for Z < d_min and for Z > its explicit limit
+    lo = np.minimum(z[:, None], d_min_m)
+    hi = np.maximum(z[:, None] - np.maximum(z_limits_m, d_min_m)[None, :], 0.0)
+    return z, (lo + hi) @ sigma_i
+
+
+def veil_transmission(profile: CameraProfile, depth_m: np.ndarray, table: tuple[np.ndarray, np.ndarray],
+                      sigma_per_m: float, d_max_m: float) -> np.ndarray:
+    """Per-pixel transmission (H, W) float32 of the veil to the scene point at range ``d`` (inf → 0):
+    ``τ = k·H(min(d/k, d_max)) + σ·max(d − k d_max, 0)`` with k the ray factor (range/planar depth)."""
+    k, k_far = _ray_maps(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px,
+                         profile.cy_px, float(d_max_m))
+    z = cv2.divide(depth_m, k)
+    cv2.min(z, d_max_m, dst=z)
+    z8 = cv2.convertScaleAbs(z, alpha=(VEIL_LUT_SIZE - 1) / d_max_m)     # nearest of 256 depth bins (< 12 cm)
+    neg_tau = cv2.LUT(z8, -table[1].astype(np.float32).reshape(1, -1))
+    cv2.multiply(neg_tau, k, dst=neg_tau)
+    far = cv2.subtract(depth_m, k_far)
+    cv2.max(far, 0.0, dst=far)
+    neg_tau = cv2.scaleAdd(far, -float(sigma_per_m), neg_tau)
+    cv2.max(neg_tau, -80.0, dst=neg_tau)            # t > 2e-35 leaves no trace in float32 (and exp's fast path)
+    return cv2.exp(neg_tau, dst=neg_tau)
+
+
+@lru_cache(maxsize=4)
+def _ray_maps(width: int, height: int, fx: float, fy: float, cx: float, cy: float, d_max_m: float):
+    """The ray factor k and the range ``k·d_max`` of the explicit-particle limit, per pixel (read-only)."""
+    k = ray_factor(width, height, fx, fy, cx, cy)
+    k_far = k * np.float32(d_max_m)
+    k_far.flags.writeable = False
+    return k, k_far
+
+
+# --- one frame -------------------------------------------------------------------------------------------------
+
+def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_speed, radiance, exposure_s: float,
+                         d_min_m: float, d_max_m: float, min_opacity: float, rng: np.random.Generator):
+    """Rain or snow on a camera or raw frame: explicit streaks in front of the scene, veil behind them.
+
+    ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame.
+    Per site: ``I' = S + (1 − M)·t·(I − S)`` with M the streak opacity and t the veil transmission."""
+    depth = frame_depth_m(frame, model_id)
+    h, w = depth.shape
+    profile = fit_to_image(frame.profile, w, h)
+    layout = SiteLayout.of(frame)
+    signal = frame.signal()
+    s = np.asarray(radiance(layout, signal, depth), dtype=float)
+    limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
+                                   min_opacity)
+    particles, expected = sample_particles(rng, profile, classes, limits, d_min_m, d_max_m, fall_speed)
+    coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
+    sigma = classes.extinction_per_m()
+    t = veil_transmission(profile, depth, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), sigma,
+                          d_max_m)
+    mean_coverage = float(cv2.mean(coverage)[0])
+    np.subtract(np.float32(1.0), coverage, out=coverage)
+    np.multiply(t, coverage, out=t)
+    out = layout.blend(signal, layout.expand(t), s)
+    return frame.with_signal(out), {
+        "particles_expected": expected,
+        "particles_drawn": int(particles.z.size),
+        "particles_visible": n_visible,
+        "mean_streak_opacity": mean_coverage,
+        "veil_extinction_per_m": sigma,
+        "particle_radiance": [float(v) for v in s],
+        "exposure_time_s": float(exposure_s),
+    }

@@ -1,0 +1,281 @@
+"""Particle renderer of camera rain/snow (models.md §2.2, §2.3, §2.9): size classes vs closed forms, Poisson
+sampling, streak geometry and photometry, occlusion, far-field veil."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.special import gamma as gamma_fn
+from scipy.special import gammainc
+
+from roadview_noise.physics import particles as P
+from roadview_noise.physics.dsd import (BRANDES_SNOW_GAMMA, exponential_number_density, geometric_extinction_per_m,
+                                        gunn_marshall, liquid_water_content_g_per_m3, marshall_palmer)
+from roadview_noise.physics.fall_speed import snow_power_law_m_per_s
+from roadview_noise.profiles.camera import lucid_triton_028s
+from roadview_noise.types import CameraProfile, Conditions
+
+LUCID = lucid_triton_028s()
+
+
+# --- size distributions ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("rate", [10.0, 20.0, 50.0, 83.0])
+def test_marshall_palmer_number_density_and_lwc_vs_closed_form(rate):
+    classes = P.rain_classes(rate)
+    n0, lam = marshall_palmer(rate)
+    assert classes.number_per_m3 == pytest.approx(exponential_number_density(n0, lam, 0.5, 6.0), rel=0.01)
+    assert classes.liquid_water_g_per_m3() == pytest.approx(liquid_water_content_g_per_m3(n0, lam, 0.5, 6.0),
+                                                            rel=0.01)
+    assert classes.extinction_per_m() == pytest.approx(geometric_extinction_per_m(n0, lam, 0.5, 6.0, q_ext=1.0),
+                                                       rel=0.01)
+    assert len(classes.number) == 55 and classes.edges_mm[0] == 0.5 and classes.edges_mm[-1] == 6.0
+
+
+def test_marshall_palmer_50_mm_per_h_values():
+    """Λ(50) = 1.8030 mm⁻¹ (models.md §8); 0.5–6 mm drops: 1971 m⁻³ (exact integral), extinction 4.0e-3 m⁻¹ with
+    Q = 2 (§2.2), so 2.0e-3 m⁻¹ for the imaging (shadow) extinction."""
+    assert marshall_palmer(50.0)[1] == pytest.approx(1.8030, rel=1e-4)
+    classes = P.rain_classes(50.0)
+    assert classes.number_per_m3 == pytest.approx(8000 / 1.8030 * (math.exp(-0.5 * 1.8030) - math.exp(-6 * 1.8030)),
+                                                  rel=1e-3)
+    assert classes.extinction_per_m(q_ext=2.0) == pytest.approx(4.0e-3, rel=0.01)
+
+
+def test_brandes_snow_vs_incomplete_gamma():
+    n0, mu, lam = BRANDES_SNOW_GAMMA[3.03]
+    a = mu + 1
+    closed = n0 * gamma_fn(a) / lam ** a * (gammainc(a, 10 * lam) - gammainc(a, 0.1 * lam))
+    assert P.snow_classes(3.03, "brandes").number_per_m3 == pytest.approx(closed, rel=0.01)
+
+
+def test_gunn_marshall_snow_vs_closed_form():
+    n0, lam = gunn_marshall(3.03)
+    classes = P.snow_classes(3.03, "gunn_marshall")
+    assert classes.number_per_m3 == pytest.approx(exponential_number_density(n0, lam, 0.1, 10.0), rel=0.01)
+
+
+def test_terminal_speeds_follow_the_cited_laws():
+    assert float(P.rain_fall_speed_m_per_s(2.0)) == pytest.approx(6.014, rel=1e-3)     # Atlas & Ulbrich, §8
+    assert float(P.rain_fall_speed_m_per_s(1.0)) == pytest.approx(3.778, rel=1e-6)
+    assert float(snow_power_law_m_per_s(1.0)) == pytest.approx(0.8)                    # a D^b, §2.3 [PROP]
+
+
+# --- sampling ------------------------------------------------------------------------------------------------------
+
+def _small_profile() -> CameraProfile:
+    return LUCID.resized(242, 183)
+
+
+def test_poisson_counts_are_unbiased_and_diameters_follow_the_dsd():
+    prof = _small_profile()
+    classes = P.rain_classes(5.0)
+    limits = np.full(len(classes.number), 3.0)
+    counts, diameters = [], []
+    for seed in range(200):
+        parts, expected = P.sample_particles(np.random.default_rng(seed), prof, classes, limits, 0.5, 30.0,
+                                             P.rain_fall_speed_m_per_s)
+        counts.append(parts.z.size)
+        diameters.append(parts.d_mm)
+    sd = math.sqrt(expected / len(counts))
+    assert abs(np.mean(counts) - expected) < 4 * sd                  # no floor bias (models.md §2.2 [PROP])
+    d = np.concatenate(diameters)
+    lam = marshall_palmer(5.0)[1]
+    # mean of the exponential truncated to [0.5, 6] mm
+    lo, hi = 0.5, 6.0
+    mean = lo + 1 / lam - (hi - lo) * math.exp(-lam * (hi - lo)) / (1 - math.exp(-lam * (hi - lo)))
+    assert abs(d.mean() - mean) < 4 * d.std() / math.sqrt(d.size)
+    assert d.min() >= 0.5 and d.max() <= 6.0
+
+
+def test_positions_fill_the_above_ground_frustum_uniformly():
+    prof = _small_profile()
+    classes = P.rain_classes(10.0)
+    limits = np.full(len(classes.number), 8.0)
+    parts, expected = P.sample_particles(np.random.default_rng(3), prof, classes, limits, 0.5, 30.0,
+                                         P.rain_fall_speed_m_per_s)
+    z_grid, vol, _ = P.above_ground_volume_table(prof, 0.5, 30.0)
+    assert expected == pytest.approx(classes.number_per_m3 * np.interp(8.0, z_grid, vol), rel=1e-6)
+    # planar depths: fraction nearer than 4 m equals the volume fraction
+    frac = np.interp(4.0, z_grid, vol) / np.interp(8.0, z_grid, vol)
+    n = parts.z.size
+    assert abs(np.mean(parts.z < 4.0) - frac) < 4 * math.sqrt(frac * (1 - frac) / n)
+    assert parts.z.min() >= 0.5 - 1e-4 and parts.z.max() <= 8.0 + 1e-3
+    # all in the image and above the ground (optical Y is down, ground at +h)
+    u = prof.fx_px * parts.x / parts.z + prof.cx_px
+    v = prof.fy_px * parts.y / parts.z + prof.cy_px
+    assert np.all((u >= -0.5 - 1e-3) & (u <= prof.width_px - 0.5 + 1e-3) & (v >= -0.5 - 1e-3))
+    assert np.all(parts.y <= prof.height_above_ground_m + 1e-5)
+    # uniform across the image width (pixel centres at integers: the image spans −½ … W − ½)
+    assert abs(np.mean(u < (prof.width_px - 1) / 2) - 0.5) < 4 * math.sqrt(0.25 / n)
+
+
+# --- streak geometry and photometry ------------------------------------------------------------------------------
+
+def _one(x=0.0, y=0.0, z=5.0, d_mm=2.0, v=None) -> P.Particles:
+    v = float(P.rain_fall_speed_m_per_s(d_mm)) if v is None else v
+    return P.Particles(*(np.array([c], dtype=np.float32) for c in (x, y, z, d_mm, v)))
+
+
+def _moments(cov: np.ndarray):
+    """Mass, axial length estimate sqrt(12·var) along the principal axis, and its angle from vertical (deg)."""
+    v, u = np.mgrid[0:cov.shape[0], 0:cov.shape[1]]
+    m = cov.sum()
+    cu, cv = (cov * u).sum() / m, (cov * v).sum() / m
+    suu = (cov * (u - cu) ** 2).sum() / m
+    svv = (cov * (v - cv) ** 2).sum() / m
+    suv = (cov * (u - cu) * (v - cv)).sum() / m
+    lam_max = 0.5 * (suu + svv) + math.sqrt(0.25 * (suu - svv) ** 2 + suv ** 2)
+    angle = 0.5 * math.degrees(math.atan2(2 * suv, svv - suu))
+    return m, math.sqrt(12 * lam_max), angle
+
+
+def _render(prof, parts, conditions=Conditions(), depth=None, exposure=0.005):
+    depth = np.full((prof.height_px, prof.width_px), np.inf, np.float32) if depth is None else depth
+    return P.render_coverage(prof, parts, conditions, exposure, depth, 0.5)
+
+
+def test_streak_length_is_speed_times_exposure_times_focal_over_depth():
+    """A 2 mm drop at 5 m on the optical axis: L = v T f / Z = 6.84 px (Lucid K, square pixels). The rendered
+    streak (a uniform segment lengthened by the footprint) has sqrt(12·var) = L + footprint along its axis."""
+    parts = _one(z=5.0)
+    u0, v0, _, u1, v1, _ = P.streak_endpoints(LUCID, parts, Conditions(), 0.005)
+    expected = 6.0145 * 0.005 * LUCID.fy_px / 5.0
+    assert float(np.hypot(u1 - u0, v1 - v0)[0]) == pytest.approx(expected, rel=1e-3)
+    cov, n_visible = _render(LUCID, parts)
+    mass, length, angle = _moments(cov)
+    footprint = math.hypot(2e-3 * LUCID.fx_px / 5.0, float(P.defocus_px(LUCID, 5.0)))
+    assert abs(length - footprint - expected) < 1.0
+    assert abs(angle) < 0.5 and n_visible == 1
+
+
+def test_lucid_streak_oracle_of_models_md():
+    """models.md §2.2/§8: L = vT/p_v + D/p_v = 7.876 px for D = 2 mm at 5 m with the reference's 61.6° vertical
+    FoV (f_y = 1227.9 px). Our formulation gives the same motion length plus the drop's own image; it differs in
+    photometry (exact coverage instead of τ/T = 0.2019 per touched pixel) and adds the defocus disk."""
+    prof = CameraProfile.from_fov("lucid_ref", 1936, 1464, 80.8, 61.6)
+    parts = _one(z=5.0)
+    u0, v0, _, u1, v1, _ = P.streak_endpoints(prof, parts, Conditions(), 0.005)
+    assert float(abs(v1 - v0)[0] + 2e-3 * prof.fy_px / 5.0) == pytest.approx(7.876, abs=0.01)
+
+
+def test_crosswind_tilts_the_streak_by_atan_u_over_vt():
+    """§2.9 oracle: 3 m/s crosswind, 2 mm drop (v_t = 6.014 m/s): 26.5° from vertical at the image centre; the
+    wind blowing towards the left (+y) moves the drop to the image left (−u) as it falls (+v)."""
+    wind = Conditions(wind_velocity_m_per_s=(0.0, 3.0, 0.0))
+    parts = _one(z=2.0)
+    u0, v0, _, u1, v1, _ = P.streak_endpoints(LUCID, parts, wind, 0.005)
+    geometric = math.degrees(math.atan2(float(u0[0] - u1[0]), float(v1[0] - v0[0])))
+    assert geometric == pytest.approx(26.5, abs=0.05)
+    _, _, angle = _moments(_render(LUCID, parts, wind)[0])
+    assert -angle == pytest.approx(26.5, abs=1.0)
+
+
+def test_along_axis_wind_does_not_tilt_at_the_centre():
+    parts = _one(z=4.0)
+    u0, _, _, u1, _, _ = P.streak_endpoints(LUCID, parts, Conditions(wind_velocity_m_per_s=(5.0, 0.0, 0.0)), 0.005)
+    assert abs(float(u1[0] - u0[0])) < 1e-4
+
+
+def test_coverage_is_the_particle_image_area_and_at_most_one():
+    """Σ α over the pixels = (π/4) D² f_x f_y k / Z² (exposure-fraction photometry conserves the image area); a
+    drop that does not move in the image covers its pixels for at most the whole exposure (τ ≤ T)."""
+    for z, x in ((5.0, 0.0), (3.0, 1.5), (1.0, 0.2)):
+        parts = _one(x=x, z=z)
+        cov, _ = _render(LUCID, parts)
+        k = math.hypot(x, z) / z
+        area = math.pi / 4 * (2e-3) ** 2 * LUCID.fx_px * LUCID.fy_px * k / z ** 2
+        assert cov.sum() == pytest.approx(area, rel=0.01)
+    still = _one(z=3.0, d_mm=5.0, v=0.0)                 # 1.9 px drop, no motion
+    cov, _ = _render(LUCID, still)
+    assert 0.3 < cov.max() <= 1.0
+
+
+def test_occlusion_compares_metres_with_metres():
+    prof = LUCID
+    depth = np.full((prof.height_px, prof.width_px), np.inf, np.float32)
+    depth[:, : prof.width_px // 2 + 200] = 4.0                 # wall at 4 m over the image centre
+    behind, _ = _render(prof, _one(z=6.0), depth=depth)
+    front, n_front = _render(prof, _one(z=3.0), depth=depth)
+    assert behind.sum() == 0.0
+    assert front.sum() > 0 and n_front == 1
+
+
+def test_defocus_disk_oracle():
+    """models.md §2.2 [PROP]: f²/(N d p) = 2.54 px at 1.5 m and 7.6 px at 0.5 m for the Lucid lens."""
+    assert float(P.defocus_px(LUCID, 1.5)) == pytest.approx(2.54, abs=0.01)
+    assert float(P.defocus_px(LUCID, 0.5)) == pytest.approx(7.62, abs=0.02)
+    focused = CameraProfile.from_fov("f", 1936, 1464, 80.8, focus_distance_m=5.0)
+    assert float(P.defocus_px(focused, 5.0)) == 0.0
+
+
+def test_near_blurred_drop_keeps_its_area_on_a_coarse_buffer():
+    parts = _one(z=0.6, d_mm=3.0)
+    assert P.footprint_level(np.atleast_1d(np.hypot(3e-3 * LUCID.fx_px / 0.6, P.defocus_px(LUCID, 0.6))))[0] >= 2
+    cov, _ = _render(LUCID, parts)
+    area = math.pi / 4 * (3e-3) ** 2 * LUCID.fx_px * LUCID.fy_px / 0.6 ** 2
+    assert cov.sum() == pytest.approx(area, rel=0.02)
+    assert cov.max() < 0.5                                   # spread over the defocus disk
+
+
+# --- explicit / veil split ---------------------------------------------------------------------------------------
+
+def test_explicit_limits_follow_the_opacity_threshold():
+    classes = P.rain_classes(50.0)
+    limits = P.explicit_depth_limits(LUCID, 0.005, classes, P.rain_fall_speed_m_per_s, Conditions(), 0.5, 30.0,
+                                     0.02)
+    assert np.all((limits >= 0.5) & (limits <= 30.0))
+    assert np.all(np.diff(limits[limits > 0.5]) >= 0)            # bigger drops are seen farther
+    d = classes.rms_d_mm
+    big = limits > 0.5
+    alpha = P.peak_opacity(LUCID, 0.005, d[big], P.rain_fall_speed_m_per_s(d[big]), limits[big])
+    assert np.all(alpha >= 0.02)
+    lower = P.explicit_depth_limits(LUCID, 0.005, classes, P.rain_fall_speed_m_per_s, Conditions(), 0.5, 30.0,
+                                    0.01)
+    assert np.all(lower >= limits)
+
+
+def test_veil_plus_explicit_particles_is_the_whole_medium():
+    """Mean conservation: along any ray, explicit particles cover on average Σ σ_i (Z_i − d_min) and the veil
+    adds H; together the full extinction σ·d (Q = 1), whatever the threshold."""
+    classes = P.rain_classes(50.0)
+    limits = P.explicit_depth_limits(LUCID, 0.005, classes, P.rain_fall_speed_m_per_s, Conditions(), 0.5, 30.0,
+                                     0.02)
+    z, h = P.veil_optical_depth_table(classes, limits, 0.5, 30.0)
+    sigma_i = classes.shadow_area_m2
+    explicit = np.clip(z[:, None] - 0.5, 0, None)
+    explicit = np.minimum(explicit, np.maximum(limits - 0.5, 0)[None, :]) @ sigma_i
+    np.testing.assert_allclose(h + explicit, classes.extinction_per_m() * z, rtol=1e-9, atol=1e-12)
+
+
+def test_rendered_mean_coverage_matches_the_explicit_share_of_extinction():
+    """Mean opacity of rendered particles = σ_explicit × path length (image area ∝ k/Z², volume ∝ Z² dZ)."""
+    prof = _small_profile()
+    classes = P.rain_classes(10.0)
+    limits = np.full(len(classes.number), 6.0)
+    parts, _ = P.sample_particles(np.random.default_rng(0), prof, classes, limits, 0.5, 30.0,
+                                  P.rain_fall_speed_m_per_s)
+    cov, _ = _render(prof, parts)
+    region = (slice(5, prof.height_px // 3), slice(5, -5))      # away from the border, above the horizon
+    k = P.ray_factor(prof.width_px, prof.height_px, prof.fx_px, prof.fy_px, prof.cx_px, prof.cy_px)[region]
+    expected = k.mean() * classes.extinction_per_m() * (6.0 - 0.5)
+    assert cov[region].mean() == pytest.approx(expected, rel=0.05)
+
+
+def test_veil_transmission():
+    prof = _small_profile()
+    classes = P.rain_classes(50.0)
+    limits = np.full(len(classes.number), 10.0)
+    table = P.veil_optical_depth_table(classes, limits, 0.5, 30.0)
+    sigma = classes.extinction_per_m()
+    cy, cx = int(prof.cy_px), int(prof.cx_px)
+    depth = np.full((prof.height_px, prof.width_px), 200.0, np.float32)
+    depth[0, 0] = np.inf
+    depth[1, 0] = 0.0
+    t = P.veil_transmission(prof, depth, table, sigma, 30.0)
+    k = P.ray_factor(prof.width_px, prof.height_px, prof.fx_px, prof.fy_px, prof.cx_px, prof.cy_px)
+    h30 = sigma * 30.0 - classes.shadow_area_m2.sum() * (10.0 - 0.5)
+    assert t[cy, cx] == pytest.approx(math.exp(-(k[cy, cx] * h30 + sigma * (200.0 - 30.0 * k[cy, cx]))), rel=1e-4)
+    assert t[0, 0] < 1e-30 and t[1, 0] == pytest.approx(1.0)
