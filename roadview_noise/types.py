@@ -49,6 +49,9 @@ class Conditions:
 class CameraProfile:
     """Pinhole camera: one intrinsic matrix K is the single source of truth (models.md §2.0 [PROP]).
 
+    Pixel centres are at integer coordinates (OpenCV): pixel (u, v) looks along ``K⁻¹ (u, v, 1)``, so a centred
+    principal point is ``((W − 1)/2, (H − 1)/2)``.
+
     ``pixel_pitch_m`` and ``focal_length_m`` are used only for defocus (circle of confusion)."""
 
     name: str
@@ -83,14 +86,15 @@ class CameraProfile:
         """Centred pinhole from field of view; square pixels unless ``fov_v_deg`` is given (CARLA style)."""
         fx = width_px / (2 * math.tan(math.radians(fov_h_deg) / 2))
         fy = fx if fov_v_deg is None else height_px / (2 * math.tan(math.radians(fov_v_deg) / 2))
-        return cls(name, width_px, height_px, fx, fy, width_px / 2, height_px / 2, **kw)
+        return cls(name, width_px, height_px, fx, fy, (width_px - 1) / 2, (height_px - 1) / 2, **kw)
 
     def resized(self, width_px: int, height_px: int) -> "CameraProfile":
-        """The same optics sampled on a different pixel grid (pitch scales with the grid)."""
+        """The same optics sampled on a different pixel grid (pitch scales with the grid; pixel centres stay at
+        integer coordinates, so the principal point maps as ``(c + ½)·s − ½``)."""
         sx, sy = width_px / self.width_px, height_px / self.height_px
         return dataclasses.replace(self, width_px=width_px, height_px=height_px, fx_px=self.fx_px * sx,
-                                   fy_px=self.fy_px * sy, cx_px=self.cx_px * sx, cy_px=self.cy_px * sy,
-                                   pixel_pitch_m=self.pixel_pitch_m / sx)
+                                   fy_px=self.fy_px * sy, cx_px=(self.cx_px + 0.5) * sx - 0.5,
+                                   cy_px=(self.cy_px + 0.5) * sy - 0.5, pixel_pitch_m=self.pixel_pitch_m / sx)
 
 
 class IntensityUnit:

@@ -13,7 +13,7 @@ from roadview_noise.errors import InputError
 from roadview_noise.io.depth import read_depth, write_carla_depth_png, write_depth_exr, write_depth_npy
 from roadview_noise.types import CameraProfile
 
-PROFILE = CameraProfile.from_fov("test", 40, 30, fov_h_deg=90.0)       # fx = 20 px, centre (20, 15)
+PROFILE = CameraProfile("test", 40, 30, fx_px=20.0, fy_px=20.0, cx_px=20.0, cy_px=15.0)  # explicit K
 
 
 def _depth(shape=(30, 40)):

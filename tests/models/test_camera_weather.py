@@ -127,7 +127,10 @@ def test_denser_fog_never_raises_contrast(visibility_m, factor, table):
 @settings(max_examples=10, deadline=None)
 @given(st.floats(5.0, 200.0))
 def test_raw_and_rgb_give_consistent_mean_transmission(visibility_m):
+    """Depth is made constant per 2×2 Bayer cell so both paths sample the same depths per channel."""
     frame = scene(2)
+    block = np.repeat(np.repeat(frame.depth_m[::2, ::2], 2, axis=0), 2, axis=1)[:H, :W]
+    frame = dataclasses.replace(frame, depth_m=block)
     _, d_rgb = run(Fog(visibility_m=visibility_m), frame)
     _, d_raw = run(Fog(visibility_m=visibility_m), mosaic(frame))
     np.testing.assert_allclose(d_raw["mean_transmission"], d_rgb["mean_transmission"], rtol=0.02, atol=1e-4)
