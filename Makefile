@@ -31,10 +31,10 @@ check-open3d:
 
 demo: $(STAMP)
 	@rm -rf $(DEMO)
-	$(BIN)/rvnoise augment --recipe recipes/demo/camera-cnf16.yaml sample_data $(DEMO)/camera-cnf16 --quiet
-	$(BIN)/rvnoise augment --recipe recipes/demo/lidar-cnf19.yaml sample_data $(DEMO)/lidar-cnf19 --quiet
-	$(BIN)/rvnoise augment --recipe recipes/demo/radar-cnf25.yaml sample_data $(DEMO)/radar-cnf25 --quiet
-	@echo "demo done: look at $(DEMO)/ (augmented files per recipe, each with manifest.jsonl and run.json)"
+	$(BIN)/rvnoise augment --recipe recipes/cnf16.yaml sample_data $(DEMO)/cnf16-camera-wind-rain --quiet
+	$(BIN)/rvnoise augment --recipe recipes/cnf20.yaml sample_data $(DEMO)/cnf20-lidar-alignment-fog --quiet
+	$(BIN)/rvnoise augment --recipe recipes/cnf25-radar.yaml sample_data $(DEMO)/cnf25-radar-rain-obstruction --quiet
+	@echo "demo done: look at $(DEMO)/ (one folder per recipe: augmented files, manifest.jsonl, run.json)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -p no:cacheprovider
