@@ -20,9 +20,12 @@ in Doppler bin m), and the clear-data radar constant ``C_r = SNR r⁴/σ`` of po
 whole field of view into one range–Doppler cell; that credits the distributed echo with the full beamforming gain
 that only a point target in one angular cell receives (``C_r`` is measured on point targets), overestimating the
 clutter SNR by the number of angular cells (1800 for 120°×30° at 1°×2°). Per cell the RCS is exponential (many
-random-phase drops), so the cell is detected with probability ``exp(−σ_t/μ)``, ``σ_t = 10^{(t − C + L)/10} r⁴``,
-and, by memorylessness, a detected cell has RCS ``σ_t + Exp(μ)``. Expected count ``Σ exp(−σ_t/μ)`` over all cells.
-No CFAR adaptation is modelled (a cell-averaging CFAR would raise the threshold inside homogeneous clutter).
+random-phase drops); ``y = μ/σ_t`` with ``σ_t = 10^{(t − C + L)/10} r⁴`` the RCS at the clear-air threshold decides
+the detection probability through the detector (physics/radar_cfar.py): fixed threshold ``e^{−1/y}`` (models.md
+§4.3) or CA-CFAR (≤ P_fa per cell). Cells are drawn exactly (independent Bernoulli per cell, by thinning in
+probability tiers, so the work follows the expected count rather than the number of cells); the expected count
+``Σ P(y)`` over all cells comes from a cached table (FFT correlation of the cells' ln μ histogram with P). A point
+target's cell gives the CA-CFAR threshold rise (:meth:`ClutterCells.ratio_at`).
 """
 
 from __future__ import annotations
@@ -33,16 +36,17 @@ from functools import lru_cache
 
 import numpy as np
 
+from scipy.signal import fftconvolve
+
 from .dsd import SNOW_LAWS, exponential_moment, marshall_palmer
-from .fall_speed import atlas_ulbrich_m_per_s, snow_power_law_m_per_s
+from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
+from .radar_cfar import PROBABILITY_TIERS, Detector, FixedThreshold, tier_ratios
 from .radar_link import SPEED_OF_LIGHT_M_PER_S, water_permittivity
 
 RAIN_D_MAX_MM = 10.0                        # RISE: Marshall–Palmer drops up to 10 mm
 SNOW_D_MAX_MM = 10.0
-ATLAS_ULBRICH_D_MAX_MM = 5.0                # validity limit of v = 3.778 D^0.67; larger drops fall at the 5 mm speed
 ICE_PERMITTIVITY_77GHZ = complex(3.15, -0.005)   # −15 °C (RISE alternative), nearly frequency independent
-_NEGLIGIBLE_LOG = math.log(1e9)             # cells with detection probability < 1e-9 are skipped
 
 
 SCATTERING = ("mie", "analytic")
@@ -62,9 +66,10 @@ class Hydrometeors:
     scattering: str = "mie"
 
     def fall_speed_m_per_s(self, d_mm) -> np.ndarray:
-        """Rain: Atlas–Ulbrich (capped at its 5 mm validity limit); snow: ``v = 0.8 D^0.16`` (fall_speed.py)."""
+        """Rain: Atlas, Srivastava & Sekhon (1973), levelling off at 9.65 m/s for the largest drops; snow:
+        ``v = 0.8 D^0.16`` (fall_speed.py)."""
         if self.kind == "rain":
-            return atlas_ulbrich_m_per_s(np.minimum(d_mm, ATLAS_ULBRICH_D_MAX_MM))
+            return atlas_srivastava_sekhon_m_per_s(d_mm)
         return snow_power_law_m_per_s(d_mm)
 
 
@@ -216,7 +221,7 @@ def _doppler_shape_tables(h: Hydrometeors, wavelength_m: float, z_edges: tuple[f
     w = np.exp(-h.lam_per_mm * d) * backscatter_cross_section_m2(d, wavelength_m, h.permittivity, h.scattering,
                                                                  h.d_max_mm)
     w = w / w.sum()
-    v = h.fall_speed_m_per_s(d)
+    v = np.maximum(h.fall_speed_m_per_s(d), 1e-9)       # X = v z stays defined for drops at rest (ASS, D < 0.11 mm)
     z = np.asarray(z_edges)
     x_ext = float(v.max() * np.abs(z).max()) + 2 * dx
     n = int(math.ceil(x_ext / dx))
@@ -305,64 +310,139 @@ def cell_doppler_probabilities(h: Hydrometeors, grid: ResolutionGrid, wavelength
     return out
 
 
+def _solid_angles(grid: ResolutionGrid) -> np.ndarray:
+    """Solid angle ΔΩ (sr) of every flat azimuth–elevation cell."""
+    az_e, z_e = grid.azimuth_edges_rad(), np.sin(grid.elevation_edges_rad())
+    return (np.diff(az_e)[:, None] * np.diff(z_e)[None, :]).ravel()
+
+
+def _read_only(*arrays):
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
 @lru_cache(maxsize=8)
 def _pairs_by_weight(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                      relative_velocity_m_per_s: tuple[float, float, float]):
     """(cell, Doppler bin) pairs sorted by decreasing ``ΔΩ P`` (clutter RCS per unit η and shell volume), so that
-    the pairs that can reach the threshold in a range bin are a prefix."""
+    the pairs that can be detected in a range bin are a prefix."""
     cell, m, p = cell_doppler_probabilities(h, grid, wavelength_m, relative_velocity_m_per_s)
-    az_e, z_e = grid.azimuth_edges_rad(), np.sin(grid.elevation_edges_rad())
-    weight = (np.diff(az_e)[:, None] * np.diff(z_e)[None, :]).ravel()[cell] * p
+    weight = _solid_angles(grid)[cell] * p
     order = np.argsort(-weight)
-    out = cell[order], m[order], weight[order]
-    for a in out:
-        a.flags.writeable = False
-    return out
+    return _read_only(cell[order], m[order], weight[order])
+
+
+@lru_cache(maxsize=4)
+def _weight_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
+                  relative_velocity_m_per_s: tuple[float, float, float]) -> tuple[int, np.ndarray]:
+    """``(m_min, W)``: ``W[cell, m − m_min] = ΔΩ P`` (0 outside the clutter spectrum), a dense lookup table."""
+    cell, m, p = cell_doppler_probabilities(h, grid, wavelength_m, relative_velocity_m_per_s)
+    m_min = int(m.min())
+    table = np.zeros((len(_solid_angles(grid)), int(m.max()) - m_min + 1))
+    table[cell, m - m_min] = _solid_angles(grid)[cell] * p
+    return m_min, _read_only(table)[0]
+
+
+_LN10_OVER_10 = math.log(10) / 10
+_COUNT_STEP = 0.005        # ln-grid step of the expected-count table
+_SATURATED_RATIO = 1e7     # y above which both detectors are within 1e-6 (relative) of their largest probability
+
+
+@lru_cache(maxsize=8)
+def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
+                 relative_velocity_m_per_s: tuple[float, float, float], detector: Detector):
+    """``(w, E)``: ``E(w) = Σ_pairs P(g_p e^w)``, the expected detections of a range bin whose cells have
+    ``y = g_p s`` (g = η ΔΩ P, s = e^w), on a uniform grid of w. The pairs' ln g are histogrammed on the step
+    with linear splitting and correlated (FFT) with the deficit ``P_max − P(e^v)``, which vanishes above
+    ``y = 10⁷``; equal to linear interpolation of P in ln y (relative error ≲ 1e-3)."""
+    weight = _pairs_by_weight(h, grid, wavelength_m, relative_velocity_m_per_s)[2]
+    lg = np.log(backscatter_per_volume_per_m(h, wavelength_m) * weight)
+    step = _COUNT_STEP
+    pos = (lg - lg.min()) / step
+    i = np.floor(pos).astype(np.int64)
+    frac = pos - i
+    n_u = int(i.max()) + 2
+    hist = np.bincount(i, 1 - frac, minlength=n_u) + np.bincount(i + 1, frac, minlength=n_u)
+    v0 = math.log(tier_ratios(detector)[-1])
+    v = v0 + step * np.arange(int(math.ceil((math.log(_SATURATED_RATIO) - v0) / step)) + 1)
+    p_max = detector.max_probability
+    deficit = p_max - detector.probability(np.exp(v))
+    # E at offset d (pair i sits at v_{i+d}): pairs with i + d < 0 are negligible, those past the table saturated
+    d = np.arange(-(n_u - 1), len(v))
+    suffix = np.cumsum(hist[::-1])[::-1]
+    expected = p_max * suffix[np.maximum(-d, 0)] - fftconvolve(hist[::-1], deficit)
+    w = v0 - lg.min() + step * d
+    return _read_only(w, np.maximum(expected, 0.0)) + (p_max * len(lg),)
 
 
 @dataclass(frozen=True)
 class ClutterCells:
-    """Resolution cells that may reach the threshold (probability > 1e-9): one row per candidate cell, built
-    from (angular cell, Doppler bin) pairs × range bins."""
+    """The resolution cells of one frame that a detector may declare: (angular cell, Doppler bin) pairs sorted by
+    decreasing mean clutter RCS, crossed with the range bins, ``y = μ/σ_t = pair_rcs_per_m3 × range_ratio_per_rcs``.
+    In range bin k, probability tier j (0 … 29) holds the pairs from ``tier_bounds[k, j − 1]`` (0 for j = 0) to
+    ``tier_bounds[k, j] − 1``, whose cells have ``P ≤ 2^{−j} P_max`` (physics/radar_cfar.py ``tier_ratios``); the
+    pairs past ``tier_bounds[k, 29]`` are negligible."""
 
+    hydrometeors: Hydrometeors
     grid: ResolutionGrid
+    wavelength_m: float
+    relative_velocity_m_per_s: tuple[float, float, float]
+    detector: Detector
     radar_constant_db: float
     threshold_db: float
     gamma_db_per_km: float
-    pair_cell: np.ndarray         # per pair: flat azimuth–elevation cell index
-    pair_doppler_bin: np.ndarray  # per pair: Doppler bin m
-    pair_rcs_per_m3: np.ndarray   # per pair: η ΔΩ P(v_m), μ per unit of (r_hi³ − r_lo³)/3
-    pair: np.ndarray              # per candidate: its pair
-    range_bin: np.ndarray         # per candidate: range bin k
-    probability: np.ndarray       # per candidate: exp(−σ_t/μ)
+    pair_cell: np.ndarray            # per pair: flat azimuth–elevation cell index
+    pair_doppler_bin: np.ndarray     # per pair: Doppler bin m
+    pair_rcs_per_m3: np.ndarray      # per pair: η ΔΩ P(v_m), μ per unit of (r_hi³ − r_lo³)/3 (decreasing)
+    range_ratio_per_rcs: np.ndarray  # per range bin: (r_hi³ − r_lo³)/(3 σ_t) (m³/m²)
+    tier_bounds: np.ndarray          # (range bins, 30): end of each probability tier among the sorted pairs
+    expected_count: float            # Σ P(y) over all cells
 
-    @property
-    def expected_count(self) -> float:
-        return float(self.probability.sum())
+    def ratio_at(self, positions_m: np.ndarray, v_r_m_per_s: np.ndarray) -> np.ndarray:
+        """``y = μ/σ_t`` of the resolution cell of each point (any range): its angular cell (nearest edge cell
+        outside the field of view), its Doppler bin, and a range bin centred on it."""
+        m_min, table = _weight_table(self.hydrometeors, self.grid, self.wavelength_m, self.relative_velocity_m_per_s)
+        grid = self.grid
+        cell = angular_cell_index(positions_m, grid.azimuth_edges_rad(), grid.elevation_edges_rad())
+        m = np.floor(np.asarray(v_r_m_per_s, dtype=float) / grid.doppler_resolution_m_per_s + 0.5).astype(np.int64)
+        m -= m_min
+        inside = (m >= 0) & (m < table.shape[1])
+        g = np.where(inside, table[cell, np.clip(m, 0, table.shape[1] - 1)], 0.0) * \
+            backscatter_per_volume_per_m(self.hydrometeors, self.wavelength_m)
+        r = np.linalg.norm(positions_m, axis=1)
+        dr = grid.range_resolution_m
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = g * (r * r * dr + dr ** 3 / 12) / _threshold_rcs_m2(self.radar_constant_db, self.threshold_db,
+                                                                      self.gamma_db_per_km, r)
+        return np.where(r > 0, ratio, 0.0)
 
 
-def _range_bins(grid: ResolutionGrid, radar_constant_db: float, threshold_db: float, gamma_db_per_km: float):
-    """Edges, centres, ``(r_hi³ − r_lo³)/3`` and the threshold RCS σ_t of every range bin."""
-    r_e = grid.range_edges_m()
-    r_c = 0.5 * (r_e[:-1] + r_e[1:])
-    shell = (r_e[1:] ** 3 - r_e[:-1] ** 3) / 3
-    sigma_t = 10 ** ((threshold_db - radar_constant_db + 2 * gamma_db_per_km * r_c / 1000) / 10) * r_c ** 4
-    return r_e, r_c, shell, sigma_t
+def _threshold_rcs_m2(radar_constant_db: float, threshold_db: float, gamma_db_per_km: float, r_m) -> np.ndarray:
+    """σ_t: the RCS whose statistic ``C + 10 log10 σ − 40 log10 r − 2 γ r/1000`` equals the threshold t."""
+    r2 = r_m * r_m
+    return np.exp(_LN10_OVER_10 * (threshold_db - radar_constant_db + 2e-3 * gamma_db_per_km * r_m)) * r2 * r2
 
 
 def clutter_cells(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, relative_velocity_m_per_s,
-                  radar_constant_db: float, threshold_db: float, gamma_db_per_km: float = 0.0) -> ClutterCells:
-    """Detection probabilities of every relevant cell. The detection statistic of an echo of RCS σ at range r is
-    ``D = C + 10 log10 σ − 40 log10 r − 2 γ r/1000`` (dB); a cell is detected when ``D ≥ t``."""
-    eta = backscatter_per_volume_per_m(h, wavelength_m)
-    cell, m, weight = _pairs_by_weight(h, grid, wavelength_m, tuple(float(v) for v in relative_velocity_m_per_s))
-    _, _, shell, sigma_t = _range_bins(grid, radar_constant_db, threshold_db, gamma_db_per_km)
-    tau = sigma_t / shell                                   # μ = g · shell with g = η ΔΩ P: p = exp(−τ/g)
-    g = eta * weight                                        # decreasing
-    n_pairs = np.searchsorted(-g, -tau / _NEGLIGIBLE_LOG, side="left")    # pairs with g > τ/ln(1e9)
-    k, pair = _expand(n_pairs)
-    prob = np.exp(-tau[k] / g[pair])
-    return ClutterCells(grid, radar_constant_db, threshold_db, gamma_db_per_km, cell, m, g, pair, k, prob)
+                  radar_constant_db: float, threshold_db: float, gamma_db_per_km: float = 0.0,
+                  detector: Detector = FixedThreshold()) -> ClutterCells:
+    """The cells of a frame with radar constant C (dB), clear-air threshold t (dB, same statistic) and specific
+    attenuation γ; ``relative_velocity = wind − ego`` in the sensor frame. The detection statistic of an echo of RCS
+    σ at range r is ``D = C + 10 log10 σ − 40 log10 r − 2 γ r/1000`` (dB)."""
+    rel = tuple(float(v) for v in relative_velocity_m_per_s)
+    cell, m, weight = _pairs_by_weight(h, grid, wavelength_m, rel)
+    g = backscatter_per_volume_per_m(h, wavelength_m) * weight              # decreasing
+    r_e = grid.range_edges_m()
+    r_c = 0.5 * (r_e[:-1] + r_e[1:])
+    ratio = (r_e[1:] ** 3 - r_e[:-1] ** 3) / 3 / _threshold_rcs_m2(radar_constant_db, threshold_db, gamma_db_per_km,
+                                                                    r_c)
+    tier_bounds = np.searchsorted(-g, -(tier_ratios(detector)[None, :] / ratio[:, None]).ravel(), side="left"
+                                  ).reshape(len(ratio), PROBABILITY_TIERS)
+    w, table, saturated = _count_table(h, grid, wavelength_m, rel, detector)
+    expected = float(np.interp(np.log(ratio), w, table, left=0.0, right=saturated).sum())
+    return ClutterCells(h, grid, wavelength_m, rel, detector, radar_constant_db, threshold_db, gamma_db_per_km, cell,
+                        m, g, ratio, tier_bounds, expected)
 
 
 @dataclass(frozen=True)
@@ -373,23 +453,39 @@ class ClutterPoints:
 
 
 def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPoints:
-    """Draw the detected cells (Bernoulli with ``exp(−σ_t/μ)``), their RCS ``σ_t + Exp(μ)``, and one point per
-    detected cell: range uniform in the bin, direction uniform in solid angle within the angular cell, radial
-    velocity uniform within the Doppler bin."""
-    grid = cells.grid
-    hit = np.flatnonzero(rng.random(len(cells.probability)) < cells.probability)
-    pair, k = cells.pair[hit], cells.range_bin[hit]
-    r_e, r_c, shell, sigma_t = _range_bins(grid, cells.radar_constant_db, cells.threshold_db, cells.gamma_db_per_km)
-    sigma = sigma_t[k] + rng.exponential(cells.pair_rcs_per_m3[pair] * shell[k])
+    """Draw the detected cells — each cell independently with its probability P(y), by thinning: in probability tier
+    j a Bernoulli(2^{−j} P_max) subset of the tier's cells, each kept with ``P(y)/(2^{−j} P_max)`` (work ∝ the
+    expected count, not the number of cells) —, their RCS given the detection, and one point per detected cell: range
+    uniform in the bin, direction uniform in solid angle within the angular cell, radial velocity uniform within the
+    Doppler bin."""
+    grid, detector = cells.grid, cells.detector
+    hi = cells.tier_bounds
+    lo = np.concatenate([np.zeros((len(hi), 1), dtype=hi.dtype), hi[:, :-1]], axis=1)
+    size = hi - lo                                              # (range bin, tier)
+    bound = detector.max_probability * 0.5 ** np.arange(PROBABILITY_TIERS)
+    totals = size.sum(axis=0)
+    picks = np.where(bound >= 1.0, totals, rng.binomial(totals, np.minimum(bound, 1.0)))
+    ks, pairs, bounds = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)], [np.zeros(0)]
+    for j in np.flatnonzero(picks):
+        ends = np.cumsum(size[:, j])
+        idx = np.arange(totals[j]) if picks[j] == totals[j] else rng.choice(totals[j], picks[j], replace=False)
+        k = np.searchsorted(ends, idx, side="right")
+        ks.append(k)
+        pairs.append(lo[k, j] + idx - (ends[k] - size[k, j]))
+        bounds.append(np.full(len(idx), bound[j]))
+    k, pair, q = np.concatenate(ks), np.concatenate(pairs), np.concatenate(bounds)
+    y = cells.pair_rcs_per_m3[pair] * cells.range_ratio_per_rcs[k]
+    hit = rng.random(len(y)) * q < detector.probability(y)
+    pair, k, y = pair[hit], k[hit], y[hit]
+    over = detector.rcs_over_threshold(rng, y)                     # σ/σ_t ≥ 1
+    r_e = grid.range_edges_m()
     az_e, z_e = grid.azimuth_edges_rad(), np.sin(grid.elevation_edges_rad())
     i_az, i_el = np.divmod(cells.pair_cell[pair], len(z_e) - 1)
-    u = rng.random((4, len(hit)))
+    u = rng.random((4, len(pair)))
     r = r_e[k] + u[0] * (r_e[k + 1] - r_e[k])
     az = az_e[i_az] + u[1] * (az_e[i_az + 1] - az_e[i_az])
     z = z_e[i_el] + u[2] * (z_e[i_el + 1] - z_e[i_el])
     c = np.sqrt(1 - z * z)
     positions = r[:, None] * np.stack([c * np.cos(az), c * np.sin(az), z], axis=1)
     v_r = (cells.pair_doppler_bin[pair] + u[3] - 0.5) * grid.doppler_resolution_m_per_s
-    detection = (cells.radar_constant_db + 10 * np.log10(sigma) - 40 * np.log10(r_c[k])
-                 - 2 * cells.gamma_db_per_km * r_c[k] / 1000)
-    return ClutterPoints(positions, v_r, detection)
+    return ClutterPoints(positions, v_r, cells.threshold_db + 10 * np.log10(over))

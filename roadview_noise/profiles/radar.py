@@ -10,6 +10,11 @@ mapping):
 - ``vod``: View-of-Delft-style short-range 3+1D radar (ZF FRGen21 class): 77 GHz, 100 m; its files carry RCS and
   radial velocities but no SNR/power, so detection works on ``rcs_dbsm − 40 log10 r`` (models/radar/detection.py).
 
+Every profile has a Doppler bin width ``velocity_resolution_m_per_s`` (default 0.1035 m/s, the RISE analysis: 512
+bins over ±26.5 m/s; it sets the Doppler cells of the clutter model) and a ``power_unit``: ``relative`` (default;
+power is only known up to a constant, so an SNR threshold cannot be turned into a power threshold) or ``dBm``
+(absolute received power: threshold = SNR threshold + receiver noise floor).
+
 Per-point field names of these datasets map to the canonical ``rcs_dbsm``, ``v_r_m_per_s``, ``v_r_comp_m_per_s``,
 ``snr_db``, ``power_db`` in the I/O layer; profiles hold sensor parameters only.
 """
@@ -43,6 +48,8 @@ def vod() -> RadarProfile:
                         azimuth_resolution_deg=1.5, elevation_resolution_deg=1.5, range_resolution_m=0.2,
                         max_range_m=100.0, if_bandwidth_hz=20e6, noise_figure_db=12.0)
 
+
+POWER_UNITS = ("relative", "dBm")
 
 BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod}
 
@@ -87,6 +94,10 @@ def _override(base: RadarProfile, fields: dict, source: str) -> RadarProfile:
         if key == "rcs_compensates_weather":
             if not isinstance(value, bool):
                 raise InputError(f"{key} must be true or false, got {value!r}", file=source)
+            continue
+        if key == "power_unit":
+            if value not in POWER_UNITS:
+                raise InputError(f"{key} must be one of {POWER_UNITS}, got {value!r}", file=source)
             continue
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise InputError(f"{key} must be a number, got {value!r}", file=source)

@@ -109,11 +109,17 @@ def test_profile_threshold_and_power_only_clouds():
     out, rec = run(get_model("fog.radar")(), cloud)
     assert rec.diagnostics["threshold_source"] == "profile" and rec.diagnostics["threshold_db"] == 20.0
     assert out.fields["snr_db"].min() >= 20.0
-    # power only: SNR threshold + receiver noise floor, power read as dBm
-    power_cloud = radar_cloud(fields=("rcs_dbsm", "v_r_m_per_s", "power_db"), profile=profile)
+    # power only, in dBm: SNR threshold + receiver noise floor
+    dbm = dataclasses.replace(profile, power_unit="dBm")
+    power_cloud = radar_cloud(fields=("rcs_dbsm", "v_r_m_per_s", "power_db"), profile=dbm)
     _, rec = run(get_model("fog.radar")(), power_cloud)
-    assert rec.diagnostics["detection_statistic"] == "power_db"
+    assert rec.diagnostics["detection_statistic"] == "power_db" and rec.diagnostics["threshold_source"] == "profile"
     assert rec.diagnostics["threshold_db"] == pytest.approx(20.0 + noise_floor_dbm(20e6, 12.0))
+    # relative power (the default unit): the noise floor is unknown, so the frame's weakest power
+    _, rec = run(get_model("fog.radar")(), radar_cloud(fields=("rcs_dbsm", "v_r_m_per_s", "power_db"),
+                                                        profile=profile))
+    assert rec.diagnostics["threshold_source"] == "frame quantile 0"
+    assert rec.diagnostics["threshold_db"] == pytest.approx(T_DB - 90.0, abs=0.5)
     # without a profile threshold: the frame's weakest power
     _, rec = run(get_model("fog.radar")(), radar_cloud(fields=("rcs_dbsm", "power_db")))
     assert rec.diagnostics["threshold_source"] == "frame quantile 0"
@@ -122,7 +128,7 @@ def test_profile_threshold_and_power_only_clouds():
 
 def test_rcs_only_cloud_view_of_delft_style():
     cloud = radar_cloud(fields=("rcs_dbsm", "v_r_m_per_s", "v_r_comp_m_per_s"), profile=load_radar_profile("vod"))
-    out, rec = run(get_model("rain.radar")(), cloud)
+    out, rec = run(get_model("rain.radar")(detector="fixed"), cloud)
     d = rec.diagnostics
     assert d["detection_statistic"] == "rcs_dbsm-40log10(r)" and d["radar_constant_db"] == pytest.approx(0.0, abs=1e-4)
     assert d["threshold_db"] == pytest.approx(T_DB - C_DB, abs=0.5)
@@ -147,10 +153,12 @@ def test_zero_rate_is_identity():
         assert np.all(out.fields["label"] == PointLabel.KEPT) and rec.diagnostics["clutter_points"] == 0
 
 
-def test_rain_adds_labelled_clutter_near_the_sensor():
+@pytest.mark.parametrize("params", [{"detector": "fixed"}, {"detector": "cfar", "cfar_pfa": 1e-2}])
+def test_rain_adds_labelled_clutter_near_the_sensor(params):
     ego = (10.0, 0.0, 0.0)
     cloud = radar_cloud(conditions=Conditions(ego_velocity_m_per_s=ego, wind_velocity_m_per_s=(0.0, 4.0, 0.0)))
-    out, rec = run(get_model("rain.radar")(), cloud)
+    out, rec = run(get_model("rain.radar")(**params), cloud)
+    assert rec.diagnostics["detector"] == params["detector"]
     added = ~real(out)
     assert added.sum() == rec.diagnostics["clutter_points"] > 0
     assert np.all(out.fields["label"][added] == PointLabel.ADDED)
@@ -175,22 +183,26 @@ def test_fog_adds_no_clutter_and_snow_less_than_rain():
     cloud = radar_cloud()
     out, rec = run(get_model("fog.radar")(), cloud)
     assert np.all(real(out)) and "clutter_points" not in rec.diagnostics
-    _, snow = run(get_model("snow.radar")(), cloud)
-    _, rain = run(get_model("rain.radar")(), cloud)
+    _, snow = run(get_model("snow.radar")(detector="fixed"), cloud)
+    _, rain = run(get_model("rain.radar")(detector="fixed"), cloud)
     assert 0 < snow.diagnostics["clutter_expected_points"] < rain.diagnostics["clutter_expected_points"]
+    _, snow = run(get_model("snow.radar")(), cloud)      # cfar: P_fa per clutter-dominated cell, a few points
+    assert 0 < snow.diagnostics["clutter_expected_points"] < 1e-4 * 1800 * 95 * 100
 
 
-def test_same_rng_same_output_and_input_untouched():
+@pytest.mark.parametrize("params", [{"detector": "fixed"}, {"detector": "cfar", "cfar_pfa": 1e-2}])
+def test_same_rng_same_output_and_input_untouched(params):
     cloud = radar_cloud()
     before = {k: v.copy() for k, v in cloud.fields.items()}
-    a, _ = run(get_model("rain.radar")(), cloud)
-    b, _ = run(get_model("rain.radar")(), cloud)
+    model = get_model("rain.radar")(**params)
+    a, _ = run(model, cloud)
+    b, _ = run(model, cloud)
     np.testing.assert_array_equal(a.positions_m, b.positions_m)
     for k in a.fields:
         np.testing.assert_array_equal(a.fields[k], b.fields[k])
     for k, v in before.items():
         np.testing.assert_array_equal(cloud.fields[k], v)
-    c, _ = run(get_model("rain.radar")(), cloud, key="frame-1")
+    c, _ = run(model, cloud, key="frame-1")
     assert len(c) != len(a) or not np.array_equal(c.positions_m, a.positions_m)
 
 
@@ -214,6 +226,115 @@ def test_max_detection_range_shrinks_with_rate():
               for r in (0.0, 10.0, 50.0, 150.0, 400.0)]
     assert ranges[0] == pytest.approx(cloud.ranges_m.max())
     assert all(a >= b for a, b in zip(ranges, ranges[1:])) and ranges[-1] < ranges[0]
+
+
+def test_cfar_is_the_default_and_keeps_clutter_few():
+    """Default CA-CFAR (P_fa 1e-4, 16 cells): clutter far below the fixed threshold's and below P_fa × cells, at
+    C − t = 76 dB (the synthetic sensor) and 83 dB; the fixed-threshold count explodes."""
+    model = get_model("rain.radar")()
+    assert (model.detector, model.cfar_pfa, model.cfar_reference_cells) == ("cfar", 1e-4, 16)
+    counts = {}
+    for margin in (76.0, 83.0):
+        profile = dataclasses.replace(load_radar_profile(None), snr_threshold_db=C_DB - margin)
+        cloud = radar_cloud(n=1500, profile=profile)
+        for detector in ("cfar", "fixed"):
+            _, rec = run(get_model("rain.radar")(detector=detector), cloud)
+            d = rec.diagnostics
+            assert d["radar_constant_db"] - d["threshold_db"] == pytest.approx(margin, abs=0.1)
+            counts[margin, detector] = d["clutter_expected_points"]
+        assert d["detector"] == "fixed" and "cfar_points_lost" not in d
+    assert counts[83.0, "fixed"] > 5 * counts[76.0, "fixed"] > 10_000
+    assert counts[76.0, "cfar"] < 20 and counts[83.0, "cfar"] < 1e-4 * 1800 * 95 * 100
+    assert counts[83.0, "cfar"] < 1e-3 * counts[83.0, "fixed"]
+
+
+def _weak_near_target_scene(v_r_near: float) -> PointCloud:
+    """The synthetic clear cloud plus a weak target at 2 m on boresight (SNR 3 dB above the 12 dB profile threshold)
+    with radial velocity ``v_r_near``; stationary radar."""
+    profile = dataclasses.replace(load_radar_profile(None), snr_threshold_db=T_DB)
+    cloud = radar_cloud(profile=profile)
+    cloud = cloud.select(cloud.ranges_m > 10.0)
+    near = {"rcs_dbsm": T_DB + 3.0 - C_DB + 40 * math.log10(2.0), "v_r_m_per_s": v_r_near, "v_r_comp_m_per_s": 0.0,
+            "snr_db": T_DB + 3.0, "power_db": T_DB + 3.0 - 90.0}
+    return cloud.concat(np.array([[2.0, 0.005, 0.005]]), {k: np.array([v]) for k, v in near.items()})
+
+
+def test_cfar_loses_a_weak_near_target_in_heavy_rain():
+    """At 2 m in 50 mm/h the boresight cell's clutter-to-noise ratio is ≈ 10 dB: the CFAR threshold rises by
+    10 log10(1 + CNR) > 3 dB and the weak target is lost; the fixed threshold keeps it. A target whose Doppler lies
+    outside the rain spectrum of its cell, and targets beyond 10 m, are unaffected."""
+    cloud = _weak_near_target_scene(0.0)
+    near = np.flatnonzero(cloud.ranges_m < 3.0)
+    assert len(near) == 1
+    fixed, f_rec = run(get_model("rain.radar")(rain_rate_mm_per_h=50.0, detector="fixed", clutter_max_range_m=1.5),
+                       cloud)
+    cfar, c_rec = run(get_model("rain.radar")(rain_rate_mm_per_h=50.0, clutter_max_range_m=1.5), cloud)
+    real_fixed, real_cfar = fixed.select(real(fixed)), cfar.select(real(cfar))
+    assert np.any(real_fixed.ranges_m < 3.0) and not np.any(real_cfar.ranges_m < 3.0)
+    assert c_rec.diagnostics["cfar_points_lost"] >= 1 and c_rec.diagnostics["cfar_max_threshold_rise_db"] > 3.0
+    # far targets: identical detections (the clutter-to-noise ratio falls as r⁻², the rise is < 0.5 dB past 10 m)
+    far_f, far_c = real_fixed.select(real_fixed.ranges_m > 10.0), real_cfar.select(real_cfar.ranges_m > 10.0)
+    np.testing.assert_array_equal(far_f.positions_m, far_c.positions_m)
+    assert c_rec.diagnostics["cfar_points_lost"] == c_rec.diagnostics["points_removed"] - \
+        f_rec.diagnostics["points_removed"]
+    # Doppler separates a target from the clutter of its cell (boresight rain: |v| ≤ 9.65 sin 1° ≈ 0.17 m/s)
+    moving = _weak_near_target_scene(5.0)
+    out, _ = run(get_model("rain.radar")(rain_rate_mm_per_h=50.0, clutter_max_range_m=1.5), moving)
+    assert np.any(out.select(real(out)).ranges_m < 3.0)
+    # no radial-velocity field: the static-world Doppler −v_ego·r̂ (0 for a stationary radar) → lost
+    no_v = _weak_near_target_scene(0.0)
+    no_v = PointCloud(no_v.positions_m, {k: v for k, v in no_v.fields.items() if k != "v_r_m_per_s"}, "radar",
+                      no_v.profile)
+    out, _ = run(get_model("rain.radar")(rain_rate_mm_per_h=50.0, clutter_max_range_m=1.5), no_v)
+    assert not np.any(out.select(real(out)).ranges_m < 3.0)
+
+
+def test_cfar_threshold_rise_matches_the_cell_clutter():
+    """Rise of the near target = 10 log10(1 + α μ/σ_t) with μ, σ_t of its resolution cell (physics oracle in
+    tests/physics/test_radar_clutter.py); recomputed here from the diagnostics' radar constant and threshold."""
+    from roadview_noise.physics.radar_cfar import CaCfar
+    from roadview_noise.physics.radar_clutter import ResolutionGrid, clutter_cells, radar_wavelength_m, rain_drops
+
+    cloud = _weak_near_target_scene(0.0)
+    _, rec = run(get_model("rain.radar")(rain_rate_mm_per_h=50.0), cloud)
+    d = rec.diagnostics
+    grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1035, 1.0, 20.0)
+    cells = clutter_cells(rain_drops(50.0), grid, radar_wavelength_m(77e9), (0.0, 0.0, 0.0), d["radar_constant_db"],
+                          d["threshold_db"], d["specific_attenuation_db_per_km"], CaCfar(1e-4, 16))
+    y = cells.ratio_at(np.array([[2.0, 0.005, 0.005]]), np.array([0.0]))[0]
+    assert d["cfar_max_threshold_rise_db"] == pytest.approx(10 * math.log10(1 + 12.452470560622764 * y), rel=1e-6)
+    assert 3.0 < d["cfar_max_threshold_rise_db"] < 20.0
+
+
+def test_doppler_bins_follow_the_profile():
+    fine = radar_cloud(n=800)
+    coarse = dataclasses.replace(fine, profile=dataclasses.replace(fine.profile, velocity_resolution_m_per_s=1.0))
+    _, a = run(get_model("rain.radar")(detector="fixed"), fine)
+    _, b = run(get_model("rain.radar")(detector="fixed"), coarse)
+    assert b.diagnostics["clutter_expected_points"] > 1.2 * a.diagnostics["clutter_expected_points"]
+    assert "doppler_resolution_m_per_s" not in get_model("rain.radar")().params()
+
+
+def test_recipe_ego_velocity_reaches_the_model_and_hits_the_doppler_cache():
+    """``inputs.ego_velocity_m_per_s`` sets every frame's conditions; a constant ego velocity computes the per-cell
+    Doppler tables once."""
+    from roadview_noise.dataset import discover, load
+    from roadview_noise.physics.radar_clutter import cell_doppler_probabilities
+    from roadview_noise.recipe import parse_recipe
+
+    recipe = parse_recipe({"schema": "rvnoise.recipe/1", "chain": [{"model": "rain.radar"}], "seed": 1,
+                           "inputs": {"radar": "radar/**/*.pcd", "ego_velocity_m_per_s": [13, 0, 0]}})
+    root = ROOT / "sample_data"
+    samples = discover(root, recipe)
+    assert len(samples) == 3
+    model = get_model("rain.radar")()
+    misses = []
+    for sample in samples:
+        cloud = load(sample, root, recipe)
+        assert cloud.conditions.ego_velocity_m_per_s == (13.0, 0.0, 0.0)
+        run(model, cloud, key=sample.relpath)
+        misses.append(cell_doppler_probabilities.cache_info().misses)
+    assert misses[0] == misses[-1]
 
 
 # --- obstruction ------------------------------------------------------------------------------------------------
@@ -314,6 +435,11 @@ def test_radar_profiles(tmp_path):
         load_radar_profile("ars-999")
     with pytest.raises(InputError, match="> 0"):
         load_radar_profile({"range_resolution_m": 0})
+    p = load_radar_profile({"base": "rehearse", "power_unit": "dBm", "velocity_resolution_m_per_s": 0.2})
+    assert (p.power_unit, p.velocity_resolution_m_per_s) == ("dBm", 0.2)
+    assert load_radar_profile(None).power_unit == "relative"
+    with pytest.raises(InputError, match="power_unit"):
+        load_radar_profile({"power_unit": "W"})
 
 
 @pytest.mark.parametrize("name, models", [

@@ -7,8 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import integrate, stats
 
+from roadview_noise.physics.radar_cfar import CaCfar, FixedThreshold, ca_cfar_multiplier
 from roadview_noise.physics.radar_clutter import (
     Hydrometeors, ResolutionGrid, angular_cell_index, angular_edges_rad, backscatter_cross_section_m2,
     backscatter_per_volume_per_m, cell_doppler_probabilities, clutter_cells, fresnel_reflectivity,
@@ -91,7 +92,8 @@ def test_cell_doppler_probabilities_sum_to_one_per_cell():
 
 
 def test_hemisphere_doppler_spectrum_is_the_size_weighted_uniform_mixture():
-    """Stationary radar, front half-space: each drop size gives U[−v_t, v_t]; weights N(D) σ_b(D)."""
+    """Stationary radar, front half-space: each drop size gives U[−v_t, v_t]; weights N(D) σ_b(D); v_t from
+    Atlas–Srivastava–Sekhon (levels off at 9.65 m/s)."""
     h = rain_drops(20.0)
     dv = 0.5
     grid = ResolutionGrid(180, 180, 6, 6, 0.2, dv, 1.0, 2.0)
@@ -105,7 +107,7 @@ def test_hemisphere_doppler_spectrum_is_the_size_weighted_uniform_mixture():
     d = (np.arange(4000) + 0.5) * h.d_max_mm / 4000
     w = np.exp(-h.lam_per_mm * d) * backscatter_cross_section_m2(d, RISE_LAMBDA_M, h.permittivity, h.scattering)
     w /= w.sum()
-    v_t = 3.778 * np.minimum(d, 5.0) ** 0.67
+    v_t = np.maximum(9.65 - 10.3 * np.exp(-0.6 * d), 1e-9)        # Atlas, Srivastava & Sekhon (1973)
     lo, hi = (bins - 0.5) * dv, (bins + 0.5) * dv
     overlap = np.clip(np.minimum(hi[:, None], v_t[None]) - np.maximum(lo[:, None], -v_t[None]), 0, None)
     expected = (overlap / (2 * v_t[None])) @ w
@@ -134,16 +136,96 @@ def test_expected_count_matches_independent_formula_and_draws():
     assert np.mean(counts) == pytest.approx(expected, rel=0.1)
 
 
-def test_drawn_clutter_is_consistent():
+def _cfar_probability(mu_over_sigma_t: np.ndarray, pfa: float, n: int) -> np.ndarray:
+    """Independent CA-CFAR clutter probability: P(Exp(μ) > max(T, α n)), T ~ Gamma(N, α(μ + n)/N), n = σ_t/α
+    (noise units: x = μ/n), by numerical integration over T."""
+    alpha = ca_cfar_multiplier(pfa, n)
+    out = []
+    for x in alpha * np.asarray(mu_over_sigma_t, dtype=float):
+        t = stats.gamma(n, scale=alpha * (1 + x) / n)
+        hi = t.ppf(1 - 1e-16)
+        above = integrate.quad(lambda v: t.pdf(v) * math.exp(-v / x), alpha, hi, points=[t.mean()], epsabs=0,
+                               epsrel=1e-10, limit=400)[0] if hi > alpha else 0.0
+        out.append(t.cdf(alpha) * math.exp(-alpha / x) + above)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("pfa", [5e-2, 1e-4])
+def test_cfar_expected_count_matches_independent_formula_and_draws(pfa):
+    """The grid of the fixed-threshold oracle above (all clutter of an angular cell in one Doppler bin, so
+    μ_k = η ΔΩ (r_hi³ − r_lo³)/3): E[count] = Σ_k 120 P_cfar(μ_k/σ_t,k), and the mean of many draws."""
+    h = rise_rain(20.0)
+    gamma, c_db, t_db = 9.72, 85.0, 10.0
+    grid = ResolutionGrid(120, 2, 1, 2, 0.2, 2.0, 1.0, 6.0)
+    cells = clutter_cells(h, grid, RISE_LAMBDA_M, (0.0, 0.0, 0.0), c_db, t_db, gamma, CaCfar(pfa, 16))
+
+    r_e = 1.0 + 0.2 * np.arange(26)
+    r_c = 0.5 * (r_e[1:] + r_e[:-1])
+    omega = math.radians(1.0) * 2 * math.sin(math.radians(1.0))
+    mu = 1.108e-3 * omega * (r_e[1:] ** 3 - r_e[:-1] ** 3) / 3
+    sigma_t = 10 ** ((t_db - c_db + 2 * gamma * r_c / 1000) / 10) * r_c ** 4
+    expected = 120 * _cfar_probability(mu / sigma_t, pfa, 16).sum()
+    assert expected < 120 * 25 * pfa                               # at most P_fa per cell
+    assert cells.expected_count == pytest.approx(expected, rel=2e-3)
+    if pfa >= 5e-2:                                                # enough points for a 10 % check
+        assert expected > 10
+        counts = [len(generate_clutter(np.random.default_rng(s), cells).v_r_m_per_s) for s in range(100)]
+        assert np.mean(counts) == pytest.approx(expected, rel=0.1)
+
+
+def test_cfar_clutter_count_does_not_explode_with_the_margin():
+    """Full 120° × 30° grid, rain 20 mm/h, 1–20 m, car at 10 m/s: the fixed-threshold count grows by orders of
+    magnitude from C − t = 68 to 83 dB; the CA-CFAR count stays below P_fa × (number of cells) and below the fixed
+    count, in expectation and in the draws."""
+    grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1035, 1.0, 20.0)
+    h, rel, t_db, gamma, pfa = rain_drops(20.0), (-10.0, 0.0, 0.0), 12.0, 9.72, 1e-4
+    n_cells = len(cell_doppler_probabilities(h, grid, RISE_LAMBDA_M, rel)[0]) * (len(grid.range_edges_m()) - 1)
+    bound = pfa * n_cells
+    fixed, cfar = [], []
+    for margin in (68.0, 76.0, 83.0, 95.0):
+        f = clutter_cells(h, grid, RISE_LAMBDA_M, rel, t_db + margin, t_db, gamma)
+        c = clutter_cells(h, grid, RISE_LAMBDA_M, rel, t_db + margin, t_db, gamma, CaCfar(pfa, 16))
+        fixed.append(f.expected_count)
+        cfar.append(c.expected_count)
+        drawn = [len(generate_clutter(np.random.default_rng(s), c).v_r_m_per_s) for s in range(10)]
+        assert max(drawn) <= bound
+    assert fixed[2] > 300 * fixed[0] and fixed[2] > 10_000
+    assert all(a <= b for a, b in zip(cfar, fixed)) and all(a < b for a, b in zip(cfar, cfar[1:]))
+    assert cfar[-1] < bound and cfar[2] < 0.05 * bound and cfar[2] < 1e-3 * fixed[2]
+
+
+def test_target_cell_ratio():
+    """μ/σ_t of the resolution cell of a point: its angular cell's clutter fraction in its Doppler bin times η ΔΩ
+    and a range bin centred on it; 0 outside the clutter spectrum."""
+    grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1035, 1.0, 20.0)
+    h, rel, c_db, t_db, gamma = rain_drops(20.0), (-10.0, 0.0, 0.0), 88.0, 12.0, 9.72
+    cells = clutter_cells(h, grid, RISE_LAMBDA_M, rel, c_db, t_db, gamma, CaCfar(1e-4, 16))
+    cell_ids, m, p = cell_doppler_probabilities(h, grid, RISE_LAMBDA_M, rel)
+    i = int(np.argmax(p))
+    i_az, i_el = divmod(int(cell_ids[i]), 15)
+    az = math.radians(-60 + i_az + 0.5)
+    el = math.radians(-15 + 2 * i_el + 1)
+    r = np.array([3.0, 50.0])
+    pos = r[:, None] * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    omega = math.radians(1.0) * (math.sin(math.radians(-15 + 2 * i_el + 2)) - math.sin(math.radians(-15 + 2 * i_el)))
+    mu = backscatter_per_volume_per_m(h, RISE_LAMBDA_M) * omega * p[i] * ((r + 0.1) ** 3 - (r - 0.1) ** 3) / 3
+    sigma_t = 10 ** ((t_db - c_db + 2 * gamma * r / 1000) / 10) * r ** 4
+    v = np.full(2, m[i] * 0.1035)
+    np.testing.assert_allclose(cells.ratio_at(pos, v), mu / sigma_t, rtol=1e-9)
+    assert np.all(cells.ratio_at(pos, v + 40.0) == 0.0)
+
+
+@pytest.mark.parametrize("detector", [FixedThreshold(), CaCfar(1e-2, 16)])
+def test_drawn_clutter_is_consistent(detector):
     grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1035, 1.0, 20.0)
     ego, wind = np.array([12.0, 0.0, 0.0]), np.array([0.0, 3.0, 0.0])
     c_db, t_db, gamma = 86.0, 12.0, 9.72
     h = rain_drops(20.0)
-    cells = clutter_cells(h, grid, RISE_LAMBDA_M, wind - ego, c_db, t_db, gamma)
+    cells = clutter_cells(h, grid, RISE_LAMBDA_M, wind - ego, c_db, t_db, gamma, detector)
     draws = [generate_clutter(np.random.default_rng(s), cells) for s in range(30)]
     assert np.mean([len(d.v_r_m_per_s) for d in draws]) == pytest.approx(cells.expected_count, rel=0.1)
     pts = draws[0]
-    assert len(pts.v_r_m_per_s) > 50
+    assert len(pts.v_r_m_per_s) > 20
     assert np.all(pts.detection_db >= t_db)
     r = np.linalg.norm(pts.positions_m, axis=1)
     assert r.min() >= 1.0 and r.max() <= 20.0
@@ -153,7 +235,7 @@ def test_drawn_clutter_is_consistent():
     # Doppler and direction agree: v_r − (wind − ego)·r̂ = −v_t z, opposite in sign to z (cell spread tolerated)
     fall = pts.v_r_m_per_s - pts.positions_m @ (wind - ego) / r
     assert np.all(fall * np.sign(pts.positions_m[:, 2]) <= 0.1035 + 12.4 * math.radians(2.0))
-    assert np.abs(fall).max() <= 11.2 * math.sin(math.radians(15)) + 0.6
+    assert np.abs(fall).max() <= 9.65 * math.sin(math.radians(15)) + 0.6      # ASS fall speed ≤ 9.65 m/s
     again = generate_clutter(np.random.default_rng(0), cells)
     np.testing.assert_array_equal(again.positions_m, pts.positions_m)
 

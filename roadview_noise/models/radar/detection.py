@@ -11,13 +11,14 @@ Detection statistic D (dB), in order of preference:
 A loss L (dB) lowers D, SNR and power by L, and the reported RCS by L unless ``profile.rcs_compensates_weather``.
 
 Threshold t: ``profile.snr_threshold_db`` for SNR; ``snr_threshold_db + noise floor`` (−174 dBm/Hz + 10 log10 B +
-NF) for power, read as dBm; otherwise — always for the RCS statistic, whose radar constant is unknown — the ``q``
-quantile of the frame's own D before the model acts (q = 0: the weakest detection). Frames are processed
-independently by parallel workers, so a "per sequence" estimate (models.md §4.1 step 3) would need a pass over the
-whole sequence first, and a SEQUENCE-scope ``draw_sequence`` sees only the current frame, so it would differ
-between frames as well. The per-frame estimate is deterministic per frame and, with q = 0, makes zero loss the
-identity (every input point has D ≥ t). It is an upper bound of the true threshold (slight over-removal, and it
-varies a little from frame to frame); give ``snr_threshold_db`` in the profile for a fixed one.
+NF) for power when ``profile.power_unit`` is ``dBm``; otherwise — relative power, whose noise floor is unknown, and
+always the RCS statistic, whose radar constant is unknown — the ``q`` quantile of the frame's own D before the model
+acts (q = 0: the weakest detection). Frames are processed independently by parallel workers, so a "per sequence"
+estimate (models.md §4.1 step 3) would need a pass over the whole sequence first, and a SEQUENCE-scope
+``draw_sequence`` sees only the current frame, so it would differ between frames as well. The per-frame estimate is
+deterministic per frame and, with q = 0, makes zero loss the identity (every input point has D ≥ t). It is an upper
+bound of the true threshold (slight over-removal, and it varies a little from frame to frame); give
+``snr_threshold_db`` in the profile for a fixed one.
 
 Radar constant (dB) for synthetic echoes: ``C = median(D − rcs_dbsm + 40 log10 r)`` over points with RCS, so that
 ``D = C + 10 log10 σ − 40 log10 r`` (0 for the RCS statistic); unknown without an RCS field.
@@ -69,7 +70,8 @@ def detection(cloud: PointCloud, quantile: float, model_id: str, ranges_m: np.nd
         raise ModelError("a radar cloud needs snr_db, power_db or rcs_dbsm to decide detection "
                          f"(has {sorted(fields)})", model=model_id)
     profile = profile_of(cloud)
-    if profile.snr_threshold_db is not None and name != RCS_STATISTIC:
+    if profile.snr_threshold_db is not None and (name == "snr_db" or
+                                                 (name == "power_db" and profile.power_unit == "dBm")):
         threshold = profile.snr_threshold_db
         if name == "power_db":
             threshold += noise_floor_dbm(profile.if_bandwidth_hz, profile.noise_figure_db)

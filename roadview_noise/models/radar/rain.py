@@ -24,7 +24,8 @@ class RainRadar(PrecipitationRadar):
     9.72 dB/km; 1.94 dB two-way at 100 m), or the ROADVIEW reference's Sander (1975) ``1.07 R^0.69``
     (8.455 dB/km, fitted at 90 GHz, frequency independent). Clutter: Marshall–Palmer drops to 10 mm, Mie
     backscatter (or the RISE analytic law) with the water permittivity of ITU-R P.840 at ``temperature_c``,
-    Atlas–Ulbrich fall speeds."""
+    Atlas–Srivastava–Sekhon fall speeds (9.65 − 10.3 e^{−0.6 D} m/s, levelling off for large drops); detector
+    (CA-CFAR by default) as in models/radar/weather.py."""
 
     id: ClassVar[str] = "rain.radar"
     summary: ClassVar[str] = "rain attenuation (ITU-R P.838-3), detection loss and rain clutter, 20 mm/h"

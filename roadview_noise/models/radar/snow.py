@@ -23,7 +23,8 @@ class SnowRadar(PrecipitationRadar):
     γ = 0.8205 S dB/km (ROADVIEW, after Norouzian et al. 2018; 2.5 mm/h → 2.051 dB/km). Flagged: the law was
     measured above 100 GHz and is extrapolated to the radar frequency (likely an overestimate at 77 GHz); no ITU-R
     recommendation covers dry snow. Clutter: exponential snow DSD as solid ice spheres of the (melted) DSD diameter
-    (ε = 3.15 − 0.005i, Mie; an upper-end estimate for low-density aggregates), fall speed ``0.8 D^0.16`` m/s."""
+    (ε = 3.15 − 0.005i, Mie; an upper-end estimate for low-density aggregates), fall speed ``0.8 D^0.16`` m/s;
+    detector (CA-CFAR by default) as in models/radar/weather.py."""
 
     id: ClassVar[str] = "snow.radar"
     summary: ClassVar[str] = "dry-snow attenuation (0.8205 S dB/km, extrapolated), detection loss and clutter, 2.5 mm/h"

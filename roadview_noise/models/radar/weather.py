@@ -11,8 +11,10 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
-from ...physics.radar_clutter import (SCATTERING, Hydrometeors, ResolutionGrid, backscatter_per_volume_per_m,
-                                      clutter_cells, generate_clutter, radar_wavelength_m)
+from ...physics.radar_cfar import CaCfar, FixedThreshold
+from ...physics.radar_clutter import (SCATTERING, ClutterCells, Hydrometeors, ResolutionGrid,
+                                      backscatter_per_volume_per_m, clutter_cells, generate_clutter,
+                                      radar_wavelength_m)
 from ...physics.radar_link import detection_range_in_weather_m, two_way_loss_db
 from ...types import PointCloud, PointLabel, RadarProfile
 from .detection import (RCS_STATISTIC, Detection, detection, labels, mark, power_minus_snr_db, profile_of,
@@ -27,9 +29,10 @@ MIN_PRECIPITATION_RATE_MM_PER_H = 1e-3
 @dataclass(frozen=True)
 class RadarWeather(Model):
     """Attenuation and detection loss: ``L = 2 γ R/1000`` dB per point, ``SNR' = SNR − L``, ``P' = P − L``,
-    ``RCS' = RCS − L`` (unless the profile says the radar compensates), points with ``D − L < t`` removed
-    (models.md §4.1 [PROP]; detection statistic and threshold: models/radar/detection.py). Labels: ATTENUATED
-    where L > 0, else unchanged (KEPT in a new uint8 ``label`` field)."""
+    ``RCS' = RCS − L`` (unless the profile says the radar compensates), points with ``D − L < t + ΔT`` removed
+    (models.md §4.1 [PROP]; detection statistic and threshold: models/radar/detection.py; ΔT the CFAR threshold rise
+    in precipitation clutter, 0 without clutter). Labels: ATTENUATED where L > 0, else unchanged (KEPT in a new
+    uint8 ``label`` field)."""
 
     stage: ClassVar[Stage] = Stage.MEDIUM
     sensor: ClassVar[str] = "radar"
@@ -42,11 +45,11 @@ class RadarWeather(Model):
         """Specific attenuation at the radar frequency."""
         raise NotImplementedError
 
-    def add_clutter(self, cloud: PointCloud, clear: PointCloud, ranges_m: np.ndarray, det: Detection, gamma: float,
-                    rng) -> tuple[PointCloud, dict]:
-        """Precipitation models add clutter points to ``cloud``, calibrated on the ``clear`` input; fog adds none
-        (backscatter ∝ D⁶ of 10 µm droplets is negligible)."""
-        return cloud, {}
+    def frame_clutter(self, data: PointCloud, ranges_m: np.ndarray, det: Detection, gamma: float
+                      ) -> tuple[ClutterCells | None, dict]:
+        """The precipitation clutter of the frame and its diagnostics; fog has none (backscatter ∝ D⁶ of 10 µm
+        droplets is negligible)."""
+        return None, {}
 
     def apply(self, data: PointCloud, *, state, drawn, rng):
         profile = profile_of(data)
@@ -54,10 +57,12 @@ class RadarWeather(Model):
         r = data.ranges_m
         det = detection(data, self.snr_threshold_quantile, self.id, r)
         loss = two_way_loss_db(gamma, r)
-        keep = det.values_db - loss >= det.threshold_db
+        cells, clutter_diag = self.frame_clutter(data, r, det, gamma)
+        rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data)
+        margin = det.values_db - loss - det.threshold_db
+        keep = margin >= rise
         label = mark(labels(data), loss > 0, PointLabel.ATTENUATED)
         out = with_loss(data, loss).with_fields(label=label).drop(~keep)
-        out, clutter_diag = self.add_clutter(out, data, r, det, gamma, rng)
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
             "points_in": len(data), "points_removed": int((~keep).sum()), "points_kept": int(keep.sum()),
@@ -67,30 +72,96 @@ class RadarWeather(Model):
             "profile_max_range_in_weather_m": detection_range_in_weather_m(profile.max_range_m, gamma),
             **det.diagnostics(), **clutter_diag,
         }
+        if cells is not None:
+            out, added = _add_clutter(out, data, det, cells, rng)
+            diagnostics.update(added)
+            if isinstance(cells.detector, CaCfar):
+                diagnostics.update({
+                    "cfar_points_lost": int(((margin >= 0) & ~keep).sum()),
+                    "cfar_max_threshold_rise_db": float(rise.max()) if len(rise) else 0.0,
+                    "cfar_mean_threshold_rise_db": float(rise.mean()) if len(rise) else 0.0})
         return out, diagnostics
+
+
+def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud) -> np.ndarray:
+    """Per point, the rise of its detection threshold caused by the clutter of its own resolution cell (CA-CFAR:
+    ``10 log10(1 + α μ/σ_t)``; fixed threshold: 0). Doppler: ``v_r_m_per_s``, or a static world ``−v_ego·r̂``."""
+    if isinstance(cells.detector, FixedThreshold) or not len(cloud):
+        return np.zeros(len(cloud))
+    if "v_r_m_per_s" in cloud.fields:
+        v_r = np.asarray(cloud.fields["v_r_m_per_s"], dtype=float)
+    else:
+        r = np.maximum(cloud.ranges_m, 1e-12)
+        v_r = -(cloud.positions_m @ np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)) / r
+    return cells.detector.threshold_rise_db(cells.ratio_at(cloud.positions_m, v_r))
+
+
+def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: ClutterCells,
+                 rng) -> tuple[PointCloud, dict]:
+    """Draw the clutter points and give them the fields of ``cloud`` (calibrated on the ``clear`` input)."""
+    profile = profile_of(cloud)
+    constant, gamma = cells.radar_constant_db, cells.gamma_db_per_km
+    pts = generate_clutter(rng, cells)
+    r = np.linalg.norm(pts.positions_m, axis=1)
+    rcs = pts.detection_db - constant + 40 * np.log10(r)
+    if profile.rcs_compensates_weather:
+        rcs = rcs + two_way_loss_db(gamma, r)
+    ego = np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)
+    new = {"rcs_dbsm": rcs, "v_r_m_per_s": pts.v_r_m_per_s,
+           "label": np.full(len(r), PointLabel.ADDED),
+           "v_r_comp_m_per_s": pts.v_r_m_per_s + pts.positions_m @ ego / np.maximum(r, 1e-12)}
+    if det.statistic != RCS_STATISTIC:
+        new[det.statistic] = pts.detection_db
+        offset = power_minus_snr_db(clear)
+        if offset is not None:
+            new["power_db"] = pts.detection_db + offset
+    new = {k: v for k, v in new.items() if k in cloud.fields}
+    out = cloud.concat(pts.positions_m, new)
+    return out, {"clutter_points": len(r), "clutter_expected_points": cells.expected_count,
+                 "clutter_backscatter_per_m": backscatter_per_volume_per_m(cells.hydrometeors, cells.wavelength_m),
+                 "radar_constant_db": constant}
 
 
 @dataclass(frozen=True)
 class PrecipitationRadar(RadarWeather):
-    """Adds precipitation clutter (models.md §4.3 [PROP], physics/radar_clutter.py): per resolution cell
-    (range bin × the profile's azimuth/elevation cells × Doppler bin) up to ``clutter_max_range_m``, mean RCS
-    ``η V P(v)`` with the Doppler spread of falling particles seen by the moving radar in the wind
-    (``cloud.conditions``), detected when ``C + 10 log10 σ − 40 log10 r − L ≥ t`` with the frame's radar constant C
-    and threshold t. Added points: label ADDED, RCS/SNR/power consistent with C, ``v_r``, and ``v_r_comp = v_r +
-    v_ego·r̂`` when the cloud has it; other fields zero. Needs an ``rcs_dbsm`` field to calibrate C (else no
-    clutter, reported in the diagnostics).
+    """Precipitation clutter (models.md §4.3 [PROP], physics/radar_clutter.py, physics/radar_cfar.py): per
+    resolution cell (range bin × the profile's azimuth/elevation cells × Doppler bins of
+    ``profile.velocity_resolution_m_per_s``) mean RCS ``μ = η V P(v)`` with the Doppler spread of falling particles
+    seen by the moving radar in the wind (``cloud.conditions``), exponentially distributed; the frame's radar
+    constant C and threshold t put ``σ_t = 10^{(t − C + L)/10} r⁴`` at the clear-air threshold.
 
-    The detector is a fixed threshold (models.md §4.3), so the clutter count rises steeply with C − t: rain 20 mm/h,
-    120° × 30° at 1° × 2°, Mie: about 100 points for C − t = 68 dB, 6 700 for 76 dB, 43 000 for 83 dB, within a few
-    metres. A radar's CFAR raises its threshold inside homogeneous clutter and shows far fewer; use ``clutter:
-    false`` or a smaller ``clutter_max_range_m`` when that matters."""
+    Detector (``detector``):
 
-    clutter: bool = param(True, doc="add precipitation clutter points near the sensor")
+    - ``cfar`` (default): cell-averaging CFAR with ``cfar_reference_cells`` reference cells and per-cell false-alarm
+      probability ``cfar_pfa`` (``α = N(P_fa^{−1/N} − 1)``; Richards, Fundamentals of Radar Signal Processing,
+      §6.5.3). A clutter point is declared where the cell's clutter exceeds the CFAR threshold, which rises with the
+      local clutter, and the clear-air threshold: at most P_fa per cell, whatever ``C − t``. Rain 20 mm/h,
+      120° × 30° at 1° × 2°, 1–20 m, car at 10 m/s, defaults: about 0.05 / 1.5 / 8 points per frame for
+      C − t = 68 / 76 / 83 dB. Real points lose sensitivity where the clutter fills their own cell: their threshold
+      rises by ``10 log10(1 + CNR)`` dB (CNR = α μ/σ_t; Doppler bin from ``v_r_m_per_s``, else a static world
+      ``−v_ego·r̂``), at any range: a static target on boresight at C − t = 76 dB loses 10 / 4 / 0.3 dB at
+      2 / 5 / 20 m.
+    - ``fixed`` (models.md §4.3): a cell is declared when its clutter exceeds σ_t; no sensitivity loss. The count
+      explodes with ``C − t``: about 60 / 6 000 / 44 000 points for 68 / 76 / 83 dB, all within a few metres.
+
+    ``cfar_pfa`` default 1e-4: the lower end of the 10⁻⁴–10⁻⁶ per cell quoted for automotive CFAR, and with 16
+    reference cells α = 10.95 dB, i.e. a clear-air threshold ≈ 11 dB above noise, typical of automotive radar
+    detections (the 10⁻⁶ textbook value gives α = 13.4 dB and about 70× fewer clutter points). Per 4D cell the
+    figure is generous (the radar's cube holds ~10⁹ cells), which keeps a visible trace of the clutter.
+
+    Added points: label ADDED, RCS/SNR/power consistent with C (never below t), ``v_r``, and ``v_r_comp = v_r +
+    v_ego·r̂`` when the cloud has it; other fields zero. Needs an ``rcs_dbsm`` field to calibrate C (else no clutter
+    and no CFAR loss, reported in the diagnostics). ``clutter: false``: attenuation only."""
+
+    clutter: bool = param(True, doc="precipitation clutter: added points (and, with cfar, the sensitivity loss)")
+    detector: str = param("cfar", doc="cfar: cell-averaging CFAR (few clutter points, sensitivity loss near the "
+                          "sensor); fixed: fixed threshold (models.md §4.3, count explodes with C − t)",
+                          choices=("cfar", "fixed"))
+    cfar_pfa: float = param(1e-4, doc="CA-CFAR false-alarm probability per resolution cell", gt=0, le=0.1)
+    cfar_reference_cells: int = param(16, unit="cells", doc="CA-CFAR reference cells (range–Doppler window)", ge=1)
     clutter_min_range_m: float = param(1.0, unit="m", doc="nearest clutter range (radar blind zone)", gt=0)
-    clutter_max_range_m: float = param(20.0, unit="m", doc="farthest range searched for clutter (models.md §4.3)",
-                                       gt=0)
-    doppler_resolution_m_per_s: float = param(0.1035, unit="m/s", doc="Doppler bin width (RISE: 512 bins over "
-                                              "±26.5 m/s)", gt=0)
+    clutter_max_range_m: float = param(20.0, unit="m", doc="farthest range searched for clutter points "
+                                       "(models.md §4.3)", gt=0)
     backscatter: str = param("mie", doc="particle backscatter: mie (accurate) or analytic (RISE Rayleigh/optical "
                              "approximation, 13 % lower for rain)", choices=SCATTERING)
 
@@ -102,40 +173,29 @@ class PrecipitationRadar(RadarWeather):
         """The falling particles, None when there are none (zero rate)."""
         raise NotImplementedError
 
-    def add_clutter(self, cloud, clear, ranges_m, det, gamma, rng):
-        profile = profile_of(cloud)
+    def frame_clutter(self, data, ranges_m, det, gamma):
+        profile = profile_of(data)
         h = self.hydrometeors(profile)
         if not self.clutter or h is None:
-            return cloud, {"clutter_points": 0}
-        constant = radar_constant_db(clear, det, ranges_m)
+            return None, {"clutter_points": 0}
+        constant = radar_constant_db(data, det, ranges_m)
         max_range_m = min(self.clutter_max_range_m, profile.max_range_m)
         skipped = ("no rcs_dbsm to calibrate the radar constant" if constant is None else
                    "no points to estimate the threshold" if not np.isfinite(det.threshold_db) else
                    "clutter_min_range_m beyond the profile's max_range_m"
                    if max_range_m < self.clutter_min_range_m + profile.range_resolution_m else None)
         if skipped:
-            return cloud, {"clutter_points": 0, "clutter_skipped": skipped}
+            return None, {"clutter_points": 0, "clutter_skipped": skipped}
         grid = ResolutionGrid(profile.fov_azimuth_deg, profile.fov_elevation_deg, profile.azimuth_resolution_deg,
                               profile.elevation_resolution_deg, profile.range_resolution_m,
-                              self.doppler_resolution_m_per_s, self.clutter_min_range_m, max_range_m)
-        lam = radar_wavelength_m(profile.frequency_hz)
-        ego = np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)
-        wind = np.asarray(cloud.conditions.wind_velocity_m_per_s, dtype=float)
-        cells = clutter_cells(h, grid, lam, wind - ego, constant, det.threshold_db, gamma)
-        pts = generate_clutter(rng, cells)
-        r = np.linalg.norm(pts.positions_m, axis=1)
-        rcs = pts.detection_db - constant + 40 * np.log10(r)
-        if profile.rcs_compensates_weather:
-            rcs = rcs + two_way_loss_db(gamma, r)
-        new = {"rcs_dbsm": rcs, "v_r_m_per_s": pts.v_r_m_per_s,
-               "label": np.full(len(r), PointLabel.ADDED),
-               "v_r_comp_m_per_s": pts.v_r_m_per_s + pts.positions_m @ ego / np.maximum(r, 1e-12)}
-        if det.statistic != RCS_STATISTIC:
-            new[det.statistic] = pts.detection_db
-            offset = power_minus_snr_db(clear)
-            if offset is not None:
-                new["power_db"] = pts.detection_db + offset
-        new = {k: v for k, v in new.items() if k in cloud.fields}
-        out = cloud.concat(pts.positions_m, new)
-        return out, {"clutter_points": len(r), "clutter_expected_points": cells.expected_count,
-                     "clutter_backscatter_per_m": backscatter_per_volume_per_m(h, lam), "radar_constant_db": constant}
+                              profile.velocity_resolution_m_per_s, self.clutter_min_range_m, max_range_m)
+        detector = (CaCfar(self.cfar_pfa, self.cfar_reference_cells) if self.detector == "cfar"
+                    else FixedThreshold())
+        ego = np.asarray(data.conditions.ego_velocity_m_per_s, dtype=float)
+        wind = np.asarray(data.conditions.wind_velocity_m_per_s, dtype=float)
+        cells = clutter_cells(h, grid, radar_wavelength_m(profile.frequency_hz), wind - ego, constant,
+                              det.threshold_db, gamma, detector)
+        diag = {"detector": self.detector}
+        if isinstance(detector, CaCfar):
+            diag["cfar_multiplier_db"] = float(10 * np.log10(detector.multiplier))
+        return cells, diag
