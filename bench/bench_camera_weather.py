@@ -3,7 +3,8 @@ wind + rain chain, and fog/rain on the same frame as an RGGB mosaic; a synthetic
 with a range map (sky, ground, walls). Targets: fog ≤ 30 ms, rain and snow ≤ 60 ms.
 
 Run: ``.venv/bin/python bench/bench_camera_weather.py [--repeat N] [--save DIR]`` (prints ms per frame:
-minimum and median over N frames, each with a different seed)."""
+minimum and median over N frames, each with a different seed). A warm-up frame per case, not timed, builds the
+cached tables and loads the numba kernels (compiled once per install, ~2 s, then read from numba's cache)."""
 
 from __future__ import annotations
 

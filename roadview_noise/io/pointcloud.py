@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Mapping
 
 import numpy as np
-from numba import njit
 
 from ..errors import InputError
+from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 
@@ -489,7 +489,7 @@ def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
 # (c >> 5) + 2 (length field 7: plus the next byte) to distance ((c & 31) << 8) + next byte + 1 behind the output.
 
 
-@njit(cache=True, nogil=True)
+@jit
 def _lzf_compress(src: np.ndarray) -> np.ndarray:            # pragma: no cover - compiled
     """Greedy LZF with a 16 k-entry hash of 3-byte prefixes (liblzf's scheme); any LZF decoder reads the output."""
     n = src.size
@@ -539,7 +539,7 @@ def _lzf_compress(src: np.ndarray) -> np.ndarray:            # pragma: no cover 
     return dst[:op]
 
 
-@njit(cache=True, nogil=True)
+@jit
 def _lzf_decompress(src: np.ndarray, size: int) -> tuple[np.ndarray, int]:   # pragma: no cover - compiled
     """Decoded bytes and their count; the count is −1 when the stream is corrupt or overruns ``size``."""
     dst = np.zeros(size, np.uint8)

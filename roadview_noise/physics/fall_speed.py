@@ -7,9 +7,16 @@ import numpy as np
 STANDARD_GRAVITY_M_PER_S2 = 9.80665
 
 
+def _floats(x) -> np.ndarray:
+    """float32 input stays float32 (particle arrays on hot paths); anything else becomes float64."""
+    a = np.asarray(x)
+    return a if a.dtype == np.float32 else a.astype(np.float64)
+
+
 def atlas_ulbrich_m_per_s(d_mm) -> np.ndarray:
     """Raindrop terminal speed, Atlas & Ulbrich (1977): ``v = 3.778 D^0.67`` m/s, D in mm (valid 0.5–5 mm)."""
-    return 3.778 * np.asarray(d_mm, dtype=float) ** 0.67
+    d = _floats(d_mm)
+    return d.dtype.type(3.778) * d ** d.dtype.type(0.67)
 
 
 def atlas_srivastava_sekhon_m_per_s(d_mm) -> np.ndarray:
@@ -21,7 +28,8 @@ def atlas_srivastava_sekhon_m_per_s(d_mm) -> np.ndarray:
 def snow_power_law_m_per_s(d_mm, a_m_per_s: float = 0.8, b: float = 0.16) -> np.ndarray:
     """Snowflake terminal speed ``v = a D^b`` (D in mm); default a = 0.8 m/s, b = 0.16 for unrimed aggregates
     (models.md §2.3 [PROP]; replaces the reference's garbled constant 0.65 m/s)."""
-    return a_m_per_s * np.asarray(d_mm, dtype=float) ** b
+    d = _floats(d_mm)
+    return d.dtype.type(a_m_per_s) * d ** d.dtype.type(b)
 
 
 def relaxation_time_s(v_terminal_m_per_s) -> np.ndarray:

@@ -19,9 +19,10 @@ drop touches it, which over-states a sub-pixel drop's opacity by ``(1 + D_px)/D_
 particle's image (``D f/Z``) blurred by the defocus disk ``c = f²|Z − Z_f| / (N Z (Z_f − f) p)`` (§2.2 [PROP];
 focus at infinity: ``f²/(N Z p)``), which spreads near particles and lowers their opacity.
 
-Rasterisation (vectorised: np.add.at on flat indices, no per-particle loop). A streak is a segment of uniform
-line density lengthened by its footprint, integrated exactly over the pixels it crosses along its major axis and
-split linearly between the two nearest pixels across it (Wu-style anti-aliasing). Particles whose footprint
+Rasterisation (geometry vectorised in NumPy, the per-pixel accumulation in the numba kernel
+:func:`splat_streaks`, one pass over the particles). A streak is a segment of uniform line density lengthened by
+its footprint, integrated exactly over the pixels it crosses along its major axis and split linearly between the
+two nearest pixels across it (Wu-style anti-aliasing). Particles whose footprint
 exceeds ~2.7 px go to a buffer at scale s = 2, 4, … px (chosen so that the 2-tap split plus bilinear upsampling
 has the second moment of the footprint disk across the streak), upsampled and added. Each pixel sample is tested
 against the scene range at its nearest pixel (metres against metres), so streaks are cut at occluding edges.
@@ -40,9 +41,9 @@ so the mean image does not depend on ``min_opacity``; only the texture of the su
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import lru_cache
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
@@ -52,7 +53,8 @@ from ..types import CameraProfile, Conditions
 from .cfa import SiteLayout
 from .dsd import BRANDES_SNOW_GAMMA, SNOW_LAWS, gamma_dsd, marshall_palmer
 from .fall_speed import atlas_ulbrich_m_per_s
-from .photometry import frame_depth_m
+from .compiled import jit
+from .photometry import composite, frame_depth_m
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -67,12 +69,8 @@ SNOW_DSDS = ("gunn_marshall", "sekhon_srivastava", "brandes")
 BILINEAR_DISK_PX = 4.0 / math.sqrt(6.0)
 DISK_PER_SCALE_PX = 4.0 / math.sqrt(3.0)
 MAX_LEVEL = 5
-# pixel counts of streaks along their major axis are padded up to one of these (exact to 16, then ≤ 25 % steps)
-# so that streaks fall into few groups; padded samples carry zero weight
-SAMPLE_COUNTS = np.unique(np.concatenate([np.arange(17), np.ceil(16 * 1.25 ** np.arange(1, 28))])).astype(np.int32)
-SAMPLE_BUCKET = np.searchsorted(SAMPLE_COUNTS, np.arange(SAMPLE_COUNTS[-1] + 1)).astype(np.int16)
 LEVEL_INVERSE_SCALE = (0.5 ** np.arange(MAX_LEVEL + 1)).astype(np.float32)
-VEIL_LUT_SIZE = 256
+VEIL_LUT_SIZE = 256           # depth bins of the veil table (≤ 256: the kernel indexes them with uint8)
 
 
 # --- size classes ---------------------------------------------------------------------------------------------
@@ -276,6 +274,10 @@ class Particles:
     d_mm: np.ndarray
     fall_speed_m_per_s: np.ndarray
 
+    def take(self, index: np.ndarray) -> "Particles":
+        """The particles at ``index`` (a selection or an order)."""
+        return Particles(*(getattr(self, f.name)[index] for f in fields(self)))
+
 
 def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: SizeClasses,
                      z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed) -> tuple[Particles, float]:
@@ -313,18 +315,32 @@ def streak_endpoints(profile: CameraProfile, particles: Particles, conditions: C
             fx * (p.x + hx) / z1 + cx, fy * (p.y + hy) / z1 + cy, z1)
 
 
-def render_coverage(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
-                    depth_m: np.ndarray, d_min_m: float) -> tuple[np.ndarray, int]:
-    """Per-pixel opacity (H, W) float32 of all explicit particles, clipped to 1; and the number of particles in
-    the image and in front of the scene at the first pixel of their streak.
+class Streaks(NamedTuple):
+    """Streaks on the grids of their footprint levels, one entry per particle (float32 unless noted).
 
-    Each streak is a segment of uniform line density (total = the particle's image area), lengthened by its
-    footprint, integrated exactly over the pixels it crosses along its major axis and split linearly between
-    the two nearest pixels across it (Wu-style anti-aliasing), on the buffer of its footprint level. A pixel
-    gets nothing where the scene is nearer than the particle (metres against metres)."""
+    The major axis (a) is the one along which the streak moves most (v when ``vertical``), b the other; ``lo``,
+    ``hi`` are the streak's ends along a clipped to the grid, ``first`` (int32) and ``count`` (int32, 0 = not drawn)
+    the pixels it crosses along a; the centre line is ``b = b0 + (a − a0)·slope``; ``density`` the opacity per
+    unit length along a (per full-resolution pixel); ``range_m`` the particle's range at mid-exposure."""
+
+    level: np.ndarray
+    vertical: np.ndarray
+    a0: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    first: np.ndarray
+    count: np.ndarray
+    b0: np.ndarray
+    slope: np.ndarray
+    density: np.ndarray
+    range_m: np.ndarray
+
+
+def streak_geometry(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
+                    d_min_m: float) -> Streaks:
+    """Each particle's streak: the segment between its exposure end points with uniform line density (total =
+    the particle's image area), lengthened by its footprint, on the grid of its footprint level."""
     h, w = profile.height_px, profile.width_px
-    if particles.z.size == 0:
-        return np.zeros((h, w), dtype=np.float32), 0
     u0, v0, z0, u1, v1, z1 = streak_endpoints(profile, particles, conditions, exposure_s)
     z = particles.z
     r = np.sqrt(particles.x ** 2 + particles.y ** 2 + z * z)                 # range at mid-exposure
@@ -350,78 +366,134 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
     density = mass * inv * inv / (a1 - a0)
     n_major = np.ceil((np.float32(w) + vertical * np.float32(h - w)) * inv)
     lo, hi = np.maximum(a0, np.float32(-0.5)), np.minimum(a1, n_major - np.float32(0.5))
-    c0 = np.floor(lo + np.float32(0.5))
-    n = (np.minimum(np.floor(hi + np.float32(0.5)), n_major - 1) - c0 + 1).astype(np.int32)
-    n[(hi <= lo) | (np.minimum(z0, z1) <= np.float32(0.5 * d_min_m))] = 0   # off-grid, or crossing the camera plane
-    # group by (level, orientation, padded sample count); one vectorised pass per group
-    n_buckets = SAMPLE_COUNTS.size
-    key = (level.astype(np.int16) * 2 + vertical) * n_buckets + SAMPLE_BUCKET[np.minimum(n, SAMPLE_COUNTS[-1])]
-    order = np.argsort(key, kind="stable")                               # radix sort of small integers
-    key_sorted = key[order]
-    starts = np.concatenate([[0], np.flatnonzero(np.diff(key_sorted)) + 1, [key.size]])
-    a0, lo, hi, b0, slope, density, r, c0 = (x[order] for x in (a0, lo, hi, b0, slope, density, r, c0))
-    grids: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-    visible = np.zeros(n.size, dtype=bool)
-    for s, e in zip(starts[:-1], starts[1:]):
-        lv, rest = divmod(int(key_sorted[s]), 2 * n_buckets)
-        vert, bucket = divmod(rest, n_buckets)
-        kk = int(SAMPLE_COUNTS[bucket])
-        if kk == 0:
-            continue
-        if lv not in grids:
-            grids[lv] = _level_grids(depth_m, 1 << lv)
-        buf, depth_l = grids[lv]
-        pw = buf.shape[1]
-        step_major, step_minor = (pw, 1) if vert else (1, pw)
-        n_major_l, n_minor = (buf.shape[0] - 3, pw - 3) if vert else (pw - 3, buf.shape[0] - 3)
-        c = c0[s:e, None] + np.arange(kk, dtype=np.float32)
-        seg_lo = np.maximum(lo[s:e, None], c - np.float32(0.5))
-        seg_hi = np.minimum(hi[s:e, None], c + np.float32(0.5))
-        weight = density[s:e, None] * np.maximum(seg_hi - seg_lo, np.float32(0))   # padded samples get 0
-        bpos = b0[s:e, None] + (np.float32(0.5) * (seg_lo + seg_hi) - a0[s:e, None]) * slope[s:e, None]
-        bf = np.floor(bpos)
-        fb = bpos - bf
-        bi = np.clip(bf, -1, n_minor).astype(np.int32)
-        ci = np.minimum(c, np.float32(n_major_l)).astype(np.int32)     # padded samples: into the border row
-        # nothing where the sample's nearest pixel is outside the image, or the scene there is nearer than the
-        # particle (metres against metres)
-        bn = bi + (fb >= np.float32(0.5))
-        inside = (bn >= 0) & (bn < n_minor)
-        bn = np.clip(bn, 0, n_minor - 1)
-        cn = np.minimum(ci, n_major_l - 1)
-        row, col = (cn, bn) if vert else (bn, cn)
-        in_front = inside & (depth_l.ravel()[row * depth_l.shape[1] + col] > r[s:e, None])
-        weight *= in_front
-        visible[order[s:e]] = in_front[:, 0]
-        idx = ((ci + 1) * step_major + (bi + 1) * step_minor).ravel()
-        np.add.at(buf.ravel(), idx, (weight * (np.float32(1) - fb)).ravel())
-        np.add.at(buf.ravel(), idx + step_minor, (weight * fb).ravel())
-    # collapse the pyramid (buffers hold opacity per full-resolution pixel): each level is upsampled ×2 into the
+    first = np.floor(lo + np.float32(0.5))
+    count = (np.minimum(np.floor(hi + np.float32(0.5)), n_major - 1) - first + 1).astype(np.int32)
+    count[(hi <= lo) | (np.minimum(z0, z1) <= np.float32(0.5 * d_min_m))] = 0   # off-grid, or crossing the camera
+    return Streaks(level, vertical, a0, lo, hi, first.astype(np.int32), count, b0, slope, density, r)
+
+
+def raster_order(profile: CameraProfile, particles: Particles) -> np.ndarray:
+    """Particle indices in raster order of the pixel blocks (8 × 8 px or coarser, ≤ 2¹⁶ blocks) holding their
+    mid-exposure images: visited in this order, the rasteriser's reads of the depth map and writes to the grids
+    stay in cache (2–3× faster for 10⁵ particles). A radix sort of 16-bit block numbers."""
+    h, w = profile.height_px, profile.width_px
+    block = 8
+    while -(-h // block) * -(-w // block) > 1 << 16:
+        block *= 2
+    z = particles.z
+    col = np.clip(np.float32(profile.fx_px) * particles.x / z + np.float32(profile.cx_px), 0, w - 1)
+    row = np.clip(np.float32(profile.fy_px) * particles.y / z + np.float32(profile.cy_px), 0, h - 1)
+    blocks_per_row = -(-w // block)
+    key = (row.astype(np.int32) // block * blocks_per_row + col.astype(np.int32) // block).astype(np.uint16)
+    return np.argsort(key, kind="stable")
+
+
+def level_offsets(height: int, width: int, top_level: int) -> np.ndarray:
+    """Start of each level's (⌈H/2^l⌉, ⌈W/2^l⌉) grid in one flat buffer, levels 0 … top_level, and the end."""
+    sizes = [-(-height // (1 << lv)) * -(-width // (1 << lv)) for lv in range(top_level + 1)]
+    return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+
+@jit(error_model="numpy")
+def splat_streaks(pyramid, offsets, depth_m, level, vertical, a0, lo, hi, first, count, b0, slope, density,
+                  range_m, visible):                                   # pragma: no cover - compiled
+    """Add every streak to its level's grid in ``pyramid`` (flat, :func:`level_offsets`) and set ``visible``
+    (the first sample of the streak is in front of the scene).
+
+    Per pixel crossed along the major axis: the exact length of the segment inside it times the density, split
+    linearly between the two nearest cells across (Wu-style anti-aliasing); nothing where the cell nearest the
+    sample is outside the grid or the scene there (the pixel nearest the cell centre) is nearer than the particle
+    (metres against metres)."""
+    h, w = depth_m.shape
+    half_px = np.float32(0.5)
+    # per level: grid rows and columns, and the last ones with a pixel at their centre
+    n_levels = offsets.size - 1
+    rows, cols = np.empty(n_levels, np.int64), np.empty(n_levels, np.int64)
+    last_row, last_col = np.empty(n_levels, np.int64), np.empty(n_levels, np.int64)
+    for lv in range(n_levels):
+        scale = 1 << lv
+        rows[lv], cols[lv] = (h + scale - 1) // scale, (w + scale - 1) // scale
+        last_row[lv], last_col[lv] = (h - scale // 2 - 1) // scale, (w - scale // 2 - 1) // scale
+    for p in range(level.size):
+        lv = level[p]
+        scale = 1 << lv
+        centre = scale // 2
+        base, n_cols = offsets[lv], cols[lv]
+        n_minor = n_cols if vertical[p] else rows[lv]
+        for j in range(count[p]):
+            c = np.float32(first[p] + j)
+            seg_lo = max(lo[p], c - half_px)
+            seg_hi = min(hi[p], c + half_px)
+            weight = density[p] * max(seg_hi - seg_lo, np.float32(0))
+            b = b0[p] + (half_px * (seg_lo + seg_hi) - a0[p]) * slope[p]
+            b_floor = np.floor(b)
+            frac = b - b_floor
+            bi = int(b_floor)
+            nearest = bi + 1 if frac >= half_px else bi
+            ci = first[p] + j
+            row, col = (ci, nearest) if vertical[p] else (nearest, ci)
+            in_front = (0 <= nearest < n_minor and
+                        depth_m[min(row, last_row[lv]) * scale + centre,
+                                min(col, last_col[lv]) * scale + centre] > range_m[p])
+            if j == 0:
+                visible[p] = in_front
+            if not in_front:
+                continue
+            cell = base + (ci * n_cols + bi if vertical[p] else bi * n_cols + ci)
+            if bi >= 0:
+                pyramid[cell] += weight * (np.float32(1) - frac)
+            if bi + 1 < n_minor:
+                pyramid[cell + (1 if vertical[p] else n_cols)] += weight * frac
+
+
+def render_coverage(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
+                    depth_m: np.ndarray, d_min_m: float) -> tuple[np.ndarray, int]:
+    """Per-pixel opacity (H, W) float32 of all explicit particles, clipped to 1; and the number of particles in
+    the image and in front of the scene at the first pixel of their streak.
+
+    Each streak is a segment of uniform line density (total = the particle's image area), lengthened by its
+    footprint, integrated exactly over the pixels it crosses along its major axis and split linearly between
+    the two nearest pixels across it (Wu-style anti-aliasing), on the grid of its footprint level. A pixel
+    gets nothing where the scene is nearer than the particle (metres against metres)."""
+    h, w = profile.height_px, profile.width_px
+    if particles.z.size == 0:
+        return np.zeros((h, w), dtype=np.float32), 0
+    streaks = streak_geometry(profile, particles.take(raster_order(profile, particles)), conditions, exposure_s,
+                              d_min_m)
+    top = int(streaks.level[streaks.count > 0].max(initial=0))
+    offsets = level_offsets(h, w, top)
+    pyramid = np.zeros(offsets[-1], dtype=np.float32)
+    visible = np.zeros(particles.z.size, dtype=bool)
+    splat_streaks(pyramid, offsets, np.ascontiguousarray(depth_m, dtype=np.float32), *streaks, visible)
+    # collapse the pyramid (grids hold opacity per full-resolution pixel): each level is upsampled ×2 into the
     # next finer one
-    coverage = None
-    for lv in range(max(grids, default=0), -1, -1):
-        hs, ws = -(-h // (1 << lv)), -(-w // (1 << lv))
-        own = grids[lv][0][1:1 + hs, 1:1 + ws] if lv in grids else None
-        if coverage is None:
-            coverage = own.copy() if own is not None else np.zeros((hs, ws), dtype=np.float32)
-            continue
-        coverage = cv2.resize(coverage, (2 * coverage.shape[1], 2 * coverage.shape[0]),
-                              interpolation=cv2.INTER_LINEAR)[:hs, :ws]
-        if own is not None:
-            coverage += own
-    return np.minimum(coverage, np.float32(1.0), out=coverage), int(np.count_nonzero(visible))
+    grids = [pyramid[offsets[lv]:offsets[lv + 1]].reshape(-(-h // (1 << lv)), -(-w // (1 << lv)))
+             for lv in range(top + 1)]
+    for lv in range(top - 1, -1, -1):
+        add_upsampled(grids[lv], grids[lv + 1])
+    return cv2.min(grids[0], 1.0, dst=grids[0]), int(np.count_nonzero(visible))
 
 
-def _level_grids(depth_m: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
-    """A zero opacity buffer on the level's grid, padded by one cell before and two after along each axis, and
-    the depth map on that grid (the pixel nearest each cell centre; edge cells without one repeat their
-    neighbour)."""
-    hs, ws = -(-depth_m.shape[0] // scale), -(-depth_m.shape[1] // scale)
-    depth = depth_m
-    if scale > 1:
-        sub = depth_m[scale // 2::scale, scale // 2::scale]
-        depth = np.pad(sub, ((0, hs - sub.shape[0]), (0, ws - sub.shape[1])), mode="edge")
-    return np.zeros((hs + 3, ws + 3), dtype=np.float32), depth
+@jit(error_model="numpy")
+def add_upsampled(fine, coarse):                                      # pragma: no cover - compiled
+    """``fine += ×2 upsampling of coarse`` (⌈h/2⌉ × ⌈w/2⌉), bilinear as OpenCV's INTER_LINEAR: fine pixel x
+    samples the coarse grid at (x + ½)/2 − ½, i.e. ¼ and ¾ of its two nearest cells, edge cells replicated."""
+    hc, wc = coarse.shape
+    q, tq = np.float32(0.25), np.float32(0.75)
+    row = np.empty(wc + 2, np.float32)            # vertical blend of two coarse rows, padded by one cell each side
+    wide = np.empty(2 * wc, np.float32)           # ... upsampled along the row (separate loops vectorise)
+    for y in range(fine.shape[0]):
+        near = y // 2
+        far = min(max(near - 1 if y % 2 == 0 else near + 1, 0), hc - 1)
+        for i in range(wc):
+            row[i + 1] = tq * coarse[near, i] + q * coarse[far, i]
+        row[0], row[wc + 1] = row[1], row[wc]
+        for i in range(wc):
+            wide[2 * i] = q * row[i] + tq * row[i + 1]
+            wide[2 * i + 1] = tq * row[i + 1] + q * row[i + 2]
+        f = fine[y]
+        for x in range(f.size):
+            f[x] += wide[x]
 
 
 def footprint_level(footprint_px: np.ndarray) -> np.ndarray:
@@ -447,28 +519,31 @@ def veil_optical_depth_table(classes: SizeClasses, z_limits_m: np.ndarray, d_min
 def veil_transmission(profile: CameraProfile, depth_m: np.ndarray, table: tuple[np.ndarray, np.ndarray],
                       sigma_per_m: float, d_max_m: float) -> np.ndarray:
     """Per-pixel transmission (H, W) float32 of the veil to the scene point at range ``d`` (inf → 0):
-    ``τ = k·H(min(d/k, d_max)) + σ·max(d − k d_max, 0)`` with k the ray factor (range/planar depth)."""
-    k, k_far = _ray_maps(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px,
-                         profile.cy_px, float(d_max_m))
-    z = cv2.divide(depth_m, k)
-    cv2.min(z, d_max_m, dst=z)
-    z8 = cv2.convertScaleAbs(z, alpha=(VEIL_LUT_SIZE - 1) / d_max_m)     # nearest of 256 depth bins (< 12 cm)
-    neg_tau = cv2.LUT(z8, -table[1].astype(np.float32).reshape(1, -1))
-    cv2.multiply(neg_tau, k, dst=neg_tau)
-    far = cv2.subtract(depth_m, k_far)
-    cv2.max(far, 0.0, dst=far)
-    neg_tau = cv2.scaleAdd(far, -float(sigma_per_m), neg_tau)
-    cv2.max(neg_tau, -80.0, dst=neg_tau)            # t > 2e-35 leaves no trace in float32 (and exp's fast path)
+    ``τ = k·H(min(d/k, d_max)) + σ·max(d − k d_max, 0)`` with k the ray factor (range/planar depth), H at the
+    nearest of the table's depth bins (< 12 cm)."""
+    k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
+    depth_m = np.ascontiguousarray(depth_m, dtype=np.float32)
+    neg_tau = np.empty_like(depth_m)
+    _veil_neg_optical_depth(depth_m, k, -np.asarray(table[1], dtype=np.float32),
+                            np.float32((VEIL_LUT_SIZE - 1) / d_max_m), np.float32(d_max_m), np.float32(sigma_per_m),
+                            neg_tau)
     return cv2.exp(neg_tau, dst=neg_tau)
 
 
-@lru_cache(maxsize=4)
-def _ray_maps(width: int, height: int, fx: float, fy: float, cx: float, cy: float, d_max_m: float):
-    """The ray factor k and the range ``k·d_max`` of the explicit-particle limit, per pixel (read-only)."""
-    k = ray_factor(width, height, fx, fy, cx, cy)
-    k_far = k * np.float32(d_max_m)
-    k_far.flags.writeable = False
-    return k, k_far
+@jit(error_model="numpy")
+def _veil_neg_optical_depth(depth_m, k, neg_h, bins_per_m, d_max_m, sigma, out):   # pragma: no cover - compiled
+    """``−τ`` of :func:`veil_transmission` per pixel, floored at −80 (t > 2e-35 leaves no trace in float32, and
+    exp of −inf takes a slow path). Two loops per row: the first vectorises (divisions), the second is the table
+    lookup."""
+    nearest_bin = np.empty(depth_m.shape[1], np.uint8)
+    for y in range(depth_m.shape[0]):
+        d, k_row, row = depth_m[y], k[y], out[y]
+        for x in range(row.size):
+            nearest_bin[x] = np.uint8(min(d[x] / k_row[x], d_max_m) * bins_per_m + np.float32(0.5))
+            far = max(d[x] - k_row[x] * d_max_m, np.float32(0))
+            row[x] = sigma * far if sigma > 0 else np.float32(0)           # σ·inf would be nan for σ = 0
+        for x in range(row.size):
+            row[x] = max(k_row[x] * neg_h[nearest_bin[x]] - row[x], np.float32(-80))
 
 
 # --- one frame -------------------------------------------------------------------------------------------------
@@ -495,7 +570,7 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     mean_coverage = float(cv2.mean(coverage)[0])
     np.subtract(np.float32(1.0), coverage, out=coverage)
     np.multiply(t, coverage, out=t)
-    out = layout.blend(signal, layout.expand(t), s)
+    out = composite(layout, signal, t, s)
     return frame.with_signal(out), {
         "particles_expected": expected,
         "particles_drawn": int(particles.z.size),

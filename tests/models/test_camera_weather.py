@@ -268,3 +268,39 @@ def test_cnf16_chain():
     out, records = apply_models([Wind(), Rain()], scene(), seed=1, key="k", sequence_id="s")
     assert records[1].diagnostics["particles_drawn"] > 0
     assert out.conditions.wind_velocity_m_per_s[1] == pytest.approx(3.0)
+
+
+# --- compositing kernels (physics.photometry) against NumPy -------------------------------------------------------
+
+@pytest.mark.parametrize("pattern, shape", [(None, (183, 242)), (None, (5, 7)), ("RGGB", (183, 242)),
+                                            ("GBRG", (7, 5)), ("BGGR", (1, 3))])
+def test_site_compositing_matches_numpy(pattern, shape):
+    """``composite``: S + t·(I − S) per site with t per pixel or per site (in place); ``site_transmission``:
+    exp(−σ_c d) per site, inf → 0. RGB frames and mosaics of odd sizes."""
+    from roadview_noise.physics.cfa import SiteLayout
+    from roadview_noise.physics.photometry import composite, site_transmission
+
+    rng = np.random.default_rng(len(shape) + shape[0])
+    h, w = shape
+    ch = np.arange(3).reshape(1, 1, 3) if pattern is None else cfa_index_map(pattern, h, w)
+    layout = SiteLayout(ch)
+    signal = rng.random((h, w, 3) if pattern is None else (h, w), dtype=np.float32)
+    values = np.array([0.3, 0.5, 0.9])
+    per_site_values = values[ch] if pattern else values
+    t_pixel = rng.random((h, w), dtype=np.float32)
+    expected = per_site_values + (t_pixel[..., None] if pattern is None else t_pixel) * (signal - per_site_values)
+    np.testing.assert_allclose(composite(layout, signal, t_pixel, values), expected, rtol=1e-6, atol=1e-7)
+    t_site = rng.random(signal.shape, dtype=np.float32)
+    out = composite(layout, signal, t_site, values, out=t_site.copy())
+    np.testing.assert_allclose(out, per_site_values + t_site * (signal - per_site_values), rtol=1e-6, atol=1e-7)
+
+    depth = (rng.random((h, w)) * 100).astype(np.float32)
+    depth[0, 0] = np.inf
+    sigma = np.array([0.03, 0.02, 0.01])
+    per_site_sigma = sigma[ch] if pattern else sigma
+    with np.errstate(invalid="ignore"):
+        expected_t = np.exp(-per_site_sigma * (depth[..., None] if pattern is None else depth))
+    t = site_transmission(layout, depth, sigma)
+    np.testing.assert_allclose(t, expected_t, rtol=1e-5, atol=1e-30)
+    assert np.all(t[0, 0] < 1e-30)
+    np.testing.assert_array_equal(site_transmission(layout, depth, 0.0), np.ones_like(t))

@@ -12,7 +12,8 @@ from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...physics.cfa import SiteLayout
 from ...physics.fog_optics import FOG_TABLES, fog_extinction_per_m
-from ...physics.photometry import SAMPLE_STEP_PX, absolute_radiance, frame_depth_m, sky_radiance
+from ...physics.photometry import (SAMPLE_STEP_PX, absolute_radiance, composite, frame_depth_m,
+                                      site_transmission, sky_radiance)
 from ...registry import register
 
 
@@ -70,10 +71,10 @@ class FogCamera(Model):
             airlight = sky_radiance(layout, signal, depth)
         else:
             airlight = absolute_radiance(self.airlight, data.conditions.luminance_factor)
-        t = layout.attenuation(depth, sigma)
-        out = layout.blend(signal, t, airlight)
+        t = site_transmission(layout, depth, sigma)
         mean_t = [float(s.mean()) if s.size else None
                   for s in layout.channel_samples(t, step=SAMPLE_STEP_PX, mask=np.isfinite(depth))]
+        out = composite(layout, signal, t, airlight, out=t)
         return data.with_signal(out), {
             "extinction_per_m": [float(s) for s in sigma],
             "airlight": [float(a) for a in airlight],
