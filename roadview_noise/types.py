@@ -239,7 +239,9 @@ class RawFrame:
 
     def signal(self) -> np.ndarray:
         """Linear signal per site, (H, W): 0 at black level, 1 at white level."""
-        return ((self.dn - self.black_level_dn) / (self.white_level_dn - self.black_level_dn)).astype(np.float32)
+        s = np.subtract(self.dn, self.black_level_dn, dtype=np.float32)
+        s *= np.float32(1.0 / (self.white_level_dn - self.black_level_dn))
+        return s
 
     def channel_index(self) -> np.ndarray:
         return cfa_index_map(self.cfa_pattern, *self.dn.shape)
@@ -248,8 +250,9 @@ class RawFrame:
         return self.depth_m
 
     def with_signal(self, signal: np.ndarray) -> "RawFrame":
-        dn = np.asarray(signal, dtype=np.float32) * (self.white_level_dn - self.black_level_dn) + self.black_level_dn
-        return dataclasses.replace(self, dn=dn.astype(np.float32))
+        dn = np.multiply(signal, np.float32(self.white_level_dn - self.black_level_dn), dtype=np.float32)
+        dn += np.float32(self.black_level_dn)
+        return dataclasses.replace(self, dn=dn)
 
 
 # ---------------------------------------------------------------------------------------------------------------
