@@ -37,7 +37,7 @@ demo: $(STAMP)
 	@echo "demo done: look at $(DEMO)/ (one folder per recipe: augmented files, manifest.jsonl, run.json)"
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -p no:cacheprovider
+	$(BIN)/python -m pytest -p no:cacheprovider
 
 bench: $(STAMP)
 	@for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
