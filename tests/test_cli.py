@@ -151,6 +151,27 @@ def test_bad_inputs_recorded_and_run_goes_on(tmp_path, tree):
     assert sum(e["status"] == "ok" for e in entries.values()) == 6
 
 
+def test_depth_problems_recorded_per_file(tmp_path, tree):
+    """fog.camera needs depth: a wrong-size depth map and a missing sidecar fail their own file only."""
+    from roadview_noise.io.depth import write_depth_exr
+
+    seq = tree / "cam" / "seqA"
+    write_depth_exr(seq / "000000_depth.exr", np.full((48, 64), 20.0, np.float32))    # right size
+    write_depth_exr(seq / "000001_depth.exr", np.full((40, 64), 20.0, np.float32))    # wrong size
+    body = {"chain": [{"model": "fog.camera", "params": {"visibility_m": 50}}], "seed": 1,
+            "inputs": {"camera": "cam/seqA/*.png", "camera_profile": {"width_px": 64, "height_px": 48,
+                                                                     "fov_h_deg": 80.8}}}
+    r = _augment(tree, tmp_path / "o", "--recipe", _recipe(tmp_path, body), "--workers", 2)
+    assert r.exit_code == 1
+    entries = {e["input"]: e for e in read_manifest(tmp_path / "o" / "manifest.jsonl")}
+    assert entries["cam/seqA/000000.png"]["status"] == "ok"
+    wrong = entries["cam/seqA/000001.png"]
+    assert wrong["status"] == "failed" and "000001_depth.exr" in wrong["error"] and "48" in wrong["error"]
+    missing = entries["cam/seqA/000002.png"]
+    assert missing["status"] == "failed" and "000002_depth.exr" in missing["error"]
+    assert "fog.camera" in missing["error"]
+
+
 def test_truncated_png_recorded(tmp_path, tree):
     p = tree / "cam" / "seqA" / "000000.png"
     p.write_bytes(p.read_bytes()[:200])
