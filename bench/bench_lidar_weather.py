@@ -1,9 +1,10 @@
 """Benchmark of the LiDAR weather models fog.lidar, rain.lidar, snow.lidar (one core).
 
 1. A synthetic full 128×2048 OS1-128 range image (ground plane, two facades, parked cars, no-return sky cells),
-   ray-cast analytically with the real beam table, intensities in photons (``K ρ cos θ / r²``, K = full scale).
-2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, reflectivity as 8-bit intensity), if
-   present, plus a table rate → kept / attenuated / moved / removed / added.
+   ray-cast analytically with the real beam table, ``signal`` intensities in photons (``K ρ cos θ / r²`` with the
+   profile's sensor constant K).
+2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, the OS1's calibrated 8-bit reflectivity,
+   profile ``os1-128-reflectivity``), if present, plus a table rate → kept / attenuated / moved / removed / added.
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
 ms per frame (min and median of 15 frames after a warm-up), the tracemalloc peak, the visible particles drawn, and
@@ -31,7 +32,8 @@ from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
 from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
-from roadview_noise.profiles.lidar import os1_128  # noqa: E402
+from roadview_noise.physics.lidar_link import sensor_constant  # noqa: E402
+from roadview_noise.profiles.lidar import os1_128, os1_128_reflectivity  # noqa: E402
 from roadview_noise.types import PointCloud  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "os1-128"
@@ -75,7 +77,7 @@ def synthetic_grid(columns: int = 2048) -> PointCloud:
         for axis, value in ((0, x0), (0, x0 + 4.5), (1, y0 - 0.9), (1, y0 + 0.9), (2, -0.3)):
             plane(axis, value, 0.6, box["lo"], box["hi"])
     ok = best <= prof.max_range_m
-    intensity = np.where(ok, prof.intensity_full_scale * rho * cos_inc / np.where(ok, best, 1.0) ** 2, 0.0)
+    intensity = np.where(ok, sensor_constant(prof) * rho * cos_inc / np.where(ok, best, 1.0) ** 2, 0.0)
     pos = np.where(ok[:, None], d * np.where(ok, best, 0.0)[:, None], 0.0)
     ring = np.repeat(np.arange(rows, dtype=np.uint16), columns)
     return PointCloud(pos, {"intensity": np.minimum(intensity, prof.intensity_full_scale).astype(np.float32),
@@ -87,8 +89,7 @@ def real_scan() -> PointCloud | None:
     if not path.is_file():
         return None
     a = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-    prof = dataclasses.replace(os1_128(), name="os1-128-reflectivity", columns=1024, intensity_unit="uint8",
-                               intensity_full_scale=255.0, detection_threshold=1.0)
+    prof = dataclasses.replace(os1_128_reflectivity(), columns=1024)
     return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", prof)
 
 
@@ -152,6 +153,8 @@ def rate_table(cloud: PointCloud) -> None:
             removed, lost = d["removed"] / d["points_in"], (d["removed"] + d["moved"]) / d["points_in"]
             print(f"  {v:7g}: {d['kept']:6d} {d['attenuated']:6d} {d['moved']:6d} {d['removed']:6d} {d['added']:6d}"
                   f"   {100 * removed:6.2f} {100 * lost:6.2f} {100 * left:7.2f}")
+        print(f"  (returns already below the profile's detection threshold in the clear scan: "
+              f"{d['below_threshold_in']})")
 
 
 def main() -> int:
@@ -164,7 +167,8 @@ def main() -> int:
     if scan is None:
         print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
         return 0
-    report("real OS1-128 scan0.bin (reflectivity as 8-bit intensity, threshold 1)", "real", scan)
+    report("real OS1-128 scan0.bin (os1-128-reflectivity: calibrated 8-bit reflectivity, threshold 3.28 photons)",
+           "real", scan)
     rate_table(scan)
     return 0
 

@@ -20,7 +20,7 @@ from roadview_noise.profiles.lidar import load_lidar_profile, os1_128, recover_r
 from roadview_noise.profiles.radar import load_radar_profile
 from roadview_noise.sampledata import rig
 from roadview_noise.sampledata.generate import generate
-from roadview_noise.sampledata.lidar import LIDAR_EQUATION_K
+from roadview_noise.physics.lidar_link import received_signal, sensor_constant
 from roadview_noise.sampledata.scene import FACADE_Y_M, FACADES, MAT, MATERIALS, GLASS, build_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -135,7 +135,8 @@ def test_lidar_ring_recovered_from_elevation(tiny, folder, profile):
         assert (recover_ring(cloud.positions_m[ret], profile) == ring).mean() >= 0.999
         assert np.unique(ring).size > 100                              # most beams see something
         i = cloud.fields["intensity"][ret]
-        assert i.min() >= profile.detection_threshold and i.max() <= profile.intensity_full_scale
+        s = received_signal(i, np.linalg.norm(cloud.positions_m[ret], axis=1), profile)   # VLS: no beam-origin offset
+        assert s.min() >= profile.detection_threshold * (1 - 1e-5) and i.max() <= profile.intensity_full_scale
         t = cloud.fields.get("time_s", cloud.fields.get("time"))[ret]          # float32 s (alias "time")
         assert 0 <= t.min() and t.max() < 0.1
 
@@ -158,12 +159,14 @@ def test_lidar_grid_kitti_and_list_agree(tiny):
     np.testing.assert_array_equal(grid.fields["ring"], np.repeat(np.arange(128), TINY["lidar_columns"]))
 
 
-def test_os1_intensity_follows_lambertian_lidar_equation(tiny):
-    """On the left facade plane: I·R²/(K cos θ) is one of the facade or glass reflectivities (I rounded)."""
+@pytest.mark.parametrize("folder, profile", [("os1-128", os1_128()), ("vls-128", vls_128())])
+def test_lidar_intensity_follows_lambertian_lidar_equation(tiny, folder, profile):
+    """On the left facade plane: the received signal ``K ρ cos θ / R²`` recovered from the stored intensity (OS1
+    photons as is, VLS range-compensated reflectivity) gives one of the facade or glass reflectivities (I rounded)."""
     out, _ = tiny
     scene = build_scene(TINY["seed"])
-    cloud = read_pointcloud(out / "lidar/os1-128/seq0/000000.pcd", profile=os1_128())
-    prof = os1_128()
+    cloud = read_pointcloud(out / f"lidar/{folder}/seq0/000000.pcd", profile=profile)
+    prof = profile
     sensor = scene.ego_position_m(0.0) + rig.LIDAR_MOUNT_M
     p = cloud.positions_m
     on = (np.abs(p[:, 1] + sensor[1] - FACADE_Y_M) < 1e-3) & (p[:, 2] + sensor[2] > 0.5)
@@ -177,7 +180,7 @@ def test_os1_intensity_follows_lambertian_lidar_equation(tiny):
     ray = p[on] - origin
     r = np.linalg.norm(ray, axis=1)
     cos = np.abs(ray[:, 1]) / r
-    rho = i[on] * r**2 / (LIDAR_EQUATION_K[prof.intensity_unit] * cos)
+    rho = received_signal(i[on], r, prof) * r**2 / (sensor_constant(prof) * cos)
     table = np.array([MATERIALS[MAT[f]].nir_reflectivity for f in FACADES] + [GLASS.nir_reflectivity])
     err = np.min(np.abs(rho[:, None] / table[None, :] - 1), axis=1)
     assert np.quantile(err, 0.99) < 0.02 + 0.5 / 50

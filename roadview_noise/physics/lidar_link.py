@@ -1,13 +1,20 @@
 """Shared single-scattering LiDAR equation of the weather models (models.md §3.1; Hahner et al., ICCV 2021 fog and
-CVPR 2022 snow), and the ray bookkeeping every LiDAR weather model shares.
+CVPR 2022 snow), the one intensity scale of every LiDAR, and the ray bookkeeping every LiDAR weather model shares.
 
-Intensities are handled as *signals*: the input intensity divided by the profile's ``intensity_full_scale``. The
-detection threshold is the profile's ``detection_threshold`` (in the input unit) divided by the same full scale, and
-the particles' sensor constant is one full scale: a ρ = 1 Lambertian target filling the beam at 1 m returns full
-scale (Hahner 2022; fog keeps Hahner 2021's per-point scale ``I R²/β0``). Every decision (weather return vs
-target, detection) therefore compares quantities of one unit and gives the same result for a cloud in photons,
-8-bit or [0, 1] intensities described by a matching profile; :func:`cloud_rays` refuses intensities that contradict
-the profile instead of guessing.
+Intensity scale (one conversion layer for all models, :func:`received_signal` / :func:`reported_intensity`)
+- The physics works on the *received signal* S, in the unit of the profile's ``sensor_constant`` K per m² (K: the
+  signal of a ρ = 1 Lambertian target filling the beam at 1 m; None → the intensity full scale): a target of
+  reflectance ρ at range R returns ``S = K ρ cos θ / R²``, a particle ``K ρ_p f ξ(r) e^{−2αr} / r²``, fog
+  ``K π β ∫ …`` (:func:`soft_target_signal`). The detection threshold (``detection_threshold``) is in signal units.
+- ``intensity_kind`` says how a file stores it: ``signal`` (∝ received power, e.g. Ouster ``signal`` photons): I = S;
+  ``reflectivity`` (range-compensated, e.g. Ouster ``reflectivity``, Velodyne 8-bit, KITTI and CARLA [0, 1]):
+  ``I = FS · S R² / K`` with FS the intensity full scale. Every output intensity goes back through the same layer,
+  so a range-compensated file gets range-compensated weather returns (a fog return of signal S at apparent range r
+  reads ``FS S r² / K``).
+- Inside the models signals are carried in units of K (``S / K``, m⁻²); the decisions (weather return vs target,
+  detection) compare quantities of that one unit, so the same scene stored as photons, 8-bit or [0, 1] intensities
+  with matching profiles gives the same result, and :func:`cloud_rays` refuses intensities that contradict the
+  profile instead of guessing.
 
 Conventions
 - Apparent range of a return = position of the received pulse peak minus ``c τ_H / 2`` (Hahner's shift), so a hard
@@ -23,6 +30,7 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 from ..errors import ModelError
@@ -34,12 +42,68 @@ OVERLAP_R2_M = 1.0
 HAHNER_FOG_PULSE_S = 20e-9              # half-power pulse width of Hahner et al. 2021
 SOFT_TABLE_STEP_M = 0.01                # range step of the fog pulse-integral table
 SAME_TARGET_TOLERANCE_M = 0.2           # a summed peak this close to the target keeps the target (Hahner 2022)
+SIGNAL, REFLECTIVITY = "signal", "reflectivity"    # LidarProfile.intensity_kind
+#: units stored in whole counts (resolution 1); [0, 1] floats get 1/255 of full scale (KITTI stores multiples of 0.01)
+COUNT_UNITS = (IntensityUnit.PHOTONS, IntensityUnit.UINT8)
 
 NO_RETURN, TARGET, WEATHER = 0, 1, 2     # what a ray returns after the weather
+ATTENUATED, MOVED, ADDED = int(PointLabel.ATTENUATED), int(PointLabel.MOVED), int(PointLabel.ADDED)
+
+
+def compiled(fn):
+    """``numba.njit`` with an on-disk cache; where numba finds no writable cache location (read-only install without
+    a user cache directory) it refuses ``cache=True`` at decoration, and the function is compiled per process."""
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:
+        return numba.njit(nogil=True)(fn)
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# LiDAR equation
+# Intensity scale
+
+
+def sensor_constant(profile: LidarProfile) -> float:
+    """K: received signal of a ρ = 1 Lambertian target filling the beam at 1 m (signal units · m²); for a
+    ``reflectivity`` profile, of a target whose reading is full scale (the same thing when the reading is ρ × FS)."""
+    return float(profile.intensity_full_scale if profile.sensor_constant is None else profile.sensor_constant)
+
+
+def received_signal(intensity, range_m, profile: LidarProfile) -> np.ndarray:
+    """Received signal S (signal units) of stored intensities at their ranges: I for ``signal`` profiles,
+    ``(I / FS) · K / R²`` for range-compensated ``reflectivity`` profiles (0 where R ≤ 0: no return)."""
+    i = np.asarray(intensity, dtype=np.float64)
+    if profile.intensity_kind == SIGNAL:
+        return i
+    if profile.intensity_kind == REFLECTIVITY:
+        r = np.asarray(range_m, dtype=np.float64)
+        scale = sensor_constant(profile) / profile.intensity_full_scale
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(r > 0, i * scale / (r * r), 0.0)
+    raise ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
+                     f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
+
+
+def reported_intensity(signal, range_m, profile: LidarProfile) -> np.ndarray:
+    """Inverse of :func:`received_signal`: the intensity a profile stores for a return of signal S at apparent range
+    R (S for ``signal``, ``FS · S R² / K`` for ``reflectivity``); not clipped."""
+    s = np.asarray(signal, dtype=np.float64)
+    if profile.intensity_kind == SIGNAL:
+        return s
+    if profile.intensity_kind == REFLECTIVITY:
+        r = np.asarray(range_m, dtype=np.float64)
+        return s * (r * r) * (profile.intensity_full_scale / sensor_constant(profile))
+    raise ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
+                     f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
+
+
+def intensity_resolution(profile: LidarProfile) -> float:
+    """One step of the stored intensity: 1 for count units (photons, 8-bit), full scale / 255 for [0, 1] floats."""
+    return 1.0 if profile.intensity_unit in COUNT_UNITS else profile.intensity_full_scale / 255.0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# LiDAR equation (signals in units of the sensor constant K)
 
 
 def overlap(r_m, r1_m: float = OVERLAP_R1_M, r2_m: float = OVERLAP_R2_M) -> np.ndarray:
@@ -59,16 +123,23 @@ def pulse_length_m(tau_h_s: float) -> float:
 
 
 def hard_target_signal(signal, alpha_per_m: float, range_m) -> np.ndarray:
-    """Two-way Beer–Lambert loss of a hard target, ``I e^{−2αR}`` (same unit as ``signal``; finite ranges, so
+    """Two-way Beer–Lambert loss of a hard target, ``S e^{−2αR}`` (same unit as ``signal``; finite ranges, so
     :func:`atmosphere.two_way_transmission`'s sky handling is not needed)."""
     t = np.exp(np.multiply(range_m, -2.0 * alpha_per_m))
     return np.multiply(signal, t, out=t) if isinstance(t, np.ndarray) else signal * t
 
 
 def particle_signal(reflectance: float, beam_fraction, range_m, alpha_per_m: float) -> np.ndarray:
-    """Return of a particle in full-scale units, ``K ρ f ξ(r) e^{−2αr} / r²`` with K = 1 full scale · m²."""
+    """Return of a particle in units of K, ``ρ f ξ(r) e^{−2αr} / r²`` (m⁻²)."""
     r = np.asarray(range_m, dtype=float)
     return reflectance * beam_fraction * overlap(r) * np.exp(-2.0 * alpha_per_m * r) / (r * r)
+
+
+def soft_target_signal(g_s_per_m2, beta_per_m_sr: float) -> np.ndarray:
+    """Return of a homogeneous soft target (fog) in units of K from its pulse integral G (s m⁻²):
+    ``π β (c/2) G`` — the fog as a Lambertian reflector of ρ = π β per metre of depth (Hahner 2021 Eq. 6–10 with the
+    sensor constant). For R ≫ c τ_H and ξ = 1: ``π β (c τ_H/2) e^{−2αR}/R²``."""
+    return np.multiply(g_s_per_m2, math.pi * beta_per_m_sr * SPEED_OF_LIGHT_M_PER_S / 2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,205 +232,243 @@ def pick(target_signal: np.ndarray, target_range_m: np.ndarray, weather_signal: 
     return RayReturns(kind, np.where(use_weather, weather_range_m, target_range_m), signal)
 
 
-def dominance_factor(length_m: float) -> float:
-    """κ such that a target ≥ κ × (sum of the pulses overlapping it) keeps its summed peak within half the 0.2 m
-    tolerance of its own crest: ``L asin(1/κ)/2π ≤ tol/2`` (and κ ≥ 5, so its value is at most 2 % low)."""
-    return max(5.0, 1.0 / math.sin(math.pi * min(0.5, SAME_TARGET_TOLERANCE_M / length_m)))
-
-
 def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, particle_signal_: np.ndarray,
                    target_range_m: np.ndarray, target_signal: np.ndarray, has_target: np.ndarray,
-                   tau_h_s: float, threshold: float, mode: str) -> RayReturns:
+                   tau_h_s: float, threshold: float, mode: str,
+                   particle_beam_fraction: np.ndarray | None = None) -> RayReturns:
     """Returns of rays crossing discrete particles (§3.1, Hahner 2022): pulses closer than ``c τ_H`` add in power.
 
-    ``particle_*`` are sorted by ray, then range (as :func:`lidar_particles.sample_particles` makes them). Per ray the
-    contributions (particles, then the target) form clusters of overlapping pulses; an isolated contribution peaks
-    at its own range, a cluster's summed profile is maximised exactly (:func:`_summed_peaks`; Hahner samples it on
-    a 0.1 m grid). The ray returns its strongest cluster (``mode='strongest'``) or the first one above threshold
-    (``'first'``); a cluster holding the target whose peak lies within 0.2 m of it keeps the target in place with
-    the summed intensity.
-
-    Shortcut (exact up to a stated bound), taken per ray before any clustering: if all its particles together are
-    weaker than the target (for 'first': than the threshold), no profile outside the target's pulse can be chosen;
-    if moreover the target is at least κ times the sum of the particles overlapping its pulse
-    (:func:`dominance_factor`), the ray returns the target in place with the summed profile at its crest (at most
-    2 % low)."""
-    n_rays = len(target_range_m)
+    ``particle_*`` are sorted by ray, then range (as :func:`lidar_particles.sample_particles` makes them). With
+    ``particle_beam_fraction`` each target is first shadowed by the particles in front of it,
+    ``S_t (1 − min(1, Σ f))`` (§3.3). Per ray the contributions (particles, then the target) form clusters of
+    overlapping pulses; each cluster's summed received profile is maximised exactly (:func:`pair_peak`,
+    :func:`cluster_peak`; Hahner samples it on a 0.1 m grid). The ray returns its strongest cluster
+    (``mode='strongest'``, ties: the nearest) or the first one above threshold (``'first'``); a cluster holding the
+    target whose peak lies within 0.2 m of it keeps the target in place with the summed intensity. Rays without
+    particles return their target. One compiled pass over the rays with particles."""
     tgt_sig = np.where(has_target, target_signal, 0.0)
-    base = RayReturns((tgt_sig >= threshold).view(np.uint8) * np.uint8(TARGET), target_range_m.copy(), tgt_sig)
-    if len(particle_ray) == 0:
-        return base
-    length = pulse_length_m(tau_h_s)
-    # --- rays resolved by their target ---------------------------------------------------------------------------
-    s = target_range_m[particle_ray] + length / 2 - particle_range_m        # crest of the target pulse − r_j
-    near = (s <= 1.5 * length) & has_target[particle_ray]                      # pulse overlaps the target's
-    near_sum = np.bincount(particle_ray, weights=np.where(near, particle_signal_, 0.0), minlength=n_rays)
-    far_sum = np.bincount(particle_ray, weights=np.where(near, 0.0, particle_signal_), minlength=n_rays)
-    resolved = has_target & (far_sum + near_sum < (tgt_sig if mode == "strongest" else threshold))
-    resolved &= tgt_sig >= dominance_factor(length) * near_sum
-    p_res = resolved[particle_ray]
-    if p_res.any():
-        crest = np.where(p_res & near & (s >= 0), np.sin(np.pi * np.minimum(s, length) / length) ** 2, 0.0)
-        value = tgt_sig + np.bincount(particle_ray, weights=particle_signal_ * crest, minlength=n_rays)
-        rr = np.flatnonzero(resolved & ((near_sum > 0) | (far_sum > 0)))
-        base.signal[rr] = value[rr]
-        base.kind[rr] = np.where(value[rr] >= threshold, TARGET, NO_RETURN)
-        keep = ~p_res
-        particle_ray, particle_range_m, particle_signal_ = (particle_ray[keep], particle_range_m[keep],
-                                                            particle_signal_[keep])
-    n_p = len(particle_ray)
-    if n_p == 0:
-        return base
-    # --- contributions: per remaining ray with particles, its particles then its target -------------------------
-    first_of_slot = np.empty(n_p, dtype=bool)
-    first_of_slot[0] = True
-    np.not_equal(particle_ray[1:], particle_ray[:-1], out=first_of_slot[1:])
-    slot_start = np.flatnonzero(first_of_slot)
-    slot_ray = particle_ray[slot_start]
-    slot_count = np.diff(np.append(slot_start, n_p))
-    slot_of_particle = np.cumsum(first_of_slot) - 1
-    slot_tgt = has_target[slot_ray]
-    tgt_before = np.cumsum(slot_tgt) - slot_tgt
-    n_c = n_p + int(slot_tgt.sum())
-    c_range = np.empty(n_c)
-    c_signal = np.empty(n_c)
-    c_slot = np.empty(n_c, dtype=np.intp)
-    c_is_target = np.zeros(n_c, dtype=bool)
-    p_pos = np.arange(n_p) + tgt_before[slot_of_particle]
-    c_range[p_pos], c_signal[p_pos], c_slot[p_pos] = particle_range_m, particle_signal_, slot_of_particle
-    t_slots = np.flatnonzero(slot_tgt)
-    t_pos = slot_start[t_slots] + slot_count[t_slots] + tgt_before[t_slots]
-    t_rays = slot_ray[t_slots]
-    c_range[t_pos], c_signal[t_pos], c_slot[t_pos] = target_range_m[t_rays], target_signal[t_rays], t_slots
-    c_is_target[t_pos] = True
-    # --- clusters of overlapping pulses -------------------------------------------------------------------------
-    linked = (c_slot[1:] == c_slot[:-1]) & (np.diff(c_range) < length)
-    starts = np.ones(n_c, dtype=bool)
-    starts[1:] = ~linked
-    cl_first = np.flatnonzero(starts)
-    cl_size = np.diff(np.append(cl_first, n_c))
-    cl_signal = c_signal[cl_first]
-    cl_range = c_range[cl_first]
-    cl_is_target = c_is_target[cl_first] & (cl_size == 1)
-    multi = np.flatnonzero(cl_size > 1)
-    if len(multi):
-        _resolve_clusters(multi, cl_first, cl_size, c_range, c_signal, c_slot, c_is_target, cl_signal, cl_range,
-                          cl_is_target, length, threshold, mode)
-    # --- per ray: strongest cluster, or first above threshold ---------------------------------------------------
-    cl_slot = c_slot[cl_first]
-    slot_first_cl = np.flatnonzero(np.r_[True, cl_slot[1:] != cl_slot[:-1]])
-    idx = np.arange(len(cl_first))
-    strongest = np.maximum.reduceat(cl_signal, slot_first_cl)
-    big = len(cl_first)
-    chosen = np.minimum.reduceat(np.where(cl_signal == strongest[cl_slot], idx, big), slot_first_cl)
-    if mode == "first":
-        first = np.minimum.reduceat(np.where(cl_signal >= threshold, idx, big), slot_first_cl)
-        chosen = np.where(first < big, first, chosen)
-    sig = cl_signal[chosen]
-    base.kind[slot_ray] = np.where(sig >= threshold, np.where(cl_is_target[chosen], TARGET, WEATHER), NO_RETURN)
-    base.range_m[slot_ray] = cl_range[chosen]
-    base.signal[slot_ray] = sig
-    return base
+    kind = (tgt_sig >= threshold).view(np.uint8) * np.uint8(TARGET)
+    out_range = np.array(target_range_m, dtype=np.float64)
+    if len(particle_ray):
+        fraction = np.zeros(0) if particle_beam_fraction is None else np.ascontiguousarray(particle_beam_fraction,
+                                                                                            dtype=np.float64)
+        _select_kernel(np.ascontiguousarray(particle_ray, dtype=np.intp),
+                       np.ascontiguousarray(particle_range_m, dtype=np.float64),
+                       np.ascontiguousarray(particle_signal_, dtype=np.float64), fraction, out_range, tgt_sig,
+                       np.ascontiguousarray(has_target), pulse_length_m(tau_h_s), float(threshold), mode == "first",
+                       kind, out_range, tgt_sig)
+    return RayReturns(kind, out_range, tgt_sig)
 
 
-def _resolve_clusters(multi, cl_first, cl_size, c_range, c_signal, c_slot, c_is_target, cl_signal, cl_range,
-                      cl_is_target, length: float, threshold: float, mode: str) -> None:
-    """Value, range and target flag (written in place) of the clusters ``multi`` of ≥ 2 overlapping pulses.
-
-    Triage, exact where it can change the outcome:
-    - the target dominates (``A_t ≥ κ Σ others``, :func:`dominance_factor`): by ``A_t (π/L) sin(2π(x−R)/L) = −E'(x)``
-      the peak lies within ``L asin(1/κ)/2π`` (≤ ½ of the 0.2 m tolerance) of the target's crest, so the target
-      stays; value = the sum at that crest (low by at most ``asin(1/κ)/2 · Σ others`` ≤ 2 % of ``A_t``);
-    - the cluster cannot be chosen (``Σ a`` below threshold, or, for strongest, not above the best single return of
-      its ray): represented by its strongest member (the target if that lies within the tolerance of it);
-    - otherwise the exact maximum of the summed profile (:func:`_summed_peaks`)."""
-    first, size = cl_first[multi], cl_size[multi]
-    last = first + size - 1
-    total = np.add.reduceat(c_signal, cl_first)[multi]
-    strongest = np.maximum.reduceat(c_signal, cl_first)[multi]
-    # strongest member (lower bound): index of the first member reaching it
-    member_cl = np.repeat(np.arange(len(multi)), size)
-    member = np.arange(len(member_cl)) + np.repeat(first - (np.cumsum(size) - size), size)
-    hit = np.minimum.reduceat(np.where(c_signal[member] == strongest[member_cl], member, len(c_signal)),
-                              np.cumsum(size) - size)
-    near_target = c_is_target[last] & (np.abs(c_range[hit] - c_range[last]) <= SAME_TARGET_TOLERANCE_M)
-    cl_signal[multi] = strongest
-    cl_range[multi] = np.where(near_target, c_range[last], c_range[hit])
-    cl_is_target[multi] = near_target
-    kappa = dominance_factor(length)
-    t_amp = np.where(c_is_target[last], c_signal[last], 0.0)
-    dominated = c_is_target[last] & (t_amp >= kappa * (total - t_amp))
-    if dominated.any():
-        dm = dominated[member_cl] & ~c_is_target[member]
-        s = c_range[last][member_cl[dm]] + length / 2 - c_range[member[dm]]
-        extra = np.bincount(member_cl[dm], weights=c_signal[member[dm]] * np.where(
-            (s >= 0) & (s <= length), np.sin(np.pi * s / length) ** 2, 0.0), minlength=len(multi))
-        d = multi[dominated]
-        cl_signal[d], cl_range[d], cl_is_target[d] = (t_amp + extra)[dominated], c_range[last[dominated]], True
-    open_ = ~dominated & (total >= threshold)
-    if mode == "strongest":
-        slot = c_slot[cl_first]
-        slot_first = np.flatnonzero(np.r_[True, slot[1:] != slot[:-1]])
-        best_single = np.maximum.reduceat(np.maximum.reduceat(c_signal, cl_first), slot_first)
-        slot_rank = np.cumsum(np.r_[True, slot[1:] != slot[:-1]]) - 1
-        open_ &= total > best_single[slot_rank[multi]]
-    if open_.any():
-        o = multi[open_]
-        peak, peak_range = _summed_peaks(cl_first[o], cl_size[o], c_range, c_signal, length)
-        t_last = cl_first[o] + cl_size[o] - 1
-        own = c_is_target[t_last] & (np.abs(peak_range - c_range[t_last]) <= SAME_TARGET_TOLERANCE_M)
-        cl_signal[o] = peak
-        cl_range[o] = np.where(own, c_range[t_last], peak_range)
-        cl_is_target[o] = own
-
-
-def _summed_peaks(first: np.ndarray, size: np.ndarray, c_range: np.ndarray, c_signal: np.ndarray,
-                  length: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact maximum of ``S(x) = Σ a_k sin²(π (x − r_k)/L)`` (each term on ``r_k ≤ x ≤ r_k + L``) over each cluster
-    (contributions ``first … first+size−1``, sorted by range); returns (peak, apparent range = x − L/2).
+@compiled
+def cluster_peak(r, a, cs, sn, lo, hi, length):       # pragma: no cover - compiled
+    """Exact maximum of ``S(x) = Σ_k a_k sin²(π (x − r_k)/L)`` (each term on ``r_k ≤ x ≤ r_k + L``) over the
+    contributions ``lo … hi−1`` (sorted by range; ``cs``, ``sn``: cos and sin of ``2π (r_k − r_0) / L`` for any
+    common origin r_0); returns (peak, apparent range ``x − L/2``).
 
     Between consecutive pulse starts/ends the active set is fixed and ``S(x) = A/2 − Re(Z e^{iωx})/2`` with
-    ``A = Σ a_k``, ``Z = Σ a_k e^{−iω r_k}``, ``ω = 2π/L``: on each piece the maximum is the crest ``(A + |Z|)/2``
-    if the phasor ``Z e^{iωx}`` passes the negative real axis inside the piece, else an end value. Pieces come from
-    one linear merge of the sorted starts and ends (``e^{iωx}`` at an end equals that at its start: period L)."""
-    n = int(size.sum())
-    clusters = len(first)
-    block = np.cumsum(size) - size                         # first member of each cluster (member numbering)
-    member_cluster = np.repeat(np.arange(clusters), size)
-    member = np.arange(n) + np.repeat(first - block, size)
-    r, a = c_range[member], c_signal[member]
-    omega = 2 * np.pi / length
-    cos_r, sin_r = np.cos(omega * r), np.sin(omega * r)    # e^{iωr} = cos + i sin
-    span = 2.0 ** math.ceil(math.log2(float(r.max()) + 2 * length + 1))
-    start_key = member_cluster * span + r                  # sorted: by cluster, then range
-    order = np.argsort(np.concatenate([start_key, start_key + length]), kind="stable")   # merge of two runs
-    ev_member = np.where(order < n, order, order - n)
-    is_start = order < n
-    x = r[ev_member] + np.where(is_start, 0.0, length)
-    step = np.where(is_start, a[ev_member], -a[ev_member])   # +a at a pulse start, −a at its end
-    cu, su = cos_r[ev_member], sin_r[ev_member]            # e^{iωx_i}
-    amp = np.cumsum(step)                                  # A, Re Z, Im Z on [x_i, x_{i+1}]
-    z_re = np.cumsum(step * cu)
-    z_im = -np.cumsum(step * su)
-    q_re, q_im = z_re * cu - z_im * su, z_re * su + z_im * cu          # Z e^{iωu}
-    cv, sv = np.append(cu[1:], 1.0), np.append(su[1:], 0.0)            # e^{iωx_{i+1}}
-    p_re, p_im = z_re * cv - z_im * sv, z_re * sv + z_im * cv          # Z e^{iωv}
-    sweep = np.append(np.diff(x), 0.0) * omega
-    upper_u = (q_im > 0) | ((q_im == 0) & (q_re < 0))
-    upper_v = (p_im > 0) | ((p_im == 0) & (p_re < 0))
-    crosses = np.where(sweep <= np.pi, upper_u & ~upper_v & (sweep > 0), ~(upper_v & ~upper_u))
-    mod = np.sqrt(z_re * z_re + z_im * z_im)
-    s_u, s_v = (amp - q_re) / 2, (amp - p_re) / 2
-    val = np.where(crosses, (amp + mod) / 2, np.maximum(s_u, s_v))
-    last = 2 * (block + size) - 1                          # the last event of a cluster opens no piece
-    val[last] = -np.inf
-    starts = 2 * block
-    peak = np.maximum.reduceat(val, starts)
-    ev_cluster = np.repeat(np.arange(clusters), 2 * size)
-    best = np.minimum.reduceat(np.where(val == peak[ev_cluster], np.arange(2 * n), 2 * n), starts)
-    delta = np.mod(np.pi - np.arctan2(q_im[best], q_re[best]), 2 * np.pi) / omega
-    at = np.where(crosses[best], x[best] + delta, np.where(s_u[best] >= s_v[best], x[best], x[best + 1]))
-    return peak, at - length / 2
+    ``A = Σ a_k``, ``Z = Σ a_k e^{−iω r_k}``, ``ω = 2π/L``: on each piece the maximum is the crest ``(A + |Z|)/2`` if
+    the phasor ``Z e^{iωx}`` reaches the negative real axis inside the piece, else an end value. Starts and ends are
+    visited in one merge of the two sorted lists; ``e^{iωx}`` at an end equals that at its start (period L)."""
+    omega = 2.0 * math.pi / length
+    m = hi - lo
+    cs = cs[lo:hi]
+    sn = sn[lo:hi]
+    amp = 0.0
+    z_re = 0.0
+    z_im = 0.0
+    s = 0
+    e = 0
+    best = -1.0
+    best_x = r[lo]
+    while e < m:
+        if s < m and r[lo + s] <= r[lo + e] + length:     # next event: a pulse start (first on ties) ...
+            x = r[lo + s]
+            step = a[lo + s]
+            cu = cs[s]
+            su = sn[s]
+            s += 1
+        else:                                              # ... or a pulse end
+            x = r[lo + e] + length
+            step = -a[lo + e]
+            cu = cs[e]
+            su = sn[e]
+            e += 1
+        amp += step
+        z_re += step * cu
+        z_im -= step * su
+        if e >= m:                                         # the last end opens no piece
+            break
+        if s < m and r[lo + s] <= r[lo + e] + length:
+            x_next = r[lo + s]
+            cv = cs[s]
+            sv = sn[s]
+        else:
+            x_next = r[lo + e] + length
+            cv = cs[e]
+            sv = sn[e]
+        q_re = z_re * cu - z_im * su                       # Z e^{iωx} at both ends of the piece
+        q_im = z_re * su + z_im * cu
+        p_re = z_re * cv - z_im * sv
+        p_im = z_re * sv + z_im * cv
+        sweep = omega * (x_next - x)
+        upper_u = q_im > 0 or (q_im == 0 and q_re < 0)     # angle in (0, π]
+        upper_v = p_im > 0 or (p_im == 0 and p_re < 0)
+        if sweep <= math.pi:
+            crest = upper_u and not upper_v and sweep > 0
+        else:
+            crest = not (upper_v and not upper_u)
+        if crest:
+            val = (amp + math.sqrt(z_re * z_re + z_im * z_im)) / 2.0
+            if val > best:
+                best = val
+                best_x = x + (math.pi - math.atan2(q_im, q_re)) / omega      # phase to the crest, in [0, 2π]
+        else:
+            val_u = (amp - q_re) / 2.0
+            val_v = (amp - p_re) / 2.0
+            if val_u > best or val_v > best:
+                if val_v > val_u:
+                    best = val_v
+                    best_x = x_next
+                else:
+                    best = val_u
+                    best_x = x
+    return best, best_x - length / 2.0
+
+
+@compiled
+def pair_peak(r1, a1, r2, a2, length):       # pragma: no cover - compiled
+    """:func:`cluster_peak` of two overlapping pulses (``r1 ≤ r2 < r1 + L``) in closed form; returns (peak, apparent
+    range ``x − L/2``).
+
+    On the overlap ``[r2, r1 + L]`` the sum is ``A/2 − |B| cos(2π (x − r1)/L + arg B)/2`` with
+    ``B = a1 + a2 e^{−iθ}``, ``θ = 2π (r2 − r1)/L``. For ``θ ≤ π`` arg B lies in ``[−θ, 0]``, so the crest
+    ``(A + |B|)/2`` (at ``2π (x − r1)/L = π − arg B``) falls inside the overlap and is the maximum; for ``θ > π``
+    arg B lies in ``[0, 2π − θ]``, the crest falls outside it, and the maximum is the stronger pulse at its own crest."""
+    theta = 2.0 * math.pi * (r2 - r1) / length
+    if theta > math.pi:
+        return (a1, r1) if a1 >= a2 else (a2, r2)
+    b_re = a1 + a2 * math.cos(theta)
+    b_im = -a2 * math.sin(theta)
+    peak = (a1 + a2 + math.sqrt(b_re * b_re + b_im * b_im)) / 2.0
+    return peak, r1 + (math.pi - math.atan2(b_im, b_re)) * length / (2.0 * math.pi) - length / 2.0
+
+
+@compiled
+def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no cover - compiled
+    """(peak, apparent range) of the cluster ``lo … hi−1``: a single pulse, :func:`pair_peak` or :func:`cluster_peak`
+    (``cos_buf``/``sin_buf``: scratch space as long as ``r``)."""
+    if hi - lo == 1:
+        return a[lo], r[lo]
+    if hi - lo == 2:
+        return pair_peak(r[lo], a[lo], r[lo + 1], a[lo + 1], length)
+    omega = 2.0 * math.pi / length
+    for k in range(lo, hi):                            # phases relative to the first pulse (small arguments)
+        cos_buf[k] = math.cos(omega * (r[k] - r[lo]))
+        sin_buf[k] = math.sin(omega * (r[k] - r[lo]))
+    return cluster_peak(r, a, cos_buf, sin_buf, lo, hi, length)
+
+
+@compiled
+def _one_particle(r, a, t_range, t_sig, tgt, length, threshold, first_mode):      # pragma: no cover - compiled
+    """(value, apparent range, is the target) of a ray with one particle in front of its target (if any)."""
+    if tgt and t_range - r < length:                   # one cluster: the pair
+        val, at = pair_peak(r, a, t_range, t_sig, length)
+        if abs(at - t_range) <= SAME_TARGET_TOLERANCE_M:
+            return val, t_range, True
+        return val, at, False
+    if not tgt or (a >= threshold if first_mode else a >= t_sig):
+        return a, r, False
+    return t_sig, t_range, True
+
+
+@compiled
+def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, has_target, length, threshold, first_mode,
+                   kind, out_range, out_signal):        # pragma: no cover - compiled
+    """:func:`select_returns` on the rays with particles, written in place into ``kind``, ``out_range``,
+    ``out_signal`` (``t_range``/``t_signal`` may be the output arrays: each ray reads its target first; no shadowing
+    when ``p_fraction`` is empty).
+
+    A cluster's peak lies between its strongest member and the sum of its members: a ray whose particles sum below
+    what they must beat (the target or the threshold) and do not overlap the target's pulse keeps the target result,
+    and only clusters whose sum reaches the threshold and (strongest) the best lower bound of the ray are maximised
+    exactly."""
+    n = len(p_ray)
+    shadowing = len(p_fraction) > 0
+    cr = np.empty(n + 1)                               # one ray's contributions (particles, target): range, signal
+    ca = np.empty(n + 1)
+    cos_buf = np.empty(n + 1)
+    sin_buf = np.empty(n + 1)
+    c_lo = np.empty(n + 2, np.intp)                    # its clusters: first contribution, sum, strongest member
+    c_sum = np.empty(n + 1)
+    c_max = np.empty(n + 1)
+    i = 0
+    while i < n:
+        ray = p_ray[i]
+        j = i
+        while j < n and p_ray[j] == ray:
+            j += 1
+        tgt = has_target[ray]
+        total = 0.0
+        shadow = 0.0
+        for k in range(i, j):
+            total += p_signal[k]
+            if shadowing:
+                shadow += p_fraction[k]
+        t_sig = t_signal[ray] * (1.0 - min(1.0, shadow)) if tgt else 0.0
+        bar = max(t_sig, threshold) if tgt and not first_mode else threshold
+        if total < bar and not (tgt and t_range[ray] - p_range[j - 1] < length):
+            out_signal[ray] = t_sig                    # the particles change nothing but the shadowing
+            kind[ray] = TARGET if tgt and t_sig >= threshold else NO_RETURN
+            i = j
+            continue
+        m = j - i
+        if m == 1:                                     # one particle (the most common case)
+            best_val, best_at, best_tgt = _one_particle(p_range[i], p_signal[i], t_range[ray], t_sig, tgt, length,
+                                                        threshold, first_mode)
+        else:
+            for k in range(m):
+                cr[k] = p_range[i + k]
+                ca[k] = p_signal[i + k]
+            if tgt:
+                cr[m] = t_range[ray]
+                ca[m] = t_sig
+                m += 1
+            n_cl = 0                                   # clusters: consecutive contributions closer than L
+            for k in range(m):
+                if k == 0 or cr[k] - cr[k - 1] >= length:
+                    c_lo[n_cl] = k
+                    c_sum[n_cl] = 0.0
+                    c_max[n_cl] = 0.0
+                    n_cl += 1
+                c_sum[n_cl - 1] += ca[k]
+                c_max[n_cl - 1] = max(c_max[n_cl - 1], ca[k])
+            c_lo[n_cl] = m
+            need = threshold
+            if not first_mode:
+                for c in range(n_cl):
+                    need = max(need, c_max[c])
+            best_val = -1.0
+            best_at = 0.0
+            best_tgt = False
+            for c in range(n_cl):
+                if c_sum[c] < need:
+                    continue                           # can neither be detected first nor win a detection
+                val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
+                own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
+                if own:
+                    at = cr[m - 1]
+                if val > best_val or (first_mode and val >= threshold):
+                    best_val, best_at, best_tgt = val, at, own
+                    if first_mode and val >= threshold:
+                        break
+        if best_val >= threshold:
+            kind[ray] = TARGET if best_tgt else WEATHER
+            out_range[ray] = best_at
+            out_signal[ray] = best_val
+        else:
+            kind[ray] = NO_RETURN
+        i = j
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -371,8 +480,8 @@ class Rays:
     """The rays of a cloud as a weather model sees them (one per point of the cloud).
 
     ``range_m``: hard-target range, the profile's max range on empty rays of a full grid, 0 on rays without a
-    direction (zero points of a point list). ``signal``: target intensity / full scale. ``threshold``: detection
-    threshold / full scale."""
+    direction (zero points of a point list). ``signal``: received signal of the target in units of the sensor
+    constant K (m⁻², :func:`received_signal` / K). ``threshold``: detection threshold / K."""
 
     range_m: np.ndarray
     signal: np.ndarray
@@ -384,6 +493,12 @@ class Rays:
     def empty(self) -> np.ndarray:
         """Rays without a target that can still return weather (no-return cells of a full grid)."""
         return ~self.has_target & (self.range_m > 0)
+
+    @property
+    def below_threshold(self) -> int:
+        """Input returns whose signal is already below the detection threshold: the profile is less sensitive than
+        the sensor that recorded them (any weather removes them); reported so that such a mismatch is visible."""
+        return int(np.count_nonzero(self.has_target & (self.signal < self.threshold)))
 
 
 def check_intensity_scale(intensity: np.ndarray, profile: LidarProfile, model_id: str) -> None:
@@ -404,26 +519,27 @@ def check_intensity_scale(intensity: np.ndarray, profile: LidarProfile, model_id
 
 
 def cloud_rays(cloud: PointCloud, model_id: str) -> Rays:
-    """Validate a LiDAR cloud for a weather model and return its rays (signals in full-scale units)."""
+    """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K)."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
-        raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, full scale, threshold)",
-                         model=model_id)
+        raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
+                         "threshold)", model=model_id)
     if "intensity" not in cloud.fields:
         raise ModelError("needs an intensity field (the LiDAR equation scales weather returns by it)",
                          model=model_id, field="intensity")
     intensity = np.asarray(cloud.fields["intensity"])
     check_intensity_scale(intensity, profile, model_id)
-    if not profile.detection_threshold > 0:
-        raise ModelError(f"profile {profile.name!r} has detection_threshold {profile.detection_threshold}; it must "
-                         "be > 0 (in the intensity unit)", model=model_id, field="detection_threshold")
-    p = cloud.positions_m
-    r = np.sqrt(np.einsum("ij,ij->i", p, p))
+    k = sensor_constant(profile)
+    if not (profile.detection_threshold > 0 and k > 0):
+        raise ModelError(f"profile {profile.name!r} has detection_threshold {profile.detection_threshold} and sensor "
+                         f"constant {k}; both must be > 0 (signal units)", model=model_id, field="detection_threshold")
+    r = np.sqrt(np.square(cloud.positions_m) @ np.ones(3))
     has_target = r > 0
+    signal = received_signal(np.where(has_target, intensity, 0), r, profile)
+    signal *= 1.0 / k
     if cloud.grid_shape is not None:
         r = np.where(has_target, r, profile.max_range_m)
-    signal = np.where(has_target, intensity / profile.intensity_full_scale, 0.0)
-    return Rays(r, signal, has_target, profile.detection_threshold / profile.intensity_full_scale, profile)
+    return Rays(r, signal, has_target, profile.detection_threshold / k, profile)
 
 
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
@@ -473,50 +589,84 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
 
 
-def _to_dtype(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    return (np.rint(values) if np.issubdtype(dtype, np.integer) else values).astype(dtype)
+@compiled
+def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
+                   intensity_in, positions_out, intensity_out, label):      # pragma: no cover - compiled
+    """Per point of :func:`assemble`, written into the outputs (``label`` in place): position, stored intensity (the
+    reported one clipped to full scale, rounded for integer dtypes) and label; returns the removed mask and the counts
+    (kept, attenuated, moved, removed, added)."""
+    n = len(kind)
+    removed = np.zeros(n, np.bool_)
+    kept = attenuated = moved = n_removed = added = 0
+    for i in range(n):
+        scale = 1.0                                    # of the position
+        if kind[i] == NO_RETURN:
+            intensity_out[i] = intensity_in[i]
+            if has[i]:
+                removed[i] = True
+                n_removed += 1
+                if grid:
+                    scale = 0.0
+                    intensity_out[i] = 0
+                    label[i] = 0
+        else:
+            v = min(reported[i], full_scale)
+            intensity_out[i] = round(v) if integer else v
+            if kind[i] == WEATHER:
+                if has[i]:
+                    scale = return_range_m[i] / ray_range_m[i]
+                    label[i] = MOVED
+                    moved += 1
+                else:
+                    scale = 0.0                        # filled by the caller (directions of empty cells)
+                    label[i] = ADDED
+                    added += 1
+            elif abs(float(intensity_out[i]) - float(intensity_in[i])) >= half_step:
+                label[i] = ATTENUATED
+                attenuated += 1
+            else:
+                kept += 1
+        for c in range(3):
+            positions_out[i, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
+    return removed, kept, attenuated, moved, n_removed, added
 
 
 def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
-    """Build the output cloud: targets stay (KEPT, or ATTENUATED if their intensity changed), weather returns move
-    the point along its ray (MOVED) or fill an empty ray (ADDED), rays without a return lose their point (removed
-    from a point list, zeroed in a full grid like :meth:`PointCloud.drop`). Intensities are written back in the
-    input's unit and dtype, clipped to full scale; the ``label`` field (uint8) is created if absent."""
-    kind, has = returns.kind, rays.has_target
+    """Build the output cloud: targets stay in place, weather returns move the point along its ray (MOVED) or fill an
+    empty ray (ADDED), rays without a return lose their point (removed from a point list, zeroed in a full grid like
+    :meth:`PointCloud.drop`). Intensities are written back in the input's unit, kind and dtype
+    (:func:`reported_intensity` at the return's range), clipped to full scale; the ``label`` field (uint8) is created
+    if absent.
+
+    Labels of targets in place: ATTENUATED when the stored intensity changed by at least half a step of the input's
+    resolution (:func:`intensity_resolution`: 1 photon, 1 count, 1/255 of a [0, 1] scale), else KEPT with the
+    previous label (a change below the file's resolution is no visible change; the sub-step value is still written)."""
+    profile = rays.profile
     intensity_in = np.asarray(cloud.fields["intensity"])
-    active = kind != NO_RETURN
-    new = _to_dtype(np.minimum(returns.signal, 1.0) * rays.profile.intensity_full_scale, intensity_in.dtype)
-    intensity = np.where(active, new, intensity_in)
-    weather = kind == WEATHER
-    moved, added = weather & has, weather & ~has
-    removed = ~active & has
-    attenuated = (kind == TARGET) & (intensity != intensity_in)
-    grid = cloud.grid_shape is not None
-    positions = cloud.positions_m.copy()
-    idx = np.flatnonzero(moved)
-    positions[idx] *= (returns.range_m[idx] / rays.range_m[idx])[:, None]
-    if grid:
-        positions[removed] = 0.0
-    idx = np.flatnonzero(added)
-    if len(idx):
-        positions[idx] = empty_ray_directions(cloud, has, idx) * returns.range_m[idx, None]
+    reported = reported_intensity(returns.signal * sensor_constant(profile), returns.range_m, profile)
     base = cloud.fields.get("label")
-    base = np.zeros(len(cloud), np.uint8) if base is None else np.asarray(base)
-    label = np.where(moved, PointLabel.MOVED, np.where(added, PointLabel.ADDED, np.where(
-        attenuated, PointLabel.ATTENUATED, base))).astype(base.dtype)
+    label = np.zeros(len(cloud), np.uint8) if base is None else np.array(base, copy=True)
+    positions = np.empty_like(cloud.positions_m)
+    intensity = np.empty_like(intensity_in)
+    grid = cloud.grid_shape is not None
+    removed, kept, attenuated, moved, n_removed, added = _place_returns(
+        returns.kind, rays.has_target, returns.range_m, rays.range_m, reported, float(profile.intensity_full_scale),
+        bool(np.issubdtype(intensity_in.dtype, np.integer)), 0.5 * intensity_resolution(profile), grid,
+        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, label)
+    if added:
+        idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
+        positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
     fields = {**cloud.fields, "intensity": intensity, "label": label}
-    n_removed = int(np.count_nonzero(removed))
     if n_removed and grid:
-        fields = {k: (v if k == "ring" else np.where(removed, np.zeros((), v.dtype), v)) for k, v in fields.items()}
+        fields = {k: (v if k in ("ring", "intensity", "label") else np.where(removed, np.zeros((), v.dtype), v))
+                  for k, v in fields.items()}
     elif n_removed:
         keep = ~removed
         positions = positions[keep]
         fields = {k: np.asarray(v)[keep] for k, v in fields.items()}
     out = dataclasses.replace(cloud, positions_m=positions, fields=fields)
-    n_target = int(np.count_nonzero(kind == TARGET))
-    n_att = int(np.count_nonzero(attenuated))
-    counts = {"points_in": int(np.count_nonzero(has)), "kept": n_target - n_att, "attenuated": n_att,
-              "moved": int(np.count_nonzero(moved)), "removed": n_removed, "added": len(idx)}
+    counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
+              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold}
     return out, counts
 
 
@@ -524,6 +674,7 @@ def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
     """The identity result of a zero-strength weather model: same points, every label KEPT (label field added)."""
     label = cloud.fields.get("label")
     label = np.zeros(len(cloud), np.uint8) if label is None else np.array(label, copy=True)
-    counts = {"points_in": int(rays.has_target.sum()), "kept": int(rays.has_target.sum()), "attenuated": 0,
-              "moved": 0, "removed": 0, "added": 0}
+    n = int(rays.has_target.sum())
+    counts = {"points_in": n, "kept": n, "attenuated": 0, "moved": 0, "removed": 0, "added": 0,
+              "below_threshold_in": rays.below_threshold}
     return cloud.with_fields(label=label), counts

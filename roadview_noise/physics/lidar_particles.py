@@ -2,15 +2,16 @@
 
 Particles form a Poisson process along each beam with density ``n π w(r)²`` (n from the exponential DSD,
 ``w(r) = w0 + r θ/2`` the beam radius, θ the full divergence angle). A particle of diameter D at range r covers the
-beam fraction ``f = min(1, (D / 2w(r))²)`` and returns ``ρ f ξ(r) e^{−2αr} / r²`` full-scale units
-(:func:`lidar_link.particle_signal`).
+beam fraction ``f = min(1, (D / 2w(r))²)`` and returns ``K ρ f ξ(r) e^{−2αr} / r²`` (carried in units of the
+sensor constant K, :func:`lidar_link.particle_signal`).
 
 Only particles that can matter for detection are drawn: those whose return reaches half the detection threshold
 (``VISIBLE_FRACTION``). This is an exact thinning of the Poisson process — positions follow the cumulative visible
 density ``Λ(r) = ∫ π w² N(D ≥ D_c(r)) dr`` (a cached table) and diameters the truncated exponential above the
 visibility diameter ``D_c(r)`` — so a frame costs a few operations per *visible* particle instead of per particle
 (an empty 120 m ray at 20 mm/h holds ~10 drops of which ~0.2 are visible to an OS1-128). The statistical effect of
-the invisible remainder (their shadowing) is carried by the mean extinction α.
+the invisible remainder (their shadowing) is carried by the mean extinction α. Placing the particles on their rays is
+one compiled pass (:func:`_place`), as is the return selection (:func:`lidar_link.select_returns`).
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ class Beam:
 
 
 def visibility_diameter_mm(medium: ParticleMedium, beam: Beam, level: float, r_m) -> np.ndarray:
-    """Smallest diameter (mm) whose return at range r reaches ``level`` (full-scale units); inf where even a
+    """Smallest diameter (mm) whose return at range r reaches ``level`` (units of K); inf where even a
     beam-filling particle stays below it (and below the overlap range R1)."""
     r = np.asarray(r_m, dtype=float)
     full_beam = lidar_link.particle_signal(medium.reflectance, 1.0, r, medium.alpha_per_m)
@@ -72,7 +73,8 @@ def visibility_diameter_mm(medium: ParticleMedium, beam: Beam, level: float, r_m
 class VisibleTable:
     """Per-beam tables on the regular range grid ``r_k = R1 + k·step`` (cached per medium, beam and level):
     cumulative visible count Λ(r_k), the lower diameter bound ``max(Dmin, D_c(r_k))`` (mm) and the beam-filling
-    return ``ρ ξ e^{−2αr}/r²``; plus ``Λ⁻¹`` on a regular grid of Λ. Lookups interpolate linearly."""
+    return ``ρ ξ e^{−2αr}/r²`` (units of K); plus ``Λ⁻¹`` on a regular grid of Λ (step ``inv_step``). Lookups
+    (:func:`_expected_counts`, :func:`_place`) interpolate linearly, clamped to the tables."""
 
     step_m: float
     cum: np.ndarray
@@ -80,23 +82,6 @@ class VisibleTable:
     full_beam: np.ndarray
     inv_step: float
     inv_range_m: np.ndarray
-
-    def position(self, r_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Grid cell and fraction of each range (clamped to the table)."""
-        x = np.clip((r_m - lidar_link.OVERLAP_R1_M) * (1.0 / self.step_m), 0.0, len(self.cum) - 1.000001)
-        k = x.astype(np.intp)
-        return k, x - k
-
-    @staticmethod
-    def lerp(table: np.ndarray, k: np.ndarray, frac: np.ndarray) -> np.ndarray:
-        lo = table[k]
-        return lo + (table[k + 1] - lo) * frac
-
-    def inverse(self, count: np.ndarray) -> np.ndarray:
-        """Range r with Λ(r) = count."""
-        x = np.minimum(count * (1.0 / self.inv_step), len(self.inv_range_m) - 1.000001)
-        k = x.astype(np.intp)
-        return self.lerp(self.inv_range_m, k, x - k)
 
 
 @lru_cache(maxsize=16)
@@ -127,15 +112,86 @@ class Particles:
     beam_fraction: np.ndarray
     signal: np.ndarray
 
-    def shadow(self, n_rays: int) -> np.ndarray:
-        """Per ray, the beam fraction occluded by its particles ``min(1, Σ f)``."""
-        return np.minimum(1.0, np.bincount(self.ray, weights=self.beam_fraction, minlength=n_rays))
+
+@lidar_link.compiled
+def _expected_counts(ray_range_m, r0_m, step_m, cum):      # pragma: no cover - compiled
+    """Cumulative sum over the rays of their expected visible particles ``Λ(R_i)`` (the table ``cum`` on the grid
+    ``r0 + k·step`` interpolated linearly; Λ = 0 up to R1 and constant beyond the table)."""
+    n = len(ray_range_m)
+    last = len(cum) - 1
+    r_end = r0_m + last * step_m
+    out = np.empty(n)
+    total = 0.0
+    for i in range(n):
+        if ray_range_m[i] >= r_end:
+            total += cum[last]
+        else:
+            x = min(max((ray_range_m[i] - r0_m) / step_m, 0.0), last - 0.000001)
+            k = int(x)
+            total += cum[k] + (cum[k + 1] - cum[k]) * (x - k)
+        out[i] = total
+    return out
 
 
-def _interval_of(edges: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """``searchsorted(edges, u, 'right')`` for sorted ``u``, as one linear merge (stable sort of two sorted runs)."""
-    order = np.argsort(np.concatenate([u, edges]), kind="stable")
-    return np.flatnonzero(order < len(u)) - np.arange(len(u))
+@lidar_link.compiled
+def _place(spacing, exp_d, cum_ray, ray_range_m, inv_range_m, inv_step, r0_m, step_m, d_low_mm, full_beam,
+           lam_per_mm, d_max_mm, w0_m, half_divergence_rad):      # pragma: no cover - compiled
+    """The particles of :func:`sample_particles` from their random draws, in one merge walk over rays and particles.
+
+    Particle i sits at ``u_i = (e_1 + … + e_i) · Λ_tot / (e_1 + … + e_{n+1})`` (``spacing``: the n + 1 exponentials)
+    on the concatenated per-ray intervals ``[0, Λ(R_k))`` (``cum_ray``: their ends): ray k, range
+    ``Λ⁻¹(u_i − start of ray k)`` (at most R_k); from the tables at that range (linear interpolation, clamped) its
+    diameter ``max(Dmin, D_c(r)) + exp_d_i / Λ``, beam fraction ``min(1, (D / 2w(r))²)`` and signal (units of K).
+    Returns ray, range, diameter, beam fraction, signal, and the indices of the diameters above Dmax, which are left
+    at their lower bound with the beam-filling return as signal for the caller to redraw."""
+    n = len(exp_d)
+    ray = np.empty(n, np.intp)
+    r = np.empty(n)
+    d = np.empty(n)
+    f = np.empty(n)
+    signal = np.empty(n)
+    over = np.empty(n, np.intp)
+    n_over = 0
+    acc = 0.0
+    for i in range(n):
+        acc += spacing[i]
+    scale = cum_ray[len(cum_ray) - 1] / (acc + spacing[n])
+    last_inv = len(inv_range_m) - 1
+    last = len(d_low_mm) - 1
+    per_count = 1.0 / inv_step
+    per_m = 1.0 / step_m
+    mean_d = 1.0 / lam_per_mm
+    acc = 0.0
+    start = 0.0
+    k = 0
+    for i in range(n):
+        acc += spacing[i]
+        u = acc * scale
+        while cum_ray[k] <= u:
+            start = cum_ray[k]
+            k += 1
+        x = min((u - start) * per_count, last_inv - 0.000001)
+        j = int(x)
+        ri = min(inv_range_m[j] + (inv_range_m[j + 1] - inv_range_m[j]) * (x - j), ray_range_m[k])
+        x = min(max((ri - r0_m) * per_m, 0.0), last - 0.000001)
+        j = int(x)
+        d_low = d_low_mm[j] + (d_low_mm[j + 1] - d_low_mm[j]) * (x - j)
+        full = full_beam[j] + (full_beam[j + 1] - full_beam[j]) * (x - j)
+        di = d_low + exp_d[i] * mean_d
+        ray[i] = k
+        r[i] = ri
+        if di > d_max_mm:
+            over[n_over] = i
+            n_over += 1
+            d[i] = d_low
+            f[i] = 0.0
+            signal[i] = full
+        else:
+            fi = min(1.0, (di * 0.5e-3 / (w0_m + ri * half_divergence_rad)) ** 2)
+            d[i] = di
+            f[i] = fi
+            signal[i] = full * fi
+    return ray, r, d, f, signal, over[:n_over]
 
 
 def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: ParticleMedium, beam: Beam,
@@ -144,35 +200,29 @@ def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: 
 
     One Poisson draw gives the frame's total; sorted uniform order statistics (normalised exponential spacings) on
     the concatenated per-ray intervals ``[0, Λ(R_i))`` give each particle its ray and, through ``Λ⁻¹``, its range —
-    already sorted by ray and range. Diameters: ``max(Dmin, D_c(r))`` plus an exponential of rate Λ (memorylessness);
-    the few above Dmax are redrawn by inverse CDF of the truncated exponential, which keeps the law exact."""
+    already sorted by ray and range (:func:`_place`). Diameters: ``max(Dmin, D_c(r))`` plus an exponential of rate Λ
+    (memorylessness); the few above Dmax are redrawn by inverse CDF of the truncated exponential, which keeps the law
+    exact."""
     table = visible_table(medium, beam, VISIBLE_FRACTION * threshold)
-    r_end = lidar_link.OVERLAP_R1_M + (len(table.cum) - 1) * table.step_m
-    lam_ray = np.full(len(ray_range_m), table.cum[-1])       # Λ is constant beyond the table, 0 up to R1
-    short = np.flatnonzero(ray_range_m < r_end)
-    k, frac = table.position(ray_range_m[short])
-    lam_ray[short] = table.lerp(table.cum, k, frac)
-    cum_ray = np.cumsum(lam_ray)
+    ranges = np.ascontiguousarray(ray_range_m, dtype=np.float64)
+    cum_ray = _expected_counts(ranges, lidar_link.OVERLAP_R1_M, table.step_m, table.cum)
     total = float(cum_ray[-1]) if len(cum_ray) else 0.0
     n = int(rng.poisson(total)) if total > 0 else 0
     if n == 0:
         empty = np.zeros(0)
         return Particles(np.zeros(0, dtype=np.intp), empty, empty, empty, empty)
     spacing = rng.standard_exponential(n + 1)
-    u = np.cumsum(spacing[:n])
-    u *= total / (u[-1] + spacing[n])
-    ray = _interval_of(cum_ray, u)
-    r = np.minimum(table.inverse(u - (cum_ray[ray] - lam_ray[ray])), ray_range_m[ray])
-    k, frac = table.position(r)
-    d_low = table.lerp(table.d_low_mm, k, frac)
-    d = d_low + rng.standard_exponential(n) / medium.lam_per_mm
-    over = np.flatnonzero(d > medium.d_max_mm)           # rare: redraw those from the truncated law (inverse CDF)
-    span = -np.expm1(-medium.lam_per_mm * (medium.d_max_mm - d_low[over]))
-    d[over] = d_low[over] - np.log1p(-rng.random(len(over)) * span) / medium.lam_per_mm
-    f = d * (0.5e-3 / beam.radius_at(r))
-    f *= f
-    np.minimum(f, 1.0, out=f)
-    return Particles(ray, r, d, f, table.lerp(table.full_beam, k, frac) * f)
+    exp_d = rng.standard_exponential(n)
+    ray, r, d, f, signal, over = _place(spacing, exp_d, cum_ray, ranges, table.inv_range_m, table.inv_step,
+                                        lidar_link.OVERLAP_R1_M, table.step_m, table.d_low_mm, table.full_beam,
+                                        medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
+    if len(over):                                     # rare: redraw from the truncated law (inverse CDF)
+        d_low = d[over]
+        span = -np.expm1(-medium.lam_per_mm * (medium.d_max_mm - d_low))
+        d[over] = d_low - np.log1p(-rng.random(len(over)) * span) / medium.lam_per_mm
+        f[over] = np.minimum(1.0, (d[over] * (0.5e-3 / beam.radius_at(r[over]))) ** 2)
+        signal[over] *= f[over]
+    return Particles(ray, r, d, f, signal)
 
 
 def precipitation_returns(rng: np.random.Generator, rays: lidar_link.Rays, medium: ParticleMedium, tau_h_s: float,
@@ -184,10 +234,8 @@ def precipitation_returns(rng: np.random.Generator, rays: lidar_link.Rays, mediu
     beam = Beam(profile.beam_radius_m, profile.beam_divergence_rad)
     particles = sample_particles(rng, rays.range_m, medium, beam, rays.threshold)
     target = lidar_link.hard_target_signal(rays.signal, medium.alpha_per_m, rays.range_m)
-    if len(particles.ray):
-        target = target * (1.0 - particles.shadow(len(rays.range_m)))
     returns = lidar_link.select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m, target,
-                                        rays.has_target, tau_h_s, rays.threshold, mode)
+                                        rays.has_target, tau_h_s, rays.threshold, mode, particles.beam_fraction)
     return returns, len(particles.ray)
 
 

@@ -1,10 +1,12 @@
 """LiDAR sensor profiles (models.md §3.0) and ring (beam index) recovery.
 
-Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, default for the D3.5 CNFs), ``vls-128``
-(Velodyne per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and
-``kitti-hdl64`` (uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Files: an Ouster metadata
-JSON (``beam_altitude_angles``), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML
-profile.
+Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal`` photons, default for the D3.5
+CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
+per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and ``kitti-hdl64``
+(uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Each states its intensity kind, sensor constant K
+and detection threshold (signal units) with their source (``lidar_link`` converts every intensity to the received
+signal). Files: an Ouster metadata JSON (``beam_altitude_angles``), a per-laser CSV
+(``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML profile.
 """
 
 from __future__ import annotations
@@ -22,6 +24,11 @@ from ..errors import InputError
 from ..types import IntensityUnit, LidarProfile
 
 _DATA = Path(__file__).with_name("data")
+OS1_SENSOR_CONSTANT = 65535.0           # photons·m²: signal of a ρ = 1 target at 1 m (see os1_128)
+OS1_DETECTION_THRESHOLD = 3.28          # photons
+OUSTER_WHITE_REFLECTIVITY = 100.0       # calibrated-reflectivity reading of a diffuse white target (Ouster)
+VLS128_WHITE_REFLECTIVITY = 110.0       # idem, Velodyne VLS-128 (user manual §6.1)
+HDL64_DETECTION_THRESHOLD = 0.1 / 50.0 ** 2
 
 
 def _table(name: str) -> dict:
@@ -29,30 +36,53 @@ def _table(name: str) -> dict:
 
 
 def os1_128() -> LidarProfile:
-    """Ouster OS1-128: 865 nm, 2048 columns, 120 m, signal in photon counts (16-bit); real beam table.
+    """Ouster OS1-128: 865 nm, 2048 columns, 120 m, ``signal`` channel in photons (16-bit); real beam table.
 
     Beam: radius 4.75 mm at the window (D3.4 reference), full divergence 0.18° FWHM (Ouster OS1 datasheet, 128-channel
-    models); without it weather particles far from the sensor would cover the beam 10–100× too much. Detection
-    threshold 3.28 photons (5·10⁻⁵ of full scale, the D3.4 rain value): with the weather models' sensor constant
-    K = full scale·m² (``I = K ρ / R²``) it puts the 10 % / 80 % Lambertian range limits at 45 m / 126 m (datasheet:
-    40 m / 120 m); the D3.4 fog value 2.42 would give 52 m / 147 m."""
+    models); without it weather particles far from the sensor would cover the beam 10–100× too much.
+    Intensity scale: received signal ``S = K ρ cos θ / R²`` with K = 65535 photons·m² (a white target at 1 m fills the
+    16-bit signal) and detection threshold 3.28 photons (5·10⁻⁵ of full scale, the D3.4 rain value): a 10 % / 80 %
+    Lambertian target is detected to ``sqrt(K ρ / thr)`` = 45 m / 126 m (OS1-128 datasheet: 40–45 m / 120 m); the
+    D3.4 fog value 2.42 would give 52 m / 147 m."""
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,
         wavelength_m=865e-9, beam_radius_m=4.75e-3, beam_divergence_rad=np.deg2rad(0.18),
         pulse_half_power_width_s=10e-9, max_range_m=120.0,
-        intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, detection_threshold=3.28,
+        intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, intensity_kind="signal",
+        sensor_constant=OS1_SENSOR_CONSTANT, detection_threshold=OS1_DETECTION_THRESHOLD,
         beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static")
 
 
+def os1_128_reflectivity() -> LidarProfile:
+    """The same OS1-128 storing its calibrated ``reflectivity`` channel (8-bit, range-compensated), as real Ouster
+    recordings often do (e.g. the low-bandwidth RNG15_RFL8_NIR8 profile).
+
+    Same sensor as :func:`os1_128`: signal unit photons, detection threshold 3.28 photons. Ouster's calibrated
+    reflectivity reads a diffuse white (ρ = 1) target as 100 (retro-reflectors 101–255), so full scale 255 is read from
+    a target returning 2.55 times the white signal: ``S = (I / 255) · K / R²`` with K = 2.55 × 65535 photons·m².
+    The weather particles use the same K as their ρ = 1 constant, i.e. they come out 2.55× too bright relative to the
+    threshold until the profile can state the white reading separately (requested field, see the types docs)."""
+    return dataclasses.replace(os1_128(), name="os1-128-reflectivity", intensity_unit=IntensityUnit.UINT8,
+                               intensity_full_scale=255.0, intensity_kind="reflectivity",
+                               sensor_constant=OS1_SENSOR_CONSTANT * 255.0 / OUSTER_WHITE_REFLECTIVITY)
+
+
 def vls_128() -> LidarProfile:
-    """Velodyne VLS-128 (Alpha Prime): 903 nm, 1800 columns (0.2°), 245 m, 8-bit intensity, rotating head."""
+    """Velodyne VLS-128 (Alpha Prime): 903 nm, 1800 columns (0.2°), 245 m, calibrated 8-bit reflectivity
+    (range-compensated), rotating head.
+
+    Intensity scale: signal in units of the detection threshold (1); K chosen for the datasheet range 245 m at high
+    (80 %) reflectivity: a ρ = 0.8 target returns the threshold at 245 m, ``K_ρ=1 = 245² / 0.8`` (10 % then reaches
+    87 m). The VLS-128 reads diffuse white as 110 (manual §6.1: diffuse 0–110 for 0–100 %, retro-reflectors 111–255),
+    so K, the signal of a full-scale reading, is ``255/110 · K_ρ=1``."""
     t = _table("vls_128.yaml")
     return LidarProfile(
         "vls-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=1800,
         wavelength_m=903e-9, beam_radius_m=6.0e-3, beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9,
-        max_range_m=245.0, intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0, detection_threshold=1.0,
-        window="rotating")
+        max_range_m=245.0, intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0,
+        intensity_kind="reflectivity", sensor_constant=245.0 ** 2 / 0.8 * 255.0 / VLS128_WHITE_REFLECTIVITY,
+        detection_threshold=1.0, window="rotating")
 
 
 def uniform(name: str, channels: int, fov_up_deg: float, fov_down_deg: float, **kw) -> LidarProfile:
@@ -62,20 +92,27 @@ def uniform(name: str, channels: int, fov_up_deg: float, fov_down_deg: float, **
 
 
 def carla_64() -> LidarProfile:
-    """CARLA ray-cast LiDAR: 64 uniform channels +2°…−24.8°, intensity in [0, 1]."""
+    """CARLA ray-cast LiDAR: 64 uniform channels +2°…−24.8°, intensity in [0, 1] read as reflectivity
+    (range-compensated, K = 1: a ρ = 1 target reads 1). CARLA's intensity is ``e^{−0.004 d}`` (≥ 0.67 within its
+    100 m), so with the threshold of :func:`kitti_hdl64` every CARLA return is detectable."""
     return uniform("carla-64", 64, 2.0, -24.8, columns=2048, wavelength_m=905e-9, max_range_m=100.0,
-                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, detection_threshold=0.005)
+                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, intensity_kind="reflectivity",
+                   sensor_constant=1.0, detection_threshold=HDL64_DETECTION_THRESHOLD)
 
 
 def kitti_hdl64() -> LidarProfile:
-    """KITTI HDL-64E, uniform approximation (+2°…−24.8°), 905 nm, reflectance-like intensity in [0, 1]."""
+    """KITTI HDL-64E, uniform approximation (+2°…−24.8°), 905 nm, reflectance in [0, 1] (range-compensated, K = 1).
+
+    Detection threshold ``0.1 / (50 m)²`` (units of K/m²): HDL-64E S2 datasheet range 50 m on pavement (≈ 10 %); 80 %
+    then reaches 141 m (datasheet: 120 m for cars and foliage)."""
     return uniform("kitti-hdl64", 64, 2.0, -24.8, columns=2083, wavelength_m=905e-9, beam_radius_m=5e-3,
                    beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9, max_range_m=120.0,
-                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, detection_threshold=0.005,
-                   window="rotating")
+                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, intensity_kind="reflectivity",
+                   sensor_constant=1.0, detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating")
 
 
-BUILTIN = {"os1-128": os1_128, "vls-128": vls_128, "carla-64": carla_64, "kitti-hdl64": kitti_hdl64}
+BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
+           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64}
 
 
 def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:

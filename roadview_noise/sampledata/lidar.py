@@ -9,9 +9,13 @@ table shares once its clockwise-from-forward azimuths are expressed in this fram
 instantaneous, i.e. motion-compensated, scan); ``time_s`` is the nominal firing time of the column within a 0.1 s
 revolution.
 
-Intensity: the Lambertian LiDAR equation ``I = K ρ cos θ / R²`` (§3.1, sensor-constant form) in the profile's unit,
-rounded for count units, clipped to full scale; returns below the detection threshold or beyond max range are
-no-returns.
+Intensity: the Lambertian LiDAR equation, received signal ``S = K ρ cos θ / R²`` (§3.1) with the profile's sensor
+constant K, stored as the profile's intensity kind (:func:`lidar_link.reported_intensity`: OS1 ``signal`` photons
+``I = S``; VLS range-compensated 8-bit reflectivity ``I = 255 · S R² / K = 255 ρ cos θ``), rounded for count units,
+clipped to full scale. Returns whose stored intensity reads below the detection threshold (:func:`received_signal`)
+or beyond max range are no-returns, so every stored point is detectable under its own profile. K is taken as the
+signal of a ρ = 1 surface, so the sample VLS reads ρ × 255 (a real VLS-128 reads diffuse white as 110; its profile's
+K is the signal of a full-scale reading).
 """
 
 from __future__ import annotations
@@ -21,13 +25,14 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..physics.lidar_link import received_signal, reported_intensity, sensor_constant
+from ..profiles.lidar import os1_128, vls_128
 from ..types import IntensityUnit, LidarProfile, PointCloud
 from .scene import Snapshot, surface_properties
 
 REVOLUTION_S = 0.1
-#: K of ``I = K ρ cos θ / R²`` (intensity unit · m²): OS1 ρ = 0.5 at 10 m → 500 photons, at 50 m → 20;
-#: VLS ρ = 0.8 at 10 m → 100 (8-bit); unit scale ρ = 1 at 10 m → 1.
-LIDAR_EQUATION_K = {IntensityUnit.PHOTONS: 1.0e5, IntensityUnit.UINT8: 1.25e4, IntensityUnit.UNIT: 100.0}
+#: sensor constant K (signal units · m²) of the two rendered sensors by intensity unit, for the README table
+LIDAR_EQUATION_K = {p.intensity_unit: sensor_constant(p) for p in (os1_128(), vls_128())}
 
 
 @lru_cache(maxsize=8)
@@ -71,11 +76,11 @@ def scan(snapshot: Snapshot, profile: LidarProfile, sensor_origin_m: np.ndarray)
     _, rho = surface_properties(sensor_origin_m + p_local, hits)
     cos_inc = np.abs(np.sum(hits.normal * d.reshape(-1, 3), axis=-1))
     r = np.where(ok, rng_m, 1.0)
-    intensity = LIDAR_EQUATION_K[profile.intensity_unit] * rho * cos_inc / r**2
+    intensity = reported_intensity(sensor_constant(profile) * rho * cos_inc / r**2, r, profile)
     if profile.intensity_unit != IntensityUnit.UNIT:
         intensity = np.rint(intensity)
     intensity = np.minimum(intensity, profile.intensity_full_scale)
-    ok &= intensity >= profile.detection_threshold
+    ok &= received_signal(intensity, r, profile) >= profile.detection_threshold
     positions = np.where(ok[:, None], p_local, 0.0).reshape(*shape, 3)
     return Scan(positions, np.where(ok, intensity, 0.0).reshape(shape), ok.reshape(shape), t_col, profile)
 

@@ -1,5 +1,6 @@
-"""fog.lidar, rain.lidar, snow.lidar (models.md §3.1–§3.4): oracles, unit invariance, identity, determinism,
-monotonicity, full range images with no-return cells, and the real OS1-128 scan."""
+"""fog.lidar, rain.lidar, snow.lidar (models.md §3.1–§3.4): oracles, one intensity scale (photons, 8-bit and [0, 1]
+reflectivity give the same decisions), labels, identity, determinism, monotonicity, full range images with no-return
+cells, and the real OS1-128 scan."""
 
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ from roadview_noise.model import Stage
 from roadview_noise.models.lidar.fog import FogLidar
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.models.lidar.snow import SnowLidar
-from roadview_noise.profiles.lidar import kitti_hdl64, os1_128
+from roadview_noise.physics.lidar_link import reported_intensity, sensor_constant
+from roadview_noise.profiles.lidar import kitti_hdl64, os1_128, os1_128_reflectivity
 from roadview_noise.registry import load_all
 from roadview_noise.types import PointCloud, PointLabel
 
@@ -88,14 +90,33 @@ def test_cnf_chains_name_these_models(cnf):
     assert chain[1] in WEATHER and chain[0] in ("alignment.lidar", "power.lidar")
 
 
-# --- fog oracle: surviving range of a hard target -----------------------------------------------------------------
+# --- fog oracles ----------------------------------------------------------------------------------------------------
+
+C = 299_792_458.0
+
+
+def fog_peak_direct(alpha: float, beta: float, tau_h: float, k: float) -> tuple[float, float]:
+    """Peak of K π β ∫_0^{2τ} sin²(πt/2τ) ξ(r_t) e^{−2α r_t}/r_t² (c dt/2) over the apparent range R of an empty ray
+    (r_t = R + cτ/2 − ct/2 with Hahner's shift), by the trapezoid rule in t — independent of the model's table."""
+    t = np.linspace(0, 2 * tau_h, 2001)
+    best = (0.0, 0.0)
+    for big_r in np.arange(0.5, 6.0, 0.002):
+        r = big_r + C * tau_h / 2 - C * t / 2
+        xi = np.clip((r - 0.9) / 0.1, 0, 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = np.where(r > 0.9, xi * np.exp(-2 * alpha * r) / r ** 2, 0.0)
+        s = k * math.pi * beta * np.trapezoid(np.sin(np.pi * t / (2 * tau_h)) ** 2 * f, t) * C / 2
+        if s > best[0]:
+            best = (s, big_r)
+    return best
 
 
 def test_fog_surviving_range_of_hard_targets():
     """I = 100 photons, threshold 2.42 photons, V = 30 m: targets survive (in place) up to ln(I/I_thr)/(2α) = 18.6 m,
-    beyond that they are removed or replaced by fog (models.md §3.2)."""
+    beyond that they are removed or replaced by fog (models.md §3.2). Hahner's per-point fog scale, whose fog return is
+    too weak to compete with the targets in front of R_max."""
     ranges = np.arange(2.0, 60.0, 0.1)
-    out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 100.0, grid=True))
+    out, diag = run(FogLidar(visibility_m=30.0, fog_scale="hahner"), cloud_at(ranges, 100.0, grid=True))
     alpha = math.log(20) / 30
     r_max = math.log(100 / 2.42) / (2 * alpha)
     assert r_max == pytest.approx(18.6, abs=0.05)
@@ -109,6 +130,38 @@ def test_fog_surviving_range_of_hard_targets():
     moved = out.fields["label"] == PointLabel.MOVED
     assert moved.any() and np.all(out.ranges_m[moved] < 2.0)
     assert diag["removed"] + diag["moved"] + diag["attenuated"] == len(ranges)
+
+
+def test_fog_sensor_constant_replaces_targets_beyond_the_crossover():
+    """Default fog (sensor constant K = 65535 photons·m², τ_H = 10 ns), V = 30 m: every ray returns the fog's peak
+    S_fog ≈ 130 photons at ≈ 1.4 m, so a 10⁴-photon target stays in place (attenuated) while S e^{−2αR} ≥ S_fog,
+    i.e. up to R* = ln(S/S_fog)/(2α) ≈ 22 m, and is replaced by the fog beyond; nothing is removed."""
+    prof = dataclasses.replace(PHOTONS, detection_threshold=3.28)
+    ranges = np.arange(4.5, 60.0, 0.1)
+    out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 1e4, prof, grid=True))
+    alpha, beta = math.log(20) / 30, 0.046 / 30
+    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0)
+    assert 100 < s_fog < 160 and 1.0 < fog_range < 2.0
+    r_star = math.log(1e4 / s_fog) / (2 * alpha)
+    kept = target_kept(out)
+    assert np.all(kept[ranges < r_star - 0.05]) and not np.any(kept[ranges > r_star + 0.05])
+    moved = out.fields["label"] == PointLabel.MOVED
+    assert np.all(moved == ~kept) and diag["removed"] == 0
+    np.testing.assert_allclose(out.ranges_m[moved], fog_range, atol=0.02)
+    np.testing.assert_allclose(out.fields["intensity"][moved], s_fog, rtol=5e-3)
+
+
+def test_fog_return_in_a_range_compensated_file_is_range_compensated():
+    """The same fog in a reflectivity file reads ``FS · S_fog r² / K`` at its apparent range r."""
+    prof = dataclasses.replace(os1_128_reflectivity(), detection_threshold=3.28)
+    ranges = np.arange(25.0, 60.0, 0.5)
+    out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 50.0, prof, grid=True))
+    alpha, beta = math.log(20) / 30, 0.046 / 30
+    k = sensor_constant(prof)
+    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, k)
+    moved = out.fields["label"] == PointLabel.MOVED
+    assert moved.all()
+    np.testing.assert_allclose(out.fields["intensity"], 255.0 * s_fog * fog_range ** 2 / k, rtol=1e-2)
 
 
 def test_fog_moved_points_stay_on_their_ray():
@@ -125,43 +178,101 @@ def test_fog_moved_points_stay_on_their_ray():
     assert np.all(out.ranges_m[moved] < cloud.ranges_m[src])
 
 
-# --- the units: photons, 8-bit and [0, 1] give the same decisions -------------------------------------------------
+# --- one intensity scale: photons, 8-bit and [0, 1] reflectivity give the same decisions ----------------------------
+
+#: the PHOTONS sensor (K = 65535 photons·m², threshold 2.42 photons) storing range-compensated reflectivity, in 8-bit
+#: (with an arbitrary signal unit: K = 1000) and in [0, 1] (K = 1): same threshold relative to K
+REFL_UINT8 = dataclasses.replace(PHOTONS, name="refl-8bit", intensity_unit="uint8", intensity_full_scale=255.0,
+                                 intensity_kind="reflectivity", sensor_constant=1000.0,
+                                 detection_threshold=2.42 * 1000.0 / 65535)
+REFL_UNIT = dataclasses.replace(PHOTONS, name="refl-unit", intensity_unit="unit", intensity_full_scale=1.0,
+                                intensity_kind="reflectivity", sensor_constant=1.0, detection_threshold=2.42 / 65535)
 
 
-def _scaled(cloud: PointCloud, unit: str, full_scale: float) -> PointCloud:
-    k = full_scale / PHOTONS.intensity_full_scale
-    prof = dataclasses.replace(PHOTONS, intensity_unit=unit, intensity_full_scale=full_scale,
-                               detection_threshold=PHOTONS.detection_threshold * k)
-    return dataclasses.replace(cloud, profile=prof, fields={"intensity": cloud.fields["intensity"] * k})
+def lambertian_scene(n=3000, seed=4) -> tuple[np.ndarray, np.ndarray]:
+    """Targets 1–100 m of reflectance 0.02–1 (normal incidence), all detectable in clear air."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(1.0, 100.0, 3 * n)
+    rho = rng.uniform(0.02, 1.0, 3 * n)
+    ok = rho / r ** 2 >= 1.5 * 2.42 / 65535
+    return r[ok][:n], rho[ok][:n]
+
+
+def scene_cloud(r, rho, profile, seed=4) -> PointCloud:
+    """The scene as the profile stores it: received signal ``K ρ / r²`` through the profile's intensity kind."""
+    intensity = reported_intensity(sensor_constant(profile) * rho / r ** 2, r, profile)
+    return cloud_at(r, np.minimum(intensity, profile.intensity_full_scale), profile, seed)
 
 
 @pytest.mark.parametrize("model_id", sorted(WEATHER))
-def test_same_decisions_in_photons_uint8_and_unit_intensities(model_id):
-    photons = street(3000, seed=4)
-    outs = [run(HEAVY[model_id], c, seed=9)[0] for c in
-            (photons, _scaled(photons, "uint8", 255.0), _scaled(photons, "unit", 1.0))]
-    labels = [o.fields["label"] for o in outs]
+def test_same_decisions_for_photons_8bit_and_unit_reflectivity(model_id):
+    r, rho = lambertian_scene()
+    clouds = [scene_cloud(r, rho, p) for p in (PHOTONS, REFL_UINT8, REFL_UNIT)]
+    assert clouds[1].fields["intensity"].max() > 1.5 and clouds[2].fields["intensity"].max() <= 1.0
+    outs = [run(HEAVY[model_id], c, seed=9)[0] for c in clouds]
     assert len(outs[0]) == len(outs[1]) == len(outs[2])
-    np.testing.assert_array_equal(labels[0], labels[1])
-    np.testing.assert_array_equal(labels[0], labels[2])
-    np.testing.assert_allclose(outs[0].positions_m, outs[1].positions_m, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(outs[0].positions_m, outs[2].positions_m, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(outs[1].fields["intensity"], outs[0].fields["intensity"] * 255 / 65535, rtol=1e-9)
-    assert 0 < np.mean(target_kept(outs[0])) < 1          # the scene is neither untouched nor wiped out
+    in_place = [target_kept(o) for o in outs]
+    moved = [o.fields["label"] == PointLabel.MOVED for o in outs]
+    for k in (1, 2):
+        np.testing.assert_array_equal(in_place[k], in_place[0])
+        np.testing.assert_array_equal(moved[k], moved[0])
+        np.testing.assert_allclose(outs[k].positions_m, outs[0].positions_m, rtol=1e-9, atol=1e-9)
+    # intensities: the same received signal, stored by each profile at the output range
+    s_over_k = outs[0].fields["intensity"] / 65535
+    r_out = outs[0].ranges_m
+    fine = outs[0].fields["intensity"] < 65535
+    np.testing.assert_allclose(outs[1].fields["intensity"][fine], (255 * s_over_k * r_out ** 2)[fine], rtol=1e-9)
+    np.testing.assert_allclose(outs[2].fields["intensity"][fine], (s_over_k * r_out ** 2)[fine], rtol=1e-9)
+    assert 0 < np.mean(in_place[0]) < 1 and moved[0].any()      # the scene is neither untouched nor wiped out
 
 
 def test_a_unit_scale_cloud_is_not_turned_into_fog():
     """The classic peer failure: a [0, 1] cloud read with photon thresholds. Refused with a clear message, and with
     the right profile the same scene keeps the same points as in photons."""
-    unit = _scaled(street(1000, seed=5), "unit", 1.0)
-    wrong = dataclasses.replace(unit, profile=PHOTONS)
+    r, rho = lambertian_scene(1000, seed=5)
+    unit = scene_cloud(r, rho, REFL_UNIT, seed=5)
     with pytest.raises(ModelError, match="intensity_unit 'unit'"):
-        run(FogLidar(), wrong)
+        run(FogLidar(), dataclasses.replace(unit, profile=PHOTONS))
     too_big = dataclasses.replace(street(200), profile=kitti_hdl64())
     with pytest.raises(ModelError, match="full scale"):
         run(RainLidar(), too_big)
-    out, diag = run(FogLidar(), unit)
-    assert diag["moved"] < 0.5 * len(unit) and diag["attenuated"] > 0
+    out, diag = run(FogLidar(visibility_m=100.0), unit)
+    ref, ref_diag = run(FogLidar(visibility_m=100.0), scene_cloud(r, rho, PHOTONS, seed=5))
+    assert 0 < diag["moved"] == ref_diag["moved"] < len(unit) and diag["removed"] == ref_diag["removed"]
+    np.testing.assert_array_equal(target_kept(out), target_kept(ref))
+
+
+# --- labels at the file's resolution --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("profile, value, dtype", [(PHOTONS, 100.0, np.float32), (REFL_UNIT, 0.5, np.float32),
+                                                   (PHOTONS, 100.0, np.uint16)], ids=["photons", "unit", "uint16"])
+def test_changes_below_the_file_resolution_are_kept(profile, value, dtype):
+    """Light fog (V = 3 km, α = 1.0e-3 m⁻¹): a target whose stored intensity changes by less than half a step of the
+    file's resolution (0.5 photon; 1/510 of a [0, 1] scale) keeps the label KEPT, a larger change is ATTENUATED:
+    the boundary is R = −ln(1 − step/2 / I) / (2α)."""
+    ranges = np.linspace(1.0, 10.0, 901)
+    cloud = cloud_at(ranges, value, profile, grid=True)
+    if profile.intensity_kind == "reflectivity":              # a constant reflectivity reading
+        cloud = cloud.with_fields(intensity=np.full(len(ranges), value, dtype))
+    else:
+        cloud = cloud.with_fields(intensity=cloud.fields["intensity"].astype(dtype))
+    out, diag = run(FogLidar(visibility_m=3000.0), cloud)
+    alpha = math.log(20) / 3000
+    step = 1.0 if profile.intensity_unit == "photons" else 1 / 255
+    boundary = -math.log(1 - step / 2 / value) / (2 * alpha)
+    label = out.fields["label"]
+    assert diag["moved"] == diag["removed"] == 0
+    near = np.abs(ranges - boundary) < 0.02
+    assert np.all(label[(ranges < boundary) & ~near] == PointLabel.KEPT)
+    assert np.all(label[(ranges > boundary) & ~near] == PointLabel.ATTENUATED)
+    assert diag["kept"] == np.count_nonzero(label == PointLabel.KEPT)
+    if np.issubdtype(dtype, np.floating):                     # the sub-step attenuation is still written
+        kept = label == PointLabel.KEPT
+        np.testing.assert_allclose(out.fields["intensity"][kept], value * np.exp(-2 * alpha * ranges[kept]),
+                                   rtol=1e-6)
+    else:
+        assert np.all(out.fields["intensity"][label == PointLabel.KEPT] == value)
 
 
 # --- identity, determinism, labels, diagnostics --------------------------------------------------------------------
@@ -298,9 +409,8 @@ def test_fog_on_empty_rays_uses_the_saturated_table():
 # --- the real OS1-128 scan -------------------------------------------------------------------------------------------
 
 
-# the scan's 4th column is 8-bit reflectivity: 8-bit unit, threshold of one count as the vls-128 profile
-REFLECTIVITY = dataclasses.replace(os1_128(), name="os1-128-reflectivity", columns=1024, intensity_unit="uint8",
-                                   intensity_full_scale=255.0, detection_threshold=1.0)
+# the scan's 4th column is the OS1's calibrated 8-bit reflectivity (1024 columns per revolution)
+REFLECTIVITY = dataclasses.replace(os1_128_reflectivity(), columns=1024)
 
 
 def real_scan(shared_data) -> PointCloud:

@@ -25,19 +25,26 @@ def fog_coefficients(visibility_m: float, backscatter_times_visibility_per_sr: f
 class FogLidar(Model):
     """Homogeneous fog on a LiDAR scan: Hahner et al. 2021 on the shared LiDAR-equation core (models.md §3.1–§3.2).
 
-    - Hard target at R: ``I_hard = I e^{−2αR}``, α = ln 20 / MOR.
-    - Soft target (fog in front of it): ``I_fog = G_max(R) · I R² β/β0`` at the apparent range of the peak, where
-      ``G_max`` is the cached pulse-integral table (s m⁻², :func:`lidar_link.soft_target_table`), β = 0.046/MOR and
-      ``β0 = γ/π`` with γ = 10⁻⁶ — Hahner's calibration, which treats every clear point as the same effective
-      reflector and pairs with G in seconds (a sensor-constant form, ``K π β (c/2) G``, would be ~150× stronger
-      with this sharp R1/R2 overlap; γ is exposed). ``I_fog`` is clipped to full scale.
-    - strongest mode: the point moves to the fog if ``I_fog > I_hard``; first mode: if ``I_fog`` is above threshold.
-      Whatever wins must pass the profile's detection threshold, else the point is removed.
-    - Empty rays of a full range image (no-return cells) get ``R0 = ∞`` and the frame median of ``I R²`` as scale,
-      so fog also appears where the clear scan saw nothing (the reference's zero-range branch was dead code); a point
-      list carries only the rays that returned.
-    - Fixes vs the reference (§3.2, §7): input intensity unit kept (no W/m² output, no 10 fs pulse), the overlap
-      function replaces the [0.1 R, R] droplet hack, deterministic attenuation (no "n = 0 → clear" lottery).
+    - Hard target at R: ``S_hard = S e^{−2αR}``, α = ln 20 / MOR (S: received signal, :func:`lidar_link.cloud_rays`).
+    - Soft target (the fog in front of it), strongest point of its received profile
+      ``S_fog(R) = K π β ∫_0^{2τ_H} sin²(πt/2τ_H) ξ(r_t) e^{−2α r_t} / r_t² (c dt/2)``, ``r_t = R − ct/2`` (fog only
+      in front of the target), β = 0.046/MOR (m⁻¹ sr⁻¹, π β = the fog's equivalent Lambertian reflectance per metre):
+      ``S_fog = K π β (c/2) G_max(R0)`` at the apparent range of the peak, with the cached pulse-integral table
+      :func:`lidar_link.soft_target_table` and the profile's sensor constant K — the same scale as rain and snow
+      (``fog_scale='sensor_constant'``, default). With an OS1-128 (K = 65535 photons·m², τ_H = 10 ns) at MOR 30 m the
+      fog returns 131 photons at 1.4 m on every empty ray and replaces the targets weaker than that, so dense fog
+      shows as near returns around the sensor, as in real data (the strength scales with β: 25 photons at 200 m).
+      Its range and strength follow the overlap ξ: Hahner's R1 = 0.9 m, R2 = 1.0 m (a sensor reaching full overlap
+      at a few metres sees a weaker fog farther out).
+      ``fog_scale='hahner'`` keeps Hahner's per-point calibration ``K_i = S_i R_i² / β0``, β0 = γ/π, γ = 10⁻⁶ (every
+      clear point treated as one effective reflector, G in seconds; ~150/ρ times weaker than the sensor-constant form,
+      so it rarely produces fog returns); its empty rays use the frame median of ``S R²``.
+    - strongest mode: the point moves to the fog if ``S_fog > S_hard``; first mode: if ``S_fog`` is above threshold.
+      Whatever wins must pass the profile's detection threshold (signal units), else the point is removed.
+    - Empty rays of a full range image (no-return cells) get ``R0 = ∞``, so fog also appears where the clear scan saw
+      nothing (the reference's zero-range branch was dead code); a point list carries only the rays that returned.
+    - Fixes vs the reference (§3.2, §7): input intensity unit and kind kept (no W/m² output, no 10 fs pulse), the
+      overlap function replaces the [0.1 R, R] droplet hack, deterministic attenuation (no "n = 0 → clear" lottery).
     ``visibility_m = inf`` is the identity (every label KEPT).
     """
 
@@ -49,8 +56,11 @@ class FogLidar(Model):
     visibility_m: float = param(30.0, unit="m", gt=0, doc="meteorological optical range (MOR); inf = no fog")
     backscatter_times_visibility_per_sr: float = param(
         0.046, unit="sr⁻¹", ge=0, doc="β·MOR: fog backscatter β = value / MOR (Hahner: 0.046, admissible 0.023–0.092)")
+    fog_scale: str = param("sensor_constant", choices=("sensor_constant", "hahner"),
+                           doc="strength of the fog return: the profile's sensor constant K (LiDAR equation, as rain "
+                               "and snow) or Hahner 2021's per-point calibration K_i = S_i R_i²/β0")
     target_reflectivity: float = param(
-        1e-6, unit="1", gt=0, doc="γ of clear-weather points, β0 = γ/π (Hahner's calibration of fog vs target)")
+        1e-6, unit="1", gt=0, doc="fog_scale hahner: γ of clear-weather points, β0 = γ/π (Hahner's calibration)")
     pulse_width: str = param("profile", choices=("profile", "hahner_20ns"),
                              doc="half-power pulse width: the sensor profile's, or Hahner's 20 ns")
     return_mode: str = param("strongest", choices=("strongest", "first"), doc="which echo the sensor reports")
@@ -64,15 +74,17 @@ class FogLidar(Model):
         tau_h = (lidar_link.HAHNER_FOG_PULSE_S if self.pulse_width == "hahner_20ns"
                  else rays.profile.pulse_half_power_width_s)
         table = lidar_link.soft_target_table(alpha, tau_h)
-        gain = beta / (self.target_reflectivity / math.pi)
         r = rays.range_m
         g, fog_range = table.lookup(r)
-        fog = g * rays.signal * (r * r) * gain
-        empty = rays.empty
-        if empty.any() and rays.has_target.any():
-            t = rays.has_target
-            fog[empty] = table.saturated[0] * float(np.median(rays.signal[t] * r[t] ** 2)) * gain
-        np.minimum(fog, 1.0, out=fog)
+        if self.fog_scale == "sensor_constant":
+            fog = lidar_link.soft_target_signal(g, beta)
+        else:
+            gain = beta / (self.target_reflectivity / math.pi)
+            fog = g * rays.signal * (r * r) * gain
+            empty = rays.empty
+            if empty.any() and rays.has_target.any():
+                t = rays.has_target
+                fog[empty] = table.saturated[0] * float(np.median(rays.signal[t] * r[t] ** 2)) * gain
         hard = lidar_link.hard_target_signal(rays.signal, alpha, r)
         returns = lidar_link.pick(hard, r, fog, fog_range, rays.threshold, self.return_mode)
         out, counts = lidar_link.assemble(data, rays, returns)
