@@ -121,9 +121,14 @@ class LidarProfile:
     max_range_m: float = 120.0
     intensity_unit: str = IntensityUnit.PHOTONS
     intensity_full_scale: float = 65535.0
-    intensity_kind: str = "signal"             # "signal": ∝ received power (∝ ρ/R²); "reflectivity": range-compensated
-    sensor_constant: float | None = None       # signal of a ρ = 1 Lambertian target at 1 m (unit·m²); None: full scale
-    detection_threshold: float = 2.42          # received signal at the detection limit, in intensity_unit
+    intensity_kind: str = "signal"             # "signal": I = received signal S; "reflectivity": I = W·S·R²/K
+    sensor_constant: float | None = None       # K: S of a ρ = 1 Lambertian target filling the beam at 1 m (signal
+    #                                            units·m²); None: the intensity full scale
+    reflectivity_white_reading: float | None = None  # W: reading of a ρ = 1 diffuse target (Ouster 100, VLS 110);
+    #                                            None: the full scale
+    detection_threshold: float = 2.42          # in SIGNAL units (the unit of K/m²), not the stored intensity
+    overlap_start_m: float = 0.9               # receiver overlap ξ(r): 0 up to here (Hahner et al. 2021) ...
+    overlap_full_m: float = 1.0                # ... rising linearly to 1 here
     beam_origin_offset_m: float = 0.0          # Ouster lidar_origin_to_beam_origin (horizontal)
     sensor_z_offset_m: float = 0.0             # Ouster lidar_to_sensor_transform z (points are in the sensor frame)
     window: str = "static"                     # "static" (Ouster) or "rotating" (Velodyne head), §3.8
@@ -262,7 +267,7 @@ class RawFrame:
 class PointLabel(IntEnum):
     """Per-point provenance written by weather/obstruction models (``label`` field), for training denoisers."""
 
-    KEPT = 0          # unchanged by the weather
+    KEPT = 0          # in place, intensity changed by less than half a resolution step of the file
     ATTENUATED = 1    # same position, intensity/SNR reduced
     MOVED = 2         # moved along its ray to a weather particle (soft-target return)
     ADDED = 3         # new point from a weather particle (on an empty ray, or clutter)
