@@ -71,3 +71,17 @@ def test_ring_field_outside_the_table_is_refused():
     cloud = PointCloud(np.ones((2, 3)), {"ring": np.array([3, 64], dtype=np.uint16)}, "lidar", uniform("u", 64, 2, -24))
     with pytest.raises(InputError, match="64 beams"):
         ring_index(cloud)
+
+
+def test_recipe_intensity_scale_keeps_the_physics():
+    """Re-expressing stored intensities in another unit rescales what is tied to them, nothing else."""
+    from roadview_noise.dataset import with_intensity_scale
+
+    p = os1_128()
+    q = with_intensity_scale(p, "uint8", None)
+    assert q.intensity_full_scale == 255.0
+    ratio = 255.0 / p.intensity_full_scale
+    k_p = p.sensor_constant if p.sensor_constant is not None else p.intensity_full_scale
+    k_q = q.sensor_constant if q.sensor_constant is not None else q.intensity_full_scale
+    assert k_q == pytest.approx(k_p * ratio)
+    assert q.detection_threshold / k_q == pytest.approx(p.detection_threshold / k_p)   # same detection range
