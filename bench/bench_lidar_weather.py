@@ -4,7 +4,8 @@
    ray-cast analytically with the real beam table, ``signal`` intensities in photons (``K ρ cos θ / r²`` with the
    profile's sensor constant K).
 2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, the OS1's calibrated 8-bit reflectivity,
-   profile ``os1-128-reflectivity``), if present, plus a table rate → kept / attenuated / moved / removed / added.
+   profile ``os1-128-reflectivity``: white reads 100, K = 65535 photons·m², receiver overlap 0.5 → 5 m), if present,
+   plus a table rate → kept / attenuated / moved / removed / added.
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
 ms per frame (min and median of 15 frames after a warm-up), the tracemalloc peak, the visible particles drawn, and
@@ -167,7 +168,8 @@ def main() -> int:
     if scan is None:
         print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
         return 0
-    report("real OS1-128 scan0.bin (os1-128-reflectivity: calibrated 8-bit reflectivity, threshold 3.28 photons)",
+    report("real OS1-128 scan0.bin (os1-128-reflectivity: calibrated 8-bit reflectivity, white 100, threshold "
+           "3.28 photons, overlap 0.5 → 5 m)",
            "real", scan)
     rate_table(scan)
     return 0

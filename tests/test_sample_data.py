@@ -162,7 +162,8 @@ def test_lidar_grid_kitti_and_list_agree(tiny):
 @pytest.mark.parametrize("folder, profile", [("os1-128", os1_128()), ("vls-128", vls_128())])
 def test_lidar_intensity_follows_lambertian_lidar_equation(tiny, folder, profile):
     """On the left facade plane: the received signal ``K ρ cos θ / R²`` recovered from the stored intensity (OS1
-    photons as is, VLS range-compensated reflectivity) gives one of the facade or glass reflectivities (I rounded)."""
+    photons as is, VLS calibrated reflectivity) gives one of the facade or glass reflectivities (I rounded); the VLS
+    stores ``110 ρ cos θ`` (diffuse white reads 110, VLS-128 manual)."""
     out, _ = tiny
     scene = build_scene(TINY["seed"])
     cloud = read_pointcloud(out / f"lidar/{folder}/seq0/000000.pcd", profile=profile)
@@ -184,6 +185,8 @@ def test_lidar_intensity_follows_lambertian_lidar_equation(tiny, folder, profile
     table = np.array([MATERIALS[MAT[f]].nir_reflectivity for f in FACADES] + [GLASS.nir_reflectivity])
     err = np.min(np.abs(rho[:, None] / table[None, :] - 1), axis=1)
     assert np.quantile(err, 0.99) < 0.02 + 0.5 / 50
+    if folder == "vls-128":                         # the reading itself, without the conversion layer
+        np.testing.assert_allclose(rho, i[on] / (110.0 * cos), rtol=1e-9)
 
 
 def test_radar_snr_falls_as_inverse_fourth_power(tiny):

@@ -8,9 +8,10 @@ Intensity scale (one conversion layer for all models, :func:`received_signal` / 
   ``K π β ∫ …`` (:func:`soft_target_signal`). The detection threshold (``detection_threshold``) is in signal units.
 - ``intensity_kind`` says how a file stores it: ``signal`` (∝ received power, e.g. Ouster ``signal`` photons): I = S;
   ``reflectivity`` (range-compensated, e.g. Ouster ``reflectivity``, Velodyne 8-bit, KITTI and CARLA [0, 1]):
-  ``I = FS · S R² / K`` with FS the intensity full scale. Every output intensity goes back through the same layer,
-  so a range-compensated file gets range-compensated weather returns (a fog return of signal S at apparent range r
-  reads ``FS S r² / K``).
+  ``I = W · S R² / K`` with W the profile's ``reflectivity_white_reading``, the reading of a ρ = 1 diffuse target
+  (Ouster 100, Velodyne VLS-128 110; None → the full scale, i.e. the file reads ρ × full scale). Every output
+  intensity goes back through the same layer, so a range-compensated file gets range-compensated weather returns
+  (a fog return of signal S at apparent range r reads ``W S r² / K``).
 - Inside the models signals are carried in units of K (``S / K``, m⁻²); the decisions (weather return vs target,
   detection) compare quantities of that one unit, so the same scene stored as photons, 8-bit or [0, 1] intensities
   with matching profiles gives the same result, and :func:`cloud_rays` refuses intensities that contradict the
@@ -20,7 +21,9 @@ Conventions
 - Apparent range of a return = position of the received pulse peak minus ``c τ_H / 2`` (Hahner's shift), so a hard
   target at R appears at R.
 - Pulse ``P(t) = sin²(π t / (2 τ_H))`` on ``0 ≤ t ≤ 2 τ_H``; in range it spans ``L = c τ_H``.
-- Overlap (crossover) function ξ(r): 0 below R1 = 0.9 m, linear to 1 at R2 = 1.0 m (Hahner 2021).
+- Overlap (crossover) function ξ(r): 0 below R1, linear to 1 at R2, the profile's ``overlap_start_m`` and
+  ``overlap_full_m`` (Hahner 2021: R1 = 0.9 m, R2 = 1.0 m); every use of ξ (particles, fog tables) takes them from
+  the profile.
 """
 
 from __future__ import annotations
@@ -37,8 +40,6 @@ from ..errors import ModelError
 from ..types import IntensityUnit, LidarProfile, PointCloud, PointLabel
 
 SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
-OVERLAP_R1_M = 0.9
-OVERLAP_R2_M = 1.0
 HAHNER_FOG_PULSE_S = 20e-9              # half-power pulse width of Hahner et al. 2021
 SOFT_TABLE_STEP_M = 0.01                # range step of the fog pulse-integral table
 SAME_TARGET_TOLERANCE_M = 0.2           # a summed peak this close to the target keeps the target (Hahner 2022)
@@ -64,20 +65,28 @@ def compiled(fn):
 
 
 def sensor_constant(profile: LidarProfile) -> float:
-    """K: received signal of a ρ = 1 Lambertian target filling the beam at 1 m (signal units · m²); for a
-    ``reflectivity`` profile, of a target whose reading is full scale (the same thing when the reading is ρ × FS)."""
+    """K: received signal of a ρ = 1 Lambertian target filling the beam at 1 m (signal units · m²); None in the
+    profile → the intensity full scale."""
     return float(profile.intensity_full_scale if profile.sensor_constant is None else profile.sensor_constant)
+
+
+def white_reading(profile: LidarProfile) -> float:
+    """W: the stored reading of a ρ = 1 diffuse target in a ``reflectivity`` file (Ouster 100, VLS-128 110); None in
+    the profile → the intensity full scale (KITTI, CARLA: the reading is ρ × full scale)."""
+    w = profile.reflectivity_white_reading
+    return float(profile.intensity_full_scale if w is None else w)
 
 
 def received_signal(intensity, range_m, profile: LidarProfile) -> np.ndarray:
     """Received signal S (signal units) of stored intensities at their ranges: I for ``signal`` profiles,
-    ``(I / FS) · K / R²`` for range-compensated ``reflectivity`` profiles (0 where R ≤ 0: no return)."""
+    ``(I / W) · K / R²`` for range-compensated ``reflectivity`` profiles (W: :func:`white_reading`; 0 where R ≤ 0:
+    no return)."""
     i = np.asarray(intensity, dtype=np.float64)
     if profile.intensity_kind == SIGNAL:
         return i
     if profile.intensity_kind == REFLECTIVITY:
         r = np.asarray(range_m, dtype=np.float64)
-        scale = sensor_constant(profile) / profile.intensity_full_scale
+        scale = sensor_constant(profile) / white_reading(profile)
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(r > 0, i * scale / (r * r), 0.0)
     raise ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
@@ -86,13 +95,13 @@ def received_signal(intensity, range_m, profile: LidarProfile) -> np.ndarray:
 
 def reported_intensity(signal, range_m, profile: LidarProfile) -> np.ndarray:
     """Inverse of :func:`received_signal`: the intensity a profile stores for a return of signal S at apparent range
-    R (S for ``signal``, ``FS · S R² / K`` for ``reflectivity``); not clipped."""
+    R (S for ``signal``, ``W · S R² / K`` for ``reflectivity``); not clipped."""
     s = np.asarray(signal, dtype=np.float64)
     if profile.intensity_kind == SIGNAL:
         return s
     if profile.intensity_kind == REFLECTIVITY:
         r = np.asarray(range_m, dtype=np.float64)
-        return s * (r * r) * (profile.intensity_full_scale / sensor_constant(profile))
+        return s * (r * r) * (white_reading(profile) / sensor_constant(profile))
     raise ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
                      f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
 
@@ -106,8 +115,9 @@ def intensity_resolution(profile: LidarProfile) -> float:
 # LiDAR equation (signals in units of the sensor constant K)
 
 
-def overlap(r_m, r1_m: float = OVERLAP_R1_M, r2_m: float = OVERLAP_R2_M) -> np.ndarray:
-    """Receiver overlap ξ(r): 0 for r ≤ R1, linear to 1 at R2, 1 beyond."""
+def overlap(r_m, r1_m: float, r2_m: float) -> np.ndarray:
+    """Receiver overlap ξ(r): 0 for r ≤ R1, linear to 1 at R2, 1 beyond (R1, R2: the profile's ``overlap_start_m``,
+    ``overlap_full_m``)."""
     return np.clip((np.asarray(r_m, dtype=float) - r1_m) / (r2_m - r1_m), 0.0, 1.0)
 
 
@@ -129,10 +139,11 @@ def hard_target_signal(signal, alpha_per_m: float, range_m) -> np.ndarray:
     return np.multiply(signal, t, out=t) if isinstance(t, np.ndarray) else signal * t
 
 
-def particle_signal(reflectance: float, beam_fraction, range_m, alpha_per_m: float) -> np.ndarray:
-    """Return of a particle in units of K, ``ρ f ξ(r) e^{−2αr} / r²`` (m⁻²)."""
+def particle_signal(reflectance: float, beam_fraction, range_m, alpha_per_m: float, r1_m: float,
+                    r2_m: float) -> np.ndarray:
+    """Return of a particle in units of K, ``ρ f ξ(r) e^{−2αr} / r²`` (m⁻²; ξ with overlap R1, R2)."""
     r = np.asarray(range_m, dtype=float)
-    return reflectance * beam_fraction * overlap(r) * np.exp(-2.0 * alpha_per_m * r) / (r * r)
+    return reflectance * beam_fraction * overlap(r, r1_m, r2_m) * np.exp(-2.0 * alpha_per_m * r) / (r * r)
 
 
 def soft_target_signal(g_s_per_m2, beta_per_m_sr: float) -> np.ndarray:
@@ -165,9 +176,9 @@ class SoftTargetTable:
 
 
 @lru_cache(maxsize=32)
-def soft_target_table(alpha_per_m: float, tau_h_s: float, r1_m: float = OVERLAP_R1_M,
-                      r2_m: float = OVERLAP_R2_M) -> SoftTargetTable:
-    """Pulse-integral table of a homogeneous soft target (Hahner 2021 Eq. 8–10), cached per (α, τ_H, R1, R2).
+def soft_target_table(alpha_per_m: float, tau_h_s: float, r1_m: float, r2_m: float) -> SoftTargetTable:
+    """Pulse-integral table of a homogeneous soft target (Hahner 2021 Eq. 8–10), cached per (α, τ_H, R1, R2) with the
+    overlap R1, R2 of the profile.
 
     In range form ``G(R; R0) = (2/c) ∫_{R−L}^{min(R, R0)} w(R − r) f(r) dr`` with ``w(s) = sin²(π s/L)``,
     ``f(r) = e^{−2αr} ξ(r)/r²`` and ``L = c τ_H``. For ``R ≤ R0`` it does not depend on R0, and beyond

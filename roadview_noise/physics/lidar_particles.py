@@ -3,7 +3,7 @@
 Particles form a Poisson process along each beam with density ``n π w(r)²`` (n from the exponential DSD,
 ``w(r) = w0 + r θ/2`` the beam radius, θ the full divergence angle). A particle of diameter D at range r covers the
 beam fraction ``f = min(1, (D / 2w(r))²)`` and returns ``K ρ f ξ(r) e^{−2αr} / r²`` (carried in units of the
-sensor constant K, :func:`lidar_link.particle_signal`).
+sensor constant K, :func:`lidar_link.particle_signal`; ξ with the profile's overlap R1, R2, part of :class:`Beam`).
 
 Only particles that can matter for detection are drawn: those whose return reaches half the detection threshold
 (``VISIBLE_FRACTION``). This is an exact thinning of the Poisson process — positions follow the cumulative visible
@@ -50,20 +50,34 @@ class ParticleMedium:
 
 @dataclass(frozen=True)
 class Beam:
-    """Beam radius ``w(r) = w0 + r θ/2`` (m), θ the full divergence angle (rad)."""
+    """Beam radius ``w(r) = w0 + r θ/2`` (m), θ the full divergence angle (rad), and the receiver overlap ξ: 0 up to
+    ``overlap_start_m`` (R1), linear to 1 at ``overlap_full_m`` (R2). Hashable: the cached tables key on it."""
 
     radius_m: float
-    divergence_rad: float = 0.0
+    divergence_rad: float
+    overlap_start_m: float
+    overlap_full_m: float
+
+    @classmethod
+    def of(cls, profile) -> Beam:
+        """The beam of a :class:`LidarProfile`."""
+        return cls(profile.beam_radius_m, profile.beam_divergence_rad, profile.overlap_start_m,
+                   profile.overlap_full_m)
 
     def radius_at(self, r_m):
         return self.radius_m + np.asarray(r_m) * (self.divergence_rad / 2)
+
+    def full_beam_signal(self, medium: ParticleMedium, r_m) -> np.ndarray:
+        """Return of a beam-filling particle of the medium at range r, ``ρ ξ(r) e^{−2αr}/r²`` (units of K)."""
+        return lidar_link.particle_signal(medium.reflectance, 1.0, r_m, medium.alpha_per_m, self.overlap_start_m,
+                                          self.overlap_full_m)
 
 
 def visibility_diameter_mm(medium: ParticleMedium, beam: Beam, level: float, r_m) -> np.ndarray:
     """Smallest diameter (mm) whose return at range r reaches ``level`` (units of K); inf where even a
     beam-filling particle stays below it (and below the overlap range R1)."""
     r = np.asarray(r_m, dtype=float)
-    full_beam = lidar_link.particle_signal(medium.reflectance, 1.0, r, medium.alpha_per_m)
+    full_beam = beam.full_beam_signal(medium, r)
     with np.errstate(divide="ignore", invalid="ignore"):
         d = 2e3 * beam.radius_at(r) * np.sqrt(level / full_beam)
     return np.where(full_beam >= level, d, np.inf)
@@ -71,11 +85,13 @@ def visibility_diameter_mm(medium: ParticleMedium, beam: Beam, level: float, r_m
 
 @dataclass(frozen=True, eq=False)
 class VisibleTable:
-    """Per-beam tables on the regular range grid ``r_k = R1 + k·step`` (cached per medium, beam and level):
+    """Per-beam tables on the regular range grid ``r_k = R1 + k·step`` (``start_m`` = R1, the beam's overlap start;
+    cached per medium, beam and level):
     cumulative visible count Λ(r_k), the lower diameter bound ``max(Dmin, D_c(r_k))`` (mm) and the beam-filling
     return ``ρ ξ e^{−2αr}/r²`` (units of K); plus ``Λ⁻¹`` on a regular grid of Λ (step ``inv_step``). Lookups
     (:func:`_expected_counts`, :func:`_place`) interpolate linearly, clamped to the tables."""
 
+    start_m: float
     step_m: float
     cum: np.ndarray
     d_low_mm: np.ndarray
@@ -89,17 +105,19 @@ def visible_table(medium: ParticleMedium, beam: Beam, level: float) -> VisibleTa
     """Expected visible particles ``Λ(r) = ∫_{R1}^{r} π w² N(D ≥ D_c) dr`` (trapezoid, 0.01 m) up to the range where
     no particle reaches ``level`` any more (at most 1000 m), with its inverse on 4× as many points."""
     r_end = min(TABLE_MAX_RANGE_M, math.sqrt(medium.reflectance / level) + 1.0)   # bound with ξ = f = 1, α = 0
-    r = np.arange(lidar_link.OVERLAP_R1_M, r_end + TABLE_STEP_M, TABLE_STEP_M)
+    span = max(r_end - beam.overlap_start_m, TABLE_STEP_M)
+    r = beam.overlap_start_m + np.arange(0.0, span + TABLE_STEP_M, TABLE_STEP_M)
     d_c = visibility_diameter_mm(medium, beam, level, r)
     density = np.pi * beam.radius_at(r) ** 2 * medium.count_above(d_c)
     last = int(np.flatnonzero(density > 0)[-1]) + 2 if np.any(density > 0) else 2
     r, density, d_c = r[:last], density[:last], d_c[:last]
     cum = np.concatenate([[0.0], np.cumsum((density[1:] + density[:-1]) / 2 * TABLE_STEP_M)])
     d_low = np.clip(d_c, medium.d_min_mm, medium.d_max_mm)
-    full_beam = lidar_link.particle_signal(medium.reflectance, 1.0, r, medium.alpha_per_m)
+    full_beam = beam.full_beam_signal(medium, r)
     grid = np.linspace(0.0, cum[-1], 4 * len(cum))
     inverse = np.interp(grid, cum, r) if cum[-1] > 0 else np.full(len(grid), r[0])
-    return VisibleTable(TABLE_STEP_M, cum, d_low, full_beam, grid[1] - grid[0] if cum[-1] > 0 else 1.0, inverse)
+    return VisibleTable(beam.overlap_start_m, TABLE_STEP_M, cum, d_low, full_beam,
+                        grid[1] - grid[0] if cum[-1] > 0 else 1.0, inverse)
 
 
 @dataclass(frozen=True, eq=False)
@@ -205,7 +223,7 @@ def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: 
     exact."""
     table = visible_table(medium, beam, VISIBLE_FRACTION * threshold)
     ranges = np.ascontiguousarray(ray_range_m, dtype=np.float64)
-    cum_ray = _expected_counts(ranges, lidar_link.OVERLAP_R1_M, table.step_m, table.cum)
+    cum_ray = _expected_counts(ranges, table.start_m, table.step_m, table.cum)
     total = float(cum_ray[-1]) if len(cum_ray) else 0.0
     n = int(rng.poisson(total)) if total > 0 else 0
     if n == 0:
@@ -214,7 +232,7 @@ def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: 
     spacing = rng.standard_exponential(n + 1)
     exp_d = rng.standard_exponential(n)
     ray, r, d, f, signal, over = _place(spacing, exp_d, cum_ray, ranges, table.inv_range_m, table.inv_step,
-                                        lidar_link.OVERLAP_R1_M, table.step_m, table.d_low_mm, table.full_beam,
+                                        table.start_m, table.step_m, table.d_low_mm, table.full_beam,
                                         medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
     if len(over):                                     # rare: redraw from the truncated law (inverse CDF)
         d_low = d[over]
@@ -231,7 +249,7 @@ def precipitation_returns(rng: np.random.Generator, rays: lidar_link.Rays, mediu
     target ``I e^{−2αR}(1 − Σ f)`` (shadowing by the drawn particles), summed pulse profiles, return selection.
     Returns the per-ray returns and the number of particles drawn."""
     profile = rays.profile
-    beam = Beam(profile.beam_radius_m, profile.beam_divergence_rad)
+    beam = Beam.of(profile)
     particles = sample_particles(rng, rays.range_m, medium, beam, rays.threshold)
     target = lidar_link.hard_target_signal(rays.signal, medium.alpha_per_m, rays.range_m)
     returns = lidar_link.select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m, target,

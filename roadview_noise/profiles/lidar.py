@@ -4,9 +4,10 @@ Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal
 CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
 per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and ``kitti-hdl64``
 (uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Each states its intensity kind, sensor constant K
-and detection threshold (signal units) with their source (``lidar_link`` converts every intensity to the received
-signal). Files: an Ouster metadata JSON (``beam_altitude_angles``), a per-laser CSV
-(``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML profile.
+(signal of a ρ = 1 target at 1 m), white reading W of a reflectivity channel, detection threshold (signal units) and
+receiver overlap with their source (``lidar_link`` converts every intensity to the received signal). Files: an Ouster
+metadata JSON (``beam_altitude_angles``), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML
+profile.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ OS1_SENSOR_CONSTANT = 65535.0           # photons·m²: signal of a ρ = 1 targe
 OS1_DETECTION_THRESHOLD = 3.28          # photons
 OUSTER_WHITE_REFLECTIVITY = 100.0       # calibrated-reflectivity reading of a diffuse white target (Ouster)
 VLS128_WHITE_REFLECTIVITY = 110.0       # idem, Velodyne VLS-128 (user manual §6.1)
+OS1_OVERLAP_START_M = 0.5               # Ouster OS1 datasheet minimum range
+OS1_OVERLAP_FULL_M = 5.0                # assumed full receiver overlap of the biaxial OS1 (see os1_128)
 HDL64_DETECTION_THRESHOLD = 0.1 / 50.0 ** 2
 
 
@@ -43,7 +46,14 @@ def os1_128() -> LidarProfile:
     Intensity scale: received signal ``S = K ρ cos θ / R²`` with K = 65535 photons·m² (a white target at 1 m fills the
     16-bit signal) and detection threshold 3.28 photons (5·10⁻⁵ of full scale, the D3.4 rain value): a 10 % / 80 %
     Lambertian target is detected to ``sqrt(K ρ / thr)`` = 45 m / 126 m (OS1-128 datasheet: 40–45 m / 120 m); the
-    D3.4 fog value 2.42 would give 52 m / 147 m."""
+    D3.4 fog value 2.42 would give 52 m / 147 m.
+    Receiver overlap ξ: 0 up to 0.5 m (the datasheet minimum range), full at 5 m. The full-overlap range is an
+    ASSUMPTION, not a measured value: the OS1 is biaxial (separate transmit and receive lenses), whose overlap
+    builds up over metres rather than Hahner's 0.1 m. With Hahner's overlap (full at 1 m), homogeneous fog at 1 km
+    visibility would return from every sky ray (5.2 photons at 1.47 m, threshold 3.28; empty rays see fog up to
+    MOR 1.6 km), which real OS1 scans do not show; with full overlap at 5 m the fog return of an empty ray
+    (``fog.lidar``, β = 0.046/MOR) is 32.1 photons at 1.42 m at MOR 30 m, 6.2 photons at 200 m and 1.3 photons
+    (no return) at 1 km: empty rays see fog up to MOR ≈ 380 m."""
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,
@@ -51,6 +61,7 @@ def os1_128() -> LidarProfile:
         pulse_half_power_width_s=10e-9, max_range_m=120.0,
         intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, intensity_kind="signal",
         sensor_constant=OS1_SENSOR_CONSTANT, detection_threshold=OS1_DETECTION_THRESHOLD,
+        overlap_start_m=OS1_OVERLAP_START_M, overlap_full_m=OS1_OVERLAP_FULL_M,
         beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static")
 
 
@@ -58,14 +69,12 @@ def os1_128_reflectivity() -> LidarProfile:
     """The same OS1-128 storing its calibrated ``reflectivity`` channel (8-bit, range-compensated), as real Ouster
     recordings often do (e.g. the low-bandwidth RNG15_RFL8_NIR8 profile).
 
-    Same sensor as :func:`os1_128`: signal unit photons, detection threshold 3.28 photons. Ouster's calibrated
-    reflectivity reads a diffuse white (ρ = 1) target as 100 (retro-reflectors 101–255), so full scale 255 is read from
-    a target returning 2.55 times the white signal: ``S = (I / 255) · K / R²`` with K = 2.55 × 65535 photons·m².
-    The weather particles use the same K as their ρ = 1 constant, i.e. they come out 2.55× too bright relative to the
-    threshold until the profile can state the white reading separately (requested field, see the types docs)."""
+    Same sensor as :func:`os1_128` (K = 65535 photons·m², detection threshold 3.28 photons, same overlap). Ouster's
+    calibrated reflectivity reads a diffuse white (ρ = 1) target as W = 100 (retro-reflectors 101–255), so
+    ``S = (I / 100) · K / R²``."""
     return dataclasses.replace(os1_128(), name="os1-128-reflectivity", intensity_unit=IntensityUnit.UINT8,
                                intensity_full_scale=255.0, intensity_kind="reflectivity",
-                               sensor_constant=OS1_SENSOR_CONSTANT * 255.0 / OUSTER_WHITE_REFLECTIVITY)
+                               reflectivity_white_reading=OUSTER_WHITE_REFLECTIVITY)
 
 
 def vls_128() -> LidarProfile:
@@ -73,16 +82,18 @@ def vls_128() -> LidarProfile:
     (range-compensated), rotating head.
 
     Intensity scale: signal in units of the detection threshold (1); K chosen for the datasheet range 245 m at high
-    (80 %) reflectivity: a ρ = 0.8 target returns the threshold at 245 m, ``K_ρ=1 = 245² / 0.8`` (10 % then reaches
-    87 m). The VLS-128 reads diffuse white as 110 (manual §6.1: diffuse 0–110 for 0–100 %, retro-reflectors 111–255),
-    so K, the signal of a full-scale reading, is ``255/110 · K_ρ=1``."""
+    (80 %) reflectivity: a ρ = 0.8 target returns the threshold at 245 m, ``K = 245² / 0.8`` (10 % then reaches
+    87 m). The VLS-128 reads diffuse white as W = 110 (manual §6.1: diffuse 0–110 for 0–100 %, retro-reflectors
+    111–255). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m, which he used for the Velodyne HDL-64 S3D of the
+    Seeing Through Fog data; the VLS-128 is of the same (biaxial) family and no measurement of its overlap is at
+    hand, so it is kept, unverified (it may reach full overlap farther out, like the OS1)."""
     t = _table("vls_128.yaml")
     return LidarProfile(
         "vls-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=1800,
         wavelength_m=903e-9, beam_radius_m=6.0e-3, beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9,
         max_range_m=245.0, intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0,
-        intensity_kind="reflectivity", sensor_constant=245.0 ** 2 / 0.8 * 255.0 / VLS128_WHITE_REFLECTIVITY,
-        detection_threshold=1.0, window="rotating")
+        intensity_kind="reflectivity", sensor_constant=245.0 ** 2 / 0.8,
+        reflectivity_white_reading=VLS128_WHITE_REFLECTIVITY, detection_threshold=1.0, window="rotating")
 
 
 def uniform(name: str, channels: int, fov_up_deg: float, fov_down_deg: float, **kw) -> LidarProfile:
@@ -94,7 +105,8 @@ def uniform(name: str, channels: int, fov_up_deg: float, fov_down_deg: float, **
 def carla_64() -> LidarProfile:
     """CARLA ray-cast LiDAR: 64 uniform channels +2°…−24.8°, intensity in [0, 1] read as reflectivity
     (range-compensated, K = 1: a ρ = 1 target reads 1). CARLA's intensity is ``e^{−0.004 d}`` (≥ 0.67 within its
-    100 m), so with the threshold of :func:`kitti_hdl64` every CARLA return is detectable."""
+    100 m), so with the threshold of :func:`kitti_hdl64` every CARLA return is detectable. Receiver overlap:
+    Hahner's (LidarProfile default)."""
     return uniform("carla-64", 64, 2.0, -24.8, columns=2048, wavelength_m=905e-9, max_range_m=100.0,
                    intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, intensity_kind="reflectivity",
                    sensor_constant=1.0, detection_threshold=HDL64_DETECTION_THRESHOLD)
@@ -104,7 +116,8 @@ def kitti_hdl64() -> LidarProfile:
     """KITTI HDL-64E, uniform approximation (+2°…−24.8°), 905 nm, reflectance in [0, 1] (range-compensated, K = 1).
 
     Detection threshold ``0.1 / (50 m)²`` (units of K/m²): HDL-64E S2 datasheet range 50 m on pavement (≈ 10 %); 80 %
-    then reaches 141 m (datasheet: 120 m for cars and foliage)."""
+    then reaches 141 m (datasheet: 120 m for cars and foliage). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m
+    (LidarProfile default)."""
     return uniform("kitti-hdl64", 64, 2.0, -24.8, columns=2083, wavelength_m=905e-9, beam_radius_m=5e-3,
                    beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9, max_range_m=120.0,
                    intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, intensity_kind="reflectivity",

@@ -10,12 +10,11 @@ instantaneous, i.e. motion-compensated, scan); ``time_s`` is the nominal firing 
 revolution.
 
 Intensity: the Lambertian LiDAR equation, received signal ``S = K ρ cos θ / R²`` (§3.1) with the profile's sensor
-constant K, stored as the profile's intensity kind (:func:`lidar_link.reported_intensity`: OS1 ``signal`` photons
-``I = S``; VLS range-compensated 8-bit reflectivity ``I = 255 · S R² / K = 255 ρ cos θ``), rounded for count units,
-clipped to full scale. Returns whose stored intensity reads below the detection threshold (:func:`received_signal`)
-or beyond max range are no-returns, so every stored point is detectable under its own profile. K is taken as the
-signal of a ρ = 1 surface, so the sample VLS reads ρ × 255 (a real VLS-128 reads diffuse white as 110; its profile's
-K is the signal of a full-scale reading).
+constant K (signal of a ρ = 1 target at 1 m), stored as the profile's intensity kind
+(:func:`lidar_link.reported_intensity`: OS1 ``signal`` photons ``I = S``; VLS calibrated 8-bit reflectivity
+``I = W · S R² / K = W ρ cos θ`` with the white reading W = 110 of the VLS-128), rounded for count units, clipped to
+full scale. Returns whose stored intensity reads below the detection threshold (:func:`received_signal`) or beyond
+max range are no-returns, so every stored point is detectable under its own profile.
 """
 
 from __future__ import annotations
@@ -26,13 +25,10 @@ from functools import lru_cache
 import numpy as np
 
 from ..physics.lidar_link import received_signal, reported_intensity, sensor_constant
-from ..profiles.lidar import os1_128, vls_128
 from ..types import IntensityUnit, LidarProfile, PointCloud
 from .scene import Snapshot, surface_properties
 
 REVOLUTION_S = 0.1
-#: sensor constant K (signal units · m²) of the two rendered sensors by intensity unit, for the README table
-LIDAR_EQUATION_K = {p.intensity_unit: sensor_constant(p) for p in (os1_128(), vls_128())}
 
 
 @lru_cache(maxsize=8)

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from ..physics.lidar_link import sensor_constant, white_reading
 from ..types import CameraProfile, LidarProfile, RadarProfile
 from . import rig
-from .lidar import LIDAR_EQUATION_K, REVOLUTION_S
+from .lidar import REVOLUTION_S
 from .radar import RADAR_CONSTANT_DB, RCS_SPREAD_DB
 from .scene import Scene
 
@@ -76,15 +77,19 @@ beam origin, {os1.beam_origin_offset_m * 1000:g} mm off the axis in the encoder 
 {os1.sensor_z_offset_m * 1000:g} mm above the sensor-frame origin, so `profiles.lidar.recover_ring` recovers the
 stored ring exactly.
 
-Intensity: Lambertian LiDAR equation `I = K ρ cos θ / R²` (models.md §3.1; ρ near-infrared reflectivity of the
-surface, θ incidence angle, R range), rounded to an integer and clipped to full scale:
+Intensity: Lambertian LiDAR equation, received signal `S = K ρ cos θ / R²` (models.md §3.1; K the sensor
+constant, the signal of a ρ = 1 target at 1 m; ρ near-infrared reflectivity of the surface, θ incidence angle,
+R range). The OS1-128 stores the signal itself (`I = S`, photons, Ouster "signal"); the VLS-128 stores calibrated,
+range-compensated reflectivity `I = W S R² / K = W ρ cos θ`, with W = {white_reading(vls):g} the reading of a
+diffuse white (ρ = 1) target (VLS-128 manual: diffuse 0–110, retro-reflectors 111–255). Intensities are rounded to
+an integer and clipped to full scale:
 
-| sensor | K | full scale | detection threshold | max range |
+| sensor | K | full scale | detection threshold (signal) | max range |
 |---|---|---|---|---|
-| OS1-128 (photons, Ouster "signal") | {LIDAR_EQUATION_K[os1.intensity_unit]:g} photons·m² | {os1.intensity_full_scale:g} | {os1.detection_threshold:g} | {os1.max_range_m:g} m |
-| VLS-128 (8-bit intensity) | {LIDAR_EQUATION_K[vls.intensity_unit]:g} m² | {vls.intensity_full_scale:g} | {vls.detection_threshold:g} | {vls.max_range_m:g} m |
+| OS1-128 (photons, Ouster "signal") | {sensor_constant(os1):g} photons·m² | {os1.intensity_full_scale:g} | {os1.detection_threshold:g} photons | {os1.max_range_m:g} m |
+| VLS-128 (8-bit calibrated reflectivity, white = {white_reading(vls):g}) | {sensor_constant(vls):g} m² (signal in units of the threshold) | {vls.intensity_full_scale:g} | {vls.detection_threshold:g} | {vls.max_range_m:g} m |
 
-Cells below the detection threshold or beyond max range are no-returns.
+Cells whose signal is below the detection threshold or beyond max range are no-returns.
 
 Point fields (binary PCD, `DATA binary`): `x y z` float32 (m), `intensity` float32 (sensor unit), `ring` uint16
 (index into the profile's beam table; OS1 ring 0 = top beam, VLS laser id order), `time` float32 (s, nominal firing
@@ -98,7 +103,8 @@ time of the column since the start of the revolution, 0 … {REVOLUTION_S:g} s).
   `WIDTH` = {os1.columns} (columns) and `HEIGHT` = {os1.channels} (rings): {os1.channels * os1.columns} points in
   row-major order, point index = ring·{os1.columns} + column (columns in firing order, not destaggered).
   No-return cells have x = y = z = intensity = time = 0 and keep their ring.
-- `vls-128/seq0/NNNNNN.pcd`: Velodyne VLS-128 (Alpha Prime), returns only; intensity 8-bit (0–255, integral).
+- `vls-128/seq0/NNNNNN.pcd`: Velodyne VLS-128 (Alpha Prime), returns only; intensity 8-bit calibrated reflectivity
+  (0–255, integral; {white_reading(vls):g} ρ cos θ).
 - `lidar.yaml` (each folder): the profile as `{{base: <built-in>, columns: W}}`, loadable by
   `roadview_noise.profiles.lidar.load_lidar_profile`.
 

@@ -95,16 +95,17 @@ def test_cnf_chains_name_these_models(cnf):
 C = 299_792_458.0
 
 
-def fog_peak_direct(alpha: float, beta: float, tau_h: float, k: float) -> tuple[float, float]:
+def fog_peak_direct(alpha: float, beta: float, tau_h: float, k: float, r1: float, r2: float) -> tuple[float, float]:
     """Peak of K π β ∫_0^{2τ} sin²(πt/2τ) ξ(r_t) e^{−2α r_t}/r_t² (c dt/2) over the apparent range R of an empty ray
-    (r_t = R + cτ/2 − ct/2 with Hahner's shift), by the trapezoid rule in t — independent of the model's table."""
+    (r_t = R + cτ/2 − ct/2 with Hahner's shift; ξ from r1 to r2), by the trapezoid rule in t — independent of the
+    model's table."""
     t = np.linspace(0, 2 * tau_h, 2001)
     best = (0.0, 0.0)
-    for big_r in np.arange(0.5, 6.0, 0.002):
+    for big_r in np.arange(0.3, r2 + C * tau_h, 0.002):
         r = big_r + C * tau_h / 2 - C * t / 2
-        xi = np.clip((r - 0.9) / 0.1, 0, 1)
+        xi = np.clip((r - r1) / (r2 - r1), 0, 1)
         with np.errstate(divide="ignore", invalid="ignore"):
-            f = np.where(r > 0.9, xi * np.exp(-2 * alpha * r) / r ** 2, 0.0)
+            f = np.where(r > r1, xi * np.exp(-2 * alpha * r) / r ** 2, 0.0)
         s = k * math.pi * beta * np.trapezoid(np.sin(np.pi * t / (2 * tau_h)) ** 2 * f, t) * C / 2
         if s > best[0]:
             best = (s, big_r)
@@ -114,9 +115,10 @@ def fog_peak_direct(alpha: float, beta: float, tau_h: float, k: float) -> tuple[
 def test_fog_surviving_range_of_hard_targets():
     """I = 100 photons, threshold 2.42 photons, V = 30 m: targets survive (in place) up to ln(I/I_thr)/(2α) = 18.6 m,
     beyond that they are removed or replaced by fog (models.md §3.2). Hahner's per-point fog scale, whose fog return is
-    too weak to compete with the targets in front of R_max."""
+    too weak to compete with the targets in front of R_max; with Hahner's overlap (0.9 → 1.0 m) as in his paper."""
     ranges = np.arange(2.0, 60.0, 0.1)
-    out, diag = run(FogLidar(visibility_m=30.0, fog_scale="hahner"), cloud_at(ranges, 100.0, grid=True))
+    prof = dataclasses.replace(PHOTONS, overlap_start_m=0.9, overlap_full_m=1.0)
+    out, diag = run(FogLidar(visibility_m=30.0, fog_scale="hahner"), cloud_at(ranges, 100.0, prof, grid=True))
     alpha = math.log(20) / 30
     r_max = math.log(100 / 2.42) / (2 * alpha)
     assert r_max == pytest.approx(18.6, abs=0.05)
@@ -133,15 +135,16 @@ def test_fog_surviving_range_of_hard_targets():
 
 
 def test_fog_sensor_constant_replaces_targets_beyond_the_crossover():
-    """Default fog (sensor constant K = 65535 photons·m², τ_H = 10 ns), V = 30 m: every ray returns the fog's peak
-    S_fog ≈ 130 photons at ≈ 1.4 m, so a 10⁴-photon target stays in place (attenuated) while S e^{−2αR} ≥ S_fog,
-    i.e. up to R* = ln(S/S_fog)/(2α) ≈ 22 m, and is replaced by the fog beyond; nothing is removed."""
+    """Default fog (sensor constant K = 65535 photons·m², τ_H = 10 ns, OS1 overlap 0.5 → 5 m), V = 30 m: every ray
+    returns the fog's peak S_fog ≈ 32 photons at ≈ 1.4 m, so a 10⁴-photon target stays in place (attenuated) while
+    S e^{−2αR} ≥ S_fog, i.e. up to R* = ln(S/S_fog)/(2α) ≈ 29 m, and is replaced by the fog beyond; nothing is
+    removed."""
     prof = dataclasses.replace(PHOTONS, detection_threshold=3.28)
     ranges = np.arange(4.5, 60.0, 0.1)
     out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 1e4, prof, grid=True))
     alpha, beta = math.log(20) / 30, 0.046 / 30
-    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0)
-    assert 100 < s_fog < 160 and 1.0 < fog_range < 2.0
+    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0, prof.overlap_start_m, prof.overlap_full_m)
+    assert 25 < s_fog < 40 and 1.0 < fog_range < 2.0
     r_star = math.log(1e4 / s_fog) / (2 * alpha)
     kept = target_kept(out)
     assert np.all(kept[ranges < r_star - 0.05]) and not np.any(kept[ranges > r_star + 0.05])
@@ -152,16 +155,32 @@ def test_fog_sensor_constant_replaces_targets_beyond_the_crossover():
 
 
 def test_fog_return_in_a_range_compensated_file_is_range_compensated():
-    """The same fog in a reflectivity file reads ``FS · S_fog r² / K`` at its apparent range r."""
-    prof = dataclasses.replace(os1_128_reflectivity(), detection_threshold=3.28)
+    """The same fog in an Ouster reflectivity file reads ``W · S_fog r² / K`` at its apparent range r (W = 100, the
+    reading of a diffuse white target)."""
+    prof = os1_128_reflectivity()
     ranges = np.arange(25.0, 60.0, 0.5)
     out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 50.0, prof, grid=True))
     alpha, beta = math.log(20) / 30, 0.046 / 30
     k = sensor_constant(prof)
-    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, k)
+    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, k, prof.overlap_start_m, prof.overlap_full_m)
     moved = out.fields["label"] == PointLabel.MOVED
     assert moved.all()
-    np.testing.assert_allclose(out.fields["intensity"], 255.0 * s_fog * fog_range ** 2 / k, rtol=1e-2)
+    np.testing.assert_allclose(out.fields["intensity"], 100.0 * s_fog * fog_range ** 2 / k, rtol=1e-2)
+
+
+@pytest.mark.parametrize("r2", [1.0, 2.0, 5.0])
+def test_fog_overlap_comes_from_the_profile(r2):
+    """ξ is the profile's: the empty-ray fog peak (strength and apparent range) follows ``overlap_full_m`` as the
+    direct integral with that overlap says, and a slower overlap gives a weaker fog."""
+    prof = dataclasses.replace(PHOTONS, overlap_start_m=0.9, overlap_full_m=r2, detection_threshold=1e-3)
+    out, diag = run(FogLidar(visibility_m=30.0), cloud_at(np.full(20, 200.0), 1.0, prof, grid=True))
+    alpha, beta = math.log(20) / 30, 0.046 / 30
+    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0, 0.9, r2)
+    assert np.all(out.fields["label"] == PointLabel.MOVED)
+    np.testing.assert_allclose(out.ranges_m, fog_range, atol=0.02)
+    np.testing.assert_allclose(out.fields["intensity"], s_fog, rtol=5e-3)
+    hahner, _ = fog_peak_direct(alpha, beta, 10e-9, 65535.0, 0.9, 1.0)
+    assert (s_fog < 0.9 * hahner) == (r2 > 1.0)
 
 
 def test_fog_moved_points_stay_on_their_ray():
@@ -181,10 +200,11 @@ def test_fog_moved_points_stay_on_their_ray():
 # --- one intensity scale: photons, 8-bit and [0, 1] reflectivity give the same decisions ----------------------------
 
 #: the PHOTONS sensor (K = 65535 photons·m², threshold 2.42 photons) storing range-compensated reflectivity, in 8-bit
-#: (with an arbitrary signal unit: K = 1000) and in [0, 1] (K = 1): same threshold relative to K
+#: (Ouster style: white reads W = 100; with an arbitrary signal unit: K = 1000) and in [0, 1] (K = 1, white reads 1):
+#: same threshold relative to K
 REFL_UINT8 = dataclasses.replace(PHOTONS, name="refl-8bit", intensity_unit="uint8", intensity_full_scale=255.0,
                                  intensity_kind="reflectivity", sensor_constant=1000.0,
-                                 detection_threshold=2.42 * 1000.0 / 65535)
+                                 reflectivity_white_reading=100.0, detection_threshold=2.42 * 1000.0 / 65535)
 REFL_UNIT = dataclasses.replace(PHOTONS, name="refl-unit", intensity_unit="unit", intensity_full_scale=1.0,
                                 intensity_kind="reflectivity", sensor_constant=1.0, detection_threshold=2.42 / 65535)
 
@@ -221,7 +241,7 @@ def test_same_decisions_for_photons_8bit_and_unit_reflectivity(model_id):
     s_over_k = outs[0].fields["intensity"] / 65535
     r_out = outs[0].ranges_m
     fine = outs[0].fields["intensity"] < 65535
-    np.testing.assert_allclose(outs[1].fields["intensity"][fine], (255 * s_over_k * r_out ** 2)[fine], rtol=1e-9)
+    np.testing.assert_allclose(outs[1].fields["intensity"][fine], (100 * s_over_k * r_out ** 2)[fine], rtol=1e-9)
     np.testing.assert_allclose(outs[2].fields["intensity"][fine], (s_over_k * r_out ** 2)[fine], rtol=1e-9)
     assert 0 < np.mean(in_place[0]) < 1 and moved[0].any()      # the scene is neither untouched nor wiped out
 
@@ -363,11 +383,11 @@ def test_denser_precipitation_never_keeps_more_targets(model_id, log_rate, facto
 # --- full range image: returns on no-return rays ------------------------------------------------------------------
 
 
-def small_grid(rows=32, cols=256) -> PointCloud:
+def small_grid(rows=32, cols=256, base=PHOTONS) -> PointCloud:
     """A full grid (photons) of the first 32 OS1-128 beams: a bright wall (2000 photons) at 15 m over half the
     azimuths, sky elsewhere."""
-    prof = dataclasses.replace(PHOTONS, beam_elevation_deg=PHOTONS.beam_elevation_deg[:rows],
-                               beam_azimuth_offset_deg=PHOTONS.beam_azimuth_offset_deg[:rows], columns=cols)
+    prof = dataclasses.replace(base, beam_elevation_deg=base.beam_elevation_deg[:rows],
+                               beam_azimuth_offset_deg=base.beam_azimuth_offset_deg[:rows], columns=cols)
     el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[:, None]
     az = np.pi - 2 * np.pi * np.arange(cols)[None, :] / cols - np.deg2rad(
         np.asarray(prof.beam_azimuth_offset_deg))[:, None]
@@ -404,6 +424,23 @@ def test_fog_on_empty_rays_uses_the_saturated_table():
     assert added.sum() == (~hit).sum()                     # dense fog: every sky ray sees the fog
     assert np.ptp(out.ranges_m[added]) < 1e-9              # homogeneous fog: one range, one intensity
     assert np.ptp(out.fields["intensity"][added]) == 0
+
+
+@pytest.mark.parametrize("overlap", ["os1", "hahner"])
+def test_os1_overlap_sky_rays_see_dense_fog_but_not_light_fog(overlap):
+    """The OS1-128 profile (threshold 3.28 photons, overlap full at 5 m): the empty (sky) rays return the fog at
+    V = 30 m (32 photons) and not at V = 1 km (1.3 photons); with Hahner's overlap (full at 1 m) the same sensor
+    would see the 1 km fog on every sky ray (5.2 photons), which real OS1 scans do not show."""
+    base = os1_128() if overlap == "os1" else dataclasses.replace(os1_128(), overlap_start_m=0.9, overlap_full_m=1.0)
+    grid, _, hit = small_grid(base=base)
+    for visibility, every_sky_ray in ((30.0, True), (1000.0, overlap == "hahner")):
+        out, diag = run(FogLidar(visibility_m=visibility), grid)
+        added = out.fields["label"] == PointLabel.ADDED
+        assert diag["added"] == (np.count_nonzero(~hit) if every_sky_ray else 0), visibility
+        if every_sky_ray:
+            alpha, beta = math.log(20) / visibility, 0.046 / visibility
+            s_fog, _ = fog_peak_direct(alpha, beta, 10e-9, 65535.0, base.overlap_start_m, base.overlap_full_m)
+            np.testing.assert_allclose(out.fields["intensity"][added], s_fog, rtol=5e-3)
 
 
 # --- the real OS1-128 scan -------------------------------------------------------------------------------------------

@@ -17,9 +17,19 @@ from roadview_noise.profiles.lidar import kitti_hdl64, os1_128, os1_128_reflecti
 C = 299_792_458.0
 
 
-def test_overlap_function_hahner():
+def test_overlap_function_hahner_and_os1():
     r = np.array([0.0, 0.5, 0.9, 0.95, 1.0, 1.5, 50.0])
-    np.testing.assert_allclose(lidar_link.overlap(r), [0, 0, 0, 0.5, 1, 1, 1])
+    np.testing.assert_allclose(lidar_link.overlap(r, 0.9, 1.0), [0, 0, 0, 0.5, 1, 1, 1])
+    np.testing.assert_allclose(lidar_link.overlap(r, 0.5, 5.0), [0, 0, 0.4 / 4.5, 0.45 / 4.5, 0.5 / 4.5, 1 / 4.5, 1])
+
+
+def test_profiles_state_their_overlap():
+    """OS1: ξ from the datasheet minimum range 0.5 m, full at 5 m (assumption for the biaxial optics); the others
+    Hahner's 0.9 m / 1.0 m."""
+    for profile in (os1_128(), os1_128_reflectivity()):
+        assert (profile.overlap_start_m, profile.overlap_full_m) == (0.5, 5.0)
+    for profile in (vls_128(), kitti_hdl64()):
+        assert (profile.overlap_start_m, profile.overlap_full_m) == (0.9, 1.0)
 
 
 def test_pulse_peak_one_and_energy_tau():
@@ -31,36 +41,43 @@ def test_pulse_peak_one_and_energy_tau():
     assert lidar_link.pulse_length_m(tau) == pytest.approx(2.99792458)
 
 
-def _direct_soft_peak(alpha, tau, r0):
-    """max over R of G(R; R0) by brute force: trapezoid in t on a dense (R, t) grid (independent of the table)."""
+def _direct_soft_peak(alpha, tau, r0, r1=0.9, r2=1.0):
+    """max over R of G(R; R0) by brute force: trapezoid in t on a dense (R, t) grid (independent of the table);
+    overlap ξ from r1 to r2."""
     t = np.linspace(0, 2 * tau, 4001)
     best = (0.0, 0.0)
-    for big_r in np.arange(0.9, r0 + C * tau + 0.01, 0.005):
+    for big_r in np.arange(r1, r0 + C * tau + 0.01, 0.005):
         r = big_r - C * t / 2
         with np.errstate(divide="ignore", invalid="ignore"):
-            f = np.where((r > 0.9) & (r <= r0), np.exp(-2 * alpha * r) * np.clip((r - 0.9) / 0.1, 0, 1) / r ** 2, 0)
+            f = np.where((r > r1) & (r <= r0), np.exp(-2 * alpha * r) * np.clip((r - r1) / (r2 - r1), 0, 1) / r ** 2,
+                         0)
         g = np.trapezoid(np.sin(np.pi * t / (2 * tau)) ** 2 * f, t)
         if g > best[0]:
             best = (g, big_r - C * tau / 2)
     return best
 
 
-@pytest.mark.parametrize("tau", [10e-9, 20e-9])
+@pytest.mark.parametrize("tau, r1, r2", [(10e-9, 0.9, 1.0), (20e-9, 0.9, 1.0), (10e-9, 0.5, 5.0)])
 @pytest.mark.parametrize("r0", [1.3, 2.5, 30.0])
-def test_soft_target_table_matches_direct_integration(tau, r0):
+def test_soft_target_table_matches_direct_integration(tau, r1, r2, r0):
     alpha = math.log(20) / 30
-    g_direct, range_direct = _direct_soft_peak(alpha, tau, r0)
-    g, fog_range = lidar_link.soft_target_table(alpha, tau).lookup(np.array([r0]))
+    g_direct, range_direct = _direct_soft_peak(alpha, tau, r0, r1, r2)
+    g, fog_range = lidar_link.soft_target_table(alpha, tau, r1, r2).lookup(np.array([r0]))
     assert g[0] == pytest.approx(g_direct, rel=5e-3)
     assert fog_range[0] == pytest.approx(range_direct, abs=0.02)
 
 
 def test_soft_target_table_saturates_beyond_r2_plus_pulse():
-    table = lidar_link.soft_target_table(0.1, 10e-9)
+    table = lidar_link.soft_target_table(0.1, 10e-9, 0.9, 1.0)
     g, r = table.lookup(np.array([4.5, 20.0, 200.0, 1e4]))
     assert np.all(g == g[0]) and np.all(r == r[0])
     assert table.saturated == (g[0], r[0])
     assert 1.0 < r[0] < 2.0                      # fog peak a little beyond the overlap range
+    # a slow overlap (full at 5 m): its own table, up to R2 + L, with a weaker peak (ξ(r) ≤ (r − R1)/(R2 − R1))
+    slow = lidar_link.soft_target_table(0.1, 10e-9, 0.5, 5.0)
+    assert len(slow.g_max_s_per_m2) > len(table.g_max_s_per_m2) and slow.lookup(np.array([8.1]))[0][0] == \
+        slow.saturated[0]
+    assert slow.saturated[0] < 0.5 * table.saturated[0]
 
 
 def test_soft_target_signal_far_from_the_sensor_closed_form():
@@ -77,16 +94,18 @@ def test_soft_target_signal_far_from_the_sensor_closed_form():
     assert at == pytest.approx(big_r, abs=0.3)
 
 
-def test_soft_target_signal_matches_direct_integration_at_the_default_overlap():
-    """Empty ray, V = 30 m, OS1 (τ_H = 10 ns): the peak of K π β ∫ … (c dt/2), integrated directly in t (independent
-    of the table), is the model's fog return; ~130 photons at ~1.4 m with K = 65535."""
+@pytest.mark.parametrize("r1, r2, lo, hi", [(0.9, 1.0, 100, 160), (0.5, 5.0, 25, 40)], ids=["hahner", "os1"])
+def test_soft_target_signal_matches_direct_integration(r1, r2, lo, hi):
+    """Empty ray, V = 30 m, OS1 (τ_H = 10 ns, K = 65535): the peak of K π β ∫ … (c dt/2), integrated directly in t
+    (independent of the table), is the model's fog return; ~131 photons at ~1.4 m with Hahner's overlap, ~32 photons
+    with the OS1 profile's (full at 5 m)."""
     alpha, beta = math.log(20) / 30, 0.046 / 30
-    g_direct, range_direct = _direct_soft_peak(alpha, 10e-9, 8.0)      # the fog peak stops moving beyond R2 + L
-    g, at = lidar_link.soft_target_table(alpha, 10e-9).saturated
+    g_direct, range_direct = _direct_soft_peak(alpha, 10e-9, r2 + 7.0, r1, r2)    # the peak stops beyond R2 + L
+    g, at = lidar_link.soft_target_table(alpha, 10e-9, r1, r2).saturated
     fog = lidar_link.soft_target_signal(g, beta) * 65535
     assert fog == pytest.approx(65535 * math.pi * beta * C / 2 * g_direct, rel=5e-3)
     assert at == pytest.approx(range_direct, abs=0.02)
-    assert 100 < fog < 160 and 1.0 < at < 2.0
+    assert lo < fog < hi and 1.0 < at < 2.0
 
 
 # --- one intensity scale -------------------------------------------------------------------------------------------
@@ -103,8 +122,12 @@ def test_received_signal_and_reported_intensity_are_inverse(factory):
     k = lidar_link.sensor_constant(profile)
     if profile.intensity_kind == "signal":
         np.testing.assert_array_equal(s, i)
-    else:                                   # range-compensated: S = (I / FS) · K / R²
-        np.testing.assert_allclose(s, i / profile.intensity_full_scale * k / r ** 2, rtol=1e-12)
+    else:                                   # range-compensated: S = (I / W) · K / R², W the white (ρ = 1) reading
+        w = {"os1-128-reflectivity": 100.0, "vls-128": 110.0}.get(profile.name, profile.intensity_full_scale)
+        assert lidar_link.white_reading(profile) == w
+        np.testing.assert_allclose(s, i / w * k / r ** 2, rtol=1e-12)
+        # a diffuse white target (ρ = 1, normal incidence) reads W at every range, and its signal is K / R²
+        np.testing.assert_allclose(lidar_link.reported_intensity(k / r ** 2, r, profile), w, rtol=1e-12)
     # a reflectivity reading of zero range is no return
     if profile.intensity_kind == "reflectivity":
         assert lidar_link.received_signal(np.array([10.0]), np.array([0.0]), profile)[0] == 0
@@ -113,6 +136,13 @@ def test_received_signal_and_reported_intensity_are_inverse(factory):
 def test_sensor_constant_defaults_to_full_scale_and_kinds_are_checked():
     p = dataclasses.replace(os1_128(), sensor_constant=None, intensity_full_scale=4095.0)
     assert lidar_link.sensor_constant(p) == 4095.0
+    # ρ = 1 constants: the OS1 in either channel 65535 photons·m², the VLS-128 245²/0.8 (80 % at 245 m)
+    assert lidar_link.sensor_constant(os1_128_reflectivity()) == lidar_link.sensor_constant(os1_128()) == 65535.0
+    assert lidar_link.sensor_constant(vls_128()) == pytest.approx(245.0 ** 2 / 0.8)
+    # no white reading: the file reads ρ × full scale
+    refl = dataclasses.replace(os1_128_reflectivity(), reflectivity_white_reading=None)
+    assert lidar_link.white_reading(refl) == 255.0
+    assert lidar_link.received_signal(255.0, 2.0, refl) == pytest.approx(65535 / 4)
     with pytest.raises(ModelError, match="intensity_kind"):
         lidar_link.received_signal(np.ones(3), np.ones(3), dataclasses.replace(p, intensity_kind="power"))
 
@@ -371,7 +401,7 @@ def _medium(rate=20.0):
 
 def _table_at(table, values, r):
     """A per-range table of :class:`lidar_particles.VisibleTable` interpolated at ranges r (clamped)."""
-    grid = lidar_link.OVERLAP_R1_M + np.arange(len(table.cum)) * table.step_m
+    grid = table.start_m + np.arange(len(table.cum)) * table.step_m
     return np.interp(r, grid, values)
 
 
@@ -386,7 +416,7 @@ def _place_numpy(spacing, exp_d, cum_ray, ray_range_m, table, medium, beam):
     k = x.astype(np.intp)
     r = table.inv_range_m[k] + (table.inv_range_m[k + 1] - table.inv_range_m[k]) * (x - k)
     r = np.minimum(r, ray_range_m[ray])
-    x = np.clip((r - lidar_link.OVERLAP_R1_M) * (1 / table.step_m), 0.0, len(table.cum) - 1.000001)
+    x = np.clip((r - table.start_m) * (1 / table.step_m), 0.0, len(table.cum) - 1.000001)
     k = x.astype(np.intp)
     lerp = lambda t: t[k] + (t[k + 1] - t[k]) * (x - k)                        # noqa: E731
     d_low, full = lerp(table.d_low_mm), lerp(table.full_beam)
@@ -399,19 +429,22 @@ def _place_numpy(spacing, exp_d, cum_ray, ray_range_m, table, medium, beam):
     return ray, r, d, f, signal, over
 
 
+HAHNER = (0.9, 1.0)            # Hahner's receiver overlap R1, R2 (m)
+
+
 def test_compiled_particle_placement_against_numpy_reference():
-    medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 3e-3)
+    medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 3e-3, *HAHNER)
     medium = dataclasses.replace(medium, d_max_mm=2.5)                          # some diameters above Dmax
     table = lidar_particles.visible_table(medium, beam, 0.5 * 3.28 / 65535)
     rng = np.random.default_rng(5)
     ranges = np.where(rng.random(5000) < 0.1, 0.0, rng.uniform(0.5, 150.0, 5000))
-    cum_ray = lidar_particles._expected_counts(ranges, lidar_link.OVERLAP_R1_M, table.step_m, table.cum)
+    cum_ray = lidar_particles._expected_counts(ranges, table.start_m, table.step_m, table.cum)
     lam = np.where(ranges > 0, _table_at(table, table.cum, ranges), 0.0)
     np.testing.assert_allclose(np.diff(cum_ray, prepend=0.0), lam, rtol=1e-9, atol=1e-12)
     n = 20000
     spacing, exp_d = rng.standard_exponential(n + 1), rng.standard_exponential(n)
     got = lidar_particles._place(spacing, exp_d, cum_ray, ranges, table.inv_range_m, table.inv_step,
-                                 lidar_link.OVERLAP_R1_M, table.step_m, table.d_low_mm, table.full_beam,
+                                 table.start_m, table.step_m, table.d_low_mm, table.full_beam,
                                  medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
     ref = _place_numpy(spacing, exp_d, cum_ray, ranges, table, medium, beam)
     np.testing.assert_array_equal(got[0], ref[0])
@@ -421,13 +454,16 @@ def test_compiled_particle_placement_against_numpy_reference():
         np.testing.assert_allclose(g, e, rtol=1e-12)
 
 
-def test_visible_count_table_matches_integration():
-    medium, beam, level = _medium(), lidar_particles.Beam(4.75e-3, 3e-3), 2.0 / 65535
+@pytest.mark.parametrize("r1, r2", [HAHNER, (0.5, 5.0)], ids=["hahner", "os1"])
+def test_visible_count_table_matches_integration(r1, r2):
+    """Λ(r) of the cached table against quad of the visible density, with the beam's own overlap ξ (R1, R2)."""
+    medium, beam, level = _medium(), lidar_particles.Beam(4.75e-3, 3e-3, r1, r2), 2.0 / 65535
     table = lidar_particles.visible_table(medium, beam, level)
+    assert table.start_m == r1
 
     def density(r):                                       # written out independently of the module
         w = 4.75e-3 + r * 1.5e-3
-        full = 0.0199 * min(1.0, (r - 0.9) / 0.1) * math.exp(-2 * medium.alpha_per_m * r) / r ** 2
+        full = 0.0199 * min(1.0, (r - r1) / (r2 - r1)) * math.exp(-2 * medium.alpha_per_m * r) / r ** 2
         if full < level:
             return 0.0
         d_c = max(0.5, 2e3 * w * math.sqrt(level / full))
@@ -437,12 +473,26 @@ def test_visible_count_table_matches_integration():
             math.exp(-medium.lam_per_mm * d_c) - math.exp(-medium.lam_per_mm * 6.0))
 
     for r in (1.5, 3.0, 6.0, 10.0):
-        expected = integrate.quad(density, 0.9, r, limit=400)[0]
+        expected = integrate.quad(density, r1, r, limit=400)[0]
         assert _table_at(table, table.cum, r) == pytest.approx(expected, rel=2e-3)
 
 
+def test_particle_tables_and_draws_follow_the_beam_overlap():
+    """The cached visible table keys on the overlap: a slow overlap (OS1, full at 5 m) starts the table at R1 = 0.5 m
+    and holds fewer visible drops near the sensor; drawn particles lie beyond its R1."""
+    medium, level = _medium(50.0), 1.0 / 65535
+    fast = lidar_particles.visible_table(medium, lidar_particles.Beam(4.75e-3, 0.0, *HAHNER), level)
+    slow = lidar_particles.visible_table(medium, lidar_particles.Beam(4.75e-3, 0.0, 0.5, 5.0), level)
+    assert slow is not fast and (fast.start_m, slow.start_m) == (0.9, 0.5)
+    assert _table_at(slow, slow.cum, 3.0) < _table_at(fast, fast.cum, 3.0) and slow.cum[-1] < fast.cum[-1]
+    ranges = np.full(20000, 30.0)
+    p = lidar_particles.sample_particles(np.random.default_rng(1), ranges, medium,
+                                         lidar_particles.Beam(4.75e-3, 0.0, 0.5, 5.0), 2 * level)
+    assert len(p.ray) > 100 and p.range_m.min() >= 0.5 and np.mean(p.range_m < 0.9) > 0
+
+
 def test_sampler_statistics_and_order():
-    medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 0.0)
+    medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 0.0, *HAHNER)
     threshold = 1.0 / 65535
     ranges = np.tile(np.array([0.5, 2.0, 5.0, 12.0, 120.0]), 4000)
     rng = np.random.default_rng(7)
@@ -470,7 +520,7 @@ def test_sampler_statistics_and_order():
 
 
 def test_sampler_diameters_follow_truncated_exponential_above_visibility_bound():
-    medium, beam = _medium(20.0), lidar_particles.Beam(4.75e-3, 0.0)
+    medium, beam = _medium(20.0), lidar_particles.Beam(4.75e-3, 0.0, *HAHNER)
     ranges = np.full(200000, 1.5)
     p = lidar_particles.sample_particles(np.random.default_rng(2), ranges, medium, beam, 1e-9)
     # at a tiny threshold every drop beyond the overlap ramp is visible: diameters follow the DSD on [0.5, 6] mm

@@ -31,11 +31,13 @@ class FogLidar(Model):
       in front of the target), β = 0.046/MOR (m⁻¹ sr⁻¹, π β = the fog's equivalent Lambertian reflectance per metre):
       ``S_fog = K π β (c/2) G_max(R0)`` at the apparent range of the peak, with the cached pulse-integral table
       :func:`lidar_link.soft_target_table` and the profile's sensor constant K — the same scale as rain and snow
-      (``fog_scale='sensor_constant'``, default). With an OS1-128 (K = 65535 photons·m², τ_H = 10 ns) at MOR 30 m the
-      fog returns 131 photons at 1.4 m on every empty ray and replaces the targets weaker than that, so dense fog
-      shows as near returns around the sensor, as in real data (the strength scales with β: 25 photons at 200 m).
-      Its range and strength follow the overlap ξ: Hahner's R1 = 0.9 m, R2 = 1.0 m (a sensor reaching full overlap
-      at a few metres sees a weaker fog farther out).
+      (``fog_scale='sensor_constant'``, default). Range and strength follow the receiver overlap ξ of the profile
+      (``overlap_start_m`` R1, ``overlap_full_m`` R2; Hahner: 0.9 m, 1.0 m). With an OS1-128 (K = 65535 photons·m²,
+      τ_H = 10 ns, ξ from 0.5 m to full at 5 m) at MOR 30 m the fog returns 32 photons at 1.4 m on every empty ray
+      and replaces the targets weaker than that, so dense fog shows as near returns around the sensor, as in real
+      data; the strength scales with β (6.2 photons at MOR 200 m, 1.3 at 1 km: below the 3.28-photon threshold).
+      With Hahner's overlap the same sensor would see 131 photons at MOR 30 m and fog on every sky ray up to MOR
+      1.6 km.
       ``fog_scale='hahner'`` keeps Hahner's per-point calibration ``K_i = S_i R_i² / β0``, β0 = γ/π, γ = 10⁻⁶ (every
       clear point treated as one effective reflector, G in seconds; ~150/ρ times weaker than the sensor-constant form,
       so it rarely produces fog returns); its empty rays use the frame median of ``S R²``.
@@ -73,7 +75,8 @@ class FogLidar(Model):
         alpha, beta = fog_coefficients(self.visibility_m, self.backscatter_times_visibility_per_sr)
         tau_h = (lidar_link.HAHNER_FOG_PULSE_S if self.pulse_width == "hahner_20ns"
                  else rays.profile.pulse_half_power_width_s)
-        table = lidar_link.soft_target_table(alpha, tau_h)
+        table = lidar_link.soft_target_table(alpha, tau_h, rays.profile.overlap_start_m,
+                                             rays.profile.overlap_full_m)
         r = rays.range_m
         g, fog_range = table.lookup(r)
         if self.fog_scale == "sensor_constant":

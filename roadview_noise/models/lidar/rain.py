@@ -20,13 +20,14 @@ class RainLidar(Model):
 
     - Marshall–Palmer DSD on [Dmin, Dmax]; extinction ``α = (π/4)·2·∫D²N dD`` (geometric optics, Q_ext = 2; x > 1800
       for every drop at 865 nm) — 2.171e-3 m⁻¹ at 20 mm/h, not the reference's 1.085 m⁻¹ (500× too large).
-    - Drops per beam: Poisson with density ``n π w(r)²`` (w grows with the profile's beam divergence) from R1 = 0.9 m
-      to the target, or to the profile's max range on the no-return cells of a full range image (weather returns
-      there are ADDED; a point list has no such rays); diameters by inverse CDF of the truncated exponential (the
-      reference set the *mean* to Λ). Only drops that can reach half the threshold are drawn (exact thinning).
-    - Drop return ``K ρ f ξ(r) e^{−2αr}/r²`` with the sensor constant K = full scale·m², ρ = Fresnel 0.0199,
-      ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``; pulses closer than ``c τ_H`` add; strongest or first
-      return above the profile's threshold (:func:`lidar_particles.precipitation_returns`).
+    - Drops per beam: Poisson with density ``n π w(r)²`` (w grows with the profile's beam divergence) from the
+      profile's overlap start R1 to the target, or to the profile's max range on the no-return cells of a full range
+      image (weather returns there are ADDED; a point list has no such rays); diameters by inverse CDF of the
+      truncated exponential (the reference set the *mean* to Λ). Only drops that can reach half the threshold are
+      drawn (exact thinning).
+    - Drop return ``K ρ f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
+      ρ = Fresnel 0.0199, ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``; pulses closer than ``c τ_H``
+      add; strongest or first return above the profile's threshold (:func:`lidar_particles.precipitation_returns`).
     ``rain_rate_mm_per_h = 0`` is the identity.
     """
 

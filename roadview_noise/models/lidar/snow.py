@@ -45,10 +45,10 @@ class SnowLidar(Model):
     - Exponential DSD driven by the liquid-equivalent rate S (Gunn–Marshall or Sekhon–Srivastava), without the
       reference's peak-600 renormalisation (which made flake density independent of the rate); extinction in closed
       form with Q_ext = 2 (x ≥ 363 for every flake; replaces the 28 s Mie loop): 1.21e-3 m⁻¹ at 2.5 mm/h (GM).
-    - Flakes per beam: Poisson ``n π w(r)²`` from R1 = 0.9 m to the target (or the max range on the no-return cells
-      of a full range image, which then get ADDED flake returns);
-      flake return ``K ρ_s f ξ(r) e^{−2αr}/r²`` with K = full scale·m², ρ_s = 0.9, ``f = min(1, (D/2w)²)``;
-      target ``I e^{−2αR}(1 − Σ f)``.
+    - Flakes per beam: Poisson ``n π w(r)²`` from the profile's overlap start R1 to the target (or the max range on
+      the no-return cells of a full range image, which then get ADDED flake returns); flake return
+      ``K ρ_s f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ, ρ_s = 0.9,
+      ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``.
     - Summed received profiles (pulses closer than ``c τ_H`` add; exact maximum instead of Hahner's 0.1 m grid),
       strongest or first return above the profile's threshold; a peak within 0.2 m of the target only changes its
       intensity (Hahner 2022).
