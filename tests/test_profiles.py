@@ -85,3 +85,20 @@ def test_recipe_intensity_scale_keeps_the_physics():
     k_q = q.sensor_constant if q.sensor_constant is not None else q.intensity_full_scale
     assert k_q == pytest.approx(k_p * ratio)
     assert q.detection_threshold / k_q == pytest.approx(p.detection_threshold / k_p)   # same detection range
+
+
+def test_camera_profile_mapping_over_a_base(tmp_path):
+    """A mapping overrides fields of a base profile; a new size alone resamples the base optics."""
+    from roadview_noise.profiles.camera import load_camera_profile, lucid_triton_028s
+
+    base = lucid_triton_028s()
+    p = load_camera_profile({"exposure_time_s": 0.01})
+    assert p.exposure_time_s == 0.01 and p.fx_px == base.fx_px
+    half = load_camera_profile({"width_px": 968, "height_px": 732})
+    assert half.fx_px == pytest.approx(base.fx_px / 2) and half.cx_px == pytest.approx((968 - 1) / 2)
+    (tmp_path / "cam.yaml").write_text("base: lucid_triton_028s\nK: [[1000, 0, 960], [0, 1000, 540], [0, 0, 1]]\n"
+                                       "width_px: 1920\nheight_px: 1080\n")
+    k = load_camera_profile(str(tmp_path / "cam.yaml"))
+    assert (k.name, k.fx_px, k.cy_px, k.f_number) == ("cam", 1000.0, 540.0, base.f_number)
+    with pytest.raises(InputError, match="focal_mm"):
+        load_camera_profile({"focal_mm": 6})

@@ -10,10 +10,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import yaml
 
 from ..errors import InputError
 from ..types import CameraProfile
+from . import check_keys, load_profile
 
 
 def lucid_triton_028s() -> CameraProfile:
@@ -33,47 +33,36 @@ def carla_pinhole(width_px: int = 1920, height_px: int = 1080, fov_deg: float = 
 BUILTIN = {"lucid_triton_028s": lucid_triton_028s, "carla": carla_pinhole}
 
 
-def camera_profile_from_mapping(d: dict, *, source: str = "profile") -> CameraProfile:
-    """Build a profile from a mapping: either ``K: [[fx,0,cx],[0,fy,cy],[0,0,1]]`` or ``fov_h_deg`` (+ optional
-    ``fov_v_deg``), plus ``width_px``, ``height_px`` and any other :class:`CameraProfile` field."""
-    d = dict(d)
-    allowed = {f.name for f in dataclasses.fields(CameraProfile)} | {"K", "fov_h_deg", "fov_v_deg"}
-    unknown = set(d) - allowed
-    if unknown:
-        raise InputError(f"unknown camera profile keys {sorted(unknown)} (allowed: {sorted(allowed)})", file=source)
+_INTRINSICS = ("K", "fov_h_deg", "fov_v_deg", "fx_px", "fy_px", "cx_px", "cy_px")
+
+
+def _override(base: CameraProfile, fields: dict, source: str) -> CameraProfile:
+    """Fields of ``base`` replaced by a mapping. Intrinsics may be given as ``K: [[fx,0,cx],[0,fy,cy],[0,0,1]]``,
+    as ``fov_h_deg`` (+ optional ``fov_v_deg``, centred pinhole), or field by field; a new size without intrinsics
+    resamples the base optics (:meth:`CameraProfile.resized`)."""
+    check_keys(fields, {f.name for f in dataclasses.fields(CameraProfile)} | {"K", "fov_h_deg", "fov_v_deg"},
+               "camera", source)
+    fields = dict(fields)
+    name = str(fields.pop("name", Path(source).stem if source.endswith((".yaml", ".yml")) else base.name))
     try:
-        name = str(d.pop("name", Path(source).stem))
-        w, h = int(d.pop("width_px")), int(d.pop("height_px"))
-        if "K" in d:
-            k = d.pop("K")
-            d.update(fx_px=float(k[0][0]), fy_px=float(k[1][1]), cx_px=float(k[0][2]), cy_px=float(k[1][2]))
-            return CameraProfile(name, w, h, **d)
-        if "fov_h_deg" in d:
-            return CameraProfile.from_fov(name, w, h, float(d.pop("fov_h_deg")), d.pop("fov_v_deg", None), **d)
-        return CameraProfile(name, w, h, **d)
+        w, h = int(fields.pop("width_px", base.width_px)), int(fields.pop("height_px", base.height_px))
+        if "K" in fields:
+            k = fields.pop("K")
+            fields.update(fx_px=float(k[0][0]), fy_px=float(k[1][1]), cx_px=float(k[0][2]), cy_px=float(k[1][2]))
+        elif "fov_h_deg" in fields:
+            pin = CameraProfile.from_fov(name, w, h, float(fields.pop("fov_h_deg")), fields.pop("fov_v_deg", None))
+            fields.update(fx_px=pin.fx_px, fy_px=pin.fy_px, cx_px=pin.cx_px, cy_px=pin.cy_px)
+        elif (w, h) != (base.width_px, base.height_px) and not any(k in fields for k in _INTRINSICS):
+            base = base.resized(w, h)
+        return dataclasses.replace(base, name=name, width_px=w, height_px=h, **fields)
     except (KeyError, TypeError, ValueError, IndexError) as e:
         raise InputError(f"invalid camera profile ({e})", file=source) from None
 
 
 def load_camera_profile(spec: str | dict | None, *, base_dir: Path | None = None) -> CameraProfile:
-    """A built-in name, a YAML file path, or a mapping; default the Lucid Triton."""
-    if spec is None:
-        return lucid_triton_028s()
-    if isinstance(spec, dict):
-        return camera_profile_from_mapping(spec)
-    if spec in BUILTIN:
-        return BUILTIN[spec]()
-    path = Path(spec) if base_dir is None or Path(spec).is_absolute() else base_dir / spec
-    if not path.is_file():
-        raise InputError(f"no camera profile {spec!r}: not a built-in ({', '.join(BUILTIN)}) nor a file",
-                         file=str(path))
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise InputError(f"not valid YAML ({e})", file=str(path)) from None
-    if not isinstance(data, dict):
-        raise InputError("a camera profile file must hold a mapping", file=str(path))
-    return camera_profile_from_mapping(data, source=str(path))
+    """A built-in name, a YAML file or a mapping (fields over ``base:``, default the Lucid Triton)."""
+    return load_profile(spec, kind="camera", builtin=BUILTIN, default=lucid_triton_028s, override=_override,
+                        base_dir=base_dir)
 
 
 def fit_to_image(profile: CameraProfile, width_px: int, height_px: int, *, source: str = "") -> CameraProfile:

@@ -23,6 +23,7 @@ import yaml
 
 from ..errors import InputError
 from ..types import IntensityUnit, LidarProfile
+from . import check_keys, load_profile
 
 _DATA = Path(__file__).with_name("data")
 OS1_SENSOR_CONSTANT = 65535.0           # photons·m²: signal of a ρ = 1 target at 1 m (see os1_128)
@@ -161,38 +162,12 @@ def from_beam_table_csv(path: Path, base: LidarProfile | None = None, **override
 def load_lidar_profile(spec: str | dict | None, *, base_dir: Path | None = None) -> LidarProfile:
     """A built-in name, a file (``.json`` Ouster metadata, ``.csv`` beam table, ``.yaml`` profile) or a mapping
     ``{base: NAME_OR_FILE, <LidarProfile field>: value, ...}`` overriding fields of a base profile."""
-    if spec is None:
-        return os1_128()
-    if isinstance(spec, dict):
-        spec = dict(spec)
-        base = load_lidar_profile(spec.pop("base", None), base_dir=base_dir)
-        return _override(base, spec, "profile")
-    if spec in BUILTIN:
-        return BUILTIN[spec]()
-    path = Path(spec) if base_dir is None or Path(spec).is_absolute() else base_dir / spec
-    if not path.is_file():
-        raise InputError(f"no LiDAR profile {spec!r}: not a built-in ({', '.join(BUILTIN)}) nor a file",
-                         file=str(path))
-    suffix = path.suffix.lower()
-    if suffix == ".json":
-        return from_ouster_metadata(path)
-    if suffix == ".csv":
-        return from_beam_table_csv(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise InputError(f"not valid YAML ({e})", file=str(path)) from None
-    if not isinstance(data, dict):
-        raise InputError("a LiDAR profile file must hold a mapping", file=str(path))
-    base = load_lidar_profile(data.pop("base", None), base_dir=path.parent)
-    return _override(base, data, str(path))
+    return load_profile(spec, kind="LiDAR", builtin=BUILTIN, default=os1_128, override=_override, base_dir=base_dir,
+                        loaders={".json": from_ouster_metadata, ".csv": from_beam_table_csv})
 
 
 def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
-    allowed = {f.name for f in dataclasses.fields(LidarProfile)}
-    unknown = set(fields) - allowed
-    if unknown:
-        raise InputError(f"unknown LiDAR profile keys {sorted(unknown)} (allowed: {sorted(allowed)})", file=source)
+    check_keys(fields, {f.name for f in dataclasses.fields(LidarProfile)}, "LiDAR", source)
     for k in ("beam_elevation_deg", "beam_azimuth_offset_deg"):
         if k in fields:
             fields[k] = tuple(float(v) for v in fields[k])

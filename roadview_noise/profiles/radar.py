@@ -24,10 +24,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import yaml
 
 from ..errors import InputError
 from ..types import RadarProfile
+from . import check_keys, load_profile
 
 
 def generic_77ghz() -> RadarProfile:
@@ -61,33 +61,12 @@ def default_radar_profile() -> RadarProfile:
 def load_radar_profile(spec: str | dict | None, *, base_dir: Path | None = None) -> RadarProfile:
     """A built-in name, a YAML file (a mapping of RadarProfile fields, optionally ``base: NAME_OR_FILE``) or a
     mapping ``{base: NAME_OR_FILE, <RadarProfile field>: value, ...}`` overriding fields of a base profile."""
-    if spec is None:
-        return default_radar_profile()
-    if isinstance(spec, dict):
-        spec = dict(spec)
-        base = load_radar_profile(spec.pop("base", None), base_dir=base_dir)
-        return _override(base, spec, "profile")
-    if spec in BUILTIN:
-        return BUILTIN[spec]()
-    path = Path(spec) if base_dir is None or Path(spec).is_absolute() else base_dir / spec
-    if not path.is_file():
-        raise InputError(f"no radar profile {spec!r}: not a built-in ({', '.join(BUILTIN)}) nor a file",
-                         file=str(path))
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise InputError(f"not valid YAML ({e})", file=str(path)) from None
-    if not isinstance(data, dict):
-        raise InputError("a radar profile file must hold a mapping", file=str(path))
-    base = load_radar_profile(data.pop("base", None), base_dir=path.parent)
-    return _override(base, data, str(path))
+    return load_profile(spec, kind="radar", builtin=BUILTIN, default=default_radar_profile, override=_override,
+                        base_dir=base_dir)
 
 
 def _override(base: RadarProfile, fields: dict, source: str) -> RadarProfile:
-    allowed = {f.name for f in dataclasses.fields(RadarProfile)}
-    unknown = set(fields) - allowed
-    if unknown:
-        raise InputError(f"unknown radar profile keys {sorted(unknown)} (allowed: {sorted(allowed)})", file=source)
+    check_keys(fields, {f.name for f in dataclasses.fields(RadarProfile)}, "radar", source)
     for key, value in fields.items():
         if key == "name" or (key == "snr_threshold_db" and value is None):
             continue
