@@ -80,7 +80,11 @@ def order_chain(model_ids: Sequence[str], *, as_written: bool = False, where: st
     Refuses (``RecipeError``): unknown or unfinished models, mixed sensors, the same model twice, a modifier
     without a weather model after it, and — unless ``as_written`` — an order that contradicts the stages."""
     models = load_all()
+    planned = {m for cnf in CNFS.values() for ids in cnf.chains.values() for m in ids}
     for i, mid in enumerate(model_ids):
+        if mid in planned and mid not in models:
+            raise RecipeError(f"model {mid!r} is not implemented yet (`rvnoise list` marks the CNFs that run)",
+                              key=f"{where}[{i}].model")
         if mid not in models:
             try:
                 get_model(mid)

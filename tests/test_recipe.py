@@ -84,3 +84,8 @@ def test_sweep_gives_one_variant_per_value():
 def test_params_for_model_not_in_cnf_refused():
     e = err({"cnf": "CNF22", "params": {"fog.lidar": {"visibility_m": 10}}})
     assert e.key == "params.fog.lidar"
+
+
+def test_cnf_with_a_model_not_built_yet_says_so():
+    e = err({"cnf": "CNF01"})
+    assert "soiling.camera" in str(e) and "not implemented yet" in str(e)
