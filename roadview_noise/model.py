@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import Enum, IntEnum
 from typing import Any, ClassVar, Sequence
@@ -97,7 +98,7 @@ def param(default: Any, *, unit: str = "1", doc: str = "", ge: float | None = No
 
 
 @dataclass(frozen=True)
-class Model:
+class Model(ABC):
     """Base class of every noise model; subclasses are frozen dataclasses registered with ``@register``."""
 
     id: ClassVar[str]
@@ -136,5 +137,6 @@ class Model:
     def draw(self, rng: np.random.Generator, data: Any) -> dict:
         return {}
 
+    @abstractmethod
     def apply(self, data: Any, *, state: dict, drawn: dict, rng: np.random.Generator) -> tuple[Any, dict]:
-        raise NotImplementedError  # abstract: every registered model overrides it
+        """The model's effect on one frame or cloud: ``(new data, diagnostics)``."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from dataclasses import dataclass
 from numbers import Real
 from typing import Any, ClassVar
@@ -40,14 +41,17 @@ class PrecipitationCamera(Model):
                              field="max_particle_distance_m")
 
     # what distinguishes rain from snow
+    @abstractmethod
     def size_classes(self):
-        raise NotImplementedError
+        """Particle size classes (diameters in mm and number densities in m⁻³)."""
 
+    @abstractmethod
     def fall_speed(self, d_mm):
-        raise NotImplementedError
+        """Terminal fall speed (m/s) of particles of diameter ``d_mm``."""
 
+    @abstractmethod
     def radiance(self, layout, signal, depth_m):
-        raise NotImplementedError
+        """Particle radiance per colour channel in the frame's linear scale."""
 
     def apply(self, data, *, state, drawn, rng):
         exposure = data.profile.exposure_time_s if self.exposure_time_s is None else float(self.exposure_time_s)

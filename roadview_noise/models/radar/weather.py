@@ -4,6 +4,7 @@ from their parameters."""
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -41,9 +42,9 @@ class RadarWeather(Model):
                                           "threshold when the profile gives none (0: the weakest detection)",
                                           ge=0, le=0.05)
 
+    @abstractmethod
     def gamma_db_per_km(self, profile: RadarProfile) -> float:
         """Specific attenuation at the radar frequency."""
-        raise NotImplementedError
 
     def frame_clutter(self, data: PointCloud, ranges_m: np.ndarray, det: Detection, gamma: float
                       ) -> tuple[ClutterCells | None, dict]:
@@ -169,9 +170,9 @@ class PrecipitationRadar(RadarWeather):
         if self.clutter_max_range_m <= self.clutter_min_range_m:
             raise ModelError("must exceed clutter_min_range_m", model=self.id, field="clutter_max_range_m")
 
+    @abstractmethod
     def hydrometeors(self, profile: RadarProfile) -> Hydrometeors | None:
         """The falling particles, None when there are none (zero rate)."""
-        raise NotImplementedError
 
     def frame_clutter(self, data, ranges_m, det, gamma):
         profile = profile_of(data)
