@@ -36,8 +36,6 @@ from functools import lru_cache
 
 import numpy as np
 
-from scipy.signal import fftconvolve
-
 from .dsd import SNOW_LAWS, exponential_moment, marshall_palmer
 from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
@@ -371,6 +369,8 @@ def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     # E at offset d (pair i sits at v_{i+d}): pairs with i + d < 0 are negligible, those past the table saturated
     d = np.arange(-(n_u - 1), len(v))
     suffix = np.cumsum(hist[::-1])[::-1]
+    from scipy.signal import fftconvolve  # here, not at import: scipy.signal costs 0.5 s to import
+
     expected = p_max * suffix[np.maximum(-d, 0)] - fftconvolve(hist[::-1], deficit)
     w = v0 - lg.min() + step * d
     return _read_only(w, np.maximum(expected, 0.0)) + (p_max * len(lg),)
