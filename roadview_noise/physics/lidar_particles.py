@@ -17,6 +17,7 @@ one compiled pass (:func:`_place`), as is the return selection (:func:`lidar_lin
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -212,6 +213,19 @@ def _place(spacing, exp_d, cum_ray, ray_range_m, inv_range_m, inv_step, r0_m, st
     return ray, r, d, f, signal, over[:n_over]
 
 
+_scratch = threading.local()
+
+
+def _buffer(name: str, size: int) -> np.ndarray:
+    """A per-thread float64 scratch buffer of ``size`` entries, reused across frames (fresh pages are expensive);
+    for temporaries only."""
+    buf = getattr(_scratch, name, None)
+    if buf is None or len(buf) < size:
+        buf = np.empty(max(size, size + size // 4))
+        setattr(_scratch, name, buf)
+    return buf[:size]
+
+
 def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: ParticleMedium, beam: Beam,
                      threshold: float) -> Particles:
     """Visible particles in front of each ray's range (0 for none), vectorised over the frame.
@@ -229,8 +243,8 @@ def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: 
     if n == 0:
         empty = np.zeros(0)
         return Particles(np.zeros(0, dtype=np.intp), empty, empty, empty, empty)
-    spacing = rng.standard_exponential(n + 1)
-    exp_d = rng.standard_exponential(n)
+    spacing = rng.standard_exponential(out=_buffer("spacing", n + 1))     # inputs only: reused buffers
+    exp_d = rng.standard_exponential(out=_buffer("exp_d", n))
     ray, r, d, f, signal, over = _place(spacing, exp_d, cum_ray, ranges, table.inv_range_m, table.inv_step,
                                         table.start_m, table.step_m, table.d_low_mm, table.full_beam,
                                         medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
