@@ -69,10 +69,6 @@ class CameraProfile:
     focus_distance_m: float = math.inf
 
     @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
-
-    @property
     def fov_h_deg(self) -> float:
         return math.degrees(2 * math.atan(self.width_px / (2 * self.fx_px)))
 
@@ -312,12 +308,6 @@ class PointCloud:
     @property
     def ranges_m(self) -> np.ndarray:
         return np.linalg.norm(self.positions_m, axis=1)
-
-    def field(self, name: str) -> np.ndarray:
-        try:
-            return self.fields[name]
-        except KeyError:
-            raise KeyError(f"point cloud has no field {name!r} (has {sorted(self.fields)})") from None
 
     def select(self, mask_or_index: np.ndarray) -> "PointCloud":
         """Keep the points selected by a boolean mask or an index array; every field stays aligned."""

@@ -1,4 +1,4 @@
-"""Homogeneous-medium optics: visibility ↔ extinction, Beer–Lambert, Koschmieder blending (models.md §2.1, §3.1)."""
+"""Homogeneous-medium optics: extinction from visibility, Beer–Lambert (models.md §2.1, §3.1)."""
 
 from __future__ import annotations
 
@@ -6,17 +6,12 @@ import math
 
 import numpy as np
 
-MOR_CONTRAST_THRESHOLD = 0.05                      # WMO meteorological optical range
-LN_MOR = -math.log(MOR_CONTRAST_THRESHOLD)         # 2.9957: σ · MOR
+LN_MOR = -math.log(0.05)      # 2.9957: σ · MOR, the WMO meteorological optical range (5 % contrast)
 
 
 def extinction_from_visibility_per_m(visibility_m: float) -> float:
     """``σ = −ln(0.05)/MOR = ln 20 / MOR`` (m⁻¹)."""
     return LN_MOR / visibility_m
-
-
-def visibility_from_extinction_m(sigma_per_m: float) -> float:
-    return LN_MOR / sigma_per_m
 
 
 def transmission(sigma_per_m, distance_m) -> np.ndarray:
@@ -29,8 +24,3 @@ def transmission(sigma_per_m, distance_m) -> np.ndarray:
 def two_way_transmission(alpha_per_m, range_m) -> np.ndarray:
     """Two-way (active sensor) transmission ``exp(−2 α R)``."""
     return transmission(2.0 * np.asarray(alpha_per_m), range_m)
-
-
-def koschmieder(signal, t, airlight):
-    """Koschmieder blend ``I' = t I + (1 − t) A`` (all in the same linear scale)."""
-    return t * signal + (1.0 - t) * airlight

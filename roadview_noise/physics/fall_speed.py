@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-STANDARD_GRAVITY_M_PER_S2 = 9.80665
-
 
 def _floats(x) -> np.ndarray:
     """float32 input stays float32 (particle arrays on hot paths); anything else becomes float64."""
@@ -30,8 +28,3 @@ def snow_power_law_m_per_s(d_mm, a_m_per_s: float = 0.8, b: float = 0.16) -> np.
     (models.md §2.3 [PROP]; replaces the reference's garbled constant 0.65 m/s)."""
     d = _floats(d_mm)
     return d.dtype.type(a_m_per_s) * d ** d.dtype.type(b)
-
-
-def relaxation_time_s(v_terminal_m_per_s) -> np.ndarray:
-    """Time constant with which a particle's horizontal velocity follows the wind, ``τ_p ≈ v_t / g`` (§2.9)."""
-    return np.asarray(v_terminal_m_per_s, dtype=float) / STANDARD_GRAVITY_M_PER_S2
