@@ -15,7 +15,7 @@ from pathlib import Path, PurePosixPath
 from .errors import InputError
 from .io.atomic import TMP_SUFFIX
 from .recipe import InputsSpec, Recipe
-from .types import CameraFrame, Conditions, LidarProfile, RawEncoding, RawFrame, SensorData
+from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
 
 DEFAULT_GLOBS = {
     "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
@@ -206,12 +206,10 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
             frame = CameraFrame(linear, fit_to_image(profile, w, h, source=str(path)), encoding=encoding,
                                 alpha=alpha)
         else:
-            reader = raw_io.read_dng if path.suffix.lower() == ".dng" else raw_io.read_plain_raw
-            dn, pattern, black, white = reader(path)
+            dn, pattern, black, white, encoding = raw_io.read_raw(path)
             h, w = dn.shape
             frame = RawFrame(dn.astype("float32"), pattern, float(black), float(white),
-                             fit_to_image(profile, w, h, source=str(path)),
-                             encoding=RawEncoding(fmt="dng" if path.suffix.lower() == ".dng" else "raw"))
+                             fit_to_image(profile, w, h, source=str(path)), encoding=encoding)
         if recipe.needs_depth():
             if sample.depth_relpath is None:
                 needing = [m for m in recipe.model_ids if _needs_depth(m)]
@@ -247,13 +245,7 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
     if isinstance(data, CameraFrame):
         image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
     elif isinstance(data, RawFrame):
-        import numpy as np
-
-        dn = np.clip(np.rint(data.dn), 0, data.white_level_dn).astype(np.uint16)  # the sensor saturates
-        if data.encoding.fmt == "dng":
-            raw_io.write_dng(out_path, dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
-                             template=source)
-        else:
-            raw_io.write_plain_raw(out_path, dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn)
+        raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
+                         data.encoding, template=source)
     else:
         cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)

@@ -33,11 +33,11 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
-import numba
 import numpy as np
 
 from ..errors import ModelError
 from ..types import IntensityUnit, LidarProfile, PointCloud, PointLabel
+from .compiled import jit
 
 SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
 HAHNER_FOG_PULSE_S = 20e-9              # half-power pulse width of Hahner et al. 2021
@@ -49,15 +49,6 @@ COUNT_UNITS = (IntensityUnit.PHOTONS, IntensityUnit.UINT8)
 
 NO_RETURN, TARGET, WEATHER = 0, 1, 2     # what a ray returns after the weather
 ATTENUATED, MOVED, ADDED = int(PointLabel.ATTENUATED), int(PointLabel.MOVED), int(PointLabel.ADDED)
-
-
-def compiled(fn):
-    """``numba.njit`` with an on-disk cache; where numba finds no writable cache location (read-only install without
-    a user cache directory) it refuses ``cache=True`` at decoration, and the function is compiled per process."""
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError:
-        return numba.njit(nogil=True)(fn)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -133,8 +124,7 @@ def pulse_length_m(tau_h_s: float) -> float:
 
 
 def hard_target_signal(signal, alpha_per_m: float, range_m) -> np.ndarray:
-    """Two-way Beer–Lambert loss of a hard target, ``S e^{−2αR}`` (same unit as ``signal``; finite ranges, so
-    :func:`atmosphere.two_way_transmission`'s sky handling is not needed)."""
+    """Two-way Beer–Lambert loss of a hard target, ``S e^{−2αR}`` (same unit as ``signal``; R finite)."""
     t = np.exp(np.multiply(range_m, -2.0 * alpha_per_m))
     return np.multiply(signal, t, out=t) if isinstance(t, np.ndarray) else signal * t
 
@@ -271,7 +261,7 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
     return RayReturns(kind, out_range, tgt_sig)
 
 
-@compiled
+@jit
 def cluster_peak(r, a, cs, sn, lo, hi, length):       # pragma: no cover - compiled
     """Exact maximum of ``S(x) = Σ_k a_k sin²(π (x − r_k)/L)`` (each term on ``r_k ≤ x ≤ r_k + L``) over the
     contributions ``lo … hi−1`` (sorted by range; ``cs``, ``sn``: cos and sin of ``2π (r_k − r_0) / L`` for any
@@ -347,7 +337,7 @@ def cluster_peak(r, a, cs, sn, lo, hi, length):       # pragma: no cover - compi
     return best, best_x - length / 2.0
 
 
-@compiled
+@jit
 def pair_peak(r1, a1, r2, a2, length):       # pragma: no cover - compiled
     """:func:`cluster_peak` of two overlapping pulses (``r1 ≤ r2 < r1 + L``) in closed form; returns (peak, apparent
     range ``x − L/2``).
@@ -365,7 +355,7 @@ def pair_peak(r1, a1, r2, a2, length):       # pragma: no cover - compiled
     return peak, r1 + (math.pi - math.atan2(b_im, b_re)) * length / (2.0 * math.pi) - length / 2.0
 
 
-@compiled
+@jit
 def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no cover - compiled
     """(peak, apparent range) of the cluster ``lo … hi−1``: a single pulse, :func:`pair_peak` or :func:`cluster_peak`
     (``cos_buf``/``sin_buf``: scratch space as long as ``r``)."""
@@ -380,7 +370,7 @@ def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no co
     return cluster_peak(r, a, cos_buf, sin_buf, lo, hi, length)
 
 
-@compiled
+@jit
 def _one_particle(r, a, t_range, t_sig, tgt, length, threshold, first_mode):      # pragma: no cover - compiled
     """(value, apparent range, is the target) of a ray with one particle in front of its target (if any)."""
     if tgt and t_range - r < length:                   # one cluster: the pair
@@ -393,7 +383,7 @@ def _one_particle(r, a, t_range, t_sig, tgt, length, threshold, first_mode):    
     return t_sig, t_range, True
 
 
-@compiled
+@jit
 def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, has_target, length, threshold, first_mode,
                    kind, out_range, out_signal):        # pragma: no cover - compiled
     """:func:`select_returns` on the rays with particles, written in place into ``kind``, ``out_range``,
@@ -600,7 +590,7 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
 
 
-@compiled
+@jit
 def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
                    intensity_in, positions_out, intensity_out, label):      # pragma: no cover - compiled
     """Per point of :func:`assemble`, written into the outputs (``label`` in place): position, stored intensity (the

@@ -23,7 +23,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from . import lidar_link
+from . import dsd, lidar_link
+from .compiled import jit
 
 VISIBLE_FRACTION = 0.5        # particles returning less than this fraction of the threshold are not drawn
 TABLE_STEP_M = 0.01
@@ -132,7 +133,7 @@ class Particles:
     signal: np.ndarray
 
 
-@lidar_link.compiled
+@jit
 def _expected_counts(ray_range_m, r0_m, step_m, cum):      # pragma: no cover - compiled
     """Cumulative sum over the rays of their expected visible particles ``Λ(R_i)`` (the table ``cum`` on the grid
     ``r0 + k·step`` interpolated linearly; Λ = 0 up to R1 and constant beyond the table)."""
@@ -152,7 +153,7 @@ def _expected_counts(ray_range_m, r0_m, step_m, cum):      # pragma: no cover - 
     return out
 
 
-@lidar_link.compiled
+@jit
 def _place(spacing, exp_d, cum_ray, ray_range_m, inv_range_m, inv_step, r0_m, step_m, d_low_mm, full_beam,
            lam_per_mm, d_max_mm, w0_m, half_divergence_rad):      # pragma: no cover - compiled
     """The particles of :func:`sample_particles` from their random draws, in one merge walk over rays and particles.
@@ -249,9 +250,7 @@ def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: 
                                         table.start_m, table.step_m, table.d_low_mm, table.full_beam,
                                         medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
     if len(over):                                     # rare: redraw from the truncated law (inverse CDF)
-        d_low = d[over]
-        span = -np.expm1(-medium.lam_per_mm * (medium.d_max_mm - d_low))
-        d[over] = d_low - np.log1p(-rng.random(len(over)) * span) / medium.lam_per_mm
+        d[over] = dsd.sample_truncated_exponential(rng, medium.lam_per_mm, d[over], medium.d_max_mm, len(over))
         f[over] = np.minimum(1.0, (d[over] * (0.5e-3 / beam.radius_at(r[over]))) ** 2)
         signal[over] *= f[over]
     return Particles(ray, r, d, f, signal)

@@ -50,6 +50,7 @@ import numpy as np
 
 from ..profiles.camera import fit_to_image
 from ..types import CameraProfile, Conditions
+from ..units import ray_factor
 from .cfa import SiteLayout
 from .dsd import BRANDES_SNOW_GAMMA, SNOW_LAWS, gamma_dsd, marshall_palmer
 from .fall_speed import atlas_ulbrich_m_per_s
@@ -250,16 +251,6 @@ def explicit_depth_limits(profile: CameraProfile, exposure_s: float, classes: Si
     last = np.where(visible.any(axis=1), z.size - 1 - np.argmax(visible[:, ::-1], axis=1), -1)
     limits = np.where(last >= 0, z[np.maximum(last, 0)], d_min_m)
     return np.where(classes.number > 0, limits, d_min_m)
-
-
-@lru_cache(maxsize=4)
-def ray_factor(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
-    """Range / planar depth per pixel, ``sqrt(1 + ((u−c_x)/f_x)² + ((v−c_y)/f_y)²)`` (read-only float32)."""
-    u = (np.arange(width) - cx) / fx
-    v = (np.arange(height) - cy) / fy
-    k = np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2).astype(np.float32)
-    k.flags.writeable = False
-    return k
 
 
 # --- sampling --------------------------------------------------------------------------------------------------

@@ -43,7 +43,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.optimize import brentq
 from scipy.special import gammainc, gammaincc, gammainccinv
 
 PROBABILITY_TIERS = 30      # cells are sampled in tiers P ∈ (2^{−j−1}, 2^{−j}] P_max; below 2^{−30} P_max neglected
@@ -141,6 +140,8 @@ def tier_ratios(detector: Detector) -> np.ndarray:
     if isinstance(detector, FixedThreshold):
         out = 1.0 / (j * math.log(2.0))
     else:
+        from scipy.optimize import brentq  # here, not at import (≈ 0.2 s); the result is cached
+
         target = np.log(detector.max_probability) - j * math.log(2.0)
         out = np.array([math.exp(brentq(lambda v: math.log(float(detector.probability(math.exp(v))) + 1e-300) - t,
                                         -40.0, 40.0, xtol=1e-12)) for t in target])

@@ -17,7 +17,6 @@ import math
 from functools import lru_cache
 
 import numpy as np
-from scipy.optimize import brentq
 
 from .dsd import CE_FOG_LOGNORMAL, lognormal_fog_lwc_g_per_m3
 
@@ -164,4 +163,6 @@ def detection_range_in_weather_m(clear_range_m: float, gamma_db_per_km: float) -
     if gamma_db_per_km <= 0:
         return float(clear_range_m)
     f = lambda r: 40 * math.log10(clear_range_m / r) - 2 * gamma_db_per_km * r / 1000
+    from scipy.optimize import brentq  # here, not at import (≈ 0.2 s)
+
     return float(brentq(f, clear_range_m * 1e-9, clear_range_m, xtol=1e-9 * clear_range_m))

@@ -531,19 +531,3 @@ def test_sampler_diameters_follow_truncated_exponential_above_visibility_bound()
     assert np.mean(d > 3.0) == pytest.approx(math.exp(-lam * 2.5) - math.exp(-lam * 5.5), abs=0.003)
     # in the overlap ramp only larger drops are visible
     assert p.diameter_mm[p.range_m < 0.905].min() > 0.5
-
-
-def test_compiled_falls_back_without_a_writable_cache(monkeypatch):
-    """A read-only install without a user cache directory: numba refuses cache=True; the kernel still compiles."""
-    from numba.core import caching, config
-
-    impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl          # renamed in numba 0.62
-    monkeypatch.setattr(impl, "_locator_classes", [])
-    monkeypatch.setattr(config, "CACHE_LOCATOR_CLASSES", "", raising=False)
-
-    def twice(x):
-        return 2 * x
-
-    with pytest.raises(RuntimeError):
-        __import__("numba").njit(cache=True)(twice)
-    assert lidar_link.compiled(twice)(21) == 42
