@@ -283,6 +283,14 @@ def _summed_peaks_numpy(first: np.ndarray, size: np.ndarray, c_range: np.ndarray
     return peak, at - length / 2
 
 
+def test_phasor_matches_libm_cos_and_sin():
+    theta = np.concatenate([np.random.default_rng(4).uniform(0, 60, 20000), np.arange(0, 40) * np.pi / 8,
+                            [0.0, 1e-300, 2 * np.pi - 1e-15]])
+    got = np.array([lidar_link.phasor(t) for t in theta])
+    assert np.max(np.abs(got[:, 0] - np.cos(theta))) < 1e-14
+    assert np.max(np.abs(got[:, 1] - np.sin(theta))) < 1e-14
+
+
 def test_cluster_peak_compiled_against_numpy_reference_and_dense_grid():
     rng = np.random.default_rng(3)
     length = 3.0
