@@ -9,7 +9,7 @@ from typing import ClassVar
 from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...physics import dsd
-from ...physics.lidar_particles import ParticleMedium, apply_precipitation
+from ...physics.lidar_particles import VISIBLE_FRACTION, ParticleMedium, apply_precipitation
 from ...registry import register
 
 # Hahner 2022 rain ↔ snow conversion S = 487 ρ D0 v_t R^{2/3} (ρ in g/cm³, D0 in m, v_t in m/s), with the
@@ -46,7 +46,8 @@ class SnowLidar(Model):
       reference's peak-600 renormalisation (which made flake density independent of the rate); extinction in closed
       form with Q_ext = 2 (x ≥ 363 for every flake; replaces the 28 s Mie loop): 1.21e-3 m⁻¹ at 2.5 mm/h (GM).
     - Flakes per beam: Poisson ``n π w(r)²`` from the profile's overlap start R1 to the target (or the max range on
-      the no-return cells of a full range image, which then get ADDED flake returns); flake return
+      the no-return cells of a full range image, which then get ADDED flake returns), drawn when their return
+      reaches ``draw_fraction_of_threshold`` (½) of the threshold (the fainter ones act through α); flake return
       ``K ρ_s f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ, ρ_s = 0.9,
       ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``.
     - Summed received profiles (pulses closer than ``c τ_H`` add; exact maximum instead of Hahner's 0.1 m grid),
@@ -73,6 +74,11 @@ class SnowLidar(Model):
     max_flake_diameter_mm: float = param(20.0, unit="mm", gt=0, doc="largest flake of the DSD")
     flake_reflectance: float = param(0.9, unit="1", ge=0, doc="flake reflectance ρ_s (Hahner 2022)")
     return_mode: str = param("strongest", choices=("strongest", "first"), doc="which echo the sensor reports")
+    draw_fraction_of_threshold: float = param(
+        VISIBLE_FRACTION, unit="1", gt=0, le=1,
+        doc="flakes whose own return is below this fraction of the detection threshold are not drawn one by one (they"
+            " act through the extinction α; their faint summed backscatter is neglected): smaller is closer to the full"
+            " Poisson model and slower")
 
     def validate(self) -> None:
         if self.min_flake_diameter_mm >= self.max_flake_diameter_mm:
@@ -90,4 +96,5 @@ class SnowLidar(Model):
                               dsd.geometric_extinction_per_m(n0, lam, lo, hi))
 
     def apply(self, data, *, state, drawn, rng):
-        return apply_precipitation(self.id, data, self.medium(), self.return_mode, rng)
+        return apply_precipitation(self.id, data, self.medium(), self.return_mode, rng,
+                                   self.draw_fraction_of_threshold)
