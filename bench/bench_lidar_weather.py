@@ -6,6 +6,7 @@
 2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, the OS1's calibrated 8-bit reflectivity,
    profile ``os1-128-reflectivity``: white reads 100, K = 65535 photons·m², receiver overlap 0.5 → 5 m), if present,
    plus a table rate → kept / attenuated / moved / removed / added.
+3. The convergence of rain and snow in ``draw_fraction_of_threshold`` on the synthetic grid.
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
 ms per frame (min and median of 15 frames after a warm-up), the tracemalloc peak, the visible particles drawn, and
@@ -158,12 +159,25 @@ def rate_table(cloud: PointCloud) -> None:
               f"{d['below_threshold_in']})")
 
 
+def draw_fraction_table(cloud: PointCloud) -> None:
+    """Convergence of rain and snow in ``draw_fraction_of_threshold`` (the undrawn particles' backscatter is the
+    particle models' one approximation): weather returns (moved + added) and particles per frame, mean of 4 frames."""
+    print("\ndraw_fraction_of_threshold on the synthetic grid: fraction → particles drawn, weather returns (moved + added)")
+    for cls, fractions in ((RainLidar, (1 / 2, 1 / 8, 1 / 16, 1 / 64)), (SnowLidar, (1, 1 / 2, 1 / 4, 1 / 8))):
+        for f in fractions:
+            diags = [apply_models([cls(draw_fraction_of_threshold=f)], cloud, seed=1, key=f"df{i}",
+                                  sequence_id="s")[1][0].diagnostics for i in range(4)]
+            print(f"  {cls.id:11s} {f:7.4f}: {np.mean([d['particles_drawn'] for d in diags]):9.0f} "
+                  f"{np.mean([d['moved'] + d['added'] for d in diags]):9.1f}")
+
+
 def main() -> int:
     if len(sys.argv) == 4 and sys.argv[1] == "--measure":
         measure(sys.argv[2], sys.argv[3])
         return 0
     report("synthetic OS1-128 128×2048 full grid (photons; D3.5 rates: fog 30 m, rain 20 mm/h, snow 2.5 mm/h)",
            "synthetic", synthetic_grid())
+    draw_fraction_table(synthetic_grid())
     scan = real_scan()
     if scan is None:
         print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
