@@ -11,10 +11,9 @@ the Poisson process — positions follow the cumulative visible density ``Λ(r) 
 table) and diameters the truncated exponential above the visibility diameter ``D_c(r)`` — so a frame costs a few
 operations per *visible* particle instead of per particle (an empty 120 m ray at 20 mm/h holds ~10 drops of which ~0.2
 are visible to an OS1-128). The fainter remainder acts only through the mean extinction α (its shadowing); its summed
-backscatter is neglected, which is the model's one approximation: a soft background of at most 0.11 × threshold for
-2.5 mm/h snow on an OS1-128 at ½, which slightly lowers the number of weather returns (``bench/bench_lidar_weather.py``
-prints the convergence as the fraction decreases). Placing the particles on their rays is
-one compiled pass (:func:`_place`), as is the return selection (:func:`lidar_link.select_returns`).
+backscatter is neglected — the model's one approximation, which lowers the number of weather returns slightly
+(``bench/bench_lidar_weather.py`` prints the convergence as the fraction decreases). Placing the particles on their
+rays is one compiled pass (:func:`_place`), as is the return selection (:func:`lidar_link.select_returns`).
 """
 
 from __future__ import annotations
