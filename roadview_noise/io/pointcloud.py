@@ -489,6 +489,18 @@ def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
 # (c >> 5) + 2 (length field 7: plus the next byte) to distance ((c & 31) << 8) + next byte + 1 behind the output.
 
 
+@jit(inline="always")
+def _lzf_literals(src, start, end, dst, op):            # pragma: no cover - compiled
+    """Copy ``src[start:end]`` to ``dst`` at ``op`` as literal runs of at most 32 bytes; returns the new ``op``."""
+    while start < end:
+        k = min(32, end - start)
+        dst[op] = k - 1
+        dst[op + 1:op + 1 + k] = src[start:start + k]
+        op += k + 1
+        start += k
+    return op
+
+
 @jit
 def _lzf_compress(src: np.ndarray) -> np.ndarray:            # pragma: no cover - compiled
     """Greedy LZF with a 16 k-entry hash of 3-byte prefixes (liblzf's scheme); any LZF decoder reads the output."""
@@ -506,12 +518,7 @@ def _lzf_compress(src: np.ndarray) -> np.ndarray:            # pragma: no cover 
         off = ip - ref - 1
         if ref >= 0 and off < 8192 and src[ref] == src[ip] and src[ref + 1] == src[ip + 1] \
                 and src[ref + 2] == src[ip + 2]:
-            while lit < ip:
-                k = min(32, ip - lit)
-                dst[op] = k - 1
-                dst[op + 1:op + 1 + k] = src[lit:lit + k]
-                op += k + 1
-                lit += k
+            op = _lzf_literals(src, lit, ip, dst, op)
             limit = min(264, n - ip)
             length = 3
             while length < limit and src[ref + length] == src[ip + length]:
@@ -530,12 +537,7 @@ def _lzf_compress(src: np.ndarray) -> np.ndarray:            # pragma: no cover 
             lit = ip
         else:
             ip += 1
-    while lit < n:
-        k = min(32, n - lit)
-        dst[op] = k - 1
-        dst[op + 1:op + 1 + k] = src[lit:lit + k]
-        op += k + 1
-        lit += k
+    op = _lzf_literals(src, lit, n, dst, op)
     return dst[:op]
 
 
