@@ -30,6 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from roadview_noise.allocator import keep_freed_memory  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
@@ -116,6 +117,7 @@ def peak_memory_mb(model, cloud: PointCloud) -> float:
 
 def measure(scene: str, model_id: str) -> None:
     """One model on one scene in this (fresh) process: prints a JSON line."""
+    keep_freed_memory()                                # as the batch workers do (roadview_noise.runner.process)
     cloud = synthetic_grid() if scene == "synthetic" else real_scan()
     model = D35[model_id]
     lo, med, diag = time_model(model, cloud)

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from .allocator import keep_freed_memory
 from .compound import apply_models
 from .dataset import Sample, discover, load, output_relpath, save
 from .errors import RecipeError, RvNoiseError
@@ -78,6 +79,7 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
     import cv2
 
     cv2.setNumThreads(1)
+    keep_freed_memory()
     t0 = time.perf_counter()
     s = task.sample
     entry: dict[str, Any] = {

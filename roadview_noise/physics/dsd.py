@@ -43,10 +43,12 @@ def sekhon_srivastava(snowfall_rate_mm_per_h: float) -> tuple[float, float]:
 SNOW_LAWS = {"gunn_marshall": gunn_marshall, "sekhon_srivastava": sekhon_srivastava}
 
 
-def exponential_moment(n0: float, lam: float, k: int, d_min_mm: float, d_max_mm: float) -> float:
-    """``∫_{Dmin}^{Dmax} D^k N0 e^{−ΛD} dD`` in m⁻³ mm^k (closed form via the regularised incomplete gamma)."""
+def exponential_moment(n0: float, lam: float, k: int, d_min_mm, d_max_mm):
+    """``∫_{Dmin}^{Dmax} D^k N0 e^{−ΛD} dD`` in m⁻³ mm^k (closed form via the regularised incomplete gamma); float
+    for scalar bounds, elementwise for arrays."""
     full = n0 * gamma_fn(k + 1) / lam ** (k + 1)
-    return float(full * (gammainc(k + 1, lam * d_max_mm) - gammainc(k + 1, lam * d_min_mm)))
+    moment = full * (gammainc(k + 1, np.multiply(lam, d_max_mm)) - gammainc(k + 1, np.multiply(lam, d_min_mm)))
+    return float(moment) if np.ndim(moment) == 0 else moment
 
 
 def exponential_number_density(n0: float, lam: float, d_min_mm: float, d_max_mm: float) -> float:

@@ -20,6 +20,7 @@ from roadview_noise.model import Stage
 from roadview_noise.models.lidar.fog import FogLidar
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.models.lidar.snow import SnowLidar
+from roadview_noise.physics import lidar_particles
 from roadview_noise.physics.lidar_link import reported_intensity, sensor_constant
 from roadview_noise.profiles.lidar import kitti_hdl64, os1_128, os1_128_reflectivity
 from roadview_noise.registry import load_all
@@ -505,6 +506,27 @@ def test_first_return_mode_reports_weather_in_front_more_often(model_id):
     strongest = run(cls(**{**params, "return_mode": "strongest"}), cloud, seed=4)[1]
     first = run(cls(**{**params, "return_mode": "first"}), cloud, seed=4)[1]
     assert first["moved"] >= strongest["moved"] and first["moved"] > 0
+
+
+@pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar"])
+def test_per_ray_levels_change_the_result_by_less_than_monte_carlo_scale(model_id, monkeypatch):
+    """Drawing in front of a bright target only what can outshine it (per-ray levels, the default for the strongest
+    return) against drawing every ray at the base level: far fewer particles, the same weather returns and targets
+    kept in place within 3 % / 1 % (six frames of 60 k rays at 10–60 m, a quarter of them empty)."""
+    n = 60000
+    ranges = np.random.default_rng(0).uniform(10.0, 60.0, n)
+    cloud = cloud_at(ranges, 300.0, grid=True)
+    cloud = dataclasses.replace(cloud, positions_m=np.where(np.arange(n)[:, None] % 4 == 0, 0.0, cloud.positions_m))
+    stats = []
+    for count in (lidar_particles.LEVEL_COUNT, 1):
+        monkeypatch.setattr(lidar_particles, "LEVEL_COUNT", count)
+        diags = [run(HEAVY[model_id], cloud, seed=s)[1] for s in range(6)]
+        stats.append([np.mean([d[k] for d in diags]) for k in ("particles_drawn", "moved", "added", "kept",
+                                                                  "attenuated")])
+    (drawn, moved, added, kept, att), (drawn_all, moved_all, added_all, kept_all, att_all) = stats
+    assert drawn < 0.8 * drawn_all
+    assert moved + added == pytest.approx(moved_all + added_all, rel=0.03)
+    assert kept + att == pytest.approx(kept_all + att_all, rel=0.01)
 
 
 @pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar"])

@@ -313,9 +313,11 @@ def test_cluster_peak_compiled_against_numpy_reference_and_dense_grid():
         assert _profile(np.array([at + length / 2]), r, a, length)[0] == pytest.approx(peak, rel=1e-9, abs=1e-12)
         assert _profile(np.array([at_np[i] + length / 2]), r, a, length)[0] == pytest.approx(peak, rel=1e-9, abs=1e-12)
         if sizes[i] == 2:                                  # the closed form of a pair
-            pair, at2 = lidar_link.pair_peak(r[0], a[0], r[1], a[1], length)
+            pair, at2, _ = lidar_link.pair_peak(r[0], a[0], r[1], a[1], length)
             assert pair == pytest.approx(peak, rel=1e-9, abs=1e-12)
             assert _profile(np.array([at2 + length / 2]), r, a, length)[0] == pytest.approx(peak, rel=1e-9, abs=1e-12)
+            near, at3, own = lidar_link.pair_peak(r[0], a[0], r[1], a[1], length, 0.2)   # no arc tangent when near
+            assert near == pair and own == (abs(at2 - r[1]) <= 0.2) and at3 == (r[1] if own else at2)
 
 
 def _brute_force_ray(p_range, p_sig, t_range, t_sig, has_target, length, thr, mode):
@@ -443,16 +445,20 @@ HAHNER = (0.9, 1.0)            # Hahner's receiver overlap R1, R2 (m)
 def test_compiled_particle_placement_against_numpy_reference():
     medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 3e-3, *HAHNER)
     medium = dataclasses.replace(medium, d_max_mm=2.5)                          # some diameters above Dmax
-    table = lidar_particles.visible_table(medium, beam, 0.5 * 3.28 / 65535)
+    level = 0.5 * 3.28 / 65535
+    table, tables = lidar_particles.visible_table(medium, beam, level), lidar_particles.level_tables(medium, beam, level)
     rng = np.random.default_rng(5)
     ranges = np.where(rng.random(5000) < 0.1, 0.0, rng.uniform(0.5, 150.0, 5000))
-    cum_ray = lidar_particles._expected_counts(ranges, table.start_m, table.step_m, table.cum)
+    levels = np.zeros(len(ranges), np.intp)                                     # every ray at the base level
+    cum_ray, piece_a, base_b, shadow = lidar_particles._ray_measures(ranges, levels, tables.start_m, tables.step_m,
+                                                                     tables.cum, tables.band_shadow, 3.0, 5)
     lam = np.where(ranges > 0, _table_at(table, table.cum, ranges), 0.0)
     np.testing.assert_allclose(np.diff(cum_ray, prepend=0.0), lam, rtol=1e-9, atol=1e-12)
+    assert not piece_a.any() and not shadow.any()
     n = 20000
     spacing, exp_d = rng.standard_exponential(n + 1), rng.standard_exponential(n)
-    got = lidar_particles._place(spacing, exp_d, cum_ray, ranges, table.inv_range_m, table.inv_step,
-                                 table.start_m, table.step_m, table.d_low_mm, table.full_beam,
+    got = lidar_particles._place(spacing, exp_d, cum_ray, piece_a, base_b, levels, 5, ranges, tables.inv_range_m,
+                                 tables.inv_step, tables.start_m, tables.step_m, tables.d_low_mm, tables.full_beam,
                                  medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
     ref = _place_numpy(spacing, exp_d, cum_ray, ranges, table, medium, beam)
     np.testing.assert_array_equal(got[0], ref[0])
@@ -525,6 +531,95 @@ def test_sampler_statistics_and_order():
     cdf = _table_at(table, table.cum, np.array([1.2, 1.5, 2.0, 3.0])) / table.cum[-1]
     emp = np.array([np.mean(p.range_m[far] <= x) for x in (1.2, 1.5, 2.0, 3.0)])
     assert np.all(np.abs(emp - cdf) < 4 * np.sqrt(cdf * (1 - cdf) / far.sum()) + 1e-3)
+
+
+def test_per_ray_levels_draw_what_can_outshine_the_target():
+    """A ray at level j draws, in front of the target's pulse window, only particles returning at least ``ℓ 2^j`` and
+    inside it at least ``ℓ 2^(j−5)``; the count follows the two pieces' measures; the undrawn band's mean beam
+    cover (quad of :func:`faint_cross_section_per_m` differences) goes to ``ray_shadow``."""
+    medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 3e-3, 0.5, 5.0)
+    base, window = 0.5 * 3.28 / 65535, 3.0
+    ranges = np.tile([8.0, 20.0, 40.0], 6000)
+    levels = np.tile([0, 3, 7], 6000)
+    p = lidar_particles.sample_particles(np.random.default_rng(4), ranges, medium, beam, base, 1.0, levels, window)
+    in_window = ranges[p.ray] - p.range_m < window
+    need = base * 2.0 ** np.where(in_window, np.maximum(levels[p.ray] - 5, 0), levels[p.ray])
+    assert np.mean(p.signal >= 0.98 * need) > 0.999
+    expected = 0.0
+    for r, j in ((8.0, 0), (20.0, 3), (40.0, 7)):
+        lam = [lambda x, k=k: _table_at(lidar_particles.visible_table(medium, beam, base * 2.0 ** k),
+                                        lidar_particles.visible_table(medium, beam, base * 2.0 ** k).cum, x)
+               for k in (j, max(j - 5, 0))]
+        expected += 6000 * (lam[0](r - window) + lam[1](r) - lam[1](r - window) if j else lam[0](r))
+    assert abs(len(p.ray) - expected) < 4 * math.sqrt(expected)
+    sigma = lambda x, k: float(lidar_particles.faint_cross_section_per_m(medium, beam, base * 2.0 ** k, x))  # noqa
+    band = integrate.quad(lambda x: sigma(x, 7) - sigma(x, 0), 0.5, 37.0, limit=200)[0] \
+        + integrate.quad(lambda x: sigma(x, 2) - sigma(x, 0), 37.0, 40.0)[0]
+    assert p.ray_shadow[2] == pytest.approx(band, rel=1e-3) and p.ray_shadow[0] == 0.0 and p.ray_shadow[1] > 0
+
+
+def test_faint_cross_section_and_backscatter_against_quadrature():
+    """The undrawn particles' beam cover per metre, ``∫_{D < D_c} N(D) min(πD²/4, πw²) dD``, and their backscatter
+    density ``ρ ξ e^{−2αr}/r²`` times it, against quad over the DSD written out here (a wide beam makes the
+    beam-filling branch matter)."""
+    medium = dataclasses.replace(_medium(50.0), reflectance=0.9)
+    beam, level = lidar_particles.Beam(1.0e-3, 2e-4, 0.5, 5.0), 2.0 / 65535
+    for r in (0.7, 3.0, 12.0, 60.0, 400.0):
+        w = 1.0e-3 + r * 1e-4
+        full = 0.9 * min(1.0, (r - 0.5) / 4.5) * math.exp(-2 * medium.alpha_per_m * r) / r ** 2
+        d_c = 2e3 * w * math.sqrt(level / full) if full >= level else math.inf
+
+        def cover(d):
+            return medium.n0_per_m3_mm * math.exp(-medium.lam_per_mm * d) * min(math.pi * (d * 1e-3) ** 2 / 4,
+                                                                                 math.pi * w * w)
+        hi = min(d_c, 6.0)
+        expected = integrate.quad(cover, 0.5, hi, points=[2e3 * w] if 0.5 < 2e3 * w < hi else None)[0] if hi > 0.5 \
+            else 0.0
+        got = lidar_particles.faint_cross_section_per_m(medium, beam, level, r)
+        assert got == pytest.approx(expected, rel=1e-9, abs=1e-15)
+        assert lidar_particles.faint_backscatter_per_m(medium, beam, level, r) == pytest.approx(full * expected,
+                                                                                                rel=1e-9, abs=1e-18)
+
+
+def test_soft_background_against_direct_pulse_integral():
+    """``B(x; R0) = ∫_{x−L}^{min(x, R0)} sin²(π(x − r)/L) b(r) dr`` from the cumulative tables (compiled evaluator and
+    the target-crest table) against quad, for the continuous b(r) = (r − 1) e^{−r/7} (r ≥ 1) on a 0.05 m grid."""
+    length, step = 3.0, 0.05
+    r = np.arange(0.0, 200.0, step)
+    b = np.where(r >= 1.0, (r - 1.0) * np.exp(-r / 7.0), 0.0)
+    bg = lidar_link.SoftBackground.of_density(b, step, length)
+
+    def direct(x, r0):
+        lo, hi = max(x - length, 1.0), min(x, r0)
+        return integrate.quad(lambda s: np.sin(np.pi * (x - s) / length) ** 2 * (s - 1) * math.exp(-s / 7.0),
+                              lo, hi)[0] \
+            if hi > lo else 0.0
+
+    at = lidar_link.background_at.py_func if hasattr(lidar_link.background_at, "py_func") else lidar_link.background_at
+    for x, r0 in ((2.0, 50.0), (3.7, 50.0), (10.0, 50.0), (10.0, 8.5), (9.0, 9.2), (0.5, 50.0), (250.0, 300.0)):
+        assert at(x, r0, bg.cum, 1 / step, length) == pytest.approx(direct(x, r0), rel=5e-3, abs=1e-7)
+    for r0 in (2.0, 6.05, 30.0):
+        assert bg.at_target[round(r0 / step)] == pytest.approx(direct(r0 + length / 2, r0), rel=5e-3, abs=1e-7)
+    xs = np.arange(0.0, 20.0, 0.01)
+    assert bg.peak == pytest.approx(max(direct(x, np.inf) for x in xs), rel=2e-3)
+
+
+def test_background_adds_to_clusters_and_targets():
+    """With a background, a lone particle returns ``a + B(r + L/2)``, a target ``S_t + B`` at its crest, and a
+    particle that alone is below the threshold is detected when the background lifts it over."""
+    length, step = 3.0, 0.05
+    b = np.where(np.arange(0.0, 200.0, step) >= 1.0, 2e-3, 0.0)            # B ≈ 3e-3 (L/2 · b) away from edges
+    bg = lidar_link.SoftBackground.of_density(b, step, length)
+    thr = 0.01
+    ray, p_range, p_sig = np.array([0, 1, 2]), np.array([10.0, 10.0, 10.0]), np.array([0.02, 0.008, 0.006])
+    t_range, t_sig, has = np.array([40.0, 40.0, 40.0]), np.array([0.005, 0.005, 0.02]), np.array([True, True, True])
+    out = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has, length / C, thr, "strongest",
+                                    background=bg)
+    np.testing.assert_allclose(out.signal[:2], [0.02 + 3e-3, 0.008 + 3e-3], rtol=1e-6)
+    assert list(out.kind) == [WEATHER, WEATHER, TARGET]
+    assert out.signal[2] == pytest.approx(0.02 + 1.5e-3, rel=1e-3)           # half the window in front of R0
+    plain = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has, length / C, thr, "strongest")
+    assert list(plain.kind) == [WEATHER, NO_RETURN, TARGET]
 
 
 def test_sampler_diameters_follow_truncated_exponential_above_visibility_bound():

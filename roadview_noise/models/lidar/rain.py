@@ -12,9 +12,10 @@ from ...physics import dsd
 from ...physics.lidar_particles import ParticleMedium, apply_precipitation
 from ...registry import register
 
-# Drops are faint (Fresnel ρ = 0.02) and many fit in a wide beam: drawing only those above ½ of the threshold lowered
-# the weather returns by ~19 % at 50 mm/h (the undrawn ones' summed backscatter), ⅛ by 4.5 %; 1/16 is within the
-# Monte-Carlo noise (1 %) of 1/32 and 1/128 (tests/models/test_lidar_weather.py) for ~7 ms more per 128×2048 scan.
+# Drops are faint (Fresnel ρ = 0.02) and many fit in a wide beam: without their mean backscatter, drawing only those
+# above ½ of the threshold lowered the weather returns by ~19 % at 50 mm/h, ⅛ by 4.5 %; 1/16 is within the
+# Monte-Carlo noise (1 %) of 1/32 and 1/128 (tests/models/test_lidar_weather.py); with per-ray levels it draws
+# 42 k drops per 128×2048 scan.
 RAIN_DRAW_FRACTION = 1 / 16
 
 
@@ -29,8 +30,9 @@ class RainLidar(Model):
       profile's overlap start R1 to the target, or to the profile's max range on the no-return cells of a full range
       image (weather returns there are ADDED; a point list has no such rays); diameters by inverse CDF of the
       truncated exponential (the reference set the *mean* to Λ). Only drops whose return reaches
-      ``draw_fraction_of_threshold`` (1/16) of the threshold are drawn (an exact thinning; the fainter ones act through
-      α).
+      ``draw_fraction_of_threshold`` (1/16) of the threshold are drawn (an exact thinning), in front of a bright
+      target only those that can outshine it; the others act through their means (α, beam cover, backscatter as a
+      soft background; :mod:`lidar_particles`).
     - Drop return ``K ρ f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
       ρ = Fresnel 0.0199, ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``; pulses closer than ``c τ_H``
       add; strongest or first return above the profile's threshold (:func:`lidar_particles.precipitation_returns`).
@@ -52,8 +54,8 @@ class RainLidar(Model):
     draw_fraction_of_threshold: float = param(
         RAIN_DRAW_FRACTION, unit="1", gt=0, le=1,
         doc="drops whose own return is below this fraction of the detection threshold are not drawn one by one (they"
-            " act through the extinction α; their faint summed backscatter is neglected): smaller is closer to the full"
-            " Poisson model and slower")
+            " act through their means: extinction α, beam cover and backscatter as a soft background): smaller is"
+            " closer to the full Poisson model and slower")
 
     def validate(self) -> None:
         if self.min_drop_diameter_mm >= self.max_drop_diameter_mm:

@@ -47,7 +47,9 @@ class SnowLidar(Model):
       form with Q_ext = 2 (x ≥ 363 for every flake; replaces the 28 s Mie loop): 1.21e-3 m⁻¹ at 2.5 mm/h (GM).
     - Flakes per beam: Poisson ``n π w(r)²`` from the profile's overlap start R1 to the target (or the max range on
       the no-return cells of a full range image, which then get ADDED flake returns), drawn when their return
-      reaches ``draw_fraction_of_threshold`` (½) of the threshold (the fainter ones act through α); flake return
+      reaches ``draw_fraction_of_threshold`` (½) of the threshold, in front of a bright target only when they can
+      outshine it (the others act through their means: α, beam cover, backscatter; :mod:`lidar_particles`); flake
+      return
       ``K ρ_s f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ, ρ_s = 0.9,
       ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``.
     - Summed received profiles (pulses closer than ``c τ_H`` add; exact maximum instead of Hahner's 0.1 m grid),
@@ -77,8 +79,8 @@ class SnowLidar(Model):
     draw_fraction_of_threshold: float = param(
         VISIBLE_FRACTION, unit="1", gt=0, le=1,
         doc="flakes whose own return is below this fraction of the detection threshold are not drawn one by one (they"
-            " act through the extinction α; their faint summed backscatter is neglected): smaller is closer to the full"
-            " Poisson model and slower")
+            " act through their means: extinction α, beam cover and backscatter as a soft background): smaller is"
+            " closer to the full Poisson model and slower")
 
     def validate(self) -> None:
         if self.min_flake_diameter_mm >= self.max_flake_diameter_mm:
