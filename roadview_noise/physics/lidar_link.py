@@ -68,6 +68,11 @@ def white_reading(profile: LidarProfile) -> float:
     return float(profile.intensity_full_scale if w is None else w)
 
 
+def _unknown_kind(profile: LidarProfile) -> ModelError:
+    return ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
+                      f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
+
+
 def received_signal(intensity, range_m, profile: LidarProfile) -> np.ndarray:
     """Received signal S (signal units) of stored intensities at their ranges: I for ``signal`` profiles,
     ``(I / W) · K / R²`` for range-compensated ``reflectivity`` profiles (W: :func:`white_reading`; 0 where R ≤ 0:
@@ -80,8 +85,7 @@ def received_signal(intensity, range_m, profile: LidarProfile) -> np.ndarray:
         scale = sensor_constant(profile) / white_reading(profile)
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(r > 0, i * scale / (r * r), 0.0)
-    raise ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
-                     f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
+    raise _unknown_kind(profile)
 
 
 def reported_intensity(signal, range_m, profile: LidarProfile) -> np.ndarray:
@@ -93,8 +97,7 @@ def reported_intensity(signal, range_m, profile: LidarProfile) -> np.ndarray:
     if profile.intensity_kind == REFLECTIVITY:
         r = np.asarray(range_m, dtype=np.float64)
         return s * (r * r) * (white_reading(profile) / sensor_constant(profile))
-    raise ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
-                     f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
+    raise _unknown_kind(profile)
 
 
 def intensity_resolution(profile: LidarProfile) -> float:
@@ -502,7 +505,8 @@ def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no co
 
 
 @jit(inline="always")
-def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg, inv_step):
+def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg,
+                  inv_step):       # pragma: no cover - compiled
     """(value, apparent range, is the target) of a ray with one particle in front of its target (if any; ``t_raw``
     its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``: :attr:`SoftBackground.cum`). A pair
     that keeps the target takes the background at the target's crest (its peak is within 0.2 m of it)."""
@@ -676,7 +680,8 @@ def cloud_rays(cloud: PointCloud, model_id: str) -> Rays:
     if not (profile.detection_threshold > 0 and k > 0):
         raise ModelError(f"profile {profile.name!r} has detection_threshold {profile.detection_threshold} and sensor "
                          f"constant {k}; both must be > 0 (signal units)", model=model_id, field="detection_threshold")
-    received_signal(np.zeros(0), np.zeros(0), profile)                  # refuses an unknown intensity kind
+    if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
+        raise _unknown_kind(profile)
     compensated = profile.intensity_kind == REFLECTIVITY
     scale = 1.0 / white_reading(profile) if compensated else 1.0 / k
     r, signal, has_target = _ray_signals(np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity,
