@@ -22,9 +22,9 @@ from roadview_noise.models.camera.compression import CompressionCamera
 from roadview_noise.models.lidar.alignment import AlignmentLidar
 from roadview_noise.models.lidar.power import PowerLidar
 from roadview_noise.physics import srgb
-from roadview_noise.physics.lidar_geometry import range_image, velodyne_to_xyz
+from roadview_noise.physics.lidar_geometry import range_image, recover_ring, velodyne_to_xyz
 from roadview_noise.profiles.camera import lucid_triton_028s
-from roadview_noise.profiles.lidar import os1_128, recover_ring
+from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.types import CameraFrame, IntensityUnit, PointCloud
 
 SHARED_SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "os1-128"

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from roadview_noise.errors import InputError
-from roadview_noise.physics.lidar_geometry import velodyne_to_xyz
-from roadview_noise.profiles.lidar import from_ouster_metadata, os1_128, recover_ring, ring_index, uniform, vls_128
+from roadview_noise.physics.lidar_geometry import recover_ring, ring_index, velodyne_to_xyz
+from roadview_noise.profiles.lidar import from_ouster_metadata, os1_128, uniform, vls_128
 from roadview_noise.types import PointCloud
 
 

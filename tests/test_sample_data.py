@@ -16,7 +16,8 @@ from roadview_noise.io.pointcloud import read_pointcloud
 from roadview_noise.io.raw import read_dng
 from roadview_noise.physics import srgb
 from roadview_noise.profiles.camera import load_camera_profile
-from roadview_noise.profiles.lidar import load_lidar_profile, os1_128, recover_ring, vls_128
+from roadview_noise.physics.lidar_geometry import recover_ring
+from roadview_noise.profiles.lidar import load_lidar_profile, os1_128, vls_128
 from roadview_noise.profiles.radar import load_radar_profile
 from roadview_noise.sampledata import rig
 from roadview_noise.sampledata.generate import generate

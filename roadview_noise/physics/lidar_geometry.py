@@ -1,4 +1,4 @@
-"""LiDAR spherical coordinates (both conventions of models.md §0.3) and the range image (§3.0).
+"""LiDAR spherical coordinates (both conventions of models.md §0.3), ring recovery and the range image (§3.0).
 
 Angles in radians, ranges in metres, arrays (N,) or (N, 3). A model must convert back with the convention it used
 forward: mixing them swaps x and y (mirrors the cloud about the plane x = y; models.md calls it a 90° turn).
@@ -13,11 +13,15 @@ The origin (r = 0) maps to zero angles in both conventions and back to the origi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
+from ..errors import InputError
 from ..types import LidarProfile
+from .compiled import jit
 
 
 def _xyz(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -59,6 +63,81 @@ def has_return(positions_m: np.ndarray) -> np.ndarray:
     return np.isfinite(x + y + z) & ((x != 0) | (y != 0) | (z != 0))
 
 
+# --- ring recovery (models.md §3.0) --------------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=16)
+def _ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(tan of the midpoints between elevation-sorted beams, beam index of each sorted position)."""
+    e = np.deg2rad(np.asarray(elevations_deg, dtype=np.float64))
+    order = np.argsort(e, kind="stable")
+    e = e[order]
+    return np.tan(0.5 * (e[1:] + e[:-1])), order.astype(np.int64)
+
+
+@jit
+def _nearest_beam(positions, z_offset, rho_offset, tan_mid, order):       # pragma: no cover - compiled
+    """Per point, the beam of nearest elevation: binary search of ``z/ρ`` among the tangents of the midpoints between
+    neighbouring beams (nearest in angle, ties to the higher beam, without an arctangent)."""
+    n = len(positions)
+    out = np.empty(n, np.int64)
+    top = len(tan_mid)
+    for i in range(n):
+        z = positions[i, 2] - z_offset
+        rho = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2) - rho_offset
+        if rho < 0 or (rho == 0 and z != 0):         # behind the beam origin: beyond ±90° (atan2 semantics)
+            k = 0 if z < 0 else top
+        else:
+            t = z / rho if rho > 0 else 0.0
+            lo, hi = 0, top                          # count of midpoints <= t
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if tan_mid[mid] <= t:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            k = lo
+        out[i] = order[k]
+    return out
+
+
+def recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    """Ring (index into the profile's beam table) of each point: the beam of nearest elevation (uint16), seen from
+    the beam origin (the sensor z offset removed, the horizontal beam-origin offset of Ouster units subtracted from
+    the horizontal range).
+
+    Reliable when elevation noise is below half the beam spacing; assign rings *before* perturbing the cloud."""
+    return _recover_ring(positions_m, profile).astype(np.uint16)
+
+
+def _recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    """:func:`recover_ring` as int64."""
+    tan_mid, order = _ring_search_table(tuple(profile.beam_elevation_deg))
+    return _nearest_beam(np.ascontiguousarray(positions_m, dtype=np.float64), float(profile.sensor_z_offset_m),
+                         float(profile.beam_origin_offset_m), tan_mid, order)
+
+
+def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
+    """The cloud's ``ring`` field when present (checked against the profile's channel count), else recovered."""
+    profile = profile or cloud.profile
+    if profile is None:
+        raise InputError("the cloud has no sensor profile; the beam table is needed to know each point's ring")
+    if "ring" in cloud.fields:
+        ring = np.asarray(cloud.fields["ring"]).astype(np.int64)
+        if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
+            raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
+                             f"profile {profile.name!r}; give the matching sensor profile")
+        return ring
+    return _recover_ring(cloud.positions_m, profile)
+
+
+def firing_azimuth_rad(positions_m: np.ndarray, ring: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    """Encoder azimuth at which each point was fired: its azimuth ``φ = atan2(y, x)`` plus its beam's azimuth offset
+    (``profile.beam_azimuth_offset_deg``; Ouster and Velodyne tables share this sign). Not wrapped."""
+    x, y, _ = _xyz(positions_m)
+    return np.arctan2(y, x) + np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg))[ring]
+
+
 # --- range image (models.md §3.0) ------------------------------------------------------------------------------
 
 
@@ -98,8 +177,7 @@ def range_image(positions_m: np.ndarray, ring: np.ndarray, profile: LidarProfile
                 column0_azimuth_deg: float = 180.0, clockwise: bool = True) -> RangeImage:
     """Project points with known rings onto the sensor's firing grid (models.md §3.0).
 
-    A point's firing (encoder) azimuth is its azimuth ``φ = atan2(y, x)`` plus its beam's azimuth offset
-    (``profile.beam_azimuth_offset_deg``; Ouster and Velodyne tables share this sign); column ``c`` is centred on
+    A point's firing azimuth is :func:`firing_azimuth_rad`; column ``c`` is centred on
     ``column0_azimuth_deg ∓ c·360°/columns`` (− when ``clockwise``). The defaults reproduce the Ouster
     measurement-ID layout (column 0 looks backwards, columns turn clockwise seen from above) — on a real OS1-128
     scan every point lands in its own cell. Points with zero position (no return) or a non-finite one are left
@@ -111,7 +189,7 @@ def range_image(positions_m: np.ndarray, ring: np.ndarray, profile: LidarProfile
     r = np.sqrt(x * x + y * y + z * z)
     valid = has_return(positions_m)
     step = 2 * np.pi / columns
-    firing = np.arctan2(y, x) + np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg))[ring]
+    firing = firing_azimuth_rad(positions_m, ring, profile)
     turns = (np.deg2rad(column0_azimuth_deg) - firing) if clockwise else (firing - np.deg2rad(column0_azimuth_deg))
     col = np.where(valid, np.rint(np.nan_to_num(turns) / step).astype(np.int64) % columns, -1)
     row = np.where(valid, ring_rows(profile)[ring], -1)

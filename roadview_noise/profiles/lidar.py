@@ -1,4 +1,4 @@
-"""LiDAR sensor profiles (models.md §3.0) and ring (beam index) recovery.
+"""LiDAR sensor profiles (models.md §3.0).
 
 Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal`` photons, default for the D3.5
 CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
@@ -7,7 +7,7 @@ per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ra
 (signal of a ρ = 1 target at 1 m), white reading W of a reflectivity channel, detection threshold (signal units) and
 receiver overlap with their source (``lidar_link`` converts every intensity to the received signal). Files: an Ouster
 metadata JSON (``beam_altitude_angles``), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML
-profile.
+profile. Ring recovery lives in :mod:`roadview_noise.physics.lidar_geometry`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -177,47 +176,3 @@ def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
             fields.get("beam_azimuth_offset_deg", base.beam_azimuth_offset_deg)):
         raise InputError("beam_elevation_deg and beam_azimuth_offset_deg differ in length", file=source)
     return dataclasses.replace(base, **fields)
-
-
-# --- ring recovery (models.md §3.0) --------------------------------------------------------------------------------
-
-
-def beam_elevation_rad(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
-    """Elevation of each point as seen from its beam origin: the sensor z offset is removed, and the horizontal
-    beam-origin offset (Ouster) is subtracted from the horizontal range."""
-    p = np.asarray(positions_m, dtype=np.float64)
-    z = p[:, 2] - profile.sensor_z_offset_m
-    rho = np.hypot(p[:, 0], p[:, 1]) - profile.beam_origin_offset_m
-    return np.arctan2(z, rho)
-
-
-@lru_cache(maxsize=16)
-def _sorted_table(elevations: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    e = np.deg2rad(np.asarray(elevations))
-    order = np.argsort(e, kind="stable")
-    return e[order], order
-
-
-def recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
-    """Ring (index into the profile's beam table) of each point: the beam of nearest elevation (uint16).
-
-    Reliable when elevation noise is below half the beam spacing; assign rings *before* perturbing the cloud."""
-    elev = beam_elevation_rad(positions_m, profile)
-    table, order = _sorted_table(profile.beam_elevation_deg)
-    i = np.clip(np.searchsorted(table, elev), 1, len(table) - 1)
-    nearer_low = (elev - table[i - 1]) < (table[i] - elev)
-    return order[np.where(nearer_low, i - 1, i)].astype(np.uint16)
-
-
-def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
-    """The cloud's ``ring`` field when present (checked against the profile's channel count), else recovered."""
-    profile = profile or cloud.profile
-    if profile is None:
-        raise InputError("the cloud has no sensor profile; the beam table is needed to know each point's ring")
-    if "ring" in cloud.fields:
-        ring = np.asarray(cloud.fields["ring"]).astype(np.int64)
-        if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
-            raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
-                             f"profile {profile.name!r}; give the matching sensor profile")
-        return ring
-    return recover_ring(cloud.positions_m, profile).astype(np.int64)

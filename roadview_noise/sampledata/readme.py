@@ -74,7 +74,7 @@ Beam geometry: the profile's real beam table (`roadview_noise.profiles.lidar`), 
 revolution (W = {os1.columns} for OS1-128, {vls.columns} for VLS-128). Column j has encoder angle 2π j/W (the head turns clockwise seen from above);
 beam r points at azimuth −(2π j/W + α_r) (counter-clockwise from +x) and elevation ω_r. OS1 beams start at their
 beam origin, {os1.beam_origin_offset_m * 1000:g} mm off the axis in the encoder direction and
-{os1.sensor_z_offset_m * 1000:g} mm above the sensor-frame origin, so `profiles.lidar.recover_ring` recovers the
+{os1.sensor_z_offset_m * 1000:g} mm above the sensor-frame origin, so `physics.lidar_geometry.recover_ring` recovers the
 stored ring exactly.
 
 Intensity: Lambertian LiDAR equation, received signal `S = K ρ cos θ / R²` (models.md §3.1; K the sensor

@@ -12,8 +12,8 @@ from roadview_noise.compound import apply_models
 from roadview_noise.errors import ModelError
 from roadview_noise.model import Scope, Stage
 from roadview_noise.models.lidar.alignment import AlignmentLidar
-from roadview_noise.physics.lidar_geometry import velodyne_to_xyz, xyz_to_velodyne
-from roadview_noise.profiles.lidar import recover_ring, uniform, vls_128
+from roadview_noise.physics.lidar_geometry import recover_ring, velodyne_to_xyz, xyz_to_velodyne
+from roadview_noise.profiles.lidar import uniform, vls_128
 from roadview_noise.registry import load_all
 from roadview_noise.seeding import derive_rng
 from roadview_noise.types import PointCloud

@@ -10,8 +10,7 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
-from ...physics.lidar_geometry import has_return, velodyne_to_xyz, xyz_to_velodyne
-from ...profiles.lidar import ring_index
+from ...physics.lidar_geometry import has_return, ring_index, velodyne_to_xyz, xyz_to_velodyne
 from ...registry import register
 
 

@@ -19,8 +19,7 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
-from ...physics.lidar_geometry import has_return
-from ...profiles.lidar import ring_index
+from ...physics.lidar_geometry import has_return, ring_index
 from ...registry import register
 from ...types import IntensityUnit, PointCloud
 
