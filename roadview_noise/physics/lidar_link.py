@@ -38,6 +38,7 @@ import numpy as np
 from ..errors import ModelError
 from ..types import IntensityUnit, LidarProfile, PointCloud, PointLabel
 from .compiled import jit
+from .firing_grid import FiringGrid, firing_grid
 
 SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
 HAHNER_FOG_PULSE_S = 20e-9              # half-power pulse width of Hahner et al. 2021
@@ -622,29 +623,42 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
 # Rays of a cloud and the output cloud
 
 
+EMPTY_RAYS = ("fill", "ignore")       # what a weather model does with rays that returned nothing (cloud_rays)
+
+
 @dataclass(frozen=True, eq=False)
 class Rays:
-    """The rays of a cloud as a weather model sees them (one per point of the cloud).
+    """The rays of a cloud as a weather model sees them: one per point of the cloud, then (point lists) one per
+    empty cell of the list's firing grid (``listed``).
 
-    ``range_m``: hard-target range, the profile's max range on empty rays of a full grid, 0 on rays without a
-    direction (zero points of a point list). ``signal``: received signal of the target in units of the sensor
-    constant K (m⁻², :func:`received_signal` / K). ``threshold``: detection threshold / K."""
+    ``range_m``: hard-target range, the profile's max range on empty rays, 0 on rays without a direction (zero points
+    of a point list; every no-return ray with ``empty_rays='ignore'``). ``signal``: received signal of the target in
+    units of the sensor constant K (m⁻², :func:`received_signal` / K). ``threshold``: detection threshold / K.
+    ``empty_source``: where the empty rays came from, for the diagnostics."""
 
     range_m: np.ndarray
     signal: np.ndarray
     has_target: np.ndarray
     threshold: float
     profile: LidarProfile
+    listed: FiringGrid | None = None
+    empty_source: str = ""
+
+    @property
+    def n_points(self) -> int:
+        """Rays that are points of the input cloud (the first ``n_points`` rays)."""
+        return len(self.range_m) - (0 if self.listed is None else len(self.listed.ring))
 
     @property
     def empty(self) -> np.ndarray:
-        """Rays without a target that can still return weather (no-return cells of a full grid)."""
+        """Rays without a target that can still return weather (no-return cells of a grid or a list)."""
         return ~self.has_target & (self.range_m > 0)
 
     @property
     def below_threshold(self) -> int:
         """Input returns whose signal is already below the detection threshold: the profile is less sensitive than
-        the sensor that recorded them (any weather removes them); reported so that such a mismatch is visible."""
+        the sensor that recorded them (any weather removes them unless a weather return takes their place); reported,
+        with how many of them were removed (``removed_below_threshold_in``), so that such a mismatch is visible."""
         return int(np.count_nonzero(self.has_target & (self.signal < self.threshold)))
 
 
@@ -665,8 +679,13 @@ def check_intensity_scale(intensity: np.ndarray, profile: LidarProfile, model_id
                          f"(e.g. kitti-hdl64, carla-64)", model=model_id, field="intensity")
 
 
-def cloud_rays(cloud: PointCloud, model_id: str) -> Rays:
-    """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K)."""
+def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Rays:
+    """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K).
+
+    ``empty_rays='fill'``: rays without a return get the profile's max range, so weather can return on them — the
+    no-return cells of a full grid, and for a point list the empty cells of its firing grid
+    (:func:`firing_grid.firing_grid`), appended after the points; a list without a regular firing grid keeps only its
+    points, and ``empty_source`` says why. ``'ignore'``: only the input's returns."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
         raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
@@ -684,10 +703,23 @@ def cloud_rays(cloud: PointCloud, model_id: str) -> Rays:
         raise _unknown_kind(profile)
     compensated = profile.intensity_kind == REFLECTIVITY
     scale = 1.0 / white_reading(profile) if compensated else 1.0 / k
+    if empty_rays not in EMPTY_RAYS:
+        raise ModelError(f"empty_rays {empty_rays!r} is not one of {EMPTY_RAYS}", model=model_id, field="empty_rays")
+    fill = empty_rays == "fill"
+    grid = cloud.grid_shape is not None
     r, signal, has_target = _ray_signals(np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity,
-                                         compensated, scale,
-                                         profile.max_range_m if cloud.grid_shape is not None else 0.0)
-    return Rays(r, signal, has_target, profile.detection_threshold / k, profile)
+                                         compensated, scale, profile.max_range_m if grid and fill else 0.0)
+    rays = Rays(r, signal, has_target, profile.detection_threshold / k, profile,
+                empty_source="none (empty_rays: ignore)" if not fill else "no-return cells of the grid")
+    if fill and not grid:
+        listed = firing_grid(cloud, profile, r)
+        if isinstance(listed, str):
+            return dataclasses.replace(rays, empty_source=f"none: {listed}")
+        m = len(listed.ring)
+        rays = Rays(np.concatenate([r, np.full(m, profile.max_range_m)]), np.concatenate([signal, np.zeros(m)]),
+                    np.concatenate([has_target, np.zeros(m, dtype=bool)]), rays.threshold, profile, listed,
+                    listed.describe())
+    return rays
 
 
 @jit
@@ -822,30 +854,66 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     profile = rays.profile
     intensity_in = np.asarray(cloud.fields["intensity"])
     reported = reported_intensity(returns.signal * sensor_constant(profile), returns.range_m, profile)
-    base = cloud.fields.get("label")
-    label = np.zeros(len(cloud), np.uint8) if base is None else np.array(base, dtype=np.uint8)   # in and out
-    positions = np.empty_like(cloud.positions_m)
-    intensity = np.empty_like(intensity_in)
+    n = rays.n_points
+    cells = np.flatnonzero(returns.kind[n:] == WEATHER)          # a list's empty rays that return weather
+    size = n + len(cells)                                         # outputs at most (a list's removed points go)
+    label = np.zeros(size, np.uint8)                              # in and out
+    if "label" in cloud.fields:
+        label[:n] = cloud.fields["label"]
+    positions = np.empty((size, 3))
+    intensity = np.empty(size, intensity_in.dtype)
     grid = cloud.grid_shape is not None
+    integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
     removed, n_out, kept, attenuated, moved, n_removed, added = _place_returns(
-        returns.kind, rays.has_target, returns.range_m, rays.range_m, reported, float(profile.intensity_full_scale),
-        bool(np.issubdtype(intensity_in.dtype, np.integer)), 0.5 * intensity_resolution(profile), grid,
+        returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
+        float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
         np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, label, positions, intensity, label)
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
-    fields = {**cloud.fields, "intensity": intensity[:n_out], "label": label[:n_out]}
+    total = n_out + len(cells)
+    fields = {**cloud.fields, "intensity": intensity[:total], "label": label[:total]}
     if n_removed and grid:
         fields = {k: (v if k in ("ring", "intensity", "label") else np.where(removed, np.zeros((), v.dtype), v))
                   for k, v in fields.items()}
-    elif n_removed:
-        keep = np.flatnonzero(~removed)
-        fields = {k: (v if k in ("intensity", "label") else np.asarray(v).take(keep, axis=0))
+    elif n_removed or len(cells):
+        index = np.flatnonzero(~removed)
+        if len(cells):
+            _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
+                          integer, positions[n_out:total], intensity[n_out:total], label[n_out:total])
+            index = np.concatenate([index, rays.listed.like[cells]])
+            added += len(cells)
+        fields = {k: (v if k in ("intensity", "label") else np.asarray(v).take(index, axis=0))
                   for k, v in fields.items()}
-    out = dataclasses.replace(cloud, positions_m=positions[:n_out], fields=fields)
+        if len(cells) and "ring" in fields:
+            fields["ring"][n_out:] = rays.listed.ring[cells]
+    out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields)
+    faint = rays.has_target[:n] & (rays.signal[:n] < rays.threshold)
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
-              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold}
+              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold,
+              "removed_below_threshold_in": int(np.count_nonzero(removed & faint)), **empty_ray_counts(rays)}
     return out, counts
+
+
+def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
+                  full_scale: float, integer: bool, positions: np.ndarray, intensity: np.ndarray,
+                  label: np.ndarray) -> None:
+    """The weather returns of a point list's empty rays ``cells`` as ADDED points, written to the given output
+    slices: along the cell's direction at the return's range, intensity as :func:`_place_returns` stores it (the
+    caller gives them the cell's ``ring`` and copies every other field from a return of the same firing column, same
+    firing time)."""
+    value = np.minimum(reported[cells], full_scale)
+    intensity[:] = np.round(value) if integer else value
+    label[:] = ADDED
+    positions[:] = listed.directions(cells, range_m[cells])
+
+
+def empty_ray_counts(rays: Rays) -> dict:
+    """Diagnostics of the empty rays: how many could return weather, the firing grid's columns of a point list
+    (0: none) and where they came from (or why a list has none)."""
+    return {"empty_rays": int(np.count_nonzero(rays.empty)),
+            "firing_grid_columns": 0 if rays.listed is None else rays.listed.columns,
+            "empty_rays_source": rays.empty_source}
 
 
 def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
@@ -854,5 +922,5 @@ def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
     label = np.zeros(len(cloud), np.uint8) if label is None else np.array(label, copy=True)
     n = int(rays.has_target.sum())
     counts = {"points_in": n, "kept": n, "attenuated": 0, "moved": 0, "removed": 0, "added": 0,
-              "below_threshold_in": rays.below_threshold}
+              "below_threshold_in": rays.below_threshold, "removed_below_threshold_in": 0, **empty_ray_counts(rays)}
     return cloud.with_fields(label=label), counts

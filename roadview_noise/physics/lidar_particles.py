@@ -443,9 +443,9 @@ def precipitation_returns(rng: np.random.Generator, rays: lidar_link.Rays, mediu
 
 
 def apply_precipitation(model_id: str, cloud, medium: ParticleMedium | None, mode: str, rng: np.random.Generator,
-                        visible_fraction: float = VISIBLE_FRACTION) -> tuple[object, dict]:
+                        visible_fraction: float = VISIBLE_FRACTION, empty_rays: str = "fill") -> tuple[object, dict]:
     """Run rain or snow (``medium`` None: zero rate, identity) on a cloud; returns (cloud, diagnostics)."""
-    rays = lidar_link.cloud_rays(cloud, model_id)
+    rays = lidar_link.cloud_rays(cloud, model_id, "ignore" if medium is None else empty_rays)
     if medium is None:
         out, counts = lidar_link.unchanged(cloud, rays)
         return out, {**counts, "alpha_per_m": 0.0, "particles_per_m3": 0.0, "particles_drawn": 0}

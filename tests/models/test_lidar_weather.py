@@ -320,7 +320,9 @@ def test_same_rng_same_output_and_json_diagnostics(model_id):
         np.testing.assert_array_equal(a.fields[k], b.fields[k])
     assert da == db
     json.dumps(da)
-    assert all(isinstance(v, (int, float)) for v in da.values())
+    numbers = {k: v for k, v in da.items() if not k.endswith("_source")}     # *_source: one explanatory string
+    assert all(isinstance(v, (int, float)) for v in numbers.values())
+    assert isinstance(da["empty_rays_source"], str)
     assert {"kept", "attenuated", "moved", "removed", "added", "alpha_per_m"} <= set(da)
     assert da["kept"] + da["attenuated"] + da["moved"] + da["removed"] == len(cloud)
     assert len(a) == len(cloud) - da["removed"]
@@ -418,6 +420,65 @@ def test_weather_returns_on_empty_rays_of_a_full_grid(model):
     assert diag["removed"] == removed.sum()
 
 
+def small_list() -> tuple[PointCloud, PointCloud, np.ndarray]:
+    """:func:`small_grid` with its lowest beam on the ground (8 m) all around, as a full grid and as a point list of
+    its returns with ``ring`` and ``time`` (firing time of the column) fields; and each cell's direction."""
+    grid, d, hit = small_grid()
+    rows, cols = grid.grid_shape
+    lowest = int(np.argmin(grid.profile.beam_elevation_deg))
+    ground = np.arange(rows * cols) // cols == lowest
+    pos = np.where(hit[:, None], grid.positions_m, np.where(ground[:, None], d * 8.0, 0.0))
+    time = ((np.arange(rows * cols) % cols) * 1e-4).astype(np.float32)
+    fields = {"intensity": np.where(hit | ground, 2000.0, 0.0).astype(np.float32), "ring": grid.fields["ring"],
+              "time": time}
+    full = dataclasses.replace(grid, positions_m=pos, fields=fields)
+    returns = hit | ground
+    listed = PointCloud(pos[returns], {k: v[returns] for k, v in fields.items()}, "lidar", grid.profile)
+    return full, listed, d
+
+
+def test_point_list_gets_the_weather_of_its_full_grid():
+    """Fog is deterministic: the list of a grid's returns gets the same returns on the same empty rays."""
+    full, listed, _ = small_list()
+    model = FogLidar(visibility_m=15.0)
+    out_grid, d_grid = run(model, full)
+    out_list, d_list = run(model, listed)
+    assert d_list["empty_rays"] == d_grid["empty_rays"] == len(full) - len(listed) > 0
+    for k in ("kept", "attenuated", "moved", "removed", "added"):
+        assert d_list[k] == d_grid[k], k
+    added_grid = out_grid.fields["label"] == PointLabel.ADDED
+    order = np.lexsort((out_grid.fields["time"][added_grid], out_grid.fields["ring"][added_grid]))
+    tail = slice(len(out_list) - d_list["added"], None)
+    order_list = np.lexsort((out_list.fields["time"][tail], out_list.fields["ring"][tail]))
+    for k in ("ring", "time", "intensity", "label"):
+        np.testing.assert_array_equal(out_list.fields[k][tail][order_list], out_grid.fields[k][added_grid][order], k)
+    np.testing.assert_allclose(out_list.positions_m[tail][order_list], out_grid.positions_m[added_grid][order],
+                               atol=1e-6)
+
+
+def test_snow_on_the_empty_rays_of_a_point_list():
+    """Flake returns on a list's empty rays are appended as ADDED points on their cell's ray, with the cell's ring
+    and its column's firing time; ``empty_rays='ignore'`` adds none."""
+    full, listed, d = small_list()
+    out, diag = run(SnowLidar(snowfall_rate_mm_per_h=5.0), listed)
+    n_in = len(listed) - diag["removed"]
+    added = out.fields["label"] == PointLabel.ADDED
+    assert diag["added"] == added.sum() > 0 and np.all(added[n_in:]) and not added[:n_in].any()
+    cols = full.grid_shape[1]
+    cell = out.fields["ring"][added].astype(int) * cols + np.rint(out.fields["time"][added] / 1e-4).astype(int)
+    u = out.positions_m[added] / out.ranges_m[added][:, None]
+    np.testing.assert_allclose(np.sum(u * d[cell], axis=1), 1.0, atol=1e-9)
+    assert not np.any(np.isin(cell, np.flatnonzero(np.any(full.positions_m != 0, axis=1))))
+    out_ignore, d_ignore = run(SnowLidar(snowfall_rate_mm_per_h=5.0, empty_rays="ignore"), listed)
+    assert d_ignore["added"] == 0 and d_ignore["empty_rays"] == 0 and "ignore" in d_ignore["empty_rays_source"]
+
+
+def test_lists_off_a_firing_grid_get_weather_only_on_their_returns():
+    out, diag = run(FogLidar(visibility_m=15.0), street(5000))
+    assert diag["added"] == diag["empty_rays"] == diag["firing_grid_columns"] == 0
+    assert diag["empty_rays_source"].startswith("none: azimuths are not on a regular firing grid")
+
+
 def test_fog_on_empty_rays_uses_the_saturated_table():
     grid, _, hit = small_grid()
     out, diag = run(FogLidar(visibility_m=10.0), grid)
@@ -461,26 +522,67 @@ def real_scan(shared_data) -> PointCloud:
     ("rain.lidar", [0.0, 5.0, 20.0, 50.0, 150.0]),
     ("snow.lidar", [0.0, 0.5, 2.5, 10.0, 30.0])])
 def test_real_scan_loses_more_points_as_the_weather_thickens(shared_data, model_id, values):
+    """Points lost from their target (removed or moved to a weather return) and, among the returns the profile can
+    detect, points removed grow with the weather; the intensity left in place falls. (All removals counted, snow's
+    fall with the rate: flakes take the place of the clear scan's 3 647 returns that are below the profile's
+    threshold.)"""
     cloud = real_scan(shared_data)
     cls, name = WEATHER[model_id]
-    lost, transmission = [], []
+    lost, transmission, removed = [], [], []
     for v in values:
         out, d = run(cls(**{name: v}), cloud)
-        assert d["points_in"] == len(cloud) and len(out) == len(cloud) - d["removed"]
+        assert d["points_in"] == len(cloud) and len(out) == len(cloud) - d["removed"] + d["added"]
+        if v not in (0.0, math.inf):                   # the list's empty rays: its real 128 × 1024 no-return cells
+            assert (d["empty_rays"], d["firing_grid_columns"]) == (128 * 1024 - len(cloud), 1024)
         lost.append((d["removed"] + d["moved"]) / len(cloud))
+        removed.append((d["removed"] - d["removed_below_threshold_in"]) / (len(cloud) - d["below_threshold_in"]))
         kept = target_kept(out)
         transmission.append(float(np.sum(out.fields["intensity"][kept])) / float(np.sum(cloud.fields["intensity"])))
     assert lost[0] == 0 and all(b >= a for a, b in zip(lost, lost[1:])) and lost[-1] > lost[1], lost
+    assert removed[0] == 0 and all(b >= a for a, b in zip(removed, removed[1:])), removed
+    assert removed[-1] > removed[1] or model_id == "fog.lidar", removed    # fog: every lost point is a fog return
     assert all(b < a for a, b in zip(transmission, transmission[1:])), transmission
 
 
-def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
+def real_grid(shared_data) -> tuple[PointCloud, np.ndarray]:
     g = np.load(shared_data / "os1-128" / "scan0_grid.npz")
     xyz = g["xyz_m"].reshape(-1, 3).astype(np.float64)
     valid = g["range_mm"].reshape(-1) > 0
-    cloud = PointCloud(np.where(valid[:, None], xyz, 0.0),
-                       {"intensity": g["reflectivity"].reshape(-1).astype(np.float32)}, "lidar", REFLECTIVITY,
-                       grid_shape=(128, 1024))
+    return PointCloud(np.where(valid[:, None], xyz, 0.0),
+                      {"intensity": g["reflectivity"].reshape(-1).astype(np.float32)}, "lidar", REFLECTIVITY,
+                      grid_shape=(128, 1024)), valid
+
+
+def test_real_list_gets_the_weather_of_its_full_grid_on_the_empty_rays(shared_data):
+    """The point list of the real scan, with a profile that even states the wrong column count (2048), gets fog on
+    exactly the no-return cells of the real range image: same number, same directions (within 0.02°, against a
+    0.35° column step: the grid fits one column phase, the list one per beam), same fog returns."""
+    from scipy.spatial import cKDTree
+
+    grid, _ = real_grid(shared_data)
+    listed = dataclasses.replace(real_scan(shared_data), profile=os1_128_reflectivity())
+    assert listed.profile.columns == 2048
+    model = FogLidar(visibility_m=30.0)
+    out_grid, d_grid = run(model, grid)
+    out_list, d_list = run(model, listed)
+    assert d_list["empty_rays"] == d_grid["empty_rays"] == 128 * 1024 - len(listed)
+    assert d_list["firing_grid_columns"] == 1024 and "2048" in d_list["empty_rays_source"]
+    for k in ("kept", "attenuated", "moved", "removed", "added"):
+        assert d_list[k] == d_grid[k], k
+    a = out_grid.positions_m[out_grid.fields["label"] == PointLabel.ADDED]
+    b = out_list.positions_m[out_list.fields["label"] == PointLabel.ADDED]
+    assert len(b) == d_list["added"] > 20_000 and np.all(out_list.fields["label"][-len(b):] == PointLabel.ADDED)
+    unit = lambda p: p / np.linalg.norm(p, axis=1, keepdims=True)       # noqa: E731
+    dist, j = cKDTree(unit(a)).query(unit(b))
+    assert np.all(np.rad2deg(dist) < 0.02) and len(np.unique(j)) == len(b)
+    np.testing.assert_allclose(np.linalg.norm(b, axis=1), np.linalg.norm(a[j], axis=1), rtol=1e-9)
+    np.testing.assert_allclose(out_list.fields["intensity"][-len(b):], out_grid.fields["intensity"][
+        np.flatnonzero(out_grid.fields["label"] == PointLabel.ADDED)[j]])
+
+
+def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
+    cloud, valid = real_grid(shared_data)
+    xyz = cloud.positions_m
     # the fitted column azimuths reproduce the directions of the real returns, up to the angle subtended by the
     # neglected beam-origin offsets (36 mm up, 16 mm out)
     from roadview_noise.physics.lidar_link import empty_ray_directions

@@ -13,6 +13,7 @@ from ...model import Model, Stage, param
 from ...physics import lidar_link
 from ...physics.atmosphere import extinction_from_visibility_per_m
 from ...registry import register
+from . import empty_rays_param
 
 
 def fog_coefficients(visibility_m: float, backscatter_times_visibility_per_sr: float = 0.046) -> tuple[float, float]:
@@ -43,8 +44,9 @@ class FogLidar(Model):
       so it rarely produces fog returns); its empty rays use the frame median of ``S R²``.
     - strongest mode: the point moves to the fog if ``S_fog > S_hard``; first mode: if ``S_fog`` is above threshold.
       Whatever wins must pass the profile's detection threshold (signal units), else the point is removed.
-    - Empty rays of a full range image (no-return cells) get ``R0 = ∞``, so fog also appears where the clear scan saw
-      nothing (the reference's zero-range branch was dead code); a point list carries only the rays that returned.
+    - Rays without a return get ``R0 = ∞`` (``empty_rays``: the no-return cells of a full range image, or of a point
+      list's firing grid, :mod:`firing_grid`), so fog also appears where the clear scan saw nothing (the reference's
+      zero-range branch was dead code).
     - Fixes vs the reference (§3.2, §7): input intensity unit and kind kept (no W/m² output, no 10 fs pulse), the
       overlap function replaces the [0.1 R, R] droplet hack, deterministic attenuation (no "n = 0 → clear" lottery).
     ``visibility_m = inf`` is the identity (every label KEPT).
@@ -66,9 +68,10 @@ class FogLidar(Model):
     pulse_width: str = param("profile", choices=("profile", "hahner_20ns"),
                              doc="half-power pulse width: the sensor profile's, or Hahner's 20 ns")
     return_mode: str = param("strongest", choices=("strongest", "first"), doc="which echo the sensor reports")
+    empty_rays: str = empty_rays_param()
 
     def apply(self, data, *, state, drawn, rng):
-        rays = lidar_link.cloud_rays(data, self.id)
+        rays = lidar_link.cloud_rays(data, self.id, "ignore" if math.isinf(self.visibility_m) else self.empty_rays)
         if math.isinf(self.visibility_m):
             out, counts = lidar_link.unchanged(data, rays)
             return out, {**counts, "alpha_per_m": 0.0, "beta_per_m_sr": 0.0}

@@ -11,6 +11,7 @@ from ...model import Model, Stage, param
 from ...physics import dsd
 from ...physics.lidar_particles import ParticleMedium, apply_precipitation
 from ...registry import register
+from . import empty_rays_param
 
 # Drops are faint (Fresnel ρ = 0.02) and many fit in a wide beam: without their mean backscatter, drawing only those
 # above ½ of the threshold lowered the weather returns by ~19 % at 50 mm/h, ⅛ by 4.5 %; 1/16 is within the
@@ -27,8 +28,9 @@ class RainLidar(Model):
     - Marshall–Palmer DSD on [Dmin, Dmax]; extinction ``α = (π/4)·2·∫D²N dD`` (geometric optics, Q_ext = 2; x > 1800
       for every drop at 865 nm) — 2.171e-3 m⁻¹ at 20 mm/h, not the reference's 1.085 m⁻¹ (500× too large).
     - Drops per beam: Poisson with density ``n π w(r)²`` (w grows with the profile's beam divergence) from the
-      profile's overlap start R1 to the target, or to the profile's max range on the no-return cells of a full range
-      image (weather returns there are ADDED; a point list has no such rays); diameters by inverse CDF of the
+      profile's overlap start R1 to the target, or to the profile's max range on rays without a return
+      (``empty_rays``: a full grid's no-return cells, a point list's empty firing-grid cells; their weather returns
+      are ADDED); diameters by inverse CDF of the
       truncated exponential (the reference set the *mean* to Λ). Only drops whose return reaches
       ``draw_fraction_of_threshold`` (1/16) of the threshold are drawn (an exact thinning), in front of a bright
       target only those that can outshine it; the others act through their means (α, beam cover, backscatter as a
@@ -51,6 +53,7 @@ class RainLidar(Model):
         0.0199, unit="1", ge=0, doc="effective Lambertian reflectance of a drop: Fresnel |(m−1)/(m+1)|² of water at "
         "865 nm (reference); the Mie value Q_back/4 (≈1.5 averaged, strong glory) is an upper alternative")
     return_mode: str = param("strongest", choices=("strongest", "first"), doc="which echo the sensor reports")
+    empty_rays: str = empty_rays_param()
     draw_fraction_of_threshold: float = param(
         RAIN_DRAW_FRACTION, unit="1", gt=0, le=1,
         doc="drops whose own return is below this fraction of the detection threshold are not drawn one by one (they"
@@ -71,4 +74,4 @@ class RainLidar(Model):
 
     def apply(self, data, *, state, drawn, rng):
         return apply_precipitation(self.id, data, self.medium(), self.return_mode, rng,
-                                   self.draw_fraction_of_threshold)
+                                   self.draw_fraction_of_threshold, self.empty_rays)

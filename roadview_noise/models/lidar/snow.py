@@ -11,6 +11,7 @@ from ...model import Model, Stage, param
 from ...physics import dsd
 from ...physics.lidar_particles import VISIBLE_FRACTION, ParticleMedium, apply_precipitation
 from ...registry import register
+from . import empty_rays_param
 
 # Hahner 2022 rain ↔ snow conversion S = 487 ρ D0 v_t R^{2/3} (ρ in g/cm³, D0 in m, v_t in m/s), with the
 # reference's flake density 0.178 g/cm³ (Brandes et al. 2007 at D0 = 1 mm) and fall speed 1.6 m/s.
@@ -46,7 +47,8 @@ class SnowLidar(Model):
       reference's peak-600 renormalisation (which made flake density independent of the rate); extinction in closed
       form with Q_ext = 2 (x ≥ 363 for every flake; replaces the 28 s Mie loop): 1.21e-3 m⁻¹ at 2.5 mm/h (GM).
     - Flakes per beam: Poisson ``n π w(r)²`` from the profile's overlap start R1 to the target (or the max range on
-      the no-return cells of a full range image, which then get ADDED flake returns), drawn when their return
+      rays without a return, ``empty_rays``: a full grid's no-return cells, a point list's empty firing-grid cells;
+      they then get ADDED flake returns), drawn when their return
       reaches ``draw_fraction_of_threshold`` (½) of the threshold, in front of a bright target only when they can
       outshine it (the others act through their means: α, beam cover, backscatter; :mod:`lidar_particles`); flake
       return
@@ -76,6 +78,7 @@ class SnowLidar(Model):
     max_flake_diameter_mm: float = param(20.0, unit="mm", gt=0, doc="largest flake of the DSD")
     flake_reflectance: float = param(0.9, unit="1", ge=0, doc="flake reflectance ρ_s (Hahner 2022)")
     return_mode: str = param("strongest", choices=("strongest", "first"), doc="which echo the sensor reports")
+    empty_rays: str = empty_rays_param()
     draw_fraction_of_threshold: float = param(
         VISIBLE_FRACTION, unit="1", gt=0, le=1,
         doc="flakes whose own return is below this fraction of the detection threshold are not drawn one by one (they"
@@ -99,4 +102,4 @@ class SnowLidar(Model):
 
     def apply(self, data, *, state, drawn, rng):
         return apply_precipitation(self.id, data, self.medium(), self.return_mode, rng,
-                                   self.draw_fraction_of_threshold)
+                                   self.draw_fraction_of_threshold, self.empty_rays)

@@ -1,0 +1,265 @@
+"""Firing grid of a LiDAR point list: where a spinning sensor fired without a return (models.md §0.3, §3.0).
+
+A point list keeps only the rays that returned, but a weather model must also act on the others (fog and
+particles return on rays that saw nothing in clear weather; models.md §1, "ray drop before weather"). A spinning
+sensor fires every beam of the profile's table at every column of a revolution, so the empty rays are the cells of
+that ``beams × columns`` grid that hold no point:
+
+- ring: the ``ring`` field, else the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
+- columns: *measured* from the data — the firing-azimuth step between neighbouring returns of one beam — because
+  the column count is a recording mode (Ouster 512/1024/2048, Velodyne: rotation rate), not a property of the
+  sensor; the profile's ``columns`` is only compared with it. A list whose azimuths are not on a regular step (a
+  merged, resampled or motion-compensated cloud, random test points) has no firing grid, and the reason is kept;
+- each beam's columns may be shifted by a fraction of a step (Velodyne firing sequence): the shift is measured per
+  beam (circular mean weighted by range, against the parallax of near returns), so a return never lands in its
+  neighbour's cell;
+- which cells are empty rays: those whose own azimuth (beam offsets included) lies within 4 steps of a return of
+  any beam — a cropped field of view or lost packets are not filled, while a sparse ground beam keeps the open sky
+  above it in view — on the beams that returned something and on every beam above the highest of them (they saw
+  only sky). A beam without returns below or between beams with returns is dead, blocked or removed (or the
+  profile has more beams than the data) and gets no weather.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+from ..types import LidarProfile
+from .compiled import jit
+from .lidar_geometry import has_return, ring_index
+
+TWO_PI = 2.0 * math.pi
+STEP_SAMPLE_BEAMS = 4           # the most populated beams measure the column step from their neighbour gaps
+PHASE_SAMPLE_STRIDE = 16        # every 16th return measures the per-beam column shift
+MIN_GAPS = 200                  # fewer neighbour gaps: no reliable step
+MIN_REGULAR_FRACTION = 0.8      # gaps within ±15 % of a whole number of steps, for a regular grid
+MAX_GAP_STEPS = 8               # gaps up to this many steps measure the step (longer ones: open sky)
+VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
+
+
+@dataclass(frozen=True, eq=False)
+class FiringGrid:
+    """Empty rays of a point list on its ``channels × columns`` firing grid (M cells).
+
+    ``ring``, ``column``: the empty cells; ``like``: for each, a return fired in the same column (same firing time),
+    whose other per-point fields (time stamps) an added return copies; ``columns``: measured column count;
+    ``shift``: per beam, the measured offset of its columns (in steps)."""
+
+    ring: np.ndarray
+    column: np.ndarray
+    like: np.ndarray
+    columns: int
+    shift: np.ndarray
+    profile: LidarProfile
+
+    def directions(self, cells: np.ndarray, range_m: np.ndarray | None = None) -> np.ndarray:
+        """(len(cells), 3) unit vectors of the empty cells ``cells`` (indices into ``ring``/``column``), times
+        ``range_m`` (per cell) if given: elevation of the beam, azimuth ``−c·step − (shift·step + offset)`` of the
+        column turned back by the beam's shift and azimuth offset (angle sum of a per-column and a per-beam table).
+        The mm-scale beam-origin offsets are neglected."""
+        step = TWO_PI / self.columns
+        col_angle = -np.arange(self.columns) * step
+        beam_angle = -self.shift * step - np.deg2rad(np.asarray(self.profile.beam_azimuth_offset_deg))
+        elevation = np.deg2rad(np.asarray(self.profile.beam_elevation_deg))
+        scale = np.ones(len(cells)) if range_m is None else np.asarray(range_m, dtype=np.float64)
+        return _directions(np.asarray(cells, dtype=np.int64), self.ring, self.column, scale, np.cos(col_angle),
+                           np.sin(col_angle), np.cos(beam_angle), np.sin(beam_angle), np.cos(elevation),
+                           np.sin(elevation))
+
+    def describe(self) -> str:
+        p = self.profile
+        note = "" if self.columns == p.columns else f"; profile {p.name!r} says {p.columns}"
+        return f"{p.channels}x{self.columns} firing grid measured from the list{note}"
+
+
+@jit
+def _directions(cells, ring, column, scale, ca, sa, cb, sb, ce, se):       # pragma: no cover - compiled
+    """Rows ``scale · (cos e cos(a + b), cos e sin(a + b), sin e)`` of the cells (a: column angle, b: beam angle)."""
+    out = np.empty((len(cells), 3))
+    for i in range(len(cells)):
+        b, c = ring[cells[i]], column[cells[i]]
+        h = scale[i] * ce[b]
+        out[i, 0] = h * (ca[c] * cb[b] - sa[c] * sb[b])
+        out[i, 1] = h * (sa[c] * cb[b] + ca[c] * sb[b])
+        out[i, 2] = scale[i] * se[b]
+    return out
+
+
+def measured_step_rad(firing_rad: np.ndarray, ring: np.ndarray) -> tuple[float, str]:
+    """Column step (rad) of a scan from the firing-azimuth gaps between neighbouring returns of one beam (the caller
+    passes the returns of its most populated beams); (nan, reason) when the gaps are too few or not whole multiples
+    of one step.
+
+    The smallest typical gap (10th percentile) seeds the step: on a grid with fill fraction p, a gap of k steps
+    occurs with probability ∝ (1 − p)^(k−1), so one step is always the most common gap. The step is then refitted by
+    least squares (gaps g rounded to whole steps k: step = Σgk / Σk²) on gaps of up to 2, 4, then 8 steps; the grid is
+    regular when 80 % of those gaps lie within 0.15 step of a whole number."""
+    if len(ring) < MIN_GAPS:
+        return math.nan, f"only {len(ring)} returns in the sampled beams"
+    f = np.mod(firing_rad, TWO_PI)
+    order = np.lexsort((f, ring))
+    f, r = f[order], ring[order]
+    gap = np.diff(f)[r[1:] == r[:-1]]
+    gap = gap[gap > 1e-7]                              # several echoes of one ray are not a gap
+    if len(gap) < MIN_GAPS:
+        return math.nan, f"only {len(gap)} azimuth gaps between returns of one beam"
+    step = float(np.partition(gap, len(gap) // 10)[len(gap) // 10])
+    for most_steps in (2, 4, MAX_GAP_STEPS, MAX_GAP_STEPS):
+        near = gap[gap < (most_steps + 0.5) * step]
+        k = np.rint(near / step)
+        step = float(np.dot(near, k) / np.dot(k, k))
+    regular = np.abs(near / step - k) < 0.15
+    if regular.mean() < MIN_REGULAR_FRACTION:
+        return math.nan, (f"azimuths are not on a regular firing grid ({100 * regular.mean():.0f} % of the gaps are "
+                          f"whole steps)")
+    return step, ""
+
+
+# Abramowitz & Stegun 4.4.49: atan(a)/a = 1 + Σ c_k a^(2k) on 0 ≤ a ≤ 1, |error| ≤ 2e-8 rad
+_ATAN_COEF = (-0.3333314528, 0.1999355085, -0.1420889944, 0.1065626393, -0.0752896400, 0.0429096138,
+              -0.0161657367, 0.0028662257)
+
+
+@jit(inline="always")
+def atan2(y, x):       # pragma: no cover - compiled
+    """``atan2(y, x)`` within 2e-8 rad (3e-6 of a 2048-column step) by A&S 4.4.49 on the octant; 0 at the origin.
+    Unlike libm's it vectorises in a compiled loop: 0.12 against 2.2 ms for 107 k points."""
+    ax, ay = abs(x), abs(y)
+    big = max(ax, ay)
+    if big == 0.0:
+        return 0.0
+    a = min(ax, ay) / big
+    s = a * a
+    c = _ATAN_COEF
+    r = a * (1.0 + s * (c[0] + s * (c[1] + s * (c[2] + s * (c[3] + s * (c[4] + s * (c[5] + s * (c[6] + s * c[7]))))))))
+    if ay > ax:
+        r = 0.5 * math.pi - r
+    if x < 0:
+        r = math.pi - r
+    return -r if y < 0 else r
+
+
+@jit
+def _azimuths(y, x):       # pragma: no cover - compiled
+    """``atan2(y, x)`` of contiguous coordinate arrays (a side-effect-free loop: compiled to SIMD, 5× faster than
+    on the strided columns of an (N, 3) array)."""
+    out = np.empty(len(x))
+    for i in range(len(x)):
+        out[i] = atan2(y[i], x[i])
+    return out
+
+
+@jit
+def _cells(firing, valid, ring, offsets, shift, step, columns, channels):       # pragma: no cover - compiled
+    """One pass over the returns with their firing azimuths (:func:`lidar_geometry.firing_azimuth_rad`): column
+    ``rint(−firing/step − shift[ring]) mod W`` (clockwise turn), the occupancy of every (ring, column) cell, per
+    column one return fired there (−1: none), and which azimuth bins of one step hold a return (azimuth
+    ``firing − offset``)."""
+    occupied = np.zeros((channels, columns), np.bool_)
+    like = np.full(columns, -1, np.int64)
+    seen = np.zeros(columns, np.bool_)
+    inv_step = 1.0 / step
+    for i in range(len(ring)):
+        if not valid[i]:
+            continue
+        b = ring[i]
+        c = _wrap(int(math.floor(-firing[i] * inv_step - shift[b] + 0.5)), columns)
+        occupied[b, c] = True
+        if like[c] < 0:
+            like[c] = i
+        seen[_wrap(int(math.floor((firing[i] - offsets[b]) * inv_step)), columns)] = True
+    return occupied, like, seen
+
+
+@jit(inline="always")
+def _wrap(k, n):       # pragma: no cover - compiled
+    """``k mod n`` for k within a few turns of [0, n) (no integer division)."""
+    while k < 0:
+        k += n
+    while k >= n:
+        k -= n
+    return k
+
+
+@jit
+def _empty_cells(occupied, fires, in_view, shift, offsets, step):       # pragma: no cover - compiled
+    """(ring, column) of the cells without a return on firing beams whose own azimuth
+    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view."""
+    channels, columns = occupied.shape
+    ring = np.empty(channels * columns, np.int64)
+    col = np.empty(channels * columns, np.int64)
+    m = 0
+    for b in range(channels):
+        if not fires[b]:
+            continue
+        for c in range(columns):
+            if occupied[b, c]:
+                continue
+            k = _wrap(int(math.floor(-(c + shift[b]) - offsets[b] / step)), columns)
+            if in_view[k]:
+                ring[m] = b
+                col[m] = c
+                m += 1
+    return ring[:m], col[:m]
+
+
+def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringGrid | str:
+    """The empty rays of a point-list scan (see the module doc), or the reason it has no firing grid. ``range_m``:
+    the points' ranges if known, 0 where a point is no return."""
+    try:
+        ring = ring_index(cloud, profile)
+    except InputError as e:
+        return str(e)
+    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
+    x, y = np.ascontiguousarray(positions[:, 0]), np.ascontiguousarray(positions[:, 1])
+    firing = _azimuths(y, x) + offsets[ring]
+    if range_m is None:
+        range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
+    valid = range_m > 0
+    if not valid.any():
+        return "no returns"
+    counts = np.bincount(ring, minlength=profile.channels)          # zero points too: only to pick beams
+    sampled = np.zeros(profile.channels, dtype=bool)
+    sampled[np.argsort(counts, kind="stable")[-STEP_SAMPLE_BEAMS:]] = True
+    sel = np.flatnonzero(sampled[ring] & valid)
+    step, reason = measured_step_rad(firing[sel], ring[sel])
+    if reason:
+        return reason
+    columns = int(round(TWO_PI / step))
+    step = TWO_PI / columns                             # the grid closes on itself
+    sample = np.flatnonzero(valid[::PHASE_SAMPLE_STRIDE]) * PHASE_SAMPLE_STRIDE
+    # weighted by range: near returns carry the mm-scale beam-origin parallax
+    turn = range_m[sample] * np.exp(-2j * np.pi * firing[sample] / step)
+    phase = (np.bincount(ring[sample], turn.real, profile.channels)
+             + 1j * np.bincount(ring[sample], turn.imag, profile.channels))
+    phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
+    shift = np.angle(phase) / TWO_PI                    # per beam, in steps
+    occupied, like, seen = _cells(firing, valid, ring, offsets, shift, step, columns, profile.channels)
+    m = VIEW_MARGIN_STEPS
+    in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
+    er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
+    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile)
+
+
+def _firing_beams(has_returns: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    """Beams whose empty cells are rays: those with returns and those above the highest of them (sky)."""
+    elevation = np.asarray(profile.beam_elevation_deg)
+    return has_returns | (elevation > elevation[has_returns].max())
+
+
+def _nearest_filled(like: np.ndarray) -> np.ndarray:
+    """``like`` with each column without a return (−1) taking the entry of the nearest column that has one
+    (circular)."""
+    filled = np.flatnonzero(like >= 0)
+    n = len(like)
+    if len(filled) == n:
+        return like
+    ring_pos = np.concatenate([filled - n, filled, filled + n])
+    j = np.clip(np.searchsorted(ring_pos, np.arange(n)), 1, len(ring_pos) - 1)
+    nearer_left = np.arange(n) - ring_pos[j - 1] <= ring_pos[j] - np.arange(n)
+    return like[np.mod(np.where(nearer_left, ring_pos[j - 1], ring_pos[j]), n)]
