@@ -4,8 +4,9 @@
    ray-cast analytically with the real beam table, ``signal`` intensities in photons (``K ρ cos θ / r²`` with the
    profile's sensor constant K).
 2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, the OS1's calibrated 8-bit reflectivity,
-   profile ``os1-128-reflectivity``: white reads 100, K = 65535 photons·m², receiver overlap 0.5 → 5 m), if present,
-   plus a table rate → kept / attenuated / moved / removed / added.
+   profile ``os1-128-reflectivity``: white reads 100, K = 65535 photons·m², receiver overlap 0.5 → 5 m), if present:
+   a point list, whose 1024-column firing grid (the profile says 2048) and 23 425 empty rays the models measure;
+   the time of that firing grid; a table rate → kept / attenuated / moved / removed / added.
 3. The convergence of rain and snow in ``draw_fraction_of_threshold`` on the synthetic grid.
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
@@ -35,7 +36,7 @@ from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
 from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
-from roadview_noise.physics.lidar_link import sensor_constant  # noqa: E402
+from roadview_noise.physics.lidar_link import cloud_rays, sensor_constant  # noqa: E402
 from roadview_noise.profiles.lidar import os1_128, os1_128_reflectivity  # noqa: E402
 from roadview_noise.types import PointCloud  # noqa: E402
 
@@ -92,8 +93,7 @@ def real_scan() -> PointCloud | None:
     if not path.is_file():
         return None
     a = np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-    prof = dataclasses.replace(os1_128_reflectivity(), columns=1024)
-    return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", prof)
+    return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", os1_128_reflectivity())
 
 
 def time_model(model, cloud: PointCloud) -> tuple[float, float, dict]:
@@ -137,6 +137,26 @@ def report(name: str, scene: str, cloud: PointCloud) -> None:
         counts = "/".join(str(d[k]) for k in ("kept", "attenuated", "moved", "removed", "added"))
         print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['peak_mb']:8.1f} "
               f"{MATLAB_S[mid] * 1e3 / r['median_ms']:8.0f}×  {counts}  {d.get('particles_drawn', '')}")
+    print(f"  empty rays: {d['empty_rays']} ({d['empty_rays_source']})")
+
+
+def firing_grid_time(cloud: PointCloud) -> None:
+    """The part of every weather model's time a point list adds: its firing grid (ring recovery included)."""
+    keep_freed_memory()
+    rays = cloud_rays(cloud, "bench")
+    times = []
+    for _ in range(50):
+        t0 = time.perf_counter()
+        cloud_rays(cloud, "bench")
+        times.append(time.perf_counter() - t0)
+    base = []
+    for _ in range(50):
+        t0 = time.perf_counter()
+        cloud_rays(cloud, "bench", "ignore")
+        base.append(time.perf_counter() - t0)
+    print(f"  rays of the list: {1e3 * statistics.median(times):.2f} ms with its {rays.empty_source} "
+          f"({rays.n_points} points + {len(rays.range_m) - rays.n_points} empty rays), "
+          f"{1e3 * statistics.median(base):.2f} ms with empty_rays: ignore")
 
 
 def rate_table(cloud: PointCloud) -> None:
@@ -148,15 +168,17 @@ def rate_table(cloud: PointCloud) -> None:
     total = float(np.sum(cloud.fields["intensity"]))
     for mid, (pname, values, cls) in sweeps.items():
         print(f"\n{mid} on the real scan: {pname} → kept / attenuated / moved / removed / added, "
-              "removed %, lost (removed + moved) %, intensity left in place %")
+              "removed %, removed % of the returns the profile detects, lost (removed + moved) %, "
+              "intensity left in place %")
         for v in values:
             out, rec = apply_models([cls(**{pname: v})], cloud, seed=1, key="table", sequence_id="s")
             d = rec[0].diagnostics
             in_place = out.fields["label"] <= 1
             left = float(np.sum(out.fields["intensity"][in_place])) / total
             removed, lost = d["removed"] / d["points_in"], (d["removed"] + d["moved"]) / d["points_in"]
+            detectable = (d["removed"] - d["removed_below_threshold_in"]) / (d["points_in"] - d["below_threshold_in"])
             print(f"  {v:7g}: {d['kept']:6d} {d['attenuated']:6d} {d['moved']:6d} {d['removed']:6d} {d['added']:6d}"
-                  f"   {100 * removed:6.2f} {100 * lost:6.2f} {100 * left:7.2f}")
+                  f"   {100 * removed:6.2f} {100 * detectable:6.2f} {100 * lost:6.2f} {100 * left:7.2f}")
         print(f"  (returns already below the profile's detection threshold in the clear scan: "
               f"{d['below_threshold_in']})")
 
@@ -184,9 +206,9 @@ def main() -> int:
     if scan is None:
         print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
         return 0
-    report("real OS1-128 scan0.bin (os1-128-reflectivity: calibrated 8-bit reflectivity, white 100, threshold "
-           "3.28 photons, overlap 0.5 → 5 m)",
-           "real", scan)
+    report("real OS1-128 scan0.bin, a point list (os1-128-reflectivity: calibrated 8-bit reflectivity, white 100, "
+           "threshold 3.28 photons, overlap 0.5 → 5 m)", "real", scan)
+    firing_grid_time(scan)
     rate_table(scan)
     return 0
 
