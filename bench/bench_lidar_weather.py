@@ -144,19 +144,18 @@ def firing_grid_time(cloud: PointCloud) -> None:
     """The part of every weather model's time a point list adds: its firing grid (ring recovery included)."""
     keep_freed_memory()
     rays = cloud_rays(cloud, "bench")
-    times = []
-    for _ in range(50):
-        t0 = time.perf_counter()
-        cloud_rays(cloud, "bench")
-        times.append(time.perf_counter() - t0)
-    base = []
-    for _ in range(50):
-        t0 = time.perf_counter()
-        cloud_rays(cloud, "bench", "ignore")
-        base.append(time.perf_counter() - t0)
-    print(f"  rays of the list: {1e3 * statistics.median(times):.2f} ms with its {rays.empty_source} "
+
+    def median_ms(empty_rays: str) -> float:
+        times = []
+        for _ in range(50):
+            t0 = time.perf_counter()
+            cloud_rays(cloud, "bench", empty_rays)
+            times.append(time.perf_counter() - t0)
+        return 1e3 * statistics.median(times)
+
+    print(f"  rays of the list: {median_ms('fill'):.2f} ms with its {rays.empty_source} "
           f"({rays.n_points} points + {len(rays.range_m) - rays.n_points} empty rays), "
-          f"{1e3 * statistics.median(base):.2f} ms with empty_rays: ignore")
+          f"{median_ms('ignore'):.2f} ms with empty_rays: ignore")
 
 
 def rate_table(cloud: PointCloud) -> None:
