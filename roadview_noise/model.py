@@ -17,11 +17,14 @@ import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import Enum, IntEnum
-from typing import Any, ClassVar, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar, Sequence
 
 import numpy as np
 
 from .errors import ModelError
+
+if TYPE_CHECKING:
+    from .physics.warp import Warp
 
 
 class Stage(IntEnum):
@@ -106,6 +109,7 @@ class Model(ABC):
     sensor: ClassVar[str]                    # "camera" | "lidar" | "radar"
     scope: ClassVar[Scope] = Scope.FRAME
     needs_depth: ClassVar[bool] = False      # camera models that need a depth map
+    uses_camera_geometry: ClassVar[bool] = False  # camera models that need intrinsics (K, exposure, pixel pitch)
     summary: ClassVar[str] = ""              # one line for `rvnoise list`
 
     def __post_init__(self) -> None:
@@ -136,6 +140,11 @@ class Model(ABC):
 
     def draw(self, rng: np.random.Generator, data: Any) -> dict:
         return {}
+
+    def warp(self, data: Any, *, state: dict, drawn: dict) -> "Warp | None":
+        """Geometric camera models return the pixel map their ``apply`` resamples the image with (masks and boxes
+        follow it, :mod:`roadview_noise.physics.warp`); photometric models return None."""
+        return None
 
     @abstractmethod
     def apply(self, data: Any, *, state: dict, drawn: dict, rng: np.random.Generator) -> tuple[Any, dict]:

@@ -21,6 +21,7 @@ class PrecipitationCamera(Model):
     stage: ClassVar[Stage] = Stage.MEDIUM
     sensor: ClassVar[str] = "camera"
     needs_depth: ClassVar[bool] = True
+    uses_camera_geometry: ClassVar[bool] = True
 
     exposure_time_s: Any = param(None, unit="s", doc="exposure; null = the camera profile's (Lucid: 5 ms)")
     min_distance_m: float = param(0.5, unit="m", gt=0,
