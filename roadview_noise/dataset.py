@@ -93,7 +93,7 @@ def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
         modality = found[rel]
         seq = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
         depth = None
-        if modality in ("camera", "raw"):
+        if modality in ("camera", "raw") and inputs.depth_source == "file":
             candidate = depth_relpath_for(rel, inputs.depth)
             depth = candidate if (in_root / candidate).is_file() else None
         samples.append(Sample(rel, modality, seq, depth))

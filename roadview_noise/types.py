@@ -164,13 +164,12 @@ SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]
 class ImageEncoding:
     """How a camera frame is stored, so the writer can put it back the same way."""
 
-    fmt: str = "png"           # png | jpeg | tiff
-    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF)
+    fmt: str = "png"           # png | jpeg | tiff | exr
+    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF); EXR: 16 (half) | 32 (float)
     transfer: str = "srgb"     # srgb | linear
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
     icc_profile: bytes | None = None   # embedded ICC colour profile of the file, written back unchanged
-    exr_half: bool = False     # EXR: 16-bit half-float channels (else float32)
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,7 +9,8 @@ Camera frame: OpenCV (x right, y down, z forward); a pixel (u, v) looks along ``
 - KITTI calibration text (object benchmark ``calib/*.txt``: ``P0``–``P3``, ``R0_rect``, ``Tr_velo_to_cam``; or the
   raw recordings' ``P_rect_0N``, ``R_rect_00`` with ``R``/``T`` of ``calib_velo_to_cam.txt`` in one file): the
   rectified camera N (default 2, the left colour camera) has ``K = P_N[:, :3]`` and sits at ``t_N = K⁻¹ P_N[:, 3]``
-  in the rectified frame, so a Velodyne point maps to ``[I | t_N] · R_rect · Tr_velo_to_cam · X``.
+  in the rectified frame, so a Velodyne point maps to ``[I | t_N] · R_rect · Tr_velo_to_cam · X``; ``S_rect_0N``
+  (if present) is the image size K refers to. A file without the Velodyne transform gives the intrinsics only.
 - rvnoise YAML (every key optional; see ``recipes/examples/calibration/sample-drive.yaml``)::
 
       K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]   # px, for an image of width_px × height_px (scaled to the image)
@@ -108,20 +109,22 @@ def _kitti(text: str, path: str, camera: int) -> Calibration:
             except ValueError:
                 continue                                    # e.g. calib_time: 09-Jan-2012 13:57:47
     p = _first(rows, (f"P{camera}", f"P_rect_{camera:02d}"), path).reshape(3, 4)
-    r_rect = np.eye(4)
-    r_rect[:3, :3] = _first(rows, ("R0_rect", "R_rect_00"), path).reshape(3, 3)
-    velo = np.eye(4)
+    k = p[:, :3]
+    intrinsics = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+    size = rows.get(f"S_rect_{camera:02d}")
+    size = (int(size[0]), int(size[1])) if size is not None else None
     if "Tr_velo_to_cam" in rows:
-        velo[:3] = rows["Tr_velo_to_cam"].reshape(3, 4)
+        velo = np.vstack([rows["Tr_velo_to_cam"].reshape(3, 4), [0, 0, 0, 1]])
     elif "R" in rows and "T" in rows:
+        velo = np.eye(4)
         velo[:3, :3], velo[:3, 3] = rows["R"].reshape(3, 3), rows["T"]
     else:
-        raise InputError("KITTI calibration has no Tr_velo_to_cam (nor R and T)", file=path)
-    k = p[:, :3]
+        return Calibration(path, intrinsics_px=intrinsics, size_px=size)   # camera only (calib_cam_to_cam.txt)
+    r_rect = np.eye(4)
+    r_rect[:3, :3] = _first(rows, ("R0_rect", "R_rect_00"), path).reshape(3, 3)
     shift = np.eye(4)
     shift[:3, 3] = np.linalg.solve(k, p[:, 3])
-    return Calibration(path, intrinsics_px=(k[0, 0], k[1, 1], k[0, 2], k[1, 2]),
-                       lidar_to_camera=shift @ r_rect @ velo)
+    return Calibration(path, intrinsics_px=intrinsics, size_px=size, lidar_to_camera=shift @ r_rect @ velo)
 
 
 def _first(rows: dict, keys: tuple[str, ...], path: str) -> np.ndarray:

@@ -25,13 +25,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import OpenEXR
 
 from ..errors import InputError
 from ..types import CameraProfile
 from ..units import planar_depth_to_range
 from .atomic import atomic_path, write_bytes_atomic
-from .image import PNG_SIGNATURE, check_structure
+from .image import PNG_SIGNATURE, check_structure, read_exr_channels, write_exr_channels
 
 CARLA_FAR_M = 1000.0
 CARLA_MAX_CODE = 2 ** 24 - 1
@@ -137,10 +136,7 @@ def _check_profile(profile: CameraProfile | None, shape: tuple[int, int], path: 
 
 def write_depth_exr(path: str | os.PathLike, depth_m: np.ndarray) -> None:
     """Single float32 channel ``Z``, ZIP compression."""
-    depth = np.ascontiguousarray(_check_2d(depth_m), dtype=np.float32)
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with atomic_path(path) as tmp, OpenEXR.File(header, {"Z": depth}) as exr:
-        exr.write(str(tmp))
+    write_exr_channels(path, {"Z": np.asarray(_check_2d(depth_m), dtype=np.float32)})
 
 
 def write_depth_npy(path: str | os.PathLike, depth_m: np.ndarray) -> None:
@@ -192,16 +188,11 @@ def _carla_planar(img: np.ndarray, path: Path) -> np.ndarray:
 
 
 def _read_exr(path: Path) -> np.ndarray:
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
-            order = [c.name for c in exr.header()["channels"]]
-            channels = exr.channels()
-            name = next((c for c in EXR_CHANNELS if c in channels), order[0] if order else None)
-            if name is None:
-                raise InputError("EXR file has no channels", file=str(path))
-            pixels = np.asarray(channels[name].pixels)
-    except (RuntimeError, OSError) as exc:
-        raise InputError(f"cannot read EXR: {exc}", file=str(path)) from exc
+    channels, order = read_exr_channels(path)
+    name = next((c for c in EXR_CHANNELS if c in channels), order[0] if order else None)
+    if name is None:
+        raise InputError("EXR file has no channels", file=str(path))
+    pixels = channels[name]
     if pixels.ndim != 2 or pixels.dtype.kind != "f":
         raise InputError(f"EXR channel {name!r} is {pixels.dtype} with shape {pixels.shape}; expected float depth",
                          file=str(path))
