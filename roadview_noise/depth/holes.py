@@ -79,20 +79,30 @@ def fill_from_neighbours(depth_m: np.ndarray, holes: np.ndarray) -> np.ndarray:
 
 def pull_push(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     """(H, W) float32 ``values`` with the pixels where ``known`` is False interpolated from the known ones
-    (Gortler et al. 1996 §3.3); known pixels keep their value exactly. ``known`` must have a True pixel."""
+    (Gortler et al. 1996 §3.3); known pixels keep their value exactly. ``known`` must have a True pixel.
+
+    Pull: each coarser cell holds the weighted mean of its 2×2 children and the sum of their weights clamped to 1,
+    so a cell with any known child is fully determined by its own children. Push: each level's value is blended
+    with the upsampled coarser one by ``1 − weight``: a hole takes the nearest scale that has data, no coarser."""
+    x = np.where(known, values, np.float32(0.0)).astype(np.float32, copy=False)
     w = known.astype(np.float32)
-    v = np.where(known, values, 0.0).astype(np.float32)
     levels = []
     while True:
-        levels.append((v, w))
-        if w.min() > 0 or max(v.shape) == 1:
+        levels.append((x, w))
+        if w.min() > 0 or max(x.shape) == 1:
             break
-        size = ((v.shape[1] + 1) // 2, (v.shape[0] + 1) // 2)
-        v = cv2.resize(v, size, interpolation=cv2.INTER_AREA)       # mean of value·weight over each 2×2 cell
-        w = cv2.resize(w, size, interpolation=cv2.INTER_AREA)       # mean weight (coverage) of the cell
-    v, w = levels[-1]
-    estimate = v / np.maximum(w, np.float32(1e-30))
-    for v, w in reversed(levels[:-1]):
-        up = cv2.resize(estimate, (v.shape[1], v.shape[0]), interpolation=cv2.INTER_LINEAR)
-        estimate = v + (np.float32(1.0) - w) * up                   # = w·(v/w) + (1 − w)·coarser estimate
-    return estimate
+        size = ((x.shape[1] + 1) // 2, (x.shape[0] + 1) // 2)
+        mean_w = cv2.resize(w, size, interpolation=cv2.INTER_AREA)     # area means over 2×2 cells
+        mean_wx = cv2.resize(x if len(levels) == 1 else w * x, size, interpolation=cv2.INTER_AREA)  # w·x = x at 0
+        x = mean_wx / np.maximum(mean_w, np.float32(1e-30))
+        w = np.minimum(np.float32(4.0) * mean_w, np.float32(1.0))       # Σ child weights, clamped to 1
+    estimate = levels[-1][0]
+    for x, w in reversed(levels[1:-1]):
+        up = cv2.resize(estimate, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_LINEAR)
+        estimate = w * x + (np.float32(1.0) - w) * up
+    if len(levels) == 1:
+        return estimate
+    x, _ = levels[0]                                                     # full resolution: weights are 0 or 1
+    out = cv2.resize(estimate, (x.shape[1], x.shape[0]), interpolation=cv2.INTER_LINEAR)
+    np.copyto(out, x, where=known)
+    return out
