@@ -16,6 +16,8 @@ import math
 
 import numpy as np
 
+from ..units import ray_factor
+
 
 def ground_plane_range(intrinsics_px: tuple[float, float, float, float], width_px: int, height_px: int, *,
                        camera_height_m: float, pitch_rad: float = 0.0, sky_distance_m: float = 100.0) -> np.ndarray:
@@ -23,10 +25,9 @@ def ground_plane_range(intrinsics_px: tuple[float, float, float, float], width_p
     if not camera_height_m > 0 or not sky_distance_m > 0:
         raise ValueError("camera_height_m and sky_distance_m must be > 0")
     fx, fy, cx, cy = intrinsics_px
-    x = ((np.arange(width_px) - cx) / fx)[None, :]
-    y = ((np.arange(height_px) - cy) / fy)[:, None]
-    down = y * math.cos(pitch_rad) + math.sin(pitch_rad)             # r_z = 1
-    norm = np.sqrt(1.0 + x * x + y * y)
+    y = (np.arange(height_px) - cy) / fy
+    down = y * math.cos(pitch_rad) + math.sin(pitch_rad)            # per row: the ray's downward component
     with np.errstate(divide="ignore"):
-        rng = np.where(down > 0, camera_height_m * norm / down, np.inf)
-    return np.minimum(rng, sky_distance_m).astype(np.float32)
+        per_row = np.where(down > 0, camera_height_m / down, np.inf).astype(np.float32)
+    rng = ray_factor(width_px, height_px, fx, fy, cx, cy) * per_row[:, None]      # |r| · h / r_down
+    return np.minimum(rng, np.float32(sky_distance_m), out=rng)
