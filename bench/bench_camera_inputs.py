@@ -92,8 +92,8 @@ def main() -> None:
     print(f"ground-plane prior {W}×{H}            "
           f"{median_ms(lambda: ground_plane_range((1137.4, 1137.4, 967.5, 731.5), W, H, camera_height_m=1.0)):8.1f} ms")
     try:
-        import onnx  # noqa: F401
-        import onnxruntime  # noqa: F401
+        import onnx
+        import onnxruntime  # noqa: F401  (model_depth needs it)
     except ImportError:
         return
     from onnx import TensorProto, helper

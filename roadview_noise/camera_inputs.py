@@ -23,7 +23,7 @@ import dataclasses
 import math
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -59,14 +59,18 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraF
             notes["jpeg_quality"] = {"value": encoding.jpeg_quality, "from": "recipe output.jpeg_quality"
                                      if stated is not None else "input (estimated from its quantisation tables)"}
         h, w = linear.shape[:2]
-        signal = linear
+
+        def signal():
+            return linear
     else:
         dn, pattern, black, white, raw_encoding = raw_io.read_raw(path)
         h, w = dn.shape
-        signal = (dn.astype(np.float32) - np.float32(black)) / np.float32(white - black)
+
+        def signal():
+            return (dn.astype(np.float32) - np.float32(black)) / np.float32(white - black)
     geometry = _Geometry(sample, in_root, recipe, w, h)
     if needs_camera_geometry(recipe):
-        geometry.profile
+        geometry.profile                                    # resolved now: a step of the chain uses it
     depth = valid = None
     if recipe.needs_depth():
         depth, valid, notes["depth"] = _depth(sample, in_root, recipe, geometry, signal)
@@ -74,7 +78,8 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraF
     warnings = geometry.warnings + _depth_warnings(notes.get("depth"))
     if warnings:
         notes["warnings"] = warnings
-    profile = geometry.resolved or CameraProfile.from_fov("unused", w, h, FALLBACK_FOV_H_DEG)
+    profile = geometry.resolved or CameraProfile.from_fov("unused: no step needs camera geometry", w, h,
+                                                           FALLBACK_FOV_H_DEG)
     if sample.modality == "camera":
         return CameraFrame(linear, profile, depth_m=depth, encoding=encoding, alpha=alpha, depth_valid=valid,
                            input_notes=notes)
@@ -182,14 +187,13 @@ def _relative(path: Path, root: Path) -> str:
 # --- depth -----------------------------------------------------------------------------------------------------------
 
 
-def _depth(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal: np.ndarray
+def _depth(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal: Callable[[], np.ndarray]
            ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """``(range_m, valid, notes)`` from the recipe's depth source (module docstring)."""
+    """``(range_m, valid, notes)`` from the recipe's depth source (module docstring); ``signal()`` gives the
+    frame's linear signal for the sources that look at the image."""
     from .depth.holes import resolve_holes
 
     inputs = recipe.spec.inputs
-    path = in_root / sample.relpath
-    w, h = geometry.size
     source = inputs.depth_source
     if source == "file":
         depth, notes, where = _depth_file(sample, in_root, recipe, geometry)
@@ -225,10 +229,10 @@ def _depth_file(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geomet
     return depth, notes, str(depth_path)
 
 
-def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal: np.ndarray):
+def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal):
     from .depth.lidar import lidar_depth
     from .io import pointcloud as cloud_io
-    from .physics import srgb
+    from .io.image import display_srgb
 
     spec = recipe.spec.inputs.lidar_depth
     path = in_root / sample.relpath
@@ -247,8 +251,7 @@ def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geome
     if spec.ground_plane:
         height = cal.height_above_ground_m or profile.height_above_ground_m
         ground = (height, cal.pitch_rad or 0.0)
-    guide = srgb.linear_to_code(signal, 8).astype(np.float32) / np.float32(255) if spec.densify == "bilateral" \
-        else None
+    guide = display_srgb(signal()) if spec.densify == "bilateral" else None
     try:
         depth, valid, notes = lidar_depth(cloud.positions_m, cal.lidar_to_camera,
                                           (profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px),
@@ -262,9 +265,9 @@ def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geome
     return depth, valid, notes
 
 
-def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal: np.ndarray):
+def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
     from .depth.monocular import model_depth
-    from .physics import srgb
+    from .io.image import display_srgb
     from .units import planar_depth_to_range
 
     spec = recipe.spec.inputs.onnx_depth
@@ -272,10 +275,11 @@ def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal: np.ndarray):
     model = model if model.is_absolute() else recipe.base_dir / model
     if not model.is_file():
         raise InputError(f"no ONNX depth model {str(model)!r} (inputs.onnx_depth.model)", file=str(geometry.path))
-    if signal.ndim != 3:
+    image = signal()
+    if image.ndim != 3:
         raise InputError("depth_source onnx needs an RGB image; give raw Bayer frames a depth file or another "
                          "depth source", file=str(geometry.path))
-    image = srgb.linear_to_code(signal, 8).astype(np.float32) / np.float32(255) if spec.input == "srgb" else signal
+    image = display_srgb(image) if spec.input == "srgb" else image
     depth, notes = model_depth(str(model), image, mean=spec.mean, std=spec.std, layout=spec.layout,
                                scale_m=spec.scale_m)
     if spec.kind == "planar":

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
 
-from .errors import InputError
 from .io.atomic import TMP_SUFFIX
 from .recipe import InputsSpec, Recipe
 from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData

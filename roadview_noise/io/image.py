@@ -248,6 +248,12 @@ def _jpeg_segments(data: bytes):
         pos += 2 + length
 
 
+def display_srgb(linear: np.ndarray) -> np.ndarray:
+    """sRGB-encoded float32 values in [0, 1] (8-bit codes / 255) of linear radiance: the image as a display, a JPEG
+    or a depth network sees it (monocular depth input, edge guides)."""
+    return srgb.linear_to_code(linear, 8).astype(np.float32) * np.float32(1 / 255)
+
+
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
     """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped, rounded) or float32 (linear TIFF)."""
     if encoding.bit_depth == 32:
