@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
 
+from .errors import InputError
 from .io.atomic import TMP_SUFFIX
 from .recipe import InputsSpec, Recipe
 from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
@@ -57,9 +58,12 @@ def depth_relpath_for(relpath: str, pattern: str) -> str:
     p = PurePosixPath(relpath)
     stem, _ = split_suffix(p.name)
     base = stem.rpartition("_")[0] or stem
-    parts = list(p.parent.parts)
-    return posixpath.normpath(str(p.parent / pattern.format(stem=stem, name=p.name, base=base,
-                                                               parent=p.parent.name, parts=parts)))
+    try:
+        name = pattern.format(stem=stem, name=p.name, base=base, parent=p.parent.name, parts=list(p.parent.parts))
+    except IndexError:
+        raise InputError(f"pattern {pattern!r} names a folder level the file does not have (it is in "
+                         f"{str(p.parent)!r})", file=relpath) from None
+    return posixpath.normpath(str(p.parent / name))
 
 
 def _globs(inputs: InputsSpec, modality: str, explicit: bool) -> list[str]:

@@ -74,7 +74,7 @@ class InputsSpec(_Strict):
     lidar: Globs | None = None
     radar: Globs | None = None
     exclude: list[str] = Field(default_factory=list)
-    depth: str = "{stem}_depth.exr"            # sidecar next to each image; {stem}, {name}
+    depth: str = "{stem}_depth.exr"            # sidecar pattern (fields: see the docstring)
     depth_kind: Literal["range", "planar"] = "range"
     depth_format: Literal["auto", "exr", "npy", "carla", "kitti", "cityscapes"] = "auto"
     depth_holes: Literal["fill", "sky", "error"] = "fill"
@@ -112,7 +112,7 @@ def check_pattern(pattern: str | None) -> None:
         return
     try:
         pattern.format(stem="s", name="n", base="b", parent="p", parts=["p"] * 32)
-    except (KeyError, IndexError, ValueError, AttributeError) as exc:
+    except (KeyError, IndexError, ValueError, AttributeError, TypeError) as exc:
         raise ValueError(f"pattern {pattern!r}: {exc!r}; its fields are {{stem}}, {{name}}, {{base}}, {{parent}}, "
                          f"{{parts[i]}}") from None
 
