@@ -35,13 +35,24 @@ def augment(
     limit: Optional[int] = typer.Option(None, "--limit", min=1, help="Process only the first N inputs."),
     fail_fast: bool = typer.Option(False, "--fail-fast", help="Stop at the first failing file."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    depth: Optional[str] = typer.Option(None, "--depth", help="Depth sidecar pattern, relative to each image's "
+                                        "folder (inputs.depth), e.g. '{stem}_depth.npy'."),
+    camera_profile: Optional[str] = typer.Option(None, "--camera-profile", help="Camera profile: built-in or file "
+                                                 "(inputs.camera_profile)."),
+    lidar_profile: Optional[str] = typer.Option(None, "--lidar-profile", help="LiDAR profile: built-in or file "
+                                                "(inputs.lidar_profile)."),
+    radar_profile: Optional[str] = typer.Option(None, "--radar-profile", help="Radar profile: built-in or file "
+                                                "(inputs.radar_profile)."),
 ) -> None:
-    """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR."""
+    """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR.
+    Input options override the recipe's and are recorded in run.json's resolved recipe."""
+    from roadview_noise.overrides import with_input_overrides
     from roadview_noise.recipe import load_recipe
     from roadview_noise.runner import run
 
     try:
-        r = load_recipe(recipe)
+        r = with_input_overrides(load_recipe(recipe), depth=depth, camera_profile=camera_profile,
+                                 lidar_profile=lidar_profile, radar_profile=radar_profile)
         s = run(r, input_dir, output_dir, workers=workers, resume=resume, overwrite=overwrite, dry_run=dry_run,
                 limit=limit, fail_fast=fail_fast, progress=not quiet, echo=typer.echo)
     except RvNoiseError as e:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import fnmatch
+import posixpath
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
@@ -52,9 +53,17 @@ def output_relpath(relpath: str, suffix: str) -> str:
 
 
 def depth_relpath_for(relpath: str, pattern: str) -> str:
+    """The sidecar of an input file for a pattern relative to its folder (``recipe.InputsSpec`` fields), as a
+    normalised POSIX path relative to the input root (``..`` allowed)."""
     p = PurePosixPath(relpath)
     stem, _ = split_suffix(p.name)
-    return str(p.parent / pattern.format(stem=stem, name=p.name))
+    base = stem.rpartition("_")[0] or stem
+    try:
+        name = pattern.format(stem=stem, name=p.name, base=base, parent=p.parent.name, parts=list(p.parent.parts))
+    except IndexError:
+        raise InputError(f"pattern {pattern!r} names a folder level the file does not have (it is in "
+                         f"{str(p.parent)!r})", file=relpath) from None
+    return posixpath.normpath(str(p.parent / name))
 
 
 def _globs(inputs: InputsSpec, modality: str, explicit: bool) -> list[str]:
@@ -87,7 +96,7 @@ def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
         modality = found[rel]
         seq = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
         depth = None
-        if modality in ("camera", "raw"):
+        if modality in ("camera", "raw") and inputs.depth_source == "file":
             candidate = depth_relpath_for(rel, inputs.depth)
             depth = candidate if (in_root / candidate).is_file() else None
         samples.append(Sample(rel, modality, seq, depth))
@@ -189,36 +198,14 @@ def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
 
 
 def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
-    from .io import depth as depth_io
-    from .io import image as image_io
+    from .camera_inputs import load_camera_sample
     from .io import pointcloud as cloud_io
-    from .io import raw as raw_io
-    from .profiles.camera import fit_to_image
 
     inputs = recipe.spec.inputs
     path = in_root / sample.relpath
     file_dir = path.parent
     if sample.modality in ("camera", "raw"):
-        profile = _camera_profile(_profile_spec(inputs.camera_profile, file_dir, recipe), file_dir)
-        if sample.modality == "camera":
-            linear, encoding, alpha = image_io.read_image(path)
-            h, w = linear.shape[:2]
-            frame = CameraFrame(linear, fit_to_image(profile, w, h, source=str(path)), encoding=encoding,
-                                alpha=alpha)
-        else:
-            dn, pattern, black, white, encoding = raw_io.read_raw(path)
-            h, w = dn.shape
-            frame = RawFrame(dn.astype("float32"), pattern, float(black), float(white),
-                             fit_to_image(profile, w, h, source=str(path)), encoding=encoding)
-        if recipe.needs_depth():
-            if sample.depth_relpath is None:
-                needing = [m for m in recipe.model_ids if _needs_depth(m)]
-                raise InputError(f"no depth sidecar {depth_relpath_for(sample.relpath, inputs.depth)!r} "
-                                 f"(needed by {', '.join(needing)})", file=str(path))
-            depth = depth_io.read_depth(in_root / sample.depth_relpath, profile=frame.profile,
-                                        expected_shape=(h, w), planar=inputs.depth_kind == "planar")
-            frame = dataclasses.replace(frame, depth_m=depth)
-        return frame
+        return load_camera_sample(sample, in_root, recipe)
     if sample.modality == "lidar":
         spec = _sidecar_default(_profile_spec(inputs.lidar_profile, file_dir, recipe), file_dir, "lidar.yaml")
         profile = _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
@@ -227,12 +214,6 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
         profile = _radar_profile(_hashable(spec))
     return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
                                     field_map=dict(inputs.field_map) or None)
-
-
-def _needs_depth(model_id: str) -> bool:
-    from .registry import get_model
-
-    return get_model(model_id).needs_depth
 
 
 def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None) -> None:

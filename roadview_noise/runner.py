@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .allocator import keep_freed_memory
+from .camera_inputs import run_warnings
 from .compound import apply_models
 from .dataset import Sample, discover, load, output_relpath, save
 from .errors import RecipeError, RvNoiseError
@@ -90,6 +91,8 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
     try:
         entry["input_sha256"] = sha256_file(in_root / s.relpath)
         data = load(s, in_root, recipe)
+        if getattr(data, "input_notes", None):
+            entry["inputs"] = dict(data.input_notes)
         models = build_models(recipe, task)
         data, records = apply_models(models, data, seed=recipe.seed, key=task.out_relpath,
                                      sequence_id=s.sequence_id)
@@ -161,11 +164,14 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
     final = [results.get(t.out_relpath) or previous.get(t.out_relpath) for t in tasks]
     write_manifest(manifest_path, [e for e in final if e is not None])
     summary.seconds = time.time() - started
+    warnings = run_warnings(e for e in final if e is not None)
+    for line in warnings:
+        echo(f"rvnoise: warning: {line}")
     write_run_json(out_root / RUN_NAME, {
         "tool": "rvnoise", "versions": library_versions(), "recipe_source": recipe.source,
         "recipe_base_dir": str(recipe.base_dir), "recipe": recipe.resolved_dict(), "recipe_sha256": recipe.sha256(),
         "seed": recipe.seed, "input_root": str(in_root.resolve()), "output_root": str(out_root.resolve()),
-        "workers": n_workers, "started_unix": started, "wall_seconds": round(summary.seconds, 3),
+        "workers": n_workers, "started_unix": started, "wall_seconds": round(summary.seconds, 3), "warnings": warnings,
         "counts": {"planned": summary.planned, "done": summary.done, "skipped": summary.skipped,
                    "failed": summary.failed},
     })

@@ -164,17 +164,23 @@ SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]
 class ImageEncoding:
     """How a camera frame is stored, so the writer can put it back the same way."""
 
-    fmt: str = "png"           # png | jpeg | tiff
-    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF)
+    fmt: str = "png"           # png | jpeg | tiff | exr
+    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF); EXR: 16 (half) | 32 (float)
     transfer: str = "srgb"     # srgb | linear
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
+    icc_profile: bytes | None = None   # embedded ICC colour profile of the file, written back unchanged
 
 
 @dataclass(frozen=True, eq=False)
 class CameraFrame:
     """Linear RGB radiance (H, W, 3) float32, 1.0 = encoding full scale; depth is range along the pixel ray (m),
-    ``inf`` for sky."""
+    ``inf`` for sky.
+
+    ``depth_valid`` (H, W) bool marks the depth pixels that were measured or given (None: all of them); filled
+    holes and extrapolated regions are False, and scene radiances (airlight, sky) are never estimated from them.
+    ``input_notes`` says how the inputs were obtained (depth source and holes, intrinsics assumed, JPEG quality);
+    the runner records it in the manifest as ``inputs``."""
 
     linear_rgb: np.ndarray
     profile: CameraProfile
@@ -182,6 +188,8 @@ class CameraFrame:
     encoding: ImageEncoding = field(default_factory=ImageEncoding)
     conditions: Conditions = field(default_factory=Conditions)
     alpha: np.ndarray | None = None          # (H, W) alpha plane of the file (CARLA BGRA PNG), passed through as is
+    depth_valid: np.ndarray | None = None
+    input_notes: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -223,7 +231,8 @@ class RawEncoding:
 
 @dataclass(frozen=True, eq=False)
 class RawFrame:
-    """Bayer digital numbers (H, W) as float32 (exact for 16-bit), never rescaled; levels as stated by the file."""
+    """Bayer digital numbers (H, W) as float32 (exact for 16-bit), never rescaled; levels as stated by the file.
+    ``depth_valid`` and ``input_notes`` as in :class:`CameraFrame`."""
 
     dn: np.ndarray
     cfa_pattern: str
@@ -233,6 +242,8 @@ class RawFrame:
     depth_m: np.ndarray | None = None
     encoding: RawEncoding = field(default_factory=RawEncoding)
     conditions: Conditions = field(default_factory=Conditions)
+    depth_valid: np.ndarray | None = None
+    input_notes: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -55,7 +55,7 @@ from .cfa import SiteLayout
 from .dsd import BRANDES_SNOW_GAMMA, SNOW_LAWS, gamma_dsd, marshall_palmer
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
-from .photometry import composite, frame_depth_m
+from .photometry import composite, estimation_depth, frame_depth_m
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -543,14 +543,15 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
                          d_min_m: float, d_max_m: float, min_opacity: float, rng: np.random.Generator):
     """Rain or snow on a camera or raw frame: explicit streaks in front of the scene, veil behind them.
 
-    ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame.
+    ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame (depth NaN
+    where it is not valid, :func:`~roadview_noise.physics.photometry.estimation_depth`).
     Per site: ``I' = S + (1 − M)·t·(I − S)`` with M the streak opacity and t the veil transmission."""
     depth = frame_depth_m(frame, model_id)
     h, w = depth.shape
     profile = fit_to_image(frame.profile, w, h)
     layout = SiteLayout.of(frame)
     signal = frame.signal()
-    s = np.asarray(radiance(layout, signal, depth), dtype=float)
+    s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
     limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
                                    min_opacity)
     particles, expected = sample_particles(rng, profile, classes, limits, d_min_m, d_max_m, fall_speed)
