@@ -17,6 +17,7 @@ from typing import Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from .annotations import AnnotationsSpec
 from .compound import cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .registry import get_model, suggest
@@ -54,11 +55,12 @@ class InputsSpec(_Strict):
     field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
+    annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes
 
 
 class OutputSpec(_Strict):
     format: Literal["same"] = "same"
-    labels: Literal["auto", "none"] = "auto"
+    effect: Literal["auto", "none"] = "auto"       # the rv_effect code of clouds (io.pointcloud.write_pointcloud)
 
 
 class RecipeSpec(_Strict):
