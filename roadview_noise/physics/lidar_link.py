@@ -793,11 +793,11 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
 
 @jit
 def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                   intensity_in, positions_out, intensity_out, effect_out):      # pragma: no cover - compiled
+                   intensity_in, positions_out, intensity_out, effect_out, origin_out):      # pragma: no cover - compiled
     """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
-    integer dtypes) and effect code (provenance.Effect), written to the outputs. A point list's removed points are
-    left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the removed mask, the number of
-    outputs written and the counts (kept, attenuated, moved, removed, added)."""
+    integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
+    list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
+    removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
     n = len(kind)
     removed = np.zeros(n, np.bool_)
     kept = attenuated = moved = n_removed = added = 0
@@ -836,6 +836,7 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
                     kept += 1
         intensity_out[o] = value
         effect_out[o] = effect
+        origin_out[o] = i
         for c in range(3):
             positions_out[o, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
         o += 1
@@ -860,6 +861,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     cells = np.flatnonzero(returns.kind[n:] == WEATHER)          # a list's empty rays that return weather
     size = n + len(cells)                                         # outputs at most (a list's removed points go)
     effect = np.empty(size, np.uint8)
+    origin = np.empty(size, np.int64)
     positions = np.empty((size, 3))
     intensity = np.empty(size, intensity_in.dtype)
     grid = cloud.grid_shape is not None
@@ -867,26 +869,26 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     removed, n_out, kept, attenuated, moved, n_removed, added = _place_returns(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
         float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
-        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect)
+        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect, origin)
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
     total = n_out + len(cells)
     fields = {**cloud.fields, "intensity": intensity[:total]}
-    origin, attributes = None, cloud.attributes
+    origin, attributes = origin[:total], cloud.attributes
     if n_removed and grid:
         fields = {k: (v if k in ("ring", "intensity") else np.where(removed, np.zeros((), v.dtype), v))
                   for k, v in fields.items()}
-    elif n_removed or len(cells):
-        index = np.flatnonzero(~removed)
+    if not (n_removed or len(cells)) or grid:
+        origin = None                                  # point i is input point i
+    else:
+        index = origin                                 # the ray each output takes its other fields from
         if len(cells):
             _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
                           integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
-            origin = np.concatenate([index, np.full(len(cells), NEW)])
-            index = np.concatenate([index, rays.listed.like[cells]])
+            origin[n_out:] = NEW
+            index = np.concatenate([index[:n_out], rays.listed.like[cells]])
             added += len(cells)
-        else:
-            origin = index
         fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
         attributes = {k: np.asarray(v).take(index, axis=0) for k, v in attributes.items()}
         if len(cells) and "ring" in fields:
