@@ -345,11 +345,12 @@ BOX_EDGE_SAMPLES = 9                     # points per box edge moved through a w
 
 def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.Boxes2D:
     """Boxes moved through each warp's point map (:meth:`Warp.forward`): a box's outline (its edges sampled) is
-    moved and its bounding box taken, a polygon's vertices are moved; then clipped to the image. Boxes left with no
-    area are dropped."""
+    moved and its bounding box taken, a polygon's vertices are moved; then clipped to the image (KITTI: pixel
+    coordinates 0 … W − 1; YOLO: the image edges). Boxes left with no area are dropped."""
     if not warps:
         return boxes
     tokens, points, kinds = [], [], []
+    lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt == "kitti" else (-0.5, [width - 0.5, height - 0.5])
     t = np.linspace(0.0, 1.0, BOX_EDGE_SAMPLES)
     for words, pts, box in zip(boxes.tokens, boxes.points_px, boxes.is_box):
         if box:
@@ -359,7 +360,7 @@ def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.
             pts = np.stack([xs, ys], axis=1)
         for warp in warps:
             pts = warp.forward(pts)
-        pts = np.clip(pts, 0, [width - 1, height - 1])
+        pts = np.clip(pts, lo_px, hi_px)
         if box:
             pts = np.array([pts.min(axis=0), pts.max(axis=0)])
         lo, hi = pts.min(axis=0), pts.max(axis=0)

@@ -11,7 +11,8 @@ Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes 
 ``*_instanceIds.png`` 16-bit), read and written without any colour conversion.
 
 2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
-pixels) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the image size).
+pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
+image size: 0 and 1 are the image edges, i.e. pixel positions −½ and W − ½ with pixel centres at integers).
 
 3-D boxes: KITTI ``label_2`` + ``calib`` (camera-rectified frame, bottom-centre, ``rotation_y``), or boxes in the
 sensor frame (x forward, y left, z up) as JSON (``[{"id", "class", "center_m": [x, y, z], "size_m": [length,
@@ -139,7 +140,7 @@ def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) ->
                     pts, box = np.array([[cx - w / 2, cy - h / 2], [cx + w / 2, cy + h / 2]]), True
                 else:
                     pts, box = values.reshape(-1, 2), False
-                pts = pts * [width, height]
+                pts = pts * [width, height] - 0.5               # pixel centres at integer coordinates (Warp)
         except ValueError as exc:
             raise InputError(f"line {i}: {exc}", file=str(path)) from None
         tokens.append(words)
@@ -154,7 +155,7 @@ def write_boxes_2d(path: str | os.PathLike, boxes: Boxes2D, width: int, height: 
         if boxes.fmt == "kitti":
             words = words[:4] + [f"{v:.2f}" for v in pts.ravel()] + words[8:]
         else:
-            p = pts / [width, height]
+            p = (pts + 0.5) / [width, height]
             values = ([(p[0, 0] + p[1, 0]) / 2, (p[0, 1] + p[1, 1]) / 2, p[1, 0] - p[0, 0], p[1, 1] - p[0, 1]]
                       if box else p.ravel())
             words = words[:1] + [f"{v:.6f}" for v in values]
