@@ -257,6 +257,8 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
     for role, rule in spec.rules():
         rel = sidecar_relpath(rule, relpath, in_root)
         path = in_root / rel
+        if Path(in_root).resolve() not in path.resolve().parents:
+            raise InputError(f"annotation path {rel!r} leaves the input root through a link", file=relpath)
         if not path.is_file():
             raise InputError(f"annotation {role} {rel!r} declared in the recipe's inputs does not exist", file=relpath)
         sc = Sidecar(role, rel, path, sha256_file(path))

@@ -203,12 +203,29 @@ def test_wrong_length_sidecar_fails_that_file_only(semantickitti, tmp_path):
     assert (out / "sequences/00/labels/000000.label").is_file()
 
 
+def test_sweep_variants_get_their_own_label_files(semantickitti, tmp_path):
+    recipe = _recipe({"chain": [{"model": "fog.lidar"}], "sweep": {"fog.lidar.visibility_m": [20, 200]},
+                      "inputs": {"lidar": "sequences/*/velodyne/*.bin",
+                                 "annotations": {"point_labels": "../labels/{stem}.label"}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, semantickitti, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    for v in ("20", "200"):
+        cloud = read_pointcloud(out / f"sequences/00/velodyne/000000__visibility_m-{v}.bin")
+        assert len(np.fromfile(out / f"sequences/00/labels/000000__visibility_m-{v}.label", "<u4")) == len(cloud)
+
+
 def test_sidecar_outside_the_input_root_is_refused(semantickitti, tmp_path):
     recipe = _recipe({"chain": [{"model": "fog.lidar"}], "inputs": {
         "lidar": "sequences/*/velodyne/*.bin", "annotations": {"point_labels": "../../../../x/{stem}.label"}}},
         tmp_path)
     summary = run(recipe, semantickitti, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None)
     assert summary.failed == 2 and "leaves the input root" in summary.failures[0]
+    outside = tmp_path / "elsewhere"
+    shutil.move(semantickitti / "sequences/00/labels", outside)
+    (semantickitti / "sequences/00/labels").symlink_to(outside)
+    summary = run(_sk_recipe("fog.lidar", tmp_path), semantickitti, tmp_path / "out2", workers=1, progress=False,
+                  echo=lambda *_: None)
+    assert summary.failed == 2 and "through a link" in summary.failures[0]
 
 
 def test_unknown_annotation_key_is_a_recipe_error(tmp_path):
