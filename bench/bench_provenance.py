@@ -1,112 +1,113 @@
 """Cost of point provenance (issue 13) for the LiDAR weather models on the real OS1-128 scan.
 
-Times ``apply_models([model], scan)`` (model + the chain's provenance composition) for fog.lidar, rain.lidar and
-snow.lidar at the D3.5 rates on ../shared/data/os1-128/scan0.bin (107 647 points + 23 425 empty rays; profile
-os1-128-reflectivity), each run in a fresh process (one core, fresh heap), and the annotation gather that carries a
-uint32 label field and a SemanticKITTI-style label sidecar to the output (:func:`annotations.carry_values`).
+Times ``apply_models([model], scan)`` (the model plus the chain's provenance composition) for fog.lidar, rain.lidar
+and snow.lidar at the D3.5 rates on ../shared/data/os1-128/scan0.bin (107 647 points + 23 425 empty rays; profile
+os1-128-reflectivity), and the annotation gather that carries a uint32 label array to the output
+(:func:`annotations.carry_values`).
 
-Before/after: ``--baseline DIR`` runs the same measurement on another checkout (e.g. ``git archive main | tar -x -C
-/tmp/base``) interleaved with this one, ROUNDS rounds of REPEATS frames each, and prints the median of the round
-medians of both and the difference. The machine is shared and noisy: compare medians of several rounds, and re-run
-on an idle machine. Run: ``taskset -c 0 .venv/bin/python bench/bench_provenance.py --baseline /tmp/base
-[--rounds 5]``.
+Before/after: ``--baseline DIR`` imports the package of another checkout (e.g. ``git archive main | tar -x -C
+/tmp/base``) under another name into the same process and times its frames and this checkout's frames in
+alternation (ABBA order), so the load of a shared machine hits both alike; it prints both medians and the median of
+the paired differences. Run: ``taskset -c 0 .venv/bin/python bench/bench_provenance.py --baseline /tmp/base
+[--frames 61]``.
 """
 
 from __future__ import annotations
 
-import json
+import importlib
 import os
+import shutil
 import statistics
-import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import numpy as np  # noqa: E402
+
 HERE = Path(__file__).resolve()
 SCAN = HERE.parents[2] / "shared" / "data" / "os1-128" / "scan0.bin"
 MODELS = ("fog.lidar", "rain.lidar", "snow.lidar")
-REPEATS = 15
-ROUNDS = 5
+FRAMES = 61
 
 
-def measure(model_id: str) -> dict:
-    """In a child process: median ms of ``apply_models`` over REPEATS frames after a warm-up (and, where the code
-    has provenance, the label gather)."""
-    import numpy as np
+class Package:
+    """One checkout's package: the scan as its PointCloud, its models, its apply_models."""
 
-    from roadview_noise.allocator import keep_freed_memory
-    from roadview_noise.compound import apply_models
-    from roadview_noise.profiles.lidar import os1_128_reflectivity
-    from roadview_noise.registry import get_model
-    from roadview_noise.types import PointCloud
+    def __init__(self, name: str):
+        self.name = name
+        types = importlib.import_module(f"{name}.types")
+        lidar = importlib.import_module(f"{name}.profiles.lidar")
+        self.apply_models = importlib.import_module(f"{name}.compound").apply_models
+        self.registry = importlib.import_module(f"{name}.registry")
+        a = np.fromfile(SCAN, dtype=np.float32).reshape(-1, 4)
+        self.cloud = types.PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar",
+                                      lidar.os1_128_reflectivity())
 
-    keep_freed_memory()
-    a = np.fromfile(SCAN, dtype=np.float32).reshape(-1, 4)
-    cloud = PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", os1_128_reflectivity())
-    model = get_model(model_id)()
-    out, _ = apply_models([model], cloud, seed=1, key="warm", sequence_id="s")
+    def frame(self, model_id: str, i: int) -> float:
+        model = self.registry.get_model(model_id)()
+        t0 = time.perf_counter()
+        self.apply_models([model], self.cloud, seed=1, key=f"bench{i}", sequence_id="s")
+        return time.perf_counter() - t0
+
+
+def import_baseline(checkout: Path) -> Package:
+    """The baseline's ``roadview_noise`` copied to a temporary folder as ``roadview_noise_baseline`` (its imports
+    are relative, so it runs beside this checkout's package)."""
+    tmp = Path(tempfile.mkdtemp(prefix="rvnoise-baseline-"))
+    shutil.copytree(checkout / "roadview_noise", tmp / "roadview_noise_baseline",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    sys.path.insert(0, str(tmp))
+    return Package("roadview_noise_baseline")
+
+
+def gather_ms(pkg: Package, model_id: str) -> float:
+    from roadview_noise.annotations import AnnotationsSpec, carry_values, new_classes, weather_classes
+
+    out, _ = pkg.apply_models([pkg.registry.get_model(model_id)()], pkg.cloud, seed=1, key="g", sequence_id="s")
+    labels = np.random.default_rng(0).integers(0, 260, len(pkg.cloud)).astype(np.uint32)
     times = []
-    for i in range(REPEATS):
+    for _ in range(31):
         t0 = time.perf_counter()
-        out, _ = apply_models([model], cloud, seed=1, key=f"bench{i}", sequence_id="s")
+        carry_values(labels, out, new_classes(out, weather_classes(AnnotationsSpec()), [model_id]))
         times.append(time.perf_counter() - t0)
-    result = {"ms": 1e3 * statistics.median(times), "min_ms": 1e3 * min(times)}
-    try:
-        from roadview_noise.annotations import AnnotationsSpec, carry_values, new_classes, weather_classes
-    except ImportError:                                  # the baseline has no annotations
-        return result
-    labels = np.random.default_rng(0).integers(0, 260, len(cloud)).astype(np.uint32)
-    gather = []
-    for _ in range(REPEATS):
-        t0 = time.perf_counter()
-        classes = new_classes(out, weather_classes(AnnotationsSpec()), [model_id])
-        carry_values(labels, out, classes)
-        gather.append(time.perf_counter() - t0)
-    result["gather_ms"] = 1e3 * statistics.median(gather)
-    return result
-
-
-def child(root: Path, model_id: str) -> dict:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(root)}
-    res = subprocess.run([sys.executable, str(HERE), "--measure", model_id], capture_output=True, text=True,
-                         check=True, env=env, cwd=str(root))
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return 1e3 * statistics.median(times)
 
 
 def main() -> int:
-    if len(sys.argv) == 3 and sys.argv[1] == "--measure":
-        print(json.dumps(measure(sys.argv[2])))
-        return 0
     if not SCAN.is_file():
         print(f"(real OS1-128 scan absent: {SCAN})")
         return 0
-    baseline = Path(sys.argv[sys.argv.index("--baseline") + 1]).resolve() if "--baseline" in sys.argv else None
-    rounds = int(sys.argv[sys.argv.index("--rounds") + 1]) if "--rounds" in sys.argv else ROUNDS
-    here = HERE.parents[1]
-    runs: dict[tuple[str, str], list[dict]] = {}
-    for r in range(rounds):
-        for mid in MODELS:
-            for name, root in (("after", here), ("before", baseline)):
-                if root is not None:
-                    runs.setdefault((mid, name), []).append(child(root, mid))
-        print(f"round {r + 1}/{rounds} done", file=sys.stderr)
-    print(f"real OS1-128 scan, apply_models, ms per frame: median over {rounds} rounds of each round's median "
-          f"(and min) of {REPEATS} frames; round medians in brackets")
+    from roadview_noise.allocator import keep_freed_memory
+
+    keep_freed_memory()
+    frames = int(sys.argv[sys.argv.index("--frames") + 1]) if "--frames" in sys.argv else FRAMES
+    after = Package("roadview_noise")
+    before = import_baseline(Path(sys.argv[sys.argv.index("--baseline") + 1]).resolve()) \
+        if "--baseline" in sys.argv else None
+    print(f"real OS1-128 scan, apply_models, ms per frame, median of {frames} frames"
+          + (" in alternation with the baseline (ABBA); difference: median of the paired differences" if before
+             else ""))
     for mid in MODELS:
-        for stat in ("ms", "min_ms"):
-            after = [x[stat] for x in runs[(mid, "after")]]
-            line = f"{mid:11s} {stat:6s} after {statistics.median(after):6.2f} [{' '.join(f'{x:.2f}' for x in after)}]"
-            if baseline is not None:
-                before = [x[stat] for x in runs[(mid, "before")]]
-                b, a = statistics.median(before), statistics.median(after)
-                line += (f"   before {b:6.2f} [{' '.join(f'{x:.2f}' for x in before)}]   "
-                         f"difference {100 * (a - b) / b:+5.1f} %")
-            print(line)
-        gather = [x["gather_ms"] for x in runs[(mid, "after")]]
-        print(f"{mid:11s} gather of a uint32 label array through the output's provenance: "
-              f"{statistics.median(gather):.2f} ms")
+        for pkg in (after, before):
+            if pkg is not None:
+                pkg.frame(mid, -1)                                  # warm-up: compiled kernels, cached tables
+        a, b = [], []
+        for i in range(frames):
+            order = (after, before) if i % 2 == 0 else (before, after)
+            for pkg in order:
+                if pkg is after:
+                    a.append(pkg.frame(mid, i))
+                elif pkg is not None:
+                    b.append(pkg.frame(mid, i))
+        line = f"{mid:11s} after {1e3 * statistics.median(a):6.2f} (min {1e3 * min(a):5.2f})"
+        if before is not None:
+            diff = statistics.median(x - y for x, y in zip(a, b))
+            line += (f"   before {1e3 * statistics.median(b):6.2f} (min {1e3 * min(b):5.2f})   "
+                     f"difference {1e3 * diff:+.2f} ms ({100 * diff / statistics.median(b):+.1f} %)")
+        print(line + f"   label gather {gather_ms(after, mid):.2f} ms")
     return 0
 
 

@@ -4,7 +4,10 @@ chain knows about it — so that per-point annotations (labels, sidecars) follow
 A :class:`~roadview_noise.types.PointCloud` carries, besides the ``fields`` a writer puts in the file:
 
 - ``origin``: int64 (N,), index of the point it descends from (:data:`NEW` = −1: a point without one, e.g. a weather
-  return on an empty ray or a radar clutter point). ``None`` is the identity (point i descends from point i).
+  return on an empty ray of a point list or a radar clutter point). ``None`` is the identity (point i descends from
+  point i). A return moved along its ray to a particle (MOVED), and a grid cell that gained a weather return
+  (ADDED), keep the origin of their ray: its sensor fields (ring, time stamp) and attributes are theirs, while the
+  effect code says they show a particle, not the input's object.
 - ``effect``: uint8 (N,), an :class:`Effect` code; ``None``: no step has reported effects (every point KEPT).
 - ``attributes``: per-point arrays the chain knows but does not write (a ``ring`` recovered by an earlier step, a
   firing-grid cell …), so later steps use them instead of re-deriving them from coordinates an earlier step moved.
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 from enum import IntEnum
+
 import numpy as np
 
 from .types import CameraFrame, PointCloud, RawFrame
@@ -85,7 +89,8 @@ def identity(n: int) -> np.ndarray:
 def step_input(cloud: PointCloud) -> PointCloud:
     """The cloud a chain step receives: origin and effect reset to the identity (step-relative), the chain's own
     :data:`MADE_BY_STEP` bookkeeping left out; attributes kept. Frames pass unchanged."""
-    if not isinstance(cloud, PointCloud) or cloud.origin is None and cloud.effect is None and MADE_BY_STEP not in cloud.attributes:
+    if not isinstance(cloud, PointCloud) or (cloud.origin is None and cloud.effect is None
+                                             and MADE_BY_STEP not in cloud.attributes):
         return cloud
     attributes = {k: v for k, v in cloud.attributes.items() if k != MADE_BY_STEP}
     return dataclasses.replace(cloud, origin=None, effect=None, attributes=attributes)
@@ -127,9 +132,10 @@ def follow_points(before: PointCloud, after: PointCloud, step: int, model_id: st
     if made_prev is not None and o_step is not None:
         made_prev = gather(made_prev, o_step, -1)
     made = made_prev
-    if e_step is not None and np.any(is_new(e_step)):
+    new = None if e_step is None else is_new(e_step)
+    if new is not None and new.any():
         made = (np.broadcast_to(np.int16(step), (len(after),)) if made_prev is None
-                else np.where(is_new(e_step), np.int16(step), made_prev).astype(np.int16))
+                else np.where(new, np.int16(step), made_prev).astype(np.int16))
     if origin is o_step and effect is e_step and made is None:
         return after                                   # nothing to compose (a step on a cloud without provenance)
     attributes = dict(after.attributes)

@@ -793,7 +793,7 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
 
 @jit
 def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                   intensity_in, positions_out, intensity_out, effect_out, origin_out):      # pragma: no cover - compiled
+                   intensity_in, positions_out, intensity_out, effect_out, origin_out):   # pragma: no cover - compiled
     """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
     integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
