@@ -101,6 +101,18 @@ class AnnotationsSpec(_Strict):
     def _one_or_many(cls, v):
         return [v] if isinstance(v, (str, dict)) else v
 
+    def check_sensor(self, sensor: str) -> None:
+        """RecipeError for annotations the chain's sensor has none of (masks of a cloud, point labels of an image)."""
+        from .errors import RecipeError
+
+        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "boxes_2d")
+        for name in wrong:
+            if getattr(self, name):
+                raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
+                                  f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
+        if self.calib is not None and self.boxes_3d is None:
+            raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
+
     def rules(self) -> list[tuple[str, PathRule]]:
         """(role, rule) of every sidecar declared."""
         out = [(r, getattr(self, r)) for r in ("point_labels", "boxes_2d", "boxes_3d", "calib")]

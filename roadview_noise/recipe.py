@@ -241,6 +241,7 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
                 step_params[ids.index(m)].update(p)
         if spec.sensor is not None and get_model(ids[0]).sensor != spec.sensor:
             raise RecipeError(f"the chain acts on {get_model(ids[0]).sensor}, not {spec.sensor}", key="sensor")
+        spec.inputs.annotations.check_sensor(get_model(ids[0]).sensor)
     except RecipeError as e:
         raise RecipeError(e.message, file=source, key=e.key) from None
     except ModelError as e:

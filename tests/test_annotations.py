@@ -228,11 +228,17 @@ def test_sidecar_outside_the_input_root_is_refused(semantickitti, tmp_path):
     assert summary.failed == 2 and "through a link" in summary.failures[0]
 
 
-def test_unknown_annotation_key_is_a_recipe_error(tmp_path):
+def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
     from roadview_noise.errors import RecipeError
 
     with pytest.raises(RecipeError, match="point_label.*did you mean 'point_labels'"):
         _recipe({"cnf": "CNF19", "inputs": {"annotations": {"point_label": "x"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="inputs.annotations.masks: masks annotate images; this chain acts on lidar"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"masks": "{stem}.png"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="point_labels annotate point clouds"):
+        _recipe({"cnf": "CNF10", "inputs": {"annotations": {"point_labels": "{stem}.label"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="weather_class"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"weather_class": {"hail": 3}}}}, tmp_path)
 
 
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
