@@ -172,7 +172,7 @@ def rate_table(cloud: PointCloud) -> None:
         for v in values:
             out, rec = apply_models([cls(**{pname: v})], cloud, seed=1, key="table", sequence_id="s")
             d = rec[0].diagnostics
-            in_place = out.fields["label"] <= 1
+            in_place = out.effect <= 1
             left = float(np.sum(out.fields["intensity"][in_place])) / total
             removed, lost = d["removed"] / d["points_in"], (d["removed"] + d["moved"]) / d["points_in"]
             detectable = (d["removed"] - d["removed_below_threshold_in"]) / (d["points_in"] - d["below_threshold_in"])

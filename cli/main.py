@@ -138,7 +138,8 @@ def replay(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Also write the reproduced file here."),
     input_root: Optional[Path] = typer.Option(None, "--input-root", help="Input tree if it moved."),
 ) -> None:
-    """Reproduce one output from the manifest and compare its sha256 (exit 1 on mismatch)."""
+    """Reproduce one output (with its sidecars and annotations) from the manifest and compare their sha256 (exit 1
+    on mismatch)."""
     from roadview_noise.runner import replay as do_replay
 
     try:
@@ -151,6 +152,8 @@ def replay(
         typer.secho("warning: the input file changed since the run", fg=typer.colors.YELLOW, err=True)
     status = "match" if r["match"] else "MISMATCH"
     typer.echo(f"{status}: {key} sha256 {r['got']} (manifest {r['expected']})")
+    for f in r["files"][1:]:                 # sidecars and annotations written with the output
+        typer.echo(f"  {'match' if f['got'] == f['expected'] else 'MISMATCH'}: {f['path']} sha256 {f['got']}")
     if not r["match"]:
         raise typer.Exit(1)
 

@@ -50,7 +50,7 @@ def birds_eye(path: Path, sensor: str, extent_m: float = 40.0, px: int = 480) ->
     img = np.full((px, px, 3), 20, np.uint8)
     p = cloud.positions_m
     keep = np.any(p != 0, axis=1)
-    labels = cloud.fields.get("label", np.zeros(len(p), np.uint8))[keep].astype(int)
+    labels = cloud.fields.get("rv_effect", np.zeros(len(p), np.uint8))[keep].astype(int)   # provenance.Effect
     scale = px / (2 * extent_m)
     u = (px / 2 - p[keep, 1] * scale).astype(int)   # y left → image left
     v = (px / 2 - p[keep, 0] * scale).astype(int)   # x forward → image up

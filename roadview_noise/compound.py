@@ -13,6 +13,7 @@ from typing import Any, Sequence
 
 from .errors import ModelError, RecipeError
 from .model import Model, Scope, Stage
+from .provenance import follow, step_input
 from .registry import get_model, load_all
 from .seeding import derive_rng
 from .types import SensorData, sensor_kind
@@ -126,7 +127,9 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
 
     Frame rng: ``derive_rng(seed, key, step_index, model.id)``; sequence (sensor-instance) rng:
     ``derive_rng(seed, "sequence", sequence_id, model.id)``. ``key`` identifies the output (input relpath plus
-    sweep variant)."""
+    sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
+    step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
+    collects the warps of geometric steps."""
     records = []
     for i, model in enumerate(models):
         if model.sensor != sensor_kind(data):
@@ -137,6 +140,7 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
             state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
         rng = derive_rng(seed, key, i, model.id)
         drawn = model.draw(rng, data)
-        data, diagnostics = model.apply(data, state=state, drawn=drawn, rng=rng)
+        out, diagnostics = model.apply(step_input(data), state=state, drawn=drawn, rng=rng)
+        data = follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0))
     return data, records

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
 
+from .annotations import Annotated, sidecar_files
+from .annotations import write as write_annotations
 from .errors import InputError
 from .io.atomic import TMP_SUFFIX
 from .recipe import InputsSpec, Recipe
@@ -88,9 +90,10 @@ def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
                 if any(fnmatch.fnmatch(rel, x) for x in inputs.exclude):
                     continue
                 found.setdefault(rel, modality)
+    sidecars = sidecar_files(in_root, inputs.annotations, found)         # masks, lidarseg files … are no inputs
     if recipe.sensor == "camera":
-        sidecars = {depth_relpath_for(rel, inputs.depth) for rel in found}
-        found = {rel: m for rel, m in found.items() if rel not in sidecars}
+        sidecars |= {depth_relpath_for(rel, inputs.depth) for rel in found}
+    found = {rel: m for rel, m in found.items() if rel not in sidecars}
     samples = []
     for rel in sorted(found):
         modality = found[rel]
@@ -216,17 +219,21 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
                                     field_map=dict(inputs.field_map) or None)
 
 
-def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None) -> None:
-    """Write a result in the input's own format (atomically, by the io writers); a DNG keeps the colour metadata
-    of its ``source``."""
+def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None,
+         annotations: Annotated | None = None) -> list[Path]:
+    """Write a result in the input's own format (atomically, by the io writers) with its sidecars (a ``.bin``
+    cloud's ``rv_effect``) and annotation files; a DNG keeps the colour metadata of its ``source``. Returns every
+    file written, the main output first."""
     from .io import image as image_io
     from .io import pointcloud as cloud_io
     from .io import raw as raw_io
 
+    written = [out_path]
     if isinstance(data, CameraFrame):
         image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
     elif isinstance(data, RawFrame):
         raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
                          data.encoding, template=source)
     else:
-        cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)
+        written = cloud_io.write_pointcloud(out_path, data, effect=recipe.spec.output.effect)
+    return written + write_annotations(annotations)

@@ -17,6 +17,7 @@ from typing import Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from .annotations import AnnotationsSpec
 from .compound import cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .registry import get_model, suggest
@@ -93,6 +94,7 @@ class InputsSpec(_Strict):
     field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
+    annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes
 
     @model_validator(mode="after")
     def _depth_source_settings(self) -> "InputsSpec":
@@ -119,7 +121,7 @@ def check_pattern(pattern: str | None) -> None:
 
 class OutputSpec(_Strict):
     format: Literal["same"] = "same"
-    labels: Literal["auto", "none"] = "auto"
+    effect: Literal["auto", "none"] = "auto"       # the rv_effect code of clouds (io.pointcloud.write_pointcloud)
     jpeg_quality: int | None = Field(None, ge=1, le=100)  # JPEG outputs; None: the input's estimated quality
 
 
@@ -301,6 +303,7 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
                 step_params[ids.index(m)].update(p)
         if spec.sensor is not None and get_model(ids[0]).sensor != spec.sensor:
             raise RecipeError(f"the chain acts on {get_model(ids[0]).sensor}, not {spec.sensor}", key="sensor")
+        spec.inputs.annotations.check_sensor(get_model(ids[0]).sensor)
     except RecipeError as e:
         raise RecipeError(e.message, file=source, key=e.key) from None
     except ModelError as e:

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
+from . import annotations
 from .allocator import keep_freed_memory
 from .camera_inputs import run_warnings
 from .compound import apply_models
@@ -93,13 +94,18 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
         data = load(s, in_root, recipe)
         if getattr(data, "input_notes", None):
             entry["inputs"] = dict(data.input_notes)
+        spec = recipe.spec.inputs.annotations
+        sidecars = annotations.read(s.relpath, in_root, spec, data)
         models = build_models(recipe, task)
-        data, records = apply_models(models, data, seed=recipe.seed, key=task.out_relpath,
-                                     sequence_id=s.sequence_id)
+        out, records = apply_models(models, data, seed=recipe.seed, key=task.out_relpath,
+                                    sequence_id=s.sequence_id)
         entry["steps"] = [asdict(r) for r in records]
-        out_path = out_root / task.out_relpath
-        save(data, out_path, recipe, source=in_root / s.relpath)
-        entry["output_sha256"] = sha256_file(out_path)
+        out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, out_root,
+                                           recipe.variants[task.variant_index].suffix)
+        files = save(out, out_root / task.out_relpath, recipe, source=in_root / s.relpath, annotations=annotated)
+        entry["files"] = [{"path": p.relative_to(out_root).as_posix(), "sha256": sha256_file(p)} for p in files]
+        entry["output_sha256"] = entry["files"][0]["sha256"]
+        entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects)) if v})
         entry["status"] = "ok"
     except RvNoiseError as e:
         entry.update(status="failed", error=str(e) if s.relpath in str(e) else f"{s.relpath}: {e}")
@@ -111,12 +117,14 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
 
 
 def _previous_ok(out_root: Path, entries: list[dict]) -> dict[str, dict]:
-    """Manifest entries whose output still exists with the recorded sha256 (what --resume may skip)."""
+    """Manifest entries whose output files (main, sidecars, annotations) still exist with the recorded sha256 (what
+    --resume may skip)."""
     ok = {}
     for e in entries:
         if e.get("status") == "ok":
-            p = out_root / e["output"]
-            if p.is_file() and sha256_file(p) == e.get("output_sha256"):
+            files = e.get("files") or [{"path": e["output"], "sha256": e.get("output_sha256")}]
+            if all((out_root / f["path"]).is_file() and sha256_file(out_root / f["path"]) == f["sha256"]
+                   for f in files):
                 ok[e["output"]] = e
             else:
                 ok.pop(e["output"], None)
@@ -202,8 +210,9 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
            input_root: Path | None = None) -> dict[str, Any]:
     """Re-run the recorded recipe for one output and compare sha256 with the manifest.
 
-    Returns ``{"key", "expected", "got", "match", "input_changed", "output"}``; raises RecipeError when the
-    manifest, its run.json or the key is missing."""
+    Returns ``{"key", "expected", "got", "match", "input_changed", "output", "files"}`` (``files``: every file of
+    the output — sidecars and annotations too — with expected and reproduced sha256; ``match`` needs all of them);
+    raises RecipeError when the manifest, its run.json or the key is missing."""
     import json
     import shutil
     import tempfile
@@ -230,7 +239,10 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
         if new["status"] == "ok" and out_file is not None:
             Path(out_file).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(Path(tmp) / key, out_file)
+    got = {f["path"]: f["sha256"] for f in new.get("files", [])}
+    files = [{"path": f["path"], "expected": f["sha256"], "got": got.get(f["path"])}
+             for f in entry.get("files") or [{"path": key, "sha256": entry.get("output_sha256")}]]
     return {"key": key, "expected": entry.get("output_sha256"), "got": new.get("output_sha256"),
-            "match": new.get("output_sha256") is not None and new.get("output_sha256") == entry.get("output_sha256"),
+            "match": new.get("output_sha256") is not None and all(f["expected"] == f["got"] for f in files),
             "input_changed": new.get("input_sha256") != entry.get("input_sha256"), "error": new.get("error"),
-            "output": str(out_file) if out_file else None}
+            "output": str(out_file) if out_file else None, "files": files}

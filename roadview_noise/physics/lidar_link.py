@@ -36,7 +36,8 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import ModelError
-from ..types import IntensityUnit, LidarProfile, PointCloud, PointLabel
+from ..provenance import NEW, Effect
+from ..types import IntensityUnit, LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import FiringGrid, firing_grid
 
@@ -49,7 +50,7 @@ SIGNAL, REFLECTIVITY = "signal", "reflectivity"    # LidarProfile.intensity_kind
 COUNT_UNITS = (IntensityUnit.PHOTONS, IntensityUnit.UINT8)
 
 NO_RETURN, TARGET, WEATHER = 0, 1, 2     # what a ray returns after the weather
-ATTENUATED, MOVED, ADDED = int(PointLabel.ATTENUATED), int(PointLabel.MOVED), int(PointLabel.ADDED)
+ATTENUATED, MOVED, ADDED, REMOVED = (int(e) for e in (Effect.ATTENUATED, Effect.MOVED, Effect.ADDED, Effect.REMOVED))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -792,10 +793,10 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
 
 @jit
 def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                   intensity_in, label_in, positions_out, intensity_out, label_out):      # pragma: no cover - compiled
+                   intensity_in, positions_out, intensity_out, effect_out, origin_out):   # pragma: no cover - compiled
     """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
-    integer dtypes) and label, written to the outputs. A point list's removed points are left out (outputs filled from
-    the start; ``label_out`` may be ``label_in``, output o never passes input i), a grid's are zeroed. Returns the
+    integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
+    list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
     removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
     n = len(kind)
     removed = np.zeros(n, np.bool_)
@@ -803,7 +804,7 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
     o = 0                                              # output index
     for i in range(n):
         scale = 1.0                                    # of the position
-        label = label_in[i]
+        effect = 0                                     # KEPT
         if kind[i] == NO_RETURN:
             value = intensity_in[i]
             if has[i]:
@@ -813,28 +814,29 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
                     continue
                 scale = 0.0
                 value = 0
-                label = 0
+                effect = REMOVED
         else:
             v = min(reported[i], full_scale)
             value = round(v) if integer else v
             if kind[i] == WEATHER:
                 if has[i]:
                     scale = return_range_m[i] / ray_range_m[i]
-                    label = MOVED
+                    effect = MOVED
                     moved += 1
                 else:
                     scale = 0.0                        # filled by the caller (directions of empty cells)
-                    label = ADDED
+                    effect = ADDED
                     added += 1
             else:
                 intensity_out[o] = value               # the stored (converted) value decides
                 if abs(float(intensity_out[o]) - float(intensity_in[i])) >= half_step:
-                    label = ATTENUATED
+                    effect = ATTENUATED
                     attenuated += 1
                 else:
                     kept += 1
         intensity_out[o] = value
-        label_out[o] = label
+        effect_out[o] = effect
+        origin_out[o] = i
         for c in range(3):
             positions_out[o, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
         o += 1
@@ -845,21 +847,21 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     """Build the output cloud: targets stay in place, weather returns move the point along its ray (MOVED) or fill an
     empty ray of a full grid (ADDED), rays without a return lose their point (removed from a point list, zeroed in a
     full grid like :meth:`PointCloud.drop`). Intensities are written back in the input's unit, kind and dtype
-    (:func:`reported_intensity` at the return's range), clipped to full scale; the ``label`` field (uint8) is created
-    if absent.
+    (:func:`reported_intensity` at the return's range), clipped to full scale; every other field is the ray's.
 
-    Labels of targets in place: ATTENUATED when the stored intensity changed by at least half a step of the input's
-    resolution (:func:`intensity_resolution`: 1 photon, 1 count, 1/255 of a [0, 1] scale), else KEPT with the
-    previous label (a change below the file's resolution is no visible change; the sub-step value is still written)."""
+    Provenance (:mod:`roadview_noise.provenance`): ``origin`` is the input point of the output's ray (NEW for the
+    empty rays of a point list), ``effect`` the Effect code; targets in place are ATTENUATED when the stored
+    intensity changed by at least half a step of the input's resolution (:func:`intensity_resolution`: 1 photon,
+    1 count, 1/255 of a [0, 1] scale), else KEPT (a change below the file's resolution is no visible change; the
+    sub-step value is still written). Attributes follow the fields."""
     profile = rays.profile
     intensity_in = np.asarray(cloud.fields["intensity"])
     reported = reported_intensity(returns.signal * sensor_constant(profile), returns.range_m, profile)
     n = rays.n_points
     cells = np.flatnonzero(returns.kind[n:] == WEATHER)          # a list's empty rays that return weather
     size = n + len(cells)                                         # outputs at most (a list's removed points go)
-    label = np.zeros(size, np.uint8)                              # in and out
-    if "label" in cloud.fields:
-        label[:n] = cloud.fields["label"]
+    effect = np.empty(size, np.uint8)
+    origin = np.empty(size, np.int64)
     positions = np.empty((size, 3))
     intensity = np.empty(size, intensity_in.dtype)
     grid = cloud.grid_shape is not None
@@ -867,27 +869,32 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     removed, n_out, kept, attenuated, moved, n_removed, added = _place_returns(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
         float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
-        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, label, positions, intensity, label)
+        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect, origin)
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
     total = n_out + len(cells)
-    fields = {**cloud.fields, "intensity": intensity[:total], "label": label[:total]}
+    fields = {**cloud.fields, "intensity": intensity[:total]}
+    origin, attributes = origin[:total], cloud.attributes
     if n_removed and grid:
-        fields = {k: (v if k in ("ring", "intensity", "label") else np.where(removed, np.zeros((), v.dtype), v))
+        fields = {k: (v if k in ("ring", "intensity") else np.where(removed, np.zeros((), v.dtype), v))
                   for k, v in fields.items()}
-    elif n_removed or len(cells):
-        index = np.flatnonzero(~removed)
+    if not (n_removed or len(cells)) or grid:
+        origin = None                                  # point i is input point i
+    else:
+        index = origin                                 # the ray each output takes its other fields from
         if len(cells):
             _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
-                          integer, positions[n_out:total], intensity[n_out:total], label[n_out:total])
-            index = np.concatenate([index, rays.listed.like[cells]])
+                          integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
+            origin[n_out:] = NEW
+            index = np.concatenate([index[:n_out], rays.listed.like[cells]])
             added += len(cells)
-        fields = {k: (v if k in ("intensity", "label") else np.asarray(v).take(index, axis=0))
-                  for k, v in fields.items()}
+        fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
+        attributes = {k: np.asarray(v).take(index, axis=0) for k, v in attributes.items()}
         if len(cells) and "ring" in fields:
             fields["ring"][n_out:] = rays.listed.ring[cells]
-    out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields)
+    out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
+                              effect=effect[:total], attributes=attributes)
     faint = rays.has_target[:n] & (rays.signal[:n] < rays.threshold)
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
               "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold,
@@ -897,14 +904,14 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
 
 def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
                   full_scale: float, integer: bool, positions: np.ndarray, intensity: np.ndarray,
-                  label: np.ndarray) -> None:
+                  effect: np.ndarray) -> None:
     """The weather returns of a point list's empty rays ``cells`` as ADDED points, written to the given output
     slices: along the cell's direction at the return's range, intensity as :func:`_place_returns` stores it (the
     caller gives them the cell's ``ring`` and copies every other field from a return of the same firing column, same
     firing time)."""
     value = np.minimum(reported[cells], full_scale)
     intensity[:] = np.round(value) if integer else value
-    label[:] = ADDED
+    effect[:] = ADDED
     positions[:] = listed.directions(cells, range_m[cells])
 
 
@@ -917,10 +924,8 @@ def empty_ray_counts(rays: Rays) -> dict:
 
 
 def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
-    """The identity result of a zero-strength weather model: same points, every label KEPT (label field added)."""
-    label = cloud.fields.get("label")
-    label = np.zeros(len(cloud), np.uint8) if label is None else np.array(label, copy=True)
+    """The identity result of a zero-strength weather model: same points, every effect KEPT."""
     n = int(rays.has_target.sum())
     counts = {"points_in": n, "kept": n, "attenuated": 0, "moved": 0, "removed": 0, "added": 0,
               "below_threshold_in": rays.below_threshold, "removed_below_threshold_in": 0, **empty_ray_counts(rays)}
-    return cloud.with_fields(label=label), counts
+    return dataclasses.replace(cloud, effect=np.zeros(len(cloud), np.uint8)), counts

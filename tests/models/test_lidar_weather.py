@@ -24,7 +24,8 @@ from roadview_noise.physics import lidar_particles
 from roadview_noise.physics.lidar_link import reported_intensity, sensor_constant
 from roadview_noise.profiles.lidar import kitti_hdl64, os1_128, os1_128_reflectivity
 from roadview_noise.registry import load_all
-from roadview_noise.types import PointCloud, PointLabel
+from roadview_noise.provenance import Effect
+from roadview_noise.types import PointCloud
 
 PHOTONS = dataclasses.replace(os1_128(), detection_threshold=2.42)      # the D3.4 fog threshold (models.md §3.0)
 WEATHER = {"fog.lidar": (FogLidar, "visibility_m"), "rain.lidar": (RainLidar, "rain_rate_mm_per_h"),
@@ -61,7 +62,7 @@ def run(model, cloud, seed=3):
 
 def target_kept(out) -> np.ndarray:
     """Points still at their input position (a grid's removed cells are all-zero)."""
-    return np.isin(out.fields["label"], (PointLabel.KEPT, PointLabel.ATTENUATED)) & np.any(out.positions_m != 0, 1)
+    return np.isin(out.effect, (Effect.KEPT, Effect.ATTENUATED)) & np.any(out.positions_m != 0, 1)
 
 
 # --- registration -----------------------------------------------------------------------------------------------
@@ -130,7 +131,7 @@ def test_fog_surviving_range_of_hard_targets():
     assert surviving.max() == pytest.approx(ranges[ranges < r_max].max())
     np.testing.assert_allclose(out.fields["intensity"][kept], 100 * np.exp(-2 * alpha * ranges[kept]), rtol=1e-12)
     # far targets: the fog return (∝ R²) passes the threshold and replaces them near the sensor
-    moved = out.fields["label"] == PointLabel.MOVED
+    moved = out.effect == Effect.MOVED
     assert moved.any() and np.all(out.ranges_m[moved] < 2.0)
     assert diag["removed"] + diag["moved"] + diag["attenuated"] == len(ranges)
 
@@ -149,7 +150,7 @@ def test_fog_sensor_constant_replaces_targets_beyond_the_crossover():
     r_star = math.log(1e4 / s_fog) / (2 * alpha)
     kept = target_kept(out)
     assert np.all(kept[ranges < r_star - 0.05]) and not np.any(kept[ranges > r_star + 0.05])
-    moved = out.fields["label"] == PointLabel.MOVED
+    moved = out.effect == Effect.MOVED
     assert np.all(moved == ~kept) and diag["removed"] == 0
     np.testing.assert_allclose(out.ranges_m[moved], fog_range, atol=0.02)
     np.testing.assert_allclose(out.fields["intensity"][moved], s_fog, rtol=5e-3)
@@ -164,7 +165,7 @@ def test_fog_return_in_a_range_compensated_file_is_range_compensated():
     alpha, beta = math.log(20) / 30, 0.046 / 30
     k = sensor_constant(prof)
     s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, k, prof.overlap_start_m, prof.overlap_full_m)
-    moved = out.fields["label"] == PointLabel.MOVED
+    moved = out.effect == Effect.MOVED
     assert moved.all()
     np.testing.assert_allclose(out.fields["intensity"], 100.0 * s_fog * fog_range ** 2 / k, rtol=1e-2)
 
@@ -177,7 +178,7 @@ def test_fog_overlap_comes_from_the_profile(r2):
     out, diag = run(FogLidar(visibility_m=30.0), cloud_at(np.full(20, 200.0), 1.0, prof, grid=True))
     alpha, beta = math.log(20) / 30, 0.046 / 30
     s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0, 0.9, r2)
-    assert np.all(out.fields["label"] == PointLabel.MOVED)
+    assert np.all(out.effect == Effect.MOVED)
     np.testing.assert_allclose(out.ranges_m, fog_range, atol=0.02)
     np.testing.assert_allclose(out.fields["intensity"], s_fog, rtol=5e-3)
     hahner, _ = fog_peak_direct(alpha, beta, 10e-9, 65535.0, 0.9, 1.0)
@@ -187,7 +188,7 @@ def test_fog_overlap_comes_from_the_profile(r2):
 def test_fog_moved_points_stay_on_their_ray():
     cloud = street()
     out, diag = run(FogLidar(visibility_m=20.0), cloud)
-    moved = out.fields["label"] == PointLabel.MOVED
+    moved = out.effect == Effect.MOVED
     assert moved.sum() == diag["moved"] > 0
     # every moved point is parallel to one input point, and closer than it
     u_in = cloud.positions_m / cloud.ranges_m[:, None]
@@ -233,7 +234,7 @@ def test_same_decisions_for_photons_8bit_and_unit_reflectivity(model_id):
     outs = [run(HEAVY[model_id], c, seed=9)[0] for c in clouds]
     assert len(outs[0]) == len(outs[1]) == len(outs[2])
     in_place = [target_kept(o) for o in outs]
-    moved = [o.fields["label"] == PointLabel.MOVED for o in outs]
+    moved = [o.effect == Effect.MOVED for o in outs]
     for k in (1, 2):
         np.testing.assert_array_equal(in_place[k], in_place[0])
         np.testing.assert_array_equal(moved[k], moved[0])
@@ -282,18 +283,18 @@ def test_changes_below_the_file_resolution_are_kept(profile, value, dtype):
     alpha = math.log(20) / 3000
     step = 1.0 if profile.intensity_unit == "photons" else 1 / 255
     boundary = -math.log(1 - step / 2 / value) / (2 * alpha)
-    label = out.fields["label"]
+    label = out.effect
     assert diag["moved"] == diag["removed"] == 0
     near = np.abs(ranges - boundary) < 0.02
-    assert np.all(label[(ranges < boundary) & ~near] == PointLabel.KEPT)
-    assert np.all(label[(ranges > boundary) & ~near] == PointLabel.ATTENUATED)
-    assert diag["kept"] == np.count_nonzero(label == PointLabel.KEPT)
+    assert np.all(label[(ranges < boundary) & ~near] == Effect.KEPT)
+    assert np.all(label[(ranges > boundary) & ~near] == Effect.ATTENUATED)
+    assert diag["kept"] == np.count_nonzero(label == Effect.KEPT)
     if np.issubdtype(dtype, np.floating):                     # the sub-step attenuation is still written
-        kept = label == PointLabel.KEPT
+        kept = label == Effect.KEPT
         np.testing.assert_allclose(out.fields["intensity"][kept], value * np.exp(-2 * alpha * ranges[kept]),
                                    rtol=1e-6)
     else:
-        assert np.all(out.fields["intensity"][label == PointLabel.KEPT] == value)
+        assert np.all(out.fields["intensity"][label == Effect.KEPT] == value)
 
 
 # --- identity, determinism, labels, diagnostics --------------------------------------------------------------------
@@ -306,7 +307,7 @@ def test_zero_strength_is_identity(model):
     out, diag = run(model, cloud)
     np.testing.assert_array_equal(out.positions_m, cloud.positions_m)
     np.testing.assert_array_equal(out.fields["intensity"], cloud.fields["intensity"])
-    assert out.fields["label"].dtype == np.uint8 and np.all(out.fields["label"] == PointLabel.KEPT)
+    assert out.effect.dtype == np.uint8 and np.all(out.effect == Effect.KEPT)
     assert diag["kept"] == len(cloud) and diag["alpha_per_m"] == 0.0
 
 
@@ -328,25 +329,41 @@ def test_same_rng_same_output_and_json_diagnostics(model_id):
     assert len(a) == len(cloud) - da["removed"]
     if model_id != "fog.lidar":                             # particles: another seed gives another frame
         c, _ = run(HEAVY[model_id], cloud, seed=2)
-        assert not np.array_equal(a.fields["label"], c.fields["label"])
+        assert not np.array_equal(a.effect, c.effect)
 
 
-def test_existing_fields_and_labels_are_carried():
+def test_existing_fields_are_carried_and_never_overwritten():
+    """A user's ``label`` is a field like any other for the models: they carry it (dtype and values); the effect
+    code goes to the provenance. A later step's effect combines with the earlier one (composed by the chain)."""
     cloud = street(1000, seed=7)
     ring = np.arange(len(cloud), dtype=np.uint16) % 128
-    label = np.full(len(cloud), PointLabel.ADDED, np.uint8)
+    label = (np.arange(len(cloud), dtype=np.uint32) % 7) | (3 << 16)
     cloud = cloud.with_fields(ring=ring, label=label, intensity=cloud.fields["intensity"].astype(np.float32))
     out, diag = run(RainLidar(rain_rate_mm_per_h=50.0), cloud)
     assert out.fields["intensity"].dtype == np.float32 and out.fields["ring"].dtype == np.uint16
+    assert out.fields["label"].dtype == np.uint32
     assert all(len(v) == len(out) for v in out.fields.values())
     assert np.all(out.fields["intensity"] <= PHOTONS.intensity_full_scale)
-    # changed points get this model's label; untouched ones keep the previous one
-    assert set(np.unique(out.fields["label"])) <= {PointLabel.ATTENUATED, PointLabel.MOVED, PointLabel.ADDED}
-    assert np.all(run(RainLidar(rain_rate_mm_per_h=0.0), cloud)[0].fields["label"] == PointLabel.ADDED)
+    src = out.origin >= 0
+    np.testing.assert_array_equal(out.fields["label"][src], label[out.origin[src]])
+    np.testing.assert_array_equal(out.fields["ring"][src], ring[out.origin[src]])
+    assert set(np.unique(out.effect)) <= {Effect.KEPT, Effect.ATTENUATED, Effect.MOVED, Effect.ADDED}
+    out0, _ = run(RainLidar(rain_rate_mm_per_h=0.0), cloud)
+    assert np.all(out0.effect == Effect.KEPT) and out0.origin is None
+    np.testing.assert_array_equal(out0.fields["label"], label)
     quantised = cloud.with_fields(intensity=np.rint(cloud.fields["intensity"]).astype(np.uint16))
     out, diag = run(FogLidar(visibility_m=2000.0), quantised)
     assert out.fields["intensity"].dtype == np.uint16 and diag["kept"] > 0
-    assert np.all(out.fields["label"][out.fields["label"] != PointLabel.ATTENUATED] != PointLabel.KEPT)
+    # two steps: the second one's KEPT never hides the first one's effect
+    both, recs = apply_models([RainLidar(rain_rate_mm_per_h=50.0), FogLidar(visibility_m=2000.0)], quantised, seed=3,
+                              key="k", sequence_id="s")
+    first, _ = run(RainLidar(rain_rate_mm_per_h=50.0), quantised)           # the chain's step 0, same rng
+    where = np.full(len(quantised), -1)
+    where[first.origin[first.origin >= 0]] = np.flatnonzero(first.origin >= 0)
+    src = both.origin >= 0
+    e1 = first.effect[where[both.origin[src]]]
+    assert np.all(both.effect[src] >= e1) and np.any(e1 == Effect.ATTENUATED)
+    assert np.count_nonzero(both.effect == Effect.MOVED) >= recs[1].diagnostics["moved"]
 
 
 # --- monotonicity ----------------------------------------------------------------------------------------------
@@ -408,7 +425,7 @@ def test_weather_returns_on_empty_rays_of_a_full_grid(model):
     grid, directions, hit = small_grid()
     out, diag = run(model, grid)
     assert len(out) == len(grid) and out.grid_shape == grid.grid_shape
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert diag["added"] == added.sum() > 0 and not np.any(added & hit)
     # added points lie on the ray of their cell (beam elevation of the row, azimuth of the column)
     u = out.positions_m[added] / out.ranges_m[added][:, None]
@@ -446,12 +463,14 @@ def test_point_list_gets_the_weather_of_its_full_grid():
     assert d_list["empty_rays"] == d_grid["empty_rays"] == len(full) - len(listed) > 0
     for k in ("kept", "attenuated", "moved", "removed", "added"):
         assert d_list[k] == d_grid[k], k
-    added_grid = out_grid.fields["label"] == PointLabel.ADDED
+    added_grid = out_grid.effect == Effect.ADDED
     order = np.lexsort((out_grid.fields["time"][added_grid], out_grid.fields["ring"][added_grid]))
     tail = slice(len(out_list) - d_list["added"], None)
     order_list = np.lexsort((out_list.fields["time"][tail], out_list.fields["ring"][tail]))
-    for k in ("ring", "time", "intensity", "label"):
+    for k in ("ring", "time", "intensity"):
         np.testing.assert_array_equal(out_list.fields[k][tail][order_list], out_grid.fields[k][added_grid][order], k)
+    np.testing.assert_array_equal(out_list.effect[tail], Effect.ADDED)
+    assert np.all(out_list.origin[tail] == -1) and out_grid.origin is None
     np.testing.assert_allclose(out_list.positions_m[tail][order_list], out_grid.positions_m[added_grid][order],
                                atol=1e-6)
 
@@ -462,7 +481,7 @@ def test_snow_on_the_empty_rays_of_a_point_list():
     full, listed, d = small_list()
     out, diag = run(SnowLidar(snowfall_rate_mm_per_h=5.0), listed)
     n_in = len(listed) - diag["removed"]
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert diag["added"] == added.sum() > 0 and np.all(added[n_in:]) and not added[:n_in].any()
     cols = full.grid_shape[1]
     cell = out.fields["ring"][added].astype(int) * cols + np.rint(out.fields["time"][added] / 1e-4).astype(int)
@@ -482,7 +501,7 @@ def test_lists_off_a_firing_grid_get_weather_only_on_their_returns():
 def test_fog_on_empty_rays_uses_the_saturated_table():
     grid, _, hit = small_grid()
     out, diag = run(FogLidar(visibility_m=10.0), grid)
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert added.sum() == (~hit).sum()                     # dense fog: every sky ray sees the fog
     assert np.ptp(out.ranges_m[added]) < 1e-9              # homogeneous fog: one range, one intensity
     assert np.ptp(out.fields["intensity"][added]) == 0
@@ -497,7 +516,7 @@ def test_os1_overlap_sky_rays_see_dense_fog_but_not_light_fog(overlap):
     grid, _, hit = small_grid(base=base)
     for visibility, every_sky_ray in ((30.0, True), (1000.0, overlap == "hahner")):
         out, diag = run(FogLidar(visibility_m=visibility), grid)
-        added = out.fields["label"] == PointLabel.ADDED
+        added = out.effect == Effect.ADDED
         assert diag["added"] == (np.count_nonzero(~hit) if every_sky_ray else 0), visibility
         if every_sky_ray:
             alpha, beta = math.log(20) / visibility, 0.046 / visibility
@@ -569,15 +588,15 @@ def test_real_list_gets_the_weather_of_its_full_grid_on_the_empty_rays(shared_da
     assert d_list["firing_grid_columns"] == 1024 and "2048" in d_list["empty_rays_source"]
     for k in ("kept", "attenuated", "moved", "removed", "added"):
         assert d_list[k] == d_grid[k], k
-    a = out_grid.positions_m[out_grid.fields["label"] == PointLabel.ADDED]
-    b = out_list.positions_m[out_list.fields["label"] == PointLabel.ADDED]
-    assert len(b) == d_list["added"] > 20_000 and np.all(out_list.fields["label"][-len(b):] == PointLabel.ADDED)
+    a = out_grid.positions_m[out_grid.effect == Effect.ADDED]
+    b = out_list.positions_m[out_list.effect == Effect.ADDED]
+    assert len(b) == d_list["added"] > 20_000 and np.all(out_list.effect[-len(b):] == Effect.ADDED)
     unit = lambda p: p / np.linalg.norm(p, axis=1, keepdims=True)       # noqa: E731
     dist, j = cKDTree(unit(a)).query(unit(b))
     assert np.all(np.rad2deg(dist) < 0.02) and len(np.unique(j)) == len(b)
     np.testing.assert_allclose(np.linalg.norm(b, axis=1), np.linalg.norm(a[j], axis=1), rtol=1e-9)
     np.testing.assert_allclose(out_list.fields["intensity"][-len(b):], out_grid.fields["intensity"][
-        np.flatnonzero(out_grid.fields["label"] == PointLabel.ADDED)[j]])
+        np.flatnonzero(out_grid.effect == Effect.ADDED)[j]])
 
 
 def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
@@ -593,7 +612,7 @@ def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
     offset = math.hypot(REFLECTIVITY.sensor_z_offset_m, REFLECTIVITY.beam_origin_offset_m)
     assert np.all(angle <= np.arctan(offset / r) + np.deg2rad(0.02))
     out, diag = run(SnowLidar(snowfall_rate_mm_per_h=10.0), cloud)
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert diag["added"] > 0 and not np.any(added & valid) and len(out) == len(cloud)
     elev = np.degrees(np.arcsin(out.positions_m[added, 2] / out.ranges_m[added]))
     rows = np.flatnonzero(added) // 1024
