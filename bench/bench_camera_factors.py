@@ -14,19 +14,16 @@ batch workers' allocator setting (``roadview_noise.allocator``) is applied, as i
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
-from bench_camera_weather import bayer, synthetic_scene
+from bench_camera_weather import setup
 
 from roadview_noise.allocator import keep_freed_memory
 from roadview_noise.compound import apply_models
 from roadview_noise.physics import srgb
-from roadview_noise.profiles.camera import lucid_triton_028s
 from roadview_noise.registry import get_model
 
 CASES = {
@@ -68,15 +65,8 @@ def timed(run, repeat: int) -> list[float]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=10)
-    ap.add_argument("--save", type=Path, help="write one sRGB PNG per case here")
-    args = ap.parse_args()
-    cv2.setNumThreads(1)
+    args, frame, raw = setup(__doc__)
     keep_freed_memory()
-    frame = synthetic_scene(lucid_triton_028s())
-    raw = bayer(frame)
-    print(f"frame {frame.shape[1]}×{frame.shape[0]}, {args.repeat} frames per case, one core")
     if args.save:
         args.save.mkdir(parents=True, exist_ok=True)
     for name, (mid, params) in CASES.items():

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from numbers import Real
 from typing import Any, ClassVar
 
 import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
+from ...param_checks import rgb
 from ...physics.cfa import SiteLayout
 from ...physics.photometry import SAMPLE_STEP_PX
 from ...physics.sensor_noise import SHOT_NOISE, SensorSettings, expose
@@ -71,11 +71,8 @@ class LowLightCamera(Model):
     onnx_threads: int = param(1, unit="1", ge=1, le=256, doc="onnx: onnxruntime threads per worker")
 
     def validate(self) -> None:
-        wb = self.white_balance_gains
-        vals = tuple(wb) if isinstance(wb, (list, tuple)) else ()
-        if len(vals) != 3 or not all(isinstance(v, Real) and not isinstance(v, bool) and v > 0 for v in vals):
-            raise ModelError(f"must be [R, G, B] > 0, got {wb!r}", model=self.id, field="white_balance_gains")
-        object.__setattr__(self, "white_balance_gains", tuple(float(v) for v in vals))
+        object.__setattr__(self, "white_balance_gains",
+                           rgb(self.white_balance_gains, self.id, "white_balance_gains", low=0.0, low_open=True))
         if self.adc_black_level_dn >= (1 << self.adc_bits) - 1:
             raise ModelError(f"must be below the ADC full scale {(1 << self.adc_bits) - 1}", model=self.id,
                              field="adc_black_level_dn")

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from numbers import Real
 from typing import Any, ClassVar
 
 import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
+from ...param_checks import optional_number, point_px
 from ...physics.mosaic import phases
 from ...physics.motion_blur import flow_blur, zoom_blur
 from ...registry import register
@@ -69,20 +69,10 @@ class MotionBlurCamera(Model):
                                                                   "the blur")
 
     def validate(self) -> None:
-        c = self.focus_of_expansion_px
-        if c is not None:
-            if (not isinstance(c, (list, tuple)) or len(c) != 2 or
-                    not all(isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v) for v in c)):
-                raise ModelError(f"must be null or [x, y] in pixels, got {c!r}", model=self.id,
-                                 field="focus_of_expansion_px")
-            object.__setattr__(self, "focus_of_expansion_px", (float(c[0]), float(c[1])))
-        for name, lo in (("ego_speed_m_per_s", None), ("exposure_time_s", 0.0), ("scene_depth_m", 0.0)):
-            v = getattr(self, name)
-            if v is None:
-                continue
-            if isinstance(v, bool) or not isinstance(v, Real) or not math.isfinite(v) or (lo is not None and v <= lo):
-                need = "a finite number" if lo is None else f"a number > {lo:g}"
-                raise ModelError(f"must be null or {need}, got {v!r}", model=self.id, field=name)
+        object.__setattr__(self, "focus_of_expansion_px",
+                           point_px(self.focus_of_expansion_px, self.id, "focus_of_expansion_px"))
+        for name, above in (("ego_speed_m_per_s", None), ("exposure_time_s", 0.0), ("scene_depth_m", 0.0)):
+            object.__setattr__(self, name, optional_number(getattr(self, name), self.id, name, above=above))
 
     def apply(self, data, *, state, drawn, rng):
         h, w = data.shape

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from numbers import Real
 from typing import Any, ClassVar
 
 import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
+from ...param_checks import rgb
 from ...physics.blob_mask import BlobMask, blob_mask
 from ...physics.cfa import SiteLayout
 from ...physics.photometry import SAMPLE_STEP_PX
@@ -71,13 +71,8 @@ class SoilingCamera(Model):
         if self.s_min_px > self.s_max_px:
             raise ModelError(f"s_min_px ({self.s_min_px}) exceeds s_max_px ({self.s_max_px})", model=self.id,
                              field="s_min_px")
-        rho = self.mud_albedo
-        vals = (rho,) * 3 if isinstance(rho, Real) else tuple(rho) if isinstance(rho, (list, tuple)) else ()
-        if len(vals) != 3 or not all(isinstance(v, Real) and not isinstance(v, bool) and 0 <= v <= 1
-                                     for v in vals):
-            raise ModelError(f"must be a number or [R, G, B] in [0, 1], got {rho!r}", model=self.id,
-                             field="mud_albedo")
-        object.__setattr__(self, "mud_albedo", tuple(float(v) for v in vals))
+        object.__setattr__(self, "mud_albedo", rgb(self.mud_albedo, self.id, "mud_albedo", low=0.0, high=1.0,
+                                                   scalar=True))
 
     def draw_sequence(self, rng, data) -> dict:
         return {"mask_seed": int(rng.integers(1 << MASK_SEED_BITS)),

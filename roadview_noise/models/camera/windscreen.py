@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from numbers import Real
 from typing import Any, ClassVar
 
 import cv2
@@ -12,6 +11,7 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
+from ...param_checks import point_px
 from ...physics.brown_conrady import COEFFICIENTS, BrownConrady, LensWarp
 from ...physics.mosaic import remap_mosaic
 from ...registry import register
@@ -80,13 +80,8 @@ class WindscreenCamera(Model):
                         doc="what corners sampling outside the input get: constant (black, D3.5), reflect, replicate")
 
     def validate(self) -> None:
-        c = self.distortion_centre_px
-        if c is not None:
-            if (not isinstance(c, (list, tuple)) or len(c) != 2 or
-                    not all(isinstance(v, Real) and not isinstance(v, bool) and np.isfinite(v) for v in c)):
-                raise ModelError(f"must be null or [x, y] in pixels, got {c!r}", model=self.id,
-                                 field="distortion_centre_px")
-            object.__setattr__(self, "distortion_centre_px", (float(c[0]), float(c[1])))
+        object.__setattr__(self, "distortion_centre_px",
+                           point_px(self.distortion_centre_px, self.id, "distortion_centre_px"))
 
     def distortion(self, data) -> BrownConrady:
         """The distortion of this model for a frame (its size and principal point)."""
