@@ -16,8 +16,8 @@ from roadview_noise.registry import load_all
 from roadview_noise.types import CameraFrame, Conditions, RawFrame, cfa_index_map
 
 MODELS = load_all()
-Soiling, Windscreen, MotionBlur, LowLight, Fog, Rain, Compression = (MODELS[m] for m in (
-    "soiling.camera", "windscreen.camera", "motion_blur.camera", "low_light.camera", "fog.camera", "rain.camera",
+Soiling, Windscreen, MotionBlur, LowLight, Fog, Compression = (MODELS[m] for m in (
+    "soiling.camera", "windscreen.camera", "motion_blur.camera", "low_light.camera", "fog.camera",
     "compression.camera"))
 
 
@@ -223,10 +223,11 @@ def test_cnf14_fog_airlight_is_scaled_by_the_published_factor():
     np.testing.assert_allclose(given[1].diagnostics["airlight"], factor * np.array([0.6, 0.7, 0.9]), rtol=1e-12)
 
 
-def test_cnf13_drop_radiance_follows_the_darker_scene():
+@pytest.mark.parametrize("weather", ["rain.camera", "snow.camera"])
+def test_cnf13_cnf15_particle_radiance_follows_the_darker_scene(weather):
     f = frame(400, 600, sky_rows=150)
-    _, day = apply_models([Rain()], f, seed=1, key="k", sequence_id="s")
-    _, night = apply_models([LowLight(), Rain()], f, seed=1, key="k", sequence_id="s")
+    _, day = apply_models([MODELS[weather]()], f, seed=1, key="k", sequence_id="s")
+    _, night = apply_models([LowLight(), MODELS[weather]()], f, seed=1, key="k", sequence_id="s")
     np.testing.assert_allclose(night[1].diagnostics["particle_radiance"],
                                8e-3 * np.array(day[0].diagnostics["particle_radiance"]), rtol=0.03)
 
