@@ -13,7 +13,7 @@ from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...param_checks import point_px
 from ...physics.brown_conrady import COEFFICIENTS, BrownConrady, LensWarp
-from ...physics.mosaic import remap_mosaic
+from ...physics.mosaic import remap_mosaic, sublattice_maps
 from ...registry import register
 from ...types import RawFrame
 
@@ -27,6 +27,12 @@ def _lens_warp(distortion: BrownConrady, height: int, width: int) -> LensWarp:
     warp.map_x.flags.writeable = False
     warp.map_y.flags.writeable = False
     return warp
+
+
+@lru_cache(maxsize=4)
+def _mosaic_maps(distortion: BrownConrady, height: int, width: int) -> list:
+    warp = _lens_warp(distortion, height, width)
+    return sublattice_maps(warp.map_x, warp.map_y)
 
 
 @register
@@ -106,7 +112,7 @@ class WindscreenCamera(Model):
         warp = self.warp(data, state=state, drawn=drawn)
         border = BORDERS[self.border]
         if isinstance(data, RawFrame):
-            out = remap_mosaic(data.signal(), warp.map_x, warp.map_y, border=border)
+            out = remap_mosaic(data.signal(), _mosaic_maps(self.distortion(data), h, w), border=border)
         else:
             out = warp.apply(data.signal(), border=border)
         mx, my = warp.map_x, warp.map_y
