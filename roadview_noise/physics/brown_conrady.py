@@ -110,4 +110,13 @@ class LensWarp(Warp):
     distortion: BrownConrady | None = None
 
     def forward(self, points_xy: np.ndarray, iterations: int = NEWTON_ITERATIONS) -> np.ndarray:
-        return self.distortion.undistort_px(points_xy)
+        """Output positions of input points; a point no output position sees (beyond a fold of the map) is put
+        far outside the image in its direction from the centre, so clipping to the image puts it on the edge."""
+        q = self.distortion.undistort_px(points_xy)
+        lost = np.isnan(q[:, 0])
+        if lost.any():
+            c = np.asarray(self.distortion.centre_px)
+            p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)[lost] - c
+            far = 4.0 * float(np.hypot(*self.shape))
+            q[lost] = c + p * (far / np.maximum(np.hypot(p[:, 0], p[:, 1]), 1e-12))[:, None]
+        return q

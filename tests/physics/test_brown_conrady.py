@@ -67,7 +67,9 @@ def test_forward_inverts_the_pull_map(k1, p1, p2, s1, s3):
     assert np.abs(d.pull_map(721, 1281).forward(q) - p).max() < 1e-4
     if k1 < -0.1 and max(abs(p1), abs(p2), abs(s1), abs(s3)) < 1e-3:
         r_max = 2 / 3 / np.sqrt(-3 * k1) * 900                 # largest radius the radial pull reaches
-        assert np.isnan(d.undistort_px(np.array([[640 + 1.05 * r_max, 360.0]]))).all()
+        unseen = np.array([[640 + 1.05 * r_max, 360.0]])
+        assert np.isnan(d.undistort_px(unseen)).all()
+        assert d.pull_map(721, 1281).forward(unseen)[0, 0] > 1281     # annotations: beyond the right edge
 
 
 def test_d35_round_trip_through_the_sampled_map():
@@ -84,3 +86,13 @@ def test_d35_round_trip_through_the_sampled_map():
 def test_coefficient_count_checked():
     with pytest.raises(ValueError, match="12 coefficients"):
         BrownConrady((1e-7,), (0.0, 0.0), (1.0, 1.0))
+
+
+def test_points_beyond_the_fold_go_to_the_image_edge():
+    """k1 = −0.3 (normalised) never pulls from beyond r = 2/(3√0.9) = 0.70: such input points have no output
+    position (NaN from the physics), and the annotation forward map sends them outside the image."""
+    d = BrownConrady((-0.3,) + (0.0,) * 11, (640.0, 360.0), (900.0, 900.0))
+    unseen = np.array([[640 + 0.75 * 900, 360.0], [640.0, 360 - 0.72 * 900]])
+    assert np.isnan(d.undistort_px(unseen)).all()
+    out = d.pull_map(721, 1281).forward(unseen)
+    assert out[0, 0] > 1281 and out[1, 1] < 0 and np.isfinite(out).all()
