@@ -38,11 +38,17 @@ class BrownConrady:
         if len(self.coefficients) != len(COEFFICIENTS):
             raise ValueError(f"{len(COEFFICIENTS)} coefficients expected ({', '.join(COEFFICIENTS)})")
 
+    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Numerator and denominator of the rational radial factor at r²."""
+        k1, k2, k3, k4, k5, k6 = self.coefficients[:6]
+        return 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distorted coordinates of (x, y) in distortion units (float64 arrays)."""
-        k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 = self.coefficients
+        p1, p2, s1, s2, s3, s4 = self.coefficients[6:]
         r2 = x * x + y * y
-        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        num, den = self._radial(r2)
+        radial = num / den
         xy2 = 2 * x * y
         xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) + r2 * (s1 + s2 * r2)
         yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 + r2 * (s3 + s4 * r2)
@@ -52,8 +58,7 @@ class BrownConrady:
         """Partial derivatives (∂x_d/∂x, ∂x_d/∂y, ∂y_d/∂x, ∂y_d/∂y) in distortion units."""
         k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 = self.coefficients
         r2 = x * x + y * y
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+        num, den = self._radial(r2)
         dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
         dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
         radial = num / den
@@ -78,8 +83,8 @@ class BrownConrady:
 
     def undistort_px(self, points_xy: np.ndarray) -> np.ndarray:
         """Output pixel positions (N, 2) whose pull-map source is ``points_xy`` (the forward map of annotations):
-        Newton's method on the closed-form model with its analytic Jacobian. Points without a converged solution
-        (beyond a fold of the map, e.g. strong negative k1 far off the image) are NaN."""
+        Newton's method on the closed-form model with its analytic Jacobian. Points with no solution on the
+        unfolded part of the map (beyond the largest pull radius of a strong negative k1) are NaN."""
         p = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
         (cx, cy), (fx, fy) = self.centre_px, self.unit_px
         tx, ty = (p[:, 0] - cx) / fx, (p[:, 1] - cy) / fy
@@ -98,7 +103,11 @@ class BrownConrady:
             if np.all(np.abs(dx) + np.abs(dy) < tol):
                 break
         xd, yd = self.distort(x, y)
-        ok = np.hypot((xd - tx) * fx, (yd - ty) * fy) < 1e-4
+        a, b, c, d = self._jacobian(x, y)
+        num, den = self._radial(x * x + y * y)
+        # a solution on a folded-over branch of the map (the radial factor or the Jacobian changed sign) is no
+        # position any output pixel shows
+        ok = (np.hypot((xd - tx) * fx, (yd - ty) * fy) < 1e-4) & (a * d - b * c > 0) & (num / den > 0)
         return np.where(ok[:, None], np.stack([cx + fx * x, cy + fy * y], axis=1), np.nan)
 
 
