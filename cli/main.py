@@ -109,7 +109,11 @@ def show(name: str = typer.Argument(..., help="A CNF (CNF01–CNF30) or a model 
         cnf = CNFS[name.upper()]
         typer.echo(f"{name.upper()}: {cnf.factor} with {cnf.weather} ({cnf.method})")
         for sensor, ids in cnf.chains.items():
-            typer.echo(f"\n[{sensor}]")
+            typer.echo(f"\n[{sensor}] order: {' → '.join(ids)}")
+            for mid in ids:
+                if mid in models:
+                    stage = models[mid].stage
+                    typer.echo(f"  {mid}: {stage.name} ({STAGE_ROLES[stage.name]})")
             for i, mid in enumerate(ids, 1):
                 _show_model(mid, models, prefix=f"{i}. ")
         return
@@ -119,6 +123,21 @@ def show(name: str = typer.Argument(..., help="A CNF (CNF01–CNF30) or a model 
     doc = (get_model(name).__doc__ or "").strip()
     if doc:
         typer.echo("\n" + doc)
+
+
+# why a stage sits where it does in the sensing chain (models.md §1; D3.5 Eq. 1–3)
+STAGE_ROLES = {
+    "SCENE": "scene illumination, before the weather: Eq. 1",
+    "EMITTER": "beam geometry and power at the emitter, before the weather: Eq. 1",
+    "RAY_DROP": "returns missing before propagation: Eq. 1",
+    "MODIFIER": "changes the weather process itself, set before it: Eq. 2",
+    "MEDIUM": "propagation through the weather",
+    "WINDSCREEN": "refraction by the windscreen, after the weather: Eq. 3",
+    "WINDOW": "lens surface or sensor window, after the weather: Eq. 3",
+    "EXPOSURE": "integration on the detector, after the weather: Eq. 3",
+    "ELECTRONICS": "detector and receiver electronics, after the weather: Eq. 3",
+    "ENCODING": "ISP and compression, last: Eq. 3",
+}
 
 
 def _show_model(mid: str, models: dict, prefix: str = "") -> None:

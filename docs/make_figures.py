@@ -21,7 +21,7 @@ from roadview_noise.physics.srgb import linear_to_code
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT / "docs" / "images"
 FRAME = "000001"
-CAMERA = ["weather-fog", "weather-rain", "weather-snow", "cnf16", "cnf18", "cnf11"]
+CAMERA = ["weather-fog", "weather-rain", "weather-snow", "cnf16", "cnf18", "cnf11", "cnf01", "cnf05", "cnf09"]
 CLOUDS = [("weather-fog-lidar", "lidar/os1-128-grid/seq0"), ("weather-rain-lidar", "lidar/os1-128-grid/seq0"),
           ("weather-snow-lidar", "lidar/os1-128-grid/seq0"), ("weather-rain-radar", "radar/seq0")]
 LABEL_BGR = {0: (200, 200, 200), 1: (255, 160, 60), 2: (0, 200, 255), 3: (60, 60, 255)}  # kept/att/moved/added
