@@ -36,7 +36,8 @@ from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
 from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
-from roadview_noise.physics.lidar_link import cloud_rays, sensor_constant  # noqa: E402
+from roadview_noise.physics.lidar_intensity import sensor_constant  # noqa: E402
+from roadview_noise.physics.lidar_rays import cloud_rays  # noqa: E402
 from roadview_noise.profiles.lidar import os1_128, os1_128_reflectivity  # noqa: E402
 from roadview_noise.types import PointCloud  # noqa: E402
 

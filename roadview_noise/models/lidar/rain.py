@@ -8,8 +8,8 @@ from typing import ClassVar
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
-from ...physics import dsd
-from ...physics.lidar_particles import ParticleMedium, apply_precipitation
+from ...physics import dsd, lidar_weather
+from ...physics.lidar_particles import ParticleMedium
 from ...registry import register
 from . import empty_rays_param
 
@@ -37,7 +37,7 @@ class RainLidar(Model):
       soft background; :mod:`lidar_particles`).
     - Drop return ``K ρ f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
       ρ = Fresnel 0.0199, ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``; pulses closer than ``c τ_H``
-      add; strongest or first return above the profile's threshold (:func:`lidar_particles.precipitation_returns`).
+      add; strongest or first return detected in the receiver's noise (:func:`lidar_weather.particle_returns`).
     ``rain_rate_mm_per_h = 0`` is the identity.
     """
 
@@ -73,5 +73,5 @@ class RainLidar(Model):
         return ParticleMedium(n0, lam, lo, hi, self.drop_reflectance, dsd.geometric_extinction_per_m(n0, lam, lo, hi))
 
     def apply(self, data, *, state, drawn, rng):
-        return apply_precipitation(self.id, data, self.medium(), self.return_mode, rng,
-                                   self.draw_fraction_of_threshold, self.empty_rays)
+        return lidar_weather.precipitation(data, self.id, self.medium(), self.return_mode, rng,
+                                           self.draw_fraction_of_threshold, self.empty_rays)
