@@ -95,16 +95,21 @@ def intensity_resolution(profile: LidarProfile) -> float:
     return intensity_step(profile) or profile.intensity_full_scale / 255.0
 
 
-def stored_intensity(reported, profile: LidarProfile) -> np.ndarray:
-    """What the sensor stores for reported intensities (≥ 0): clipped to full scale, rounded to its step; a positive
-    value that rounds to 0 is 0 (``faint_reading: zero``) or one step (``lowest``). A ``no_return`` sensor drops such
-    returns (:func:`too_faint`) before they are stored."""
+def rounded_intensity(reported, profile: LidarProfile) -> np.ndarray:
+    """Reported intensities clipped to full scale and rounded to the sensor's step (:func:`intensity_step`)."""
     v = np.minimum(np.asarray(reported, dtype=np.float64), profile.intensity_full_scale)
     step = intensity_step(profile)
-    if step == 0:
-        return v
-    out = np.round(v / step) * step
-    if profile.faint_reading == "lowest":
+    return v if step == 0 else np.round(v / step) * step
+
+
+def stored_intensity(reported, profile: LidarProfile) -> np.ndarray:
+    """What the sensor stores for reported intensities (≥ 0): :func:`rounded_intensity`; a positive value that rounds
+    to 0 is 0 (``faint_reading: zero``) or one step (``lowest``). A ``no_return`` sensor drops such returns
+    (:func:`too_faint`) before they are stored."""
+    v = np.asarray(reported, dtype=np.float64)
+    out = rounded_intensity(v, profile)
+    step = intensity_step(profile)
+    if profile.faint_reading == "lowest" and step > 0:
         out = np.where((out == 0) & (v > 0), step, out)
     return out
 
@@ -243,7 +248,8 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
                               f"{profile.name!r}'s sensor; {how}")
     if reading.kind == profile.intensity_kind:
         return IntensityScale(profile, f"{said}: nothing stated it, the data agree ({reading.describe()})")
+    seen = "do not tell" if reading.kind is None else f"look like {reading.kind} but not like an 8-bit channel"
     return IntensityScale(profile, f"{said}: nothing stated it, assumed ({reading.describe()})",
-                          f"{model_id}: no profile states the intensity unit and the data do not tell "
+                          f"{model_id}: no profile states the intensity unit and the data {seen} "
                           f"({reading.describe()}): read as {said}; {how}")
 

@@ -20,7 +20,7 @@ import numpy as np
 from ..types import PointCloud
 from .compiled import jit
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, RayReturns, select_returns
-from .lidar_intensity import reported_intensity, sensor_constant, stored_intensity, too_faint
+from .lidar_intensity import reported_intensity, rounded_intensity, sensor_constant, too_faint
 from .lidar_medium import HAHNER_OVERLAP_M, hard_target_signal, pulse_length_m, soft_target_signal, soft_target_table
 from .lidar_output import assemble, unchanged
 from .lidar_particles import LEVEL_COUNT, VISIBLE_FRACTION, Beam, ParticleMedium, attenuated_targets, draw_level, \
@@ -130,8 +130,8 @@ def hahner_fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per
     per-point calibration — the fog return of point i is ``G_max(R0) · I_i R0² · β/β0``, β0 = γ/π, with I_i its
     stored value read as received signal (for a range-compensated file, at the target's range) — Hahner's overlap
     (R1 = 0.9 m, R2 = 1.0 m), no detection threshold and no empty rays. The point moves to the fog when that value
-    exceeds its attenuated intensity *as stored* (rounded to the sensor's step), which is how most of Hahner's fog
-    points arise on an 8-bit scan; no point is removed."""
+    exceeds its attenuated intensity rounded to the sensor's step (Hahner's ``np.round``), which is how most of
+    Hahner's fog points arise on an 8-bit scan; no point is removed."""
     rays = cloud_rays(cloud, model_id, "ignore")
     p, r = rays.profile, rays.range_m
     tau_h_s = tau_h_s or p.pulse_half_power_width_s
@@ -140,7 +140,7 @@ def hahner_fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per
     hard = hard_target_signal(rays.signal, alpha_per_m, r)
     k = sensor_constant(p)
     weather = rays.has_target & (reported_intensity(fog_signal * k, r, p)
-                                 > stored_intensity(reported_intensity(hard * k, r, p), p))
+                                 > rounded_intensity(reported_intensity(hard * k, r, p), p))
     kind = np.where(weather, WEATHER, np.where(rays.has_target, TARGET, NO_RETURN)).astype(np.uint8)
     returns = RayReturns(kind, np.where(weather, fog_range, r), np.where(weather, fog_signal, hard))
     out, counts = assemble(cloud, rays, returns)

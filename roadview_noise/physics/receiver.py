@@ -14,7 +14,8 @@ background ``N_b ~ Poisson(B)`` with ``B = (g σ0)²`` (Poisson: variance = mean
 
 Range jitter of a detected peak (leading-edge timing, σ_t = t_r / SNR; e.g. Spieler, "Semiconductor Detector
 Systems", 2005, §6): ``σ_R = (c/2) t_r / SNR`` with t_r the 10–90 % rise time of the ``sin²`` pulse (0.590 τ_H) and
-``SNR = S / σ(S)``: 1.5 cm at SNR 30 for a 10 ns pulse, 0.5 m near the threshold of a SPAD.
+``SNR = S / σ(S)``: 3 cm at SNR 30 and 0.9 cm at SNR 100 for a 10 ns pulse, half a metre near the threshold of
+a SPAD.
 
 Weather returns add only the detections their signal causes (:meth:`Receiver.measure`): a ray's background noise is
 drawn conditioned on not crossing the threshold by itself, because the sensor's own false alarms are already in the
@@ -23,12 +24,12 @@ the weather models scale it by the transmission, so zero weather strength gives 
 
 Threshold calibration (:meth:`Receiver.calibrated`): a profile's datasheet threshold is a worst case (full sunlight);
 when the recorded returns of a frame reach below it, the sensor was more sensitive than the datasheet says (less
-ambient light, or a sensor constant K that undervalues the scale). The threshold is then lowered to the weakest signal
-the recorded returns can have (their stored value minus half a step), floored on the fixed grid
-``T_datasheet · 2^(−j/4)``: strictly below every recorded return, and the same for every frame of a sequence whose
-weakest returns differ by less than a quarter octave (each frame is calibrated by itself — workers see frames in any
-order — and the manifest records the value). The photons at the threshold stay, so the detector's statistics relative
-to its threshold are those of the profile.
+ambient light than the datasheet's). The threshold is then lowered to the weakest signal the recorded returns can have
+(their stored value minus half a step), floored on the fixed grid ``T_datasheet · 2^(−j/4)``: strictly below every
+recorded return, and the same for every frame of a sequence whose weakest returns differ by less than a quarter
+octave (each frame is calibrated by itself — workers see frames in any order — and the manifest records the value).
+The photons per signal unit (the sensor constant) stay and the noise floor follows the threshold (T/k): less ambient
+light, a detector closer to single photons.
 """
 
 from __future__ import annotations
@@ -143,7 +144,8 @@ class Receiver:
         j = math.ceil(CALIBRATION_STEPS_PER_OCTAVE * math.log2(t / weakest_recorded))
         while t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE) >= weakest_recorded:
             j += 1
-        return dataclasses.replace(self, threshold=t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE),
+        new = t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE)
+        return dataclasses.replace(self, threshold=new, photons_at_threshold=self.photons_at_threshold * new / t,
                                    source=f"calibrated from the data: the weakest recorded return can be "
                                           f"{weakest_recorded:.4g}, below the datasheet threshold {t:.4g}")
 

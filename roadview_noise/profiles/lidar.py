@@ -64,7 +64,7 @@ def os1_128() -> LidarProfile:
     (no return) at 1 km.
     Receiver: photon counting (SPAD), the threshold 3.28 photons; ASSUMPTION: one background photon per pulse window
     (ambient light and dark counts, B = 1), which puts the datasheet threshold 3.3 standard deviations of the
-    background above it; range jitter 0.9 cm at SNR 50 (datasheet precision ±0.7–5 cm)."""
+    background above it; range jitter 1.8 cm at SNR 50 (datasheet precision ±0.7–5 cm)."""
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,

@@ -415,11 +415,12 @@ def test_denser_precipitation_never_keeps_more_targets(model_id, log_rate, facto
 # --- full range image: returns on no-return rays ------------------------------------------------------------------
 
 
-def small_grid(rows=32, cols=256, base=PHOTONS) -> PointCloud:
-    """A full grid (photons) of the first 32 OS1-128 beams: a bright wall (2000 photons) at 15 m over half the
-    azimuths, sky elsewhere."""
-    prof = dataclasses.replace(base, beam_elevation_deg=base.beam_elevation_deg[:rows],
-                               beam_azimuth_offset_deg=base.beam_azimuth_offset_deg[:rows], columns=cols)
+def small_grid(rows=32, cols=256, base=PHOTONS, first=0) -> PointCloud:
+    """A full grid (photons) of 32 OS1-128 beams (from beam ``first``): a bright wall (2000 photons) at 15 m over half
+    the azimuths, sky elsewhere."""
+    beams = slice(first, first + rows)
+    prof = dataclasses.replace(base, beam_elevation_deg=base.beam_elevation_deg[beams],
+                               beam_azimuth_offset_deg=base.beam_azimuth_offset_deg[beams], columns=cols)
     el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[:, None]
     az = np.pi - 2 * np.pi * np.arange(cols)[None, :] / cols - np.deg2rad(
         np.asarray(prof.beam_azimuth_offset_deg))[:, None]
@@ -449,10 +450,10 @@ def test_weather_returns_on_empty_rays_of_a_full_grid(model):
     assert diag["removed"] == removed.sum()
 
 
-def small_list() -> tuple[PointCloud, PointCloud, np.ndarray]:
+def small_list(first=0) -> tuple[PointCloud, PointCloud, np.ndarray]:
     """:func:`small_grid` with its lowest beam on the ground (8 m) all around, as a full grid and as a point list of
     its returns with ``ring`` and ``time`` (firing time of the column) fields; and each cell's direction."""
-    grid, d, hit = small_grid()
+    grid, d, hit = small_grid(first=first)
     rows, cols = grid.grid_shape
     lowest = int(np.argmin(grid.profile.beam_elevation_deg))
     ground = np.arange(rows * cols) // cols == lowest
@@ -703,3 +704,46 @@ def test_draw_fraction_trades_particles_for_a_small_bias(model_id):
     assert returns == pytest.approx(returns_fine, rel=0.06 if model_id == "rain.lidar" else 0.05)
     with pytest.raises(ModelError):
         dataclasses.replace(model, draw_fraction_of_threshold=0.0)
+
+
+# --- pre-processed clouds: empty_rays sky_only ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("as_list", [False, True], ids=["grid", "list"])
+def test_sky_only_fills_the_empty_rays_above_the_horizon_only(as_list):
+    """A scan whose ground was removed (beams +5.0° … −5.9°, a wall over half the azimuths, no ground: what a
+    ground filter leaves): ``fill`` treats the removed ground cells as rays that saw nothing and puts fog on them;
+    ``sky_only`` fills only the empty rays above the horizon — the same ones ``fill`` fills there."""
+    grid, _, hit = small_grid(first=48, base=quiet(PHOTONS))
+    cloud = grid
+    if as_list:
+        cloud = PointCloud(grid.positions_m[hit], {k: v[hit] for k, v in grid.fields.items()}, "lidar", grid.profile)
+    elevation = np.asarray(grid.profile.beam_elevation_deg)
+    out_fill, d_fill = run(FogLidar(visibility_m=15.0), cloud)
+    out_sky, d_sky = run(FogLidar(visibility_m=15.0, empty_rays="sky_only"), cloud)
+    below_cells = int(np.count_nonzero(elevation <= 0)) * grid.grid_shape[1] // 2
+    if as_list:                  # a list's empty rays are those in view: near the wall's azimuths (firing_grid.py)
+        assert d_fill["empty_rays"] > d_sky["empty_rays"] > 0
+    else:
+        assert d_fill["empty_rays"] - d_sky["empty_rays"] == below_cells > 0
+    assert "horizon" in d_sky["empty_rays_source"]
+
+    def added_elevations(out):
+        added = out.fields["label"] == PointLabel.ADDED
+        return np.degrees(np.arcsin(out.positions_m[added, 2] / np.linalg.norm(out.positions_m[added], axis=1)))
+
+    assert np.any(added_elevations(out_fill) < 0) and np.all(added_elevations(out_sky) > 0)
+    assert d_sky["added"] == np.count_nonzero(added_elevations(out_fill) > 0) > 0
+    assert run(FogLidar(visibility_m=15.0, empty_rays="ignore"), cloud)[1]["added"] == 0
+
+
+def test_datasheet_threshold_fog_fades_smoothly_with_visibility():
+    """The OS1-128 (datasheet threshold 3.28 photons, clear returns all above it): the sky rays' fog fades between
+    MOR 120 and 700 m; in 1 % steps the weather returns never jump by more than 3 % of the rays (they used to fall
+    from every sky ray to none between 380 and 385 m)."""
+    grid, _, hit = small_grid(base=os1_128())
+    visibilities = 120.0 * 1.01 ** np.arange(178)
+    counts = np.array([run(FogLidar(visibility_m=float(v)), grid)[1]["added"] for v in visibilities])
+    assert np.max(np.abs(np.diff(counts))) <= 0.03 * len(grid)
+    assert counts[0] > 0.8 * np.count_nonzero(~hit) and counts[-1] < 0.2 * np.count_nonzero(~hit)
+    assert np.all(np.diff(counts) <= 0.01 * len(grid))             # common random numbers: nearly monotone
