@@ -69,11 +69,14 @@ class SoftTargetTable:
 
     ``g_max_s_per_m2[k] = max_R G(R; R0 = k·step)`` with
     ``G(R; R0) = ∫_0^{2τ_H} sin²(πt/2τ_H) e^{−2α(R−ct/2)} ξ(R−ct/2)/(R−ct/2)² H(R0 − R + ct/2) dt`` (s m⁻²), and
-    ``fog_range_m[k]`` the apparent range of that peak. Beyond the last entry both are constant."""
+    ``fog_range_m[k]`` the apparent range of that peak. Beyond the last entry both are constant. ``rise_m``: how
+    long the received fog profile of an empty ray takes to rise from 10 % to 90 % of its peak (m of range) — the
+    leading edge whose slope sets the range jitter of a fog return (:mod:`receiver`)."""
 
     step_m: float
     g_max_s_per_m2: np.ndarray
     fog_range_m: np.ndarray
+    rise_m: float
 
     def lookup(self, r0_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         k = np.minimum(np.rint(np.asarray(r0_m) / self.step_m), len(self.g_max_s_per_m2) - 1).astype(np.intp)
@@ -125,5 +128,7 @@ def soft_target_table(alpha_per_m: float, tau_h_s: float, r1_m: float, r2_m: flo
     best_val = np.where(better, cut_val, best_val)
     best_n = np.where(better, m + d[k], best_n)
     fog_range = np.clip(best_n * h - length / 2, 0.0, m * h)   # Hahner's shift; never behind the target
-    return SoftTargetTable(h, best_val, fog_range)
+    lead = full[: int(np.argmax(full)) + 1]
+    rise = (np.argmax(lead >= 0.9 * lead[-1]) - np.argmax(lead >= 0.1 * lead[-1])) * h
+    return SoftTargetTable(h, best_val, fog_range, float(rise))
 

@@ -432,6 +432,7 @@ def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: 
 LEAD_LEVELS = 4            # the first pass of strongest_particles draws 2^4 above a ray's own level
 
 
+
 def strongest_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: ParticleMedium, beam: Beam,
                         base_level: float, ray_level: np.ndarray, window_m: float, count: int = LEVEL_COUNT,
                         lead: int = LEAD_LEVELS) -> Particles:
@@ -449,33 +450,49 @@ def strongest_particles(rng: np.random.Generator, ray_range_m: np.ndarray, mediu
     levels = np.ascontiguousarray(ray_level, dtype=np.intp)
     top = np.minimum(levels + lead, count - 1)
     first = sample_particles(rng, ray_range_m, medium, beam, base_level, 1.0, top, window_m)
-    best = _ray_max(first.ray, first.signal, len(levels))
-    with np.errstate(divide="ignore"):
-        j2 = np.floor(np.log2(best / base_level)) - 1
-    second_level = np.clip(np.where(best > 0, j2, levels), levels, top).astype(np.intp)
-    need = second_level < top
-    if not need.any():
+    second_level, second_range = _second_pass(first.ray, first.signal, levels, top, base_level,
+                                              np.ascontiguousarray(ray_range_m, dtype=np.float64))
+    if not second_range.any():
         return first
-    second = sample_particles(rng, np.where(need, ray_range_m, 0.0), medium, beam, base_level, 1.0, second_level,
-                              window_m)
-    k = second.ray
-    window = (top[k] > 0) & (second.range_m >= ray_range_m[k] - window_m)
-    level_first = base_level * np.exp2(np.where(window, np.maximum(top[k] - WINDOW_LEVEL_DROP, 0), top[k]))
-    keep = np.flatnonzero(second.signal < level_first)
+    second = sample_particles(rng, second_range, medium, beam, base_level, 1.0, second_level, window_m)
+    keep = np.flatnonzero(_new_in_second(second.ray, second.range_m, second.signal, second_range, top, window_m,
+                                         base_level, WINDOW_LEVEL_DROP))
     order = _merge_order(first.ray, first.range_m, second.ray[keep], second.range_m[keep])
     cat = [np.concatenate([a, b[keep]])[order] for a, b in zip(
         (first.ray, first.range_m, first.diameter_mm, first.beam_fraction, first.signal),
         (second.ray, second.range_m, second.diameter_mm, second.beam_fraction, second.signal))]
-    return Particles(*cat, np.where(need, second.ray_shadow, first.ray_shadow))
+    return Particles(*cat, np.where(second_range > 0, second.ray_shadow, first.ray_shadow))
 
 
 @jit
-def _ray_max(ray, signal, n):       # pragma: no cover - compiled
-    """Per ray (of n) the largest signal of its particles, 0 without any."""
+def _second_pass(ray, signal, levels, top, base_level, ray_range_m):       # pragma: no cover - compiled
+    """Per ray the level of the second pass, ``floor(log2(s/ℓ)) − 1`` of its brightest first-pass particle s
+    within [own level, first-pass level] (own level without one), and its range for the second pass (0: none)."""
+    n = len(levels)
     best = np.zeros(n)
     for i in range(len(ray)):
         best[ray[i]] = max(best[ray[i]], signal[i])
-    return best
+    level = levels.copy()
+    second_range = np.zeros(n)
+    for k in range(n):
+        if best[k] > 0:
+            level[k] = min(max(int(math.floor(math.log2(best[k] / base_level))) - 1, levels[k]), top[k])
+        if level[k] < top[k]:
+            second_range[k] = ray_range_m[k]
+    return level, second_range
+
+
+@jit
+def _new_in_second(ray, range_m, signal, ray_range_m, top, window_m, base_level, drop):  # pragma: no cover - compiled
+    """Second-pass particles fainter than the first pass's level where they lie (the brighter ones it drew)."""
+    keep = np.empty(len(ray), np.bool_)
+    for i in range(len(ray)):
+        k = ray[i]
+        j = top[k]
+        if j > 0 and range_m[i] >= ray_range_m[k] - window_m:
+            j = max(j - drop, 0)
+        keep[i] = signal[i] < base_level * 2.0 ** j
+    return keep
 
 
 @jit

@@ -13,7 +13,9 @@ background ``N_b ~ Poisson(B)`` with ``B = (g σ0)²`` (Poisson: variance = mean
 ``S + σ0 z_b + sqrt(F S / g) z_s`` with standard normal z, detected iff ≥ T.
 
 Range jitter of a detected peak (leading-edge timing, σ_t = t_r / SNR; e.g. Spieler, "Semiconductor Detector
-Systems", 2005, §6): ``σ_R = (c/2) t_r / SNR`` with t_r the 10–90 % rise time of the ``sin²`` pulse (0.590 τ_H) and
+Systems", 2005, §6): ``σ_R = (c/2) t_r / SNR`` with t_r the 10–90 % rise time of the received peak — the ``sin²``
+pulse's (0.590 τ_H) for a particle, the longer leading edge of the fog's profile for fog
+(:attr:`lidar_medium.SoftTargetTable.rise_m`) — and
 ``SNR = S / σ(S)``: 3 cm at SNR 30 and 0.9 cm at SNR 100 for a 10 ns pulse, half a metre near the threshold of
 a SPAD.
 
@@ -24,12 +26,12 @@ the weather models scale it by the transmission, so zero weather strength gives 
 
 Threshold calibration (:meth:`Receiver.calibrated`): a profile's datasheet threshold is a worst case (full sunlight);
 when the recorded returns of a frame reach below it, the sensor was more sensitive than the datasheet says (less
-ambient light than the datasheet's). The threshold is then lowered to the weakest signal the recorded returns can have
-(their stored value minus half a step), floored on the fixed grid ``T_datasheet · 2^(−j/4)``: strictly below every
-recorded return, and the same for every frame of a sequence whose weakest returns differ by less than a quarter
-octave (each frame is calibrated by itself — workers see frames in any order — and the manifest records the value).
-The photons per signal unit (the sensor constant) stay and the noise floor follows the threshold (T/k): less ambient
-light, a detector closer to single photons.
+ambient light than the datasheet's, or a sensor constant K that undervalues its signal). The threshold is then lowered
+to the weakest signal the recorded returns can have (their stored value minus half a step), floored on the fixed grid
+``T_datasheet · 2^(−j/4)``: strictly below every recorded return, and the same for every frame of a sequence whose
+weakest returns differ by less than a quarter octave (each frame is calibrated by itself — workers see frames in any
+order — and the manifest records the value). The photons at the threshold stay, so the detector's statistics
+relative to its threshold are the profile's (its stated SNR at the threshold), only the signal scale moves.
 """
 
 from __future__ import annotations
@@ -109,11 +111,17 @@ class Receiver:
         s = np.maximum(np.asarray(signal, dtype=float), 0.0)
         return np.sqrt(self.noise_floor ** 2 + self.excess_noise_factor * s / self.photons_per_signal)
 
-    def range_sd_m(self, signal) -> np.ndarray:
-        """Range jitter of a detected peak of signal S: ``(c/2) t_r σ(S) / S`` (inf for S ≤ 0)."""
+    @property
+    def pulse_rise_m(self) -> float:
+        """``(c/2) t_r``: the 10–90 % rise of the pulse in metres of range."""
+        return speed_of_light / 2 * RISE_TIME_PER_TAU * self.pulse_half_power_width_s
+
+    def range_sd_m(self, signal, rise_m: float | None = None) -> np.ndarray:
+        """Range jitter of a detected peak of signal S: ``rise · σ(S) / S`` (inf for S ≤ 0), with the leading edge
+        ``rise_m`` of the received peak (default: the pulse's, :attr:`pulse_rise_m`)."""
         s = np.asarray(signal, dtype=float)
         with np.errstate(divide="ignore"):
-            return (speed_of_light / 2 * RISE_TIME_PER_TAU * self.pulse_half_power_width_s) * self.noise_sd(s) / s
+            return (self.pulse_rise_m if rise_m is None else rise_m) * self.noise_sd(s) / s
 
     def detection_probability(self, signal) -> np.ndarray:
         """Probability that a return of expected signal S crosses the threshold (false alarms of the noise included:
@@ -144,8 +152,7 @@ class Receiver:
         j = math.ceil(CALIBRATION_STEPS_PER_OCTAVE * math.log2(t / weakest_recorded))
         while t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE) >= weakest_recorded:
             j += 1
-        new = t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE)
-        return dataclasses.replace(self, threshold=new, photons_at_threshold=self.photons_at_threshold * new / t,
+        return dataclasses.replace(self, threshold=t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE),
                                    source=f"calibrated from the data: the weakest recorded return can be "
                                           f"{weakest_recorded:.4g}, below the datasheet threshold {t:.4g}")
 
@@ -188,9 +195,8 @@ def _weakest_return(receiver: Receiver) -> float:
 
 @lru_cache(maxsize=64)
 def _kernel_params(receiver: Receiver) -> tuple:
-    """(photon counting, g, σ0, F, T, B, detection count, conditioned background CDF, Φ(k), jitter scale): the
-    background table is the cumulative law of N_b conditioned on ``N_b < detection_count`` (empty for Gaussian
-    noise); the jitter scale is ``(c/2) t_r``."""
+    """(photon counting, g, σ0, F, T, B, detection count, conditioned background CDF, Φ(k)): the background table is
+    the cumulative law of N_b conditioned on ``N_b < detection_count`` (empty for Gaussian noise)."""
     counting = receiver.counts_photons
     table = np.zeros(0)
     if counting:
@@ -198,8 +204,7 @@ def _kernel_params(receiver: Receiver) -> tuple:
         table = cdf / cdf[-1]
     return (counting, receiver.photons_per_signal, receiver.noise_floor, receiver.excess_noise_factor,
             receiver.threshold, receiver.background_photons, float(receiver.detection_count) if counting else 0.0,
-            table, float(ndtr(receiver.threshold_over_noise)),
-            speed_of_light / 2 * RISE_TIME_PER_TAU * receiver.pulse_half_power_width_s)
+            table, float(ndtr(receiver.threshold_over_noise)))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -256,7 +261,7 @@ def poisson_quantile(mean, u):       # pragma: no cover - compiled
 
 @jit(inline="always")
 def measure_one(s, u0, u1, spad, gain, floor, excess, threshold, background, detect_count, background_cdf,
-                below_k, jitter_scale):       # pragma: no cover - compiled
+                below_k):       # pragma: no cover - compiled
     """(measured signal, detected) of one new return of expected signal s from two uniforms (background, shot
     noise) with :attr:`Receiver.kernel_params`: photon counts (``spad``) or Gaussian noise, the background conditioned
     on no detection (table ``background_cdf``, or the normal below k = T/σ0 with Φ(k) = ``below_k``)."""
@@ -273,15 +278,14 @@ def measure_one(s, u0, u1, spad, gain, floor, excess, threshold, background, det
 
 
 @jit(inline="always")
-def range_sd_one(s, spad, gain, floor, excess, threshold, background, detect_count, background_cdf, below_k,
-                 jitter_scale):       # pragma: no cover - compiled
-    """:meth:`Receiver.range_sd_m` of one signal s > 0."""
-    return jitter_scale * math.sqrt(floor * floor + excess * s / gain) / s
+def range_sd_one(s, rise_m, gain, floor, excess):       # pragma: no cover - compiled
+    """:meth:`Receiver.range_sd_m` of one signal s > 0 with leading edge ``rise_m``."""
+    return rise_m * math.sqrt(floor * floor + excess * s / gain) / s
 
 
 @jit
 def _measure(signal, u, rows, spad, gain, floor, excess, threshold, background, detect_count, background_cdf,
-             below_k, jitter_scale):       # pragma: no cover - compiled
+             below_k):       # pragma: no cover - compiled
     """:meth:`Receiver.measure` over the signals (:func:`measure_one`), with a normal deviate for the jitter."""
     n = len(signal)
     measured = np.empty(n)
@@ -290,6 +294,6 @@ def _measure(signal, u, rows, spad, gain, floor, excess, threshold, background, 
     for i in range(n):
         row = rows[i]
         measured[i], detected[i] = measure_one(signal[i], u[row, 0], u[row, 1], spad, gain, floor, excess, threshold,
-                                               background, detect_count, background_cdf, below_k, jitter_scale)
+                                               background, detect_count, background_cdf, below_k)
         jitter[i] = normal_quantile(u[row, 2])
     return measured, detected, jitter
