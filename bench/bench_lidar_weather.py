@@ -215,7 +215,7 @@ def acceptance(cloud: PointCloud) -> None:
     fog = np.isin(out.fields["label"], (PointLabel.MOVED, PointLabel.ADDED))
     print(f"  fog MOR 30 m: {fog.sum()} fog returns, range {np.mean(out.ranges_m[fog]):.3f} ± "
           f"{np.std(out.ranges_m[fog]):.3f} m")
-    for lo, hi in ((300.0, 400.0), (1000.0, 6000.0)):
+    for lo, hi in ((300.0, 400.0), (2000.0, 6000.0)):
         vis = lo * 1.01 ** np.arange(int(np.ceil(np.log(hi / lo) / np.log(1.01))) + 1)
         counts = []
         for v in vis:

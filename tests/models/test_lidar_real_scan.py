@@ -86,17 +86,17 @@ def _weather_returns(cloud, visibilities):
 
 def test_weather_returns_vary_smoothly_with_visibility(shared_data):
     """Over MOR 300–400 m in 1 % steps the number of weather returns never jumps by more than 3 % of the rays; the
-    same at 1–3 km, where the sky rays' fog fades for this scan (its calibrated threshold, 11× below the datasheet's,
-    detects down to single photons: the fog of a sky ray is detected at 62 % at 1 km, 27 % at 3 km). Before, every
-    sky ray switched off at once between MOR 380 and 385 m."""
+    same at 2–6 km, where the sky rays' fog fades for this scan (its threshold is calibrated 11× below the datasheet's:
+    fog on 91 % of the sky rays at 2 km, 26 % at 6 km). Before, every sky ray switched off at once between MOR 380
+    and 385 m."""
     cloud = scan(shared_data)
     rays = 128 * 1024
-    for lo, hi in ((300.0, 400.0), (1000.0, 3000.0)):
+    for lo, hi in ((300.0, 400.0), (2000.0, 6000.0)):
         steps = int(math.ceil(math.log(hi / lo) / math.log(1.01)))
         counts = _weather_returns(cloud, lo * 1.01 ** np.arange(steps + 1))
         assert np.max(np.abs(np.diff(counts))) <= 0.03 * rays, (lo, np.max(np.abs(np.diff(counts))))
         if lo > 1000:
-            assert counts[0] - counts[-1] > 0.2 * (rays - len(cloud))          # the sky's fog does fade here
+            assert counts[0] - counts[-1] > 0.5 * (rays - len(cloud))          # the sky's fog does fade here
 
 
 def test_ouster_metadata_states_the_reflectivity_channel(shared_data):
