@@ -14,9 +14,9 @@ the data say about their unit (the cloud → signal conversion of the weather pi
   8-bit and photon units even in a float file), a return below the lowest reading is 0, the lowest reading, or no
   return (``faint_reading``, per profile).
 - The unit is stated by the profile (a built-in, a file, an Ouster metadata JSON whose ``udp_profile_lidar`` names
-  the channel, the recipe's ``intensity_unit``); :func:`read_intensity` looks at the data (integer-valued ≤ 255,
-  larger counts, [0, 1]; range-compensated or ∝ 1/R²) and :func:`resolve_profile` refuses or warns when they
-  disagree — and when nothing states the unit (the default profile), it follows the data and says so.
+  the channel, the recipe's ``intensity_unit``), and values it cannot hold are refused; when nothing states it (the
+  default profile), :func:`read_intensity` looks at the data (integer-valued ≤ 255, larger counts, [0, 1];
+  range-compensated or ∝ 1/R²) and :func:`resolve_profile` follows them or the default, always with a warning.
 """
 
 from __future__ import annotations
@@ -221,22 +221,19 @@ class IntensityWarning(UserWarning):
 
 def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: np.ndarray,
                     model_id: str) -> IntensityScale:
-    """The intensity scale of a cloud: the profile's when it states it (``intensity_source``), checked against the
-    data (:func:`read_intensity`: a disagreement is warned about, an impossible value refused); when nothing states
-    it, the data decide — 8-bit range-compensated values are read as the sensor's calibrated reflectivity
-    (:func:`reflectivity_variant`) — and the warning says what was assumed and how to state it. Never silent."""
+    """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
+    are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
+    channels), the data decide (:func:`read_intensity`) — 8-bit range-compensated values are read as the sensor's
+    calibrated reflectivity (:func:`reflectivity_variant`) — and the warning says what was assumed, what the data
+    showed and how to state it. Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
+    power variance) may have changed what the intensities look like."""
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
         raise _unknown_kind(profile)
-    reading = read_intensity(intensity, positions_m)
     said = f"{profile.intensity_kind} in {profile.intensity_unit} (full scale {profile.intensity_full_scale:g})"
     if profile.intensity_source:
-        note = f"{said}, stated by {profile.intensity_source}; data: {reading.describe()}"
-        if reading.kind is None or reading.kind == profile.intensity_kind:
-            return IntensityScale(profile, note)
-        return IntensityScale(profile, note, f"{model_id}: the intensities look like {reading.kind} "
-                                             f"({reading.describe()}) but profile {profile.name!r} says {said} "
-                                             f"(stated by {profile.intensity_source}); the profile is followed")
+        return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
+    reading = read_intensity(intensity, positions_m)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
            "reflectivity) or intensity_unit in the recipe")
     if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:

@@ -130,14 +130,16 @@ def test_nothing_stated_reads_the_data_and_says_so(shared_data):
 
 @pytest.mark.slow
 def test_shipped_recipe_without_profile_records_the_reading_in_the_manifest(shared_data, tmp_path):
-    """``rvnoise augment --recipe recipes/weather-fog-lidar.yaml`` on the scan as a KITTI-style .bin, no profile."""
+    """``rvnoise augment --recipe recipes/weather-fog-lidar.yaml`` on the scan as a KITTI-style .bin, no profile: the
+    warning is issued and the manifest line records the reading and the warning."""
     src = tmp_path / "in" / "lidar" / "seq" / "000000.bin"
     src.parent.mkdir(parents=True)
     shutil.copy(shared_data / "os1-128" / "scan0.bin", src)
     recipe = yaml.safe_load(open("recipes/weather-fog-lidar.yaml"))
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(recipe))
-    result = CliRunner().invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(tmp_path / "in"),
-                                      str(tmp_path / "out"), "--workers", "1", "--quiet"])
+    with pytest.warns(IntensityWarning, match="no profile states the intensity unit"):     # stderr, once
+        result = CliRunner().invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(tmp_path / "in"),
+                                          str(tmp_path / "out"), "--workers", "1", "--quiet"])
     assert result.exit_code == 0, result.output
     (line,) = read_manifest(tmp_path / "out" / "manifest.jsonl")
     steps = line["steps"] if "steps" in line else line["chain"]

@@ -155,9 +155,10 @@ def test_calibrated_threshold_lies_below_every_recorded_return_on_a_fixed_grid(w
     assert cal.threshold < weakest <= cal.threshold * 2 ** 0.25 * (1 + 1e-12)
     j = -4 * math.log2(cal.threshold / SPAD.threshold)
     assert j == pytest.approx(round(j), abs=1e-9)
-    # the same photons per signal unit, a noise floor that follows the threshold (less ambient light)
-    assert cal.photons_per_signal == pytest.approx(SPAD.photons_per_signal) and "calibrated" in cal.source
-    assert cal.noise_floor == pytest.approx(cal.threshold / SPAD.threshold_over_noise)
+    # the same photons at the threshold: the detector's statistics relative to its threshold are the profile's
+    assert cal.photons_at_threshold == SPAD.photons_at_threshold and "calibrated" in cal.source
+    assert float(cal.detection_probability(2 * cal.threshold)) == pytest.approx(
+        float(SPAD.detection_probability(2 * SPAD.threshold)), rel=1e-12)
     nearby = SPAD.calibrated(weakest * 1.01).threshold / cal.threshold      # a similar frame: the same or next step
     assert min(abs(nearby - 1), abs(nearby - 2 ** 0.25)) < 1e-9
 
