@@ -166,7 +166,9 @@ def with_intensity_scale(profile: LidarProfile, unit: str | None, full_scale: fl
     unit = unit or profile.intensity_unit
     new_fs = float(full_scale or DEFAULT_FULL_SCALE.get(unit, profile.intensity_full_scale))
     ratio = new_fs / profile.intensity_full_scale
-    changes: dict = {"intensity_unit": unit, "intensity_full_scale": new_fs}
+    changes: dict = {"intensity_unit": unit, "intensity_full_scale": new_fs,
+                     "intensity_source": "the recipe's intensity_unit / intensity_full_scale",
+                     "intensity_step": profile.intensity_step if unit == profile.intensity_unit else None}
     if profile.intensity_kind == "signal":
         if profile.sensor_constant is not None:
             changes["sensor_constant"] = profile.sensor_constant * ratio

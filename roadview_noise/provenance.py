@@ -20,7 +20,7 @@ step's result with what came before (:func:`follow`), so after the chain ``origi
 What a model does: nothing, if it keeps its points (same N, same order) or uses :meth:`PointCloud.select`,
 :meth:`~PointCloud.drop` and :meth:`~PointCloud.concat` (they keep ``fields``, ``origin``, ``effect`` and
 ``attributes`` aligned: select gathers, drop deletes from a list or zeroes a grid cell (REMOVED), concat appends
-NEW points marked ADDED). A model that builds its output otherwise (``physics.lidar_link.assemble``) sets ``origin``
+NEW points marked ADDED). A model that builds its output otherwise (``physics.lidar_output.assemble``) sets ``origin``
 and ``effect`` itself and gathers ``attributes`` by the same index as its fields. A model that marks effects on
 points it keeps calls :func:`mark`.
 """

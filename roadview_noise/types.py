@@ -127,6 +127,18 @@ class LidarProfile:
     beam_origin_offset_m: float = 0.0          # Ouster lidar_origin_to_beam_origin (horizontal)
     sensor_z_offset_m: float = 0.0             # Ouster lidar_to_sensor_transform z (points are in the sensor frame)
     window: str = "static"                     # "static" (Ouster) or "rotating" (Velodyne head), §3.8
+    # how the stored intensity is written (physics/lidar_intensity.py)
+    intensity_step: float | None = None        # resolution of the stored value; None: 1 for count units, 0 (continuous)
+    #                                            for [0, 1] floats
+    faint_reading: str = "zero"                # a return whose value rounds below one step: "zero", "lowest" (one
+    #                                            step) or "no_return" (the sensor drops it)
+    intensity_source: str = "the profile"      # what states the unit and kind; "" = nothing (default profile): the
+    #                                            data decides, with a warning
+    # receiver noise and detection (physics/receiver.py)
+    receiver: str = "apd"                      # "spad" (photon counting) or "apd" (linear, Gaussian)
+    photons_at_threshold: float = 100.0        # detected photo-electrons of a return at the detection threshold
+    threshold_over_noise: float = 4.0          # detection threshold / noise floor (ambient + receiver noise) at S = 0
+    excess_noise_factor: float = 3.0           # multiplication noise of the signal's shot noise (SPAD, PIN: 1)
 
     @property
     def channels(self) -> int:

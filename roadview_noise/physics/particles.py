@@ -52,7 +52,7 @@ from ..profiles.camera import fit_to_image
 from ..types import CameraProfile, Conditions
 from ..units import ray_factor
 from .cfa import SiteLayout
-from .dsd import BRANDES_SNOW_GAMMA, SNOW_LAWS, gamma_dsd, marshall_palmer
+from .dsd import BRANDES_SNOW_GAMMA, gamma_dsd, marshall_palmer, snowfall
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
 from .photometry import composite, estimation_depth, frame_depth_m
@@ -63,7 +63,7 @@ FINE_STEP_MM = 0.005
 QUANTILES_PER_CLASS = 32
 DEPTH_QUANTILES = 4096
 RAIN_DIAMETER_RANGE_MM = (0.5, 6.0)
-SNOW_DIAMETER_RANGE_MM = (0.1, 10.0)
+SNOW_DIAMETER_RANGE_MM = (0.1, 20.0)      # flake (geometric) diameters, as the LiDAR's snowfall
 SNOW_DSDS = ("gunn_marshall", "sekhon_srivastava", "brandes")
 # disk diameters with the second moment, across a streak, of the 2-tap linear split (1.63 px) and of the split at
 # scale s followed by bilinear upsampling (2.31 s px)
@@ -156,16 +156,17 @@ def rain_classes(rain_rate_mm_per_h: float) -> SizeClasses:
 
 
 @lru_cache(maxsize=32)
-def snow_classes(snowfall_rate_mm_per_h: float, dsd: str) -> SizeClasses:
-    """Snowflakes 0.1–10 mm (models.md §2.3): exponential Gunn–Marshall / Sekhon–Srivastava laws of the
-    liquid-equivalent rate, or the Brandes et al. (2007) measured gamma fits (3.03, 2.70, 2.59 mm/h only)."""
+def snow_classes(snowfall_rate_mm_per_h: float, dsd: str, habit: str = "dry_aggregates") -> SizeClasses:
+    """Snowflakes of 0.1–10 mm geometric diameter (models.md §2.3 and its correction): the LiDAR's snowfall
+    (:func:`dsd.snowfall`: Gunn–Marshall / Sekhon–Srivastava slope in melted diameter, flakes from the habit's
+    density–size law, N0 from the mass flux), or the Brandes et al. (2007) measured gamma fits in flake diameter
+    (3.03, 2.70, 2.59 mm/h only)."""
     if dsd == "brandes":
         if snowfall_rate_mm_per_h not in BRANDES_SNOW_GAMMA:
             raise ValueError(f"the Brandes table has only {sorted(BRANDES_SNOW_GAMMA)} mm/h")
         n0, mu, lam = BRANDES_SNOW_GAMMA[snowfall_rate_mm_per_h]
         return size_classes(lambda d: gamma_dsd(d, n0, mu, lam), *SNOW_DIAMETER_RANGE_MM)
-    n0, lam = SNOW_LAWS[dsd](snowfall_rate_mm_per_h)
-    return size_classes(lambda d: n0 * np.exp(-lam * d), *SNOW_DIAMETER_RANGE_MM)
+    return size_classes(snowfall(snowfall_rate_mm_per_h, dsd, habit).flake_density, *SNOW_DIAMETER_RANGE_MM)
 
 
 def rain_fall_speed_m_per_s(d_mm):
