@@ -208,7 +208,7 @@ def acceptance(cloud: PointCloud) -> None:
     n = len(cloud)
     for model in (RainLidar(rain_rate_mm_per_h=0.001), SnowLidar(snowfall_rate_mm_per_h=0.0001)):
         out, rec = apply_models([model], cloud, seed=1, key="trace", sequence_id="s")
-        same = (np.all(out.positions_m[:n] == cloud.positions_m, axis=1) & (out.fields["label"][:n] == 0)
+        same = (np.all(out.positions_m[:n] == cloud.positions_m, axis=1) & (out.effect[:n] == Effect.KEPT)
                 & (out.fields["intensity"][:n] == cloud.fields["intensity"])) if len(out) >= n else np.zeros(n, bool)
         print(f"  {model.id} at {model.params()[next(iter(model.params()))]:g} mm/h: "
               f"{100 * (n - same.sum() + len(out) - n) / n:.3f} % of the points changed")
