@@ -59,6 +59,7 @@ class InputsSpec(_Strict):
 class OutputSpec(_Strict):
     format: Literal["same"] = "same"
     labels: Literal["auto", "none"] = "auto"
+    metrics: bool = True                       # per-step and per-output metrics in the manifest (roadview_noise.metrics)
 
 
 class RecipeSpec(_Strict):

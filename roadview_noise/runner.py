@@ -20,6 +20,7 @@ from .errors import RecipeError, RvNoiseError
 from .io.atomic import remove_stale_temporaries
 from .manifest import (MANIFEST_NAME, RUN_NAME, dumps, library_versions, read_manifest, sha256_file,
                        write_manifest, write_run_json)
+from .metrics import compare
 from .recipe import Recipe, draw_value
 from .registry import get_model
 from .seeding import derive_rng
@@ -89,11 +90,12 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
     }
     try:
         entry["input_sha256"] = sha256_file(in_root / s.relpath)
-        data = load(s, in_root, recipe)
+        data = original = load(s, in_root, recipe)
         models = build_models(recipe, task)
         data, records = apply_models(models, data, seed=recipe.seed, key=task.out_relpath,
-                                     sequence_id=s.sequence_id)
+                                     sequence_id=s.sequence_id, metrics=recipe.spec.output.metrics)
         entry["steps"] = [asdict(r) for r in records]
+        entry["metrics"] = compare(original, data) if recipe.spec.output.metrics else {}
         out_path = out_root / task.out_relpath
         save(data, out_path, recipe, source=in_root / s.relpath)
         entry["output_sha256"] = sha256_file(out_path)
