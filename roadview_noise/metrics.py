@@ -2,20 +2,22 @@
 
 ``compare(before, after)`` returns a flat JSON-able dict; ``compound.apply_models`` stores it per step
 (``steps[i].metrics``: the step's input against its output) and the runner per output (``metrics``: the chain's
-input against the written output). Pure NumPy/OpenCV plus one compiled pass over clouds; no I/O. Each data object
-is summarised once (cached while it lives), so a chain of n steps costs n + 1 summaries and n + 1 comparisons.
+input against the written output). Pure NumPy/OpenCV plus compiled passes over clouds; no I/O. Each data object is
+summarised once (cached while it lives; a step that returns the same pixels shares its input's summary), so a chain
+of n steps costs at most n + 1 summaries and n + 1 comparisons.
 
-Camera (``CameraFrame``, ``RawFrame``) — on the image as displayed: the linear signal clipped to [0, 1], sRGB-encoded,
-grey = Rec. 601 luma (raw Bayer: the mean of each 2×2 CFA cell). Frames are first reduced by an integer factor
-``metric_scale = max(1, round(min(H, W) / 256))`` with a box filter, as Wang et al.'s reference SSIM code does, so the
-metrics describe the image at a ≈ 256-px viewing scale (and cost ≈ 1 % of a full-HD augment); 484×366 and smaller are
-measured at full resolution.
+Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relative luminance Y = 0.2126 R +
+0.7152 G + 0.0722 B of the linear signal (raw Bayer: the mean of each 2×2 CFA cell), clipped to [0, 1] and
+sRGB-encoded (IEC 61966-2-1). Frames are first reduced with a box filter by the smallest integer factor
+``metric_scale`` that leaves at most 65 536 pixels — the ≈ 256-px scale at which Wang et al.'s reference code
+evaluates SSIM — so a metric describes the image at that viewing scale and costs about the same at any resolution.
 
-- ``psnr_db``: 10·log10(1 / MSE) over the colour channels (code values 0–1); ``inf`` when identical.
+- ``psnr_db``: 10·log10(1 / MSE) of the grey images (0–1); ``inf`` when identical.
 - ``ssim``: mean SSIM of the grey images (Wang et al. 2004, IEEE TIP 13(4), Eq. 13: 11×11 Gaussian window σ = 1.5,
   K1 = 0.01, K2 = 0.03, L = 1), averaged over the pixels whose window lies inside the image.
 - ``rms_contrast_in/out``: RMS contrast, the standard deviation of the grey values (Peli 1990, JOSA A 7(10)).
-- ``edge_density_in/out``: fraction of pixels on a Canny edge of the 8-bit grey image (thresholds 50/150, L2).
+- ``edge_density_in/out``: fraction of pixels whose grey gradient (3×3 Sobel / 8, per pixel) is ≥ 0.025, so a step
+  of the 5 % visibility contrast (CIE; Hautière et al. 2006) marks the two pixels beside it.
 - ``mean_level_in/out``: mean grey value (0–1).
 - with depth: ``depth_bin_edges_m`` and ``rms_contrast_per_depth_bin_in/out`` (None for a bin with < 64 pixels;
   the last bin includes the sky, depth ``inf``).
@@ -54,9 +56,10 @@ EFFECT_FIELD = "label"                      # per-point effect code (types.Point
 OBJECT_FIELDS = ("object_id", "ObjIdx")     # per-point object/instance id (CARLA semantic LiDAR: ObjIdx); ≤ 0 = none
 RANGE_BIN_M = 10.0
 DEPTH_BIN_EDGES_M = (0.0, 10.0, 20.0, 40.0, 80.0, math.inf)
-VIEW_SHORT_SIDE_PX = 256                    # Wang et al.: reduce by round(min(H, W) / 256)
+MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
 MIN_BIN_PX = 64
-CANNY_THRESHOLDS = (50, 150)
+EDGE_GRADIENT_PER_PX = 0.025                # half of a 5 % step (a step's Sobel/8 on each side is half the step)
 SSIM_SIGMA_PX, SSIM_RADIUS_PX, SSIM_K1, SSIM_K2 = 1.5, 5, 0.01, 0.03
 MAX_OBJECTS = 200                           # the largest objects only, so a manifest line stays small
 
@@ -80,10 +83,18 @@ def object_ids(cloud: PointCloud) -> np.ndarray | None:
 def compare(before: SensorData, after: SensorData) -> dict[str, Any]:
     """Metrics of ``after`` against ``before`` (the same sensor); see the module doc for names and units."""
     if isinstance(before, PointCloud) and isinstance(after, PointCloud):
-        return _compare_clouds(_summary(before), _summary(after))
-    if isinstance(before, (CameraFrame, RawFrame)) and isinstance(after, (CameraFrame, RawFrame)):
-        return _compare_frames(_summary(before), _summary(after))
-    raise TypeError(f"cannot compare {type(before).__name__} with {type(after).__name__}")
+        fn = _compare_clouds
+    elif isinstance(before, (CameraFrame, RawFrame)) and isinstance(after, (CameraFrame, RawFrame)):
+        fn = _compare_frames
+        if after not in _summaries and _pixels(after) is _pixels(before) and after.depth_m is before.depth_m:
+            _summaries[after] = _summary(before)          # the step changed no pixel (wind: conditions only)
+    else:
+        raise TypeError(f"cannot compare {type(before).__name__} with {type(after).__name__}")
+    b, a = _summary(before), _summary(after)
+    done = a.setdefault("compared", {})                 # (before summary, result) by id: a chain whose step left
+    if id(b) not in done:                               # the pixels alone compares input and output once
+        done[id(b)] = (b, fn(b, a))
+    return dict(done[id(b)][1])
 
 
 def _summary(data: SensorData) -> dict:
@@ -97,9 +108,16 @@ def _summary(data: SensorData) -> dict:
 # --- camera -----------------------------------------------------------------------------------------------------
 
 
+def _pixels(frame: CameraFrame | RawFrame) -> np.ndarray:
+    return frame.dn if isinstance(frame, RawFrame) else frame.linear_rgb
+
+
 def metric_scale(height_px: int, width_px: int) -> int:
-    """Integer reduction factor of the camera metrics (Wang et al.'s ``max(1, round(min(H, W) / 256))``)."""
-    return max(1, int(round(min(height_px, width_px) / VIEW_SHORT_SIDE_PX)))
+    """Integer box-filter factor of the camera metrics: the smallest that leaves ≤ 65 536 pixels."""
+    f = max(1, math.ceil(math.sqrt(height_px * width_px / MAX_METRIC_PIXELS)))
+    while (height_px // f) * (width_px // f) > MAX_METRIC_PIXELS:
+        f += 1
+    return f
 
 
 def _reduce(img: np.ndarray, f: int) -> np.ndarray:
@@ -110,63 +128,79 @@ def _reduce(img: np.ndarray, f: int) -> np.ndarray:
     return cv2.resize(img[: h * f, : w * f], (w, h), interpolation=cv2.INTER_AREA)
 
 
-def _encoded(linear: np.ndarray) -> np.ndarray:
-    """sRGB code values 0–1 (float32) of a linear signal, clipped to [0, 1]."""
-    return linear_to_code(linear, 16).astype(np.float32) * np.float32(1 / 65535)
-
-
-def _display(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, int]:
-    """(colour or grey image to compare, grey image, depth at the same pixels or None, reduction factor)."""
+def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """(sRGB-encoded grey image 0–1 float32 at the metric scale, depth at the same pixels or None, factor)."""
     if isinstance(frame, RawFrame):
         s = frame.signal()
         h, w = s.shape[0] // 2 * 2, s.shape[1] // 2 * 2
-        cells = cv2.resize(s[:h, :w], (w // 2, h // 2), interpolation=cv2.INTER_AREA)   # mean of each CFA cell
-        f = metric_scale(*cells.shape)
-        image = grey = _encoded(_reduce(cells, f))
+        f = metric_scale(h // 2, w // 2)
+        y = _reduce(s[:h, :w], 2 * f)                                   # mean of whole CFA cells
         block = 2 * f
     else:
         f = metric_scale(*frame.shape)
-        image = _encoded(_reduce(frame.linear_rgb, f))
-        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
+        y = _reduce(frame.linear_rgb, f)
+        if y.ndim == 3:
+            y = cv2.transform(y, np.array([LUMINANCE_WEIGHTS], np.float32))
         block = f
+    grey = linear_to_code(y, 16).astype(np.float32) * np.float32(1 / 65535)
     depth = None
     if frame.depth_m is not None:
         c = block // 2
         depth = frame.depth_m[c::block, c::block][: grey.shape[0], : grey.shape[1]]
-    return image, grey, depth, f
+    return grey, depth, f
 
 
 def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
-    image, grey, depth, f = _display(frame)
-    edges = cv2.Canny(np.rint(grey * 255).astype(np.uint8), *CANNY_THRESHOLDS, L2gradient=True)
-    s = {"image": image, "grey": grey, "scale": f, "rms_contrast": float(grey.std(dtype=np.float64)),
-         "edge_density": float(np.count_nonzero(edges)) / edges.size, "mean_level": float(grey.mean(dtype=np.float64))}
+    grey, depth, f = _grey(frame)
+    mean, std = cv2.meanStdDev(grey)
+    s = {"grey": grey, "scale": f, "rms_contrast": float(std[0, 0]), "edge_density": edge_density(grey),
+         "mean_level": float(mean[0, 0])}
     if depth is not None:
         s["depth_contrast"] = rms_contrast_per_depth_bin(grey, depth)
     return s
+
+
+def edge_density(grey: np.ndarray) -> float:
+    """Fraction of pixels whose gradient (3×3 Sobel / 8, grey levels per pixel) is ≥ ``EDGE_GRADIENT_PER_PX``."""
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, borderType=cv2.BORDER_REPLICATE)
+    limit = np.float32((8 * EDGE_GRADIENT_PER_PX) ** 2) * np.float32(1 - 1e-6)  # a float32 step of exactly 5 % counts
+    return float(np.count_nonzero(gx * gx + gy * gy >= limit)) / grey.size
 
 
 def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
                                edges_m: tuple[float, ...] = DEPTH_BIN_EDGES_M) -> list[float | None]:
     """RMS contrast of the pixels in each depth bin [e_i, e_i+1) (the last bin includes ``inf``); None for a bin
     with fewer than 64 pixels (or no depth: NaN, negative)."""
-    n_bins = len(edges_m) - 1
-    depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float64).ravel(), nan=-1.0)
-    index = np.searchsorted(np.asarray(edges_m[1:-1]), depth, side="right")
-    index[depth < edges_m[0]] = n_bins                                 # no depth: a bin of its own, dropped
-    g = grey.astype(np.float64).ravel()
-    n = np.bincount(index, minlength=n_bins + 1)[:n_bins]
-    s1 = np.bincount(index, g, minlength=n_bins + 1)[:n_bins]
-    s2 = np.bincount(index, g * g, minlength=n_bins + 1)[:n_bins]
-    mean = s1 / np.maximum(n, 1)
-    var = np.maximum(s2 / np.maximum(n, 1) - mean * mean, 0.0)
-    return [float(math.sqrt(v)) if k >= MIN_BIN_PX else None for v, k in zip(var, n)]
+    out: list[float | None] = []
+    for mask, n in _depth_masks(depth_m, edges_m):
+        out.append(float(cv2.meanStdDev(grey, mask=mask)[1][0, 0]) if n >= MIN_BIN_PX else None)
+    return out
+
+
+_last_depth: list = [None, None, None, None]   # weakref to a depth map's base, the sampled view, edges, masks
+
+
+def _depth_masks(depth_m: np.ndarray, edges_m: tuple[float, ...]) -> list[tuple[np.ndarray, int]]:
+    """(uint8 mask, pixel count) per depth bin. The frames of a chain share one depth map, so the masks of the last
+    one are kept."""
+    base = depth_m.base if depth_m.base is not None else depth_m
+    ref, view, edges, masks = _last_depth
+    if (ref is not None and ref() is base and edges == edges_m and view.shape == depth_m.shape
+            and view.strides == depth_m.strides and view.ctypes.data == depth_m.ctypes.data):
+        return masks
+    d = np.asarray(depth_m, dtype=np.float32)
+    masks = []
+    for i, (lo, hi) in enumerate(zip(edges_m[:-1], edges_m[1:])):
+        m = (d >= lo) & ((d < hi) | (i == len(edges_m) - 2))             # the last bin includes inf
+        masks.append((m.view(np.uint8), int(np.count_nonzero(m))))
+    _last_depth[:] = [weakref.ref(base), depth_m, edges_m, masks]
+    return masks
 
 
 def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:
     """Peak signal-to-noise ratio (dB) of ``b`` against ``a``; ``inf`` when they are identical."""
-    d = a.astype(np.float64) - b
-    mse = float(np.mean(d * d))
+    mse = cv2.norm(np.asarray(a, np.float32), np.asarray(b, np.float32), cv2.NORM_L2SQR) / np.size(a)
     return math.inf if mse == 0 else 10.0 * math.log10(peak * peak / mse)
 
 
@@ -176,27 +210,27 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
     r = SSIM_RADIUS_PX
     if min(a.shape) <= 2 * r:
         return None
-    a = a.astype(np.float32)
-    b = b.astype(np.float32)
+    a = np.asarray(a, np.float32)
+    b = np.asarray(b, np.float32)
 
     def blur(x):
-        return cv2.GaussianBlur(x, (2 * r + 1, 2 * r + 1), SSIM_SIGMA_PX)[r:-r, r:-r].astype(np.float64)
+        return cv2.GaussianBlur(x, (2 * r + 1, 2 * r + 1), SSIM_SIGMA_PX)[r:-r, r:-r]
 
     mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a * mu_a
-    var_b = blur(b * b) - mu_b * mu_b
-    cov = blur(a * b) - mu_a * mu_b
-    c1, c2 = (SSIM_K1 * data_range) ** 2, (SSIM_K2 * data_range) ** 2
-    m = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a * mu_a + mu_b * mu_b + c1) * (var_a + var_b + c2))
-    return float(m.mean())
+    mu_ab, mu_aa, mu_bb = mu_a * mu_b, mu_a * mu_a, mu_b * mu_b
+    c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
+    num = (2 * mu_ab + c1) * (2 * (blur(a * b) - mu_ab) + c2)
+    den = (mu_aa + mu_bb + c1) * (blur(a * a) - mu_aa + (blur(b * b) - mu_bb) + c2)
+    return float(np.mean(num / den, dtype=np.float64))
 
 
 def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
-    same = b["image"].shape == a["image"].shape
+    same = b["grey"].shape == a["grey"].shape
+    identical = a is b
     out: dict[str, Any] = {
         "metric_scale": a["scale"],
-        "psnr_db": psnr_db(b["image"], a["image"]) if same else None,
-        "ssim": ssim(b["grey"], a["grey"]) if same else None,
+        "psnr_db": math.inf if identical else (psnr_db(b["grey"], a["grey"]) if same else None),
+        "ssim": 1.0 if identical else (ssim(b["grey"], a["grey"]) if same else None),
     }
     for k in ("rms_contrast", "edge_density", "mean_level"):
         out[f"{k}_in"], out[f"{k}_out"] = b[k], a[k]
@@ -218,25 +252,26 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
     hist = np.zeros(n_bins, np.int64)
     max_r = 0.0
     total = 0.0
+    has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
+    inv_bin = 1.0 / bin_m
+    max_r2 = 0.0
     for i in range(positions.shape[0]):
-        if not _is_return(positions[i]):
-            continue
         x, y, z = positions[i, 0], positions[i, 1], positions[i, 2]
-        r = math.sqrt(x * x + y * y + z * z)
+        r2 = x * x + y * y + z * z
+        if not (r2 > 0.0) or not np.isfinite(r2):
+            continue
         counts[0] += 1
-        c = codes[i] if codes.shape[0] else 0
+        c = codes[i] if has_codes else 0
         if 0 <= c <= 3:
             counts[1 + c] += 1
-        k = int(r / bin_m)
-        hist[min(k, n_bins - 1)] += 1
-        if r > max_r:
-            max_r = r
-        if values.shape[0]:
+        hist[min(int(math.sqrt(r2) * inv_bin), n_bins - 1)] += 1
+        max_r2 = max(max_r2, r2)
+        if has_values:
             v = values[i]
             if np.isfinite(v):
                 total += v
                 counts[5] += 1
-    return counts, hist, max_r, total
+    return counts, hist, math.sqrt(max_r2), total
 
 
 def _cloud_summary(cloud: PointCloud) -> dict:
@@ -278,33 +313,28 @@ def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, n
 def _correspond(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray]:
     grid = b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"])
     effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.int64)
-    return _match(b["positions"], a["positions"], effect, grid)
+    return _match(b["positions"], a["positions"], effect, grid, len(a["positions"]) - a["codes"][3])
 
 
-@jit
-def _same_ray(p, q):       # pragma: no cover - compiled
-    """Both are returns (non-zero) on the same ray from the sensor: |p × q| ≤ 1e-6 |p||q| and p·q > 0."""
-    cx = p[1] * q[2] - p[2] * q[1]
-    cy = p[2] * q[0] - p[0] * q[2]
-    cz = p[0] * q[1] - p[1] * q[0]
-    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
-    qq = q[0] * q[0] + q[1] * q[1] + q[2] * q[2]
-    dot = p[0] * q[0] + p[1] * q[1] + p[2] * q[2]
+@jit(inline="always")
+def _same_ray(p, i, q, j):       # pragma: no cover - compiled
+    """Returns ``p[i]`` and ``q[j]`` lie on the same ray from the sensor: |p × q| ≤ 1e-6 |p||q| and p·q > 0."""
+    px, py, pz, qx, qy, qz = p[i, 0], p[i, 1], p[i, 2], q[j, 0], q[j, 1], q[j, 2]
+    cx, cy, cz = py * qz - pz * qy, pz * qx - px * qz, px * qy - py * qx
+    pp, qq = px * px + py * py + pz * pz, qx * qx + qy * qy + qz * qz
+    dot = px * qx + py * qy + pz * qz
     return pp > 0 and qq > 0 and dot > 0 and cx * cx + cy * cy + cz * cz <= 1e-12 * pp * qq
 
 
 @jit
-def _match(pb, pa, effect_a, grid):       # pragma: no cover - compiled
-    """:func:`correspondence` on positions (and the effect codes of ``after``)."""
+def _match(pb, pa, effect_a, grid, survivors):       # pragma: no cover - compiled
+    """:func:`correspondence` on positions, the effect codes of ``after`` and its number of non-ADDED points."""
     nb, na = pb.shape[0], pa.shape[0]
     index = np.full(nb, -1, np.int64)
     moved = np.zeros(nb, np.bool_)
-    survivors = 0
-    for j in range(na):
-        survivors += effect_a[j] != 3
     if grid:                                   # cell by cell
         for i in range(nb):
-            if _is_return(pb[i]) and _is_return(pa[i]):
+            if _is_return(pb, i) and _is_return(pa, i):
                 index[i] = i
                 moved[i] = effect_a[i] == 2
         return index, moved
@@ -318,10 +348,10 @@ def _match(pb, pa, effect_a, grid):       # pragma: no cover - compiled
             index[i] = j
             moved[i] = effect_a[j] == 2
             j += 1
-        elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and _is_return(pb[i]):
+        elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and _is_return(pb, i):
             index[i] = j
             j += 1
-        elif _same_ray(pb[i], pa[j]):
+        elif _same_ray(pb, i, pa, j):
             index[i] = j
             moved[i] = True
             j += 1
@@ -329,8 +359,22 @@ def _match(pb, pa, effect_a, grid):       # pragma: no cover - compiled
 
 
 @jit(inline="always")
-def _is_return(p):       # pragma: no cover - compiled
-    return (p[0] != 0.0 or p[1] != 0.0 or p[2] != 0.0) and np.isfinite(p[0] + p[1] + p[2])
+def _is_return(p, i):       # pragma: no cover - compiled
+    r2 = p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1] + p[i, 2] * p[i, 2]
+    return r2 > 0.0 and np.isfinite(r2)
+
+
+@jit
+def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no cover - compiled
+    """Mean of ``values_a[index[i]] - values_b[i]`` over the points that stayed in place (NaN if none)."""
+    total, n = 0.0, 0
+    for i in range(index.shape[0]):
+        if index[i] >= 0 and not moved[i]:
+            d = values_a[index[i]] - values_b[i]
+            if np.isfinite(d):
+                total += d
+                n += 1
+    return total / n if n else np.nan
 
 
 def points_per_object(cloud: PointCloud, ids: np.ndarray, codes: np.ndarray | None = None) -> dict[int, int]:
@@ -357,10 +401,8 @@ def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
     vb, va = b["mean_value"], a["mean_value"]
     change = None
     if len(b["values"]) and len(a["values"]):
-        index, moved = _correspond(b, a)
-        stay = (index >= 0) & ~moved
-        if stay.any():
-            change = float(np.mean(a["values"][index[stay]] - b["values"][stay]))
+        change = float(_mean_change_in_place(*_correspond(b, a), b["values"], a["values"]))
+        change = None if math.isnan(change) else change
     if a["radar"]:
         out.update(mean_snr_in_db=vb, mean_snr_out_db=va, mean_snr_change_db=change)
     else:

@@ -70,12 +70,17 @@ def test_psnr_of_a_uniform_offset():
     assert psnr_db(np.zeros(4), np.full(4, 0.1)) == pytest.approx(20.0)
 
 
-def test_edge_density_of_a_step_and_a_square():
-    step = frame_of_codes(two_levels(0.0, code(51400)))                    # 0 → 200/255
-    assert compare(step, step)["edge_density_in"] == pytest.approx(48 / (48 * 64))   # one column of edge pixels
+def test_edge_density_of_a_step_a_square_and_the_visibility_threshold():
+    step = frame_of_codes(two_levels(0.0, code(51400)))
+    assert compare(step, step)["edge_density_in"] == 2 * 48 / (48 * 64)       # the two columns beside the step
     square = np.zeros((48, 64))
     square[10:30, 20:40] = code(51400)
-    assert compare(frame_of_codes(square), step)["edge_density_in"] == pytest.approx((4 * 20 - 4) / (48 * 64))
+    assert compare(frame_of_codes(square), step)["edge_density_in"] == (22 * 22 - 18 * 18) / (48 * 64)
+    lo = 20000
+    visible = frame_of_codes(two_levels(code(lo), code(lo + 3277)))            # a 5.0 % step
+    faint = frame_of_codes(two_levels(code(lo), code(lo + 3200)))              # a 4.9 % step
+    assert compare(visible, faint)["edge_density_in"] == 2 * 48 / (48 * 64)
+    assert compare(visible, faint)["edge_density_out"] == 0.0
 
 
 def test_contrast_per_depth_bin():
@@ -106,14 +111,18 @@ def test_ssim_matches_scikit_image():
     assert ssim(a[:8], a[:8]) is None                       # smaller than the 11×11 window
 
 
-def test_metric_scale_is_wangs_downsampling():
-    assert metric_scale(1464, 1936) == 6
-    assert metric_scale(366, 484) == 1
+def test_metric_scale_leaves_at_most_65536_pixels():
+    assert metric_scale(1464, 1936) == 7                                       # 209 × 276
+    assert metric_scale(366, 484) == 2                                         # 183 × 242
+    assert metric_scale(256, 256) == 1 and metric_scale(257, 256) == 2
+    for h, w in ((1080, 1920), (2048, 2448), (720, 1280), (64, 5000)):
+        f = metric_scale(h, w)
+        assert (h // f) * (w // f) <= 65536 < (h // (f - 1)) * (w // (f - 1)) if f > 1 else h * w <= 65536
     rng = np.random.default_rng(1)
     f = CameraFrame(rng.random((1464, 1936, 3), dtype=np.float32) * 0.5, PROFILE.resized(1936, 1464))
     m = compare(f, f)
-    assert m["metric_scale"] == 6 and m["psnr_db"] == math.inf
-    # box averaging of noise: the reduced image's contrast is the full image's σ / 6 (σ of uniform 0..0.5, encoded)
+    assert m["metric_scale"] == 7 and m["psnr_db"] == math.inf
+    # the box filter averages pixel noise away: the reduced image has far less contrast than single pixels
     assert m["rms_contrast_in"] < 0.05
 
 
