@@ -33,6 +33,7 @@ from .registry import load_all
 REPORT_NAME = "report.html"
 REPORT_JSON = "report.json"
 SENSORS = ("camera", "lidar", "radar")
+SENSOR_TITLES = {"camera": "Camera", "lidar": "LiDAR", "radar": "Radar"}
 CORNER_CASES_PER_SENSOR = 5
 PREVIEW_PANEL_PX = 320
 
@@ -417,7 +418,7 @@ def build(root: Path, *, echo: Callable[[str], None] = lambda m: None) -> tuple[
         mine = [(i, r, s) for i, (r, s) in enumerate(zip(runs, summaries)) if r.sensor == sensor]
         if not mine:
             continue
-        parts.append(f"<h2>{sensor.capitalize()}</h2>")
+        parts.append(f"<h2>{SENSOR_TITLES[sensor]}</h2>")
         parts.append(_run_table(mine, sensor))
         plot = camera_plot([s for _, _, s in mine]) if sensor == "camera" else cloud_plot([s for _, _, s in mine])
         if plot:
