@@ -258,7 +258,7 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
     for i in range(positions.shape[0]):
         x, y, z = positions[i, 0], positions[i, 1], positions[i, 2]
         r2 = x * x + y * y + z * z
-        if not (r2 > 0.0) or not np.isfinite(r2):
+        if not (r2 > 0.0 and r2 < np.inf):
             continue
         counts[0] += 1
         c = codes[i] if has_codes else 0
@@ -267,7 +267,7 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
         hist[min(int(math.sqrt(r2) * inv_bin), n_bins - 1)] += 1
         max_r2 = max(max_r2, r2)
         if has_values:
-            v = values[i]
+            v = float(values[i])
             if np.isfinite(v):
                 total += v
                 counts[5] += 1
@@ -276,10 +276,10 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
 
 def _cloud_summary(cloud: PointCloud) -> dict:
     codes = effect_codes(cloud)
-    codes = np.zeros(0, np.int64) if codes is None else np.asarray(codes, dtype=np.int64)
+    codes = np.zeros(0, np.uint8) if codes is None else np.asarray(codes)
     radar = cloud.sensor == "radar"
     values = cloud.fields.get("snr_db" if radar else "intensity")
-    values = np.zeros(0) if values is None or np.ndim(values) != 1 else np.asarray(values, dtype=np.float64)
+    values = np.zeros(0) if values is None or np.ndim(values) != 1 else np.asarray(values)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
     n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
@@ -303,17 +303,34 @@ def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, n
 
     Full grids match cell by cell (moved: effect MOVED). Point lists rely on the models' contract: surviving points
     keep their order and ADDED points are new. When nothing was removed, the i-th point is the i-th survivor;
-    otherwise a survivor is found in place when its position is unchanged, or moved when it lies on the same ray,
-    and a point whose position changed otherwise (an alignment error in the same step as a removal) counts as
-    removed here."""
-    b, a = _summary(before), _summary(after)
-    return _correspond(b, a)
+    otherwise a survivor is found in place when its position is unchanged, or moved when it lies on the same ray.
+    Across several steps (``after`` came from ``before`` through compared steps, as in ``apply_models``) the
+    correspondences of the steps are composed, so an alignment error in one step and removals in the next are
+    told apart."""
+    return _link(_summary(before), _summary(after))
 
 
-def _correspond(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray]:
+def _link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`correspondence` of two cloud summaries; the first one ``a`` is compared with becomes its parent."""
+    chain = [a]
+    while chain[-1] is not b and "parent" in chain[-1] and len(chain) < 64:
+        chain.append(chain[-1]["parent"][0])
+    if chain[-1] is b and len(chain) > 1:                       # compose the steps' correspondences
+        index, moved = chain[-2]["parent"][1:]
+        for s in reversed(chain[:-2]):
+            step_index, step_moved = s["parent"][1:]
+            ok = index >= 0
+            prev = np.where(ok, index, 0)
+            moved = moved | (ok & step_moved[prev])
+            index = np.where(ok, step_index[prev], -1)
+        return index, moved
+    if a is b:
+        return np.arange(len(b["positions"])), np.zeros(len(b["positions"]), bool)
     grid = b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"])
-    effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.int64)
-    return _match(b["positions"], a["positions"], effect, grid, len(a["positions"]) - a["codes"][3])
+    effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.uint8)
+    index, moved = _match(b["positions"], a["positions"], effect, grid, len(a["positions"]) - a["codes"][3])
+    a.setdefault("parent", (b, index, moved))
+    return index, moved
 
 
 @jit(inline="always")
@@ -328,11 +345,12 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
 
 @jit
 def _match(pb, pa, effect_a, grid, survivors):       # pragma: no cover - compiled
-    """:func:`correspondence` on positions, the effect codes of ``after`` and its number of non-ADDED points."""
+    """:func:`correspondence` of one step from the positions, the effect codes of ``after`` and its number of
+    non-ADDED points."""
     nb, na = pb.shape[0], pa.shape[0]
     index = np.full(nb, -1, np.int64)
     moved = np.zeros(nb, np.bool_)
-    if grid:                                   # cell by cell
+    if grid:                                    # cell by cell
         for i in range(nb):
             if _is_return(pb, i) and _is_return(pa, i):
                 index[i] = i
@@ -340,28 +358,22 @@ def _match(pb, pa, effect_a, grid, survivors):       # pragma: no cover - compil
         return index, moved
     j = 0
     for i in range(nb):
-        while j < na and effect_a[j] == 3:     # ADDED: new, never a survivor
+        while j < na and effect_a[j] == 3:      # ADDED: new, never a survivor
             j += 1
         if j >= na:
             break
-        if survivors == nb:                    # nothing removed: survivors in order (positions may have changed)
+        if survivors == nb:                     # nothing removed: survivors in order (positions may change)
             index[i] = j
             moved[i] = effect_a[j] == 2
-            j += 1
         elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and _is_return(pb, i):
             index[i] = j
-            j += 1
         elif _same_ray(pb, i, pa, j):
             index[i] = j
             moved[i] = True
-            j += 1
+        else:
+            continue                            # removed
+        j += 1
     return index, moved
-
-
-@jit(inline="always")
-def _is_return(p, i):       # pragma: no cover - compiled
-    r2 = p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1] + p[i, 2] * p[i, 2]
-    return r2 > 0.0 and np.isfinite(r2)
 
 
 @jit
@@ -370,11 +382,17 @@ def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no 
     total, n = 0.0, 0
     for i in range(index.shape[0]):
         if index[i] >= 0 and not moved[i]:
-            d = values_a[index[i]] - values_b[i]
+            d = float(values_a[index[i]]) - float(values_b[i])
             if np.isfinite(d):
                 total += d
                 n += 1
     return total / n if n else np.nan
+
+
+@jit(inline="always")
+def _is_return(p, i):       # pragma: no cover - compiled
+    r2 = p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1] + p[i, 2] * p[i, 2]
+    return r2 > 0.0 and r2 < np.inf
 
 
 def points_per_object(cloud: PointCloud, ids: np.ndarray, codes: np.ndarray | None = None) -> dict[int, int]:
@@ -401,7 +419,7 @@ def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
     vb, va = b["mean_value"], a["mean_value"]
     change = None
     if len(b["values"]) and len(a["values"]):
-        change = float(_mean_change_in_place(*_correspond(b, a), b["values"], a["values"]))
+        change = float(_mean_change_in_place(*_link(b, a), b["values"], a["values"]))
         change = None if math.isnan(change) else change
     if a["radar"]:
         out.update(mean_snr_in_db=vb, mean_snr_out_db=va, mean_snr_change_db=change)

@@ -202,6 +202,27 @@ def test_alignment_shift_without_removal_keeps_correspondence():
     assert compare(c, shifted)["removed"] == 0
 
 
+def test_alignment_then_removal_composes_the_steps():
+    c0 = lidar_list()
+    c1 = dataclasses.replace(c0, positions_m=c0.positions_m * 1.001)            # every point moved: no exact match
+    keep = np.ones(100, bool)
+    keep[[10, 50]] = False
+    label = np.zeros(100, np.uint8)
+    label[[20, 21]] = PointLabel.ATTENUATED
+    label[30] = PointLabel.MOVED
+    pos = c1.positions_m.copy()
+    pos[30] *= 0.5
+    c2 = c1.with_fields(intensity=c1.fields["intensity"] - 4 * (label == PointLabel.ATTENUATED),
+                        label=label)
+    c2 = dataclasses.replace(c2, positions_m=pos).select(keep)
+    compare(c0, c1), compare(c1, c2)                                            # the steps, as apply_models does
+    index, moved = correspondence(c0, c2)
+    assert np.array_equal(index < 0, ~keep) and np.flatnonzero(moved).tolist() == [30]
+    m = compare(c0, c2)
+    assert m["removed"] == 2 and m["moved"] == 1 and m["attenuated"] == 2
+    assert m["mean_intensity_change"] == pytest.approx(-8 / 97, rel=1e-5)
+
+
 def test_radar_snr_change_in_db():
     rng = np.random.default_rng(4)
     pos = rng.uniform(5, 80, (50, 3))
