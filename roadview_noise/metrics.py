@@ -250,7 +250,6 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
     ``values`` over returns (NaN values are skipped: their count is the last element of ``counts``)."""
     counts = np.zeros(6, np.int64)            # returns, KEPT, ATTENUATED, MOVED, ADDED, finite values
     hist = np.zeros(n_bins, np.int64)
-    max_r = 0.0
     total = 0.0
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
     inv_bin = 1.0 / bin_m

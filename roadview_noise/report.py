@@ -19,7 +19,7 @@ import io
 import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -49,7 +49,6 @@ class Run:
     chain: list[str]
     sensor: str
     cnf: str | None
-    previews: list[dict] = field(default_factory=list)
 
     @property
     def ok(self) -> list[dict]:
