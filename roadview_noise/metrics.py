@@ -247,9 +247,11 @@ def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
 @jit
 def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cover - compiled
     """One pass over a cloud: returns, returns per effect code, farthest return, returns per range bin, sum of
-    ``values`` over returns (NaN values are skipped: their count is the last element of ``counts``)."""
+    ``values`` over returns (NaN values are skipped: their count is the last element of ``counts``), and which
+    points are returns."""
     counts = np.zeros(6, np.int64)            # returns, KEPT, ATTENUATED, MOVED, ADDED, finite values
     hist = np.zeros(n_bins, np.int64)
+    valid = np.zeros(positions.shape[0], np.bool_)
     total = 0.0
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
     inv_bin = 1.0 / bin_m
@@ -259,6 +261,7 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
         r2 = x * x + y * y + z * z
         if not (r2 > 0.0 and r2 < np.inf):
             continue
+        valid[i] = True
         counts[0] += 1
         c = codes[i] if has_codes else 0
         if 0 <= c <= 3:
@@ -270,7 +273,7 @@ def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cov
             if np.isfinite(v):
                 total += v
                 counts[5] += 1
-    return counts, hist, math.sqrt(max_r2), total
+    return counts, hist, math.sqrt(max_r2), total, valid
 
 
 def _cloud_summary(cloud: PointCloud) -> dict:
@@ -282,12 +285,13 @@ def _cloud_summary(cloud: PointCloud) -> dict:
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
     n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
-    counts, hist, max_r, total = _cloud_pass(positions, codes, values, RANGE_BIN_M, n_bins)
+    counts, hist, max_r, total, valid = _cloud_pass(positions, codes, values, RANGE_BIN_M, n_bins)
     used = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
     s = {"returns": int(counts[0]), "codes": [int(c) for c in counts[1:5]], "max_range_m": float(max_r),
          "hist": [int(h) for h in hist[:used]], "radar": radar,
          "mean_value": float(total / counts[5]) if counts[5] else None,
-         "positions": positions, "values": values, "effect": codes, "grid": cloud.grid_shape is not None}
+         "positions": positions, "valid": valid, "values": values, "effect": codes,
+         "grid": cloud.grid_shape is not None}
     if isinstance(cloud.profile, LidarProfile):
         s["intensity_unit"] = cloud.profile.intensity_unit
     ids = object_ids(cloud)
@@ -306,29 +310,43 @@ def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, n
     Across several steps (``after`` came from ``before`` through compared steps, as in ``apply_models``) the
     correspondences of the steps are composed, so an alignment error in one step and removals in the next are
     told apart."""
-    return _link(_summary(before), _summary(after))
+    index, moved, _ = _link(_summary(before), _summary(after))
+    return index, moved
 
 
-def _link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`correspondence` of two cloud summaries; the first one ``a`` is compared with becomes its parent."""
+def _link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`correspondence` of two cloud summaries and the mean value change (intensity, SNR) of the points that
+    stayed in place (NaN if none). The first summary ``a`` is matched with becomes its parent (in ``apply_models``:
+    its step's input)."""
+    if a is b:
+        n = len(b["positions"])
+        return np.arange(n), np.zeros(n, bool), (0.0 if len(b["values"]) else math.nan)
     chain = [a]
     while chain[-1] is not b and "parent" in chain[-1] and len(chain) < 64:
         chain.append(chain[-1]["parent"][0])
-    if chain[-1] is b and len(chain) > 1:                       # compose the steps' correspondences
+    if chain[-1] is b:                                          # compose the steps' correspondences
         index, moved = chain[-2]["parent"][1:]
         for s in reversed(chain[:-2]):
-            step_index, step_moved = s["parent"][1:]
-            ok = index >= 0
-            prev = np.where(ok, index, 0)
-            moved = moved | (ok & step_moved[prev])
-            index = np.where(ok, step_index[prev], -1)
-        return index, moved
-    if a is b:
-        return np.arange(len(b["positions"])), np.zeros(len(b["positions"]), bool)
+            index, moved = _compose(index, moved, *s["parent"][1:])
+        return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
     grid = b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"])
     effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.uint8)
-    index, moved = _match(b["positions"], a["positions"], effect, grid, len(a["positions"]) - a["codes"][3])
+    index, moved = _match(b["positions"], a["positions"], b["valid"], a["valid"], effect, grid,
+                          len(a["positions"]) - a["codes"][3])
     a.setdefault("parent", (b, index, moved))
+    return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
+
+
+@jit
+def _compose(index_ab, moved_ab, index_bc, moved_bc):       # pragma: no cover - compiled
+    """Correspondence a → c from a → b and b → c."""
+    index = np.full(index_ab.shape[0], -1, np.int32)
+    moved = np.zeros(index_ab.shape[0], np.bool_)
+    for i in range(index_ab.shape[0]):
+        k = index_ab[i]
+        if k >= 0:
+            index[i] = index_bc[k]
+            moved[i] = moved_ab[i] or moved_bc[k]
     return index, moved
 
 
@@ -343,35 +361,34 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
 
 
 @jit
-def _match(pb, pa, effect_a, grid, survivors):       # pragma: no cover - compiled
-    """:func:`correspondence` of one step from the positions, the effect codes of ``after`` and its number of
-    non-ADDED points."""
+def _match(pb, pa, valid_b, valid_a, effect_a, grid, survivors):       # pragma: no cover - compiled
+    """:func:`correspondence` of one step from the positions and returns, the effect codes of ``after`` and its
+    number of non-ADDED points. Positions are read only to tell the removed points of a list."""
     nb, na = pb.shape[0], pa.shape[0]
-    index = np.full(nb, -1, np.int64)
+    index = np.full(nb, -1, np.int32)
     moved = np.zeros(nb, np.bool_)
-    if grid:                                    # cell by cell
-        for i in range(nb):
-            if _is_return(pb, i) and _is_return(pa, i):
-                index[i] = i
-                moved[i] = effect_a[i] == 2
-        return index, moved
     j = 0
     for i in range(nb):
-        while j < na and effect_a[j] == 3:      # ADDED: new, never a survivor
-            j += 1
-        if j >= na:
-            break
-        if survivors == nb:                     # nothing removed: survivors in order (positions may change)
-            index[i] = j
-            moved[i] = effect_a[j] == 2
-        elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and _is_return(pb, i):
-            index[i] = j
-        elif _same_ray(pb, i, pa, j):
-            index[i] = j
-            moved[i] = True
+        if grid:                                # cell by cell
+            if not (valid_b[i] and valid_a[i]):
+                continue
+            k, away = i, effect_a[i] == 2
         else:
-            continue                            # removed
-        j += 1
+            while j < na and effect_a[j] == 3:  # ADDED: new, never a survivor
+                j += 1
+            if j >= na:
+                break
+            if survivors == nb:                 # nothing removed: survivors in order (positions may change)
+                k, away = j, effect_a[j] == 2
+            elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and valid_b[i]:
+                k, away = j, False
+            elif _same_ray(pb, i, pa, j):
+                k, away = j, True
+            else:
+                continue                        # removed
+            j += 1
+        index[i] = k
+        moved[i] = away
     return index, moved
 
 
@@ -379,6 +396,8 @@ def _match(pb, pa, effect_a, grid, survivors):       # pragma: no cover - compil
 def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no cover - compiled
     """Mean of ``values_a[index[i]] - values_b[i]`` over the points that stayed in place (NaN if none)."""
     total, n = 0.0, 0
+    if values_b.shape[0] == 0 or values_a.shape[0] == 0:
+        return np.nan
     for i in range(index.shape[0]):
         if index[i] >= 0 and not moved[i]:
             d = float(values_a[index[i]]) - float(values_b[i])
@@ -386,12 +405,6 @@ def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no 
                 total += d
                 n += 1
     return total / n if n else np.nan
-
-
-@jit(inline="always")
-def _is_return(p, i):       # pragma: no cover - compiled
-    r2 = p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1] + p[i, 2] * p[i, 2]
-    return r2 > 0.0 and r2 < np.inf
 
 
 def points_per_object(cloud: PointCloud, ids: np.ndarray, codes: np.ndarray | None = None) -> dict[int, int]:
@@ -416,10 +429,8 @@ def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
         "points_per_10m_out": a["hist"] + [0] * (n_bins - len(a["hist"])),
     }
     vb, va = b["mean_value"], a["mean_value"]
-    change = None
-    if len(b["values"]) and len(a["values"]):
-        change = float(_mean_change_in_place(*_link(b, a), b["values"], a["values"]))
-        change = None if math.isnan(change) else change
+    change = float(_link(b, a)[2])
+    change = None if math.isnan(change) else change
     if a["radar"]:
         out.update(mean_snr_in_db=vb, mean_snr_out_db=va, mean_snr_change_db=change)
     else:

@@ -194,6 +194,13 @@ def test_drop_on_a_grid_and_per_object_counts():
     assert m["objects"] == {"1": [16, 13], "2": [16, 15], "7": [16, 16]}
 
 
+def test_clouds_without_intensity_or_codes():
+    c = lidar_list()
+    bare = PointCloud(c.positions_m, {}, "lidar", profile=c.profile)
+    m = compare(bare, bare.select(np.arange(100) % 4 != 0))
+    assert m["removed"] == 25 and m["mean_intensity_change"] is None and m["mean_intensity_in"] is None
+
+
 def test_alignment_shift_without_removal_keeps_correspondence():
     c = lidar_list()
     shifted = dataclasses.replace(c, positions_m=c.positions_m + 0.01)
