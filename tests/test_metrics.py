@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from roadview_noise.compound import apply_models
-from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, compare, correspondence, metric_scale, psnr_db, ssim)
+from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, EFFECT_FIELD, compare, correspondence, metric_scale, psnr_db,
+                                    ssim)
 from roadview_noise.physics.srgb import decode
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.registry import get_model
@@ -170,9 +171,9 @@ def test_known_drop_mask_moves_and_additions_give_exact_counts():
     pos[[5, 6]] *= 0.25                                           # moved along their rays
     intensity = c.fields["intensity"].copy()
     intensity[[7, 8, 9]] -= 6.0
-    after = PointCloud(pos, {"intensity": intensity, "label": label}, "lidar", profile=c.profile).select(~drop)
+    after = PointCloud(pos, {"intensity": intensity, EFFECT_FIELD: label}, "lidar", profile=c.profile).select(~drop)
     after = after.concat(np.array([[1.0, 2.0, 0.5], [3.0, 0.0, 0.1]]),
-                         {"label": np.full(2, PointLabel.ADDED, np.uint8), "intensity": np.full(2, 5, np.float32)})
+                         {EFFECT_FIELD: np.full(2, PointLabel.ADDED, np.uint8), "intensity": np.full(2, 5, np.float32)})
     m = compare(c, after)
     assert m["removed"] == 5 and m["moved"] == 2 and m["attenuated"] == 3 and m["added"] == 2
     assert m["kept"] == 100 - 5 - 2 - 3 and m["points_out"] == 97
@@ -220,7 +221,7 @@ def test_alignment_then_removal_composes_the_steps():
     pos = c1.positions_m.copy()
     pos[30] *= 0.5
     c2 = c1.with_fields(intensity=c1.fields["intensity"] - 4 * (label == PointLabel.ATTENUATED),
-                        label=label)
+                        **{EFFECT_FIELD: label})
     c2 = dataclasses.replace(c2, positions_m=pos).select(keep)
     compare(c0, c1), compare(c1, c2)                                            # the steps, as apply_models does
     index, moved = correspondence(c0, c2)
@@ -236,7 +237,7 @@ def test_radar_snr_change_in_db():
     snr = rng.uniform(10, 30, 50).astype(np.float32)
     before = PointCloud(pos, {"snr_db": snr}, "radar", profile=RadarProfile("r"))
     label = np.full(50, PointLabel.ATTENUATED, np.uint8)
-    after = PointCloud(pos, {"snr_db": snr - 3.0, "label": label}, "radar", profile=before.profile)
+    after = PointCloud(pos, {"snr_db": snr - 3.0, EFFECT_FIELD: label}, "radar", profile=before.profile)
     m = compare(before, after.select(snr > 12))
     assert m["mean_snr_change_db"] == pytest.approx(-3.0, abs=1e-5)
     assert m["removed"] == int(np.count_nonzero(snr <= 12))
