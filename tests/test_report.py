@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -16,10 +17,13 @@ from roadview_noise.cli.main import app
 from roadview_noise.io.pointcloud import read_pointcloud
 from roadview_noise.manifest import read_manifest
 from roadview_noise.physics.srgb import linear_to_code
-from roadview_noise.preview import applicable_cnfs, recipe_from, render, run_chain, sample_for
+from roadview_noise.metrics import EFFECT_FIELD, compare
+from roadview_noise.preview import (ADDED_BGR, MOVED_BGR, RADAR_REMOVED_BGR, REMOVED_BGR, ChainRun, _changed_region,
+                                    applicable_cnfs, recipe_from, render, render_cloud, run_chain, sample_for)
 from roadview_noise.recipe import load_recipe
 from roadview_noise.report import build, corner_cases, data_loss, find_runs, read_run, write_report
 from roadview_noise.runner import run
+from roadview_noise.types import PointCloud, PointLabel
 
 from browser import Page, chromium_path
 
@@ -203,3 +207,45 @@ def test_report_renders_in_chromium_without_errors(runs, tmp_path):
     for cnf in _cnfs_of(runs):
         assert cnf in text
     assert broken == 0 and shown >= 5
+
+
+# --- rendering ------------------------------------------------------------------------------------------------------
+
+
+def _has_colour(img: np.ndarray, bgr) -> bool:
+    return bool(np.all(img == np.array(bgr, np.uint8), axis=2).any())
+
+
+@pytest.mark.parametrize("sensor", ["lidar", "radar"])
+def test_cloud_preview_highlights_added_moved_and_removed(sensor):
+    rng = np.random.default_rng(0)
+    n = 400
+    pos = np.column_stack([rng.uniform(5, 40, n), rng.uniform(-20, 20, n), rng.uniform(-1, 1, n)])
+    fields = {"snr_db": rng.uniform(10, 30, n)} if sensor == "radar" else {"intensity": rng.uniform(0, 1, n)}
+    before = PointCloud(pos, fields, sensor)
+    label = np.zeros(n, np.uint8)
+    label[:20] = PointLabel.MOVED
+    moved_pos = pos.copy()
+    moved_pos[:20] *= 0.3
+    keep = np.arange(n) >= 0
+    keep[100:140] = False
+    after = dataclasses.replace(before.with_fields(**{EFFECT_FIELD: label}), positions_m=moved_pos).select(keep)
+    after = after.concat(np.array([[12.0, 3.0, 0.0], [20.0, -5.0, 0.5]]),
+                         {EFFECT_FIELD: np.full(2, PointLabel.ADDED, np.uint8)})
+    run_ = ChainRun("t", [("input", before), ("weather", after)], [], compare(before, after))
+    img = render_cloud(run_, 240)
+    assert _has_colour(img, ADDED_BGR)
+    if sensor == "lidar":
+        assert _has_colour(img, MOVED_BGR) and _has_colour(img, REMOVED_BGR)
+    else:
+        assert _has_colour(img, RADAR_REMOVED_BGR)
+
+
+def test_camera_inset_follows_the_change():
+    rng = np.random.default_rng(1)
+    before = np.full((300, 400, 3), 120, np.uint8)
+    after = before.copy()
+    after[220:280, 300:380] = rng.integers(0, 255, (60, 80, 3))            # streaks in the lower right only
+    x, y, w, h = _changed_region(before, after)
+    assert x <= 300 < 380 <= x + w + 40 and y <= 220 < 280 <= y + h + 40
+    assert _changed_region(before, before) == ((400 - 80) // 2, (300 - 60) // 2, 80, 60)   # no change: centre
