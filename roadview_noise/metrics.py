@@ -23,7 +23,7 @@ evaluates SSIM — so a metric describes the image at that viewing scale and cos
   the last bin includes the sky, depth ``inf``).
 
 LiDAR and radar (``PointCloud``) — returns are points with a non-zero position (a grid's no-return cells are not).
-The per-point effect code (``effect_codes``: KEPT, ATTENUATED, MOVED, ADDED of ``types.PointLabel``) says what
+The per-point effect code (``effect_codes``: KEPT, ATTENUATED, MOVED, ADDED of :data:`Effect`) says what
 happened to each output point; a point without one is KEPT.
 
 - ``points_in/out``: returns; ``kept``: returns of ``after`` still KEPT.
@@ -50,9 +50,10 @@ import numpy as np
 from .physics.compiled import jit
 from .physics.lidar_geometry import has_return
 from .physics.srgb import linear_to_code
-from .types import CameraFrame, LidarProfile, PointCloud, PointLabel, RawFrame, SensorData
+from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
+from .types import PointLabel as Effect   # the effect codes (KEPT, ATTENUATED, MOVED, ADDED)
 
-EFFECT_FIELD = "label"                      # per-point effect code (types.PointLabel); renamed in one place
+EFFECT_FIELD = "label"                      # per-point effect code (Effect); read and written here only
 OBJECT_FIELDS = ("object_id", "ObjIdx")     # per-point object/instance id (CARLA semantic LiDAR: ObjIdx); ≤ 0 = none
 RANGE_BIN_M = 10.0
 DEPTH_BIN_EDGES_M = (0.0, 10.0, 20.0, 40.0, 80.0, math.inf)
@@ -67,8 +68,13 @@ _summaries: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
 
 
 def effect_codes(cloud: PointCloud) -> np.ndarray | None:
-    """The per-point effect code of a cloud (``types.PointLabel`` values), None when no model wrote one."""
+    """The per-point effect code of a cloud (:data:`Effect` values), None when no model wrote one."""
     return cloud.fields.get(EFFECT_FIELD)
+
+
+def with_effect_codes(cloud: PointCloud, codes: np.ndarray) -> PointCloud:
+    """The cloud with these per-point effect codes (the other side of :func:`effect_codes`, for synthetic data)."""
+    return cloud.with_fields(**{EFFECT_FIELD: np.asarray(codes, np.uint8)})
 
 
 def object_ids(cloud: PointCloud) -> np.ndarray | None:
@@ -411,7 +417,7 @@ def points_per_object(cloud: PointCloud, ids: np.ndarray, codes: np.ndarray | No
     """Non-ADDED returns per object id (ids ≤ 0 are no object)."""
     keep = has_return(cloud.positions_m) & (np.asarray(ids) > 0)
     if codes is not None and len(codes):
-        keep &= codes != PointLabel.ADDED
+        keep &= codes != Effect.ADDED
     uniq, n = np.unique(np.asarray(ids)[keep], return_counts=True)
     return {int(u): int(c) for u, c in zip(uniq, n)}
 

@@ -26,11 +26,11 @@ from .compound import CNFS, apply_models
 from .dataset import DEFAULT_GLOBS, Sample, depth_relpath_for, load, output_relpath
 from .errors import InputError, RecipeError, RvNoiseError
 from .io.atomic import write_bytes_atomic
-from .metrics import compare, correspondence, effect_codes
+from .metrics import Effect, compare, correspondence, effect_codes
 from .recipe import SCHEMA, Recipe, parse_recipe
 from .registry import load_all
 from .runner import Task, build_models
-from .types import CameraFrame, PointCloud, PointLabel, RawFrame, SensorData, sensor_kind
+from .types import CameraFrame, PointCloud, RawFrame, SensorData, sensor_kind
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 BAR_PX = 20
@@ -397,9 +397,9 @@ def _bev(before: PointCloud, cloud: PointCloud, *, extent_m: float, px: int, col
             _splat(img, bu, bv, RADAR_REMOVED_BGR, radius=4, ring=True)
         else:
             _splat(img, bu, bv, REMOVED_BGR, radius=0)
-    plain = ok & (codes != PointLabel.ADDED) & (codes != PointLabel.MOVED)
+    plain = ok & (codes != Effect.ADDED) & (codes != Effect.MOVED)
     _splat(img, u[plain], v[plain], colours[plain], radius=3 if radar else 0)
-    for code, bgr in ((PointLabel.MOVED, MOVED_BGR), (PointLabel.ADDED, ADDED_BGR)):
+    for code, bgr in ((Effect.MOVED, MOVED_BGR), (Effect.ADDED, ADDED_BGR)):
         m = ok & (codes == code)
         if radar:
             _splat(img, u[m], v[m], colours[m], radius=3)
@@ -436,8 +436,8 @@ def _range_image(cloud: PointCloud, hi_m: float, columns: int | None) -> tuple[n
     img = np.zeros((rows, cols, 3), np.uint8)
     colours = _colormap(cloud.ranges_m[flat], 0.0, hi_m)
     c = codes[flat]
-    colours[c == PointLabel.MOVED] = MOVED_BGR
-    colours[c == PointLabel.ADDED] = ADDED_BGR
+    colours[c == Effect.MOVED] = MOVED_BGR
+    colours[c == Effect.ADDED] = ADDED_BGR
     colours[~_returns(cloud)[flat]] = 0
     img[shown] = colours
     return img, cols

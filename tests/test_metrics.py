@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from roadview_noise.compound import apply_models
-from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, EFFECT_FIELD, compare, correspondence, metric_scale, psnr_db,
-                                    ssim)
+from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, Effect, compare, correspondence, metric_scale, psnr_db, ssim,
+                                    with_effect_codes)
 from roadview_noise.physics.srgb import decode
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.registry import get_model
-from roadview_noise.types import CameraFrame, CameraProfile, PointCloud, PointLabel, RadarProfile, RawFrame
+from roadview_noise.types import CameraFrame, CameraProfile, PointCloud, RadarProfile, RawFrame
 
 PROFILE = CameraProfile.from_fov("test", 64, 48, 90.0)
 
@@ -165,15 +165,15 @@ def test_known_drop_mask_moves_and_additions_give_exact_counts():
     drop = np.zeros(100, bool)
     drop[[3, 17, 40, 41, 99]] = True
     label = np.zeros(100, np.uint8)
-    label[[5, 6]] = PointLabel.MOVED
-    label[[7, 8, 9]] = PointLabel.ATTENUATED
+    label[[5, 6]] = Effect.MOVED
+    label[[7, 8, 9]] = Effect.ATTENUATED
     pos = c.positions_m.copy()
     pos[[5, 6]] *= 0.25                                           # moved along their rays
     intensity = c.fields["intensity"].copy()
     intensity[[7, 8, 9]] -= 6.0
-    after = PointCloud(pos, {"intensity": intensity, EFFECT_FIELD: label}, "lidar", profile=c.profile).select(~drop)
-    after = after.concat(np.array([[1.0, 2.0, 0.5], [3.0, 0.0, 0.1]]),
-                         {EFFECT_FIELD: np.full(2, PointLabel.ADDED, np.uint8), "intensity": np.full(2, 5, np.float32)})
+    after = PointCloud(pos, {"intensity": intensity}, "lidar", profile=c.profile).select(~drop)
+    after = after.concat(np.array([[1.0, 2.0, 0.5], [3.0, 0.0, 0.1]]), {"intensity": np.full(2, 5, np.float32)})
+    after = with_effect_codes(after, np.concatenate([label[~drop], np.full(2, Effect.ADDED)]))
     m = compare(c, after)
     assert m["removed"] == 5 and m["moved"] == 2 and m["attenuated"] == 3 and m["added"] == 2
     assert m["kept"] == 100 - 5 - 2 - 3 and m["points_out"] == 97
@@ -216,13 +216,12 @@ def test_alignment_then_removal_composes_the_steps():
     keep = np.ones(100, bool)
     keep[[10, 50]] = False
     label = np.zeros(100, np.uint8)
-    label[[20, 21]] = PointLabel.ATTENUATED
-    label[30] = PointLabel.MOVED
+    label[[20, 21]] = Effect.ATTENUATED
+    label[30] = Effect.MOVED
     pos = c1.positions_m.copy()
     pos[30] *= 0.5
-    c2 = c1.with_fields(intensity=c1.fields["intensity"] - 4 * (label == PointLabel.ATTENUATED),
-                        **{EFFECT_FIELD: label})
-    c2 = dataclasses.replace(c2, positions_m=pos).select(keep)
+    c2 = c1.with_fields(intensity=c1.fields["intensity"] - 4 * (label == Effect.ATTENUATED))
+    c2 = with_effect_codes(dataclasses.replace(c2, positions_m=pos).select(keep), label[keep])
     compare(c0, c1), compare(c1, c2)                                            # the steps, as apply_models does
     index, moved = correspondence(c0, c2)
     assert np.array_equal(index < 0, ~keep) and np.flatnonzero(moved).tolist() == [30]
@@ -236,9 +235,9 @@ def test_radar_snr_change_in_db():
     pos = rng.uniform(5, 80, (50, 3))
     snr = rng.uniform(10, 30, 50).astype(np.float32)
     before = PointCloud(pos, {"snr_db": snr}, "radar", profile=RadarProfile("r"))
-    label = np.full(50, PointLabel.ATTENUATED, np.uint8)
-    after = PointCloud(pos, {"snr_db": snr - 3.0, EFFECT_FIELD: label}, "radar", profile=before.profile)
-    m = compare(before, after.select(snr > 12))
+    label = np.full(50, Effect.ATTENUATED, np.uint8)
+    after = PointCloud(pos, {"snr_db": snr - 3.0}, "radar", profile=before.profile).select(snr > 12)
+    m = compare(before, with_effect_codes(after, label[snr > 12]))
     assert m["mean_snr_change_db"] == pytest.approx(-3.0, abs=1e-5)
     assert m["removed"] == int(np.count_nonzero(snr <= 12))
     assert "mean_intensity_change" not in m

@@ -17,13 +17,13 @@ from roadview_noise.cli.main import app
 from roadview_noise.io.pointcloud import read_pointcloud
 from roadview_noise.manifest import read_manifest
 from roadview_noise.physics.srgb import linear_to_code
-from roadview_noise.metrics import EFFECT_FIELD, compare
+from roadview_noise.metrics import Effect, compare, with_effect_codes
 from roadview_noise.preview import (ADDED_BGR, MOVED_BGR, RADAR_REMOVED_BGR, REMOVED_BGR, ChainRun, _changed_region,
                                     applicable_cnfs, recipe_from, render, render_cloud, run_chain, sample_for)
 from roadview_noise.recipe import load_recipe
 from roadview_noise.report import build, corner_cases, data_loss, find_runs, read_run, write_report
 from roadview_noise.runner import run
-from roadview_noise.types import PointCloud, PointLabel
+from roadview_noise.types import PointCloud
 
 from browser import Page, chromium_path
 
@@ -224,14 +224,14 @@ def test_cloud_preview_highlights_added_moved_and_removed(sensor):
     fields = {"snr_db": rng.uniform(10, 30, n)} if sensor == "radar" else {"intensity": rng.uniform(0, 1, n)}
     before = PointCloud(pos, fields, sensor)
     label = np.zeros(n, np.uint8)
-    label[:20] = PointLabel.MOVED
+    label[:20] = Effect.MOVED
     moved_pos = pos.copy()
     moved_pos[:20] *= 0.3
     keep = np.arange(n) >= 0
     keep[100:140] = False
-    after = dataclasses.replace(before.with_fields(**{EFFECT_FIELD: label}), positions_m=moved_pos).select(keep)
-    after = after.concat(np.array([[12.0, 3.0, 0.0], [20.0, -5.0, 0.5]]),
-                         {EFFECT_FIELD: np.full(2, PointLabel.ADDED, np.uint8)})
+    after = dataclasses.replace(before, positions_m=moved_pos).select(keep)
+    after = after.concat(np.array([[12.0, 3.0, 0.0], [20.0, -5.0, 0.5]]), {})
+    after = with_effect_codes(after, np.concatenate([label[keep], np.full(2, Effect.ADDED)]))
     run_ = ChainRun("t", [("input", before), ("weather", after)], [], compare(before, after))
     img = render_cloud(run_, 240)
     assert _has_colour(img, ADDED_BGR)
