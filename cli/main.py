@@ -43,6 +43,7 @@ def augment(
                                                 "(inputs.lidar_profile)."),
     radar_profile: Optional[str] = typer.Option(None, "--radar-profile", help="Radar profile: built-in or file "
                                                 "(inputs.radar_profile)."),
+    report: bool = typer.Option(False, "--report", help="Write OUTPUT_DIR/report.html at the end (`rvnoise report`)."),
 ) -> None:
     """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR.
     Input options override the recipe's and are recorded in run.json's resolved recipe."""
@@ -64,6 +65,8 @@ def augment(
         typer.secho(f"failed: {f}", fg=typer.colors.RED, err=True)
     typer.echo(f"rvnoise: {s.done} written, {s.skipped} skipped, {s.failed} failed in {s.seconds:.1f} s → "
                f"{output_dir} (manifest: {output_dir / 'manifest.jsonl'})")
+    if report:
+        _write_report(output_dir, None)
     if s.failed:
         raise typer.Exit(1)
 
@@ -175,6 +178,76 @@ def replay(
         typer.echo(f"  {'match' if f['got'] == f['expected'] else 'MISMATCH'}: {f['path']} sha256 {f['got']}")
     if not r["match"]:
         raise typer.Exit(1)
+
+
+@app.command(epilog="Examples: `rvnoise preview --recipe recipes/cnf16.yaml sample_data/camera/seq0/000001.png "
+                    "--input-root sample_data -o cnf16.png`; `rvnoise preview --all-cnfs --input-root sample_data "
+                    "sample_data/camera/seq0/000001.png sample_data/lidar/os1-128/seq0/000001.pcd -o sheets/`")
+def preview(
+    files: list[Path] = typer.Argument(..., help="Input file(s): image, raw, LiDAR or radar cloud."),
+    recipe: Optional[str] = typer.Option(None, "--recipe", "-r", help="Recipe YAML, or a CNF id (CNF01–CNF30)."),
+    all_cnfs: bool = typer.Option(False, "--all-cnfs", help="A contact sheet per file: every CNF of its sensor."),
+    sensor: Optional[str] = typer.Option(None, "--sensor", help="camera, lidar or radar when the file or the CNF "
+                                         "leaves it open (a View-of-Delft .bin is radar) [default: guessed]."),
+    input_root: Optional[Path] = typer.Option(None, "--input-root", help="The input tree of `augment`: the random "
+                                              "draws follow the path relative to it [default: the file's folder]."),
+    seed: int = typer.Option(0, "--seed", help="Seed of a CNF given by its id, and of --all-cnfs."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Image to write (.png/.jpg) [default: "
+                                       "preview.png]; a folder when several files are given."),
+    panel_px: Optional[int] = typer.Option(None, "--panel-px", min=120, help="Width of one panel "
+                                           "[default: 480, 320 on contact sheets]."),
+    colour: str = typer.Option("range", "--colour", help="LiDAR colour: range or intensity."),
+) -> None:
+    """Show what a recipe (or every CNF) does to one file, step by step, through the same code and random draws as
+    `augment`: camera frames side by side with a zoomed inset, LiDAR bird's-eye views and range images, radar
+    bird's-eye views; removed, moved and added points highlighted."""
+    from roadview_noise import preview as pv
+
+    if sensor not in (None, "camera", "lidar", "radar"):
+        _fail(f"--sensor must be camera, lidar or radar, got {sensor!r}")
+    if colour not in ("range", "intensity"):
+        _fail(f"--colour must be range or intensity, got {colour!r}")
+    if all_cnfs == (recipe is not None):
+        _fail("give either --recipe (a recipe file or a CNF id) or --all-cnfs")
+    if out is None:
+        out = Path("preview.png") if len(files) == 1 else Path("preview")
+    try:
+        for f in files:
+            kind = sensor or pv.guess_sensor(f)
+            target = out if len(files) == 1 else out / f"{pv.file_label(f, input_root)}-{kind}.png"
+            if all_cnfs:
+                img = pv.contact_sheet(f, kind, in_root=input_root, seed=seed, panel_px=panel_px or 320,
+                                       colour_by=colour)
+            else:
+                r = pv.recipe_from(recipe, sensor or (kind if kind != "camera" else None), seed)
+                sample, root = pv.sample_for(f, r, input_root)
+                img = pv.render(pv.run_chain(r, sample, root, title=f"{f.name}: {' -> '.join(r.model_ids)}"),
+                                panel_px or 480, colour)
+            pv.write_image_file(target, img)
+            typer.echo(f"rvnoise: preview of {f} → {target} ({img.shape[1]}×{img.shape[0]})")
+    except RvNoiseError as e:
+        _fail(str(e))
+
+
+@app.command(epilog="Example: `rvnoise report out/demo` (a run folder, or a folder of runs)")
+def report(
+    output_dir: Path = typer.Argument(..., help="An augment output folder, or a folder of them (one per CNF)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Page to write [default: OUTPUT_DIR/report.html]; "
+                                       "report.json is written beside it."),
+) -> None:
+    """Write one self-contained HTML page with the runs' metrics per CNF, plots, previews, corner cases and
+    failures (works on a partial run), and report.json with the numbers."""
+    _write_report(output_dir, out)
+
+
+def _write_report(output_dir: Path, out: Optional[Path]) -> None:
+    from roadview_noise.report import write_report
+
+    try:
+        path = write_report(output_dir, out)
+    except RvNoiseError as e:
+        _fail(str(e))
+    typer.echo(f"rvnoise: report → {path} (numbers: {path.with_name('report.json')})")
 
 
 @app.command("sample-data", epilog="Example: `rvnoise sample-data out/sample --frames 10 --seed 0`")

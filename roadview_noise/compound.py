@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from .errors import ModelError, RecipeError
+from .metrics import compare
 from .model import Model, Scope, Stage
 from .provenance import follow, step_input
 from .registry import get_model, load_all
@@ -119,17 +120,19 @@ class StepRecord:
     drawn: dict[str, Any] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    metrics: dict[str, Any] = field(default_factory=dict)     # metrics.compare(step input, step output)
 
 
 def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: str,
-                 sequence_id: str) -> tuple[SensorData, list[StepRecord]]:
+                 sequence_id: str, metrics: bool = True) -> tuple[SensorData, list[StepRecord]]:
     """Run instantiated models in order on one frame or cloud.
 
     Frame rng: ``derive_rng(seed, key, step_index, model.id)``; sequence (sensor-instance) rng:
     ``derive_rng(seed, "sequence", sequence_id, model.id)``. ``key`` identifies the output (input relpath plus
     sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
     step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
-    collects the warps of geometric steps."""
+    collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
+    input and output."""
     records = []
     for i, model in enumerate(models):
         if model.sensor != sensor_kind(data):
@@ -141,6 +144,7 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
         rng = derive_rng(seed, key, i, model.id)
         drawn = model.draw(rng, data)
         out, diagnostics = model.apply(step_input(data), state=state, drawn=drawn, rng=rng)
-        data = follow(data, out, model, state=state, drawn=drawn, step=i)
-        records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0))
+        before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
+        records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
+                                  compare(before, data) if metrics else {}))
     return data, records

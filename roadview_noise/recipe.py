@@ -123,6 +123,7 @@ class OutputSpec(_Strict):
     format: Literal["same"] = "same"
     effect: Literal["auto", "none"] = "auto"       # the rv_effect code of clouds (io.pointcloud.write_pointcloud)
     jpeg_quality: int | None = Field(None, ge=1, le=100)  # JPEG outputs; None: the input's estimated quality
+    metrics: bool = True                       # per-step and per-output metrics in the manifest (roadview_noise.metrics)
 
 
 class RecipeSpec(_Strict):

@@ -22,6 +22,7 @@ from .errors import RecipeError, RvNoiseError
 from .io.atomic import remove_stale_temporaries
 from .manifest import (MANIFEST_NAME, RUN_NAME, dumps, library_versions, read_manifest, sha256_file,
                        write_manifest, write_run_json)
+from .metrics import compare
 from .recipe import Recipe, draw_value
 from .registry import get_model
 from .seeding import derive_rng
@@ -98,8 +99,9 @@ def process(task: Task, in_root: Path, out_root: Path, recipe: Recipe) -> dict[s
         sidecars = annotations.read(s.relpath, in_root, spec, data)
         models = build_models(recipe, task)
         out, records = apply_models(models, data, seed=recipe.seed, key=task.out_relpath,
-                                    sequence_id=s.sequence_id)
+                                    sequence_id=s.sequence_id, metrics=recipe.spec.output.metrics)
         entry["steps"] = [asdict(r) for r in records]
+        entry["metrics"] = compare(data, out) if recipe.spec.output.metrics else {}
         out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, out_root,
                                            recipe.variants[task.variant_index].suffix)
         files = save(out, out_root / task.out_relpath, recipe, source=in_root / s.relpath, annotations=annotated)
