@@ -11,11 +11,14 @@ import fnmatch
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
+from typing import Callable
+
+import numpy as np
 
 from .errors import InputError
 from .io.atomic import TMP_SUFFIX
 from .recipe import InputsSpec, Recipe
-from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
+from .types import CameraFrame, CameraProfile, Conditions, LidarProfile, RawFrame, SensorData
 
 DEFAULT_GLOBS = {
     "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
@@ -181,7 +184,11 @@ def _hashable(spec):
 def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
     """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions;
     InputError names the file."""
-    data = _read(sample, in_root, recipe)
+    return with_conditions(_read(sample, in_root, recipe), recipe)
+
+
+def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
+    """The input's scene conditions from the recipe's inputs (the sensor's ego velocity)."""
     ego = recipe.spec.inputs.ego_velocity_m_per_s
     if ego is not None:
         data = dataclasses.replace(data, conditions=Conditions(ego_velocity_m_per_s=tuple(map(float, ego))))
@@ -199,7 +206,7 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
     path = in_root / sample.relpath
     file_dir = path.parent
     if sample.modality in ("camera", "raw"):
-        profile = _camera_profile(_profile_spec(inputs.camera_profile, file_dir, recipe), file_dir)
+        profile = camera_profile_for(inputs, file_dir, recipe)
         if sample.modality == "camera":
             linear, encoding, alpha = image_io.read_image(path)
             h, w = linear.shape[:2]
@@ -210,23 +217,49 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
             h, w = dn.shape
             frame = RawFrame(dn.astype("float32"), pattern, float(black), float(white),
                              fit_to_image(profile, w, h, source=str(path)), encoding=encoding)
-        if recipe.needs_depth():
-            if sample.depth_relpath is None:
-                needing = [m for m in recipe.model_ids if _needs_depth(m)]
-                raise InputError(f"no depth sidecar {depth_relpath_for(sample.relpath, inputs.depth)!r} "
-                                 f"(needed by {', '.join(needing)})", file=str(path))
-            depth = depth_io.read_depth(in_root / sample.depth_relpath, profile=frame.profile,
-                                        expected_shape=(h, w), planar=inputs.depth_kind == "planar")
-            frame = dataclasses.replace(frame, depth_m=depth)
-        return frame
-    if sample.modality == "lidar":
-        spec = _sidecar_default(_profile_spec(inputs.lidar_profile, file_dir, recipe), file_dir, "lidar.yaml")
-        profile = _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
-    else:
-        spec = _sidecar_default(_profile_spec(inputs.radar_profile, file_dir, recipe), file_dir, "radar.yaml")
-        profile = _radar_profile(_hashable(spec))
-    return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
+        sidecar = None if sample.depth_relpath is None else in_root / sample.depth_relpath
+
+        def read_sidecar(camera: CameraProfile, shape: tuple[int, int]):
+            return depth_io.read_depth(sidecar, profile=camera, expected_shape=shape,
+                                       planar=inputs.depth_kind == "planar")
+
+        return with_depth(frame, recipe, None if sidecar is None else read_sidecar, source=str(path),
+                          missing=f"no depth sidecar {depth_relpath_for(sample.relpath, inputs.depth)!r}")
+    return cloud_io.read_pointcloud(path, sensor=sample.modality,
+                                    profile=cloud_profile_for(sample.modality, inputs, file_dir, recipe),
                                     field_map=dict(inputs.field_map) or None)
+
+
+def camera_profile_for(inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):
+    """The camera profile of an input in ``file_dir``: the recipe's, else (``sidecar``) ``camera.yaml`` there, else
+    the default."""
+    spec = _profile_spec(inputs.camera_profile, file_dir, recipe)
+    return _camera_profile_cached(None) if spec is None and not sidecar else _camera_profile(spec, file_dir)
+
+
+def cloud_profile_for(sensor: str, inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):
+    """The LiDAR (with the recipe's intensity scale) or radar profile of an input in ``file_dir``: the recipe's,
+    else (``sidecar``) ``lidar.yaml``/``radar.yaml`` there, else the default."""
+    if sensor == "lidar":
+        spec = _profile_spec(inputs.lidar_profile, file_dir, recipe)
+        spec = _sidecar_default(spec, file_dir, "lidar.yaml") if sidecar else spec
+        return _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
+    spec = _profile_spec(inputs.radar_profile, file_dir, recipe)
+    spec = _sidecar_default(spec, file_dir, "radar.yaml") if sidecar else spec
+    return _radar_profile(_hashable(spec))
+
+
+def with_depth(frame, recipe: Recipe, read_depth: Callable[[CameraProfile, tuple[int, int]], np.ndarray] | None, *,
+               source: str, missing: str):
+    """The frame with the range along each pixel ray (m) when the chain needs depth — the one place depth is resolved
+    for files and bag messages: ``read_depth(profile, shape)`` reads the input's own depth (sidecar file or aligned
+    depth message); without one, InputError names ``source`` and says what is ``missing``."""
+    if not recipe.needs_depth():
+        return frame
+    if read_depth is None:
+        needing = [m for m in recipe.model_ids if _needs_depth(m)]
+        raise InputError(f"{missing} (needed by {', '.join(needing)})", file=source)
+    return dataclasses.replace(frame, depth_m=read_depth(frame.profile, frame.shape))
 
 
 def _needs_depth(model_id: str) -> bool:

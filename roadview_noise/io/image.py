@@ -50,28 +50,42 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageEncoding, np.n
         data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read image: {exc.strerror or exc}", file=str(path)) from exc
-    check_structure(data, fmt, path)
+    return decode_image(data, fmt, source=path)
+
+
+def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+    """:func:`read_image` of the bytes of a ``fmt`` file (also a ROS CompressedImage); ``source`` names it in
+    errors."""
+    check_structure(data, fmt, source)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"OpenCV cannot decode this {fmt.upper()} file (corrupt or unsupported variant)",
-                         file=str(path))
+                         file=str(source))
+    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
+    return image_from_codes(img, fmt, source=source, jpeg_quality=quality)
+
+
+def image_from_codes(img: np.ndarray, fmt: str, *, source, jpeg_quality: int = ImageEncoding.jpeg_quality
+                     ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+    """Linear RGB, encoding and alpha of decoded code values in OpenCV order (grey, BGR or BGRA; uint8/uint16
+    sRGB, or float32 linear for TIFF) stored as ``fmt``."""
     if img.dtype == np.uint8 or img.dtype == np.uint16:
         bit_depth, transfer = 8 * img.dtype.itemsize, "srgb"
     elif img.dtype == np.float32 and fmt == "tiff":
         bit_depth, transfer = 32, "linear"
     else:
         raise InputError(f"unsupported sample type {img.dtype} (expected uint8, uint16 or float32 TIFF)",
-                         file=str(path))
+                         file=str(source))
     channels = 1 if img.ndim == 2 else img.shape[2]
     if channels not in (1, 3, 4):
-        raise InputError(f"unsupported channel count {channels} (expected 1, 3 or 4)", file=str(path))
+        raise InputError(f"unsupported channel count {channels} (expected 1, 3 or 4)", file=str(source))
     alpha = img[..., 3].copy() if channels == 4 else None
     codes = img if channels == 1 else img[..., 2::-1]          # BGR(A) → RGB
     linear = srgb.code_to_linear(codes, bit_depth) if transfer == "srgb" else codes.astype(np.float32)
     if channels == 1:
         linear = np.repeat(linear[..., None], 3, axis=2)
-    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels, jpeg_quality=quality)
+    encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels,
+                             jpeg_quality=jpeg_quality)
     return np.ascontiguousarray(linear, dtype=np.float32), encoding, alpha
 
 
@@ -80,14 +94,32 @@ def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: Image
     """Encode (H, W, 3) linear RGB like ``encoding`` (sRGB or linear, bit depth, channels, JPEG quality) and write it
     atomically. Integer encodings are clipped to [0, 1] and rounded here, once; float32 TIFF is written unclipped.
     A 4-channel encoding without ``alpha`` gets an opaque alpha plane."""
+    if image_format(path) != encoding.fmt:
+        raise ValueError(f"{Path(path).name}: suffix does not match the encoding format {encoding.fmt!r}")
+    write_bytes_atomic(path, encode_image(linear_rgb, encoding, alpha, name=Path(path).name))
+
+
+def encode_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
+                 name: str = "image") -> bytes:
+    """The file bytes :func:`write_image` writes (also the data of a ROS CompressedImage)."""
+    codes = codes_from_image(linear_rgb, encoding, alpha, name=name)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
+    ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], codes, params)
+    if not ok:
+        raise OSError(f"{name}: OpenCV could not encode {encoding}")
+    return buf.tobytes()
+
+
+def codes_from_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
+                     name: str = "image") -> np.ndarray:
+    """Code values of linear RGB for ``encoding`` in OpenCV order (grey, BGR or BGRA), the inverse of
+    :func:`image_from_codes`; ``name`` identifies the image in errors."""
     linear_rgb = np.asarray(linear_rgb)
     if linear_rgb.ndim != 3 or linear_rgb.shape[2] != 3:
         raise ValueError(f"expected linear RGB of shape (H, W, 3), got {linear_rgb.shape}")
     n_nan = int(np.count_nonzero(np.isnan(linear_rgb)))
     if n_nan:
-        raise ValueError(f"{Path(path).name}: image has {n_nan} NaN values; a model produced invalid radiance")
-    if image_format(path) != encoding.fmt:
-        raise ValueError(f"{Path(path).name}: suffix does not match the encoding format {encoding.fmt!r}")
+        raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
     pixels = linear_rgb @ _LUMA_709 if encoding.channels == 1 else linear_rgb
     codes = encode_pixels(pixels, encoding)
     if encoding.channels == 3:
@@ -98,11 +130,7 @@ def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: Image
         codes = np.dstack([codes[..., ::-1], np.asarray(alpha).astype(codes.dtype)])
     elif encoding.channels != 1:
         raise ValueError(f"unsupported channel count {encoding.channels}")
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
-    ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], np.ascontiguousarray(codes), params)
-    if not ok:
-        raise OSError(f"{Path(path).name}: OpenCV could not encode {encoding}")
-    write_bytes_atomic(path, buf.tobytes())
+    return np.ascontiguousarray(codes)
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
