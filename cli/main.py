@@ -23,6 +23,15 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def _finish(failures: list[str], summary: str, *, label: str = "failed") -> None:
+    """Print the first failures and the summary line; exit 1 when anything failed."""
+    for f in failures[:10]:
+        typer.secho(f"{label}: {f}", fg=typer.colors.RED, err=True)
+    typer.echo(summary)
+    if failures:
+        raise typer.Exit(1)
+
+
 @app.command(epilog="Examples: `rvnoise augment --recipe recipes/cnf16.yaml sample_data out/cnf16 --workers 2`, "
                      "`rvnoise augment --recipe recipes/bag-rehearse.yaml drive.bag out/drive-rain.bag`")
 def augment(
@@ -58,12 +67,8 @@ def augment(
     if s.dry_run:
         typer.echo(f"rvnoise: dry run, {s.planned} outputs planned, nothing written")
         return
-    for f in s.failures[:10]:
-        typer.secho(f"failed: {f}", fg=typer.colors.RED, err=True)
-    typer.echo(f"rvnoise: {s.done} written, {s.skipped} skipped, {s.failed} failed in {s.seconds:.1f} s → "
-               f"{output_dir} (manifest: {output_dir / 'manifest.jsonl'})")
-    if s.failed:
-        raise typer.Exit(1)
+    _finish(s.failures, f"rvnoise: {s.done} written, {s.skipped} skipped, {s.failed} failed in {s.seconds:.1f} s → "
+                        f"{output_dir} (manifest: {output_dir / 'manifest.jsonl'})")
 
 
 @app.command(epilog="Example: `rvnoise validate recipes/cnf13.yaml`")
@@ -203,12 +208,9 @@ def _augment_bag(in_bag: Path, out_bag: Path, recipe: Path, workers: Optional[in
                     progress=not quiet)
     except RvNoiseError as e:
         _fail(str(e))
-    for f in s.failures[:10]:
-        typer.secho(f"failed (copied unchanged): {f}", fg=typer.colors.RED, err=True)
-    typer.echo(f"rvnoise: {s.done} messages augmented, {s.failed} failed (copied unchanged) in {s.seconds:.1f} s → "
-               f"{out_bag} (manifest: {manifest_path(out_bag)})")
-    if s.failed:
-        raise typer.Exit(1)
+    _finish(s.failures, f"rvnoise: {s.done} messages augmented, {s.failed} failed (copied unchanged) in "
+                        f"{s.seconds:.1f} s → {out_bag} (manifest: {manifest_path(out_bag)})",
+            label="failed (copied unchanged)")
 
 
 @app.command(epilog="Example: `rvnoise export drive.bag out/drive --recipe recipes/bag-rehearse.yaml`")
@@ -217,7 +219,7 @@ def export(
     out_dir: Path = typer.Argument(..., help="Input tree to write: one folder per topic, profile sidecars."),
     recipe: Optional[Path] = typer.Option(None, "--recipe", "-r", help="Bag recipe: its topics, profiles and "
                                                                        "depth topics [default: every sensor topic]."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT_DIR."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Write over the files of a non-empty OUT_DIR."),
 ) -> None:
     """Write the camera, LiDAR and radar topics of a bag as files (PNG/JPEG/raw + depth EXR, PCD, profile sidecars)
     that `rvnoise augment` reads."""

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
-import shutil
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,7 @@ import numpy as np
 import yaml
 
 from .bag_recipe import BagRecipe, parse_bag_recipe
-from .bag_runner import (BagContext, DepthSync, MessageJob, _context, _deserialize, aligned_depth_m, export_stem,
+from .bag_runner import (BagContext, MessageJob, _context, _deserialize, aligned_depth_m, depth_syncs, export_stem,
                          export_suffix, plan_bag, sensor_data, stamped_messages)
 from .errors import InputError, RecipeError
 from .io import ros_messages as rm
@@ -50,18 +50,17 @@ def export_bag(bag: Path, out_dir: Path, *, recipe: BagRecipe | None = None, ove
     bag, out_dir = Path(bag), Path(out_dir)
     if bag_kind(bag) is None:
         raise RecipeError(f"input {str(bag)!r} is not a ROS bag (.bag, .mcap, .db3, or a ROS 2 bag folder)")
-    if out_dir.exists() and any(out_dir.iterdir()):
-        if not overwrite:
-            raise RecipeError(f"{str(out_dir)!r} is not empty; use --overwrite to replace it")
-        shutil.rmtree(out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
+        raise RecipeError(f"{str(out_dir)!r} is not empty; use --overwrite to write over its files")
     summary: dict[str, Any] = {"files": 0, "topics": {}}
-    with open_bag(bag) as reader, open_bag(bag) as depth_reader:
+    with ExitStack() as stack:
+        reader = stack.enter_context(open_bag(bag))
         is2 = bag_kind(bag) == "ros2"
         recipe = recipe or sensor_topics(reader, is2)
         plan = plan_bag(recipe, reader, bag)
         ctx = BagContext(str(bag), is2, dict(reader.typestore.fielddefs), recipe, bag.resolve().parent)
         _, typestore = _context(pickle.dumps(ctx))
-        syncs = {t: DepthSync(depth_reader.messages(connections=conns), is2) for t, conns in plan.depth.items()}
+        syncs = depth_syncs(stack, bag, plan, is2)
         mapped = [c for c in reader.connections if id(c) in plan.mapped]
         for conn, t, raw, stamp, repeat in stamped_messages(reader, plan.mapped, is2, bag, connections=mapped):
             topic = plan.mapped[id(conn)]

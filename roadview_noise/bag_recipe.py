@@ -81,10 +81,6 @@ class BagRecipe:
     def seed(self) -> int:
         return next(iter(self.chains.values())).seed
 
-    @property
-    def labels(self) -> str:
-        return next(iter(self.chains.values())).spec.output.labels
-
     def resolved_dict(self) -> dict[str, Any]:
         """The recipe as run: explicit steps per sensor with their parameters (what replay re-reads)."""
         first = next(iter(self.chains.values())).resolved_dict()

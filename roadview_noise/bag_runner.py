@@ -22,6 +22,7 @@ import sys
 import time
 import traceback
 from collections import deque
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -59,11 +60,11 @@ def export_stem(topic: str, stamp_ns: int, repeat: int) -> str:
     return f"{topic_folder(topic)}/{stamp_ns:019d}" + (f"_{repeat}" if repeat else "")
 
 
-def export_suffix(msg: Any, msgtype: str) -> str:
+def export_suffix(msg: Any, msgtype: str, source: str = "") -> str:
     """The file type a message is exported as: its own JPEG/PNG, ``.png`` for an Image, ``.raw`` for Bayer,
     ``.pcd`` for a cloud."""
     if msgtype == rm.COMPRESSED_IMAGE:
-        return ".jpg" if rm.compressed_format(msg.format, source="") == "jpeg" else ".png"
+        return ".jpg" if rm.compressed_format(msg.format, source=source) == "jpeg" else ".png"
     if msgtype == rm.IMAGE:
         return ".raw" if rm.PIXEL_LAYOUTS.get(msg.encoding, rm.PIXEL_LAYOUTS["mono8"]).order == "bayer" else ".png"
     return ".pcd"
@@ -132,7 +133,7 @@ def augment_message(blob: bytes, job: MessageJob) -> tuple[dict[str, Any], bytes
     out = None
     try:
         msg = _deserialize(typestore, ctx.is2, job.raw, job.msgtype, source)
-        seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype)
+        seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype, source)
         entry["seed_key"] = seed_key
         data = message_data(ctx, typestore, topic, msg, job, source)
         recipe = topic.recipe
@@ -325,6 +326,14 @@ class DepthSync:
         return None if hit is None else hit[1:]
 
 
+def depth_syncs(stack: ExitStack, bag: Path, plan: BagPlan, is2: bool) -> dict[str, DepthSync]:
+    """A :class:`DepthSync` per depth topic, reading ahead on a second reader of the bag (opened only if needed)."""
+    if not plan.depth:
+        return {}
+    reader = stack.enter_context(open_bag(bag))
+    return {t: DepthSync(reader.messages(connections=conns), is2) for t, conns in plan.depth.items()}
+
+
 def check_bag_paths(in_bag: Path, out_bag: Path, overwrite: bool) -> None:
     """Refuse a missing input, an output that is the input or inside it, a family change (ROS 1 ↔ ROS 2), and an
     existing output without ``overwrite``."""
@@ -336,7 +345,11 @@ def check_bag_paths(in_bag: Path, out_bag: Path, overwrite: bool) -> None:
         raise RecipeError(f"output {str(out_bag)!r} would overwrite or sit inside the input bag {str(in_bag)!r}")
     if output_kind(out_bag) != kind:
         want = ".bag" if kind == "ros1" else "a folder, .mcap or .db3"
-        raise RecipeError(f"{str(in_bag)!r} is a {kind.upper()} bag; write it as {want} (no ROS 1 ↔ ROS 2 conversion)")
+        raise RecipeError(f"{str(in_bag)!r} is a {kind.upper()} bag; write it as {want} "
+                          "(no ROS 1 ↔ ROS 2 conversion)")
+    if out_bag.is_dir() and bag_kind(out_bag) is None and any(out_bag.iterdir()):
+        raise RecipeError(f"{str(out_bag)!r} is a folder that is not a ROS 2 bag; name the output bag itself "
+                          "(e.g. out/drive-rain.bag or out/drive-rain/ for ROS 2)")
     if (out_bag.exists() or manifest_path(out_bag).exists()) and not overwrite:
         raise RecipeError(f"{str(out_bag)!r} exists; use --overwrite to replace it")
 
@@ -355,12 +368,13 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
     topics: dict[str, dict[str, int]] = {t: {"messages": 0, "ok": 0, "failed": 0} for t in recipe.topics}
     for p in (out_bag, manifest_path(out_bag)):
         remove_stale_siblings(p)
-    with open_bag(in_bag) as reader, open_bag(in_bag) as depth_reader:
+    with ExitStack() as stack:
+        reader = stack.enter_context(open_bag(in_bag))
         plan = plan_bag(recipe, reader, in_bag)
         is2 = bag_kind(in_bag) == "ros2"
         blob = pickle.dumps(BagContext(str(in_bag), is2, dict(reader.typestore.fielddefs), recipe,
                                        in_bag.resolve().parent))
-        syncs = {t: DepthSync(depth_reader.messages(connections=conns), is2) for t, conns in plan.depth.items()}
+        syncs = depth_syncs(stack, in_bag, plan, is2)
         n_messages = reader.message_count
         bar = tqdm(total=n_messages, unit="msg", disable=not progress, file=sys.stderr, dynamic_ncols=True)
         try:

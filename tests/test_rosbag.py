@@ -271,3 +271,28 @@ def test_a_read_error_mid_bag_leaves_nothing(tmp_path):
                                          r"is too short for a header"):
         run_bag(bag_recipe(), bad, out, workers=1, progress=False)
     assert not list(out.parent.iterdir())
+
+
+def test_ros2_single_files_sqlite_and_folders(tmp_path):
+    """A single .mcap in, a single .db3 out (SQLite storage), then that .db3 into a ROS 2 bag folder."""
+    src = tmp_path / "drive"
+    write_sample_bag(SAMPLE, src, ros2=True, frames=1)
+    mcap = next(src.glob("*.mcap"))
+    db3 = tmp_path / "rain.db3"
+    assert run_bag(bag_recipe(), mcap, db3, workers=1, progress=False).done == 4
+    assert db3.read_bytes()[:16] == b"SQLite format 3\x00"
+    folder = tmp_path / "rain-again"
+    run_bag(bag_recipe(), db3, folder, workers=1, progress=False)
+    assert sorted(p.name for p in folder.iterdir()) == ["metadata.yaml", "rain-again.db3"]
+    a, b, c = messages(mcap), messages(db3), messages(folder)
+    assert [m[:3] for m in a] == [m[:3] for m in b] == [m[:3] for m in c]
+    assert [m[3] == n[3] for m, n in zip(a, b)] == [m[0] in UNTOUCHED for m in a]
+    keep = tmp_path / "results"
+    keep.mkdir()
+    (keep / "notes.txt").write_text("mine")
+    with pytest.raises(RecipeError, match="is a folder that is not a ROS 2 bag"):
+        run_bag(bag_recipe(), mcap, keep, workers=1, progress=False, overwrite=True)
+    assert (keep / "notes.txt").read_text() == "mine"
+    run_bag(bag_recipe(), mcap, folder, workers=1, progress=False, overwrite=True)     # replaces a bag folder
+    assert sorted(p.name for p in folder.iterdir()) == ["metadata.yaml", "rain-again.mcap"]
+    assert not [p for p in tmp_path.iterdir() if TMP_SUFFIX in p.name]

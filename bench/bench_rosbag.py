@@ -1,0 +1,102 @@
+"""Bag overhead: augmenting a ROS bag against augmenting the same messages as files (issue 20 target: ≤ 10 %).
+
+Renders a drive with ``rvnoise sample-data`` (default: the sensors' full resolutions, camera 1936×1464, OS1-128
+128×2048; ``--sample`` for the committed preset), writes it as a ROS 1 bag and a ROS 2 MCAP bag (every frame
+``--repeat`` times with new stamps; topics of ``roadview_noise.sampledata.bag``), exports each bag to an input tree
+with ``rvnoise export``, and times, interleaved and ``--runs`` times, with one worker (no process start-up):
+
+- files: ``runner.run`` per mapped topic (CNF16 on both cameras, CNF20 LiDAR, CNF25 radar) over the exported tree;
+- bag:   ``run_bag`` with the same chains and seed over the bag (also copying the depth and diagnostics topics).
+
+Prints the medians, the overhead (bag / files − 1) and the in-worker time of both (sum of the manifests' seconds).
+The machine is shared and noisy: read medians, and re-run on an idle machine for the record.
+
+    .venv/bin/python bench/bench_rosbag.py [--sample] [--frames 3] [--repeat 2] [--runs 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from roadview_noise.bag_export import export_bag
+from roadview_noise.bag_recipe import parse_bag_recipe
+from roadview_noise.bag_runner import manifest_path, run_bag
+from roadview_noise.manifest import read_manifest
+from roadview_noise.recipe import parse_recipe
+from roadview_noise.runner import run
+from roadview_noise.sampledata.bag import RECIPE_TOPICS, write_sample_bag
+from roadview_noise.sampledata.generate import generate
+
+CHAINS = {"camera": "CNF16", "lidar": "CNF20", "radar": "CNF25"}
+GLOBS = {"/camera/image/compressed": ("camera", "*.jpg"), "/camera/image_raw": ("raw", "*.raw"),
+         "/os_cloud_node/points": ("lidar", "*.pcd"), "/radar/points": ("radar", "*.pcd")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sample", action="store_true", help="committed sample-data preset instead of full resolution")
+    ap.add_argument("--frames", type=int, default=3)
+    ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--runs", type=int, default=5)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="rvnoise-bench-bag-") as tmp:
+        tmp = Path(tmp)
+        size = dict(camera_size=(484, 366), lidar_columns=256) if args.sample else {}
+        t0 = time.perf_counter()
+        generate(tmp / "drive", frames=args.frames, seed=0, **size)
+        print(f"drive: {args.frames} frames × {args.repeat} ({'sample preset' if args.sample else 'full resolution'}),"
+              f" rendered in {time.perf_counter() - t0:.1f} s")
+        topics = dict(RECIPE_TOPICS)
+        if not args.sample:
+            topics["/os_cloud_node/points"] = {"sensor": "lidar", "lidar_profile": "os1-128"}
+        recipe = parse_bag_recipe({"seed": 1, "topics": topics, "chains": CHAINS})
+        for kind, name in (("ROS 1", "drive.bag"), ("ROS 2 MCAP", "drive-ros2")):
+            bench(tmp, kind, tmp / name, recipe, args)
+
+
+def bench(tmp: Path, kind: str, bag: Path, recipe, args) -> None:
+    write_sample_bag(tmp / "drive", bag, ros2=bag.suffix != ".bag", repeat=args.repeat)
+    tree = tmp / f"{bag.name}-tree"
+    export_bag(bag, tree, recipe=recipe)
+    files_recipes = {t: parse_recipe({**recipe.topics[t].recipe.resolved_dict(),
+                                      "inputs": {m: f"{t.strip('/')}/{g}"}}) for t, (m, g) in GLOBS.items()}
+    out = tmp / "out"
+
+    def files_run(tag: str) -> tuple[float, float, int]:
+        t0, inner, n = time.perf_counter(), 0.0, 0
+        for topic, r in files_recipes.items():
+            dest = out / f"{tag}-{topic.strip('/').replace('/', '_')}"
+            s = run(r, tree, dest, workers=1, progress=False, overwrite=True, echo=lambda m: None)
+            inner += sum(e["seconds"] for e in read_manifest(dest / "manifest.jsonl"))
+            n += s.done
+        return time.perf_counter() - t0, inner, n
+
+    def bag_run(tag: str) -> tuple[float, float, int]:
+        dest = out / f"{tag}{bag.suffix or '-ros2'}"
+        t0 = time.perf_counter()
+        s = run_bag(recipe, bag, dest, workers=1, progress=False, overwrite=True)
+        return time.perf_counter() - t0, sum(e["seconds"] for e in read_manifest(manifest_path(dest))), s.done
+
+    files_run("warm"), bag_run("warm")
+    times: dict[str, list] = {"files": [], "bag": []}
+    for i in range(args.runs):
+        times["files"].append(files_run("f"))
+        times["bag"].append(bag_run("b"))
+    f, b = (statistics.median(x[0] for x in times[k]) for k in ("files", "bag"))
+    fi, bi = (statistics.median(x[1] for x in times[k]) for k in ("files", "bag"))
+    n = times["bag"][0][2]
+    size_mb = sum(p.stat().st_size for p in ([bag] if bag.is_file() else bag.iterdir())) / 1e6
+    print(f"\n{kind}: {n} augmented messages ({size_mb:.0f} MB bag), 1 worker, median of {args.runs} runs")
+    print(f"  files: {f:7.2f} s wall  ({f / n * 1e3:6.1f} ms/message), in-worker {fi:6.2f} s; "
+          f"runs {', '.join(f'{x[0]:.2f}' for x in times['files'])}")
+    print(f"  bag:   {b:7.2f} s wall  ({b / n * 1e3:6.1f} ms/message), in-worker {bi:6.2f} s; "
+          f"runs {', '.join(f'{x[0]:.2f}' for x in times['bag'])}")
+    print(f"  bag overhead over files: {100 * (b / f - 1):+.1f} % (target ≤ +10 %)")
+
+
+if __name__ == "__main__":
+    main()
