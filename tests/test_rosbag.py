@@ -103,6 +103,9 @@ def test_manifest_has_one_line_per_augmented_message(bag, augmented):
         assert e["key"] == f"{e['topic']}@{e['stamp_ns']}"
         assert hashlib.sha256(out[(e["topic"], e["record_time_ns"])]).hexdigest() == e["output_sha256"]
         assert [s["model"] for s in e["steps"]] == e["chain"] and e["sequence"] == e["topic"].strip("/")
+    lidar = [e["steps"][0] for e in entries if e["topic"] == "/os_cloud_node/points"]
+    assert lidar[0]["model"] == "alignment.lidar" and lidar[0]["state"]             # per-beam offsets: drawn once
+    assert all(step["state"] == lidar[0]["state"] for step in lidar[1:])           # per topic (sensor instance)
     record = json.loads(run_record_path(augmented).read_text())
     assert record["counts"] == {"augmented": 12, "failed": 0, "messages": 18}
     assert record["topics"]["/radar/points"] == {"messages": 3, "ok": 3, "failed": 0}
