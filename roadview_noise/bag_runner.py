@@ -232,16 +232,16 @@ def _serialize(typestore: Any, is2: bool, msg: Any, msgtype: str, like: bytes) -
 def ordered_map(fn: Callable, items: Iterable[tuple[Any, tuple | None, int]], workers: int, *,
                 max_bytes: int = MAX_IN_FLIGHT_BYTES) -> Iterator[tuple[Any, Any]]:
     """Yield ``(item, fn(*args))`` (``None`` for an item without args) in the order of ``items`` =
-    ``(item, args, size in bytes)``: the one place the bag runner meets a process pool (joblib's loky; the main
-    process when ``workers`` ≤ 1). At most 2·``workers`` calls and ``max_bytes`` of pending items are in flight, so
+    ``(item, args, size in bytes)``: the one place the bag runner meets a process pool (joblib's reusable loky
+    executor, shared with ``joblib.Parallel``; the main process when ``workers`` ≤ 1). At most 2·``workers`` calls and ``max_bytes`` of pending items are in flight, so
     memory stays bounded on long bags while the workers stay busy."""
     if workers <= 1:
         for item, args, _ in items:
             yield item, (fn(*args) if args is not None else None)
         return
-    from joblib.externals.loky import get_reusable_executor
+    from joblib.executor import get_memmapping_executor
 
-    executor = get_reusable_executor(max_workers=workers)
+    executor = get_memmapping_executor(workers)           # joblib's reusable loky pool, as the file runner's
     pending: deque = deque()
     in_flight = calls = 0
     for item, args, size in items:
