@@ -299,3 +299,13 @@ def test_ros2_single_files_sqlite_and_folders(tmp_path):
     run_bag(bag_recipe(), mcap, folder, workers=1, progress=False, overwrite=True)     # replaces a bag folder
     assert sorted(p.name for p in folder.iterdir()) == ["metadata.yaml", "rain-again.mcap"]
     assert not [p for p in tmp_path.iterdir() if TMP_SUFFIX in p.name]
+
+
+def test_ros1_chunk_compression_is_kept(tmp_path):
+    src = tmp_path / "lz4.bag"
+    write_sample_bag(SAMPLE, src, frames=1, ros1_compression="lz4")
+    out = tmp_path / "out.bag"
+    assert run_bag(bag_recipe(), src, out, workers=1, progress=False).done == 4
+    assert b"compression=lz4" in out.read_bytes()[:300_000]                        # a chunk header field
+    assert out.stat().st_size < 0.9 * sum(len(m[3]) for m in messages(out))
+    assert [m[:3] for m in messages(src)] == [m[:3] for m in messages(out)]

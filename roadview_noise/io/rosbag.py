@@ -4,9 +4,8 @@
 Reading: every connection with its message definition and hash, messages as raw serialised bytes in record order,
 deserialised only where rvnoise changes them. Writing (:func:`bag_output`): a new bag of the input's family whose
 connections copy the input's (topic, type, definition, hash, ROS 1 callerid/latching, ROS 2 serialisation format,
-QoS, ROS 2 compression), each message written with its record time; into a temporary sibling of the output that is
-renamed onto it only when complete, so no half-written bag exists. ROS 1 chunk compression is not carried over
-(outputs are uncompressed).
+QoS, compression: ROS 1 chunks lz4/bz2, ROS 2 zstd per file or message), each message written with its record time;
+into a temporary sibling of the output that is renamed onto it only when complete, so no half-written bag exists.
 
 The header stamp of a ``sensor_msgs`` message is read from its first bytes without deserialising it
 (:func:`header_stamp_ns`): ROS 1 ``uint32 seq, uint32 sec, uint32 nsec``; CDR a 4-byte encapsulation then
@@ -125,6 +124,9 @@ def bag_output(path: str | os.PathLike, reader: Any) -> Iterator[BagOutput]:
     suffix = path.suffix.lower()
     if output_kind(path) == "ros1":
         writer = Writer1(tmp)
+        compression = _ros1_compression(reader)
+        if compression:
+            writer.set_compression(Writer1.CompressionFormat[compression.upper()])
         made = tmp
     else:
         # rosbags names the storage file after the bag folder: write tmp/<name>/<name>.mcap, then move it in place
@@ -149,6 +151,15 @@ def bag_output(path: str | os.PathLike, reader: Any) -> Iterator[BagOutput]:
     finally:
         if tmp.exists():
             shutil.rmtree(tmp) if tmp.is_dir() else tmp.unlink()
+
+
+def _ros1_compression(reader: Any) -> str | None:
+    """``lz4`` | ``bz2`` when chunks of the ROS 1 input are compressed (lz4 if both occur), else None."""
+    from rosbags.rosbag1.reader import decompressors
+
+    names = {id(f): name for name, f in decompressors.items()}
+    used = {names.get(id(c.decompressor)) for r in reader.readers for c in getattr(r, "chunks", {}).values()}
+    return next((c for c in ("lz4", "bz2") if c in used), None)
 
 
 def _input_storage(reader: Any) -> str:

@@ -43,9 +43,10 @@ RADAR_FIELDS = ("x", "y", "z", "velocity", "snr", "power", "rcs")
 
 
 def write_sample_bag(sample_root: Path, out: Path, *, ros2: bool = False, frames: int | None = None,
-                     repeat: int = 1) -> dict[str, int]:
-    """Write the sample drive under ``sample_root`` as a ROS 1 bag (``out`` = ``*.bag``) or a ROS 2 MCAP bag folder
-    (``ros2``); ``repeat`` cycles the frames to make a longer drive. Returns the message count per topic."""
+                     repeat: int = 1, ros1_compression: str | None = None) -> dict[str, int]:
+    """Write the sample drive under ``sample_root`` as a ROS 1 bag (``out`` = ``*.bag``; chunks compressed with
+    ``ros1_compression`` ``lz4``/``bz2``) or a ROS 2 MCAP bag folder (``ros2``); ``repeat`` cycles the frames to
+    make a longer drive. Returns the message count per topic."""
     from rosbags.rosbag1 import Writer as Writer1
     from rosbags.rosbag2 import StoragePlugin
     from rosbags.rosbag2 import Writer as Writer2
@@ -55,6 +56,8 @@ def write_sample_bag(sample_root: Path, out: Path, *, ros2: bool = False, frames
     names = sorted(p.stem for p in (sample_root / "camera/seq0").glob("[0-9]*.png"))[:frames]
     profile = load_camera_profile(str(sample_root / "camera/seq0/camera.yaml"))
     writer = Writer2(out, version=9, storage_plugin=StoragePlugin.MCAP) if ros2 else Writer1(out)
+    if ros1_compression:
+        writer.set_compression(Writer1.CompressionFormat[ros1_compression.upper()])
     writer.open()
     types = {"/camera/image/compressed": "sensor_msgs/msg/CompressedImage", "/camera/depth": "sensor_msgs/msg/Image",
              "/camera/image_raw": "sensor_msgs/msg/Image", "/os_cloud_node/points": "sensor_msgs/msg/PointCloud2",
