@@ -7,15 +7,19 @@ Workers receive :class:`Sample` keys, never arrays; all reading and writing happ
 from __future__ import annotations
 
 import dataclasses
-import fnmatch
+import os
+import re
+import string
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 from .errors import InputError
-from .io.atomic import TMP_SUFFIX
+from .io.atomic import recorded_writes
 from .recipe import InputsSpec, Recipe
 from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
+from .walk import Matcher, WalkFailure, walk
 
 DEFAULT_GLOBS = {
     "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
@@ -64,34 +68,89 @@ def _globs(inputs: InputsSpec, modality: str, explicit: bool) -> list[str]:
     return [value] if isinstance(value, str) else list(value)
 
 
-def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
-    """Every input of the recipe's sensor under ``in_root``, sorted by path; depth sidecars are not inputs."""
+def matcher(recipe: Recipe) -> Matcher:
+    """The recipe's input globs per modality (in order: the first modality that matches a path wins)."""
     inputs = recipe.spec.inputs
     modalities = MODALITIES[recipe.sensor]
     explicit = any(getattr(inputs, m) is not None for m in modalities)
-    found: dict[str, str] = {}
-    for modality in modalities:
-        for pattern in _globs(inputs, modality, explicit):
-            for p in in_root.glob(pattern):
-                rel = p.relative_to(in_root).as_posix()
-                if not p.is_file() or TMP_SUFFIX in p.name or any(part.startswith(".") for part in p.parts[-1:]):
-                    continue
-                if any(fnmatch.fnmatch(rel, x) for x in inputs.exclude):
-                    continue
-                found.setdefault(rel, modality)
-    if recipe.sensor == "camera":
-        sidecars = {depth_relpath_for(rel, inputs.depth) for rel in found}
-        found = {rel: m for rel, m in found.items() if rel not in sidecars}
-    samples = []
-    for rel in sorted(found):
-        modality = found[rel]
+    return Matcher([(m, p) for m in modalities for p in _globs(inputs, m, explicit)], inputs.exclude)
+
+
+class _DepthSidecars:
+    """Tells whether a matched file is the depth sidecar of another matched image (then it is not an input), from
+    the pattern alone: ``a/depth/x.png`` matches ``depth/{stem}.png`` with stem ``x``, so it is a sidecar when folder
+    ``a`` holds an input with that stem."""
+
+    def __init__(self, pattern: str, match: Matcher, in_root: Path):
+        self.match, self.in_root = match, in_root
+        rx, seen = "", set()
+        for literal, field, _, _ in string.Formatter().parse(pattern):
+            rx += re.escape(literal)
+            if field is not None:
+                rx += f"(?P={field})" if field in seen else f"(?P<{field}>[^/]*)"
+                seen.add(field)
+        self.regex = re.compile(rx)
+        self.depth = pattern.count("/")
+        self._cache: tuple[str, tuple[set[str], set[str]]] | None = None
+
+    def __call__(self, rel: str, siblings: list[str]) -> bool:
+        parts = rel.split("/")
+        if len(parts) <= self.depth:
+            return False
+        cut = len(parts) - 1 - self.depth
+        m = self.regex.fullmatch("/".join(parts[cut:]))
+        if m is None:
+            return False
+        folder = "/".join(parts[:cut])
+        stems, names = self._owners(folder, siblings if self.depth == 0 else None)
+        name, stem = m.groupdict().get("name"), m.groupdict().get("stem")
+        if name is not None:
+            return name in names and (stem is None or split_suffix(name)[0] == stem)
+        return stem in stems if stem is not None else bool(names)
+
+    def _owners(self, folder: str, names: list[str] | None) -> tuple[set[str], set[str]]:
+        """Stems and names of the inputs in ``folder`` (cached for the folder being walked)."""
+        if self._cache is None or self._cache[0] != folder:
+            if names is None:
+                try:
+                    names = os.listdir(self.in_root / folder)
+                except OSError:
+                    names = []
+            prefix = folder + "/" if folder else ""
+            owners = {n for n in names if self.match.modality(prefix + n) is not None}
+            self._cache = (folder, ({split_suffix(n)[0] for n in owners}, owners))
+        return self._cache[1]
+
+
+def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]:
+    """Every input of the recipe's sensor under ``in_root`` in sorted path order, one at a time, and a
+    :class:`~roadview_noise.walk.WalkFailure` for every path the walk could not read; depth sidecars are not
+    inputs."""
+    inputs = recipe.spec.inputs
+    match = matcher(recipe)
+    sidecar = _DepthSidecars(inputs.depth, match, in_root) if recipe.sensor == "camera" else None
+    for item in walk(in_root, match):
+        if isinstance(item, WalkFailure):
+            yield item
+            continue
+        rel, modality, siblings = item
+        if sidecar is not None and sidecar(rel, siblings):
+            continue
         seq = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
         depth = None
         if modality in ("camera", "raw"):
             candidate = depth_relpath_for(rel, inputs.depth)
-            depth = candidate if (in_root / candidate).is_file() else None
-        samples.append(Sample(rel, modality, seq, depth))
-    return samples
+            if PurePosixPath(candidate).parent == PurePosixPath(rel).parent:
+                depth = candidate if PurePosixPath(candidate).name in siblings else None
+            else:
+                depth = candidate if (in_root / candidate).is_file() else None
+        yield Sample(rel, modality, seq, depth)
+
+
+def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
+    """Every input of the recipe's sensor under ``in_root``, sorted by path (what :func:`iter_inputs` yields, without
+    the paths it could not read)."""
+    return [s for s in iter_inputs(in_root, recipe) if isinstance(s, Sample)]
 
 
 # --- profiles ------------------------------------------------------------------------------------------------------
@@ -235,17 +294,20 @@ def _needs_depth(model_id: str) -> bool:
     return get_model(model_id).needs_depth
 
 
-def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None) -> None:
+def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None) -> list[Path]:
     """Write a result in the input's own format (atomically, by the io writers); a DNG keeps the colour metadata
-    of its ``source``."""
+    of its ``source``. Returns every file written, the main file first and then its sidecars: the runner records
+    each with its sha256 in the manifest, so this list is the contract for any writer that adds files."""
     from .io import image as image_io
     from .io import pointcloud as cloud_io
     from .io import raw as raw_io
 
-    if isinstance(data, CameraFrame):
-        image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
-    elif isinstance(data, RawFrame):
-        raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
-                         data.encoding, template=source)
-    else:
-        cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)
+    with recorded_writes() as written:
+        if isinstance(data, CameraFrame):
+            image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
+        elif isinstance(data, RawFrame):
+            raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
+                             data.encoding, template=source)
+        else:
+            cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)
+    return sorted(written, key=lambda p: p.name != Path(out_path).name)

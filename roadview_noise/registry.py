@@ -35,6 +35,13 @@ def load_all() -> dict[str, type]:
     return MODELS
 
 
+def plugin_modules() -> tuple[str, ...]:
+    """Modules outside ``roadview_noise.models`` that registered models in this process (a script's or a test's own
+    models): the batch workers import them, so they know the same models as the process that plans the run."""
+    return tuple(sorted({c.__module__ for c in MODELS.values()
+                         if not c.__module__.startswith(__package__ + ".models") and c.__module__ != "__main__"}))
+
+
 def suggest(name: str, choices) -> str:
     close = difflib.get_close_matches(name, list(choices), n=3, cutoff=0.5)
     return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""
