@@ -36,6 +36,7 @@ from .io.headers import check_size
 from .lock import OutputLock
 from .manifest import (MANIFEST_NAME, RUN_NAME, library_versions, read_manifest, sha256_file, write_manifest,
                        write_run_json)
+from .native_output import captured_output
 from .outputs import Ledger, commit, discard, files_intact, listed_files, remove_listed
 from .recipe import Recipe, draw_value
 from .registry import get_model, plugin_modules
@@ -68,12 +69,14 @@ class Task:
 
 @dataclass(frozen=True)
 class RunContext:
-    """What every worker receives once: real input and output roots, the recipe, the limits."""
+    """What every worker receives once: real input and output roots, the recipe, the limits; whether to collect
+    what native libraries print (in worker processes) into the entry's ``library_messages``."""
 
     in_root: Path
     out_root: Path
     recipe: Recipe
     limits: Limits = Limits()
+    capture_output: bool = False
 
 
 @dataclass
@@ -215,6 +218,17 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
         "depth": s.depth_relpath, "variant_index": task.variant_index,
         "variant": recipe.variants[task.variant_index].overrides, "chain": list(recipe.model_ids),
     }
+    with captured_output(ctx.capture_output) as printed:
+        _process(task, ctx, entry)
+    if printed:
+        entry["library_messages"] = printed
+    entry["seconds"] = round(time.perf_counter() - t0, 4)
+    return entry
+
+
+def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
+    """The body of :func:`process`: fills ``entry``."""
+    s, recipe = task.sample, ctx.recipe
     try:
         source = input_path(ctx.in_root, s.relpath)
         entry["input_sha256"] = sha256_input(source)
@@ -255,8 +269,6 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
         for key in ("files", "output_sha256"):
             entry.pop(key, None)
         discard(ctx.out_root, entry)
-    entry["seconds"] = round(time.perf_counter() - t0, 4)
-    return entry
 
 
 def _result_entry(task: Task, result: Any) -> dict:
@@ -322,7 +334,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
             write_run_json(out_real / RUN_NAME, {**record, "state": "running"})
         except OSError as e:
             raise OutputError(f"cannot write in the output folder {str(out_root)!r}: {os_error_text(e)}") from None
-        ctx = RunContext(in_real, out_real, recipe, limits)
+        ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True)
         released = _execute(ctx, previous, summary, n_workers, limit, fail_fast, progress)
         _finish(ctx, previous, released, summary, record, started, lock)
     for note in summary.notes:

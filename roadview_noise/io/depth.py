@@ -122,8 +122,8 @@ def _read_exr(path: Path) -> np.ndarray:
             if name is None:
                 raise InputError("EXR file has no channels", file=str(path))
             pixels = np.asarray(channels[name].pixels)
-    except (RuntimeError, OSError) as exc:
-        raise InputError(f"cannot read EXR: {exc}", file=str(path)) from exc
+    except (RuntimeError, OSError, ValueError) as exc:      # OpenEXR raises all three for damaged files
+        raise InputError(f"corrupt or truncated EXR, OpenEXR cannot read it ({exc})", file=str(path)) from exc
     if pixels.ndim != 2 or pixels.dtype.kind != "f":
         raise InputError(f"EXR channel {name!r} is {pixels.dtype} with shape {pixels.shape}; expected float depth",
                          file=str(path))

@@ -374,11 +374,21 @@ def _parse_ascii(text: bytes, n: int, dtypes: list[np.dtype], path) -> list[np.n
         base = dt.base
         try:
             vals = table[:, col:col + w].astype(base)
-        except (ValueError, OverflowError) as exc:
-            raise InputError(f"bad ascii value in column {col + 1}: {exc}", file=str(path)) from exc
+        except (ValueError, OverflowError):
+            bad = next((t for t in table[:, col:col + w].ravel() if not _fits(t, base)), b"?")
+            raise InputError(f"bad ascii value {bad.decode('ascii', 'replace')!r} in column {col + 1}: not a "
+                             f"{base.name} number", file=str(path)) from None
         out.append(vals if w > 1 else vals[:, 0])
         col += w
     return out
+
+
+def _fits(token: bytes, base: np.dtype) -> bool:
+    try:
+        np.array([token]).astype(base)
+        return True
+    except (ValueError, OverflowError):
+        return False
 
 
 def _ascii_bytes(columns: list[Column]) -> bytes:
