@@ -7,9 +7,6 @@ Workers receive :class:`Sample` keys, never arrays; all reading and writing happ
 from __future__ import annotations
 
 import dataclasses
-import os
-import re
-import string
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
@@ -77,49 +74,34 @@ def matcher(recipe: Recipe) -> Matcher:
 
 
 class _DepthSidecars:
-    """Tells whether a matched file is the depth sidecar of another matched image (then it is not an input), from
-    the pattern alone: ``a/depth/x.png`` matches ``depth/{stem}.png`` with stem ``x``, so it is a sidecar when folder
-    ``a`` holds an input with that stem."""
+    """Which matched files are the depth sidecar of a matched image (they are then not inputs): a file is one when
+    ``depth_relpath_for(image)`` names it for some matched image. A pattern without ``/`` stays in the image's
+    folder, so it is decided folder by folder during the walk; one that leads into another folder needs the
+    sidecar paths of every matched image, collected by one walk of the tree first."""
 
     def __init__(self, pattern: str, match: Matcher, in_root: Path):
-        self.match, self.in_root = match, in_root
-        rx, seen = "", set()
-        for literal, field, _, _ in string.Formatter().parse(pattern):
-            rx += re.escape(literal)
-            if field is not None:
-                rx += f"(?P={field})" if field in seen else f"(?P<{field}>[^/]*)"
-                seen.add(field)
-        self.regex = re.compile(rx)
-        self.depth = pattern.count("/")
-        self._cache: tuple[str, tuple[set[str], set[str]]] | None = None
+        self.pattern, self.match = pattern, match
+        self._folder: tuple[str, set[str]] | None = None
+        self._everywhere: set[str] | None = None
+        if "/" in pattern:
+            self._everywhere = {self._sidecar(item[0]) for item in walk(in_root, match)
+                                if not isinstance(item, WalkFailure)}
+
+    def _sidecar(self, rel: str) -> str | None:
+        try:
+            return depth_relpath_for(rel, self.pattern)
+        except InputError:                         # the pattern names a folder level this image does not have
+            return None
 
     def __call__(self, rel: str, siblings: list[str]) -> bool:
-        parts = rel.split("/")
-        if len(parts) <= self.depth:
-            return False
-        cut = len(parts) - 1 - self.depth
-        m = self.regex.fullmatch("/".join(parts[cut:]))
-        if m is None:
-            return False
-        folder = "/".join(parts[:cut])
-        stems, names = self._owners(folder, siblings if self.depth == 0 else None)
-        name, stem = m.groupdict().get("name"), m.groupdict().get("stem")
-        if name is not None:
-            return name in names and (stem is None or split_suffix(name)[0] == stem)
-        return stem in stems if stem is not None else bool(names)
-
-    def _owners(self, folder: str, names: list[str] | None) -> tuple[set[str], set[str]]:
-        """Stems and names of the inputs in ``folder`` (cached for the folder being walked)."""
-        if self._cache is None or self._cache[0] != folder:
-            if names is None:
-                try:
-                    names = os.listdir(self.in_root / folder)
-                except OSError:
-                    names = []
-            prefix = folder + "/" if folder else ""
-            owners = {n for n in names if self.match.modality(prefix + n) is not None}
-            self._cache = (folder, ({split_suffix(n)[0] for n in owners}, owners))
-        return self._cache[1]
+        if self._everywhere is not None:
+            return rel in self._everywhere
+        folder = str(PurePosixPath(rel).parent)
+        if self._folder is None or self._folder[0] != folder:
+            prefix = "" if folder == "." else folder + "/"
+            self._folder = (folder, {self._sidecar(prefix + n) for n in siblings
+                                     if self.match.modality(prefix + n) is not None})
+        return rel in self._folder[1]
 
 
 def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]:

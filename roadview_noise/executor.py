@@ -22,6 +22,7 @@ from __future__ import annotations
 import ctypes
 import importlib
 import multiprocessing as mp
+import multiprocessing.spawn as mp_spawn
 import os
 import signal
 import sys
@@ -152,12 +153,29 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, plugins: tup
 
 
 @contextmanager
-def _thread_env() -> Iterator[None]:
+def _starting() -> Iterator[None]:
+    """Around starting a worker or the fork server: one thread per numeric library in the environment, and no
+    re-run of the caller's ``__main__`` in the child. Workers need nothing from it (the task function and plugin
+    modules are imported by name), and multiprocessing's default would re-import the main script in every worker:
+    slow (a script that imports open3d pays it per worker) and wrong for a script without the
+    ``if __name__ == "__main__"`` guard."""
     saved = {k: os.environ.get(k) for k in THREAD_ENV}
     os.environ.update(THREAD_ENV)
+    original = getattr(mp_spawn, "get_preparation_data", None)
+
+    def without_main(name):
+        data = original(name)
+        data.pop("init_main_from_path", None)
+        data.pop("init_main_from_name", None)
+        return data
+
+    if original is not None:
+        mp_spawn.get_preparation_data = without_main
     try:
         yield
     finally:
+        if original is not None:
+            mp_spawn.get_preparation_data = original
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
@@ -174,7 +192,7 @@ def _context():
         ctx = mp.get_context("forkserver")
         ctx.set_forkserver_preload(PRELOAD + [m.name for m in pkgutil.walk_packages(models.__path__,
                                                                                        models.__name__ + ".")])
-        with _thread_env():              # the server imports numpy once, with one BLAS thread per worker
+        with _starting():                # the server imports numpy once, with one BLAS thread per worker
             from multiprocessing import forkserver
 
             forkserver.ensure_running()
@@ -206,7 +224,7 @@ class ProcessExecutor(Generic[T, C]):
 
     def _start(self) -> _Worker:
         parent, child = self._ctx.Pipe(duplex=True)
-        with _thread_env():
+        with _starting():
             proc = self._ctx.Process(target=_worker_main, name="rvnoise-worker", daemon=True,
                                      args=(child, self.fn, self.context, os.getpid(), self.plugins))
             proc.start()

@@ -3,10 +3,8 @@ a run so that no file fails for a reason the recipe already showed.
 
 - Globs (``camera``, ``raw``, ``lidar``, ``radar``, ``exclude``) stay inside the input folder: absolute patterns and
   ``..`` segments are refused (an output path mirrors the input path, so ``../x`` would write outside OUT or onto
-  the input itself).
-- Every other string of ``inputs`` that holds ``{…}`` is a file-name pattern (``depth: "{stem}_depth.exr"`` and any
-  pattern key added later): its placeholders must be among :data:`PATTERN_FIELDS`, and the formatted path must stay
-  inside the input folder too.
+  the input itself). Sidecar patterns (``depth``, …) may use ``..`` to reach a sibling folder; the file they name is
+  refused at read time when it resolves outside the input folder (``runner.input_path``).
 - Profiles (``camera_profile``, ``lidar_profile``, ``radar_profile``) of the recipe's sensor are resolved now: a
   built-in name, a file relative to the recipe (loaded and checked) or a mapping; a file next to each input is
   written ``{dir}/NAME`` and checked when it is read.
@@ -23,7 +21,6 @@ from .registry import suggest
 
 GLOB_KEYS = ("camera", "raw", "lidar", "radar", "exclude")
 PROFILE_KEYS = {"camera": "camera_profile", "lidar": "lidar_profile", "radar": "radar_profile"}
-PATTERN_FIELDS = ("stem", "name")          # {stem}: file name without its suffix; {name}: the file name
 PROFILE_FIELDS = ("dir",)                  # {dir}: the input file's folder
 
 
@@ -51,17 +48,12 @@ def placeholders(pattern: str, allowed: tuple[str, ...]) -> str | None:
 
 def check_inputs(inputs: Any, sensor: str, source: str, base_dir: Path | None) -> None:
     """Raise :class:`RecipeError` naming the key for the problems listed in the module docstring."""
-    for key, value in inputs:
-        where = f"inputs.{key}"
-        if key in GLOB_KEYS and value is not None:
-            for pattern in [value] if isinstance(value, str) else value:
-                problem = escapes(pattern)
-                if problem:
-                    raise RecipeError(f"{pattern!r} {problem}", file=source, key=where)
-        elif isinstance(value, str) and key not in PROFILE_KEYS.values() and ("{" in value or "}" in value):
-            problem = placeholders(value, PATTERN_FIELDS) or escapes(value.format(stem="x", name="x.png"))
+    for key in GLOB_KEYS:
+        value = getattr(inputs, key)
+        for pattern in [value] if isinstance(value, str) else value or []:
+            problem = escapes(pattern)
             if problem:
-                raise RecipeError(f"{value!r} {problem}", file=source, key=where)
+                raise RecipeError(f"{pattern!r} {problem}", file=source, key=f"inputs.{key}")
     key = PROFILE_KEYS[sensor]
     _check_profile(sensor, getattr(inputs, key), source, f"inputs.{key}", base_dir)
 

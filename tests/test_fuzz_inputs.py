@@ -21,7 +21,7 @@ from roadview_noise.io.pointcloud import write_pointcloud
 from roadview_noise.io.raw import write_dng
 from roadview_noise.manifest import read_manifest, sha256_file
 from roadview_noise.recipe import parse_recipe
-from roadview_noise.runner import Limits, run
+from roadview_noise.runner import run
 from roadview_noise.types import CloudLayout, ImageEncoding
 
 SEED = 12
@@ -165,6 +165,8 @@ RECIPES = {
 
 @pytest.mark.parametrize("folder", list(RECIPES))
 def test_malformed_inputs_fail_cleanly(tmp_path, fuzz_tree, folder):
+    from roadview_noise.runner import Limits
+
     root, kinds = fuzz_tree
     before = {p: sha256_file(p) for p in sorted(root.rglob("*")) if p.is_file()}
     out = tmp_path / "out"
