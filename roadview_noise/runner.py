@@ -336,9 +336,11 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
             raise OutputError(f"cannot write in the output folder {str(out_root)!r}: {os_error_text(e)}") from None
         ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True)
         released = _execute(ctx, previous, summary, n_workers, limit, fail_fast, progress)
-        _finish(ctx, previous, released, summary, record, started, lock)
+        _finish(ctx, previous, released, summary, record, started, lock, prune=limit is None)
     for note in summary.notes:
         warn(f"rvnoise: {note}")
+    if summary.state == "interrupted":
+        raise KeyboardInterrupt
     return summary
 
 
@@ -445,9 +447,8 @@ def _execute(ctx: RunContext, previous: dict[str, dict], summary: RunSummary, n_
                 ledger.discard_pending()
         if ledger.stopped:
             summary.state = "stopped at the first failure (--fail-fast)"
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:                          # recorded like any other end; run() raises it again
         summary.state = "interrupted"
-        raise
     except RuntimeError as e:                          # workers cannot start: report it, keep what was done
         summary.state = f"aborted: {e}"
         summary.notes.append(f"run aborted: {e}")
@@ -460,12 +461,13 @@ def _execute(ctx: RunContext, previous: dict[str, dict], summary: RunSummary, n_
 
 
 def _finish(ctx: RunContext, previous: dict[str, dict], released: list[dict], summary: RunSummary, record: dict,
-            started: float, lock: OutputLock) -> None:
-    """Make OUT equal the manifest and write the run record, however the run ended."""
+            started: float, lock: OutputLock, *, prune: bool) -> None:
+    """Make OUT equal the manifest and write the run record, however the run ended. ``prune``: the plan was
+    complete (no ``--limit``), so outputs of a previous run that it no longer has are removed."""
     out = ctx.out_root
     seen = {e.get("output") for e in released}
     kept = [e for key, e in previous.items() if key not in seen]
-    if summary.state == "complete":
+    if summary.state == "complete" and prune:
         claimed = {f for e in released if e.get("status") == "ok" for f in listed_files(e)}
         remove_listed(out, kept, keep=claimed)          # outputs the plan no longer has (inputs removed)
         kept = []

@@ -163,23 +163,20 @@ def _walk_dir(path: str, rel: str, root: str, matcher: Matcher) -> Iterator:
         if is_dir:
             if matcher.excluded_dir(child):
                 continue
-            if is_link:
-                failure = _symlink_failure(entry.path, child, root)
-                if failure is not None:
-                    yield failure
+        else:
+            modality = None if entry.name.startswith(".") or is_temporary(entry.name) else matcher.modality(child)
+            if modality is None:
                 continue
-            yield from _walk_dir(entry.path, child, root, matcher)
-            continue
-        if entry.name.startswith(".") or is_temporary(entry.name):
-            continue
-        modality = matcher.modality(child)
-        if modality is None:
-            continue
         if is_link:
             failure = _symlink_failure(entry.path, child, root)
             if failure is not None:
                 yield failure
                 continue
+            if is_dir:                               # inside the input tree: its target is walked on its own
+                continue
+        if is_dir:
+            yield from _walk_dir(entry.path, child, root, matcher)
+            continue
         if not os.path.isfile(entry.path):
             yield WalkFailure(child, "is not a regular file (device, pipe or socket)")
             continue

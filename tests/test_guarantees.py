@@ -236,6 +236,8 @@ def test_resume_refuses_another_recipe_and_redoes_changed_inputs(tmp_path, tree)
     assert _files(out) == _files(tmp_path / "fresh")
     e = {e["input"]: e for e in assert_out_equals_manifest(out)}["cam/seqB/000002.png"]
     assert e["input_sha256"] == sha256_file(changed)
+    r = _augment(tree, out, "--recipe", recipe, "--resume", "--limit", 1)     # a partial plan deletes nothing
+    assert r.exit_code == 0 and "0 written, 1 skipped" in r.output and len(assert_out_equals_manifest(out)) == 6
 
 
 # --- 7. one run per OUT ------------------------------------------------------------------------------------------------
@@ -466,14 +468,20 @@ def test_pcd_with_fewer_points_in_the_header_than_in_the_data_fails(tmp_path, tr
     assert e["status"] == "failed" and "declares 1000 points" in e["error"] and "does not match" in e["error"]
 
 
-def test_invalid_points_are_counted_under_their_own_name(tmp_path, tree):
+def _spoil_intensity(tree: Path, value: float) -> int:
+    """Set the first 7 intensities of a scan to ``value``; returns the scan's point count."""
     from roadview_noise.io.pointcloud import read_pointcloud
 
     p = tree / "lidar" / "seqA" / "000000.pcd"
     cloud = read_pointcloud(p)
     inten = cloud.fields["intensity"].copy()
-    inten[:7] = np.nan
+    inten[:7] = value
     write_pointcloud(p, cloud.with_fields(intensity=inten))
+    return len(cloud)
+
+
+def test_invalid_points_are_counted_under_their_own_name(tmp_path, tree):
+    _spoil_intensity(tree, np.nan)
     e = _process_one(tmp_path, tree, LIDAR, "lidar/seqA/000000.pcd")
     assert e["status"] == "ok" and e["input_warnings"] == {"dropped_nonfinite_intensity": 7}
     radar = _radar_with_nan_velocity(tree)
@@ -486,15 +494,11 @@ def test_invalid_points_are_counted_under_their_own_name(tmp_path, tree):
 def test_dropped_points_reach_the_output_and_the_summary(tmp_path, tree):
     from roadview_noise.io.pointcloud import read_pointcloud
 
-    p = tree / "lidar" / "seqA" / "000000.pcd"
-    cloud = read_pointcloud(p)
-    inten = cloud.fields["intensity"].copy()
-    inten[:7] = np.inf
-    write_pointcloud(p, cloud.with_fields(intensity=inten))
+    n = _spoil_intensity(tree, np.inf)
     r = runner.invoke(app, ["augment", str(tree), str(tmp_path / "o"), "--recipe", str(_recipe(tmp_path, LIDAR)),
                             "--quiet"])
     assert r.exit_code == 0 and "1 output(s) had invalid input points removed" in r.output
-    assert len(read_pointcloud(tmp_path / "o" / "lidar" / "seqA" / "000000.pcd")) == len(cloud) - 7
+    assert len(read_pointcloud(tmp_path / "o" / "lidar" / "seqA" / "000000.pcd")) == n - 7
 
 
 def _radar_with_nan_velocity(tree: Path) -> str:
@@ -632,6 +636,29 @@ def test_workers_exit_when_the_main_process_is_killed(tmp_path, tree):
     while time.time() < deadline and any(_running(p) for p in helpers):
         time.sleep(0.05)
     assert not [p for p in helpers if _running(p)]
+
+
+def test_interrupted_run_is_recorded(tmp_path, tree):
+    pid_dir = tmp_path / "pids"
+    pid_dir.mkdir()
+    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5, "pid_dir": str(pid_dir)}}],
+            "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
+    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; "
+            "from roadview_noise.recipe import load_recipe; from roadview_noise.runner import run; "
+            f"run(load_recipe({str(_recipe(tmp_path, body))!r}), {str(tree)!r}, {str(tmp_path / 'o')!r}, "
+            "workers=1, progress=False)")
+    main = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.time() + 60
+    while time.time() < deadline and not list(pid_dir.iterdir()):
+        time.sleep(0.05)
+    time.sleep(0.8)
+    main.send_signal(signal.SIGINT)
+    _, err = main.communicate(timeout=60)
+    assert b"KeyboardInterrupt" in err
+    record = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert record["state"] == "interrupted" and 0 < record["counts"]["done"] < 6
+    assert_out_equals_manifest(tmp_path / "o")
+    assert not (tmp_path / "o" / ".rvnoise.lock").exists()
 
 
 def test_huge_sweep_is_planned_lazily_and_refused_without_yes(tmp_path, tree):
