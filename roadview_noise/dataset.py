@@ -10,7 +10,7 @@ import dataclasses
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
-from typing import Iterator
+from typing import Callable, Iterable, Iterator
 
 from .errors import InputError
 from .io.atomic import recorded_writes
@@ -73,25 +73,19 @@ def matcher(recipe: Recipe) -> Matcher:
     return Matcher([(m, p) for m in modalities for p in _globs(inputs, m, explicit)], inputs.exclude)
 
 
-class _DepthSidecars:
-    """Which matched files are the depth sidecar of a matched image (they are then not inputs): a file is one when
-    ``depth_relpath_for(image)`` names it for some matched image. A pattern without ``/`` stays in the image's
-    folder, so it is decided folder by folder during the walk; one that leads into another folder needs the
-    sidecar paths of every matched image, collected by one walk of the tree first."""
+class _Sidecars:
+    """Which matched files are a sidecar of a matched input (they are then not inputs themselves): a file is one
+    when ``of(input)`` names it for some matched input. When every sidecar lies in its input's folder (``local``),
+    this is decided folder by folder during the walk; otherwise the sidecars of every matched input are collected by
+    one walk of the tree first."""
 
-    def __init__(self, pattern: str, match: Matcher, in_root: Path):
-        self.pattern, self.match = pattern, match
-        self._folder: tuple[str, set[str]] | None = None
-        self._everywhere: set[str] | None = None
-        if "/" in pattern:
-            self._everywhere = {self._sidecar(item[0]) for item in walk(in_root, match)
-                                if not isinstance(item, WalkFailure)}
-
-    def _sidecar(self, rel: str) -> str | None:
-        try:
-            return depth_relpath_for(rel, self.pattern)
-        except InputError:                         # the pattern names a folder level this image does not have
-            return None
+    def __init__(self, of: Callable[[str], Iterable[str | None]], local: bool, match: Matcher, in_root: Path):
+        self.of, self.match = of, match
+        self._folder: tuple[str, set[str | None]] | None = None
+        self._everywhere: set[str | None] | None = None
+        if not local:
+            self._everywhere = {s for item in walk(in_root, match) if not isinstance(item, WalkFailure)
+                                for s in of(item[0])}
 
     def __call__(self, rel: str, siblings: list[str]) -> bool:
         if self._everywhere is not None:
@@ -99,9 +93,16 @@ class _DepthSidecars:
         folder = str(PurePosixPath(rel).parent)
         if self._folder is None or self._folder[0] != folder:
             prefix = "" if folder == "." else folder + "/"
-            self._folder = (folder, {self._sidecar(prefix + n) for n in siblings
-                                     if self.match.modality(prefix + n) is not None})
+            self._folder = (folder, {s for n in siblings if self.match.modality(prefix + n) is not None
+                                     for s in self.of(prefix + n)})
         return rel in self._folder[1]
+
+
+def _depth_sidecar(rel: str, pattern: str) -> str | None:
+    try:
+        return depth_relpath_for(rel, pattern)
+    except InputError:                             # the pattern names a folder level this image does not have
+        return None
 
 
 def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]:
@@ -110,7 +111,10 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
     inputs."""
     inputs = recipe.spec.inputs
     match = matcher(recipe)
-    sidecar = _DepthSidecars(inputs.depth, match, in_root) if recipe.sensor == "camera" else None
+    sidecar = None
+    if recipe.sensor == "camera":
+        sidecar = _Sidecars(lambda rel: (_depth_sidecar(rel, inputs.depth),), "/" not in inputs.depth, match,
+                            in_root)
     for item in walk(in_root, match):
         if isinstance(item, WalkFailure):
             yield item

@@ -90,3 +90,19 @@ def test_walk_is_lazy(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "scandir", counting)
     first = next(walk(root, Matcher([("m", "**/*.png")])))
     assert first[0] == "d00/a.png" and len(calls) == 2          # the root and the first folder only
+
+
+@pytest.mark.parametrize("pattern,sidecars", [("{stem}_depth.png", ["cam/a_depth.png", "cam/b_depth.png"]),
+                                              ("depth/{stem}.png", ["cam/depth/a.png", "cam/depth/b.png"])])
+def test_depth_sidecars_are_not_inputs(tmp_path, pattern, sidecars):
+    from roadview_noise.dataset import iter_inputs
+    from roadview_noise.recipe import parse_recipe
+
+    root = tmp_path / "in"
+    for rel in ["cam/a.png", "cam/b.png", "cam/c.png", *sidecars]:
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_bytes(b"x")
+    recipe = parse_recipe({"chain": [{"model": "compression.camera"}], "inputs": {"depth": pattern}})
+    samples = list(iter_inputs(root, recipe))
+    assert [s.relpath for s in samples] == ["cam/a.png", "cam/b.png", "cam/c.png"]
+    assert [s.depth_relpath for s in samples] == [*sidecars, None]
