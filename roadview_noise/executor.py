@@ -20,7 +20,6 @@ flight) and yields ``(task, result)`` pairs as they complete; ``result`` is the 
 from __future__ import annotations
 
 import ctypes
-import importlib
 import multiprocessing as mp
 import multiprocessing.spawn as mp_spawn
 import os
@@ -129,11 +128,11 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, plugins: tuple[str, ...]) -> None:
+def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple | None) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)       # Ctrl-C is the parent's to handle
     worker_setup(parent_pid)
-    for name in plugins:
-        importlib.import_module(name)
+    if setup is not None:
+        setup[0](*setup[1])
     while True:
         try:
             msg = conn.recv()
@@ -155,8 +154,8 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, plugins: tup
 @contextmanager
 def _starting() -> Iterator[None]:
     """Around starting a worker or the fork server: one thread per numeric library in the environment, and no
-    re-run of the caller's ``__main__`` in the child. Workers need nothing from it (the task function and plugin
-    modules are imported by name), and multiprocessing's default would re-import the main script in every worker:
+    re-run of the caller's ``__main__`` in the child. Workers need nothing from it (the task function and the setup
+    are imported by name), and multiprocessing's default would re-import the main script in every worker:
     slow (a script that imports open3d pays it per worker) and wrong for a script without the
     ``if __name__ == "__main__"`` guard."""
     saved = {k: os.environ.get(k) for k in THREAD_ENV}
@@ -210,12 +209,13 @@ class _Worker:
 
 
 class ProcessExecutor(Generic[T, C]):
-    """``workers`` processes running ``fn(task, context)``; see the module docstring."""
+    """``workers`` processes running ``fn(task, context)``; see the module docstring. ``setup``: ``(function,
+    args)`` each worker calls once at start (importable by reference)."""
 
-    def __init__(self, fn: Callable[[T, C], Any], context: C, workers: int, *, plugins: Iterable[str] = (),
+    def __init__(self, fn: Callable[[T, C], Any], context: C, workers: int, *, setup: tuple | None = None,
                  max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None):
         self.fn, self.context, self.workers = fn, context, max(1, int(workers))
-        self.plugins = tuple(plugins)
+        self.setup = setup
         self.max_deaths = max_deaths
         self.timeout_s = timeout_s
         self._ctx = _context()
@@ -226,7 +226,7 @@ class ProcessExecutor(Generic[T, C]):
         parent, child = self._ctx.Pipe(duplex=True)
         with _starting():
             proc = self._ctx.Process(target=_worker_main, name="rvnoise-worker", daemon=True,
-                                     args=(child, self.fn, self.context, os.getpid(), self.plugins))
+                                     args=(child, self.fn, self.context, os.getpid(), self.setup))
             proc.start()
         child.close()
         return _Worker(proc, parent)

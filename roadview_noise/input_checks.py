@@ -5,7 +5,8 @@ a run so that no file fails for a reason the recipe already showed.
   ``..`` segments are refused (an output path mirrors the input path, so ``../x`` would write outside OUT or onto
   the input itself). Sidecar patterns (``depth``, …) may use ``..`` to reach a sibling folder; the file they name is
   refused at read time when it resolves outside the input folder (``runner.input_path``).
-- Profiles (``camera_profile``, ``lidar_profile``, ``radar_profile``) of the recipe's sensor are resolved now: a
+- Profiles (``camera_profile``, ``lidar_profile``, ``radar_profile``) of the recipe's sensor are resolved now (a
+  camera profile only when a step uses the camera geometry; without one it is never read): a
   built-in name, a file relative to the recipe (loaded and checked) or a mapping; a file next to each input is
   written ``{dir}/NAME`` and checked when it is read.
 """
@@ -17,7 +18,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
 from .errors import InputError, RecipeError
-from .registry import suggest
+from .registry import get_model, suggest
 
 GLOB_KEYS = ("camera", "raw", "lidar", "radar", "exclude")
 PROFILE_KEYS = {"camera": "camera_profile", "lidar": "lidar_profile", "radar": "radar_profile"}
@@ -46,16 +47,18 @@ def placeholders(pattern: str, allowed: tuple[str, ...]) -> str | None:
     return None
 
 
-def check_inputs(inputs: Any, sensor: str, source: str, base_dir: Path | None) -> None:
+def check_inputs(inputs: Any, model_ids: tuple[str, ...], source: str, base_dir: Path | None) -> None:
     """Raise :class:`RecipeError` naming the key for the problems listed in the module docstring."""
+    sensor = get_model(model_ids[0]).sensor
     for key in GLOB_KEYS:
         value = getattr(inputs, key)
         for pattern in [value] if isinstance(value, str) else value or []:
             problem = escapes(pattern)
             if problem:
                 raise RecipeError(f"{pattern!r} {problem}", file=source, key=f"inputs.{key}")
-    key = PROFILE_KEYS[sensor]
-    _check_profile(sensor, getattr(inputs, key), source, f"inputs.{key}", base_dir)
+    if sensor != "camera" or any(get_model(m).uses_camera_geometry for m in model_ids):
+        key = PROFILE_KEYS[sensor]
+        _check_profile(sensor, getattr(inputs, key), source, f"inputs.{key}", base_dir)
 
 
 def _check_profile(sensor: str, spec: Any, source: str, where: str, base_dir: Path | None) -> None:

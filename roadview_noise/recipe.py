@@ -332,7 +332,7 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             seen[text] = v
         axes.append([(model_id, name, v) for v in values])
     base_dir = base_dir or Path.cwd()
-    check_inputs(spec.inputs, get_model(ids[0]).sensor, source, base_dir)
+    check_inputs(spec.inputs, tuple(ids), source, base_dir)
     return Recipe(spec, source, base_dir, tuple(ids), tuple(step_params), Variants(axes))
 
 

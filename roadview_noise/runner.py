@@ -39,7 +39,7 @@ from .manifest import (MANIFEST_NAME, RUN_NAME, library_versions, read_manifest,
 from .native_output import captured_output
 from .outputs import Ledger, commit, discard, files_intact, listed_files, remove_listed
 from .recipe import Recipe, draw_value
-from .registry import get_model, plugin_modules
+from .registry import adopt, get_model, plugin_models
 from .resources import choose_workers
 from .seeding import derive_rng
 from .walk import WalkFailure, os_error_text
@@ -137,6 +137,11 @@ def iter_plan(in_root: Path, recipe: Recipe, limit: int | None = None) -> Iterat
 
 def iter_tasks(in_root: Path, recipe: Recipe, limit: int | None = None) -> Iterator[Task]:
     return (t for t in iter_plan(in_root, recipe, limit) if isinstance(t, Task))
+
+
+def plan(in_root: Path, recipe: Recipe, limit: int | None = None) -> list[Task]:
+    """Every task of the plan as a list (small trees, tests); a run streams them with :func:`iter_tasks`."""
+    return list(iter_tasks(in_root, recipe, limit))
 
 
 def count_plan(in_root: Path, recipe: Recipe, limit: int | None, stop_above: int | None) -> tuple[int, int]:
@@ -432,7 +437,7 @@ def _execute(ctx: RunContext, previous: dict[str, dict], summary: RunSummary, n_
                 continue
             yield item
 
-    executor = ProcessExecutor(process, ctx, n_workers, plugins=plugin_modules(),
+    executor = ProcessExecutor(process, ctx, n_workers, setup=(adopt, (plugin_models(),)),
                                timeout_s=ctx.limits.task_timeout_s)
     try:
         with open(ctx.out_root / MANIFEST_NAME, "a" if previous else "w", encoding="utf-8") as log:

@@ -5,7 +5,7 @@ first file is seen. :func:`walk` yields matching files one by one, in the order 
 folders of a level are visited in the order ``name + "/"``, which is the order of the full paths), and yields a
 :class:`WalkFailure` for every folder it could not list and every matching name it could not use: dangling
 symlinks, symlinked folders (never followed: they would lead out of the input tree or visit files twice), entries
-it could not stat. Only the folders below the literal prefix of some pattern are walked.
+it could not stat. Only the folders where some pattern can match a file are walked (and only their problems are reported).
 
 Patterns are ``pathlib`` globs relative to the input root (``*``, ``?``, ``[...]`` within one name; ``**`` a whole
 segment matching any number of folders), case-sensitive; names starting with ``.`` are never inputs.
@@ -62,9 +62,13 @@ def _segment_regex(segment: str) -> str:
     return "".join(out)
 
 
+def _segments(pattern: str) -> list[str]:
+    return [p for p in pattern.split("/") if p not in ("", ".")]
+
+
 def glob_regex(pattern: str) -> re.Pattern:
     """The compiled regex of a pathlib glob over POSIX relative paths."""
-    parts = [p for p in pattern.split("/") if p not in ("", ".")]
+    parts = _segments(pattern)
     rx = ""
     for k, seg in enumerate(parts):
         last = k == len(parts) - 1
@@ -77,13 +81,26 @@ def glob_regex(pattern: str) -> re.Pattern:
 
 def literal_prefix(pattern: str) -> str:
     """The folder part of ``pattern`` before its first wildcard (``cam/seqA`` for ``cam/seqA/*.png``)."""
-    parts = [p for p in pattern.split("/") if p not in ("", ".")][:-1]
+    parts = _segments(pattern)[:-1]
     prefix = []
     for p in parts:
         if _WILDCARD.search(p):
             break
         prefix.append(p)
     return "/".join(prefix)
+
+
+def _prefix_matches(folders: list[str], parts: list) -> bool:
+    """Whether ``folders`` can be the leading folders of a path matching the pattern ``parts`` (a compiled regex per
+    folder segment, None for ``**``, then the file segment as False, or None when the pattern ends in ``**``)."""
+    if not folders:
+        return True
+    head = parts[0]
+    if head is False:
+        return False
+    if head is None:                                  # ** : skip it, or let it absorb one more folder
+        return _prefix_matches(folders, parts[1:]) or _prefix_matches(folders[1:], parts)
+    return bool(head.fullmatch(folders[0])) and _prefix_matches(folders[1:], parts[1:])
 
 
 def _sort_key(entry: os.DirEntry) -> str:
@@ -98,6 +115,8 @@ class Matcher:
 
     def __init__(self, globs: Sequence[tuple[str, str]], exclude: Sequence[str] = ()):
         self.globs = [(modality, glob_regex(p)) for modality, p in globs]
+        self._folder_parts = [[re.compile(_segment_regex(x)) if x != "**" else None for x in _segments(p)[:-1]]
+                              + [None if _segments(p)[-1:] == ["**"] else False] for _, p in globs]
         self.exclude = list(exclude)
         roots = sorted({literal_prefix(p) for _, p in globs}, key=lambda r: r + "/")
         self.roots = [r for r in roots if not any(r != o and (o == "" or r.startswith(o + "/")) for o in roots)]
@@ -109,6 +128,12 @@ class Matcher:
 
     def excluded(self, rel: str) -> bool:
         return any(fnmatch.fnmatch(rel, x) for x in self.exclude)
+
+    def may_contain(self, rel: str) -> bool:
+        """Whether some glob can match a file below the folder ``rel`` (the walk skips the other folders and reports
+        no problem with them)."""
+        folders = rel.split("/") if rel else []
+        return any(_prefix_matches(folders, p) for p in self._folder_parts)
 
     def excluded_dir(self, rel: str) -> bool:
         return any(fnmatch.fnmatch(rel, x) or fnmatch.fnmatch(rel + "/", x) for x in self.exclude)
@@ -161,7 +186,7 @@ def _walk_dir(path: str, rel: str, root: str, matcher: Matcher) -> Iterator:
             yield WalkFailure(child, f"cannot inspect: {os_error_text(exc)}")
             continue
         if is_dir:
-            if matcher.excluded_dir(child):
+            if matcher.excluded_dir(child) or not matcher.may_contain(child):
                 continue
         else:
             modality = None if entry.name.startswith(".") or is_temporary(entry.name) else matcher.modality(child)

@@ -1,8 +1,8 @@
 """Test-only models that misbehave on purpose: kill their worker, or sleep.
 
 They are registered only while a test's ``injected`` fixture runs (tests/test_guarantees.py); the batch workers
-import this module because ``registry.plugin_modules()`` names it (a model registered in the planning process is
-imported by every worker), so no environment variable or recipe key is involved. Never shipped.
+import and register them because ``registry.plugin_models()`` names them (a model registered in the planning
+process is adopted by every worker), so no environment variable or recipe key is involved. Never shipped.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import ClassVar
 
 from roadview_noise.model import Model, Stage, param
-from roadview_noise.registry import register
 
 POISON = 1.0              # a frame whose top-left pixel is white in every channel is poison
 
@@ -64,5 +63,3 @@ class SleepCamera(Model):
 
 
 INJECTED = (CrashCamera, SleepCamera)
-for _cls in INJECTED:
-    register(_cls)

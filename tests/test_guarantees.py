@@ -382,7 +382,7 @@ def test_disk_full_on_a_real_small_file_system(tmp_path, tree):
 
 @pytest.mark.parametrize("body,words", [
     ({"chain": [{"model": "fog.lidar"}], "inputs": {"lidar_profile": "os1-64"}}, "os1-128"),
-    ({"chain": [{"model": "fog.camera"}], "inputs": {"camera_profile": "cams/front.yaml"}}, "does not exist"),
+    ({"chain": [{"model": "rain.camera"}], "inputs": {"camera_profile": "cams/front.yaml"}}, "does not exist"),
     ({"chain": [{"model": "fog.camera", "params": {"visibility_m": {"normal": [30, 20]}}}]}, "sd ≤"),
     ({"chain": [{"model": "fog.camera"}], "sweep": {"fog.camera.airlight": [0.5, "0.5"]}}, "same file-name suffix"),
 ])
@@ -618,7 +618,8 @@ def test_workers_exit_when_the_main_process_is_killed(tmp_path, tree):
     body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 30, "pid_dir": str(pid_dir)}}],
             "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
     recipe = _recipe(tmp_path, body)
-    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; "
+    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; from roadview_noise.registry import register; "
+            "[register(c) for c in injected_models.INJECTED]; "
             "from roadview_noise.recipe import load_recipe; from roadview_noise.runner import run; "
             f"run(load_recipe({str(recipe)!r}), {str(tree)!r}, {str(tmp_path / 'o')!r}, workers=2, progress=False)")
     main = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -643,7 +644,8 @@ def test_interrupted_run_is_recorded(tmp_path, tree):
     pid_dir.mkdir()
     body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5, "pid_dir": str(pid_dir)}}],
             "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
-    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; "
+    code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; from roadview_noise.registry import register; "
+            "[register(c) for c in injected_models.INJECTED]; "
             "from roadview_noise.recipe import load_recipe; from roadview_noise.runner import run; "
             f"run(load_recipe({str(_recipe(tmp_path, body))!r}), {str(tree)!r}, {str(tmp_path / 'o')!r}, "
             "workers=1, progress=False)")

@@ -106,3 +106,18 @@ def test_depth_sidecars_are_not_inputs(tmp_path, pattern, sidecars):
     samples = list(iter_inputs(root, recipe))
     assert [s.relpath for s in samples] == ["cam/a.png", "cam/b.png", "cam/c.png"]
     assert [s.depth_relpath for s in samples] == [*sidecars, None]
+
+
+def test_folders_no_glob_can_reach_are_neither_walked_nor_reported(tmp_path):
+    m = Matcher([("m", "cam/*/[0-9]*.png"), ("m", "lidar/**/velodyne/*.bin")])
+    assert m.may_contain("cam") and m.may_contain("cam/seqA") and not m.may_contain("cam/seqA/deep")
+    assert m.may_contain("lidar/a/b/c") and not m.may_contain("labels")
+    root = tmp_path / "in"
+    (root / "lidar" / "seq" / "velodyne").mkdir(parents=True)
+    (root / "lidar" / "seq" / "velodyne" / "0.bin").write_bytes(b"x" * 16)
+    (tmp_path / "outside").mkdir()
+    (root / "labels").symlink_to(tmp_path / "outside")            # not where inputs can be: not a failure
+    (root / "lidar" / "seq" / "extra").symlink_to(tmp_path / "outside")
+    items = list(walk(root, m))
+    assert items[0] == WalkFailure("lidar/seq/extra", items[0].error) and items[1][0] == "lidar/seq/velodyne/0.bin"
+    assert len(items) == 2
