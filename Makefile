@@ -12,7 +12,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -e '.[dev,onnx]'
 	@$(MAKE) --no-print-directory check-open3d
 	@touch $(STAMP)
 
@@ -34,7 +34,8 @@ demo: $(STAMP)
 	$(BIN)/rvnoise augment --recipe recipes/cnf16.yaml sample_data $(DEMO)/cnf16-camera-wind-rain --quiet
 	$(BIN)/rvnoise augment --recipe recipes/cnf20.yaml sample_data $(DEMO)/cnf20-lidar-alignment-fog --quiet
 	$(BIN)/rvnoise augment --recipe recipes/cnf25-radar.yaml sample_data $(DEMO)/cnf25-radar-rain-obstruction --quiet
-	@echo "demo done: look at $(DEMO)/ (one folder per recipe: augmented files, manifest.jsonl, run.json)"
+	$(BIN)/rvnoise report $(DEMO)
+	@echo "demo done: open $(DEMO)/report.html (one folder per recipe in $(DEMO)/: augmented files, manifest.jsonl, run.json)"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -p no:cacheprovider

@@ -62,15 +62,20 @@ CASES = {
 }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def setup(doc: str) -> tuple[argparse.Namespace, CameraFrame, RawFrame]:
+    """Command line (--repeat, --save), one OpenCV thread, and the synthetic frame with its RGGB mosaic."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=10)
     ap.add_argument("--save", type=Path, help="write one sRGB PNG per case here")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     frame = synthetic_scene(lucid_triton_028s())
     print(f"frame {frame.shape[1]}×{frame.shape[0]}, {args.repeat} frames per case, one core")
-    raw = bayer(frame)
+    return args, frame, bayer(frame)
+
+
+def main() -> None:
+    args, frame, raw = setup(__doc__)
     for name, steps in CASES.items():
         data = raw if name.startswith("raw") else frame
         models = [get_model(mid)(**params) for mid, params in steps]

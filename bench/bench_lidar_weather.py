@@ -1,13 +1,16 @@
 """Benchmark of the LiDAR weather models fog.lidar, rain.lidar, snow.lidar (one core).
 
 1. A synthetic full 128×2048 OS1-128 range image (ground plane, two facades, parked cars, no-return sky cells),
-   ray-cast analytically with the real beam table, ``signal`` intensities in photons (``K ρ cos θ / r²`` with the
-   profile's sensor constant K).
+   ray-cast analytically with the real beam table, ``signal`` intensities in whole photons (``K ρ cos θ / r²`` with
+   the profile's sensor constant K; returns below the datasheet threshold are no returns, as the sensor records).
 2. The real OS1-128 scan ../shared/data/os1-128/scan0.bin (107 k points, the OS1's calibrated 8-bit reflectivity,
    profile ``os1-128-reflectivity``: white reads 100, K = 65535 photons·m², receiver overlap 0.5 → 5 m), if present:
    a point list, whose 1024-column firing grid (the profile says 2048) and 23 425 empty rays the models measure;
-   the time of that firing grid; a table rate → kept / attenuated / moved / removed / added.
-3. The convergence of rain and snow in ``draw_fraction_of_threshold`` on the synthetic grid.
+   its detection threshold calibrated from its weakest returns; the time of that firing grid; a table rate → kept /
+   attenuated / moved / removed / added; the acceptance figures of issue 14 (a trace of rain, the spread of fog
+   returns, the largest jump of the weather returns between visibilities 1 % apart).
+3. The convergence of rain and snow in ``draw_fraction_of_threshold`` (the real scan if present, else the synthetic
+   grid).
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
 ms per frame (min and median of 15 frames after a warm-up), the tracemalloc peak, the visible particles drawn, and
@@ -36,8 +39,10 @@ from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
 from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
-from roadview_noise.physics.lidar_link import cloud_rays, sensor_constant  # noqa: E402
+from roadview_noise.physics.lidar_intensity import sensor_constant  # noqa: E402
+from roadview_noise.physics.lidar_rays import cloud_rays  # noqa: E402
 from roadview_noise.profiles.lidar import os1_128, os1_128_reflectivity  # noqa: E402
+from roadview_noise.provenance import Effect
 from roadview_noise.types import PointCloud  # noqa: E402
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "os1-128"
@@ -80,8 +85,9 @@ def synthetic_grid(columns: int = 2048) -> PointCloud:
         box = dict(lo=(x0, y0 - 0.9, -1.8), hi=(x0 + 4.5, y0 + 0.9, -0.3))
         for axis, value in ((0, x0), (0, x0 + 4.5), (1, y0 - 0.9), (1, y0 + 0.9), (2, -0.3)):
             plane(axis, value, 0.6, box["lo"], box["hi"])
-    ok = best <= prof.max_range_m
-    intensity = np.where(ok, sensor_constant(prof) * rho * cos_inc / np.where(ok, best, 1.0) ** 2, 0.0)
+    signal = sensor_constant(prof) * rho * cos_inc / np.where(np.isfinite(best), best, 1.0) ** 2
+    ok = (best <= prof.max_range_m) & (np.round(signal) >= prof.detection_threshold)
+    intensity = np.where(ok, np.round(signal), 0.0)
     pos = np.where(ok[:, None], d * np.where(ok, best, 0.0)[:, None], 0.0)
     ring = np.repeat(np.arange(rows, dtype=np.uint16), columns)
     return PointCloud(pos, {"intensity": np.minimum(intensity, prof.intensity_full_scale).astype(np.float32),
@@ -137,7 +143,8 @@ def report(name: str, scene: str, cloud: PointCloud) -> None:
         counts = "/".join(str(d[k]) for k in ("kept", "attenuated", "moved", "removed", "added"))
         print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['peak_mb']:8.1f} "
               f"{MATLAB_S[mid] * 1e3 / r['median_ms']:8.0f}×  {counts}  {d.get('particles_drawn', '')}")
-    print(f"  empty rays: {d['empty_rays']} ({d['empty_rays_source']})")
+    print(f"  empty rays: {d['empty_rays']} ({d['empty_rays_source']}); detection threshold "
+          f"{d['detection_threshold']:.3g} ({d['detection_threshold_source']})")
 
 
 def firing_grid_time(cloud: PointCloud) -> None:
@@ -167,31 +174,57 @@ def rate_table(cloud: PointCloud) -> None:
     total = float(np.sum(cloud.fields["intensity"]))
     for mid, (pname, values, cls) in sweeps.items():
         print(f"\n{mid} on the real scan: {pname} → kept / attenuated / moved / removed / added, "
-              "removed %, removed % of the returns the profile detects, lost (removed + moved) %, "
+              "removed %, removed % of the returns above the datasheet threshold, lost (removed + moved) %, "
               "intensity left in place %")
         for v in values:
             out, rec = apply_models([cls(**{pname: v})], cloud, seed=1, key="table", sequence_id="s")
             d = rec[0].diagnostics
-            in_place = out.fields["label"] <= 1
+            in_place = out.effect <= 1
             left = float(np.sum(out.fields["intensity"][in_place])) / total
             removed, lost = d["removed"] / d["points_in"], (d["removed"] + d["moved"]) / d["points_in"]
             detectable = (d["removed"] - d["removed_below_threshold_in"]) / (d["points_in"] - d["below_threshold_in"])
             print(f"  {v:7g}: {d['kept']:6d} {d['attenuated']:6d} {d['moved']:6d} {d['removed']:6d} {d['added']:6d}"
                   f"   {100 * removed:6.2f} {100 * detectable:6.2f} {100 * lost:6.2f} {100 * left:7.2f}")
-        print(f"  (returns already below the profile's detection threshold in the clear scan: "
+        print(f"  (returns below the profile's datasheet threshold in the clear scan, which calibrates it below them: "
               f"{d['below_threshold_in']})")
 
 
-def draw_fraction_table(cloud: PointCloud) -> None:
+def draw_fraction_table(cloud: PointCloud, name: str) -> None:
     """Convergence of rain and snow in ``draw_fraction_of_threshold`` (the undrawn particles' backscatter is the
     particle models' one approximation): weather returns (moved + added) and particles per frame, mean of 4 frames."""
-    print("\ndraw_fraction_of_threshold on the synthetic grid: fraction → particles drawn, weather returns (moved + added)")
-    for cls, fractions in ((RainLidar, (1 / 2, 1 / 8, 1 / 16, 1 / 64)), (SnowLidar, (1, 1 / 2, 1 / 4, 1 / 8))):
+    print(f"\ndraw_fraction_of_threshold on the {name}: fraction → particles drawn, weather returns (moved + added)")
+    for cls, fractions in ((RainLidar, (1 / 2, 1 / 4, 1 / 16, 1 / 64)), (SnowLidar, (1, 1 / 2, 1 / 4, 1 / 8))):
         for f in fractions:
             diags = [apply_models([cls(draw_fraction_of_threshold=f)], cloud, seed=1, key=f"df{i}",
                                   sequence_id="s")[1][0].diagnostics for i in range(4)]
             print(f"  {cls.id:11s} {f:7.4f}: {np.mean([d['particles_drawn'] for d in diags]):9.0f} "
                   f"{np.mean([d['moved'] + d['added'] for d in diags]):9.1f}")
+
+
+def acceptance(cloud: PointCloud) -> None:
+    """Issue 14's figures on the real scan: points a trace of weather changes, the spread of fog-return ranges at
+    MOR 30 m, and the largest change of the weather returns (moved + added) between visibilities 1 % apart."""
+    print("\nacceptance figures on the real scan")
+    n = len(cloud)
+    for model in (RainLidar(rain_rate_mm_per_h=0.001), SnowLidar(snowfall_rate_mm_per_h=0.0001)):
+        out, rec = apply_models([model], cloud, seed=1, key="trace", sequence_id="s")
+        same = (np.all(out.positions_m[:n] == cloud.positions_m, axis=1) & (out.effect[:n] == Effect.KEPT)
+                & (out.fields["intensity"][:n] == cloud.fields["intensity"])) if len(out) >= n else np.zeros(n, bool)
+        print(f"  {model.id} at {model.params()[next(iter(model.params()))]:g} mm/h: "
+              f"{100 * (n - same.sum() + len(out) - n) / n:.3f} % of the points changed")
+    out, _ = apply_models([FogLidar(visibility_m=30.0)], cloud, seed=1, key="fog", sequence_id="s")
+    fog = np.isin(out.effect, (Effect.MOVED, Effect.ADDED))
+    print(f"  fog MOR 30 m: {fog.sum()} fog returns, range {np.mean(out.ranges_m[fog]):.3f} ± "
+          f"{np.std(out.ranges_m[fog]):.3f} m")
+    for lo, hi in ((300.0, 400.0), (2000.0, 6000.0)):
+        vis = lo * 1.01 ** np.arange(int(np.ceil(np.log(hi / lo) / np.log(1.01))) + 1)
+        counts = []
+        for v in vis:
+            d = apply_models([FogLidar(visibility_m=float(v))], cloud, seed=1, key="sweep", sequence_id="s")[1][0]
+            counts.append(d.diagnostics["moved"] + d.diagnostics["added"])
+        jump = np.max(np.abs(np.diff(counts)))
+        print(f"  fog MOR {lo:g}–{hi:g} m in 1 % steps: weather returns {counts[0]} → {counts[-1]}, largest jump "
+              f"{jump} = {100 * jump / 131072:.3f} % of the rays")
 
 
 def main() -> int:
@@ -200,15 +233,17 @@ def main() -> int:
         return 0
     report("synthetic OS1-128 128×2048 full grid (photons; D3.5 rates: fog 30 m, rain 20 mm/h, snow 2.5 mm/h)",
            "synthetic", synthetic_grid())
-    draw_fraction_table(synthetic_grid())
     scan = real_scan()
     if scan is None:
+        draw_fraction_table(synthetic_grid(), "synthetic grid")
         print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
         return 0
     report("real OS1-128 scan0.bin, a point list (os1-128-reflectivity: calibrated 8-bit reflectivity, white 100, "
-           "threshold 3.28 photons, overlap 0.5 → 5 m)", "real", scan)
+           "datasheet threshold 3.28 photons, overlap 0.5 → 5 m)", "real", scan)
     firing_grid_time(scan)
     rate_table(scan)
+    draw_fraction_table(scan, "real scan")
+    acceptance(scan)
     return 0
 
 

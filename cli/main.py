@@ -43,14 +43,26 @@ def augment(
     task_timeout: Optional[float] = typer.Option(None, "--task-timeout", min=0.1,
                                                  help="Stop a worker that spends longer on one file (seconds)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    depth: Optional[str] = typer.Option(None, "--depth", help="Depth sidecar pattern, relative to each image's "
+                                        "folder (inputs.depth), e.g. '{stem}_depth.npy'."),
+    camera_profile: Optional[str] = typer.Option(None, "--camera-profile", help="Camera profile: built-in or file "
+                                                 "(inputs.camera_profile)."),
+    lidar_profile: Optional[str] = typer.Option(None, "--lidar-profile", help="LiDAR profile: built-in or file "
+                                                "(inputs.lidar_profile)."),
+    radar_profile: Optional[str] = typer.Option(None, "--radar-profile", help="Radar profile: built-in or file "
+                                                "(inputs.radar_profile)."),
+    report: bool = typer.Option(False, "--report", help="Write OUTPUT_DIR/report.html at the end (`rvnoise report`)."),
 ) -> None:
-    """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR."""
+    """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR.
+    Input options override the recipe's and are recorded in run.json's resolved recipe."""
+    from roadview_noise.overrides import with_input_overrides
     from roadview_noise.recipe import load_recipe
     from roadview_noise.runner import Limits, run
 
     limits = Limits(max_pixels=int(max_pixels), max_points=int(max_points), task_timeout_s=task_timeout)
     try:
-        r = load_recipe(recipe)
+        r = with_input_overrides(load_recipe(recipe), depth=depth, camera_profile=camera_profile,
+                                 lidar_profile=lidar_profile, radar_profile=radar_profile)
         s = run(r, input_dir, output_dir, workers=workers, resume=resume, overwrite=overwrite, dry_run=dry_run,
                 limit=limit, fail_fast=fail_fast, yes=yes, limits=limits, progress=not quiet, echo=typer.echo,
                 warn=lambda m: typer.echo(m, err=True))
@@ -70,6 +82,8 @@ def augment(
                     "manifest)", fg=typer.colors.YELLOW, err=True)
     typer.echo(f"rvnoise: {s.done} written, {s.skipped} skipped, {s.failed} failed in {s.seconds:.1f} s → "
                f"{output_dir} (manifest: {output_dir / 'manifest.jsonl'})")
+    if report:
+        _write_report(output_dir, None)
     if s.failed or s.state != "complete" or s.notes:
         raise typer.Exit(1)
 
@@ -115,7 +129,11 @@ def show(name: str = typer.Argument(..., help="A CNF (CNF01–CNF30) or a model 
         cnf = CNFS[name.upper()]
         typer.echo(f"{name.upper()}: {cnf.factor} with {cnf.weather} ({cnf.method})")
         for sensor, ids in cnf.chains.items():
-            typer.echo(f"\n[{sensor}]")
+            typer.echo(f"\n[{sensor}] order: {' → '.join(ids)}")
+            for mid in ids:
+                if mid in models:
+                    stage = models[mid].stage
+                    typer.echo(f"  {mid}: {stage.name} ({STAGE_ROLES[stage.name]})")
             for i, mid in enumerate(ids, 1):
                 _show_model(mid, models, prefix=f"{i}. ")
         return
@@ -125,6 +143,21 @@ def show(name: str = typer.Argument(..., help="A CNF (CNF01–CNF30) or a model 
     doc = (get_model(name).__doc__ or "").strip()
     if doc:
         typer.echo("\n" + doc)
+
+
+# why a stage sits where it does in the sensing chain (models.md §1; D3.5 Eq. 1–3)
+STAGE_ROLES = {
+    "SCENE": "scene illumination, before the weather: Eq. 1",
+    "EMITTER": "beam geometry and power at the emitter, before the weather: Eq. 1",
+    "RAY_DROP": "returns missing before propagation: Eq. 1",
+    "MODIFIER": "changes the weather process itself, set before it: Eq. 2",
+    "MEDIUM": "propagation through the weather",
+    "WINDSCREEN": "refraction by the windscreen, after the weather: Eq. 3",
+    "WINDOW": "lens surface or sensor window, after the weather: Eq. 3",
+    "EXPOSURE": "integration on the detector, after the weather: Eq. 3",
+    "ELECTRONICS": "detector and receiver electronics, after the weather: Eq. 3",
+    "ENCODING": "ISP and compression, last: Eq. 3",
+}
 
 
 def _show_model(mid: str, models: dict, prefix: str = "") -> None:
@@ -144,7 +177,8 @@ def replay(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Also write the reproduced file here."),
     input_root: Optional[Path] = typer.Option(None, "--input-root", help="Input tree if it moved."),
 ) -> None:
-    """Reproduce one output from the manifest and compare its sha256 (exit 1 on mismatch)."""
+    """Reproduce one output (with its sidecars and annotations) from the manifest and compare their sha256 (exit 1
+    on mismatch)."""
     from roadview_noise.runner import replay as do_replay
 
     try:
@@ -157,8 +191,80 @@ def replay(
         typer.secho("warning: the input file changed since the run", fg=typer.colors.YELLOW, err=True)
     status = "match" if r["match"] else "MISMATCH"
     typer.echo(f"{status}: {key} sha256 {r['got']} (manifest {r['expected']})")
+    for f in r["files"][1:]:                 # sidecars and annotations written with the output
+        typer.echo(f"  {'match' if f['got'] == f['expected'] else 'MISMATCH'}: {f['path']} sha256 {f['got']}")
     if not r["match"]:
         raise typer.Exit(1)
+
+
+@app.command(epilog="Examples: `rvnoise preview --recipe recipes/cnf16.yaml sample_data/camera/seq0/000001.png "
+                    "--input-root sample_data -o cnf16.png`; `rvnoise preview --all-cnfs --input-root sample_data "
+                    "sample_data/camera/seq0/000001.png sample_data/lidar/os1-128/seq0/000001.pcd -o sheets/`")
+def preview(
+    files: list[Path] = typer.Argument(..., help="Input file(s): image, raw, LiDAR or radar cloud."),
+    recipe: Optional[str] = typer.Option(None, "--recipe", "-r", help="Recipe YAML, or a CNF id (CNF01–CNF30)."),
+    all_cnfs: bool = typer.Option(False, "--all-cnfs", help="A contact sheet per file: every CNF of its sensor."),
+    sensor: Optional[str] = typer.Option(None, "--sensor", help="camera, lidar or radar when the file or the CNF "
+                                         "leaves it open (a View-of-Delft .bin is radar) [default: guessed]."),
+    input_root: Optional[Path] = typer.Option(None, "--input-root", help="The input tree of `augment`: the random "
+                                              "draws follow the path relative to it [default: the file's folder]."),
+    seed: int = typer.Option(0, "--seed", help="Seed of a CNF given by its id, and of --all-cnfs."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Image to write (.png/.jpg) [default: "
+                                       "preview.png]; a folder when several files are given."),
+    panel_px: Optional[int] = typer.Option(None, "--panel-px", min=120, help="Width of one panel "
+                                           "[default: 480, 320 on contact sheets]."),
+    colour: str = typer.Option("range", "--colour", help="LiDAR colour: range or intensity."),
+) -> None:
+    """Show what a recipe (or every CNF) does to one file, step by step, through the same code and random draws as
+    `augment`: camera frames side by side with a zoomed inset, LiDAR bird's-eye views and range images, radar
+    bird's-eye views; removed, moved and added points highlighted."""
+    from roadview_noise import preview as pv
+
+    if sensor not in (None, "camera", "lidar", "radar"):
+        _fail(f"--sensor must be camera, lidar or radar, got {sensor!r}")
+    if colour not in ("range", "intensity"):
+        _fail(f"--colour must be range or intensity, got {colour!r}")
+    if all_cnfs == (recipe is not None):
+        _fail("give either --recipe (a recipe file or a CNF id) or --all-cnfs")
+    if out is None:
+        out = Path("preview.png") if len(files) == 1 else Path("preview")
+    try:
+        for f in files:
+            kind = sensor or pv.guess_sensor(f)
+            target = out if len(files) == 1 else out / f"{pv.file_label(f, input_root)}-{kind}.png"
+            if all_cnfs:
+                img = pv.contact_sheet(f, kind, in_root=input_root, seed=seed, panel_px=panel_px or 320,
+                                       colour_by=colour)
+            else:
+                r = pv.recipe_from(recipe, sensor or (kind if kind != "camera" else None), seed)
+                sample, root = pv.sample_for(f, r, input_root)
+                img = pv.render(pv.run_chain(r, sample, root, title=f"{f.name}: {' -> '.join(r.model_ids)}"),
+                                panel_px or 480, colour)
+            pv.write_image_file(target, img)
+            typer.echo(f"rvnoise: preview of {f} → {target} ({img.shape[1]}×{img.shape[0]})")
+    except RvNoiseError as e:
+        _fail(str(e))
+
+
+@app.command(epilog="Example: `rvnoise report out/demo` (a run folder, or a folder of runs)")
+def report(
+    output_dir: Path = typer.Argument(..., help="An augment output folder, or a folder of them (one per CNF)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Page to write [default: OUTPUT_DIR/report.html]; "
+                                       "report.json is written beside it."),
+) -> None:
+    """Write one self-contained HTML page with the runs' metrics per CNF, plots, previews, corner cases and
+    failures (works on a partial run), and report.json with the numbers."""
+    _write_report(output_dir, out)
+
+
+def _write_report(output_dir: Path, out: Optional[Path]) -> None:
+    from roadview_noise.report import write_report
+
+    try:
+        path = write_report(output_dir, out)
+    except RvNoiseError as e:
+        _fail(str(e))
+    typer.echo(f"rvnoise: report → {path} (numbers: {path.with_name('report.json')})")
 
 
 @app.command("sample-data", epilog="Example: `rvnoise sample-data out/sample --frames 10 --seed 0`")

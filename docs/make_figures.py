@@ -21,7 +21,7 @@ from roadview_noise.physics.srgb import linear_to_code
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT / "docs" / "images"
 FRAME = "000001"
-CAMERA = ["weather-fog", "weather-rain", "weather-snow", "cnf16", "cnf18", "cnf11"]
+CAMERA = ["weather-fog", "weather-rain", "weather-snow", "cnf16", "cnf18", "cnf11", "cnf01", "cnf05", "cnf09"]
 CLOUDS = [("weather-fog-lidar", "lidar/os1-128-grid/seq0"), ("weather-rain-lidar", "lidar/os1-128-grid/seq0"),
           ("weather-snow-lidar", "lidar/os1-128-grid/seq0"), ("weather-rain-radar", "radar/seq0")]
 LABEL_BGR = {0: (200, 200, 200), 1: (255, 160, 60), 2: (0, 200, 255), 3: (60, 60, 255)}  # kept/att/moved/added
@@ -50,7 +50,7 @@ def birds_eye(path: Path, sensor: str, extent_m: float = 40.0, px: int = 480) ->
     img = np.full((px, px, 3), 20, np.uint8)
     p = cloud.positions_m
     keep = np.any(p != 0, axis=1)
-    labels = cloud.fields.get("label", np.zeros(len(p), np.uint8))[keep].astype(int)
+    labels = cloud.fields.get("rv_effect", np.zeros(len(p), np.uint8))[keep].astype(int)   # provenance.Effect
     scale = px / (2 * extent_m)
     u = (px / 2 - p[keep, 1] * scale).astype(int)   # y left → image left
     v = (px / 2 - p[keep, 0] * scale).astype(int)   # x forward → image up

@@ -12,7 +12,9 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from .errors import ModelError, RecipeError
+from .metrics import compare
 from .model import Model, Scope, Stage
+from .provenance import follow, step_input
 from .registry import get_model, load_all
 from .seeding import derive_rng
 from .types import SensorData, sensor_kind
@@ -118,15 +120,19 @@ class StepRecord:
     drawn: dict[str, Any] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    metrics: dict[str, Any] = field(default_factory=dict)     # metrics.compare(step input, step output)
 
 
 def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: str,
-                 sequence_id: str) -> tuple[SensorData, list[StepRecord]]:
+                 sequence_id: str, metrics: bool = True) -> tuple[SensorData, list[StepRecord]]:
     """Run instantiated models in order on one frame or cloud.
 
     Frame rng: ``derive_rng(seed, key, step_index, model.id)``; sequence (sensor-instance) rng:
     ``derive_rng(seed, "sequence", sequence_id, model.id)``. ``key`` identifies the output (input relpath plus
-    sweep variant)."""
+    sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
+    step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
+    collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
+    input and output."""
     records = []
     for i, model in enumerate(models):
         if model.sensor != sensor_kind(data):
@@ -137,6 +143,8 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
             state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
         rng = derive_rng(seed, key, i, model.id)
         drawn = model.draw(rng, data)
-        data, diagnostics = model.apply(data, state=state, drawn=drawn, rng=rng)
-        records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0))
+        out, diagnostics = model.apply(step_input(data), state=state, drawn=drawn, rng=rng)
+        before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
+        records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
+                                  compare(before, data) if metrics else {}))
     return data, records

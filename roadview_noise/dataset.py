@@ -7,11 +7,14 @@ Workers receive :class:`Sample` keys, never arrays; all reading and writing happ
 from __future__ import annotations
 
 import dataclasses
+import posixpath
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterable, Iterator
 
+from .annotations import Annotated, sidecar_files
+from .annotations import write as write_annotations
 from .errors import InputError
 from .io.atomic import recorded_writes
 from .recipe import InputsSpec, Recipe
@@ -53,9 +56,17 @@ def output_relpath(relpath: str, suffix: str) -> str:
 
 
 def depth_relpath_for(relpath: str, pattern: str) -> str:
+    """The sidecar of an input file for a pattern relative to its folder (``recipe.InputsSpec`` fields), as a
+    normalised POSIX path relative to the input root (``..`` allowed)."""
     p = PurePosixPath(relpath)
     stem, _ = split_suffix(p.name)
-    return str(p.parent / pattern.format(stem=stem, name=p.name))
+    base = stem.rpartition("_")[0] or stem
+    try:
+        name = pattern.format(stem=stem, name=p.name, base=base, parent=p.parent.name, parts=list(p.parent.parts))
+    except IndexError:
+        raise InputError(f"pattern {pattern!r} names a folder level the file does not have (it is in "
+                         f"{str(p.parent)!r})", file=relpath) from None
+    return posixpath.normpath(str(p.parent / name))
 
 
 def _globs(inputs: InputsSpec, modality: str, explicit: bool) -> list[str]:
@@ -111,10 +122,16 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
     inputs."""
     inputs = recipe.spec.inputs
     match = matcher(recipe)
+    camera = recipe.sensor == "camera"
+    rules = list(inputs.annotations.rules())
+
+    def sidecars_of(rel: str) -> set[str | None]:
+        found = sidecar_files(in_root, inputs.annotations, [rel]) if rules else set()
+        return found | {_depth_sidecar(rel, inputs.depth)} if camera else found
+
     sidecar = None
-    if recipe.sensor == "camera":
-        sidecar = _Sidecars(lambda rel: (_depth_sidecar(rel, inputs.depth),), "/" not in inputs.depth, match,
-                            in_root)
+    if camera or rules:                            # masks, lidarseg files, depth maps … are no inputs
+        sidecar = _Sidecars(sidecars_of, "/" not in inputs.depth and not rules, match, in_root)
     for item in walk(in_root, match):
         if isinstance(item, WalkFailure):
             yield item
@@ -124,7 +141,7 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
             continue
         seq = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
         depth = None
-        if modality in ("camera", "raw"):
+        if modality in ("camera", "raw") and inputs.depth_source == "file":
             candidate = depth_relpath_for(rel, inputs.depth)
             if PurePosixPath(candidate).parent == PurePosixPath(rel).parent:
                 depth = candidate if PurePosixPath(candidate).name in siblings else None
@@ -199,7 +216,9 @@ def with_intensity_scale(profile: LidarProfile, unit: str | None, full_scale: fl
     unit = unit or profile.intensity_unit
     new_fs = float(full_scale or DEFAULT_FULL_SCALE.get(unit, profile.intensity_full_scale))
     ratio = new_fs / profile.intensity_full_scale
-    changes: dict = {"intensity_unit": unit, "intensity_full_scale": new_fs}
+    changes: dict = {"intensity_unit": unit, "intensity_full_scale": new_fs,
+                     "intensity_source": "the recipe's intensity_unit / intensity_full_scale",
+                     "intensity_step": profile.intensity_step if unit == profile.intensity_unit else None}
     if profile.intensity_kind == "signal":
         if profile.sensor_constant is not None:
             changes["sensor_constant"] = profile.sensor_constant * ratio
@@ -234,36 +253,14 @@ def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
 
 
 def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
-    from .io import depth as depth_io
-    from .io import image as image_io
+    from .camera_inputs import load_camera_sample
     from .io import pointcloud as cloud_io
-    from .io import raw as raw_io
-    from .profiles.camera import fit_to_image
 
     inputs = recipe.spec.inputs
     path = in_root / sample.relpath
     file_dir = path.parent
     if sample.modality in ("camera", "raw"):
-        profile = _camera_profile(_profile_spec(inputs.camera_profile, file_dir, recipe), file_dir)
-        if sample.modality == "camera":
-            linear, encoding, alpha = image_io.read_image(path)
-            h, w = linear.shape[:2]
-            frame = CameraFrame(linear, fit_to_image(profile, w, h, source=str(path)), encoding=encoding,
-                                alpha=alpha)
-        else:
-            dn, pattern, black, white, encoding = raw_io.read_raw(path)
-            h, w = dn.shape
-            frame = RawFrame(dn.astype("float32"), pattern, float(black), float(white),
-                             fit_to_image(profile, w, h, source=str(path)), encoding=encoding)
-        if recipe.needs_depth():
-            if sample.depth_relpath is None:
-                needing = [m for m in recipe.model_ids if _needs_depth(m)]
-                raise InputError(f"no depth sidecar {depth_relpath_for(sample.relpath, inputs.depth)!r} "
-                                 f"(needed by {', '.join(needing)})", file=str(path))
-            depth = depth_io.read_depth(in_root / sample.depth_relpath, profile=frame.profile,
-                                        expected_shape=(h, w), planar=inputs.depth_kind == "planar")
-            frame = dataclasses.replace(frame, depth_m=depth)
-        return frame
+        return load_camera_sample(sample, in_root, recipe)
     if sample.modality == "lidar":
         spec = _sidecar_default(_profile_spec(inputs.lidar_profile, file_dir, recipe), file_dir, "lidar.yaml")
         profile = _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
@@ -274,16 +271,12 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
                                     field_map=dict(inputs.field_map) or None)
 
 
-def _needs_depth(model_id: str) -> bool:
-    from .registry import get_model
-
-    return get_model(model_id).needs_depth
-
-
-def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None) -> list[Path]:
-    """Write a result in the input's own format (atomically, by the io writers); a DNG keeps the colour metadata
-    of its ``source``. Returns every file written, the main file first and then its sidecars: the runner records
-    each with its sha256 in the manifest, so this list is the contract for any writer that adds files."""
+def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None,
+         annotations: Annotated | None = None) -> list[Path]:
+    """Write a result in the input's own format (atomically, by the io writers) with its sidecars (a ``.bin``
+    cloud's ``rv_effect``) and annotation files; a DNG keeps the colour metadata of its ``source``. Returns every
+    file written (recorded by ``io/atomic``, so no writer can forget one), the main output first: the runner records
+    each with its sha256 in the manifest."""
     from .io import image as image_io
     from .io import pointcloud as cloud_io
     from .io import raw as raw_io
@@ -295,5 +288,6 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
             raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
                              data.encoding, template=source)
         else:
-            cloud_io.write_pointcloud(out_path, data, labels=recipe.spec.output.labels)
+            cloud_io.write_pointcloud(out_path, data, effect=recipe.spec.output.effect)
+        write_annotations(annotations)
     return sorted(written, key=lambda p: p.name != Path(out_path).name)

@@ -23,8 +23,9 @@ from pathlib import Path
 from typing import Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from .annotations import AnnotationsSpec
 from .compound import cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .input_checks import check_inputs
@@ -46,16 +47,55 @@ class StepSpec(_Strict):
     params: dict[str, Any] = Field(default_factory=dict)
 
 
+class LidarDepthSpec(_Strict):
+    """``depth_source: lidar`` (roadview_noise/depth/lidar.py)."""
+
+    scan: str                                      # paired scan, a pattern like `depth`
+    densify: Literal["nearest", "bilateral"] = "nearest"
+    ground_plane: bool = True                      # flat ground below the lowest return where it fits the returns
+
+
+class OnnxDepthSpec(_Strict):
+    """``depth_source: onnx`` (roadview_noise/depth/monocular.py)."""
+
+    model: str                                     # .onnx file; relative paths: the recipe's folder
+    scale_m: float = Field(1.0, gt=0)              # metres per unit of the model's output
+    kind: Literal["planar", "range"] = "planar"    # the output is planar z or range along the ray
+    input: Literal["srgb", "linear"] = "srgb"
+    mean: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    layout: Literal["nchw", "nhwc"] = "nchw"
+
+
+class GroundPlaneSpec(_Strict):
+    """``depth_source: ground_plane`` (roadview_noise/depth/ground_plane.py)."""
+
+    camera_height_m: float | None = Field(None, gt=0)   # None: the calibration's, else the camera profile's
+    pitch_deg: float | None = Field(None, gt=-90, lt=90)  # > 0 looks down; None: the calibration's, else 0
+    sky_distance_m: float = Field(100.0, gt=0)           # at and above the horizon, and the farthest ground
+
+
 class InputsSpec(_Strict):
-    """Which files to read and how (globs relative to the input root)."""
+    """Which files to read and how (globs relative to the input root). Sidecar patterns (``depth``,
+    ``calibration``, ``lidar_depth.scan``) are relative to the image's folder: ``{stem}``, ``{name}``, ``{base}``
+    (stem without its last ``_part``), ``{parent}`` (folder name), ``{parts[i]}`` (i-th folder from the root)."""
 
     camera: Globs | None = None
     raw: Globs | None = None
     lidar: Globs | None = None
     radar: Globs | None = None
     exclude: list[str] = Field(default_factory=list)
-    depth: str = "{stem}_depth.exr"            # sidecar next to each image; {stem}, {name}
+    depth: str = "{stem}_depth.exr"            # sidecar pattern (fields: see the docstring)
     depth_kind: Literal["range", "planar"] = "range"
+    depth_format: Literal["auto", "exr", "npy", "carla", "kitti", "cityscapes"] = "auto"
+    depth_holes: Literal["fill", "sky", "error"] = "fill"
+    depth_source: Literal["file", "lidar", "onnx", "ground_plane"] = "file"
+    lidar_depth: LidarDepthSpec | None = None
+    onnx_depth: OnnxDepthSpec | None = None
+    ground_plane: GroundPlaneSpec = Field(default_factory=GroundPlaneSpec)
+    calibration: str | None = None             # per-image: Cityscapes camera .json, KITTI calib .txt, rvnoise .yaml
+    kitti_camera: int = Field(2, ge=0, le=3)   # the rectified camera of a KITTI calibration the images are from
+    camera_fov_h_deg: float | None = Field(None, gt=0, lt=180)  # without a profile: square pixels, centred
     camera_profile: str | dict[str, Any] | None = None   # built-in, file ({dir} = the input file's folder), mapping
     lidar_profile: str | dict[str, Any] | None = None
     radar_profile: str | dict[str, Any] | None = None
@@ -64,11 +104,36 @@ class InputsSpec(_Strict):
     field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
+    annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes
+
+    @model_validator(mode="after")
+    def _depth_source_settings(self) -> "InputsSpec":
+        for source, key in (("lidar", "lidar_depth"), ("onnx", "onnx_depth")):
+            if self.depth_source == source and getattr(self, key) is None:
+                raise ValueError(f"depth_source {source} needs `{key}:` (see the README, 'Which depth do I have?')")
+        for key in ("depth", "calibration"):
+            check_pattern(getattr(self, key))
+        if self.lidar_depth is not None:
+            check_pattern(self.lidar_depth.scan)
+        return self
+
+
+def check_pattern(pattern: str | None) -> None:
+    """ValueError naming the field a sidecar pattern uses that does not exist."""
+    if pattern is None:
+        return
+    try:
+        pattern.format(stem="s", name="n", base="b", parent="p", parts=["p"] * 32)
+    except (KeyError, IndexError, ValueError, AttributeError, TypeError) as exc:
+        raise ValueError(f"pattern {pattern!r}: {exc!r}; its fields are {{stem}}, {{name}}, {{base}}, {{parent}}, "
+                         f"{{parts[i]}}") from None
 
 
 class OutputSpec(_Strict):
     format: Literal["same"] = "same"
-    labels: Literal["auto", "none"] = "auto"
+    effect: Literal["auto", "none"] = "auto"       # the rv_effect code of clouds (io.pointcloud.write_pointcloud)
+    jpeg_quality: int | None = Field(None, ge=1, le=100)  # JPEG outputs; None: the input's estimated quality
+    metrics: bool = True                       # per-step and per-output metrics in the manifest (roadview_noise.metrics)
 
 
 class RecipeSpec(_Strict):
@@ -301,6 +366,7 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
                 step_params[ids.index(m)].update(p)
         if spec.sensor is not None and get_model(ids[0]).sensor != spec.sensor:
             raise RecipeError(f"the chain acts on {get_model(ids[0]).sensor}, not {spec.sensor}", key="sensor")
+        spec.inputs.annotations.check_sensor(get_model(ids[0]).sensor)
     except RecipeError as e:
         raise RecipeError(e.message, file=source, key=e.key) from None
     except ModelError as e:

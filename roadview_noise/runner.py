@@ -25,7 +25,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from . import annotations
 from .allocator import keep_freed_memory
+from .camera_inputs import run_warnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import InputError, OutputError, RecipeError, RvNoiseError
@@ -36,6 +38,7 @@ from .io.headers import check_size
 from .lock import OutputLock
 from .manifest import (MANIFEST_NAME, RUN_NAME, library_versions, read_manifest, sha256_file, write_manifest,
                        write_run_json)
+from .metrics import compare
 from .native_output import captured_output
 from .outputs import Ledger, commit, discard, files_intact, listed_files, remove_listed
 from .recipe import Recipe, draw_value
@@ -91,6 +94,7 @@ class RunSummary:
     workers: int = 0
     warned: int = 0                     # outputs whose entry records input warnings (dropped invalid points)
     notes: list[str] = field(default_factory=list)   # what the user must know (disk full, stopped early, …)
+    warnings: list[str] = field(default_factory=list)  # about the inputs as a whole (camera_inputs.run_warnings)
     state: str = "complete"
 
 
@@ -212,6 +216,15 @@ def _warning_list(caught: list) -> list[str]:
     return [f"{text} (×{n})" if n > 1 else text for text, n in counts.items()]
 
 
+def _model_warnings(entries: list[dict]) -> list[str]:
+    """One line per distinct warning a model issued in the run (each entry keeps its own, ``warnings``), so a warning
+    such as a LiDAR intensity unit read from the data reaches stderr once, not once per file."""
+    files: Counter = Counter()
+    for e in entries:
+        files.update({w.rsplit(" (×", 1)[0] for w in e.get("warnings", ())})
+    return [f"{text} ({n} file{'s' if n > 1 else ''}; in the manifest)" for text, n in files.items()]
+
+
 def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     """Read, run the chain, stage the output files; return the manifest entry (failures are recorded, not raised).
     The files stay fsynced temporaries listed under ``staged`` until the runner has recorded them."""
@@ -245,14 +258,23 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             data = load(s, ctx.in_root, recipe)
+            if getattr(data, "input_notes", None):
+                entry["inputs"] = dict(data.input_notes)
             data, dropped = drop_invalid_points(data, file=str(source))
             if dropped:
                 entry["input_warnings"] = dropped
-            data, records = apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
-                                         sequence_id=s.sequence_id)
+            spec = recipe.spec.inputs.annotations
+            sidecars = annotations.read(s.relpath, ctx.in_root, spec, data)
+            out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
+                                        sequence_id=s.sequence_id, metrics=recipe.spec.output.metrics)
             entry["steps"] = [asdict(r) for r in records]
+            entry["metrics"] = compare(data, out) if recipe.spec.output.metrics else {}
+            out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
+                                               recipe.variants[task.variant_index].suffix)
+            entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
+                          if v})
             with confined_to(ctx.out_root), staged_writes() as stage:
-                save(data, ctx.out_root / task.out_relpath, recipe, source=source)
+                save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
                 entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(), "sha256": sha256_file(tmp)}
                                   for tmp, final in stage.files]
                 entry["staged"] = [[tmp.relative_to(ctx.out_root).as_posix(),
@@ -342,6 +364,8 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True)
         released = _execute(ctx, previous, summary, n_workers, limit, fail_fast, progress)
         _finish(ctx, previous, released, summary, record, started, lock, prune=limit is None)
+    for line in summary.warnings:
+        warn(f"rvnoise: warning: {line}")
     for note in summary.notes:
         warn(f"rvnoise: {note}")
     if summary.state == "interrupted":
@@ -483,7 +507,9 @@ def _finish(ctx: RunContext, previous: dict[str, dict], released: list[dict], su
         summary.notes.append(f"could not rewrite {MANIFEST_NAME} in plan order ({os_error_text(e)}); it still "
                              "holds every entry, in completion order")
     summary.seconds = time.time() - started
+    summary.warnings = run_warnings(e for e in released + kept) + _model_warnings(released + kept)
     final = {**record, "state": summary.state, "wall_seconds": round(summary.seconds, 3),
+             "warnings": summary.warnings,
              "counts": {"planned": summary.planned, "done": summary.done, "skipped": summary.skipped,
                         "failed": summary.failed}, "notes": summary.notes}
     try:
@@ -511,8 +537,9 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
            input_root: Path | None = None) -> dict[str, Any]:
     """Re-run the recorded recipe for one output and compare sha256 (of every file it wrote) with the manifest.
 
-    Returns ``{"key", "expected", "got", "match", "input_changed", "output"}``; raises RecipeError when the
-    manifest, its run.json or the key is missing."""
+    Returns ``{"key", "expected", "got", "match", "input_changed", "output", "files"}`` (``files``: every file of
+    the output — sidecars and annotations too — with expected and reproduced sha256; ``match`` needs all of them);
+    raises RecipeError when the manifest, its run.json or the key is missing."""
     import shutil
     import tempfile
 
@@ -542,9 +569,10 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
             if out_file is not None:
                 Path(out_file).parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(ctx.out_root / key, out_file)
-    want = {f["path"]: f["sha256"] for f in entry.get("files", [])} or {key: entry.get("output_sha256")}
     got = {f["path"]: f["sha256"] for f in new.get("files", [])}
+    files = [{"path": f["path"], "expected": f["sha256"], "got": got.get(f["path"])}
+             for f in entry.get("files") or [{"path": key, "sha256": entry.get("output_sha256")}]]
     return {"key": key, "expected": entry.get("output_sha256"), "got": new.get("output_sha256"),
-            "match": new.get("status") == "ok" and got == want,
+            "match": new.get("status") == "ok" and all(f["expected"] == f["got"] for f in files),
             "input_changed": new.get("input_sha256") != entry.get("input_sha256"), "error": new.get("error"),
-            "output": str(out_file) if out_file else None}
+            "output": str(out_file) if out_file else None, "files": files}

@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import Any, Mapping, Union
 
 import numpy as np
@@ -128,6 +127,18 @@ class LidarProfile:
     beam_origin_offset_m: float = 0.0          # Ouster lidar_origin_to_beam_origin (horizontal)
     sensor_z_offset_m: float = 0.0             # Ouster lidar_to_sensor_transform z (points are in the sensor frame)
     window: str = "static"                     # "static" (Ouster) or "rotating" (Velodyne head), §3.8
+    # how the stored intensity is written (physics/lidar_intensity.py)
+    intensity_step: float | None = None        # resolution of the stored value; None: 1 for count units, 0 (continuous)
+    #                                            for [0, 1] floats
+    faint_reading: str = "zero"                # a return whose value rounds below one step: "zero", "lowest" (one
+    #                                            step) or "no_return" (the sensor drops it)
+    intensity_source: str = "the profile"      # what states the unit and kind; "" = nothing (default profile): the
+    #                                            data decides, with a warning
+    # receiver noise and detection (physics/receiver.py)
+    receiver: str = "apd"                      # "spad" (photon counting) or "apd" (linear, Gaussian)
+    photons_at_threshold: float = 100.0        # detected photo-electrons of a return at the detection threshold
+    threshold_over_noise: float = 4.0          # detection threshold / noise floor (ambient + receiver noise) at S = 0
+    excess_noise_factor: float = 3.0           # multiplication noise of the signal's shot noise (SPAD, PIN: 1)
 
     @property
     def channels(self) -> int:
@@ -164,17 +175,23 @@ SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]
 class ImageEncoding:
     """How a camera frame is stored, so the writer can put it back the same way."""
 
-    fmt: str = "png"           # png | jpeg | tiff
-    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF)
+    fmt: str = "png"           # png | jpeg | tiff | exr
+    bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF); EXR: 16 (half) | 32 (float)
     transfer: str = "srgb"     # srgb | linear
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
+    icc_profile: bytes | None = None   # embedded ICC colour profile of the file, written back unchanged
 
 
 @dataclass(frozen=True, eq=False)
 class CameraFrame:
     """Linear RGB radiance (H, W, 3) float32, 1.0 = encoding full scale; depth is range along the pixel ray (m),
-    ``inf`` for sky."""
+    ``inf`` for sky.
+
+    ``depth_valid`` (H, W) bool marks the depth pixels that were measured or given (None: all of them); filled
+    holes and extrapolated regions are False, and scene radiances (airlight, sky) are never estimated from them.
+    ``input_notes`` says how the inputs were obtained (depth source and holes, intrinsics assumed, JPEG quality);
+    the runner records it in the manifest as ``inputs``."""
 
     linear_rgb: np.ndarray
     profile: CameraProfile
@@ -182,6 +199,9 @@ class CameraFrame:
     encoding: ImageEncoding = field(default_factory=ImageEncoding)
     conditions: Conditions = field(default_factory=Conditions)
     alpha: np.ndarray | None = None          # (H, W) alpha plane of the file (CARLA BGRA PNG), passed through as is
+    depth_valid: np.ndarray | None = None
+    input_notes: Mapping[str, Any] = field(default_factory=dict)
+    warps: tuple = ()                        # physics.warp.Warp of each geometric step so far (masks, boxes follow)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -223,7 +243,8 @@ class RawEncoding:
 
 @dataclass(frozen=True, eq=False)
 class RawFrame:
-    """Bayer digital numbers (H, W) as float32 (exact for 16-bit), never rescaled; levels as stated by the file."""
+    """Bayer digital numbers (H, W) as float32 (exact for 16-bit), never rescaled; levels as stated by the file.
+    ``depth_valid`` and ``input_notes`` as in :class:`CameraFrame`."""
 
     dn: np.ndarray
     cfa_pattern: str
@@ -233,6 +254,9 @@ class RawFrame:
     depth_m: np.ndarray | None = None
     encoding: RawEncoding = field(default_factory=RawEncoding)
     conditions: Conditions = field(default_factory=Conditions)
+    depth_valid: np.ndarray | None = None
+    input_notes: Mapping[str, Any] = field(default_factory=dict)
+    warps: tuple = ()                        # physics.warp.Warp of each geometric step so far (masks, boxes follow)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -260,21 +284,12 @@ class RawFrame:
 # Point clouds
 
 
-class PointLabel(IntEnum):
-    """Per-point provenance written by weather/obstruction models (``label`` field), for training denoisers."""
-
-    KEPT = 0          # in place, intensity changed by less than half a resolution step of the file
-    ATTENUATED = 1    # same position, intensity/SNR reduced
-    MOVED = 2         # moved along its ray to a weather particle (soft-target return)
-    ADDED = 3         # new point from a weather particle (on an empty ray, or clutter)
-
-
 @dataclass(frozen=True)
 class CloudLayout:
     """How a cloud was stored: format and the per-point fields in file order as (canonical name, file name, dtype).
 
-    Canonical names: x, y, z, intensity, ring, time_s, rcs_dbsm, v_r_m_per_s, v_r_comp_m_per_s, snr_db, power_db,
-    label; any other field keeps its file name."""
+    Canonical names: x, y, z, intensity, ring, time_s, rcs_dbsm, v_r_m_per_s, v_r_comp_m_per_s, snr_db, power_db;
+    any other field (``label`` included) keeps its file name."""
 
     fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | npz
     fields: tuple[tuple[str, str, str], ...]
@@ -286,7 +301,12 @@ class PointCloud:
     """Positions (N, 3) float64 in metres plus named per-point fields, all aligned.
 
     ``grid_shape`` is set when the points are a full rows × columns range image in row-major order, including
-    no-return cells (all-zero position): models then keep N fixed and mark removed points with zeros."""
+    no-return cells (all-zero position): models then keep N fixed and mark removed points with zeros.
+
+    Provenance (:mod:`roadview_noise.provenance`), aligned with the points and never written as fields:
+    ``origin`` int64 index of the point each point descends from (−1: new; None: identity), ``effect`` uint8
+    :class:`~roadview_noise.provenance.Effect` codes (None: none reported), ``attributes`` per-point arrays the chain
+    knows but does not write. :meth:`select`, :meth:`drop` and :meth:`concat` keep all of them aligned."""
 
     positions_m: np.ndarray
     fields: Mapping[str, np.ndarray]
@@ -295,12 +315,17 @@ class PointCloud:
     layout: CloudLayout | None = None
     grid_shape: tuple[int, int] | None = None
     conditions: Conditions = field(default_factory=Conditions)
+    origin: np.ndarray | None = None
+    effect: np.ndarray | None = None
+    attributes: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self):
         n = len(self.positions_m)
-        for name, arr in self.fields.items():
-            if len(arr) != n:
-                raise ValueError(f"field {name!r} has {len(arr)} values for {n} points")
+        for kind, arrays in (("field", self.fields), ("attribute", self.attributes),
+                             ("provenance", {"origin": self.origin, "effect": self.effect})):
+            for name, arr in arrays.items():
+                if arr is not None and len(arr) != n:
+                    raise ValueError(f"{kind} {name!r} has {len(arr)} values for {n} points")
 
     def __len__(self) -> int:
         return len(self.positions_m)
@@ -310,16 +335,25 @@ class PointCloud:
         return np.linalg.norm(self.positions_m, axis=1)
 
     def select(self, mask_or_index: np.ndarray) -> "PointCloud":
-        """Keep the points selected by a boolean mask or an index array; every field stays aligned."""
+        """Keep the points selected by a boolean mask or an index array; every field, attribute and the provenance
+        stay aligned."""
         if self.grid_shape is not None:
             raise ValueError("select() would break a full range-image grid; use drop() instead")
-        return dataclasses.replace(self, positions_m=self.positions_m[mask_or_index],
-                                   fields={k: v[mask_or_index] for k, v in self.fields.items()})
+        idx = np.asarray(mask_or_index)
+        origin = (np.flatnonzero(idx) if idx.dtype == bool else idx.astype(np.int64)) if self.origin is None \
+            else self.origin[idx]
+        return dataclasses.replace(self, positions_m=self.positions_m[idx],
+                                   fields={k: v[idx] for k, v in self.fields.items()},
+                                   origin=origin, effect=None if self.effect is None else self.effect[idx],
+                                   attributes={k: v[idx] for k, v in self.attributes.items()})
 
     def drop(self, mask: np.ndarray) -> "PointCloud":
-        """Remove the points in ``mask``: deleted from a list, set to no-return (zeros, ring kept) in a grid."""
+        """Remove the points in ``mask``: deleted from a list, set to no-return (zeros, ring kept; effect REMOVED,
+        attributes kept: they describe the cell) in a grid."""
         if self.grid_shape is None:
             return self.select(~mask)
+        from .provenance import Effect, mark
+
         pos = self.positions_m.copy()
         pos[mask] = 0.0
         fields = {}
@@ -330,26 +364,36 @@ class PointCloud:
                 v = v.copy()
                 v[mask] = 0
                 fields[k] = v
-        return dataclasses.replace(self, positions_m=pos, fields=fields)
+        return mark(dataclasses.replace(self, positions_m=pos, fields=fields), mask, Effect.REMOVED)
 
     def with_fields(self, **fields: np.ndarray) -> "PointCloud":
         return dataclasses.replace(self, fields={**self.fields, **fields})
 
-    def concat(self, other_positions_m: np.ndarray, other_fields: Mapping[str, np.ndarray]) -> "PointCloud":
-        """Append points (e.g. weather returns); fields missing from ``other_fields`` are zero-filled."""
+    def concat(self, other_positions_m: np.ndarray, other_fields: Mapping[str, np.ndarray],
+               other_attributes: Mapping[str, np.ndarray] | None = None) -> "PointCloud":
+        """Append new points (e.g. weather returns: origin −1, effect ADDED); fields and attributes missing from
+        ``other_*`` are zero-filled."""
         if self.grid_shape is not None:
             raise ValueError("cannot append points to a full range-image grid")
+        from .provenance import ADDED, KEPT, NEW, identity
+
         m = len(other_positions_m)
-        fields = {}
-        for k, v in self.fields.items():
-            extra = other_fields.get(k)
-            extra = np.zeros((m,) + v.shape[1:], dtype=v.dtype) if extra is None else np.asarray(extra, v.dtype)
-            fields[k] = np.concatenate([v, extra])
-        unknown = set(other_fields) - set(self.fields)
-        if unknown:
-            raise ValueError(f"fields {sorted(unknown)} are not in the cloud")
+        fields, attributes = {}, {}
+        for mine, theirs, out in ((self.fields, other_fields, fields),
+                                  (self.attributes, other_attributes or {}, attributes)):
+            for k, v in mine.items():
+                extra = theirs.get(k)
+                extra = np.zeros((m,) + v.shape[1:], dtype=v.dtype) if extra is None else np.asarray(extra, v.dtype)
+                out[k] = np.concatenate([v, extra])
+            unknown = set(theirs) - set(mine)
+            if unknown:
+                raise ValueError(f"fields or attributes {sorted(unknown)} are not in the cloud")
+        n = len(self)
+        origin = identity(n) if self.origin is None else self.origin
+        effect = np.full(n, KEPT) if self.effect is None else self.effect
         return dataclasses.replace(self, positions_m=np.concatenate([self.positions_m, other_positions_m]),
-                                   fields=fields)
+                                   fields=fields, origin=np.concatenate([origin, np.full(m, NEW, np.int64)]),
+                                   effect=np.concatenate([effect, np.full(m, ADDED)]), attributes=attributes)
 
 
 SensorData = Union[CameraFrame, RawFrame, PointCloud]

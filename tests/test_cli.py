@@ -235,7 +235,7 @@ def test_list_show_validate():
     assert r.exit_code == 0 and "[lidar]" in r.output and "[radar]" in r.output
     r = runner.invoke(app, ["show", "alignment.lidar"])
     assert r.exit_code == 0 and "elevation_sd_deg" in r.output and "deg" in r.output
-    recipes = sorted((Path(__file__).parents[1] / "recipes").rglob("*.yaml"))
+    recipes = sorted(p for p in (Path(__file__).parents[1] / "recipes").rglob("*.yaml") if "calibration" not in p.parts)
     assert recipes
     for p in recipes:
         r = runner.invoke(app, ["validate", str(p)])

@@ -14,7 +14,7 @@ from roadview_noise.runner import run
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "sample_data"
-RECIPES = sorted(p for p in (ROOT / "recipes").rglob("*.yaml"))
+RECIPES = sorted(p for p in (ROOT / "recipes").glob("*.yaml"))  # examples/: tests/test_depth_recipes.py
 
 
 def test_exactly_30_cnfs_in_d35_order():
@@ -44,3 +44,26 @@ def test_recipe_runs_on_sample_data(tmp_path, recipe_path):
     entries = read_manifest(tmp_path / "out" / "manifest.jsonl")
     assert summary.failed == 0, [e.get("error") for e in entries]
     assert summary.done == len(entries) > 0
+    if recipe.sensor == "camera" and "compression.camera" not in recipe.model_ids:
+        # every camera model but JPEG runs natively on raw Bayer: the CNF recipes take the DNGs too
+        suffixes = {Path(e["output"]).suffix for e in entries}
+        assert {".png", ".dng"} <= suffixes, suffixes
+
+
+def test_camera_cnfs_all_runnable_and_show_explains_the_order():
+    from typer.testing import CliRunner
+
+    from roadview_noise.cli.main import app
+
+    models = load_all()
+    camera = [n for n, c in CNFS.items() if "camera" in c.chains]
+    assert len(camera) == 18 and all(m in models for n in camera for m in CNFS[n].chains["camera"])
+    r = CliRunner().invoke(app, ["show", "CNF14"])
+    assert r.exit_code == 0
+    assert "order: low_light.camera → fog.camera" in r.output
+    assert "low_light.camera: SCENE (scene illumination, before the weather: Eq. 1)" in r.output
+    r = CliRunner().invoke(app, ["show", "CNF04"])
+    assert "order: rain.camera → windscreen.camera" in r.output and "after the weather: Eq. 3" in r.output
+    r = CliRunner().invoke(app, ["list"])
+    assert not any(f"{m}*" in r.output for m in ("soiling.camera", "windscreen.camera", "motion_blur.camera",
+                                                 "low_light.camera"))

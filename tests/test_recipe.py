@@ -87,5 +87,5 @@ def test_params_for_model_not_in_cnf_refused():
 
 
 def test_cnf_with_a_model_not_built_yet_says_so():
-    e = err({"cnf": "CNF01"})
-    assert "soiling.camera" in str(e) and "not implemented yet" in str(e)
+    e = err({"cnf": "CNF28"})
+    assert "ray_drop.lidar" in str(e) and "not implemented yet" in str(e)

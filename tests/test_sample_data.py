@@ -21,7 +21,7 @@ from roadview_noise.profiles.lidar import load_lidar_profile, os1_128, vls_128
 from roadview_noise.profiles.radar import load_radar_profile
 from roadview_noise.sampledata import rig
 from roadview_noise.sampledata.generate import generate
-from roadview_noise.physics.lidar_link import received_signal, sensor_constant
+from roadview_noise.physics.lidar_intensity import received_signal, sensor_constant
 from roadview_noise.sampledata.scene import FACADE_Y_M, FACADES, MAT, MATERIALS, GLASS, build_scene
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,9 +1,17 @@
-"""Camera image reader/writer: PNG, JPEG, TIFF (8/16-bit sRGB, float32 linear TIFF) ↔ linear RGB float32.
+"""Camera image reader/writer: PNG, JPEG, TIFF (8/16-bit sRGB, float32 linear TIFF), OpenEXR (half/float linear)
+↔ linear RGB float32.
 
 Decoding with OpenCV (``IMREAD_UNCHANGED``: no EXIF rotation, no bit-depth reduction); BGR ↔ RGB and sRGB ↔ linear
-happen here and nowhere else. 8/16-bit files are sRGB encoded (IEC 61966-2-1, ``physics/srgb.py``); float32 TIFF is
-linear. 1.0 is the full scale of the encoding. Grey files are replicated to three channels and written back as Rec. 709
-luminance Y = 0.2126 R + 0.7152 G + 0.0722 B of the linear RGB (identity for equal channels).
+happen here and nowhere else (the sRGB arithmetic itself is ``physics/srgb.py``). 8/16-bit files are sRGB encoded
+(IEC 61966-2-1); float32 TIFF and EXR are linear and are written back unclipped (HDR stays HDR), EXR with the same
+half/float channel type. 1.0 is the full scale of the encoding. Grey files are replicated to three channels and
+written back as Rec. 709 luminance Y = 0.2126 R + 0.7152 G + 0.0722 B of the linear RGB (identity for equal
+channels).
+
+Written back like the input: bit depth, channels, alpha plane, JPEG quality (estimated from the input's
+quantisation tables unless the recipe states one) and the embedded ICC colour profile (PNG ``iCCP`` chunk, JPEG
+``APP2 ICC_PROFILE`` segments, TIFF tag 34675), copied unchanged. TIFF is written by tifffile (Deflate), the others
+by OpenCV.
 
 OpenCV decodes some truncated files without an error (a JPEG cut short gets a grey bottom), so the structure is checked
 first: PNG needs its IEND chunk, JPEG its EOI marker, TIFF strips/tiles inside the file.
@@ -13,29 +21,34 @@ from __future__ import annotations
 
 import io
 import os
+import zlib
 from pathlib import Path
 
 import cv2
 import numpy as np
+import OpenEXR
 import tifffile
 
 from ..errors import InputError
 from ..physics import srgb
 from ..types import ImageEncoding
-from .atomic import write_bytes_atomic
+from .atomic import atomic_path, write_bytes_atomic
 
-SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff"}
-_EXTENSION = {"png": ".png", "jpeg": ".jpg", "tiff": ".tiff"}
+SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr"}
+_EXTENSION = {"png": ".png", "jpeg": ".jpg"}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND\xaeB`\x82"            # chunk type + CRC of the (empty) IEND chunk
 _JPEG_SOI, _JPEG_EOI = b"\xff\xd8", b"\xff\xd9"
 _TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+_ICC_TIFF_TAG = 34675
+_ICC_JPEG_HEADER = b"ICC_PROFILE\x00"
+_ICC_JPEG_CHUNK = 65519                   # 65535 − 2 (length) − 14 (header, sequence number, count)
 
 
 def image_format(path: str | os.PathLike) -> str:
-    """``png`` | ``jpeg`` | ``tiff`` from the file suffix (case-insensitive)."""
+    """``png`` | ``jpeg`` | ``tiff`` | ``exr`` from the file suffix (case-insensitive)."""
     fmt = SUFFIX_FORMATS.get(Path(path).suffix.lower())
     if fmt is None:
         raise InputError(f"unknown image suffix {Path(path).suffix!r}; expected one of {sorted(SUFFIX_FORMATS)}",
@@ -46,6 +59,8 @@ def image_format(path: str | os.PathLike) -> str:
 def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
     """Read an image as (H, W, 3) float32 linear RGB, its encoding, and the alpha plane as stored (or None)."""
     fmt = image_format(path)
+    if fmt == "exr":
+        return _read_exr_image(Path(path))
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
@@ -71,15 +86,16 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageEncoding, np.n
     if channels == 1:
         linear = np.repeat(linear[..., None], 3, axis=2)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels, jpeg_quality=quality)
+    encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels, jpeg_quality=quality,
+                             icc_profile=icc_profile(data, fmt))
     return np.ascontiguousarray(linear, dtype=np.float32), encoding, alpha
 
 
 def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: ImageEncoding,
                 alpha: np.ndarray | None = None) -> None:
-    """Encode (H, W, 3) linear RGB like ``encoding`` (sRGB or linear, bit depth, channels, JPEG quality) and write it
-    atomically. Integer encodings are clipped to [0, 1] and rounded here, once; float32 TIFF is written unclipped.
-    A 4-channel encoding without ``alpha`` gets an opaque alpha plane."""
+    """Encode (H, W, 3) linear RGB like ``encoding`` (sRGB or linear, bit depth, channels, JPEG quality, ICC
+    profile) and write it atomically. Integer encodings are clipped to [0, 1] and rounded here, once; float32 TIFF
+    and EXR are written unclipped. A 4-channel encoding without ``alpha`` gets an opaque alpha plane."""
     linear_rgb = np.asarray(linear_rgb)
     if linear_rgb.ndim != 3 or linear_rgb.shape[2] != 3:
         raise ValueError(f"expected linear RGB of shape (H, W, 3), got {linear_rgb.shape}")
@@ -88,21 +104,154 @@ def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: Image
         raise ValueError(f"{Path(path).name}: image has {n_nan} NaN values; a model produced invalid radiance")
     if image_format(path) != encoding.fmt:
         raise ValueError(f"{Path(path).name}: suffix does not match the encoding format {encoding.fmt!r}")
+    if encoding.channels not in (1, 3, 4):
+        raise ValueError(f"unsupported channel count {encoding.channels}")
     pixels = linear_rgb @ _LUMA_709 if encoding.channels == 1 else linear_rgb
-    codes = encode_pixels(pixels, encoding)
-    if encoding.channels == 3:
-        codes = codes[..., ::-1]
-    elif encoding.channels == 4:
+    if encoding.fmt == "exr":
+        _write_exr_image(path, pixels, encoding, alpha)
+        return
+    codes = encode_pixels(pixels, encoding)                   # RGB order
+    if encoding.channels == 4:
         if alpha is None:
             alpha = np.full(codes.shape[:2], 1.0 if codes.dtype == np.float32 else np.iinfo(codes.dtype).max)
-        codes = np.dstack([codes[..., ::-1], np.asarray(alpha).astype(codes.dtype)])
-    elif encoding.channels != 1:
-        raise ValueError(f"unsupported channel count {encoding.channels}")
+        codes = np.dstack([codes, np.asarray(alpha).astype(codes.dtype)])
+    if encoding.fmt == "tiff":
+        write_bytes_atomic(path, _encode_tiff(codes, encoding.icc_profile))
+        return
+    if encoding.channels > 1:
+        codes = np.dstack([codes[..., 2::-1], codes[..., 3:]])   # RGB(A) → BGR(A)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
     ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], np.ascontiguousarray(codes), params)
     if not ok:
         raise OSError(f"{Path(path).name}: OpenCV could not encode {encoding}")
-    write_bytes_atomic(path, buf.tobytes())
+    write_bytes_atomic(path, embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile))
+
+
+def _encode_tiff(codes: np.ndarray, icc: bytes | None) -> bytes:
+    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha and the ICC profile."""
+    buf = io.BytesIO()
+    colour = codes.ndim == 3
+    tifffile.imwrite(buf, codes, photometric="rgb" if colour else "minisblack",
+                     extrasamples=("unassalpha",) if colour and codes.shape[2] == 4 else None,
+                     compression="zlib", metadata=None, iccprofile=icc)
+    return buf.getvalue()
+
+
+# --- OpenEXR -------------------------------------------------------------------------------------------------------
+
+
+def read_exr_channels(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Every channel of a scanline/tiled EXR as arrays, and the channel names in file order; InputError if
+    unreadable."""
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as exr:
+            order = [c.name for c in exr.header()["channels"]]
+            return {name: np.asarray(c.pixels) for name, c in exr.channels().items()}, order
+    except (RuntimeError, OSError, ValueError) as exc:      # OpenEXR raises all three for damaged files
+        raise InputError(f"corrupt or truncated EXR, OpenEXR cannot read it ({exc})", file=str(path)) from exc
+
+
+def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> None:
+    """Write channels (their dtype: float16 → HALF, float32 → FLOAT) as a ZIP-compressed scanline EXR, atomically."""
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp, OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in channels.items()}
+                                                ) as exr:
+        exr.write(str(tmp))
+
+
+def _read_exr_image(path: Path) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+    channels, order = read_exr_channels(path)
+    names = ("R", "G", "B") if {"R", "G", "B"} <= set(channels) else ("Y",) if "Y" in channels else None
+    if names is None:
+        raise InputError(f"an EXR image has R, G, B (and A) or Y channels; got {order} (a depth EXR is a sidecar: "
+                         f"see inputs.depth)", file=str(path))
+    planes = [channels[n] for n in names]
+    kinds = {p.dtype for p in planes}
+    if not kinds <= {np.dtype(np.float16), np.dtype(np.float32)}:
+        raise InputError(f"EXR image channels must be half or float, got {sorted(map(str, kinds))}", file=str(path))
+    linear = np.dstack(planes * (3 if len(planes) == 1 else 1)).astype(np.float32)
+    alpha = channels["A"].astype(np.float32) if "A" in channels and len(names) == 3 else None
+    encoding = ImageEncoding(fmt="exr", bit_depth=16 if kinds == {np.dtype(np.float16)} else 32, transfer="linear",
+                             channels=len(names) + (alpha is not None))
+    return np.ascontiguousarray(linear), encoding, alpha
+
+
+def _write_exr_image(path, pixels: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None) -> None:
+    dtype = np.float16 if encoding.bit_depth == 16 else np.float32
+    if encoding.channels == 1:
+        channels = {"Y": pixels.astype(dtype)}
+    else:
+        channels = {c: pixels[..., k].astype(dtype) for k, c in enumerate("RGB")}
+        if encoding.channels == 4:
+            channels["A"] = (np.ones(pixels.shape[:2]) if alpha is None else np.asarray(alpha)).astype(dtype)
+    write_exr_channels(path, channels)
+
+
+# --- ICC colour profiles -------------------------------------------------------------------------------------------
+
+
+def icc_profile(data: bytes, fmt: str) -> bytes | None:
+    """The ICC profile embedded in a PNG (``iCCP``), JPEG (``APP2 ICC_PROFILE``, in sequence) or TIFF (tag 34675)."""
+    if fmt == "png":
+        pos = len(PNG_SIGNATURE)
+        while pos + 8 <= len(data):
+            length, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
+            if kind == b"iCCP":
+                body = data[pos + 8:pos + 8 + length]
+                name_end = body.index(b"\x00")
+                return zlib.decompress(body[name_end + 2:])       # name, NUL, compression method 0, zlib stream
+            if kind == b"IDAT":
+                return None
+            pos += 12 + length
+        return None
+    if fmt == "jpeg":
+        chunks = {}
+        for marker, segment in _jpeg_segments(data):
+            if marker == 0xE2 and segment.startswith(_ICC_JPEG_HEADER):
+                chunks[segment[12]] = segment[14:]
+        return b"".join(chunks[k] for k in sorted(chunks)) or None
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            tag = tif.pages[0].tags.get(_ICC_TIFF_TAG)
+            return bytes(tag.value) if tag is not None else None
+    except Exception:                                 # a damaged directory was reported by check_structure already
+        return None
+
+
+def embed_icc_profile(data: bytes, fmt: str, icc: bytes | None) -> bytes:
+    """PNG or JPEG bytes with ``icc`` embedded: an ``iCCP`` chunk after IHDR (PNG 1.2 §4.2.2.4), or APP2
+    ``ICC_PROFILE`` segments after SOI and any JFIF APP0 (ICC.1 Annex B.4)."""
+    if not icc:
+        return data
+    if fmt == "png":
+        body = b"ICC Profile\x00\x00" + zlib.compress(icc)
+        chunk = len(body).to_bytes(4, "big") + b"iCCP" + body + zlib.crc32(b"iCCP" + body).to_bytes(4, "big")
+        ihdr_end = len(PNG_SIGNATURE) + 12 + int.from_bytes(data[8:12], "big")
+        return data[:ihdr_end] + chunk + data[ihdr_end:]
+    parts = [icc[i:i + _ICC_JPEG_CHUNK] for i in range(0, len(icc), _ICC_JPEG_CHUNK)]
+    segments = b"".join(b"\xff\xe2" + (len(p) + 16).to_bytes(2, "big") + _ICC_JPEG_HEADER + bytes([k + 1, len(parts)])
+                        + p for k, p in enumerate(parts))
+    pos = 2
+    if data[2:4] == b"\xff\xe0":                      # JFIF APP0 must stay first
+        pos += 2 + int.from_bytes(data[4:6], "big")
+    return data[:pos] + segments + data[pos:]
+
+
+def _jpeg_segments(data: bytes):
+    """``(marker, payload)`` of the JPEG marker segments before the first scan."""
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF:
+        marker, length = data[pos + 1], int.from_bytes(data[pos + 2:pos + 4], "big")
+        if marker == 0xDA:                              # start of scan: no more tables before the entropy data
+            return
+        yield marker, data[pos + 4:pos + 2 + length]
+        pos += 2 + length
+
+
+def display_srgb(linear: np.ndarray) -> np.ndarray:
+    """sRGB-encoded float32 values in [0, 1] (8-bit codes / 255) of linear radiance: the image as a display, a JPEG
+    or a depth network sees it (monocular depth input, edge guides)."""
+    return srgb.linear_to_code(linear, 8).astype(np.float32) * np.float32(1 / 255)
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
@@ -126,7 +275,7 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
 def check_structure(data: bytes, fmt: str, path) -> None:
     """Raise :class:`InputError` for a file that is not ``fmt`` or is cut short (see module docstring)."""
     if fmt == "png":
-        if not data.startswith(_PNG_SIGNATURE):
+        if not data.startswith(PNG_SIGNATURE):
             raise InputError("not a PNG file (bad signature)", file=str(path))
         if data.rfind(_PNG_IEND) < 0:
             raise InputError("truncated PNG: the IEND chunk is missing", file=str(path))
@@ -175,19 +324,15 @@ def _ijg_tables() -> np.ndarray:
 
 def _jpeg_quality(data: bytes) -> int:
     """IJG quality (1–100) whose luminance table is closest to the file's table 0; 95 when the file has none."""
-    pos = 2
-    while pos + 4 <= len(data) and data[pos] == 0xFF:
-        marker, length = data[pos + 1], int.from_bytes(data[pos + 2:pos + 4], "big")
-        if marker == 0xDA:                              # start of scan: no more tables before the entropy data
-            break
-        if marker == 0xDB:
-            seg, k = data[pos + 4:pos + 2 + length], 0
-            while k < len(seg):
-                precision, table_id = seg[k] >> 4, seg[k] & 15
-                n = 128 if precision else 64
-                values = np.frombuffer(seg[k + 1:k + 1 + n], ">u2" if precision else "u1").astype(np.int64)
-                if table_id == 0 and len(values) == 64:
-                    return int(np.argmin(np.abs(_ijg_tables() - values).sum(axis=1))) + 1
-                k += 1 + n
-        pos += 2 + length
+    for marker, seg in _jpeg_segments(data):
+        if marker != 0xDB:
+            continue
+        k = 0
+        while k < len(seg):
+            precision, table_id = seg[k] >> 4, seg[k] & 15
+            n = 128 if precision else 64
+            values = np.frombuffer(seg[k + 1:k + 1 + n], ">u2" if precision else "u1").astype(np.int64)
+            if table_id == 0 and len(values) == 64:
+                return int(np.argmin(np.abs(_ijg_tables() - values).sum(axis=1))) + 1
+            k += 1 + n
     return ImageEncoding.jpeg_quality

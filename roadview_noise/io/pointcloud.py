@@ -12,7 +12,8 @@ Formats (by suffix, or ``fmt``):
 - ``vod_bin`` (``.bin`` with ``sensor="radar"``): View-of-Delft N×7 float32 x, y, z, RCS, v_r, v_r_compensated, time.
 
 File fields get canonical names (types.CloudLayout) through :data:`ALIASES` (first alias present wins; a recipe's
-``field_map`` {file name: canonical} overrides); every other field keeps its file name and is carried through.
+``field_map`` {file name: canonical} overrides); every other field (a user's ``label`` too) keeps its file name and
+is carried through. The chain's effect code is written as its own field ``rv_effect`` (:func:`write_pointcloud`).
 Radar radial velocity is passed through as stored, without a sign change; rvnoise reads it as range rate, positive
 when the target recedes (models.md §0.4), so a dataset with the opposite sign needs its field negated beforehand.
 Writers put every field back in file order and dtype; integer fields are rounded and clipped there, once.
@@ -45,7 +46,6 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated"),
     "snr_db": ("snr_db", "snr"),
     "power_db": ("power_db", "power"),
-    "label": ("label",),
 }
 
 BIN_FIELDS = {
@@ -53,7 +53,8 @@ BIN_FIELDS = {
     "nuscenes_bin": ("x", "y", "z", "intensity", "ring"),
     "vod_bin": ("x", "y", "z", "RCS", "v_r", "v_r_compensated", "time"),
 }
-LABEL_DTYPE = "|u1"
+EFFECT_FIELD = "rv_effect"              # the weather-effect code (provenance.Effect), uint8
+EFFECT_DTYPE = "|u1"
 
 _PCD_TYPE = {"F": "f", "U": "u", "I": "i"}
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -126,23 +127,23 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
                       grid_shape=grid_shape)
 
 
-def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, labels: str = "auto") -> None:
+def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str = "auto") -> list[Path]:
     """Write ``cloud`` in the format, field order and dtypes of ``cloud.layout`` (a default layout from the suffix
-    when it has none), atomically.
+    when it has none), atomically; returns the files written.
 
-    ``labels="auto"``: a ``label`` field that the layout lacks is appended as uint8 (PCD/PLY) or written to the
-    sidecar :func:`label_sidecar_path` (fixed-layout ``.bin``); ``"none"``: it is not written (a ``label`` field that
-    is part of the input layout is always written). Other fields outside the layout, or layout fields missing from
-    the cloud, are refused."""
-    if labels not in ("auto", "none"):
-        raise ValueError(f"labels must be 'auto' or 'none', got {labels!r}")
+    ``effect="auto"``: the cloud's effect codes (``cloud.effect``, provenance.Effect, when a step reported them) are
+    appended as a uint8 field ``rv_effect`` (PCD/PLY; ``rv_effect_2``, … if the input already has a field of that
+    name: an input field is never overwritten) or written to the sidecar :func:`effect_sidecar_path` (fixed-layout
+    ``.bin``); ``"none"``: not written. Fields outside the layout, or layout fields missing from the cloud, are
+    refused."""
+    if effect not in ("auto", "none"):
+        raise ValueError(f"effect must be 'auto' or 'none', got {effect!r}")
     layout = cloud.layout or default_layout(path, cloud)
     family = _family(layout.fmt)
     if _family(cloud_format(path, cloud.sensor)) != family:
         raise ValueError(f"{Path(path).name}: suffix does not match the cloud's layout format {layout.fmt!r}")
     keys = [k for k, _, _ in layout.fields]
-    add_label = labels == "auto" and "label" in cloud.fields and "label" not in keys
-    extra = sorted(set(cloud.fields) - set(keys) - {"label"})
+    extra = sorted(set(cloud.fields) - set(keys))
     missing = [k for k in keys if k not in ("x", "y", "z") and k not in cloud.fields]
     if extra or missing:
         raise ValueError(f"{Path(path).name}: cloud fields do not match the {layout.fmt} layout "
@@ -151,9 +152,9 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, labels: str 
     for key, name, dt in layout.fields:
         values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
         columns.append((name, dt, _cast(values, dt, key)))
-    label = _cast(cloud.fields["label"], LABEL_DTYPE, "label") if add_label else None
-    if label is not None and family != "bin":
-        columns.append(("label", LABEL_DTYPE, label))
+    codes = None if effect == "none" or cloud.effect is None else _cast(cloud.effect, EFFECT_DTYPE, EFFECT_FIELD)
+    if codes is not None and family != "bin":
+        columns.append((effect_field_name([name for _, name, _ in layout.fields]), EFFECT_DTYPE, codes))
     if layout.fmt == "pcd":
         data = _pcd_bytes(columns, layout.pcd_data, cloud.grid_shape)
     elif layout.fmt == "ply":
@@ -161,8 +162,11 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, labels: str 
     else:
         data = np.stack([c for _, _, c in columns], axis=1).astype("<f4").tobytes()
     write_bytes_atomic(path, data)
-    if label is not None and family == "bin":
-        write_bytes_atomic(label_sidecar_path(path), label.tobytes())
+    written = [Path(path)]
+    if codes is not None and family == "bin":
+        written.append(effect_sidecar_path(path))
+        write_bytes_atomic(written[-1], codes.tobytes())
+    return written
 
 
 def _family(fmt: str) -> str:
@@ -170,25 +174,33 @@ def _family(fmt: str) -> str:
     return fmt if fmt in ("pcd", "ply") else "bin"
 
 
-def label_sidecar_path(path: str | os.PathLike) -> Path:
-    """``<name>.label`` next to a ``.bin``/``.pcd.bin`` cloud: N uint8 point labels (types.PointLabel)."""
+def effect_sidecar_path(path: str | os.PathLike) -> Path:
+    """``<file name>.rv_effect`` next to a ``.bin``/``.pcd.bin`` cloud (``000001.bin.rv_effect``): N uint8 effect
+    codes (provenance.Effect). The full name keeps ``x.bin`` and ``x.pcd.bin`` apart and never collides with a
+    SemanticKITTI ``.label``."""
     path = Path(path)
-    name = path.name
-    stem = name[: -len(".pcd.bin")] if name.lower().endswith(".pcd.bin") else path.stem
-    return path.with_name(stem + ".label")
+    return path.with_name(path.name + "." + EFFECT_FIELD)
+
+
+def effect_field_name(file_fields: list[str]) -> str:
+    """``rv_effect``, or ``rv_effect_2``, ``rv_effect_3`` … when the file already has a field of that name."""
+    name, k = EFFECT_FIELD, 1
+    while name in file_fields:
+        k += 1
+        name = f"{EFFECT_FIELD}_{k}"
+    return name
 
 
 def default_layout(path: str | os.PathLike, cloud: PointCloud) -> CloudLayout:
     """Layout for a cloud built in memory: the fixed ``.bin`` layouts, or float32 x, y, z followed by the cloud's
-    fields in their dtypes (``label`` left to ``labels=``) for PCD (binary) and PLY (binary little-endian)."""
+    fields in their dtypes for PCD (binary) and PLY (binary little-endian)."""
     fmt = cloud_format(path, cloud.sensor)
     if fmt in BIN_FIELDS:
         names = BIN_FIELDS[fmt]
         keys = _canonical_keys(list(names), None, path)
         return CloudLayout(fmt, tuple((k, n, "<f4") for k, n in zip(keys, names)))
     fields = [(a, a, "<f4") for a in "xyz"]
-    fields += [(k, k, _dtype_str(np.asarray(v).dtype, np.asarray(v).shape[1:]))
-               for k, v in cloud.fields.items() if k != "label"]
+    fields += [(k, k, _dtype_str(np.asarray(v).dtype, np.asarray(v).shape[1:])) for k, v in cloud.fields.items()]
     return CloudLayout(fmt, tuple(fields), "binary" if fmt == "pcd" else "binary_little_endian")
 
 

@@ -7,10 +7,13 @@ Exponential laws have closed-form moments, so no grid integration is needed on h
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import gamma as gamma_fn
 from scipy.special import gammainc
+
+from .fall_speed import snow_power_law_m_per_s
 
 # --- exponential laws N(D) = N0 exp(-Λ D) ------------------------------------------------------------------------
 
@@ -78,6 +81,162 @@ def sample_truncated_exponential(rng: np.random.Generator, lam: float, d_min_mm:
     span = -np.expm1(-lam * (np.asarray(d_max_mm, dtype=float) - np.asarray(d_min_mm, dtype=float)))
     return d_min_mm - np.log1p(-u * span) / lam
 
+
+
+# --- optical size of a particle from its melted size ----------------------------------------------------------------
+
+ICE_DENSITY_G_PER_CM3 = 0.917
+WATER_DENSITY_G_PER_CM3 = 1.0
+
+
+@dataclass(frozen=True)
+class SizeLaw:
+    """Geometric (optical) diameter D of a particle of melted (liquid-equivalent) diameter D_m, both in mm:
+    ``D = max(k D_m, c D_m^p)`` — a power law from a density–size relation ``ρ = a D^b`` (mass conservation
+    ``ρ_w D_m³ = ρ(D) D³`` gives ``c = (ρ_w/a)^{1/(3+b)}``, ``p = 3/(3+b)``), never denser than ``ρ_max``
+    (``k = (ρ_w/ρ_max)^{1/3}``). The default is the identity (raindrops)."""
+
+    coefficient: float = 1.0
+    exponent: float = 1.0
+    solid: float = 1.0
+
+    @classmethod
+    def of_density(cls, a_g_per_cm3: float, b: float, max_density_g_per_cm3: float = ICE_DENSITY_G_PER_CM3
+                   ) -> SizeLaw:
+        """From ``ρ(D) = a D^b`` g/cm³ (D in mm), capped at ``max_density_g_per_cm3``."""
+        return cls((WATER_DENSITY_G_PER_CM3 / a_g_per_cm3) ** (1 / (3 + b)), 3 / (3 + b),
+                   (WATER_DENSITY_G_PER_CM3 / max_density_g_per_cm3) ** (1 / 3))
+
+    @property
+    def crossover_mm(self) -> float:
+        """Melted diameter above which the power law holds (``k D_m = c D_m^p``); 0 when it holds everywhere."""
+        if self.exponent == 1.0:
+            return 0.0 if self.coefficient >= self.solid else math.inf
+        return (self.solid / self.coefficient) ** (1 / (self.exponent - 1))
+
+    def optical_mm(self, d_melted_mm):
+        d = np.asarray(d_melted_mm, dtype=float)
+        return np.maximum(self.solid * d, self.coefficient * d ** self.exponent)
+
+    def melted_mm(self, d_optical_mm):
+        d = np.asarray(d_optical_mm, dtype=float)
+        return np.minimum(d / self.solid, (d / self.coefficient) ** (1 / self.exponent))
+
+    def moment(self, n0: float, lam: float, k_optical: float, d_min_mm, d_max_mm, k_melted: float = 0.0):
+        """``∫ D^k_optical D_m^k_melted N0 e^{−Λ D_m} dD_m`` over melted diameters [Dmin, Dmax] (closed form per piece
+        of the law, :func:`exponential_moment`; elementwise for array bounds)."""
+        x = self.crossover_mm
+        lo, hi = np.asarray(d_min_mm, dtype=float), np.asarray(d_max_mm, dtype=float)
+        solid_hi = np.clip(hi, lo, x)
+        power_lo = np.clip(lo, x, np.maximum(hi, x))
+        out = (self.coefficient ** k_optical
+               * exponential_moment(n0, lam, self.exponent * k_optical + k_melted, power_lo, np.maximum(hi, power_lo)))
+        if x > 0:
+            out = out + self.solid ** k_optical * exponential_moment(n0, lam, k_optical + k_melted, lo, solid_hi)
+        return float(out) if np.ndim(out) == 0 else out
+
+
+# --- snowflakes (models.md §2.3 correction, §3.4) -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SnowHabit:
+    """What kind of snow falls: bulk density ``ρ = a D^b`` (g/cm³, D the flake diameter in mm, at most
+    ``max_density``) and fall speed ``v = a_v D^b_v`` (m/s)."""
+
+    density_coefficient_g_per_cm3: float
+    density_exponent: float
+    fall_speed_coefficient_m_per_s: float
+    fall_speed_exponent: float
+    max_density_g_per_cm3: float
+    source: str
+
+    @property
+    def size(self) -> SizeLaw:
+        return SizeLaw.of_density(self.density_coefficient_g_per_cm3, self.density_exponent,
+                                  self.max_density_g_per_cm3)
+
+    def fall_speed_m_per_s(self, d_mm):
+        """Terminal speed of flakes of diameter D (mm); float32 stays float32."""
+        return snow_power_law_m_per_s(d_mm, self.fall_speed_coefficient_m_per_s, self.fall_speed_exponent)
+
+
+SNOW_HABITS = {
+    "dry_aggregates": SnowHabit(0.178, -0.922, 0.8, 0.16, ICE_DENSITY_G_PER_CM3,
+                                "density Brandes et al. 2007 (J. Appl. Meteor. Climatol. 46), fall speed Locatelli & "
+                                "Hobbs 1974 (unrimed aggregates)"),
+    "rimed": SnowHabit(0.356, -0.922, 0.79, 0.27, ICE_DENSITY_G_PER_CM3,
+                       "fall speed Locatelli & Hobbs 1974 (densely rimed aggregates); ASSUMPTION: riming doubles the "
+                       "density of Brandes et al. 2007"),
+    "wet": SnowHabit(0.712, -0.922, 1.5, 0.0, WATER_DENSITY_G_PER_CM3,
+                     "ASSUMPTION: melting aggregates four times as dense as Brandes et al. 2007 (at most water), "
+                     "falling at 1.5 m/s (melting flakes: 1–2 m/s)"),
+}
+
+
+@dataclass(frozen=True)
+class Snowfall:
+    """Falling snow at a liquid-equivalent rate S: an exponential law ``N0 e^{−Λ D_m}`` in *melted* diameter D_m
+    (Λ from Gunn–Marshall or Sekhon–Srivastava), flakes of geometric diameter ``D = size(D_m)`` from the habit's
+    density–size law (models.md §2.3 correction), each falling at the habit's ``v(D)``, and N0 such that the
+    liquid-equivalent mass flux ``∫ (π/6) D_m³ v(D) N dD_m`` equals S. One distribution for camera and LiDAR.
+
+    ``d_min_mm``, ``d_max_mm``: bounds in melted diameter (mm)."""
+
+    n0_per_m3_mm: float
+    lam_per_mm: float
+    d_min_mm: float
+    d_max_mm: float
+    habit: SnowHabit
+
+    @property
+    def size(self) -> SizeLaw:
+        return self.habit.size
+
+    def number_per_m3(self) -> float:
+        return exponential_number_density(self.n0_per_m3_mm, self.lam_per_mm, self.d_min_mm, self.d_max_mm)
+
+    def flake_density(self, d_mm):
+        """Flakes per m³ and mm of flake diameter D: ``N(D_m(D)) dD_m/dD`` (m⁻³ mm⁻¹)."""
+        d = np.asarray(d_mm, dtype=float)
+        law = self.size
+        dm = law.melted_mm(d)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = np.where(d / law.solid <= (d / law.coefficient) ** (1 / law.exponent), 1 / law.solid,
+                             dm / (law.exponent * d))
+        inside = (dm >= self.d_min_mm) & (dm <= self.d_max_mm)
+        return np.where(inside, self.n0_per_m3_mm * np.exp(-self.lam_per_mm * dm) * slope, 0.0)
+
+    def extinction_per_m(self, q_ext: float = 2.0) -> float:
+        """``α = (π/4) Q_ext ∫ D² N dD_m`` (geometric optics: Q_ext = 2, flakes ≫ λ)."""
+        return math.pi / 4 * q_ext * 1e-6 * self.size.moment(self.n0_per_m3_mm, self.lam_per_mm, 2, self.d_min_mm,
+                                                             self.d_max_mm)
+
+    def visibility_m(self) -> float:
+        """Meteorological optical range ``ln 20 / α`` (5 % contrast, WMO)."""
+        return math.log(20.0) / self.extinction_per_m()
+
+    def mass_flux_mm_per_h(self) -> float:
+        """Liquid-equivalent precipitation rate ``∫ (π/6) D_m³ v(D) N dD_m`` (mm/h)."""
+        return _flux_per_n0(self.habit, self.lam_per_mm, self.d_min_mm, self.d_max_mm) * self.n0_per_m3_mm * 3.6e6
+
+
+def _flux_per_n0(habit: SnowHabit, lam: float, d_min_mm: float, d_max_mm: float) -> float:
+    """Liquid-equivalent flux (m/s) of ``e^{−Λ D_m}`` (N0 = 1 m⁻³ mm⁻¹): ``(π/6) 10⁻⁹ a_v ∫ D_m³ D^b_v e^{−Λ D_m}``."""
+    return (math.pi / 6 * 1e-9 * habit.fall_speed_coefficient_m_per_s
+            * habit.size.moment(1.0, lam, habit.fall_speed_exponent, d_min_mm, d_max_mm, k_melted=3))
+
+
+def snowfall(rate_mm_per_h: float, law: str = "gunn_marshall", habit: str = "dry_aggregates",
+             d_min_flake_mm: float = 0.0, d_max_flake_mm: float = 20.0) -> Snowfall:
+    """The :class:`Snowfall` of a liquid-equivalent rate (mm/h): Λ from ``law`` (:data:`SNOW_LAWS`), flakes from
+    ``habit`` (:data:`SNOW_HABITS`) between the flake diameters given (mm), N0 from the mass flux."""
+    if habit not in SNOW_HABITS:
+        raise ValueError(f"unknown snow habit {habit!r}; one of {sorted(SNOW_HABITS)}")
+    _, lam = SNOW_LAWS[law](rate_mm_per_h)
+    h = SNOW_HABITS[habit]
+    lo, hi = float(h.size.melted_mm(d_min_flake_mm)), float(h.size.melted_mm(d_max_flake_mm))
+    return Snowfall(rate_mm_per_h / 3.6e6 / _flux_per_n0(h, lam, lo, hi), lam, lo, hi, h)
 
 # --- measured gamma snow table (Brandes et al. 2007) ----------------------------------------------------------------
 

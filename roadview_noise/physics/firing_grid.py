@@ -22,6 +22,7 @@ that ``beams × columns`` grid that hold no point:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -69,6 +70,10 @@ class FiringGrid:
         return _directions(np.asarray(cells, dtype=np.int64), self.ring, self.column, scale, np.cos(col_angle),
                            np.sin(col_angle), np.cos(beam_angle), np.sin(beam_angle), np.cos(elevation),
                            np.sin(elevation))
+
+    def subset(self, keep: np.ndarray) -> FiringGrid:
+        """The empty cells where ``keep`` (a boolean mask over them) holds."""
+        return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep])
 
     def describe(self) -> str:
         p = self.profile

@@ -52,10 +52,10 @@ from ..profiles.camera import fit_to_image
 from ..types import CameraProfile, Conditions
 from ..units import ray_factor
 from .cfa import SiteLayout
-from .dsd import BRANDES_SNOW_GAMMA, SNOW_LAWS, gamma_dsd, marshall_palmer
+from .dsd import BRANDES_SNOW_GAMMA, gamma_dsd, marshall_palmer, snowfall
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
-from .photometry import composite, frame_depth_m
+from .photometry import composite, estimation_depth, frame_depth_m
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -63,7 +63,7 @@ FINE_STEP_MM = 0.005
 QUANTILES_PER_CLASS = 32
 DEPTH_QUANTILES = 4096
 RAIN_DIAMETER_RANGE_MM = (0.5, 6.0)
-SNOW_DIAMETER_RANGE_MM = (0.1, 10.0)
+SNOW_DIAMETER_RANGE_MM = (0.1, 20.0)      # flake (geometric) diameters, as the LiDAR's snowfall
 SNOW_DSDS = ("gunn_marshall", "sekhon_srivastava", "brandes")
 # disk diameters with the second moment, across a streak, of the 2-tap linear split (1.63 px) and of the split at
 # scale s followed by bilinear upsampling (2.31 s px)
@@ -156,16 +156,17 @@ def rain_classes(rain_rate_mm_per_h: float) -> SizeClasses:
 
 
 @lru_cache(maxsize=32)
-def snow_classes(snowfall_rate_mm_per_h: float, dsd: str) -> SizeClasses:
-    """Snowflakes 0.1–10 mm (models.md §2.3): exponential Gunn–Marshall / Sekhon–Srivastava laws of the
-    liquid-equivalent rate, or the Brandes et al. (2007) measured gamma fits (3.03, 2.70, 2.59 mm/h only)."""
+def snow_classes(snowfall_rate_mm_per_h: float, dsd: str, habit: str = "dry_aggregates") -> SizeClasses:
+    """Snowflakes of 0.1–10 mm geometric diameter (models.md §2.3 and its correction): the LiDAR's snowfall
+    (:func:`dsd.snowfall`: Gunn–Marshall / Sekhon–Srivastava slope in melted diameter, flakes from the habit's
+    density–size law, N0 from the mass flux), or the Brandes et al. (2007) measured gamma fits in flake diameter
+    (3.03, 2.70, 2.59 mm/h only)."""
     if dsd == "brandes":
         if snowfall_rate_mm_per_h not in BRANDES_SNOW_GAMMA:
             raise ValueError(f"the Brandes table has only {sorted(BRANDES_SNOW_GAMMA)} mm/h")
         n0, mu, lam = BRANDES_SNOW_GAMMA[snowfall_rate_mm_per_h]
         return size_classes(lambda d: gamma_dsd(d, n0, mu, lam), *SNOW_DIAMETER_RANGE_MM)
-    n0, lam = SNOW_LAWS[dsd](snowfall_rate_mm_per_h)
-    return size_classes(lambda d: n0 * np.exp(-lam * d), *SNOW_DIAMETER_RANGE_MM)
+    return size_classes(snowfall(snowfall_rate_mm_per_h, dsd, habit).flake_density, *SNOW_DIAMETER_RANGE_MM)
 
 
 def rain_fall_speed_m_per_s(d_mm):
@@ -543,14 +544,15 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
                          d_min_m: float, d_max_m: float, min_opacity: float, rng: np.random.Generator):
     """Rain or snow on a camera or raw frame: explicit streaks in front of the scene, veil behind them.
 
-    ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame.
+    ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame (depth NaN
+    where it is not valid, :func:`~roadview_noise.physics.photometry.estimation_depth`).
     Per site: ``I' = S + (1 − M)·t·(I − S)`` with M the streak opacity and t the veil transmission."""
     depth = frame_depth_m(frame, model_id)
     h, w = depth.shape
     profile = fit_to_image(frame.profile, w, h)
     layout = SiteLayout.of(frame)
     signal = frame.signal()
-    s = np.asarray(radiance(layout, signal, depth), dtype=float)
+    s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
     limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
                                    min_opacity)
     particles, expected = sample_particles(rng, profile, classes, limits, d_min_m, d_max_m, fall_speed)

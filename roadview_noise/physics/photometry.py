@@ -30,23 +30,43 @@ ENVIRONMENT_ROWS_FRACTION = 0.6       # upper 3/5 of the image ≈ the wide upwa
 
 
 def sky_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
-    """Per-channel (R, G, B) sky radiance: mean over sky sites (depth ``inf``), else mean of the brightest 0.1 %
-    of each channel's sites."""
+    """Per-channel (R, G, B) sky radiance: mean over sky sites (depth ``inf``), else — no sky in view — mean of the
+    brightest 0.1 % of each channel's sites with a valid depth. NaN in ``depth_m`` marks pixels whose depth is not
+    valid (filled holes, :func:`estimation_depth`): they are neither sky nor candidates for the brightest sites, so
+    a dark hole never becomes the airlight."""
     sky = layout.channel_samples(signal, step=SAMPLE_STEP_PX, mask=np.isinf(depth_m))
     if all(s.size >= MIN_SKY_SAMPLES for s in sky):
         return np.array([s.mean(dtype=np.float64) for s in sky])
     out = []
-    for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX):
+    for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX, mask=_valid_or_none(depth_m)):
         k = max(1, math.ceil(BRIGHTEST_FRACTION * s.size))
         out.append(np.partition(s, s.size - k)[s.size - k:].mean(dtype=np.float64))
     return np.array(out)
 
 
-def environment_radiance(layout: SiteLayout, signal: np.ndarray) -> np.ndarray:
-    """Per-channel mean radiance of the upper 3/5 of the image (models.md §2.2 [PROP] ``E_env``)."""
+def environment_radiance(layout: SiteLayout, signal: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Per-channel mean radiance of the upper 3/5 of the image (models.md §2.2 [PROP] ``E_env``), over the pixels
+    where ``valid`` (H, W) is true if given."""
     rows = max(1, round(ENVIRONMENT_ROWS_FRACTION * signal.shape[0]))
-    return np.array([s.mean(dtype=np.float64) for s in
-                     layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows)])
+    samples = layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows, mask=valid)
+    if any(s.size == 0 for s in samples):
+        samples = layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows)
+    return np.array([s.mean(dtype=np.float64) for s in samples])
+
+
+def estimation_depth(frame, depth_m: np.ndarray) -> np.ndarray:
+    """``depth_m`` with NaN where the frame's depth is not valid (``frame.depth_valid`` false: filled holes,
+    extrapolated regions), for the radiance estimates above; ``depth_m`` itself when every pixel is valid."""
+    valid = getattr(frame, "depth_valid", None)
+    if valid is None:
+        return depth_m
+    return np.where(valid, depth_m, np.float32(np.nan)).astype(np.float32, copy=False)
+
+
+def _valid_or_none(depth_m: np.ndarray) -> np.ndarray | None:
+    """Pixels with a valid depth (not NaN); None when that is every pixel or none (then all pixels are used)."""
+    valid = ~np.isnan(depth_m)
+    return None if valid.all() or not valid.any() else valid
 
 
 def absolute_radiance(value, luminance_factor: float) -> np.ndarray:
@@ -60,8 +80,9 @@ def frame_depth_m(frame, model_id: str) -> np.ndarray:
     """The frame's range map as contiguous float32 (H, W); a clear :class:`ModelError` if absent or invalid."""
     depth = frame.depth_m
     if depth is None:
-        raise ModelError("needs a depth map (range along each pixel ray, metres; inf = sky); give the inputs a "
-                         "depth source", model=model_id, field="depth_m")
+        raise ModelError("needs a depth map (range along each pixel ray, metres; inf = sky); give the inputs one: "
+                         "inputs.depth (depth files), or inputs.depth_source: lidar | onnx | ground_plane",
+                         model=model_id, field="depth_m")
     depth = np.ascontiguousarray(depth, dtype=np.float32)
     if depth.shape != tuple(frame.shape):
         raise ModelError(f"depth map is {depth.shape}, image is {tuple(frame.shape)}", model=model_id,
@@ -77,7 +98,7 @@ RAIN_REFRACTED_FRACTION = 0.94        # share of a drop's radiance refracted fro
 def raindrop_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
     """``S_c = 0.94 E_env,c + 0.06 E_sky,c`` (models.md §2.2 [PROP], after Garg & Nayar 2007): a drop refracts a
     wide cone of the scene in front of the camera and reflects the sky."""
-    return (RAIN_REFRACTED_FRACTION * environment_radiance(layout, signal) +
+    return (RAIN_REFRACTED_FRACTION * environment_radiance(layout, signal, _valid_or_none(depth_m)) +
             (1.0 - RAIN_REFRACTED_FRACTION) * sky_radiance(layout, signal, depth_m))
 
 

@@ -4,10 +4,14 @@ Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal
 CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
 per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and ``kitti-hdl64``
 (uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Each states its intensity kind, sensor constant K
-(signal of a ρ = 1 target at 1 m), white reading W of a reflectivity channel, detection threshold (signal units) and
-receiver overlap with their source (``lidar_link`` converts every intensity to the received signal). Files: an Ouster
-metadata JSON (``beam_altitude_angles``), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML
-profile. Ring recovery lives in :mod:`roadview_noise.physics.lidar_geometry`.
+(signal of a ρ = 1 target at 1 m), white reading W of a reflectivity channel, how it stores intensities (step, faint
+readings), detection threshold (signal units), receiver noise and overlap with their source
+(:mod:`roadview_noise.physics.lidar_intensity` converts every intensity to the received signal,
+:mod:`roadview_noise.physics.receiver` detects in noise). Files: an Ouster metadata JSON (``beam_altitude_angles``;
+``udp_profile_lidar`` says which channel the intensity is, ``columns_per_frame`` the columns), a per-laser CSV
+(``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML profile. Without any profile the default OS1-128 does not
+state its intensity unit: the weather models read it from the data and warn. Ring recovery lives in
+:mod:`roadview_noise.physics.lidar_geometry`.
 """
 
 from __future__ import annotations
@@ -21,17 +25,21 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
+from ..physics.lidar_intensity import OUSTER_WHITE_REFLECTIVITY, reflectivity_variant
 from ..types import IntensityUnit, LidarProfile
 from . import check_keys, load_profile
 
 _DATA = Path(__file__).with_name("data")
 OS1_SENSOR_CONSTANT = 65535.0           # photons·m²: signal of a ρ = 1 target at 1 m (see os1_128)
 OS1_DETECTION_THRESHOLD = 3.28          # photons
-OUSTER_WHITE_REFLECTIVITY = 100.0       # calibrated-reflectivity reading of a diffuse white target (Ouster)
 VLS128_WHITE_REFLECTIVITY = 110.0       # idem, Velodyne VLS-128 (user manual §6.1)
 OS1_OVERLAP_START_M = 0.5               # Ouster OS1 datasheet minimum range
 OS1_OVERLAP_FULL_M = 5.0                # assumed full receiver overlap of the biaxial OS1 (see os1_128)
 HDL64_DETECTION_THRESHOLD = 0.1 / 50.0 ** 2
+OS1_THRESHOLD_OVER_NOISE = 3.28         # one background photon per pulse window at the datasheet threshold (see os1_128)
+KITTI_INTENSITY_STEP = 0.01             # KITTI stores the HDL-64E intensity as multiples of 0.01
+#: Ouster lidar packet profiles that carry only the 8-bit calibrated reflectivity (no signal channel)
+OUSTER_REFLECTIVITY_ONLY = ("RNG15_RFL8_NIR8", "FUSA_RNG15_RFL8_NIR8_DUAL")
 
 
 def _table(name: str) -> dict:
@@ -53,7 +61,10 @@ def os1_128() -> LidarProfile:
     visibility would return from every sky ray (5.2 photons at 1.47 m, threshold 3.28; empty rays see fog up to
     MOR 1.6 km), which real OS1 scans do not show; with full overlap at 5 m the fog return of an empty ray
     (``fog.lidar``, β = 0.046/MOR) is 32.1 photons at 1.42 m at MOR 30 m, 6.2 photons at 200 m and 1.3 photons
-    (no return) at 1 km: empty rays see fog up to MOR ≈ 380 m."""
+    (no return) at 1 km.
+    Receiver: photon counting (SPAD), the threshold 3.28 photons; ASSUMPTION: one background photon per pulse window
+    (ambient light and dark counts, B = 1), which puts the datasheet threshold 3.3 standard deviations of the
+    background above it; range jitter 1.8 cm at SNR 50 (datasheet precision ±0.7–5 cm)."""
     t = _table("os1_128.yaml")
     return LidarProfile(
         "os1-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=2048,
@@ -62,7 +73,9 @@ def os1_128() -> LidarProfile:
         intensity_unit=IntensityUnit.PHOTONS, intensity_full_scale=65535.0, intensity_kind="signal",
         sensor_constant=OS1_SENSOR_CONSTANT, detection_threshold=OS1_DETECTION_THRESHOLD,
         overlap_start_m=OS1_OVERLAP_START_M, overlap_full_m=OS1_OVERLAP_FULL_M,
-        beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static")
+        beam_origin_offset_m=t["beam_origin_offset_m"], sensor_z_offset_m=t["sensor_z_offset_m"], window="static",
+        receiver="spad", photons_at_threshold=OS1_DETECTION_THRESHOLD, threshold_over_noise=OS1_THRESHOLD_OVER_NOISE,
+        excess_noise_factor=1.0)
 
 
 def os1_128_reflectivity() -> LidarProfile:
@@ -71,10 +84,10 @@ def os1_128_reflectivity() -> LidarProfile:
 
     Same sensor as :func:`os1_128` (K = 65535 photons·m², detection threshold 3.28 photons, same overlap). Ouster's
     calibrated reflectivity reads a diffuse white (ρ = 1) target as W = 100 (retro-reflectors 101–255), so
-    ``S = (I / 100) · K / R²``."""
-    return dataclasses.replace(os1_128(), name="os1-128-reflectivity", intensity_unit=IntensityUnit.UINT8,
-                               intensity_full_scale=255.0, intensity_kind="reflectivity",
-                               reflectivity_white_reading=OUSTER_WHITE_REFLECTIVITY)
+    ``S = (I / 100) · K / R²``. Readings below 1 are stored as 1 (``faint_reading: lowest``): the real scan in
+    ../shared/data has no reading 0 among its 107 647 returns and 1.6× more readings of 1 than of 2, while the
+    counts rise from 2 to 4 — the faint ones pile up at 1."""
+    return dataclasses.replace(reflectivity_variant(os1_128()), name="os1-128-reflectivity")
 
 
 def vls_128() -> LidarProfile:
@@ -86,7 +99,9 @@ def vls_128() -> LidarProfile:
     87 m). The VLS-128 reads diffuse white as W = 110 (manual §6.1: diffuse 0–110 for 0–100 %, retro-reflectors
     111–255). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m, which he used for the Velodyne HDL-64 S3D of the
     Seeing Through Fog data; the VLS-128 is of the same (biaxial) family and no measurement of its overlap is at
-    hand, so it is kept, unverified (it may reach full overlap farther out, like the OS1)."""
+    hand, so it is kept, unverified (it may reach full overlap farther out, like the OS1).
+    Receiver: APD, generic ASSUMPTIONS (LidarProfile defaults): 100 photo-electrons at the threshold, excess noise
+    factor 3, threshold 4 σ above the noise floor."""
     t = _table("vls_128.yaml")
     return LidarProfile(
         "vls-128", tuple(t["beam_elevation_deg"]), tuple(t["beam_azimuth_offset_deg"]), columns=1800,
@@ -117,11 +132,12 @@ def kitti_hdl64() -> LidarProfile:
 
     Detection threshold ``0.1 / (50 m)²`` (units of K/m²): HDL-64E S2 datasheet range 50 m on pavement (≈ 10 %); 80 %
     then reaches 141 m (datasheet: 120 m for cars and foliage). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m
-    (LidarProfile default)."""
+    (LidarProfile default). Intensities in steps of 0.01 (as KITTI stores them); receiver as :func:`vls_128`."""
     return uniform("kitti-hdl64", 64, 2.0, -24.8, columns=2083, wavelength_m=905e-9, beam_radius_m=5e-3,
                    beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9, max_range_m=120.0,
                    intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, intensity_kind="reflectivity",
-                   sensor_constant=1.0, detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating")
+                   sensor_constant=1.0, detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating",
+                   intensity_step=KITTI_INTENSITY_STEP)
 
 
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
@@ -129,16 +145,30 @@ BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vl
 
 
 def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:
-    """Profile from an Ouster sensor metadata JSON (``beam_altitude_angles``, beam-origin and z offsets)."""
+    """Profile from an Ouster sensor metadata JSON (``beam_altitude_angles``, beam-origin and z offsets,
+    ``data_format.columns_per_frame``). ``data_format.udp_profile_lidar`` says what the intensity can be: a profile
+    without a signal channel (RNG15_RFL8_NIR8, the low-bandwidth one) carries only the 8-bit calibrated reflectivity,
+    which the profile then states; with a signal channel (LEGACY, RNG19_RFL8_SIG16_NIR16, …) a file may hold either,
+    so the profile leaves it to the data (:func:`lidar_intensity.resolve_profile`, with a warning)."""
     try:
         j = json.loads(Path(path).read_text())
         elev = tuple(float(a) for a in j["beam_altitude_angles"])
         azim = tuple(float(a) for a in j.get("beam_azimuth_angles", [0.0] * len(elev)))
         origin = float(j.get("lidar_origin_to_beam_origin_mm", 0.0)) / 1000
         z = float(j.get("lidar_to_sensor_transform", [0.0] * 12)[11]) / 1000
-    except (OSError, ValueError, KeyError, IndexError, TypeError) as e:
+        data_format = j.get("data_format") or {}
+        udp = str(data_format.get("udp_profile_lidar", ""))
+        columns = int(data_format.get("columns_per_frame", 0))
+    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
         raise InputError(f"not an Ouster metadata JSON with beam_altitude_angles ({e})", file=str(path)) from None
     base = os1_128() if len(elev) == 128 else dataclasses.replace(os1_128(), name=f"ouster-{len(elev)}")
+    if udp in OUSTER_REFLECTIVITY_ONLY:
+        base = dataclasses.replace(reflectivity_variant(base), intensity_source=f"Ouster metadata {Path(path).name}: "
+                                   f"udp_profile_lidar {udp} carries only the 8-bit reflectivity")
+    else:
+        base = dataclasses.replace(base, intensity_source="")
+    if columns > 0:
+        base = dataclasses.replace(base, columns=columns)
     return dataclasses.replace(base, name=overrides.pop("name", base.name), beam_elevation_deg=elev,
                                beam_azimuth_offset_deg=azim, beam_origin_offset_m=origin, sensor_z_offset_m=z,
                                **overrides)
@@ -161,8 +191,14 @@ def from_beam_table_csv(path: Path, base: LidarProfile | None = None, **override
 def load_lidar_profile(spec: str | dict | None, *, base_dir: Path | None = None) -> LidarProfile:
     """A built-in name, a file (``.json`` Ouster metadata, ``.csv`` beam table, ``.yaml`` profile) or a mapping
     ``{base: NAME_OR_FILE, <LidarProfile field>: value, ...}`` overriding fields of a base profile."""
-    return load_profile(spec, kind="LiDAR", builtin=BUILTIN, default=os1_128, override=_override, base_dir=base_dir,
-                        loaders={".json": from_ouster_metadata, ".csv": from_beam_table_csv})
+    return load_profile(spec, kind="LiDAR", builtin=BUILTIN, default=default_profile, override=_override,
+                        base_dir=base_dir, loaders={".json": from_ouster_metadata, ".csv": from_beam_table_csv})
+
+
+def default_profile() -> LidarProfile:
+    """The profile of a cloud nobody described: the OS1-128, whose intensity unit nothing states (the weather
+    models read it from the data, :func:`lidar_intensity.resolve_profile`, and say so)."""
+    return dataclasses.replace(os1_128(), intensity_source="")
 
 
 def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
@@ -172,6 +208,8 @@ def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
             fields[k] = tuple(float(v) for v in fields[k])
     if "beam_elevation_deg" in fields and "beam_azimuth_offset_deg" not in fields:
         fields["beam_azimuth_offset_deg"] = (0.0,) * len(fields["beam_elevation_deg"])
+    if {"intensity_unit", "intensity_kind", "intensity_full_scale"} & set(fields):
+        fields.setdefault("intensity_source", source)
     if len(fields.get("beam_elevation_deg", base.beam_elevation_deg)) != len(
             fields.get("beam_azimuth_offset_deg", base.beam_azimuth_offset_deg)):
         raise InputError("beam_elevation_deg and beam_azimuth_offset_deg differ in length", file=source)

@@ -11,7 +11,7 @@ revolution.
 
 Intensity: the Lambertian LiDAR equation, received signal ``S = K ρ cos θ / R²`` (§3.1) with the profile's sensor
 constant K (signal of a ρ = 1 target at 1 m), stored as the profile's intensity kind
-(:func:`lidar_link.reported_intensity`: OS1 ``signal`` photons ``I = S``; VLS calibrated 8-bit reflectivity
+(:func:`lidar_intensity.reported_intensity`: OS1 ``signal`` photons ``I = S``; VLS calibrated 8-bit reflectivity
 ``I = W · S R² / K = W ρ cos θ`` with the white reading W = 110 of the VLS-128), rounded for count units, clipped to
 full scale. Returns whose stored intensity reads below the detection threshold (:func:`received_signal`) or beyond
 max range are no-returns, so every stored point is detectable under its own profile.
@@ -24,7 +24,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..physics.lidar_link import received_signal, reported_intensity, sensor_constant
+from ..physics.lidar_intensity import received_signal, reported_intensity, sensor_constant
 from ..types import IntensityUnit, LidarProfile, PointCloud
 from .scene import Snapshot, surface_properties
 

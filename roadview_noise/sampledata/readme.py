@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..physics.lidar_link import sensor_constant, white_reading
+from ..physics.lidar_intensity import sensor_constant, white_reading
 from ..types import CameraProfile, LidarProfile, RadarProfile
 from . import rig
 from .lidar import REVOLUTION_S

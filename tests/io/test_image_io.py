@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+import tifffile
 
 from roadview_noise.errors import InputError
 from roadview_noise.io.image import read_image, write_image
@@ -149,3 +150,92 @@ def test_bad_inputs_raise(tmp_path):
         with pytest.raises(InputError, match=match) as err:
             read_image(tmp_path / name)
         assert name in str(err.value)
+
+
+# --- colour profiles and HDR -----------------------------------------------------------------------------------------
+
+
+def _icc() -> bytes:
+    """A real sRGB ICC profile (Pillow's littleCMS), 500+ bytes."""
+    ImageCms = pytest.importorskip("PIL.ImageCms")
+    return ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+
+
+@pytest.mark.parametrize("name,dtype,channels", [("a.png", np.uint8, 3), ("b.png", np.uint16, 4),
+                                                 ("c.jpg", np.uint8, 3), ("d.tiff", np.uint16, 4),
+                                                 ("e.tif", np.uint8, 1)])
+def test_icc_profile_bit_depth_and_alpha_are_kept(tmp_path, name, dtype, channels):
+    """An ICC profile embedded by Pillow/tifffile is read, written back unchanged next to the same bit depth and
+    alpha, and Pillow (an independent reader) finds it in our output."""
+    from PIL import Image
+
+    icc = _icc()
+    rng = np.random.default_rng(5)
+    full = np.iinfo(dtype).max
+    codes = rng.integers(0, full + 1, (20, 30, channels) if channels > 1 else (20, 30), dtype=dtype)
+    src = tmp_path / name
+    if src.suffix == ".png" or src.suffix == ".jpg":
+        ok, buf = cv2.imencode(src.suffix, codes, [cv2.IMWRITE_JPEG_QUALITY, 93] if src.suffix == ".jpg" else [])
+        from roadview_noise.io.image import embed_icc_profile
+        src.write_bytes(embed_icc_profile(buf.tobytes(), "jpeg" if src.suffix == ".jpg" else "png", icc))
+    else:
+        rgb = codes if channels == 1 else np.dstack([codes[..., 2::-1], codes[..., 3:]])
+        tifffile.imwrite(src, rgb, photometric="rgb" if channels > 1 else "minisblack", iccprofile=icc,
+                         extrasamples=("unassalpha",) if channels == 4 else None)
+    assert Image.open(src).info.get("icc_profile") == icc                        # the input is valid
+    linear, enc, alpha = read_image(src)
+    assert enc.icc_profile == icc and enc.channels == channels and enc.bit_depth == 8 * np.dtype(dtype).itemsize
+    out = tmp_path / f"out{src.suffix}"
+    write_image(out, linear, enc, alpha=alpha)
+    assert Image.open(out).info.get("icc_profile") == icc
+    back = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert back.dtype == dtype and back.shape == codes.shape
+    if src.suffix != ".jpg":
+        np.testing.assert_array_equal(back, codes)
+    else:
+        assert read_image(out)[1].jpeg_quality == 93
+
+
+def test_without_icc_nothing_is_added(tmp_path):
+    cv2.imwrite(str(tmp_path / "p.png"), np.zeros((4, 4, 3), np.uint8))
+    linear, enc, _ = read_image(tmp_path / "p.png")
+    assert enc.icc_profile is None
+    write_image(tmp_path / "o.png", linear, enc)
+    assert b"iCCP" not in (tmp_path / "o.png").read_bytes()
+
+
+@pytest.mark.parametrize("half", [True, False])
+def test_exr_image_stays_linear_hdr(tmp_path, half):
+    """An HDR EXR (values far above 1, half or float, with alpha) comes back linear and unclipped, same channel
+    type; a grey (Y) EXR stays grey."""
+    import OpenEXR
+
+    dtype = np.float16 if half else np.float32
+    rng = np.random.default_rng(6)
+    rgba = (rng.random((16, 24, 4)) * [40.0, 3.0, 0.5, 1.0]).astype(dtype)
+    def header():                                    # OpenEXR adds the data window to the mapping it is given
+        return {"compression": OpenEXR.PIZ_COMPRESSION, "type": OpenEXR.scanlineimage}
+
+    with OpenEXR.File(header(), {c: rgba[..., k].copy() for k, c in enumerate("RGBA")}) as exr:
+        exr.write(str(tmp_path / "hdr.exr"))
+    linear, enc, alpha = read_image(tmp_path / "hdr.exr")
+    assert (enc.fmt, enc.transfer, enc.bit_depth, enc.channels) == ("exr", "linear", 16 if half else 32, 4)
+    np.testing.assert_array_equal(linear, rgba[..., :3].astype(np.float32))
+    assert linear.max() > 30
+    write_image(tmp_path / "out.exr", linear * 2, enc, alpha=alpha)
+    with OpenEXR.File(str(tmp_path / "out.exr"), separate_channels=True) as exr:
+        ch = exr.channels()
+        assert {k: v.pixels.dtype for k, v in ch.items()} == {c: np.dtype(dtype) for c in "RGBA"}
+        np.testing.assert_array_equal(ch["R"].pixels, (rgba[..., 0].astype(np.float32) * 2).astype(dtype))
+        np.testing.assert_array_equal(ch["A"].pixels, rgba[..., 3])
+    with OpenEXR.File(header(), {"Y": rgba[..., 0].copy()}) as exr:
+        exr.write(str(tmp_path / "grey.exr"))
+    linear, enc, _ = read_image(tmp_path / "grey.exr")
+    assert enc.channels == 1 and np.array_equal(linear[..., 0], linear[..., 2])
+    write_image(tmp_path / "grey_out.exr", linear, enc)
+    with OpenEXR.File(str(tmp_path / "grey_out.exr"), separate_channels=True) as exr:
+        np.testing.assert_allclose(exr.channels()["Y"].pixels, rgba[..., 0], rtol=1e-3)
+    with OpenEXR.File(header(), {"Z": np.ones((4, 4), np.float32)}) as exr:
+        exr.write(str(tmp_path / "depth.exr"))
+    with pytest.raises(InputError, match="R, G, B"):
+        read_image(tmp_path / "depth.exr")

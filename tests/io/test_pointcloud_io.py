@@ -1,4 +1,4 @@
-"""Point-cloud I/O: round trips of every format, mode and dtype; canonical names; labels; bad input."""
+"""Point-cloud I/O: round trips of every format, mode and dtype; canonical names; the effect code; bad input."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ import open3d as o3d
 import pytest
 
 from roadview_noise.errors import InputError
-from roadview_noise.io.pointcloud import label_sidecar_path, read_pointcloud, write_pointcloud
-from roadview_noise.types import PointCloud, PointLabel
+from roadview_noise.io.pointcloud import effect_sidecar_path, read_pointcloud, write_pointcloud
+from roadview_noise.provenance import Effect
+from roadview_noise.types import PointCloud
 
 # An Ouster-like PCD with PCL padding ("_", COUNT 4), a 3-vector, float64 and signed fields.
 OUSTER = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "(4,)|u1"), ("intensity", "<f4"), ("t", "<u4"),
@@ -238,48 +239,56 @@ def test_field_map_overrides_defaults(tmp_path):
 
 
 def _added_points(cloud, k=3):
-    added = cloud.concat(np.full((k, 3), 5.0), {"intensity": np.full(k, 0.25)})
-    labels = np.full(len(added), PointLabel.KEPT, np.int64)
-    labels[-k:] = PointLabel.ADDED
-    return added.with_fields(label=labels)
+    return cloud.concat(np.full((k, 3), 5.0), {"intensity": np.full(k, 0.25)})     # effect ADDED on the last k
 
 
-def test_labels_appended_to_pcd_and_ply(tmp_path):
-    spec = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("ring", "<u2")]
-    _write_pcd(tmp_path / "l.pcd", spec, _records(spec, 12, seed=10))
+def test_effect_appended_to_pcd_and_ply_as_its_own_field(tmp_path):
+    spec = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("ring", "<u2"), ("label", "<u4")]
+    records = _records(spec, 12, seed=10)
+    records["f5"] = np.arange(12, dtype=np.uint32) | (7 << 16)                   # a user's class | instance << 16
+    _write_pcd(tmp_path / "l.pcd", spec, records)
     cloud = _added_points(read_pointcloud(tmp_path / "l.pcd"))
-    write_pointcloud(tmp_path / "out.pcd", cloud)
+    assert cloud.effect.tolist() == [Effect.KEPT] * 12 + [Effect.ADDED] * 3
+    assert write_pointcloud(tmp_path / "out.pcd", cloud) == [tmp_path / "out.pcd"]
     back = read_pointcloud(tmp_path / "out.pcd")
-    assert back.layout.fields[-1] == ("label", "label", "|u1") and back.fields["label"].dtype == np.uint8
-    np.testing.assert_array_equal(back.fields["label"], cloud.fields["label"])
+    assert back.layout.fields[-1] == ("rv_effect", "rv_effect", "|u1") and back.fields["rv_effect"].dtype == np.uint8
+    np.testing.assert_array_equal(back.fields["rv_effect"], cloud.effect)
+    assert back.fields["label"].dtype == np.uint32                               # the user's label untouched
+    np.testing.assert_array_equal(back.fields["label"][:12], records["f5"])
     np.testing.assert_array_equal(back.fields["ring"][-3:], 0)                    # zero-filled by concat
-    write_pointcloud(tmp_path / "none.pcd", cloud, labels="none")
-    assert "label" not in read_pointcloud(tmp_path / "none.pcd").fields
-    write_pointcloud(tmp_path / "again.pcd", back)                               # label now part of the layout
-    assert (tmp_path / "again.pcd").read_bytes() == (tmp_path / "out.pcd").read_bytes()
+    write_pointcloud(tmp_path / "none.pcd", cloud, effect="none")
+    assert "rv_effect" not in read_pointcloud(tmp_path / "none.pcd").fields
+    # an input that already has rv_effect (an earlier run's output) keeps it; the new code gets its own name
+    again = _added_points(back, k=1)
+    write_pointcloud(tmp_path / "again.pcd", again)
+    fields = read_pointcloud(tmp_path / "again.pcd").fields
+    np.testing.assert_array_equal(fields["rv_effect"][:15], cloud.effect)
+    assert fields["rv_effect_2"].tolist() == [Effect.KEPT] * 15 + [Effect.ADDED]
 
     table = np.random.default_rng(11).normal(0, 20, (12, 4)).astype(np.float32)
     _ply(tmp_path / "c.ply", "binary_little_endian", [("x", "float"), ("y", "float"), ("z", "float"),
                                                       ("I", "float")], table)
     cloud = _added_points(read_pointcloud(tmp_path / "c.ply"))
     write_pointcloud(tmp_path / "out.ply", cloud)
-    np.testing.assert_array_equal(read_pointcloud(tmp_path / "out.ply").fields["label"], cloud.fields["label"])
+    np.testing.assert_array_equal(read_pointcloud(tmp_path / "out.ply").fields["rv_effect"], cloud.effect)
 
 
-@pytest.mark.parametrize("name,sidecar", [("000001.bin", "000001.label"), ("n.pcd.bin", "n.label")])
-def test_labels_of_bin_go_to_sidecar(tmp_path, name, sidecar):
-    np.random.default_rng(12).normal(0, 20, (9, 5 if name.endswith(".pcd.bin") else 4)).astype("<f4").tofile(
-        tmp_path / name)
-    cloud = _added_points(read_pointcloud(tmp_path / name))
-    write_pointcloud(tmp_path / "out" / name, cloud)
-    assert label_sidecar_path(tmp_path / "out" / name).name == sidecar
-    labels = np.fromfile(tmp_path / "out" / sidecar, np.uint8)
-    np.testing.assert_array_equal(labels, cloud.fields["label"])
-    back = read_pointcloud(tmp_path / "out" / name)
-    assert len(back) == 12 and "label" not in back.fields
-    np.testing.assert_array_equal(back.positions_m[-3:], 5.0)
-    write_pointcloud(tmp_path / "none" / name, cloud, labels="none")
-    assert not (tmp_path / "none" / sidecar).exists()
+def test_effect_of_bin_goes_to_a_sidecar_named_after_the_whole_file(tmp_path):
+    """``x.bin`` and ``x.pcd.bin`` in one folder get distinct sidecars, neither a SemanticKITTI ``.label``."""
+    for name, width in (("000001.bin", 4), ("000001.pcd.bin", 5)):
+        np.random.default_rng(12).normal(0, 20, (9, width)).astype("<f4").tofile(tmp_path / name)
+        cloud = _added_points(read_pointcloud(tmp_path / name))
+        written = write_pointcloud(tmp_path / "out" / name, cloud)
+        assert written == [tmp_path / "out" / name, tmp_path / "out" / (name + ".rv_effect")]
+        assert effect_sidecar_path(tmp_path / "out" / name) == written[1]
+        np.testing.assert_array_equal(np.fromfile(written[1], np.uint8), cloud.effect)
+        back = read_pointcloud(tmp_path / "out" / name)
+        assert len(back) == 12 and "rv_effect" not in back.fields
+        np.testing.assert_array_equal(back.positions_m[-3:], 5.0)
+        assert write_pointcloud(tmp_path / "none" / name, cloud, effect="none") == [tmp_path / "none" / name]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "000001.bin", "000001.bin.rv_effect", "000001.pcd.bin", "000001.pcd.bin.rv_effect"]
+    assert sorted(p.name for p in (tmp_path / "none").iterdir()) == ["000001.bin", "000001.pcd.bin"]
 
 
 def test_integer_fields_rounded_and_clipped_at_writing(tmp_path):
@@ -311,13 +320,15 @@ def test_writer_refuses_layout_mismatch(tmp_path):
 
 def test_cloud_without_layout_gets_a_default(tmp_path):
     cloud = PointCloud(np.arange(12, dtype=np.float64).reshape(4, 3),
-                       {"intensity": np.arange(4, dtype=np.uint16), "label": np.ones(4, np.uint8)}, "lidar")
+                       {"intensity": np.arange(4, dtype=np.uint16), "label": np.ones(4, np.uint16)}, "lidar",
+                       effect=np.ones(4, np.uint8))
     write_pointcloud(tmp_path / "d.pcd", cloud)
     back = read_pointcloud(tmp_path / "d.pcd")
     assert [(k, dt) for k, _, dt in back.layout.fields] == [("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                                            ("intensity", "<u2"), ("label", "|u1")]
-    write_pointcloud(tmp_path / "d.bin", cloud)
-    assert (tmp_path / "d.bin").stat().st_size == 4 * 16 and (tmp_path / "d.label").stat().st_size == 4
+                                                            ("intensity", "<u2"), ("label", "<u2"),
+                                                            ("rv_effect", "|u1")]
+    write_pointcloud(tmp_path / "d.bin", dataclasses.replace(cloud, fields={"intensity": cloud.fields["intensity"]}))
+    assert (tmp_path / "d.bin").stat().st_size == 4 * 16 and (tmp_path / "d.bin.rv_effect").stat().st_size == 4
 
 
 # --- bad input: every error names the file ------------------------------------------------------------------------

@@ -20,11 +20,14 @@ from roadview_noise.model import Stage
 from roadview_noise.models.lidar.fog import FogLidar
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.models.lidar.snow import SnowLidar
-from roadview_noise.physics import lidar_particles
-from roadview_noise.physics.lidar_link import reported_intensity, sensor_constant
+from roadview_noise.physics import lidar_particles, lidar_weather
+from roadview_noise.physics.lidar_medium import soft_target_signal, soft_target_table
+from roadview_noise.physics.receiver import Receiver
+from roadview_noise.physics.lidar_intensity import reported_intensity, sensor_constant
 from roadview_noise.profiles.lidar import kitti_hdl64, os1_128, os1_128_reflectivity
 from roadview_noise.registry import load_all
-from roadview_noise.types import PointCloud, PointLabel
+from roadview_noise.provenance import Effect
+from roadview_noise.types import PointCloud
 
 PHOTONS = dataclasses.replace(os1_128(), detection_threshold=2.42)      # the D3.4 fog threshold (models.md §3.0)
 WEATHER = {"fog.lidar": (FogLidar, "visibility_m"), "rain.lidar": (RainLidar, "rain_rate_mm_per_h"),
@@ -54,6 +57,13 @@ def street(n=4000, seed=1, profile=PHOTONS) -> PointCloud:
     return cloud_at(r, intensity, profile, seed)
 
 
+def quiet(profile):
+    """The profile with a receiver whose noise is negligible (a billion photons at the threshold, threshold 10⁹
+    noise SDs): detection becomes the noise-free threshold, for tests of geometry and bookkeeping."""
+    return dataclasses.replace(profile, receiver="apd", photons_at_threshold=1e12, threshold_over_noise=1e9,
+                               excess_noise_factor=1.0)
+
+
 def run(model, cloud, seed=3):
     out, rec = apply_models([model], cloud, seed=seed, key="k", sequence_id="s")
     return out, rec[0].diagnostics
@@ -61,7 +71,7 @@ def run(model, cloud, seed=3):
 
 def target_kept(out) -> np.ndarray:
     """Points still at their input position (a grid's removed cells are all-zero)."""
-    return np.isin(out.fields["label"], (PointLabel.KEPT, PointLabel.ATTENUATED)) & np.any(out.positions_m != 0, 1)
+    return np.isin(out.effect, (Effect.KEPT, Effect.ATTENUATED)) & np.any(out.positions_m != 0, 1)
 
 
 # --- registration -----------------------------------------------------------------------------------------------
@@ -115,11 +125,12 @@ def fog_peak_direct(alpha: float, beta: float, tau_h: float, k: float, r1: float
 
 def test_fog_surviving_range_of_hard_targets():
     """I = 100 photons, threshold 2.42 photons, V = 30 m: targets survive (in place) up to ln(I/I_thr)/(2α) = 18.6 m,
-    beyond that they are removed or replaced by fog (models.md §3.2). Hahner's per-point fog scale, whose fog return is
-    too weak to compete with the targets in front of R_max; with Hahner's overlap (0.9 → 1.0 m) as in his paper."""
+    beyond that they are removed (models.md §3.2): the extinction alone (no backscatter, β = 0), so no fog return
+    competes; a recorded target keeps its recorded value × e^{−2αR}, no noise is added to it."""
     ranges = np.arange(2.0, 60.0, 0.1)
     prof = dataclasses.replace(PHOTONS, overlap_start_m=0.9, overlap_full_m=1.0)
-    out, diag = run(FogLidar(visibility_m=30.0, fog_scale="hahner"), cloud_at(ranges, 100.0, prof, grid=True))
+    out, diag = run(FogLidar(visibility_m=30.0, backscatter_times_visibility_per_sr=0.0),
+                    cloud_at(ranges, 100.0, prof, grid=True))
     alpha = math.log(20) / 30
     r_max = math.log(100 / 2.42) / (2 * alpha)
     assert r_max == pytest.approx(18.6, abs=0.05)
@@ -128,58 +139,71 @@ def test_fog_surviving_range_of_hard_targets():
     assert np.all(kept[ranges < r_max - 1e-6]) and not np.any(kept[ranges > r_max + 1e-6])
     surviving = out.ranges_m[kept]
     assert surviving.max() == pytest.approx(ranges[ranges < r_max].max())
-    np.testing.assert_allclose(out.fields["intensity"][kept], 100 * np.exp(-2 * alpha * ranges[kept]), rtol=1e-12)
-    # far targets: the fog return (∝ R²) passes the threshold and replaces them near the sensor
-    moved = out.fields["label"] == PointLabel.MOVED
-    assert moved.any() and np.all(out.ranges_m[moved] < 2.0)
-    assert diag["removed"] + diag["moved"] + diag["attenuated"] == len(ranges)
+    # stored as the sensor stores photons: whole counts
+    np.testing.assert_array_equal(out.fields["intensity"][kept], np.round(100 * np.exp(-2 * alpha * ranges[kept])))
+    assert diag["moved"] == diag["added"] == 0
+    assert diag["removed"] + diag["attenuated"] == len(ranges)
 
 
 def test_fog_sensor_constant_replaces_targets_beyond_the_crossover():
     """Default fog (sensor constant K = 65535 photons·m², τ_H = 10 ns, OS1 overlap 0.5 → 5 m), V = 30 m: every ray
-    returns the fog's peak S_fog ≈ 32 photons at ≈ 1.4 m, so a 10⁴-photon target stays in place (attenuated) while
-    S e^{−2αR} ≥ S_fog, i.e. up to R* = ln(S/S_fog)/(2α) ≈ 29 m, and is replaced by the fog beyond; nothing is
-    removed."""
+    returns the fog's peak S_fog ≈ 32 photons at ≈ 1.4 m, measured in the SPAD's photon noise (σ ≈ √(S_fog + B)), so a
+    10⁴-photon target stays in place (attenuated) while S e^{−2αR} clearly exceeds the measured fog, i.e. up to
+    R* = ln(S/S_fog)/(2α) ≈ 29 m, and is replaced by the fog beyond; nothing is removed. The fog returns spread
+    around the noise-free peak in intensity (mean within 3 %) and range (jitter of the peak, mean within 5 cm)."""
     prof = dataclasses.replace(PHOTONS, detection_threshold=3.28)
-    ranges = np.arange(4.5, 60.0, 0.1)
+    ranges = np.arange(4.5, 60.0, 0.05)
     out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 1e4, prof, grid=True))
     alpha, beta = math.log(20) / 30, 0.046 / 30
     s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0, prof.overlap_start_m, prof.overlap_full_m)
     assert 25 < s_fog < 40 and 1.0 < fog_range < 2.0
-    r_star = math.log(1e4 / s_fog) / (2 * alpha)
+    sigma = math.sqrt(s_fog + 1.0)                         # photon noise with one background photon (os1-128)
+    near, far = (math.log(1e4 / (s_fog + k * sigma)) / (2 * alpha) for k in (5, -4))
+    assert 25 < near < far < 36
     kept = target_kept(out)
-    assert np.all(kept[ranges < r_star - 0.05]) and not np.any(kept[ranges > r_star + 0.05])
-    moved = out.fields["label"] == PointLabel.MOVED
+    assert np.all(kept[ranges < near]) and not np.any(kept[ranges > far])
+    moved = out.effect == Effect.MOVED
     assert np.all(moved == ~kept) and diag["removed"] == 0
-    np.testing.assert_allclose(out.ranges_m[moved], fog_range, atol=0.02)
-    np.testing.assert_allclose(out.fields["intensity"][moved], s_fog, rtol=5e-3)
+    assert np.mean(out.ranges_m[moved]) == pytest.approx(fog_range, abs=0.05)
+    assert 0.05 < np.std(out.ranges_m[moved]) < 0.5
+    assert np.mean(out.fields["intensity"][moved]) == pytest.approx(s_fog, rel=0.03)
+    assert np.std(out.fields["intensity"][moved]) == pytest.approx(sigma, rel=0.25)
 
 
 def test_fog_return_in_a_range_compensated_file_is_range_compensated():
-    """The same fog in an Ouster reflectivity file reads ``W · S_fog r² / K`` at its apparent range r (W = 100, the
-    reading of a diffuse white target)."""
-    prof = os1_128_reflectivity()
-    ranges = np.arange(25.0, 60.0, 0.5)
-    out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 50.0, prof, grid=True))
+    """The same fog in a reflectivity file reads ``W · S_fog r² / K`` at its apparent range r: with a 16-bit
+    reflectivity (W = 10⁴) about 10; in Ouster's 8-bit reflectivity (W = 100) 0.1, which the OS1 stores as its lowest
+    reading 1 (``faint_reading: lowest``); a sensor that writes 0 writes 0, one that drops such returns drops them."""
     alpha, beta = math.log(20) / 30, 0.046 / 30
-    k = sensor_constant(prof)
-    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, k, prof.overlap_start_m, prof.overlap_full_m)
-    moved = out.fields["label"] == PointLabel.MOVED
-    assert moved.all()
-    np.testing.assert_allclose(out.fields["intensity"], 100.0 * s_fog * fog_range ** 2 / k, rtol=1e-2)
+    ranges = np.arange(25.0, 60.0, 0.1)
+    wide = dataclasses.replace(os1_128_reflectivity(), intensity_unit="photons", intensity_full_scale=65535.0,
+                               reflectivity_white_reading=1e4)
+    k = sensor_constant(wide)
+    s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, k, wide.overlap_start_m, wide.overlap_full_m)
+    out, _ = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 5000.0, wide, grid=True))
+    assert np.all(out.effect == Effect.MOVED)
+    assert np.mean(out.fields["intensity"]) == pytest.approx(1e4 * s_fog * fog_range ** 2 / k, rel=0.1)
+    for faint, reading in (("lowest", 1.0), ("zero", 0.0), ("no_return", None)):
+        prof = dataclasses.replace(os1_128_reflectivity(), faint_reading=faint)
+        out, diag = run(FogLidar(visibility_m=30.0), cloud_at(ranges, 50.0, prof, grid=True))
+        if reading is None:
+            assert diag["removed"] == len(ranges) and diag["moved"] == 0
+        else:
+            assert diag["moved"] == len(ranges) and np.all(out.fields["intensity"] == reading)
 
 
 @pytest.mark.parametrize("r2", [1.0, 2.0, 5.0])
 def test_fog_overlap_comes_from_the_profile(r2):
     """ξ is the profile's: the empty-ray fog peak (strength and apparent range) follows ``overlap_full_m`` as the
     direct integral with that overlap says, and a slower overlap gives a weaker fog."""
-    prof = dataclasses.replace(PHOTONS, overlap_start_m=0.9, overlap_full_m=r2, detection_threshold=1e-3)
+    prof = dataclasses.replace(PHOTONS, overlap_start_m=0.9, overlap_full_m=r2, detection_threshold=1e-3,
+                               photons_at_threshold=1e6)              # a receiver with negligible noise
     out, diag = run(FogLidar(visibility_m=30.0), cloud_at(np.full(20, 200.0), 1.0, prof, grid=True))
     alpha, beta = math.log(20) / 30, 0.046 / 30
     s_fog, fog_range = fog_peak_direct(alpha, beta, 10e-9, 65535.0, 0.9, r2)
-    assert np.all(out.fields["label"] == PointLabel.MOVED)
+    assert np.all(out.effect == Effect.MOVED)
     np.testing.assert_allclose(out.ranges_m, fog_range, atol=0.02)
-    np.testing.assert_allclose(out.fields["intensity"], s_fog, rtol=5e-3)
+    np.testing.assert_allclose(out.fields["intensity"], np.round(s_fog), atol=1.0)      # whole photons
     hahner, _ = fog_peak_direct(alpha, beta, 10e-9, 65535.0, 0.9, 1.0)
     assert (s_fog < 0.9 * hahner) == (r2 > 1.0)
 
@@ -187,7 +211,7 @@ def test_fog_overlap_comes_from_the_profile(r2):
 def test_fog_moved_points_stay_on_their_ray():
     cloud = street()
     out, diag = run(FogLidar(visibility_m=20.0), cloud)
-    moved = out.fields["label"] == PointLabel.MOVED
+    moved = out.effect == Effect.MOVED
     assert moved.sum() == diag["moved"] > 0
     # every moved point is parallel to one input point, and closer than it
     u_in = cloud.positions_m / cloud.ranges_m[:, None]
@@ -233,17 +257,21 @@ def test_same_decisions_for_photons_8bit_and_unit_reflectivity(model_id):
     outs = [run(HEAVY[model_id], c, seed=9)[0] for c in clouds]
     assert len(outs[0]) == len(outs[1]) == len(outs[2])
     in_place = [target_kept(o) for o in outs]
-    moved = [o.fields["label"] == PointLabel.MOVED for o in outs]
+    moved = [o.effect == Effect.MOVED for o in outs]
     for k in (1, 2):
         np.testing.assert_array_equal(in_place[k], in_place[0])
         np.testing.assert_array_equal(moved[k], moved[0])
         np.testing.assert_allclose(outs[k].positions_m, outs[0].positions_m, rtol=1e-9, atol=1e-9)
-    # intensities: the same received signal, stored by each profile at the output range
+    # intensities: the same received signal, stored by each profile at the output range (photons and 8-bit readings
+    # rounded to whole counts, [0, 1] continuous): equal within the rounding of both
     s_over_k = outs[0].fields["intensity"] / 65535
     r_out = outs[0].ranges_m
     fine = outs[0].fields["intensity"] < 65535
-    np.testing.assert_allclose(outs[1].fields["intensity"][fine], (100 * s_over_k * r_out ** 2)[fine], rtol=1e-9)
-    np.testing.assert_allclose(outs[2].fields["intensity"][fine], (s_over_k * r_out ** 2)[fine], rtol=1e-9)
+    photon_step = 0.5 / 65535 * r_out ** 2                   # half a photon, in units of each reflectivity reading
+    np.testing.assert_array_less(np.abs(outs[1].fields["intensity"] - 100 * s_over_k * r_out ** 2)[fine],
+                                 (0.5 + 100 * photon_step + 1e-9)[fine])
+    np.testing.assert_array_less(np.abs(outs[2].fields["intensity"] - s_over_k * r_out ** 2)[fine],
+                                 (photon_step + 1e-9)[fine])
     assert 0 < np.mean(in_place[0]) < 1 and moved[0].any()      # the scene is neither untouched nor wiped out
 
 
@@ -271,7 +299,8 @@ def test_a_unit_scale_cloud_is_not_turned_into_fog():
 def test_changes_below_the_file_resolution_are_kept(profile, value, dtype):
     """Light fog (V = 3 km, α = 1.0e-3 m⁻¹): a target whose stored intensity changes by less than half a step of the
     file's resolution (0.5 photon; 1/510 of a [0, 1] scale) keeps the label KEPT, a larger change is ATTENUATED:
-    the boundary is R = −ln(1 − step/2 / I) / (2α)."""
+    the boundary is R = −ln(1 − step/2 / I) / (2α). Photon counts are stored in whole counts even in a float file
+    (the sensor cannot write 99.8 photons), continuous [0, 1] values unrounded."""
     ranges = np.linspace(1.0, 10.0, 901)
     cloud = cloud_at(ranges, value, profile, grid=True)
     if profile.intensity_kind == "reflectivity":              # a constant reflectivity reading
@@ -282,18 +311,18 @@ def test_changes_below_the_file_resolution_are_kept(profile, value, dtype):
     alpha = math.log(20) / 3000
     step = 1.0 if profile.intensity_unit == "photons" else 1 / 255
     boundary = -math.log(1 - step / 2 / value) / (2 * alpha)
-    label = out.fields["label"]
+    label = out.effect
     assert diag["moved"] == diag["removed"] == 0
     near = np.abs(ranges - boundary) < 0.02
-    assert np.all(label[(ranges < boundary) & ~near] == PointLabel.KEPT)
-    assert np.all(label[(ranges > boundary) & ~near] == PointLabel.ATTENUATED)
-    assert diag["kept"] == np.count_nonzero(label == PointLabel.KEPT)
-    if np.issubdtype(dtype, np.floating):                     # the sub-step attenuation is still written
-        kept = label == PointLabel.KEPT
+    assert np.all(label[(ranges < boundary) & ~near] == Effect.KEPT)
+    assert np.all(label[(ranges > boundary) & ~near] == Effect.ATTENUATED)
+    assert diag["kept"] == np.count_nonzero(label == Effect.KEPT)
+    if profile.intensity_unit == "unit":                      # continuous: the sub-step attenuation is written
+        kept = label == Effect.KEPT
         np.testing.assert_allclose(out.fields["intensity"][kept], value * np.exp(-2 * alpha * ranges[kept]),
                                    rtol=1e-6)
     else:
-        assert np.all(out.fields["intensity"][label == PointLabel.KEPT] == value)
+        assert np.all(out.fields["intensity"][label == Effect.KEPT] == value)
 
 
 # --- identity, determinism, labels, diagnostics --------------------------------------------------------------------
@@ -306,7 +335,7 @@ def test_zero_strength_is_identity(model):
     out, diag = run(model, cloud)
     np.testing.assert_array_equal(out.positions_m, cloud.positions_m)
     np.testing.assert_array_equal(out.fields["intensity"], cloud.fields["intensity"])
-    assert out.fields["label"].dtype == np.uint8 and np.all(out.fields["label"] == PointLabel.KEPT)
+    assert out.effect.dtype == np.uint8 and np.all(out.effect == Effect.KEPT)
     assert diag["kept"] == len(cloud) and diag["alpha_per_m"] == 0.0
 
 
@@ -320,7 +349,8 @@ def test_same_rng_same_output_and_json_diagnostics(model_id):
         np.testing.assert_array_equal(a.fields[k], b.fields[k])
     assert da == db
     json.dumps(da)
-    numbers = {k: v for k, v in da.items() if not k.endswith("_source")}     # *_source: one explanatory string
+    notes = ("_source", "intensity_reading", "intensity_warning")            # explanatory strings
+    numbers = {k: v for k, v in da.items() if not k.endswith(notes)}
     assert all(isinstance(v, (int, float)) for v in numbers.values())
     assert isinstance(da["empty_rays_source"], str)
     assert {"kept", "attenuated", "moved", "removed", "added", "alpha_per_m"} <= set(da)
@@ -328,25 +358,41 @@ def test_same_rng_same_output_and_json_diagnostics(model_id):
     assert len(a) == len(cloud) - da["removed"]
     if model_id != "fog.lidar":                             # particles: another seed gives another frame
         c, _ = run(HEAVY[model_id], cloud, seed=2)
-        assert not np.array_equal(a.fields["label"], c.fields["label"])
+        assert not np.array_equal(a.effect, c.effect)
 
 
-def test_existing_fields_and_labels_are_carried():
+def test_existing_fields_are_carried_and_never_overwritten():
+    """A user's ``label`` is a field like any other for the models: they carry it (dtype and values); the effect
+    code goes to the provenance. A later step's effect combines with the earlier one (composed by the chain)."""
     cloud = street(1000, seed=7)
     ring = np.arange(len(cloud), dtype=np.uint16) % 128
-    label = np.full(len(cloud), PointLabel.ADDED, np.uint8)
+    label = (np.arange(len(cloud), dtype=np.uint32) % 7) | (3 << 16)
     cloud = cloud.with_fields(ring=ring, label=label, intensity=cloud.fields["intensity"].astype(np.float32))
     out, diag = run(RainLidar(rain_rate_mm_per_h=50.0), cloud)
     assert out.fields["intensity"].dtype == np.float32 and out.fields["ring"].dtype == np.uint16
+    assert out.fields["label"].dtype == np.uint32
     assert all(len(v) == len(out) for v in out.fields.values())
     assert np.all(out.fields["intensity"] <= PHOTONS.intensity_full_scale)
-    # changed points get this model's label; untouched ones keep the previous one
-    assert set(np.unique(out.fields["label"])) <= {PointLabel.ATTENUATED, PointLabel.MOVED, PointLabel.ADDED}
-    assert np.all(run(RainLidar(rain_rate_mm_per_h=0.0), cloud)[0].fields["label"] == PointLabel.ADDED)
+    src = out.origin >= 0
+    np.testing.assert_array_equal(out.fields["label"][src], label[out.origin[src]])
+    np.testing.assert_array_equal(out.fields["ring"][src], ring[out.origin[src]])
+    assert set(np.unique(out.effect)) <= {Effect.KEPT, Effect.ATTENUATED, Effect.MOVED, Effect.ADDED}
+    out0, _ = run(RainLidar(rain_rate_mm_per_h=0.0), cloud)
+    assert np.all(out0.effect == Effect.KEPT) and out0.origin is None
+    np.testing.assert_array_equal(out0.fields["label"], label)
     quantised = cloud.with_fields(intensity=np.rint(cloud.fields["intensity"]).astype(np.uint16))
     out, diag = run(FogLidar(visibility_m=2000.0), quantised)
     assert out.fields["intensity"].dtype == np.uint16 and diag["kept"] > 0
-    assert np.all(out.fields["label"][out.fields["label"] != PointLabel.ATTENUATED] != PointLabel.KEPT)
+    # two steps: the second one's KEPT never hides the first one's effect
+    both, recs = apply_models([RainLidar(rain_rate_mm_per_h=50.0), FogLidar(visibility_m=2000.0)], quantised, seed=3,
+                              key="k", sequence_id="s")
+    first, _ = run(RainLidar(rain_rate_mm_per_h=50.0), quantised)           # the chain's step 0, same rng
+    where = np.full(len(quantised), -1)
+    where[first.origin[first.origin >= 0]] = np.flatnonzero(first.origin >= 0)
+    src = both.origin >= 0
+    e1 = first.effect[where[both.origin[src]]]
+    assert np.all(both.effect[src] >= e1) and np.any(e1 == Effect.ATTENUATED)
+    assert np.count_nonzero(both.effect == Effect.MOVED) >= recs[1].diagnostics["moved"]
 
 
 # --- monotonicity ----------------------------------------------------------------------------------------------
@@ -373,24 +419,26 @@ def _kept_points(cloud, out) -> set:
 @given(model_id=st.sampled_from(["rain.lidar", "snow.lidar"]), log_rate=st.floats(-2.0, 4.5),
        factor=st.floats(2.0, 4.0), seed=st.integers(0, 2 ** 16))
 def test_denser_precipitation_never_keeps_more_targets(model_id, log_rate, factor, seed):
-    """Rain and snow draw particles: at least a doubling of the rate keeps no more targets in place (same seed)."""
+    """Rain and snow draw particles: at least a doubling of the rate keeps no more targets in place (same seed), up to
+    the Monte-Carlo noise of a few points (the particles and the receiver's noise are drawn anew at each rate)."""
     cls, name = WEATHER[model_id]
     cloud = street(2500, seed=seed % 7)
     r1 = math.exp(log_rate) if model_id == "rain.lidar" else math.exp(log_rate) / 10
     k1 = run(cls(**{name: r1}), cloud, seed=seed)[1]
     k2 = run(cls(**{name: r1 * factor}), cloud, seed=seed)[1]
-    assert k2["kept"] + k2["attenuated"] <= k1["kept"] + k1["attenuated"]
+    assert k2["kept"] + k2["attenuated"] <= k1["kept"] + k1["attenuated"] + 3
     assert k2["alpha_per_m"] > k1["alpha_per_m"]
 
 
 # --- full range image: returns on no-return rays ------------------------------------------------------------------
 
 
-def small_grid(rows=32, cols=256, base=PHOTONS) -> PointCloud:
-    """A full grid (photons) of the first 32 OS1-128 beams: a bright wall (2000 photons) at 15 m over half the
-    azimuths, sky elsewhere."""
-    prof = dataclasses.replace(base, beam_elevation_deg=base.beam_elevation_deg[:rows],
-                               beam_azimuth_offset_deg=base.beam_azimuth_offset_deg[:rows], columns=cols)
+def small_grid(rows=32, cols=256, base=PHOTONS, first=0) -> PointCloud:
+    """A full grid (photons) of 32 OS1-128 beams (from beam ``first``): a bright wall (2000 photons) at 15 m over half
+    the azimuths, sky elsewhere."""
+    beams = slice(first, first + rows)
+    prof = dataclasses.replace(base, beam_elevation_deg=base.beam_elevation_deg[beams],
+                               beam_azimuth_offset_deg=base.beam_azimuth_offset_deg[beams], columns=cols)
     el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[:, None]
     az = np.pi - 2 * np.pi * np.arange(cols)[None, :] / cols - np.deg2rad(
         np.asarray(prof.beam_azimuth_offset_deg))[:, None]
@@ -408,22 +456,22 @@ def test_weather_returns_on_empty_rays_of_a_full_grid(model):
     grid, directions, hit = small_grid()
     out, diag = run(model, grid)
     assert len(out) == len(grid) and out.grid_shape == grid.grid_shape
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert diag["added"] == added.sum() > 0 and not np.any(added & hit)
     # added points lie on the ray of their cell (beam elevation of the row, azimuth of the column)
     u = out.positions_m[added] / out.ranges_m[added][:, None]
     np.testing.assert_allclose(np.sum(u * directions[added], axis=1), 1.0, atol=1e-6)
-    assert np.all(out.ranges_m[added] < 20.0)
+    assert np.median(out.ranges_m[added]) < 10.0 and np.all(out.ranges_m[added] <= grid.profile.max_range_m)
     np.testing.assert_array_equal(out.fields["ring"], grid.fields["ring"])
     removed = ~np.any(out.positions_m != 0, axis=1) & hit
     assert np.all(out.fields["intensity"][removed] == 0)
     assert diag["removed"] == removed.sum()
 
 
-def small_list() -> tuple[PointCloud, PointCloud, np.ndarray]:
+def small_list(first=0) -> tuple[PointCloud, PointCloud, np.ndarray]:
     """:func:`small_grid` with its lowest beam on the ground (8 m) all around, as a full grid and as a point list of
     its returns with ``ring`` and ``time`` (firing time of the column) fields; and each cell's direction."""
-    grid, d, hit = small_grid()
+    grid, d, hit = small_grid(first=first)
     rows, cols = grid.grid_shape
     lowest = int(np.argmin(grid.profile.beam_elevation_deg))
     ground = np.arange(rows * cols) // cols == lowest
@@ -438,22 +486,26 @@ def small_list() -> tuple[PointCloud, PointCloud, np.ndarray]:
 
 
 def test_point_list_gets_the_weather_of_its_full_grid():
-    """Fog is deterministic: the list of a grid's returns gets the same returns on the same empty rays."""
+    """The list of a grid's returns gets the same returns on the same empty rays (noise-free receiver: with noise
+    the list and the grid number their rays differently and draw differently)."""
     full, listed, _ = small_list()
+    full, listed = (dataclasses.replace(c, profile=quiet(c.profile)) for c in (full, listed))
     model = FogLidar(visibility_m=15.0)
     out_grid, d_grid = run(model, full)
     out_list, d_list = run(model, listed)
     assert d_list["empty_rays"] == d_grid["empty_rays"] == len(full) - len(listed) > 0
     for k in ("kept", "attenuated", "moved", "removed", "added"):
         assert d_list[k] == d_grid[k], k
-    added_grid = out_grid.fields["label"] == PointLabel.ADDED
+    added_grid = out_grid.effect == Effect.ADDED
     order = np.lexsort((out_grid.fields["time"][added_grid], out_grid.fields["ring"][added_grid]))
     tail = slice(len(out_list) - d_list["added"], None)
     order_list = np.lexsort((out_list.fields["time"][tail], out_list.fields["ring"][tail]))
-    for k in ("ring", "time", "intensity", "label"):
+    for k in ("ring", "time", "intensity"):
         np.testing.assert_array_equal(out_list.fields[k][tail][order_list], out_grid.fields[k][added_grid][order], k)
+    np.testing.assert_array_equal(out_list.effect[tail], Effect.ADDED)
+    assert np.all(out_list.origin[tail] == -1) and out_grid.origin is None
     np.testing.assert_allclose(out_list.positions_m[tail][order_list], out_grid.positions_m[added_grid][order],
-                               atol=1e-6)
+                               atol=1e-5)                         # the quiet receiver's jitter: micrometres
 
 
 def test_snow_on_the_empty_rays_of_a_point_list():
@@ -462,7 +514,7 @@ def test_snow_on_the_empty_rays_of_a_point_list():
     full, listed, d = small_list()
     out, diag = run(SnowLidar(snowfall_rate_mm_per_h=5.0), listed)
     n_in = len(listed) - diag["removed"]
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert diag["added"] == added.sum() > 0 and np.all(added[n_in:]) and not added[:n_in].any()
     cols = full.grid_shape[1]
     cell = out.fields["ring"][added].astype(int) * cols + np.rint(out.fields["time"][added] / 1e-4).astype(int)
@@ -480,29 +532,47 @@ def test_lists_off_a_firing_grid_get_weather_only_on_their_returns():
 
 
 def test_fog_on_empty_rays_uses_the_saturated_table():
+    """Dense fog: every sky ray sees the fog at the saturated table's peak; without receiver noise one range and
+    one intensity (homogeneous fog), with the SPAD's noise a spread around them (no deterministic shell)."""
     grid, _, hit = small_grid()
-    out, diag = run(FogLidar(visibility_m=10.0), grid)
-    added = out.fields["label"] == PointLabel.ADDED
-    assert added.sum() == (~hit).sum()                     # dense fog: every sky ray sees the fog
-    assert np.ptp(out.ranges_m[added]) < 1e-9              # homogeneous fog: one range, one intensity
-    assert np.ptp(out.fields["intensity"][added]) == 0
+    alpha, beta = math.log(20) / 10, 0.046 / 10
+    g, at = soft_target_table(alpha, 10e-9, grid.profile.overlap_start_m, grid.profile.overlap_full_m).saturated
+    s_fog = soft_target_signal(g, beta) * 65535
+    for noisy in (False, True):
+        cloud = grid if noisy else dataclasses.replace(grid, profile=quiet(grid.profile))
+        out, diag = run(FogLidar(visibility_m=10.0), cloud)
+        added = out.effect == Effect.ADDED
+        assert added.sum() == (~hit).sum()
+        r, i = out.ranges_m[added], out.fields["intensity"][added]
+        if noisy:
+            assert 0.05 < np.std(r) < 0.5 and np.std(i) > 0.5 * math.sqrt(s_fog)
+            assert np.mean(r) == pytest.approx(at, abs=0.03) and np.mean(i) == pytest.approx(s_fog, rel=0.02)
+        else:
+            np.testing.assert_allclose(r, at, atol=1e-6)
+            assert np.all(i == np.round(s_fog))
 
 
 @pytest.mark.parametrize("overlap", ["os1", "hahner"])
 def test_os1_overlap_sky_rays_see_dense_fog_but_not_light_fog(overlap):
-    """The OS1-128 profile (threshold 3.28 photons, overlap full at 5 m): the empty (sky) rays return the fog at
-    V = 30 m (32 photons) and not at V = 1 km (1.3 photons); with Hahner's overlap (full at 1 m) the same sensor
-    would see the 1 km fog on every sky ray (5.2 photons), which real OS1 scans do not show."""
+    """The OS1-128 profile (SPAD, threshold 3.28 photons, overlap full at 5 m): the empty (sky) rays return the fog at
+    V = 30 m (32 photons) and at V = 1 km (1.3 photons) only as often as the photon statistics detect 1.3 photons
+    (a few %); with Hahner's overlap (full at 1 m) the same sensor would see the 1 km fog (5.2 photons) on most sky
+    rays. The fraction of sky rays with a fog return is the receiver's detection probability (binomial 4 SD)."""
     base = os1_128() if overlap == "os1" else dataclasses.replace(os1_128(), overlap_start_m=0.9, overlap_full_m=1.0)
     grid, _, hit = small_grid(base=base)
-    for visibility, every_sky_ray in ((30.0, True), (1000.0, overlap == "hahner")):
+    sky = np.count_nonzero(~hit)
+    for visibility in (30.0, 1000.0):
         out, diag = run(FogLidar(visibility_m=visibility), grid)
-        added = out.fields["label"] == PointLabel.ADDED
-        assert diag["added"] == (np.count_nonzero(~hit) if every_sky_ray else 0), visibility
-        if every_sky_ray:
-            alpha, beta = math.log(20) / visibility, 0.046 / visibility
-            s_fog, _ = fog_peak_direct(alpha, beta, 10e-9, 65535.0, base.overlap_start_m, base.overlap_full_m)
-            np.testing.assert_allclose(out.fields["intensity"][added], s_fog, rtol=5e-3)
+        alpha, beta = math.log(20) / visibility, 0.046 / visibility
+        s_fog, _ = fog_peak_direct(alpha, beta, 10e-9, 65535.0, base.overlap_start_m, base.overlap_full_m)
+        p = float(Receiver.of(base).detection_probability(s_fog)) - float(Receiver.of(base).detection_probability(0))
+        assert abs(diag["added"] - p * sky) <= 4 * math.sqrt(sky * p * (1 - p)) + 1, (visibility, p)
+        if visibility == 30.0:
+            assert diag["added"] == sky
+            assert np.mean(out.fields["intensity"][out.effect == Effect.ADDED]) == pytest.approx(
+                s_fog, rel=0.03)
+        else:
+            assert (p < 0.1) == (overlap == "os1") and (p > 0.5) == (overlap == "hahner")
 
 
 # --- the real OS1-128 scan -------------------------------------------------------------------------------------------
@@ -522,10 +592,8 @@ def real_scan(shared_data) -> PointCloud:
     ("rain.lidar", [0.0, 5.0, 20.0, 50.0, 150.0]),
     ("snow.lidar", [0.0, 0.5, 2.5, 10.0, 30.0])])
 def test_real_scan_loses_more_points_as_the_weather_thickens(shared_data, model_id, values):
-    """Points lost from their target (removed or moved to a weather return) and, among the returns the profile can
-    detect, points removed grow with the weather; the intensity left in place falls. (All removals counted, snow's
-    fall with the rate: flakes take the place of the clear scan's 3 647 returns that are below the profile's
-    threshold.)"""
+    """Points lost from their target (removed or moved to a weather return) and points removed grow with the
+    weather; the intensity left in place falls."""
     cloud = real_scan(shared_data)
     cls, name = WEATHER[model_id]
     lost, transmission, removed = [], [], []
@@ -540,7 +608,8 @@ def test_real_scan_loses_more_points_as_the_weather_thickens(shared_data, model_
         transmission.append(float(np.sum(out.fields["intensity"][kept])) / float(np.sum(cloud.fields["intensity"])))
     assert lost[0] == 0 and all(b >= a for a, b in zip(lost, lost[1:])) and lost[-1] > lost[1], lost
     assert removed[0] == 0 and all(b >= a for a, b in zip(removed, removed[1:])), removed
-    assert removed[-1] > removed[1] or model_id == "fog.lidar", removed    # fog: every lost point is a fog return
+    # the scan's calibrated sensitivity (its weakest returns, 10× below the datasheet threshold) sees weather on
+    # nearly every ray: a target that fades below the threshold is replaced by a weather return, not removed
     assert all(b < a for a, b in zip(transmission, transmission[1:])), transmission
 
 
@@ -560,7 +629,8 @@ def test_real_list_gets_the_weather_of_its_full_grid_on_the_empty_rays(shared_da
     from scipy.spatial import cKDTree
 
     grid, _ = real_grid(shared_data)
-    listed = dataclasses.replace(real_scan(shared_data), profile=os1_128_reflectivity())
+    grid = dataclasses.replace(grid, profile=quiet(grid.profile))         # noise-free: the rays are numbered apart
+    listed = dataclasses.replace(real_scan(shared_data), profile=quiet(os1_128_reflectivity()))
     assert listed.profile.columns == 2048
     model = FogLidar(visibility_m=30.0)
     out_grid, d_grid = run(model, grid)
@@ -569,15 +639,15 @@ def test_real_list_gets_the_weather_of_its_full_grid_on_the_empty_rays(shared_da
     assert d_list["firing_grid_columns"] == 1024 and "2048" in d_list["empty_rays_source"]
     for k in ("kept", "attenuated", "moved", "removed", "added"):
         assert d_list[k] == d_grid[k], k
-    a = out_grid.positions_m[out_grid.fields["label"] == PointLabel.ADDED]
-    b = out_list.positions_m[out_list.fields["label"] == PointLabel.ADDED]
-    assert len(b) == d_list["added"] > 20_000 and np.all(out_list.fields["label"][-len(b):] == PointLabel.ADDED)
+    a = out_grid.positions_m[out_grid.effect == Effect.ADDED]
+    b = out_list.positions_m[out_list.effect == Effect.ADDED]
+    assert len(b) == d_list["added"] > 20_000 and np.all(out_list.effect[-len(b):] == Effect.ADDED)
     unit = lambda p: p / np.linalg.norm(p, axis=1, keepdims=True)       # noqa: E731
     dist, j = cKDTree(unit(a)).query(unit(b))
     assert np.all(np.rad2deg(dist) < 0.02) and len(np.unique(j)) == len(b)
-    np.testing.assert_allclose(np.linalg.norm(b, axis=1), np.linalg.norm(a[j], axis=1), rtol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(b, axis=1), np.linalg.norm(a[j], axis=1), atol=1e-5)   # jitter ≤ µm
     np.testing.assert_allclose(out_list.fields["intensity"][-len(b):], out_grid.fields["intensity"][
-        np.flatnonzero(out_grid.fields["label"] == PointLabel.ADDED)[j]])
+        np.flatnonzero(out_grid.effect == Effect.ADDED)[j]])
 
 
 def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
@@ -585,7 +655,7 @@ def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
     xyz = cloud.positions_m
     # the fitted column azimuths reproduce the directions of the real returns, up to the angle subtended by the
     # neglected beam-origin offsets (36 mm up, 16 mm out)
-    from roadview_noise.physics.lidar_link import empty_ray_directions
+    from roadview_noise.physics.lidar_output import empty_ray_directions
 
     far = np.flatnonzero(valid & (np.linalg.norm(xyz, axis=1) > 3.0))[::10]
     r = np.linalg.norm(xyz[far], axis=1)
@@ -593,7 +663,7 @@ def test_real_grid_empty_rays_get_returns_along_their_beams(shared_data):
     offset = math.hypot(REFLECTIVITY.sensor_z_offset_m, REFLECTIVITY.beam_origin_offset_m)
     assert np.all(angle <= np.arctan(offset / r) + np.deg2rad(0.02))
     out, diag = run(SnowLidar(snowfall_rate_mm_per_h=10.0), cloud)
-    added = out.fields["label"] == PointLabel.ADDED
+    added = out.effect == Effect.ADDED
     assert diag["added"] > 0 and not np.any(added & valid) and len(out) == len(cloud)
     elev = np.degrees(np.arcsin(out.positions_m[added, 2] / out.ranges_m[added]))
     rows = np.flatnonzero(added) // 1024
@@ -612,23 +682,26 @@ def test_first_return_mode_reports_weather_in_front_more_often(model_id):
 
 @pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar"])
 def test_per_ray_levels_change_the_result_by_less_than_monte_carlo_scale(model_id, monkeypatch):
-    """Drawing in front of a bright target only what can outshine it (per-ray levels, the default for the strongest
-    return) against drawing every ray at the base level: far fewer particles, the same weather returns and targets
-    kept in place within 3 % / 1 % (six frames of 60 k rays at 10–60 m, a quarter of them empty)."""
+    """Drawing in front of a bright target, or behind a bright particle, only what can outshine it (per-ray levels
+    and :func:`lidar_particles.strongest_particles`, the default for the strongest return) against drawing every ray
+    at the base level: far fewer particles, the same weather returns and targets kept in place within 3 % / 2 % (six
+    frames of 60 k rays at 10–60 m, a quarter of them empty; the geometric flakes, 2–3× the melted diameter, form
+    more clusters of particles below a ray's level than melted drops did: +1.2 % targets kept at 5 mm/h, 1 % before).
+    """
     n = 60000
     ranges = np.random.default_rng(0).uniform(10.0, 60.0, n)
     cloud = cloud_at(ranges, 300.0, grid=True)
     cloud = dataclasses.replace(cloud, positions_m=np.where(np.arange(n)[:, None] % 4 == 0, 0.0, cloud.positions_m))
     stats = []
     for count in (lidar_particles.LEVEL_COUNT, 1):
-        monkeypatch.setattr(lidar_particles, "LEVEL_COUNT", count)
+        monkeypatch.setattr(lidar_weather, "LEVEL_COUNT", count)
         diags = [run(HEAVY[model_id], cloud, seed=s)[1] for s in range(6)]
         stats.append([np.mean([d[k] for d in diags]) for k in ("particles_drawn", "moved", "added", "kept",
                                                                   "attenuated")])
     (drawn, moved, added, kept, att), (drawn_all, moved_all, added_all, kept_all, att_all) = stats
     assert drawn < 0.8 * drawn_all
     assert moved + added == pytest.approx(moved_all + added_all, rel=0.03)
-    assert kept + att == pytest.approx(kept_all + att_all, rel=0.01)
+    assert kept + att == pytest.approx(kept_all + att_all, rel=0.02)
 
 
 @pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar"])
@@ -647,7 +720,50 @@ def test_draw_fraction_trades_particles_for_a_small_bias(model_id):
                  for s in range(6)]
         stats.append((np.mean([d["particles_drawn"] for d in diags]), np.mean([d["moved"] + d["added"] for d in diags])))
     (drawn, returns), (drawn_fine, returns_fine) = stats
-    assert drawn_fine > 1.3 * drawn
+    assert drawn_fine > 1.2 * drawn
     assert returns == pytest.approx(returns_fine, rel=0.06 if model_id == "rain.lidar" else 0.05)
     with pytest.raises(ModelError):
         dataclasses.replace(model, draw_fraction_of_threshold=0.0)
+
+
+# --- pre-processed clouds: empty_rays sky_only ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("as_list", [False, True], ids=["grid", "list"])
+def test_sky_only_fills_the_empty_rays_above_the_horizon_only(as_list):
+    """A scan whose ground was removed (beams +5.0° … −5.9°, a wall over half the azimuths, no ground: what a
+    ground filter leaves): ``fill`` treats the removed ground cells as rays that saw nothing and puts fog on them;
+    ``sky_only`` fills only the empty rays above the horizon — the same ones ``fill`` fills there."""
+    grid, _, hit = small_grid(first=48, base=quiet(PHOTONS))
+    cloud = grid
+    if as_list:
+        cloud = PointCloud(grid.positions_m[hit], {k: v[hit] for k, v in grid.fields.items()}, "lidar", grid.profile)
+    elevation = np.asarray(grid.profile.beam_elevation_deg)
+    out_fill, d_fill = run(FogLidar(visibility_m=15.0), cloud)
+    out_sky, d_sky = run(FogLidar(visibility_m=15.0, empty_rays="sky_only"), cloud)
+    below_cells = int(np.count_nonzero(elevation <= 0)) * grid.grid_shape[1] // 2
+    if as_list:                  # a list's empty rays are those in view: near the wall's azimuths (firing_grid.py)
+        assert d_fill["empty_rays"] > d_sky["empty_rays"] > 0
+    else:
+        assert d_fill["empty_rays"] - d_sky["empty_rays"] == below_cells > 0
+    assert "horizon" in d_sky["empty_rays_source"]
+
+    def added_elevations(out):
+        added = out.effect == Effect.ADDED
+        return np.degrees(np.arcsin(out.positions_m[added, 2] / np.linalg.norm(out.positions_m[added], axis=1)))
+
+    assert np.any(added_elevations(out_fill) < 0) and np.all(added_elevations(out_sky) > 0)
+    assert d_sky["added"] == np.count_nonzero(added_elevations(out_fill) > 0) > 0
+    assert run(FogLidar(visibility_m=15.0, empty_rays="ignore"), cloud)[1]["added"] == 0
+
+
+def test_datasheet_threshold_fog_fades_smoothly_with_visibility():
+    """The OS1-128 (datasheet threshold 3.28 photons, clear returns all above it): the sky rays' fog fades between
+    MOR 120 and 700 m; in 1 % steps the weather returns never jump by more than 3 % of the rays (they used to fall
+    from every sky ray to none between 380 and 385 m)."""
+    grid, _, hit = small_grid(base=os1_128())
+    visibilities = 120.0 * 1.01 ** np.arange(178)
+    counts = np.array([run(FogLidar(visibility_m=float(v)), grid)[1]["added"] for v in visibilities])
+    assert np.max(np.abs(np.diff(counts))) <= 0.03 * len(grid)
+    assert counts[0] > 0.8 * np.count_nonzero(~hit) and counts[-1] < 0.2 * np.count_nonzero(~hit)
+    assert np.all(np.diff(counts) <= 0.01 * len(grid))             # common random numbers: nearly monotone

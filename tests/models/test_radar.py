@@ -19,7 +19,8 @@ from roadview_noise.physics.radar_link import noise_floor_dbm, two_way_loss_db
 from roadview_noise.profiles.radar import BUILTIN, load_radar_profile
 from roadview_noise.recipe import load_recipe
 from roadview_noise.registry import get_model
-from roadview_noise.types import Conditions, PointCloud, PointLabel, RadarProfile
+from roadview_noise.provenance import Effect
+from roadview_noise.types import Conditions, PointCloud, RadarProfile
 
 ROOT = Path(__file__).resolve().parents[2]
 C_DB, T_DB = 88.0, 12.0          # radar constant and threshold of the synthetic sensor
@@ -50,7 +51,7 @@ def run(model, cloud, seed=1, key="frame-0", sequence="seq"):
 
 
 def real(cloud):
-    return cloud.fields["label"] != PointLabel.ADDED
+    return cloud.effect != Effect.ADDED
 
 
 # --- registration -----------------------------------------------------------------------------------------------
@@ -88,7 +89,7 @@ def test_two_way_loss_applied_to_every_power_field(model_id, params, gamma):
     for name in ("snr_db", "power_db", "rcs_dbsm"):
         np.testing.assert_allclose(out.fields[name], cloud.fields[name][kept] - loss, atol=2e-3)
     np.testing.assert_array_equal(out.positions_m, cloud.positions_m[kept])
-    assert out.fields["label"].dtype == np.uint8 and np.all(out.fields["label"] == PointLabel.ATTENUATED)
+    assert out.effect.dtype == np.uint8 and np.all(out.effect == Effect.ATTENUATED)
     assert rec.diagnostics["points_removed"] == len(cloud) - len(kept)
 
 
@@ -132,7 +133,7 @@ def test_rcs_only_cloud_view_of_delft_style():
     d = rec.diagnostics
     assert d["detection_statistic"] == "rcs_dbsm-40log10(r)" and d["radar_constant_db"] == pytest.approx(0.0, abs=1e-4)
     assert d["threshold_db"] == pytest.approx(T_DB - C_DB, abs=0.5)
-    assert d["clutter_points"] > 0 and set(out.fields) == {"rcs_dbsm", "v_r_m_per_s", "v_r_comp_m_per_s", "label"}
+    assert d["clutter_points"] > 0 and set(out.fields) == {"rcs_dbsm", "v_r_m_per_s", "v_r_comp_m_per_s"}
     added = ~real(out)
     stat = out.fields["rcs_dbsm"][added] - 40 * np.log10(out.ranges_m[added])
     assert np.all(stat >= d["threshold_db"] - 1e-3)
@@ -150,7 +151,7 @@ def test_zero_rate_is_identity():
         np.testing.assert_array_equal(out.positions_m, cloud.positions_m)
         for k, v in cloud.fields.items():
             np.testing.assert_array_equal(out.fields[k], v)
-        assert np.all(out.fields["label"] == PointLabel.KEPT) and rec.diagnostics["clutter_points"] == 0
+        assert np.all(out.effect == Effect.KEPT) and rec.diagnostics["clutter_points"] == 0
 
 
 @pytest.mark.parametrize("params", [{"detector": "fixed"}, {"detector": "cfar", "cfar_pfa": 1e-2}])
@@ -161,7 +162,7 @@ def test_rain_adds_labelled_clutter_near_the_sensor(params):
     assert rec.diagnostics["detector"] == params["detector"]
     added = ~real(out)
     assert added.sum() == rec.diagnostics["clutter_points"] > 0
-    assert np.all(out.fields["label"][added] == PointLabel.ADDED)
+    assert np.all(out.effect[added] == Effect.ADDED)
     r = out.ranges_m[added]
     assert r.min() >= 1.0 and r.max() <= 20.0
     assert np.all(out.fields["snr_db"][added] >= rec.diagnostics["threshold_db"])
@@ -256,7 +257,8 @@ def _weak_near_target_scene(v_r_near: float) -> PointCloud:
     cloud = cloud.select(cloud.ranges_m > 10.0)
     near = {"rcs_dbsm": T_DB + 3.0 - C_DB + 40 * math.log10(2.0), "v_r_m_per_s": v_r_near, "v_r_comp_m_per_s": 0.0,
             "snr_db": T_DB + 3.0, "power_db": T_DB + 3.0 - 90.0}
-    return cloud.concat(np.array([[2.0, 0.005, 0.005]]), {k: np.array([v]) for k, v in near.items()})
+    scene = cloud.concat(np.array([[2.0, 0.005, 0.005]]), {k: np.array([v]) for k, v in near.items()})
+    return dataclasses.replace(scene, origin=None, effect=None)          # an input: no provenance yet
 
 
 def test_cfar_loses_a_weak_near_target_in_heavy_rain():
@@ -378,7 +380,7 @@ def test_occlusion_zero_probability_and_attenuate_mode():
     out, rec = run(model, weather)
     assert rec.diagnostics["points_removed"] < rec.diagnostics["points_blocked"]
     assert np.all(out.fields["snr_db"] >= rec.diagnostics["threshold_db"])
-    assert np.sum(out.fields["label"] == PointLabel.ADDED) <= np.sum(weather.fields["label"] == PointLabel.ADDED)
+    assert np.sum(out.effect == Effect.ADDED) <= np.sum(weather.effect == Effect.ADDED)
     full, _ = run(get_model("occlusion.radar")(seed_probability=1.0, mode="attenuate", two_way_loss_db=0.0), cloud)
     np.testing.assert_array_equal(full.positions_m, cloud.positions_m)
     with pytest.raises(ModelError):

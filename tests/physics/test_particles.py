@@ -12,7 +12,7 @@ from scipy.special import gammainc
 
 from roadview_noise.physics import particles as P
 from roadview_noise.physics.dsd import (BRANDES_SNOW_GAMMA, exponential_number_density, geometric_extinction_per_m,
-                                        gunn_marshall, liquid_water_content_g_per_m3, marshall_palmer)
+                                        gunn_marshall, liquid_water_content_g_per_m3, marshall_palmer, snowfall)
 from roadview_noise.physics.fall_speed import snow_power_law_m_per_s
 from roadview_noise.profiles.camera import lucid_triton_028s
 from roadview_noise.types import CameraProfile, Conditions
@@ -47,14 +47,20 @@ def test_marshall_palmer_50_mm_per_h_values():
 def test_brandes_snow_vs_incomplete_gamma():
     n0, mu, lam = BRANDES_SNOW_GAMMA[3.03]
     a = mu + 1
-    closed = n0 * gamma_fn(a) / lam ** a * (gammainc(a, 10 * lam) - gammainc(a, 0.1 * lam))
+    closed = n0 * gamma_fn(a) / lam ** a * (gammainc(a, 20 * lam) - gammainc(a, 0.1 * lam))
     assert P.snow_classes(3.03, "brandes").number_per_m3 == pytest.approx(closed, rel=0.01)
 
 
 def test_gunn_marshall_snow_vs_closed_form():
-    n0, lam = gunn_marshall(3.03)
+    """The camera's flakes are the LiDAR's snowfall (one DSD): flakes of 0.1–20 mm geometric diameter are the melted
+    diameters between the size law's inverses of the bounds; their shadow area is the LiDAR's extinction / Q_ext."""
+    snow = snowfall(3.03)
+    lo, hi = (float(snow.size.melted_mm(d)) for d in (0.1, 20.0))
     classes = P.snow_classes(3.03, "gunn_marshall")
-    assert classes.number_per_m3 == pytest.approx(exponential_number_density(n0, lam, 0.1, 10.0), rel=0.01)
+    assert snow.lam_per_mm == gunn_marshall(3.03)[1]
+    assert classes.number_per_m3 == pytest.approx(exponential_number_density(snow.n0_per_m3_mm, snow.lam_per_mm,
+                                                                             lo, hi), rel=0.01)
+    assert classes.extinction_per_m(q_ext=2.0) == pytest.approx(snow.extinction_per_m(), rel=0.01)
 
 
 def test_terminal_speeds_follow_the_cited_laws():

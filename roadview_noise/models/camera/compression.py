@@ -49,7 +49,9 @@ class CompressionCamera(Model):
     def apply(self, data, *, state, drawn, rng):
         if not isinstance(data, CameraFrame):
             raise ModelError("JPEG acts on the demosaicked RGB image; a camera never JPEG-codes the raw Bayer "
-                             "mosaic (models.md §2.7) — give an RGB frame", model=self.id)
+                             "mosaic (models.md §2.7). Compress the camera's RGB output instead: give the PNG/TIFF "
+                             "frames after the ISP, or keep compression.camera out of the chains for raw inputs "
+                             "(e.g. `inputs: {camera: ...}` without `raw:`)", model=self.id)
         bgr = np.ascontiguousarray(srgb.linear_to_code(data.linear_rgb, 8)[..., ::-1])
         ok, bitstream = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.quality,
                                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR,

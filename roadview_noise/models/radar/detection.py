@@ -1,4 +1,4 @@
-"""Detection of radar points: the detection statistic, its threshold, the radar constant, losses and labels
+"""Detection of radar points: the detection statistic, its threshold, the radar constant and losses
 (models.md §4.1 steps 2–3, §4.3 step 1). Shared by the radar weather and obstruction models.
 
 Detection statistic D (dB), in order of preference:
@@ -33,7 +33,7 @@ import numpy as np
 from ...errors import ModelError
 from ...physics.radar_link import noise_floor_dbm
 from ...profiles.radar import default_radar_profile
-from ...types import PointCloud, PointLabel, RadarProfile
+from ...types import PointCloud, RadarProfile
 
 RCS_STATISTIC = "rcs_dbsm-40log10(r)"
 
@@ -115,15 +115,3 @@ def with_loss(cloud: PointCloud, loss_db: np.ndarray) -> PointCloud:
             v = cloud.fields[name]
             out[name] = (v - loss_db).astype(v.dtype, copy=False)
     return cloud.with_fields(**out) if out else cloud
-
-
-def labels(cloud: PointCloud) -> np.ndarray:
-    """A writable copy of the ``label`` field, or KEPT (uint8) for every point when there is none."""
-    if "label" in cloud.fields:
-        return np.array(cloud.fields["label"], copy=True)
-    return np.full(len(cloud), PointLabel.KEPT, dtype=np.uint8)
-
-
-def mark(label: np.ndarray, mask: np.ndarray, value: PointLabel) -> np.ndarray:
-    """Raise the label of the masked points to ``value`` (an ADDED point stays ADDED)."""
-    return np.where(mask, np.maximum(label, np.asarray(value, dtype=label.dtype)), label).astype(label.dtype)

@@ -12,8 +12,9 @@ from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
 from ...physics.radar_clutter import angular_cell_index, angular_edges_rad
 from ...registry import register
-from ...types import PointCloud, PointLabel
-from .detection import detection, labels, mark, profile_of, with_loss
+from ...provenance import Effect, mark
+from ...types import PointCloud
+from .detection import detection, profile_of, with_loss
 
 
 @register
@@ -96,8 +97,7 @@ class OcclusionRadar(Model):
             det = detection(data, self.snr_threshold_quantile, self.id)
             loss = np.where(blocked, self.two_way_loss_db, 0.0)
             remove = det.values_db - loss < det.threshold_db
-            label = mark(labels(data), blocked & (self.two_way_loss_db > 0), PointLabel.ATTENUATED)
-            out = with_loss(data, loss).with_fields(label=label)
+            out = mark(with_loss(data, loss), blocked & (self.two_way_loss_db > 0), Effect.ATTENUATED)
             diagnostics.update(det.diagnostics())
         diagnostics["points_removed"] = int(remove.sum())
         return out.drop(remove), diagnostics

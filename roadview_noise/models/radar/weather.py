@@ -17,9 +17,10 @@ from ...physics.radar_clutter import (SCATTERING, ClutterCells, Hydrometeors, Re
                                       backscatter_per_volume_per_m, clutter_cells, generate_clutter,
                                       radar_wavelength_m)
 from ...physics.radar_link import detection_range_in_weather_m, two_way_loss_db
-from ...types import PointCloud, PointLabel, RadarProfile
-from .detection import (RCS_STATISTIC, Detection, detection, labels, mark, power_minus_snr_db, profile_of,
-                        radar_constant_db, with_loss)
+from ...provenance import Effect, mark
+from ...types import PointCloud, RadarProfile
+from .detection import (RCS_STATISTIC, Detection, detection, power_minus_snr_db, profile_of, radar_constant_db,
+                        with_loss)
 
 
 # Below this rate there is no measurable precipitation (and the exponential DSD laws, fitted from ~1 mm/h, lose
@@ -32,8 +33,8 @@ class RadarWeather(Model):
     """Attenuation and detection loss: ``L = 2 γ R/1000`` dB per point, ``SNR' = SNR − L``, ``P' = P − L``,
     ``RCS' = RCS − L`` (unless the profile says the radar compensates), points with ``D − L < t + ΔT`` removed
     (models.md §4.1 [PROP]; detection statistic and threshold: models/radar/detection.py; ΔT the CFAR threshold rise
-    in precipitation clutter, 0 without clutter). Labels: ATTENUATED where L > 0, else unchanged (KEPT in a new
-    uint8 ``label`` field)."""
+    in precipitation clutter, 0 without clutter). Effect (provenance.Effect): ATTENUATED where L > 0, else
+    KEPT."""
 
     stage: ClassVar[Stage] = Stage.MEDIUM
     sensor: ClassVar[str] = "radar"
@@ -62,8 +63,7 @@ class RadarWeather(Model):
         rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data)
         margin = det.values_db - loss - det.threshold_db
         keep = margin >= rise
-        label = mark(labels(data), loss > 0, PointLabel.ATTENUATED)
-        out = with_loss(data, loss).with_fields(label=label).drop(~keep)
+        out = mark(with_loss(data, loss), loss > 0, Effect.ATTENUATED).drop(~keep)
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
             "points_in": len(data), "points_removed": int((~keep).sum()), "points_kept": int(keep.sum()),
@@ -109,7 +109,6 @@ def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: Cl
         rcs = rcs + two_way_loss_db(gamma, r)
     ego = np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)
     new = {"rcs_dbsm": rcs, "v_r_m_per_s": pts.v_r_m_per_s,
-           "label": np.full(len(r), PointLabel.ADDED),
            "v_r_comp_m_per_s": pts.v_r_m_per_s + pts.positions_m @ ego / np.maximum(r, 1e-12)}
     if det.statistic != RCS_STATISTIC:
         new[det.statistic] = pts.detection_db
@@ -150,9 +149,10 @@ class PrecipitationRadar(RadarWeather):
     detections (the 10⁻⁶ textbook value gives α = 13.4 dB and about 70× fewer clutter points). Per 4D cell the
     figure is generous (the radar's cube holds ~10⁹ cells), which keeps a visible trace of the clutter.
 
-    Added points: label ADDED, RCS/SNR/power consistent with C (never below t), ``v_r``, and ``v_r_comp = v_r +
-    v_ego·r̂`` when the cloud has it; other fields zero. Needs an ``rcs_dbsm`` field to calibrate C (else no clutter
-    and no CFAR loss, reported in the diagnostics). ``clutter: false``: attenuation only."""
+    Added points (effect ADDED; annotations give them the clutter class): RCS/SNR/power consistent with C (never
+    below t), ``v_r``, and ``v_r_comp = v_r + v_ego·r̂`` when the cloud has it; other fields zero. Needs an
+    ``rcs_dbsm`` field to calibrate C (else no clutter and no CFAR loss, reported in the diagnostics).
+    ``clutter: false``: attenuation only."""
 
     clutter: bool = param(True, doc="precipitation clutter: added points (and, with cfar, the sensitivity loss)")
     detector: str = param("cfar", doc="cfar: cell-averaging CFAR (few clutter points, sensitivity loss near the "

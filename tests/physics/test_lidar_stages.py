@@ -10,17 +10,17 @@ import pytest
 from scipy import integrate
 
 from roadview_noise.errors import ModelError
-from roadview_noise.physics import dsd, lidar_link, lidar_particles
-from roadview_noise.physics.lidar_link import NO_RETURN, TARGET, WEATHER
-from roadview_noise.profiles.lidar import kitti_hdl64, os1_128, os1_128_reflectivity, vls_128
+from roadview_noise.physics import dsd, lidar_echo, lidar_intensity, lidar_medium, lidar_particles
+from roadview_noise.physics.lidar_echo import NO_RETURN, TARGET, WEATHER
+from roadview_noise.profiles.lidar import carla_64, kitti_hdl64, os1_128, os1_128_reflectivity, vls_128
 
 C = 299_792_458.0
 
 
 def test_overlap_function_hahner_and_os1():
     r = np.array([0.0, 0.5, 0.9, 0.95, 1.0, 1.5, 50.0])
-    np.testing.assert_allclose(lidar_link.overlap(r, 0.9, 1.0), [0, 0, 0, 0.5, 1, 1, 1])
-    np.testing.assert_allclose(lidar_link.overlap(r, 0.5, 5.0), [0, 0, 0.4 / 4.5, 0.45 / 4.5, 0.5 / 4.5, 1 / 4.5, 1])
+    np.testing.assert_allclose(lidar_medium.overlap(r, 0.9, 1.0), [0, 0, 0, 0.5, 1, 1, 1])
+    np.testing.assert_allclose(lidar_medium.overlap(r, 0.5, 5.0), [0, 0, 0.4 / 4.5, 0.45 / 4.5, 0.5 / 4.5, 1 / 4.5, 1])
 
 
 def test_profiles_state_their_overlap():
@@ -35,10 +35,10 @@ def test_profiles_state_their_overlap():
 def test_pulse_peak_one_and_energy_tau():
     tau = 10e-9
     t = np.linspace(-tau, 3 * tau, 400001)
-    p = lidar_link.pulse_power(t, tau)
+    p = lidar_medium.pulse_power(t, tau)
     assert p.max() == pytest.approx(1.0, abs=1e-9)
     assert np.trapezoid(p, t) == pytest.approx(tau, rel=1e-6)
-    assert lidar_link.pulse_length_m(tau) == pytest.approx(2.99792458)
+    assert lidar_medium.pulse_length_m(tau) == pytest.approx(2.99792458)
 
 
 def _direct_soft_peak(alpha, tau, r0, r1=0.9, r2=1.0):
@@ -62,19 +62,19 @@ def _direct_soft_peak(alpha, tau, r0, r1=0.9, r2=1.0):
 def test_soft_target_table_matches_direct_integration(tau, r1, r2, r0):
     alpha = math.log(20) / 30
     g_direct, range_direct = _direct_soft_peak(alpha, tau, r0, r1, r2)
-    g, fog_range = lidar_link.soft_target_table(alpha, tau, r1, r2).lookup(np.array([r0]))
+    g, fog_range = lidar_medium.soft_target_table(alpha, tau, r1, r2).lookup(np.array([r0]))
     assert g[0] == pytest.approx(g_direct, rel=5e-3)
     assert fog_range[0] == pytest.approx(range_direct, abs=0.02)
 
 
 def test_soft_target_table_saturates_beyond_r2_plus_pulse():
-    table = lidar_link.soft_target_table(0.1, 10e-9, 0.9, 1.0)
+    table = lidar_medium.soft_target_table(0.1, 10e-9, 0.9, 1.0)
     g, r = table.lookup(np.array([4.5, 20.0, 200.0, 1e4]))
     assert np.all(g == g[0]) and np.all(r == r[0])
     assert table.saturated == (g[0], r[0])
     assert 1.0 < r[0] < 2.0                      # fog peak a little beyond the overlap range
     # a slow overlap (full at 5 m): its own table, up to R2 + L, with a weaker peak (ξ(r) ≤ (r − R1)/(R2 − R1))
-    slow = lidar_link.soft_target_table(0.1, 10e-9, 0.5, 5.0)
+    slow = lidar_medium.soft_target_table(0.1, 10e-9, 0.5, 5.0)
     assert len(slow.g_max_s_per_m2) > len(table.g_max_s_per_m2) and slow.lookup(np.array([8.1]))[0][0] == \
         slow.saturated[0]
     assert slow.saturated[0] < 0.5 * table.saturated[0]
@@ -84,9 +84,9 @@ def test_soft_target_signal_far_from_the_sensor_closed_form():
     """Sensor-constant fog return K π β ∫ sin²(πt/2τ) ξ e^{−2αr}/r² (c dt/2) → K π β (c τ_H/2) e^{−2αR}/R² for
     R ≫ c τ_H and ξ = 1 (here: the overlap placed at 60 m, light fog, so the peak of the profile lies there)."""
     alpha, beta, tau = math.log(20) / 3000, 0.046 / 3000, 10e-9
-    table = lidar_link.soft_target_table(alpha, tau, 60.0, 60.001)
+    table = lidar_medium.soft_target_table(alpha, tau, 60.0, 60.001)
     g, at = table.saturated
-    fog = lidar_link.soft_target_signal(g, beta)
+    fog = lidar_medium.soft_target_signal(g, beta)
     # the peak: the window just past the overlap, centred at R ≈ 60 m + L/2 (second-order terms: 0.5 %)
     big_r = 60.0 + C * tau / 2
     expected = math.pi * beta * C * tau / 2 * math.exp(-2 * alpha * big_r) / big_r ** 2
@@ -101,8 +101,8 @@ def test_soft_target_signal_matches_direct_integration(r1, r2, lo, hi):
     with the OS1 profile's (full at 5 m)."""
     alpha, beta = math.log(20) / 30, 0.046 / 30
     g_direct, range_direct = _direct_soft_peak(alpha, 10e-9, r2 + 7.0, r1, r2)    # the peak stops beyond R2 + L
-    g, at = lidar_link.soft_target_table(alpha, 10e-9, r1, r2).saturated
-    fog = lidar_link.soft_target_signal(g, beta) * 65535
+    g, at = lidar_medium.soft_target_table(alpha, 10e-9, r1, r2).saturated
+    fog = lidar_medium.soft_target_signal(g, beta) * 65535
     assert fog == pytest.approx(65535 * math.pi * beta * C / 2 * g_direct, rel=5e-3)
     assert at == pytest.approx(range_direct, abs=0.02)
     assert lo < fog < hi and 1.0 < at < 2.0
@@ -117,60 +117,75 @@ def test_received_signal_and_reported_intensity_are_inverse(factory):
     rng = np.random.default_rng(0)
     r = rng.uniform(0.5, 150, 1000)
     i = rng.uniform(0, profile.intensity_full_scale, 1000)
-    s = lidar_link.received_signal(i, r, profile)
-    np.testing.assert_allclose(lidar_link.reported_intensity(s, r, profile), i, rtol=1e-12)
-    k = lidar_link.sensor_constant(profile)
+    s = lidar_intensity.received_signal(i, r, profile)
+    np.testing.assert_allclose(lidar_intensity.reported_intensity(s, r, profile), i, rtol=1e-12)
+    k = lidar_intensity.sensor_constant(profile)
     if profile.intensity_kind == "signal":
         np.testing.assert_array_equal(s, i)
     else:                                   # range-compensated: S = (I / W) · K / R², W the white (ρ = 1) reading
         w = {"os1-128-reflectivity": 100.0, "vls-128": 110.0}.get(profile.name, profile.intensity_full_scale)
-        assert lidar_link.white_reading(profile) == w
+        assert lidar_intensity.white_reading(profile) == w
         np.testing.assert_allclose(s, i / w * k / r ** 2, rtol=1e-12)
         # a diffuse white target (ρ = 1, normal incidence) reads W at every range, and its signal is K / R²
-        np.testing.assert_allclose(lidar_link.reported_intensity(k / r ** 2, r, profile), w, rtol=1e-12)
+        np.testing.assert_allclose(lidar_intensity.reported_intensity(k / r ** 2, r, profile), w, rtol=1e-12)
     # a reflectivity reading of zero range is no return
     if profile.intensity_kind == "reflectivity":
-        assert lidar_link.received_signal(np.array([10.0]), np.array([0.0]), profile)[0] == 0
+        assert lidar_intensity.received_signal(np.array([10.0]), np.array([0.0]), profile)[0] == 0
 
 
 def test_sensor_constant_defaults_to_full_scale_and_kinds_are_checked():
     p = dataclasses.replace(os1_128(), sensor_constant=None, intensity_full_scale=4095.0)
-    assert lidar_link.sensor_constant(p) == 4095.0
+    assert lidar_intensity.sensor_constant(p) == 4095.0
     # ρ = 1 constants: the OS1 in either channel 65535 photons·m², the VLS-128 245²/0.8 (80 % at 245 m)
-    assert lidar_link.sensor_constant(os1_128_reflectivity()) == lidar_link.sensor_constant(os1_128()) == 65535.0
-    assert lidar_link.sensor_constant(vls_128()) == pytest.approx(245.0 ** 2 / 0.8)
+    assert lidar_intensity.sensor_constant(os1_128_reflectivity()) == lidar_intensity.sensor_constant(os1_128()) == 65535.0
+    assert lidar_intensity.sensor_constant(vls_128()) == pytest.approx(245.0 ** 2 / 0.8)
     # no white reading: the file reads ρ × full scale
     refl = dataclasses.replace(os1_128_reflectivity(), reflectivity_white_reading=None)
-    assert lidar_link.white_reading(refl) == 255.0
-    assert lidar_link.received_signal(255.0, 2.0, refl) == pytest.approx(65535 / 4)
+    assert lidar_intensity.white_reading(refl) == 255.0
+    assert lidar_intensity.received_signal(255.0, 2.0, refl) == pytest.approx(65535 / 4)
     with pytest.raises(ModelError, match="intensity_kind"):
-        lidar_link.received_signal(np.ones(3), np.ones(3), dataclasses.replace(p, intensity_kind="power"))
+        lidar_intensity.received_signal(np.ones(3), np.ones(3), dataclasses.replace(p, intensity_kind="power"))
 
 
 def test_builtin_profiles_reach_their_datasheet_ranges():
     """Detection range of a Lambertian target ``sqrt(K ρ / threshold)`` (ρ in terms of the stored scale)."""
     os1 = os1_128()
-    k, thr = lidar_link.sensor_constant(os1), os1.detection_threshold
+    k, thr = lidar_intensity.sensor_constant(os1), os1.detection_threshold
     assert 40 <= math.sqrt(k * 0.1 / thr) <= 45.5 and 115 <= math.sqrt(k * 0.8 / thr) <= 130   # OS1: 10 % 40-45 m
     # the reflectivity channel is the same sensor: a diffuse target reads 100 ρ, same signal, same threshold
     refl = os1_128_reflectivity()
-    assert lidar_link.received_signal(100 * 0.1, 44.0, refl) == pytest.approx(k * 0.1 / 44.0 ** 2)
+    assert lidar_intensity.received_signal(100 * 0.1, 44.0, refl) == pytest.approx(k * 0.1 / 44.0 ** 2)
     assert refl.detection_threshold == thr
     vls = vls_128()                         # 80 % (reads 0.8 × 110) at 245 m is at the threshold
-    assert lidar_link.received_signal(0.8 * 110, 245.0, vls) == pytest.approx(vls.detection_threshold)
+    assert lidar_intensity.received_signal(0.8 * 110, 245.0, vls) == pytest.approx(vls.detection_threshold)
     kitti = kitti_hdl64()                   # HDL-64E: pavement (10 %) to 50 m
-    assert lidar_link.received_signal(0.1, 50.0, kitti) == pytest.approx(kitti.detection_threshold)
+    assert lidar_intensity.received_signal(0.1, 50.0, kitti) == pytest.approx(kitti.detection_threshold)
 
 
 def test_intensity_resolution_per_unit():
-    assert lidar_link.intensity_resolution(os1_128()) == 1.0
-    assert lidar_link.intensity_resolution(vls_128()) == 1.0
-    assert lidar_link.intensity_resolution(kitti_hdl64()) == pytest.approx(1 / 255)
+    assert lidar_intensity.intensity_resolution(os1_128()) == 1.0
+    assert lidar_intensity.intensity_resolution(vls_128()) == 1.0
+    assert lidar_intensity.intensity_resolution(kitti_hdl64()) == pytest.approx(0.01)     # KITTI's stored step
+    assert lidar_intensity.intensity_resolution(carla_64()) == pytest.approx(1 / 255)      # continuous: 1/255 visible
+    assert lidar_intensity.intensity_step(carla_64()) == 0.0
+
+
+@pytest.mark.parametrize("faint, expected", [("zero", [0, 0, 1, 3, 255]), ("lowest", [0, 1, 1, 3, 255]),
+                                             ("no_return", [0, 0, 1, 3, 255])])
+def test_stored_intensity_rounds_to_the_sensor_step_and_follows_its_faint_reading(faint, expected):
+    profile = dataclasses.replace(os1_128_reflectivity(), faint_reading=faint)
+    reported = np.array([0.0, 0.3, 0.7, 3.2, 400.0])
+    np.testing.assert_array_equal(lidar_intensity.stored_intensity(reported, profile), expected)
+    np.testing.assert_array_equal(lidar_intensity.too_faint(reported, profile),
+                                  [faint == "no_return"] * 2 + [False] * 3)
+    kitti = lidar_intensity.stored_intensity(np.array([0.123, 0.996, 2.0]), kitti_hdl64())
+    np.testing.assert_allclose(kitti, [0.12, 1.0, 1.0])
+    np.testing.assert_array_equal(lidar_intensity.stored_intensity(np.array([0.1234]), carla_64()), [0.1234])
 
 
 def test_hard_target_two_way_transmission():
     # models.md §3.2 oracle: e^{-2} = 0.1353 at 10 m with the reference α = 0.1
-    assert lidar_link.hard_target_signal(1.0, 0.1, 10.0) == pytest.approx(0.1353, rel=1e-3)
+    assert lidar_medium.hard_target_signal(1.0, 0.1, 10.0) == pytest.approx(0.1353, rel=1e-3)
 
 
 def test_fog_coefficients_oracle():
@@ -186,7 +201,7 @@ def test_surviving_range_closed_form():
     alpha = math.log(20) / 30
     r_max = math.log(100 / 2.42) / (2 * alpha)
     assert r_max == pytest.approx(18.6, abs=0.05)
-    assert lidar_link.hard_target_signal(100.0, alpha, r_max) == pytest.approx(2.42, rel=1e-9)
+    assert lidar_medium.hard_target_signal(100.0, alpha, r_max) == pytest.approx(2.42, rel=1e-9)
 
 
 @pytest.mark.parametrize("rate, n_expected, alpha_expected", [
@@ -203,15 +218,21 @@ def test_rain_oracles(rate, n_expected, alpha_expected):
     assert medium.alpha_per_m == pytest.approx(direct, rel=1e-9)
 
 
-def test_snow_oracles_gunn_marshall():
+def test_snow_medium_is_the_flake_snowfall_not_melted_drops():
+    """models.md §3.4's oracles of the Gunn–Marshall law (N0 = 1712, Λ = 1.643, N0/Λ = 1042 m⁻³, melted-drop
+    α = 1.21e-3 m⁻¹) hold for the law; the LiDAR medium uses flakes (models.md §2.3 correction,
+    tests/physics/test_snow.py): N0 from the mass flux, extinction of the flakes' geometric size."""
     from roadview_noise.models.lidar.snow import SnowLidar
 
-    medium = SnowLidar().medium()                       # 2.5 mm/h liquid equivalent, whole DSD
-    assert medium.n0_per_m3_mm == pytest.approx(1712, rel=1e-3)
-    assert medium.lam_per_mm == pytest.approx(1.643, rel=1e-3)
-    assert medium.count_above(np.float64(0.0)) == pytest.approx(1042, rel=1e-3)
-    assert medium.alpha_per_m == pytest.approx(1.21e-3, abs=0.005e-3)       # stated to 3 digits
-    assert medium.alpha_per_m == pytest.approx(math.pi / 4 * 2 * 2 * 1712.28 / 1.64259 ** 3 * 1e-6, rel=1e-4)
+    n0, lam = dsd.gunn_marshall(2.5)
+    assert n0 == pytest.approx(1712, rel=1e-3) and lam == pytest.approx(1.643, rel=1e-3)
+    assert n0 / lam == pytest.approx(1042, rel=1e-3)
+    assert dsd.geometric_extinction_per_m(n0, lam, 0.0, 50.0) == pytest.approx(1.21e-3, abs=0.005e-3)
+    medium, snow = SnowLidar().medium(), dsd.snowfall(2.5)
+    assert (medium.n0_per_m3_mm, medium.lam_per_mm, medium.d_max_mm) == (snow.n0_per_m3_mm, lam, snow.d_max_mm)
+    assert medium.alpha_per_m == pytest.approx(snow.extinction_per_m(), rel=1e-12)
+    assert medium.alpha_per_m > 7 * 1.21e-3
+    assert medium.size.optical_mm(1.0) == pytest.approx((1 / 0.178) ** (1 / 2.078), rel=1e-9)   # ρ_w D_m³ = ρ D³
 
 
 @pytest.mark.parametrize("s, r_eq", [(0.25, 2.42), (0.835, 14.77), (2.5, 76.53), (3.03, 102.1)])
@@ -233,7 +254,7 @@ def _profile(x, r, a, length):
 
 def _summed_peaks_numpy(first: np.ndarray, size: np.ndarray, c_range: np.ndarray, c_signal: np.ndarray,
                   length: float) -> tuple[np.ndarray, np.ndarray]:
-    """NumPy reference of the compiled :func:`lidar_link.cluster_peak`, vectorised over clusters (the implementation
+    """NumPy reference of the compiled :func:`lidar_echo.cluster_peak`, vectorised over clusters (the implementation
     the package used before the compiled kernel).
 
     Exact maximum of ``S(x) = Σ a_k sin²(π (x − r_k)/L)`` (each term on ``r_k ≤ x ≤ r_k + L``) over each cluster
@@ -286,7 +307,7 @@ def _summed_peaks_numpy(first: np.ndarray, size: np.ndarray, c_range: np.ndarray
 def test_phasor_matches_libm_cos_and_sin():
     theta = np.concatenate([np.random.default_rng(4).uniform(0, 60, 20000), np.arange(0, 40) * np.pi / 8,
                             [0.0, 1e-300, 2 * np.pi - 1e-15]])
-    got = np.array([lidar_link.phasor(t) for t in theta])
+    got = np.array([lidar_echo.phasor(t) for t in theta])
     assert np.max(np.abs(got[:, 0] - np.cos(theta))) < 1e-14
     assert np.max(np.abs(got[:, 1] - np.sin(theta))) < 1e-14
 
@@ -304,7 +325,7 @@ def test_cluster_peak_compiled_against_numpy_reference_and_dense_grid():
     peak_np, at_np = _summed_peaks_numpy(first, sizes, r_all, a_all, length)
     cos, sin = np.cos(2 * np.pi * r_all / length), np.sin(2 * np.pi * r_all / length)
     for i, (r, a) in enumerate(zip(ranges, amps)):
-        peak, at = lidar_link.cluster_peak(r_all, a_all, cos, sin, first[i], first[i] + sizes[i], length)
+        peak, at = lidar_echo.cluster_peak(r_all, a_all, cos, sin, first[i], first[i] + sizes[i], length)
         assert peak == pytest.approx(peak_np[i], rel=1e-9, abs=1e-12)
         if i < 150:
             x = np.linspace(r[0], r[-1] + length, 60001)
@@ -313,10 +334,10 @@ def test_cluster_peak_compiled_against_numpy_reference_and_dense_grid():
         assert _profile(np.array([at + length / 2]), r, a, length)[0] == pytest.approx(peak, rel=1e-9, abs=1e-12)
         assert _profile(np.array([at_np[i] + length / 2]), r, a, length)[0] == pytest.approx(peak, rel=1e-9, abs=1e-12)
         if sizes[i] == 2:                                  # the closed form of a pair
-            pair, at2, _ = lidar_link.pair_peak(r[0], a[0], r[1], a[1], length)
+            pair, at2, _ = lidar_echo.pair_peak(r[0], a[0], r[1], a[1], length)
             assert pair == pytest.approx(peak, rel=1e-9, abs=1e-12)
             assert _profile(np.array([at2 + length / 2]), r, a, length)[0] == pytest.approx(peak, rel=1e-9, abs=1e-12)
-            near, at3, own = lidar_link.pair_peak(r[0], a[0], r[1], a[1], length, 0.2)   # no arc tangent when near
+            near, at3, own = lidar_echo.pair_peak(r[0], a[0], r[1], a[1], length, 0.2)   # no arc tangent when near
             assert near == pair and own == (abs(at2 - r[1]) <= 0.2) and at3 == (r[1] if own else at2)
 
 
@@ -368,7 +389,7 @@ def test_select_returns_against_per_ray_reference(mode, shadowing):
     p_range = np.concatenate([np.sort(rng.uniform(1, t_range[i], c)) for i, c in enumerate(counts)])
     p_sig = rng.uniform(0, 0.3, len(ray)) * (rng.random(len(ray)) < 0.9)
     p_frac = rng.uniform(0, 0.6, len(ray)) if shadowing else None
-    out = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has_target, length / C, thr, mode, p_frac)
+    out = lidar_echo.select_returns(ray, p_range, p_sig, t_range, t_sig, has_target, length / C, thr, mode, p_frac)
     for i in range(n_rays):
         sel = ray == i
         if not sel.any():
@@ -383,7 +404,7 @@ def test_select_returns_against_per_ray_reference(mode, shadowing):
 
 
 def test_select_returns_simple_cases():
-    length = lidar_link.pulse_length_m(10e-9)
+    length = lidar_medium.pulse_length_m(10e-9)
     t_range = np.array([20.0, 20.0, 20.0, 120.0])
     t_sig = np.array([0.5, 0.01, 0.5, 0.0])
     has = np.array([True, True, True, False])
@@ -392,11 +413,11 @@ def test_select_returns_simple_cases():
     ray = np.array([0, 1, 2, 3])
     p_range = np.array([5.0, 5.0, 19.5, 3.0])
     p_sig = np.array([0.02, 0.02, 0.04, 0.02])
-    out = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has, 10e-9, 0.005, "strongest")
+    out = lidar_echo.select_returns(ray, p_range, p_sig, t_range, t_sig, has, 10e-9, 0.005, "strongest")
     assert list(out.kind) == [TARGET, WEATHER, TARGET, WEATHER]
     assert out.range_m[1] == 5.0 and out.range_m[3] == 3.0 and out.range_m[2] == 20.0
     assert 0.5 < out.signal[2] < 0.54
-    first = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has, 10e-9, 0.005, "first")
+    first = lidar_echo.select_returns(ray, p_range, p_sig, t_range, t_sig, has, 10e-9, 0.005, "first")
     assert list(first.kind) == [WEATHER, WEATHER, TARGET, WEATHER]
     assert length == pytest.approx(2.998, abs=1e-3)
 
@@ -433,7 +454,7 @@ def _place_numpy(spacing, exp_d, cum_ray, ray_range_m, table, medium, beam):
     d = d_low + exp_d * (1 / medium.lam_per_mm)
     over = np.flatnonzero(d > medium.d_max_mm)
     d[over] = d_low[over]
-    f = np.minimum(1.0, (d * 0.5e-3 / beam.radius_at(r)) ** 2)
+    f = np.minimum(1.0, (medium.size.optical_mm(d) * 0.5e-3 / beam.radius_at(r)) ** 2)
     f[over] = 0.0
     signal = np.where(f > 0, full * f, full)
     return ray, r, d, f, signal, over
@@ -442,9 +463,12 @@ def _place_numpy(spacing, exp_d, cum_ray, ray_range_m, table, medium, beam):
 HAHNER = (0.9, 1.0)            # Hahner's receiver overlap R1, R2 (m)
 
 
-def test_compiled_particle_placement_against_numpy_reference():
+@pytest.mark.parametrize("flakes", [False, True], ids=["drops", "flakes"])
+def test_compiled_particle_placement_against_numpy_reference(flakes):
     medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 3e-3, *HAHNER)
     medium = dataclasses.replace(medium, d_max_mm=2.5)                          # some diameters above Dmax
+    if flakes:                                                                  # geometric size of dry snowflakes
+        medium = dataclasses.replace(medium, size=dsd.SNOW_HABITS["dry_aggregates"].size, reflectance=0.9)
     level = 0.5 * 3.28 / 65535
     table, tables = lidar_particles.visible_table(medium, beam, level), lidar_particles.level_tables(medium, beam, level)
     rng = np.random.default_rng(5)
@@ -459,7 +483,8 @@ def test_compiled_particle_placement_against_numpy_reference():
     spacing, exp_d = rng.standard_exponential(n + 1), rng.standard_exponential(n)
     got = lidar_particles._place(spacing, exp_d, cum_ray, piece_a, base_b, levels, 5, ranges, tables.inv_range_m,
                                  tables.inv_step, tables.start_m, tables.step_m, tables.d_low_mm, tables.full_beam,
-                                 medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2)
+                                 medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2,
+                                 medium.size.coefficient, medium.size.exponent, medium.size.solid)
     ref = _place_numpy(spacing, exp_d, cum_ray, ranges, table, medium, beam)
     np.testing.assert_array_equal(got[0], ref[0])
     np.testing.assert_array_equal(got[5], ref[5])
@@ -587,7 +612,7 @@ def test_soft_background_against_direct_pulse_integral():
     length, step = 3.0, 0.05
     r = np.arange(0.0, 200.0, step)
     b = np.where(r >= 1.0, (r - 1.0) * np.exp(-r / 7.0), 0.0)
-    bg = lidar_link.SoftBackground.of_density(b, step, length)
+    bg = lidar_echo.SoftBackground.of_density(b, step, length)
 
     def direct(x, r0):
         lo, hi = max(x - length, 1.0), min(x, r0)
@@ -595,7 +620,7 @@ def test_soft_background_against_direct_pulse_integral():
                               lo, hi)[0] \
             if hi > lo else 0.0
 
-    at = lidar_link.background_at.py_func if hasattr(lidar_link.background_at, "py_func") else lidar_link.background_at
+    at = lidar_echo.background_at.py_func if hasattr(lidar_echo.background_at, "py_func") else lidar_echo.background_at
     for x, r0 in ((2.0, 50.0), (3.7, 50.0), (10.0, 50.0), (10.0, 8.5), (9.0, 9.2), (0.5, 50.0), (250.0, 300.0)):
         assert at(x, r0, bg.cum, 1 / step, length) == pytest.approx(direct(x, r0), rel=5e-3, abs=1e-7)
     for r0 in (2.0, 6.05, 30.0):
@@ -609,16 +634,16 @@ def test_background_adds_to_clusters_and_targets():
     particle that alone is below the threshold is detected when the background lifts it over."""
     length, step = 3.0, 0.05
     b = np.where(np.arange(0.0, 200.0, step) >= 1.0, 2e-3, 0.0)            # B ≈ 3e-3 (L/2 · b) away from edges
-    bg = lidar_link.SoftBackground.of_density(b, step, length)
+    bg = lidar_echo.SoftBackground.of_density(b, step, length)
     thr = 0.01
     ray, p_range, p_sig = np.array([0, 1, 2]), np.array([10.0, 10.0, 10.0]), np.array([0.02, 0.008, 0.006])
     t_range, t_sig, has = np.array([40.0, 40.0, 40.0]), np.array([0.005, 0.005, 0.02]), np.array([True, True, True])
-    out = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has, length / C, thr, "strongest",
+    out = lidar_echo.select_returns(ray, p_range, p_sig, t_range, t_sig, has, length / C, thr, "strongest",
                                     background=bg)
     np.testing.assert_allclose(out.signal[:2], [0.02 + 3e-3, 0.008 + 3e-3], rtol=1e-6)
     assert list(out.kind) == [WEATHER, WEATHER, TARGET]
     assert out.signal[2] == pytest.approx(0.02 + 1.5e-3, rel=1e-3)           # half the window in front of R0
-    plain = lidar_link.select_returns(ray, p_range, p_sig, t_range, t_sig, has, length / C, thr, "strongest")
+    plain = lidar_echo.select_returns(ray, p_range, p_sig, t_range, t_sig, has, length / C, thr, "strongest")
     assert list(plain.kind) == [WEATHER, NO_RETURN, TARGET]
 
 

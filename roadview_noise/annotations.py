@@ -1,0 +1,425 @@
+"""Annotations survive augmentation: per-point label fields and sidecars follow the point provenance, masks and 2-D
+boxes follow the geometric camera steps, 3-D boxes count their points before and after the chain.
+
+No model handles annotations. After the chain (:func:`compound.apply_models`), the output cloud's provenance
+(:mod:`roadview_noise.provenance`: ``origin`` into the chain input, ``effect``) carries every per-point annotation of
+the input with one gather (:func:`carry_values`):
+
+- a point that is the input's return (effect KEPT or ATTENUATED) keeps its value and dtype;
+- a new point (MOVED to a particle, ADDED weather return or radar clutter) shows the particle, not the object: its
+  *class* annotations get the weather class of the step that made it (``weather_class``), its *instance*
+  annotations 0, while its sensor fields (ring, time stamp …) stay those of its ray (the models carry them);
+- a full grid's cell whose return was lost (REMOVED) gets 0 (SemanticKITTI "unlabeled"), as ``PointCloud.drop``
+  zeroes its fields.
+
+Which fields are annotations (:func:`field_role`): ``class`` — label, semantic, semantic_label, sem_label, class,
+class_id, category, category_id, ObjTag, semantic_tag; ``instance`` — instance, instance_id, inst_label, ObjIdx,
+object_id, track_id (case-insensitive); every other field is a sensor field. ``inputs.annotations.field_roles``
+({name: class | instance | sensor}) overrides the rule for any field name. A packed ``label`` (class | instance
+<< 16, PCL ``PointXYZL``, SemanticKITTI ``.label``) is a class field: new points get class | 0 << 16.
+
+Weather class of new points (``weather_class``, keys rain, snow, fog, clutter; radar weather adds clutter): by
+default SemanticSTF's "invalid" id 20 (SemanticSTF marks adverse-weather noise with it), and for nuScenes-lidarseg
+sidecars class 0 "noise" (nuScenes puts fog, rain drops and spray there). Raw SemanticKITTI ids (0–259) use 20 for
+other-vehicle: give ``weather_class`` (e.g. 1, "outlier") for such data.
+
+Sidecar paths (``point_labels``, ``masks``, ``boxes_2d``, ``boxes_3d``, ``calib``) are a pattern relative to the
+input file's folder (``{stem}``, ``{name}``; ``..`` allowed), ``{replace: {old: new, …}}`` applied in order to the
+input's path relative to the input root, or for nuScenes-lidarseg ``{nuscenes: v1.0-trainval}`` (the tables
+``sample_data.json`` and ``lidarseg.json`` under that folder of the input root). Every path must resolve inside
+the input root. Outputs go to the same relative path under the output root (a sweep variant's suffix before the
+file suffix, as for the data), in the same format, atomically.
+"""
+
+from __future__ import annotations
+
+import mmap
+import posixpath
+import re
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path, PurePosixPath
+from typing import Any, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from .errors import InputError
+from .io import annotations as ann_io
+from .io.atomic import write_bytes_atomic
+from .provenance import MADE_BY_STEP, REMOVED, gather, is_new
+from .types import CameraFrame, PointCloud, RawFrame
+
+ROLES = ("class", "instance", "sensor")
+CLASS_FIELDS = frozenset({"label", "semantic", "semantic_label", "sem_label", "class", "class_id", "category",
+                          "category_id", "objtag", "semantic_tag"})
+INSTANCE_FIELDS = frozenset({"instance", "instance_id", "inst_label", "objidx", "object_id", "track_id"})
+WEATHERS = ("rain", "snow", "fog", "clutter")
+SEMANTICSTF_INVALID = 20                 # SemanticSTF's adverse-weather ("invalid") class id
+NUSCENES_NOISE = 0                       # nuScenes-lidarseg "noise": dust, fog, rain drops, spray, reflections
+
+
+# --- recipe ----------------------------------------------------------------------------------------------------------
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ReplaceRule(_Strict):
+    """``{replace: {old: new, …}}``: the input's path relative to the input root with each ``old`` replaced."""
+
+    replace: dict[str, str]
+
+
+class NuscenesRule(_Strict):
+    """``{nuscenes: v1.0-trainval}``: the lidarseg file of the cloud's sample_data record (nuScenes tables)."""
+
+    nuscenes: str
+
+
+PathRule = Union[str, ReplaceRule, NuscenesRule]
+
+
+class AnnotationsSpec(_Strict):
+    """``inputs.annotations`` of a recipe (module docstring)."""
+
+    point_labels: PathRule | None = None
+    point_labels_format: Literal["semantickitti", "nuscenes_lidarseg", "npy"] | None = None   # None: by the name
+    weather_class: dict[Literal["rain", "snow", "fog", "clutter"], int] = Field(default_factory=dict)
+    field_roles: dict[str, Literal["class", "instance", "sensor"]] = Field(default_factory=dict)
+    masks: list[PathRule] = Field(default_factory=list)
+    ignore_index: int = Field(255, ge=0)
+    boxes_2d: PathRule | None = None
+    boxes_2d_format: Literal["kitti", "yolo"] = "kitti"
+    boxes_3d: PathRule | None = None
+    boxes_3d_format: Literal["kitti", "json", "csv"] | None = None     # None: .json, .csv, else KITTI
+    calib: PathRule | None = None
+
+    @field_validator("masks", mode="before")
+    @classmethod
+    def _one_or_many(cls, v):
+        return [v] if isinstance(v, (str, dict)) else v
+
+    def check_sensor(self, sensor: str) -> None:
+        """RecipeError for annotations the chain's sensor has none of (masks of a cloud, point labels of an image)."""
+        from .errors import RecipeError
+
+        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "boxes_2d")
+        for name in wrong:
+            if getattr(self, name):
+                raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
+                                  f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
+        if self.calib is not None and self.boxes_3d is None:
+            raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
+
+    def rules(self) -> list[tuple[str, PathRule]]:
+        """(role, rule) of every sidecar declared."""
+        out = [(r, getattr(self, r)) for r in ("point_labels", "boxes_2d", "boxes_3d", "calib")]
+        out += [("mask", m) for m in self.masks]
+        return [(r, rule) for r, rule in out if rule is not None]
+
+
+# --- paths -----------------------------------------------------------------------------------------------------------
+
+
+def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
+    """Path (relative to the input root, POSIX) of the sidecar of input ``relpath``; InputError if it leaves the
+    input root."""
+    if isinstance(rule, str):
+        p = PurePosixPath(relpath)
+        from .dataset import split_suffix
+
+        stem = split_suffix(p.name)[0]
+        rel = posixpath.join(str(p.parent), rule.format(stem=stem, name=p.name))
+    elif isinstance(rule, ReplaceRule):
+        rel = relpath
+        for old, new in rule.replace.items():
+            rel = rel.replace(old, new)
+    else:
+        rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes)).get(relpath)
+        if rel is None:
+            raise InputError(f"no lidarseg record for this sample_data file in {rule.nuscenes}/lidarseg.json",
+                             file=relpath)
+    rel = posixpath.normpath(rel)
+    if rel.startswith("../") or rel == ".." or posixpath.isabs(rel):
+        raise InputError(f"annotation path {rel!r} leaves the input root", file=relpath)
+    if rel == relpath:
+        raise InputError("annotation path is the input file itself", file=relpath)
+    return rel
+
+
+def sidecar_files(in_root: Path, spec: AnnotationsSpec, relpaths) -> set[str]:
+    """Every annotation file of the given inputs (so that discovery does not take a mask or a lidarseg file for an
+    input); inputs whose sidecar cannot be resolved are skipped here and fail when processed."""
+    found = set()
+    for _, rule in spec.rules():
+        for rel in relpaths:
+            try:
+                found.add(sidecar_relpath(rule, rel, in_root))
+            except InputError:
+                continue
+    return found
+
+
+@lru_cache(maxsize=4)
+def _nuscenes_index(tables: str) -> dict[str, str]:
+    """sample_data filename → lidarseg filename, from ``lidarseg.json`` and the LiDAR records of
+    ``sample_data.json`` (scanned, not parsed: the trainval table holds millions of camera records)."""
+    import json
+
+    tables_dir = Path(tables)
+    try:
+        lidarseg = json.loads((tables_dir / "lidarseg.json").read_text())
+        by_token = {r["sample_data_token"]: r["filename"] for r in lidarseg}
+        with open(tables_dir / "sample_data.json", "rb") as fh, \
+                mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            pairs = re.finditer(rb'"token":\s*"(\w+)"[^{}]*?"filename":\s*"([^"]+)"', mm)
+            return {f.decode(): by_token[t.decode()] for t, f in (m.groups() for m in pairs)
+                    if t.decode() in by_token}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"cannot read the nuScenes tables ({exc})", file=tables) from None
+
+
+# --- field roles and weather classes ---------------------------------------------------------------------------------
+
+
+def field_role(name: str, overrides: dict[str, str] | None = None) -> str:
+    """``class``, ``instance`` or ``sensor`` (module docstring)."""
+    if overrides and name in overrides:
+        return overrides[name]
+    low = name.lower()
+    return "class" if low in CLASS_FIELDS else "instance" if low in INSTANCE_FIELDS else "sensor"
+
+
+def weather_classes(spec: AnnotationsSpec, fmt: str | None = None) -> dict[str, int]:
+    """Class id of new points per weather: the recipe's, else the default for the label format."""
+    default = NUSCENES_NOISE if fmt == "nuscenes_lidarseg" else SEMANTICSTF_INVALID
+    return {w: int(spec.weather_class.get(w, default)) for w in WEATHERS}
+
+
+def step_weathers(model_ids) -> list[str]:
+    """The weather of each chain step for its new points: radar steps make clutter, LiDAR steps the phenomenon of
+    their id (``rain.lidar`` → rain)."""
+    from .registry import get_model
+
+    out = []
+    for m in model_ids:
+        phenomenon = m.split(".")[0]
+        out.append("clutter" if get_model(m).sensor == "radar" or phenomenon not in WEATHERS else phenomenon)
+    return out
+
+
+def carry_values(values: np.ndarray, cloud: PointCloud, new_value) -> np.ndarray:
+    """Per-point values of the chain input carried to the output ``cloud`` by its provenance: gathered at
+    ``origin``, ``new_value`` (scalar or per point) on new points, 0 on REMOVED grid cells."""
+    values = np.asarray(values)
+    out = values.copy() if cloud.origin is None else gather(values, cloud.origin, 0)
+    if cloud.effect is not None:
+        new = is_new(cloud.effect)
+        if new.any():
+            out[new] = new_value[new] if np.ndim(new_value) else new_value
+        out[cloud.effect == REMOVED] = 0
+    return out
+
+
+def new_classes(cloud: PointCloud, classes: dict[str, int], model_ids) -> Any:
+    """Class of each new point (scalar when one step made them all): the weather of the step that made it."""
+    by_step = np.array([classes[w] for w in step_weathers(model_ids)], dtype=np.int64)
+    made = cloud.attributes.get(MADE_BY_STEP)
+    if made is None:
+        return 0
+    if made.strides == (0,):
+        return by_step[int(made[0])] if len(made) else 0
+    return by_step[np.clip(made, 0, None)]
+
+
+# --- reading, carrying, writing ------------------------------------------------------------------------------------
+
+
+@dataclass
+class Sidecar:
+    """One annotation file: its role, path relative to the input root, sha256, format and content."""
+
+    role: str
+    relpath: str
+    path: Path
+    sha256: str
+    fmt: str = ""
+    data: Any = None
+
+    def copy_to(self, dest: Path) -> None:
+        write_bytes_atomic(dest, self.path.read_bytes())
+
+
+@dataclass
+class Annotated:
+    """What the annotations of one output are: files to write (absolute path, writer), manifest records."""
+
+    writes: list[tuple[Path, Any]] = field(default_factory=list)
+    read: list[dict] = field(default_factory=list)
+    objects: list[dict] | None = None
+
+
+def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidecar]:
+    """Read the sidecars of one input (InputError names the file and the problem)."""
+    from .manifest import sha256_file
+
+    out = []
+    for role, rule in spec.rules():
+        rel = sidecar_relpath(rule, relpath, in_root)
+        path = in_root / rel
+        if Path(in_root).resolve() not in path.resolve().parents:
+            raise InputError(f"annotation path {rel!r} leaves the input root through a link", file=relpath)
+        if not path.is_file():
+            raise InputError(f"annotation {role} {rel!r} declared in the recipe's inputs does not exist", file=relpath)
+        sc = Sidecar(role, rel, path, sha256_file(path))
+        if role == "point_labels":
+            sc.fmt = ann_io.point_label_format(path, spec.point_labels_format)
+            sc.data = ann_io.read_point_labels(path, sc.fmt)
+            if len(sc.data) != len(data):
+                raise InputError(f"{rel} has {len(sc.data)} point labels for the {len(data)} points of {relpath}",
+                                 file=str(in_root / relpath))
+        elif role == "mask":
+            sc.data = ann_io.read_mask(path)
+            if sc.data.shape[:2] != data.shape:
+                raise InputError(f"mask {rel} is {sc.data.shape[1]}×{sc.data.shape[0]} px, the image {relpath} "
+                                 f"{data.shape[1]}×{data.shape[0]}", file=str(in_root / relpath))
+        elif role == "boxes_2d":
+            sc.fmt = spec.boxes_2d_format
+            sc.data = ann_io.read_boxes_2d(path, sc.fmt, data.shape[1], data.shape[0])
+        out.append(sc)
+    boxes = next((s for s in out if s.role == "boxes_3d"), None)
+    if boxes is not None:
+        calib = next((in_root / s.relpath for s in out if s.role == "calib"), None)
+        suffix = PurePosixPath(boxes.relpath).suffix.lower().lstrip(".")
+        boxes.fmt = spec.boxes_3d_format or (suffix if suffix in ("json", "csv") else "kitti")
+        boxes.data = ann_io.read_boxes_3d(in_root / boxes.relpath, boxes.fmt, calib)
+    return out
+
+
+def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, model_ids, out_root: Path,
+          variant_suffix: str = ""):
+    """The output with its annotation fields carried, and the annotation files to write (:class:`Annotated`): point
+    labels carried, masks and 2-D boxes through the frame's warps (copied as they are without one), 3-D boxes and
+    calib copied (they describe the scene, which the chain does not move)."""
+    from .dataset import output_relpath
+
+    result = Annotated(read=[{"role": s.role, "path": s.relpath, "sha256": s.sha256} for s in sidecars])
+    camera = isinstance(data_out, (CameraFrame, RawFrame))
+    for s in sidecars:
+        if s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
+            result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
+    if isinstance(data_out, PointCloud):
+        label_fmt = next((s.fmt for s in sidecars if s.role == "point_labels"), None)
+        classes = new_classes(data_out, weather_classes(spec, label_fmt), model_ids) \
+            if data_out.effect is not None else 0
+        fields = {}
+        for k, v in data_in.fields.items():
+            role = field_role(k, spec.field_roles)
+            if role != "sensor" and k in data_out.fields:
+                fields[k] = carry_values(v, data_out, classes if role == "class" else 0).astype(v.dtype, copy=False)
+        if fields:
+            data_out = data_out.with_fields(**fields)
+        for s in sidecars:
+            if s.role == "point_labels":
+                values = carry_values(s.data, data_out, classes).astype(s.data.dtype, copy=False)
+                result.writes.append((out_root / output_relpath(s.relpath, variant_suffix),
+                                      lambda p, v=values, f=s.fmt: ann_io.write_point_labels(p, v, f)))
+            elif s.role == "boxes_3d":
+                result.objects = object_counts(s.data, data_in, data_out)
+    elif camera and data_out.warps:
+        h, w = data_out.shape
+        for s in sidecars:
+            dest = out_root / output_relpath(s.relpath, variant_suffix)
+            if s.role == "mask":
+                mask = s.data
+                for warp in data_out.warps:
+                    mask = warp.apply_labels(mask, spec.ignore_index)
+                result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
+            elif s.role == "boxes_2d":
+                boxes = warp_boxes(s.data, data_out.warps, w, h)
+                result.writes.append((dest, lambda p, b=boxes: ann_io.write_boxes_2d(p, b, w, h)))
+    return data_out, result
+
+
+def write(annotated: Annotated | None) -> list[Path]:
+    """Write the annotation files (atomically, by the io writers); returns their paths."""
+    if annotated is None:
+        return []
+    for path, writer in annotated.writes:
+        writer(path)
+    return [p for p, _ in annotated.writes]
+
+
+# --- camera boxes --------------------------------------------------------------------------------------------------
+
+BOX_EDGE_SAMPLES = 9                     # points per box edge moved through a warp (a distorted edge bends)
+
+
+def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.Boxes2D:
+    """Boxes moved through each warp's point map (:meth:`Warp.forward`): a box's outline (its edges sampled) is
+    moved and its bounding box taken, a polygon's vertices are moved; then clipped to the image (KITTI: pixel
+    coordinates 0 … W − 1; YOLO: the image edges). Boxes left with no area are dropped."""
+    if not warps:
+        return boxes
+    tokens, points, kinds = [], [], []
+    lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt == "kitti" else (-0.5, [width - 0.5, height - 0.5])
+    t = np.linspace(0.0, 1.0, BOX_EDGE_SAMPLES)
+    for words, pts, box in zip(boxes.tokens, boxes.points_px, boxes.is_box):
+        if box:
+            (x0, y0), (x1, y1) = pts
+            xs = np.concatenate([x0 + (x1 - x0) * t, np.full_like(t, x1), x1 - (x1 - x0) * t, np.full_like(t, x0)])
+            ys = np.concatenate([np.full_like(t, y0), y0 + (y1 - y0) * t, np.full_like(t, y1), y1 - (y1 - y0) * t])
+            pts = np.stack([xs, ys], axis=1)
+        for warp in warps:
+            pts = warp.forward(pts)
+        pts = np.clip(pts, lo_px, hi_px)
+        if box:
+            pts = np.array([pts.min(axis=0), pts.max(axis=0)])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        if np.any(hi - lo <= 0):
+            continue
+        tokens.append(words)
+        points.append(pts)
+        kinds.append(box)
+    return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds)
+
+
+# --- objects -------------------------------------------------------------------------------------------------------
+
+
+def points_in_boxes(positions_m: np.ndarray, boxes: ann_io.Boxes3D) -> np.ndarray:
+    """(boxes, points) bool: which points lie inside which box (closed box)."""
+    n = len(positions_m)
+    p = positions_m @ boxes.to_box_frame[:3, :3].T + boxes.to_box_frame[:3, 3]
+    inside = np.zeros((len(boxes.ids), n), dtype=bool)
+    h = boxes.up_axis
+    a, b = (0, 1) if h == 2 else (0, 2)
+    for k, (c, size, yaw) in enumerate(zip(boxes.center_m, boxes.size_m, boxes.yaw_rad)):
+        d = p - c
+        cos, sin = np.cos(yaw), np.sin(yaw)
+        if h == 2:                       # about z (x forward, y left): box x along (cos, sin)
+            u, v = cos * d[:, a] + sin * d[:, b], -sin * d[:, a] + cos * d[:, b]
+        else:                            # KITTI camera frame, rotation_y: box x along (cos, −sin) in (x, z)
+            u, v = cos * d[:, a] - sin * d[:, b], sin * d[:, a] + cos * d[:, b]
+        half = size / 2
+        inside[k] = (np.abs(u) <= half[0]) & (np.abs(d[:, h]) <= half[1 if h == 1 else 2]) & \
+            (np.abs(v) <= half[2 if h == 1 else 1])
+    return inside
+
+
+def object_counts(boxes: ann_io.Boxes3D, cloud_in: PointCloud, cloud_out: PointCloud) -> list[dict]:
+    """Per object: the input's points inside its box, and after the chain the points inside it that are still the
+    input's returns (KEPT or ATTENUATED) and the new (weather) points inside it. An object whose points all went is
+    what D3.5 calls a corner case (``lost``)."""
+    before = points_in_boxes(cloud_in.positions_m, boxes).sum(axis=1)
+    inside = points_in_boxes(cloud_out.positions_m, boxes)
+    if cloud_out.effect is None:
+        after, weather = inside.sum(axis=1), np.zeros(len(boxes.ids), int)
+    else:
+        after = (inside & (cloud_out.effect <= 1)).sum(axis=1)
+        weather = (inside & is_new(cloud_out.effect)).sum(axis=1)
+    return [{"id": i, "class": c, "points_before": int(n0), "points_after": int(n1), "weather_points": int(nw),
+             "lost": bool(n0 > 0 and n1 == 0)}
+            for i, c, n0, n1, nw in zip(boxes.ids, boxes.classes, before, after, weather)]

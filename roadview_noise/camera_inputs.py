@@ -1,0 +1,346 @@
+"""Camera and raw Bayer inputs as users have them: the pixels, the camera geometry only where a step needs it, and
+the depth from what the user has (recipe ``inputs``; README "Which depth do I have?").
+
+Camera geometry (intrinsics, exposure, pixel pitch) is looked for only when a step of the chain declares
+``Model.uses_camera_geometry`` or the depth needs intrinsics (planar depth, disparity, LiDAR projection, ground
+plane). Then, in order: the intrinsics of the image's calibration file (``inputs.calibration``) over the recipe's
+profile or the folder's ``camera.yaml``; else the profile (fitted to the image size); else — no profile — a
+centred pinhole with square pixels from the image size and a horizontal field of view (``inputs.camera_fov_h_deg``,
+default the ROADVIEW Lucid Triton's 80.8°) with the Lucid's optics, which a run-level warning states. A frame whose
+chain needs no geometry carries a nominal profile of that kind that no step reads.
+
+Depth (``inputs.depth_source``): ``file`` (``inputs.depth`` sidecars in any format of :mod:`roadview_noise.io.depth`),
+``lidar`` (the paired scan, :mod:`roadview_noise.depth.lidar`), ``onnx`` (a monocular model,
+:mod:`roadview_noise.depth.monocular`) or ``ground_plane`` (a flat-road prior, :mod:`roadview_noise.depth.ground_plane`);
+holes follow ``inputs.depth_holes`` (:mod:`roadview_noise.depth.holes`). What was done goes to the frame's
+``input_notes`` (the manifest's ``inputs``), and what deserves a warning is summarised once per run
+(:func:`run_warnings`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from .dataset import Sample, _camera_profile, _profile_spec, _sidecar_default, depth_relpath_for
+from .errors import InputError
+from .recipe import Recipe
+from .registry import get_model
+from .types import CameraFrame, CameraProfile, RawFrame
+
+FALLBACK_FOV_H_DEG = 80.8          # the ROADVIEW Lucid Triton TRI028S + 6 mm lens (profiles/camera.py)
+DEPTH_OPTIONS = ("point inputs.depth (or --depth) at your depth files, or set inputs.depth_source: lidar (the paired "
+                 "LiDAR scan), onnx (a monocular depth model) or ground_plane (a flat-road prior)")
+
+
+def needs_camera_geometry(recipe: Recipe) -> bool:
+    """True when a step of the chain uses camera intrinsics (``Model.uses_camera_geometry``)."""
+    return any(get_model(m).uses_camera_geometry for m in recipe.model_ids)
+
+
+def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraFrame | RawFrame:
+    """Read one camera or raw sample with the depth and geometry its chain needs; InputError names the file."""
+    from .io import image as image_io
+    from .io import raw as raw_io
+
+    path = in_root / sample.relpath
+    notes: dict[str, Any] = {}
+    if sample.modality == "camera":
+        linear, encoding, alpha = image_io.read_image(path)
+        if encoding.fmt == "jpeg":
+            stated = recipe.spec.output.jpeg_quality
+            if stated is not None:
+                encoding = dataclasses.replace(encoding, jpeg_quality=stated)
+            notes["jpeg_quality"] = {"value": encoding.jpeg_quality, "from": "recipe output.jpeg_quality"
+                                     if stated is not None else "input (estimated from its quantisation tables)"}
+        h, w = linear.shape[:2]
+
+        def signal():
+            return linear
+    else:
+        dn, pattern, black, white, raw_encoding = raw_io.read_raw(path)
+        h, w = dn.shape
+
+        def signal():
+            return (dn.astype(np.float32) - np.float32(black)) / np.float32(white - black)
+    geometry = _Geometry(sample, in_root, recipe, w, h)
+    if needs_camera_geometry(recipe):
+        geometry.profile                                    # resolved now: a step of the chain uses it
+    depth = valid = None
+    if recipe.needs_depth():
+        depth, valid, notes["depth"] = _depth(sample, in_root, recipe, geometry, signal)
+    notes.update(geometry.notes)
+    warnings = geometry.warnings + _depth_warnings(notes.get("depth"))
+    if warnings:
+        notes["warnings"] = warnings
+    profile = geometry.resolved or CameraProfile.from_fov("unused: no step needs camera geometry", w, h,
+                                                           FALLBACK_FOV_H_DEG)
+    if sample.modality == "camera":
+        return CameraFrame(linear, profile, depth_m=depth, encoding=encoding, alpha=alpha, depth_valid=valid,
+                           input_notes=notes)
+    return RawFrame(dn.astype(np.float32), pattern, float(black), float(white), profile, depth_m=depth,
+                    encoding=raw_encoding, depth_valid=valid, input_notes=notes)
+
+
+# --- camera geometry -----------------------------------------------------------------------------------------------
+
+
+class _Geometry:
+    """The camera geometry of one image, resolved on first use (module docstring)."""
+
+    def __init__(self, sample: Sample, in_root: Path, recipe: Recipe, width_px: int, height_px: int):
+        self.sample, self.in_root, self.recipe = sample, in_root, recipe
+        self.size = (width_px, height_px)
+        self.resolved: CameraProfile | None = None
+        self.notes: dict[str, Any] = {}
+        self.warnings: list[str] = []
+
+    @property
+    def path(self) -> Path:
+        return self.in_root / self.sample.relpath
+
+    @cached_property
+    def calibration(self):
+        """The image's calibration file (``inputs.calibration``) or None."""
+        from .depth.calibration import load_calibration
+
+        inputs = self.recipe.spec.inputs
+        if inputs.calibration is None:
+            return None
+        cal = load_calibration(self._sidecar(inputs.calibration, "calibration"), kitti_camera=inputs.kitti_camera)
+        self.notes["calibration"] = _relative(Path(cal.source), self.in_root)
+        return cal
+
+    def _sidecar(self, pattern: str, key: str) -> Path:
+        """A sidecar pattern resolved next to the image (``..`` allowed), else in the recipe's folder."""
+        rel = depth_relpath_for(self.sample.relpath, pattern)
+        for candidate in (self.in_root / rel, self.recipe.base_dir / pattern):
+            if candidate.is_file():
+                return candidate
+        raise InputError(f"no {key} file {rel!r} (inputs.{key}: {pattern!r}, relative to the image's folder or "
+                         f"the recipe's)", file=str(self.path))
+
+    @cached_property
+    def profile(self) -> CameraProfile:
+        inputs = self.recipe.spec.inputs
+        w, h = self.size
+        file_dir = self.path.parent
+        spec = _sidecar_default(_profile_spec(inputs.camera_profile, file_dir, self.recipe), file_dir, "camera.yaml")
+        cal = self.calibration
+        intrinsics = cal.intrinsics_for(w, h) if cal is not None else None
+        if spec is not None:
+            base = _camera_profile(spec, file_dir)
+            source = "recipe inputs.camera_profile" if inputs.camera_profile is not None else "camera.yaml"
+            if intrinsics is None:
+                from .profiles.camera import fit_to_image
+
+                profile = fit_to_image(base, w, h, source=str(self.path))
+            else:
+                profile = dataclasses.replace(base.resized(w, h), **_intrinsics_fields(intrinsics))
+        else:
+            fov = inputs.camera_fov_h_deg or FALLBACK_FOV_H_DEG
+            profile = assumed_profile(w, h, fov)
+            source = (f"image size and horizontal FOV {fov:g}° "
+                      f"({'inputs.camera_fov_h_deg' if inputs.camera_fov_h_deg else 'default: the Lucid Triton'})")
+            if intrinsics is None:
+                self.warnings.append("intrinsics_from_fov")
+            else:
+                profile = dataclasses.replace(profile, name="calibration", **_intrinsics_fields(intrinsics))
+        if intrinsics is not None:
+            source = f"calibration intrinsics over {source}"
+        self.notes["camera"] = {"profile": profile.name, "from": source, "fx_px": round(profile.fx_px, 4),
+                                "fy_px": round(profile.fy_px, 4), "cx_px": round(profile.cx_px, 4),
+                                "cy_px": round(profile.cy_px, 4), "fov_h_deg": round(profile.fov_h_deg, 4)}
+        self.resolved = profile
+        return profile
+
+
+def assumed_profile(width_px: int, height_px: int, fov_h_deg: float) -> CameraProfile:
+    """Centred pinhole, square pixels, horizontal FOV ``fov_h_deg``, with the Lucid Triton's exposure, f-number and
+    focal length; the pixel pitch follows from them (``f / f_x``) so that defocus agrees with the intrinsics."""
+    from .profiles.camera import lucid_triton_028s
+
+    lucid = lucid_triton_028s()
+    pin = CameraProfile.from_fov(f"assumed_fov{fov_h_deg:g}", width_px, height_px, fov_h_deg)
+    return dataclasses.replace(lucid, name=pin.name, width_px=width_px, height_px=height_px,
+                               **_intrinsics_fields((pin.fx_px, pin.fy_px, pin.cx_px, pin.cy_px)),
+                               pixel_pitch_m=lucid.focal_length_m / pin.fx_px)
+
+
+def _intrinsics_fields(intrinsics) -> dict[str, float]:
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    return {"fx_px": fx, "fy_px": fy, "cx_px": cx, "cy_px": cy}
+
+
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return path.resolve().relative_to(root.resolve()).as_posix()
+    except ValueError:
+        return str(path)
+
+
+# --- depth -----------------------------------------------------------------------------------------------------------
+
+
+def _depth(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal: Callable[[], np.ndarray]
+           ) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """``(range_m, valid, notes)`` from the recipe's depth source (module docstring); ``signal()`` gives the
+    frame's linear signal for the sources that look at the image."""
+    from .depth.holes import resolve_holes
+
+    inputs = recipe.spec.inputs
+    source = inputs.depth_source
+    if source == "file":
+        depth, notes, where = _depth_file(sample, in_root, recipe, geometry)
+    elif source == "lidar":
+        return _depth_lidar(sample, in_root, recipe, geometry, signal)
+    elif source == "onnx":
+        depth, notes, where = _depth_onnx(recipe, geometry, signal)
+    else:
+        return _depth_ground_plane(recipe, geometry)
+    depth, valid, holes = resolve_holes(depth, inputs.depth_holes, source=where)
+    notes.update(holes)
+    return depth, valid, notes
+
+
+def _depth_file(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry):
+    from .io import depth as depth_io
+
+    inputs = recipe.spec.inputs
+    path = in_root / sample.relpath
+    if sample.depth_relpath is None:
+        needing = ", ".join(m for m in recipe.model_ids if get_model(m).needs_depth)
+        raise InputError(f"no depth file {depth_relpath_for(sample.relpath, inputs.depth)!r} (inputs.depth: "
+                         f"{inputs.depth!r}; needed by {needing}); {DEPTH_OPTIONS}", file=str(path))
+    depth_path = in_root / sample.depth_relpath
+    fmt = depth_io.depth_format(depth_path, inputs.depth_format)
+    planar = inputs.depth_kind == "planar" or fmt in depth_io.PLANAR_FORMATS
+    cal = geometry.calibration
+    w, h = geometry.size
+    depth = depth_io.read_depth(depth_path, fmt=fmt, profile=geometry.profile if planar else None,
+                                expected_shape=(h, w), planar=planar,
+                                baseline_m=cal.baseline_m if cal is not None else None)
+    notes = {"source": "file", "file": sample.depth_relpath, "format": fmt, "kind": "planar" if planar else "range"}
+    return depth, notes, str(depth_path)
+
+
+def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal):
+    from .depth.lidar import lidar_depth
+    from .io import pointcloud as cloud_io
+    from .io.image import display_srgb
+
+    spec = recipe.spec.inputs.lidar_depth
+    path = in_root / sample.relpath
+    scan_rel = depth_relpath_for(sample.relpath, spec.scan)
+    scan_path = in_root / scan_rel
+    if not scan_path.is_file():
+        raise InputError(f"no paired LiDAR scan {scan_rel!r} (inputs.lidar_depth.scan: {spec.scan!r})",
+                         file=str(path))
+    cal = geometry.calibration
+    if cal is None or cal.lidar_to_camera is None:
+        raise InputError("depth_source lidar needs the LiDAR → camera transform: inputs.calibration (a KITTI "
+                         "calib .txt, or a .yaml with lidar_to_camera)", file=str(path))
+    profile = geometry.profile
+    cloud = cloud_io.read_pointcloud(scan_path, sensor="lidar")
+    ground = None
+    if spec.ground_plane:
+        height = cal.height_above_ground_m or profile.height_above_ground_m
+        ground = (height, cal.pitch_rad or 0.0)
+    guide = display_srgb(signal()) if spec.densify == "bilateral" else None
+    try:
+        depth, valid, notes = lidar_depth(cloud.positions_m, cal.lidar_to_camera,
+                                          (profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px),
+                                          profile.width_px, profile.height_px, densify=spec.densify,
+                                          guide_srgb=guide, ground=ground)
+    except ValueError as exc:
+        raise InputError(f"{exc} (scan {scan_rel})", file=str(path)) from None
+    notes = {"source": "lidar", "scan": scan_rel, **notes}
+    if ground is not None:
+        notes["ground_plane"] = {"camera_height_m": ground[0], "pitch_deg": round(math.degrees(ground[1]), 6)}
+    return depth, valid, notes
+
+
+def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
+    from .depth.monocular import model_depth
+    from .io.image import display_srgb
+    from .units import planar_depth_to_range
+
+    spec = recipe.spec.inputs.onnx_depth
+    model = Path(spec.model)
+    model = model if model.is_absolute() else recipe.base_dir / model
+    if not model.is_file():
+        raise InputError(f"no ONNX depth model {str(model)!r} (inputs.onnx_depth.model)", file=str(geometry.path))
+    image = signal()
+    if image.ndim != 3:
+        raise InputError("depth_source onnx needs an RGB image; give raw Bayer frames a depth file or another "
+                         "depth source", file=str(geometry.path))
+    image = display_srgb(image) if spec.input == "srgb" else image
+    depth, notes = model_depth(str(model), image, mean=spec.mean, std=spec.std, layout=spec.layout,
+                               scale_m=spec.scale_m)
+    if spec.kind == "planar":
+        p = geometry.profile
+        depth = planar_depth_to_range(depth, p.fx_px, p.fy_px, p.cx_px, p.cy_px)
+    return depth, {"source": "onnx", **notes, "kind": spec.kind, "input": spec.input}, str(model)
+
+
+def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
+    from .depth.ground_plane import ground_plane_range
+
+    spec = recipe.spec.inputs.ground_plane
+    profile, cal = geometry.profile, geometry.calibration
+    height = spec.camera_height_m or (cal.height_above_ground_m if cal is not None else None) or \
+        profile.height_above_ground_m
+    if spec.pitch_deg is not None:
+        pitch = math.radians(spec.pitch_deg)
+    else:
+        pitch = cal.pitch_rad if cal is not None and cal.pitch_rad is not None else 0.0
+    depth = ground_plane_range((profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px), profile.width_px,
+                               profile.height_px, camera_height_m=height, pitch_rad=pitch,
+                               sky_distance_m=spec.sky_distance_m)
+    return depth, None, {"source": "ground_plane", "camera_height_m": height, "pitch_deg": math.degrees(pitch),
+                         "sky_distance_m": spec.sky_distance_m}
+
+
+def _depth_warnings(notes: dict | None) -> list[str]:
+    if not notes:
+        return []
+    out = []
+    if notes.get("filled"):
+        out.append("depth_holes_filled")
+    if notes.get("source") == "ground_plane":
+        out.append("depth_ground_plane")
+    return out
+
+
+# --- one warning per run -------------------------------------------------------------------------------------------
+
+
+def run_warnings(entries: Iterable[dict]) -> list[str]:
+    """One line per kind of input warning over a run's manifest entries (their ``inputs.warnings``)."""
+    seen: dict[str, list[dict]] = {}
+    for e in entries:
+        inputs = e.get("inputs") or {}
+        for kind in inputs.get("warnings", ()):
+            seen.setdefault(kind, []).append(inputs)
+    lines = []
+    if "depth_holes_filled" in seen:
+        notes = seen["depth_holes_filled"]
+        worst = max(n["depth"]["hole_fraction"] for n in notes)
+        lines.append(f"depth holes filled from their neighbours in {len(notes)} file(s), up to {100 * worst:.1f} % "
+                     f"of a frame (inputs.depth_holes: fill; counts in the manifest, inputs.depth)")
+    if "intrinsics_from_fov" in seen:
+        notes = seen["intrinsics_from_fov"]
+        fovs = sorted({n["camera"]["fov_h_deg"] for n in notes})
+        lines.append(f"no camera profile for {len(notes)} file(s): intrinsics from the image size and a horizontal "
+                     f"FOV of {', '.join(f'{f:g}' for f in fovs)}° (square pixels, centred); state them with "
+                     f"inputs.camera_profile, --camera-profile or inputs.camera_fov_h_deg (values in the manifest, "
+                     f"inputs.camera)")
+    if "depth_ground_plane" in seen:
+        lines.append(f"depth of {len(seen['depth_ground_plane'])} file(s) from the ground-plane prior: a flat road "
+                     f"and one distance above the horizon, a crude guess (parameters in the manifest, inputs.depth)")
+    return lines

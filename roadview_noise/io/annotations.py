@@ -1,0 +1,249 @@
+"""Annotation files: per-point label sidecars, label images (masks), 2-D boxes and 3-D boxes — read into arrays and
+written back in the same format, atomically. Geometry and bookkeeping live in :mod:`roadview_noise.annotations`.
+
+Point-label sidecars (one value per point of the cloud, in point order):
+- ``semantickitti``: ``.label``, uint32 little-endian, semantic class in the lower 16 bits, instance in the upper 16
+  (SemanticKITTI, SemanticSTF, SemanticPOSS).
+- ``nuscenes_lidarseg``: ``<sample_data token>_lidarseg.bin``, uint8 class index (nuScenes-lidarseg).
+- ``npy``: any 1-D (or N × k) NumPy array, dtype kept.
+
+Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
+``*_instanceIds.png`` 16-bit), read and written without any colour conversion.
+
+2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
+pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
+image size: 0 and 1 are the image edges, i.e. pixel positions −½ and W − ½ with pixel centres at integers).
+
+3-D boxes: KITTI ``label_2`` + ``calib`` (camera-rectified frame, bottom-centre, ``rotation_y``), or boxes in the
+sensor frame (x forward, y left, z up) as JSON (``[{"id", "class", "center_m": [x, y, z], "size_m": [length,
+width, height], "yaw_rad"}]``, or that list under ``"boxes"``) or CSV (header ``id,class,x_m,y_m,z_m,length_m,
+width_m,height_m,yaw_rad``; centre of the box, yaw about z from x).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import InputError
+from .atomic import write_bytes_atomic
+
+POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "npy": None}
+BOX_2D_FORMATS = ("kitti", "yolo")
+BOX_3D_FORMATS = ("kitti", "json", "csv")
+
+
+def _read(path: Path) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except FileNotFoundError:
+        raise InputError("annotation file declared in the recipe's inputs does not exist", file=str(path)) from None
+    except OSError as exc:
+        raise InputError(f"cannot read annotation file: {exc.strerror or exc}", file=str(path)) from None
+
+
+# --- per-point labels ----------------------------------------------------------------------------------------------
+
+
+def point_label_format(path: str | os.PathLike, fmt: str | None) -> str:
+    """The sidecar format: given, else from the name (``.label``, ``_lidarseg.bin``, ``.npy``)."""
+    if fmt is not None:
+        return fmt
+    name = Path(path).name.lower()
+    for suffix, f in ((".label", "semantickitti"), ("_lidarseg.bin", "nuscenes_lidarseg"), (".npy", "npy")):
+        if name.endswith(suffix):
+            return f
+    raise InputError("cannot tell the point-label format from the name; give point_labels_format "
+                     f"({' | '.join(POINT_LABEL_FORMATS)})", file=str(path))
+
+
+def read_point_labels(path: str | os.PathLike, fmt: str) -> np.ndarray:
+    data = _read(Path(path))
+    if fmt == "npy":
+        try:
+            return np.load(io.BytesIO(data), allow_pickle=False)
+        except ValueError as exc:
+            raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
+    dtype = np.dtype(POINT_LABEL_FORMATS[fmt])
+    if len(data) % dtype.itemsize:
+        raise InputError(f"{len(data)} bytes is not a whole number of {dtype.itemsize}-byte {fmt} labels",
+                         file=str(path))
+    return np.frombuffer(data, dtype).astype(dtype.newbyteorder("="))
+
+
+def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) -> None:
+    if fmt == "npy":
+        buf = io.BytesIO()
+        np.save(buf, labels, allow_pickle=False)
+        write_bytes_atomic(path, buf.getvalue())
+    else:
+        write_bytes_atomic(path, np.ascontiguousarray(labels, dtype=POINT_LABEL_FORMATS[fmt]).tobytes())
+
+
+# --- masks ---------------------------------------------------------------------------------------------------------
+
+
+def read_mask(path: str | os.PathLike) -> np.ndarray:
+    img = cv2.imdecode(np.frombuffer(_read(Path(path)), np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError("not an image OpenCV can decode (masks are PNG/TIFF label images)", file=str(path))
+    return img
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
+    ok, buf = cv2.imencode(Path(path).suffix or ".png", mask)
+    if not ok:
+        raise InputError(f"cannot encode a {mask.dtype} mask as {Path(path).suffix}", file=str(path))
+    write_bytes_atomic(path, buf.tobytes())
+
+
+# --- 2-D boxes -----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Boxes2D:
+    """Lines of a 2-D box file: ``tokens`` per line and, per line, its points in pixels (x, y) as an (M, 2) array:
+    KITTI and YOLO boxes as their 2 corners, YOLO polygons as their vertices."""
+
+    fmt: str
+    tokens: list[list[str]]
+    points_px: list[np.ndarray]
+    is_box: list[bool]
+
+
+def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) -> Boxes2D:
+    text = _read(Path(path)).decode("utf-8", errors="replace")
+    tokens, points, is_box = [], [], []
+    for i, line in enumerate(text.splitlines(), 1):
+        words = line.split()
+        if not words:
+            continue
+        try:
+            if fmt == "kitti":
+                if len(words) < 15:
+                    raise ValueError(f"{len(words)} values, KITTI label_2 has 15 (16 with a score)")
+                left, top, right, bottom = map(float, words[4:8])
+                pts, box = np.array([[left, top], [right, bottom]]), True
+            else:
+                values = np.array(words[1:], dtype=float)
+                if len(values) < 4 or len(values) % 2:
+                    raise ValueError(f"{len(words)} values; YOLO has class cx cy w h, or class and x y pairs")
+                if len(values) == 4:
+                    cx, cy, w, h = values
+                    pts, box = np.array([[cx - w / 2, cy - h / 2], [cx + w / 2, cy + h / 2]]), True
+                else:
+                    pts, box = values.reshape(-1, 2), False
+                pts = pts * [width, height] - 0.5               # pixel centres at integer coordinates (Warp)
+        except ValueError as exc:
+            raise InputError(f"line {i}: {exc}", file=str(path)) from None
+        tokens.append(words)
+        points.append(pts)
+        is_box.append(box)
+    return Boxes2D(fmt, tokens, points, is_box)
+
+
+def write_boxes_2d(path: str | os.PathLike, boxes: Boxes2D, width: int, height: int) -> None:
+    lines = []
+    for words, pts, box in zip(boxes.tokens, boxes.points_px, boxes.is_box):
+        if boxes.fmt == "kitti":
+            words = words[:4] + [f"{v:.2f}" for v in pts.ravel()] + words[8:]
+        else:
+            p = (pts + 0.5) / [width, height]
+            values = ([(p[0, 0] + p[1, 0]) / 2, (p[0, 1] + p[1, 1]) / 2, p[1, 0] - p[0, 0], p[1, 1] - p[0, 1]]
+                      if box else p.ravel())
+            words = words[:1] + [f"{v:.6f}" for v in values]
+        lines.append(" ".join(words))
+    write_bytes_atomic(path, ("\n".join(lines) + "\n" if lines else "").encode("utf-8"))
+
+
+# --- 3-D boxes -----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Boxes3D:
+    """Boxes in the point cloud's frame: id, class, centre (m), size length × width × height (m, along the box's x,
+    y, z), yaw about z (rad); ``to_box_frame`` (4 × 4) maps cloud coordinates into the frame the boxes are given in
+    (identity for the sensor frame, rectified camera ← LiDAR for KITTI)."""
+
+    ids: list[str]
+    classes: list[str]
+    center_m: np.ndarray
+    size_m: np.ndarray
+    yaw_rad: np.ndarray
+    to_box_frame: np.ndarray
+    up_axis: int = 2                 # 2: z up (sensor frame); 1: y down (KITTI camera: boxes stand on their base)
+
+
+def read_boxes_3d(path: str | os.PathLike, fmt: str, calib_path: str | os.PathLike | None = None) -> Boxes3D:
+    raw = _read(Path(path)).decode("utf-8", errors="replace")
+    try:
+        if fmt == "kitti":
+            return _kitti_boxes(raw, calib_path, path)
+        rows = _json_rows(raw) if fmt == "json" else _csv_rows(raw)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"bad {fmt} 3-D box file: {exc!r}", file=str(path)) from None
+    center = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
+    size = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
+    return Boxes3D([str(r[0]) for r in rows], [str(r[1]) for r in rows], center, size,
+                   np.array([float(r[4]) for r in rows]), np.eye(4))
+
+
+def _json_rows(raw: str) -> list:
+    data = json.loads(raw)
+    boxes = data["boxes"] if isinstance(data, dict) else data
+    return [(b.get("id", i), b.get("class", ""), b["center_m"], b["size_m"], b.get("yaw_rad", 0.0))
+            for i, b in enumerate(boxes)]
+
+
+def _csv_rows(raw: str) -> list:
+    rows = []
+    for i, r in enumerate(csv.DictReader(io.StringIO(raw))):
+        rows.append((r.get("id") or i, r.get("class", ""), [r["x_m"], r["y_m"], r["z_m"]],
+                     [r["length_m"], r["width_m"], r["height_m"]], r.get("yaw_rad") or 0.0))
+    return rows
+
+
+def _kitti_boxes(raw: str, calib_path, path) -> Boxes3D:
+    """KITTI object labels: ``h w l`` and bottom-centre ``x y z`` in the rectified camera frame (y down),
+    ``rotation_y`` about its y axis; the calib's ``R0_rect · Tr_velo_to_cam`` maps LiDAR points into it. DontCare
+    regions are skipped."""
+    if calib_path is None:
+        raise InputError("KITTI 3-D boxes need the calib file (annotations.calib)", file=str(path))
+    calib = _kitti_calib(_read(Path(calib_path)).decode("utf-8", errors="replace"), calib_path)
+    ids, classes, center, size, yaw = [], [], [], [], []
+    for i, line in enumerate(raw.splitlines()):
+        w = line.split()
+        if len(w) < 15 or w[0] == "DontCare":
+            continue
+        h, wd, ln, x, y, z, ry = map(float, w[8:15])
+        ids.append(str(i))
+        classes.append(w[0])
+        center.append([x, y - h / 2, z])
+        size.append([ln, h, wd])                      # along the camera-frame box axes x (length), y, z (width)
+        yaw.append(ry)
+    return Boxes3D(ids, classes, np.array(center).reshape(-1, 3), np.array(size).reshape(-1, 3), np.array(yaw),
+                   calib, up_axis=1)
+
+
+def _kitti_calib(text: str, path) -> np.ndarray:
+    values = {}
+    for line in text.splitlines():
+        key, _, rest = line.partition(":")
+        if rest.strip():
+            values[key.strip()] = np.array(rest.split(), dtype=float)
+    try:
+        r0 = np.eye(4)
+        r0[:3, :3] = values["R0_rect"].reshape(3, 3)
+        tr = np.eye(4)
+        tr[:3, :4] = values.get("Tr_velo_to_cam", values.get("Tr_velo_cam")).reshape(3, 4)
+    except (KeyError, AttributeError, ValueError):
+        raise InputError("KITTI calib needs R0_rect (9 values) and Tr_velo_to_cam (12 values)",
+                         file=str(path)) from None
+    return r0 @ tr

@@ -1,0 +1,449 @@
+"""What a noise chain did to a frame or a cloud: the per-step and per-output metrics of the manifest (issue 18).
+
+``compare(before, after)`` returns a flat JSON-able dict; ``compound.apply_models`` stores it per step
+(``steps[i].metrics``: the step's input against its output) and the runner per output (``metrics``: the chain's
+input against the written output). Pure NumPy/OpenCV plus compiled passes over clouds; no I/O. Each data object is
+summarised once (cached while it lives; a step that returns the same pixels shares its input's summary), so a chain
+of n steps costs at most n + 1 summaries and n + 1 comparisons.
+
+Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relative luminance Y = 0.2126 R +
+0.7152 G + 0.0722 B of the linear signal (raw Bayer: the mean of each 2×2 CFA cell), clipped to [0, 1] and
+sRGB-encoded (IEC 61966-2-1). Frames are first reduced with a box filter by the smallest integer factor
+``metric_scale`` that leaves at most 65 536 pixels — the ≈ 256-px scale at which Wang et al.'s reference code
+evaluates SSIM — so a metric describes the image at that viewing scale and costs about the same at any resolution.
+
+- ``psnr_db``: 10·log10(1 / MSE) of the grey images (0–1); ``inf`` when identical.
+- ``ssim``: mean SSIM of the grey images (Wang et al. 2004, IEEE TIP 13(4), Eq. 13: 11×11 Gaussian window σ = 1.5,
+  K1 = 0.01, K2 = 0.03, L = 1), averaged over the pixels whose window lies inside the image.
+- ``rms_contrast_in/out``: RMS contrast, the standard deviation of the grey values (Peli 1990, JOSA A 7(10)).
+- ``edge_density_in/out``: fraction of pixels whose grey gradient (3×3 Sobel / 8, per pixel) is ≥ 0.025, so a step
+  of the 5 % visibility contrast (CIE; Hautière et al. 2006) marks the two pixels beside it.
+- ``mean_level_in/out``: mean grey value (0–1).
+- with depth: ``depth_bin_edges_m`` and ``rms_contrast_per_depth_bin_in/out`` (None for a bin with < 64 pixels;
+  the last bin includes the sky, depth ``inf``).
+
+LiDAR and radar (``PointCloud``) — returns are points with a non-zero position (a grid's no-return cells are not).
+The per-point effect code (``effect_codes``: KEPT, ATTENUATED, MOVED, ADDED of :data:`Effect`) says what
+happened to each output point; a point without one is KEPT.
+
+- ``points_in/out``: returns; ``kept``: returns of ``after`` still KEPT.
+- ``attenuated``, ``moved``, ``added``: net change in the number of returns with that code (for a whole chain on
+  clear input: the counts); ``removed``: returns of ``before`` that are not in ``after`` (non-ADDED returns before
+  minus after).
+- ``max_range_m_in/out``: farthest return; ``points_per_10m_in/out``: returns per 10 m range bin from 0 m.
+- LiDAR ``mean_intensity_in/out`` over the returns and ``mean_intensity_change``, the mean change of the returns
+  that stayed in place (:func:`correspondence`), in the file's intensity unit (``intensity_unit``); radar the same
+  for the SNR: ``mean_snr_in_db``, ``mean_snr_out_db``, ``mean_snr_change_db``.
+- ``objects`` (when the cloud has per-point object ids, :func:`object_ids`): per object id, ``[points_in,
+  points_out]`` of its non-ADDED returns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import weakref
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .physics.compiled import jit
+from .physics.lidar_geometry import has_return
+from .physics.srgb import linear_to_code
+from .provenance import Effect
+from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
+
+OBJECT_FIELDS = ("object_id", "ObjIdx")     # per-point object/instance id (CARLA semantic LiDAR: ObjIdx); ≤ 0 = none
+RANGE_BIN_M = 10.0
+DEPTH_BIN_EDGES_M = (0.0, 10.0, 20.0, 40.0, 80.0, math.inf)
+MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
+MIN_BIN_PX = 64
+EDGE_GRADIENT_PER_PX = 0.025                # half of a 5 % step (a step's Sobel/8 on each side is half the step)
+SSIM_SIGMA_PX, SSIM_RADIUS_PX, SSIM_K1, SSIM_K2 = 1.5, 5, 0.01, 0.03
+MAX_OBJECTS = 200                           # the largest objects only, so a manifest line stays small
+
+_summaries: "weakref.WeakKeyDictionary[Any, dict]" = weakref.WeakKeyDictionary()
+
+
+def effect_codes(cloud: PointCloud) -> np.ndarray | None:
+    """The per-point effect code of a cloud (:class:`provenance.Effect` values), None when no model wrote one."""
+    return cloud.effect
+
+
+def with_effect_codes(cloud: PointCloud, codes: np.ndarray) -> PointCloud:
+    """The cloud with these per-point effect codes (the other side of :func:`effect_codes`, for synthetic data)."""
+    return dataclasses.replace(cloud, effect=np.asarray(codes, np.uint8))
+
+
+def object_ids(cloud: PointCloud) -> np.ndarray | None:
+    """Per-point object ids (≤ 0: no object) when the cloud has them, else None — the hook for per-object metrics
+    (3-D boxes can provide ids through an ``object_id`` field)."""
+    for name in OBJECT_FIELDS:
+        if name in cloud.fields:
+            return np.asarray(cloud.fields[name])
+    return None
+
+
+def compare(before: SensorData, after: SensorData) -> dict[str, Any]:
+    """Metrics of ``after`` against ``before`` (the same sensor); see the module doc for names and units."""
+    if isinstance(before, PointCloud) and isinstance(after, PointCloud):
+        fn = _compare_clouds
+    elif isinstance(before, (CameraFrame, RawFrame)) and isinstance(after, (CameraFrame, RawFrame)):
+        fn = _compare_frames
+        if after not in _summaries and _pixels(after) is _pixels(before) and after.depth_m is before.depth_m:
+            _summaries[after] = _summary(before)          # the step changed no pixel (wind: conditions only)
+    else:
+        raise TypeError(f"cannot compare {type(before).__name__} with {type(after).__name__}")
+    b, a = _summary(before), _summary(after)
+    done = a.setdefault("compared", {})                 # (before summary, result) by id: a chain whose step left
+    if id(b) not in done:                               # the pixels alone compares input and output once
+        done[id(b)] = (b, fn(b, a))
+    return dict(done[id(b)][1])
+
+
+def _summary(data: SensorData) -> dict:
+    s = _summaries.get(data)
+    if s is None:
+        s = _cloud_summary(data) if isinstance(data, PointCloud) else _frame_summary(data)
+        _summaries[data] = s
+    return s
+
+
+# --- camera -----------------------------------------------------------------------------------------------------
+
+
+def _pixels(frame: CameraFrame | RawFrame) -> np.ndarray:
+    return frame.dn if isinstance(frame, RawFrame) else frame.linear_rgb
+
+
+def metric_scale(height_px: int, width_px: int) -> int:
+    """Integer box-filter factor of the camera metrics: the smallest that leaves ≤ 65 536 pixels."""
+    f = max(1, math.ceil(math.sqrt(height_px * width_px / MAX_METRIC_PIXELS)))
+    while (height_px // f) * (width_px // f) > MAX_METRIC_PIXELS:
+        f += 1
+    return f
+
+
+def _reduce(img: np.ndarray, f: int) -> np.ndarray:
+    """Box-filter by f×f and decimate (the edge rows/columns that do not fill a block are left out)."""
+    if f == 1:
+        return img
+    h, w = img.shape[0] // f, img.shape[1] // f
+    return cv2.resize(img[: h * f, : w * f], (w, h), interpolation=cv2.INTER_AREA)
+
+
+def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """(sRGB-encoded grey image 0–1 float32 at the metric scale, depth at the same pixels or None, factor)."""
+    if isinstance(frame, RawFrame):
+        s = frame.signal()
+        h, w = s.shape[0] // 2 * 2, s.shape[1] // 2 * 2
+        f = metric_scale(h // 2, w // 2)
+        y = _reduce(s[:h, :w], 2 * f)                                   # mean of whole CFA cells
+        block = 2 * f
+    else:
+        f = metric_scale(*frame.shape)
+        y = _reduce(frame.linear_rgb, f)
+        if y.ndim == 3:
+            y = cv2.transform(y, np.array([LUMINANCE_WEIGHTS], np.float32))
+        block = f
+    grey = linear_to_code(y, 16).astype(np.float32) * np.float32(1 / 65535)
+    depth = None
+    if frame.depth_m is not None:
+        c = block // 2
+        depth = frame.depth_m[c::block, c::block][: grey.shape[0], : grey.shape[1]]
+    return grey, depth, f
+
+
+def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
+    grey, depth, f = _grey(frame)
+    mean, std = cv2.meanStdDev(grey)
+    s = {"grey": grey, "scale": f, "rms_contrast": float(std[0, 0]), "edge_density": edge_density(grey),
+         "mean_level": float(mean[0, 0])}
+    if depth is not None:
+        s["depth_contrast"] = rms_contrast_per_depth_bin(grey, depth)
+    return s
+
+
+def edge_density(grey: np.ndarray) -> float:
+    """Fraction of pixels whose gradient (3×3 Sobel / 8, grey levels per pixel) is ≥ ``EDGE_GRADIENT_PER_PX``."""
+    gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, borderType=cv2.BORDER_REPLICATE)
+    limit = np.float32((8 * EDGE_GRADIENT_PER_PX) ** 2) * np.float32(1 - 1e-6)  # a float32 step of exactly 5 % counts
+    return float(np.count_nonzero(gx * gx + gy * gy >= limit)) / grey.size
+
+
+def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
+                               edges_m: tuple[float, ...] = DEPTH_BIN_EDGES_M) -> list[float | None]:
+    """RMS contrast of the pixels in each depth bin [e_i, e_i+1) (the last bin includes ``inf``); None for a bin
+    with fewer than 64 pixels (or no depth: NaN, negative)."""
+    out: list[float | None] = []
+    for mask, n in _depth_masks(depth_m, edges_m):
+        out.append(float(cv2.meanStdDev(grey, mask=mask)[1][0, 0]) if n >= MIN_BIN_PX else None)
+    return out
+
+
+_last_depth: list = [None, None, None, None]   # weakref to a depth map's base, the sampled view, edges, masks
+
+
+def _depth_masks(depth_m: np.ndarray, edges_m: tuple[float, ...]) -> list[tuple[np.ndarray, int]]:
+    """(uint8 mask, pixel count) per depth bin. The frames of a chain share one depth map, so the masks of the last
+    one are kept."""
+    base = depth_m.base if depth_m.base is not None else depth_m
+    ref, view, edges, masks = _last_depth
+    if (ref is not None and ref() is base and edges == edges_m and view.shape == depth_m.shape
+            and view.strides == depth_m.strides and view.ctypes.data == depth_m.ctypes.data):
+        return masks
+    d = np.asarray(depth_m, dtype=np.float32)
+    masks = []
+    for i, (lo, hi) in enumerate(zip(edges_m[:-1], edges_m[1:])):
+        m = (d >= lo) & ((d < hi) | (i == len(edges_m) - 2))             # the last bin includes inf
+        masks.append((m.view(np.uint8), int(np.count_nonzero(m))))
+    _last_depth[:] = [weakref.ref(base), depth_m, edges_m, masks]
+    return masks
+
+
+def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:
+    """Peak signal-to-noise ratio (dB) of ``b`` against ``a``; ``inf`` when they are identical."""
+    mse = cv2.norm(np.asarray(a, np.float32), np.asarray(b, np.float32), cv2.NORM_L2SQR) / np.size(a)
+    return math.inf if mse == 0 else 10.0 * math.log10(peak * peak / mse)
+
+
+def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
+    """Mean structural similarity of two grey images (Wang et al. 2004, Eq. 13; Gaussian σ = 1.5, 11×11), over
+    the pixels whose window lies inside the image; None if the image is smaller than the window."""
+    r = SSIM_RADIUS_PX
+    if min(a.shape) <= 2 * r:
+        return None
+    a = np.asarray(a, np.float32)
+    b = np.asarray(b, np.float32)
+
+    def blur(x):
+        return cv2.GaussianBlur(x, (2 * r + 1, 2 * r + 1), SSIM_SIGMA_PX)[r:-r, r:-r]
+
+    mu_a, mu_b = blur(a), blur(b)
+    mu_ab, mu_aa, mu_bb = mu_a * mu_b, mu_a * mu_a, mu_b * mu_b
+    c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
+    num = (2 * mu_ab + c1) * (2 * (blur(a * b) - mu_ab) + c2)
+    den = (mu_aa + mu_bb + c1) * (blur(a * a) - mu_aa + (blur(b * b) - mu_bb) + c2)
+    return float(np.mean(num / den, dtype=np.float64))
+
+
+def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
+    same = b["grey"].shape == a["grey"].shape
+    identical = a is b
+    out: dict[str, Any] = {
+        "metric_scale": a["scale"],
+        "psnr_db": math.inf if identical else (psnr_db(b["grey"], a["grey"]) if same else None),
+        "ssim": 1.0 if identical else (ssim(b["grey"], a["grey"]) if same else None),
+    }
+    for k in ("rms_contrast", "edge_density", "mean_level"):
+        out[f"{k}_in"], out[f"{k}_out"] = b[k], a[k]
+    if "depth_contrast" in a:
+        out["depth_bin_edges_m"] = list(DEPTH_BIN_EDGES_M)
+        out["rms_contrast_per_depth_bin_in"] = b.get("depth_contrast")
+        out["rms_contrast_per_depth_bin_out"] = a["depth_contrast"]
+    return out
+
+
+# --- point clouds -------------------------------------------------------------------------------------------------
+
+
+@jit
+def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cover - compiled
+    """One pass over a cloud: returns, returns per effect code, farthest return, returns per range bin, sum of
+    ``values`` over returns (NaN values are skipped: their count is the last element of ``counts``), and which
+    points are returns."""
+    counts = np.zeros(6, np.int64)            # returns, KEPT, ATTENUATED, MOVED, ADDED, finite values
+    hist = np.zeros(n_bins, np.int64)
+    valid = np.zeros(positions.shape[0], np.bool_)
+    total = 0.0
+    has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
+    inv_bin = 1.0 / bin_m
+    max_r2 = 0.0
+    for i in range(positions.shape[0]):
+        x, y, z = positions[i, 0], positions[i, 1], positions[i, 2]
+        r2 = x * x + y * y + z * z
+        if not (r2 > 0.0 and r2 < np.inf):
+            continue
+        valid[i] = True
+        counts[0] += 1
+        c = codes[i] if has_codes else 0
+        if 0 <= c <= 3:
+            counts[1 + c] += 1
+        hist[min(int(math.sqrt(r2) * inv_bin), n_bins - 1)] += 1
+        max_r2 = max(max_r2, r2)
+        if has_values:
+            v = float(values[i])
+            if np.isfinite(v):
+                total += v
+                counts[5] += 1
+    return counts, hist, math.sqrt(max_r2), total, valid
+
+
+def _cloud_summary(cloud: PointCloud) -> dict:
+    codes = effect_codes(cloud)
+    codes = np.zeros(0, np.uint8) if codes is None else np.asarray(codes)
+    radar = cloud.sensor == "radar"
+    values = cloud.fields.get("snr_db" if radar else "intensity")
+    values = np.zeros(0) if values is None or np.ndim(values) != 1 else np.asarray(values)
+    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+    max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
+    n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
+    counts, hist, max_r, total, valid = _cloud_pass(positions, codes, values, RANGE_BIN_M, n_bins)
+    used = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
+    s = {"returns": int(counts[0]), "codes": [int(c) for c in counts[1:5]], "max_range_m": float(max_r),
+         "hist": [int(h) for h in hist[:used]], "radar": radar,
+         "mean_value": float(total / counts[5]) if counts[5] else None,
+         "positions": positions, "valid": valid, "values": values, "effect": codes,
+         "grid": cloud.grid_shape is not None}
+    if isinstance(cloud.profile, LidarProfile):
+        s["intensity_unit"] = cloud.profile.intensity_unit
+    ids = object_ids(cloud)
+    if ids is not None:
+        s["objects"] = points_per_object(cloud, ids, codes)
+    return s
+
+
+def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, np.ndarray]:
+    """For each point of ``before``: the index of the same return in ``after`` (−1: removed, or no return), and
+    whether it was moved along its ray (True) or stayed in place (False).
+
+    Full grids match cell by cell (moved: effect MOVED). Point lists rely on the models' contract: surviving points
+    keep their order and ADDED points are new. When nothing was removed, the i-th point is the i-th survivor;
+    otherwise a survivor is found in place when its position is unchanged, or moved when it lies on the same ray.
+    Across several steps (``after`` came from ``before`` through compared steps, as in ``apply_models``) the
+    correspondences of the steps are composed, so an alignment error in one step and removals in the next are
+    told apart."""
+    index, moved, _ = _link(_summary(before), _summary(after))
+    return index, moved
+
+
+def _link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`correspondence` of two cloud summaries and the mean value change (intensity, SNR) of the points that
+    stayed in place (NaN if none). The first summary ``a`` is matched with becomes its parent (in ``apply_models``:
+    its step's input)."""
+    if a is b:
+        n = len(b["positions"])
+        return np.arange(n), np.zeros(n, bool), (0.0 if len(b["values"]) else math.nan)
+    chain = [a]
+    while chain[-1] is not b and "parent" in chain[-1] and len(chain) < 64:
+        chain.append(chain[-1]["parent"][0])
+    if chain[-1] is b:                                          # compose the steps' correspondences
+        index, moved = chain[-2]["parent"][1:]
+        for s in reversed(chain[:-2]):
+            index, moved = _compose(index, moved, *s["parent"][1:])
+        return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
+    grid = b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"])
+    effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.uint8)
+    index, moved = _match(b["positions"], a["positions"], b["valid"], a["valid"], effect, grid,
+                          len(a["positions"]) - a["codes"][3])
+    a.setdefault("parent", (b, index, moved))
+    return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
+
+
+@jit
+def _compose(index_ab, moved_ab, index_bc, moved_bc):       # pragma: no cover - compiled
+    """Correspondence a → c from a → b and b → c."""
+    index = np.full(index_ab.shape[0], -1, np.int32)
+    moved = np.zeros(index_ab.shape[0], np.bool_)
+    for i in range(index_ab.shape[0]):
+        k = index_ab[i]
+        if k >= 0:
+            index[i] = index_bc[k]
+            moved[i] = moved_ab[i] or moved_bc[k]
+    return index, moved
+
+
+@jit(inline="always")
+def _same_ray(p, i, q, j):       # pragma: no cover - compiled
+    """Returns ``p[i]`` and ``q[j]`` lie on the same ray from the sensor: |p × q| ≤ 1e-6 |p||q| and p·q > 0."""
+    px, py, pz, qx, qy, qz = p[i, 0], p[i, 1], p[i, 2], q[j, 0], q[j, 1], q[j, 2]
+    cx, cy, cz = py * qz - pz * qy, pz * qx - px * qz, px * qy - py * qx
+    pp, qq = px * px + py * py + pz * pz, qx * qx + qy * qy + qz * qz
+    dot = px * qx + py * qy + pz * qz
+    return pp > 0 and qq > 0 and dot > 0 and cx * cx + cy * cy + cz * cz <= 1e-12 * pp * qq
+
+
+@jit
+def _match(pb, pa, valid_b, valid_a, effect_a, grid, survivors):       # pragma: no cover - compiled
+    """:func:`correspondence` of one step from the positions and returns, the effect codes of ``after`` and its
+    number of non-ADDED points. Positions are read only to tell the removed points of a list."""
+    nb, na = pb.shape[0], pa.shape[0]
+    index = np.full(nb, -1, np.int32)
+    moved = np.zeros(nb, np.bool_)
+    j = 0
+    for i in range(nb):
+        if grid:                                # cell by cell
+            if not (valid_b[i] and valid_a[i]):
+                continue
+            k, away = i, effect_a[i] == 2
+        else:
+            while j < na and effect_a[j] == 3:  # ADDED: new, never a survivor
+                j += 1
+            if j >= na:
+                break
+            if survivors == nb:                 # nothing removed: survivors in order (positions may change)
+                k, away = j, effect_a[j] == 2
+            elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and valid_b[i]:
+                k, away = j, False
+            elif _same_ray(pb, i, pa, j):
+                k, away = j, True
+            else:
+                continue                        # removed
+            j += 1
+        index[i] = k
+        moved[i] = away
+    return index, moved
+
+
+@jit
+def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no cover - compiled
+    """Mean of ``values_a[index[i]] - values_b[i]`` over the points that stayed in place (NaN if none)."""
+    total, n = 0.0, 0
+    if values_b.shape[0] == 0 or values_a.shape[0] == 0:
+        return np.nan
+    for i in range(index.shape[0]):
+        if index[i] >= 0 and not moved[i]:
+            d = float(values_a[index[i]]) - float(values_b[i])
+            if np.isfinite(d):
+                total += d
+                n += 1
+    return total / n if n else np.nan
+
+
+def points_per_object(cloud: PointCloud, ids: np.ndarray, codes: np.ndarray | None = None) -> dict[int, int]:
+    """Non-ADDED returns per object id (ids ≤ 0 are no object)."""
+    keep = has_return(cloud.positions_m) & (np.asarray(ids) > 0)
+    if codes is not None and len(codes):
+        keep &= codes != Effect.ADDED
+    uniq, n = np.unique(np.asarray(ids)[keep], return_counts=True)
+    return {int(u): int(c) for u, c in zip(uniq, n)}
+
+
+def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
+    kept_b, att_b, moved_b, added_b = b["codes"]
+    kept_a, att_a, moved_a, added_a = a["codes"]
+    n_bins = max(len(b["hist"]), len(a["hist"]))
+    out: dict[str, Any] = {
+        "points_in": b["returns"], "points_out": a["returns"], "kept": kept_a,
+        "attenuated": att_a - att_b, "moved": moved_a - moved_b, "added": added_a - added_b,
+        "removed": (b["returns"] - added_b) - (a["returns"] - added_a),
+        "max_range_m_in": b["max_range_m"], "max_range_m_out": a["max_range_m"],
+        "points_per_10m_in": b["hist"] + [0] * (n_bins - len(b["hist"])),
+        "points_per_10m_out": a["hist"] + [0] * (n_bins - len(a["hist"])),
+    }
+    vb, va = b["mean_value"], a["mean_value"]
+    change = float(_link(b, a)[2])
+    change = None if math.isnan(change) else change
+    if a["radar"]:
+        out.update(mean_snr_in_db=vb, mean_snr_out_db=va, mean_snr_change_db=change)
+    else:
+        out.update(mean_intensity_in=vb, mean_intensity_out=va, mean_intensity_change=change,
+                   intensity_unit=a.get("intensity_unit"))
+    if "objects" in a or "objects" in b:
+        ob, oa = b.get("objects", {}), a.get("objects", {})
+        largest = sorted(set(ob) | set(oa), key=lambda k: -ob.get(k, 0))[:MAX_OBJECTS]
+        out["objects"] = {str(k): [ob.get(k, 0), oa.get(k, 0)] for k in sorted(largest)}
+    return out

@@ -1,0 +1,252 @@
+"""The intensity scale of every LiDAR: stored intensities ↔ received signal, how a sensor writes them, and what
+the data say about their unit (the cloud → signal conversion of the weather pipeline).
+
+- The physics works on the *received signal* S, in the unit of the profile's ``sensor_constant`` K per m² (K: the
+  signal of a ρ = 1 Lambertian target filling the beam at 1 m; None → the intensity full scale): a target of
+  reflectance ρ at range R returns ``S = K ρ cos θ / R²``. The detection threshold (``detection_threshold``) is in
+  signal units.
+- ``intensity_kind`` says how a file stores it: ``signal`` (∝ received power, e.g. Ouster ``signal`` photons): I = S;
+  ``reflectivity`` (range-compensated, e.g. Ouster ``reflectivity``, Velodyne 8-bit, KITTI and CARLA [0, 1]):
+  ``I = W · S R² / K`` with W the profile's ``reflectivity_white_reading``, the reading of a ρ = 1 diffuse target
+  (Ouster 100, Velodyne VLS-128 110; None → the full scale, i.e. the file reads ρ × full scale). Every output
+  intensity goes back through the same layer, so a range-compensated file gets range-compensated weather returns.
+- Outputs are stored as the sensor stores them (:func:`stored_intensity`): rounded to its step (whole counts for
+  8-bit and photon units even in a float file), a return below the lowest reading is 0, the lowest reading, or no
+  return (``faint_reading``, per profile).
+- The unit is stated by the profile (a built-in, a file, an Ouster metadata JSON whose ``udp_profile_lidar`` names
+  the channel, the recipe's ``intensity_unit``), and values it cannot hold are refused; when nothing states it (the
+  default profile), :func:`read_intensity` looks at the data (integer-valued ≤ 255, larger counts, [0, 1];
+  range-compensated or ∝ 1/R²) and :func:`resolve_profile` follows them or the default, always with a warning.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ModelError
+from ..types import IntensityUnit, LidarProfile
+
+SIGNAL, REFLECTIVITY = "signal", "reflectivity"    # LidarProfile.intensity_kind
+FAINT_READINGS = ("zero", "lowest", "no_return")    # LidarProfile.faint_reading
+#: units stored in whole counts (resolution 1)
+COUNT_UNITS = (IntensityUnit.PHOTONS, IntensityUnit.UINT8)
+OUSTER_WHITE_REFLECTIVITY = 100.0       # calibrated-reflectivity reading of a diffuse white target (Ouster)
+
+
+def sensor_constant(profile: LidarProfile) -> float:
+    """K: received signal of a ρ = 1 Lambertian target filling the beam at 1 m (signal units · m²); None in the
+    profile → the intensity full scale."""
+    return float(profile.intensity_full_scale if profile.sensor_constant is None else profile.sensor_constant)
+
+
+def white_reading(profile: LidarProfile) -> float:
+    """W: the stored reading of a ρ = 1 diffuse target in a ``reflectivity`` file (Ouster 100, VLS-128 110); None in
+    the profile → the intensity full scale (KITTI, CARLA: the reading is ρ × full scale)."""
+    w = profile.reflectivity_white_reading
+    return float(profile.intensity_full_scale if w is None else w)
+
+
+def _unknown_kind(profile: LidarProfile) -> ModelError:
+    return ModelError(f"profile {profile.name!r} has intensity_kind {profile.intensity_kind!r}; expected "
+                      f"{SIGNAL!r} or {REFLECTIVITY!r}", field="intensity_kind")
+
+
+def received_signal(intensity, range_m, profile: LidarProfile) -> np.ndarray:
+    """Received signal S (signal units) of stored intensities at their ranges: I for ``signal`` profiles,
+    ``(I / W) · K / R²`` for range-compensated ``reflectivity`` profiles (W: :func:`white_reading`; 0 where R ≤ 0:
+    no return)."""
+    i = np.asarray(intensity, dtype=np.float64)
+    if profile.intensity_kind == SIGNAL:
+        return i
+    if profile.intensity_kind == REFLECTIVITY:
+        r = np.asarray(range_m, dtype=np.float64)
+        scale = sensor_constant(profile) / white_reading(profile)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(r > 0, i * scale / (r * r), 0.0)
+    raise _unknown_kind(profile)
+
+
+def reported_intensity(signal, range_m, profile: LidarProfile) -> np.ndarray:
+    """Inverse of :func:`received_signal`: the intensity a profile stores for a return of signal S at apparent range
+    R (S for ``signal``, ``W · S R² / K`` for ``reflectivity``); not clipped."""
+    s = np.asarray(signal, dtype=np.float64)
+    if profile.intensity_kind == SIGNAL:
+        return s
+    if profile.intensity_kind == REFLECTIVITY:
+        r = np.asarray(range_m, dtype=np.float64)
+        return s * (r * r) * (white_reading(profile) / sensor_constant(profile))
+    raise _unknown_kind(profile)
+
+
+def intensity_step(profile: LidarProfile) -> float:
+    """The resolution a sensor stores its intensity with: the profile's ``intensity_step``, else 1 for count units
+    (photons, 8-bit) and 0 (continuous) for [0, 1] floats. Outputs are rounded to it (:func:`stored_intensity`)."""
+    if profile.intensity_step is not None:
+        return float(profile.intensity_step)
+    return 1.0 if profile.intensity_unit in COUNT_UNITS else 0.0
+
+
+def intensity_resolution(profile: LidarProfile) -> float:
+    """The smallest visible change of the stored intensity (effect codes): one step (:func:`intensity_step`), or full scale
+    / 255 for continuous values."""
+    return intensity_step(profile) or profile.intensity_full_scale / 255.0
+
+
+def rounded_intensity(reported, profile: LidarProfile) -> np.ndarray:
+    """Reported intensities clipped to full scale and rounded to the sensor's step (:func:`intensity_step`)."""
+    v = np.minimum(np.asarray(reported, dtype=np.float64), profile.intensity_full_scale)
+    step = intensity_step(profile)
+    return v if step == 0 else np.round(v / step) * step
+
+
+def stored_intensity(reported, profile: LidarProfile) -> np.ndarray:
+    """What the sensor stores for reported intensities (≥ 0): :func:`rounded_intensity`; a positive value that rounds
+    to 0 is 0 (``faint_reading: zero``) or one step (``lowest``). A ``no_return`` sensor drops such returns
+    (:func:`too_faint`) before they are stored."""
+    v = np.asarray(reported, dtype=np.float64)
+    out = rounded_intensity(v, profile)
+    step = intensity_step(profile)
+    if profile.faint_reading == "lowest" and step > 0:
+        out = np.where((out == 0) & (v > 0), step, out)
+    return out
+
+
+def too_faint(reported, profile: LidarProfile) -> np.ndarray:
+    """Returns a ``faint_reading: no_return`` sensor drops: reported below half a step (all False for the others)."""
+    r = np.asarray(reported, dtype=np.float64)
+    if profile.faint_reading != "no_return" or intensity_step(profile) == 0:
+        return np.zeros(r.shape, dtype=bool)
+    return r < 0.5 * intensity_step(profile)
+
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# What the data say
+
+
+READING_SAMPLE = 8192              # returns looked at (evenly strided)
+RANGE_BINS_M = np.geomspace(2.0, 150.0, 13)
+MIN_PER_BIN = 30
+REFLECTIVITY_SLOPE = -0.6          # d log(I_90) / d log R above this: range-compensated
+SIGNAL_SLOPE = -1.4                # below this: ∝ 1/R² (received signal)
+
+
+@dataclass(frozen=True)
+class IntensityReading:
+    """What a cloud's intensities look like: ``values`` ('[0, 1]', '8-bit counts', 'counts', 'floats', 'none'),
+    ``kind`` ('signal', 'reflectivity' or None when the data cannot tell) from ``slope``, the slope of the 90th
+    percentile of log I over log R (range-compensated data: ≈ 0, received signal: ≈ −2; nan without enough
+    ranges)."""
+
+    values: str
+    kind: str | None
+    slope: float
+
+    def describe(self) -> str:
+        slope = "" if np.isnan(self.slope) else f", log I ∝ {self.slope:+.2f} log R"
+        return f"{self.values}{slope}"
+
+
+def read_intensity(intensity: np.ndarray, positions_m: np.ndarray) -> IntensityReading:
+    """Look at the returns' intensities (points not at the origin; about 8 000, evenly strided): their values, and
+    whether their strong end (90th percentile per range bin, 2–150 m) falls as 1/R² (signal) or stays
+    (reflectivity)."""
+    stride = max(1, len(intensity) // READING_SAMPLE)
+    r = np.linalg.norm(np.asarray(positions_m)[::stride], axis=1)
+    ok = r > 0
+    i, r = np.asarray(intensity)[::stride][ok].astype(np.float64), r[ok]
+    if len(i) == 0:
+        return IntensityReading("none", None, float("nan"))
+    top = float(i.max())
+    integral = bool(np.all(i == np.rint(i)))
+    values = ("8-bit counts" if integral and top <= 255 else "counts" if integral
+              else "[0, 1]" if top <= 1.0 else "floats")
+    bins = np.digitize(r, RANGE_BINS_M)
+    xs, ys = [], []
+    for b in range(1, len(RANGE_BINS_M)):
+        sel = (bins == b) & (i > 0)
+        if np.count_nonzero(sel) >= MIN_PER_BIN:
+            xs.append(np.log(np.sqrt(RANGE_BINS_M[b - 1] * RANGE_BINS_M[b])))
+            ys.append(np.log(np.percentile(i[sel], 90)))
+    if len(xs) < 4 or xs[-1] - xs[0] < np.log(4.0):
+        return IntensityReading(values, None, float("nan"))
+    slope = float(np.polyfit(xs, ys, 1)[0])
+    kind = REFLECTIVITY if slope > REFLECTIVITY_SLOPE else SIGNAL if slope < SIGNAL_SLOPE else None
+    return IntensityReading(values, kind, slope)
+
+
+def check_intensity_scale(intensity: np.ndarray, profile: LidarProfile, model_id: str) -> None:
+    """Refuse intensities that contradict the profile (the classic "0–1 cloud read as photons" mistake)."""
+    if len(intensity) == 0:
+        return
+    top = float(np.max(intensity))
+    fs = profile.intensity_full_scale
+    if top > fs * (1 + 1e-6):
+        raise ModelError(f"intensities reach {top:g} but profile {profile.name!r} says full scale {fs:g} "
+                         f"({profile.intensity_unit}); give the profile matching the data", model=model_id,
+                         field="intensity")
+    if (profile.intensity_unit != IntensityUnit.UNIT and np.issubdtype(intensity.dtype, np.floating)
+            and len(intensity) >= 100 and 0 < top <= 1.0):
+        raise ModelError(f"all intensities are within [0, 1] but profile {profile.name!r} expects "
+                         f"{profile.intensity_unit} up to {fs:g}; use a profile with intensity_unit 'unit' "
+                         f"(e.g. kitti-hdl64, carla-64)", model=model_id, field="intensity")
+
+
+def reflectivity_variant(profile: LidarProfile) -> LidarProfile:
+    """The same (Ouster) sensor storing its 8-bit calibrated reflectivity, as in the RNG15_RFL8_NIR8 and RFL8
+    channels: a diffuse white target reads 100 (:data:`OUSTER_WHITE_REFLECTIVITY`), readings below 1 are stored as 1
+    (``faint_reading: lowest``)."""
+    return dataclasses.replace(profile, intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0,
+                               intensity_kind=REFLECTIVITY, reflectivity_white_reading=OUSTER_WHITE_REFLECTIVITY,
+                               intensity_step=None, faint_reading="lowest")
+
+
+@dataclass(frozen=True)
+class IntensityScale:
+    """The profile a weather model converts intensities with, how it was decided (``note``, for the manifest) and
+    the warning to print when the data and the stated unit disagree or nothing stated it (None: none)."""
+
+    profile: LidarProfile
+    note: str
+    warning: str | None = None
+
+
+class IntensityWarning(UserWarning):
+    """The data and the stated intensity unit disagree, or nothing stated it (printed once per process and
+    message; the manifest records it per file)."""
+
+
+def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: np.ndarray,
+                    model_id: str) -> IntensityScale:
+    """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
+    are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
+    channels), the data decide (:func:`read_intensity`) — 8-bit range-compensated values are read as the sensor's
+    calibrated reflectivity (:func:`reflectivity_variant`) — and the warning says what was assumed, what the data
+    showed and how to state it. Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
+    power variance) may have changed what the intensities look like."""
+    check_intensity_scale(intensity, profile, model_id)
+    if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
+        raise _unknown_kind(profile)
+    said = f"{profile.intensity_kind} in {profile.intensity_unit} (full scale {profile.intensity_full_scale:g})"
+    if profile.intensity_source:
+        return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
+    reading = read_intensity(intensity, positions_m)
+    how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
+           "reflectivity) or intensity_unit in the recipe")
+    if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:
+        adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
+        return IntensityScale(adopted, f"8-bit reflectivity read from the data ({reading.describe()}); nothing "
+                                       f"stated the unit",
+                              f"{model_id}: no profile states the intensity unit and the data look like 8-bit "
+                              f"range-compensated reflectivity ({reading.describe()}): read as such with profile "
+                              f"{profile.name!r}'s sensor; {how}")
+    if reading.kind == profile.intensity_kind:
+        return IntensityScale(profile, f"{said}: nothing stated it, the data agree ({reading.describe()})")
+    seen = "do not tell" if reading.kind is None else f"look like {reading.kind} but not like an 8-bit channel"
+    return IntensityScale(profile, f"{said}: nothing stated it, assumed ({reading.describe()})",
+                          f"{model_id}: no profile states the intensity unit and the data {seen} "
+                          f"({reading.describe()}): read as {said}; {how}")
+

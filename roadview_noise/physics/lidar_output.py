@@ -1,0 +1,209 @@
+"""The rays → cloud stage of the LiDAR weather pipeline: the output cloud of a weather model — targets in place,
+weather returns moved along their ray or added on empty rays, undetected returns removed — with provenance (origin, effect), intensities
+stored as the input's sensor stores them (:func:`lidar_intensity.stored_intensity`) and the counts of the manifest.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..errors import ModelError
+from ..provenance import NEW
+from ..types import LidarProfile, PointCloud
+from .compiled import jit
+from .firing_grid import FiringGrid
+from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
+from .lidar_intensity import intensity_resolution, reported_intensity, sensor_constant, stored_intensity
+from .lidar_rays import Rays
+
+
+def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
+    """(φ0, sign, offsets): azimuth of grid column c is ``φ0 + sign·2πc/W − [beam azimuth offset of the ring]``.
+
+    Fitted on a subsample of the grid's returns (staggered Ouster grids carry the per-beam offsets, destaggered ones
+    not); an empty grid gets the Ouster convention (φ0 = π, sign = −1, staggered)."""
+    profile = cloud.profile
+    cols = cloud.grid_shape[1]
+    stride = 127                                           # < 1 % of the cells, spread over rows and columns
+    valid = np.flatnonzero(has_return[::stride]) * stride
+    if len(valid) == 0:
+        return math.pi, -1.0, True
+    p = cloud.positions_m[valid]
+    phi = np.arctan2(p[:, 1], p[:, 0])
+    col = valid % cols
+    offs = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg))[_rings(cloud, valid, profile)]
+    best = None
+    for sign in (-1.0, 1.0):
+        for staggered in (True, False):
+            e = np.exp(1j * (phi + (offs if staggered else 0.0) - sign * 2 * np.pi * col / cols)).mean()
+            if best is None or abs(e) > best[0]:
+                best = (abs(e), float(np.angle(e)), sign, staggered)
+    return best[1], best[2], best[3]
+
+
+def _rings(cloud: PointCloud, idx: np.ndarray, profile: LidarProfile) -> np.ndarray:
+    rows, cols = cloud.grid_shape
+    ring = np.asarray(cloud.fields["ring"])[idx].astype(np.intp) if "ring" in cloud.fields else idx // cols
+    if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
+        raise ModelError(f"grid rows/rings up to {int(ring.max())} do not fit the {profile.channels} beams of "
+                         f"profile {profile.name!r}")
+    return ring
+
+
+def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Unit vectors of no-return cells ``idx`` of a full grid: elevation of the cell's beam (ring field or row),
+    azimuth of its column (:func:`_column_azimuth_model`). The mm-scale beam-origin offsets are neglected."""
+    profile = cloud.profile
+    phi0, sign, staggered = _column_azimuth_model(cloud, has_return)
+    ring = _rings(cloud, idx, profile)
+    cols = cloud.grid_shape[1]
+    az = phi0 + sign * 2 * np.pi * (idx % cols) / cols
+    if staggered:
+        az = az - np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg))[ring]
+    el = np.deg2rad(np.asarray(profile.beam_elevation_deg))[ring]
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+
+
+@jit
+def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
+                   intensity_in, positions_out, intensity_out, effect_out, origin_out):   # pragma: no cover - compiled
+    """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
+    integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
+    list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
+    removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
+    n = len(kind)
+    removed = np.zeros(n, np.bool_)
+    kept = attenuated = moved = n_removed = added = 0
+    o = 0                                              # output index
+    for i in range(n):
+        scale = 1.0                                    # of the position
+        effect = 0                                     # KEPT
+        if kind[i] == NO_RETURN:
+            value = intensity_in[i]
+            if has[i]:
+                removed[i] = True
+                n_removed += 1
+                if not grid:
+                    continue
+                scale = 0.0
+                value = 0
+                effect = REMOVED
+        else:
+            v = min(reported[i], full_scale)
+            value = round(v) if integer else v
+            if kind[i] == WEATHER:
+                if has[i]:
+                    scale = return_range_m[i] / ray_range_m[i]
+                    effect = MOVED
+                    moved += 1
+                else:
+                    scale = 0.0                        # filled by the caller (directions of empty cells)
+                    effect = ADDED
+                    added += 1
+            else:
+                intensity_out[o] = value               # the stored (converted) value decides
+                if abs(float(intensity_out[o]) - float(intensity_in[i])) >= half_step:
+                    effect = ATTENUATED
+                    attenuated += 1
+                else:
+                    kept += 1
+        intensity_out[o] = value
+        effect_out[o] = effect
+        origin_out[o] = i
+        for c in range(3):
+            positions_out[o, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
+        o += 1
+    return removed, o, kept, attenuated, moved, n_removed, added
+
+
+def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
+    """Build the output cloud: targets stay in place, weather returns move the point along its ray (MOVED) or fill an
+    empty ray of a full grid (ADDED), rays without a return lose their point (removed from a point list, zeroed in a
+    full grid like :meth:`PointCloud.drop`). Intensities are written back in the input's unit, kind and dtype
+    (:func:`reported_intensity` at the return's range) as the sensor stores them (:func:`stored_intensity`); every
+    other field is the ray's.
+
+    Provenance (:mod:`roadview_noise.provenance`): ``origin`` is the input point of the output's ray (NEW for the
+    empty rays of a point list), ``effect`` the Effect code; targets in place are ATTENUATED when the stored
+    intensity changed by at least half a step of the input's resolution (:func:`intensity_resolution`: 1 photon,
+    1 count, 1/255 of a [0, 1] scale), else KEPT (a change below the file's resolution is no visible change; the
+    sub-step value is still written). Attributes follow the fields."""
+    profile = rays.profile
+    intensity_in = np.asarray(cloud.fields["intensity"])
+    reported = stored_intensity(reported_intensity(returns.signal * sensor_constant(profile), returns.range_m,
+                                                   profile), profile)
+    n = rays.n_points
+    cells = np.flatnonzero(returns.kind[n:] == WEATHER)          # a list's empty rays that return weather
+    size = n + len(cells)                                         # outputs at most (a list's removed points go)
+    effect = np.empty(size, np.uint8)
+    origin = np.empty(size, np.int64)
+    positions = np.empty((size, 3))
+    intensity = np.empty(size, intensity_in.dtype)
+    grid = cloud.grid_shape is not None
+    integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
+    removed, n_out, kept, attenuated, moved, n_removed, added = _place_returns(
+        returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
+        float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
+        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect, origin)
+    if added:                                          # only full grids have empty rays with a direction
+        idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
+        positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
+    total = n_out + len(cells)
+    fields = {**cloud.fields, "intensity": intensity[:total]}
+    origin, attributes = origin[:total], cloud.attributes
+    if n_removed and grid:
+        fields = {k: (v if k in ("ring", "intensity") else np.where(removed, np.zeros((), v.dtype), v))
+                  for k, v in fields.items()}
+    if not (n_removed or len(cells)) or grid:
+        origin = None                                  # point i is input point i
+    else:
+        index = origin                                 # the ray each output takes its other fields from
+        if len(cells):
+            _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
+                          integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
+            origin[n_out:] = NEW
+            index = np.concatenate([index[:n_out], rays.listed.like[cells]])
+            added += len(cells)
+        fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
+        attributes = {k: np.asarray(v).take(index, axis=0) for k, v in attributes.items()}
+        if len(cells) and "ring" in fields:
+            fields["ring"][n_out:] = rays.listed.ring[cells]
+    out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
+                              effect=effect[:total], attributes=attributes)
+    faint = rays.faint[:n]
+    counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
+              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold,
+              "removed_below_threshold_in": int(np.count_nonzero(removed & faint)), **empty_ray_counts(rays)}
+    return out, counts
+
+
+def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
+                  full_scale: float, integer: bool, positions: np.ndarray, intensity: np.ndarray,
+                  effect: np.ndarray) -> None:
+    """The weather returns of a point list's empty rays ``cells`` as ADDED points, written to the given output
+    slices: along the cell's direction at the return's range, intensity as :func:`_place_returns` stores it (the
+    caller gives them the cell's ``ring`` and copies every other field from a return of the same firing column, same
+    firing time)."""
+    value = np.minimum(reported[cells], full_scale)
+    intensity[:] = np.round(value) if integer else value
+    effect[:] = ADDED
+    positions[:] = listed.directions(cells, range_m[cells])
+
+
+def empty_ray_counts(rays: Rays) -> dict:
+    """Diagnostics of the empty rays: how many could return weather, the firing grid's columns of a point list
+    (0: none) and where they came from (or why a list has none)."""
+    return {"empty_rays": int(np.count_nonzero(rays.empty)),
+            "firing_grid_columns": 0 if rays.listed is None else rays.listed.columns,
+            "empty_rays_source": rays.empty_source}
+
+
+def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
+    """The identity result of a zero-strength weather model: same points, every effect KEPT."""
+    n = int(rays.has_target.sum())
+    counts = {"points_in": n, "kept": n, "attenuated": 0, "moved": 0, "removed": 0, "added": 0,
+              "below_threshold_in": rays.below_threshold, "removed_below_threshold_in": 0, **empty_ray_counts(rays)}
+    return dataclasses.replace(cloud, effect=np.zeros(len(cloud), np.uint8)), counts

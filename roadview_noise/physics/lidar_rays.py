@@ -1,0 +1,193 @@
+"""The cloud → rays stage of the LiDAR weather pipeline: every ray a weather model acts on, with its hard-target
+range and received signal, the rays that saw nothing (``empty_rays``), and the receiver that decides detections
+(its threshold calibrated from the recorded returns when the datasheet's lies above them, :mod:`receiver`).
+
+``empty_rays`` — which rays without a return get weather:
+- ``fill`` (default): every no-return ray, for raw sensor output — a full grid's no-return cells, a point list's empty
+  cells of its firing grid (:mod:`firing_grid`, measured from the list). A ray that saw nothing in clear weather
+  can see fog or a snowflake.
+- ``sky_only``: only no-return rays above the horizon (beam elevation > 0). For pre-processed clouds whose returns
+  below the horizon were removed (ground segmentation, a z or height filter, a road mask): their empty cells below
+  the horizon are removed returns, not rays that saw nothing, and must not be filled as sky. Above the horizon a
+  no-return ray is sky (or beyond range) in any cloud.
+- ``ignore``: only the input's returns. For clouds where emptiness means nothing (range crops, merged or
+  motion-compensated clouds, accumulated maps), or to keep the point count.
+A point list's rays need its rings: the cloud's ``ring`` field when present, else recovered from the elevations
+(:func:`lidar_geometry.ring_index`, the one place a ring carried with each point would plug in).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ModelError
+from ..types import LidarProfile, PointCloud
+from .compiled import jit
+from .firing_grid import FiringGrid, firing_grid
+from .lidar_geometry import ring_index
+from .lidar_intensity import REFLECTIVITY, IntensityWarning, intensity_step, resolve_profile, sensor_constant, \
+    white_reading
+from .receiver import Receiver
+
+EMPTY_RAYS = ("fill", "sky_only", "ignore")     # what a weather model does with rays that returned nothing
+
+
+@dataclass(frozen=True, eq=False)
+class Rays:
+    """The rays of a cloud as a weather model sees them: one per point of the cloud, then (point lists) one per
+    empty cell of the list's firing grid (``listed``).
+
+    ``range_m``: hard-target range, the profile's max range on empty rays, 0 on rays without a direction (zero points
+    of a point list; no-return rays that ``empty_rays`` leaves out). ``signal``: received signal of the target in
+    units of the sensor constant K (m⁻², :func:`lidar_intensity.received_signal` / K) that its stored value stands
+    for. ``receiver``: detection in units of K, calibrated from the data (:meth:`receiver.Receiver.calibrated`);
+    ``datasheet_threshold``: the profile's threshold / K. ``profile``: the one the intensities are read with
+    (:func:`lidar_intensity.resolve_profile`). ``notes``: what the manifest records about both."""
+
+    range_m: np.ndarray
+    signal: np.ndarray
+    has_target: np.ndarray
+    receiver: Receiver
+    datasheet_threshold: float
+    profile: LidarProfile
+    listed: FiringGrid | None = None
+    empty_source: str = ""
+    notes: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def threshold(self) -> float:
+        """The detection threshold in use (units of K)."""
+        return self.receiver.threshold
+
+    @property
+    def n_points(self) -> int:
+        """Rays that are points of the input cloud (the first ``n_points`` rays)."""
+        return len(self.range_m) - (0 if self.listed is None else len(self.listed.ring))
+
+    @property
+    def empty(self) -> np.ndarray:
+        """Rays without a target that can still return weather (no-return cells of a grid or a list)."""
+        return ~self.has_target & (self.range_m > 0)
+
+    @property
+    def faint(self) -> np.ndarray:
+        """Input returns whose signal lies below the profile's datasheet threshold: the sensor was more sensitive than
+        the datasheet (the threshold is then calibrated from them)."""
+        return self.has_target & (self.signal < self.datasheet_threshold)
+
+    @property
+    def below_threshold(self) -> int:
+        """How many :attr:`faint` returns there are (diagnostic ``below_threshold_in``)."""
+        return int(np.count_nonzero(self.faint))
+
+
+def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Rays:
+    """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K).
+
+    Intensities are read with :func:`lidar_intensity.resolve_profile` (a warning is printed once per process and
+    kept in ``notes``); rays without a return get the profile's max range as ``empty_rays`` says (module doc), a
+    point list's empty rays appended after its points (a list without a regular firing grid keeps only its points,
+    and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest recorded return."""
+    profile = cloud.profile
+    if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
+        raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
+                         "threshold)", model=model_id)
+    if "intensity" not in cloud.fields:
+        raise ModelError("needs an intensity field (the LiDAR equation scales weather returns by it)",
+                         model=model_id, field="intensity")
+    if empty_rays not in EMPTY_RAYS:
+        raise ModelError(f"empty_rays {empty_rays!r} is not one of {EMPTY_RAYS}", model=model_id, field="empty_rays")
+    intensity = np.asarray(cloud.fields["intensity"])
+    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+    scale = resolve_profile(profile, intensity, positions, model_id)
+    if scale.warning:
+        warnings.warn(scale.warning, IntensityWarning, stacklevel=3)
+    profile = scale.profile
+    k = sensor_constant(profile)
+    if not (profile.detection_threshold > 0 and k > 0):
+        raise ModelError(f"profile {profile.name!r} has detection_threshold {profile.detection_threshold} and sensor "
+                         f"constant {k}; both must be > 0 (signal units)", model=model_id, field="detection_threshold")
+    compensated = profile.intensity_kind == REFLECTIVITY
+    fill = empty_rays != "ignore"
+    grid = cloud.grid_shape is not None
+    r, signal, has_target, weakest = _ray_signals(
+        positions, intensity, compensated, 1.0 / white_reading(profile) if compensated else 1.0 / k,
+        profile.max_range_m if grid and fill else 0.0, intensity_step(profile))
+    try:
+        receiver = Receiver.of(profile, k).calibrated(weakest)
+    except ValueError as e:
+        raise ModelError(str(e), model=model_id, field="receiver") from None
+    notes = {"intensity_reading": scale.note, "detection_threshold": receiver.threshold * k,
+             "detection_threshold_source": receiver.source}
+    if scale.warning:
+        notes["intensity_warning"] = scale.warning
+    rays = Rays(r, signal, has_target, receiver, profile.detection_threshold / k, profile,
+                empty_source="none (empty_rays: ignore)" if not fill else "no-return cells of the grid", notes=notes)
+    if grid and empty_rays == "sky_only":
+        below = ~has_target & ~_above_horizon(cloud, profile)
+        r[below] = 0.0
+        return dataclasses.replace(rays, empty_source="no-return cells of the grid above the horizon")
+    if fill and not grid:
+        listed = firing_grid(cloud, profile, r)
+        if isinstance(listed, str):
+            return dataclasses.replace(rays, empty_source=f"none: {listed}")
+        if empty_rays == "sky_only":
+            listed = listed.subset(np.asarray(profile.beam_elevation_deg)[listed.ring] > 0)
+        m = len(listed.ring)
+        source = listed.describe() + ("; above the horizon" if empty_rays == "sky_only" else "")
+        rays = dataclasses.replace(rays, range_m=np.concatenate([r, np.full(m, profile.max_range_m)]),
+                                   signal=np.concatenate([signal, np.zeros(m)]),
+                                   has_target=np.concatenate([has_target, np.zeros(m, dtype=bool)]), listed=listed,
+                                   empty_source=source)
+    return rays
+
+
+def _above_horizon(cloud: PointCloud, profile: LidarProfile) -> np.ndarray:
+    """Per cell of a full grid: whether its beam points above the horizon (ring: the cloud's field, else the row)."""
+    elevation = np.asarray(profile.beam_elevation_deg)
+    if "ring" in cloud.fields:
+        ring = ring_index(cloud, profile)
+    else:
+        rows, cols = cloud.grid_shape
+        if rows != profile.channels:
+            raise ModelError(f"a {rows}-row grid without a ring field does not fit the {profile.channels} beams of "
+                             f"profile {profile.name!r}")
+        ring = np.repeat(np.arange(rows), cols)
+    return elevation[ring] > 0
+
+
+@jit
+def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step):       # pragma: no cover - compiled
+    """Per point: range (``empty_range_m`` where the point is zero), received signal in units of K that the stored
+    value stands for (``I·scale`` or, range-compensated, ``I·scale / R²``; 0 without a return) and whether it is a
+    return; and the weakest signal any return can have: its stored value minus half a ``step``, at least half the
+    value (a reading of one step can be half a step; continuous values: the value). A stored 0 (a sensor that writes
+    faint returns as 0) stands for a quarter step and can be an eighth: it was detected."""
+    n = len(intensity)
+    r = np.empty(n)
+    signal = np.empty(n)
+    has = np.empty(n, np.bool_)
+    weakest = math.inf
+    for i in range(n):
+        ri = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
+        has[i] = ri > 0
+        if ri > 0:
+            r[i] = ri
+            value = float(intensity[i])
+            low = max(value - 0.5 * step, 0.5 * value)
+            if value <= 0.0 and step > 0.0:
+                value = 0.25 * step
+                low = 0.125 * step
+            per = scale / (ri * ri) if compensated else scale
+            signal[i] = value * per
+            if low * per < weakest:
+                weakest = low * per
+        else:
+            r[i] = empty_range_m
+            signal[i] = 0.0
+    return r, signal, has, weakest

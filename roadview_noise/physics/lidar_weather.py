@@ -1,0 +1,207 @@
+"""The LiDAR weather pipeline shared by fog, rain and snow (models.md §3.1–§3.4), one stage per module:
+
+    cloud → rays (:mod:`lidar_rays`) → medium (:mod:`lidar_medium`, :mod:`lidar_particles`)
+          → received signal (:mod:`lidar_echo`) → detection (:mod:`receiver`) → cloud (:mod:`lidar_output`)
+
+Detection (:func:`detect`): a ray's candidate weather return (fog, a cluster of particle pulses) is measured in the
+receiver's noise — drawn, so weather returns spread in intensity and range and their number varies smoothly with the
+weather's strength — and competes with the ray's target, which keeps its recorded noise (its stored value times the
+transmission: zero weather strength gives the input back). Strongest return: the larger detected value wins; first
+return: a detected weather return in front wins. A return whose stored value would fall below the sensor's lowest
+reading is dropped when the profile says the sensor drops it (``faint_reading: no_return``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..types import PointCloud
+from .compiled import jit
+from .lidar_echo import NO_RETURN, TARGET, WEATHER, RayReturns, select_returns
+from .lidar_intensity import reported_intensity, rounded_intensity, sensor_constant, too_faint
+from .lidar_medium import HAHNER_OVERLAP_M, hard_target_signal, pulse_length_m, soft_target_signal, soft_target_table
+from .lidar_output import assemble, unchanged
+from .lidar_particles import LEVEL_COUNT, VISIBLE_FRACTION, Beam, ParticleMedium, attenuated_targets, draw_level, \
+    sample_particles, strongest_particles
+from .lidar_rays import Rays, cloud_rays
+from .receiver import measure_one, normal_quantile, range_sd_one
+
+SURE_MARGIN_SD = 8.0       # a weather candidate this many of its noise SDs below the target cannot win (strongest)
+
+
+def detect(rays: Rays, candidates: RayReturns, mode: str, uniforms: np.ndarray, per_ray: bool,
+           rise_m: float | None = None) -> RayReturns:
+    """The receiver's decision on every ray (module doc). ``candidates``: per ray a WEATHER candidate (measured here
+    with :func:`receiver.measure_one`, its range jittered by :func:`receiver.range_sd_one` — leading edge ``rise_m``,
+    default the pulse's — within the overlap start and the ray's range), a TARGET (its value frozen) or nothing;
+    ``target_signal``: the target's own value, the fallback when the weather candidate is not detected or weaker.
+    ``uniforms``: three per ray (``per_ray``: row = ray index, common random numbers across weather strengths) or
+    per weather candidate, in ray order."""
+    rx = rays.receiver
+    kind, out_range, out_signal = _detect(
+        candidates.kind, candidates.range_m, candidates.signal, candidates.target_signal, rays.has_target,
+        rays.range_m, np.ascontiguousarray(uniforms, dtype=np.float64), per_ray, mode == "strongest",
+        float(rays.profile.overlap_start_m), rx.pulse_rise_m if rise_m is None else float(rise_m),
+        *rx.kernel_params)
+    if rays.profile.faint_reading == "no_return":
+        k = sensor_constant(rays.profile)
+        kind[(kind != NO_RETURN) & too_faint(reported_intensity(out_signal * k, out_range, rays.profile),
+                                             rays.profile)] = NO_RETURN
+    return RayReturns(kind, out_range, out_signal)
+
+
+@jit
+def _detect(cand_kind, cand_range, cand_signal, target_signal, has_target, ray_range, u, per_ray, strongest,
+            min_range, rise_m, spad, gain, floor, excess, threshold, background, detect_count, background_cdf,
+            below_k):       # pragma: no cover - compiled
+    """:func:`detect` in one pass: kind, range and signal per ray (from ``spad``: :attr:`Receiver.kernel_params`)."""
+    n = len(cand_kind)
+    kind = np.zeros(n, np.uint8)
+    out_range = cand_range.copy()
+    out_signal = cand_signal.copy()
+    j = 0
+    for i in range(n):
+        c = cand_kind[i]
+        if c == WEATHER:
+            row = i if per_ray else j
+            j += 1
+            s = cand_signal[i]
+            t = target_signal[i] if has_target[i] else 0.0
+            target_ok = has_target[i] and t >= threshold
+            if strongest and target_ok and t > s + SURE_MARGIN_SD * math.sqrt(floor * floor + excess * s / gain):
+                kind[i] = TARGET                       # the weather return cannot outshine it
+                out_range[i] = ray_range[i]
+                out_signal[i] = t
+                continue
+            measured, detected = measure_one(s, u[row, 0], u[row, 1], spad, gain, floor, excess, threshold,
+                                             background, detect_count, background_cdf, below_k)
+            if detected and (not target_ok or not strongest or measured > t):
+                kind[i] = WEATHER
+                r = cand_range[i] + range_sd_one(s, rise_m, gain, floor, excess) * normal_quantile(u[row, 2])
+                out_range[i] = min(max(r, min_range), ray_range[i])
+                out_signal[i] = measured
+            elif target_ok:
+                kind[i] = TARGET
+                out_range[i] = ray_range[i]
+                out_signal[i] = t
+        elif c == TARGET and cand_signal[i] >= threshold:
+            kind[i] = TARGET
+    return kind, out_range, out_signal
+
+
+def diagnostics(counts: dict, rays: Rays, **extra) -> dict:
+    """The manifest's diagnostics of a weather step: the counts, how intensities and threshold were read, extras."""
+    return {**counts, **rays.notes, **{k: float(v) if isinstance(v, (float, np.floating)) else v
+                                       for k, v in extra.items()}}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Fog
+
+
+def fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per_m_sr: float, tau_h_s: float | None,
+        mode: str, empty_rays: str, rng: np.random.Generator) -> tuple[PointCloud, dict]:
+    """Homogeneous fog with the profile's sensor constant (``fog.lidar``): per ray the soft-target return
+    ``K π β (c/2) G_max(R0)`` at the apparent range of its peak (:func:`lidar_medium.soft_target_table`) as the weather
+    candidate, the target attenuated by ``e^{−2αR0}``; detection in the receiver's noise with one row of uniforms
+    per ray (the same draws at every visibility), range jitter from the leading edge of the fog's profile. ``tau_h_s`` None: the profile's pulse; ``alpha_per_m = 0``: the
+    identity."""
+    rays = cloud_rays(cloud, model_id, "ignore" if alpha_per_m == 0 else empty_rays)
+    if alpha_per_m == 0:
+        out, counts = unchanged(cloud, rays)
+        return out, diagnostics(counts, rays, alpha_per_m=0.0, beta_per_m_sr=0.0)
+    p = rays.profile
+    tau_h_s = tau_h_s or p.pulse_half_power_width_s
+    table = soft_target_table(alpha_per_m, tau_h_s, p.overlap_start_m, p.overlap_full_m)
+    g, fog_range = table.lookup(rays.range_m)
+    fog_signal = soft_target_signal(g, beta_per_m_sr)
+    hard = hard_target_signal(rays.signal, alpha_per_m, rays.range_m)
+    weather = (fog_signal > rays.receiver.weakest_return) & (rays.range_m > 0)
+    kind = np.where(weather, WEATHER, np.where(rays.has_target, TARGET, NO_RETURN)).astype(np.uint8)
+    candidates = RayReturns(kind, np.where(weather, fog_range, rays.range_m), np.where(weather, fog_signal, hard), hard)
+    returns = detect(rays, candidates, mode, rng.random((len(rays.range_m), 3)), per_ray=True, rise_m=table.rise_m)
+    out, counts = assemble(cloud, rays, returns)
+    return out, diagnostics(counts, rays, alpha_per_m=alpha_per_m, beta_per_m_sr=beta_per_m_sr,
+                            pulse_half_power_width_s=tau_h_s)
+
+
+def hahner_fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per_m_sr: float,
+               tau_h_s: float | None, target_reflectivity: float) -> tuple[PointCloud, dict]:
+    """Hahner et al. 2021's released fog simulation (LiDAR_fog_sim, ``fog_scale: hahner``) on the cloud's returns:
+    per-point calibration — the fog return of point i is ``G_max(R0) · I_i R0² · β/β0``, β0 = γ/π, with I_i its
+    stored value read as received signal (for a range-compensated file, at the target's range) — Hahner's overlap
+    (R1 = 0.9 m, R2 = 1.0 m), no detection threshold and no empty rays. The point moves to the fog when that value
+    exceeds its attenuated intensity rounded to the sensor's step (Hahner's ``np.round``), which is how most of
+    Hahner's fog points arise on an 8-bit scan; no point is removed."""
+    rays = cloud_rays(cloud, model_id, "ignore")
+    p, r = rays.profile, rays.range_m
+    tau_h_s = tau_h_s or p.pulse_half_power_width_s
+    g, fog_range = soft_target_table(alpha_per_m, tau_h_s, *HAHNER_OVERLAP_M).lookup(r)
+    fog_signal = g * rays.signal * (r * r) * (beta_per_m_sr / (target_reflectivity / math.pi))
+    hard = hard_target_signal(rays.signal, alpha_per_m, r)
+    k = sensor_constant(p)
+    weather = rays.has_target & (reported_intensity(fog_signal * k, r, p)
+                                 > rounded_intensity(reported_intensity(hard * k, r, p), p))
+    kind = np.where(weather, WEATHER, np.where(rays.has_target, TARGET, NO_RETURN)).astype(np.uint8)
+    returns = RayReturns(kind, np.where(weather, fog_range, r), np.where(weather, fog_signal, hard))
+    out, counts = assemble(cloud, rays, returns)
+    return out, diagnostics(counts, rays, empty_rays_source="none (fog_scale hahner: returns only, as Hahner's "
+                                                            "simulation)", alpha_per_m=alpha_per_m,
+                            beta_per_m_sr=beta_per_m_sr, pulse_half_power_width_s=tau_h_s)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Rain and snow
+
+
+def particle_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedium, mode: str,
+                     visible_fraction: float = VISIBLE_FRACTION, two_pass: bool = True) -> tuple[RayReturns, int]:
+    """Rain/snow on every ray (models.md §3.3–§3.4 correct versions): particles in front of the target that can
+    change its return, target ``I e^{−2αR}(1 − Σ f)`` (shadowing by the drawn particles and the mean of the undrawn
+    band), the undrawn particles' mean backscatter (:func:`lidar_particles.draw_level`), summed pulse profiles
+    (:func:`lidar_echo.select_returns`), detection (:func:`detect`).
+
+    Which particles are drawn: those returning at least the base level ``ℓ`` (:func:`lidar_particles.draw_level`).
+    For the strongest return a ray with a target of signal ``S_t`` draws, in front of the target's pulse window
+    ``c τ_H``, only those reaching ``ℓ 2^j ≤ ℓ S_t/threshold`` (:func:`lidar_particles.attenuated_targets`) — a weaker
+    particle, or two of them, cannot outshine the target — and inside the window those reaching
+    ``ℓ 2^(j−5) ≤ S_t/64`` (fainter ones would change its peak by less than 1.6 %); and the same against the ray's
+    brightest particle (:func:`lidar_particles.strongest_particles`). The undrawn particles between the levels shadow
+    the target by their mean (``two_pass``: draw against the brightest particle too, which pays when particles
+    often outshine the rays' targets by far — snowflakes, not raindrops). Candidates weaker than the receiver can
+    detect are not returned. Returns the per-ray returns and the number of particles drawn."""
+    profile = rays.profile
+    tau_h = profile.pulse_half_power_width_s
+    threshold = rays.threshold
+    level, background = draw_level(medium, Beam.of(profile), threshold, visible_fraction, pulse_length_m(tau_h))
+    target, levels = attenuated_targets(rays.signal, rays.range_m, medium.alpha_per_m, threshold,
+                                        LEVEL_COUNT if mode == "strongest" else 1)
+    if mode == "strongest" and two_pass:
+        particles = strongest_particles(rng, rays.range_m, medium, Beam.of(profile), level, levels,
+                                        pulse_length_m(tau_h), LEVEL_COUNT)
+    else:
+        particles = sample_particles(rng, rays.range_m, medium, Beam.of(profile), level, 1.0, levels,
+                                     pulse_length_m(tau_h))
+    weakest = rays.receiver.weakest_return if mode == "strongest" else threshold
+    candidates = select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m, target,
+                                rays.has_target, tau_h, weakest, mode, particles.beam_fraction, background,
+                                particles.ray_shadow if mode == "strongest" else None)
+    n_weather = int(np.count_nonzero(candidates.kind == WEATHER))
+    return detect(rays, candidates, mode, rng.random((n_weather, 3)), per_ray=False), len(particles.ray)
+
+
+def precipitation(cloud: PointCloud, model_id: str, medium: ParticleMedium | None, mode: str,
+                  rng: np.random.Generator, visible_fraction: float = VISIBLE_FRACTION,
+                  empty_rays: str = "fill", two_pass: bool = True) -> tuple[PointCloud, dict]:
+    """Run rain or snow (``medium`` None: zero rate, identity) on a cloud; returns (cloud, diagnostics)."""
+    rays = cloud_rays(cloud, model_id, "ignore" if medium is None else empty_rays)
+    if medium is None:
+        out, counts = unchanged(cloud, rays)
+        return out, diagnostics(counts, rays, alpha_per_m=0.0, particles_per_m3=0.0, particles_drawn=0)
+    returns, drawn = particle_returns(rng, rays, medium, mode, visible_fraction, two_pass)
+    out, counts = assemble(cloud, rays, returns)
+    return out, diagnostics(counts, rays, alpha_per_m=medium.alpha_per_m,
+                            particles_per_m3=medium.count_above(np.float64(medium.d_min_mm)),
+                            particles_drawn=int(drawn))

@@ -1,0 +1,535 @@
+"""Annotations survive augmentation (issue 13): label fields and sidecars follow the point provenance through every
+LiDAR/radar CNF, SemanticKITTI and nuScenes-lidarseg trees, masks and 2-D boxes follow a geometric camera model,
+3-D boxes count their points before and after the chain, replay reproduces every annotation."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar
+
+import cv2
+import numpy as np
+import pytest
+
+from roadview_noise import annotations
+from roadview_noise.compound import apply_models
+from roadview_noise.dataset import Sample, discover, load
+from roadview_noise.io.image import read_image, write_image
+from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
+from roadview_noise.manifest import read_manifest
+from roadview_noise.model import Model, Stage
+from roadview_noise.physics.warp import Warp
+from roadview_noise.profiles.lidar import os1_128
+from roadview_noise.provenance import Effect, is_new
+from roadview_noise.recipe import parse_recipe
+from roadview_noise.registry import MODELS
+from roadview_noise.runner import build_models, plan, replay, run
+from roadview_noise.types import CloudLayout, ImageEncoding, PointCloud
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "sample_data"
+CLASSES = {"rain": 41, "snow": 42, "fog": 43, "clutter": 44}
+LIDAR_CNFS = [f"CNF{n}" for n in range(19, 25)]
+RADAR_CNFS = ["CNF25", "CNF26", "CNF27"]
+
+
+def _recipe(body: dict, base: Path):
+    return parse_recipe({"schema": "rvnoise.recipe/1", "seed": 7, **body}, base_dir=base)
+
+
+def _with_label(cloud: PointCloud, seed: int) -> PointCloud:
+    """The cloud as a PCL PointXYZL-style PCD: a uint32 ``label`` = class | instance << 16 after its fields."""
+    rng = np.random.default_rng(seed)
+    label = (rng.integers(0, 260, len(cloud)) | (rng.integers(1, 50, len(cloud)) << 16)).astype(np.uint32)
+    layout = dataclasses.replace(cloud.layout, fields=cloud.layout.fields + (("label", "label", "<u4"),))
+    return dataclasses.replace(cloud.with_fields(label=label), layout=layout)
+
+
+@pytest.fixture
+def xyzl_tree(tmp_path: Path) -> Path:
+    """LiDAR and radar sample frames with a PCL ``label`` field and a per-point ``.npy`` sidecar."""
+    root = tmp_path / "in"
+    for sensor, src in (("lidar", SAMPLE / "lidar" / "os1-128" / "seq0"), ("radar", SAMPLE / "radar" / "seq0")):
+        dest = root / sensor / "seq0"
+        dest.mkdir(parents=True)
+        shutil.copy(src / f"{sensor}.yaml", dest)
+        for i in range(2):
+            cloud = _with_label(read_pointcloud(src / f"{i:06d}.pcd", sensor=sensor), seed=i)
+            write_pointcloud(dest / f"{i:06d}.pcd", cloud)
+            np.save(dest / f"{i:06d}_ids.npy", np.arange(len(cloud), dtype=np.int64) * 3 + 1)
+    return root
+
+
+def _chain_result(recipe, in_root: Path, sample: Sample, out_root: Path):
+    """What the runner does for one sample, keeping the arrays: input, output with provenance, annotations."""
+    spec = recipe.spec.inputs.annotations
+    data = load(sample, in_root, recipe)
+    sidecars = annotations.read(sample.relpath, in_root, spec, data)
+    task = next(t for t in plan(in_root, recipe) if t.sample == sample)
+    out, _ = apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
+                          sequence_id=sample.sequence_id)
+    carried, result = annotations.carry(sidecars, spec, data, out, recipe.model_ids, out_root)
+    return data, out, carried, sidecars, result
+
+
+HEAVY = {"rain": {"rain_rate_mm_per_h": 100}, "snow": {"snowfall_rate_mm_per_h": 10}, "fog": {}}
+
+
+@pytest.mark.parametrize("cnf", LIDAR_CNFS + RADAR_CNFS)
+def test_pcl_label_and_sidecar_through_every_lidar_and_radar_cnf(xyzl_tree, tmp_path, cnf):
+    """Every point that came from the input keeps its label value and dtype (checked through the provenance);
+    new points (moved to a particle, added, clutter) get the configured class of their weather; the written file
+    and the ``.npy`` sidecar line up with the written cloud."""
+    from roadview_noise.compound import CNFS
+
+    sensor = "radar" if cnf in RADAR_CNFS else "lidar"
+    weather = CNFS[cnf].weather
+    recipe = _recipe({"cnf": cnf, "sensor": sensor, "params": {f"{weather}.{sensor}": HEAVY[weather]},
+                      "inputs": {sensor: f"{sensor}/**/*.pcd", "annotations": {
+                          "point_labels": "{stem}_ids.npy", "weather_class": CLASSES}}}, tmp_path)
+    samples = discover(xyzl_tree, recipe)
+    assert [s.relpath for s in samples] == [f"{sensor}/seq0/000000.pcd", f"{sensor}/seq0/000001.pcd"]
+    new_class = CLASSES["clutter" if sensor == "radar" else weather]
+    n_new = 0
+    for s in samples:
+        data, out, carried, sidecars, result = _chain_result(recipe, xyzl_tree, s, tmp_path / "api")
+        label_in = data.fields["label"]
+        origin = np.arange(len(out)) if out.origin is None else out.origin
+        effect = np.zeros(len(out), np.uint8) if out.effect is None else out.effect
+        own, new = effect <= Effect.ATTENUATED, is_new(effect)
+        assert own.sum() + new.sum() == len(out)                        # lists: removal is absence
+        assert carried.fields["label"].dtype == np.uint32
+        np.testing.assert_array_equal(carried.fields["label"][own], label_in[origin[own]])
+        assert np.all(carried.fields["label"][new] == new_class)
+        annotations.write(result)
+        ids = np.load(tmp_path / "api" / s.relpath.replace(".pcd", "_ids.npy"))
+        assert ids.dtype == np.int64 and len(ids) == len(out)
+        np.testing.assert_array_equal(ids[own], sidecars[0].data[origin[own]])
+        assert np.all(ids[new] == new_class)
+        n_new += int(new.sum())
+    if sensor == "lidar" or weather != "fog":
+        assert n_new > 0, "the chain made no new points: the test would not test them"
+    # the runner writes exactly these arrays
+    out_root = tmp_path / "out"
+    summary = run(recipe, xyzl_tree, out_root, workers=1, progress=False, echo=lambda *_: None)
+    assert summary.failed == 0
+    for s in samples:
+        _, _, carried, _, _ = _chain_result(recipe, xyzl_tree, s, out_root)
+        back = read_pointcloud(out_root / s.relpath, sensor=sensor)
+        np.testing.assert_array_equal(back.fields["label"], carried.fields["label"])
+        np.testing.assert_array_equal(back.fields["rv_effect"], carried.effect)
+        assert len(np.load(out_root / s.relpath.replace(".pcd", "_ids.npy"))) == len(back)
+    entry = read_manifest(out_root / "manifest.jsonl")[0]
+    assert [f["path"] for f in entry["files"]] == [entry["output"], entry["output"].replace(".pcd", "_ids.npy")]
+    assert entry["annotations_read"][0]["path"] == entry["input"].replace(".pcd", "_ids.npy")
+
+
+# --- SemanticKITTI ---------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def semantickitti(tmp_path: Path) -> Path:
+    """sequences/00/velodyne/*.bin (KITTI float32 x y z i) with sequences/00/labels/*.label (uint32) beside it."""
+    root = tmp_path / "in"
+    velo, labels = root / "sequences" / "00" / "velodyne", root / "sequences" / "00" / "labels"
+    velo.mkdir(parents=True)
+    labels.mkdir(parents=True)
+    src = SAMPLE / "lidar" / "os1-128-kitti" / "seq0"
+    shutil.copy(src / "lidar.yaml", velo)
+    rng = np.random.default_rng(3)
+    for i in range(2):
+        shutil.copy(src / f"{i:06d}.bin", velo)
+        n = (src / f"{i:06d}.bin").stat().st_size // 16
+        (rng.choice([10, 40, 48, 50, 70, 252], n).astype("<u4") | (rng.integers(0, 9, n).astype("<u4") << 16)
+         ).tofile(labels / f"{i:06d}.label")
+    return root
+
+
+def _sk_recipe(model: str, tmp_path: Path, **annotations_spec):
+    return _recipe({"chain": [{"model": model}], "inputs": {
+        "lidar": "sequences/*/velodyne/*.bin",
+        "annotations": {"point_labels": "../labels/{stem}.label", **annotations_spec}}}, tmp_path)
+
+
+@pytest.mark.parametrize("model", ["fog.lidar", "rain.lidar", "snow.lidar"])
+def test_semantickitti_tree_keeps_labels_aligned(semantickitti, tmp_path, model):
+    """``OUT/…/labels/000000.label`` lines up with ``OUT/…/velodyne/000000.bin``: one label per point, the input's
+    label on every point still at its input position (KEPT/ATTENUATED in the ``.bin.rv_effect`` sidecar), SemanticSTF's
+    20 on weather points."""
+    params = {"rain.lidar": {"rain_rate_mm_per_h": 100}, "snow.lidar": {"snowfall_rate_mm_per_h": 10}}
+    recipe = _sk_recipe(model, tmp_path)
+    recipe = _recipe({**recipe.spec.model_dump(by_alias=True, exclude={"schema_"}), "seed": 7,
+                      "params": {model: params.get(model, {"visibility_m": 20})}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, semantickitti, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    for i in range(2):
+        velo = f"sequences/00/velodyne/{i:06d}.bin"
+        cloud_in = read_pointcloud(semantickitti / velo)
+        labels_in = np.fromfile(semantickitti / f"sequences/00/labels/{i:06d}.label", "<u4")
+        cloud = read_pointcloud(out / velo)
+        labels = np.fromfile(out / f"sequences/00/labels/{i:06d}.label", "<u4")
+        effect = np.fromfile(out / (velo + ".rv_effect"), np.uint8)
+        assert len(labels) == len(cloud) == len(effect)
+        where = {p.tobytes(): k for k, p in enumerate(cloud_in.positions_m.astype(np.float32))}
+        own = np.flatnonzero(effect <= Effect.ATTENUATED)
+        src = np.array([where[p.tobytes()] for p in cloud.positions_m[own].astype(np.float32)])
+        np.testing.assert_array_equal(labels[own], labels_in[src])
+        new = is_new(effect)
+        assert new.any() and np.all(labels[new] == 20)
+    entry = read_manifest(out / "manifest.jsonl")[0]
+    assert {f["path"] for f in entry["files"]} == {
+        "sequences/00/velodyne/000000.bin", "sequences/00/velodyne/000000.bin.rv_effect",
+        "sequences/00/labels/000000.label"}
+    # replay reproduces the cloud, its effect sidecar and the labels
+    result = replay(out / "manifest.jsonl", "sequences/00/velodyne/000001.bin")
+    assert result["match"] and len(result["files"]) == 3 and all(f["got"] == f["expected"] for f in result["files"])
+
+
+def test_wrong_length_sidecar_fails_that_file_only(semantickitti, tmp_path):
+    bad = semantickitti / "sequences/00/labels/000001.label"
+    bad.write_bytes(bad.read_bytes()[:-8])
+    out = tmp_path / "out"
+    summary = run(_sk_recipe("fog.lidar", tmp_path), semantickitti, out, workers=1, progress=False,
+                  echo=lambda *_: None)
+    assert summary.done == 1 and summary.failed == 1
+    err = summary.failures[0]
+    assert "sequences/00/labels/000001.label" in err and "velodyne/000001.bin" in err and "point labels" in err
+    assert not (out / "sequences/00/velodyne/000001.bin").exists()
+    assert not (out / "sequences/00/labels/000001.label").exists()
+    assert (out / "sequences/00/labels/000000.label").is_file()
+
+
+def test_sweep_variants_get_their_own_label_files(semantickitti, tmp_path):
+    recipe = _recipe({"chain": [{"model": "fog.lidar"}], "sweep": {"fog.lidar.visibility_m": [20, 200]},
+                      "inputs": {"lidar": "sequences/*/velodyne/*.bin",
+                                 "annotations": {"point_labels": "../labels/{stem}.label"}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, semantickitti, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    for v in ("20", "200"):
+        cloud = read_pointcloud(out / f"sequences/00/velodyne/000000__visibility_m-{v}.bin")
+        assert len(np.fromfile(out / f"sequences/00/labels/000000__visibility_m-{v}.label", "<u4")) == len(cloud)
+
+
+def test_sidecar_outside_the_input_root_is_refused(semantickitti, tmp_path):
+    recipe = _recipe({"chain": [{"model": "fog.lidar"}], "inputs": {
+        "lidar": "sequences/*/velodyne/*.bin", "annotations": {"point_labels": "../../../../x/{stem}.label"}}},
+        tmp_path)
+    summary = run(recipe, semantickitti, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None)
+    assert summary.failed == 2 and "leaves the input root" in summary.failures[0]
+    outside = tmp_path / "elsewhere"
+    shutil.move(semantickitti / "sequences/00/labels", outside)
+    (semantickitti / "sequences/00/labels").symlink_to(outside)
+    summary = run(_sk_recipe("fog.lidar", tmp_path), semantickitti, tmp_path / "out2", workers=1, progress=False,
+                  echo=lambda *_: None)
+    assert summary.failed == 2 and "through a link" in summary.failures[0]
+
+
+def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
+    from roadview_noise.errors import RecipeError
+
+    with pytest.raises(RecipeError, match="point_label.*did you mean 'point_labels'"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"point_label": "x"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="inputs.annotations.masks: masks annotate images; this chain acts on lidar"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"masks": "{stem}.png"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="point_labels annotate point clouds"):
+        _recipe({"cnf": "CNF10", "inputs": {"annotations": {"point_labels": "{stem}.label"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="weather_class"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"weather_class": {"hail": 3}}}}, tmp_path)
+
+
+# --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
+
+
+def test_nuscenes_lidarseg_through_the_tables(tmp_path):
+    """``{nuscenes: v1.0-mini}``: the cloud's sample_data record gives its lidarseg file; uint8 classes; new points
+    get nuScenes' class 0 "noise"; the lidarseg files are not taken for clouds."""
+    root = tmp_path / "in"
+    src = SAMPLE / "lidar" / "os1-128" / "seq0" / "000000.pcd"
+    cloud = read_pointcloud(src)
+    table = np.column_stack([cloud.positions_m, cloud.fields["intensity"], cloud.fields["ring"]]).astype("<f4")
+    name = "samples/LIDAR_TOP/n008-2018-08-01-15-16-36-0400__LIDAR_TOP__1533151603547590.pcd.bin"
+    (root / name).parent.mkdir(parents=True)
+    table.tofile(root / name)
+    shutil.copy(src.parent / "lidar.yaml", (root / name).parent)
+    token = "9d9bf11fb0e144c8b446d54a8a00184f"
+    (root / "lidarseg/v1.0-mini").mkdir(parents=True)
+    classes = np.random.default_rng(1).integers(1, 32, len(cloud)).astype(np.uint8)
+    classes.tofile(root / f"lidarseg/v1.0-mini/{token}_lidarseg.bin")
+    (root / "v1.0-mini").mkdir()
+    (root / "v1.0-mini/lidarseg.json").write_text(json.dumps(
+        [{"token": "aa" * 16, "sample_data_token": token, "filename": f"lidarseg/v1.0-mini/{token}_lidarseg.bin"}]))
+    (root / "v1.0-mini/sample_data.json").write_text(json.dumps([
+        {"token": "bb" * 16, "sample_token": "s", "filename": "samples/CAM_FRONT/x.jpg", "prev": ""},
+        {"token": token, "sample_token": "s", "ego_pose_token": "e", "is_key_frame": True, "filename": name,
+         "prev": "", "next": ""}], indent=2))
+    recipe = _recipe({"chain": [{"model": "rain.lidar", "params": {"rain_rate_mm_per_h": 100}}],
+                      "inputs": {"annotations": {"point_labels": {"nuscenes": "v1.0-mini"}}}}, tmp_path)
+    assert [s.relpath for s in discover(root, recipe)] == [name]
+    out = tmp_path / "out"
+    assert run(recipe, root, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    labels = np.fromfile(out / f"lidarseg/v1.0-mini/{token}_lidarseg.bin", np.uint8)
+    effect = np.fromfile(out / (name + ".rv_effect"), np.uint8)
+    assert len(labels) == len(read_pointcloud(out / name)) == len(effect)
+    assert is_new(effect).any() and np.all(labels[is_new(effect)] == 0)
+    assert np.all(labels[~is_new(effect)] > 0)
+
+
+# --- field roles -----------------------------------------------------------------------------------------------------
+
+
+def test_field_roles_class_instance_sensor_and_override(tmp_path):
+    """CARLA semantic fields: ObjTag (class) gets the weather class, ObjIdx (instance) 0 on new points; sensor fields
+    (t, ring) keep their ray's value; ``field_roles`` turns an unknown field into an annotation."""
+    prof = os1_128()
+    src = read_pointcloud(SAMPLE / "lidar" / "os1-128" / "seq0" / "000000.pcd", profile=prof)
+    n = len(src)
+    rng = np.random.default_rng(5)
+    extra = {"ObjIdx": rng.integers(1, 90, n).astype(np.uint32), "ObjTag": rng.integers(1, 20, n).astype(np.uint32),
+             "t": np.arange(n, dtype=np.uint32), "my_tag": np.full(n, 7, np.int16)}
+    cloud = dataclasses.replace(src.with_fields(**extra), layout=dataclasses.replace(
+        src.layout, fields=src.layout.fields + tuple((k, k, v.dtype.str) for k, v in extra.items())))
+    spec = annotations.AnnotationsSpec(field_roles={"my_tag": "class"}, weather_class={"fog": 99})
+    out, _ = apply_models([MODELS["fog.lidar"](visibility_m=15.0)], cloud, seed=1, key="k", sequence_id="s")
+    carried, _ = annotations.carry([], spec, cloud, out, ["fog.lidar"], tmp_path)
+    new = is_new(carried.effect)
+    moved = carried.effect == Effect.MOVED
+    assert moved.any() and new.any()
+    assert np.all(carried.fields["ObjTag"][new] == 99) and np.all(carried.fields["ObjIdx"][new] == 0)
+    assert np.all(carried.fields["my_tag"][new] == 99) and carried.fields["my_tag"].dtype == np.int16
+    np.testing.assert_array_equal(carried.fields["t"][moved], extra["t"][carried.origin[moved]])
+    np.testing.assert_array_equal(carried.fields["ring"][moved], cloud.fields["ring"][carried.origin[moved]])
+    own = ~new
+    for k in ("ObjIdx", "ObjTag", "t"):
+        np.testing.assert_array_equal(carried.fields[k][own], extra[k][carried.origin[own]])
+    assert annotations.field_role("Label") == "class" and annotations.field_role("label", {"label": "sensor"}) == \
+        "sensor" and annotations.field_role("ambient") == "sensor"
+
+
+def test_removed_grid_cells_lose_their_annotation(tmp_path):
+    """A full grid keeps its cells: a cell whose return the weather removed is REMOVED and its label 0."""
+    src = read_pointcloud(SAMPLE / "lidar" / "os1-128-grid" / "seq0" / "000000.pcd", profile=os1_128())
+    label = (np.arange(len(src)) % 250 + 1).astype(np.uint16)
+    cloud = src.with_fields(label=label)
+    out, _ = apply_models([MODELS["rain.lidar"](rain_rate_mm_per_h=100.0)], cloud, seed=1, key="k", sequence_id="s")
+    carried, _ = annotations.carry([], annotations.AnnotationsSpec(), cloud, out, ["rain.lidar"], tmp_path)
+    assert out.origin is None and len(out) == len(cloud)
+    removed = carried.effect == Effect.REMOVED
+    assert removed.any() and np.all(carried.fields["label"][removed] == 0)
+    assert np.all(carried.positions_m[removed] == 0)
+    kept = carried.effect <= Effect.ATTENUATED
+    np.testing.assert_array_equal(carried.fields["label"][kept], label[kept])
+
+
+# --- camera: masks and 2-D boxes through a geometric model -------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WarpTestCamera(Model):
+    """A geometric test model (registered only in these tests): magnify about the centre by 1/0.93, shift by
+    (6.3, −4.6) px. Pull map ``x_in = cx + 0.93 (x_out − 6.3 − cx)``; its forward map is the closed form."""
+
+    id: ClassVar[str] = "warp_test.camera"
+    stage: ClassVar[Stage] = Stage.WINDSCREEN
+    sensor: ClassVar[str] = "camera"
+    scale: ClassVar[float] = 1 / 0.93
+    shift: ClassVar[tuple[float, float]] = (6.3, -4.6)
+
+    def warp(self, data, *, state, drawn):
+        h, w = data.shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        cx, cy = (w - 1) / 2, (h - 1) / 2
+        return Warp(((u - self.shift[0] - cx) / self.scale + cx).astype(np.float32),
+                    ((v - self.shift[1] - cy) / self.scale + cy).astype(np.float32))
+
+    def forward(self, x, y, w, h):
+        cx, cy = (w - 1) / 2, (h - 1) / 2
+        return (x - cx) * self.scale + cx + self.shift[0], (y - cy) * self.scale + cy + self.shift[1]
+
+    def apply(self, data, *, state, drawn, rng):
+        return data.with_signal(self.warp(data, state=state, drawn=drawn).apply(data.signal())), {}
+
+
+@pytest.fixture
+def cityscapes(tmp_path: Path, monkeypatch) -> Path:
+    monkeypatch.setitem(MODELS, WarpTestCamera.id, WarpTestCamera)
+    root = tmp_path / "in"
+    rng = np.random.default_rng(2)
+    h, w = 60, 80
+    img = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    write_image(root / "leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png", img, ImageEncoding())
+    labels = rng.integers(0, 34, (h, w)).astype(np.uint8)
+    instances = rng.integers(0, 30000, (h, w)).astype(np.uint16)
+    gt = root / "gtFine/val/lindau"
+    gt.mkdir(parents=True)
+    cv2.imwrite(str(gt / "lindau_000001_000019_gtFine_labelIds.png"), labels)
+    cv2.imwrite(str(gt / "lindau_000001_000019_gtFine_instanceIds.png"), instances)
+    (gt / "lindau_000001_000019_label_2.txt").write_text(
+        "Car 0.00 0 -1.58 10.00 12.50 40.25 30.00 1.50 1.60 3.90 -1.00 1.70 12.00 -1.59\n"
+        "Pedestrian 0.00 1 0.20 70.00 50.00 79.00 59.00 1.70 0.60 0.80 3.00 1.70 9.00 0.10\n"
+        "Cyclist 0.00 0 0.20 0.00 0.00 2.00 2.00 1.70 0.60 0.80 3.00 1.70 9.00 0.10\n")
+    (gt / "lindau_000001_000019_yolo.txt").write_text("2 0.25 0.5 0.2 0.3\n0 0.1 0.1 0.4 0.1 0.4 0.4\n")
+    return root
+
+
+def _gt(suffix: str) -> dict:
+    """Cityscapes: leftImg8bit/… /X_leftImg8bit.png → gtFine/… /X_<suffix>."""
+    return {"replace": {"leftImg8bit/": "gtFine/", "_leftImg8bit.png": f"_{suffix}"}}
+
+
+def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_path):
+    """The mask is resampled through the very map that moved the image (nearest neighbour, 255 where the map
+    leaves the image), pixel for pixel; the image is the map applied to the input; the masks are no inputs."""
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "**/*.png", "annotations": {"masks": [_gt("gtFine_labelIds.png"), _gt("gtFine_instanceIds.png")],
+                                              "boxes_2d": _gt("label_2.txt")}}}, tmp_path)
+    image_rel = "leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png"
+    assert [s.relpath for s in discover(cityscapes, recipe)] == [image_rel]
+    out = tmp_path / "out"
+    assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    model = WarpTestCamera()
+    frame = load(Sample(image_rel, "camera", "leftImg8bit/val/lindau"), cityscapes, recipe)
+    warp = model.warp(frame, state={}, drawn={})
+    frac = np.abs(np.concatenate([warp.map_x.ravel(), warp.map_y.ravel()]) % 1 - 0.5)
+    assert frac.min() > 1e-3                                          # no rounding ties in the oracle
+    write_image(tmp_path / "expected.png", warp.apply(frame.linear_rgb), frame.encoding)
+    np.testing.assert_array_equal(read_image(out / image_rel)[0], read_image(tmp_path / "expected.png")[0])
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    inside = (xs >= 0) & (xs < 80) & (ys >= 0) & (ys < 60)
+    for name in ("labelIds", "instanceIds"):
+        mask_in = cv2.imread(str(cityscapes / f"gtFine/val/lindau/lindau_000001_000019_gtFine_{name}.png"),
+                             cv2.IMREAD_UNCHANGED)
+        mask_out = cv2.imread(str(out / f"gtFine/val/lindau/lindau_000001_000019_gtFine_{name}.png"),
+                              cv2.IMREAD_UNCHANGED)
+        assert mask_out.dtype == mask_in.dtype and mask_out.shape == mask_in.shape
+        oracle = np.where(inside, mask_in[np.clip(ys, 0, 59), np.clip(xs, 0, 79)], 255)
+        np.testing.assert_array_equal(mask_out, oracle)
+        assert np.any(~inside)
+    # KITTI boxes: corners through the closed-form forward map, clipped; other fields kept; a box pushed off the
+    # image is dropped
+    lines = (out / "gtFine/val/lindau/lindau_000001_000019_label_2.txt").read_text().splitlines()
+    assert [ln.split()[0] for ln in lines] == ["Car", "Pedestrian"]
+    car = lines[0].split()
+    x0, y0 = model.forward(10.0, 12.5, 80, 60)
+    x1, y1 = model.forward(40.25, 30.0, 80, 60)
+    np.testing.assert_allclose([float(v) for v in car[4:8]], [x0, y0, x1, y1], atol=0.01)
+    assert car[8:] == "1.50 1.60 3.90 -1.00 1.70 12.00 -1.59".split() and car[:4] == ["Car", "0.00", "0", "-1.58"]
+    ped = [float(v) for v in lines[1].split()[4:8]]
+    assert ped[2] == 79.0 and ped[0] < 79.0                          # clipped to the image
+    entry = read_manifest(out / "manifest.jsonl")[0]
+    assert len(entry["files"]) == 4 and {a["role"] for a in entry["annotations_read"]} == {"mask", "boxes_2d"}
+    assert replay(out / "manifest.jsonl", image_rel)["match"]
+
+
+def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {
+            "boxes_2d": _gt("yolo.txt"),
+            "boxes_2d_format": "yolo"}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    model = WarpTestCamera()
+    box, poly = [ln.split() for ln in (out / "gtFine/val/lindau/lindau_000001_000019_yolo.txt").read_text()
+                 .splitlines()]
+    (x0, x1), (y0, y1) = model.forward(np.array([0.15, 0.35]) * 80 - 0.5, np.array([0.35, 0.65]) * 60 - 0.5, 80, 60)
+    x0, x1, y0, y1 = (x0 + 0.5) / 80, (x1 + 0.5) / 80, (y0 + 0.5) / 60, (y1 + 0.5) / 60
+    np.testing.assert_allclose([float(v) for v in box[1:]], [(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0],
+                               atol=1e-5)
+    px, py = model.forward(np.array([0.1, 0.4, 0.4]) * 80 - 0.5, np.array([0.1, 0.1, 0.4]) * 60 - 0.5, 80, 60)
+    np.testing.assert_allclose(np.array(poly[1:], float).reshape(-1, 2),
+                               np.stack([np.clip(px + 0.5, 0, 80) / 80, np.clip(py + 0.5, 0, 60) / 60], 1), atol=1e-5)
+    assert np.any(py + 0.5 < 0)                                      # a vertex pushed off the image is clipped
+
+
+def test_photometric_chain_copies_masks_byte_for_byte(cityscapes, tmp_path):
+    rel = "gtFine/val/lindau/lindau_000001_000019_gtFine_labelIds.png"
+    recipe = _recipe({"chain": [{"model": "compression.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": _gt("gtFine_labelIds.png")}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    assert (out / rel).read_bytes() == (cityscapes / rel).read_bytes()
+
+
+def test_mask_of_another_size_fails_that_image(cityscapes, tmp_path):
+    rel = "gtFine/val/lindau/lindau_000001_000019_gtFine_labelIds.png"
+    cv2.imwrite(str(cityscapes / rel), np.zeros((30, 40), np.uint8))
+    recipe = _recipe({"chain": [{"model": "compression.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": _gt("gtFine_labelIds.png")}}}, tmp_path)
+    summary = run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None)
+    assert summary.failed == 1 and "40×30" in summary.failures[0] and "80×60" in summary.failures[0]
+
+
+# --- objects: 3-D boxes ----------------------------------------------------------------------------------------------
+
+
+def _object_scene() -> tuple[PointCloud, list[dict]]:
+    """Rings × columns of an OS1-128 seeing two cars (near at 8 m, far at 45 m) on a ground plane."""
+    prof = os1_128()
+    el = np.deg2rad(np.asarray(prof.beam_elevation_deg))
+    az = np.linspace(-0.6, 0.6, 400)
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    ring = np.repeat(np.arange(len(el)), len(az)).astype(np.uint16)
+    boxes = [{"id": "near", "class": "car", "center_m": [8.0, 1.0, -1.0], "size_m": [4.0, 1.8, 1.6], "yaw_rad": 0.3},
+             {"id": "far", "class": "car", "center_m": [45.0, -3.0, -1.0], "size_m": [4.0, 1.8, 1.6],
+              "yaw_rad": -0.2}]
+    best = np.full(len(d), np.inf)
+    with np.errstate(divide="ignore"):
+        t = np.where(d[:, 2] < 0, -1.8 / d[:, 2], np.inf)
+    best = np.minimum(best, t)
+    for b in boxes:                                  # box faces: sample by marching the ray (fine enough here)
+        c, s, yaw = np.array(b["center_m"]), np.array(b["size_m"]) / 2, b["yaw_rad"]
+        for r in np.arange(2.0, 60.0, 0.02):
+            p = d * r - c
+            u = np.cos(yaw) * p[:, 0] + np.sin(yaw) * p[:, 1]
+            v = -np.sin(yaw) * p[:, 0] + np.cos(yaw) * p[:, 1]
+            hit = (np.abs(u) <= s[0]) & (np.abs(v) <= s[1]) & (np.abs(p[:, 2]) <= s[2]) & (r < best)
+            best[hit] = r
+    keep = np.isfinite(best) & (best < 80)
+    pos = d[keep] * best[keep, None]
+    intensity = (2000.0 / best[keep] ** 2 * 40).astype(np.float32)
+    layout = CloudLayout("pcd", (("x", "x", "<f4"), ("y", "y", "<f4"), ("z", "z", "<f4"),
+                                 ("intensity", "intensity", "<f4"), ("ring", "ring", "<u2")))
+    cloud = PointCloud(pos.astype(np.float32).astype(np.float64), {"intensity": intensity, "ring": ring[keep]},
+                       "lidar", prof, layout)
+    return cloud, boxes
+
+
+def test_objects_count_their_points_before_and_after(tmp_path):
+    """JSON boxes in the sensor frame and the same boxes as KITTI label_2 + calib give the same counts; in dense fog
+    the far car keeps none of its points: the manifest marks it lost."""
+    cloud, boxes = _object_scene()
+    root = tmp_path / "in" / "lidar"
+    write_pointcloud(root / "000000.pcd", cloud)
+    (root / "000000.json").write_text(json.dumps({"boxes": boxes}))
+    # KITTI: camera x = −y_velo, y = −z_velo, z = x_velo; bottom-centre; rotation_y = −yaw − π/2 (KITTI devkit)
+    calib = "P2: " + " ".join(["0"] * 12) + "\nR0_rect: 1 0 0 0 1 0 0 0 1\nTr_velo_to_cam: 0 -1 0 0 0 0 -1 0 1 0 0 0\n"
+    (root / "000000_calib.txt").write_text(calib)
+    lines = []
+    for b in boxes:
+        (x, y, z), (ln, wd, ht) = b["center_m"], b["size_m"]
+        lines.append(f"Car 0 0 0 0 0 10 10 {ht} {wd} {ln} {-y} {-z + ht / 2} {x} {-b['yaw_rad'] - np.pi / 2}")
+    (root / "000000_label.txt").write_text("\n".join(lines) + "\n")
+    counts = {}
+    for fmt, spec in (("json", {"boxes_3d": "{stem}.json"}),
+                      ("kitti", {"boxes_3d": "{stem}_label.txt", "calib": "{stem}_calib.txt"})):
+        recipe = _recipe({"chain": [{"model": "fog.lidar", "params": {"visibility_m": 12.0}}],
+                          "inputs": {"lidar": "lidar/*.pcd", "annotations": spec}}, tmp_path)
+        out = tmp_path / f"out-{fmt}"
+        assert run(recipe, tmp_path / "in", out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+        counts[fmt] = read_manifest(out / "manifest.jsonl")[0]["objects"]
+        assert (out / "lidar" / ("000000.json" if fmt == "json" else "000000_calib.txt")).is_file()
+    near, far = counts["json"]
+    # independent count: points of the input inside each box, by rotating the points into the box frame
+    for b, obj in zip(boxes, (near, far)):
+        p = cloud.positions_m - b["center_m"]
+        c, s = np.cos(b["yaw_rad"]), np.sin(b["yaw_rad"])
+        local = np.stack([c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1], p[:, 2]], 1)
+        assert obj["points_before"] == int(np.all(np.abs(local) <= np.array(b["size_m"]) / 2, axis=1).sum()) > 50
+    assert near["points_after"] > 0 and not near["lost"]
+    assert far["points_after"] == 0 and far["lost"]
+    assert [(o["points_before"], o["points_after"]) for o in counts["kitti"]] == \
+        [(o["points_before"], o["points_after"]) for o in counts["json"]]

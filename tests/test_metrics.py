@@ -1,0 +1,257 @@
+"""Metrics of the manifest (roadview_noise.metrics) against hand-computed cases and scikit-image."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from roadview_noise.compound import apply_models
+from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, Effect, compare, correspondence, metric_scale, psnr_db, ssim,
+                                    with_effect_codes)
+from roadview_noise.physics.srgb import decode
+from roadview_noise.profiles.lidar import os1_128
+from roadview_noise.registry import get_model
+from roadview_noise.types import CameraFrame, CameraProfile, PointCloud, RadarProfile, RawFrame
+
+PROFILE = CameraProfile.from_fov("test", 64, 48, 90.0)
+
+
+def frame_of_codes(codes: np.ndarray, depth_m: np.ndarray | None = None) -> CameraFrame:
+    """A frame whose sRGB code values (0–1, exact multiples of 1/65535) are ``codes`` (grey, H×W)."""
+    linear = decode(np.repeat(codes[..., None], 3, axis=2)).astype(np.float32)
+    h, w = codes.shape
+    return CameraFrame(linear, dataclasses.replace(PROFILE, width_px=w, height_px=h), depth_m=depth_m)
+
+
+def code(k: int) -> float:
+    return k / 65535
+
+
+def two_levels(lo: float, hi: float, h=48, w=64) -> np.ndarray:
+    img = np.full((h, w), lo)
+    img[:, w // 2:] = hi
+    return img
+
+
+# --- camera ------------------------------------------------------------------------------------------------------
+
+
+def test_identity_frame_psnr_inf_ssim_one():
+    rng = np.random.default_rng(0)
+    f = CameraFrame(rng.random((48, 64, 3), dtype=np.float32), PROFILE)
+    m = compare(f, f)
+    assert m["psnr_db"] == math.inf
+    assert m["ssim"] == 1.0
+    assert m["rms_contrast_in"] == m["rms_contrast_out"]
+    assert m["edge_density_in"] == m["edge_density_out"]
+    # a copy (another object, no cache hit) gives the same
+    assert compare(f, dataclasses.replace(f, linear_rgb=f.linear_rgb.copy()))["psnr_db"] == math.inf
+
+
+def test_rms_contrast_of_two_levels_and_a_contrast_change():
+    lo, hi = code(10000), code(50000)
+    before = frame_of_codes(two_levels(lo, hi))
+    mid = (lo + hi) / 2
+    after = frame_of_codes(two_levels(code(20000), code(40000)))          # contrast halved around the mean
+    m = compare(before, after)
+    assert m["rms_contrast_in"] == pytest.approx((hi - lo) / 2, abs=2e-6)      # σ of two equal halves
+    assert m["rms_contrast_out"] == pytest.approx((hi - lo) / 4, abs=2e-6)
+    assert m["mean_level_in"] == pytest.approx(mid, abs=2e-6)
+    assert m["mean_level_out"] == pytest.approx(mid, abs=2e-6)
+
+
+def test_psnr_of_a_uniform_offset():
+    a = frame_of_codes(np.full((48, 64), code(30000)))
+    b = frame_of_codes(np.full((48, 64), code(30000 + 655)))
+    delta = 655 / 65535
+    assert compare(a, b)["psnr_db"] == pytest.approx(-20 * math.log10(delta), abs=1e-3)
+    assert psnr_db(np.zeros(4), np.full(4, 0.1)) == pytest.approx(20.0)
+
+
+def test_edge_density_of_a_step_a_square_and_the_visibility_threshold():
+    step = frame_of_codes(two_levels(0.0, code(51400)))
+    assert compare(step, step)["edge_density_in"] == 2 * 48 / (48 * 64)       # the two columns beside the step
+    square = np.zeros((48, 64))
+    square[10:30, 20:40] = code(51400)
+    assert compare(frame_of_codes(square), step)["edge_density_in"] == (22 * 22 - 18 * 18) / (48 * 64)
+    lo = 20000
+    visible = frame_of_codes(two_levels(code(lo), code(lo + 3277)))            # a 5.0 % step
+    faint = frame_of_codes(two_levels(code(lo), code(lo + 3200)))              # a 4.9 % step
+    assert compare(visible, faint)["edge_density_in"] == 2 * 48 / (48 * 64)
+    assert compare(visible, faint)["edge_density_out"] == 0.0
+
+
+def test_contrast_per_depth_bin():
+    h, w = 48, 64
+    codes = np.empty((h, w))
+    codes[:24, ::2], codes[:24, 1::2] = code(10000), code(30000)   # near half: contrast 10000
+    codes[24:, ::2], codes[24:, 1::2] = code(20000), code(24000)   # far half: contrast 2000
+    depth = np.full((h, w), 5.0)
+    depth[24:] = np.inf                                             # sky: the last bin
+    m = compare(frame_of_codes(codes, depth), frame_of_codes(codes, depth))
+    assert m["depth_bin_edges_m"] == list(DEPTH_BIN_EDGES_M)
+    per_bin = m["rms_contrast_per_depth_bin_out"]
+    assert per_bin[0] == pytest.approx(code(10000), abs=2e-6)
+    assert per_bin[-1] == pytest.approx(code(2000), abs=2e-6)
+    assert per_bin[1:-1] == [None, None, None]
+
+
+def test_ssim_matches_scikit_image():
+    skm = pytest.importorskip("skimage.metrics")
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:90, 0:120]
+    a = (0.5 + 0.3 * np.sin(x / 7.0) * np.cos(y / 5.0)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1).astype(np.float32) * 0.8 + 0.1
+    ref = skm.structural_similarity(a, b, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False)
+    assert ssim(a, b) == pytest.approx(ref, abs=2e-4)
+    assert ssim(a, a) == 1.0
+    assert ssim(a[:8], a[:8]) is None                       # smaller than the 11×11 window
+
+
+def test_metric_scale_leaves_at_most_65536_pixels():
+    assert metric_scale(1464, 1936) == 7                                       # 209 × 276
+    assert metric_scale(366, 484) == 2                                         # 183 × 242
+    assert metric_scale(256, 256) == 1 and metric_scale(257, 256) == 2
+    for h, w in ((1080, 1920), (2048, 2448), (720, 1280), (64, 5000)):
+        f = metric_scale(h, w)
+        assert (h // f) * (w // f) <= 65536 < (h // (f - 1)) * (w // (f - 1)) if f > 1 else h * w <= 65536
+    rng = np.random.default_rng(1)
+    f = CameraFrame(rng.random((1464, 1936, 3), dtype=np.float32) * 0.5, PROFILE.resized(1936, 1464))
+    m = compare(f, f)
+    assert m["metric_scale"] == 7 and m["psnr_db"] == math.inf
+    # the box filter averages pixel noise away: the reduced image has far less contrast than single pixels
+    assert m["rms_contrast_in"] < 0.05
+
+
+def test_raw_frame_metrics():
+    rng = np.random.default_rng(2)
+    dn = rng.integers(64, 4000, (48, 64)).astype(np.float32)
+    raw = RawFrame(dn, "RGGB", 64.0, 4095.0, PROFILE)
+    m = compare(raw, raw)
+    assert m["psnr_db"] == math.inf and m["ssim"] == 1.0 and m["metric_scale"] == 1   # on 24×32 CFA cells
+    darker = dataclasses.replace(raw, dn=(dn - 64) * 0.5 + 64)
+    assert compare(raw, darker)["mean_level_out"] < m["mean_level_in"]
+
+
+# --- point clouds ------------------------------------------------------------------------------------------------
+
+
+def lidar_list(n=100, seed=0) -> PointCloud:
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    r = rng.uniform(1, 95, n)
+    return PointCloud(direction * r[:, None], {"intensity": rng.uniform(10, 100, n).astype(np.float32)}, "lidar",
+                      profile=os1_128())
+
+
+def test_identity_cloud_nothing_removed():
+    c = lidar_list()
+    m = compare(c, c)
+    assert (m["points_in"], m["points_out"], m["kept"]) == (100, 100, 100)
+    assert m["removed"] == m["added"] == m["moved"] == m["attenuated"] == 0
+    assert m["mean_intensity_change"] == 0.0
+    assert m["max_range_m_in"] == m["max_range_m_out"] == pytest.approx(c.ranges_m.max())
+    assert sum(m["points_per_10m_in"]) == 100
+    assert m["points_per_10m_in"] == np.bincount((c.ranges_m // 10).astype(int)).tolist()
+
+
+def test_known_drop_mask_moves_and_additions_give_exact_counts():
+    c = lidar_list()
+    drop = np.zeros(100, bool)
+    drop[[3, 17, 40, 41, 99]] = True
+    label = np.zeros(100, np.uint8)
+    label[[5, 6]] = Effect.MOVED
+    label[[7, 8, 9]] = Effect.ATTENUATED
+    pos = c.positions_m.copy()
+    pos[[5, 6]] *= 0.25                                           # moved along their rays
+    intensity = c.fields["intensity"].copy()
+    intensity[[7, 8, 9]] -= 6.0
+    after = PointCloud(pos, {"intensity": intensity}, "lidar", profile=c.profile).select(~drop)
+    after = after.concat(np.array([[1.0, 2.0, 0.5], [3.0, 0.0, 0.1]]), {"intensity": np.full(2, 5, np.float32)})
+    after = with_effect_codes(after, np.concatenate([label[~drop], np.full(2, Effect.ADDED)]))
+    m = compare(c, after)
+    assert m["removed"] == 5 and m["moved"] == 2 and m["attenuated"] == 3 and m["added"] == 2
+    assert m["kept"] == 100 - 5 - 2 - 3 and m["points_out"] == 97
+    assert m["mean_intensity_change"] == pytest.approx(-6.0 * 3 / (100 - 5 - 2))
+    index, moved = correspondence(c, after)
+    assert np.array_equal(index < 0, drop)
+    assert np.flatnonzero(moved).tolist() == [5, 6]
+
+
+def test_drop_on_a_grid_and_per_object_counts():
+    c = lidar_list(64)
+    ids = np.repeat([1, 2, 0, 7], 16).astype(np.int32)
+    grid = dataclasses.replace(c.with_fields(object_id=ids), grid_shape=(4, 16))
+    drop = np.zeros(64, bool)
+    drop[[0, 1, 2, 20, 40]] = True                                # object 1 loses 3, object 2 loses 1, none: 1
+    after = grid.drop(drop)
+    m = compare(grid, after)
+    assert m["removed"] == 5 and m["points_out"] == 59 and m["kept"] == 59
+    assert m["objects"] == {"1": [16, 13], "2": [16, 15], "7": [16, 16]}
+
+
+def test_clouds_without_intensity_or_codes():
+    c = lidar_list()
+    bare = PointCloud(c.positions_m, {}, "lidar", profile=c.profile)
+    m = compare(bare, bare.select(np.arange(100) % 4 != 0))
+    assert m["removed"] == 25 and m["mean_intensity_change"] is None and m["mean_intensity_in"] is None
+
+
+def test_alignment_shift_without_removal_keeps_correspondence():
+    c = lidar_list()
+    shifted = dataclasses.replace(c, positions_m=c.positions_m + 0.01)
+    index, moved = correspondence(c, shifted)
+    assert np.array_equal(index, np.arange(100)) and not moved.any()
+    assert compare(c, shifted)["removed"] == 0
+
+
+def test_alignment_then_removal_composes_the_steps():
+    c0 = lidar_list()
+    c1 = dataclasses.replace(c0, positions_m=c0.positions_m * 1.001)            # every point moved: no exact match
+    keep = np.ones(100, bool)
+    keep[[10, 50]] = False
+    label = np.zeros(100, np.uint8)
+    label[[20, 21]] = Effect.ATTENUATED
+    label[30] = Effect.MOVED
+    pos = c1.positions_m.copy()
+    pos[30] *= 0.5
+    c2 = c1.with_fields(intensity=c1.fields["intensity"] - 4 * (label == Effect.ATTENUATED))
+    c2 = with_effect_codes(dataclasses.replace(c2, positions_m=pos).select(keep), label[keep])
+    compare(c0, c1), compare(c1, c2)                                            # the steps, as apply_models does
+    index, moved = correspondence(c0, c2)
+    assert np.array_equal(index < 0, ~keep) and np.flatnonzero(moved).tolist() == [30]
+    m = compare(c0, c2)
+    assert m["removed"] == 2 and m["moved"] == 1 and m["attenuated"] == 2
+    assert m["mean_intensity_change"] == pytest.approx(-8 / 97, rel=1e-5)
+
+
+def test_radar_snr_change_in_db():
+    rng = np.random.default_rng(4)
+    pos = rng.uniform(5, 80, (50, 3))
+    snr = rng.uniform(10, 30, 50).astype(np.float32)
+    before = PointCloud(pos, {"snr_db": snr}, "radar", profile=RadarProfile("r"))
+    label = np.full(50, Effect.ATTENUATED, np.uint8)
+    after = PointCloud(pos, {"snr_db": snr - 3.0}, "radar", profile=before.profile).select(snr > 12)
+    m = compare(before, with_effect_codes(after, label[snr > 12]))
+    assert m["mean_snr_change_db"] == pytest.approx(-3.0, abs=1e-5)
+    assert m["removed"] == int(np.count_nonzero(snr <= 12))
+    assert "mean_intensity_change" not in m
+
+
+# --- the hook in apply_models -----------------------------------------------------------------------------------
+
+
+def test_apply_models_records_step_metrics():
+    c = lidar_list(400)
+    models = [get_model("fog.lidar")(visibility_m=30.0)]
+    out, records = apply_models(models, c, seed=1, key="k", sequence_id="s")
+    m = records[0].metrics
+    assert m == compare(c, out) and m["points_in"] == 400
+    assert m["removed"] + m["moved"] + m["attenuated"] + m["kept"] == 400
+    _, off = apply_models(models, c, seed=1, key="k", sequence_id="s", metrics=False)
+    assert off[0].metrics == {}
