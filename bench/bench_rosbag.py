@@ -3,16 +3,17 @@
 Renders a drive with ``rvnoise sample-data`` (default: the sensors' full resolutions, camera 1936×1464, OS1-128
 128×2048; ``--sample`` for the committed preset), writes it as a ROS 1 bag and a ROS 2 MCAP bag (every frame
 ``--repeat`` times with new stamps; topics of ``roadview_noise.sampledata.bag``), exports each bag to an input tree
-with ``rvnoise export``, and times ``--runs`` runs of each, with 1 and 2 workers (``--workers``; a warm-up run
-starts the pool, so start-up is not timed):
+with ``rvnoise export``, and times ``--runs`` runs of each, alternating, with 1 and 2 workers (``--workers``; every
+run starts its own workers as a command does, after one warm-up run of each that starts the fork server):
 
 - files: ``runner.run`` per mapped topic (CNF16 on both cameras, CNF20 LiDAR, CNF25 radar) over the exported tree;
 - bag:   ``run_bag`` with the same chains and seed over the bag (also copying the depth and diagnostics topics).
 
 Prints per runner the median and the minimum wall time, the in-worker time (sum of the manifests' seconds) and the
-CPU time of this process: with one worker everything (runs alternate files/bag, so load drift hits both), which a
-busy shared machine disturbs far less than wall time; with more, the main process's serial work (for a bag: reading,
-hand-off to the workers, writing). And the overhead bag / files − 1. Re-run on an idle machine for the record.
+CPU time of this process: with one worker everything, which a busy shared machine disturbs far less than wall
+time; with more, the main process's serial work (for a bag: reading, hand-off to the workers, writing). And the
+overhead bag / files − 1. The files side is one ``run`` per topic (its own workers each), as a user would run it.
+Re-run on an idle machine for the record.
 
     .venv/bin/python bench/bench_rosbag.py [--sample] [--frames 3] [--repeat 2] [--runs 5] [--workers 1 2]
 """
@@ -90,15 +91,11 @@ def bench(tmp: Path, kind: str, bag: Path, recipe, args) -> None:
     for workers in args.workers:
         times: dict[str, list] = {"files": [], "bag": []}
         runners = (("files", files_run), ("bag", bag_run))
-        if workers == 1:                                                 # no pool: alternate, so that the load
-            for name, once in runners:                                   # drift of a shared machine hits both
-                once("warm", workers)
-            for _ in range(args.runs):
-                for name, once in runners:
-                    times[name].append(once(name[0], workers))
-        for name, once in runners if workers > 1 else ():               # in blocks: the two runners' pools differ
-            once("warm", workers)                                        # in arguments, so switching restarts it
-            times[name] = [once(name[0], workers) for _ in range(args.runs)]
+        for name, once in runners:                                       # fork server, imports, page cache
+            once("warm", workers)
+        for _ in range(args.runs):                                       # alternating, so that the load drift
+            for name, once in runners:                                   # of a shared machine hits both
+                times[name].append(once(name[0], workers))
         n = times["bag"][0][3]
         print(f"\n{kind}: {n} augmented messages ({size_mb:.0f} MB bag), {workers} worker(s), {args.runs} runs")
         stats = {}

@@ -1,7 +1,8 @@
 """``rvnoise``: the command line. Parses, calls the library, prints; no logic of its own.
 
-Exit codes: 0 success; 1 some files failed (each recorded in the manifest) or a replay mismatch; 2 bad recipe,
-bad arguments or an input/output problem detected before anything was written.
+Exit codes: 0 success; 1 some files failed (each recorded in the manifest), the run stopped early, or a replay
+mismatch; 2 bad recipe, bad arguments or an input/output problem detected before anything was written (one line
+on stderr, never a traceback); 130 interrupted.
 """
 
 from __future__ import annotations
@@ -31,12 +32,19 @@ def augment(
     output_dir: Path = typer.Argument(..., help="Output tree (augmented files, manifest.jsonl, run.json), or the "
                                                 "output bag (OUT.manifest.jsonl and OUT.run.json beside it)."),
     recipe: Path = typer.Option(..., "--recipe", "-r", help="Recipe YAML (a CNF or a chain of models)."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: all cores]."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: all cores; capped at the outputs and the memory, see README]."),
     resume: bool = typer.Option(False, "--resume", help="Skip outputs already in the manifest with matching sha256."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in OUTPUT_DIR."),
     dry_run: bool = typer.Option(False, "--dry-run", help="List what would be done; write nothing."),
     limit: Optional[int] = typer.Option(None, "--limit", min=1, help="Process only the first N inputs."),
     fail_fast: bool = typer.Option(False, "--fail-fast", help="Stop at the first failing file."),
+    yes: bool = typer.Option(False, "--yes", "-y", help="Run even when the plan has more than 100 000 outputs."),
+    max_pixels: float = typer.Option(100e6, "--max-pixels", min=1,
+                                     help="Refuse images (and depth maps) whose header declares more pixels."),
+    max_points: float = typer.Option(20e6, "--max-points", min=1,
+                                     help="Refuse point clouds whose header declares more points."),
+    task_timeout: Optional[float] = typer.Option(None, "--task-timeout", min=0.1,
+                                                 help="Stop a worker that spends longer on one file (seconds)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     depth: Optional[str] = typer.Option(None, "--depth", help="Depth sidecar pattern, relative to each image's "
                                         "folder (inputs.depth), e.g. '{stem}_depth.npy'."),
@@ -54,32 +62,46 @@ def augment(
     from roadview_noise.io.rosbag import bag_kind
     from roadview_noise.overrides import with_input_overrides
     from roadview_noise.recipe import load_recipe
-    from roadview_noise.runner import run
+    from roadview_noise.runner import Limits, run
 
     if bag_kind(input_dir) is not None:
         options = {"--resume": resume, "--dry-run": dry_run, "--limit": limit, "--fail-fast": fail_fast,
-                   "--depth": depth, "--camera-profile": camera_profile, "--lidar-profile": lidar_profile,
-                   "--radar-profile": radar_profile, "--report": report}
+                   "--task-timeout": task_timeout, "--depth": depth, "--camera-profile": camera_profile,
+                   "--lidar-profile": lidar_profile, "--radar-profile": radar_profile, "--report": report}
         return _augment_bag(input_dir, output_dir, recipe, workers, overwrite, quiet,
                             refused=[o for o, value in options.items() if value])
+    limits = Limits(max_pixels=int(max_pixels), max_points=int(max_points), task_timeout_s=task_timeout)
     try:
         r = with_input_overrides(load_recipe(recipe), depth=depth, camera_profile=camera_profile,
                                  lidar_profile=lidar_profile, radar_profile=radar_profile)
         s = run(r, input_dir, output_dir, workers=workers, resume=resume, overwrite=overwrite, dry_run=dry_run,
-                limit=limit, fail_fast=fail_fast, progress=not quiet, echo=typer.echo)
+                limit=limit, fail_fast=fail_fast, yes=yes, limits=limits, progress=not quiet, echo=typer.echo,
+                warn=lambda m: typer.echo(m, err=True))
     except RvNoiseError as e:
         _fail(str(e))
+    except KeyboardInterrupt:
+        _fail("interrupted; the manifest and run.json record what was done (--resume completes it)", 130)
     if s.dry_run:
         typer.echo(f"rvnoise: dry run, {s.planned} outputs planned, nothing written")
         return
-    for f in s.failures[:10]:
-        typer.secho(f"failed: {f}", fg=typer.colors.RED, err=True)
+    _print_problems(s)
     typer.echo(f"rvnoise: {s.done} written, {s.skipped} skipped, {s.failed} failed in {s.seconds:.1f} s → "
                f"{output_dir} (manifest: {output_dir / 'manifest.jsonl'})")
     if report:
         _write_report(output_dir, None)
-    if s.failed:
+    if s.failed or s.state != "complete" or s.notes:
         raise typer.Exit(1)
+
+
+def _print_problems(s, *, failed: str = "failed", unit: str = "output") -> None:
+    """A run summary's first failures (and how many more) and its invalid-points warning, on stderr."""
+    for f in s.failures[:10]:
+        typer.secho(f"{failed}: {f}", fg=typer.colors.RED, err=True)
+    if len(s.failures) > 10:
+        typer.secho(f"… and {len(s.failures) - 10} more (see the manifest)", fg=typer.colors.RED, err=True)
+    if s.warned:
+        typer.secho(f"warning: {s.warned} {unit}(s) had invalid input points removed (input_warnings in the "
+                    "manifest)", fg=typer.colors.YELLOW, err=True)
 
 
 @app.command(epilog="Example: `rvnoise validate recipes/cnf13.yaml`")
@@ -312,8 +334,7 @@ def _augment_bag(in_bag: Path, out_bag: Path, recipe: Path, workers: Optional[in
                     progress=not quiet, echo=typer.echo)
     except RvNoiseError as e:
         _fail(str(e))
-    for f in s.failures[:10]:
-        typer.secho(f"failed (copied unchanged): {f}", fg=typer.colors.RED, err=True)
+    _print_problems(s, failed="failed (copied unchanged)", unit="message")
     typer.echo(f"rvnoise: {s.done} messages augmented, {s.failed} failed (copied unchanged) in {s.seconds:.1f} s → "
                f"{out_bag} (manifest: {manifest_path(out_bag)})")
     if s.failed:

@@ -20,6 +20,7 @@ import struct
 import sys
 import time
 import traceback
+import warnings
 from collections import deque
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass
@@ -97,6 +98,7 @@ class BagContext:
     fielddefs: dict
     recipe: BagRecipe
     bag_dir: Path
+    capture_output: bool = False         # what native libraries print goes to the entry (runner.RunContext)
 
 
 @lru_cache(maxsize=4)
@@ -110,52 +112,74 @@ def _context(blob: bytes) -> tuple[BagContext, Any]:
 
 
 def augment_message(blob: bytes, job: MessageJob) -> tuple[dict[str, Any], bytes | None]:
-    """Run the topic's chain on one message: (manifest entry, serialised output or None when it failed)."""
+    """Run the topic's chain on one message: (manifest entry, serialised output or None when it failed). The entry
+    carries what a file's entry does where it applies (input notes, dropped invalid points, step and output metrics,
+    warnings, what native libraries printed)."""
     import cv2
 
     from .allocator import keep_freed_memory
-    from .compound import apply_models
-    from .dataset import Sample
-    from .metrics import compare
-    from .runner import Task, build_models
+    from .native_output import captured_output
 
     cv2.setNumThreads(1)
     keep_freed_memory()
     t0 = time.perf_counter()
     ctx, typestore = _context(blob)
     topic = ctx.recipe.topics[job.topic]
-    source = f"{ctx.bag}: {job.key}"
     entry: dict[str, Any] = {
         "key": job.key, "topic": job.topic, "stamp_ns": job.stamp_ns, "record_time_ns": job.record_time_ns,
         "msgtype": job.msgtype, "sequence": topic.sequence_id, "chain": list(topic.recipe.model_ids),
         "input_sha256": hashlib.sha256(job.raw).hexdigest(),
     }
-    out = None
+    with captured_output(ctx.capture_output) as printed:
+        out = _augment(ctx, typestore, topic, job, entry)
+    if printed:
+        entry["library_messages"] = printed
+    entry["seconds"] = round(time.perf_counter() - t0, 4)
+    return entry, out
+
+
+def _augment(ctx: BagContext, typestore: Any, topic: BagTopic, job: MessageJob, entry: dict[str, Any]
+             ) -> bytes | None:
+    """The body of :func:`augment_message`: fills ``entry``, returns the serialised output (None: failed)."""
+    from .compound import apply_models
+    from .dataset import Sample
+    from .invalid_points import drop_invalid_points
+    from .metrics import compare
+    from .runner import Task, _warning_list, build_models
+
+    source = f"{ctx.bag}: {job.key}"
     try:
-        msg = _deserialize(typestore, ctx.is2, job.raw, job.msgtype, source)
-        seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype, source)
-        entry["seed_key"] = seed_key
-        data = message_data(ctx, typestore, topic, msg, job, source)
-        if getattr(data, "input_notes", None):
-            entry["inputs"] = dict(data.input_notes)
-        recipe = topic.recipe
-        metrics = recipe.spec.output.metrics
-        models = build_models(recipe, Task(Sample(seed_key, topic.sensor, topic.sequence_id), 0, seed_key))
-        result, records = apply_models(models, data, seed=recipe.seed, key=seed_key, sequence_id=topic.sequence_id,
-                                       metrics=metrics)
-        entry["steps"] = [asdict(r) for r in records]
-        entry["metrics"] = compare(data, result) if metrics else {}
-        new = (rm.frame_to_image(msg, job.msgtype, result, source=source) if topic.sensor == "camera" else
-               rm.pointcloud_to_cloud2(msg, result, effect=recipe.spec.output.effect, source=source))
-        out = _serialize(typestore, ctx.is2, new, job.msgtype, job.raw)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            msg = _deserialize(typestore, ctx.is2, job.raw, job.msgtype, source)
+            seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype, source)
+            entry["seed_key"] = seed_key
+            data = message_data(ctx, typestore, topic, msg, job, source)
+            if getattr(data, "input_notes", None):
+                entry["inputs"] = dict(data.input_notes)
+            data, dropped = drop_invalid_points(data, file=source)
+            if dropped:
+                entry["input_warnings"] = dropped
+            recipe = topic.recipe
+            metrics = recipe.spec.output.metrics
+            models = build_models(recipe, Task(Sample(seed_key, topic.sensor, topic.sequence_id), 0, seed_key))
+            result, records = apply_models(models, data, seed=recipe.seed, key=seed_key,
+                                           sequence_id=topic.sequence_id, metrics=metrics)
+            entry["steps"] = [asdict(r) for r in records]
+            entry["metrics"] = compare(data, result) if metrics else {}
+            new = (rm.frame_to_image(msg, job.msgtype, result, source=source) if topic.sensor == "camera" else
+                   rm.pointcloud_to_cloud2(msg, result, effect=recipe.spec.output.effect, source=source))
+            out = _serialize(typestore, ctx.is2, new, job.msgtype, job.raw)
+        if caught:
+            entry["warnings"] = _warning_list(caught)
         entry.update(output_sha256=hashlib.sha256(out).hexdigest(), status="ok")
+        return out
     except RvNoiseError as e:
         entry.update(status="failed", error=str(e) if source in str(e) else f"{source}: {e}", copied_unchanged=True)
     except Exception as e:  # a bug or library error on one message must not stop the run; keep the trace
         entry.update(status="failed", error=f"{source}: internal error {type(e).__name__}: {e}",
                      traceback=traceback.format_exc(limit=8), copied_unchanged=True)
-    entry["seconds"] = round(time.perf_counter() - t0, 4)
-    return entry, out
+    return None
 
 
 def message_data(ctx: BagContext, typestore: Any, topic: BagTopic, msg: Any, job: MessageJob, source: str):
@@ -247,31 +271,52 @@ def _serialize(typestore: Any, is2: bool, msg: Any, msgtype: str, like: bytes) -
 def ordered_map(fn: Callable, items: Iterable[tuple[Any, tuple | None, int]], workers: int, *,
                 max_bytes: int = MAX_IN_FLIGHT_BYTES) -> Iterator[tuple[Any, Any]]:
     """Yield ``(item, fn(*args))`` (``None`` for an item without args) in the order of ``items`` =
-    ``(item, args, size in bytes)``: the one place the bag runner meets a process pool (joblib's reusable loky
-    executor, shared with ``joblib.Parallel``; the main process when ``workers`` ≤ 1). At most 2·``workers`` calls
-    and ``max_bytes`` of pending items are in flight, so memory stays bounded on long bags while the workers stay
-    busy."""
+    ``(item, args, size in bytes)``: the one place the bag runner meets a process pool (the main process when
+    ``workers`` ≤ 1). At most 2·``workers`` calls and ``max_bytes`` of pending items are in flight, so memory stays
+    bounded on long bags while the workers stay busy. The pool is the standard library's, its workers started like
+    the file runner's (:mod:`roadview_noise.executor`: fork server with the models imported, one thread per numeric
+    library, exit with the run, models registered at run time adopted); unlike that executor it breaks when a
+    worker dies (:class:`concurrent.futures.process.BrokenProcessPool`)."""
     if workers <= 1:
         for item, args, _ in items:
             yield item, (fn(*args) if args is not None else None)
         return
-    from joblib.executor import get_memmapping_executor
+    from concurrent.futures import ProcessPoolExecutor
 
-    executor = get_memmapping_executor(workers)           # joblib's reusable loky pool, as the file runner's
+    from .executor import _context, _starting          # the file runner's way of starting workers
+    from .registry import plugin_models
+
+    pool = ProcessPoolExecutor(workers, mp_context=_context(), initializer=_worker_start,
+                               initargs=(os.getpid(), plugin_models()))
     pending: deque = deque()
     in_flight = calls = 0
-    for item, args, size in items:
-        future = executor.submit(fn, *args) if args is not None else None
-        pending.append((item, future, size))
-        in_flight += size
-        calls += future is not None
-        while pending and (in_flight > max_bytes or calls > 2 * workers):
-            done, future, size = pending.popleft()
-            in_flight -= size
-            calls -= future is not None
+    try:
+        for item, args, size in items:
+            future = None
+            if args is not None:
+                with _starting():                       # the first submit starts the workers
+                    future = pool.submit(fn, *args)
+            pending.append((item, future, size))
+            in_flight += size
+            calls += future is not None
+            while pending and (in_flight > max_bytes or calls > 2 * workers):
+                done, future, size = pending.popleft()
+                in_flight -= size
+                calls -= future is not None
+                yield done, (future.result() if future is not None else None)
+        for done, future, _ in pending:
             yield done, (future.result() if future is not None else None)
-    for done, future, _ in pending:
-        yield done, (future.result() if future is not None else None)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _worker_start(parent_pid: int, plugins: tuple) -> None:
+    """A bag worker's start: :func:`executor.worker_setup` and the run's plugin models."""
+    from .executor import worker_setup
+    from .registry import adopt
+
+    worker_setup(parent_pid)
+    adopt(plugins)
 
 
 # --- planning and the run -------------------------------------------------------------------------------------------
@@ -380,6 +425,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
 
     from .allocator import keep_freed_memory
     from .camera_inputs import run_warnings
+    from .runner import _model_warnings
 
     started = time.time()
     keep_freed_memory()                 # the serial reading and writing here reuse their buffers' pages
@@ -388,7 +434,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
     n_workers = workers or os.cpu_count() or 1
     summary = RunSummary()
     topics: dict[str, dict[str, int]] = {t: {"messages": 0, "ok": 0, "failed": 0} for t in recipe.topics}
-    notes: list[dict] = []                                  # the entries' input notes, for the run's warnings
+    notes: list[dict] = []                     # the entries' input notes and warnings, for the run's warning lines
     for p in (out_bag, manifest_path(out_bag)):
         remove_stale_siblings(p)
     with ExitStack() as stack:
@@ -396,7 +442,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         plan = plan_bag(recipe, reader, in_bag)
         is2 = bag_kind(in_bag) == "ros2"
         blob = pickle.dumps(BagContext(str(in_bag), is2, dict(reader.typestore.fielddefs), recipe,
-                                       in_bag.resolve().parent))
+                                       in_bag.resolve().parent, capture_output=True))
         syncs = depth_syncs(stack, in_bag, plan, is2)
         n_messages = reader.message_count
         bar = tqdm(total=n_messages, unit="msg", disable=not progress, file=sys.stderr, dynamic_ncols=True)
@@ -404,8 +450,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
             with atomic_path(manifest_path(out_bag)) as manifest_tmp, \
                     open(manifest_tmp, "w", encoding="utf-8") as log, bag_output(out_bag, reader) as out:
                 jobs = message_jobs(reader, plan, syncs, is2, blob, in_bag)
-                for (conn, t, raw), result in ordered_map(augment_message, jobs, n_workers,
-                                                          max_bytes=max_in_flight_bytes):
+                done = ordered_map(augment_message, jobs, n_workers, max_bytes=max_in_flight_bytes)
+                for (conn, t, raw), result in _worker_deaths_named(done, in_bag):
                     bar.update(1)
                     if result is None:
                         out.write(conn, t, raw)
@@ -413,12 +459,12 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     entry, data = result
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
-                    if "inputs" in entry:
-                        notes.append({"inputs": entry["inputs"]})
+                    notes.append({k: entry[k] for k in ("inputs", "warnings") if k in entry})
                     summary.planned += 1
                     topics[entry["topic"]]["messages"] += 1
                     if entry["status"] == "ok":
                         summary.done += 1
+                        summary.warned += bool(entry.get("input_warnings"))
                         topics[entry["topic"]]["ok"] += 1
                     else:
                         summary.failed += 1
@@ -427,18 +473,34 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         finally:
             bar.close()
     summary.seconds = time.time() - started
-    warnings = run_warnings(notes)
-    for line in warnings:
+    summary.warnings = run_warnings(notes) + _model_warnings(notes)
+    for line in summary.warnings:
         echo(f"rvnoise: warning: {line}")
     write_run_json(run_record_path(out_bag), {
         "tool": "rvnoise", "versions": {**library_versions(), "rosbags": _rosbags_version()},
         "recipe_source": recipe.source, "recipe_base_dir": str(recipe.base_dir), "recipe": recipe.resolved_dict(),
         "recipe_sha256": recipe.sha256(), "seed": recipe.seed, "input_bag": str(in_bag.resolve()),
         "output_bag": str(out_bag.resolve()), "workers": n_workers, "started_unix": started,
-        "wall_seconds": round(summary.seconds, 3), "warnings": warnings, "topics": topics,
+        "wall_seconds": round(summary.seconds, 3), "warnings": summary.warnings, "topics": topics,
         "counts": {"augmented": summary.done, "failed": summary.failed, "messages": n_messages},
     })
     return summary
+
+
+def _worker_deaths_named(results: Iterator, bag: Path) -> Iterator:
+    """``results``, with a dead worker (which breaks the pool) as an InputError naming the bag and the last message
+    written: the run stops and leaves no output."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    last = "its first message"
+    try:
+        for (conn, t, raw), result in results:
+            yield (conn, t, raw), result
+            last = f"{conn.topic} at record time {t}"
+    except BrokenProcessPool:
+        raise InputError(f"a worker process died (killed: out of memory, or a native crash) on a message after {last}; "
+                         "nothing was written; run again with fewer --workers if memory ran out",
+                         file=str(bag)) from None
 
 
 def message_jobs(reader: Any, plan: BagPlan, syncs: dict[str, DepthSync], is2: bool, blob: bytes, bag: Path

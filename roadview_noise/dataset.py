@@ -7,18 +7,19 @@ Workers receive :class:`Sample` keys, never arrays; all reading and writing happ
 from __future__ import annotations
 
 import dataclasses
-import fnmatch
 import posixpath
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
+from typing import Callable, Iterable, Iterator
 
 from .annotations import Annotated, sidecar_files
 from .annotations import write as write_annotations
 from .errors import InputError
-from .io.atomic import TMP_SUFFIX
+from .io.atomic import recorded_writes
 from .recipe import InputsSpec, Recipe
 from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
+from .walk import Matcher, WalkFailure, walk
 
 DEFAULT_GLOBS = {
     "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
@@ -75,35 +76,84 @@ def _globs(inputs: InputsSpec, modality: str, explicit: bool) -> list[str]:
     return [value] if isinstance(value, str) else list(value)
 
 
-def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
-    """Every input of the recipe's sensor under ``in_root``, sorted by path; depth sidecars are not inputs."""
+def matcher(recipe: Recipe) -> Matcher:
+    """The recipe's input globs per modality (in order: the first modality that matches a path wins)."""
     inputs = recipe.spec.inputs
     modalities = MODALITIES[recipe.sensor]
     explicit = any(getattr(inputs, m) is not None for m in modalities)
-    found: dict[str, str] = {}
-    for modality in modalities:
-        for pattern in _globs(inputs, modality, explicit):
-            for p in in_root.glob(pattern):
-                rel = p.relative_to(in_root).as_posix()
-                if not p.is_file() or TMP_SUFFIX in p.name or any(part.startswith(".") for part in p.parts[-1:]):
-                    continue
-                if any(fnmatch.fnmatch(rel, x) for x in inputs.exclude):
-                    continue
-                found.setdefault(rel, modality)
-    sidecars = sidecar_files(in_root, inputs.annotations, found)         # masks, lidarseg files … are no inputs
-    if recipe.sensor == "camera":
-        sidecars |= {depth_relpath_for(rel, inputs.depth) for rel in found}
-    found = {rel: m for rel, m in found.items() if rel not in sidecars}
-    samples = []
-    for rel in sorted(found):
-        modality = found[rel]
+    return Matcher([(m, p) for m in modalities for p in _globs(inputs, m, explicit)], inputs.exclude)
+
+
+class _Sidecars:
+    """Which matched files are a sidecar of a matched input (they are then not inputs themselves): a file is one
+    when ``of(input)`` names it for some matched input. When every sidecar lies in its input's folder (``local``),
+    this is decided folder by folder during the walk; otherwise the sidecars of every matched input are collected by
+    one walk of the tree first."""
+
+    def __init__(self, of: Callable[[str], Iterable[str | None]], local: bool, match: Matcher, in_root: Path):
+        self.of, self.match = of, match
+        self._folder: tuple[str, set[str | None]] | None = None
+        self._everywhere: set[str | None] | None = None
+        if not local:
+            self._everywhere = {s for item in walk(in_root, match) if not isinstance(item, WalkFailure)
+                                for s in of(item[0])}
+
+    def __call__(self, rel: str, siblings: list[str]) -> bool:
+        if self._everywhere is not None:
+            return rel in self._everywhere
+        folder = str(PurePosixPath(rel).parent)
+        if self._folder is None or self._folder[0] != folder:
+            prefix = "" if folder == "." else folder + "/"
+            self._folder = (folder, {s for n in siblings if self.match.modality(prefix + n) is not None
+                                     for s in self.of(prefix + n)})
+        return rel in self._folder[1]
+
+
+def _depth_sidecar(rel: str, pattern: str) -> str | None:
+    try:
+        return depth_relpath_for(rel, pattern)
+    except InputError:                             # the pattern names a folder level this image does not have
+        return None
+
+
+def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]:
+    """Every input of the recipe's sensor under ``in_root`` in sorted path order, one at a time, and a
+    :class:`~roadview_noise.walk.WalkFailure` for every path the walk could not read; depth sidecars are not
+    inputs."""
+    inputs = recipe.spec.inputs
+    match = matcher(recipe)
+    camera = recipe.sensor == "camera"
+    rules = list(inputs.annotations.rules())
+
+    def sidecars_of(rel: str) -> set[str | None]:
+        found = sidecar_files(in_root, inputs.annotations, [rel]) if rules else set()
+        return found | {_depth_sidecar(rel, inputs.depth)} if camera else found
+
+    sidecar = None
+    if camera or rules:                            # masks, lidarseg files, depth maps … are no inputs
+        sidecar = _Sidecars(sidecars_of, "/" not in inputs.depth and not rules, match, in_root)
+    for item in walk(in_root, match):
+        if isinstance(item, WalkFailure):
+            yield item
+            continue
+        rel, modality, siblings = item
+        if sidecar is not None and sidecar(rel, siblings):
+            continue
         seq = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
         depth = None
         if modality in ("camera", "raw") and inputs.depth_source == "file":
             candidate = depth_relpath_for(rel, inputs.depth)
-            depth = candidate if (in_root / candidate).is_file() else None
-        samples.append(Sample(rel, modality, seq, depth))
-    return samples
+            if PurePosixPath(candidate).parent == PurePosixPath(rel).parent:
+                depth = candidate if PurePosixPath(candidate).name in siblings else None
+            else:
+                depth = candidate if (in_root / candidate).is_file() else None
+        yield Sample(rel, modality, seq, depth)
+
+
+def discover(in_root: Path, recipe: Recipe) -> list[Sample]:
+    """Every input of the recipe's sensor under ``in_root``, sorted by path (what :func:`iter_inputs` yields, without
+    the paths it could not read)."""
+    return [s for s in iter_inputs(in_root, recipe) if isinstance(s, Sample)]
 
 
 # --- profiles ------------------------------------------------------------------------------------------------------
@@ -236,17 +286,19 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
          annotations: Annotated | None = None) -> list[Path]:
     """Write a result in the input's own format (atomically, by the io writers) with its sidecars (a ``.bin``
     cloud's ``rv_effect``) and annotation files; a DNG keeps the colour metadata of its ``source``. Returns every
-    file written, the main output first."""
+    file written (recorded by ``io/atomic``, so no writer can forget one), the main output first: the runner records
+    each with its sha256 in the manifest."""
     from .io import image as image_io
     from .io import pointcloud as cloud_io
     from .io import raw as raw_io
 
-    written = [out_path]
-    if isinstance(data, CameraFrame):
-        image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
-    elif isinstance(data, RawFrame):
-        raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
-                         data.encoding, template=source)
-    else:
-        written = cloud_io.write_pointcloud(out_path, data, effect=recipe.spec.output.effect)
-    return written + write_annotations(annotations)
+    with recorded_writes() as written:
+        if isinstance(data, CameraFrame):
+            image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
+        elif isinstance(data, RawFrame):
+            raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
+                             data.encoding, template=source)
+        else:
+            cloud_io.write_pointcloud(out_path, data, effect=recipe.spec.output.effect)
+        write_annotations(annotations)
+    return sorted(written, key=lambda p: p.name != Path(out_path).name)

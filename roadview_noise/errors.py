@@ -31,3 +31,7 @@ class ModelError(RvNoiseError):
         self.model, self.field = model, field
         where = ".".join(p for p in (model, field) if p)
         super().__init__(f"{where}: {message}" if where else message)
+
+
+class OutputError(RvNoiseError):
+    """The output folder cannot be used (a file, not writable, locked by another run, holds another recipe's run)."""

@@ -2,14 +2,22 @@
 
 Unknown keys fail at load with the file, the path of the key and a did-you-mean. Parameter values are fixed or
 explicit distributions (``{uniform: [lo, hi]}``, ``{choice: [a, b, ...]}``, ``{normal: [mean, sd]}``) drawn per
-output file from ``derive_rng(seed, key, "params", step, model)``.
+output file from ``derive_rng(seed, key, "params", step, model)``. A distribution must stay inside the parameter's
+allowed range: uniform bounds and every choice are checked, and a normal is truncated at mean ± 4 sd
+(:data:`NORMAL_TAIL_SD`; it changes 6·10⁻⁵ of the draws), so mean ± 4 sd must lie inside the range. Refusing rather
+than clipping at the range: clipping would put a silent lump of probability on the bound (e.g. 2 % of the frames at
+a rain rate of exactly 0), which the user never asked for; the refusal names the largest sd that fits.
+
+A sweep's variants (the product of its value lists) are computed on demand (:class:`Variants`), so a large sweep
+costs nothing at parse time.
 """
 
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Union
@@ -20,10 +28,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from .annotations import AnnotationsSpec
 from .compound import cnf_chain, order_chain
 from .errors import ModelError, RecipeError
+from .input_checks import check_inputs
 from .registry import get_model, suggest
 
 SCHEMA = "rvnoise.recipe/1"
 DISTRIBUTIONS = ("uniform", "choice", "normal")
+NORMAL_TAIL_SD = 4.0
 
 Globs = Union[str, list[str]]
 
@@ -159,6 +169,41 @@ class Variant:
     overrides: dict[str, dict[str, Any]]
 
 
+class Variants(Sequence):
+    """The variants of a sweep: the product of its axes (the last axis varies fastest, as ``itertools.product``),
+    each built when it is asked for."""
+
+    def __init__(self, axes: list[list[tuple[str, str, Any]]]):
+        self.axes = axes
+        self._len = math.prod(len(a) for a in axes)
+
+    def __len__(self) -> int:
+        return self._len
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(self._len))]
+        if i < 0:
+            i += self._len
+        if not 0 <= i < self._len:
+            raise IndexError(f"variant {i} of {self._len}")
+        combo = []
+        for axis in reversed(self.axes):
+            i, k = divmod(i, len(axis))
+            combo.append(axis[k])
+        combo.reverse()
+        overrides: dict[str, dict[str, Any]] = {}
+        for model_id, name, v in combo:
+            overrides.setdefault(model_id, {})[name] = v
+        return Variant("".join(f"__{name}-{_suffix_text(v)}" for _, name, v in combo), overrides)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Variants) and self.axes == other.axes
+
+    def __hash__(self) -> int:
+        return hash(json.dumps(self.axes, default=str))
+
+
 @dataclass(frozen=True)
 class Recipe:
     """A validated recipe: models in physical order with their parameter specs, variants, inputs, seed."""
@@ -168,7 +213,7 @@ class Recipe:
     base_dir: Path
     model_ids: tuple[str, ...]
     step_params: tuple[dict[str, Any], ...]
-    variants: tuple[Variant, ...]
+    variants: Variants
 
     @property
     def sensor(self) -> str:
@@ -239,6 +284,8 @@ def _check_value(model_id: str, name: str, value: Any, key: str, source: str) ->
             raise RecipeError(f"uniform bounds must be [lo, hi] with lo ≤ hi, got {args}", file=source, key=key)
         if kind == "normal" and not args[1] >= 0:
             raise RecipeError(f"normal sd must be ≥ 0, got {args[1]}", file=source, key=key)
+        if kind == "normal":
+            _check_normal(specs[name], args[0], args[1], key, source)
         values = args if kind != "normal" else [args[0]]
     else:
         values = [value]
@@ -248,16 +295,31 @@ def _check_value(model_id: str, name: str, value: Any, key: str, source: str) ->
             raise RecipeError(problem, file=source, key=key)
 
 
+def _check_normal(spec, mean: float, sd: float, key: str, source: str) -> None:
+    """mean ± NORMAL_TAIL_SD·sd must be allowed values (see module docstring)."""
+    integer = type(spec.default) is int
+    for v in (mean, mean - NORMAL_TAIL_SD * sd, mean + NORMAL_TAIL_SD * sd):
+        problem = spec.check(round(v) if integer else v)
+        if problem:
+            bounds = [b for b in (spec.ge, spec.gt, spec.le, spec.lt) if b is not None]
+            room = min((abs(mean - b) for b in bounds), default=0.0)
+            raise RecipeError(f"normal [{mean}, {sd}] reaches {v:g} within ±{NORMAL_TAIL_SD:g} sd, outside the "
+                              f"allowed range ({spec.range_text()}); draws are truncated at ±{NORMAL_TAIL_SD:g} sd, "
+                              f"so use sd ≤ {room / NORMAL_TAIL_SD:g} for this mean, or a uniform",
+                              file=source, key=key)
+
+
 def draw_value(value: Any, rng, *, integer: bool = False) -> Any:
     """A fixed value as is, or one draw from an explicit distribution (integers for an integer parameter:
-    uniform over the inclusive range, normal rounded)."""
+    uniform over the inclusive range, normal rounded; a normal is truncated at mean ± NORMAL_TAIL_SD·sd)."""
     if not isinstance(value, dict):
         return tuple(value) if isinstance(value, list) else value
     kind, args = next(iter(value.items()))
     if kind == "uniform":
         return int(rng.integers(args[0], args[1] + 1)) if integer else float(rng.uniform(args[0], args[1]))
     if kind == "normal":
-        v = rng.normal(args[0], args[1])
+        tail = NORMAL_TAIL_SD * args[1]
+        v = min(max(rng.normal(args[0], args[1]), args[0] - tail), args[0] + tail)
         return int(round(v)) if integer else float(v)
     choice = args[int(rng.integers(len(args)))]
     return tuple(choice) if isinstance(choice, list) else choice
@@ -326,17 +388,18 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
         if model_id not in ids:
             raise RecipeError(f"sweep key must be MODEL.PARAM with a model of the chain{suggest(model_id, ids)}",
                               file=source, key=f"sweep.{key}")
+        seen: dict[str, Any] = {}
         for v in values:
             _check_value(model_id, name, v, f"sweep.{key}", source)
+            text = _suffix_text(v)
+            if text in seen:
+                raise RecipeError(f"values {seen[text]!r} and {v!r} give the same file-name suffix "
+                                  f"'__{name}-{text}'", file=source, key=f"sweep.{key}")
+            seen[text] = v
         axes.append([(model_id, name, v) for v in values])
-    variants = []
-    for combo in itertools.product(*axes):
-        overrides: dict[str, dict[str, Any]] = {}
-        for model_id, name, v in combo:
-            overrides.setdefault(model_id, {})[name] = v
-        suffix = "".join(f"__{name}-{_suffix_text(v)}" for _, name, v in combo)
-        variants.append(Variant(suffix, overrides))
-    return Recipe(spec, source, base_dir or Path.cwd(), tuple(ids), tuple(step_params), tuple(variants))
+    base_dir = base_dir or Path.cwd()
+    check_inputs(spec.inputs, tuple(ids), source, base_dir)
+    return Recipe(spec, source, base_dir, tuple(ids), tuple(step_params), Variants(axes))
 
 
 def load_recipe(path: str | Path) -> Recipe:

@@ -35,6 +35,25 @@ def load_all() -> dict[str, type]:
     return MODELS
 
 
+def plugin_models() -> tuple[tuple[str, str], ...]:
+    """``(module, qualified name)`` of the models registered in this process from outside ``roadview_noise.models``
+    (a script's or a test's own models, registered at import or later): batch workers :func:`adopt` them, so they
+    know the same models as the process that plans the run. Classes defined in ``__main__`` or inside a function
+    cannot be imported by name and are left out."""
+    return tuple(sorted((c.__module__, c.__qualname__) for c in MODELS.values()
+                        if not c.__module__.startswith(__package__ + ".models") and c.__module__ != "__main__"
+                        and "<locals>" not in c.__qualname__))
+
+
+def adopt(models: tuple[tuple[str, str], ...]) -> None:
+    """Import and register the models :func:`plugin_models` named (in a worker process)."""
+    for module, qualname in models:
+        cls = importlib.import_module(module)
+        for part in qualname.split("."):
+            cls = getattr(cls, part)
+        MODELS.setdefault(cls.id, cls)
+
+
 def suggest(name: str, choices) -> str:
     close = difflib.get_close_matches(name, list(choices), n=3, cutoff=0.5)
     return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""

@@ -309,3 +309,38 @@ def test_ros1_chunk_compression_is_kept(tmp_path):
     assert b"compression=lz4" in out.read_bytes()[:300_000]                        # a chunk header field
     assert out.stat().st_size < 0.9 * sum(len(m[3]) for m in messages(out))
     assert [m[:3] for m in messages(src)] == [m[:3] for m in messages(out)]
+
+
+def test_a_dying_worker_stops_the_run_without_output(tmp_path):
+    """A worker killed on one message (SIGKILL, as the out-of-memory killer does) breaks the bag's pool: the run
+    stops with an error naming the bag and writes nothing. The test model is adopted by the workers
+    (registry.plugin_models), as in file runs."""
+    import injected_models
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from roadview_noise.registry import MODELS, register
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    bag = tmp_path / "cam.bag"
+    writer = Writer(bag)
+    writer.open()
+    conn = writer.add_connection("/cam", rm.IMAGE, typestore=store)
+    for k in range(3):
+        pixels = np.full((48, 64, 3), 90, np.uint8)
+        pixels[0, 0] = 255 if k == 1 else 90                                          # the poison frame
+        header = store.types["std_msgs/msg/Header"](seq=k, stamp=store.types["builtin_interfaces/msg/Time"](
+            sec=k, nanosec=0), frame_id="cam")
+        msg = store.types["sensor_msgs/msg/Image"](header=header, height=48, width=64, encoding="rgb8",
+                                                   is_bigendian=0, step=192, data=pixels.ravel())
+        writer.write(conn, 10**9 * k + 1, bytes(store.serialize_ros1(msg, rm.IMAGE)))
+    writer.close()
+    register(injected_models.CrashCamera)
+    try:
+        recipe = parse_bag_recipe({"topics": {"/cam": "camera"},
+                                   "chains": {"camera": [{"model": "test_crash.camera"}]}})
+        with pytest.raises(InputError, match=f"{bag}: a worker process died"):
+            run_bag(recipe, bag, tmp_path / "out" / "o.bag", workers=2, progress=False, echo=lambda _: None)
+    finally:
+        MODELS.pop(injected_models.CrashCamera.id, None)
+    assert not list((tmp_path / "out").iterdir())

@@ -1,33 +1,165 @@
 """Atomic file writes: a temporary file in the destination directory, fsync, then rename.
 
-No half-written output can exist: a killed process leaves at most a ``*.rvnoise-tmp`` file, which the runner removes
-at start. Every writer in ``roadview_noise.io`` writes through :func:`atomic_path`."""
+No half-written output can exist: a killed process leaves at most a ``*.rvnoise-tmp*`` file, which the runner removes
+(under its lock on the output folder). Every writer in ``roadview_noise.io`` writes through :func:`atomic_path`, so
+two process-wide settings the batch runner makes here apply to all of them:
+
+- :func:`confined_to` (the output root): every write's real parent folder must lie inside it; folders are created one
+  by one and a symlink that leads out of the root is refused, never followed (:func:`ensure_dir_inside`).
+- :func:`recorded_writes`: the list of files a block wrote (``dataset.save`` returns it).
+- :func:`staged_writes`: writes stop at the fsynced temporary and are listed (``(temporary, final)`` pairs); the
+  caller renames them with :meth:`Staged.commit` after recording them, or removes them with :meth:`Staged.discard`.
+  So a run records every file before it appears under its final name.
+"""
 
 from __future__ import annotations
 
 import os
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
 TMP_SUFFIX = ".rvnoise-tmp"
 
+_root: Path | None = None            # real path every write must stay inside (None: unconfined)
+_stage: "Staged | None" = None       # collects writes instead of renaming them
+_records: list[list[Path]] = []       # open recorded_writes() blocks
+
+
+class OutsideRootError(OSError):
+    """A write would land outside the confined root (through ``..``, an absolute path or a symlink)."""
+
+
+@dataclass
+class Staged:
+    """Files written (fsynced temporaries) but not yet renamed to their final names."""
+
+    files: list[tuple[Path, Path]] = field(default_factory=list)     # (temporary, final)
+
+    def finals(self) -> list[Path]:
+        return [final for _, final in self.files]
+
+    def commit(self) -> None:
+        """Rename every temporary onto its final name (checking the final folder again)."""
+        for tmp, final in self.files:
+            if _root is not None:
+                _check_inside(final.parent, _root)
+            os.replace(tmp, final)
+        self.files = []
+
+    def discard(self) -> None:
+        for tmp, _ in self.files:
+            _unlink_quietly(tmp)
+        self.files = []
+
+
+@contextmanager
+def confined_to(root: str | os.PathLike) -> Iterator[Path]:
+    """Refuse (``OutsideRootError``) every write whose real folder is not inside ``root`` while the block runs."""
+    global _root
+    previous, _root = _root, Path(os.path.realpath(root))
+    try:
+        yield _root
+    finally:
+        _root = previous
+
+
+@contextmanager
+def staged_writes() -> Iterator[Staged]:
+    """Collect the writes of the block as fsynced temporaries; on an error they are removed."""
+    global _stage
+    previous, _stage = _stage, Staged()
+    stage = _stage
+    try:
+        yield stage
+    except BaseException:
+        stage.discard()
+        raise
+    finally:
+        _stage = previous
+
+
+@contextmanager
+def recorded_writes() -> Iterator[list[Path]]:
+    """The final paths of every file written in the block (staged or not), in write order."""
+    written: list[Path] = []
+    _records.append(written)
+    try:
+        yield written
+    finally:
+        _records.pop()                   # blocks nest, so the last one is ours
+
+
+def ensure_dir_inside(folder: Path, root: Path) -> Path:
+    """Create ``folder`` (and missing parents) below the real ``root`` one component at a time; refuse any existing
+    component that is not a folder or whose real path leaves ``root``. Returns the folder's real path."""
+    folder = Path(os.path.abspath(folder))
+    try:
+        rel = folder.relative_to(root)
+    except ValueError:
+        rel = None
+    if rel is None:
+        real = Path(os.path.realpath(folder))
+        _check_inside(real, root)
+        folder, rel = real, real.relative_to(root)
+    current = root
+    for part in rel.parts:
+        current = current / part
+        if not os.path.lexists(current):
+            try:
+                os.mkdir(current)
+            except FileExistsError:
+                pass
+        real = Path(os.path.realpath(current))
+        _check_inside(real, root)
+        if not real.is_dir():
+            raise NotADirectoryError(f"{current} exists and is not a folder")
+        current = real
+    return current
+
+
+def _check_inside(folder: Path, root: Path) -> None:
+    real = Path(os.path.realpath(folder))
+    if real != root and root not in real.parents:
+        raise OutsideRootError(f"refusing to write into {folder}: it resolves to {real}, outside the output "
+                               f"folder {root} (a symlink or '..' leads out of it)")
+
+
+def _unlink_quietly(p: Path) -> None:
+    try:
+        p.unlink()
+    except FileNotFoundError:
+        pass
+
 
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path`` (same suffix, so format-sniffing libraries work); on success it is
-    fsynced and renamed onto ``path``; on error it is removed."""
+    fsynced and renamed onto ``path`` (or listed, under :func:`staged_writes`); on error it is removed."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if _root is not None:
+        path = ensure_dir_inside(path.parent, _root) / path.name
+    else:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    if _stage is not None and path in _stage.finals():
+        raise ValueError(f"{path.name} is written twice for one output (a sidecar name collides)")
     tmp = path.with_name(f".{path.stem}.{os.getpid()}{TMP_SUFFIX}{path.suffix}")
+    done = False
     try:
         yield tmp
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        if _stage is not None:
+            _stage.files.append((tmp, path))
+        else:
+            os.replace(tmp, path)
+        done = True
+        for written in _records:
+            written.append(path)
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        if not done:
+            _unlink_quietly(tmp)
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
@@ -35,11 +167,17 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
+def is_temporary(name: str) -> bool:
+    return TMP_SUFFIX in name
+
+
 def remove_stale_temporaries(root: str | os.PathLike) -> int:
-    """Delete temporary files left by a killed run under ``root``; returns how many."""
+    """Delete temporary files left by a killed run or worker under ``root``; returns how many. Call it only while
+    holding the lock on ``root`` (another run's temporaries are in flight otherwise)."""
     n = 0
-    for p in Path(root).rglob(f"*{TMP_SUFFIX}*"):
-        if p.is_file():
-            p.unlink()
-            n += 1
+    for dirpath, dirnames, filenames in os.walk(root):          # does not follow symlinked folders
+        for name in filenames:
+            if is_temporary(name):
+                _unlink_quietly(Path(dirpath) / name)
+                n += 1
     return n

@@ -188,8 +188,8 @@ def read_exr_channels(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], l
         with OpenEXR.File(str(path), separate_channels=True) as exr:
             order = [c.name for c in exr.header()["channels"]]
             return {name: np.asarray(c.pixels) for name, c in exr.channels().items()}, order
-    except (RuntimeError, OSError) as exc:
-        raise InputError(f"cannot read EXR: {exc}", file=str(path)) from exc
+    except (RuntimeError, OSError, ValueError) as exc:      # OpenEXR raises all three for damaged files
+        raise InputError(f"corrupt or truncated EXR, OpenEXR cannot read it ({exc})", file=str(path)) from exc
 
 
 def write_exr_channels(path: str | os.PathLike, channels: dict[str, np.ndarray]) -> None:

@@ -322,6 +322,7 @@ def _read_pcd(data: bytes, path) -> tuple[list[Column], str, tuple[int, int] | N
         if len(body) < n * record.itemsize:
             raise InputError(f"truncated PCD: header says {n} points × {record.itemsize} bytes = "
                              f"{n * record.itemsize} bytes of data, the file has {len(body)}", file=str(path))
+        _check_trailing(body, n * record.itemsize, record.itemsize, n, "PCD", path)
         arr = np.frombuffer(body, record, count=n)
         values = [arr[f"f{i}"] for i in range(len(names))]
     elif mode == "binary_compressed":
@@ -333,6 +334,16 @@ def _read_pcd(data: bytes, path) -> tuple[list[Column], str, tuple[int, int] | N
     columns = [(name, _dtype_str(b, (c,) if c > 1 else ()), np.ascontiguousarray(v))
                for name, b, c, v in zip(names, bases, counts, values)]
     return columns, mode, ((height, width) if height > 1 else None)
+
+
+def _check_trailing(body, used: int, itemsize: int, n: int, kind: str, path) -> None:
+    """Refuse data after the declared points (the header's point count is smaller than the data): a whole point
+    more, or anything but whitespace."""
+    extra = len(body) - used
+    if extra >= itemsize or (extra > 0 and bytes(body[used:]).strip(b" \t\r\n\0")):
+        raise InputError(f"{kind} header declares {n} points ({used} bytes of data) but the file holds {extra} "
+                         "bytes more; the point count does not match the data (the rest would be dropped "
+                         "silently)", file=str(path))
 
 
 def _pcd_header(data: bytes, path) -> tuple[dict[str, list[str]], int]:
@@ -367,6 +378,7 @@ def _pcd_decompress(body: memoryview, n: int, dtypes: list[np.dtype], itemsize: 
         raise InputError(f"PCD binary_compressed raw size {usize} ≠ POINTS {n} × {itemsize} bytes", file=str(path))
     if len(body) < 8 + csize:
         raise InputError(f"truncated PCD: {csize} compressed bytes announced, {len(body) - 8} present", file=str(path))
+    _check_trailing(body, 8 + csize, itemsize, n, "PCD", path)
     raw, produced = _lzf_decompress(np.frombuffer(body[8:8 + csize], np.uint8), usize)
     if produced != usize:
         raise InputError("corrupt PCD: the LZF-compressed data do not decode to the announced size", file=str(path))
@@ -385,17 +397,31 @@ def _parse_ascii(text: bytes, n: int, dtypes: list[np.dtype], path) -> list[np.n
     if len(tokens) < total:
         raise InputError(f"truncated ascii data: header says {n} points × {sum(widths)} values, the file has "
                          f"{len(tokens)} values", file=str(path))
+    if len(tokens) > total:
+        raise InputError(f"the header declares {n} points × {sum(widths)} values but the file holds "
+                         f"{len(tokens)} values; the point count does not match the data (the rest would be "
+                         "dropped silently)", file=str(path))
     table = np.array(tokens[:total]).reshape(n, sum(widths))
     out, col = [], 0
     for dt, w in zip(dtypes, widths):
         base = dt.base
         try:
             vals = table[:, col:col + w].astype(base)
-        except (ValueError, OverflowError) as exc:
-            raise InputError(f"bad ascii value in column {col + 1}: {exc}", file=str(path)) from exc
+        except (ValueError, OverflowError):
+            bad = next((t for t in table[:, col:col + w].ravel() if not _fits(t, base)), b"?")
+            raise InputError(f"bad ascii value {bad.decode('ascii', 'replace')!r} in column {col + 1}: not a "
+                             f"{base.name} number", file=str(path)) from None
         out.append(vals if w > 1 else vals[:, 0])
         col += w
     return out
+
+
+def _fits(token: bytes, base: np.dtype) -> bool:
+    try:
+        np.array([token]).astype(base)
+        return True
+    except (ValueError, OverflowError):
+        return False
 
 
 def _ascii_bytes(columns: list[Column]) -> bytes:
@@ -485,6 +511,7 @@ def _read_ply(data: bytes, path) -> tuple[list[Column], str]:
         if len(data) - start < n * record.itemsize:
             raise InputError(f"truncated PLY: header says {n} vertices × {record.itemsize} bytes, the file has "
                              f"{len(data) - start} bytes of data", file=str(path))
+        _check_trailing(memoryview(data)[start:], n * record.itemsize, record.itemsize, n, "PLY", path)
         arr = np.frombuffer(data, record, count=n, offset=start)
         values = [arr[f"f{i}"] for i in range(len(props))]
     return [(name, d.str, np.ascontiguousarray(v)) for (name, _), d, v in zip(props, dtypes, values)], mode

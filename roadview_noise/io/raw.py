@@ -59,7 +59,9 @@ def write_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_l
 
 
 def read_dng(path: str | os.PathLike) -> RawParts:
-    """Bayer DNG via rawpy: visible raw area, CFA pattern of its top-left site, black and white level (DN)."""
+    """Bayer DNG via rawpy: visible raw area, CFA pattern of its top-left site, black and white level (DN).
+    The TIFF structure is checked first (:func:`check_dng_structure`), so a truncated file is named as such."""
+    check_dng_structure(path)
     try:
         with rawpy.imread(str(path)) as raw:
             if raw.raw_pattern is None or raw.raw_pattern.shape != (2, 2):
@@ -70,13 +72,44 @@ def read_dng(path: str | os.PathLike) -> RawParts:
             blacks = np.asarray(raw.black_level_per_channel, dtype=float)
             white = float(raw.white_level)
     except rawpy.LibRawError as exc:
-        raise InputError(f"LibRaw cannot read this DNG ({type(exc).__name__}: {exc})", file=str(path)) from exc
+        raise InputError(_LIBRAW_WORDS.get(type(exc).__name__, "LibRaw cannot read this DNG"), file=str(path)) \
+            from exc
     if pattern not in CFA_PATTERNS:
         raise InputError(f"CFA pattern {pattern!r} is not one of {CFA_PATTERNS}", file=str(path))
     if np.ptp(blacks) > MAX_BLACK_SPREAD_DN:
         raise InputError(f"per-channel black levels {blacks.tolist()} differ by more than {MAX_BLACK_SPREAD_DN} DN; "
                          "rvnoise needs one black level", file=str(path))
     return dn, pattern, float(blacks.mean()), white
+
+
+_LIBRAW_WORDS = {
+    "LibRawIOError": "truncated or unreadable DNG: LibRaw reached the end of the file or could not read it",
+    "LibRawFileUnsupportedError": "not a DNG LibRaw can read (corrupt header or an unsupported variant)",
+    "LibRawDataError": "corrupt DNG: LibRaw could not decode its image data",
+    "LibRawRequestForNonexistentImageError": "the DNG holds no raw image",
+    "LibRawTooBigError": "the DNG declares an image too large to decode",
+}
+
+
+def check_dng_structure(path: str | os.PathLike) -> None:
+    """Raise :class:`InputError` for a file that is not TIFF-structured or whose image data (of any IFD or
+    sub-IFD) ends beyond the end of the file."""
+    try:
+        size = os.path.getsize(path)
+    except OSError as exc:
+        raise InputError(f"cannot read the DNG: {exc.strerror or exc}", file=str(path)) from None
+    try:
+        with tifffile.TiffFile(path) as tif:
+            end = 0
+            for page in tif.pages:
+                for p in (page, *(page.pages or ())):
+                    end = max(end, max((o + c for o, c in zip(p.dataoffsets, p.databytecounts)), default=0))
+    except Exception as exc:                       # tifffile raises many types for a damaged directory
+        raise InputError(f"corrupt or truncated DNG: its TIFF directory cannot be read ({exc})", file=str(path)) \
+            from None
+    if end > size:
+        raise InputError(f"truncated DNG: its image data ends at byte {end}, the file has {size} bytes",
+                         file=str(path))
 
 
 def write_dng(path: str | os.PathLike, dn_uint16: np.ndarray, cfa_pattern: str, black_level_dn: float,

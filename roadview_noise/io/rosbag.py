@@ -80,9 +80,11 @@ def temporary_sibling(path: Path) -> Path:
 
 
 def remove_stale_siblings(path: Path) -> None:
-    """Delete temporaries a killed run left next to ``path``."""
-    for p in path.parent.glob(f".{path.name}.*{TMP_SUFFIX}*"):
-        shutil.rmtree(p) if p.is_dir() else p.unlink()
+    """Delete temporaries a killed run left next to ``path``: :func:`temporary_sibling`'s and ``io/atomic``'s
+    (``.<stem>.<pid>.rvnoise-tmp<suffix>``)."""
+    for pattern in (f".{path.name}.*{TMP_SUFFIX}*", f".{path.stem}.*{TMP_SUFFIX}{path.suffix}"):
+        for p in path.parent.glob(pattern):
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
 
 
 class BagOutput:

@@ -1,0 +1,350 @@
+"""Worker processes that survive the death of a worker, and die with their parent.
+
+joblib/loky and ``concurrent.futures`` break the whole pool when one worker dies (a native crash on one bad file, the
+kernel's out-of-memory killer): every task in flight is lost and the run aborts. :class:`ProcessExecutor` gives each
+worker its own pipe and sends it one task at a time, so it always knows which task a dead worker was running: that
+task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
+is affected. Workers get the run context once at start and then only small task keys (never arrays).
+
+A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
+thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
+the models once, with OpenBLAS/OpenMP/numba at one thread and ``cv2.setNumThreads(1)`` per worker.
+
+``timeout_s`` bounds one task: a worker that runs longer is killed and its task reported (not retried).
+
+The interface (:class:`Executor`): ``map(tasks)`` pulls tasks lazily from any iterable (at most ``workers`` in
+flight) and yields ``(task, result)`` pairs as they complete; ``result`` is the function's return value, a
+:class:`WorkerDeath` or a :class:`TaskError`. :class:`InlineExecutor` runs the same contract in the calling process.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import multiprocessing as mp
+import multiprocessing.spawn as mp_spawn
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from contextlib import contextmanager
+from dataclasses import dataclass
+from multiprocessing.connection import wait
+from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, TypeVar
+
+T = TypeVar("T")
+C = TypeVar("C")
+
+MAX_DEATHS_PER_TASK = 2            # a task that kills this many workers is not tried again
+WATCHDOG_PERIOD_S = 1.0
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
+PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module (see _context)
+PR_SET_PDEATHSIG = 1
+
+
+@dataclass(frozen=True)
+class WorkerDeath:
+    """The task's worker died (signal or exit) ``deaths`` times while running it."""
+
+    reason: str
+    deaths: int
+
+
+@dataclass(frozen=True)
+class TaskError:
+    """The task function raised (it should record failures itself; this keeps the run going if it does not)."""
+
+    message: str
+    traceback: str
+
+
+class Executor(Protocol):
+    workers: int
+
+    def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
+        """Run ``fn(task, context)`` for each task; yield ``(task, result)`` as tasks complete."""
+
+    def close(self) -> None:
+        """Stop the workers (also when ``map`` was left early)."""
+
+
+def death_reason(exitcode: int | None) -> str:
+    """A worker's exit status in words."""
+    if exitcode is None:
+        return "worker vanished"
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        if -exitcode == signal.SIGKILL:
+            return f"worker died: signal {-exitcode} ({name}: out of memory or killed)"
+        return f"worker died: signal {-exitcode} ({name}, a crash in native code)"
+    return f"worker died: it exited with code {exitcode}"
+
+
+# --- in the worker ---------------------------------------------------------------------------------------------------
+
+
+def worker_setup(parent_pid: int | None = None) -> None:
+    """One thread per numeric library; exit when the parent dies (see module docstring)."""
+    os.environ.update(THREAD_ENV)
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except ImportError:             # pragma: no cover - cv2 is a dependency
+        pass
+    if parent_pid is None:
+        return
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+    ppid = os.getppid()
+
+    def watchdog() -> None:
+        while True:
+            time.sleep(WATCHDOG_PERIOD_S)
+            if os.getppid() != ppid or not _alive(parent_pid):
+                os._exit(1)
+
+    threading.Thread(target=watchdog, name="rvnoise-parent-watchdog", daemon=True).start()
+    if os.getppid() != ppid or not _alive(parent_pid):
+        os._exit(1)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple | None) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)       # Ctrl-C is the parent's to handle
+    worker_setup(parent_pid)
+    if setup is not None:
+        setup[0](*setup[1])
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        tid, task = msg
+        try:
+            result = fn(task, context)
+        except Exception as exc:        # the function should not raise; keep the worker alive if it does
+            result = TaskError(f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
+        conn.send((tid, result))
+
+
+# --- in the parent ---------------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _starting() -> Iterator[None]:
+    """Around starting a worker or the fork server: one thread per numeric library in the environment, and no
+    re-run of the caller's ``__main__`` in the child. Workers need nothing from it (the task function and the setup
+    are imported by name), and multiprocessing's default would re-import the main script in every worker:
+    slow (a script that imports open3d pays it per worker) and wrong for a script without the
+    ``if __name__ == "__main__"`` guard."""
+    saved = {k: os.environ.get(k) for k in THREAD_ENV}
+    os.environ.update(THREAD_ENV)
+    original = getattr(mp_spawn, "get_preparation_data", None)
+
+    def without_main(name):
+        data = original(name)
+        data.pop("init_main_from_path", None)
+        data.pop("init_main_from_name", None)
+        return data
+
+    if original is not None:
+        mp_spawn.get_preparation_data = without_main
+    try:
+        yield
+    finally:
+        if original is not None:
+            mp_spawn.get_preparation_data = original
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _context():
+    if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
+        import pkgutil
+
+        from . import models
+
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(PRELOAD + [m.name for m in pkgutil.walk_packages(models.__path__,
+                                                                                       models.__name__ + ".")])
+        with _starting():                # the server imports numpy once, with one BLAS thread per worker
+            from multiprocessing import forkserver
+
+            forkserver.ensure_running()
+        return ctx
+    return mp.get_context("spawn")
+
+
+@dataclass
+class _Worker:
+    proc: Any
+    conn: Any
+    task: Any = None
+    tid: int = -1
+    started: float = 0.0
+
+
+class ProcessExecutor(Generic[T, C]):
+    """``workers`` processes running ``fn(task, context)``; see the module docstring. ``setup``: ``(function,
+    args)`` each worker calls once at start (importable by reference)."""
+
+    def __init__(self, fn: Callable[[T, C], Any], context: C, workers: int, *, setup: tuple | None = None,
+                 max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None):
+        self.fn, self.context, self.workers = fn, context, max(1, int(workers))
+        self.setup = setup
+        self.max_deaths = max_deaths
+        self.timeout_s = timeout_s
+        self._ctx = _context()
+        self._pool: list[_Worker] = []
+        self.deaths = 0
+
+    def _start(self) -> _Worker:
+        parent, child = self._ctx.Pipe(duplex=True)
+        with _starting():
+            proc = self._ctx.Process(target=_worker_main, name="rvnoise-worker", daemon=True,
+                                     args=(child, self.fn, self.context, os.getpid(), self.setup))
+            proc.start()
+        child.close()
+        return _Worker(proc, parent)
+
+    def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
+        source = iter(tasks)
+        retry: deque[tuple[int, T]] = deque()
+        deaths: dict[int, int] = {}
+        exhausted = False
+        next_tid = 0
+        startup_deaths = 0
+        try:
+            while len(self._pool) < self.workers:
+                self._pool.append(self._start())
+            while True:
+                for w in self._pool:
+                    if w.task is not None:
+                        continue
+                    if retry:
+                        w.tid, w.task = retry.popleft()
+                    elif not exhausted:
+                        try:
+                            w.task = next(source)
+                        except StopIteration:
+                            exhausted = True
+                            continue
+                        w.tid, next_tid = next_tid, next_tid + 1
+                    else:
+                        continue
+                    w.started = time.monotonic()
+                    try:
+                        w.conn.send((w.tid, w.task))
+                    except (BrokenPipeError, OSError):
+                        pass                       # its death is seen below and the task re-sent
+                busy = [w for w in self._pool if w.task is not None]
+                if not busy:
+                    return
+                timeout = None
+                if self.timeout_s is not None:
+                    timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
+                ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool], timeout))
+                for i, w in enumerate(self._pool):
+                    if w.task is not None and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
+                            and time.monotonic() - w.started >= self.timeout_s:
+                        w.proc.kill()
+                        w.proc.join()
+                        w.conn.close()
+                        task = w.task
+                        self._pool[i] = self._start()
+                        yield task, WorkerDeath(f"took longer than {self.timeout_s:g} s; its worker was stopped", 1)
+                        continue
+                    result, got = None, False
+                    if w.task is not None and w.conn in ready:
+                        try:
+                            tid, result = w.conn.recv()
+                            got = tid == w.tid
+                        except (EOFError, OSError):
+                            got = False
+                    if got:
+                        task, w.task = w.task, None
+                        yield task, result
+                        continue
+                    if w.proc.sentinel not in ready and w.proc.is_alive():
+                        continue
+                    w.proc.join()
+                    reason = death_reason(w.proc.exitcode)
+                    w.conn.close()
+                    self.deaths += 1
+                    if w.task is None:
+                        startup_deaths += 1
+                        if startup_deaths > 3 * self.workers:
+                            raise RuntimeError(f"workers keep dying before they get a task ({reason})")
+                    else:
+                        n = deaths[w.tid] = deaths.get(w.tid, 0) + 1
+                        if n >= self.max_deaths:
+                            task = w.task
+                            self._pool[i] = self._start()
+                            yield task, WorkerDeath(reason, n)
+                            continue
+                        retry.append((w.tid, w.task))
+                    self._pool[i] = self._start()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop every worker: a polite ``None`` to idle ones, SIGKILL to busy ones and to any that lingers."""
+        pool, self._pool = self._pool, []
+        for w in pool:
+            try:
+                if w.task is None and w.proc.is_alive():
+                    w.conn.send(None)
+                else:
+                    w.proc.kill()
+            except (BrokenPipeError, OSError):
+                pass
+        deadline = time.monotonic() + 5
+        for w in pool:
+            w.proc.join(max(0.0, deadline - time.monotonic()))
+            if w.proc.is_alive():
+                w.proc.kill()
+                w.proc.join()
+            w.conn.close()
+
+
+class InlineExecutor(Generic[T, C]):
+    """The same contract in the calling process (no isolation: a crash ends the caller)."""
+
+    workers = 1
+
+    def __init__(self, fn: Callable[[T, C], Any], context: C):
+        self.fn, self.context = fn, context
+
+    def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
+        for task in tasks:
+            try:
+                yield task, self.fn(task, self.context)
+            except Exception as exc:
+                yield task, TaskError(f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
+
+    def close(self) -> None:
+        pass

@@ -1,0 +1,64 @@
+"""The worker pool on its own: results as tasks complete, a dying worker costs only its task (retried once), the
+pool refills, per-task time bound, and the same contract in-process."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+from roadview_noise.executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, death_reason
+
+
+def work(task: int, context: dict) -> tuple[int, int]:
+    """Square the task; die on the tasks the context names (``exit``: os._exit, ``kill``: SIGKILL once, then
+    work, by a marker file), sleep on ``sleep``, raise on ``raise``."""
+    if task in context.get("exit", ()):
+        os._exit(3)
+    if task in context.get("kill_once", ()):
+        marker = os.path.join(context["dir"], f"killed-{task}")
+        if not os.path.exists(marker):
+            open(marker, "w").close()
+            os.kill(os.getpid(), signal.SIGKILL)
+    if task in context.get("sleep", ()):
+        time.sleep(60)
+    if task in context.get("raise", ()):
+        raise ValueError(f"bad task {task}")
+    return task, task * task
+
+
+def test_deaths_retries_and_errors(tmp_path):
+    ctx = {"exit": (3,), "kill_once": (5,), "raise": (7,), "dir": str(tmp_path)}
+    ex = ProcessExecutor(work, ctx, 2)
+    results = dict(ex.map(range(12)))
+    assert sorted(results) == list(range(12))
+    assert isinstance(results[3], WorkerDeath) and results[3].deaths == 2 and "exited with code 3" in \
+        results[3].reason
+    assert results[5] == (5, 25)                                   # killed once, retried on a fresh worker
+    assert isinstance(results[7], TaskError) and "bad task 7" in results[7].message
+    assert all(results[t] == (t, t * t) for t in range(12) if t not in (3, 7))
+    assert ex.deaths == 3 and not ex._pool
+
+
+def test_timeout_and_early_close():
+    ex = ProcessExecutor(work, {"sleep": (1,)}, 2, timeout_s=1.0)
+    t0 = time.monotonic()
+    results = dict(ex.map(range(4)))
+    assert isinstance(results[1], WorkerDeath) and "longer than 1 s" in results[1].reason
+    assert time.monotonic() - t0 < 30
+    ex = ProcessExecutor(work, {}, 2)
+    it = ex.map(iter(range(1000)))
+    next(it)
+    it.close()                                                     # leaving early stops every worker
+    assert not ex._pool
+
+
+def test_inline_executor_same_contract():
+    results = dict(InlineExecutor(work, {"raise": (2,)}).map(range(4)))
+    assert results[1] == (1, 1) and isinstance(results[2], TaskError)
+
+
+def test_death_reasons_in_words():
+    assert death_reason(-9) == "worker died: signal 9 (SIGKILL: out of memory or killed)"
+    assert "SIGSEGV" in death_reason(-11) and "native code" in death_reason(-11)
+    assert death_reason(2) == "worker died: it exited with code 2"
