@@ -360,7 +360,27 @@ def plan_bag(recipe: BagRecipe, reader: Any, bag: Path) -> BagPlan:
                 raise RecipeError(f"{bag}: depth topic {want} carries {bad[0]}, not {rm.IMAGE}", file=recipe.source,
                                   key=f"topics.{name}.depth_topic")
             depth[want] = by_topic[want]
+    check_profiles(recipe, bag)
     return BagPlan(mapped, depth)
+
+
+def check_profiles(recipe: BagRecipe, bag: Path) -> None:
+    """Load every topic's profile now, as a file run's ``validate`` does (a camera profile only when a step uses
+    the camera geometry): a bad profile is a RecipeError naming the topic's key, not a failure of every message."""
+    from .camera_inputs import needs_camera_geometry
+    from .dataset import _camera_profile, _profile_spec, cloud_profile_for
+
+    bag_dir = bag.resolve().parent
+    for name, topic in recipe.topics.items():
+        inputs = topic.recipe.spec.inputs
+        try:
+            if topic.sensor != "camera":
+                cloud_profile_for(topic.sensor, inputs, bag_dir, topic.recipe, sidecar=False)
+            elif inputs.camera_profile is not None and needs_camera_geometry(topic.recipe):
+                _camera_profile(_profile_spec(inputs.camera_profile, bag_dir, topic.recipe), bag_dir)
+        except InputError as e:
+            raise RecipeError(f"invalid {topic.sensor} profile: {e}", file=recipe.source,
+                              key=f"topics.{name}.{topic.sensor}_profile") from None
 
 
 class DepthSync:

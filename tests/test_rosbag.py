@@ -344,3 +344,12 @@ def test_a_dying_worker_stops_the_run_without_output(tmp_path):
     finally:
         MODELS.pop(injected_models.CrashCamera.id, None)
     assert not list((tmp_path / "out").iterdir())
+
+
+def test_a_bad_profile_stops_the_run_before_anything_is_written(bag, tmp_path):
+    topics = {**RECIPE_TOPICS, "/os_cloud_node/points": {"sensor": "lidar", "lidar_profile": "os1-12"}}
+    recipe = parse_bag_recipe({"topics": topics, "chains": CHAINS}, source="r.yaml")
+    with pytest.raises(RecipeError, match=r"^r.yaml: topics./os_cloud_node/points.lidar_profile: invalid lidar "
+                                          r"profile: .*no LiDAR profile 'os1-12'"):
+        run_bag(recipe, bag, tmp_path / ("o.bag" if bag.suffix == ".bag" else "o"), workers=1, progress=False)
+    assert not list(tmp_path.iterdir())
