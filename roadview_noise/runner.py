@@ -264,7 +264,20 @@ def _profile_split(spans: dict[str, float], entry: dict) -> dict[str, Any]:
              "write": get("save.write", 0.0)}
     split["other"] = entry["seconds"] - sum(split.values()) - sum(steps.values())
     rounded = {k: round(max(v, 0.0), 5) for k, v in split.items()}
-    return {**rounded, "models": {m: round(x, 5) for m, x in steps.items()}, "total": entry["seconds"]}
+    return {**rounded, "models": {m: round(x, 5) for m, x in steps.items()}, "total": entry["seconds"],
+            "peak_rss_mb": _peak_rss_mb()}
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident set size so far (Linux ``VmHWM``; elsewhere ``ru_maxrss``)."""
+    try:
+        with open("/proc/self/status") as fh:
+            return round(next(int(line.split()[1]) for line in fh if line.startswith("VmHWM:")) / 1024, 1)
+    except (OSError, StopIteration):
+        import resource
+
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 if sys.platform != "darwin" else
+                                                                            1024 ** 2), 1)
 
 
 def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
@@ -295,7 +308,12 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                                             metrics=recipe.spec.output.metrics)
             entry["steps"] = [asdict(r) for r in records]
             with profiling.span("metrics"):
-                entry["metrics"] = compare(data, out) if recipe.spec.output.metrics else {}
+                if not recipe.spec.output.metrics:
+                    entry["metrics"] = {}
+                elif len(records) == 1:                    # one step: its metrics compare input and output already
+                    entry["metrics"] = records[0].metrics
+                else:
+                    entry["metrics"] = compare(data, out)
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
