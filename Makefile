@@ -12,7 +12,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev,onnx]'
+	$(BIN)/pip install --quiet -e '.[dev,onnx,dask]'
 	@$(MAKE) --no-print-directory check-open3d
 	@touch $(STAMP)
 
@@ -40,7 +40,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -p no:cacheprovider
 
+# bench/run.py: the one table of README "Performance"; the per-model scripts after it
 bench: $(STAMP)
+	$(BIN)/python bench/run.py
 	@for b in bench/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
 
 sample-data: $(STAMP)

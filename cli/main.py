@@ -55,6 +55,12 @@ def augment(
     radar_profile: Optional[str] = typer.Option(None, "--radar-profile", help="Radar profile: built-in or file "
                                                 "(inputs.radar_profile)."),
     report: bool = typer.Option(False, "--report", help="Write OUTPUT_DIR/report.html at the end (`rvnoise report`)."),
+    backend: str = typer.Option("local", "--backend", help="local: worker processes here; dask: a Dask cluster "
+                                "(--scheduler, else a LocalCluster of --workers). See README, Dask."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. "
+                                            "tcp://HOST:8786 (with --backend dask)."),
+    profile: bool = typer.Option(False, "--profile", help="Record where each file's time goes (read, decode, "
+                                 "convert, each model, encode, hash, write) in its manifest entry."),
 ) -> None:
     """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR.
     Input options override the recipe's and are recorded in run.json's resolved recipe. A ROS bag as INPUT_DIR:
@@ -67,7 +73,8 @@ def augment(
     if bag_kind(input_dir) is not None:
         options = {"--resume": resume, "--dry-run": dry_run, "--limit": limit, "--fail-fast": fail_fast,
                    "--task-timeout": task_timeout, "--depth": depth, "--camera-profile": camera_profile,
-                   "--lidar-profile": lidar_profile, "--radar-profile": radar_profile, "--report": report}
+                   "--lidar-profile": lidar_profile, "--radar-profile": radar_profile, "--report": report,
+                   "--backend dask": backend != "local", "--scheduler": scheduler, "--profile": profile}
         return _augment_bag(input_dir, output_dir, recipe, workers, overwrite, quiet,
                             refused=[o for o, value in options.items() if value])
     limits = Limits(max_pixels=int(max_pixels), max_points=int(max_points), task_timeout_s=task_timeout)
@@ -76,7 +83,7 @@ def augment(
                                  lidar_profile=lidar_profile, radar_profile=radar_profile)
         s = run(r, input_dir, output_dir, workers=workers, resume=resume, overwrite=overwrite, dry_run=dry_run,
                 limit=limit, fail_fast=fail_fast, yes=yes, limits=limits, progress=not quiet, echo=typer.echo,
-                warn=lambda m: typer.echo(m, err=True))
+                warn=lambda m: typer.echo(m, err=True), backend=backend, scheduler=scheduler, profile=profile)
     except RvNoiseError as e:
         _fail(str(e))
     except KeyboardInterrupt:
@@ -97,8 +104,8 @@ def _print_problems(s, *, failed: str = "failed", unit: str = "output") -> None:
     """A run summary's first failures (and how many more) and its invalid-points warning, on stderr."""
     for f in s.failures[:10]:
         typer.secho(f"{failed}: {f}", fg=typer.colors.RED, err=True)
-    if len(s.failures) > 10:
-        typer.secho(f"… and {len(s.failures) - 10} more (see the manifest)", fg=typer.colors.RED, err=True)
+    if s.failed > 10:
+        typer.secho(f"… and {s.failed - 10} more (see the manifest)", fg=typer.colors.RED, err=True)
     if s.warned:
         typer.secho(f"warning: {s.warned} {unit}(s) had invalid input points removed (input_warnings in the "
                     "manifest)", fg=typer.colors.YELLOW, err=True)

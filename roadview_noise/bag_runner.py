@@ -444,8 +444,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
     from tqdm import tqdm
 
     from .allocator import keep_freed_memory
-    from .camera_inputs import run_warnings
-    from .runner import _model_warnings
+    from .runner import _Tally
 
     started = time.time()
     keep_freed_memory()                 # the serial reading and writing here reuse their buffers' pages
@@ -453,8 +452,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
     check_bag_paths(in_bag, out_bag, overwrite)
     n_workers = workers or os.cpu_count() or 1
     summary = RunSummary()
+    tally = _Tally(summary)                    # counts, failures and warning lines, as a file run folds them
     topics: dict[str, dict[str, int]] = {t: {"messages": 0, "ok": 0, "failed": 0} for t in recipe.topics}
-    notes: list[dict] = []                     # the entries' input notes and warnings, for the run's warning lines
     for p in (out_bag, manifest_path(out_bag)):
         remove_stale_siblings(p)
     with ExitStack() as stack:
@@ -479,21 +478,15 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     entry, data = result
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
-                    notes.append({k: entry[k] for k in ("inputs", "warnings") if k in entry})
+                    tally.add(entry)
                     summary.planned += 1
-                    topics[entry["topic"]]["messages"] += 1
-                    if entry["status"] == "ok":
-                        summary.done += 1
-                        summary.warned += bool(entry.get("input_warnings"))
-                        topics[entry["topic"]]["ok"] += 1
-                    else:
-                        summary.failed += 1
-                        topics[entry["topic"]]["failed"] += 1
-                        summary.failures.append(entry["error"])
+                    counts = topics[entry["topic"]]
+                    counts["messages"] += 1
+                    counts["ok" if entry["status"] == "ok" else "failed"] += 1
         finally:
             bar.close()
     summary.seconds = time.time() - started
-    summary.warnings = run_warnings(notes) + _model_warnings(notes)
+    summary.warnings = tally.warnings()
     for line in summary.warnings:
         echo(f"rvnoise: warning: {line}")
     write_run_json(run_record_path(out_bag), {

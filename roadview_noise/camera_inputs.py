@@ -14,7 +14,7 @@ Depth (``inputs.depth_source``): ``file`` (``inputs.depth`` sidecars in any form
 :mod:`roadview_noise.depth.monocular`) or ``ground_plane`` (a flat-road prior, :mod:`roadview_noise.depth.ground_plane`);
 holes follow ``inputs.depth_holes`` (:mod:`roadview_noise.depth.holes`). What was done goes to the frame's
 ``input_notes`` (the manifest's ``inputs``), and what deserves a warning is summarised once per run
-(:func:`run_warnings`).
+(:class:`InputWarnings`).
 
 Image files and the camera messages of ROS bags go through the same :func:`with_camera_inputs`: only where the
 image comes from differs (:class:`FileImage`; ``bag_runner.TopicImage``, whose aligned depth message plays the role
@@ -27,7 +27,7 @@ import dataclasses
 import math
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -360,27 +360,36 @@ def _depth_warnings(notes: dict | None) -> list[str]:
 # --- one warning per run -------------------------------------------------------------------------------------------
 
 
-def run_warnings(entries: Iterable[dict]) -> list[str]:
-    """One line per kind of input warning over a run's manifest entries (their ``inputs.warnings``)."""
-    seen: dict[str, list[dict]] = {}
-    for e in entries:
-        inputs = e.get("inputs") or {}
+class InputWarnings:
+    """One line per kind of input warning over a run's manifest entries (their ``inputs.warnings``), folded one entry
+    at a time (a count and an extreme per kind, nothing per file)."""
+
+    def __init__(self):
+        self.files: dict[str, int] = {}
+        self.worst_hole_fraction = 0.0
+        self.fovs: set[float] = set()
+
+    def add(self, entry: dict) -> None:
+        inputs = entry.get("inputs") or {}
         for kind in inputs.get("warnings", ()):
-            seen.setdefault(kind, []).append(inputs)
-    lines = []
-    if "depth_holes_filled" in seen:
-        notes = seen["depth_holes_filled"]
-        worst = max(n["depth"]["hole_fraction"] for n in notes)
-        lines.append(f"depth holes filled from their neighbours in {len(notes)} file(s), up to {100 * worst:.1f} % "
-                     f"of a frame (inputs.depth_holes: fill; counts in the manifest, inputs.depth)")
-    if "intrinsics_from_fov" in seen:
-        notes = seen["intrinsics_from_fov"]
-        fovs = sorted({n["camera"]["fov_h_deg"] for n in notes})
-        lines.append(f"no camera profile for {len(notes)} file(s): intrinsics from the image size and a horizontal "
-                     f"FOV of {', '.join(f'{f:g}' for f in fovs)}° (square pixels, centred); state them with "
-                     f"inputs.camera_profile, --camera-profile or inputs.camera_fov_h_deg (values in the manifest, "
-                     f"inputs.camera)")
-    if "depth_ground_plane" in seen:
-        lines.append(f"depth of {len(seen['depth_ground_plane'])} file(s) from the ground-plane prior: a flat road "
-                     f"and one distance above the horizon, a crude guess (parameters in the manifest, inputs.depth)")
-    return lines
+            self.files[kind] = self.files.get(kind, 0) + 1
+            if kind == "depth_holes_filled":
+                self.worst_hole_fraction = max(self.worst_hole_fraction, inputs["depth"]["hole_fraction"])
+            elif kind == "intrinsics_from_fov":
+                self.fovs.add(inputs["camera"]["fov_h_deg"])
+
+    def lines(self) -> list[str]:
+        n, lines = self.files, []
+        if "depth_holes_filled" in n:
+            lines.append(f"depth holes filled from their neighbours in {n['depth_holes_filled']} file(s), up to "
+                         f"{100 * self.worst_hole_fraction:.1f} % of a frame (inputs.depth_holes: fill; counts in "
+                         "the manifest, inputs.depth)")
+        if "intrinsics_from_fov" in n:
+            lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
+                         f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "
+                         "pixels, centred); state them with inputs.camera_profile, --camera-profile or "
+                         "inputs.camera_fov_h_deg (values in the manifest, inputs.camera)")
+        if "depth_ground_plane" in n:
+            lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road and "
+                         "one distance above the horizon, a crude guess (parameters in the manifest, inputs.depth)")
+        return lines

@@ -8,7 +8,8 @@ is affected. Workers get the run context once at start and then only small task 
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
-the models once, with OpenBLAS/OpenMP/numba at one thread and ``cv2.setNumThreads(1)`` per worker.
+the models once and loaded their compiled kernels (``warmup``), so a worker starts warm in milliseconds, with
+OpenBLAS/OpenMP/numba at one thread and ``cv2.setNumThreads(1)`` per worker.
 
 ``timeout_s`` bounds one task: a worker that runs longer is killed and its task reported (not retried).
 
@@ -41,7 +42,8 @@ MAX_DEATHS_PER_TASK = 2            # a task that kills this many workers is not 
 WATCHDOG_PERIOD_S = 1.0
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
-PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module (see _context)
+PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module, then the warm-up (see _context)
+WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
 
 
@@ -190,7 +192,8 @@ def _context():
 
         ctx = mp.get_context("forkserver")
         ctx.set_forkserver_preload(PRELOAD + [m.name for m in pkgutil.walk_packages(models.__path__,
-                                                                                       models.__name__ + ".")])
+                                                                                       models.__name__ + ".")]
+                                   + [WARM_UP])
         with _starting():                # the server imports numpy once, with one BLAS thread per worker
             from multiprocessing import forkserver
 

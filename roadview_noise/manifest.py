@@ -11,11 +11,11 @@ import json
 import platform
 import sys
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from .io.atomic import write_bytes_atomic
+from .io.atomic import atomic_path, write_bytes_atomic
 
 MANIFEST_NAME = "manifest.jsonl"
 RUN_NAME = "run.json"
@@ -47,20 +47,29 @@ def sha256_file(path: str | Path) -> str:
 
 def read_manifest(path: str | Path) -> list[dict]:
     """Entries of a manifest; a line cut short by a killed run is skipped."""
-    entries = []
+    return list(iter_manifest(path))
+
+
+def iter_manifest(path: str | Path) -> Iterator[dict]:
+    """Entries of a manifest one at a time (nothing when it does not exist); a line cut short is skipped."""
     p = Path(path)
     if not p.is_file():
-        return entries
-    for line in p.read_text(encoding="utf-8").splitlines():
-        try:
-            entries.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return entries
+        return
+    with open(p, encoding="utf-8") as fh:
+        for line in fh:
+            try:
+                entry = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(entry, dict):
+                yield entry
 
 
 def write_manifest(path: str | Path, entries: Iterable[dict]) -> None:
-    write_bytes_atomic(path, "".join(dumps(e) + "\n" for e in entries).encode("utf-8"))
+    """Write the entries as the manifest, atomically, one line at a time."""
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        for e in entries:
+            fh.write(dumps(e) + "\n")
 
 
 def write_run_json(path: str | Path, record: dict) -> None:

@@ -11,17 +11,22 @@ in plan order, so what happens is the same for any number of workers. Releasing 
 A run killed between 2 and 3 leaves a listed file missing (``--resume`` redoes it) and temporaries (removed by the
 next run), never an unlisted file. Files a previous manifest of this folder lists are the only files a run deletes
 (:func:`remove_listed`): on ``--overwrite`` all of them, on a completed ``--resume`` those its plan no longer has.
+
+Memory stays flat however many outputs a run has: the claimed files and the previous manifest ``--resume`` consults
+live in a private temporary SQLite database (:class:`DiskIndex`), and released entries are written, not kept.
 """
 
 from __future__ import annotations
 
+import json
 import os
+import sqlite3
 from pathlib import Path, PurePosixPath
-from typing import Callable, Iterable, TextIO
+from typing import Callable, Container, Iterable, Iterator, TextIO
 
 from .input_checks import escapes
 from .io.atomic import ensure_dir_inside
-from .manifest import dumps, sha256_file
+from .manifest import dumps, iter_manifest, sha256_file
 
 
 def listed_files(entry: dict) -> list[str]:
@@ -42,7 +47,7 @@ def _inside(out_root: Path, rel: str) -> Path | None:
     return path if real_parent == root or real_parent.startswith(root + os.sep) else None
 
 
-def remove_listed(out_root: Path, entries: Iterable[dict], keep: set[str] = frozenset()) -> int:
+def remove_listed(out_root: Path, entries: Iterable[dict], keep: Container[str] = frozenset()) -> int:
     """Delete the files the entries list (never anything else, never outside ``out_root``, never a path in
     ``keep``); returns how many."""
     n = 0
@@ -81,7 +86,8 @@ class Ledger:
         self.on_log_error = on_log_error
         self.fail_fast = fail_fast
         self.stopped = False
-        self.claimed: dict[str, str] = {}             # file relpath → the input that wrote it
+        self.claimed = DiskIndex()                    # file relpath → the input that wrote it
+        self.superseded = False                       # a line was followed by one that replaces it
         self.pending: dict[int, dict] = {}
         self.next = 0
 
@@ -103,12 +109,12 @@ class Ledger:
 
     def _release(self, entry: dict) -> dict:
         files = listed_files(entry) if entry.get("status") == "ok" else []
-        clash = next((f for f in files if f in self.claimed and self.claimed[f] != entry["input"]), None)
+        owners = ((f, self.claimed.get(f)) for f in files)
+        clash = next(((f, o) for f, o in owners if o is not None and o != entry["input"]), None)
         if clash is not None:
             discard(self.out_root, entry)
-            entry = _failed(entry, f"{entry['input']}: its output file {clash!r} is also written for "
-                                   f"{self.claimed[clash]!r}; two inputs must not write one file (rename one of "
-                                   "them)")
+            entry = _failed(entry, f"{entry['input']}: its output file {clash[0]!r} is also written for "
+                                   f"{clash[1]!r}; two inputs must not write one file (rename one of them)")
             files = []
         try:
             self._write(entry)
@@ -125,11 +131,12 @@ class Ledger:
             entry = _failed(entry, f"{entry['input']}: could not move its output into place: {exc}")
             try:
                 self._write(entry)                      # supersedes the line above (the last line wins)
+                self.superseded = True
             except OSError as log_exc:
                 self.on_log_error(log_exc)
             return entry
         for f in files:
-            self.claimed[f] = entry["input"]
+            self.claimed.put(f, entry["input"])
         return entry
 
     def _write(self, entry: dict) -> None:
@@ -139,7 +146,10 @@ class Ledger:
     def claim(self, entry: dict) -> None:
         """Files of an entry kept from a previous run (``--resume``)."""
         for f in listed_files(entry):
-            self.claimed[f] = entry["input"]
+            self.claimed.put(f, entry["input"])
+
+    def close(self) -> None:
+        self.claimed.close()
 
 
 def _failed(entry: dict, error: str) -> dict:
@@ -162,4 +172,78 @@ def discard(out_root: Path, entry: dict) -> None:
             (out_root / tmp).unlink()
         except FileNotFoundError:
             pass
+
+
+
+class DiskIndex:
+    """A string → string map in a private temporary SQLite database (deleted when closed; a 2 MB page cache), with
+    a ``seen`` mark per key: what a run must remember per output without holding it in memory."""
+
+    def __init__(self):
+        self._db = sqlite3.connect("", isolation_level=None, check_same_thread=False)
+        self._db.executescript("PRAGMA journal_mode=OFF; PRAGMA synchronous=OFF; "
+                               "CREATE TABLE m (k TEXT PRIMARY KEY, v TEXT, seen INTEGER DEFAULT 0); BEGIN")
+
+    def put(self, key: str, value: str) -> None:
+        self._db.execute("INSERT OR REPLACE INTO m (k, v) VALUES (?, ?)", (key, value))
+
+    def __contains__(self, key: str) -> bool:
+        return self.get(key) is not None
+
+    def get(self, key: str) -> str | None:
+        row = self._db.execute("SELECT v FROM m WHERE k = ?", (key,)).fetchone()
+        return None if row is None else row[0]
+
+    def pop(self, key: str) -> None:
+        self._db.execute("DELETE FROM m WHERE k = ?", (key,))
+
+    def mark_seen(self, key: str) -> None:
+        self._db.execute("UPDATE m SET seen = 1 WHERE k = ?", (key,))
+
+    def unseen(self) -> Iterator[tuple[str, str]]:
+        """(key, value) of the keys never marked seen, in key order."""
+        return iter(self._db.execute("SELECT k, v FROM m WHERE seen = 0 ORDER BY k"))
+
+    def __len__(self) -> int:
+        return self._db.execute("SELECT COUNT(*) FROM m").fetchone()[0]
+
+    def close(self) -> None:
+        self._db.close()
+
+
+class PreviousRun:
+    """The ok entries of an earlier run's manifest that ``--resume`` may keep, by output (the last line of an output
+    wins), read line by line into a :class:`DiskIndex`."""
+
+    def __init__(self, manifest: Path | None = None):
+        self.index = DiskIndex()
+        for entry in iter_manifest(manifest) if manifest is not None else ():
+            out = entry.get("output")
+            if out is None:
+                continue
+            if entry.get("status") == "ok":
+                self.index.put(out, json.dumps(entry))
+            else:
+                self.index.pop(out)
+
+    def __bool__(self) -> bool:
+        return len(self.index) > 0
+
+    def get(self, output: str) -> dict | None:
+        """The kept entry of ``output`` (marking it as seen by this run), or None."""
+        value = self.index.get(output)
+        if value is None:
+            return None
+        self.index.mark_seen(output)
+        return json.loads(value)
+
+    def seen(self, output: str) -> None:
+        self.index.mark_seen(output)
+
+    def unseen(self) -> Iterator[dict]:
+        """Entries this run's plan never reached, in output order."""
+        return (json.loads(v) for _, v in self.index.unseen())
+
+    def close(self) -> None:
+        self.index.close()
 

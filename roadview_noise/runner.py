@@ -13,6 +13,7 @@ the run ends, except when the runner itself is killed (``--resume`` then complet
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import os
@@ -23,11 +24,11 @@ import warnings
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
-from . import annotations
+from . import annotations, profiling
 from .allocator import keep_freed_memory
-from .camera_inputs import run_warnings
+from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import InputError, OutputError, RecipeError, RvNoiseError
@@ -36,11 +37,12 @@ from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes
 from .io.headers import check_size
 from .lock import OutputLock
-from .manifest import (MANIFEST_NAME, RUN_NAME, library_versions, read_manifest, sha256_file, write_manifest,
-                       write_run_json)
+from .manifest import (MANIFEST_NAME, RUN_NAME, iter_manifest, library_versions, read_manifest, sha256_file,
+                       write_manifest, write_run_json)
 from .metrics import compare
 from .native_output import captured_output
-from .outputs import Ledger, commit, discard, files_intact, listed_files, remove_listed
+from .outputs import Ledger, PreviousRun, commit, discard, files_intact, remove_listed
+from .profiling import span
 from .recipe import Recipe, draw_value
 from .registry import adopt, get_model, plugin_models
 from .resources import choose_workers
@@ -73,13 +75,15 @@ class Task:
 @dataclass(frozen=True)
 class RunContext:
     """What every worker receives once: real input and output roots, the recipe, the limits; whether to collect
-    what native libraries print (in worker processes) into the entry's ``library_messages``."""
+    what native libraries print (in worker processes) into the entry's ``library_messages``; whether to record
+    where each file's time goes (``profile``, :mod:`roadview_noise.profiling`)."""
 
     in_root: Path
     out_root: Path
     recipe: Recipe
     limits: Limits = Limits()
     capture_output: bool = False
+    profile: bool = False
 
 
 @dataclass
@@ -94,7 +98,7 @@ class RunSummary:
     workers: int = 0
     warned: int = 0                     # outputs whose entry records input warnings (dropped invalid points)
     notes: list[str] = field(default_factory=list)   # what the user must know (disk full, stopped early, …)
-    warnings: list[str] = field(default_factory=list)  # about the inputs as a whole (camera_inputs.run_warnings)
+    warnings: list[str] = field(default_factory=list)  # about the inputs as a whole (camera_inputs.InputWarnings)
     state: str = "complete"
 
 
@@ -193,8 +197,17 @@ def input_path(in_root: Path, relpath: str) -> Path:
 
 
 def sha256_input(path: Path) -> str:
+    """sha256 of an input file (its reading and hashing are profiled apart); InputError names an unreadable one."""
+    h = hashlib.sha256()
     try:
-        return sha256_file(path)
+        with open(path, "rb") as fh:
+            while True:
+                with span("read"):
+                    chunk = fh.read(1 << 20)
+                if not chunk:
+                    return h.hexdigest()
+                with span("hash"):
+                    h.update(chunk)
     except OSError as exc:
         raise InputError(f"cannot read the file: {os_error_text(exc)}", file=str(path)) from None
 
@@ -216,15 +229,6 @@ def _warning_list(caught: list) -> list[str]:
     return [f"{text} (×{n})" if n > 1 else text for text, n in counts.items()]
 
 
-def _model_warnings(entries: list[dict]) -> list[str]:
-    """One line per distinct warning a model issued in the run (each entry keeps its own, ``warnings``), so a warning
-    such as a LiDAR intensity unit read from the data reaches stderr once, not once per file."""
-    files: Counter = Counter()
-    for e in entries:
-        files.update({w.rsplit(" (×", 1)[0] for w in e.get("warnings", ())})
-    return [f"{text} ({n} file{'s' if n > 1 else ''}; in the manifest)" for text, n in files.items()]
-
-
 def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     """Read, run the chain, stage the output files; return the manifest entry (failures are recorded, not raised).
     The files stay fsynced temporaries listed under ``staged`` until the runner has recorded them."""
@@ -236,12 +240,44 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
         "depth": s.depth_relpath, "variant_index": task.variant_index,
         "variant": recipe.variants[task.variant_index].overrides, "chain": list(recipe.model_ids),
     }
-    with captured_output(ctx.capture_output) as printed:
+    with captured_output(ctx.capture_output) as printed, profiling.collect(ctx.profile) as spans:
         _process(task, ctx, entry)
     if printed:
         entry["library_messages"] = printed
     entry["seconds"] = round(time.perf_counter() - t0, 4)
+    if ctx.profile:
+        entry["profile"] = _profile_split(spans, entry)
     return entry
+
+
+def _profile_split(spans: dict[str, float], entry: dict) -> dict[str, Any]:
+    """The manifest's ``profile`` of one file (seconds; :mod:`roadview_noise.profiling`) from the spans."""
+    steps: dict[str, float] = {}
+    for step in entry.get("steps", ()):
+        steps[step["model"]] = steps.get(step["model"], 0.0) + step["seconds"]
+    get = spans.get
+    split = {"read": get("read", 0.0), "hash": get("hash", 0.0),
+             "decode": get("load", 0.0) - get("load.convert", 0.0),
+             "convert": get("load.convert", 0.0) + get("save.convert", 0.0),
+             "metrics": get("chain", 0.0) - sum(steps.values()) + get("metrics", 0.0),
+             "encode": get("save", 0.0) - get("save.convert", 0.0) - get("save.write", 0.0),
+             "write": get("save.write", 0.0)}
+    split["other"] = entry["seconds"] - sum(split.values()) - sum(steps.values())
+    rounded = {k: round(max(v, 0.0), 5) for k, v in split.items()}
+    return {**rounded, "models": {m: round(x, 5) for m, x in steps.items()}, "total": entry["seconds"],
+            "peak_rss_mb": _peak_rss_mb()}
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident set size so far (Linux ``VmHWM``; elsewhere ``ru_maxrss``)."""
+    try:
+        with open("/proc/self/status") as fh:
+            return round(next(int(line.split()[1]) for line in fh if line.startswith("VmHWM:")) / 1024, 1)
+    except (OSError, StopIteration):
+        import resource
+
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 if sys.platform != "darwin" else
+                                                                            1024 ** 2), 1)
 
 
 def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
@@ -257,7 +293,8 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         _check_sizes(s, source, depth, ctx)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            data = load(s, ctx.in_root, recipe)
+            with profiling.phase("load", "convert"):
+                data = load(s, ctx.in_root, recipe)
             if getattr(data, "input_notes", None):
                 entry["inputs"] = dict(data.input_notes)
             data, dropped = drop_invalid_points(data, file=str(source))
@@ -265,18 +302,28 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                 entry["input_warnings"] = dropped
             spec = recipe.spec.inputs.annotations
             sidecars = annotations.read(s.relpath, ctx.in_root, spec, data)
-            out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
-                                        sequence_id=s.sequence_id, metrics=recipe.spec.output.metrics)
+            with profiling.span("chain"):
+                out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed,
+                                            key=task.out_relpath, sequence_id=s.sequence_id,
+                                            metrics=recipe.spec.output.metrics)
             entry["steps"] = [asdict(r) for r in records]
-            entry["metrics"] = compare(data, out) if recipe.spec.output.metrics else {}
+            with profiling.span("metrics"):
+                if not recipe.spec.output.metrics:
+                    entry["metrics"] = {}
+                elif len(records) == 1:                    # one step: its metrics compare input and output already
+                    entry["metrics"] = records[0].metrics
+                else:
+                    entry["metrics"] = compare(data, out)
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
                           if v})
             with confined_to(ctx.out_root), staged_writes() as stage:
-                save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
-                entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(), "sha256": sha256_file(tmp)}
-                                  for tmp, final in stage.files]
+                with profiling.phase("save", "convert", "write"):
+                    save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
+                with profiling.span("hash"):
+                    entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(),
+                                       "sha256": sha256_file(tmp)} for tmp, final in stage.files]
                 entry["staged"] = [[tmp.relative_to(ctx.out_root).as_posix(),
                                     final.relative_to(ctx.out_root).as_posix()] for tmp, final in stage.files]
         if caught:
@@ -321,14 +368,25 @@ def _walk_entry(failure: WalkFailure) -> dict:
 # --- the run ---------------------------------------------------------------------------------------------------------
 
 
+BACKENDS = ("local", "dask")
+
+
 def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = None, resume: bool = False,
         overwrite: bool = False, dry_run: bool = False, limit: int | None = None, fail_fast: bool = False,
         yes: bool = False, limits: Limits = Limits(), progress: bool = True, echo: Callable[[str], None] = print,
-        warn: Callable[[str], None] | None = None) -> RunSummary:
+        warn: Callable[[str], None] | None = None, backend: str = "local", scheduler: str | None = None,
+        profile: bool = False) -> RunSummary:
     """Run a recipe over an input tree. Raises RecipeError / OutputError (exit 2) before writing anything if it
-    cannot start; ``warn`` (default ``echo``) gets the messages meant for stderr."""
+    cannot start; ``warn`` (default ``echo``) gets the messages meant for stderr. ``backend``: ``local`` (worker
+    processes of this machine, :mod:`roadview_noise.executor`) or ``dask`` (the Dask scheduler at ``scheduler``,
+    else a local ``distributed.LocalCluster``; :mod:`roadview_noise.dask_backend`); ``profile`` records where each
+    file's time goes in its manifest entry."""
     warn = warn or echo
     started = time.time()
+    if backend not in BACKENDS:
+        raise RecipeError(f"unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if scheduler is not None and backend != "dask":
+        raise RecipeError("--scheduler needs --backend dask")
     in_real, out_real = check_roots(in_root, out_root)
     cap = None if yes else MAX_OUTPUTS_WITHOUT_YES
     planned, unreadable = count_plan(in_real, recipe, limit, cap)
@@ -350,20 +408,29 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
     except OSError as e:
         raise OutputError(f"cannot create the output folder {str(out_root)!r}: {os_error_text(e)}") from None
     with OutputLock(out_real, echo=warn) as lock, confined_to(out_real):
-        previous = _previous_run(out_real, recipe, resume, overwrite)
-        remove_stale_temporaries(out_real)
-        n_workers, capped = choose_workers(workers, planned)
-        if capped:
-            warn(f"rvnoise: {capped}")
-        summary.workers = n_workers
-        record = _run_record(recipe, in_real, out_real, n_workers, started, limits)
+        n_workers, capped = (workers, None) if backend == "dask" and scheduler is not None else \
+            choose_workers(workers, planned)
+        ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile)
+        executor = _executor(ctx, n_workers, backend, scheduler)       # the fork server imports meanwhile
+        previous = PreviousRun()
         try:
-            write_run_json(out_real / RUN_NAME, {**record, "state": "running"})
-        except OSError as e:
-            raise OutputError(f"cannot write in the output folder {str(out_root)!r}: {os_error_text(e)}") from None
-        ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True)
-        released = _execute(ctx, previous, summary, n_workers, limit, fail_fast, progress)
-        _finish(ctx, previous, released, summary, record, started, lock, prune=limit is None)
+            previous = _previous_run(out_real, recipe, resume, overwrite)
+            remove_stale_temporaries(out_real)
+            if capped:
+                warn(f"rvnoise: {capped}")
+            summary.workers = executor.workers
+            record = _run_record(recipe, in_real, out_real, executor.workers, started, limits)
+            record.update(backend=backend, scheduler=scheduler)
+            try:
+                write_run_json(out_real / RUN_NAME, {**record, "state": "running"})
+            except OSError as e:
+                raise OutputError(f"cannot write in the output folder {str(out_root)!r}: {os_error_text(e)}") \
+                    from None
+            tally, log = _execute(ctx, previous, summary, executor, limit, fail_fast, progress)
+            _finish(ctx, previous, tally, log, summary, record, started, lock, prune=limit is None)
+        finally:
+            executor.close()
+            previous.close()
     for line in summary.warnings:
         warn(f"rvnoise: warning: {line}")
     for note in summary.notes:
@@ -373,20 +440,30 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
     return summary
 
 
-def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool) -> dict[str, dict]:
+def _executor(ctx: RunContext, workers: int | None, backend: str, scheduler: str | None):
+    """The executor of a backend (see :func:`run`); both run :func:`process` on tasks and yield as completed."""
+    setup = (adopt, (plugin_models(),))
+    if backend == "dask":
+        from .dask_backend import DaskExecutor
+
+        return DaskExecutor(process, ctx, workers=workers, scheduler=scheduler, setup=setup,
+                            timeout_s=ctx.limits.task_timeout_s)
+    return ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s)
+
+
+def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool) -> PreviousRun:
     """The ok entries of an earlier run in ``out_root`` that ``--resume`` may keep, by output; checks that the
     earlier run may be continued or replaced, and on ``--overwrite`` deletes the files it lists."""
     manifest, run_json = out_root / MANIFEST_NAME, out_root / RUN_NAME
     if not (manifest.exists() or run_json.exists()):
-        return {}
+        return PreviousRun()
     if not (resume or overwrite):
         raise OutputError(f"{str(out_root)!r} holds an earlier run; use --resume to complete it or --overwrite")
-    entries = read_manifest(manifest)
     if overwrite:
-        remove_listed(out_root, entries)
+        remove_listed(out_root, iter_manifest(manifest))
         for p in (manifest, run_json):
             p.unlink(missing_ok=True)
-        return {}
+        return PreviousRun()
     try:
         record = json.loads(run_json.read_text())
     except (OSError, ValueError):
@@ -396,13 +473,7 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
         raise OutputError(f"{str(out_root)!r} was made by another recipe (sha256 {str(record.get('recipe_sha256'))[:12]}…,"
                           f" this one {recipe.sha256()[:12]}…); --resume continues the same recipe only: use "
                           "--overwrite to replace that run, or another output folder")
-    ok: dict[str, dict] = {}
-    for e in entries:                                   # the last line of an output wins
-        if e.get("output") is not None:
-            ok.pop(e["output"], None)
-            if e.get("status") == "ok":
-                ok[e["output"]] = e
-    return ok
+    return PreviousRun(manifest)
 
 
 def _still_valid(ctx: RunContext, task: Task, entry: dict) -> bool:
@@ -422,29 +493,63 @@ def _still_valid(ctx: RunContext, task: Task, entry: dict) -> bool:
     return files_intact(ctx.out_root, entry)
 
 
-def _execute(ctx: RunContext, previous: dict[str, dict], summary: RunSummary, n_workers: int, limit: int | None,
-             fail_fast: bool, progress: bool) -> list[dict]:
-    """Run the plan; returns the released entries in plan order (see ``outputs.Ledger``)."""
+class _Tally:
+    """What the run summary needs of every entry, folded as entries are released (nothing kept per entry)."""
+
+    MAX_FAILURES = 100                                 # error lines kept for the summary; the manifest has all
+
+    def __init__(self, summary: RunSummary):
+        self.summary = summary
+        self.inputs = InputWarnings()
+        self.model_warnings: Counter = Counter()
+
+    def add(self, e: dict, *, released: bool = True) -> None:
+        self.inputs.add(e)
+        self.model_warnings.update({w.rsplit(" (×", 1)[0] for w in e.get("warnings", ())})
+        if not released:
+            return
+        s = self.summary
+        if e.pop("skipped", False):
+            s.skipped += 1
+        elif e["status"] == "ok":
+            s.done += 1
+            s.warned += bool(e.get("input_warnings"))
+        else:
+            s.failed += 1
+            if len(s.failures) < self.MAX_FAILURES:
+                s.failures.append(e["error"])
+
+    def warnings(self) -> list[str]:
+        """Input warnings, then one line per distinct warning a model issued (so a warning such as a LiDAR
+        intensity unit read from the data reaches stderr once, not once per file)."""
+        return self.inputs.lines() + [f"{text} ({n} file{'s' if n > 1 else ''}; in the manifest)"
+                                      for text, n in self.model_warnings.items()]
+
+
+@dataclass
+class _Log:
+    """Where this run's lines start in the manifest, whether a line was superseded (a rewrite is due), and the
+    files this run's entries claimed (``outputs.DiskIndex``, closed by :func:`_finish`)."""
+
+    start: int = 0
+    superseded: bool = False
+    claimed: Any = None
+
+
+def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, executor: Any, limit: int | None,
+             fail_fast: bool, progress: bool) -> tuple[_Tally, _Log]:
+    """Run the plan, appending each entry to the manifest as it is released in plan order (``outputs.Ledger``)."""
     from tqdm import tqdm
 
-    released: list[dict] = []
+    tally, where = _Tally(summary), _Log()
     log_errors: list[OSError] = []
     bar = tqdm(total=summary.planned, unit="file", disable=not progress, file=sys.stderr, dynamic_ncols=True)
 
     def record(entries: list[dict]) -> None:
         for e in entries:
-            skipped = e.pop("skipped", False)
-            released.append(e)
             if e.get("output") is not None:
                 bar.update(1)
-            if skipped:
-                summary.skipped += 1
-            elif e["status"] == "ok":
-                summary.done += 1
-                summary.warned += bool(e.get("input_warnings"))
-            else:
-                summary.failed += 1
-                summary.failures.append(e["error"])
+            tally.add(e)
 
     def to_run(ledger: Ledger) -> Iterator[Task]:
         """The tasks for the workers; walk failures and outputs ``--resume`` keeps go to the ledger directly."""
@@ -461,10 +566,10 @@ def _execute(ctx: RunContext, previous: dict[str, dict], summary: RunSummary, n_
                 continue
             yield item
 
-    executor = ProcessExecutor(process, ctx, n_workers, setup=(adopt, (plugin_models(),)),
-                               timeout_s=ctx.limits.task_timeout_s)
+    ledger = None
     try:
         with open(ctx.out_root / MANIFEST_NAME, "a" if previous else "w", encoding="utf-8") as log:
+            where.start = log.tell()
             ledger = Ledger(ctx.out_root, log, log_errors.append, fail_fast=fail_fast)
             try:
                 for task, result in executor.map(to_run(ledger)):
@@ -483,31 +588,39 @@ def _execute(ctx: RunContext, previous: dict[str, dict], summary: RunSummary, n_
         summary.notes.append(f"run aborted: {e}")
     finally:
         bar.close()
+        if ledger is not None:
+            where.superseded, where.claimed = ledger.superseded, ledger.claimed
     if log_errors:
         summary.notes.append(f"could not append to {MANIFEST_NAME} ({os_error_text(log_errors[0])}); the outputs "
                              "it could not record were not kept")
-    return released
+    return tally, where
 
 
-def _finish(ctx: RunContext, previous: dict[str, dict], released: list[dict], summary: RunSummary, record: dict,
+def _finish(ctx: RunContext, previous: PreviousRun, tally: _Tally, log: _Log, summary: RunSummary, record: dict,
             started: float, lock: OutputLock, *, prune: bool) -> None:
     """Make OUT equal the manifest and write the run record, however the run ended. ``prune``: the plan was
-    complete (no ``--limit``), so outputs of a previous run that it no longer has are removed."""
+    complete (no ``--limit``), so outputs of a previous run that it no longer has are removed. The manifest is
+    rewritten (streamed) only when it holds lines of an earlier run or a superseded line."""
     out = ctx.out_root
-    seen = {e.get("output") for e in released}
-    kept = [e for key, e in previous.items() if key not in seen]
-    if summary.state == "complete" and prune:
-        claimed = {f for e in released if e.get("status") == "ok" for f in listed_files(e)}
-        remove_listed(out, kept, keep=claimed)          # outputs the plan no longer has (inputs removed)
-        kept = []
-    remove_stale_temporaries(out)                       # dead workers, discarded results
+    claimed = log.claimed
     try:
-        write_manifest(out / MANIFEST_NAME, released + kept)
-    except OSError as e:
-        summary.notes.append(f"could not rewrite {MANIFEST_NAME} in plan order ({os_error_text(e)}); it still "
-                             "holds every entry, in completion order")
+        if previous and summary.state == "complete" and prune:
+            remove_listed(out, previous.unseen(), keep=claimed if claimed is not None else frozenset())
+            kept: Iterable[dict] = ()
+        else:
+            kept = previous.unseen() if previous else ()
+        remove_stale_temporaries(out)                   # dead workers, discarded results
+        if previous or log.superseded:
+            try:
+                write_manifest(out / MANIFEST_NAME, _final_lines(out / MANIFEST_NAME, log.start, kept, tally))
+            except OSError as e:
+                summary.notes.append(f"could not rewrite {MANIFEST_NAME} in plan order ({os_error_text(e)}); it "
+                                     "still holds every entry, in completion order")
+    finally:
+        if claimed is not None:
+            claimed.close()
     summary.seconds = time.time() - started
-    summary.warnings = run_warnings(e for e in released + kept) + _model_warnings(released + kept)
+    summary.warnings = tally.warnings()
     final = {**record, "state": summary.state, "wall_seconds": round(summary.seconds, 3),
              "warnings": summary.warnings,
              "counts": {"planned": summary.planned, "done": summary.done, "skipped": summary.skipped,
@@ -522,6 +635,27 @@ def _finish(ctx: RunContext, previous: dict[str, dict], released: list[dict], su
     if any("no space left" in f.lower() for f in summary.failures):
         summary.notes.append("the disk filled up: free space and run again with --resume to write the missing "
                              "outputs")
+
+
+def _final_lines(manifest: Path, start: int, kept: Iterable[dict], tally: _Tally) -> Iterator[dict]:
+    """This run's entries from byte ``start`` of the manifest (a line superseded by the next one, same output,
+    dropped), then the previous run's entries it kept without reaching them (``--limit``)."""
+    with open(manifest, encoding="utf-8") as fh:
+        fh.seek(start)
+        held = None
+        for line in fh:
+            try:
+                entry = json.loads(line)
+            except ValueError:
+                continue
+            if held is not None and not (held.get("output") is not None and held.get("output") == entry.get("output")):
+                yield held
+            held = entry
+        if held is not None:
+            yield held
+    for e in kept:
+        tally.add(e, released=False)
+        yield e
 
 
 def _run_record(recipe: Recipe, in_root: Path, out_root: Path, workers: int, started: float,

@@ -55,9 +55,12 @@ def _files(root: Path) -> dict[str, str]:
             if p.is_file() and p.name not in ("manifest.jsonl", "run.json")}
 
 
-def assert_out_equals_manifest(out: Path) -> list[dict]:
-    """Every file in OUT is listed once, with its sha256, by an ok entry; nothing else is there."""
+def assert_out_equals_manifest(out: Path, last_line_wins: bool = False) -> list[dict]:
+    """Every file in OUT is listed once, with its sha256, by an ok entry; nothing else is there. ``last_line_wins``:
+    read the manifest as ``--resume`` and ``replay`` do (a later line of an output replaces an earlier one)."""
     entries = read_manifest(out / "manifest.jsonl")
+    if last_line_wins:
+        entries = list({e["output"]: e for e in entries}.values())
     listed: dict[str, str] = {}
     for e in entries:
         if e["status"] != "ok":
@@ -315,12 +318,15 @@ def test_disk_full_at_the_final_manifest_still_writes_run_json(tmp_path, tree, m
     def full(*a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(runner_module, "write_manifest", full)
-    r = _augment(tree, tmp_path / "o", "--recipe", _recipe(tmp_path, CAMERA))
+    recipe = _recipe(tmp_path, CAMERA)
+    assert _augment(tree, tmp_path / "o", "--recipe", recipe, "--limit", "1").exit_code == 0
+    monkeypatch.setattr(runner_module, "write_manifest", full)    # a resumed run rewrites the manifest at the end
+    r = _augment(tree, tmp_path / "o", "--recipe", recipe, "--resume")
     assert r.exit_code == 1 and "no space left on device" in r.output and "Traceback" not in r.output
     record = json.loads((tmp_path / "o" / "run.json").read_text())
-    assert record["state"] == "complete" and record["counts"]["done"] == 6 and record["notes"]
-    assert_out_equals_manifest(tmp_path / "o")                # the appended manifest lists every file
+    counts = record["counts"]
+    assert record["state"] == "complete" and counts["done"] + counts["skipped"] == 6 and record["notes"]
+    assert_out_equals_manifest(tmp_path / "o", last_line_wins=True)   # the appended manifest lists every file
 
 
 def test_disk_full_while_writing_fails_that_file(tmp_path, tree, monkeypatch):
@@ -428,14 +434,12 @@ def _process_one(tmp_path, tree_root: Path, body: dict, relpath: str) -> dict:
 def test_messages_in_words(tmp_path, tree, monkeypatch):
     from roadview_noise import runner as runner_module
 
-    real = runner_module.sha256_file
-
-    def denied(path):
+    def denied(path, *args, **kwargs):                            # root reads any file: fake the refusal
         if Path(path).name == "000000.png":
             raise PermissionError(errno.EACCES, "Permission denied", str(path))
-        return real(path)
+        return open(path, *args, **kwargs)
 
-    monkeypatch.setattr(runner_module, "sha256_file", denied)
+    monkeypatch.setattr(runner_module, "open", denied, raising=False)
     e = _process_one(tmp_path, tree, CAMERA, "cam/seqA/000000.png")
     assert e["error"].endswith("cam/seqA/000000.png: cannot read the file: permission denied"), e["error"]
     monkeypatch.undo()

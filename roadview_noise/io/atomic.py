@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
+from ..profiling import span
+
 TMP_SUFFIX = ".rvnoise-tmp"
 
 _root: Path | None = None            # real path every write must stay inside (None: unconfined)
@@ -148,7 +150,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     done = False
     try:
         yield tmp
-        with open(tmp, "rb+") as fh:
+        with span("write"), open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         if _stage is not None:
             _stage.files.append((tmp, path))
@@ -163,7 +165,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, span("write"):
         tmp.write_bytes(data)
 
 

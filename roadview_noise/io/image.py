@@ -146,7 +146,7 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     if encoding.fmt not in _EXTENSION:
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if codes.ndim == 3:
-        codes = np.dstack([codes[..., 2::-1], codes[..., 3:]])   # RGB(A) → BGR(A)
+        codes = bgr_order(codes)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
     ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], np.ascontiguousarray(codes), params)
     if not ok:
@@ -293,6 +293,11 @@ def display_srgb(linear: np.ndarray) -> np.ndarray:
     """sRGB-encoded float32 values in [0, 1] (8-bit codes / 255) of linear radiance: the image as a display, a JPEG
     or a depth network sees it (monocular depth input, edge guides)."""
     return srgb.linear_to_code(linear, 8).astype(np.float32) * np.float32(1 / 255)
+
+
+def bgr_order(codes: np.ndarray) -> np.ndarray:
+    """RGB(A) code values in OpenCV's BGR(A) order (a new C-order array)."""
+    return cv2.cvtColor(codes, cv2.COLOR_RGB2BGR if codes.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+import scipy.fft as sp_fft
 
 from .dsd import SNOW_LAWS, exponential_moment, marshall_palmer
 from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
@@ -347,6 +348,14 @@ _COUNT_STEP = 0.005        # ln-grid step of the expected-count table
 _SATURATED_RATIO = 1e7     # y above which both detectors are within 1e-6 (relative) of their largest probability
 
 
+def _fft_convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Full linear convolution of two real 1-D arrays by FFT: what ``scipy.signal.fftconvolve`` computes (same
+    transform sizes, same values), without importing scipy.signal (0.15–0.5 s per worker)."""
+    n = len(a) + len(b) - 1
+    size = sp_fft.next_fast_len(n, True)
+    return sp_fft.irfft(sp_fft.rfft(a, size) * sp_fft.rfft(b, size), size)[:n]
+
+
 @lru_cache(maxsize=8)
 def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                  relative_velocity_m_per_s: tuple[float, float, float], detector: Detector):
@@ -369,9 +378,7 @@ def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     # E at offset d (pair i sits at v_{i+d}): pairs with i + d < 0 are negligible, those past the table saturated
     d = np.arange(-(n_u - 1), len(v))
     suffix = np.cumsum(hist[::-1])[::-1]
-    from scipy.signal import fftconvolve  # here, not at import: scipy.signal costs 0.5 s to import
-
-    expected = p_max * suffix[np.maximum(-d, 0)] - fftconvolve(hist[::-1], deficit)
+    expected = p_max * suffix[np.maximum(-d, 0)] - _fft_convolve(hist[::-1], deficit)
     w = v0 - lg.min() + step * d
     return _read_only(w, np.maximum(expected, 0.0)) + (p_max * len(lg),)
 

@@ -43,8 +43,7 @@ from functools import lru_cache
 
 import numpy as np
 from scipy.constants import speed_of_light
-from scipy.special import gammainc, ndtr
-from scipy.stats import poisson
+from scipy.special import gammainc, gammaln, ndtr, pdtr, pdtrc, xlogy
 
 from .compiled import jit
 
@@ -130,10 +129,10 @@ class Receiver:
         if self.counts_photons:
             m = self.detection_count
             nb = np.arange(m)
-            weight = poisson.pmf(nb, self.background_photons)
+            weight = _poisson_pmf(nb, self.background_photons)
             need = m - nb                                       # ≥ 1
             p = gammainc(need[None, :], (self.photons_per_signal * s).reshape(-1, 1)) @ weight
-            return (p + poisson.sf(m - 1, self.background_photons)).reshape(s.shape)
+            return (p + pdtrc(m - 1, self.background_photons)).reshape(s.shape)     # P(N_b ≥ m)
         return ndtr((s - self.threshold) / self.noise_sd(s))
 
     @property
@@ -178,6 +177,12 @@ class Receiver:
         return _measure(s, np.ascontiguousarray(uniforms, dtype=np.float64), rows, *self.kernel_params)
 
 
+def _poisson_pmf(k: np.ndarray, mean: float) -> np.ndarray:
+    """Poisson probabilities P(N = k), as scipy.stats.poisson.pmf computes them (without importing scipy.stats,
+    0.35 s per process)."""
+    return np.exp(xlogy(k, mean) - gammaln(k + 1) - mean)
+
+
 @lru_cache(maxsize=64)
 def _weakest_return(receiver: Receiver) -> float:
     base = float(receiver.detection_probability(0.0))
@@ -200,7 +205,7 @@ def _kernel_params(receiver: Receiver) -> tuple:
     counting = receiver.counts_photons
     table = np.zeros(0)
     if counting:
-        cdf = poisson.cdf(np.arange(receiver.detection_count), receiver.background_photons)
+        cdf = pdtr(np.arange(receiver.detection_count), receiver.background_photons)      # Poisson CDF
         table = cdf / cdf[-1]
     return (counting, receiver.photons_per_signal, receiver.noise_floor, receiver.excess_noise_factor,
             receiver.threshold, receiver.background_photons, float(receiver.detection_count) if counting else 0.0,

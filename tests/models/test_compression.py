@@ -167,3 +167,18 @@ def test_refuses_bayer_mosaic():
 def test_rejects_bad_parameters(kw):
     with pytest.raises(ModelError):
         CompressionCamera(**kw)
+
+
+def test_codes_travel_with_the_frame_and_change_nothing():
+    # a frame read from codes is coded from those codes, and the decoded codes go to the writer as they are: the
+    # result is the one of the plain conversion, with no sRGB round trip (issue 19)
+    codes = srgb.linear_to_code(natural_image(3))
+    read = frame(srgb.code_to_linear(codes))
+    plain = frame(srgb.code_to_linear(codes).copy())          # the same pixels without the kept codes
+    out_kept, diag_kept = run(CompressionCamera(quality=30), read)
+    out_plain, diag_plain = run(CompressionCamera(quality=30), plain)
+    np.testing.assert_array_equal(out_kept.linear_rgb, out_plain.linear_rgb)
+    assert diag_kept == diag_plain
+    kept = srgb.attached_codes(out_kept.linear_rgb, 8)
+    assert kept is not None
+    np.testing.assert_array_equal(kept, srgb.linear_to_code(out_plain.linear_rgb.copy()))

@@ -48,3 +48,45 @@ def test_rejects_wrong_width_or_dtype():
         srgb.linear_to_code(np.zeros(3), bits=12)
     with pytest.raises(ValueError):
         srgb.code_to_linear(np.zeros(3, dtype=np.uint16), bits=8)
+
+
+# --- table look-ups (issue 19): exact, strided, codes kept with an unchanged frame -----------------------------------
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_table_codes_are_the_exact_rounding_at_every_decision_level(bits):
+    # the code steps at T_c = decode((c + ½)/M); float32 values at, just below and just above every T_c must land
+    # on the side the float64 formula puts them (a code is monotone in v, so this covers every value)
+    full = 2 ** bits - 1
+    levels = srgb.decode((np.arange(full) + 0.5) / full)
+    t32 = levels.astype(np.float32)
+    v = np.concatenate([t32, np.nextafter(t32, np.float32(0)), np.nextafter(t32, np.float32(2))])
+    expected = np.searchsorted(levels, v.astype(np.float64), side="right")
+    np.testing.assert_array_equal(srgb.linear_to_code(v, bits).astype(np.int64), expected)
+    u = np.random.default_rng(bits).random(200_000).astype(np.float32)
+    assert np.abs(srgb.linear_to_code(u, bits) - full * srgb.encode(u.astype(np.float64))).max() <= 0.5 + 1e-9
+
+
+def test_special_values():
+    v = np.array([np.nan, -np.inf, -0.0, 0.0, np.inf, 1.0, np.nextafter(np.float32(1), np.float32(0))], np.float32)
+    np.testing.assert_array_equal(srgb.linear_to_code(v), [0, 0, 0, 0, 255, 255, 255])
+
+
+def test_strided_views_need_no_copy_and_give_the_same_codes():
+    rgb = np.random.default_rng(5).random((7, 9, 3)).astype(np.float32)
+    np.testing.assert_array_equal(srgb.linear_to_code(rgb[..., ::-1]), srgb.linear_to_code(rgb)[..., ::-1])
+    bgr = srgb.linear_to_code(rgb)[..., ::-1]
+    np.testing.assert_array_equal(srgb.code_to_linear(bgr), srgb.code_to_linear(np.ascontiguousarray(bgr)))
+    np.testing.assert_array_equal(srgb.linear_to_code(rgb[:, 1]), srgb.linear_to_code(rgb)[:, 1])   # 2-D
+
+
+def test_an_unchanged_frame_returns_its_own_codes_and_cannot_change():
+    codes = np.random.default_rng(6).integers(0, 256, (5, 4, 3), dtype=np.uint8)
+    linear = srgb.code_to_linear(codes)
+    assert srgb.linear_to_code(linear) is codes and not linear.flags.writeable
+    with pytest.raises(ValueError):
+        linear *= 2                                   # read-only: the kept codes can never go stale
+    changed = linear * np.float32(0.5)                # any change is a new array, converted for real
+    assert srgb.attached_codes(changed, 8) is None
+    np.testing.assert_array_equal(srgb.linear_to_code(changed), srgb.linear_to_code(changed.copy()))
+    assert srgb.attached_codes(linear, 16) is None    # other bit depth: converted

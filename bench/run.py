@@ -1,0 +1,324 @@
+"""The one benchmark table of README "Performance", measured in one run on one machine (issue 19).
+
+Renders the sample drive at full resolution (camera 1936×1464 with range EXR, OS1-128 128×2048 list, 4D radar) into a
+temporary folder and builds one tree per sensor: camera frames are made photo-like (σ = 2 codes of noise, each copy
+its own noise: the rendered frames are smooth and PNG-code 10× faster than photographs), LiDAR and radar frames are
+copied. Then, per sensor, with 1 and 2 processes:
+
+- **copy**: the plain loop a user would write with the same codecs — read, decode, encode, write (+ fsync, as rvnoise
+  writes) each file; for the camera also **floor**: the copy plus decoding the depth sidecar the recipes read, i.e.
+  the I/O every camera weather recipe must do;
+- **augment**: ``runner.run`` of each weather recipe and one CNF (in-process, so the wall time includes the fork
+  server, the workers' start and the manifest), ``--profile`` on: per-model ms in the workers at the D3.5 rates and
+  each worker's peak RSS come from the manifest;
+- **start-up**: ``rvnoise augment --limit 1`` in a fresh process, minus the file's own time;
+- ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame,
+  and albumentations' nearest weather transforms (``RandomFog``, ``RandomRain``, ``RandomSnow``) on the same frames,
+  when albumentations is installed (``.venv/bin/pip install --no-deps albumentations==2.0.8 albucore==0.0.24
+  stringzilla simsimd``: its wheel's opencv-python-headless would shadow opencv-contrib);
+- **memory**: the main process's peak RSS for 100 and 10 000 tiny radar files (``--quick`` skips it).
+
+Figures are medians; ratios are measured in the same run. A shared machine makes absolute figures noisy.
+
+    .venv/bin/python bench/run.py [--frames N] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = {
+    "camera": ["weather-fog", "weather-rain", "weather-snow", "cnf10", "cnf11", "cnf12"],
+    "lidar": ["weather-fog-lidar", "weather-rain-lidar", "weather-snow-lidar", "cnf20"],
+    "radar": ["weather-fog-radar", "weather-rain-radar", "weather-snow-radar", "cnf25-radar"],
+}
+INPUTS = {"camera": {"camera": "camera/**/*.png", "depth": "{stem}_depth.exr"},
+          "lidar": {"lidar": "lidar/**/*.pcd"}, "radar": {"radar": "radar/**/*.pcd"}}
+PHOTO_NOISE_CODES = 2.0
+
+
+# --- data ------------------------------------------------------------------------------------------------------------
+
+
+def build_trees(root: Path, frames: int, copies: int) -> dict[str, Path]:
+    """One input tree per sensor under ``root`` with ``frames × copies`` files each (see module docstring)."""
+    from roadview_noise.sampledata.generate import generate
+
+    src = root / "render"
+    generate(src, frames=frames, seed=0)
+    trees = {s: root / s for s in RECIPES}
+    rng = np.random.default_rng(0)
+    cam = trees["camera"] / "camera" / "seq0"
+    cam.mkdir(parents=True)
+    shutil.copy(src / "camera" / "seq0" / "camera.yaml", cam)
+    for k in range(frames * copies):
+        i = k % frames
+        img = cv2.imread(str(src / "camera" / "seq0" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
+        noisy = np.clip(np.rint(img + rng.normal(0, PHOTO_NOISE_CODES, img.shape)), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(cam / f"{k:06d}.png"), noisy)
+        shutil.copy(src / "camera" / "seq0" / f"{i:06d}_depth.exr", cam / f"{k:06d}_depth.exr")
+    for sensor, folder in (("lidar", src / "lidar" / "os1-128" / "seq0"), ("radar", src / "radar" / "seq0")):
+        dst = trees[sensor] / sensor / "seq0"
+        dst.mkdir(parents=True)
+        for side in folder.glob("*.yaml"):
+            shutil.copy(side, dst)
+        for k in range(frames * copies):
+            shutil.copy(folder / f"{k % frames:06d}.pcd", dst / f"{k:06d}.pcd")
+    shutil.rmtree(src)
+    return trees
+
+
+def recipe_for(name: str, sensor: str):
+    from roadview_noise.recipe import parse_recipe
+
+    body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
+    body["inputs"] = dict(INPUTS[sensor])
+    return parse_recipe(body, source=name, base_dir=ROOT / "recipes")
+
+
+# --- the plain copy --------------------------------------------------------------------------------------------------
+
+
+def _write_synced(path: Path, data: bytes) -> None:
+    with open(path, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def _copy_one(job: tuple) -> None:
+    sensor, src, dst, with_depth = job
+    if sensor == "camera":
+        img = cv2.imdecode(np.frombuffer(Path(src).read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+        if with_depth:
+            from roadview_noise.io.image import read_exr_channels
+
+            read_exr_channels(str(src).replace(".png", "_depth.exr"))
+        _write_synced(Path(dst), cv2.imencode(".png", img)[1].tobytes())
+        return
+    from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
+
+    cloud = read_pointcloud(src, sensor=sensor)
+    write_pointcloud(dst, cloud, effect="none")
+
+
+def plain_copy(sensor: str, tree: Path, out: Path, processes: int, with_depth: bool = False) -> float:
+    """Wall seconds of the plain copy of every input with ``processes`` processes."""
+    files = sorted(tree.rglob("*.png" if sensor == "camera" else "*.pcd"))
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(sensor, str(f), str(out / f.name), with_depth) for f in files]
+    t0 = time.perf_counter()
+    if processes == 1:
+        for j in jobs:
+            _copy_one(j)
+    else:
+        with mp.get_context("fork").Pool(processes) as pool:
+            pool.map(_copy_one, jobs, chunksize=1)
+    return time.perf_counter() - t0
+
+
+# --- augment ---------------------------------------------------------------------------------------------------------
+
+
+def augment(name: str, sensor: str, tree: Path, out: Path, workers: int) -> dict:
+    from roadview_noise.manifest import read_manifest
+    from roadview_noise.runner import run
+
+    recipe = recipe_for(name, sensor)
+    t0 = time.perf_counter()
+    s = run(recipe, tree, out, workers=workers, progress=False, echo=lambda m: None, profile=True)
+    wall = time.perf_counter() - t0
+    entries = [e for e in read_manifest(out / "manifest.jsonl") if e["status"] == "ok"]
+    models: dict[str, list[float]] = {}
+    for e in entries[1:] or entries:                # the first file of a run pays first-use costs
+        for m, sec in e["profile"]["models"].items():
+            models.setdefault(m, []).append(sec)
+    return {"wall": wall, "done": s.done, "failed": s.failed,
+            "models_ms": {m: 1e3 * statistics.median(v) for m, v in models.items()},
+            "file_ms": 1e3 * statistics.median(e["seconds"] for e in entries),
+            "split_ms": {k: 1e3 * statistics.median(e["profile"][k] for e in entries)
+                         for k in entries[0]["profile"] if k not in ("models", "total", "peak_rss_mb")},
+            "peak_rss_mb": max(e["profile"].get("peak_rss_mb", 0) for e in entries)}
+
+
+def startup(name: str, sensor: str, tree: Path, out: Path) -> float:
+    """Seconds of a one-file CLI run beyond the file's own time (process start, imports, workers, manifest)."""
+    from roadview_noise.manifest import read_manifest
+
+    recipe = out.parent / f"{name}-startup.yaml"
+    body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
+    body["inputs"] = dict(INPUTS[sensor])
+    recipe.write_text(yaml.safe_dump(body))
+    t0 = time.perf_counter()
+    subprocess.run([str(Path(sys.executable).with_name("rvnoise")), "augment", "--recipe", str(recipe), str(tree),
+                    str(out), "--limit", "1", "--workers", "1", "--quiet"], check=True, capture_output=True)
+    wall = time.perf_counter() - t0
+    return wall - read_manifest(out / "manifest.jsonl")[0]["seconds"]
+
+
+# --- single frames ---------------------------------------------------------------------------------------------------
+
+
+def _median_ms(fn, repeat: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
+def single_frame(tree: Path, repeat: int) -> dict[str, float]:
+    """compression.camera vs the codec alone and albumentations on one frame; albumentations' weather transforms."""
+    from roadview_noise.allocator import keep_freed_memory
+    from roadview_noise.io.image import read_image
+    from roadview_noise.models.camera.compression import CompressionCamera
+    from roadview_noise.physics import srgb
+    from roadview_noise.types import CameraFrame
+    from roadview_noise.profiles.camera import carla_pinhole
+
+    keep_freed_memory()
+    path = sorted(tree.rglob("*.png"))[0]
+    linear, _, _ = read_image(path)
+    changed = linear * np.float32(0.9)                   # a frame a weather step changed (no kept codes)
+    frame = CameraFrame(changed, carla_pinhole(linear.shape[1], linear.shape[0]))
+    model = CompressionCamera(quality=15)
+    rgb8 = srgb.linear_to_code(changed)
+    res = {"compression.camera (Q15, after a weather step)":
+           _median_ms(lambda: model.apply(frame, state={}, drawn={}, rng=None), repeat),
+           "OpenCV JPEG encode + decode alone (Q15)":
+           _median_ms(lambda: cv2.imdecode(cv2.imencode(".jpg", rgb8, [cv2.IMWRITE_JPEG_QUALITY, 15])[1],
+                                           cv2.IMREAD_COLOR), repeat),
+           "sRGB linear → 8-bit codes (tables)": _median_ms(lambda: srgb.linear_to_code(changed), repeat),
+           "sRGB 8-bit codes → linear (tables)": _median_ms(lambda: srgb.code_to_linear(rgb8), repeat)}
+    try:
+        import albumentations as A
+    except ImportError:
+        return res
+    for label, t in [("albumentations ImageCompression (Q15)", A.ImageCompression(quality_range=(15, 15), p=1)),
+                     ("albumentations RandomFog", A.RandomFog(p=1)), ("albumentations RandomRain", A.RandomRain(p=1)),
+                     ("albumentations RandomSnow", A.RandomSnow(p=1))]:
+        res[f"{label} {A.__version__}"] = _median_ms(lambda: t(image=rgb8), repeat)
+    return res
+
+
+# --- memory of the main process --------------------------------------------------------------------------------------
+
+MEMORY_CHILD = r"""
+import sys, json
+from pathlib import Path
+from roadview_noise.recipe import load_recipe
+from roadview_noise.runner import run
+s = run(load_recipe(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3]), workers=2, progress=False,
+        echo=lambda m: None, yes=True)
+hwm = next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM:"))
+print(json.dumps({"done": s.done, "failed": s.failed, "peak_kb": hwm}))
+"""
+
+
+def memory(root: Path) -> dict[int, dict]:
+    frames = sorted((ROOT / "sample_data" / "radar" / "seq0").glob("*.pcd"))
+    res = {}
+    for n in (100, 10_000):
+        tree = root / f"mem{n}"
+        for i in range(n):
+            folder = tree / "radar" / f"seq{i // 100:03d}"
+            folder.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(frames[i % len(frames)], folder / f"{i:06d}.pcd")
+        t0 = time.perf_counter()
+        out = subprocess.run([sys.executable, "-c", MEMORY_CHILD, str(ROOT / "recipes" / "weather-fog-radar.yaml"),
+                              str(tree), str(root / f"memout{n}")], check=True, capture_output=True, text=True)
+        res[n] = {**json.loads(out.stdout.strip().splitlines()[-1]), "seconds": time.perf_counter() - t0}
+        shutil.rmtree(tree)
+        shutil.rmtree(root / f"memout{n}")
+    return res
+
+
+# --- the table -------------------------------------------------------------------------------------------------------
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=4, help="rendered frames (each copied to make 12 per sensor)")
+    ap.add_argument("--copies", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="skip the 10 000-file memory run")
+    args = ap.parse_args()
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="rvnoise-bench-") as tmp:
+        root = Path(tmp)
+        trees = build_trees(root, args.frames, args.copies)
+        n = args.frames * args.copies
+        print(f"# rvnoise bench/run.py — {n} files per sensor, {os.cpu_count()} cores, load average {load:.1f} "
+              f"at the start (medians; ratios from this run)\n")
+        print("| sensor | recipe | 1 worker files/s | 2 workers files/s | 2 w / 1 w | vs copy (1 w / 2 w) | "
+              "vs floor (1 w / 2 w) | in-worker ms/file | peak RSS/worker MB |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        per_model: dict[str, list[float]] = {}
+        splits = {}
+        for sensor, names in RECIPES.items():
+            tree = trees[sensor]
+            copy = {p: n / plain_copy(sensor, tree, root / f"copy-{sensor}-{p}", p) for p in (1, 2)}
+            floor = copy if sensor != "camera" else \
+                {p: n / plain_copy(sensor, tree, root / f"floor-{sensor}-{p}", p, True) for p in (1, 2)}
+            label = "decode + encode copy" if sensor == "camera" else "read + write copy"
+            print(f"| {sensor} | *{label}* | {copy[1]:.2f} | {copy[2]:.2f} | {copy[2] / copy[1]:.2f} | | | | |")
+            if sensor == "camera":
+                print(f"| camera | *floor: copy + depth decode* | {floor[1]:.2f} | {floor[2]:.2f} | "
+                      f"{floor[2] / floor[1]:.2f} | | | | |")
+            for name in names:
+                r = {w: augment(name, sensor, tree, root / f"{name}-{w}", w) for w in (1, 2)}
+                fps = {w: r[w]["done"] / r[w]["wall"] for w in (1, 2)}
+                print(f"| {sensor} | {name} | {fps[1]:.2f} | {fps[2]:.2f} | {fps[2] / fps[1]:.2f} | "
+                      f"{fps[1] / copy[1]:.2f} / {fps[2] / copy[2]:.2f} | {fps[1] / floor[1]:.2f} / "
+                      f"{fps[2] / floor[2]:.2f} | {r[1]['file_ms']:.0f} | "
+                      f"{max(r[1]['peak_rss_mb'], r[2]['peak_rss_mb']):.0f} |")
+                for m, ms in r[1]["models_ms"].items():
+                    per_model.setdefault(m, []).append(ms)
+                splits[name] = r[1]["split_ms"]
+                for w in (1, 2):
+                    shutil.rmtree(root / f"{name}-{w}")
+            for p in (1, 2):
+                shutil.rmtree(root / f"copy-{sensor}-{p}")
+                if sensor == "camera":
+                    shutil.rmtree(root / f"floor-{sensor}-{p}")
+        print("\n| model (D3.5 rates, in the workers) | ms/frame |\n|---|---|")
+        for m, v in sorted(per_model.items()):
+            print(f"| {m} | {statistics.median(v):.1f} |")
+        print("\n| recipe | " + " | ".join(next(iter(splits.values()))) + " |")
+        print("|---|" + "---|" * len(next(iter(splits.values()))))
+        for name, sp in splits.items():
+            print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in sp.values()) + " |")
+        print("\n| start-up of a one-file run (CLI process, beyond the file's own time) | s |\n|---|---|")
+        for sensor, name in (("camera", "weather-fog"), ("lidar", "weather-fog-lidar"),
+                             ("radar", "weather-fog-radar")):
+            print(f"| {name} | {startup(name, sensor, trees[sensor], root / f'start-{name}'):.2f} |")
+        print("\n| one 1936×1464 frame, one core | ms |\n|---|---|")
+        for label, ms in single_frame(trees["camera"], 9).items():
+            print(f"| {label} | {ms:.1f} |")
+        if not args.quick:
+            mem = memory(root)
+            print("\n| main process, fog.radar on tiny files, 2 workers | files | peak RSS MB | s |\n|---|---|---|---|")
+            for k, v in mem.items():
+                print(f"| {k} files | {v['done']} | {v['peak_kb'] / 1024:.1f} | {v['seconds']:.1f} |")
+            print(f"\n10 000 / 100 files peak RSS: {mem[10_000]['peak_kb'] / mem[100]['peak_kb']:.3f}")
+    print(f"\nload average at the end: {os.getloadavg()[0]:.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,59 @@
+"""Where one file's time goes (``rvnoise augment --profile``): named spans, summed per task, off by default.
+
+:func:`span` costs one global lookup when profiling is off. The runner turns it on per task (:func:`collect`) and
+derives the split the manifest records as ``profile`` (seconds): ``read`` (input bytes from storage), ``hash``
+(sha256 of inputs and outputs), ``decode`` (image/depth/cloud decoding and the reader's own work, sRGB conversion
+excluded), ``convert`` (sRGB ↔ linear), ``models`` (per model id), ``metrics``, ``encode`` (the writers' work, sRGB
+conversion and the writes excluded), ``write`` (bytes to storage, fsync included), ``other`` (the rest: sidecars,
+annotations, the manifest entry) and ``total``.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+_totals: dict[str, float] | None = None
+
+
+@contextmanager
+def span(name: str) -> Iterator[None]:
+    """Add the block's wall time to ``name`` of the task being profiled (nothing when none is)."""
+    totals = _totals
+    if totals is None:
+        yield
+        return
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        totals[name] = totals.get(name, 0.0) + time.perf_counter() - t0
+
+
+@contextmanager
+def phase(name: str, *inner: str) -> Iterator[None]:
+    """A :func:`span` that also records, as ``name.key``, the time the ``inner`` spans took inside it."""
+    totals = _totals
+    if totals is None:
+        yield
+        return
+    before = {k: totals.get(k, 0.0) for k in inner}
+    try:
+        with span(name):
+            yield
+    finally:
+        for k in inner:
+            totals[f"{name}.{k}"] = totals.get(f"{name}.{k}", 0.0) + totals.get(k, 0.0) - before[k]
+
+
+@contextmanager
+def collect(enabled: bool = True) -> Iterator[dict[str, float]]:
+    """Profile the block (one task): yields the dict the spans fill."""
+    global _totals
+    totals: dict[str, float] = {}
+    previous, _totals = _totals, (totals if enabled else None)
+    try:
+        yield totals
+    finally:
+        _totals = previous

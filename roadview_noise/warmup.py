@@ -1,0 +1,43 @@
+"""Warm a worker process once, before it forks or takes tasks: every compiled kernel loaded from numba's on-disk
+cache, and numba's compiler initialised (≈ 0.3 s that each worker would otherwise pay on its first file).
+
+The fork server imports this module (``executor.PRELOAD``) after the models, so every worker forked from it starts
+warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the cache yet (a first run after an
+install or an edit) are compiled where they are first called, as before, and cached for the next run.
+"""
+
+from __future__ import annotations
+
+import gc
+
+_done = False
+
+
+def warm_up() -> int:
+    """Load the cached compiled versions of every numba kernel of the package's loaded modules; returns how many.
+    Uses numba's cache index (``Dispatcher._cache``), so an unknown numba version costs only the warm-up."""
+    global _done
+    if _done:
+        return 0
+    _done = True
+    try:
+        from numba.core.registry import CPUDispatcher
+    except ImportError:                              # pragma: no cover - numba is a dependency
+        return 0
+    loaded = 0
+    kernels = [o for o in gc.get_objects() if isinstance(o, CPUDispatcher)
+               and getattr(o.py_func, "__module__", "").startswith("roadview_noise.")]
+    for kernel in kernels:
+        try:
+            cache = kernel._cache
+            codegen = kernel.targetctx.codegen()
+            for key in cache._cache_file._load_index():
+                if cache._index_key(key[0], codegen) == key:      # this CPU and this source: a load, not a compile
+                    kernel.compile(key[0])
+                    loaded += 1
+        except Exception:                            # a numba internal changed: that kernel loads on first use
+            continue
+    return loaded
+
+
+warm_up()
