@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 
-from roadview_noise.physics.lidar_intensity import COUNT_UNITS, reported_intensity, sensor_constant
+from roadview_noise.physics.lidar_intensity import COUNT_UNITS, reported_intensity, sensor_constant, stored_intensity
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.types import LidarProfile, PointCloud
 
@@ -16,7 +16,7 @@ def scan(profile: LidarProfile | None = None, *, columns: int = 512, range_m=10.
          grid: bool = False) -> PointCloud:
     """A ``channels × columns`` scan: ray (ring b, column c) points at azimuth ``−(2π c/W + α_b)`` and elevation ω_b;
     ``range_m`` and ``reflectance`` are scalars or (channels, columns) arrays (range 0: no return); intensity is the
-    profile's reading of ``S = K ρ / R²`` (normal incidence on a sphere; whole counts as uint16 for count units). Grid: every cell, no-returns zero; list:
+    profile's stored reading of ``S = K ρ / R²`` (normal incidence on a sphere; counts as uint16). Grid: every cell, no-returns zero; list:
     the returns only, ring field set."""
     profile = dataclasses.replace(profile or os1_128(), columns=columns)
     ch = profile.channels
@@ -30,7 +30,7 @@ def scan(profile: LidarProfile | None = None, *, columns: int = 512, range_m=10.
     pos = r[:, None] * direction
     with np.errstate(divide="ignore", invalid="ignore"):
         signal = np.where(r > 0, sensor_constant(profile) * rho / (r * r), 0.0)
-    reading = np.round(reported_intensity(signal, r, profile))
+    reading = stored_intensity(reported_intensity(signal, r, profile), profile)
     intensity = (np.minimum(reading, profile.intensity_full_scale).astype(np.uint16)
                  if profile.intensity_unit in COUNT_UNITS else reading.astype(np.float32))
     keep = np.ones(len(r), dtype=bool) if grid else r > 0

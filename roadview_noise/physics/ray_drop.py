@@ -81,7 +81,7 @@ class ScanRays:
 def scan_rays(cloud: PointCloud, model_id: str) -> ScanRays:
     """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`)."""
     rays = cloud_rays(cloud, model_id, "ignore")
-    cells = scan_cells(cloud, rays.profile)
+    cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)])
     with np.errstate(divide="ignore"):
         log_signal = np.log(rays.signal / rays.datasheet_threshold)
     if isinstance(cells, str):
@@ -93,13 +93,11 @@ def ray_features(cells: ScanCells, log_signal: np.ndarray, range_m: np.ndarray, 
                  elevation_by_row: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(len(at), 4) features (:data:`FEATURES`) of the image cells ``at`` (flat indices) from the points' values
     (per point; only returns shown in their cell count), and each cell's number of returning neighbours (0–8)."""
-    present = cells.image(np.ones(len(cells.cell), dtype=bool), False)
-    with np.errstate(divide="ignore"):
-        log_range = np.log(np.asarray(range_m, dtype=np.float64))
-    return _neighbour_features(present, cells.image(np.asarray(log_signal, dtype=np.float64)),
-                               cells.image(log_range), cells.image(np.asarray(positions_m, dtype=np.float64)),
-                               np.asarray(elevation_by_row, dtype=np.float64),
-                               np.ascontiguousarray(at, dtype=np.int64))
+    return _neighbour_features(cells.index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
+                               np.ascontiguousarray(range_m, dtype=np.float64),
+                               np.ascontiguousarray(positions_m, dtype=np.float64),
+                               np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64),
+                               cells.columns)
 
 
 @jit(inline="always")
@@ -113,95 +111,119 @@ def _insert(buf, k, v):       # pragma: no cover - compiled
 
 
 @jit(inline="always")
-def _median(buf, k):       # pragma: no cover - compiled
-    return buf[k // 2] if k % 2 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
-
-
-#: the 8 neighbours in order around the cell (row, column offsets)
-_RING_DR = np.array([-1, -1, -1, 0, 1, 1, 1, 0])
-_RING_DC = np.array([-1, 0, 1, 1, 1, 0, -1, -1])
+def _median8(buf):       # pragma: no cover - compiled
+    """Median of 8 values: Batcher's odd–even merge sort (19 compare-exchanges) on scalars, only as far as the 4th
+    and 5th values need it."""
+    a0, a1, a2, a3, a4, a5, a6, a7 = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6], buf[7]
+    a0, a1 = min(a0, a1), max(a0, a1)
+    a2, a3 = min(a2, a3), max(a2, a3)
+    a4, a5 = min(a4, a5), max(a4, a5)
+    a6, a7 = min(a6, a7), max(a6, a7)
+    a0, a2 = min(a0, a2), max(a0, a2)
+    a1, a3 = min(a1, a3), max(a1, a3)
+    a4, a6 = min(a4, a6), max(a4, a6)
+    a5, a7 = min(a5, a7), max(a5, a7)
+    a1, a2 = min(a1, a2), max(a1, a2)
+    a5, a6 = min(a5, a6), max(a5, a6)
+    a0, a4 = min(a0, a4), max(a0, a4)
+    a1, a5 = min(a1, a5), max(a1, a5)
+    a2, a6 = min(a2, a6), max(a2, a6)
+    a3, a7 = min(a3, a7), max(a3, a7)
+    a2, a4 = min(a2, a4), max(a2, a4)
+    a3, a5 = min(a3, a5), max(a3, a5)
+    a3, a4 = min(a3, a4), max(a3, a4)
+    return 0.5 * (a3 + a4)
 
 
 @jit(inline="always")
-def _cos_incidence(present, pos, r, c, rows, columns, ring_dr, ring_dc):       # pragma: no cover - compiled
-    """|n̂·d̂| with n the area vector of the polygon of the returning neighbours in order around the cell (Newell's
-    method: Σ v_i × v_{i+1}) and d the sum of their positions; 1 when fewer than 3 return or they are collinear."""
-    nx = ny = nz = 0.0
-    dx = dy = dz = 0.0
-    first = -1
-    prev = -1
-    k = 0
-    for j in range(8):
-        rr = r + ring_dr[j]
-        cc = c + ring_dc[j]
-        if rr < 0 or rr >= rows:
-            continue
-        if cc < 0:
-            cc += columns
-        elif cc >= columns:
-            cc -= columns
-        if not present[rr, cc]:
-            continue
-        idx = rr * columns + cc
-        if prev >= 0:
-            pr, pc = prev // columns, prev % columns
-            nx += pos[pr, pc, 1] * pos[rr, cc, 2] - pos[pr, pc, 2] * pos[rr, cc, 1]
-            ny += pos[pr, pc, 2] * pos[rr, cc, 0] - pos[pr, pc, 0] * pos[rr, cc, 2]
-            nz += pos[pr, pc, 0] * pos[rr, cc, 1] - pos[pr, pc, 1] * pos[rr, cc, 0]
-        else:
-            first = idx
-        prev = idx
-        dx += pos[rr, cc, 0]
-        dy += pos[rr, cc, 1]
-        dz += pos[rr, cc, 2]
-        k += 1
-    if k < 3:
-        return 1.0
-    pr, pc = prev // columns, prev % columns
-    fr, fc = first // columns, first % columns
-    nx += pos[pr, pc, 1] * pos[fr, fc, 2] - pos[pr, pc, 2] * pos[fr, fc, 1]
-    ny += pos[pr, pc, 2] * pos[fr, fc, 0] - pos[pr, pc, 0] * pos[fr, fc, 2]
-    nz += pos[pr, pc, 0] * pos[fr, fc, 1] - pos[pr, pc, 1] * pos[fr, fc, 0]
-    norm = math.sqrt((nx * nx + ny * ny + nz * nz) * (dx * dx + dy * dy + dz * dz))
-    return abs(nx * dx + ny * dy + nz * dz) / norm if norm > 1e-12 else 1.0
+def _median(buf, k):       # pragma: no cover - compiled
+    """Median of ``buf[:k]``: a sorting network when k = 8, insertion sort otherwise."""
+    if k == 8:
+        return _median8(buf)
+    for j in range(1, k):
+        _insert(buf, j, buf[j])
+    return buf[k // 2] if k % 2 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
 
 
 @jit
-def _neighbour_features(present, log_signal, log_range, pos, elevation, at):       # pragma: no cover - compiled
-    """:func:`ray_features` over the cells ``at``: medians of the returning neighbours (own values without any)."""
-    rows, columns = present.shape
+def _padded(index, columns):       # pragma: no cover - compiled
+    """The index image with a border: a row of −1 above and below, the first and last columns copied across the
+    360° seam, so that every neighbour sits at a fixed offset."""
+    rows = len(index) // columns
+    w = columns + 2
+    out = np.full((rows + 2) * w, -1, np.int64)
+    for r in range(rows):
+        base = (r + 1) * w
+        for c in range(columns):
+            out[base + c + 1] = index[r * columns + c]
+        out[base] = index[r * columns + columns - 1]
+        out[base + columns + 1] = index[r * columns]
+    return out
+
+
+@jit
+def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
+    """:func:`ray_features` over the cells ``at`` of the image ``index`` (the point each cell shows, −1: none):
+    medians of the returning neighbours' log signal and range (the cell's own values without any), and |n̂·d̂| with n
+    the area vector of the polygon of the returning neighbours in order around the cell and d the sum of their
+    positions (1 with fewer than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the
+    full ring of 8 the same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
+    w = columns + 2
+    padded = _padded(index, columns)
+    # the 8 neighbours in order around the cell, as offsets in the padded image
+    ring = np.array([-w - 1, -w, -w + 1, 1, w + 1, w, w - 1, -1])
     out = np.empty((len(at), 4))
     support = np.empty(len(at), np.int64)
     buf_s = np.empty(8)
     buf_r = np.empty(8)
+    px = np.empty(9)
+    py = np.empty(9)
+    pz = np.empty(9)
     for i in range(len(at)):
         r = at[i] // columns
-        c = at[i] - r * columns
+        base = at[i] + 2 * r + w + 1
         k = 0
-        for rr in range(max(r - 1, 0), min(r + 2, rows)):
-            for dc in range(-1, 2):
-                if rr == r and dc == 0:
-                    continue
-                cc = c + dc
-                if cc < 0:
-                    cc += columns
-                elif cc >= columns:
-                    cc -= columns
-                if present[rr, cc]:
-                    _insert(buf_s, k, log_signal[rr, cc])
-                    _insert(buf_r, k, log_range[rr, cc])
-                    k += 1
+        for j in range(8):
+            p = padded[base + ring[j]]
+            if p >= 0:
+                buf_s[k] = log_signal[p]
+                buf_r[k] = range_m[p]
+                px[k] = pos[p, 0]
+                py[k] = pos[p, 1]
+                pz[k] = pos[p, 2]
+                k += 1
         support[i] = k
         if k > 0:
             out[i, 0] = _median(buf_s, k)
-            out[i, 1] = _median(buf_r, k)
-        elif present[r, c]:
-            out[i, 0] = log_signal[r, c]
-            out[i, 1] = log_range[r, c]
+            out[i, 1] = math.log(_median(buf_r, k))
         else:
-            out[i, 0] = np.nan
-            out[i, 1] = np.nan
-        out[i, 2] = _cos_incidence(present, pos, r, c, rows, columns, _RING_DR, _RING_DC)
+            own = index[at[i]]
+            out[i, 0] = log_signal[own] if own >= 0 else np.nan
+            out[i, 1] = math.log(range_m[own]) if own >= 0 else np.nan
+        cos = 1.0
+        if k >= 3:
+            px[k], py[k], pz[k] = px[0], py[0], pz[0]          # close the polygon
+            nx = ny = nz = 0.0
+            if k == 8:
+                for j in range(0, 8, 2):
+                    ex, ey, ez = px[j + 2] - px[j], py[j + 2] - py[j], pz[j + 2] - pz[j]
+                    nx += py[j + 1] * ez - pz[j + 1] * ey
+                    ny += pz[j + 1] * ex - px[j + 1] * ez
+                    nz += px[j + 1] * ey - py[j + 1] * ex
+            else:
+                for j in range(k):
+                    nx += py[j] * pz[j + 1] - pz[j] * py[j + 1]
+                    ny += pz[j] * px[j + 1] - px[j] * pz[j + 1]
+                    nz += px[j] * py[j + 1] - py[j] * px[j + 1]
+            dx = dy = dz = 0.0
+            for j in range(k):
+                dx += px[j]
+                dy += py[j]
+                dz += pz[j]
+            norm = math.sqrt((nx * nx + ny * ny + nz * nz) * (dx * dx + dy * dy + dz * dz))
+            if norm > 1e-12:
+                cos = abs(nx * dx + ny * dy + nz * dz) / norm
+        out[i, 2] = cos
         out[i, 3] = elevation[r]
     return out, support
 
@@ -212,8 +234,12 @@ def _neighbour_features(present, log_signal, log_range, pos, elevation, at):    
 
 def always_dropped(range_m: np.ndarray, cos_incidence: np.ndarray, max_range_m: float,
                    max_incidence_deg: float) -> np.ndarray:
-    """The hard rules: beyond the maximum range (the ray's own range), or incidence above ``max_incidence_deg``."""
-    return (np.asarray(range_m) > max_range_m) | (np.asarray(cos_incidence) < math.cos(math.radians(max_incidence_deg)))
+    """The hard rules: beyond the maximum range (the ray's own range), or incidence above ``max_incidence_deg`` (none
+    at 90°)."""
+    beyond = np.asarray(range_m) > max_range_m
+    if max_incidence_deg >= 90.0:
+        return beyond
+    return beyond | (np.asarray(cos_incidence) < math.cos(math.radians(max_incidence_deg)))
 
 
 @lru_cache(maxsize=32)
@@ -246,18 +272,35 @@ class PhysicalRayDrop:
     log_signal_sd: float
     floor_drop_probability: float
 
-    def log_effective_signal(self, features: np.ndarray) -> np.ndarray:
-        """ln(S_eff / T) of every ray."""
-        f = np.asarray(features, dtype=np.float64)
-        e = f[:, 3]
-        return (f[:, 0] + self.log_gain + self.range_exponent * (f[:, 1] - math.log(REFERENCE_RANGE_M))
-                + self.incidence_exponent * np.log(np.maximum(f[:, 2], MIN_COS))
-                + e * (self.elevation_linear_per_rad + self.elevation_quadratic_per_rad2 * e))
-
     def drop_probability(self, features: np.ndarray, receiver: Receiver) -> np.ndarray:
+        """``1 − (1 − p_0)·p_detect(ln S_eff / T)`` of every ray (one compiled pass, linear interpolation in the
+        :func:`detection_table`)."""
         x, p = detection_table(receiver, float(self.log_signal_sd))
-        detect = np.interp(self.log_effective_signal(features), x, p)
-        return 1.0 - (1.0 - self.floor_drop_probability) * detect
+        return _physical_drop(np.ascontiguousarray(features, dtype=np.float64), self.log_gain - self.range_exponent
+                              * math.log(REFERENCE_RANGE_M), self.range_exponent, self.incidence_exponent,
+                              self.elevation_linear_per_rad, self.elevation_quadratic_per_rad2,
+                              self.floor_drop_probability, x[0], 1.0 / TABLE_STEP, p)
+
+
+@jit
+def _physical_drop(f, offset, a_range, a_cos, e1, e2, floor, x0, inv_h, table):       # pragma: no cover - compiled
+    """:meth:`PhysicalRayDrop.drop_probability`: ``x = ln S/T + offset + a_R ln R + a_θ ln cos θ + e1 ω + e2 ω²``."""
+    out = np.empty(len(f))
+    last = len(table) - 1
+    for i in range(len(f)):
+        e = f[i, 3]
+        x = (f[i, 0] + offset + a_range * f[i, 1] + a_cos * math.log(max(f[i, 2], MIN_COS)) + e * (e1 + e2 * e))
+        u = (x - x0) * inv_h
+        if not u > 0.0:                                  # (NaN: no estimate, as for no signal)
+            detect = table[0]
+        elif u >= last:
+            detect = table[last]
+        else:
+            j = int(u)
+            t = u - j
+            detect = table[j] * (1.0 - t) + table[j + 1] * t
+        out[i] = 1.0 - (1.0 - floor) * detect
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,4 +320,33 @@ class AdditiveLogistic:
         return out
 
     def drop_probability(self, features: np.ndarray) -> np.ndarray:
-        return 1.0 / (1.0 + np.exp(-self.logit(features)))
+        """``1 / (1 + e^{−logit})`` in one compiled pass (the same piecewise-linear interpolation as :meth:`logit`)."""
+        columns = np.array([FEATURES.index(n) for n in self.features], dtype=np.int64)
+        starts = np.cumsum([0] + [len(k) for k in self.knots]).astype(np.int64)
+        slopes = np.concatenate([np.append(np.diff(v) / np.diff(k), 0.0) for k, v in zip(self.knots, self.values)])
+        return _additive_drop(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
+                              np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
+
+
+@jit
+def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
+    """:meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat beyond the
+    outer ones), its interpolated value added to the logit; then the logistic function."""
+    n = len(f)
+    z = np.full(n, intercept)
+    for j in range(len(columns)):
+        col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+        for i in range(n):
+            x = f[i, col]
+            if not x > knots[lo0]:
+                z[i] += values[lo0]
+            elif x >= knots[hi0]:
+                z[i] += values[hi0]
+            else:
+                k = lo0
+                while knots[k + 1] <= x:
+                    k += 1
+                z[i] += values[k] + (x - knots[k]) * slopes[k]
+    for i in range(n):
+        z[i] = 1.0 / (1.0 + math.exp(-z[i]))
+    return z

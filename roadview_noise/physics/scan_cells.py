@@ -15,12 +15,14 @@ Collisions (two returns of a list in one cell: dual returns) keep the nearest in
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..types import LidarProfile, PointCloud
+from .compiled import jit
 from .firing_grid import firing_grid
 from .lidar_geometry import firing_azimuth_rad, has_return, ring_index, ring_rows
 
@@ -45,6 +47,10 @@ class ScanCells:
     def shape(self) -> tuple[int, int]:
         return self.rows, self.columns
 
+    def index_image(self) -> np.ndarray:
+        """(rows·columns,) int64: the point each cell shows, −1 where none."""
+        return _index_image(self.cell, self.shown, self.rows * self.columns)
+
     def image(self, values: np.ndarray, fill=0.0) -> np.ndarray:
         """(rows, columns) image of per-point ``values`` (or (N, k) → (rows, columns, k)) at the shown points,
         ``fill`` elsewhere."""
@@ -54,10 +60,11 @@ class ScanCells:
         return out.reshape((self.rows, self.columns) + values.shape[1:])
 
 
-def scan_cells(cloud: PointCloud, profile: LidarProfile) -> ScanCells | str:
-    """The cells of a grid or a point list (module doc), or why a point list has none."""
+def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> ScanCells | str:
+    """The cells of a grid or a point list (module doc), or why a point list has none. ``range_m``: the points'
+    ranges if known (0: no return)."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    valid = has_return(positions)
+    valid = has_return(positions) if range_m is None else np.asarray(range_m) > 0
     if cloud.grid_shape is not None:
         n_rows, columns = cloud.grid_shape
         if "ring" in cloud.fields:
@@ -67,44 +74,73 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile) -> ScanCells | str:
         else:
             return (f"a {n_rows}-row grid without a ring field does not fit the {profile.channels} beams of profile "
                     f"{profile.name!r}")
-        column = np.tile(np.arange(columns), n_rows)
+        column = None                                   # a grid point's column is its index mod the columns
         source = f"{n_rows}x{columns} grid"
-        empty_ring, empty_column = ring[~valid], column[~valid]
+        empty_at = np.flatnonzero(~valid)
+        empty_ring, empty_column = ring[empty_at], empty_at % columns
     else:
-        grid = firing_grid(cloud, profile)
+        ring = ring_index(cloud, profile)
+        if "ring" not in cloud.fields:                  # recovered once, for the firing grid too
+            cloud = dataclasses.replace(cloud, fields={**cloud.fields, "ring": ring})
+        grid = firing_grid(cloud, profile, range_m)
         if isinstance(grid, str):
             return f"no firing grid: {grid}"
-        ring = ring_index(cloud, profile)
         columns = grid.columns
-        firing = firing_azimuth_rad(positions, ring, profile)
-        column = np.mod(np.floor(-firing * (columns / (2 * math.pi)) - grid.shift[ring] + 0.5), columns)
-        column = column.astype(np.int64)
+        column = _firing_columns(firing_azimuth_rad(positions, ring, profile), ring, valid, grid.shift, columns)
         source = grid.describe()
         empty_ring, empty_column = grid.ring, grid.column
     ring = np.asarray(ring, dtype=np.int64)
     shift = _destagger_shift(positions, valid, ring, column, columns, profile.channels)
     rows = ring_rows(profile)
-
-    def flat(b, c):
-        return rows[b] * columns + np.mod(c + shift[b], columns)
-
-    cell = np.where(valid, flat(ring, column), -1)
+    cell = _flat_cells(ring, np.zeros(0, np.int64) if column is None else column, valid, rows, shift, columns)
+    empty = _flat_cells(np.asarray(empty_ring, dtype=np.int64), np.asarray(empty_column, dtype=np.int64),
+                        np.ones(len(empty_ring), dtype=bool), rows, shift, columns)
     return ScanCells(profile.channels, columns, cell, _nearest_in_cell(cell, positions, profile.channels * columns),
-                     flat(np.asarray(empty_ring, dtype=np.int64), empty_column), source)
+                     empty, source)
 
 
-def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray, column: np.ndarray, columns: int,
-                     channels: int) -> np.ndarray:
+@jit
+def _firing_columns(firing, ring, valid, shift, columns):       # pragma: no cover - compiled
+    """Firing column of each return, ``rint(−firing/step − shift[ring]) mod W`` as :mod:`firing_grid` counts its
+    cells (0 for non-returns)."""
+    out = np.zeros(len(ring), np.int64)
+    per_rad = columns / (2.0 * math.pi)
+    for i in range(len(ring)):
+        if valid[i]:
+            c = int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)) % columns
+            out[i] = c + columns if c < 0 else c
+    return out
+
+
+@jit
+def _flat_cells(ring, column, valid, rows, shift, columns):       # pragma: no cover - compiled
+    """``rows[ring]·W + (column + shift[ring]) mod W`` of the valid points, −1 for the others; without ``column``
+    (empty: a grid) a point's column is its index mod W."""
+    out = np.empty(len(ring), np.int64)
+    gridded = len(column) == 0
+    for i in range(len(ring)):
+        if valid[i]:
+            c = ((i % columns if gridded else column[i]) + shift[ring[i]]) % columns
+            out[i] = rows[ring[i]] * columns + (c + columns if c < 0 else c)
+        else:
+            out[i] = -1
+    return out
+
+
+def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray, column: np.ndarray | None,
+                     columns: int, channels: int) -> np.ndarray:
     """Per beam, the column shift that puts its returns at their azimuth column: the most common
-    ``rint(−azimuth/step) − column`` (or ``+azimuth`` when the columns turn counter-clockwise) among sampled returns."""
-    idx = np.flatnonzero(valid)
-    idx = idx[:: max(1, len(idx) // SHIFT_SAMPLE)]
+    ``rint(−azimuth/step) − column`` (or ``+azimuth`` when the columns turn counter-clockwise) among sampled returns
+    (``column`` None: a grid's, the index mod the columns)."""
+    stride = max(1, len(ring) // SHIFT_SAMPLE)
+    idx = np.arange(0, len(ring), stride)[valid[::stride]]
     if len(idx) == 0:
         return np.zeros(channels, dtype=np.int64)
     azimuth_steps = np.arctan2(positions[idx, 1], positions[idx, 0]) * (columns / (2 * math.pi))
+    sampled_column = idx % columns if column is None else column[idx]
     best, best_share = np.zeros(channels, dtype=np.int64), -1.0
     for sign in (-1.0, 1.0):
-        offset = np.mod(np.rint(sign * azimuth_steps).astype(np.int64) - column[idx], columns)
+        offset = np.mod(np.rint(sign * azimuth_steps).astype(np.int64) - sampled_column, columns)
         counts = np.bincount(ring[idx] * columns + offset, minlength=channels * columns).reshape(channels, columns)
         share = counts.max(axis=1).sum() / len(idx)
         if share > best_share:
@@ -116,10 +152,10 @@ def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray,
 
 def _nearest_in_cell(cell: np.ndarray, positions: np.ndarray, n_cells: int) -> np.ndarray:
     """(N,) bool: the point is the nearest return of its cell (every return when no cell holds two)."""
-    placed = np.flatnonzero(cell >= 0)
-    shown = cell >= 0
-    if len(placed) == 0 or np.bincount(cell[placed], minlength=n_cells).max() <= 1:
+    shown, collided = _first_in_cell(cell, n_cells)
+    if not collided:
         return shown
+    placed = np.flatnonzero(cell >= 0)
     r = np.linalg.norm(positions[placed], axis=1)
     order = placed[np.lexsort((r, cell[placed]))]
     first = np.ones(len(order), dtype=bool)
@@ -127,6 +163,31 @@ def _nearest_in_cell(cell: np.ndarray, positions: np.ndarray, n_cells: int) -> n
     shown[:] = False
     shown[order[first]] = True
     return shown
+
+
+@jit
+def _first_in_cell(cell, n_cells):       # pragma: no cover - compiled
+    """(points with a cell, whether any cell holds two)."""
+    seen = np.zeros(n_cells, np.bool_)
+    shown = np.zeros(len(cell), np.bool_)
+    collided = False
+    for i in range(len(cell)):
+        q = cell[i]
+        if q >= 0:
+            shown[i] = True
+            if seen[q]:
+                collided = True
+            seen[q] = True
+    return shown, collided
+
+
+@jit
+def _index_image(cell, shown, n_cells):       # pragma: no cover - compiled
+    out = np.full(n_cells, -1, np.int64)
+    for i in range(len(cell)):
+        if shown[i]:
+            out[cell[i]] = i
+    return out
 
 
 def row_elevation_rad(profile: LidarProfile) -> np.ndarray:

@@ -28,7 +28,8 @@ import numpy as np
 
 from ..types import LidarProfile
 from .blob_mask import blob_mask
-from .lidar_geometry import firing_azimuth_rad, ring_rows
+from .compiled import jit
+from .lidar_geometry import atan2, ring_rows
 
 SHAPES = ("square", "blob")
 WINDOWS = ("static", "rotating")
@@ -50,19 +51,16 @@ class PatchSpec:
 @dataclass(frozen=True, eq=False)
 class WindowPattern:
     """``transmission``: two-way transmission (rows, columns) of the window grid (rotating: (rows, 1), every azimuth);
-    ``patches``: square patches as [row, column, rows, columns] (empty for blobs); ``seeds``: patches drawn."""
+    ``patches``: square patches as [row, column, rows, columns] (empty for blobs); ``seeds``: patches drawn;
+    ``blocked_fraction``: share of the window's cells (rotating: beams) that pass nothing; ``obstructed_fraction``:
+    share that lose anything; ``partial``: some cells pass part of the light."""
 
     transmission: np.ndarray
     patches: list
     seeds: int
-
-    def blocked_fraction(self) -> float:
-        """Share of the window's cells (rotating: beams) that pass nothing."""
-        return float(np.mean(self.transmission == 0))
-
-    def obstructed_fraction(self) -> float:
-        """Share of the window's cells (rotating: beams) that lose anything."""
-        return float(np.mean(self.transmission < 1))
+    blocked_fraction: float
+    obstructed_fraction: float
+    partial: bool
 
 
 def column_scale(profile: LidarProfile, aspect: str) -> float:
@@ -95,7 +93,9 @@ def window_pattern(spec: PatchSpec, rows: int, columns: int, pattern_seed: int) 
         coverage = coverage[:, width // 2:width // 2 + 1]
     transmission = (1.0 - spec.opacity * coverage) ** 2
     transmission.setflags(write=False)
-    return WindowPattern(transmission, patches, seeds)
+    blocked, obstructed = float(np.mean(transmission == 0)), float(np.mean(transmission < 1))
+    return WindowPattern(transmission, patches, seeds, blocked, obstructed,
+                         bool(np.any((transmission > 0) & (transmission < 1))))
 
 
 def _squares(rng: np.random.Generator, rows: int, columns: int, p: float, lo: int, hi: int, scale: float,
@@ -117,11 +117,32 @@ def _squares(rng: np.random.Generator, rows: int, columns: int, p: float, lo: in
     return coverage, patches
 
 
-def window_cells(positions_m: np.ndarray, ring: np.ndarray, profile: LidarProfile, columns: int) -> np.ndarray:
-    """Flat index ``row·columns + column`` of every point on a ``channels × columns`` window grid: row of its ring by
-    elevation, column of its azimuth ``φ = atan2(y, x)`` turning clockwise (``floor(−φ / step) mod columns``)."""
-    ring = np.asarray(ring, dtype=np.int64)
-    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
-    azimuth = firing_azimuth_rad(positions_m, ring, profile) - offsets[ring]
-    col = np.floor(np.mod(-azimuth, 2 * math.pi) * (columns / (2 * math.pi))).astype(np.int64)
-    return ring_rows(profile)[ring] * columns + np.minimum(col, columns - 1)
+def window_transmission(positions_m: np.ndarray, ring: np.ndarray, profile: LidarProfile,
+                        transmission: np.ndarray) -> np.ndarray:
+    """(N,) the window's two-way transmission for every point (1 for points without a return) from a
+    ``channels × columns`` table: row of its ring by elevation, column of its azimuth ``φ = atan2(y, x)`` turning
+    clockwise, ``floor(((−φ) mod 2π) / step)`` (one column: a rotating window, every azimuth)."""
+    table = np.ascontiguousarray(transmission, dtype=np.float64)
+    return _window_transmission(np.ascontiguousarray(positions_m, dtype=np.float64), np.asarray(ring),
+                                ring_rows(profile), table.reshape(-1), table.shape[1], np.any(table < 1, axis=1))
+
+
+@jit
+def _window_transmission(pos, ring, rows, table, columns, row_obstructed):       # pragma: no cover - compiled
+    """Per point: 1 on a row without obstruction (no azimuth needed) or without a return, else its cell's value."""
+    out = np.empty(len(ring))
+    per_rad = columns / (2.0 * math.pi)
+    for i in range(len(ring)):
+        row = rows[ring[i]]
+        if not row_obstructed[row]:
+            out[i] = 1.0
+            continue
+        x, y, z = pos[i, 0], pos[i, 1], pos[i, 2]
+        if not (math.isfinite(x + y + z) and (x != 0.0 or y != 0.0 or z != 0.0)):
+            out[i] = 1.0
+            continue
+        turn = -atan2(y, x)
+        if turn < 0.0:
+            turn += 2.0 * math.pi
+        out[i] = table[row * columns + min(int(turn * per_rad), columns - 1)]
+    return out

@@ -11,7 +11,7 @@ from roadview_noise.compound import apply_models
 from roadview_noise.models.lidar.occlusion import OcclusionLidar
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.physics.lidar_geometry import has_return, ring_index, ring_rows
-from roadview_noise.physics.window_obstruction import window_cells, window_pattern
+from roadview_noise.physics.window_obstruction import window_pattern
 from roadview_noise.provenance import Effect
 
 
@@ -21,16 +21,16 @@ def run(models, cloud, key="f0", seq="s", seed=4):
 
 
 def _transmission(model, cloud, state):
-    """Per point of ``cloud``: its window cell's two-way transmission under the recorded pattern."""
+    """Per point of ``cloud``: its window cell's two-way transmission under the recorded pattern (cell from the ring's
+    elevation row and the azimuth column, in NumPy)."""
     prof = cloud.profile
     pat = window_pattern(model._spec(prof), prof.channels, prof.columns, state["pattern_seed"])
     hit = has_return(cloud.positions_m)
     t = np.ones(len(cloud))
-    ring = ring_index(cloud, prof)[hit]
-    if pat.transmission.shape[1] == 1:
-        t[hit] = pat.transmission[ring_rows(prof)[ring], 0]
-    else:
-        t[hit] = pat.transmission.reshape(-1)[window_cells(cloud.positions_m[hit], ring, prof, prof.columns)]
+    row = ring_rows(prof)[ring_index(cloud, prof)[hit]]
+    p = cloud.positions_m[hit]
+    col = np.floor(np.mod(-np.arctan2(p[:, 1], p[:, 0]), 2 * np.pi) / (2 * np.pi) * prof.columns).astype(int)
+    t[hit] = pat.transmission[row, 0] if pat.transmission.shape[1] == 1 else pat.transmission[row, col]
     return t
 
 

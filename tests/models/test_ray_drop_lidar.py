@@ -19,6 +19,7 @@ from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.physics.lidar_rays import cloud_rays
 from roadview_noise.physics.ray_drop import AdditiveLogistic
 from roadview_noise.physics.scan_cells import scan_cells
+from roadview_noise.profiles.lidar import carla_64
 from roadview_noise.provenance import Effect
 
 
@@ -46,9 +47,11 @@ coefficients = st.fixed_dictionaries({
 @settings(max_examples=25, deadline=None)
 @given(coefficients, st.floats(2, 100), st.floats(1.05, 3), st.floats(0.02, 1.0), st.integers(0, 2 ** 31))
 def test_drops_more_at_longer_range_and_lower_reflectance_and_never_adds(coef, r, factor, rho, seed):
+    """On a sensor with continuous intensities (CARLA: the reading is ρ), so that no rounding of the stored value
+    blurs a small step in range."""
     model = RayDropLidar(**coef)
-    near, far = scan(columns=64, range_m=r, reflectance=rho), scan(columns=64, range_m=r * factor, reflectance=rho)
-    dark = scan(columns=64, range_m=r, reflectance=rho / factor)
+    near, far = (scan(carla_64(), columns=64, range_m=d, reflectance=rho) for d in (r, r * factor))
+    dark = scan(carla_64(), columns=64, range_m=r, reflectance=rho / factor)
     p_near, p_far, p_dark = (mean_drop_probability(model, c) for c in (near, far, dark))
     assert p_far >= p_near - 1e-12 and p_dark >= p_near - 1e-12
     out, rec = apply_models([model], near, seed=seed, key="k", sequence_id="s")

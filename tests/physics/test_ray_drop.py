@@ -73,3 +73,14 @@ def test_physical_model_is_monotone_and_additive_model_evaluates_its_knots():
     a = AdditiveLogistic(("log_signal",), (np.array([0.0, 2.0]),), (np.array([0.0, -4.0]),), 1.0)
     logit = a.logit(np.array([[-5.0, 0, 1, 0], [1.0, 0, 1, 0], [9.0, 0, 1, 0]]))
     np.testing.assert_allclose(logit, [1.0, -1.0, -3.0])                   # flat beyond the outer knots
+
+
+def test_neighbour_median_of_any_count():
+    from roadview_noise.physics.ray_drop import _median
+
+    rng = np.random.default_rng(0)
+    for k in range(1, 9):
+        for _ in range(300):
+            b = rng.normal(size=8)
+            b[rng.random(8) < 0.3] = b[0]                                  # ties
+            assert _median(b.copy(), k) == pytest.approx(np.median(b[:k]), abs=1e-15)

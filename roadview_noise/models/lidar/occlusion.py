@@ -10,10 +10,10 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
-from ...physics.lidar_geometry import has_return, ring_index, ring_rows
+from ...physics.lidar_geometry import ring_index
 from ...physics.lidar_intensity import intensity_resolution, stored_intensity, too_faint
 from ...physics.lidar_rays import cloud_rays
-from ...physics.window_obstruction import SHAPES, WINDOWS, PatchSpec, column_scale, window_cells, window_pattern
+from ...physics.window_obstruction import SHAPES, WINDOWS, PatchSpec, column_scale, window_pattern, window_transmission
 from ...provenance import Effect, mark
 from ...registry import register
 from ...types import LidarProfile, PointCloud
@@ -83,7 +83,7 @@ class OcclusionLidar(Model):
         pattern = window_pattern(spec, profile.channels, profile.columns, seed)
         return {"pattern_seed": seed, "window": spec.window, "grid": [profile.channels, profile.columns],
                 "seeds": pattern.seeds, "patches": pattern.patches,
-                "blocked_fraction": pattern.blocked_fraction(), "obstructed_fraction": pattern.obstructed_fraction()}
+                "blocked_fraction": pattern.blocked_fraction, "obstructed_fraction": pattern.obstructed_fraction}
 
     def draw_sequence(self, rng, data):
         return {} if self.per_frame else self._draw(rng, data)
@@ -99,22 +99,17 @@ class OcclusionLidar(Model):
             raise ModelError(f"pattern drawn for a {drawn_pattern['grid']} window grid, the profile has {grid}",
                              model=self.id, field="state")
         pattern = window_pattern(self._spec(profile), *grid, int(drawn_pattern["pattern_seed"]))
-        hit = np.flatnonzero(has_return(data.positions_m))
-        t = np.ones(len(data))
-        if len(hit) and pattern.obstructed_fraction() > 0:
-            ring = ring_index(data, profile)[hit]
-            if pattern.transmission.shape[1] == 1:                     # rotating: whole rings
-                t[hit] = pattern.transmission[ring_rows(profile)[ring], 0]
-            else:
-                t[hit] = pattern.transmission.reshape(-1)[window_cells(data.positions_m[hit], ring, profile, grid[1])]
-        blocked = t == 0
-        partial = (t > 0) & (t < 1)
-        remove = blocked.copy()
+        if pattern.obstructed_fraction > 0:
+            t = window_transmission(data.positions_m, ring_index(data, profile), profile, pattern.transmission)
+        else:
+            t = np.ones(len(data))
+        remove = t == 0
+        partial = ((t > 0) & (t < 1)) if pattern.partial else None
         out = data
         diagnostics = {"window": drawn_pattern["window"], "seeds": int(pattern.seeds),
-                       "blocked_fraction": pattern.blocked_fraction(),
-                       "obstructed_fraction": pattern.obstructed_fraction(), "points_blocked": int(blocked.sum())}
-        if partial.any():
+                       "blocked_fraction": pattern.blocked_fraction,
+                       "obstructed_fraction": pattern.obstructed_fraction, "points_blocked": int(remove.sum())}
+        if partial is not None and partial.any():
             out, below, attenuated, notes = _attenuate(data, t, partial, self.id)
             remove |= below
             diagnostics.update(points_attenuated=attenuated, **notes)

@@ -48,17 +48,17 @@ class RayDropLidar(Model):
     model_file: Any = param(None, unit="path", doc="learned: a .json or .onnx file written by `rvnoise fit ray-drop`")
     strength: float = param(1.0, doc="scales every drop probability (0: nothing drops)", ge=0, le=1)
     # defaults: fitted on the real OS1-128 scan0 range image, every column, elevation left out (bench/fit_ray_drop.py)
-    log_gain: float = param(1.531, doc="physical: ln of the effective signal over the neighbours' received signal "
+    log_gain: float = param(1.528, doc="physical: ln of the effective signal over the neighbours' received signal "
                             "(sensor more sensitive than its datasheet threshold: > 0)", ge=-15, le=15)
-    range_exponent: float = param(-0.1582, doc="physical: effective signal ∝ (R / 10 m)^a beyond the signal's own R⁻²",
+    range_exponent: float = param(-0.1569, doc="physical: effective signal ∝ (R / 10 m)^a beyond the signal's own R⁻²",
                                   ge=-6, le=1.9)
-    incidence_exponent: float = param(0.3734, doc="physical: effective signal ∝ cos^a θ of the incidence angle "
+    incidence_exponent: float = param(0.3730, doc="physical: effective signal ∝ cos^a θ of the incidence angle "
                                       "beyond what the intensity holds", ge=0, le=8)
     elevation_linear_per_rad: float = param(0.0, unit="1/rad", doc="physical: ln effective signal += e1·ω (beam "
                                             "elevation ω)", ge=-20, le=20)
     elevation_quadratic_per_rad2: float = param(0.0, unit="1/rad²", doc="physical: ln effective signal += e2·ω²",
                                                 ge=-200, le=200)
-    log_signal_sd: float = param(1.093, doc="physical: SD of ln effective signal from ray to ray (beam cover, texture)",
+    log_signal_sd: float = param(1.092, doc="physical: SD of ln effective signal from ray to ray (beam cover, texture)",
                                  ge=0, le=6)
     floor_drop_probability: float = param(0.006691, doc="physical: drop probability of a strong return (specular, "
                                           "refractive surfaces)", ge=0, le=0.5)
@@ -95,15 +95,16 @@ class RayDropLidar(Model):
 
             p = read_model(self.model_file).drop_probability(features)
             diagnostics["model_file_sha256"] = hashlib.sha256(Path(self.model_file).read_bytes()).hexdigest()
-        beyond = r > sr.rays.profile.max_range_m
-        p = np.where(always_dropped(r, features[:, 2], sr.rays.profile.max_range_m, self.max_incidence_deg), 1.0, p)
-        p = self.strength * p
+        rule = always_dropped(r, features[:, 2], sr.rays.profile.max_range_m, self.max_incidence_deg)
+        p[rule] = 1.0
+        if self.strength != 1.0:
+            p *= self.strength
         drop = rng.random(len(idx)) < p
         mask = np.zeros(n, dtype=bool)
         mask[idx[drop]] = True
         diagnostics.update(returns_in=len(idx), dropped=int(drop.sum()),
                            drop_fraction=float(drop.mean()) if len(idx) else 0.0,
                            mean_drop_probability=float(p.mean()) if len(idx) else 0.0,
-                           beyond_max_range=int(beyond.sum()),
+                           beyond_max_range=int(np.count_nonzero(r > sr.rays.profile.max_range_m)),
                            **{k: v for k, v in sr.rays.notes.items() if k.startswith("intensity_")})
         return data.drop(mask), diagnostics
