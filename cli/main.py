@@ -301,6 +301,96 @@ def _write_report(output_dir: Path, out: Optional[Path]) -> None:
     typer.echo(f"rvnoise: report → {path} (numbers: {path.with_name('report.json')})")
 
 
+fit_app = typer.Typer(no_args_is_help=True, help="Fit noise models on your own real data.")
+app.add_typer(fit_app, name="fit")
+
+
+@fit_app.command("ray-drop", epilog="Example: `rvnoise fit ray-drop my_os1_scans/ -o ray_drop.json --validate`, then "
+                                   "`params: {ray_drop.lidar: {backend: learned, model_file: ray_drop.json}}`")
+def fit_ray_drop(
+    scans: Path = typer.Argument(..., help="Real scans: a file or a folder searched recursively for .pcd, .ply, .bin "
+                                 "(.pcd.bin) — full range-image grids (organised PCD, no-return cells zero) or point "
+                                 "lists of one scan each (their empty rays are found on the firing grid)."),
+    out: Path = typer.Option(..., "--out", "-o", help="learned: the classifier, .json or .onnx; physical: a .yaml "
+                             "with the recipe params."),
+    backend: str = typer.Option("learned", "--backend", help="learned (additive logistic classifier) or physical "
+                                "(the coefficients of the physical back-end)."),
+    lidar_profile: Optional[str] = typer.Option(None, "--lidar-profile", help="LiDAR profile: built-in or file "
+                                                "[default: lidar.yaml next to each scan, else os1-128]."),
+    without: list[str] = typer.Option([], "--without", help="Leave a feature out (repeatable): log_range, "
+                                      "cos_incidence, elevation_rad. With one scan leave out elevation_rad: it "
+                                      "learns the scene's rows, not the sensor's beams."),
+    validate: bool = typer.Option(False, "--validate", help="Also fit on column halves and on 4 azimuth sectors and "
+                                  "print the held-out AUC and log-loss of both back-ends and of a constant rate."),
+) -> None:
+    """Fit ray drop on your own real scans: their no-return rays are the sensor's ray-drop pattern."""
+    import dataclasses as dc
+
+    import numpy as np
+    import yaml
+
+    from roadview_noise import __version__
+    from roadview_noise import ray_drop_fit as rf
+    from roadview_noise.io.ray_drop_model import write_model
+    from roadview_noise.physics.ray_drop import FEATURES
+
+    if backend not in ("learned", "physical"):
+        _fail(f"--backend must be learned or physical, got {backend!r}")
+    bad = [w for w in without if w not in FEATURES[1:]]
+    if bad:
+        _fail(f"--without {bad[0]!r}: expected one of {', '.join(FEATURES[1:])}")
+    want = (".json", ".onnx") if backend == "learned" else (".yaml", ".yml")
+    if out.suffix.lower() not in want:
+        _fail(f"--out must end in {' or '.join(want)} for the {backend} back-end, got {out.name!r}")
+    if not scans.exists():
+        _fail(f"{scans}: no such file or folder")
+    try:
+        done, skipped = rf.read_scans(scans, lidar_profile)
+        for s in skipped:
+            typer.secho(f"skipped: {s}", fg=typer.colors.YELLOW, err=True)
+        cells = rf.combine(done)
+    except (RvNoiseError, ValueError) as e:
+        _fail(str(e))
+    leave = tuple(without)
+    rate = float(cells.dropped.mean())
+    typer.echo(f"rvnoise: {len(done)} scan(s), {len(cells)} rays with ≥ {rf.MIN_SUPPORT} returning neighbours, "
+               f"{int(cells.dropped.sum())} without a return (rate {rate:.4f})")
+    if backend == "learned":
+        model = rf.fit_additive(cells, leave)
+        fitted = rf.scores(cells.dropped, model.drop_probability(cells.features))
+    else:
+        model = rf.fit_physical(cells, leave)
+        fitted = rf.scores(cells.dropped, model.drop_probability(cells.features, cells.receiver))
+    constant = rf.scores(cells.dropped, np.full(len(cells), rate))
+    typer.echo(f"in-sample: AUC {fitted['auc']:.3f}, log-loss {fitted['log_loss']:.4f} (constant rate: "
+               f"{constant['log_loss']:.4f})")
+    fitted_on = {"tool": f"rvnoise {__version__}", "scans": cells.notes, "features": [f for f in FEATURES
+                                                                                      if f not in leave],
+                 "drop_rate": rate, "in_sample": fitted}
+    if validate:
+        for name, folds in (("column halves", rf.column_halves(cells, leave)),
+                            ("azimuth sectors", rf.azimuth_sectors(cells, 4, leave))):
+            fitted_on[name.replace(" ", "_")] = folds
+            for k in ("constant", "physical", "learned"):
+                typer.echo(f"held-out, {name:<15} {k:<9} AUC "
+                           + " ".join(f"{f[k]['auc']:.3f}" for f in folds) + "   log-loss "
+                           + " ".join(f"{f[k]['log_loss']:.4f}" for f in folds))
+    try:
+        if backend == "learned":
+            write_model(out, model, fitted_on)
+        else:
+            from roadview_noise.io.atomic import write_bytes_atomic
+
+            params = {k: round(v, 6) for k, v in dc.asdict(model).items()}
+            text = (f"# rvnoise fit ray-drop --backend physical: {len(done)} scan(s), in-sample AUC "
+                    f"{fitted['auc']:.3f}\n" + yaml.safe_dump({"params": {"ray_drop.lidar": params}},
+                                                              sort_keys=False))
+            write_bytes_atomic(out, text.encode())
+    except RvNoiseError as e:
+        _fail(str(e))
+    typer.echo(f"rvnoise: {backend} ray drop → {out}")
+
+
 @app.command("sample-data", epilog="Example: `rvnoise sample-data out/sample --frames 10 --seed 0`")
 def sample_data(
     out_dir: Path = typer.Argument(..., help="Folder to write the synthetic drive into."),

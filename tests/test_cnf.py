@@ -68,3 +68,22 @@ def test_camera_cnfs_all_runnable_and_show_explains_the_order():
     r = CliRunner().invoke(app, ["list"])
     assert not any(f"{m}*" in r.output for m in ("soiling.camera", "windscreen.camera", "motion_blur.camera",
                                                  "low_light.camera"))
+
+
+def test_all_twelve_lidar_cnfs_have_recipes_and_no_model_is_missing():
+    """CNF19–30 for LiDAR: every model implemented, a shipped recipe each (run on the sample data above), and
+    `rvnoise list` marks nothing missing."""
+    from typer.testing import CliRunner
+
+    from roadview_noise.cli.main import app
+
+    models = load_all()
+    lidar = [n for n, c in CNFS.items() if "lidar" in c.chains]
+    assert lidar == [f"CNF{i}" for i in range(19, 31)]
+    assert all(m in models for n in lidar for m in CNFS[n].chains["lidar"])
+    names = {p.stem for p in RECIPES}
+    assert all(n.lower() in names for n in lidar)
+    for n in ("cnf25", "cnf26", "cnf27"):
+        assert load_recipe(ROOT / "recipes" / f"{n}.yaml").sensor == "lidar"
+    r = CliRunner().invoke(app, ["list"])
+    assert r.exit_code == 0 and "*" not in r.output.split("Compound noise factors")[1].split(":", 1)[1]

@@ -1,0 +1,352 @@
+"""Ray drop: the probability that a real sensor misses the return of a ray an ideal (simulated) scan has
+(models.md §3.9; D3.5 CNF28–30, Eq. 1, before the weather).
+
+Features of a ray (:data:`FEATURES`), all from its 8 neighbours in the destaggered range image
+(:mod:`scan_cells`), the ray itself left out:
+- ``log_signal``: ln(S/T), the median over the neighbours of the received signal S of their returns
+  (:func:`lidar_intensity.received_signal`, LiDAR equation ``S = K ρ cos θ / R²``) over the datasheet threshold T;
+- ``log_range``: ln(R / 1 m), the median of their ranges;
+- ``cos_incidence``: |n̂·d̂| of the surface normal n — the area vector of the polygon of the returning neighbours taken
+  in order around the ray (Newell's method) — and the viewing direction d (their mean position); 1 (no penalty) with
+  fewer than 3 of them or collinear ones; a depth edge among them reads as grazing incidence (the footprint straddles
+  two surfaces: mixed pixel);
+- ``elevation_rad``: the beam's elevation.
+Why neighbours: a model must be fitted on real scans, where a dropped ray has no range or intensity of its own; its
+neighbours stand for the surface it looked at. Fitting and application compute the features with this one function,
+so a model fitted on real scans sees the same quantities when it is applied to an ideal scan (a ray without a
+returning neighbour falls back to its own values).
+
+Models of p_drop:
+- :class:`PhysicalRayDrop` — the detection probability of the shared receiver (:class:`receiver.Receiver`) for an
+  effective signal ``S_eff = S · g · (R / 10 m)^a_R · cos^a_θ θ · exp(e1 ω + e2 ω²)`` that varies from ray to ray
+  by a log-normal factor of log-SD σ (partial beam cover, surface texture, the neighbours' estimate):
+  ``p_detect = E_z[P_rx(S_eff e^{σ z})]``, z ~ N(0, 1), ``p_drop = 1 − (1 − p_0)·p_detect`` with a
+  floor p_0 (specular and refractive surfaces, models.md §3.9). For σ much wider than the receiver's own noise this
+  is §3.9's ``Φ((ln S_eff − ln T)/σ)``; for σ → 0 it is the receiver's own detection probability.
+- :class:`AdditiveLogistic` — ``logit p_drop = b + Σ_f g_f(x_f)`` with piecewise-linear shape functions
+  g_f (knots, values; constant beyond the outer knots), fitted on a user's real scans (``rvnoise fit ray-drop``).
+Hard rules on top of both: a ray beyond the sensor's maximum range (its own range) always drops, and so does one
+whose incidence exceeds ``max_incidence_deg``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy.special import ndtr
+
+from ..types import PointCloud
+from .compiled import jit
+from .lidar_intensity import sensor_constant
+from .lidar_rays import Rays, cloud_rays
+from .receiver import Receiver
+from .scan_cells import ScanCells, row_elevation_rad, scan_cells
+
+FEATURES = ("log_signal", "log_range", "cos_incidence", "elevation_rad")
+REFERENCE_RANGE_M = 10.0
+MIN_COS = 1e-3                    # cos θ floor in the logarithm (grazing incidence)
+TABLE_HALF_WIDTH = 14.0           # ln(S/T) span of the detection table either side of the threshold
+TABLE_STEP = 0.01                 # its grid step in ln(S/T)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Features
+
+
+@dataclass(frozen=True, eq=False)
+class ScanRays:
+    """What ray drop reads from a cloud: its rays (:func:`lidar_rays.cloud_rays`: ranges, signals in units of K, the
+    profile the intensities are read with), its range-image cells (None for a list without a firing grid, ``reason``
+    says why) and ln(S/T) of every return."""
+
+    rays: Rays
+    cells: ScanCells | None
+    reason: str
+    log_signal: np.ndarray
+
+    def receiver(self) -> Receiver:
+        """The datasheet receiver in units of K (never calibrated from the data: an ideal scan may hold returns no
+        real sensor detects)."""
+        return Receiver.of(self.rays.profile, sensor_constant(self.rays.profile))
+
+    def features(self, at: np.ndarray, positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`ray_features` of the image cells ``at``."""
+        return ray_features(self.cells, self.log_signal, self.rays.range_m[:len(positions_m)], positions_m,
+                            row_elevation_rad(self.rays.profile), at)
+
+
+def scan_rays(cloud: PointCloud, model_id: str) -> ScanRays:
+    """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`)."""
+    rays = cloud_rays(cloud, model_id, "ignore")
+    cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)])
+    with np.errstate(divide="ignore"):
+        log_signal = np.log(rays.signal / rays.datasheet_threshold)
+    if isinstance(cells, str):
+        return ScanRays(rays, None, cells, log_signal)
+    return ScanRays(rays, cells, "", log_signal)
+
+
+def ray_features(cells: ScanCells, log_signal: np.ndarray, range_m: np.ndarray, positions_m: np.ndarray,
+                 elevation_by_row: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(len(at), 4) features (:data:`FEATURES`) of the image cells ``at`` (flat indices) from the points' values
+    (per point; only returns shown in their cell count), and each cell's number of returning neighbours (0–8)."""
+    return _neighbour_features(cells.index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
+                               np.ascontiguousarray(range_m, dtype=np.float64),
+                               np.ascontiguousarray(positions_m, dtype=np.float64),
+                               np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64),
+                               cells.columns)
+
+
+@jit(inline="always")
+def _insert(buf, k, v):       # pragma: no cover - compiled
+    """Insert v into the sorted ``buf[:k]``."""
+    j = k
+    while j > 0 and buf[j - 1] > v:
+        buf[j] = buf[j - 1]
+        j -= 1
+    buf[j] = v
+
+
+@jit(inline="always")
+def _median8(buf):       # pragma: no cover - compiled
+    """Median of 8 values: Batcher's odd–even merge sort (19 compare-exchanges) on scalars, only as far as the 4th
+    and 5th values need it."""
+    a0, a1, a2, a3, a4, a5, a6, a7 = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6], buf[7]
+    a0, a1 = min(a0, a1), max(a0, a1)
+    a2, a3 = min(a2, a3), max(a2, a3)
+    a4, a5 = min(a4, a5), max(a4, a5)
+    a6, a7 = min(a6, a7), max(a6, a7)
+    a0, a2 = min(a0, a2), max(a0, a2)
+    a1, a3 = min(a1, a3), max(a1, a3)
+    a4, a6 = min(a4, a6), max(a4, a6)
+    a5, a7 = min(a5, a7), max(a5, a7)
+    a1, a2 = min(a1, a2), max(a1, a2)
+    a5, a6 = min(a5, a6), max(a5, a6)
+    a0, a4 = min(a0, a4), max(a0, a4)
+    a1, a5 = min(a1, a5), max(a1, a5)
+    a2, a6 = min(a2, a6), max(a2, a6)
+    a3, a7 = min(a3, a7), max(a3, a7)
+    a2, a4 = min(a2, a4), max(a2, a4)
+    a3, a5 = min(a3, a5), max(a3, a5)
+    a3, a4 = min(a3, a4), max(a3, a4)
+    return 0.5 * (a3 + a4)
+
+
+@jit(inline="always")
+def _median(buf, k):       # pragma: no cover - compiled
+    """Median of ``buf[:k]``: a sorting network when k = 8, insertion sort otherwise."""
+    if k == 8:
+        return _median8(buf)
+    for j in range(1, k):
+        _insert(buf, j, buf[j])
+    return buf[k // 2] if k % 2 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
+
+
+@jit
+def _padded(index, columns):       # pragma: no cover - compiled
+    """The index image with a border: a row of −1 above and below, the first and last columns copied across the
+    360° seam, so that every neighbour sits at a fixed offset."""
+    rows = len(index) // columns
+    w = columns + 2
+    out = np.full((rows + 2) * w, -1, np.int64)
+    for r in range(rows):
+        base = (r + 1) * w
+        for c in range(columns):
+            out[base + c + 1] = index[r * columns + c]
+        out[base] = index[r * columns + columns - 1]
+        out[base + columns + 1] = index[r * columns]
+    return out
+
+
+@jit
+def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
+    """:func:`ray_features` over the cells ``at`` of the image ``index`` (the point each cell shows, −1: none):
+    medians of the returning neighbours' log signal and range (the cell's own values without any), and |n̂·d̂| with n
+    the area vector of the polygon of the returning neighbours in order around the cell and d the sum of their
+    positions (1 with fewer than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the
+    full ring of 8 the same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
+    w = columns + 2
+    padded = _padded(index, columns)
+    # the 8 neighbours in order around the cell, as offsets in the padded image
+    ring = np.array([-w - 1, -w, -w + 1, 1, w + 1, w, w - 1, -1])
+    out = np.empty((len(at), 4))
+    support = np.empty(len(at), np.int64)
+    buf_s = np.empty(8)
+    buf_r = np.empty(8)
+    px = np.empty(9)
+    py = np.empty(9)
+    pz = np.empty(9)
+    for i in range(len(at)):
+        r = at[i] // columns
+        base = at[i] + 2 * r + w + 1
+        k = 0
+        for j in range(8):
+            p = padded[base + ring[j]]
+            if p >= 0:
+                buf_s[k] = log_signal[p]
+                buf_r[k] = range_m[p]
+                px[k] = pos[p, 0]
+                py[k] = pos[p, 1]
+                pz[k] = pos[p, 2]
+                k += 1
+        support[i] = k
+        if k > 0:
+            out[i, 0] = _median(buf_s, k)
+            out[i, 1] = math.log(_median(buf_r, k))
+        else:
+            own = index[at[i]]
+            out[i, 0] = log_signal[own] if own >= 0 else np.nan
+            out[i, 1] = math.log(range_m[own]) if own >= 0 else np.nan
+        cos = 1.0
+        if k >= 3:
+            px[k], py[k], pz[k] = px[0], py[0], pz[0]          # close the polygon
+            nx = ny = nz = 0.0
+            if k == 8:
+                for j in range(0, 8, 2):
+                    ex, ey, ez = px[j + 2] - px[j], py[j + 2] - py[j], pz[j + 2] - pz[j]
+                    nx += py[j + 1] * ez - pz[j + 1] * ey
+                    ny += pz[j + 1] * ex - px[j + 1] * ez
+                    nz += px[j + 1] * ey - py[j + 1] * ex
+            else:
+                for j in range(k):
+                    nx += py[j] * pz[j + 1] - pz[j] * py[j + 1]
+                    ny += pz[j] * px[j + 1] - px[j] * pz[j + 1]
+                    nz += px[j] * py[j + 1] - py[j] * px[j + 1]
+            dx = dy = dz = 0.0
+            for j in range(k):
+                dx += px[j]
+                dy += py[j]
+                dz += pz[j]
+            norm = math.sqrt((nx * nx + ny * ny + nz * nz) * (dx * dx + dy * dy + dz * dz))
+            if norm > 1e-12:
+                cos = abs(nx * dx + ny * dy + nz * dz) / norm
+        out[i, 2] = cos
+        out[i, 3] = elevation[r]
+    return out, support
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Models
+
+
+def always_dropped(range_m: np.ndarray, cos_incidence: np.ndarray, max_range_m: float,
+                   max_incidence_deg: float) -> np.ndarray:
+    """The hard rules: beyond the maximum range (the ray's own range), or incidence above ``max_incidence_deg`` (none
+    at 90°)."""
+    beyond = np.asarray(range_m) > max_range_m
+    if max_incidence_deg >= 90.0:
+        return beyond
+    return beyond | (np.asarray(cos_incidence) < math.cos(math.radians(max_incidence_deg)))
+
+
+@lru_cache(maxsize=32)
+def detection_table(receiver: Receiver, log_sd: float) -> tuple[np.ndarray, np.ndarray]:
+    """(x, p): the receiver's detection probability of a signal ``T·e^x`` spread by a log-normal factor of log-SD σ,
+    ``p(x) = ∫ P_rx(T e^{x + σ z}) φ(z) dz``, on a grid of step :data:`TABLE_STEP` over x ∈ ±14 (clamped beyond): the
+    receiver curve on that grid convolved with the normal law's mass per grid cell (exact for a curve constant within
+    a cell, so a sharp receiver is no harder than a soft one)."""
+    h = TABLE_STEP
+    half = int(math.ceil(TABLE_HALF_WIDTH / h))
+    k = int(math.ceil(8 * log_sd / h)) if log_sd > 0 else 0
+    x = np.arange(-half - k, half + k + 1) * h
+    p = np.asarray(receiver.detection_probability(receiver.threshold * np.exp(x)), dtype=np.float64)
+    if k:
+        edges = (np.arange(-k, k + 2) - 0.5) * h / log_sd
+        p = np.convolve(p, np.diff(ndtr(edges)), mode="valid")
+        x = x[k:-k]
+    return x, p
+
+
+@dataclass(frozen=True)
+class PhysicalRayDrop:
+    """The §3.9 detection model on the shared receiver (module doc); coefficients as the model's parameters."""
+
+    log_gain: float
+    range_exponent: float
+    incidence_exponent: float
+    elevation_linear_per_rad: float
+    elevation_quadratic_per_rad2: float
+    log_signal_sd: float
+    floor_drop_probability: float
+
+    def drop_probability(self, features: np.ndarray, receiver: Receiver) -> np.ndarray:
+        """``1 − (1 − p_0)·p_detect(ln S_eff / T)`` of every ray (one compiled pass, linear interpolation in the
+        :func:`detection_table`)."""
+        x, p = detection_table(receiver, float(self.log_signal_sd))
+        return _physical_drop(np.ascontiguousarray(features, dtype=np.float64), self.log_gain - self.range_exponent
+                              * math.log(REFERENCE_RANGE_M), self.range_exponent, self.incidence_exponent,
+                              self.elevation_linear_per_rad, self.elevation_quadratic_per_rad2,
+                              self.floor_drop_probability, x[0], 1.0 / TABLE_STEP, p)
+
+
+@jit
+def _physical_drop(f, offset, a_range, a_cos, e1, e2, floor, x0, inv_h, table):       # pragma: no cover - compiled
+    """:meth:`PhysicalRayDrop.drop_probability`: ``x = ln S/T + offset + a_R ln R + a_θ ln cos θ + e1 ω + e2 ω²``."""
+    out = np.empty(len(f))
+    last = len(table) - 1
+    for i in range(len(f)):
+        e = f[i, 3]
+        x = (f[i, 0] + offset + a_range * f[i, 1] + a_cos * math.log(max(f[i, 2], MIN_COS)) + e * (e1 + e2 * e))
+        u = (x - x0) * inv_h
+        if not u > 0.0:                                  # (NaN: no estimate, as for no signal)
+            detect = table[0]
+        elif u >= last:
+            detect = table[last]
+        else:
+            j = int(u)
+            t = u - j
+            detect = table[j] * (1.0 - t) + table[j + 1] * t
+        out[i] = 1.0 - (1.0 - floor) * detect
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class AdditiveLogistic:
+    """``logit p_drop = intercept + Σ_f interp(x_f, knots_f, values_f)`` (module doc)."""
+
+    features: tuple[str, ...]
+    knots: tuple[np.ndarray, ...]
+    values: tuple[np.ndarray, ...]
+    intercept: float
+
+    def logit(self, features: np.ndarray) -> np.ndarray:
+        f = np.asarray(features, dtype=np.float64)
+        out = np.full(len(f), float(self.intercept))
+        for j, name in enumerate(self.features):
+            out += np.interp(f[:, FEATURES.index(name)], self.knots[j], self.values[j])
+        return out
+
+    def drop_probability(self, features: np.ndarray) -> np.ndarray:
+        """``1 / (1 + e^{−logit})`` in one compiled pass (the same piecewise-linear interpolation as :meth:`logit`)."""
+        columns = np.array([FEATURES.index(n) for n in self.features], dtype=np.int64)
+        starts = np.cumsum([0] + [len(k) for k in self.knots]).astype(np.int64)
+        slopes = np.concatenate([np.append(np.diff(v) / np.diff(k), 0.0) for k, v in zip(self.knots, self.values)])
+        return _additive_drop(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
+                              np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
+
+
+@jit
+def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
+    """:meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat beyond the
+    outer ones), its interpolated value added to the logit; then the logistic function."""
+    n = len(f)
+    z = np.full(n, intercept)
+    for j in range(len(columns)):
+        col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+        for i in range(n):
+            x = f[i, col]
+            if not x > knots[lo0]:
+                z[i] += values[lo0]
+            elif x >= knots[hi0]:
+                z[i] += values[hi0]
+            else:
+                k = lo0
+                while knots[k + 1] <= x:
+                    k += 1
+                z[i] += values[k] + (x - knots[k]) * slopes[k]
+    for i in range(n):
+        z[i] = 1.0 / (1.0 + math.exp(-z[i]))
+    return z
