@@ -24,10 +24,13 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
-@app.command(epilog="Example: `rvnoise augment --recipe recipes/cnf16.yaml sample_data out/cnf16 --workers 2`")
+@app.command(epilog="Examples: `rvnoise augment --recipe recipes/cnf16.yaml sample_data out/cnf16 --workers 2`, "
+                     "`rvnoise augment --recipe recipes/bag-rehearse.yaml drive.bag out/drive-rain.bag`")
 def augment(
-    input_dir: Path = typer.Argument(..., help="Input tree (never written)."),
-    output_dir: Path = typer.Argument(..., help="Output tree: augmented files, manifest.jsonl, run.json."),
+    input_dir: Path = typer.Argument(..., help="Input tree, or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder); "
+                                               "never written."),
+    output_dir: Path = typer.Argument(..., help="Output tree (augmented files, manifest.jsonl, run.json), or the "
+                                                "output bag (OUT.manifest.jsonl and OUT.run.json beside it)."),
     recipe: Path = typer.Option(..., "--recipe", "-r", help="Recipe YAML (a CNF or a chain of models)."),
     workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: all cores; capped at the outputs and the memory, see README]."),
     resume: bool = typer.Option(False, "--resume", help="Skip outputs already in the manifest with matching sha256."),
@@ -60,11 +63,20 @@ def augment(
                                  "convert, each model, encode, hash, write) in its manifest entry."),
 ) -> None:
     """Apply a recipe to every matching input under INPUT_DIR and write the augmented tree to OUTPUT_DIR.
-    Input options override the recipe's and are recorded in run.json's resolved recipe."""
+    Input options override the recipe's and are recorded in run.json's resolved recipe. A ROS bag as INPUT_DIR:
+    the recipe's topics are augmented into the output bag (README "ROS bags")."""
+    from roadview_noise.io.rosbag import bag_kind
     from roadview_noise.overrides import with_input_overrides
     from roadview_noise.recipe import load_recipe
     from roadview_noise.runner import Limits, run
 
+    if bag_kind(input_dir) is not None:
+        options = {"--resume": resume, "--dry-run": dry_run, "--limit": limit, "--fail-fast": fail_fast,
+                   "--task-timeout": task_timeout, "--depth": depth, "--camera-profile": camera_profile,
+                   "--lidar-profile": lidar_profile, "--radar-profile": radar_profile, "--report": report,
+                   "--backend dask": backend != "local", "--scheduler": scheduler, "--profile": profile}
+        return _augment_bag(input_dir, output_dir, recipe, workers, overwrite, quiet,
+                            refused=[o for o, value in options.items() if value])
     limits = Limits(max_pixels=int(max_pixels), max_points=int(max_points), task_timeout_s=task_timeout)
     try:
         r = with_input_overrides(load_recipe(recipe), depth=depth, camera_profile=camera_profile,
@@ -79,13 +91,7 @@ def augment(
     if s.dry_run:
         typer.echo(f"rvnoise: dry run, {s.planned} outputs planned, nothing written")
         return
-    for f in s.failures[:10]:
-        typer.secho(f"failed: {f}", fg=typer.colors.RED, err=True)
-    if s.failed > 10:
-        typer.secho(f"… and {s.failed - 10} more (see the manifest)", fg=typer.colors.RED, err=True)
-    if s.warned:
-        typer.secho(f"warning: {s.warned} output(s) had invalid input points removed (input_warnings in the "
-                    "manifest)", fg=typer.colors.YELLOW, err=True)
+    _print_problems(s)
     typer.echo(f"rvnoise: {s.done} written, {s.skipped} skipped, {s.failed} failed in {s.seconds:.1f} s → "
                f"{output_dir} (manifest: {output_dir / 'manifest.jsonl'})")
     if report:
@@ -94,12 +100,29 @@ def augment(
         raise typer.Exit(1)
 
 
+def _print_problems(s, *, failed: str = "failed", unit: str = "output") -> None:
+    """A run summary's first failures (and how many more) and its invalid-points warning, on stderr."""
+    for f in s.failures[:10]:
+        typer.secho(f"{failed}: {f}", fg=typer.colors.RED, err=True)
+    if s.failed > 10:
+        typer.secho(f"… and {s.failed - 10} more (see the manifest)", fg=typer.colors.RED, err=True)
+    if s.warned:
+        typer.secho(f"warning: {s.warned} {unit}(s) had invalid input points removed (input_warnings in the "
+                    "manifest)", fg=typer.colors.YELLOW, err=True)
+
+
 @app.command(epilog="Example: `rvnoise validate recipes/cnf13.yaml`")
 def validate(recipe: Path = typer.Argument(..., help="Recipe YAML.")) -> None:
     """Check a recipe without running it (exit 2 naming the key when it is invalid)."""
+    from roadview_noise.bag_recipe import is_bag_recipe, load_bag_recipe, read_recipe_yaml
     from roadview_noise.recipe import load_recipe
 
     try:
+        if is_bag_recipe(read_recipe_yaml(recipe)):
+            b = load_bag_recipe(recipe)
+            for name, t in b.topics.items():
+                typer.echo(f"ok: {recipe}: {name} ({t.sensor}) chain {' → '.join(t.recipe.model_ids)}")
+            return
         r = load_recipe(recipe)
     except RvNoiseError as e:
         _fail(str(e))
@@ -179,16 +202,21 @@ def _show_model(mid: str, models: dict, prefix: str = "") -> None:
 @app.command(epilog="Example: `rvnoise replay out/demo/manifest.jsonl --key camera/seq0/000000.png`")
 def replay(
     manifest: Path = typer.Argument(..., help="A run's manifest.jsonl (run.json must be next to it)."),
-    key: str = typer.Option(..., "--key", "-k", help="Output path relative to the output root."),
+    key: str = typer.Option(..., "--key", "-k", help="Output path relative to the output root, or TOPIC@STAMP "
+                                                     "for a bag's manifest (OUT.manifest.jsonl)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Also write the reproduced file here."),
-    input_root: Optional[Path] = typer.Option(None, "--input-root", help="Input tree if it moved."),
+    input_root: Optional[Path] = typer.Option(None, "--input-root", help="Input tree (or bag) if it moved."),
 ) -> None:
     """Reproduce one output (with its sidecars and annotations) from the manifest and compare their sha256 (exit 1
-    on mismatch)."""
+    on mismatch); a bag's message from OUT.manifest.jsonl."""
+    from roadview_noise.bag_runner import MANIFEST_SUFFIX, replay_bag
     from roadview_noise.runner import replay as do_replay
 
     try:
-        r = do_replay(manifest, key, out_file=out, input_root=input_root)
+        if manifest.name.endswith(MANIFEST_SUFFIX):
+            r = replay_bag(manifest, key, out_file=out, input_bag=input_root)
+        else:
+            r = do_replay(manifest, key, out_file=out, input_root=input_root)
     except RvNoiseError as e:
         _fail(str(e))
     if r["error"]:
@@ -387,6 +415,52 @@ def sample_data(
                        progress=True)
     typer.echo(f"rvnoise: {len(summary['files'])} files, {summary['bytes'] / 1e6:.1f} MB in "
                f"{summary['seconds']:.1f} s → {out_dir}")
+
+
+def _augment_bag(in_bag: Path, out_bag: Path, recipe: Path, workers: Optional[int], overwrite: bool, quiet: bool,
+                 refused: list[str]) -> None:
+    """``augment`` of a ROS bag (roadview_noise.bag_runner)."""
+    from roadview_noise.bag_recipe import load_bag_recipe
+    from roadview_noise.bag_runner import manifest_path, run_bag
+
+    if refused:
+        _fail(f"{', '.join(refused)} not supported for bags (a run writes one whole bag; profiles and depth are "
+              f"given per topic in the recipe's topics:)")
+    try:
+        s = run_bag(load_bag_recipe(recipe), in_bag, out_bag, workers=workers, overwrite=overwrite,
+                    progress=not quiet, echo=typer.echo)
+    except RvNoiseError as e:
+        _fail(str(e))
+    _print_problems(s, failed="failed (copied unchanged)", unit="message")
+    typer.echo(f"rvnoise: {s.done} messages augmented, {s.failed} failed (copied unchanged) in {s.seconds:.1f} s → "
+               f"{out_bag} (manifest: {manifest_path(out_bag)})")
+    if s.failed:
+        raise typer.Exit(1)
+
+
+@app.command(epilog="Example: `rvnoise export drive.bag out/drive --recipe recipes/bag-rehearse.yaml`")
+def export(
+    bag: Path = typer.Argument(..., help="ROS bag: .bag, .mcap, .db3 or a ROS 2 bag folder (never written)."),
+    out_dir: Path = typer.Argument(..., help="Input tree to write: one folder per topic, profile sidecars."),
+    recipe: Optional[Path] = typer.Option(None, "--recipe", "-r", help="Bag recipe: its topics, profiles and "
+                                                                       "depth topics [default: every sensor topic]."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Write over the files of a non-empty OUT_DIR."),
+) -> None:
+    """Write the camera, LiDAR and radar topics of a bag as files (PNG/JPEG/raw + depth EXR, PCD, profile sidecars)
+    that `rvnoise augment` reads."""
+    from roadview_noise.bag_export import export_bag
+    from roadview_noise.bag_recipe import parse_bag_recipe, read_recipe_yaml
+
+    try:
+        r = None
+        if recipe is not None:
+            r = parse_bag_recipe(read_recipe_yaml(recipe), source=str(recipe), base_dir=recipe.resolve().parent,
+                                 chains_required=False)
+        summary = export_bag(bag, out_dir, recipe=r, overwrite=overwrite)
+    except RvNoiseError as e:
+        _fail(str(e))
+    topics = ", ".join(f"{t} ({n})" for t, n in summary["topics"].items())
+    typer.echo(f"rvnoise: {summary['files']} files → {out_dir}: {topics}")
 
 
 if __name__ == "__main__":

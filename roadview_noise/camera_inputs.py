@@ -15,6 +15,10 @@ Depth (``inputs.depth_source``): ``file`` (``inputs.depth`` sidecars in any form
 holes follow ``inputs.depth_holes`` (:mod:`roadview_noise.depth.holes`). What was done goes to the frame's
 ``input_notes`` (the manifest's ``inputs``), and what deserves a warning is summarised once per run
 (:class:`InputWarnings`).
+
+Image files and the camera messages of ROS bags go through the same :func:`with_camera_inputs`: only where the
+image comes from differs (:class:`FileImage`; ``bag_runner.TopicImage``, whose aligned depth message plays the role
+of the depth file).
 """
 
 from __future__ import annotations
@@ -49,42 +53,107 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraF
     from .io import raw as raw_io
 
     path = in_root / sample.relpath
-    notes: dict[str, Any] = {}
     if sample.modality == "camera":
         linear, encoding, alpha = image_io.read_image(path)
-        if encoding.fmt == "jpeg":
-            stated = recipe.spec.output.jpeg_quality
-            if stated is not None:
-                encoding = dataclasses.replace(encoding, jpeg_quality=stated)
-            notes["jpeg_quality"] = {"value": encoding.jpeg_quality, "from": "recipe output.jpeg_quality"
-                                     if stated is not None else "input (estimated from its quantisation tables)"}
-        h, w = linear.shape[:2]
-
-        def signal():
-            return linear
+        frame = CameraFrame(linear, nominal_profile(linear.shape[1], linear.shape[0]), encoding=encoding,
+                            alpha=alpha)
     else:
         dn, pattern, black, white, raw_encoding = raw_io.read_raw(path)
-        h, w = dn.shape
+        frame = RawFrame(dn.astype(np.float32), pattern, float(black), float(white),
+                         nominal_profile(dn.shape[1], dn.shape[0]), encoding=raw_encoding)
+    return with_camera_inputs(frame, recipe, FileImage(sample, in_root))
 
-        def signal():
-            return (dn.astype(np.float32) - np.float32(black)) / np.float32(white - black)
-    geometry = _Geometry(sample, in_root, recipe, w, h)
+
+def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: Any) -> CameraFrame | RawFrame:
+    """A frame as read (pixels and encoding) with the JPEG quality, camera geometry and depth its chain needs and
+    the notes saying how they were obtained — the one path of image files and bag messages. ``origin`` is where
+    the image comes from (:class:`FileImage`, or a bag topic's message in :mod:`roadview_noise.bag_runner`):
+    ``name`` (in errors), ``folder`` (relative profile paths), ``sidecars`` (look for ``camera.yaml`` there),
+    ``key(setting)`` (where the recipe states a setting) and ``depth(recipe, geometry)`` (the ``file`` depth
+    source: ``(range_m with NaN holes, notes, source name)``)."""
+    notes: dict[str, Any] = {}
+    if isinstance(frame, CameraFrame) and frame.encoding.fmt == "jpeg":
+        stated = recipe.spec.output.jpeg_quality
+        if stated is not None:
+            frame = dataclasses.replace(frame, encoding=dataclasses.replace(frame.encoding, jpeg_quality=stated))
+        notes["jpeg_quality"] = {"value": frame.encoding.jpeg_quality, "from": "recipe output.jpeg_quality"
+                                 if stated is not None else "input (estimated from its quantisation tables)"}
+    h, w = frame.shape
+    geometry = _Geometry(origin, recipe, w, h)
     if needs_camera_geometry(recipe):
         geometry.profile                                    # resolved now: a step of the chain uses it
     depth = valid = None
     if recipe.needs_depth():
-        depth, valid, notes["depth"] = _depth(sample, in_root, recipe, geometry, signal)
+        depth, valid, notes["depth"] = _depth(origin, recipe, geometry, lambda: _signal(frame))
     notes.update(geometry.notes)
     warnings = geometry.warnings + _depth_warnings(notes.get("depth"))
     if warnings:
         notes["warnings"] = warnings
-    profile = geometry.resolved or CameraProfile.from_fov("unused: no step needs camera geometry", w, h,
-                                                           FALLBACK_FOV_H_DEG)
-    if sample.modality == "camera":
-        return CameraFrame(linear, profile, depth_m=depth, encoding=encoding, alpha=alpha, depth_valid=valid,
-                           input_notes=notes)
-    return RawFrame(dn.astype(np.float32), pattern, float(black), float(white), profile, depth_m=depth,
-                    encoding=raw_encoding, depth_valid=valid, input_notes=notes)
+    return dataclasses.replace(frame, profile=geometry.resolved or frame.profile, depth_m=depth, depth_valid=valid,
+                               input_notes=notes)
+
+
+def nominal_profile(width_px: int, height_px: int) -> CameraProfile:
+    """The profile of a frame whose chain needs no camera geometry: no step reads it."""
+    return CameraProfile.from_fov("unused: no step needs camera geometry", width_px, height_px, FALLBACK_FOV_H_DEG)
+
+
+def camera_geometry(origin: Any, recipe: Recipe, width_px: int, height_px: int) -> "_Geometry":
+    """The camera geometry of an image of that size from ``origin`` (see :func:`with_camera_inputs`), whatever its
+    chain needs: ``.profile`` resolves it (module docstring)."""
+    return _Geometry(origin, recipe, width_px, height_px)
+
+
+def _signal(frame: CameraFrame | RawFrame) -> np.ndarray:
+    """The frame's linear signal for the depth sources that look at the image: RGB, or Bayer DN scaled to [0, 1]."""
+    if isinstance(frame, CameraFrame):
+        return frame.linear_rgb
+    return (frame.dn - np.float32(frame.black_level_dn)) / np.float32(frame.white_level_dn - frame.black_level_dn)
+
+
+class FileImage:
+    """An image file of the input tree as the origin of a frame (see :func:`with_camera_inputs`)."""
+
+    sidecars = True
+
+    def __init__(self, sample: Sample, in_root: Path):
+        self.sample, self.in_root = sample, in_root
+        self.path = in_root / sample.relpath
+        self.name, self.folder = str(self.path), self.path.parent
+
+    @staticmethod
+    def key(setting: str) -> str:
+        return f"inputs.{setting}"
+
+    def sidecar(self, pattern: str, key: str, recipe_dir: Path) -> Path:
+        """A sidecar pattern resolved next to the image (``..`` allowed), else in the recipe's folder."""
+        rel = depth_relpath_for(self.sample.relpath, pattern)
+        for candidate in (self.in_root / rel, recipe_dir / pattern):
+            if candidate.is_file():
+                return candidate
+        raise InputError(f"no {key} file {rel!r} (inputs.{key}: {pattern!r}, relative to the image's folder or "
+                         f"the recipe's)", file=self.name)
+
+    def depth(self, recipe: Recipe, geometry: "_Geometry"):
+        """The ``file`` depth source: the image's depth sidecar (``inputs.depth``)."""
+        from .io import depth as depth_io
+
+        inputs = recipe.spec.inputs
+        if self.sample.depth_relpath is None:
+            needing = ", ".join(m for m in recipe.model_ids if get_model(m).needs_depth)
+            raise InputError(f"no depth file {depth_relpath_for(self.sample.relpath, inputs.depth)!r} (inputs.depth: "
+                             f"{inputs.depth!r}; needed by {needing}); {DEPTH_OPTIONS}", file=self.name)
+        depth_path = self.in_root / self.sample.depth_relpath
+        fmt = depth_io.depth_format(depth_path, inputs.depth_format)
+        planar = inputs.depth_kind == "planar" or fmt in depth_io.PLANAR_FORMATS
+        cal = geometry.calibration
+        w, h = geometry.size
+        depth = depth_io.read_depth(depth_path, fmt=fmt, profile=geometry.profile if planar else None,
+                                    expected_shape=(h, w), planar=planar,
+                                    baseline_m=cal.baseline_m if cal is not None else None)
+        notes = {"source": "file", "file": self.sample.depth_relpath, "format": fmt,
+                 "kind": "planar" if planar else "range"}
+        return depth, notes, str(depth_path)
 
 
 # --- camera geometry -----------------------------------------------------------------------------------------------
@@ -93,16 +162,12 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraF
 class _Geometry:
     """The camera geometry of one image, resolved on first use (module docstring)."""
 
-    def __init__(self, sample: Sample, in_root: Path, recipe: Recipe, width_px: int, height_px: int):
-        self.sample, self.in_root, self.recipe = sample, in_root, recipe
+    def __init__(self, origin: Any, recipe: Recipe, width_px: int, height_px: int):
+        self.origin, self.recipe = origin, recipe
         self.size = (width_px, height_px)
         self.resolved: CameraProfile | None = None
         self.notes: dict[str, Any] = {}
         self.warnings: list[str] = []
-
-    @property
-    def path(self) -> Path:
-        return self.in_root / self.sample.relpath
 
     @cached_property
     def calibration(self):
@@ -112,41 +177,37 @@ class _Geometry:
         inputs = self.recipe.spec.inputs
         if inputs.calibration is None:
             return None
-        cal = load_calibration(self._sidecar(inputs.calibration, "calibration"), kitti_camera=inputs.kitti_camera)
-        self.notes["calibration"] = _relative(Path(cal.source), self.in_root)
+        cal = load_calibration(self.origin.sidecar(inputs.calibration, "calibration", self.recipe.base_dir),
+                               kitti_camera=inputs.kitti_camera)
+        self.notes["calibration"] = _relative(Path(cal.source), self.origin.in_root)
         return cal
-
-    def _sidecar(self, pattern: str, key: str) -> Path:
-        """A sidecar pattern resolved next to the image (``..`` allowed), else in the recipe's folder."""
-        rel = depth_relpath_for(self.sample.relpath, pattern)
-        for candidate in (self.in_root / rel, self.recipe.base_dir / pattern):
-            if candidate.is_file():
-                return candidate
-        raise InputError(f"no {key} file {rel!r} (inputs.{key}: {pattern!r}, relative to the image's folder or "
-                         f"the recipe's)", file=str(self.path))
 
     @cached_property
     def profile(self) -> CameraProfile:
         inputs = self.recipe.spec.inputs
         w, h = self.size
-        file_dir = self.path.parent
-        spec = _sidecar_default(_profile_spec(inputs.camera_profile, file_dir, self.recipe), file_dir, "camera.yaml")
+        folder = self.origin.folder
+        spec = _profile_spec(inputs.camera_profile, folder, self.recipe)
+        if self.origin.sidecars:
+            spec = _sidecar_default(spec, folder, "camera.yaml")
         cal = self.calibration
         intrinsics = cal.intrinsics_for(w, h) if cal is not None else None
         if spec is not None:
-            base = _camera_profile(spec, file_dir)
-            source = "recipe inputs.camera_profile" if inputs.camera_profile is not None else "camera.yaml"
+            base = _camera_profile(spec, folder)
+            source = (f"recipe {self.origin.key('camera_profile')}" if inputs.camera_profile is not None
+                      else "camera.yaml")
             if intrinsics is None:
                 from .profiles.camera import fit_to_image
 
-                profile = fit_to_image(base, w, h, source=str(self.path))
+                profile = fit_to_image(base, w, h, source=self.origin.name)
             else:
                 profile = dataclasses.replace(base.resized(w, h), **_intrinsics_fields(intrinsics))
         else:
             fov = inputs.camera_fov_h_deg or FALLBACK_FOV_H_DEG
+            fov_key = self.origin.key("camera_fov_h_deg")
             profile = assumed_profile(w, h, fov)
             source = (f"image size and horizontal FOV {fov:g}° "
-                      f"({'inputs.camera_fov_h_deg' if inputs.camera_fov_h_deg else 'default: the Lucid Triton'})")
+                      f"({fov_key if inputs.camera_fov_h_deg else 'default: the Lucid Triton'})")
             if intrinsics is None:
                 self.warnings.append("intrinsics_from_fov")
             else:
@@ -187,7 +248,7 @@ def _relative(path: Path, root: Path) -> str:
 # --- depth -----------------------------------------------------------------------------------------------------------
 
 
-def _depth(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal: Callable[[], np.ndarray]
+def _depth(origin: Any, recipe: Recipe, geometry: _Geometry, signal: Callable[[], np.ndarray]
            ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """``(range_m, valid, notes)`` from the recipe's depth source (module docstring); ``signal()`` gives the
     frame's linear signal for the sources that look at the image."""
@@ -196,9 +257,9 @@ def _depth(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, s
     inputs = recipe.spec.inputs
     source = inputs.depth_source
     if source == "file":
-        depth, notes, where = _depth_file(sample, in_root, recipe, geometry)
+        depth, notes, where = origin.depth(recipe, geometry)
     elif source == "lidar":
-        return _depth_lidar(sample, in_root, recipe, geometry, signal)
+        return _depth_lidar(origin, recipe, geometry, signal)
     elif source == "onnx":
         depth, notes, where = _depth_onnx(recipe, geometry, signal)
     else:
@@ -208,43 +269,21 @@ def _depth(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, s
     return depth, valid, notes
 
 
-def _depth_file(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry):
-    from .io import depth as depth_io
-
-    inputs = recipe.spec.inputs
-    path = in_root / sample.relpath
-    if sample.depth_relpath is None:
-        needing = ", ".join(m for m in recipe.model_ids if get_model(m).needs_depth)
-        raise InputError(f"no depth file {depth_relpath_for(sample.relpath, inputs.depth)!r} (inputs.depth: "
-                         f"{inputs.depth!r}; needed by {needing}); {DEPTH_OPTIONS}", file=str(path))
-    depth_path = in_root / sample.depth_relpath
-    fmt = depth_io.depth_format(depth_path, inputs.depth_format)
-    planar = inputs.depth_kind == "planar" or fmt in depth_io.PLANAR_FORMATS
-    cal = geometry.calibration
-    w, h = geometry.size
-    depth = depth_io.read_depth(depth_path, fmt=fmt, profile=geometry.profile if planar else None,
-                                expected_shape=(h, w), planar=planar,
-                                baseline_m=cal.baseline_m if cal is not None else None)
-    notes = {"source": "file", "file": sample.depth_relpath, "format": fmt, "kind": "planar" if planar else "range"}
-    return depth, notes, str(depth_path)
-
-
-def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geometry, signal):
+def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal):
     from .depth.lidar import lidar_depth
     from .io import pointcloud as cloud_io
     from .io.image import display_srgb
 
     spec = recipe.spec.inputs.lidar_depth
-    path = in_root / sample.relpath
-    scan_rel = depth_relpath_for(sample.relpath, spec.scan)
-    scan_path = in_root / scan_rel
+    scan_rel = depth_relpath_for(origin.sample.relpath, spec.scan)
+    scan_path = origin.in_root / scan_rel
     if not scan_path.is_file():
         raise InputError(f"no paired LiDAR scan {scan_rel!r} (inputs.lidar_depth.scan: {spec.scan!r})",
-                         file=str(path))
+                         file=origin.name)
     cal = geometry.calibration
     if cal is None or cal.lidar_to_camera is None:
         raise InputError("depth_source lidar needs the LiDAR → camera transform: inputs.calibration (a KITTI "
-                         "calib .txt, or a .yaml with lidar_to_camera)", file=str(path))
+                         "calib .txt, or a .yaml with lidar_to_camera)", file=origin.name)
     profile = geometry.profile
     cloud = cloud_io.read_pointcloud(scan_path, sensor="lidar")
     ground = None
@@ -258,7 +297,7 @@ def _depth_lidar(sample: Sample, in_root: Path, recipe: Recipe, geometry: _Geome
                                           profile.width_px, profile.height_px, densify=spec.densify,
                                           guide_srgb=guide, ground=ground)
     except ValueError as exc:
-        raise InputError(f"{exc} (scan {scan_rel})", file=str(path)) from None
+        raise InputError(f"{exc} (scan {scan_rel})", file=origin.name) from None
     notes = {"source": "lidar", "scan": scan_rel, **notes}
     if ground is not None:
         notes["ground_plane"] = {"camera_height_m": ground[0], "pitch_deg": round(math.degrees(ground[1]), 6)}
@@ -274,11 +313,12 @@ def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
     model = Path(spec.model)
     model = model if model.is_absolute() else recipe.base_dir / model
     if not model.is_file():
-        raise InputError(f"no ONNX depth model {str(model)!r} (inputs.onnx_depth.model)", file=str(geometry.path))
+        raise InputError(f"no ONNX depth model {str(model)!r} ({geometry.origin.key('onnx_depth')}.model)",
+                         file=geometry.origin.name)
     image = signal()
     if image.ndim != 3:
         raise InputError("depth_source onnx needs an RGB image; give raw Bayer frames a depth file or another "
-                         "depth source", file=str(geometry.path))
+                         "depth source", file=geometry.origin.name)
     image = display_srgb(image) if spec.input == "srgb" else image
     depth, notes = model_depth(str(model), image, mean=spec.mean, std=spec.std, layout=spec.layout,
                                scale_m=spec.scale_m)

@@ -245,7 +245,11 @@ def _hashable(spec):
 def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
     """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions;
     InputError names the file."""
-    data = _read(sample, in_root, recipe)
+    return with_conditions(_read(sample, in_root, recipe), recipe)
+
+
+def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
+    """The input's scene conditions from the recipe's inputs (the sensor's ego velocity)."""
     ego = recipe.spec.inputs.ego_velocity_m_per_s
     if ego is not None:
         data = dataclasses.replace(data, conditions=Conditions(ego_velocity_m_per_s=tuple(map(float, ego))))
@@ -261,14 +265,21 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
     file_dir = path.parent
     if sample.modality in ("camera", "raw"):
         return load_camera_sample(sample, in_root, recipe)
-    if sample.modality == "lidar":
-        spec = _sidecar_default(_profile_spec(inputs.lidar_profile, file_dir, recipe), file_dir, "lidar.yaml")
-        profile = _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
-    else:
-        spec = _sidecar_default(_profile_spec(inputs.radar_profile, file_dir, recipe), file_dir, "radar.yaml")
-        profile = _radar_profile(_hashable(spec))
-    return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
+    return cloud_io.read_pointcloud(path, sensor=sample.modality,
+                                    profile=cloud_profile_for(sample.modality, inputs, file_dir, recipe),
                                     field_map=dict(inputs.field_map) or None)
+
+
+def cloud_profile_for(sensor: str, inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):
+    """The LiDAR (with the recipe's intensity scale) or radar profile of an input in ``file_dir``: the recipe's,
+    else (``sidecar``) ``lidar.yaml``/``radar.yaml`` there, else the default."""
+    if sensor == "lidar":
+        spec = _profile_spec(inputs.lidar_profile, file_dir, recipe)
+        spec = _sidecar_default(spec, file_dir, "lidar.yaml") if sidecar else spec
+        return _lidar_profile(_hashable(spec), inputs.intensity_unit, inputs.intensity_full_scale)
+    spec = _profile_spec(inputs.radar_profile, file_dir, recipe)
+    spec = _sidecar_default(spec, file_dir, "radar.yaml") if sidecar else spec
+    return _radar_profile(_hashable(spec))
 
 
 def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None = None,

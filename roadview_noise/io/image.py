@@ -37,6 +37,7 @@ from .atomic import atomic_path, write_bytes_atomic
 SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr"}
 _EXTENSION = {"png": ".png", "jpeg": ".jpg"}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+_RGB_ORDER = {3: slice(None, None, -1), 4: [2, 1, 0, 3]}    # OpenCV's BGR(A) → RGB(A) (3 channels: a view)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND\xaeB`\x82"            # chunk type + CRC of the (empty) IEND chunk
@@ -65,29 +66,43 @@ def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageEncoding, np.n
         data = Path(path).read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read image: {exc.strerror or exc}", file=str(path)) from exc
-    check_structure(data, fmt, path)
+    return decode_image(data, fmt, source=path)
+
+
+def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+    """:func:`read_image` of the bytes of a PNG, JPEG or TIFF file (also a ROS CompressedImage's data); ``source``
+    names it in errors."""
+    check_structure(data, fmt, source)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"OpenCV cannot decode this {fmt.upper()} file (corrupt or unsupported variant)",
-                         file=str(path))
-    if img.dtype == np.uint8 or img.dtype == np.uint16:
-        bit_depth, transfer = 8 * img.dtype.itemsize, "srgb"
-    elif img.dtype == np.float32 and fmt == "tiff":
+                         file=str(source))
+    codes = img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
+    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
+    return image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc_profile(data, fmt))
+
+
+def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int = ImageEncoding.jpeg_quality,
+                     icc: bytes | None = None) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+    """Linear RGB, encoding and alpha of code values — grey (H, W) or RGB(A) (H, W, C); uint8/uint16 sRGB, or
+    float32 linear for TIFF — stored as ``fmt`` (also the pixels of a ROS Image)."""
+    if codes.dtype == np.uint8 or codes.dtype == np.uint16:
+        bit_depth, transfer = 8 * codes.dtype.itemsize, "srgb"
+    elif codes.dtype == np.float32 and fmt == "tiff":
         bit_depth, transfer = 32, "linear"
     else:
-        raise InputError(f"unsupported sample type {img.dtype} (expected uint8, uint16 or float32 TIFF)",
-                         file=str(path))
-    channels = 1 if img.ndim == 2 else img.shape[2]
+        raise InputError(f"unsupported sample type {codes.dtype} (expected uint8, uint16 or float32 TIFF)",
+                         file=str(source))
+    channels = 1 if codes.ndim == 2 else codes.shape[2]
     if channels not in (1, 3, 4):
-        raise InputError(f"unsupported channel count {channels} (expected 1, 3 or 4)", file=str(path))
-    alpha = img[..., 3].copy() if channels == 4 else None
-    codes = img if channels == 1 else img[..., 2::-1]          # BGR(A) → RGB
-    linear = srgb.code_to_linear(codes, bit_depth) if transfer == "srgb" else codes.astype(np.float32)
+        raise InputError(f"unsupported channel count {channels} (expected 1, 3 or 4)", file=str(source))
+    alpha = codes[..., 3].copy() if channels == 4 else None
+    rgb = codes if channels == 1 else codes[..., :3]
+    linear = srgb.code_to_linear(rgb, bit_depth) if transfer == "srgb" else rgb.astype(np.float32)
     if channels == 1:
         linear = np.repeat(linear[..., None], 3, axis=2)
-    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels, jpeg_quality=quality,
-                             icc_profile=icc_profile(data, fmt))
+    encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels,
+                             jpeg_quality=jpeg_quality, icc_profile=icc)
     return np.ascontiguousarray(linear, dtype=np.float32), encoding, alpha
 
 
@@ -96,35 +111,61 @@ def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: Image
     """Encode (H, W, 3) linear RGB like ``encoding`` (sRGB or linear, bit depth, channels, JPEG quality, ICC
     profile) and write it atomically. Integer encodings are clipped to [0, 1] and rounded here, once; float32 TIFF
     and EXR are written unclipped. A 4-channel encoding without ``alpha`` gets an opaque alpha plane."""
+    name = Path(path).name
+    if image_format(path) != encoding.fmt:
+        raise ValueError(f"{name}: suffix does not match the encoding format {encoding.fmt!r}")
+    if encoding.fmt == "exr":
+        _write_exr_image(path, _stored_pixels(linear_rgb, encoding, name), encoding, alpha)
+        return
+    write_bytes_atomic(path, encode_image(linear_rgb, encoding, alpha, name=name))
+
+
+def encode_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
+                 name: str = "image") -> bytes:
+    """The PNG, JPEG or TIFF file bytes :func:`write_image` writes (also a ROS CompressedImage's data)."""
+    return encode_codes(codes_from_image(linear_rgb, encoding, alpha, name=name), encoding, name=name)
+
+
+def codes_from_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
+                     name: str = "image") -> np.ndarray:
+    """Code values of linear RGB for an integer or float32 TIFF ``encoding``, grey (H, W) or RGB(A) (H, W, C): the
+    inverse of :func:`image_from_codes`; ``name`` identifies the image in errors."""
+    codes = encode_pixels(_stored_pixels(linear_rgb, encoding, name), encoding)
+    if encoding.channels == 4:
+        if alpha is None:
+            alpha = np.full(codes.shape[:2], 1.0 if codes.dtype == np.float32 else np.iinfo(codes.dtype).max)
+        codes = np.dstack([codes, np.asarray(alpha).astype(codes.dtype)])
+    return codes
+
+
+def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "image") -> bytes:
+    """PNG, JPEG (``encoding.jpeg_quality``) or TIFF bytes of grey or RGB(A) code values, with
+    ``encoding.icc_profile`` embedded."""
+    if encoding.fmt == "tiff":
+        return _encode_tiff(codes, encoding.icc_profile)
+    if encoding.fmt not in _EXTENSION:
+        raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
+    if codes.ndim == 3:
+        codes = bgr_order(codes)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
+    ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], np.ascontiguousarray(codes), params)
+    if not ok:
+        raise OSError(f"{name}: OpenCV could not encode {encoding}")
+    return embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile)
+
+
+def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str) -> np.ndarray:
+    """The linear pixels to store: RGB, or Rec. 709 luminance for a grey encoding; ValueError for a wrong shape,
+    NaN or an unsupported channel count."""
     linear_rgb = np.asarray(linear_rgb)
     if linear_rgb.ndim != 3 or linear_rgb.shape[2] != 3:
         raise ValueError(f"expected linear RGB of shape (H, W, 3), got {linear_rgb.shape}")
     n_nan = int(np.count_nonzero(np.isnan(linear_rgb)))
     if n_nan:
-        raise ValueError(f"{Path(path).name}: image has {n_nan} NaN values; a model produced invalid radiance")
-    if image_format(path) != encoding.fmt:
-        raise ValueError(f"{Path(path).name}: suffix does not match the encoding format {encoding.fmt!r}")
+        raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
     if encoding.channels not in (1, 3, 4):
         raise ValueError(f"unsupported channel count {encoding.channels}")
-    pixels = linear_rgb @ _LUMA_709 if encoding.channels == 1 else linear_rgb
-    if encoding.fmt == "exr":
-        _write_exr_image(path, pixels, encoding, alpha)
-        return
-    codes = encode_pixels(pixels, encoding)                   # RGB order
-    if encoding.channels == 4:
-        if alpha is None:
-            alpha = np.full(codes.shape[:2], 1.0 if codes.dtype == np.float32 else np.iinfo(codes.dtype).max)
-        codes = np.dstack([codes, np.asarray(alpha).astype(codes.dtype)])
-    if encoding.fmt == "tiff":
-        write_bytes_atomic(path, _encode_tiff(codes, encoding.icc_profile))
-        return
-    if encoding.channels > 1:
-        codes = bgr_order(codes)
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
-    ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], np.ascontiguousarray(codes), params)
-    if not ok:
-        raise OSError(f"{Path(path).name}: OpenCV could not encode {encoding}")
-    write_bytes_atomic(path, embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile))
+    return linear_rgb @ _LUMA_709 if encoding.channels == 1 else linear_rgb
 
 
 def _encode_tiff(codes: np.ndarray, icc: bytes | None) -> bytes:

@@ -108,18 +108,28 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
         columns, mode = _read_ply(data, path)
     else:
         columns, mode = _read_bin(data, BIN_FIELDS[fmt], path), "binary"
-    keys = _canonical_keys([c[0] for c in columns], field_map, path)
+    return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
+                              field_map=field_map, source=path)
+
+
+def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape: tuple[int, int] | None,
+                       sensor: str, profile: LidarProfile | RadarProfile | None,
+                       field_map: Mapping[str, str] | None, source) -> PointCloud:
+    """A cloud from stored columns (file name, dtype string, values) in storage order: canonical names, float64
+    positions, the layout to store it back with; :class:`InputError` (naming ``source``) for an empty cloud, missing
+    or non-scalar x/y/z and non-finite coordinates."""
+    keys = _canonical_keys([c[0] for c in columns], field_map, source)
     n = len(columns[0][2])
     if n == 0:
-        raise InputError("the point cloud is empty (0 points)", file=str(path))
+        raise InputError("the point cloud is empty (0 points)", file=str(source))
     where = {k: i for i, k in enumerate(keys)}
     for axis in "xyz":
         if axis not in where or columns[where[axis]][2].ndim != 1:
-            raise InputError(f"no scalar {axis!r} field (fields: {[c[0] for c in columns]})", file=str(path))
+            raise InputError(f"no scalar {axis!r} field (fields: {[c[0] for c in columns]})", file=str(source))
     positions = np.stack([columns[where[a]][2] for a in "xyz"], axis=1).astype(np.float64)
     n_bad = int(np.count_nonzero(~np.isfinite(positions).all(axis=1)))
     if n_bad:
-        raise InputError(f"{n_bad} of {n} points have NaN or infinite coordinates", file=str(path))
+        raise InputError(f"{n_bad} of {n} points have NaN or infinite coordinates", file=str(source))
     fields = {k: _native(col) for k, (_, _, col) in zip(keys, columns) if k not in ("x", "y", "z")}
     layout = CloudLayout(fmt=fmt, fields=tuple((k, name, dt) for k, (name, dt, _) in zip(keys, columns)),
                          pcd_data=mode)
@@ -142,19 +152,9 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
     family = _family(layout.fmt)
     if _family(cloud_format(path, cloud.sensor)) != family:
         raise ValueError(f"{Path(path).name}: suffix does not match the cloud's layout format {layout.fmt!r}")
-    keys = [k for k, _, _ in layout.fields]
-    extra = sorted(set(cloud.fields) - set(keys))
-    missing = [k for k in keys if k not in ("x", "y", "z") and k not in cloud.fields]
-    if extra or missing:
-        raise ValueError(f"{Path(path).name}: cloud fields do not match the {layout.fmt} layout "
-                         f"(not in layout: {extra}; missing from cloud: {missing})")
-    columns: list[Column] = []
-    for key, name, dt in layout.fields:
-        values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
-        columns.append((name, dt, _cast(values, dt, key)))
-    codes = None if effect == "none" or cloud.effect is None else _cast(cloud.effect, EFFECT_DTYPE, EFFECT_FIELD)
-    if codes is not None and family != "bin":
-        columns.append((effect_field_name([name for _, name, _ in layout.fields]), EFFECT_DTYPE, codes))
+    columns, added = output_columns(cloud, layout, effect=effect, name=Path(path).name)
+    if added is not None and family != "bin":
+        columns.append(added)
     if layout.fmt == "pcd":
         data = _pcd_bytes(columns, layout.pcd_data, cloud.grid_shape)
     elif layout.fmt == "ply":
@@ -163,10 +163,31 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
         data = np.stack([c for _, _, c in columns], axis=1).astype("<f4").tobytes()
     write_bytes_atomic(path, data)
     written = [Path(path)]
-    if codes is not None and family == "bin":
+    if added is not None and family == "bin":
         written.append(effect_sidecar_path(path))
-        write_bytes_atomic(written[-1], codes.tobytes())
+        write_bytes_atomic(written[-1], added[2].tobytes())
     return written
+
+
+def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "auto",
+                   name: str = "cloud") -> tuple[list[Column], Column | None]:
+    """What a writer stores (see :func:`write_pointcloud`): the layout's fields in order and file dtype, and the
+    ``rv_effect`` column to append (None without effect codes or with ``effect="none"``); ``name`` identifies the
+    cloud in errors."""
+    keys = [k for k, _, _ in layout.fields]
+    extra = sorted(set(cloud.fields) - set(keys))
+    missing = [k for k in keys if k not in ("x", "y", "z") and k not in cloud.fields]
+    if extra or missing:
+        raise ValueError(f"{name}: cloud fields do not match the {layout.fmt} layout "
+                         f"(not in layout: {extra}; missing from cloud: {missing})")
+    columns: list[Column] = []
+    for key, file_name, dt in layout.fields:
+        values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
+        columns.append((file_name, dt, _cast(values, dt, key)))
+    if effect == "none" or cloud.effect is None:
+        return columns, None
+    field = effect_field_name([file_name for _, file_name, _ in layout.fields])
+    return columns, (field, EFFECT_DTYPE, _cast(cloud.effect, EFFECT_DTYPE, EFFECT_FIELD))
 
 
 def _family(fmt: str) -> str:

@@ -1,0 +1,248 @@
+"""ROS sensor messages ↔ rvnoise frames and clouds: ``sensor_msgs`` CompressedImage, Image and PointCloud2.
+
+Messages are the deserialised objects of ``rosbags`` (ROS 1 and ROS 2 alike); everything but the payload — header
+(stamp, frame_id), ``format``, ``encoding``, ``is_bigendian``, ``is_dense``, the field layout — is carried over
+unchanged by the writers here, which return a new message of the same class.
+
+- CompressedImage: the ``data`` bytes are a JPEG or PNG file (``format`` names it, e.g. ``jpeg``,
+  ``bgr8; jpeg compressed bgr8``, ``png``), decoded and re-encoded exactly like image files
+  (:func:`..io.image.decode_image` / :func:`..io.image.encode_image`, JPEG quality estimated from the input).
+- Image: ``rgb8 bgr8 rgba8 bgra8 rgb16 bgr16 rgba16 bgra16 mono8 mono16 8UC1 8UC3 16UC1 16UC3`` are sRGB code values
+  like an 8/16-bit PNG (``8UC3``/``16UC3`` in OpenCV's BGR order; ``16UC1`` is a 16-bit grey image on a camera
+  topic): :class:`CameraFrame`. ``bayer_{rggb,bggr,gbrg,grbg}{8,16}`` are CFA digital numbers: :class:`RawFrame` with
+  black level 0 and white level 2^bits − 1 unless the topic states its levels. Rows may be padded (``step``).
+- Depth (aligned depth topic, REP 118): Image ``32FC1`` (m) or ``16UC1``/``mono16`` (mm); 0, NaN and −inf (no
+  measurement, too close) are holes (NaN, for the recipe's ``depth_holes``), +inf (nothing within range) stays.
+- PointCloud2: fields (any of the eight PointField datatypes, ``count`` ≥ 1, any offsets, padding, big-endian)
+  are read in offset order and named like file fields (:func:`..io.pointcloud.cloud_from_columns`); an organised
+  cloud (height > 1) is a full grid (``grid_shape``). Written back with every input field at its offset and
+  datatype, then the field :func:`..io.pointcloud.output_columns` adds (the weather-effect code ``rv_effect``, uint8)
+  appended after the input's ``point_step``; an organised cloud keeps height × width when the point count is unchanged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..types import CFA_PATTERNS, CameraFrame, CameraProfile, CloudLayout, PointCloud, RawEncoding, RawFrame
+from . import image as image_io
+from .pointcloud import Column, cloud_from_columns, output_columns
+
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+IMAGE = "sensor_msgs/msg/Image"
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+SENSOR_TYPES = {"camera": (COMPRESSED_IMAGE, IMAGE), "lidar": (POINTCLOUD2,), "radar": (POINTCLOUD2,)}
+
+# PointField datatype → NumPy base type (sensor_msgs/PointField constants INT8 … FLOAT64)
+POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_POINTFIELD_CODE = {v: k for k, v in POINTFIELD_TYPES.items()}
+
+
+@dataclass(frozen=True)
+class PixelLayout:
+    """How an Image encoding stores pixels: sample type, channels, channel order (``rgb``, ``bgr``, ``grey``) or the
+    CFA pattern of a Bayer mosaic."""
+
+    dtype: str                  # u1 | u2 | f4
+    channels: int
+    order: str                  # rgb | bgr | grey | bayer
+    cfa_pattern: str | None = None
+
+
+def _pixel_layouts() -> dict[str, PixelLayout]:
+    table = {"mono8": PixelLayout("u1", 1, "grey"), "mono16": PixelLayout("u2", 1, "grey"),
+             "8UC1": PixelLayout("u1", 1, "grey"), "16UC1": PixelLayout("u2", 1, "grey"),
+             "8UC3": PixelLayout("u1", 3, "bgr"), "16UC3": PixelLayout("u2", 3, "bgr"),
+             "32FC1": PixelLayout("f4", 1, "grey")}
+    for bits, dt in ((8, "u1"), (16, "u2")):
+        for order in ("rgb", "bgr"):
+            table[f"{order}{bits}"] = PixelLayout(dt, 3, order)
+            table[f"{order}a{bits}"] = PixelLayout(dt, 4, order)
+        for pattern in CFA_PATTERNS:
+            table[f"bayer_{pattern.lower()}{bits}"] = PixelLayout(dt, 1, "bayer", pattern)
+    return table
+
+
+PIXEL_LAYOUTS = _pixel_layouts()
+CAMERA_ENCODINGS = tuple(k for k, v in PIXEL_LAYOUTS.items() if v.dtype != "f4")
+DEPTH_ENCODINGS = ("32FC1", "16UC1", "mono16")
+
+
+def compressed_format(fmt: str, *, source: str) -> str:
+    """``jpeg`` | ``png`` from a CompressedImage ``format`` string (``compressedDepth`` is refused)."""
+    text = fmt.lower()
+    if "compresseddepth" in text:
+        raise InputError(f"CompressedImage format {fmt!r} is a compressed depth image, not a camera image",
+                         file=source)
+    if "jpeg" in text or "jpg" in text:
+        return "jpeg"
+    if "png" in text:
+        return "png"
+    raise InputError(f"CompressedImage format {fmt!r} is neither JPEG nor PNG", file=source)
+
+
+def pixel_layout(encoding: str, *, allowed: tuple[str, ...] = CAMERA_ENCODINGS, source: str) -> PixelLayout:
+    if encoding not in allowed:
+        raise InputError(f"Image encoding {encoding!r} is not supported here (supported: {', '.join(allowed)})",
+                         file=source)
+    return PIXEL_LAYOUTS[encoding]
+
+
+def image_pixels(msg: Any, *, allowed: tuple[str, ...] = CAMERA_ENCODINGS, source: str) -> np.ndarray:
+    """The pixels of an Image message as stored (H, W) or (H, W, C), native byte order, padding removed."""
+    layout = pixel_layout(msg.encoding, allowed=allowed, source=source)
+    dtype = np.dtype(layout.dtype).newbyteorder(">" if msg.is_bigendian else "<")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    row = w * layout.channels * dtype.itemsize
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if h == 0 or w == 0 or step < row or len(data) < step * (h - 1) + row:
+        raise InputError(f"Image {msg.encoding} {w}×{h} with step {step} needs {step * h} bytes, the message has "
+                         f"{len(data)}", file=source)
+    rows = data[:h * row] if step == row else np.ascontiguousarray(
+        np.lib.stride_tricks.as_strided(data, (h, row), (step, 1)))
+    pixels = rows.view(dtype).reshape((h, w) if layout.channels == 1 else
+                                                              (h, w, layout.channels))
+    return pixels.astype(dtype.newbyteorder("="), copy=False)
+
+
+def rgb_codes(pixels: np.ndarray, layout: PixelLayout) -> np.ndarray:
+    """An Image's colour pixels in RGB(A) order (grey as it is) — and back: swapping R and B is its own inverse."""
+    if layout.order != "bgr":
+        return pixels
+    return pixels[..., [2, 1, 0, 3]] if layout.channels == 4 else pixels[..., ::-1]
+
+
+def image_to_frame(msg: Any, msgtype: str, profile: CameraProfile | None, *, source: str,
+                   black_level_dn: float | None = None, white_level_dn: float | None = None
+                   ) -> CameraFrame | RawFrame:
+    """A camera or raw frame from a CompressedImage or Image message with ``profile`` (fitted to the image size, or
+    None until :func:`roadview_noise.camera_inputs.with_camera_inputs` resolves it). Levels of a Bayer mosaic
+    default to 0 and the full scale of its sample type."""
+    if msgtype == COMPRESSED_IMAGE:
+        fmt = compressed_format(msg.format, source=source)
+        linear, encoding, alpha = image_io.decode_image(np.asarray(msg.data, np.uint8).tobytes(), fmt, source=source)
+        return CameraFrame(linear, profile, encoding=encoding, alpha=alpha)
+    layout = pixel_layout(msg.encoding, source=source)
+    pixels = image_pixels(msg, source=source)
+    if layout.order == "bayer":
+        black = 0.0 if black_level_dn is None else float(black_level_dn)
+        white = float(np.iinfo(pixels.dtype).max) if white_level_dn is None else float(white_level_dn)
+        return RawFrame(pixels.astype(np.float32), layout.cfa_pattern, black, white, profile,
+                        encoding=RawEncoding(fmt="raw", bits_per_sample=8 * pixels.dtype.itemsize))
+    linear, encoding, alpha = image_io.image_from_codes(rgb_codes(pixels, layout), "png", source=source)
+    return CameraFrame(linear, profile, encoding=encoding, alpha=alpha)
+
+
+def frame_to_image(msg: Any, msgtype: str, frame: CameraFrame | RawFrame, *, source: str) -> Any:
+    """``msg`` with the frame as its payload, in the message's own format or encoding (JPEG quality of the input)."""
+    if msgtype == COMPRESSED_IMAGE:
+        data = image_io.encode_image(frame.linear_rgb, frame.encoding, frame.alpha, name=source)
+        return dataclasses.replace(msg, data=np.frombuffer(data, np.uint8))
+    layout = PIXEL_LAYOUTS[msg.encoding]
+    if isinstance(frame, RawFrame):
+        info = np.iinfo(np.dtype(layout.dtype))
+        rounded = np.rint(frame.dn)
+        pixels = np.clip(rounded, info.min, info.max, out=rounded).astype(layout.dtype)
+    else:
+        pixels = rgb_codes(image_io.codes_from_image(frame.linear_rgb, frame.encoding, frame.alpha, name=source),
+                           layout)
+    pixels = np.ascontiguousarray(pixels, dtype=pixels.dtype.newbyteorder(">" if msg.is_bigendian else "<"))
+    h, w = pixels.shape[:2]
+    return dataclasses.replace(msg, height=h, width=w, step=pixels.strides[0],
+                               data=pixels.reshape(-1).view(np.uint8))
+
+
+def depth_image_m(msg: Any, msgtype: str, *, source: str) -> np.ndarray:
+    """Depth (m, float32) of a depth Image (REP 118): ``32FC1`` metres or 16-bit millimetres; no measurement (0,
+    NaN, −inf) → NaN (a hole)."""
+    if msgtype != IMAGE:
+        raise InputError(f"a depth topic must carry sensor_msgs/Image ({', '.join(DEPTH_ENCODINGS)}), not {msgtype}",
+                         file=source)
+    pixels = image_pixels(msg, allowed=DEPTH_ENCODINGS, source=source)
+    z = pixels.astype(np.float32) * np.float32(1.0 if pixels.dtype.kind == "f" else 1e-3)
+    z[~(z > 0)] = np.nan
+    return z
+
+
+# --- PointCloud2 ----------------------------------------------------------------------------------------------------
+
+
+def cloud_columns(msg: Any, *, source: str) -> list[Column]:
+    """Per-point fields of a PointCloud2 in offset order as (name, little-endian dtype string, native values)."""
+    order = ">" if msg.is_bigendian else "<"
+    fields = sorted(msg.fields, key=lambda f: f.offset)
+    if not fields:
+        raise InputError("PointCloud2 has no fields", file=source)
+    formats, offsets, end = [], [], 0
+    for f in fields:
+        base = POINTFIELD_TYPES.get(int(f.datatype))
+        if base is None:
+            raise InputError(f"PointCloud2 field {f.name!r} has unknown datatype {f.datatype}", file=source)
+        count = max(int(f.count), 1)
+        if f.offset < end:
+            raise InputError(f"PointCloud2 field {f.name!r} at offset {f.offset} overlaps the previous field",
+                             file=source)
+        formats.append(np.dtype((order + base, (count,))) if count > 1 else np.dtype(order + base))
+        offsets.append(int(f.offset))
+        end = int(f.offset) + formats[-1].itemsize
+    step, h, w = int(msg.point_step), int(msg.height), int(msg.width)
+    if end > step:
+        raise InputError(f"PointCloud2 fields end at byte {end}, beyond point_step {step}", file=source)
+    record = np.dtype({"names": [f"f{i}" for i in range(len(fields))], "formats": formats, "offsets": offsets,
+                       "itemsize": step})
+    data = np.asarray(msg.data, np.uint8)
+    row_step = int(msg.row_step)
+    if h * w and (row_step < w * step or len(data) < row_step * (h - 1) + w * step):
+        raise InputError(f"PointCloud2 of {h}×{w} points × {step} bytes (row_step {row_step}) needs "
+                         f"{row_step * h} bytes, the message has {len(data)}", file=source)
+    if h * w and row_step != w * step:
+        data = np.ascontiguousarray(np.lib.stride_tricks.as_strided(data, (h, w * step), (row_step, 1)))
+    points = np.frombuffer(data, record, count=h * w)
+    columns = []
+    for i, (f, fmt) in enumerate(zip(fields, formats)):
+        base, shape = (fmt.subdtype if fmt.subdtype else (fmt, ()))
+        values = points[f"f{i}"]
+        dt = ("(" + ",".join(map(str, shape)) + ",)" if shape else "") + base.newbyteorder("<").str
+        columns.append((f.name, dt, np.ascontiguousarray(values, dtype=values.dtype.newbyteorder("="))))
+    return columns
+
+
+def cloud_to_pointcloud(msg: Any, *, sensor: str, profile, field_map: dict[str, str] | None,
+                        source: str) -> PointCloud:
+    """A cloud from a PointCloud2 (see module docstring); InputError names ``source``."""
+    grid = (int(msg.height), int(msg.width)) if int(msg.height) > 1 else None
+    return cloud_from_columns(cloud_columns(msg, source=source), fmt="pcd", mode="binary", grid_shape=grid,
+                              sensor=sensor, profile=profile, field_map=field_map, source=source)
+
+
+def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: str) -> Any:
+    """``msg`` carrying ``cloud``: the input fields at their offsets and datatypes, added fields appended."""
+    layout = cloud.layout or CloudLayout("pcd", ())
+    columns, added = output_columns(cloud, layout, effect=effect, name=source)
+    fields = sorted(msg.fields, key=lambda f: f.offset)
+    point_field = type(fields[0])
+    out_fields = list(msg.fields)
+    offsets = [int(f.offset) for f in fields]
+    step = int(msg.point_step)
+    if added is not None:
+        base = np.dtype(added[1])
+        out_fields.append(point_field(name=added[0], offset=step, datatype=_POINTFIELD_CODE[base.str[1:]], count=1))
+        offsets.append(step)
+        step += base.itemsize
+        columns.append(added)
+    order = ">" if msg.is_bigendian else "<"
+    record = np.dtype({"names": [f"f{i}" for i in range(len(columns))],
+                       "formats": [np.dtype(dt).newbyteorder(order) for _, dt, _ in columns],
+                       "offsets": offsets, "itemsize": step})
+    n = len(cloud)
+    points = np.zeros(n, record)
+    for i, (_, _, values) in enumerate(columns):
+        points[f"f{i}"] = values
+    h, w = cloud.grid_shape if cloud.grid_shape and cloud.grid_shape[0] * cloud.grid_shape[1] == n else (1, n)
+    return dataclasses.replace(msg, height=h, width=w, fields=out_fields, point_step=step, row_step=w * step,
+                               data=points.view(np.uint8))
