@@ -73,6 +73,25 @@ class SoftBackground:
                    np.maximum(window(r + length_m / 2, r), 0.0))
 
 
+@dataclass(frozen=True, eq=False)
+class BackgroundLevels:
+    """:class:`SoftBackground` s of the same grid stacked, one per draw level (the mean backscatter of the particles
+    below each level), for rays that each draw down to their own level: ``cum`` (levels, K, 3), ``peak`` (levels,),
+    ``at_target`` (levels, K)."""
+
+    step_m: float
+    length_m: float
+    cum: np.ndarray
+    peak: np.ndarray
+    at_target: np.ndarray
+
+    @classmethod
+    def of(cls, backgrounds: list[SoftBackground]) -> BackgroundLevels:
+        first = backgrounds[0]
+        return cls(first.step_m, first.length_m, np.ascontiguousarray([b.cum for b in backgrounds]),
+                   np.array([b.peak for b in backgrounds]), np.ascontiguousarray([b.at_target for b in backgrounds]))
+
+
 @jit(inline="always")
 def _cumulative(cum, x):       # pragma: no cover - compiled
     """The three integrals of :attr:`SoftBackground.cum` at grid coordinate x ≥ 0 (linear; constant beyond)."""
@@ -103,7 +122,8 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
                    target_range_m: np.ndarray, target_signal: np.ndarray, has_target: np.ndarray,
                    tau_h_s: float, threshold: float, mode: str,
                    particle_beam_fraction: np.ndarray | None = None,
-                   background: SoftBackground | None = None, target_shadow: np.ndarray | None = None) -> RayReturns:
+                   background: SoftBackground | BackgroundLevels | None = None,
+                   target_shadow: np.ndarray | None = None, ray_level: np.ndarray | None = None) -> RayReturns:
     """Returns of rays crossing discrete particles (§3.1, Hahner 2022): pulses closer than ``c τ_H`` add in power.
 
     ``particle_*`` are sorted by ray, then range (as :func:`lidar_particles.sample_particles` makes them). With
@@ -117,14 +137,18 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
     the weakest signal the receiver can detect in its noise, :attr:`receiver.Receiver.weakest_return`); whether a
     candidate is detected is decided later. ``background`` (the undrawn particles' mean backscatter, a
     :class:`SoftBackground` smaller than the threshold) adds to every cluster at its peak and to every target at its
-    crest. ``target_shadow``: a mean beam cover per ray added to the particles' Σ f (undrawn particles).
-    One compiled pass over the rays with particles."""
+    crest; with :class:`BackgroundLevels`, the level ``ray_level`` of each ray. ``target_shadow``: a mean beam cover
+    per ray added to the particles' Σ f (undrawn particles). One compiled pass over the rays with particles."""
     length = pulse_length_m(tau_h_s)
     background = SoftBackground.none(length) if background is None else background
+    if isinstance(background, SoftBackground):
+        background = BackgroundLevels.of([background])
+    level = np.zeros(0, np.intp) if ray_level is None else np.ascontiguousarray(ray_level, dtype=np.intp)
     shadow = np.zeros(0) if target_shadow is None else np.ascontiguousarray(target_shadow, dtype=np.float64)
     target_signal, tgt_bg, out_signal, kind, out_range = _target_returns(
         np.ascontiguousarray(target_signal, dtype=np.float64), np.ascontiguousarray(target_range_m, dtype=np.float64),
-        np.ascontiguousarray(has_target), shadow, background.at_target, 1.0 / background.step_m, float(threshold))
+        np.ascontiguousarray(has_target), shadow, background.at_target, level, 1.0 / background.step_m,
+        float(threshold))
     target_value = out_signal.copy()
     if len(particle_ray):
         fraction = np.zeros(0) if particle_beam_fraction is None else np.ascontiguousarray(particle_beam_fraction,
@@ -133,16 +157,17 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
                        np.ascontiguousarray(particle_range_m, dtype=np.float64),
                        np.ascontiguousarray(particle_signal_, dtype=np.float64), fraction, out_range, target_signal,
                        shadow, tgt_bg, np.ascontiguousarray(has_target), length, float(threshold), mode == "first",
-                       background.cum, 1.0 / background.step_m, background.peak, kind, out_range, out_signal,
-                       target_value)
+                       background.cum, level, 1.0 / background.step_m, background.peak, kind, out_range,
+                       out_signal, target_value)
     return RayReturns(kind, out_range, out_signal, target_value)
 
 
 @jit
-def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, inv_step,
+def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, ray_level, inv_step,
                     threshold):       # pragma: no cover - compiled
     """Per ray, the result without particles: the target's pulse (0 without a target), the background at its crest
-    (nearest entry of ``at_target``, none when empty), the return signal ``S_t (1 − min(1, shadow)) + B`` (no
+    (nearest entry of ``at_target`` of the ray's level — 0 when ``ray_level`` is empty —, none when empty), the
+    return signal ``S_t (1 − min(1, shadow)) + B`` (no
     shadow when ``shadow`` is empty), its kind (TARGET at or above the threshold) and range."""
     n = len(target_signal)
     pulse = np.zeros(n)
@@ -150,14 +175,16 @@ def _target_returns(target_signal, target_range_m, has_target, shadow, at_target
     signal = np.zeros(n)
     kind = np.zeros(n, np.uint8)
     out_range = target_range_m.copy()
-    last = len(at_target) - 1
+    last = at_target.shape[1] - 1
+    levels = len(ray_level) > 0
     for i in range(n):
         if not has_target[i]:
             continue
         pulse[i] = target_signal[i]
         s = target_signal[i] * (1.0 - min(shadow[i], 1.0)) if len(shadow) else target_signal[i]
         if last >= 0:
-            background[i] = at_target[min(int(target_range_m[i] * inv_step + 0.5), last)]
+            background[i] = at_target[ray_level[i] if levels else 0, min(int(target_range_m[i] * inv_step + 0.5),
+                                                                            last)]
             s += background[i]
         signal[i] = s
         if s >= threshold:
@@ -325,14 +352,14 @@ def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, fir
 
 @jit
 def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_shadow, t_background, has_target, length,
-                   threshold, first_mode, bg, inv_step, bg_peak, kind, out_range, out_signal,
+                   threshold, first_mode, bg_levels, ray_level, inv_step, bg_peaks, kind, out_range, out_signal,
                    t_value):  # pragma: no cover
     """:func:`select_returns` on the rays with particles, written in place into ``kind``, ``out_range``,
     ``out_signal`` and ``t_value`` (the target's own value: shadowed pulse plus background, or the summed peak when
     its cluster keeps it in place) (``t_range`` may be ``out_range``: each ray reads its target first; no shadowing when
     ``p_fraction`` is empty). ``t_signal``: the targets' pulses before shadowing, ``t_shadow`` a mean beam cover per
     ray (or empty), ``t_background`` the background at their crests;
-    ``bg``, ``inv_step``, ``bg_peak``: the :class:`SoftBackground`.
+    ``bg_levels``, ``inv_step``, ``bg_peaks``: the :class:`BackgroundLevels`, ``ray_level`` each ray's (empty: 0).
 
     A cluster's peak lies between its strongest member and the sum of its members plus the background's peak: a ray
     whose particles sum below what they must beat (the target or the threshold) and do not overlap the target's pulse
@@ -341,6 +368,7 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
     n = len(p_ray)
     shadowing = len(p_fraction) > 0
     mean_shadow = len(t_shadow) > 0
+    levels = len(ray_level) > 0
     cr = np.empty(n + 1)                               # one ray's contributions (particles, target): range, signal
     ca = np.empty(n + 1)
     cos_buf = np.empty(n + 1)
@@ -363,6 +391,9 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
             j += 1
         tgt = has_target[ray]
         r0 = t_range[ray]
+        level = ray_level[ray] if levels else 0
+        bg = bg_levels[level]
+        bg_peak = bg_peaks[level]
         t_raw = t_signal[ray] * (1.0 - min(1.0, shadow)) if tgt else 0.0
         t_sig = t_raw + t_background[ray] if tgt else 0.0
         bar = max(t_sig, threshold) if tgt and not first_mode else threshold

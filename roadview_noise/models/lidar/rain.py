@@ -19,9 +19,6 @@ from . import empty_rays_param
 # (datasheet threshold, tests/models/test_lidar_weather.py), 8 488 / 9 157 / 9 220 / 9 132 at 20 mm/h on the real
 # OS1-128 scan (its calibrated threshold; bench/bench_lidar_weather.py): 1/16 is converged in both.
 RAIN_DRAW_FRACTION = 1 / 16
-# Raindrops rarely outshine a ray's target or each other by 16×: drawing against the brightest drop too
-# (lidar_particles.strongest_particles) draws 110 k instead of 137 k drops on the real scan but takes longer (27 vs 24 ms)
-TWO_PASS = False
 
 
 @register
@@ -78,4 +75,4 @@ class RainLidar(Model):
 
     def apply(self, data, *, state, drawn, rng):
         return lidar_weather.precipitation(data, self.id, self.medium(), self.return_mode, rng,
-                                           self.draw_fraction_of_threshold, self.empty_rays, TWO_PASS)
+                                           self.draw_fraction_of_threshold, self.empty_rays)
