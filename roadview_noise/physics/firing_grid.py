@@ -5,7 +5,8 @@ particles return on rays that saw nothing in clear weather; models.md §1, "ray 
 sensor fires every beam of the profile's table at every column of a revolution, so the empty rays are the cells of
 that ``beams × columns`` grid that hold no point:
 
-- ring: the ``ring`` field, else the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
+- ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
+  the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
 - columns: *measured* from the data — the firing-azimuth step between neighbouring returns of one beam — because
   the column count is a recording mode (Ouster 512/1024/2048, Velodyne: rotation rate), not a property of the
   sensor; the profile's ``columns`` is only compared with it. A list whose azimuths are not on a regular step (a

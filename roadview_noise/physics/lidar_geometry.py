@@ -13,6 +13,7 @@ The origin (r = 0) maps to zero angles in both conventions and back to the origi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -22,6 +23,8 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
+
+RING = "ring"          # the field, else the attribute, that carries each point's beam (index into the beam table)
 
 
 def _xyz(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -118,17 +121,38 @@ def _recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
 
 
 def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
-    """The cloud's ``ring`` field when present (checked against the profile's channel count), else recovered."""
+    """The beam of every point: the cloud's ``ring`` field when present, else the ``ring`` attribute an earlier step
+    stored before it moved the points (:func:`with_ring`), else recovered from the elevations (:func:`recover_ring`);
+    a field or attribute is checked against the profile's channel count."""
     profile = profile or cloud.profile
     if profile is None:
         raise InputError("the cloud has no sensor profile; the beam table is needed to know each point's ring")
-    if "ring" in cloud.fields:
-        ring = np.asarray(cloud.fields["ring"]).astype(np.int64)
-        if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
-            raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
-                             f"profile {profile.name!r}; give the matching sensor profile")
-        return ring
-    return _recover_ring(cloud.positions_m, profile)
+    carried = cloud.fields.get(RING)
+    if carried is None:
+        carried = cloud.attributes.get(RING)
+    if carried is None:
+        return _recover_ring(cloud.positions_m, profile)
+    ring = np.asarray(carried).astype(np.int64)
+    if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
+        raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
+                         f"profile {profile.name!r}; give the matching sensor profile")
+    return ring
+
+
+def ring_source(cloud) -> str:
+    """Where :func:`ring_index` takes the cloud's rings from: ``field``, ``attribute`` or ``elevation``."""
+    return "field" if RING in cloud.fields else "attribute" if RING in cloud.attributes else "elevation"
+
+
+def with_ring(cloud, profile: LidarProfile | None = None):
+    """(the cloud with its rings in ``attributes['ring']``, the rings) — for a step about to move the points: what
+    it knows about each point travels with it (:mod:`roadview_noise.provenance`), and later steps (the weather's
+    firing grid) do not recover rings from elevations it changed. A cloud that carries its rings already (field or
+    attribute) is returned unchanged."""
+    ring = ring_index(cloud, profile)
+    if ring_source(cloud) != "elevation":
+        return cloud, ring
+    return dataclasses.replace(cloud, attributes={**cloud.attributes, RING: ring.astype(np.uint16)}), ring
 
 
 # Abramowitz & Stegun 4.4.49: atan(a)/a = 1 + Σ c_k a^(2k) on 0 ≤ a ≤ 1, |error| ≤ 2e-8 rad

@@ -18,6 +18,7 @@ from scipy import stats
 from roadview_noise.compound import CNFS, apply_models
 from roadview_noise.errors import ModelError
 from roadview_noise.model import Stage
+from roadview_noise.models.lidar.alignment import AlignmentLidar
 from roadview_noise.models.lidar.fog import FogLidar
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.models.lidar.snow import SnowLidar
@@ -744,6 +745,56 @@ def test_draw_fraction_trades_particles_for_a_small_bias(model_id):
     assert returns == pytest.approx(returns_fine, rel=0.06 if model_id == "rain.lidar" else 0.05)
     with pytest.raises(ModelError):
         dataclasses.replace(model, draw_fraction_of_threshold=0.0)
+
+
+# --- rings through the chain (CNF19–21) ------------------------------------------------------------------------------
+
+
+def ringless_scan(columns: int = 1024) -> PointCloud:
+    """A ring-less point list of a full OS1-128 revolution (photons, the datasheet threshold): ground at −1.8 m, a
+    building front at y = 9 m over a third of the azimuths, sky above — as a KITTI-style .bin holds it. Beams start
+    at the OS1's beam origins (15.8 mm off the axis, 36 mm up), as ring recovery expects."""
+    prof = dataclasses.replace(os1_128(), columns=columns)
+    el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[:, None]
+    az = (np.pi - 2 * np.pi * np.arange(columns)[None, :] / columns
+          - np.deg2rad(np.asarray(prof.beam_azimuth_offset_deg))[:, None])
+    d = np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), -1).reshape(-1, 3)
+    flat = np.hypot(d[:, 0], d[:, 1])
+    o = np.stack([prof.beam_origin_offset_m * d[:, 0] / flat, prof.beam_origin_offset_m * d[:, 1] / flat,
+                  np.full(len(d), prof.sensor_z_offset_m)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ground = np.where(d[:, 2] < 0, (-1.8 - o[:, 2]) / d[:, 2], np.inf)
+        wall = np.where((d[:, 1] > 0) & (np.abs(d[:, 0]) < 0.5 * d[:, 1]), (9.0 - o[:, 1]) / d[:, 1], np.inf)
+    t = np.minimum(ground, wall)
+    cos_inc = np.where(wall < ground, np.abs(d[:, 1]), np.abs(d[:, 2]))
+    signal = sensor_constant(prof) * np.where(wall < ground, 0.4, 0.12) * cos_inc / np.where(np.isfinite(t), t, 1) ** 2
+    hit = (t <= prof.max_range_m) & (np.round(signal) >= prof.detection_threshold)
+    return PointCloud(o[hit] + d[hit] * t[hit, None], {"intensity": np.round(signal[hit]).astype(np.float32)}, "lidar",
+                      prof)
+
+
+@pytest.mark.parametrize("model_id", ["fog.lidar", "rain.lidar", "snow.lidar"])
+def test_misaligned_beams_keep_their_empty_rays(model_id):
+    """CNF19–21 on a ring-less point list: alignment.lidar tilts the beams by N(0, 0.127°) (more than half the
+    OS1-128's beam spacing for many), but the rings it used travel with the points and its beam table is the tilted
+    one, so the weather finds the same firing grid and adds weather on the empty rays within 5 % of the weather alone
+    (D3.5 rates). The added returns lie on their tilted beams. Without what alignment carries (attribute and beam
+    table stripped) the rings recovered from the tilted elevations break the firing grid."""
+    cloud = ringless_scan()
+    weather = {"fog.lidar": FogLidar(), "rain.lidar": RainLidar(), "snow.lidar": SnowLidar()}[model_id]
+    _, alone = run(weather, cloud)
+    out, rec = apply_models([AlignmentLidar(), weather], cloud, seed=3, key="k", sequence_id="s")
+    chained = rec[1].diagnostics
+    assert alone["added"] > 1000 and "firing grid" in alone["empty_rays_source"]
+    assert chained["empty_rays"] == alone["empty_rays"]
+    assert chained["added"] == pytest.approx(alone["added"], rel=0.05)
+    added = out.effect == Effect.ADDED
+    elevation = np.rad2deg(np.arcsin(out.positions_m[added, 2] / out.ranges_m[added]))
+    tilted = np.asarray(out.profile.beam_elevation_deg)[out.attributes["ring"][added]]
+    np.testing.assert_allclose(elevation, tilted, atol=1e-9)
+    aligned, _ = apply_models([AlignmentLidar()], cloud, seed=3, key="k", sequence_id="s")
+    stripped = dataclasses.replace(aligned, attributes={}, profile=cloud.profile, origin=None, effect=None)
+    assert run(weather, stripped)[1]["added"] < 0.5 * alone["added"]
 
 
 # --- pre-processed clouds: empty_rays sky_only ----------------------------------------------------------------------
