@@ -77,19 +77,25 @@ class SoftBackground:
 class BackgroundLevels:
     """:class:`SoftBackground` s of the same grid stacked, one per draw level (the mean backscatter of the particles
     below each level), for rays that each draw down to their own level: ``cum`` (levels, K, 3), ``peak`` (levels,),
-    ``at_target`` (levels, K)."""
+    ``at_target`` (levels, K). The levels may stop at a range beyond which they all equal one background (no
+    particle there returns as much as the lowest level): targets farther than K steps take their crest value from
+    ``far_at_target``; cluster peaks must lie within the tables."""
 
     step_m: float
     length_m: float
     cum: np.ndarray
     peak: np.ndarray
     at_target: np.ndarray
+    far_at_target: np.ndarray
 
     @classmethod
-    def of(cls, backgrounds: list[SoftBackground]) -> BackgroundLevels:
+    def of(cls, backgrounds: list[SoftBackground], far: SoftBackground | None = None) -> BackgroundLevels:
+        """Stacked ``backgrounds`` (one grid length), beyond which ``far`` (default: the first) holds."""
         first = backgrounds[0]
+        far = far or first
         return cls(first.step_m, first.length_m, np.ascontiguousarray([b.cum for b in backgrounds]),
-                   np.array([b.peak for b in backgrounds]), np.ascontiguousarray([b.at_target for b in backgrounds]))
+                   np.maximum(np.array([b.peak for b in backgrounds]), far.peak),
+                   np.ascontiguousarray([b.at_target for b in backgrounds]), far.at_target)
 
 
 @jit(inline="always")
@@ -147,8 +153,8 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
     shadow = np.zeros(0) if target_shadow is None else np.ascontiguousarray(target_shadow, dtype=np.float64)
     target_signal, tgt_bg, out_signal, kind, out_range = _target_returns(
         np.ascontiguousarray(target_signal, dtype=np.float64), np.ascontiguousarray(target_range_m, dtype=np.float64),
-        np.ascontiguousarray(has_target), shadow, background.at_target, level, 1.0 / background.step_m,
-        float(threshold))
+        np.ascontiguousarray(has_target), shadow, background.at_target, background.far_at_target, level,
+        1.0 / background.step_m, float(threshold))
     target_value = out_signal.copy()
     if len(particle_ray):
         fraction = np.zeros(0) if particle_beam_fraction is None else np.ascontiguousarray(particle_beam_fraction,
@@ -163,11 +169,11 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
 
 
 @jit
-def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, ray_level, inv_step,
-                    threshold):       # pragma: no cover - compiled
+def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, far_at_target, ray_level,
+                    inv_step, threshold):       # pragma: no cover - compiled
     """Per ray, the result without particles: the target's pulse (0 without a target), the background at its crest
-    (nearest entry of ``at_target`` of the ray's level — 0 when ``ray_level`` is empty —, none when empty), the
-    return signal ``S_t (1 − min(1, shadow)) + B`` (no
+    (nearest entry of ``at_target`` of the ray's level — 0 when ``ray_level`` is empty —, of ``far_at_target``
+    beyond it, none when empty), the return signal ``S_t (1 − min(1, shadow)) + B`` (no
     shadow when ``shadow`` is empty), its kind (TARGET at or above the threshold) and range."""
     n = len(target_signal)
     pulse = np.zeros(n)
@@ -175,7 +181,8 @@ def _target_returns(target_signal, target_range_m, has_target, shadow, at_target
     signal = np.zeros(n)
     kind = np.zeros(n, np.uint8)
     out_range = target_range_m.copy()
-    last = at_target.shape[1] - 1
+    near = at_target.shape[1]
+    last = len(far_at_target) - 1
     levels = len(ray_level) > 0
     for i in range(n):
         if not has_target[i]:
@@ -183,8 +190,9 @@ def _target_returns(target_signal, target_range_m, has_target, shadow, at_target
         pulse[i] = target_signal[i]
         s = target_signal[i] * (1.0 - min(shadow[i], 1.0)) if len(shadow) else target_signal[i]
         if last >= 0:
-            background[i] = at_target[ray_level[i] if levels else 0, min(int(target_range_m[i] * inv_step + 0.5),
-                                                                            last)]
+            crest = int(target_range_m[i] * inv_step + 0.5)
+            background[i] = at_target[ray_level[i] if levels else 0, crest] if crest < near \
+                else far_at_target[min(crest, last)]
             s += background[i]
         signal[i] = s
         if s >= threshold:

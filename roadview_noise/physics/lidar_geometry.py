@@ -70,7 +70,7 @@ def has_return(positions_m: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+def ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """(tan of the midpoints between elevation-sorted beams, beam index of each sorted position)."""
     e = np.deg2rad(np.asarray(elevations_deg, dtype=np.float64))
     order = np.argsort(e, kind="stable")
@@ -78,29 +78,33 @@ def _ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, n
     return np.tan(0.5 * (e[1:] + e[:-1])), order.astype(np.int64)
 
 
+@jit(inline="always")
+def beam_of(x, y, z, z_offset, rho_offset, tan_mid, order):       # pragma: no cover - compiled
+    """The beam of nearest elevation of the point (x, y, z) seen from the beam origin: binary search of ``z/ρ`` among
+    the tangents of the midpoints between neighbouring beams (nearest in angle, ties to the higher beam, without an
+    arctangent; ``tan_mid``, ``order``: :func:`ring_search_table`)."""
+    z = z - z_offset
+    rho = math.sqrt(x * x + y * y) - rho_offset
+    top = len(tan_mid)
+    if rho < 0 or (rho == 0 and z != 0):             # behind the beam origin: beyond ±90° (atan2 semantics)
+        return order[0 if z < 0 else top]
+    t = z / rho if rho > 0 else 0.0
+    lo, hi = 0, top                                  # count of midpoints <= t
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if tan_mid[mid] <= t:
+            lo = mid + 1
+        else:
+            hi = mid
+    return order[lo]
+
+
 @jit
 def _nearest_beam(positions, z_offset, rho_offset, tan_mid, order):       # pragma: no cover - compiled
-    """Per point, the beam of nearest elevation: binary search of ``z/ρ`` among the tangents of the midpoints between
-    neighbouring beams (nearest in angle, ties to the higher beam, without an arctangent)."""
-    n = len(positions)
-    out = np.empty(n, np.int64)
-    top = len(tan_mid)
-    for i in range(n):
-        z = positions[i, 2] - z_offset
-        rho = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2) - rho_offset
-        if rho < 0 or (rho == 0 and z != 0):         # behind the beam origin: beyond ±90° (atan2 semantics)
-            k = 0 if z < 0 else top
-        else:
-            t = z / rho if rho > 0 else 0.0
-            lo, hi = 0, top                          # count of midpoints <= t
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if tan_mid[mid] <= t:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            k = lo
-        out[i] = order[k]
+    """Per point, :func:`beam_of`."""
+    out = np.empty(len(positions), np.int64)
+    for i in range(len(positions)):
+        out[i] = beam_of(positions[i, 0], positions[i, 1], positions[i, 2], z_offset, rho_offset, tan_mid, order)
     return out
 
 
@@ -115,7 +119,7 @@ def recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
 
 def _recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
     """:func:`recover_ring` as int64."""
-    tan_mid, order = _ring_search_table(tuple(profile.beam_elevation_deg))
+    tan_mid, order = ring_search_table(tuple(profile.beam_elevation_deg))
     return _nearest_beam(np.ascontiguousarray(positions_m, dtype=np.float64), float(profile.sensor_z_offset_m),
                          float(profile.beam_origin_offset_m), tan_mid, order)
 

@@ -37,10 +37,10 @@ from functools import lru_cache
 import numpy as np
 
 from .compiled import jit
-from .lidar_echo import BackgroundLevels, RayReturns, select_returns
+from .lidar_echo import BackgroundLevels, RayReturns, SoftBackground, select_returns
 from .lidar_medium import pulse_length_m
-from .lidar_particles import TABLE_MAX_RANGE_M, Beam, ParticleMedium, faint_background, faint_cross_section_per_m, \
-    scratch_buffer, table_lerp, visibility_diameter_mm
+from .lidar_particles import BACKGROUND_STEP_M, TABLE_MAX_RANGE_M, Beam, ParticleMedium, faint_background, \
+    faint_backscatter_per_m, faint_cross_section_per_m, scratch_buffer, table_lerp, visibility_diameter_mm
 
 LEVELS_PER_OCTAVE = 4           # Λ tables: levels ℓ 2^(g/4)
 RANGE_STEP_M = 0.02             # Λ tables: range step
@@ -58,7 +58,8 @@ class BrightestTables:
     of the band [s_g, s_g+1) (``band_total[g]`` particles per ray in all); ``full[0]``: F(r_k), ``full[1]``: the
     return of the largest particle at r_k. Per octave level
     ℓ 2^l: ``cover[l, k]``, the mean beam cover ∫ of the particles between ℓ and that level up to r_k, and the
-    ``background`` of every particle below it (:class:`lidar_echo.BackgroundLevels`)."""
+    ``background`` of every particle below it (:class:`lidar_echo.BackgroundLevels`, to 2 pulse lengths and 1 m
+    beyond the tables' end: the cluster peaks lie within; farther targets take the base level's)."""
 
     base_level: float
     start_m: float
@@ -100,8 +101,12 @@ def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, leng
         sigma = [faint_cross_section_per_m(medium, beam, base_level * 2.0 ** j, r) for j in range(octaves)]
     cover = np.array([np.concatenate([[0.0], np.cumsum((x[1:] + x[:-1] - sigma[0][1:] - sigma[0][:-1]) / 2
                                                        * RANGE_STEP_M)]) for x in sigma])
-    background = BackgroundLevels.of([faint_background(medium, beam, base_level * 2.0 ** j, length_m)
-                                      for j in range(octaves)])
+    near = np.arange(0.0, r[-1] + 2 * length_m + 1.0, BACKGROUND_STEP_M)     # beyond, every level's is the base's
+    with np.errstate(divide="ignore", invalid="ignore"):
+        backgrounds = [SoftBackground.of_density(np.nan_to_num(faint_backscatter_per_m(
+            medium, beam, base_level * 2.0 ** j, near), nan=0.0, posinf=0.0), BACKGROUND_STEP_M, length_m)
+            for j in range(octaves)]
+    background = BackgroundLevels.of(backgrounds, faint_background(medium, beam, base_level, length_m))
     return BrightestTables(base_level, float(r[0]), RANGE_STEP_M, np.ascontiguousarray(lam), inv, band_total,
                            np.stack([full, largest]), cover, background)
 
@@ -180,7 +185,9 @@ def _draw(rng, start, ray_range, signal, has_target, alpha, threshold, base, r1,
     octaves = cover.shape[0]
     capacity = len(p_ray)
     s_level = base * 2.0 ** (np.arange(levels) / LEVELS_PER_OCTAVE)
+    band_scale = np.where(band_total > 0, (quantiles - 1) / np.maximum(band_total, 1e-300), 0.0)
     inv_step = 1.0 / step
+    inv_base = 1.0 / base
     m = 0
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     for i in range(start, n):
@@ -213,18 +220,21 @@ def _draw(rng, start, ray_range, signal, has_target, alpha, threshold, base, r1,
                 while True:
                     la = _row_lerp(lam, k, t, g)
                     lb = _row_lerp(lam, k, t, g + 1)
-                    r = min(table_lerp(inv, g, rng.random() * (la - lb) / band_total[g] * (quantiles - 1)), big_r)
-                    f_full = table_lerp(full, 0, (r - r1) * inv_step)
-                    top = min(s_level[g + 1], table_lerp(full, 1, (r - r1) * inv_step))   # the brightest there can be
+                    r = min(table_lerp(inv, g, rng.random() * (la - lb) * band_scale[g]), big_r)
+                    xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
+                    kr = int(xr)
+                    tr = xr - kr
+                    top = min(s_level[g + 1], full[1, kr] + (full[1, kr + 1] - full[1, kr]) * tr)
                     s = min(s_level[g] + (top - s_level[g]) * (la - u) / (la - lb), top)
+                    f = s / (full[0, kr] + (full[0, kr + 1] - full[0, kr]) * tr)
                     j = m
                     while j > first and p_range[j - 1] > r:     # insertion by range
                         p_range[j], p_signal[j], p_fraction[j] = p_range[j - 1], p_signal[j - 1], p_fraction[j - 1]
                         j -= 1
-                    p_range[j], p_signal[j], p_fraction[j] = r, s, s / f_full
+                    p_range[j], p_signal[j], p_fraction[j] = r, s, f
                     p_ray[m] = i
                     if m == first:
-                        level = max(math.frexp(s / base)[1] - 1 - CUT_OCTAVES, 0)
+                        level = max(math.frexp(s * inv_base)[1] - 1 - CUT_OCTAVES, 0)
                         g_cut = level * LEVELS_PER_OCTAVE
                     m += 1
                     if m - first == MAX_DRAWN:
