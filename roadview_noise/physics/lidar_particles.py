@@ -109,7 +109,7 @@ class VisibleTable:
     cached per medium, beam and level):
     cumulative visible count Λ(r_k), the lower diameter bound ``max(Dmin, D_c(r_k))`` (mm) and the beam-filling
     return ``ρ ξ e^{−2αr}/r²`` (units of K); plus ``Λ⁻¹`` on a regular grid of Λ (step ``inv_step``). Lookups
-    (:func:`_ray_measures`, :func:`_place`, via :class:`LevelTables`) interpolate linearly, clamped to the tables."""
+    (:func:`_ray_measures`, :func:`_place`) interpolate linearly, clamped to the tables."""
 
     start_m: float
     step_m: float
