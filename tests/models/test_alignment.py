@@ -161,10 +161,12 @@ def test_rings_travel_with_the_points():
     np.testing.assert_array_equal(recover_ring(out.positions_m, out.profile), truth)
 
 
-def test_power_stores_the_rings_it_recovered():
+def test_per_point_alignment_and_power_store_the_rings_they_recovered():
     cloud = beam_cloud(vls_128(), seed=5, with_ring=False)
-    out, _ = apply(PowerLidar(), cloud)
-    np.testing.assert_array_equal(out.attributes["ring"], beam_cloud(vls_128(), seed=5).fields["ring"])
+    truth = beam_cloud(vls_128(), seed=5).fields["ring"]
+    for model in (PowerLidar(), AlignmentLidar(mode="per_point")):
+        out, _ = apply(model, cloud)
+        np.testing.assert_array_equal(out.attributes["ring"], truth)
 
 
 def test_state_is_json_and_per_beam():

@@ -62,13 +62,12 @@ class AlignmentLidar(Model):
     def apply(self, data, *, state, drawn, rng):
         n_beams = self._channels(data)
         hit = has_return(data.positions_m)
-        diagnostics = {}
+        diagnostics = {"ring_source": ring_source(data)}
+        data, ring = with_ring(data)                   # before the points move: later steps read it
         if self.mode == "per_beam":
             if len(state["elevation_offset_deg"]) != n_beams:
                 raise ModelError(f"state has {len(state['elevation_offset_deg'])} beams, the profile "
                                  f"{data.profile.name!r} {n_beams}", model=self.id, field="state")
-            diagnostics["ring_source"] = ring_source(data)
-            data, ring = with_ring(data)
             ring = ring[hit]
             d_alpha = np.deg2rad(np.asarray(state["azimuth_offset_deg"]))[ring]
             d_omega = np.deg2rad(np.asarray(state["elevation_offset_deg"]))[ring]
