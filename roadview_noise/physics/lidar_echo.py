@@ -41,7 +41,8 @@ class SoftBackground:
     of b, b cos ωr and b sin ωr (``cum[k, 0–2]`` at ``r_k = k·step``, side by side for one cache line per lookup;
     constant beyond the table, where b = 0).
     ``peak``: the largest B of an uncut window; ``at_target[k]``: B at the crest of a target at ``r_k``
-    (``x = r_k + L/2``). Evaluated by :func:`background_at`; an empty ``cum`` means no background."""
+    (``x = r_k + L/2``). Evaluated by :func:`background_at` (stacked, :class:`BackgroundLevels`); an empty ``cum``
+    means no background."""
 
     step_m: float
     length_m: float
@@ -99,26 +100,29 @@ class BackgroundLevels:
 
 
 @jit(inline="always")
-def _cumulative(cum, x):       # pragma: no cover - compiled
-    """The three integrals of :attr:`SoftBackground.cum` at grid coordinate x ≥ 0 (linear; constant beyond)."""
-    last = cum.shape[0] - 1
+def _cumulative(cum, j, x):       # pragma: no cover - compiled
+    """The three integrals of level j of :attr:`BackgroundLevels.cum` at grid coordinate x ≥ 0 (linear; constant
+    beyond)."""
+    last = cum.shape[1] - 1
     if x >= last:
-        return cum[last, 0], cum[last, 1], cum[last, 2]
+        return cum[j, last, 0], cum[j, last, 1], cum[j, last, 2]
     k = int(x)
     t = x - k
-    return (cum[k, 0] + (cum[k + 1, 0] - cum[k, 0]) * t, cum[k, 1] + (cum[k + 1, 1] - cum[k, 1]) * t,
-            cum[k, 2] + (cum[k + 1, 2] - cum[k, 2]) * t)
+    return (cum[j, k, 0] + (cum[j, k + 1, 0] - cum[j, k, 0]) * t,
+            cum[j, k, 1] + (cum[j, k + 1, 1] - cum[j, k, 1]) * t,
+            cum[j, k, 2] + (cum[j, k + 1, 2] - cum[j, k, 2]) * t)
 
 
 @jit(inline="always")
-def background_at(x, r0, cum, inv_step, length):       # pragma: no cover - compiled
-    """:class:`SoftBackground` value B(x; R0) from its cumulative tables ``cum`` (0 when they are empty)."""
+def background_at(x, r0, cum, j, inv_step, length):       # pragma: no cover - compiled
+    """:class:`SoftBackground` value B(x; R0) of level j of the stacked cumulative tables ``cum``
+    (:attr:`BackgroundLevels.cum`; 0 when they are empty)."""
     lo = max(x - length, 0.0)
     u = min(x, r0)
-    if cum.shape[0] == 0 or u <= lo:
+    if cum.shape[1] == 0 or u <= lo:
         return 0.0
-    u0, uc, us = _cumulative(cum, u * inv_step)
-    l0, lc, ls = _cumulative(cum, lo * inv_step)
+    u0, uc, us = _cumulative(cum, j, u * inv_step)
+    l0, lc, ls = _cumulative(cum, j, lo * inv_step)
     c, s = phasor(x * (2.0 * math.pi / length))
     return max(0.5 * ((u0 - l0) - c * (uc - lc) - s * (us - ls)), 0.0)
 
@@ -342,17 +346,18 @@ def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no co
 
 
 @jit(inline="always")
-def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg,
+def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg, level,
                   inv_step):       # pragma: no cover - compiled
     """(value, apparent range, is the target) of a ray with one particle in front of its target (if any; ``t_raw``
-    its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``: :attr:`SoftBackground.cum`). A pair
+    its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``, ``level``: :attr:`BackgroundLevels.cum`
+    and the ray's level). A pair
     that keeps the target takes the background at the target's crest (its peak is within 0.2 m of it)."""
     if tgt and t_range - r < length:                   # one cluster: the pair
         val, at, own = pair_peak(r, a, t_range, t_raw, length, SAME_TARGET_TOLERANCE_M)
         if own:
             return val + t_bg, t_range, True
-        return val + background_at(at + length / 2, t_range, bg, inv_step, length), at, False
-    a += background_at(r + length / 2, t_range, bg, inv_step, length)
+        return val + background_at(at + length / 2, t_range, bg, level, inv_step, length), at, False
+    a += background_at(r + length / 2, t_range, bg, level, inv_step, length)
     if not tgt or (a >= threshold if first_mode else a >= t_sig):
         return a, r, False
     return t_sig, t_range, True
@@ -400,7 +405,6 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
         tgt = has_target[ray]
         r0 = t_range[ray]
         level = ray_level[ray] if levels else 0
-        bg = bg_levels[level]
         bg_peak = bg_peaks[level]
         t_raw = t_signal[ray] * (1.0 - min(1.0, shadow)) if tgt else 0.0
         t_sig = t_raw + t_background[ray] if tgt else 0.0
@@ -415,7 +419,8 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
         m = j - i
         if m == 1:                                     # one particle (the most common case)
             best_val, best_at, best_tgt = _one_particle(p_range[i], p_signal[i], r0, t_raw, t_sig, t_background[ray],
-                                                        tgt, length, threshold, first_mode, bg, inv_step)
+                                                        tgt, length, threshold, first_mode, bg_levels, level,
+                                                        inv_step)
         else:
             for k in range(m):
                 cr[k] = p_range[i + k]
@@ -445,7 +450,7 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
                 if c_sum[c] + bg_peak < need:
                     continue                           # can neither be detected first nor win a detection
                 val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
-                val += background_at(at + length / 2, r0, bg, inv_step, length)
+                val += background_at(at + length / 2, r0, bg_levels, level, inv_step, length)
                 own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
                 if own:
                     at = cr[m - 1]

@@ -594,7 +594,7 @@ def test_soft_background_against_direct_pulse_integral():
 
     at = lidar_echo.background_at.py_func if hasattr(lidar_echo.background_at, "py_func") else lidar_echo.background_at
     for x, r0 in ((2.0, 50.0), (3.7, 50.0), (10.0, 50.0), (10.0, 8.5), (9.0, 9.2), (0.5, 50.0), (250.0, 300.0)):
-        assert at(x, r0, bg.cum, 1 / step, length) == pytest.approx(direct(x, r0), rel=5e-3, abs=1e-7)
+        assert at(x, r0, bg.cum[None], 0, 1 / step, length) == pytest.approx(direct(x, r0), rel=5e-3, abs=1e-7)
     for r0 in (2.0, 6.05, 30.0):
         assert bg.at_target[round(r0 / step)] == pytest.approx(direct(r0 + length / 2, r0), rel=5e-3, abs=1e-7)
     xs = np.arange(0.0, 20.0, 0.01)
