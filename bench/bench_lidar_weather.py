@@ -9,11 +9,12 @@
    its detection threshold calibrated from its weakest returns; the time of that firing grid; a table rate → kept /
    attenuated / moved / removed / added; the acceptance figures of issue 14 (a trace of rain, the spread of fog
    returns, the largest jump of the weather returns between visibilities 1 % apart).
-3. The convergence of rain and snow in ``draw_fraction_of_threshold`` (the real scan if present, else the synthetic
-   grid).
+3. The convergence of rain and snow in ``draw_fraction_of_threshold``, and their strongest return drawn from each
+   ray's brightest particle against the exhaustive draw (the real scan if present, else the synthetic grid).
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
-ms per frame (min and median of 15 frames after a warm-up), the tracemalloc peak, the visible particles drawn, and
+ms per frame (min and median of 15 frames after a warm-up; the model alone, ``apply_models(metrics=False)``, and apart
+the per-step metrics ``augment`` adds by default), the tracemalloc peak, the visible particles drawn, and
 the speed-up of the median over the MATLAB reference (18 / 24 / 30 s per frame for fog / rain / snow, models.md §6).
 Run: ``taskset -c 0 .venv/bin/python bench/bench_lidar_weather.py``.
 """
@@ -36,11 +37,13 @@ import numpy as np  # noqa: E402
 
 from roadview_noise.allocator import keep_freed_memory  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
+from roadview_noise.metrics import compare  # noqa: E402
 from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
 from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
 from roadview_noise.physics.lidar_intensity import sensor_constant  # noqa: E402
 from roadview_noise.physics.lidar_rays import cloud_rays  # noqa: E402
+from roadview_noise.physics.lidar_weather import precipitation  # noqa: E402
 from roadview_noise.profiles.lidar import os1_128, os1_128_reflectivity  # noqa: E402
 from roadview_noise.provenance import Effect
 from roadview_noise.types import PointCloud  # noqa: E402
@@ -102,15 +105,22 @@ def real_scan() -> PointCloud | None:
     return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", os1_128_reflectivity())
 
 
-def time_model(model, cloud: PointCloud) -> tuple[float, float, dict]:
-    """(min, median) ms per frame over REPEATS after one warm-up frame (cached tables), and the diagnostics."""
-    apply_models([model], cloud, seed=1, key="warm", sequence_id="s")
-    times = []
+def time_model(model, cloud: PointCloud) -> tuple[float, float, float, dict]:
+    """(min, median) ms per frame over REPEATS after one warm-up frame (cached tables), the median ms of the per-step
+    metrics that ``augment`` adds by default (:func:`metrics.compare`, timed apart: ``output: {metrics: false}``
+    turns them off), and the diagnostics."""
+    apply_models([model], cloud, seed=1, key="warm", sequence_id="s", metrics=False)
+    times, metric_times = [], []
     for i in range(REPEATS):
         t0 = time.perf_counter()
-        _, rec = apply_models([model], cloud, seed=1, key=f"bench{i}", sequence_id="s")
+        out, rec = apply_models([model], cloud, seed=1, key=f"bench{i}", sequence_id="s", metrics=False)
         times.append(time.perf_counter() - t0)
-    return min(times) * 1e3, statistics.median(times) * 1e3, rec[0].diagnostics
+        before = dataclasses.replace(cloud)            # a new object: its summary is not cached
+        t0 = time.perf_counter()
+        compare(before, out)
+        metric_times.append(time.perf_counter() - t0)
+    return (min(times) * 1e3, statistics.median(times) * 1e3, statistics.median(metric_times) * 1e3,
+            rec[0].diagnostics)
 
 
 def peak_memory_mb(model, cloud: PointCloud) -> float:
@@ -126,14 +136,15 @@ def measure(scene: str, model_id: str) -> None:
     keep_freed_memory()                                # as the batch workers do (roadview_noise.runner.process)
     cloud = synthetic_grid() if scene == "synthetic" else real_scan()
     model = D35[model_id]
-    lo, med, diag = time_model(model, cloud)
-    print(json.dumps({"min_ms": lo, "median_ms": med, "peak_mb": peak_memory_mb(model, cloud), "diag": diag}))
+    lo, med, metrics_ms, diag = time_model(model, cloud)
+    print(json.dumps({"min_ms": lo, "median_ms": med, "metrics_ms": metrics_ms, "peak_mb": peak_memory_mb(model, cloud),
+                      "diag": diag}))
 
 
 def report(name: str, scene: str, cloud: PointCloud) -> None:
     """Each model in its own process (one core, fresh heap), so no model pays for another's memory layout."""
     print(f"\n{name}: {len(cloud)} rays, {int(np.count_nonzero(cloud.positions_m.any(axis=1)))} returns")
-    print(f"{'model':12s} {'min ms':>7s} {'median':>7s} {'peak MB':>8s} {'speed-up':>9s}  "
+    print(f"{'model':12s} {'min ms':>7s} {'median':>7s} {'metrics':>8s} {'peak MB':>8s} {'speed-up':>9s}  "
           "kept/attenuated/moved/removed/added  particles")
     for mid in D35:
         res = subprocess.run([sys.executable, __file__, "--measure", scene, mid], capture_output=True, text=True,
@@ -141,7 +152,7 @@ def report(name: str, scene: str, cloud: PointCloud) -> None:
         r = json.loads(res.stdout.strip().splitlines()[-1])
         d = r["diag"]
         counts = "/".join(str(d[k]) for k in ("kept", "attenuated", "moved", "removed", "added"))
-        print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['peak_mb']:8.1f} "
+        print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['metrics_ms']:8.1f} {r['peak_mb']:8.1f} "
               f"{MATLAB_S[mid] * 1e3 / r['median_ms']:8.0f}×  {counts}  {d.get('particles_drawn', '')}")
     print(f"  empty rays: {d['empty_rays']} ({d['empty_rays_source']}); detection threshold "
           f"{d['detection_threshold']:.3g} ({d['detection_threshold_source']})")
@@ -201,6 +212,22 @@ def draw_fraction_table(cloud: PointCloud, name: str) -> None:
                   f"{np.mean([d['moved'] + d['added'] for d in diags]):9.1f}")
 
 
+def exhaustive_table(cloud: PointCloud, name: str) -> None:
+    """The strongest return drawn from each ray's brightest particle (the default, :mod:`lidar_strongest`) against
+    drawing every particle above the base level (``exhaustive``): particles drawn, weather returns (moved + added),
+    targets kept in place (kept + attenuated), mean of 4 frames, D3.5 rates."""
+    print(f"\nbrightest-first draw against the exhaustive draw on the {name}: particles, weather returns, targets in "
+          "place (mean of 4 frames)")
+    for model in (RainLidar(), SnowLidar()):
+        for exhaustive in (False, True):
+            diags = [precipitation(cloud, model.id, model.medium(), "strongest", np.random.default_rng(i),
+                                   model.draw_fraction_of_threshold, exhaustive=exhaustive)[1] for i in range(4)]
+            print(f"  {model.id:11s} {'exhaustive' if exhaustive else 'brightest':10s} "
+                  f"{np.mean([d['particles_drawn'] for d in diags]):10.0f} "
+                  f"{np.mean([d['moved'] + d['added'] for d in diags]):9.1f} "
+                  f"{np.mean([d['kept'] + d['attenuated'] for d in diags]):9.1f}")
+
+
 def acceptance(cloud: PointCloud) -> None:
     """Issue 14's figures on the real scan: points a trace of weather changes, the spread of fog-return ranges at
     MOR 30 m, and the largest change of the weather returns (moved + added) between visibilities 1 % apart."""
@@ -236,6 +263,7 @@ def main() -> int:
     scan = real_scan()
     if scan is None:
         draw_fraction_table(synthetic_grid(), "synthetic grid")
+        exhaustive_table(synthetic_grid(), "synthetic grid")
         print("\n(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
         return 0
     report("real OS1-128 scan0.bin, a point list (os1-128-reflectivity: calibrated 8-bit reflectivity, white 100, "
@@ -243,6 +271,7 @@ def main() -> int:
     firing_grid_time(scan)
     rate_table(scan)
     draw_fraction_table(scan, "real scan")
+    exhaustive_table(scan, "real scan")
     acceptance(scan)
     return 0
 

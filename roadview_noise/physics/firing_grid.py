@@ -5,7 +5,8 @@ particles return on rays that saw nothing in clear weather; models.md §1, "ray 
 sensor fires every beam of the profile's table at every column of a revolution, so the empty rays are the cells of
 that ``beams × columns`` grid that hold no point:
 
-- ring: the ``ring`` field, else the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
+- ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
+  the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
 - columns: *measured* from the data — the firing-azimuth step between neighbouring returns of one beam — because
   the column count is a recording mode (Ouster 512/1024/2048, Velodyne: rotation rate), not a property of the
   sensor; the profile's ``columns`` is only compared with it. A list whose azimuths are not on a regular step (a
@@ -31,7 +32,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import firing_azimuth_rad, has_return, ring_index
+from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
 
 TWO_PI = 2.0 * math.pi
 STEP_SAMPLE_BEAMS = 4           # the most populated beams measure the column step from their neighbour gaps
@@ -181,20 +182,22 @@ def _empty_cells(occupied, fires, in_view, shift, offsets, step):       # pragma
 def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringGrid | str:
     """The empty rays of a point-list scan (see the module doc), or the reason it has no firing grid. ``range_m``:
     the points' ranges if known, 0 where a point is no return."""
-    try:
-        ring = ring_index(cloud, profile)
-    except InputError as e:
-        return str(e)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
-    firing = firing_azimuth_rad(positions, ring, profile)
     if range_m is None:
         range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
+    try:
+        carried = ring_index(cloud, profile) if ring_source(cloud) != "elevation" else np.zeros(0, np.int64)
+    except InputError as e:
+        return str(e)
+    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
+    tan_mid, order = ring_search_table(tuple(profile.beam_elevation_deg))
+    ring, firing, counts = _rings_and_azimuths(positions, carried, float(profile.sensor_z_offset_m),
+                                               float(profile.beam_origin_offset_m), tan_mid, order, offsets,
+                                               profile.channels)
     valid = range_m > 0
     if not valid.any():
         return "no returns"
-    counts = np.bincount(ring, minlength=profile.channels)          # zero points too: only to pick beams
-    sampled = np.zeros(profile.channels, dtype=bool)
+    sampled = np.zeros(profile.channels, dtype=bool)                 # counts hold zero points too: only to pick beams
     sampled[np.argsort(counts, kind="stable")[-STEP_SAMPLE_BEAMS:]] = True
     sel = np.flatnonzero(sampled[ring] & valid)
     step, reason = measured_step_rad(firing[sel], ring[sel])
@@ -214,6 +217,26 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
     return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile)
+
+
+@jit
+def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order, offsets,
+                        channels):       # pragma: no cover - compiled
+    """One pass over the points: ring (``carried``, or when it is empty the beam of nearest elevation,
+    :func:`lidar_geometry.beam_of`), firing azimuth ``atan2(y, x) + offset[ring]``
+    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring."""
+    n = len(positions)
+    ring = np.empty(n, np.int64)
+    firing = np.empty(n)
+    counts = np.zeros(channels, np.int64)
+    recover = len(carried) == 0
+    for i in range(n):
+        x, y = positions[i, 0], positions[i, 1]
+        b = beam_of(x, y, positions[i, 2], z_offset, rho_offset, tan_mid, order) if recover else carried[i]
+        ring[i] = b
+        firing[i] = atan2(y, x) + offsets[b]
+        counts[b] += 1
+    return ring, firing, counts
 
 
 def _firing_beams(has_returns: np.ndarray, profile: LidarProfile) -> np.ndarray:

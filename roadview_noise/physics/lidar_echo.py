@@ -41,7 +41,8 @@ class SoftBackground:
     of b, b cos ωr and b sin ωr (``cum[k, 0–2]`` at ``r_k = k·step``, side by side for one cache line per lookup;
     constant beyond the table, where b = 0).
     ``peak``: the largest B of an uncut window; ``at_target[k]``: B at the crest of a target at ``r_k``
-    (``x = r_k + L/2``). Evaluated by :func:`background_at`; an empty ``cum`` means no background."""
+    (``x = r_k + L/2``). Evaluated by :func:`background_at` (stacked, :class:`BackgroundLevels`); an empty ``cum``
+    means no background."""
 
     step_m: float
     length_m: float
@@ -73,27 +74,55 @@ class SoftBackground:
                    np.maximum(window(r + length_m / 2, r), 0.0))
 
 
+@dataclass(frozen=True, eq=False)
+class BackgroundLevels:
+    """:class:`SoftBackground` s of the same grid stacked, one per draw level (the mean backscatter of the particles
+    below each level), for rays that each draw down to their own level: ``cum`` (levels, K, 3), ``peak`` (levels,),
+    ``at_target`` (levels, K). The levels may stop at a range beyond which they all equal one background (no
+    particle there returns as much as the lowest level): targets farther than K steps take their crest value from
+    ``far_at_target``; cluster peaks must lie within the tables."""
+
+    step_m: float
+    length_m: float
+    cum: np.ndarray
+    peak: np.ndarray
+    at_target: np.ndarray
+    far_at_target: np.ndarray
+
+    @classmethod
+    def of(cls, backgrounds: list[SoftBackground], far: SoftBackground | None = None) -> BackgroundLevels:
+        """Stacked ``backgrounds`` (one grid length), beyond which ``far`` (default: the first) holds."""
+        first = backgrounds[0]
+        far = far or first
+        return cls(first.step_m, first.length_m, np.ascontiguousarray([b.cum for b in backgrounds]),
+                   np.maximum(np.array([b.peak for b in backgrounds]), far.peak),
+                   np.ascontiguousarray([b.at_target for b in backgrounds]), far.at_target)
+
+
 @jit(inline="always")
-def _cumulative(cum, x):       # pragma: no cover - compiled
-    """The three integrals of :attr:`SoftBackground.cum` at grid coordinate x ≥ 0 (linear; constant beyond)."""
-    last = cum.shape[0] - 1
+def _cumulative(cum, j, x):       # pragma: no cover - compiled
+    """The three integrals of level j of :attr:`BackgroundLevels.cum` at grid coordinate x ≥ 0 (linear; constant
+    beyond)."""
+    last = cum.shape[1] - 1
     if x >= last:
-        return cum[last, 0], cum[last, 1], cum[last, 2]
+        return cum[j, last, 0], cum[j, last, 1], cum[j, last, 2]
     k = int(x)
     t = x - k
-    return (cum[k, 0] + (cum[k + 1, 0] - cum[k, 0]) * t, cum[k, 1] + (cum[k + 1, 1] - cum[k, 1]) * t,
-            cum[k, 2] + (cum[k + 1, 2] - cum[k, 2]) * t)
+    return (cum[j, k, 0] + (cum[j, k + 1, 0] - cum[j, k, 0]) * t,
+            cum[j, k, 1] + (cum[j, k + 1, 1] - cum[j, k, 1]) * t,
+            cum[j, k, 2] + (cum[j, k + 1, 2] - cum[j, k, 2]) * t)
 
 
 @jit(inline="always")
-def background_at(x, r0, cum, inv_step, length):       # pragma: no cover - compiled
-    """:class:`SoftBackground` value B(x; R0) from its cumulative tables ``cum`` (0 when they are empty)."""
+def background_at(x, r0, cum, j, inv_step, length):       # pragma: no cover - compiled
+    """:class:`SoftBackground` value B(x; R0) of level j of the stacked cumulative tables ``cum``
+    (:attr:`BackgroundLevels.cum`; 0 when they are empty)."""
     lo = max(x - length, 0.0)
     u = min(x, r0)
-    if cum.shape[0] == 0 or u <= lo:
+    if cum.shape[1] == 0 or u <= lo:
         return 0.0
-    u0, uc, us = _cumulative(cum, u * inv_step)
-    l0, lc, ls = _cumulative(cum, lo * inv_step)
+    u0, uc, us = _cumulative(cum, j, u * inv_step)
+    l0, lc, ls = _cumulative(cum, j, lo * inv_step)
     c, s = phasor(x * (2.0 * math.pi / length))
     return max(0.5 * ((u0 - l0) - c * (uc - lc) - s * (us - ls)), 0.0)
 
@@ -103,7 +132,8 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
                    target_range_m: np.ndarray, target_signal: np.ndarray, has_target: np.ndarray,
                    tau_h_s: float, threshold: float, mode: str,
                    particle_beam_fraction: np.ndarray | None = None,
-                   background: SoftBackground | None = None, target_shadow: np.ndarray | None = None) -> RayReturns:
+                   background: SoftBackground | BackgroundLevels | None = None,
+                   target_shadow: np.ndarray | None = None, ray_level: np.ndarray | None = None) -> RayReturns:
     """Returns of rays crossing discrete particles (§3.1, Hahner 2022): pulses closer than ``c τ_H`` add in power.
 
     ``particle_*`` are sorted by ray, then range (as :func:`lidar_particles.sample_particles` makes them). With
@@ -117,14 +147,18 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
     the weakest signal the receiver can detect in its noise, :attr:`receiver.Receiver.weakest_return`); whether a
     candidate is detected is decided later. ``background`` (the undrawn particles' mean backscatter, a
     :class:`SoftBackground` smaller than the threshold) adds to every cluster at its peak and to every target at its
-    crest. ``target_shadow``: a mean beam cover per ray added to the particles' Σ f (undrawn particles).
-    One compiled pass over the rays with particles."""
+    crest; with :class:`BackgroundLevels`, the level ``ray_level`` of each ray. ``target_shadow``: a mean beam cover
+    per ray added to the particles' Σ f (undrawn particles). One compiled pass over the rays with particles."""
     length = pulse_length_m(tau_h_s)
     background = SoftBackground.none(length) if background is None else background
+    if isinstance(background, SoftBackground):
+        background = BackgroundLevels.of([background])
+    level = np.zeros(0, np.intp) if ray_level is None else np.ascontiguousarray(ray_level, dtype=np.intp)
     shadow = np.zeros(0) if target_shadow is None else np.ascontiguousarray(target_shadow, dtype=np.float64)
     target_signal, tgt_bg, out_signal, kind, out_range = _target_returns(
         np.ascontiguousarray(target_signal, dtype=np.float64), np.ascontiguousarray(target_range_m, dtype=np.float64),
-        np.ascontiguousarray(has_target), shadow, background.at_target, 1.0 / background.step_m, float(threshold))
+        np.ascontiguousarray(has_target), shadow, background.at_target, background.far_at_target, level,
+        1.0 / background.step_m, float(threshold))
     target_value = out_signal.copy()
     if len(particle_ray):
         fraction = np.zeros(0) if particle_beam_fraction is None else np.ascontiguousarray(particle_beam_fraction,
@@ -133,16 +167,17 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
                        np.ascontiguousarray(particle_range_m, dtype=np.float64),
                        np.ascontiguousarray(particle_signal_, dtype=np.float64), fraction, out_range, target_signal,
                        shadow, tgt_bg, np.ascontiguousarray(has_target), length, float(threshold), mode == "first",
-                       background.cum, 1.0 / background.step_m, background.peak, kind, out_range, out_signal,
-                       target_value)
+                       background.cum, level, 1.0 / background.step_m, background.peak, kind, out_range,
+                       out_signal, target_value)
     return RayReturns(kind, out_range, out_signal, target_value)
 
 
 @jit
-def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, inv_step,
-                    threshold):       # pragma: no cover - compiled
+def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, far_at_target, ray_level,
+                    inv_step, threshold):       # pragma: no cover - compiled
     """Per ray, the result without particles: the target's pulse (0 without a target), the background at its crest
-    (nearest entry of ``at_target``, none when empty), the return signal ``S_t (1 − min(1, shadow)) + B`` (no
+    (nearest entry of ``at_target`` of the ray's level — 0 when ``ray_level`` is empty —, of ``far_at_target``
+    beyond it, none when empty), the return signal ``S_t (1 − min(1, shadow)) + B`` (no
     shadow when ``shadow`` is empty), its kind (TARGET at or above the threshold) and range."""
     n = len(target_signal)
     pulse = np.zeros(n)
@@ -150,14 +185,18 @@ def _target_returns(target_signal, target_range_m, has_target, shadow, at_target
     signal = np.zeros(n)
     kind = np.zeros(n, np.uint8)
     out_range = target_range_m.copy()
-    last = len(at_target) - 1
+    near = at_target.shape[1]
+    last = len(far_at_target) - 1
+    levels = len(ray_level) > 0
     for i in range(n):
         if not has_target[i]:
             continue
         pulse[i] = target_signal[i]
         s = target_signal[i] * (1.0 - min(shadow[i], 1.0)) if len(shadow) else target_signal[i]
         if last >= 0:
-            background[i] = at_target[min(int(target_range_m[i] * inv_step + 0.5), last)]
+            crest = int(target_range_m[i] * inv_step + 0.5)
+            background[i] = at_target[ray_level[i] if levels else 0, crest] if crest < near \
+                else far_at_target[min(crest, last)]
             s += background[i]
         signal[i] = s
         if s >= threshold:
@@ -307,17 +346,18 @@ def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no co
 
 
 @jit(inline="always")
-def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg,
+def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg, level,
                   inv_step):       # pragma: no cover - compiled
     """(value, apparent range, is the target) of a ray with one particle in front of its target (if any; ``t_raw``
-    its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``: :attr:`SoftBackground.cum`). A pair
+    its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``, ``level``: :attr:`BackgroundLevels.cum`
+    and the ray's level). A pair
     that keeps the target takes the background at the target's crest (its peak is within 0.2 m of it)."""
     if tgt and t_range - r < length:                   # one cluster: the pair
         val, at, own = pair_peak(r, a, t_range, t_raw, length, SAME_TARGET_TOLERANCE_M)
         if own:
             return val + t_bg, t_range, True
-        return val + background_at(at + length / 2, t_range, bg, inv_step, length), at, False
-    a += background_at(r + length / 2, t_range, bg, inv_step, length)
+        return val + background_at(at + length / 2, t_range, bg, level, inv_step, length), at, False
+    a += background_at(r + length / 2, t_range, bg, level, inv_step, length)
     if not tgt or (a >= threshold if first_mode else a >= t_sig):
         return a, r, False
     return t_sig, t_range, True
@@ -325,14 +365,14 @@ def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, fir
 
 @jit
 def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_shadow, t_background, has_target, length,
-                   threshold, first_mode, bg, inv_step, bg_peak, kind, out_range, out_signal,
+                   threshold, first_mode, bg_levels, ray_level, inv_step, bg_peaks, kind, out_range, out_signal,
                    t_value):  # pragma: no cover
     """:func:`select_returns` on the rays with particles, written in place into ``kind``, ``out_range``,
     ``out_signal`` and ``t_value`` (the target's own value: shadowed pulse plus background, or the summed peak when
     its cluster keeps it in place) (``t_range`` may be ``out_range``: each ray reads its target first; no shadowing when
     ``p_fraction`` is empty). ``t_signal``: the targets' pulses before shadowing, ``t_shadow`` a mean beam cover per
     ray (or empty), ``t_background`` the background at their crests;
-    ``bg``, ``inv_step``, ``bg_peak``: the :class:`SoftBackground`.
+    ``bg_levels``, ``inv_step``, ``bg_peaks``: the :class:`BackgroundLevels`, ``ray_level`` each ray's (empty: 0).
 
     A cluster's peak lies between its strongest member and the sum of its members plus the background's peak: a ray
     whose particles sum below what they must beat (the target or the threshold) and do not overlap the target's pulse
@@ -341,6 +381,7 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
     n = len(p_ray)
     shadowing = len(p_fraction) > 0
     mean_shadow = len(t_shadow) > 0
+    levels = len(ray_level) > 0
     cr = np.empty(n + 1)                               # one ray's contributions (particles, target): range, signal
     ca = np.empty(n + 1)
     cos_buf = np.empty(n + 1)
@@ -363,6 +404,8 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
             j += 1
         tgt = has_target[ray]
         r0 = t_range[ray]
+        level = ray_level[ray] if levels else 0
+        bg_peak = bg_peaks[level]
         t_raw = t_signal[ray] * (1.0 - min(1.0, shadow)) if tgt else 0.0
         t_sig = t_raw + t_background[ray] if tgt else 0.0
         bar = max(t_sig, threshold) if tgt and not first_mode else threshold
@@ -376,7 +419,8 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
         m = j - i
         if m == 1:                                     # one particle (the most common case)
             best_val, best_at, best_tgt = _one_particle(p_range[i], p_signal[i], r0, t_raw, t_sig, t_background[ray],
-                                                        tgt, length, threshold, first_mode, bg, inv_step)
+                                                        tgt, length, threshold, first_mode, bg_levels, level,
+                                                        inv_step)
         else:
             for k in range(m):
                 cr[k] = p_range[i + k]
@@ -406,7 +450,7 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
                 if c_sum[c] + bg_peak < need:
                     continue                           # can neither be detected first nor win a detection
                 val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
-                val += background_at(at + length / 2, r0, bg, inv_step, length)
+                val += background_at(at + length / 2, r0, bg_levels, level, inv_step, length)
                 own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
                 if own:
                     at = cr[m - 1]

@@ -13,6 +13,7 @@ The origin (r = 0) maps to zero angles in both conventions and back to the origi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -22,6 +23,8 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
+
+RING = "ring"          # the field, else the attribute, that carries each point's beam (index into the beam table)
 
 
 def _xyz(positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -67,7 +70,7 @@ def has_return(positions_m: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+def ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
     """(tan of the midpoints between elevation-sorted beams, beam index of each sorted position)."""
     e = np.deg2rad(np.asarray(elevations_deg, dtype=np.float64))
     order = np.argsort(e, kind="stable")
@@ -75,29 +78,33 @@ def _ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, n
     return np.tan(0.5 * (e[1:] + e[:-1])), order.astype(np.int64)
 
 
+@jit(inline="always")
+def beam_of(x, y, z, z_offset, rho_offset, tan_mid, order):       # pragma: no cover - compiled
+    """The beam of nearest elevation of the point (x, y, z) seen from the beam origin: binary search of ``z/ρ`` among
+    the tangents of the midpoints between neighbouring beams (nearest in angle, ties to the higher beam, without an
+    arctangent; ``tan_mid``, ``order``: :func:`ring_search_table`)."""
+    z = z - z_offset
+    rho = math.sqrt(x * x + y * y) - rho_offset
+    top = len(tan_mid)
+    if rho < 0 or (rho == 0 and z != 0):             # behind the beam origin: beyond ±90° (atan2 semantics)
+        return order[0 if z < 0 else top]
+    t = z / rho if rho > 0 else 0.0
+    lo, hi = 0, top                                  # count of midpoints <= t
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if tan_mid[mid] <= t:
+            lo = mid + 1
+        else:
+            hi = mid
+    return order[lo]
+
+
 @jit
 def _nearest_beam(positions, z_offset, rho_offset, tan_mid, order):       # pragma: no cover - compiled
-    """Per point, the beam of nearest elevation: binary search of ``z/ρ`` among the tangents of the midpoints between
-    neighbouring beams (nearest in angle, ties to the higher beam, without an arctangent)."""
-    n = len(positions)
-    out = np.empty(n, np.int64)
-    top = len(tan_mid)
-    for i in range(n):
-        z = positions[i, 2] - z_offset
-        rho = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2) - rho_offset
-        if rho < 0 or (rho == 0 and z != 0):         # behind the beam origin: beyond ±90° (atan2 semantics)
-            k = 0 if z < 0 else top
-        else:
-            t = z / rho if rho > 0 else 0.0
-            lo, hi = 0, top                          # count of midpoints <= t
-            while lo < hi:
-                mid = (lo + hi) // 2
-                if tan_mid[mid] <= t:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            k = lo
-        out[i] = order[k]
+    """Per point, :func:`beam_of`."""
+    out = np.empty(len(positions), np.int64)
+    for i in range(len(positions)):
+        out[i] = beam_of(positions[i, 0], positions[i, 1], positions[i, 2], z_offset, rho_offset, tan_mid, order)
     return out
 
 
@@ -112,23 +119,44 @@ def recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
 
 def _recover_ring(positions_m: np.ndarray, profile: LidarProfile) -> np.ndarray:
     """:func:`recover_ring` as int64."""
-    tan_mid, order = _ring_search_table(tuple(profile.beam_elevation_deg))
+    tan_mid, order = ring_search_table(tuple(profile.beam_elevation_deg))
     return _nearest_beam(np.ascontiguousarray(positions_m, dtype=np.float64), float(profile.sensor_z_offset_m),
                          float(profile.beam_origin_offset_m), tan_mid, order)
 
 
 def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
-    """The cloud's ``ring`` field when present (checked against the profile's channel count), else recovered."""
+    """The beam of every point: the cloud's ``ring`` field when present, else the ``ring`` attribute an earlier step
+    stored before it moved the points (:func:`with_ring`), else recovered from the elevations (:func:`recover_ring`);
+    a field or attribute is checked against the profile's channel count."""
     profile = profile or cloud.profile
     if profile is None:
         raise InputError("the cloud has no sensor profile; the beam table is needed to know each point's ring")
-    if "ring" in cloud.fields:
-        ring = np.asarray(cloud.fields["ring"]).astype(np.int64)
-        if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
-            raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
-                             f"profile {profile.name!r}; give the matching sensor profile")
-        return ring
-    return _recover_ring(cloud.positions_m, profile)
+    carried = cloud.fields.get(RING)
+    if carried is None:
+        carried = cloud.attributes.get(RING)
+    if carried is None:
+        return _recover_ring(cloud.positions_m, profile)
+    ring = np.asarray(carried).astype(np.int64)
+    if len(ring) and (ring.min() < 0 or ring.max() >= profile.channels):
+        raise InputError(f"ring values {ring.min()}…{ring.max()} do not fit the {profile.channels} beams of "
+                         f"profile {profile.name!r}; give the matching sensor profile")
+    return ring
+
+
+def ring_source(cloud) -> str:
+    """Where :func:`ring_index` takes the cloud's rings from: ``field``, ``attribute`` or ``elevation``."""
+    return "field" if RING in cloud.fields else "attribute" if RING in cloud.attributes else "elevation"
+
+
+def with_ring(cloud, profile: LidarProfile | None = None):
+    """(the cloud with its rings in ``attributes['ring']``, the rings) — for a step about to move the points: what
+    it knows about each point travels with it (:mod:`roadview_noise.provenance`), and later steps (the weather's
+    firing grid) do not recover rings from elevations it changed. A cloud that carries its rings already (field or
+    attribute) is returned unchanged."""
+    ring = ring_index(cloud, profile)
+    if ring_source(cloud) != "elevation":
+        return cloud, ring
+    return dataclasses.replace(cloud, attributes={**cloud.attributes, RING: ring.astype(np.uint16)}), ring
 
 
 # Abramowitz & Stegun 4.4.49: atan(a)/a = 1 + Σ c_k a^(2k) on 0 ≤ a ≤ 1, |error| ≤ 2e-8 rad

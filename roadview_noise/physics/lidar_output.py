@@ -16,6 +16,7 @@ from ..types import LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import FiringGrid
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
+from .lidar_geometry import RING
 from .lidar_intensity import intensity_resolution, reported_intensity, sensor_constant, stored_intensity
 from .lidar_rays import Rays
 
@@ -130,7 +131,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     empty rays of a point list), ``effect`` the Effect code; targets in place are ATTENUATED when the stored
     intensity changed by at least half a step of the input's resolution (:func:`intensity_resolution`: 1 photon,
     1 count, 1/255 of a [0, 1] scale), else KEPT (a change below the file's resolution is no visible change; the
-    sub-step value is still written). Attributes follow the fields."""
+    sub-step value is still written). Attributes follow the fields; a ``ring`` (field or attribute) of an added point
+    is its empty cell's."""
     profile = rays.profile
     intensity_in = np.asarray(cloud.fields["intensity"])
     reported = stored_intensity(reported_intensity(returns.signal * sensor_constant(profile), returns.range_m,
@@ -169,8 +171,9 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             added += len(cells)
         fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
         attributes = {k: np.asarray(v).take(index, axis=0) for k, v in attributes.items()}
-        if len(cells) and "ring" in fields:
-            fields["ring"][n_out:] = rays.listed.ring[cells]
+        for carried in (fields, attributes):           # an added point's ring is its cell's, not its column's
+            if len(cells) and RING in carried:
+                carried[RING][n_out:] = rays.listed.ring[cells]
     out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
                               effect=effect[:total], attributes=attributes)
     faint = rays.faint[:n]

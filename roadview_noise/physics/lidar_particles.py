@@ -11,22 +11,19 @@ Only particles that can change a return are drawn one by one; the rest are repla
 - Base level ``ℓ``: particles whose own return reaches a fraction of the detection threshold
   (``visible_fraction``, default ``VISIBLE_FRACTION`` = ½, so that two overlapping ones can reach it; lowered if
   needed so that the background below stays under half the threshold, :func:`draw_level`).
-- Per-ray levels (strongest return): in front of a target of signal ``S_t`` a ray draws only particles reaching
-  ``ℓ 2^j ≤ ℓ S_t/threshold`` (:func:`attenuated_targets`; a weaker one, or two, cannot outshine the target), and
-  inside the target's pulse window those reaching ``ℓ 2^(j−5)``, which change its peak by at least 1.6 %
-  (:class:`LevelTables`, :func:`sample_particles`). On the synthetic OS1-128 scan this halves the snowflakes drawn
-  (282 k → 121 k) and changes the weather returns by 0.4 % (``tests/models/test_lidar_weather.py``).
-- The drawn ones are an exact thinning of the Poisson process — positions follow the cumulative visible density
-  ``Λ(r) = ∫ π w² N(D ≥ D_c(r)) dr`` (cached tables) and diameters the truncated exponential above the visibility
-  diameter ``D_c(r)`` — so a frame costs a few operations per *visible* particle (an empty 120 m ray at 20 mm/h
-  holds ~10 drops of which ~0.2 are visible to an OS1-128).
-- The undrawn ones act through their means: extinction α, beam cover (the band between ``ℓ`` and a ray's level
-  shadows its target by its mean, ``Particles.ray_shadow``) and backscatter — a soft target like fog
-  (:func:`faint_background`, :class:`lidar_echo.SoftBackground`) added to every summed pulse profile. What remains
-  approximate is their fluctuation (e.g. three sub-level flakes summing over the threshold): weather returns are
-  1.2 % below the converged count for snow at ½ (``bench/bench_lidar_weather.py`` prints the convergence).
-Placing the particles on their rays is one compiled pass (:func:`_place`), as is the return selection
-(:func:`lidar_echo.select_returns`).
+- :func:`sample_particles` draws every particle above ``ℓ`` (the first return, and the reference of the strongest
+  return, which draws only each ray's brightest particles: :mod:`lidar_strongest`), an exact thinning of the
+  Poisson process — positions follow the cumulative visible density ``Λ(r) = ∫ π w² N(D ≥ D_c(r)) dr`` (cached
+  tables) and diameters the truncated exponential above the visibility diameter ``D_c(r)`` — so a frame costs a
+  few operations per *visible* particle (an empty 120 m ray at 20 mm/h holds ~10 drops of which ~0.2 are visible to
+  an OS1-128). Placing them on their rays is one compiled pass (:func:`_place`), as is the return selection
+  (:func:`lidar_echo.select_returns`).
+- The undrawn ones act through their means: extinction α and backscatter — a soft target like fog
+  (:func:`faint_background`, :class:`lidar_echo.SoftBackground`) added to every summed pulse profile; what remains
+  approximate is their fluctuation (e.g. three sub-level flakes summing over the threshold: weather returns are
+  ~1 % below the converged count for snow at ½, ``bench/bench_lidar_weather.py`` prints the convergence). Their
+  beam cover per metre, :func:`faint_cross_section_per_m`, shadows a target when a ray leaves particles above ℓ
+  undrawn.
 """
 
 from __future__ import annotations
@@ -112,7 +109,7 @@ class VisibleTable:
     cached per medium, beam and level):
     cumulative visible count Λ(r_k), the lower diameter bound ``max(Dmin, D_c(r_k))`` (mm) and the beam-filling
     return ``ρ ξ e^{−2αr}/r²`` (units of K); plus ``Λ⁻¹`` on a regular grid of Λ (step ``inv_step``). Lookups
-    (:func:`_ray_measures`, :func:`_place`, via :class:`LevelTables`) interpolate linearly, clamped to the tables."""
+    (:func:`_ray_measures`, :func:`_place`) interpolate linearly, clamped to the tables."""
 
     start_m: float
     step_m: float
@@ -186,66 +183,20 @@ def draw_level(medium: ParticleMedium, beam: Beam, threshold: float, visible_fra
     return level, background
 
 
-LEVEL_COUNT = 12           # per-ray draw levels base · 2^j, j < LEVEL_COUNT (strongest return)
-WINDOW_LEVEL_DROP = 5      # inside the target's pulse window a ray draws 2^5 below its level
-
-
-@dataclass(frozen=True, eq=False)
-class LevelTables:
-    """The :class:`VisibleTable` of the draw levels ``base · 2^j`` stacked for the compiled sampler (rows j, padded
-    with their last value; all start at R1 = ``start_m`` with step ``step_m``; ``full_beam`` is level 0's, the
-    longest, as one row), and ``band_shadow[j]``: the cumulative mean beam cover ``∫_{R1}^{r} (σ_j − σ_0) dr`` of
-    the particles whose return lies between level 0 and level j (σ: :func:`faint_cross_section_per_m`)."""
-
-    start_m: float
-    step_m: float
-    cum: np.ndarray
-    d_low_mm: np.ndarray
-    full_beam: np.ndarray
-    inv_step: np.ndarray
-    inv_range_m: np.ndarray
-    band_shadow: np.ndarray
-
-
-def _padded(rows: list[np.ndarray]) -> np.ndarray:
-    out = np.empty((len(rows), max(len(row) for row in rows)))
-    for j, row in enumerate(rows):
-        out[j, :len(row)] = row
-        out[j, len(row):] = row[-1]
-    return out
-
-
-@lru_cache(maxsize=8)
-def level_tables(medium: ParticleMedium, beam: Beam, base_level: float, count: int = LEVEL_COUNT) -> LevelTables:
-    """The visible tables of the levels ``base_level · 2^j`` (j < count), cached per medium, beam and base."""
-    tables = [visible_table(medium, beam, base_level * 2.0 ** j) for j in range(count)]
-    r = tables[0].start_m + np.arange(len(tables[0].cum)) * tables[0].step_m
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sigma = [faint_cross_section_per_m(medium, beam, base_level * 2.0 ** j, r) for j in range(count)]
-    band = [np.concatenate([[0.0], np.cumsum((s[1:] + s[:-1] - sigma[0][1:] - sigma[0][:-1]) / 2 * TABLE_STEP_M)])
-            for s in sigma]
-    return LevelTables(tables[0].start_m, tables[0].step_m, _padded([t.cum for t in tables]),
-                       _padded([t.d_low_mm for t in tables]), tables[0].full_beam[None, :],
-                       np.array([t.inv_step for t in tables]), _padded([t.inv_range_m for t in tables]),
-                       np.ascontiguousarray(band))
-
-
 @dataclass(frozen=True, eq=False)
 class Particles:
-    """Drawn particles, sorted by ray then range: ray index, range (m), melted diameter (mm), beam fraction, signal;
-    and per ray the mean beam cover of the particles left undrawn above the base level (``ray_shadow``, see
-    :func:`sample_particles`; zeros when every ray draws at the base level)."""
+    """Drawn particles, sorted by ray then range: ray index, range (m), melted diameter (mm), beam fraction,
+    signal."""
 
     ray: np.ndarray
     range_m: np.ndarray
     diameter_mm: np.ndarray
     beam_fraction: np.ndarray
     signal: np.ndarray
-    ray_shadow: np.ndarray
 
 
 @jit(inline="always")
-def _lerp(table, j, x):       # pragma: no cover - compiled
+def table_lerp(table, j, x):       # pragma: no cover - compiled
     """Row j of the 2-D ``table`` at fractional index x, linear, clamped to [0, last]."""
     x = min(max(x, 0.0), table.shape[1] - 1.000001)
     k = int(x)
@@ -253,61 +204,32 @@ def _lerp(table, j, x):       # pragma: no cover - compiled
 
 
 @jit
-def _ray_measures(ray_range_m, ray_level, r0_m, step_m, cum, band_shadow, window_m,
-                  window_drop):       # pragma: no cover - compiled
-    """Per ray its expected drawn particles: level ``j = ray_level`` up to ``R − window`` (piece A), level
-    ``max(j − window_drop, 0)`` from there to R (piece B; Λ from the stacked tables ``cum``, 0 up to R1, constant
-    beyond the tables). Returns the running sum over the rays, piece A's measure, Λ of piece B's level at its start,
-    and the mean beam cover of the undrawn bands above level 0 (``band_shadow``)."""
+def _ray_measures(ray_range_m, r0_m, step_m, cum):       # pragma: no cover - compiled
+    """Running sum over the rays of their expected drawn particles Λ(R) (``cum``: the visible table as one row; 0 up
+    to R1, constant beyond the table)."""
     n = len(ray_range_m)
-    per_m = 1.0 / step_m
     total_out = np.empty(n)
-    piece_a = np.empty(n)
-    base_b = np.empty(n)
-    shadow = np.empty(n)
     total = 0.0
     for i in range(n):
         r = ray_range_m[i]
-        j = ray_level[i]
-        jw = max(j - window_drop, 0)
-        x_end = (r - r0_m) * per_m
-        lam_end = _lerp(cum, jw, x_end) if r > r0_m else 0.0
-        if j == 0:
-            a = 0.0
-            b0 = 0.0
-            sh = 0.0
-            measure = lam_end
-        else:
-            x_mid = (r - window_m - r0_m) * per_m
-            a = _lerp(cum, j, x_mid) if x_mid > 0 else 0.0
-            b0 = _lerp(cum, jw, x_mid) if x_mid > 0 else 0.0
-            sh = _lerp(band_shadow, j, x_mid) if x_mid > 0 else 0.0
-            if jw > 0:
-                sh += _lerp(band_shadow, jw, x_end) - (_lerp(band_shadow, jw, x_mid) if x_mid > 0 else 0.0)
-            measure = a + lam_end - b0
-        total += measure
+        if r > r0_m:
+            total += table_lerp(cum, 0, (r - r0_m) / step_m)
         total_out[i] = total
-        piece_a[i] = a
-        base_b[i] = b0
-        shadow[i] = sh
-    return total_out, piece_a, base_b, shadow
+    return total_out
 
 
 @jit
-def _place(spacing, exp_d, cum_ray, piece_a, base_b, ray_level, window_drop, ray_range_m, inv_range_m, inv_step, r0_m,
-           step_m, d_low_mm, full_beam, lam_per_mm, d_max_mm, w0_m, half_divergence_rad, size_c, size_p,
-           size_k):      # pragma: no cover
+def _place(spacing, exp_d, cum_ray, ray_range_m, inv_range_m, inv_step, r0_m, step_m, d_low_mm, full_beam, lam_per_mm,
+           d_max_mm, w0_m, half_divergence_rad, size_c, size_p, size_k):      # pragma: no cover
     """The particles of :func:`sample_particles` from their random draws, in one merge walk over rays and particles.
 
     Particle i sits at ``u_i = (e_1 + … + e_i) · Λ_tot / (e_1 + … + e_{n+1})`` (``spacing``: the n + 1 exponentials)
-    on the concatenated per-ray intervals (``cum_ray``: their ends; :func:`_ray_measures`): ray k at local
-    coordinate ``v = u_i − start of ray k``, range ``Λ_j⁻¹(v)`` on piece A (``v < piece_a[k]``, j the ray's level),
-    else ``Λ_jw⁻¹(base_b[k] + v − piece_a[k])`` (``jw = max(j − window_drop, 0)``, at most R_k); from the level's tables at that range (linear
-    interpolation, clamped) its melted diameter ``D_m = max(Dmin, D_c(r)) + exp_d_i / Λ``, beam fraction
-    ``min(1, (D / 2w(r))²)`` of its geometric diameter ``D = max(k D_m, c D_m^p)`` (``size_*``, :class:`dsd.SizeLaw`)
-    and signal (units of K). Returns ray, range, diameter, beam fraction, signal, and the indices of the diameters
-    above Dmax, which are left at their lower bound with the beam-filling return as signal for the caller to
-    redraw."""
+    on the concatenated per-ray intervals (``cum_ray``: their ends; :func:`_ray_measures`): ray k at range
+    ``Λ⁻¹(u_i − start of ray k)`` (at most R_k); from the tables (rows of one; linear interpolation, clamped) its
+    melted diameter ``D_m = max(Dmin, D_c(r)) + exp_d_i / Λ``, beam fraction ``min(1, (D / 2w(r))²)`` of its
+    geometric diameter ``D = max(k D_m, c D_m^p)`` (``size_*``, :class:`dsd.SizeLaw`) and signal (units of K).
+    Returns ray, range, diameter, beam fraction, signal, and the indices of the diameters above Dmax, which are left
+    at their lower bound with the beam-filling return as signal for the caller to redraw."""
     n = len(exp_d)
     ray = np.empty(n, np.intp)
     r = np.empty(n)
@@ -332,15 +254,10 @@ def _place(spacing, exp_d, cum_ray, piece_a, base_b, ray_level, window_drop, ray
         while cum_ray[k] <= u:
             start = cum_ray[k]
             k += 1
-        v = u - start
-        j = ray_level[k]
-        if v >= piece_a[k]:
-            v = base_b[k] + v - piece_a[k]
-            j = max(j - window_drop, 0)
-        ri = min(_lerp(inv_range_m, j, v * per_count[j]), ray_range_m[k])
+        ri = min(table_lerp(inv_range_m, 0, (u - start) * per_count), ray_range_m[k])
         x = (ri - r0_m) * per_m
-        d_low = _lerp(d_low_mm, j, x)
-        full = _lerp(full_beam, 0, x)
+        d_low = table_lerp(d_low_mm, 0, x)
+        full = table_lerp(full_beam, 0, x)
         di = d_low + exp_d[i] * mean_d
         ray[i] = k
         r[i] = ri
@@ -362,150 +279,43 @@ def _place(spacing, exp_d, cum_ray, piece_a, base_b, ray_level, window_drop, ray
 _scratch = threading.local()
 
 
-def _buffer(name: str, size: int) -> np.ndarray:
-    """A per-thread float64 scratch buffer of ``size`` entries, reused across frames (fresh pages are expensive);
-    for temporaries only."""
+def scratch_buffer(name: str, size: int, dtype=np.float64) -> np.ndarray:
+    """A per-thread scratch buffer of ``size`` entries, reused across frames (fresh pages are expensive); for
+    temporaries only."""
     buf = getattr(_scratch, name, None)
     if buf is None or len(buf) < size:
-        buf = np.empty(max(size, size + size // 4))
+        buf = np.empty(max(size, size + size // 4), dtype)
         setattr(_scratch, name, buf)
     return buf[:size]
 
 
-@jit
-def attenuated_targets(signal, range_m, alpha_per_m, threshold, count):       # pragma: no cover - compiled
-    """Per ray the target's attenuated signal ``S e^{−2αR}`` and its draw level index
-    ``j = floor(log2(S e^{−2αR} / threshold))`` clipped to [0, count − 1] (count 1: all 0)."""
-    n = len(signal)
-    target = np.empty(n)
-    level = np.empty(n, np.intp)
-    ratio = np.empty(1)
-    bits = ratio.view(np.int64)                       # floor(log2 q) is the exponent field of q
-    for i in range(n):
-        t = signal[i] * math.exp(-2.0 * alpha_per_m * range_m[i])
-        target[i] = t
-        ratio[0] = t / threshold
-        level[i] = min(max((bits[0] >> 52) - 1023, 0), count - 1)
-    return target, level
-
-
 def sample_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: ParticleMedium, beam: Beam,
-                     threshold: float, visible_fraction: float = VISIBLE_FRACTION, ray_level: np.ndarray | None = None,
-                     window_m: float = 0.0, window_drop: int = WINDOW_LEVEL_DROP) -> Particles:
-    """Particles in front of each ray's range (0 for none) whose return reaches the ray's draw level, vectorised over
-    the frame.
+                     threshold: float, visible_fraction: float = VISIBLE_FRACTION) -> Particles:
+    """Particles in front of each ray's range (0 for none) whose return reaches ``visible_fraction × threshold``,
+    vectorised over the frame.
 
-    Base level ``ℓ = visible_fraction × threshold``. With ``ray_level`` (j per ray, :func:`attenuated_targets`) a ray
-    draws at ``ℓ 2^j`` up to ``window_m`` in front of its range and at ``ℓ 2^jw``, ``jw = max(j − window_drop, 0)``,
-    inside that window; ``ray_shadow`` then holds the mean beam cover of the particles it leaves undrawn above ℓ
-    (:class:`LevelTables`).
     One Poisson draw gives the frame's total; sorted uniform order statistics (normalised exponential spacings) on
     the concatenated per-ray intervals give each particle its ray and, through ``Λ⁻¹``, its range — already sorted by
     ray and range (:func:`_place`). Diameters: ``max(Dmin, D_c(r))`` plus an exponential of rate Λ
     (memorylessness); the few above Dmax are redrawn by inverse CDF of the truncated exponential, which keeps the law
     exact."""
-    tables = level_tables(medium, beam, visible_fraction * threshold)
+    table = visible_table(medium, beam, visible_fraction * threshold)
     ranges = np.ascontiguousarray(ray_range_m, dtype=np.float64)
-    levels = np.zeros(len(ranges), np.intp) if ray_level is None else np.ascontiguousarray(ray_level, dtype=np.intp)
-    cum_ray, piece_a, base_b, shadow = _ray_measures(ranges, levels, tables.start_m, tables.step_m, tables.cum,
-                                                     tables.band_shadow, float(window_m), window_drop)
+    cum_ray = _ray_measures(ranges, table.start_m, table.step_m, table.cum[None, :])
     total = float(cum_ray[-1]) if len(cum_ray) else 0.0
     n = int(rng.poisson(total)) if total > 0 else 0
     if n == 0:
         empty = np.zeros(0)
-        return Particles(np.zeros(0, dtype=np.intp), empty, empty, empty, empty, shadow)
-    spacing = rng.standard_exponential(out=_buffer("spacing", n + 1))     # inputs only: reused buffers
-    exp_d = rng.standard_exponential(out=_buffer("exp_d", n))
-    ray, r, d, f, signal, over = _place(spacing, exp_d, cum_ray, piece_a, base_b, levels, window_drop, ranges,
-                                        tables.inv_range_m, tables.inv_step, tables.start_m, tables.step_m,
-                                        tables.d_low_mm, tables.full_beam, medium.lam_per_mm, medium.d_max_mm,
-                                        beam.radius_m, beam.divergence_rad / 2, medium.size.coefficient,
-                                        medium.size.exponent, medium.size.solid)
+        return Particles(np.zeros(0, dtype=np.intp), empty, empty, empty, empty)
+    spacing = rng.standard_exponential(out=scratch_buffer("spacing", n + 1))     # inputs only: reused buffers
+    exp_d = rng.standard_exponential(out=scratch_buffer("exp_d", n))
+    ray, r, d, f, signal, over = _place(spacing, exp_d, cum_ray, ranges, table.inv_range_m[None, :], table.inv_step,
+                                        table.start_m, table.step_m, table.d_low_mm[None, :],
+                                        table.full_beam[None, :], medium.lam_per_mm, medium.d_max_mm, beam.radius_m,
+                                        beam.divergence_rad / 2, medium.size.coefficient, medium.size.exponent,
+                                        medium.size.solid)
     if len(over):                                     # rare: redraw from the truncated law (inverse CDF)
         d[over] = dsd.sample_truncated_exponential(rng, medium.lam_per_mm, d[over], medium.d_max_mm, len(over))
         f[over] = np.minimum(1.0, (medium.size.optical_mm(d[over]) * (0.5e-3 / beam.radius_at(r[over]))) ** 2)
         signal[over] *= f[over]
-    return Particles(ray, r, d, f, signal, shadow)
-
-
-
-LEAD_LEVELS = 4            # the first pass of strongest_particles draws 2^4 above a ray's own level
-
-
-
-def strongest_particles(rng: np.random.Generator, ray_range_m: np.ndarray, medium: ParticleMedium, beam: Beam,
-                        base_level: float, ray_level: np.ndarray, window_m: float, count: int = LEVEL_COUNT,
-                        lead: int = LEAD_LEVELS) -> Particles:
-    """The particles that can shape each ray's strongest return, in two exact passes (a Poisson process split by the
-    particles' own return into independent bands):
-
-    1. every ray draws at ``ℓ 2^(j + lead)`` (j: its level, :func:`attenuated_targets`; at most the top level);
-    2. a ray whose brightest particle so far returns s then draws the band down to ``ℓ 2^j2``,
-       ``j2 = floor(log2(s/ℓ)) − 1`` (between s/4 and s/2, as a target of signal s would; at least its own level j),
-       keeping only what pass 1 did not draw. A ray without a particle in pass 1 draws down to its own level.
-    Fainter particles cannot outshine the brightest one (alone or two together) and act through their mean beam
-    cover (``ray_shadow``) like those below any ray level. With heavy snow every OS1-128 ray holds a dozen visible
-    flakes of which one or two matter: this draws about a third of what a single pass at the rays' own levels draws.
-    Windows (``window_m``) as :func:`sample_particles`. Returns the particles sorted by ray, then range."""
-    levels = np.ascontiguousarray(ray_level, dtype=np.intp)
-    top = np.minimum(levels + lead, count - 1)
-    first = sample_particles(rng, ray_range_m, medium, beam, base_level, 1.0, top, window_m)
-    second_level, second_range = _second_pass(first.ray, first.signal, levels, top, base_level,
-                                              np.ascontiguousarray(ray_range_m, dtype=np.float64))
-    if not second_range.any():
-        return first
-    second = sample_particles(rng, second_range, medium, beam, base_level, 1.0, second_level, window_m)
-    keep = np.flatnonzero(_new_in_second(second.ray, second.range_m, second.signal, second_range, top, window_m,
-                                         base_level, WINDOW_LEVEL_DROP))
-    order = _merge_order(first.ray, first.range_m, second.ray[keep], second.range_m[keep])
-    cat = [np.concatenate([a, b[keep]])[order] for a, b in zip(
-        (first.ray, first.range_m, first.diameter_mm, first.beam_fraction, first.signal),
-        (second.ray, second.range_m, second.diameter_mm, second.beam_fraction, second.signal))]
-    return Particles(*cat, np.where(second_range > 0, second.ray_shadow, first.ray_shadow))
-
-
-@jit
-def _second_pass(ray, signal, levels, top, base_level, ray_range_m):       # pragma: no cover - compiled
-    """Per ray the level of the second pass, ``floor(log2(s/ℓ)) − 1`` of its brightest first-pass particle s
-    within [own level, first-pass level] (own level without one), and its range for the second pass (0: none)."""
-    n = len(levels)
-    best = np.zeros(n)
-    for i in range(len(ray)):
-        best[ray[i]] = max(best[ray[i]], signal[i])
-    level = levels.copy()
-    second_range = np.zeros(n)
-    for k in range(n):
-        if best[k] > 0:
-            level[k] = min(max(int(math.floor(math.log2(best[k] / base_level))) - 1, levels[k]), top[k])
-        if level[k] < top[k]:
-            second_range[k] = ray_range_m[k]
-    return level, second_range
-
-
-@jit
-def _new_in_second(ray, range_m, signal, ray_range_m, top, window_m, base_level, drop):  # pragma: no cover - compiled
-    """Second-pass particles fainter than the first pass's level where they lie (the brighter ones it drew)."""
-    keep = np.empty(len(ray), np.bool_)
-    for i in range(len(ray)):
-        k = ray[i]
-        j = top[k]
-        if j > 0 and range_m[i] >= ray_range_m[k] - window_m:
-            j = max(j - drop, 0)
-        keep[i] = signal[i] < base_level * 2.0 ** j
-    return keep
-
-
-@jit
-def _merge_order(ray_a, r_a, ray_b, r_b):       # pragma: no cover - compiled
-    """Indices into the concatenation of two lists sorted by (ray, range) that merge them."""
-    na, nb = len(ray_a), len(ray_b)
-    out = np.empty(na + nb, np.intp)
-    i = j = 0
-    for o in range(na + nb):
-        if j >= nb or (i < na and (ray_a[i] < ray_b[j] or (ray_a[i] == ray_b[j] and r_a[i] <= r_b[j]))):
-            out[o] = i
-            i += 1
-        else:
-            out[o] = na + j
-            j += 1
-    return out
+    return Particles(ray, r, d, f, signal)

@@ -12,8 +12,9 @@ range and received signal, the rays that saw nothing (``empty_rays``), and the r
   no-return ray is sky (or beyond range) in any cloud.
 - ``ignore``: only the input's returns. For clouds where emptiness means nothing (range crops, merged or
   motion-compensated clouds, accumulated maps), or to keep the point count.
-A point list's rays need its rings: the cloud's ``ring`` field when present, else recovered from the elevations
-(:func:`lidar_geometry.ring_index`, the one place a ring carried with each point would plug in).
+A point list's rays need its rings (:func:`lidar_geometry.ring_index`): the cloud's ``ring`` field, else the ring an
+earlier step stored before it moved the points (``attributes['ring']``: alignment, power), else recovered from the
+elevations.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from ..errors import ModelError
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import FiringGrid, firing_grid
-from .lidar_geometry import ring_index
+from .lidar_geometry import ring_index, ring_source
 from .lidar_intensity import REFLECTIVITY, IntensityWarning, intensity_step, resolve_profile, sensor_constant, \
     white_reading
 from .receiver import Receiver
@@ -148,9 +149,10 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Ra
 
 
 def _above_horizon(cloud: PointCloud, profile: LidarProfile) -> np.ndarray:
-    """Per cell of a full grid: whether its beam points above the horizon (ring: the cloud's field, else the row)."""
+    """Per cell of a full grid: whether its beam points above the horizon (ring: the cloud's field or attribute, else
+    the row)."""
     elevation = np.asarray(profile.beam_elevation_deg)
-    if "ring" in cloud.fields:
+    if ring_source(cloud) != "elevation":
         ring = ring_index(cloud, profile)
     else:
         rows, cols = cloud.grid_shape

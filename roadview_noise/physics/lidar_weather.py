@@ -23,9 +23,9 @@ from .lidar_echo import NO_RETURN, TARGET, WEATHER, RayReturns, select_returns
 from .lidar_intensity import reported_intensity, rounded_intensity, sensor_constant, too_faint
 from .lidar_medium import HAHNER_OVERLAP_M, hard_target_signal, pulse_length_m, soft_target_signal, soft_target_table
 from .lidar_output import assemble, unchanged
-from .lidar_particles import LEVEL_COUNT, VISIBLE_FRACTION, Beam, ParticleMedium, attenuated_targets, draw_level, \
-    sample_particles, strongest_particles
+from .lidar_particles import VISIBLE_FRACTION, Beam, ParticleMedium, draw_level, sample_particles
 from .lidar_rays import Rays, cloud_rays
+from .lidar_strongest import strongest_returns
 from .receiver import measure_one, normal_quantile, range_sd_one
 
 SURE_MARGIN_SD = 8.0       # a weather candidate this many of its noise SDs below the target cannot win (strongest)
@@ -157,50 +157,43 @@ def hahner_fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per
 
 
 def particle_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedium, mode: str,
-                     visible_fraction: float = VISIBLE_FRACTION, two_pass: bool = True) -> tuple[RayReturns, int]:
-    """Rain/snow on every ray (models.md §3.3–§3.4 correct versions): particles in front of the target that can
-    change its return, target ``I e^{−2αR}(1 − Σ f)`` (shadowing by the drawn particles and the mean of the undrawn
-    band), the undrawn particles' mean backscatter (:func:`lidar_particles.draw_level`), summed pulse profiles
-    (:func:`lidar_echo.select_returns`), detection (:func:`detect`).
+                     visible_fraction: float = VISIBLE_FRACTION, exhaustive: bool = False) -> tuple[RayReturns, int]:
+    """Rain/snow on every ray (models.md §3.3–§3.4 correct versions): particles in front of the target, target
+    ``I e^{−2αR}(1 − Σ f)``, summed pulse profiles (:func:`lidar_echo.select_returns`), detection (:func:`detect`).
 
-    Which particles are drawn: those returning at least the base level ``ℓ`` (:func:`lidar_particles.draw_level`).
-    For the strongest return a ray with a target of signal ``S_t`` draws, in front of the target's pulse window
-    ``c τ_H``, only those reaching ``ℓ 2^j ≤ ℓ S_t/threshold`` (:func:`lidar_particles.attenuated_targets`) — a weaker
-    particle, or two of them, cannot outshine the target — and inside the window those reaching
-    ``ℓ 2^(j−5) ≤ S_t/64`` (fainter ones would change its peak by less than 1.6 %); and the same against the ray's
-    brightest particle (:func:`lidar_particles.strongest_particles`). The undrawn particles between the levels shadow
-    the target by their mean (``two_pass``: draw against the brightest particle too, which pays when particles
-    often outshine the rays' targets by far — snowflakes, not raindrops). Candidates weaker than the receiver can
-    detect are not returned. Returns the per-ray returns and the number of particles drawn."""
+    Particles returning less than the base level ``ℓ`` (:func:`lidar_particles.draw_level`, a fraction of the
+    threshold) act through their means (extinction α, backscatter as a soft target). The strongest return draws per
+    ray its brightest particle and those that can change its return, and replaces the fainter ones by their means
+    too (:mod:`lidar_strongest`); the first return (or ``exhaustive``: the reference the strongest return is tested
+    against) draws every particle above ``ℓ`` (:func:`lidar_particles.sample_particles`). Candidates weaker than the
+    receiver can detect are not returned. Returns the per-ray returns and the number of particles drawn."""
     profile = rays.profile
     tau_h = profile.pulse_half_power_width_s
-    threshold = rays.threshold
-    level, background = draw_level(medium, Beam.of(profile), threshold, visible_fraction, pulse_length_m(tau_h))
-    target, levels = attenuated_targets(rays.signal, rays.range_m, medium.alpha_per_m, threshold,
-                                        LEVEL_COUNT if mode == "strongest" else 1)
-    if mode == "strongest" and two_pass:
-        particles = strongest_particles(rng, rays.range_m, medium, Beam.of(profile), level, levels,
-                                        pulse_length_m(tau_h), LEVEL_COUNT)
+    beam = Beam.of(profile)
+    level, background = draw_level(medium, beam, rays.threshold, visible_fraction, pulse_length_m(tau_h))
+    if mode == "strongest" and not exhaustive:
+        candidates, drawn = strongest_returns(rng, rays.range_m, rays.signal, rays.has_target, medium, beam, level,
+                                              rays.threshold, rays.receiver.weakest_return, tau_h)
     else:
-        particles = sample_particles(rng, rays.range_m, medium, Beam.of(profile), level, 1.0, levels,
-                                     pulse_length_m(tau_h))
-    weakest = rays.receiver.weakest_return if mode == "strongest" else threshold
-    candidates = select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m, target,
-                                rays.has_target, tau_h, weakest, mode, particles.beam_fraction, background,
-                                particles.ray_shadow if mode == "strongest" else None)
+        particles = sample_particles(rng, rays.range_m, medium, beam, level, 1.0)
+        weakest = rays.receiver.weakest_return if mode == "strongest" else rays.threshold
+        candidates = select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m,
+                                    hard_target_signal(rays.signal, medium.alpha_per_m, rays.range_m),
+                                    rays.has_target, tau_h, weakest, mode, particles.beam_fraction, background)
+        drawn = len(particles.ray)
     n_weather = int(np.count_nonzero(candidates.kind == WEATHER))
-    return detect(rays, candidates, mode, rng.random((n_weather, 3)), per_ray=False), len(particles.ray)
+    return detect(rays, candidates, mode, rng.random((n_weather, 3)), per_ray=False), drawn
 
 
 def precipitation(cloud: PointCloud, model_id: str, medium: ParticleMedium | None, mode: str,
                   rng: np.random.Generator, visible_fraction: float = VISIBLE_FRACTION,
-                  empty_rays: str = "fill", two_pass: bool = True) -> tuple[PointCloud, dict]:
+                  empty_rays: str = "fill", exhaustive: bool = False) -> tuple[PointCloud, dict]:
     """Run rain or snow (``medium`` None: zero rate, identity) on a cloud; returns (cloud, diagnostics)."""
     rays = cloud_rays(cloud, model_id, "ignore" if medium is None else empty_rays)
     if medium is None:
         out, counts = unchanged(cloud, rays)
         return out, diagnostics(counts, rays, alpha_per_m=0.0, particles_per_m3=0.0, particles_drawn=0)
-    returns, drawn = particle_returns(rng, rays, medium, mode, visible_fraction, two_pass)
+    returns, drawn = particle_returns(rng, rays, medium, mode, visible_fraction, exhaustive)
     out, counts = assemble(cloud, rays, returns)
     return out, diagnostics(counts, rays, alpha_per_m=medium.alpha_per_m,
                             particles_per_m3=medium.count_above(np.float64(medium.d_min_mm)),

@@ -12,7 +12,8 @@ from roadview_noise.compound import apply_models
 from roadview_noise.errors import ModelError
 from roadview_noise.model import Scope, Stage
 from roadview_noise.models.lidar.alignment import AlignmentLidar
-from roadview_noise.physics.lidar_geometry import recover_ring, velodyne_to_xyz, xyz_to_velodyne
+from roadview_noise.models.lidar.power import PowerLidar
+from roadview_noise.physics.lidar_geometry import recover_ring, ring_index, velodyne_to_xyz, xyz_to_velodyne
 from roadview_noise.profiles.lidar import uniform, vls_128
 from roadview_noise.registry import load_all
 from roadview_noise.seeding import derive_rng
@@ -133,6 +134,39 @@ def test_rings_recovered_from_the_clean_cloud():
     assert "ring" not in b.fields and (da["ring_source"], db["ring_source"]) == ("field", "elevation")
     wrong_after = np.mean(recover_ring(b.positions_m, profile) != with_ring.fields["ring"])
     assert wrong_after > 0.05
+
+
+def test_rings_travel_with_the_points():
+    """The ring alignment used (recovered from the clean elevation) travels with every point as
+    ``attributes['ring']``: a later step's :func:`ring_index` returns it (power.lidar keeps it), where recovering it from the tilted elevations with the nominal beam table is wrong for many points; a cloud
+    with a ``ring`` field gets no attribute. The output's profile is the misaligned sensor's: each point lies on its
+    beam's elevation plus the beam's offset."""
+    profile = vls_128()
+    truth = beam_cloud(profile, seed=4).fields["ring"]
+    without = beam_cloud(profile, seed=4, with_ring=False)
+    model = AlignmentLidar()
+    state = model.draw_sequence(np.random.default_rng(12), without)
+    out, _ = apply(model, without, state)
+    np.testing.assert_array_equal(out.attributes["ring"], truth)
+    np.testing.assert_array_equal(ring_index(out), truth)
+    assert np.mean(recover_ring(out.positions_m, profile) != truth) > 0.05
+    powered, _ = apply_models([PowerLidar()], out, seed=0, key="k", sequence_id="s")
+    np.testing.assert_array_equal(powered.attributes["ring"], truth)
+    with_field, _ = apply(model, beam_cloud(profile, seed=4), state)
+    assert "ring" not in with_field.attributes
+    _, _, omega = xyz_to_velodyne(out.positions_m)
+    np.testing.assert_allclose(np.rad2deg(omega), np.asarray(out.profile.beam_elevation_deg)[truth], atol=1e-9)
+    np.testing.assert_allclose(np.asarray(out.profile.beam_elevation_deg) - profile.beam_elevation_deg,
+                               state["elevation_offset_deg"], atol=1e-12)
+    np.testing.assert_array_equal(recover_ring(out.positions_m, out.profile), truth)
+
+
+def test_per_point_alignment_and_power_store_the_rings_they_recovered():
+    cloud = beam_cloud(vls_128(), seed=5, with_ring=False)
+    truth = beam_cloud(vls_128(), seed=5).fields["ring"]
+    for model in (PowerLidar(), AlignmentLidar(mode="per_point")):
+        out, _ = apply(model, cloud)
+        np.testing.assert_array_equal(out.attributes["ring"], truth)
 
 
 def test_state_is_json_and_per_beam():

@@ -13,7 +13,7 @@ import yaml
 from typer.testing import CliRunner
 
 from roadview_noise.cli.main import app
-from roadview_noise.compound import apply_models
+from roadview_noise.compound import CNFS, apply_models
 from roadview_noise.manifest import read_manifest
 from roadview_noise.models.lidar.fog import FogLidar
 from roadview_noise.models.lidar.rain import RainLidar
@@ -21,6 +21,7 @@ from roadview_noise.models.lidar.snow import SnowLidar
 from roadview_noise.physics.lidar_intensity import IntensityWarning
 from roadview_noise.profiles.lidar import load_lidar_profile, os1_128_reflectivity
 from roadview_noise.provenance import Effect
+from roadview_noise.registry import load_all
 from roadview_noise.types import PointCloud
 
 #: Hahner's LiDAR_fog_sim (github.com/MartinHahner/LiDAR_fog_sim, commit 1cb9e07) on scan0.bin (N × 4 float32, the
@@ -64,6 +65,22 @@ def test_a_trace_of_rain_changes_almost_nothing(shared_data):
         assert changed(cloud, out) < 0.001 * len(cloud), model.id
         assert d["below_threshold_in"] == 3647 and d["removed"] == 0
         assert d["detection_threshold"] < 0.32 and d["detection_threshold_source"].startswith("calibrated")
+
+
+@pytest.mark.parametrize("cnf", ["CNF19", "CNF20", "CNF21"])
+def test_misaligned_chains_keep_the_weather_on_the_empty_rays(shared_data, cnf):
+    """CNF19–21 (alignment, then rain / fog / snow) on the scan as a ring-less KITTI-style .bin add weather on its
+    23 425 empty rays within 5 % of the same weather without alignment: the rings alignment recovered before tilting
+    the beams travel with the points (``attributes['ring']``) and its beam table is the tilted one. Before, the rings
+    recovered from the tilted elevations broke the firing grid and 30 m fog added 0 returns to the sky."""
+    cloud = scan(shared_data)
+    assert "ring" not in cloud.fields
+    models = [load_all()[name]() for name in CNFS[cnf].chains["lidar"]]
+    out, rec = apply_models(models, cloud, seed=3, key="scan0", sequence_id="s")
+    chained, alone = rec[1].diagnostics, run(models[1], cloud)[1]
+    assert chained["empty_rays"] == alone["empty_rays"] == 128 * 1024 - len(cloud)
+    assert alone["added"] > 5000
+    assert chained["added"] == pytest.approx(alone["added"], rel=0.05)
 
 
 def test_fog_returns_spread_in_range_and_intensity(shared_data):

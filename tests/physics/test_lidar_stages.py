@@ -470,19 +470,16 @@ def test_compiled_particle_placement_against_numpy_reference(flakes):
     if flakes:                                                                  # geometric size of dry snowflakes
         medium = dataclasses.replace(medium, size=dsd.SNOW_HABITS["dry_aggregates"].size, reflectance=0.9)
     level = 0.5 * 3.28 / 65535
-    table, tables = lidar_particles.visible_table(medium, beam, level), lidar_particles.level_tables(medium, beam, level)
+    table = lidar_particles.visible_table(medium, beam, level)
     rng = np.random.default_rng(5)
     ranges = np.where(rng.random(5000) < 0.1, 0.0, rng.uniform(0.5, 150.0, 5000))
-    levels = np.zeros(len(ranges), np.intp)                                     # every ray at the base level
-    cum_ray, piece_a, base_b, shadow = lidar_particles._ray_measures(ranges, levels, tables.start_m, tables.step_m,
-                                                                     tables.cum, tables.band_shadow, 3.0, 5)
+    cum_ray = lidar_particles._ray_measures(ranges, table.start_m, table.step_m, table.cum[None, :])
     lam = np.where(ranges > 0, _table_at(table, table.cum, ranges), 0.0)
     np.testing.assert_allclose(np.diff(cum_ray, prepend=0.0), lam, rtol=1e-9, atol=1e-12)
-    assert not piece_a.any() and not shadow.any()
     n = 20000
     spacing, exp_d = rng.standard_exponential(n + 1), rng.standard_exponential(n)
-    got = lidar_particles._place(spacing, exp_d, cum_ray, piece_a, base_b, levels, 5, ranges, tables.inv_range_m,
-                                 tables.inv_step, tables.start_m, tables.step_m, tables.d_low_mm, tables.full_beam,
+    got = lidar_particles._place(spacing, exp_d, cum_ray, ranges, table.inv_range_m[None, :], table.inv_step,
+                                 table.start_m, table.step_m, table.d_low_mm[None, :], table.full_beam[None, :],
                                  medium.lam_per_mm, medium.d_max_mm, beam.radius_m, beam.divergence_rad / 2,
                                  medium.size.coefficient, medium.size.exponent, medium.size.solid)
     ref = _place_numpy(spacing, exp_d, cum_ray, ranges, table, medium, beam)
@@ -558,31 +555,6 @@ def test_sampler_statistics_and_order():
     assert np.all(np.abs(emp - cdf) < 4 * np.sqrt(cdf * (1 - cdf) / far.sum()) + 1e-3)
 
 
-def test_per_ray_levels_draw_what_can_outshine_the_target():
-    """A ray at level j draws, in front of the target's pulse window, only particles returning at least ``ℓ 2^j`` and
-    inside it at least ``ℓ 2^(j−5)``; the count follows the two pieces' measures; the undrawn band's mean beam
-    cover (quad of :func:`faint_cross_section_per_m` differences) goes to ``ray_shadow``."""
-    medium, beam = _medium(50.0), lidar_particles.Beam(4.75e-3, 3e-3, 0.5, 5.0)
-    base, window = 0.5 * 3.28 / 65535, 3.0
-    ranges = np.tile([8.0, 20.0, 40.0], 6000)
-    levels = np.tile([0, 3, 7], 6000)
-    p = lidar_particles.sample_particles(np.random.default_rng(4), ranges, medium, beam, base, 1.0, levels, window)
-    in_window = ranges[p.ray] - p.range_m < window
-    need = base * 2.0 ** np.where(in_window, np.maximum(levels[p.ray] - 5, 0), levels[p.ray])
-    assert np.mean(p.signal >= 0.98 * need) > 0.999
-    expected = 0.0
-    for r, j in ((8.0, 0), (20.0, 3), (40.0, 7)):
-        lam = [lambda x, k=k: _table_at(lidar_particles.visible_table(medium, beam, base * 2.0 ** k),
-                                        lidar_particles.visible_table(medium, beam, base * 2.0 ** k).cum, x)
-               for k in (j, max(j - 5, 0))]
-        expected += 6000 * (lam[0](r - window) + lam[1](r) - lam[1](r - window) if j else lam[0](r))
-    assert abs(len(p.ray) - expected) < 4 * math.sqrt(expected)
-    sigma = lambda x, k: float(lidar_particles.faint_cross_section_per_m(medium, beam, base * 2.0 ** k, x))  # noqa
-    band = integrate.quad(lambda x: sigma(x, 7) - sigma(x, 0), 0.5, 37.0, limit=200)[0] \
-        + integrate.quad(lambda x: sigma(x, 2) - sigma(x, 0), 37.0, 40.0)[0]
-    assert p.ray_shadow[2] == pytest.approx(band, rel=1e-3) and p.ray_shadow[0] == 0.0 and p.ray_shadow[1] > 0
-
-
 def test_faint_cross_section_and_backscatter_against_quadrature():
     """The undrawn particles' beam cover per metre, ``∫_{D < D_c} N(D) min(πD²/4, πw²) dD``, and their backscatter
     density ``ρ ξ e^{−2αr}/r²`` times it, against quad over the DSD written out here (a wide beam makes the
@@ -622,7 +594,7 @@ def test_soft_background_against_direct_pulse_integral():
 
     at = lidar_echo.background_at.py_func if hasattr(lidar_echo.background_at, "py_func") else lidar_echo.background_at
     for x, r0 in ((2.0, 50.0), (3.7, 50.0), (10.0, 50.0), (10.0, 8.5), (9.0, 9.2), (0.5, 50.0), (250.0, 300.0)):
-        assert at(x, r0, bg.cum, 1 / step, length) == pytest.approx(direct(x, r0), rel=5e-3, abs=1e-7)
+        assert at(x, r0, bg.cum[None], 0, 1 / step, length) == pytest.approx(direct(x, r0), rel=5e-3, abs=1e-7)
     for r0 in (2.0, 6.05, 30.0):
         assert bg.at_target[round(r0 / step)] == pytest.approx(direct(r0 + length / 2, r0), rel=5e-3, abs=1e-7)
     xs = np.arange(0.0, 20.0, 0.01)

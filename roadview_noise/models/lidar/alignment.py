@@ -10,7 +10,7 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
-from ...physics.lidar_geometry import has_return, ring_index, velodyne_to_xyz, xyz_to_velodyne
+from ...physics.lidar_geometry import has_return, ring_source, velodyne_to_xyz, with_ring, xyz_to_velodyne
 from ...registry import register
 
 
@@ -23,8 +23,12 @@ class AlignmentLidar(Model):
     ``Δω_i ~ N(0, elevation_sd_deg)`` (D3.5: 0.001°, 0.127°), drawn once per sensor instance (``draw_sequence``),
     so every frame of a sequence shares them. Points are turned in the D3.5 Eq. (6)/(4) convention about the
     sensor origin — ``α = atan2(x, y)``, ``ω = atan2(z, sqrt(x² + y²))``, ``α' = α + Δα_i``,
-    ``ω' = ω + Δω_i`` — at unchanged range; all other fields are kept. The beam index comes from the ``ring`` field or, without one, from
-    the clean elevation and the profile's beam table (before perturbing; the cloud's fields are not changed).
+    ``ω' = ω + Δω_i`` — at unchanged range; all other fields are kept. The beam index comes from the ``ring`` field (or
+    the ``ring`` attribute an earlier step stored) or, without one, from the clean elevation and the profile's beam
+    table, before perturbing — and then travels with every point as ``attributes['ring']``
+    (:func:`lidar_geometry.with_ring`), so later steps (the weather's firing grid) never recover rings from the
+    tilted elevations; the output's profile is the misaligned sensor's (:func:`tilted_beams`), so a weather return
+    added on an empty ray of a tilted beam lies on that beam. The cloud's fields are not changed.
     No-return points (zero position) stay zero. ``mode = per_point`` is D3.5 §5.2.1's alternative reading: an
     independent offset for every point of every frame (models.md §7.8).
 
@@ -58,15 +62,15 @@ class AlignmentLidar(Model):
     def apply(self, data, *, state, drawn, rng):
         n_beams = self._channels(data)
         hit = has_return(data.positions_m)
-        diagnostics = {}
+        diagnostics = {"ring_source": ring_source(data)}
+        data, ring = with_ring(data)                   # before the points move: later steps read it
         if self.mode == "per_beam":
             if len(state["elevation_offset_deg"]) != n_beams:
                 raise ModelError(f"state has {len(state['elevation_offset_deg'])} beams, the profile "
                                  f"{data.profile.name!r} {n_beams}", model=self.id, field="state")
-            ring = ring_index(data)[hit]
+            ring = ring[hit]
             d_alpha = np.deg2rad(np.asarray(state["azimuth_offset_deg"]))[ring]
             d_omega = np.deg2rad(np.asarray(state["elevation_offset_deg"]))[ring]
-            diagnostics["ring_source"] = "field" if "ring" in data.fields else "elevation"
         else:
             n = int(hit.sum())
             d_alpha = rng.normal(0.0, np.deg2rad(self.azimuth_sd_deg), n)
@@ -78,6 +82,9 @@ class AlignmentLidar(Model):
         positions = data.positions_m.copy()
         positions[hit] = after
 
+        if self.mode == "per_beam":                    # the misaligned sensor's beam table, for later steps
+            data = dataclasses.replace(data, profile=tilted_beams(data.profile, state["azimuth_offset_deg"],
+                                                                  state["elevation_offset_deg"]))
         shift = after - before
         squared_shift = shift[:, 0] ** 2 + shift[:, 1] ** 2 + shift[:, 2] ** 2
         diagnostics.update(
@@ -88,6 +95,15 @@ class AlignmentLidar(Model):
             rms_elevation_offset_deg=float(np.rad2deg(_rms(d_omega ** 2))),
         )
         return dataclasses.replace(data, positions_m=positions), diagnostics
+
+
+def tilted_beams(profile, azimuth_offset_deg, elevation_offset_deg):
+    """The profile of a sensor whose beam i is turned by (Δα_i, Δω_i) (Velodyne convention, degrees): elevation
+    ``ω_i + Δω_i``; azimuth offset ``offset_i + Δα_i`` (a point fired at encoder angle F lies at
+    ``atan2(y, x) = F − offset_i − Δα_i``)."""
+    return dataclasses.replace(
+        profile, beam_elevation_deg=tuple(np.add(profile.beam_elevation_deg, elevation_offset_deg).tolist()),
+        beam_azimuth_offset_deg=tuple(np.add(profile.beam_azimuth_offset_deg, azimuth_offset_deg).tolist()))
 
 
 def _rms(squares: np.ndarray) -> float:

@@ -19,7 +19,7 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
-from ...physics.lidar_geometry import has_return, ring_index
+from ...physics.lidar_geometry import has_return, with_ring
 from ...registry import register
 from ...types import IntensityUnit, PointCloud
 
@@ -125,7 +125,7 @@ class PowerLidar(_ElectronicsParams):
         x, hit, scale = _intensity_counts(self.id, data)
         if self.mode == "additive":
             return _with_intensity_counts(data, x + rng.normal(0.0, self.additive_sd_counts, len(x)), hit, scale)
-        ring = _beam_of_returns(self.id, data, hit, len(state["gain"]))
+        data, ring = _beam_of_returns(self.id, data, hit, len(state["gain"]))
         gain = np.asarray(state["gain"])[ring]
         y = gain * x
         if not self.split_electronics:
@@ -157,14 +157,17 @@ class PowerElectronicsLidar(_ElectronicsParams):
 
     def apply(self, data, *, state, drawn, rng):
         x, hit, scale = _intensity_counts(self.id, data)
-        ring = _beam_of_returns(self.id, data, hit, len(state["bias_counts"]))
+        data, ring = _beam_of_returns(self.id, data, hit, len(state["bias_counts"]))
         y = _electronics(x, np.asarray(state["bias_counts"])[ring], self.noise_sd_factor, rng)
         return _with_intensity_counts(data, y, hit, scale)
 
 
-def _beam_of_returns(model_id: str, cloud: PointCloud, hit: np.ndarray, n_state: int) -> np.ndarray:
-    """Ring of every return, checked against the number of beams in the sensor-instance state."""
+def _beam_of_returns(model_id: str, cloud: PointCloud, hit: np.ndarray,
+                     n_state: int) -> tuple[PointCloud, np.ndarray]:
+    """(the cloud carrying its rings, :func:`lidar_geometry.with_ring`; the ring of every return), checked against
+    the number of beams in the sensor-instance state."""
     if n_state != _channels(model_id, cloud):
         raise ModelError(f"state has {n_state} beams, profile {cloud.profile.name!r} {cloud.profile.channels}",
                          model=model_id, field="state")
-    return ring_index(cloud)[hit]
+    cloud, ring = with_ring(cloud)
+    return cloud, ring[hit]

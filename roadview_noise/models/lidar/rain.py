@@ -15,13 +15,10 @@ from . import empty_rays_param
 
 # Drops are faint (Fresnel ρ = 0.02) and many fit in a wide beam; the undrawn ones act through their mean backscatter,
 # but a drop below the threshold is also detected now and then in the receiver's noise, which a mean cannot carry.
-# Weather returns at ½, ¼, 1/16, 1/64 of the threshold: 756 / 966 / 1140 / 1136 at 50 mm/h on 60 k synthetic rays
-# (datasheet threshold, tests/models/test_lidar_weather.py), 8 488 / 9 157 / 9 220 / 9 132 at 20 mm/h on the real
+# Weather returns at ½, ¼, 1/16, 1/64 of the threshold: 760 / 975 / 1130 / 1149 at 50 mm/h on 60 k synthetic rays
+# (datasheet threshold, tests/models/test_lidar_weather.py), 8 560 / 9 208 / 9 379 / 9 300 at 20 mm/h on the real
 # OS1-128 scan (its calibrated threshold; bench/bench_lidar_weather.py): 1/16 is converged in both.
 RAIN_DRAW_FRACTION = 1 / 16
-# Raindrops rarely outshine a ray's target or each other by 16×: drawing against the brightest drop too
-# (lidar_particles.strongest_particles) draws 110 k instead of 137 k drops on the real scan but takes longer (27 vs 24 ms)
-TWO_PASS = False
 
 
 @register
@@ -36,9 +33,10 @@ class RainLidar(Model):
       (``empty_rays``: a full grid's no-return cells, a point list's empty firing-grid cells; their weather returns
       are ADDED); diameters by inverse CDF of the
       truncated exponential (the reference set the *mean* to Λ). Only drops whose return reaches
-      ``draw_fraction_of_threshold`` (1/16) of the threshold are drawn (an exact thinning), in front of a bright
-      target only those that can outshine it; the others act through their means (α, beam cover, backscatter as a
-      soft background; :mod:`lidar_particles`).
+      ``draw_fraction_of_threshold`` (1/16) of the threshold are drawn (an exact thinning); for the strongest
+      return each ray draws its brightest drop directly and those within a factor 2–4 of it, in front of a bright
+      target only when one can outshine it (:mod:`lidar_strongest`); the others act through their means (α, beam
+      cover, backscatter as a soft background; :mod:`lidar_particles`).
     - Drop return ``K ρ f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
       ρ = Fresnel 0.0199, ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``; pulses closer than ``c τ_H``
       add; strongest or first return detected in the receiver's noise (:func:`lidar_weather.particle_returns`).
@@ -78,4 +76,4 @@ class RainLidar(Model):
 
     def apply(self, data, *, state, drawn, rng):
         return lidar_weather.precipitation(data, self.id, self.medium(), self.return_mode, rng,
-                                           self.draw_fraction_of_threshold, self.empty_rays, TWO_PASS)
+                                           self.draw_fraction_of_threshold, self.empty_rays)

@@ -53,8 +53,10 @@ class SnowLidar(Model):
     - Flakes per beam: Poisson ``n π w(r)²`` from the profile's overlap start R1 to the target (or the max range on
       rays without a return, ``empty_rays``: a full grid's no-return cells, a point list's empty firing-grid cells;
       they then get ADDED flake returns), drawn when their return
-      reaches ``draw_fraction_of_threshold`` (½) of the threshold, in front of a bright target only when they can
-      outshine it (the others act through their means: α, beam cover, backscatter; :mod:`lidar_particles`); flake
+      reaches ``draw_fraction_of_threshold`` (½) of the threshold — for the strongest return each ray's brightest
+      flake directly and those within a factor 2–4 of it, in front of a bright target only when one can outshine it
+      (:mod:`lidar_strongest`); the others act through their means: α, beam cover, backscatter
+      (:mod:`lidar_particles`); flake
       return ``K ρ_s f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
       ρ_s = 0.9, ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``.
     - Summed received profiles (pulses closer than ``c τ_H`` add; exact maximum instead of Hahner's 0.1 m grid),

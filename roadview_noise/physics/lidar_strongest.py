@@ -1,0 +1,253 @@
+"""The strongest return of rain and snow drawn from each ray's brightest particle down (models.md §3.3–§3.4 correct
+versions; Hahner et al., CVPR 2022) — how :func:`lidar_weather.particle_returns` draws the strongest return.
+
+Along a ray of range R the particles whose own return reaches s (units of the sensor constant K) are Poisson with
+mean Λ(s; R), the visible count of :mod:`lidar_particles` at level s. Ordered from the brightest down, their ranks
+``u = Λ(s; R)`` form a unit-rate Poisson process (mapping theorem): the brightest particle returns
+``s1 = Λ⁻¹(E1; R)``, the next ``Λ⁻¹(E1 + E2; R)``, … (E_i standard exponentials), so each ray draws its brightest
+particle directly, by inverse transform, and none of the fainter ones it would otherwise have to search through.
+
+- Tables (:func:`brightest_tables`, cached per medium, beam, base level ℓ and pulse length): Λ(s_g; r) on the levels
+  ``s_g = ℓ 2^(g/4)`` (quarter octaves) and ranges ``r_k = R1 + k·2 cm``, range-major (one ray's levels side by
+  side). A particle of level band g takes its range from the band's range density (inverse-CDF tables, truncated
+  at R) and its return within the band from its rank (Λ linear in s between the levels), at most what the largest
+  particle returns at that range; its beam fraction is ``f = s / F(r)`` (F: a beam-filling particle's return).
+- Drawn per ray: the brightest if it reaches the ray's own level ``ℓ 2^j`` (a target of attenuated signal S_t:
+  ``j = ⌊log2(S_t/T)⌋`` ≤ 11, T the threshold — one or two weaker particles cannot outshine it; 0 without a target),
+  then every particle down to the cut ``c = ℓ 2^(⌊log2(s1/ℓ)⌋ − 1)``, between s1/4 and s1/2: those can change the
+  brightest's summed peak by a quarter or more, or, two together, outshine it.
+- Undrawn (below c, or below the own level when nothing reaches it): their means, as :mod:`lidar_particles` treats
+  the particles below ℓ — backscatter as a soft target (the :class:`lidar_echo.SoftBackground` of every particle
+  below the ray's level, added to each cluster's peak and to the target's crest) and beam cover (the mean cover of
+  those between ℓ and the level shadows the target; below ℓ the extinction α carries it).
+The drawn particles and the target then give the ray's return exactly as :func:`lidar_echo.select_returns` does for
+every particle above ℓ (summed pulses, exact peaks). Against that exhaustive draw
+(``tests/models/test_lidar_weather.py``): the same weather-return counts, ranges and intensities within Monte-Carlo
+noise, targets kept in place within 1 % — for one or two particles per ray instead of a dozen on the real OS1-128
+scan in snow (151 k flakes instead of 1.08 M; the two-pass draw it replaces drew 300 k). What a target in place
+loses is the fluctuation of the faint particles in front of it (their mean backscatter stays).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from .compiled import jit
+from .lidar_echo import BackgroundLevels, RayReturns, SoftBackground, select_returns
+from .lidar_medium import pulse_length_m
+from .lidar_particles import BACKGROUND_STEP_M, TABLE_MAX_RANGE_M, Beam, ParticleMedium, faint_background, \
+    faint_backscatter_per_m, faint_cross_section_per_m, scratch_buffer, table_lerp, visibility_diameter_mm
+
+LEVELS_PER_OCTAVE = 4           # Λ tables: levels ℓ 2^(g/4)
+RANGE_STEP_M = 0.02             # Λ tables: range step
+SUBSTEPS = 4                    # … integrated on a 4× finer grid
+QUANTILES = 1024                # range quantiles per level band
+OWN_LEVELS = 12                 # a target's own level ℓ 2^j, j < 12
+CUT_OCTAVES = 1                 # a ray draws down to ℓ 2^(⌊log2(s1/ℓ)⌋ − 1)
+MAX_DRAWN = 256                 # particles drawn on one ray at most (a safety bound; a ray draws a few)
+
+
+@dataclass(frozen=True, eq=False)
+class BrightestTables:
+    """What the compiled sampler reads (module doc). ``lam[k, g]``: Λ(s_g; r_k), r_k = ``start_m + k·step_m``,
+    s_g = ``base_level · 2^(g/4)`` (the last level lies above every particle's return); ``inv[g]``: range quantiles
+    of the band [s_g, s_g+1) (``band_total[g]`` particles per ray in all); ``full[0]``: F(r_k), ``full[1]``: the
+    return of the largest particle at r_k. Per octave level
+    ℓ 2^l: ``cover[l, k]``, the mean beam cover ∫ of the particles between ℓ and that level up to r_k, and the
+    ``background`` of every particle below it (:class:`lidar_echo.BackgroundLevels`, to 2 pulse lengths and 1 m
+    beyond the tables' end: the cluster peaks lie within; farther targets take the base level's)."""
+
+    base_level: float
+    start_m: float
+    step_m: float
+    lam: np.ndarray
+    inv: np.ndarray
+    band_total: np.ndarray
+    full: np.ndarray
+    cover: np.ndarray
+    background: BackgroundLevels
+
+
+@lru_cache(maxsize=4)
+def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, length_m: float) -> BrightestTables:
+    """The tables of :class:`BrightestTables` for particles returning at least ``base_level`` (units of K) and pulses
+    of length ``length_m`` = c τ_H (trapezoid integrals on 5 mm, tabulated every 2 cm; backgrounds:
+    :func:`lidar_particles.faint_background`)."""
+    m = LEVELS_PER_OCTAVE
+    r_end = min(TABLE_MAX_RANGE_M, math.sqrt(medium.reflectance / base_level) + 1.0)   # bound with ξ = f = 1, α = 0
+    fine = RANGE_STEP_M / SUBSTEPS
+    r = beam.overlap_start_m + np.arange(0.0, max(r_end - beam.overlap_start_m, RANGE_STEP_M) + RANGE_STEP_M, fine)
+    full = beam.full_beam_signal(medium, r)
+    largest = full * np.minimum(1.0, (medium.size.optical_mm(medium.d_max_mm) * 0.5e-3 / beam.radius_at(r)) ** 2)
+    levels = int(math.ceil(m * math.log2(max(largest.max(), base_level) / base_level))) + 2
+    s = base_level * 2.0 ** (np.arange(levels) / m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d_c = visibility_diameter_mm(medium, beam, s[None, :], r[:, None])
+    density = np.pi * beam.radius_at(r)[:, None] ** 2 * np.maximum(medium.count_above(d_c), 0.0)
+    lam = np.concatenate([np.zeros((1, levels)), np.cumsum((density[1:] + density[:-1]) / 2 * fine, axis=0)])
+    last = int(np.flatnonzero(density[:, 0] > 0)[-1]) // SUBSTEPS + 2 if np.any(density[:, 0] > 0) else 2
+    r, full, largest, lam = (a[:SUBSTEPS * last:SUBSTEPS] for a in (r, full, largest, lam))
+    band = lam[:, :-1] - lam[:, 1:]
+    band_total = band[-1].copy()
+    inv = np.empty((levels - 1, QUANTILES))
+    for g in range(levels - 1):
+        inv[g] = np.interp(np.linspace(0.0, band_total[g], QUANTILES), band[:, g], r) if band_total[g] > 0 else r[0]
+    octaves = (levels - 1) // m + 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sigma = [faint_cross_section_per_m(medium, beam, base_level * 2.0 ** j, r) for j in range(octaves)]
+    cover = np.array([np.concatenate([[0.0], np.cumsum((x[1:] + x[:-1] - sigma[0][1:] - sigma[0][:-1]) / 2
+                                                       * RANGE_STEP_M)]) for x in sigma])
+    near = np.arange(0.0, r[-1] + 2 * length_m + 1.0, BACKGROUND_STEP_M)     # beyond, every level's is the base's
+    with np.errstate(divide="ignore", invalid="ignore"):
+        backgrounds = [SoftBackground.of_density(np.nan_to_num(faint_backscatter_per_m(
+            medium, beam, base_level * 2.0 ** j, near), nan=0.0, posinf=0.0), BACKGROUND_STEP_M, length_m)
+            for j in range(octaves)]
+    background = BackgroundLevels.of(backgrounds, faint_background(medium, beam, base_level, length_m))
+    return BrightestTables(base_level, float(r[0]), RANGE_STEP_M, np.ascontiguousarray(lam), inv, band_total,
+                           np.stack([full, largest]), cover, background)
+
+
+def strongest_returns(rng: np.random.Generator, ray_range_m: np.ndarray, signal: np.ndarray, has_target: np.ndarray,
+                      medium: ParticleMedium, beam: Beam, base_level: float, threshold: float, weakest: float,
+                      tau_h_s: float) -> tuple[RayReturns, int]:
+    """Per ray the strongest-return candidate among its particles and its target (module doc;
+    :func:`lidar_echo.select_returns`): kind (TARGET, WEATHER, NO_RETURN below ``weakest``), apparent range, value,
+    and the target's own value. ``signal``: the targets' received signal before the weather (units of K);
+    ``threshold``: the receiver's, for the own levels. Returns the candidates and the number of particles drawn."""
+    tables = brightest_tables(medium, beam, float(base_level), float(pulse_length_m(tau_h_s)))
+    drawn = draw_particles(rng, ray_range_m, signal, has_target, medium.alpha_per_m, tables, threshold)
+    return select_returns(drawn.ray, drawn.range_m, drawn.signal, ray_range_m, drawn.target, has_target, tau_h_s,
+                          weakest, "strongest", drawn.beam_fraction, tables.background, drawn.shadow,
+                          drawn.level), len(drawn.ray)
+
+
+@dataclass(frozen=True, eq=False)
+class Drawn:
+    """The particles :func:`draw_particles` drew, sorted by ray then range (ray, range m, signal in units of K, beam
+    fraction), and per ray its attenuated target (0 without one), draw level (octaves above the base) and the mean
+    beam cover of its undrawn particles above the base."""
+
+    ray: np.ndarray
+    range_m: np.ndarray
+    signal: np.ndarray
+    beam_fraction: np.ndarray
+    target: np.ndarray
+    level: np.ndarray
+    shadow: np.ndarray
+
+
+def draw_particles(rng: np.random.Generator, ray_range_m: np.ndarray, signal: np.ndarray, has_target: np.ndarray,
+                   alpha_per_m: float, tables: BrightestTables, threshold: float) -> Drawn:
+    """Each ray's brightest particles (module doc) with the extinction ``alpha_per_m`` and the receiver's
+    ``threshold`` (units of K); one compiled pass (:func:`_draw`) in scratch buffers, repeated from where they
+    filled up (rarely)."""
+    ranges = np.ascontiguousarray(ray_range_m, dtype=np.float64)
+    n = len(ranges)
+    target, level, shadow = np.empty(n), np.empty(n, np.intp), np.empty(n)
+    parts = []
+    start, size = 0, 2 * n + MAX_DRAWN
+    while start < n:
+        buf = [scratch_buffer(name, size, np.intp if name == "ray" else np.float64)
+               for name in ("ray", "range", "signal", "fraction")]
+        start, m = _draw(rng, start, ranges, np.ascontiguousarray(signal, dtype=np.float64),
+                         np.ascontiguousarray(has_target, dtype=bool), alpha_per_m, float(threshold),
+                         tables.base_level, tables.start_m, tables.step_m, tables.lam, tables.inv, tables.band_total,
+                         tables.full, tables.cover, target, level, shadow, *buf)
+        parts.append([b[:m] for b in buf] if start == n and not parts else [b[:m].copy() for b in buf])
+        size *= 2
+    columns = parts[0] if len(parts) == 1 else [np.concatenate(p) for p in zip(*parts)]
+    return Drawn(*columns, target, level, shadow)
+
+
+@jit(inline="always")
+def _row_lerp(table, k, t, g):       # pragma: no cover - compiled
+    """``table[k, g]`` and ``table[k + 1, g]`` interpolated at fraction t."""
+    return table[k, g] + (table[k + 1, g] - table[k, g]) * t
+
+
+@jit
+def _draw(rng, start, ray_range, signal, has_target, alpha, threshold, base, r1, step, lam, inv, band_total, full,
+          cover, target, ray_level, shadow, p_ray, p_range, p_signal, p_fraction):       # pragma: no cover - compiled
+    """The particles of :func:`strongest_returns` from ray ``start`` on, written to ``p_*`` (sorted by ray, then
+    range) until they are full; per ray its attenuated target ``target``, draw level ``ray_level`` (octaves above
+    the base) and the mean beam cover of its undrawn particles ``shadow``. Returns the next ray to draw (len: all)
+    and the number of particles written. Per ray: its own level; the rank of its brightest particle against Λ at that
+    level (one exponential shared by the rays until one holds a particle: a ray without one leaves it ``E − Λ``,
+    again exponential); the brightest particle's level band by bisection; the particles down to the cut (rank
+    spacings, bands walked down)."""
+    n = len(ray_range)
+    rows, levels = lam.shape
+    quantiles = inv.shape[1]
+    octaves = cover.shape[0]
+    capacity = len(p_ray)
+    s_level = base * 2.0 ** (np.arange(levels) / LEVELS_PER_OCTAVE)
+    band_scale = np.where(band_total > 0, (quantiles - 1) / np.maximum(band_total, 1e-300), 0.0)
+    inv_step = 1.0 / step
+    inv_base = 1.0 / base
+    m = 0
+    e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
+    for i in range(start, n):
+        if m + MAX_DRAWN > capacity:
+            return i, m
+        big_r = ray_range[i]
+        t_att = signal[i] * math.exp(-2.0 * alpha * big_r) if has_target[i] else 0.0
+        target[i] = t_att
+        level = min(max(math.frexp(t_att / threshold)[1] - 1, 0), OWN_LEVELS - 1)
+        first = m
+        x = (big_r - r1) * inv_step
+        if x > 0.0:
+            x = min(x, rows - 1.000001)
+            k = int(x)
+            t = x - k
+            g = min(level * LEVELS_PER_OCTAVE, levels - 1)
+            own = _row_lerp(lam, k, t, g)
+            u = e
+            e -= own                                   # memoryless: what is left of it is the next ray's rank
+            if u < own:
+                e = rng.standard_exponential()
+                hi = levels - 2                        # the brightest's band: the last g with Λ_g(R) > u
+                while g < hi:
+                    mid = (g + hi + 1) >> 1
+                    if _row_lerp(lam, k, t, mid) > u:
+                        g = mid
+                    else:
+                        hi = mid - 1
+                g_cut = 0
+                while True:
+                    la = _row_lerp(lam, k, t, g)
+                    lb = _row_lerp(lam, k, t, g + 1)
+                    r = min(table_lerp(inv, g, rng.random() * (la - lb) * band_scale[g]), big_r)
+                    xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
+                    kr = int(xr)
+                    tr = xr - kr
+                    top = min(s_level[g + 1], full[1, kr] + (full[1, kr + 1] - full[1, kr]) * tr)
+                    s = min(s_level[g] + (top - s_level[g]) * (la - u) / (la - lb), top)
+                    f = s / (full[0, kr] + (full[0, kr + 1] - full[0, kr]) * tr)
+                    j = m
+                    while j > first and p_range[j - 1] > r:     # insertion by range
+                        p_range[j], p_signal[j], p_fraction[j] = p_range[j - 1], p_signal[j - 1], p_fraction[j - 1]
+                        j -= 1
+                    p_range[j], p_signal[j], p_fraction[j] = r, s, f
+                    p_ray[m] = i
+                    if m == first:
+                        level = max(math.frexp(s * inv_base)[1] - 1 - CUT_OCTAVES, 0)
+                        g_cut = level * LEVELS_PER_OCTAVE
+                    m += 1
+                    if m - first == MAX_DRAWN:
+                        break
+                    u += rng.standard_exponential()
+                    while g >= g_cut and _row_lerp(lam, k, t, g) <= u:
+                        g -= 1
+                    if g < g_cut:
+                        break
+            level = min(level, octaves - 1)
+            shadow[i] = cover[level, k] + (cover[level, k + 1] - cover[level, k]) * t
+        else:
+            level = min(level, octaves - 1)
+            shadow[i] = 0.0
+        ray_level[i] = level
+    return n, m

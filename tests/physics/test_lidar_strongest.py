@@ -1,0 +1,135 @@
+"""The brightest-first draw of the strongest return (physics/lidar_strongest.py): its tables against the visible
+counts of lidar_particles, the law of each ray's brightest particle, the draw levels, and physical bounds."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from roadview_noise.physics import dsd, lidar_particles, lidar_strongest
+from roadview_noise.physics.lidar_particles import Beam, ParticleMedium
+
+OS1_BEAM = Beam(4.75e-3, math.pi / 1000, 0.5, 5.0)
+LENGTH_M = 3.0
+
+
+def rain(rate: float = 50.0) -> ParticleMedium:
+    n0, lam = 8000.0, 4.1 * rate ** -0.21                   # Marshall–Palmer
+    return ParticleMedium(n0, lam, 0.5, 6.0, 0.02, 2 * math.pi / 4 * 1e-6 * n0 * 2 / lam ** 3)
+
+
+def snow() -> ParticleMedium:
+    return ParticleMedium(1600.0, 2.5, 0.1, 5.0, 0.9, 9.4e-3, dsd.SNOW_HABITS["dry_aggregates"].size)
+
+
+def lam_at(table, r):
+    """Λ(R) of a :class:`lidar_particles.VisibleTable` (linear between its 1 cm samples, 0 below R1)."""
+    x = np.clip((np.asarray(r) - table.start_m) / table.step_m, 0, len(table.cum) - 1.000001)
+    k = x.astype(int)
+    return np.where(np.asarray(r) > table.start_m, table.cum[k] + (table.cum[k + 1] - table.cum[k]) * (x - k), 0.0)
+
+
+@pytest.mark.parametrize("medium", [rain(), snow()], ids=["rain", "snow"])
+def test_tables_count_what_the_visible_tables_count(medium):
+    """Λ(s_g; r) of the quarter-octave tables (2 cm grid) equals the visible count of lidar_particles (1 cm grid) at
+    the octave levels, and decreases with the level."""
+    base = 2e-7
+    t = lidar_strongest.brightest_tables(medium, OS1_BEAM, base, LENGTH_M)
+    assert np.all(np.diff(t.lam, axis=1) <= 1e-12) and np.all(np.diff(t.lam, axis=0) >= -1e-12)
+    assert np.all(np.abs(t.lam[:, -1]) < 1e-15)              # the top level lies above every particle's return
+    for octave in (0, 3, 6):
+        table = lidar_particles.visible_table(medium, OS1_BEAM, base * 2.0 ** octave)
+        for r in (1.0, 4.0, 15.0, 40.0):
+            k = (r - t.start_m) / t.step_m
+            got = np.interp(k, np.arange(len(t.lam)), t.lam[:, 4 * octave])
+            assert got == pytest.approx(float(lam_at(table, r)), rel=5e-3, abs=1e-9)
+
+
+@pytest.mark.parametrize("medium, big_r", [(rain(), 30.0), (snow(), 8.0), (snow(), 60.0)], ids=["rain", "snow-8m",
+                                                                                                 "snow-60m"])
+def test_brightest_particle_follows_its_poisson_law(medium, big_r):
+    """On rays without a target the brightest drawn particle has P(s1 < s) = exp(−Λ(s; R)), Λ from the visible
+    tables of lidar_particles at each s (an independent quadrature, not the sampler's tables): empirical CDF within
+    4 binomial SDs + 0.005 at six levels; rays whose brightest lies below the base level draw nothing."""
+    base = 2e-7
+    n = 40000
+    t = lidar_strongest.brightest_tables(medium, OS1_BEAM, base, LENGTH_M)
+    drawn = lidar_strongest.draw_particles(np.random.default_rng(1), np.full(n, big_r), np.zeros(n),
+                                           np.zeros(n, bool), medium.alpha_per_m, t, 4 * base)
+    brightest = np.zeros(n)
+    np.maximum.at(brightest, drawn.ray, drawn.signal)
+    assert np.all(drawn.range_m <= big_r) and np.all(drawn.range_m >= OS1_BEAM.overlap_start_m)
+    assert np.mean(brightest == 0) == pytest.approx(math.exp(-lam_at(lidar_particles.visible_table(
+        medium, OS1_BEAM, base), big_r)), abs=4 / math.sqrt(n) + 0.005)
+    top = float(np.quantile(brightest[brightest > 0], 0.99))
+    for s in base * (top / base) ** np.linspace(0.1, 0.9, 6):
+        p = math.exp(-float(lam_at(lidar_particles.visible_table(medium, OS1_BEAM, s), big_r)))
+        assert np.mean(brightest < s) == pytest.approx(p, abs=4 * math.sqrt(p * (1 - p) / n) + 0.005), s
+
+
+def test_a_ray_draws_down_to_its_cut_and_against_its_target():
+    """Below its first-drawn (highest-ranked) particle s1 a ray draws down to ℓ 2^(⌊log2(s1/ℓ)⌋ − 1) (between s1/4
+    and s1/2) and no further — s1 is the brightest drawn but where the largest particle at its range caps it (a
+    range from the last cells of a band's inverse table: < 0.1 %); a ray with a bright target draws only when a
+    particle reaches its own level ℓ 2^⌊log2(S_t/T)⌋ (at most ℓ 2^11)."""
+    medium, base, threshold = snow(), 2e-7, 4e-7
+    t = lidar_strongest.brightest_tables(medium, OS1_BEAM, base, LENGTH_M)
+    n = 20000
+    ranges = np.full(n, 40.0)
+    target = np.where(np.arange(n) % 2 == 0, 0.0, 3e-3 * np.exp(2 * medium.alpha_per_m * 40.0))  # S_t = 3e-3
+    drawn = lidar_strongest.draw_particles(np.random.default_rng(2), ranges, target, target > 0,
+                                           medium.alpha_per_m, t, threshold)
+    brightest = np.zeros(n)
+    np.maximum.at(brightest, drawn.ray, drawn.signal)
+    cut = base * 2.0 ** (np.floor(np.log2(brightest[drawn.ray] / base)) - 1)
+    assert np.mean(drawn.signal >= cut * (1 - 1e-9)) > 0.999
+    j = min(math.floor(math.log2(3e-3 / threshold)), lidar_strongest.OWN_LEVELS - 1)        # 11
+    with_target = np.flatnonzero(target > 0)
+    assert np.mean(brightest[with_target][brightest[with_target] > 0] >= base * 2.0 ** j) > 0.999
+    assert np.all(drawn.level[with_target][brightest[with_target] == 0] == j)
+    assert 0 < np.mean(brightest[with_target] > 0) < 0.5 * np.mean(brightest[target == 0] > 0)
+    assert np.all(np.diff(drawn.ray) >= 0) and np.all(np.diff(drawn.range_m)[np.diff(drawn.ray) == 0] >= 0)
+
+
+def test_a_drop_covers_at_most_what_the_largest_drop_covers():
+    """Drops never fill the OS1's beam (6 mm against ≥ 9.5 mm): every drawn drop's beam fraction stays below
+    (Dmax / 2w(r))², so a drop in front of a target never hides it."""
+    medium = rain(150.0)
+    t = lidar_strongest.brightest_tables(medium, OS1_BEAM, 1e-8, LENGTH_M)
+    n = 20000
+    drawn = lidar_strongest.draw_particles(np.random.default_rng(3), np.full(n, 80.0), np.zeros(n), np.zeros(n, bool),
+                                           medium.alpha_per_m, t, 1e-7)
+    assert len(drawn.ray) > 1000
+    largest = (medium.d_max_mm * 0.5e-3 / OS1_BEAM.radius_at(drawn.range_m)) ** 2
+    assert np.all(drawn.beam_fraction <= largest * (1 + 1e-4)) and drawn.beam_fraction.max() < 0.4
+
+
+def test_mean_cover_of_the_undrawn_band_against_quadrature():
+    """The shadow of a ray's undrawn particles between ℓ and its level: ∫ (σ_level − σ_ℓ) dr over [R1, R]
+    (:func:`lidar_particles.faint_cross_section_per_m`, by trapezoids on 1 mm) at the ray's level."""
+    medium, base = snow(), 2e-7
+    t = lidar_strongest.brightest_tables(medium, OS1_BEAM, base, LENGTH_M)
+    target = np.array([5e-2, 1e-3, 3e-6])
+    ranges = np.array([20.0, 35.0, 12.0])
+    drawn = lidar_strongest.draw_particles(np.random.default_rng(4), ranges, target * np.exp(2 * medium.alpha_per_m
+                                                                                            * ranges),
+                                           np.ones(3, bool), medium.alpha_per_m, t, 2 * base)
+    r = np.arange(OS1_BEAM.overlap_start_m, 40.0, 0.001)
+    for i in range(3):
+        level = base * 2.0 ** drawn.level[i]
+        sigma = (lidar_particles.faint_cross_section_per_m(medium, OS1_BEAM, level, r)
+                 - lidar_particles.faint_cross_section_per_m(medium, OS1_BEAM, base, r))
+        inside = r <= ranges[i]
+        expected = np.trapezoid(sigma[inside], r[inside])
+        assert drawn.shadow[i] == pytest.approx(expected, rel=2e-3, abs=1e-9)
+
+
+def test_medium_changes_give_new_tables():
+    """The cached tables key on the medium, beam, base level and pulse length."""
+    a = lidar_strongest.brightest_tables(snow(), OS1_BEAM, 2e-7, LENGTH_M)
+    assert lidar_strongest.brightest_tables(snow(), OS1_BEAM, 2e-7, LENGTH_M) is a
+    assert lidar_strongest.brightest_tables(dataclasses.replace(snow(), reflectance=0.5), OS1_BEAM, 2e-7,
+                                            LENGTH_M) is not a
