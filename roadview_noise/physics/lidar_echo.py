@@ -168,36 +168,43 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
                        np.ascontiguousarray(particle_signal_, dtype=np.float64), fraction, out_range, target_signal,
                        shadow, tgt_bg, np.ascontiguousarray(has_target), length, float(threshold), mode == "first",
                        background.cum, level, 1.0 / background.step_m, background.peak, kind, out_range,
-                       out_signal, target_value)
+                       out_signal, target_value, *cluster_scratch(len(particle_ray)))
     return RayReturns(kind, out_range, out_signal, target_value)
+
+
+@jit(inline="always")
+def crest_background(r0, level, at_target, far_at_target, inv_step):       # pragma: no cover - compiled
+    """The background at the crest of a target at range r0: the nearest entry of level ``level`` of ``at_target``
+    (:attr:`BackgroundLevels.at_target`), of ``far_at_target`` beyond it; 0 when that is empty."""
+    last = len(far_at_target) - 1
+    if last < 0:
+        return 0.0
+    crest = int(r0 * inv_step + 0.5)
+    return at_target[level, crest] if crest < at_target.shape[1] else far_at_target[min(crest, last)]
 
 
 @jit
 def _target_returns(target_signal, target_range_m, has_target, shadow, at_target, far_at_target, ray_level,
                     inv_step, threshold):       # pragma: no cover - compiled
     """Per ray, the result without particles: the target's pulse (0 without a target), the background at its crest
-    (nearest entry of ``at_target`` of the ray's level — 0 when ``ray_level`` is empty —, of ``far_at_target``
-    beyond it, none when empty), the return signal ``S_t (1 − min(1, shadow)) + B`` (no
-    shadow when ``shadow`` is empty), its kind (TARGET at or above the threshold) and range."""
+    (:func:`crest_background` at the ray's level — 0 when ``ray_level`` is empty), the return signal
+    ``S_t (1 − min(1, shadow)) + B`` (no shadow when ``shadow`` is empty), its kind (TARGET at or above the
+    threshold) and range."""
     n = len(target_signal)
     pulse = np.zeros(n)
     background = np.zeros(n)
     signal = np.zeros(n)
     kind = np.zeros(n, np.uint8)
     out_range = target_range_m.copy()
-    near = at_target.shape[1]
-    last = len(far_at_target) - 1
     levels = len(ray_level) > 0
     for i in range(n):
         if not has_target[i]:
             continue
         pulse[i] = target_signal[i]
         s = target_signal[i] * (1.0 - min(shadow[i], 1.0)) if len(shadow) else target_signal[i]
-        if last >= 0:
-            crest = int(target_range_m[i] * inv_step + 0.5)
-            background[i] = at_target[ray_level[i] if levels else 0, crest] if crest < near \
-                else far_at_target[min(crest, last)]
-            s += background[i]
+        background[i] = crest_background(target_range_m[i], ray_level[i] if levels else 0, at_target, far_at_target,
+                                         inv_step)
+        s += background[i]
         signal[i] = s
         if s >= threshold:
             kind[i] = TARGET
@@ -363,108 +370,110 @@ def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, fir
     return t_sig, t_range, True
 
 
-@jit
+@jit(error_model="numpy", _nrt=False)
 def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_shadow, t_background, has_target, length,
                    threshold, first_mode, bg_levels, ray_level, inv_step, bg_peaks, kind, out_range, out_signal,
-                   t_value):  # pragma: no cover
-    """:func:`select_returns` on the rays with particles, written in place into ``kind``, ``out_range``,
-    ``out_signal`` and ``t_value`` (the target's own value: shadowed pulse plus background, or the summed peak when
-    its cluster keeps it in place) (``t_range`` may be ``out_range``: each ray reads its target first; no shadowing when
-    ``p_fraction`` is empty). ``t_signal``: the targets' pulses before shadowing, ``t_shadow`` a mean beam cover per
-    ray (or empty), ``t_background`` the background at their crests;
-    ``bg_levels``, ``inv_step``, ``bg_peaks``: the :class:`BackgroundLevels`, ``ray_level`` each ray's (empty: 0).
+                   t_value, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max):  # pragma: no cover
+    """:func:`select_returns` on the rays with particles (:func:`ray_return` per ray), written in place into
+    ``kind``, ``out_range``, ``out_signal`` and ``t_value`` (``t_range`` may be ``out_range``: each ray reads its
+    target first). ``t_signal``: the targets' pulses before shadowing, ``t_shadow`` a mean beam cover per ray (or
+    empty), ``t_background`` the background at their crests; ``bg_levels``, ``inv_step``, ``bg_peaks``: the
+    :class:`BackgroundLevels`, ``ray_level`` each ray's (empty: 0); the rest scratch space
+    (:func:`cluster_scratch`). Compiled without reference counting (``_nrt=False``: it allocates nothing), so that
+    the inlined per-ray functions cost no atomic operations on their array arguments."""
+    n = len(p_ray)
+    mean_shadow = len(t_shadow) > 0
+    levels = len(ray_level) > 0
+    i = 0
+    while i < n:
+        ray = p_ray[i]
+        j = i + 1
+        while j < n and p_ray[j] == ray:
+            j += 1
+        level = ray_level[ray] if levels else 0
+        kind[ray], out_range[ray], out_signal[ray], t_value[ray] = ray_return(
+            p_range, p_signal, p_fraction, i, j, has_target[ray], t_range[ray], t_signal[ray],
+            t_shadow[ray] if mean_shadow else 0.0, t_background[ray], length, threshold, first_mode, bg_levels, level,
+            inv_step, bg_peaks[level], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+        i = j
+
+
+def cluster_scratch(particles: int) -> tuple[np.ndarray, ...]:
+    """Scratch space of :func:`ray_return` for rays of up to ``particles`` particles: contributions (range, signal,
+    phase cosine and sine), clusters (first contribution, sum, strongest member)."""
+    size = particles + 1
+    return (np.empty(size), np.empty(size), np.empty(size), np.empty(size), np.empty(size + 1, np.intp),
+            np.empty(size), np.empty(size))
+
+
+@jit(inline="always")
+def ray_return(p_range, p_signal, p_fraction, lo, hi, tgt, r0, t_pulse, shadow, t_bg, length, threshold, first_mode,
+               bg_levels, level, inv_step, bg_peak, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max
+               ):       # pragma: no cover - compiled
+    """:func:`select_returns` on one ray: (kind, range, value, the target's value) from its particles ``lo … hi−1``
+    (sorted by range; beam fractions ``p_fraction``, or none when empty) in front of its target (``tgt``: whether it
+    has one, at ``r0`` with pulse ``t_pulse``, mean beam cover ``shadow`` of undrawn particles, background ``t_bg`` at
+    its crest); ``bg_levels``, ``level``, ``bg_peak``: the ray's :class:`BackgroundLevels` entry; the rest scratch
+    space (:func:`cluster_scratch`). The target's value is its shadowed pulse plus background, or the summed peak when
+    its cluster keeps it in place.
 
     A cluster's peak lies between its strongest member and the sum of its members plus the background's peak: a ray
     whose particles sum below what they must beat (the target or the threshold) and do not overlap the target's pulse
     keeps the target result, and only clusters whose sum reaches the threshold and (strongest) the best lower bound
     of the ray are maximised exactly."""
-    n = len(p_ray)
+    total = 0.0
     shadowing = len(p_fraction) > 0
-    mean_shadow = len(t_shadow) > 0
-    levels = len(ray_level) > 0
-    cr = np.empty(n + 1)                               # one ray's contributions (particles, target): range, signal
-    ca = np.empty(n + 1)
-    cos_buf = np.empty(n + 1)
-    sin_buf = np.empty(n + 1)
-    c_lo = np.empty(n + 2, np.intp)                    # its clusters: first contribution, sum, strongest member
-    c_sum = np.empty(n + 1)
-    c_max = np.empty(n + 1)
-    i = 0
-    while i < n:
-        ray = p_ray[i]
-        total = p_signal[i]
-        shadow = p_fraction[i] if shadowing else 0.0
-        if mean_shadow:
-            shadow += t_shadow[ray]
-        j = i + 1
-        while j < n and p_ray[j] == ray:               # one pass: the ray's end, total signal and shadowing
-            total += p_signal[j]
-            if shadowing:
-                shadow += p_fraction[j]
-            j += 1
-        tgt = has_target[ray]
-        r0 = t_range[ray]
-        level = ray_level[ray] if levels else 0
-        bg_peak = bg_peaks[level]
-        t_raw = t_signal[ray] * (1.0 - min(1.0, shadow)) if tgt else 0.0
-        t_sig = t_raw + t_background[ray] if tgt else 0.0
-        bar = max(t_sig, threshold) if tgt and not first_mode else threshold
-        t_value[ray] = t_sig
-        total += bg_peak
-        if total < bar and not (tgt and r0 - p_range[j - 1] < length):
-            out_signal[ray] = t_sig                    # the particles change nothing but the shadowing
-            kind[ray] = TARGET if tgt and t_sig >= threshold else NO_RETURN
-            i = j
-            continue
-        m = j - i
-        if m == 1:                                     # one particle (the most common case)
-            best_val, best_at, best_tgt = _one_particle(p_range[i], p_signal[i], r0, t_raw, t_sig, t_background[ray],
-                                                        tgt, length, threshold, first_mode, bg_levels, level,
-                                                        inv_step)
-        else:
-            for k in range(m):
-                cr[k] = p_range[i + k]
-                ca[k] = p_signal[i + k]
-            if tgt:
-                cr[m] = r0
-                ca[m] = t_raw
-                m += 1
-            n_cl = 0                                   # clusters: consecutive contributions closer than L
-            for k in range(m):
-                if k == 0 or cr[k] - cr[k - 1] >= length:
-                    c_lo[n_cl] = k
-                    c_sum[n_cl] = 0.0
-                    c_max[n_cl] = 0.0
-                    n_cl += 1
-                c_sum[n_cl - 1] += ca[k]
-                c_max[n_cl - 1] = max(c_max[n_cl - 1], ca[k])
-            c_lo[n_cl] = m
-            need = threshold
-            if not first_mode:
-                for c in range(n_cl):
-                    need = max(need, c_max[c])
-            best_val = -1.0
-            best_at = 0.0
-            best_tgt = False
+    for k in range(lo, hi):                            # the ray's total signal and shadowing
+        total += p_signal[k]
+        if shadowing:
+            shadow += p_fraction[k]
+    t_raw = t_pulse * (1.0 - min(1.0, shadow)) if tgt else 0.0
+    t_sig = t_raw + t_bg if tgt else 0.0
+    bar = max(t_sig, threshold) if tgt and not first_mode else threshold
+    total += bg_peak
+    if total < bar and not (tgt and r0 - p_range[hi - 1] < length):
+        return (TARGET if tgt and t_sig >= threshold else NO_RETURN), r0, t_sig, t_sig   # only the shadowing changes
+    m = hi - lo
+    if m == 1:                                         # one particle (the most common case)
+        best_val, best_at, best_tgt = _one_particle(p_range[lo], p_signal[lo], r0, t_raw, t_sig, t_bg, tgt, length,
+                                                    threshold, first_mode, bg_levels, level, inv_step)
+    else:
+        for k in range(m):
+            cr[k] = p_range[lo + k]
+            ca[k] = p_signal[lo + k]
+        if tgt:
+            cr[m] = r0
+            ca[m] = t_raw
+            m += 1
+        n_cl = 0                                       # clusters: consecutive contributions closer than L
+        for k in range(m):
+            if k == 0 or cr[k] - cr[k - 1] >= length:
+                c_lo[n_cl] = k
+                c_sum[n_cl] = 0.0
+                c_max[n_cl] = 0.0
+                n_cl += 1
+            c_sum[n_cl - 1] += ca[k]
+            c_max[n_cl - 1] = max(c_max[n_cl - 1], ca[k])
+        c_lo[n_cl] = m
+        need = threshold
+        if not first_mode:
             for c in range(n_cl):
-                if c_sum[c] + bg_peak < need:
-                    continue                           # can neither be detected first nor win a detection
-                val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
-                val += background_at(at + length / 2, r0, bg_levels, level, inv_step, length)
-                own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
-                if own:
-                    at = cr[m - 1]
-                if val > best_val or (first_mode and val >= threshold):
-                    best_val, best_at, best_tgt = val, at, own
-                    if first_mode and val >= threshold:
-                        break
-        if best_val >= threshold:
-            kind[ray] = TARGET if best_tgt else WEATHER
-            out_range[ray] = best_at
-            out_signal[ray] = best_val
-            if best_tgt:
-                t_value[ray] = best_val
-        else:
-            kind[ray] = NO_RETURN
-        i = j
-
+                need = max(need, c_max[c])
+        best_val = -1.0
+        best_at = 0.0
+        best_tgt = False
+        for c in range(n_cl):
+            if c_sum[c] + bg_peak < need:
+                continue                               # can neither be detected first nor win a detection
+            val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
+            val += background_at(at + length / 2, r0, bg_levels, level, inv_step, length)
+            own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
+            if own:
+                at = cr[m - 1]
+            if val > best_val or (first_mode and val >= threshold):
+                best_val, best_at, best_tgt = val, at, own
+                if first_mode and val >= threshold:
+                    break
+    if best_val < threshold:
+        return NO_RETURN, r0, t_sig, t_sig
+    return (TARGET if best_tgt else WEATHER), best_at, best_val, best_val if best_tgt else t_sig

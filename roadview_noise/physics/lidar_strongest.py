@@ -37,10 +37,13 @@ from functools import lru_cache
 import numpy as np
 
 from .compiled import jit
-from .lidar_echo import BackgroundLevels, RayReturns, SoftBackground, select_returns
+from .lidar_detection import outshone, weather_decision, without_faint
+from .lidar_echo import NO_RETURN, TARGET, WEATHER, BackgroundLevels, RayReturns, SoftBackground, cluster_scratch, \
+    crest_background, ray_return
 from .lidar_medium import pulse_length_m
 from .lidar_particles import BACKGROUND_STEP_M, TABLE_MAX_RANGE_M, Beam, ParticleMedium, faint_background, \
     faint_backscatter_per_m, faint_cross_section_per_m, scratch_buffer, table_lerp, visibility_diameter_mm
+from .lidar_rays import Rays
 
 LEVELS_PER_OCTAVE = 4           # Λ tables: levels ℓ 2^(g/4)
 RANGE_STEP_M = 0.02             # Λ tables: range step
@@ -70,6 +73,17 @@ class BrightestTables:
     full: np.ndarray
     cover: np.ndarray
     background: BackgroundLevels
+
+    @property
+    def level_signal(self) -> np.ndarray:
+        """The levels ``s_g = ℓ 2^(g/4)``."""
+        return self.base_level * 2.0 ** (np.arange(self.lam.shape[1]) / LEVELS_PER_OCTAVE)
+
+    @property
+    def band_scale(self) -> np.ndarray:
+        """Per level band, quantile index of :attr:`inv` per unit of Λ."""
+        q = self.inv.shape[1] - 1
+        return np.where(self.band_total > 0, q / np.maximum(self.band_total, 1e-300), 0.0)
 
 
 @lru_cache(maxsize=4)
@@ -111,18 +125,78 @@ def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, leng
                            np.stack([full, largest]), cover, background)
 
 
-def strongest_returns(rng: np.random.Generator, ray_range_m: np.ndarray, signal: np.ndarray, has_target: np.ndarray,
-                      medium: ParticleMedium, beam: Beam, base_level: float, threshold: float, weakest: float,
-                      tau_h_s: float) -> tuple[RayReturns, int]:
-    """Per ray the strongest-return candidate among its particles and its target (module doc;
-    :func:`lidar_echo.select_returns`): kind (TARGET, WEATHER, NO_RETURN below ``weakest``), apparent range, value,
-    and the target's own value. ``signal``: the targets' received signal before the weather (units of K);
-    ``threshold``: the receiver's, for the own levels. Returns the candidates and the number of particles drawn."""
-    tables = brightest_tables(medium, beam, float(base_level), float(pulse_length_m(tau_h_s)))
-    drawn = draw_particles(rng, ray_range_m, signal, has_target, medium.alpha_per_m, tables, threshold)
-    return select_returns(drawn.ray, drawn.range_m, drawn.signal, ray_range_m, drawn.target, has_target, tau_h_s,
-                          weakest, "strongest", drawn.beam_fraction, tables.background, drawn.shadow,
-                          drawn.level), len(drawn.ray)
+def strongest_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedium, beam: Beam,
+                      base_level: float) -> tuple[RayReturns, int]:
+    """Per ray of ``rays`` its strongest return among its particles and its target, detected (module doc): what
+    :func:`draw_particles`, :func:`lidar_echo.select_returns` (candidates weaker than the receiver's
+    :attr:`~receiver.Receiver.weakest_return` are none) and :func:`lidar_detection.detect` give, in one compiled pass
+    over the rays (:func:`_strongest`: no particle arrays, each ray's noise drawn when its candidate is known).
+    ``base_level``: ℓ (units of K). Returns the returns and the number of particles drawn."""
+    tau_h_s = rays.profile.pulse_half_power_width_s
+    length = float(pulse_length_m(tau_h_s))
+    tables = brightest_tables(medium, beam, float(base_level), length)
+    bg = tables.background
+    rx = rays.receiver
+    n = len(rays.range_m)
+    kind, out_range, out_signal = np.zeros(n, np.uint8), np.empty(n), np.empty(n)
+    drawn = _strongest(
+        rng, np.ascontiguousarray(rays.range_m, dtype=np.float64), np.ascontiguousarray(rays.signal, dtype=np.float64),
+        np.ascontiguousarray(rays.has_target, dtype=bool), medium.alpha_per_m, float(rx.threshold),
+        float(rx.weakest_return), tables.base_level, tables.start_m, tables.step_m, tables.lam, tables.inv,
+        tables.band_scale, tables.level_signal, tables.full, tables.cover, bg.cum, bg.peak, bg.at_target,
+        bg.far_at_target, 1.0 / bg.step_m, length, float(rays.profile.overlap_start_m), rx.pulse_rise_m,
+        *rx.kernel_params, kind, out_range, out_signal, np.empty(MAX_DRAWN), np.empty(MAX_DRAWN), np.empty(MAX_DRAWN),
+        *cluster_scratch(MAX_DRAWN))
+    return without_faint(rays, RayReturns(kind, out_range, out_signal)), int(drawn)
+
+
+@jit(error_model="numpy", _nrt=False)
+def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, base, r1, step, lam, inv, band_scale,
+               s_level, full, cover, bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range, rise_m,
+               spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
+               out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
+               c_max):       # pragma: no cover - compiled
+    """:func:`strongest_returns` ray by ray: the particles (:func:`draw_ray`), the candidate (:func:`lidar_echo
+    .ray_return`, rays without particles: the target shadowed by the undrawn ones, plus the background at its crest)
+    and the receiver's decision (:func:`lidar_detection.outshone`, :func:`lidar_detection.weather_decision`; three
+    uniforms per measured candidate), written to ``kind``, ``out_range``, ``out_signal`` (``kind`` zeroed); the rest
+    scratch space. Returns the number of particles drawn. Compiled without reference counting (it allocates
+    nothing): the inlined per-ray functions cost no atomic operations on their array arguments."""
+    n = len(ray_range)
+    inv_step = 1.0 / step
+    drawn = 0
+    e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
+    for i in range(n):
+        big_r = ray_range[i]
+        tgt = has_target[i]
+        t_att = signal[i] * math.exp(-2.0 * alpha * big_r) if tgt else 0.0
+        e, m, level, shadow = draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, 1.0 / base, lam, inv,
+                                       band_scale, s_level, full, cover, p_range, p_signal, p_fraction, 0)
+        drawn += m
+        t_bg = crest_background(big_r, level, bg_at_target, bg_far, bg_inv_step) if tgt else 0.0
+        if m == 0:
+            value = t_att * (1.0 - min(shadow, 1.0)) + t_bg if tgt else 0.0
+            c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
+        else:
+            c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
+                                               length, weakest, False, bg_cum, level, bg_inv_step, bg_peak[level], cr,
+                                               ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+        out_range[i], out_signal[i] = at, value
+        if c == WEATHER:
+            t = t_value if tgt else 0.0
+            target_ok = tgt and t >= rx_threshold
+            if target_ok and outshone(value, t, gain, floor, excess):
+                kind[i], out_range[i], out_signal[i] = TARGET, big_r, t
+            else:
+                u0, u1, u2 = rng.random(), rng.random(), rng.random()
+                k, r, v = weather_decision(value, at, t, target_ok, big_r, u0, u1, u2, True, min_range, rise_m, spad,
+                                           gain, floor, excess, rx_threshold, background, detect_count,
+                                           background_cdf, below_k)
+                if k != NO_RETURN:
+                    kind[i], out_range[i], out_signal[i] = k, r, v
+        elif c == TARGET and value >= rx_threshold:
+            kind[i] = TARGET
+    return drawn
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,8 +229,8 @@ def draw_particles(rng: np.random.Generator, ray_range_m: np.ndarray, signal: np
                for name in ("ray", "range", "signal", "fraction")]
         start, m = _draw(rng, start, ranges, np.ascontiguousarray(signal, dtype=np.float64),
                          np.ascontiguousarray(has_target, dtype=bool), alpha_per_m, float(threshold),
-                         tables.base_level, tables.start_m, tables.step_m, tables.lam, tables.inv, tables.band_total,
-                         tables.full, tables.cover, target, level, shadow, *buf)
+                         tables.base_level, tables.start_m, tables.step_m, tables.lam, tables.inv, tables.band_scale,
+                         tables.level_signal, tables.full, tables.cover, target, level, shadow, *buf)
         parts.append([b[:m] for b in buf] if start == n and not parts else [b[:m].copy() for b in buf])
         size *= 2
     columns = parts[0] if len(parts) == 1 else [np.concatenate(p) for p in zip(*parts)]
@@ -169,85 +243,88 @@ def _row_lerp(table, k, t, g):       # pragma: no cover - compiled
     return table[k, g] + (table[k + 1, g] - table[k, g]) * t
 
 
-@jit
-def _draw(rng, start, ray_range, signal, has_target, alpha, threshold, base, r1, step, lam, inv, band_total, full,
-          cover, target, ray_level, shadow, p_ray, p_range, p_signal, p_fraction):       # pragma: no cover - compiled
-    """The particles of :func:`strongest_returns` from ray ``start`` on, written to ``p_*`` (sorted by ray, then
-    range) until they are full; per ray its attenuated target ``target``, draw level ``ray_level`` (octaves above
-    the base) and the mean beam cover of its undrawn particles ``shadow``. Returns the next ray to draw (len: all)
-    and the number of particles written. Per ray: its own level; the rank of its brightest particle against Λ at that
-    level (one exponential shared by the rays until one holds a particle: a ray without one leaves it ``E − Λ``,
-    again exponential); the brightest particle's level band by bisection; the particles down to the cut (rank
-    spacings, bands walked down)."""
+@jit(error_model="numpy", _nrt=False)
+def _draw(rng, start, ray_range, signal, has_target, alpha, threshold, base, r1, step, lam, inv, band_scale, s_level,
+          full, cover, target, ray_level, shadow, p_ray, p_range, p_signal, p_fraction):       # pragma: no cover - compiled
+    """The particles of :func:`draw_particles` from ray ``start`` on (:func:`draw_ray`), written to ``p_*`` (sorted by
+    ray, then range) until they are full; per ray its attenuated target ``target``, draw level ``ray_level`` and the
+    mean beam cover of its undrawn particles ``shadow``. Returns the next ray to draw (len: all) and the number of
+    particles written."""
     n = len(ray_range)
-    rows, levels = lam.shape
-    quantiles = inv.shape[1]
-    octaves = cover.shape[0]
     capacity = len(p_ray)
-    s_level = base * 2.0 ** (np.arange(levels) / LEVELS_PER_OCTAVE)
-    band_scale = np.where(band_total > 0, (quantiles - 1) / np.maximum(band_total, 1e-300), 0.0)
     inv_step = 1.0 / step
-    inv_base = 1.0 / base
     m = 0
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     for i in range(start, n):
         if m + MAX_DRAWN > capacity:
             return i, m
-        big_r = ray_range[i]
-        t_att = signal[i] * math.exp(-2.0 * alpha * big_r) if has_target[i] else 0.0
-        target[i] = t_att
-        level = min(max(math.frexp(t_att / threshold)[1] - 1, 0), OWN_LEVELS - 1)
-        first = m
-        x = (big_r - r1) * inv_step
-        if x > 0.0:
-            x = min(x, rows - 1.000001)
-            k = int(x)
-            t = x - k
-            g = min(level * LEVELS_PER_OCTAVE, levels - 1)
-            own = _row_lerp(lam, k, t, g)
-            u = e
-            e -= own                                   # memoryless: what is left of it is the next ray's rank
-            if u < own:
-                e = rng.standard_exponential()
-                hi = levels - 2                        # the brightest's band: the last g with Λ_g(R) > u
-                while g < hi:
-                    mid = (g + hi + 1) >> 1
-                    if _row_lerp(lam, k, t, mid) > u:
-                        g = mid
-                    else:
-                        hi = mid - 1
-                g_cut = 0
-                while True:
-                    la = _row_lerp(lam, k, t, g)
-                    lb = _row_lerp(lam, k, t, g + 1)
-                    r = min(table_lerp(inv, g, rng.random() * (la - lb) * band_scale[g]), big_r)
-                    xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
-                    kr = int(xr)
-                    tr = xr - kr
-                    top = min(s_level[g + 1], full[1, kr] + (full[1, kr + 1] - full[1, kr]) * tr)
-                    s = min(s_level[g] + (top - s_level[g]) * (la - u) / (la - lb), top)
-                    f = s / (full[0, kr] + (full[0, kr + 1] - full[0, kr]) * tr)
-                    j = m
-                    while j > first and p_range[j - 1] > r:     # insertion by range
-                        p_range[j], p_signal[j], p_fraction[j] = p_range[j - 1], p_signal[j - 1], p_fraction[j - 1]
-                        j -= 1
-                    p_range[j], p_signal[j], p_fraction[j] = r, s, f
-                    p_ray[m] = i
-                    if m == first:
-                        level = max(math.frexp(s * inv_base)[1] - 1 - CUT_OCTAVES, 0)
-                        g_cut = level * LEVELS_PER_OCTAVE
-                    m += 1
-                    if m - first == MAX_DRAWN:
-                        break
-                    u += rng.standard_exponential()
-                    while g >= g_cut and _row_lerp(lam, k, t, g) <= u:
-                        g -= 1
-                    if g < g_cut:
-                        break
-            level = min(level, octaves - 1)
-            shadow[i] = cover[level, k] + (cover[level, k + 1] - cover[level, k]) * t
-        else:
-            level = min(level, octaves - 1)
-            shadow[i] = 0.0
-        ray_level[i] = level
+        target[i] = signal[i] * math.exp(-2.0 * alpha * ray_range[i]) if has_target[i] else 0.0
+        e, end, ray_level[i], shadow[i] = draw_ray(rng, e, ray_range[i], target[i], threshold, r1, inv_step, 1.0 / base,
+                                                   lam, inv, band_scale, s_level, full, cover, p_range, p_signal,
+                                                   p_fraction, m)
+        p_ray[m:end] = i
+        m = end
     return n, m
+
+
+@jit(inline="always")
+def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, band_scale, s_level, full, cover,
+             p_range, p_signal, p_fraction, first):       # pragma: no cover - compiled
+    """The particles of one ray of range ``big_r`` and attenuated target ``t_att`` (0: none), written to ``p_*`` from
+    index ``first`` on, sorted by range: its own level; the rank of its brightest particle against Λ at that level
+    (``e``: one exponential shared by the rays until one holds a particle — a ray without one leaves it ``E − Λ``,
+    again exponential); the brightest particle's level band by bisection; the particles down to the cut (rank
+    spacings, bands walked down). Returns (the exponential left for the next ray, the end of its particles, its draw
+    level in octaves above the base, the mean beam cover of its undrawn particles)."""
+    rows, levels = lam.shape
+    octaves = cover.shape[0]
+    level = min(max(math.frexp(t_att / threshold)[1] - 1, 0), OWN_LEVELS - 1)
+    m = first
+    x = (big_r - r1) * inv_step
+    if not x > 0.0:
+        return e, m, min(level, octaves - 1), 0.0
+    x = min(x, rows - 1.000001)
+    k = int(x)
+    t = x - k
+    g = min(level * LEVELS_PER_OCTAVE, levels - 1)
+    own = _row_lerp(lam, k, t, g)
+    u = e
+    e -= own                                           # memoryless: what is left of it is the next ray's rank
+    if u < own:
+        e = rng.standard_exponential()
+        hi = levels - 2                                # the brightest's band: the last g with Λ_g(R) > u
+        while g < hi:
+            mid = (g + hi + 1) >> 1
+            if _row_lerp(lam, k, t, mid) > u:
+                g = mid
+            else:
+                hi = mid - 1
+        g_cut = 0
+        while True:
+            la = _row_lerp(lam, k, t, g)
+            lb = _row_lerp(lam, k, t, g + 1)
+            r = min(table_lerp(inv, g, rng.random() * (la - lb) * band_scale[g]), big_r)
+            xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
+            kr = int(xr)
+            tr = xr - kr
+            top = min(s_level[g + 1], full[1, kr] + (full[1, kr + 1] - full[1, kr]) * tr)
+            s = min(s_level[g] + (top - s_level[g]) * (la - u) / (la - lb), top)
+            f = s / (full[0, kr] + (full[0, kr + 1] - full[0, kr]) * tr)
+            j = m
+            while j > first and p_range[j - 1] > r:     # insertion by range
+                p_range[j], p_signal[j], p_fraction[j] = p_range[j - 1], p_signal[j - 1], p_fraction[j - 1]
+                j -= 1
+            p_range[j], p_signal[j], p_fraction[j] = r, s, f
+            if m == first:
+                level = max(math.frexp(s * inv_base)[1] - 1 - CUT_OCTAVES, 0)
+                g_cut = level * LEVELS_PER_OCTAVE
+            m += 1
+            if m - first == MAX_DRAWN:
+                break
+            u += rng.standard_exponential()
+            while g >= g_cut and _row_lerp(lam, k, t, g) <= u:
+                g -= 1
+            if g < g_cut:
+                break
+    level = min(level, octaves - 1)
+    return e, m, level, cover[level, k] + (cover[level, k + 1] - cover[level, k]) * t

@@ -1,14 +1,8 @@
 """The LiDAR weather pipeline shared by fog, rain and snow (models.md §3.1–§3.4), one stage per module:
 
     cloud → rays (:mod:`lidar_rays`) → medium (:mod:`lidar_medium`, :mod:`lidar_particles`)
-          → received signal (:mod:`lidar_echo`) → detection (:mod:`receiver`) → cloud (:mod:`lidar_output`)
-
-Detection (:func:`detect`): a ray's candidate weather return (fog, a cluster of particle pulses) is measured in the
-receiver's noise — drawn, so weather returns spread in intensity and range and their number varies smoothly with the
-weather's strength — and competes with the ray's target, which keeps its recorded noise (its stored value times the
-transmission: zero weather strength gives the input back). Strongest return: the larger detected value wins; first
-return: a detected weather return in front wins. A return whose stored value would fall below the sensor's lowest
-reading is dropped when the profile says the sensor drops it (``faint_reading: no_return``).
+          → received signal (:mod:`lidar_echo`) → detection (:mod:`lidar_detection`, :mod:`receiver`)
+          → cloud (:mod:`lidar_output`)
 """
 
 from __future__ import annotations
@@ -18,77 +12,14 @@ import math
 import numpy as np
 
 from ..types import PointCloud
-from .compiled import jit
+from .lidar_detection import detect
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, RayReturns, select_returns
-from .lidar_intensity import reported_intensity, rounded_intensity, sensor_constant, too_faint
+from .lidar_intensity import reported_intensity, rounded_intensity, sensor_constant
 from .lidar_medium import HAHNER_OVERLAP_M, hard_target_signal, pulse_length_m, soft_target_signal, soft_target_table
 from .lidar_output import assemble, unchanged
 from .lidar_particles import VISIBLE_FRACTION, Beam, ParticleMedium, draw_level, sample_particles
 from .lidar_rays import Rays, cloud_rays
 from .lidar_strongest import strongest_returns
-from .receiver import measure_one, normal_quantile, range_sd_one
-
-SURE_MARGIN_SD = 8.0       # a weather candidate this many of its noise SDs below the target cannot win (strongest)
-
-
-def detect(rays: Rays, candidates: RayReturns, mode: str, uniforms: np.ndarray, per_ray: bool,
-           rise_m: float | None = None) -> RayReturns:
-    """The receiver's decision on every ray (module doc). ``candidates``: per ray a WEATHER candidate (measured here
-    with :func:`receiver.measure_one`, its range jittered by :func:`receiver.range_sd_one` — leading edge ``rise_m``,
-    default the pulse's — within the overlap start and the ray's range), a TARGET (its value frozen) or nothing;
-    ``target_signal``: the target's own value, the fallback when the weather candidate is not detected or weaker.
-    ``uniforms``: three per ray (``per_ray``: row = ray index, common random numbers across weather strengths) or
-    per weather candidate, in ray order."""
-    rx = rays.receiver
-    kind, out_range, out_signal = _detect(
-        candidates.kind, candidates.range_m, candidates.signal, candidates.target_signal, rays.has_target,
-        rays.range_m, np.ascontiguousarray(uniforms, dtype=np.float64), per_ray, mode == "strongest",
-        float(rays.profile.overlap_start_m), rx.pulse_rise_m if rise_m is None else float(rise_m),
-        *rx.kernel_params)
-    if rays.profile.faint_reading == "no_return":
-        k = sensor_constant(rays.profile)
-        kind[(kind != NO_RETURN) & too_faint(reported_intensity(out_signal * k, out_range, rays.profile),
-                                             rays.profile)] = NO_RETURN
-    return RayReturns(kind, out_range, out_signal)
-
-
-@jit
-def _detect(cand_kind, cand_range, cand_signal, target_signal, has_target, ray_range, u, per_ray, strongest,
-            min_range, rise_m, spad, gain, floor, excess, threshold, background, detect_count, background_cdf,
-            below_k):       # pragma: no cover - compiled
-    """:func:`detect` in one pass: kind, range and signal per ray (from ``spad``: :attr:`Receiver.kernel_params`)."""
-    n = len(cand_kind)
-    kind = np.zeros(n, np.uint8)
-    out_range = cand_range.copy()
-    out_signal = cand_signal.copy()
-    j = 0
-    for i in range(n):
-        c = cand_kind[i]
-        if c == WEATHER:
-            row = i if per_ray else j
-            j += 1
-            s = cand_signal[i]
-            t = target_signal[i] if has_target[i] else 0.0
-            target_ok = has_target[i] and t >= threshold
-            if strongest and target_ok and t > s + SURE_MARGIN_SD * math.sqrt(floor * floor + excess * s / gain):
-                kind[i] = TARGET                       # the weather return cannot outshine it
-                out_range[i] = ray_range[i]
-                out_signal[i] = t
-                continue
-            measured, detected = measure_one(s, u[row, 0], u[row, 1], spad, gain, floor, excess, threshold,
-                                             background, detect_count, background_cdf, below_k)
-            if detected and (not target_ok or not strongest or measured > t):
-                kind[i] = WEATHER
-                r = cand_range[i] + range_sd_one(s, rise_m, gain, floor, excess) * normal_quantile(u[row, 2])
-                out_range[i] = min(max(r, min_range), ray_range[i])
-                out_signal[i] = measured
-            elif target_ok:
-                kind[i] = TARGET
-                out_range[i] = ray_range[i]
-                out_signal[i] = t
-        elif c == TARGET and cand_signal[i] >= threshold:
-            kind[i] = TARGET
-    return kind, out_range, out_signal
 
 
 def diagnostics(counts: dict, rays: Rays, **extra) -> dict:
@@ -172,17 +103,14 @@ def particle_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMediu
     beam = Beam.of(profile)
     level, background = draw_level(medium, beam, rays.threshold, visible_fraction, pulse_length_m(tau_h))
     if mode == "strongest" and not exhaustive:
-        candidates, drawn = strongest_returns(rng, rays.range_m, rays.signal, rays.has_target, medium, beam, level,
-                                              rays.threshold, rays.receiver.weakest_return, tau_h)
-    else:
-        particles = sample_particles(rng, rays.range_m, medium, beam, level, 1.0)
-        weakest = rays.receiver.weakest_return if mode == "strongest" else rays.threshold
-        candidates = select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m,
-                                    hard_target_signal(rays.signal, medium.alpha_per_m, rays.range_m),
-                                    rays.has_target, tau_h, weakest, mode, particles.beam_fraction, background)
-        drawn = len(particles.ray)
+        return strongest_returns(rng, rays, medium, beam, level)
+    particles = sample_particles(rng, rays.range_m, medium, beam, level, 1.0)
+    weakest = rays.receiver.weakest_return if mode == "strongest" else rays.threshold
+    candidates = select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m,
+                                hard_target_signal(rays.signal, medium.alpha_per_m, rays.range_m),
+                                rays.has_target, tau_h, weakest, mode, particles.beam_fraction, background)
     n_weather = int(np.count_nonzero(candidates.kind == WEATHER))
-    return detect(rays, candidates, mode, rng.random((n_weather, 3)), per_ray=False), drawn
+    return detect(rays, candidates, mode, rng.random((n_weather, 3)), per_ray=False), len(particles.ray)
 
 
 def precipitation(cloud: PointCloud, model_id: str, medium: ParticleMedium | None, mode: str,
