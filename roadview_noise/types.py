@@ -340,12 +340,21 @@ class PointCloud:
         if self.grid_shape is not None:
             raise ValueError("select() would break a full range-image grid; use drop() instead")
         idx = np.asarray(mask_or_index)
-        origin = (np.flatnonzero(idx) if idx.dtype == bool else idx.astype(np.int64)) if self.origin is None \
-            else self.origin[idx]
-        return dataclasses.replace(self, positions_m=self.positions_m[idx],
-                                   fields={k: v[idx] for k, v in self.fields.items()},
-                                   origin=origin, effect=None if self.effect is None else self.effect[idx],
-                                   attributes={k: v[idx] for k, v in self.attributes.items()})
+        if idx.dtype == bool:
+            if idx.shape != (len(self),):
+                raise IndexError(f"a mask of shape {idx.shape} cannot select from {len(self)} points")
+            idx = np.flatnonzero(idx)
+        else:
+            idx = idx.astype(np.int64)                  # a copy: it may become the origin
+
+        def take(v: np.ndarray) -> np.ndarray:          # np.take: several times faster than v[idx] on (n, 3) rows
+            return np.take(v, idx, axis=0)
+
+        return dataclasses.replace(self, positions_m=take(self.positions_m),
+                                   fields={k: take(v) for k, v in self.fields.items()},
+                                   origin=idx if self.origin is None else take(self.origin),
+                                   effect=None if self.effect is None else take(self.effect),
+                                   attributes={k: take(v) for k, v in self.attributes.items()})
 
     def drop(self, mask: np.ndarray) -> "PointCloud":
         """Remove the points in ``mask``: deleted from a list, set to no-return (zeros, ring kept; effect REMOVED,
