@@ -49,7 +49,8 @@ class FiringGrid:
 
     ``ring``, ``column``: the empty cells; ``like``: for each, a return fired in the same column (same firing time),
     whose other per-point fields (time stamps) an added return copies; ``columns``: measured column count;
-    ``shift``: per beam, the measured offset of its columns (in steps)."""
+    ``shift``: per beam, the measured offset of its columns (in steps); ``firing_rad``: every point's firing azimuth
+    (:func:`lidar_geometry.firing_azimuth_rad`, by the rings the grid was measured with)."""
 
     ring: np.ndarray
     column: np.ndarray
@@ -57,6 +58,7 @@ class FiringGrid:
     columns: int
     shift: np.ndarray
     profile: LidarProfile
+    firing_rad: np.ndarray
 
     def directions(self, cells: np.ndarray, range_m: np.ndarray | None = None) -> np.ndarray:
         """(len(cells), 3) unit vectors of the empty cells ``cells`` (indices into ``ring``/``column``), times
@@ -216,7 +218,7 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
     m = VIEW_MARGIN_STEPS
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
-    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile)
+    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing)
 
 
 @jit

@@ -24,7 +24,7 @@ import numpy as np
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import firing_grid
-from .lidar_geometry import firing_azimuth_rad, has_return, ring_index, ring_rows
+from .lidar_geometry import has_return, ring_index, ring_rows
 
 SHIFT_SAMPLE = 16384           # returns looked at (evenly strided) to measure each beam's destagger shift
 
@@ -86,7 +86,7 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
         if isinstance(grid, str):
             return f"no firing grid: {grid}"
         columns = grid.columns
-        column = _firing_columns(firing_azimuth_rad(positions, ring, profile), ring, valid, grid.shift, columns)
+        column = _firing_columns(grid.firing_rad, ring, valid, grid.shift, columns)
         source = grid.describe()
         empty_ring, empty_column = grid.ring, grid.column
     ring = np.asarray(ring, dtype=np.int64)
