@@ -331,23 +331,22 @@ class AdditiveLogistic:
 @jit
 def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
     """:meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat beyond the
-    outer ones; found by counting the sorted inner knots at or below the value, which costs no mispredicted
-    branches), its interpolated value added to the logit; then the logistic function."""
+    outer ones), its interpolated value added to the logit; then the logistic function."""
     n = len(f)
-    z = np.empty(n)
-    for i in range(n):
-        logit = intercept
-        for j in range(len(columns)):
-            lo0, hi0 = starts[j], starts[j + 1] - 1
-            x = f[i, columns[j]]
+    z = np.full(n, intercept)
+    for j in range(len(columns)):
+        col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+        for i in range(n):
+            x = f[i, col]
             if not x > knots[lo0]:
-                logit += values[lo0]
+                z[i] += values[lo0]
             elif x >= knots[hi0]:
-                logit += values[hi0]
+                z[i] += values[hi0]
             else:
-                k = lo0                                  # the segment: inner knots at or below x, counted
-                for q in range(lo0 + 1, hi0):            # without branches
-                    k += knots[q] <= x
-                logit += values[k] + (x - knots[k]) * slopes[k]
-        z[i] = 1.0 / (1.0 + math.exp(-logit))
+                k = lo0
+                while knots[k + 1] <= x:
+                    k += 1
+                z[i] += values[k] + (x - knots[k]) * slopes[k]
+    for i in range(n):
+        z[i] = 1.0 / (1.0 + math.exp(-z[i]))
     return z
