@@ -273,8 +273,8 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
     """The particles of one ray of range ``big_r`` and attenuated target ``t_att`` (0: none), written to ``p_*`` from
     index ``first`` on, sorted by range: its own level; the rank of its brightest particle against Λ at that level
     (``e``: one exponential shared by the rays until one holds a particle — a ray without one leaves it ``E − Λ``,
-    again exponential); the brightest particle's level band by bisection; the particles down to the cut (rank
-    spacings, bands walked down). Returns (the exponential left for the next ray, the end of its particles, its draw
+    again exponential); the brightest particle's level band, walked up from the own level (it lies a few quarter
+    octaves above it); the particles down to the cut (rank spacings, bands walked down). Returns (the exponential left for the next ray, the end of its particles, its draw
     level in octaves above the base, the mean beam cover of its undrawn particles)."""
     rows, levels = lam.shape
     octaves = cover.shape[0]
@@ -293,12 +293,8 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
     if u < own:
         e = rng.standard_exponential()
         hi = levels - 2                                # the brightest's band: the last g with Λ_g(R) > u
-        while g < hi:
-            mid = (g + hi + 1) >> 1
-            if _row_lerp(lam, k, t, mid) > u:
-                g = mid
-            else:
-                hi = mid - 1
+        while g < hi and _row_lerp(lam, k, t, g + 1) > u:
+            g += 1
         g_cut = 0
         while True:
             la = _row_lerp(lam, k, t, g)
