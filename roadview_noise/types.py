@@ -363,15 +363,16 @@ class PointCloud:
             return self.select(~mask)
         from .provenance import Effect, mark
 
+        idx = np.flatnonzero(mask)                      # indices: faster than the mask on (n, 3) rows
         pos = self.positions_m.copy()
-        pos[mask] = 0.0
+        pos[idx] = 0.0
         fields = {}
         for k, v in self.fields.items():
             if k == "ring":
                 fields[k] = v
             else:
                 v = v.copy()
-                v[mask] = 0
+                v[idx] = 0
                 fields[k] = v
         return mark(dataclasses.replace(self, positions_m=pos, fields=fields), mask, Effect.REMOVED)
 
