@@ -28,6 +28,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..types import IntensityUnit, LidarProfile
+from .compiled import jit
 
 SIGNAL, REFLECTIVITY = "signal", "reflectivity"    # LidarProfile.intensity_kind
 FAINT_READINGS = ("zero", "lowest", "no_return")    # LidarProfile.faint_reading
@@ -111,6 +112,39 @@ def stored_intensity(reported, profile: LidarProfile) -> np.ndarray:
     step = intensity_step(profile)
     if profile.faint_reading == "lowest" and step > 0:
         out = np.where((out == 0) & (v > 0), step, out)
+    return out
+
+
+def stored_signal(signal, range_m, profile: LidarProfile) -> np.ndarray:
+    """What the sensor stores for returns of signal S (units of the sensor constant K) at apparent range R:
+    :func:`stored_intensity` of :func:`reported_intensity` of ``S·K``, in one compiled pass with the same arithmetic
+    (the same values)."""
+    if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
+        raise _unknown_kind(profile)
+    k = sensor_constant(profile)
+    compensated = profile.intensity_kind == REFLECTIVITY
+    step = intensity_step(profile)
+    return _stored_signal(np.ascontiguousarray(signal, dtype=np.float64),
+                          np.ascontiguousarray(range_m, dtype=np.float64), k, compensated,
+                          white_reading(profile) / k if compensated else 1.0, float(profile.intensity_full_scale),
+                          step, profile.faint_reading == "lowest" and step > 0)
+
+
+@jit
+def _stored_signal(signal, range_m, k, compensated, per, full_scale, step, lowest):       # pragma: no cover - compiled
+    """:func:`stored_signal` per return: reported ``S·K`` (times ``R² · per`` when range-compensated), clipped to
+    full scale, rounded half to even to the step, a positive value rounded to 0 raised to one step when ``lowest``."""
+    out = np.empty(len(signal))
+    for i in range(len(signal)):
+        v = signal[i] * k
+        if compensated:
+            v = v * (range_m[i] * range_m[i]) * per
+        o = full_scale if v > full_scale else v
+        if step != 0.0:
+            o = np.rint(o / step) * step
+        if lowest and o == 0.0 and v > 0.0:
+            o = step
+        out[i] = o
     return out
 
 

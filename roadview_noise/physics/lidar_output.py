@@ -17,7 +17,7 @@ from .compiled import jit
 from .firing_grid import FiringGrid
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
 from .lidar_geometry import RING
-from .lidar_intensity import intensity_resolution, reported_intensity, sensor_constant, stored_intensity
+from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 
 
@@ -124,7 +124,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     """Build the output cloud: targets stay in place, weather returns move the point along its ray (MOVED) or fill an
     empty ray of a full grid (ADDED), rays without a return lose their point (removed from a point list, zeroed in a
     full grid like :meth:`PointCloud.drop`). Intensities are written back in the input's unit, kind and dtype
-    (:func:`reported_intensity` at the return's range) as the sensor stores them (:func:`stored_intensity`); every
+    (:func:`lidar_intensity.stored_signal`: the reported intensity at the return's range as the sensor stores it); every
     other field is the ray's.
 
     Provenance (:mod:`roadview_noise.provenance`): ``origin`` is the input point of the output's ray (NEW for the
@@ -135,8 +135,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     is its empty cell's."""
     profile = rays.profile
     intensity_in = np.asarray(cloud.fields["intensity"])
-    reported = stored_intensity(reported_intensity(returns.signal * sensor_constant(profile), returns.range_m,
-                                                   profile), profile)
+    reported = stored_signal(returns.signal, returns.range_m, profile)
     n = rays.n_points
     cells = np.flatnonzero(returns.kind[n:] == WEATHER)          # a list's empty rays that return weather
     size = n + len(cells)                                         # outputs at most (a list's removed points go)

@@ -183,6 +183,22 @@ def test_stored_intensity_rounds_to_the_sensor_step_and_follows_its_faint_readin
     np.testing.assert_array_equal(lidar_intensity.stored_intensity(np.array([0.1234]), carla_64()), [0.1234])
 
 
+@pytest.mark.parametrize("factory", [os1_128, os1_128_reflectivity, vls_128, kitti_hdl64, carla_64])
+@pytest.mark.parametrize("faint", ["zero", "lowest", "no_return"])
+def test_stored_signal_is_stored_intensity_of_reported_intensity(factory, faint):
+    """The compiled one-pass :func:`stored_signal` gives exactly the values of the NumPy stages it fuses (values
+    rounding to 0, clipped at full scale, zero signals)."""
+    profile = dataclasses.replace(factory(), faint_reading=faint)
+    k = lidar_intensity.sensor_constant(profile)
+    rng = np.random.default_rng(5)
+    r = np.concatenate([rng.uniform(0.5, 200.0, 3000), [0.0, 3.0, 3.0]])
+    reported = np.concatenate([rng.uniform(0.0, 1.5, 3000) * profile.intensity_full_scale, [0.0, 0.0, 1e-9]])
+    signal = lidar_intensity.received_signal(reported, r, profile) / k
+    expected = lidar_intensity.stored_intensity(lidar_intensity.reported_intensity(signal * k, r, profile), profile)
+    assert np.any(expected == 0) and np.any(expected == profile.intensity_full_scale)
+    np.testing.assert_array_equal(lidar_intensity.stored_signal(signal, r, profile), expected)
+
+
 def test_hard_target_two_way_transmission():
     # models.md §3.2 oracle: e^{-2} = 0.1353 at 10 m with the reference α = 0.1
     assert lidar_medium.hard_target_signal(1.0, 0.1, 10.0) == pytest.approx(0.1353, rel=1e-3)
