@@ -111,10 +111,9 @@ def _insert(buf, k, v):       # pragma: no cover - compiled
 
 
 @jit(inline="always")
-def _median8(buf):       # pragma: no cover - compiled
+def _median8(a0, a1, a2, a3, a4, a5, a6, a7):       # pragma: no cover - compiled
     """Median of 8 values: Batcher's odd–even merge sort (19 compare-exchanges) on scalars, only as far as the 4th
     and 5th values need it."""
-    a0, a1, a2, a3, a4, a5, a6, a7 = buf[0], buf[1], buf[2], buf[3], buf[4], buf[5], buf[6], buf[7]
     a0, a1 = min(a0, a1), max(a0, a1)
     a2, a3 = min(a2, a3), max(a2, a3)
     a4, a5 = min(a4, a5), max(a4, a5)
@@ -136,10 +135,48 @@ def _median8(buf):       # pragma: no cover - compiled
 
 
 @jit(inline="always")
+def _ring_median(values, q0, q1, q2, q3, q4, q5, q6, q7):       # pragma: no cover - compiled
+    """:func:`_median8` of ``values`` at the 8 indices."""
+    return _median8(values[q0], values[q1], values[q2], values[q3], values[q4], values[q5], values[q6], values[q7])
+
+
+@jit(inline="always")
+def _ring_cos(pos, q0, q1, q2, q3, q4, q5, q6, q7):       # pragma: no cover - compiled
+    """|n̂·d̂| of a full ring of 8 neighbours (points ``q0 … q7`` in order around the cell, see
+    :func:`_neighbour_features`): n = ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)``, d = Σ v_i; 1 when degenerate."""
+    x0, y0, z0 = pos[q0, 0], pos[q0, 1], pos[q0, 2]
+    x1, y1, z1 = pos[q1, 0], pos[q1, 1], pos[q1, 2]
+    x2, y2, z2 = pos[q2, 0], pos[q2, 1], pos[q2, 2]
+    x3, y3, z3 = pos[q3, 0], pos[q3, 1], pos[q3, 2]
+    x4, y4, z4 = pos[q4, 0], pos[q4, 1], pos[q4, 2]
+    x5, y5, z5 = pos[q5, 0], pos[q5, 1], pos[q5, 2]
+    x6, y6, z6 = pos[q6, 0], pos[q6, 1], pos[q6, 2]
+    x7, y7, z7 = pos[q7, 0], pos[q7, 1], pos[q7, 2]
+    nx = ny = nz = 0.0
+    for xa, ya, za, xm, ym, zm, xb, yb, zb in ((x0, y0, z0, x1, y1, z1, x2, y2, z2),
+                                               (x2, y2, z2, x3, y3, z3, x4, y4, z4),
+                                               (x4, y4, z4, x5, y5, z5, x6, y6, z6),
+                                               (x6, y6, z6, x7, y7, z7, x0, y0, z0)):
+        ex, ey, ez = xb - xa, yb - ya, zb - za
+        nx += ym * ez - zm * ey
+        ny += zm * ex - xm * ez
+        nz += xm * ey - ym * ex
+    dx = ((((((x0 + x1) + x2) + x3) + x4) + x5) + x6) + x7
+    dy = ((((((y0 + y1) + y2) + y3) + y4) + y5) + y6) + y7
+    dz = ((((((z0 + z1) + z2) + z3) + z4) + z5) + z6) + z7
+    return _cos_between(nx, ny, nz, dx, dy, dz)
+
+
+@jit(inline="always")
+def _cos_between(nx, ny, nz, dx, dy, dz):       # pragma: no cover - compiled
+    """|n̂·d̂|, 1 when either vector (nearly) vanishes."""
+    norm = math.sqrt((nx * nx + ny * ny + nz * nz) * (dx * dx + dy * dy + dz * dz))
+    return abs(nx * dx + ny * dy + nz * dz) / norm if norm > 1e-12 else 1.0
+
+
+@jit(inline="always")
 def _median(buf, k):       # pragma: no cover - compiled
-    """Median of ``buf[:k]``: a sorting network when k = 8, insertion sort otherwise."""
-    if k == 8:
-        return _median8(buf)
+    """Median of ``buf[:k]`` (insertion sort; fewer than 8 values)."""
     for j in range(1, k):
         _insert(buf, j, buf[j])
     return buf[k // 2] if k % 2 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
@@ -182,6 +219,15 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
     for i in range(len(at)):
         r = at[i] // columns
         base = at[i] + 2 * r + w + 1
+        out[i, 3] = elevation[r]
+        q0, q1, q2, q3 = padded[base + ring[0]], padded[base + ring[1]], padded[base + ring[2]], padded[base + ring[3]]
+        q4, q5, q6, q7 = padded[base + ring[4]], padded[base + ring[5]], padded[base + ring[6]], padded[base + ring[7]]
+        if min(min(min(q0, q1), min(q2, q3)), min(min(q4, q5), min(q6, q7))) >= 0:      # the full ring (most cells)
+            support[i] = 8
+            out[i, 0] = _ring_median(log_signal, q0, q1, q2, q3, q4, q5, q6, q7)
+            out[i, 1] = math.log(_ring_median(range_m, q0, q1, q2, q3, q4, q5, q6, q7))
+            out[i, 2] = _ring_cos(pos, q0, q1, q2, q3, q4, q5, q6, q7)
+            continue
         k = 0
         for j in range(8):
             p = padded[base + ring[j]]
@@ -204,27 +250,17 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
         if k >= 3:
             px[k], py[k], pz[k] = px[0], py[0], pz[0]          # close the polygon
             nx = ny = nz = 0.0
-            if k == 8:
-                for j in range(0, 8, 2):
-                    ex, ey, ez = px[j + 2] - px[j], py[j + 2] - py[j], pz[j + 2] - pz[j]
-                    nx += py[j + 1] * ez - pz[j + 1] * ey
-                    ny += pz[j + 1] * ex - px[j + 1] * ez
-                    nz += px[j + 1] * ey - py[j + 1] * ex
-            else:
-                for j in range(k):
-                    nx += py[j] * pz[j + 1] - pz[j] * py[j + 1]
-                    ny += pz[j] * px[j + 1] - px[j] * pz[j + 1]
-                    nz += px[j] * py[j + 1] - py[j] * px[j + 1]
+            for j in range(k):
+                nx += py[j] * pz[j + 1] - pz[j] * py[j + 1]
+                ny += pz[j] * px[j + 1] - px[j] * pz[j + 1]
+                nz += px[j] * py[j + 1] - py[j] * px[j + 1]
             dx = dy = dz = 0.0
             for j in range(k):
                 dx += px[j]
                 dy += py[j]
                 dz += pz[j]
-            norm = math.sqrt((nx * nx + ny * ny + nz * nz) * (dx * dx + dy * dy + dz * dz))
-            if norm > 1e-12:
-                cos = abs(nx * dx + ny * dy + nz * dz) / norm
+            cos = _cos_between(nx, ny, nz, dx, dy, dz)
         out[i, 2] = cos
-        out[i, 3] = elevation[r]
     return out, support
 
 
