@@ -12,8 +12,9 @@ CPU time is the steadier figure on a shared machine.
 
 Inputs: sample data generated at full resolution (camera 1936×1464 PNG with its depth EXR, the same frame as a raw
 DNG, the OS1-128 128×2048 grid PCD, radar PCD), and the real OS1-128 scan ``../shared/data/os1-128/scan0.bin``
-(107 647 points, its own beam table) when present. Recipes: camera weather (fog, rain), camera CNF05 (fog →
-windscreen) and CNF13 (low light → rain), LiDAR CNF20 and CNF22, radar CNF25.
+(107 647 points, its own beam table) when present. Recipes: camera weather (fog, rain, snow), CNF05 (fog →
+windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR weather (fog, rain, snow), CNF20, CNF22;
+radar rain and CNF25.
 
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
 """
@@ -43,10 +44,18 @@ SHARED_OS1 = ROOT.parent / "shared" / "data" / "os1-128"
 CASES = {
     "weather-fog": ("camera/", "raw/"),
     "weather-rain": ("camera/",),
+    "weather-snow": ("camera/",),
     "cnf05": ("camera/", "raw/"),
+    "cnf10": ("camera/",),
+    "cnf11": ("camera/",),
+    "cnf12": ("camera/",),
     "cnf13": ("camera/",),
+    "weather-fog-lidar": ("lidar/os1-128-grid/", "real"),
+    "weather-rain-lidar": ("lidar/os1-128-grid/", "real"),
+    "weather-snow-lidar": ("lidar/os1-128-grid/", "real"),
     "cnf20": ("lidar/os1-128-grid/", "real"),
     "cnf22": ("lidar/os1-128-grid/", "real"),
+    "weather-rain-radar": ("radar/",),
     "cnf25-radar": ("radar/",),
 }
 REAL_SCAN = "lidar/os1-128-real/seq/000000.bin"

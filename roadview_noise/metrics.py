@@ -178,30 +178,32 @@ def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
                                edges_m: tuple[float, ...] = DEPTH_BIN_EDGES_M) -> list[float | None]:
     """RMS contrast of the pixels in each depth bin [e_i, e_i+1) (the last bin includes ``inf``); None for a bin
     with fewer than 64 pixels (or no depth: NaN, negative)."""
-    out: list[float | None] = []
-    for mask, n in _depth_masks(depth_m, edges_m):
-        out.append(float(cv2.meanStdDev(grey, mask=mask)[1][0, 0]) if n >= MIN_BIN_PX else None)
-    return out
+    n, total, squares = _depth_bin_sums(np.asarray(grey, np.float32), np.asarray(depth_m, np.float32),
+                                        np.asarray(edges_m, np.float64))
+    return [math.sqrt(max(q / k - (t / k) ** 2, 0.0)) if k >= MIN_BIN_PX else None
+            for k, t, q in zip(n.tolist(), total.tolist(), squares.tolist())]
 
 
-_last_depth: list = [None, None, None, None]   # weakref to a depth map's base, the sampled view, edges, masks
-
-
-def _depth_masks(depth_m: np.ndarray, edges_m: tuple[float, ...]) -> list[tuple[np.ndarray, int]]:
-    """(uint8 mask, pixel count) per depth bin. The frames of a chain share one depth map, so the masks of the last
-    one are kept."""
-    base = depth_m.base if depth_m.base is not None else depth_m
-    ref, view, edges, masks = _last_depth
-    if (ref is not None and ref() is base and edges == edges_m and view.shape == depth_m.shape
-            and view.strides == depth_m.strides and view.ctypes.data == depth_m.ctypes.data):
-        return masks
-    d = np.asarray(depth_m, dtype=np.float32)
-    masks = []
-    for i, (lo, hi) in enumerate(zip(edges_m[:-1], edges_m[1:])):
-        m = (d >= lo) & ((d < hi) | (i == len(edges_m) - 2))             # the last bin includes inf
-        masks.append((m.view(np.uint8), int(np.count_nonzero(m))))
-    _last_depth[:] = [weakref.ref(base), depth_m, edges_m, masks]
-    return masks
+@jit
+def _depth_bin_sums(grey, depth, edges):                        # pragma: no cover - compiled
+    """Per depth bin of ``edges`` (the last one open above): pixel count, sum and sum of squares of ``grey``."""
+    bins = edges.size - 1
+    n = np.zeros(bins, np.int64)
+    total = np.zeros(bins)
+    squares = np.zeros(bins)
+    for i in range(grey.shape[0]):
+        for j in range(grey.shape[1]):
+            d = depth[i, j]
+            if not d >= edges[0]:                                   # NaN, negative
+                continue
+            b = bins - 1
+            while b > 0 and d < edges[b]:
+                b -= 1
+            g = np.float64(grey[i, j])
+            n[b] += 1
+            total[b] += g
+            squares[b] += g * g
+    return n, total, squares
 
 
 def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:

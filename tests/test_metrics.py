@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from roadview_noise.compound import apply_models
-from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, Effect, compare, correspondence, metric_scale, psnr_db, ssim,
-                                    with_effect_codes)
+from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, Effect, compare, correspondence, metric_scale, psnr_db,
+                                    rms_contrast_per_depth_bin, ssim, with_effect_codes)
 from roadview_noise.physics.srgb import decode, encode
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.registry import get_model
@@ -98,6 +98,22 @@ def test_contrast_per_depth_bin():
     assert per_bin[-1] == pytest.approx(code(2000), abs=2e-6)
     assert per_bin[1:-1] == [None, None, None]
 
+
+
+@pytest.mark.parametrize("edges", [DEPTH_BIN_EDGES_M, (2.0, 30.0, 60.0)])
+def test_contrast_per_depth_bin_is_the_std_of_each_bin(edges):
+    """Each bin's RMS contrast is the standard deviation of its pixels (NumPy); pixels without depth (NaN,
+    negative, below the first edge) count nowhere, the last bin takes everything from its lower edge up to inf."""
+    rng = np.random.default_rng(7)
+    grey = rng.random((90, 120), dtype=np.float32)
+    depth = np.cumsum(rng.uniform(-3, 3.2, (90, 120)), axis=1).astype(np.float32)    # coherent, some negative
+    depth[::7, ::5], depth[::11, 3::4] = np.nan, np.inf
+    got = rms_contrast_per_depth_bin(grey, depth, edges)
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (depth >= lo) & ((depth < hi) | (i == len(edges) - 2))
+        expected = float(np.std(grey[sel].astype(np.float64))) if sel.sum() >= 64 else None
+        assert got[i] == (None if expected is None else pytest.approx(expected, rel=1e-9, abs=1e-12))
+    assert sum(v is not None for v in got) >= 2
 
 def test_ssim_matches_scikit_image():
     skm = pytest.importorskip("skimage.metrics")
