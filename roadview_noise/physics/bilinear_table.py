@@ -2,13 +2,13 @@
 
 A lens or windscreen distortion is the same for every frame of a sequence, so the source cell of each output pixel
 and its two fractional offsets are computed once (:meth:`BilinearTable.of`); each frame then only gathers and
-blends in one compiled pass (on a 1936×1464 RGB float32 frame, one core, about half the time of ``cv2.remap``
-with float maps: ``bench/bench_camera_factors.py``). The result is ``cv2.remap(…, INTER_LINEAR)`` with the same
-float maps — which in OpenCV ≥ 4.10 interpolates with exact, unquantised weights — equal within float32 rounding
-(a few ulp; images of 1, 3 or 4 channels — OpenCV blends 2 channels with weights in 1/32-px steps, so those
-stay with ``cv2.remap``). Output pixels whose 2×2 source cell is only partly inside the input (and, unless the border is
-constant, those wholly outside it) are computed by ``cv2.remap`` itself, so every border mode is OpenCV's; with a
-constant border, pixels wholly outside get the border value as ``cv2.remap`` gives it.
+blends in one compiled pass (1936×1464 RGB float32 frame, D3.5 windscreen map, constant border, one core: 15 ms
+against 19–20 ms for ``cv2.remap`` with float maps). The result is ``cv2.remap(…, INTER_LINEAR)`` with the same
+float maps — which since OpenCV 4.11 interpolates with exact, unquantised weights — equal within float32 rounding
+(a few ulp; images of 1, 3 or 4 channels — OpenCV blends 2 channels with weights in 1/32-px steps, so those stay
+with ``cv2.remap``). Output pixels whose 2×2 source cell is only partly inside the input (and, unless the border
+is constant, those wholly outside it) are computed by ``cv2.remap`` itself, so every border mode is OpenCV's; with
+a constant border, pixels wholly outside get the border value as ``cv2.remap`` gives it.
 """
 
 from __future__ import annotations
