@@ -10,7 +10,9 @@ would shadow the project's opencv-contrib build, so install it without dependenc
 
 Run: ``.venv/bin/python bench/bench_camera_factors.py [--repeat N] [--save DIR]`` (ms per frame: minimum and
 median over N frames, after one untimed warm-up frame per case that builds caches and loads numba kernels). The
-batch workers' allocator setting (``roadview_noise.allocator``) is applied, as in a run."""
+batch workers' allocator setting (``roadview_noise.allocator``) is applied, as in a run. The models are timed
+without the manifest metrics that ``augment`` adds by default (``output: {metrics: false}`` turns them off; their
+cost is ``bench/bench_metrics.py``'s subject)."""
 
 from __future__ import annotations
 
@@ -75,7 +77,8 @@ def main() -> None:
         out = {}
 
         def run(i, model=model, data=data, out=out):
-            out["data"], _ = apply_models([model], data, seed=0, key=f"frame{i}", sequence_id="bench")
+            out["data"], _ = apply_models([model], data, seed=0, key=f"frame{i}", sequence_id="bench",
+                                          metrics=False)
 
         t = timed(run, args.repeat)
         print(f"{name:<46} min {1e3 * min(t):6.1f} ms   median {1e3 * statistics.median(t):6.1f} ms")

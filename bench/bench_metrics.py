@@ -1,91 +1,139 @@
-"""Cost of the manifest metrics (issue 18 target: ≤ 10 % of `augment` time).
+"""Cost of the manifest metrics per file in the workers (issue 18 target: the metrics add ≤ 10 % to `augment` time).
 
-1. `augment` with `output.metrics` on and off, 1 worker in this process, on a 6-frame drive at the committed
-   sample-data preset (camera 484×366, LiDAR 128×256 columns) and on 2 frames at full resolution (camera 1936×1464,
-   OS1-128 2048 columns): CPU seconds of the process per output file (read → chain → write), the least of 5
-   alternating runs. CPU time rather than wall time, so other work on a shared machine barely moves the figures.
-2. One `metrics.compare` per step plus one per output, alone (CPU ms), on a full-resolution frame and a 128×2048 grid.
+Each case is one full-resolution input file run through ``runner.process`` — what a worker does per file: read,
+hash, the chain, the metrics, encode, write (staged temporaries, removed after each run) — in this process, set up
+like a worker (one thread per numeric library, the workers' allocator setting), with ``output.metrics`` off and
+on alternately, ``--repeat`` times each after one untimed run of each. Figures per case: the median per-file CPU
+time and wall time, off → on, and the increase in %; and the growth of the ``metrics`` phase of the
+``--profile`` split (the manifest's per-file ``profile``; on minus off, as it also holds the chain's own
+bookkeeping), in ms and as a share of the per-file time with metrics on. The increase also holds what the
+metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches).
+CPU time is the steadier figure on a shared machine.
 
-    .venv/bin/python bench/bench_metrics.py
+Inputs: sample data generated at full resolution (camera 1936×1464 PNG with its depth EXR, the same frame as a raw
+DNG, the OS1-128 128×2048 grid PCD, radar PCD), and the real OS1-128 scan ``../shared/data/os1-128/scan0.bin``
+(107 647 points, its own beam table) when present. Recipes: camera weather (fog, rain, snow), CNF05 (fog →
+windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR weather (fog, rain, snow), CNF20, CNF22;
+radar rain and CNF25.
+
+    .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
 """
 
 from __future__ import annotations
 
-import tempfile
-import time
-from pathlib import Path
+from roadview_noise.executor import worker_setup
 
-import yaml
+worker_setup()      # before numpy/cv2/numba load: one thread each, as in a worker
 
-from roadview_noise.compound import apply_models
-from roadview_noise.dataset import load
-from roadview_noise.metrics import compare
-from roadview_noise.recipe import load_recipe
-from roadview_noise.runner import build_models, plan, run
-from roadview_noise.sampledata.generate import generate
+import argparse  # noqa: E402
+import shutil  # noqa: E402
+import statistics  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import yaml  # noqa: E402
+
+from roadview_noise.recipe import load_recipe  # noqa: E402
+from roadview_noise.runner import RunContext, plan, process  # noqa: E402
+from roadview_noise.sampledata.generate import generate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-RECIPES = ["cnf10", "cnf16", "cnf20", "cnf22", "cnf25-radar"]
-REPEATS = 5
+SHARED_OS1 = ROOT.parent / "shared" / "data" / "os1-128"
+#: recipe → the inputs it is timed on (folders of the generated tree; "real" = the real OS1-128 scan)
+CASES = {
+    "weather-fog": ("camera/", "raw/"),
+    "weather-rain": ("camera/",),
+    "weather-snow": ("camera/",),
+    "cnf05": ("camera/", "raw/"),
+    "cnf10": ("camera/",),
+    "cnf11": ("camera/",),
+    "cnf12": ("camera/",),
+    "cnf13": ("camera/",),
+    "weather-fog-lidar": ("lidar/os1-128-grid/", "real"),
+    "weather-rain-lidar": ("lidar/os1-128-grid/", "real"),
+    "weather-snow-lidar": ("lidar/os1-128-grid/", "real"),
+    "cnf20": ("lidar/os1-128-grid/", "real"),
+    "cnf22": ("lidar/os1-128-grid/", "real"),
+    "weather-rain-radar": ("radar/",),
+    "cnf25-radar": ("radar/",),
+}
+REAL_SCAN = "lidar/os1-128-real/seq/000000.bin"
 
 
-def recipe_with_metrics(name: str, on: bool, tmp: Path) -> Path:
+def recipe_file(name: str, metrics: bool, real: bool, tmp: Path) -> Path:
+    """The shipped recipe with ``output.metrics`` set (and, for the real scan, the unit's own beam table)."""
     body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
-    body.setdefault("output", {})["metrics"] = on
-    path = tmp / f"{name}-{on}.yaml"
+    body.setdefault("output", {})["metrics"] = metrics
+    if real:
+        body["inputs"]["lidar_profile"] = str(SHARED_OS1 / "beam_intrinsics.json")
+    path = tmp / f"{name}-{'real' if real else 'gen'}-{metrics}.yaml"
     path.write_text(yaml.safe_dump(body))
     return path
 
 
-def cpu_ms_per_file(recipe: Path, data: Path, out: Path) -> float:
+def run_once(task, ctx: RunContext) -> tuple[float, float, float]:
+    """(CPU s, wall s, metrics phase s) of one ``process`` call; its staged output files are removed."""
     t0 = time.process_time()
-    summary = run(load_recipe(recipe), data, out, workers=1, progress=False, overwrite=True, echo=lambda m: None)
-    return (time.process_time() - t0) / summary.done * 1e3
+    entry = process(task, ctx)
+    cpu = time.process_time() - t0
+    if "error" in entry:
+        raise RuntimeError(f"{task.sample.relpath}: {entry['error']}")
+    for tmp, _ in entry.get("staged", ()):
+        (ctx.out_root / tmp).unlink(missing_ok=True)
+    return cpu, entry["seconds"], entry["profile"]["metrics"]
 
 
-def augment_overhead(data: Path, label: str, tmp: Path) -> None:
-    print(f"\naugment, {label}: CPU ms per file, metrics off → on (least of {REPEATS} runs)")
-    for name in RECIPES:
-        paths = {on: recipe_with_metrics(name, on, tmp) for on in (False, True)}
-        cpu_ms_per_file(paths[True], data, tmp / "warm")                    # kernels compiled and cached
-        times = {False: [], True: []}
-        for _ in range(REPEATS):
-            for on in (False, True):
-                times[on].append(cpu_ms_per_file(paths[on], data, tmp / f"{name}-{on}"))
-        off, on = min(times[False]), min(times[True])
-        print(f"  {name:<12} {off:8.1f} → {on:8.1f}  ({(on / off - 1) * 100:+5.1f} %)")
-
-
-def compare_cost(data: Path) -> None:
-    print("\nmetrics alone (n steps + 1 output comparisons, fresh data objects), CPU ms per file (least of 5)")
-    for name in ("cnf16", "cnf20"):
-        recipe = load_recipe(ROOT / "recipes" / f"{name}.yaml")
-        task = next(t for t in plan(data, recipe) if "grid" in t.sample.relpath or t.sample.modality == "camera")
-        models = build_models(recipe, task)
-        samples = []
-        for _ in range(5):
-            original = load(task.sample, data, recipe)
-            steps = [original]
-            for k in range(1, len(models) + 1):
-                steps.append(apply_models(models[:k], original, seed=recipe.seed, key=task.out_relpath,
-                                          sequence_id=task.sample.sequence_id, metrics=False)[0])
-            t0 = time.process_time()
-            for before, after in zip(steps, steps[1:]):
-                compare(before, after)
-            compare(steps[0], steps[-1])
-            samples.append((time.process_time() - t0) * 1e3)
-        print(f"  {name:<12} {task.sample.relpath:<40} {min(samples[1:]):6.2f}")
+def bench_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
+    real = folder == "real"
+    in_root = roots["real" if real else "gen"]
+    ctxs = {}
+    for on in (False, True):
+        out = tmp / "out" / f"{name}-{folder.strip('/').replace('/', '-')}-{on}"
+        out.mkdir(parents=True, exist_ok=True)
+        ctxs[on] = RunContext(in_root, out, load_recipe(recipe_file(name, on, real, tmp)), profile=True)
+    tasks = [t for t in plan(in_root, ctxs[True].recipe) if real or t.sample.relpath.startswith(folder)]
+    if not tasks:
+        return None
+    task = tasks[0]
+    samples = {False: [], True: []}
+    for on in (False, True):
+        run_once(task, ctxs[on])                                        # warm-up: kernels, caches, tables
+    for _ in range(repeat):
+        for on in (False, True):
+            samples[on].append(run_once(task, ctxs[on]))
+    med = {on: [statistics.median(s[i] for s in samples[on]) * 1e3 for i in range(3)] for on in (False, True)}
+    (cpu0, wall0, metrics0), (cpu1, wall1, metrics1) = med[False], med[True]
+    label = "real OS1-128 scan0.bin" if real else task.sample.relpath
+    return (f"  {name:<12} {label:<38} {cpu0:7.1f} → {cpu1:7.1f} ({(cpu1 / cpu0 - 1) * 100:+5.1f} %)   "
+            f"{wall0:7.1f} → {wall1:7.1f} ({(wall1 / wall0 - 1) * 100:+5.1f} %)   {metrics1 - metrics0:6.1f} "
+            f"({(metrics1 - metrics0) / wall1 * 100:4.1f} %)")
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=7, help="runs per case with metrics off and on (default 7)")
+    ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(CASES)}")
+    args = ap.parse_args()
+    names = args.recipes.split(",") if args.recipes else list(CASES)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        small, full = tmp / "small", tmp / "full"
-        generate(small, frames=6, seed=0, camera_size=(484, 366), lidar_columns=256)
-        generate(full, frames=2, seed=0)
-        augment_overhead(small, "6 frames, camera 484×366, LiDAR 128×256", tmp)
-        augment_overhead(full, "2 frames, camera 1936×1464, LiDAR 128×2048", tmp)
-        compare_cost(full)
+        roots = {"gen": tmp / "full", "real": tmp / "real"}
+        generate(roots["gen"], frames=1, seed=0)
+        if (SHARED_OS1 / "scan0.bin").is_file():
+            (roots["real"] / REAL_SCAN).parent.mkdir(parents=True)
+            shutil.copy(SHARED_OS1 / "scan0.bin", roots["real"] / REAL_SCAN)
+        else:
+            print("(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
+        print(f"per file in the worker, metrics off → on, median of {args.repeat} runs each:")
+        print(f"  {'recipe':<12} {'input':<38} {'CPU ms':^29}   {'wall ms':^29}   metrics phase ms (share)")
+        for name in names:
+            for folder in CASES[name]:
+                if folder == "real" and not (roots["real"] / REAL_SCAN).is_file():
+                    continue
+                line = bench_case(name, folder, roots, tmp, args.repeat)
+                if line:
+                    print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -137,10 +137,10 @@ def _reduce(img: np.ndarray, f: int) -> np.ndarray:
 def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None, int]:
     """(sRGB-encoded grey image 0–1 float32 at the metric scale, depth at the same pixels or None, factor)."""
     if isinstance(frame, RawFrame):
-        s = frame.signal()
-        h, w = s.shape[0] // 2 * 2, s.shape[1] // 2 * 2
+        h, w = frame.shape[0] // 2 * 2, frame.shape[1] // 2 * 2
         f = metric_scale(h // 2, w // 2)
-        y = _reduce(s[:h, :w], 2 * f)                                   # mean of whole CFA cells
+        cells = _reduce(frame.dn[:h, :w], 2 * f)                       # mean DN of whole CFA cells: the signal
+        y = dataclasses.replace(frame, dn=cells).signal()               # is affine in DN, so reduce first
         block = 2 * f
     else:
         f = metric_scale(*frame.shape)
@@ -160,7 +160,7 @@ def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
     grey, depth, f = _grey(frame)
     mean, std = cv2.meanStdDev(grey)
     s = {"grey": grey, "scale": f, "rms_contrast": float(std[0, 0]), "edge_density": edge_density(grey),
-         "mean_level": float(mean[0, 0])}
+         "mean_level": float(mean[0, 0]), "ssim_moments": _ssim_moments(grey)}
     if depth is not None:
         s["depth_contrast"] = rms_contrast_per_depth_bin(grey, depth)
     return s
@@ -178,30 +178,32 @@ def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
                                edges_m: tuple[float, ...] = DEPTH_BIN_EDGES_M) -> list[float | None]:
     """RMS contrast of the pixels in each depth bin [e_i, e_i+1) (the last bin includes ``inf``); None for a bin
     with fewer than 64 pixels (or no depth: NaN, negative)."""
-    out: list[float | None] = []
-    for mask, n in _depth_masks(depth_m, edges_m):
-        out.append(float(cv2.meanStdDev(grey, mask=mask)[1][0, 0]) if n >= MIN_BIN_PX else None)
-    return out
+    n, total, squares = _depth_bin_sums(np.asarray(grey, np.float32), np.asarray(depth_m, np.float32),
+                                        np.asarray(edges_m, np.float64))
+    return [math.sqrt(max(q / k - (t / k) ** 2, 0.0)) if k >= MIN_BIN_PX else None
+            for k, t, q in zip(n.tolist(), total.tolist(), squares.tolist())]
 
 
-_last_depth: list = [None, None, None, None]   # weakref to a depth map's base, the sampled view, edges, masks
-
-
-def _depth_masks(depth_m: np.ndarray, edges_m: tuple[float, ...]) -> list[tuple[np.ndarray, int]]:
-    """(uint8 mask, pixel count) per depth bin. The frames of a chain share one depth map, so the masks of the last
-    one are kept."""
-    base = depth_m.base if depth_m.base is not None else depth_m
-    ref, view, edges, masks = _last_depth
-    if (ref is not None and ref() is base and edges == edges_m and view.shape == depth_m.shape
-            and view.strides == depth_m.strides and view.ctypes.data == depth_m.ctypes.data):
-        return masks
-    d = np.asarray(depth_m, dtype=np.float32)
-    masks = []
-    for i, (lo, hi) in enumerate(zip(edges_m[:-1], edges_m[1:])):
-        m = (d >= lo) & ((d < hi) | (i == len(edges_m) - 2))             # the last bin includes inf
-        masks.append((m.view(np.uint8), int(np.count_nonzero(m))))
-    _last_depth[:] = [weakref.ref(base), depth_m, edges_m, masks]
-    return masks
+@jit
+def _depth_bin_sums(grey, depth, edges):                        # pragma: no cover - compiled
+    """Per depth bin of ``edges`` (the last one open above): pixel count, sum and sum of squares of ``grey``."""
+    bins = edges.size - 1
+    n = np.zeros(bins, np.int64)
+    total = np.zeros(bins)
+    squares = np.zeros(bins)
+    for i in range(grey.shape[0]):
+        for j in range(grey.shape[1]):
+            d = depth[i, j]
+            if not d >= edges[0]:                                   # NaN, negative
+                continue
+            b = bins - 1
+            while b > 0 and d < edges[b]:
+                b -= 1
+            g = np.float64(grey[i, j])
+            n[b] += 1
+            total[b] += g
+            squares[b] += g * g
+    return n, total, squares
 
 
 def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:
@@ -213,20 +215,33 @@ def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:
 def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
     """Mean structural similarity of two grey images (Wang et al. 2004, Eq. 13; Gaussian σ = 1.5, 11×11), over
     the pixels whose window lies inside the image; None if the image is smaller than the window."""
+    return _ssim(a, b, _ssim_moments(a), _ssim_moments(b), data_range)
+
+
+def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Local mean μ and local mean of the square of a grey image over the SSIM window (window inside the image);
+    a frame's are computed once (its summary) for all comparisons it is part of."""
     r = SSIM_RADIUS_PX
-    if min(a.shape) <= 2 * r:
+    if min(x.shape) <= 2 * r:
         return None
-    a = np.asarray(a, np.float32)
-    b = np.asarray(b, np.float32)
+    x = np.asarray(x, np.float32)
+    return _ssim_blur(x), _ssim_blur(x * x)
 
-    def blur(x):
-        return cv2.GaussianBlur(x, (2 * r + 1, 2 * r + 1), SSIM_SIGMA_PX)[r:-r, r:-r]
 
-    mu_a, mu_b = blur(a), blur(b)
+def _ssim_blur(x: np.ndarray) -> np.ndarray:
+    r = SSIM_RADIUS_PX
+    return cv2.GaussianBlur(x, (2 * r + 1, 2 * r + 1), SSIM_SIGMA_PX)[r:-r, r:-r]
+
+
+def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float = 1.0) -> float | None:
+    """:func:`ssim` from the images and their :func:`_ssim_moments`."""
+    if moments_a is None or moments_b is None:
+        return None
+    (mu_a, blur_aa), (mu_b, blur_bb) = moments_a, moments_b
     mu_ab, mu_aa, mu_bb = mu_a * mu_b, mu_a * mu_a, mu_b * mu_b
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
-    num = (2 * mu_ab + c1) * (2 * (blur(a * b) - mu_ab) + c2)
-    den = (mu_aa + mu_bb + c1) * (blur(a * a) - mu_aa + (blur(b * b) - mu_bb) + c2)
+    num = (2 * mu_ab + c1) * (2 * (_ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32)) - mu_ab) + c2)
+    den = (mu_aa + mu_bb + c1) * (blur_aa - mu_aa + (blur_bb - mu_bb) + c2)
     return float(np.mean(num / den, dtype=np.float64))
 
 
@@ -236,7 +251,8 @@ def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
     out: dict[str, Any] = {
         "metric_scale": a["scale"],
         "psnr_db": math.inf if identical else (psnr_db(b["grey"], a["grey"]) if same else None),
-        "ssim": 1.0 if identical else (ssim(b["grey"], a["grey"]) if same else None),
+        "ssim": 1.0 if identical else (_ssim(b["grey"], a["grey"], b["ssim_moments"], a["ssim_moments"]) if same
+                                       else None),
     }
     for k in ("rms_contrast", "edge_density", "mean_level"):
         out[f"{k}_in"], out[f"{k}_out"] = b[k], a[k]
@@ -251,35 +267,59 @@ def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
 
 
 @jit
-def _cloud_pass(positions, codes, values, bin_m, n_bins):       # pragma: no cover - compiled
-    """One pass over a cloud: returns, returns per effect code, farthest return, returns per range bin, sum of
-    ``values`` over returns (NaN values are skipped: their count is the last element of ``counts``), and which
-    points are returns."""
-    counts = np.zeros(6, np.int64)            # returns, KEPT, ATTENUATED, MOVED, ADDED, finite values
+def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins):       # pragma: no cover - compiled
+    """One pass over a cloud: which points are returns, how many, the farthest return's range, returns per range
+    bin — or, when ``known_valid`` (which points are returns) is given (non-empty), none of these — and over the
+    returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all KEPT) and the sum and count
+    of the finite ``values`` (NaN values are skipped)."""
+    n = positions.shape[0]
+    known = known_valid.shape[0] == n and n > 0
+    valid = known_valid if known else np.empty(n, np.bool_)
     hist = np.zeros(n_bins, np.int64)
-    valid = np.zeros(positions.shape[0], np.bool_)
-    total = 0.0
+    counts = np.zeros(4, np.int64)
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
-    inv_bin = 1.0 / bin_m
-    max_r2 = 0.0
-    for i in range(positions.shape[0]):
-        x, y, z = positions[i, 0], positions[i, 1], positions[i, 2]
-        r2 = x * x + y * y + z * z
-        if not (r2 > 0.0 and r2 < np.inf):
-            continue
-        valid[i] = True
-        counts[0] += 1
+    inv_bin, top = 1.0 / bin_m, n_bins - 1
+    returns, max_r2, total, finite = 0, 0.0, 0.0, 0
+    for i in range(n):
+        if known:
+            if not valid[i]:
+                continue
+        else:
+            x, y, z = positions[i, 0], positions[i, 1], positions[i, 2]
+            r2 = x * x + y * y + z * z
+            ok = r2 > 0.0 and r2 < np.inf
+            valid[i] = ok
+            if not ok:
+                continue
+            returns += 1
+            max_r2 = max(max_r2, r2)
+            b = math.sqrt(r2) * inv_bin
+            hist[np.int64(b) if b < top else top] += 1
         c = codes[i] if has_codes else 0
-        if 0 <= c <= 3:
-            counts[1 + c] += 1
-        hist[min(int(math.sqrt(r2) * inv_bin), n_bins - 1)] += 1
-        max_r2 = max(max_r2, r2)
+        if c <= 3:
+            counts[c] += 1
         if has_values:
             v = float(values[i])
             if np.isfinite(v):
                 total += v
-                counts[5] += 1
-    return counts, hist, math.sqrt(max_r2), total, valid
+                finite += 1
+    return (returns, hist, math.sqrt(max_r2), valid), counts, total, finite
+
+
+_last_geometry: list = [None, None, None]   # weakref to a positions array, its (shape, strides, address, bins), result
+
+
+def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int) -> tuple:
+    """:func:`_cloud_pass`. A step that leaves the positions alone (intensity models) hands the same array on:
+    the geometry of the last array is kept and only the attributes are counted again."""
+    ref, key, geometry = _last_geometry
+    now = (positions.shape, positions.strides, positions.ctypes.data, n_bins)
+    if ref is not None and ref() is positions and key == now:
+        return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins)[1:])
+    geometry, counts, total, finite = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M,
+                                                  n_bins)
+    _last_geometry[:] = [weakref.ref(positions), now, geometry]
+    return geometry, counts, total, finite
 
 
 def _cloud_summary(cloud: PointCloud) -> dict:
@@ -291,11 +331,11 @@ def _cloud_summary(cloud: PointCloud) -> dict:
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
     n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
-    counts, hist, max_r, total, valid = _cloud_pass(positions, codes, values, RANGE_BIN_M, n_bins)
+    (returns, hist, max_r, valid), counts, total, finite = _summarise_points(positions, codes, values, n_bins)
     used = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
-    s = {"returns": int(counts[0]), "codes": [int(c) for c in counts[1:5]], "max_range_m": float(max_r),
+    s = {"returns": int(returns), "codes": [int(c) for c in counts], "max_range_m": float(max_r),
          "hist": [int(h) for h in hist[:used]], "radar": radar,
-         "mean_value": float(total / counts[5]) if counts[5] else None,
+         "mean_value": float(total / finite) if finite else None,
          "positions": positions, "valid": valid, "values": values, "effect": codes,
          "grid": cloud.grid_shape is not None}
     if isinstance(cloud.profile, LidarProfile):

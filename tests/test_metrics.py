@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from roadview_noise.compound import apply_models
-from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, Effect, compare, correspondence, metric_scale, psnr_db, ssim,
-                                    with_effect_codes)
-from roadview_noise.physics.srgb import decode
+from roadview_noise.metrics import (DEPTH_BIN_EDGES_M, Effect, compare, correspondence, metric_scale, psnr_db,
+                                    rms_contrast_per_depth_bin, ssim, with_effect_codes)
+from roadview_noise.physics.srgb import decode, encode
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.registry import get_model
 from roadview_noise.types import CameraFrame, CameraProfile, PointCloud, RadarProfile, RawFrame
@@ -99,6 +99,22 @@ def test_contrast_per_depth_bin():
     assert per_bin[1:-1] == [None, None, None]
 
 
+
+@pytest.mark.parametrize("edges", [DEPTH_BIN_EDGES_M, (2.0, 30.0, 60.0)])
+def test_contrast_per_depth_bin_is_the_std_of_each_bin(edges):
+    """Each bin's RMS contrast is the standard deviation of its pixels (NumPy); pixels without depth (NaN,
+    negative, below the first edge) count nowhere, the last bin takes everything from its lower edge up to inf."""
+    rng = np.random.default_rng(7)
+    grey = rng.random((90, 120), dtype=np.float32)
+    depth = np.cumsum(rng.uniform(-3, 3.2, (90, 120)), axis=1).astype(np.float32)    # coherent, some negative
+    depth[::7, ::5], depth[::11, 3::4] = np.nan, np.inf
+    got = rms_contrast_per_depth_bin(grey, depth, edges)
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (depth >= lo) & ((depth < hi) | (i == len(edges) - 2))
+        expected = float(np.std(grey[sel].astype(np.float64))) if sel.sum() >= 64 else None
+        assert got[i] == (None if expected is None else pytest.approx(expected, rel=1e-9, abs=1e-12))
+    assert sum(v is not None for v in got) >= 2
+
 def test_ssim_matches_scikit_image():
     skm = pytest.importorskip("skimage.metrics")
     rng = np.random.default_rng(3)
@@ -125,6 +141,17 @@ def test_metric_scale_leaves_at_most_65536_pixels():
     assert m["metric_scale"] == 7 and m["psnr_db"] == math.inf
     # the box filter averages pixel noise away: the reduced image has far less contrast than single pixels
     assert m["rms_contrast_in"] < 0.05
+
+
+def test_raw_grey_is_the_mean_signal_of_each_cfa_cell():
+    """Reducing the DN before the affine signal conversion gives the grey image of the definition: the mean signal
+    of each 2×2 CFA cell (then sRGB-encoded)."""
+    rng = np.random.default_rng(5)
+    dn = rng.integers(64, 4000, (49, 67)).astype(np.float32)                 # odd: the last row/column is left out
+    raw = RawFrame(dn, "RGGB", 64.0, 4095.0, PROFILE)
+    cells = raw.signal()[:48, :66].reshape(24, 2, 33, 2).mean(axis=(1, 3))
+    grey = np.round(encode(np.clip(cells, 0, 1)) * 65535) / 65535
+    assert compare(raw, raw)["mean_level_in"] == pytest.approx(float(np.mean(grey)), abs=2e-6)
 
 
 def test_raw_frame_metrics():
@@ -193,6 +220,24 @@ def test_drop_on_a_grid_and_per_object_counts():
     m = compare(grid, after)
     assert m["removed"] == 5 and m["points_out"] == 59 and m["kept"] == 59
     assert m["objects"] == {"1": [16, 13], "2": [16, 15], "7": [16, 16]}
+
+
+def test_a_step_that_keeps_the_positions_array_is_summarised_anew():
+    """Intensity models hand the positions array on unchanged; the geometry is kept for it, the intensities and
+    effect codes are counted again, and another array (even equal in value) is summarised afresh."""
+    c = lidar_list()
+    brighter = with_effect_codes(c.with_fields(intensity=c.fields["intensity"] * 2), np.full(100, Effect.ATTENUATED))
+    assert brighter.positions_m is c.positions_m
+    m = compare(c, brighter)
+    assert (m["points_in"], m["points_out"], m["attenuated"], m["kept"]) == (100, 100, 100, 0)
+    assert m["mean_intensity_out"] == pytest.approx(2 * m["mean_intensity_in"])
+    assert m["mean_intensity_change"] == pytest.approx(m["mean_intensity_in"])
+    pos = c.positions_m.copy()
+    pos[:10] = 0.0                                                # ten rays without a return
+    fewer = dataclasses.replace(c, positions_m=pos)
+    m = compare(brighter, fewer)
+    assert (m["points_in"], m["points_out"]) == (100, 90)
+    assert sum(m["points_per_10m_out"]) == 90
 
 
 def test_clouds_without_intensity_or_codes():

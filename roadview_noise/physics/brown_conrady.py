@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .warp import Warp
+from .bilinear_table import TabledWarp
+from .compiled import jit
 
 COEFFICIENTS = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2", "s1", "s2", "s3", "s4")
 NEWTON_ITERATIONS = 30
@@ -38,47 +39,23 @@ class BrownConrady:
         if len(self.coefficients) != len(COEFFICIENTS):
             raise ValueError(f"{len(COEFFICIENTS)} coefficients expected ({', '.join(COEFFICIENTS)})")
 
-    def _radial(self, r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Numerator and denominator of the rational radial factor at r²."""
-        k1, k2, k3, k4, k5, k6 = self.coefficients[:6]
-        return 1 + r2 * (k1 + r2 * (k2 + r2 * k3)), 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-
     def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distorted coordinates of (x, y) in distortion units (float64 arrays)."""
-        p1, p2, s1, s2, s3, s4 = self.coefficients[6:]
-        r2 = x * x + y * y
-        num, den = self._radial(r2)
-        radial = num / den
-        xy2 = 2 * x * y
-        xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) + r2 * (s1 + s2 * r2)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 + r2 * (s3 + s4 * r2)
-        return xd, yd
+        """Distorted coordinates of (x, y) in distortion units (float64 arrays, broadcast)."""
+        return _distort(np.asarray(x, np.float64), np.asarray(y, np.float64), self._c)
 
     def _jacobian(self, x: np.ndarray, y: np.ndarray):
         """Partial derivatives (∂x_d/∂x, ∂x_d/∂y, ∂y_d/∂x, ∂y_d/∂y) in distortion units."""
-        k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 = self.coefficients
-        r2 = x * x + y * y
-        num, den = self._radial(r2)
-        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        radial = num / den
-        dradial = (dnum * den - num * dden) / (den * den)      # d(radial)/d(r²)
-        sx = s1 + 2 * s2 * r2                                  # d(s1 r² + s2 r⁴)/d(r²)
-        sy = s3 + 2 * s4 * r2
-        a = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x + 2 * x * sx
-        b = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y + 2 * y * sx
-        c = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y + 2 * x * sy
-        d = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x + 2 * y * sy
-        return a, b, c, d
+        return _jacobian(x, y, self._c)
+
+    @property
+    def _c(self) -> np.ndarray:
+        return np.asarray(self.coefficients, np.float64)
 
     def pull_map(self, height: int, width: int) -> "LensWarp":
-        """The pull map of an image of ``height`` × ``width`` pixels (float32 maps, output the input size)."""
+        """The pull map of an image of ``height`` × ``width`` pixels (float32 maps, output the input size; each
+        pixel computed in float64 in one compiled pass)."""
         (cx, cy), (fx, fy) = self.centre_px, self.unit_px
-        x = (np.arange(width, dtype=np.float64) - cx) / fx
-        y = (np.arange(height, dtype=np.float64) - cy) / fy
-        xd, yd = self.distort(x[None, :], y[:, None])
-        map_x = (cx + fx * xd).astype(np.float32)
-        map_y = (cy + fy * yd).astype(np.float32)
+        map_x, map_y = _pull_grid(height, width, cx, cy, fx, fy, self._c)
         return LensWarp(map_x, map_y, self)
 
     def undistort_px(self, points_xy: np.ndarray) -> np.ndarray:
@@ -104,17 +81,72 @@ class BrownConrady:
                 break
         xd, yd = self.distort(x, y)
         a, b, c, d = self._jacobian(x, y)
-        num, den = self._radial(x * x + y * y)
+        num, den = _radial(x * x + y * y, self._c)
         # a solution on a folded-over branch of the map (the radial factor or the Jacobian changed sign) is no
         # position any output pixel shows
         ok = (np.hypot((xd - tx) * fx, (yd - ty) * fy) < 1e-4) & (a * d - b * c > 0) & (num / den > 0)
         return np.where(ok[:, None], np.stack([cx + fx * x, cy + fy * y], axis=1), np.nan)
 
 
+# The model's formulas, compiled: each works on scalars and on (broadcast) arrays alike; c = the coefficients in
+# COEFFICIENTS order (float64 array).
+
+@jit
+def _radial(r2, c):                                           # pragma: no cover - compiled
+    """Numerator and denominator of the rational radial factor at r²."""
+    return 1 + r2 * (c[0] + r2 * (c[1] + r2 * c[2])), 1 + r2 * (c[3] + r2 * (c[4] + r2 * c[5]))
+
+
+@jit
+def _distort(x, y, c):                                        # pragma: no cover - compiled
+    p1, p2, s1, s2, s3, s4 = c[6], c[7], c[8], c[9], c[10], c[11]
+    r2 = x * x + y * y
+    num, den = _radial(r2, c)
+    radial = num / den
+    xy2 = 2 * x * y
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * x * x) + r2 * (s1 + s2 * r2)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy2 + r2 * (s3 + s4 * r2)
+    return xd, yd
+
+
+@jit
+def _jacobian(x, y, c):                                       # pragma: no cover - compiled
+    k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 = c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], \
+        c[9], c[10], c[11]
+    r2 = x * x + y * y
+    num, den = _radial(r2, c)
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    radial = num / den
+    dradial = (dnum * den - num * dden) / (den * den)      # d(radial)/d(r²)
+    sx = s1 + 2 * s2 * r2                                  # d(s1 r² + s2 r⁴)/d(r²)
+    sy = s3 + 2 * s4 * r2
+    a = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x + 2 * x * sx
+    b = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y + 2 * y * sx
+    cc = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y + 2 * x * sy
+    d = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x + 2 * y * sy
+    return a, b, cc, d
+
+
+@jit
+def _pull_grid(height, width, cx, cy, fx, fy, c):             # pragma: no cover - compiled
+    """Pull map (map_x, map_y), float32 (height, width): output pixel (u, v) samples (c_x + f_x x_d, c_y + f_y y_d)."""
+    map_x = np.empty((height, width), np.float32)
+    map_y = np.empty((height, width), np.float32)
+    for v in range(height):
+        y = (v - cy) / fy
+        for u in range(width):
+            xd, yd = _distort((u - cx) / fx, y, c)
+            map_x[v, u] = cx + fx * xd
+            map_y[v, u] = cy + fy * yd
+    return map_x, map_y
+
+
 @dataclass(frozen=True, eq=False)
-class LensWarp(Warp):
-    """A :class:`Warp` whose forward map is the exact inverse of its Brown–Conrady pull map (Newton), not the
-    generic fixed-point inversion of the sampled map."""
+class LensWarp(TabledWarp):
+    """A :class:`~roadview_noise.physics.warp.Warp` whose forward map is the exact inverse of its Brown–Conrady
+    pull map (Newton), not the generic fixed-point inversion of the sampled map; it resamples through a bilinear
+    table (:class:`~roadview_noise.physics.bilinear_table.TabledWarp`)."""
 
     distortion: BrownConrady | None = None
 

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 from typing import Iterator
 
-import cv2
 import numpy as np
+
+from .bilinear_table import TabledWarp
 
 PHASES = ((0, 0), (0, 1), (1, 0), (1, 1))
 
@@ -28,16 +29,17 @@ def to_sublattice(x: np.ndarray, y: np.ndarray, phase: tuple[int, int]) -> tuple
             (np.asarray(y, np.float32) - np.float32(i)) * np.float32(0.5))
 
 
-def sublattice_maps(map_x: np.ndarray, map_y: np.ndarray) -> list[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
-    """A pull map in mosaic coordinates as one pull map per 2×2 phase in that phase's sub-lattice coordinates."""
-    return [((i, j), *to_sublattice(map_x[i::2, j::2], map_y[i::2, j::2], (i, j))) for i, j in phases(*map_x.shape)]
+def sublattice_warps(map_x: np.ndarray, map_y: np.ndarray) -> list[tuple[tuple[int, int], TabledWarp]]:
+    """A pull map in mosaic coordinates as one pull map per 2×2 phase in that phase's sub-lattice coordinates
+    (tabled: keep them cached when the map serves many frames)."""
+    return [((i, j), TabledWarp(*to_sublattice(map_x[i::2, j::2], map_y[i::2, j::2], (i, j))))
+            for i, j in phases(*map_x.shape)]
 
 
-def remap_mosaic(plane: np.ndarray, maps: list, *, border: int, fill: float = 0.0) -> np.ndarray:
-    """Resample an (H, W) mosaic per sub-lattice (bilinear) through :func:`sublattice_maps` of a pull map."""
+def remap_mosaic(plane: np.ndarray, warps: list, *, border: int, fill: float = 0.0) -> np.ndarray:
+    """Resample an (H, W) mosaic per sub-lattice (bilinear) through :func:`sublattice_warps` of a pull map."""
     out = np.empty(plane.shape, np.float32)
     plane = np.asarray(plane, np.float32)
-    for (i, j), sx, sy in maps:
-        out[i::2, j::2] = cv2.remap(np.ascontiguousarray(plane[i::2, j::2]), sx, sy, cv2.INTER_LINEAR,
-                                    borderMode=border, borderValue=fill)
+    for (i, j), warp in warps:
+        out[i::2, j::2] = warp.apply(np.ascontiguousarray(plane[i::2, j::2]), border=border, fill=fill)
     return out

@@ -13,7 +13,7 @@ from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...param_checks import point_px
 from ...physics.brown_conrady import COEFFICIENTS, BrownConrady, LensWarp
-from ...physics.mosaic import remap_mosaic, sublattice_maps
+from ...physics.mosaic import remap_mosaic, sublattice_warps
 from ...registry import register
 from ...types import RawFrame
 
@@ -30,9 +30,21 @@ def _lens_warp(distortion: BrownConrady, height: int, width: int) -> LensWarp:
 
 
 @lru_cache(maxsize=4)
-def _mosaic_maps(distortion: BrownConrady, height: int, width: int) -> list:
+def _diagnostics(distortion: BrownConrady, height: int, width: int) -> dict[str, float]:
+    """Fraction of output pixels whose source lies outside the input, largest displacement (px), on a sample grid
+    of about 256 px across (properties of the map alone, so computed once per map)."""
     warp = _lens_warp(distortion, height, width)
-    return sublattice_maps(warp.map_x, warp.map_y)
+    step = max(1, min(height, width) // 256)
+    sx, sy = warp.map_x[::step, ::step], warp.map_y[::step, ::step]
+    outside = (sx < -0.5) | (sx > width - 0.5) | (sy < -0.5) | (sy > height - 0.5)
+    v, u = np.mgrid[0:height:step, 0:width:step]
+    return {"outside_fraction": float(outside.mean()), "max_displacement_px": float(np.hypot(sx - u, sy - v).max())}
+
+
+@lru_cache(maxsize=4)
+def _mosaic_warps(distortion: BrownConrady, height: int, width: int) -> list:
+    warp = _lens_warp(distortion, height, width)
+    return sublattice_warps(warp.map_x, warp.map_y)
 
 
 @register
@@ -109,18 +121,10 @@ class WindscreenCamera(Model):
         h, w = data.shape
         if min(h, w) < 2:
             raise ModelError(f"needs an image of at least 2×2 pixels, got {w}×{h}", model=self.id)
-        warp = self.warp(data, state=state, drawn=drawn)
+        distortion = self.distortion(data)
         border = BORDERS[self.border]
         if isinstance(data, RawFrame):
-            out = remap_mosaic(data.signal(), _mosaic_maps(self.distortion(data), h, w), border=border)
+            out = remap_mosaic(data.signal(), _mosaic_warps(distortion, h, w), border=border)
         else:
-            out = warp.apply(data.signal(), border=border)
-        mx, my = warp.map_x, warp.map_y
-        step = max(1, min(h, w) // 256)
-        sx, sy = mx[::step, ::step], my[::step, ::step]
-        outside = (sx < -0.5) | (sx > w - 0.5) | (sy < -0.5) | (sy > h - 0.5)
-        v, u = np.mgrid[0:h:step, 0:w:step]
-        return data.with_signal(out), {
-            "outside_fraction": float(outside.mean()),
-            "max_displacement_px": float(np.hypot(sx - u, sy - v).max()),
-        }
+            out = _lens_warp(distortion, h, w).apply(data.signal(), border=border)
+        return data.with_signal(out), dict(_diagnostics(distortion, h, w))
