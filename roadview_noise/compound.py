@@ -7,6 +7,7 @@ parameters of its own.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -17,7 +18,7 @@ from .model import Model, Scope, Stage
 from .provenance import follow, step_input
 from .registry import get_model, load_all
 from .seeding import derive_rng
-from .types import SensorData, sensor_kind
+from .types import PointCloud, SensorData, sensor_kind
 
 
 @dataclass(frozen=True)
@@ -132,8 +133,11 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
     step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
     collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
-    input and output."""
+    input and output. A cloud remembers itself as ``recorded`` (the sensor's own data) for the steps that
+    calibrate the sensor on it."""
     records = []
+    if isinstance(data, PointCloud) and data.recorded is None and len(models) > 1:
+        data = dataclasses.replace(data, recorded=data)
     for i, model in enumerate(models):
         if model.sensor != sensor_kind(data):
             raise ModelError(f"acts on {model.sensor} data, got {sensor_kind(data)} data", model=model.id)

@@ -306,7 +306,10 @@ class PointCloud:
     Provenance (:mod:`roadview_noise.provenance`), aligned with the points and never written as fields:
     ``origin`` int64 index of the point each point descends from (−1: new; None: identity), ``effect`` uint8
     :class:`~roadview_noise.provenance.Effect` codes (None: none reported), ``attributes`` per-point arrays the chain
-    knows but does not write. :meth:`select`, :meth:`drop` and :meth:`concat` keep all of them aligned."""
+    knows but does not write. :meth:`select`, :meth:`drop` and :meth:`concat` keep all of them aligned.
+
+    ``recorded``: the chain's input as the sensor recorded it (set by :func:`~roadview_noise.compound.apply_models`):
+    what a step calibrates the sensor on, rather than on what earlier steps made of the data."""
 
     positions_m: np.ndarray
     fields: Mapping[str, np.ndarray]
@@ -318,6 +321,7 @@ class PointCloud:
     origin: np.ndarray | None = None
     effect: np.ndarray | None = None
     attributes: Mapping[str, np.ndarray] = field(default_factory=dict)
+    recorded: PointCloud | None = None
 
     def __post_init__(self):
         n = len(self.positions_m)

@@ -93,7 +93,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Ra
     Intensities are read with :func:`lidar_intensity.resolve_profile` (a warning is printed once per process and
     kept in ``notes``); rays without a return get the profile's max range as ``empty_rays`` says (module doc), a
     point list's empty rays appended after its points (a list without a regular firing grid keeps only its points,
-    and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest recorded return."""
+    and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest return of the cloud as
+    recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive)."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
         raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
@@ -116,9 +117,15 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Ra
     compensated = profile.intensity_kind == REFLECTIVITY
     fill = empty_rays != "ignore"
     grid = cloud.grid_shape is not None
-    r, signal, has_target, weakest = _ray_signals(
-        positions, intensity, compensated, 1.0 / white_reading(profile) if compensated else 1.0 / k,
-        profile.max_range_m if grid and fill else 0.0, intensity_step(profile))
+    per_reading = 1.0 / white_reading(profile) if compensated else 1.0 / k
+    r, signal, has_target, weakest = _ray_signals(positions, intensity, compensated, per_reading,
+                                                  profile.max_range_m if grid and fill else 0.0,
+                                                  intensity_step(profile))
+    recorded = cloud.recorded
+    if recorded is not None and recorded is not cloud and "intensity" in recorded.fields:
+        weakest = _ray_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
+                               np.asarray(recorded.fields["intensity"]), compensated, per_reading, 0.0,
+                               intensity_step(profile))[3]
     try:
         receiver = Receiver.of(profile, k).calibrated(weakest)
     except ValueError as e:

@@ -14,9 +14,10 @@ from roadview_noise.model import Scope, Stage
 from roadview_noise.models.lidar.power import PowerElectronicsLidar, PowerLidar
 from roadview_noise.physics.lidar_geometry import velodyne_to_xyz
 from roadview_noise.profiles.lidar import carla_64, os1_128, vls_128
-from roadview_noise.registry import load_all
+from roadview_noise.registry import get_model, load_all
 from roadview_noise.seeding import derive_rng
 from roadview_noise.types import PointCloud
+from tests.lidar_scans import scan
 
 PLATES_PCT = np.array([10.0, 20.0, 40.0, 80.0])
 MEAN_RESPONSE = np.array([16.37, 28.07, 51.47, 98.27])          # models.md §3.7 / §8 oracle, 8-bit counts
@@ -224,3 +225,20 @@ def test_refusals():
         PowerLidar(mode="additive", split_electronics=True)
     with pytest.raises(ModelError):
         PowerLidar(noise_sd_factor=-0.1)
+
+
+@pytest.mark.parametrize("weather", [("snow.lidar", {"snowfall_rate_mm_per_h": 2.5}),
+                                     ("fog.lidar", {"visibility_m": 100.0})])
+def test_power_noise_before_the_weather_leaves_the_receiver_as_recorded(weather):
+    """CNF22–24 order: power variance (emitter, with D3.5's bias and 0.14·I noise) then the weather. The weather's
+    receiver is calibrated on the cloud as recorded, not on the noised one: the noise leaves some returns far below
+    the sensor's threshold, which calibrated from them would make the sensor sensitive to every faint flake or
+    droplet (snow 2.5 mm/h: 27× lower threshold, a return on every empty ray)."""
+    rng = np.random.default_rng(5)
+    cloud = scan(os1_128(), columns=256, range_m=rng.uniform(3.0, 60.0, (128, 256)), reflectance=0.3, grid=True)
+    model_id, params = weather
+    weather_model = get_model(model_id)(**params)
+    _, alone = apply_models([weather_model], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    _, chained = apply_models([PowerLidar(), weather_model], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    assert chained[1].diagnostics["detection_threshold"] == alone[0].diagnostics["detection_threshold"]
+    assert chained[1].diagnostics["detection_threshold_source"] == alone[0].diagnostics["detection_threshold_source"]
