@@ -7,10 +7,9 @@ task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if
 is affected. Workers get the run context once at start and then only small task keys (never arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
-thread that polls ``getppid()``. On Linux workers are forked from the calling process, which has imported the models
-(the recipe was checked against them) and loads their compiled kernels once before the first fork (``warmup``), so a
-worker starts warm in milliseconds with nothing to import or compile; elsewhere they are spawned. Each runs
-OpenBLAS/OpenMP/numba at one thread (``threadpoolctl``) and ``cv2.setNumThreads(1)``.
+thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
+the models once and loaded their compiled kernels (``warmup``), so a worker starts warm in milliseconds, with
+OpenBLAS/OpenMP/numba at one thread and ``cv2.setNumThreads(1)`` per worker.
 
 ``timeout_s`` bounds one task: a worker that runs longer is killed and its task reported (not retried).
 
@@ -32,7 +31,7 @@ import time
 import traceback
 from collections import deque
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from multiprocessing.connection import wait
 from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, TypeVar
 
@@ -40,10 +39,11 @@ T = TypeVar("T")
 C = TypeVar("C")
 
 MAX_DEATHS_PER_TASK = 2            # a task that kills this many workers is not tried again
-SHORT_TASK_S = 0.05                # tasks shorter than this get the next one queued behind them
 WATCHDOG_PERIOD_S = 1.0
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
+PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module, then the warm-up (see _context)
+WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
 
 
@@ -92,12 +92,8 @@ def death_reason(exitcode: int | None) -> str:
 
 
 def worker_setup(parent_pid: int | None = None) -> None:
-    """One thread per numeric library (those loaded already, and through the environment those loaded later);
-    exit when the parent dies (see module docstring)."""
+    """One thread per numeric library; exit when the parent dies (see module docstring)."""
     os.environ.update(THREAD_ENV)
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
     try:
         import cv2
 
@@ -159,11 +155,11 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
 
 @contextmanager
 def _starting() -> Iterator[None]:
-    """Around starting a worker: one thread per numeric library in the environment, and for a spawned worker no
-    re-run of the caller's ``__main__``. Workers need nothing from it (the task function and the setup are imported
-    by name), and multiprocessing's default would re-import the main script in every spawned worker: slow (a script
-    that imports open3d pays it per worker) and wrong for a script without the ``if __name__ == "__main__"``
-    guard."""
+    """Around starting a worker or the fork server: one thread per numeric library in the environment, and no
+    re-run of the caller's ``__main__`` in the child. Workers need nothing from it (the task function and the setup
+    are imported by name), and multiprocessing's default would re-import the main script in every worker:
+    slow (a script that imports open3d pays it per worker) and wrong for a script without the
+    ``if __name__ == "__main__"`` guard."""
     saved = {k: os.environ.get(k) for k in THREAD_ENV}
     os.environ.update(THREAD_ENV)
     original = getattr(mp_spawn, "get_preparation_data", None)
@@ -189,10 +185,20 @@ def _starting() -> Iterator[None]:
 
 
 def _context():
-    """Workers are forked from this process on Linux: it has imported the models already (the recipe is checked
-    against them), so a worker starts in milliseconds with nothing to import; ``spawn`` elsewhere."""
-    if sys.platform.startswith("linux"):
-        return mp.get_context("fork")
+    if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
+        import pkgutil
+
+        from . import models
+
+        ctx = mp.get_context("forkserver")
+        ctx.set_forkserver_preload(PRELOAD + [m.name for m in pkgutil.walk_packages(models.__path__,
+                                                                                       models.__name__ + ".")]
+                                   + [WARM_UP])
+        with _starting():                # the server imports numpy once, with one BLAS thread per worker
+            from multiprocessing import forkserver
+
+            forkserver.ensure_running()
+        return ctx
     return mp.get_context("spawn")
 
 
@@ -200,22 +206,14 @@ def _context():
 class _Worker:
     proc: Any
     conn: Any
-    queue: deque = field(default_factory=deque)     # (tid, task) sent, in the order the worker runs them
-    started: float = 0.0                            # when the first task of the queue started
-
-    def requeue(self, retry: deque) -> None:
-        """Give back the tasks queued behind the running one (never started) to run first elsewhere."""
-        while len(self.queue) > 1:
-            retry.appendleft(self.queue.pop())
+    task: Any = None
+    tid: int = -1
+    started: float = 0.0
 
 
 class ProcessExecutor(Generic[T, C]):
     """``workers`` processes running ``fn(task, context)``; see the module docstring. ``setup``: ``(function,
-    args)`` each worker calls once at start (importable by reference).
-
-    A worker runs one task at a time. Once tasks prove short (under ``SHORT_TASK_S``), the next one is queued in
-    its pipe behind the running one, so it never waits for this process to record a result; a queued task whose
-    worker dies was never started and goes to another worker without counting a death."""
+    args)`` each worker calls once at start (importable by reference)."""
 
     def __init__(self, fn: Callable[[T, C], Any], context: C, workers: int, *, setup: tuple | None = None,
                  max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None):
@@ -228,10 +226,6 @@ class ProcessExecutor(Generic[T, C]):
         self.deaths = 0
 
     def _start(self) -> _Worker:
-        if self._ctx.get_start_method() == "fork":
-            from .warmup import warm_up
-
-            warm_up()                                   # once per process: workers inherit the loaded kernels
         parent, child = self._ctx.Pipe(duplex=True)
         with _starting():
             proc = self._ctx.Process(target=_worker_main, name="rvnoise-worker", daemon=True,
@@ -240,11 +234,6 @@ class ProcessExecutor(Generic[T, C]):
         child.close()
         return _Worker(proc, parent)
 
-    def start(self) -> None:
-        """Start the workers now (``map`` starts them otherwise), e.g. before other threads exist."""
-        while len(self._pool) < self.workers:
-            self._pool.append(self._start())
-
     def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
         source = iter(tasks)
         retry: deque[tuple[int, T]] = deque()
@@ -252,36 +241,30 @@ class ProcessExecutor(Generic[T, C]):
         exhausted = False
         next_tid = 0
         startup_deaths = 0
-        depth = 1                                      # tasks per worker: 2 once tasks prove short
-
-        def feed(w: _Worker) -> None:
-            nonlocal exhausted, next_tid
-            while len(w.queue) < depth:
-                if retry:
-                    tid, task = retry.popleft()
-                elif not exhausted:
-                    try:
-                        task = next(source)
-                    except StopIteration:
-                        exhausted = True
-                        return
-                    tid, next_tid = next_tid, next_tid + 1
-                else:
-                    return
-                if not w.queue:
-                    w.started = time.monotonic()
-                w.queue.append((tid, task))
-                try:
-                    w.conn.send((tid, task))
-                except (BrokenPipeError, OSError):
-                    return                             # its death is seen below and the task re-sent
-
         try:
-            self.start()
+            while len(self._pool) < self.workers:
+                self._pool.append(self._start())
             while True:
                 for w in self._pool:
-                    feed(w)
-                busy = [w for w in self._pool if w.queue]
+                    if w.task is not None:
+                        continue
+                    if retry:
+                        w.tid, w.task = retry.popleft()
+                    elif not exhausted:
+                        try:
+                            w.task = next(source)
+                        except StopIteration:
+                            exhausted = True
+                            continue
+                        w.tid, next_tid = next_tid, next_tid + 1
+                    else:
+                        continue
+                    w.started = time.monotonic()
+                    try:
+                        w.conn.send((w.tid, w.task))
+                    except (BrokenPipeError, OSError):
+                        pass                       # its death is seen below and the task re-sent
+                busy = [w for w in self._pool if w.task is not None]
                 if not busy:
                     return
                 timeout = None
@@ -289,29 +272,24 @@ class ProcessExecutor(Generic[T, C]):
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
                 ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool], timeout))
                 for i, w in enumerate(self._pool):
-                    if w.queue and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
+                    if w.task is not None and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
                             and time.monotonic() - w.started >= self.timeout_s:
                         w.proc.kill()
                         w.proc.join()
                         w.conn.close()
-                        w.requeue(retry)
-                        task = w.queue[0][1]
+                        task = w.task
                         self._pool[i] = self._start()
                         yield task, WorkerDeath(f"took longer than {self.timeout_s:g} s; its worker was stopped", 1)
                         continue
                     result, got = None, False
-                    if w.queue and w.conn in ready:
+                    if w.task is not None and w.conn in ready:
                         try:
                             tid, result = w.conn.recv()
-                            got = tid == w.queue[0][0]
+                            got = tid == w.tid
                         except (EOFError, OSError):
                             got = False
                     if got:
-                        now = time.monotonic()
-                        depth = 2 if now - w.started < SHORT_TASK_S else 1
-                        task = w.queue.popleft()[1]
-                        w.started = now                # the next queued task starts now
-                        feed(w)                        # before the caller records the result
+                        task, w.task = w.task, None
                         yield task, result
                         continue
                     if w.proc.sentinel not in ready and w.proc.is_alive():
@@ -320,19 +298,18 @@ class ProcessExecutor(Generic[T, C]):
                     reason = death_reason(w.proc.exitcode)
                     w.conn.close()
                     self.deaths += 1
-                    if not w.queue:
+                    if w.task is None:
                         startup_deaths += 1
                         if startup_deaths > 3 * self.workers:
                             raise RuntimeError(f"workers keep dying before they get a task ({reason})")
                     else:
-                        w.requeue(retry)
-                        tid, task = w.queue[0]
-                        n = deaths[tid] = deaths.get(tid, 0) + 1
+                        n = deaths[w.tid] = deaths.get(w.tid, 0) + 1
                         if n >= self.max_deaths:
+                            task = w.task
                             self._pool[i] = self._start()
                             yield task, WorkerDeath(reason, n)
                             continue
-                        retry.appendleft((tid, task))
+                        retry.append((w.tid, w.task))
                     self._pool[i] = self._start()
         finally:
             self.close()
@@ -342,7 +319,7 @@ class ProcessExecutor(Generic[T, C]):
         pool, self._pool = self._pool, []
         for w in pool:
             try:
-                if not w.queue and w.proc.is_alive():
+                if w.task is None and w.proc.is_alive():
                     w.conn.send(None)
                 else:
                     w.proc.kill()

@@ -411,7 +411,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         n_workers, capped = (workers, None) if backend == "dask" and scheduler is not None else \
             choose_workers(workers, planned)
         ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile)
-        executor = _executor(ctx, n_workers, backend, scheduler)       # local workers start now
+        executor = _executor(ctx, n_workers, backend, scheduler)       # the fork server imports meanwhile
         previous = PreviousRun()
         try:
             previous = _previous_run(out_real, recipe, resume, overwrite)
@@ -448,9 +448,7 @@ def _executor(ctx: RunContext, workers: int | None, backend: str, scheduler: str
 
         return DaskExecutor(process, ctx, workers=workers, scheduler=scheduler, setup=setup,
                             timeout_s=ctx.limits.task_timeout_s)
-    executor = ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s)
-    executor.start()                         # forked now, while this process has no other thread
-    return executor
+    return ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s)
 
 
 def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool) -> PreviousRun:

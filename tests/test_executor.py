@@ -62,14 +62,3 @@ def test_death_reasons_in_words():
     assert death_reason(-9) == "worker died: signal 9 (SIGKILL: out of memory or killed)"
     assert "SIGSEGV" in death_reason(-11) and "native code" in death_reason(-11)
     assert death_reason(2) == "worker died: it exited with code 2"
-
-
-def test_a_task_queued_behind_a_dying_one_is_not_charged_for_its_death():
-    """Short tasks get the next one queued behind them; when the worker dies, only the running task is charged:
-    each of two deadly tasks kills two workers (4 deaths), not one worker charged to both."""
-    ex = ProcessExecutor(work, {"exit": (5, 6)}, 1)
-    results = dict(ex.map(range(20)))
-    assert [t for t, r in results.items() if isinstance(r, WorkerDeath)] == [5, 6]
-    assert results[5].deaths == results[6].deaths == 2
-    assert all(results[t] == (t, t * t) for t in range(20) if t not in (5, 6))
-    assert ex.deaths == 4
