@@ -76,19 +76,36 @@ def write_run_json(path: str | Path, record: dict) -> None:
     write_bytes_atomic(path, (json.dumps(record, indent=2, default=_default) + "\n").encode("utf-8"))
 
 
+# distributions that install each library whose version is recorded (read from their metadata, not imported:
+# importing open3d alone costs a second)
+_VERSIONED = {"scipy": ("scipy",), "open3d": ("open3d", "open3d-cpu"), "rawpy": ("rawpy",),
+              "OpenEXR": ("OpenEXR", "openexr"), "tifffile": ("tifffile",), "miepython": ("miepython",)}
+
+
 def library_versions() -> dict[str, str]:
-    """Versions of everything that can change output bytes."""
+    """Versions of everything that can change output bytes ("unavailable": not installed)."""
     import cv2
 
     from . import __version__
 
     versions = {"rvnoise": __version__, "python": sys.version.split()[0], "numpy": np.__version__,
                 "opencv": cv2.__version__}
-    for name in ("scipy", "open3d", "rawpy", "OpenEXR", "tifffile", "miepython"):
-        try:
-            module = __import__(name)
-            versions[name] = str(getattr(module, "__version__", "unknown"))
-        except Exception:  # an optional library that fails to import only loses its version line
-            versions[name] = "unavailable"
+    for name, dists in _VERSIONED.items():
+        versions[name] = _installed_version(name, dists)
     versions["platform"] = platform.platform()
     return versions
+
+
+def _installed_version(module: str, dists: tuple[str, ...]) -> str:
+    """The version of the first of ``dists`` installed, else of the module if it is imported, else
+    "unavailable" (the same answer in every process, whatever it imported)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    for dist in dists:
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            continue
+    if module in sys.modules:
+        return str(getattr(sys.modules[module], "__version__", "unknown"))
+    return "unavailable"

@@ -109,6 +109,15 @@ def _as_3d(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a).reshape(1, -1, 1)
 
 
+def _kernel_views(src: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W, C) views of a kernel's input and output of one shape: (1, 1, N) when both are C-contiguous, so the
+    kernel's inner loop runs over the whole frame (the table look-up of code → linear: 2× faster than 3 channels at
+    a time), else :func:`_as_3d`."""
+    if src.flags.c_contiguous and out.flags.c_contiguous:
+        return src.reshape(1, 1, -1), out.reshape(1, 1, -1)
+    return _as_3d(src), _as_3d(out)
+
+
 def linear_to_code(linear: np.ndarray, bits: int = 8) -> np.ndarray:
     """Integer sRGB code values (uint8 or uint16) of linear radiance: clipped to [0, 1], encoded, rounded to the
     nearest code (exactly; module docstring); NaN gives 0. A new C-order array, or — for an unchanged decoded frame —
@@ -153,7 +162,8 @@ def code_to_linear(code: np.ndarray, bits: int = 8) -> np.ndarray:
         raise ValueError(f"expected {np.dtype(dtype).name} code values, got {code.dtype}")
     with span("convert"):
         out = np.empty(code.shape, np.float32)
-        _decode_kernel(_as_3d(code), _decode_table(bits), _as_3d(out))
+        src, dst = _kernel_views(code, out)
+        _decode_kernel(src, _decode_table(bits), dst)
     return attach_codes(out, code, bits)
 
 
