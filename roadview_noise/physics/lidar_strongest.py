@@ -99,12 +99,9 @@ def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, leng
     largest = full * np.minimum(1.0, (medium.size.optical_mm(medium.d_max_mm) * 0.5e-3 / beam.radius_at(r)) ** 2)
     levels = int(math.ceil(m * math.log2(max(largest.max(), base_level) / base_level))) + 2
     s = base_level * 2.0 ** (np.arange(levels) / m)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d_c = visibility_diameter_mm(medium, beam, s[None, :], r[:, None])
-    density = np.pi * beam.radius_at(r)[:, None] ** 2 * np.maximum(medium.count_above(d_c), 0.0)
-    lam = np.concatenate([np.zeros((1, levels)), np.cumsum((density[1:] + density[:-1]) / 2 * fine, axis=0)])
-    last = int(np.flatnonzero(density[:, 0] > 0)[-1]) // SUBSTEPS + 2 if np.any(density[:, 0] > 0) else 2
-    r, full, largest, lam = (a[:SUBSTEPS * last:SUBSTEPS] for a in (r, full, largest, lam))
+    lam, last = _tabled_lambda(medium, beam, s, r, fine)
+    r, full, largest = (a[:SUBSTEPS * last:SUBSTEPS] for a in (r, full, largest))
+    lam = lam[:len(r)]
     band = lam[:, :-1] - lam[:, 1:]
     band_total = band[-1].copy()
     inv = np.empty((levels - 1, QUANTILES))
@@ -123,6 +120,37 @@ def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, leng
     background = BackgroundLevels.of(backgrounds, faint_background(medium, beam, base_level, length_m))
     return BrightestTables(base_level, float(r[0]), RANGE_STEP_M, np.ascontiguousarray(lam), inv, band_total,
                            np.stack([full, largest]), cover, background)
+
+
+def _tabled_lambda(medium: ParticleMedium, beam: Beam, level_signal: np.ndarray, r: np.ndarray, fine: float,
+                   block_rows: int = 8192) -> tuple[np.ndarray, int]:
+    """Λ(s_g; r) = ∫ π w² N(≥ D_c(s_g, r)) dr by the trapezoid rule on the fine range grid ``r``, kept every
+    ``SUBSTEPS`` rows (``fine``: the grid's step, m), and the table length (in kept rows) up to the last range where the base level is visible plus
+    2. Computed in blocks of ``block_rows`` ranges (the whole fine table of a low base level is 10⁵ × 60 values per
+    temporary), summed in the same order as one cumulative sum, so the values do not depend on the block size."""
+    kept = np.empty(((len(r) + SUBSTEPS - 1) // SUBSTEPS, len(level_signal)))
+    running = np.zeros((1, len(level_signal)))
+    previous = None
+    last_visible = -1
+    for a in range(0, len(r), block_rows):
+        rb = r[a:a + block_rows]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d_c = visibility_diameter_mm(medium, beam, level_signal[None, :], rb[:, None])
+        density = np.pi * beam.radius_at(rb)[:, None] ** 2 * np.maximum(medium.count_above(d_c), 0.0)
+        visible = np.flatnonzero(density[:, 0] > 0)
+        if len(visible):
+            last_visible = a + int(visible[-1])
+        if previous is None:
+            steps = np.concatenate([running, (density[1:] + density[:-1]) / 2 * fine])
+        else:
+            steps = np.concatenate([running, (density[:1] + previous) / 2 * fine,
+                                    (density[1:] + density[:-1]) / 2 * fine])
+        lam = np.cumsum(steps, axis=0)[0 if previous is None else 1:]
+        first = -a % SUBSTEPS
+        kept[(a + first) // SUBSTEPS:(a + len(rb) + SUBSTEPS - 1) // SUBSTEPS] = lam[first::SUBSTEPS]
+        running, previous = lam[-1:], density[-1:]
+    last = last_visible // SUBSTEPS + 2 if last_visible >= 0 else 2
+    return kept, last
 
 
 def strongest_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedium, beam: Beam,

@@ -647,3 +647,22 @@ def test_sampler_diameters_follow_truncated_exponential_above_visibility_bound()
     assert np.mean(d > 3.0) == pytest.approx(math.exp(-lam * 2.5) - math.exp(-lam * 5.5), abs=0.003)
     # in the overlap ramp only larger drops are visible
     assert p.diameter_mm[p.range_m < 0.905].min() > 0.5
+
+
+@pytest.mark.parametrize("block_rows", [7, 64, 1 << 20])
+def test_lambda_table_does_not_depend_on_its_blocks(block_rows):
+    """The Λ tables of the strongest-return draw are summed in range blocks (bounded memory); every block size gives
+    the values of one cumulative sum over the whole range."""
+    from roadview_noise.physics.lidar_particles import Beam, ParticleMedium
+    from roadview_noise.physics.lidar_strongest import SUBSTEPS, RANGE_STEP_M, _tabled_lambda
+
+    medium = ParticleMedium(n0_per_m3_mm=8000.0, lam_per_mm=2.0, d_min_mm=0.1, d_max_mm=6.0, reflectance=0.9,
+                            alpha_per_m=0.005)
+    beam = Beam(radius_m=0.005, divergence_rad=3e-3, overlap_start_m=0.5, overlap_full_m=5.0)
+    fine = RANGE_STEP_M / SUBSTEPS
+    r = 0.5 + np.arange(0.0, 60.0, fine)
+    levels = 1e-7 * 2.0 ** (np.arange(40) / 4)
+    whole, last_whole = _tabled_lambda(medium, beam, levels, r, fine, block_rows=len(r) + 1)
+    blocks, last_blocks = _tabled_lambda(medium, beam, levels, r, fine, block_rows=block_rows)
+    assert last_blocks == last_whole and np.array_equal(blocks, whole)
+    assert np.all(np.diff(whole, axis=0) >= 0) and whole[-1, 0] > 0
