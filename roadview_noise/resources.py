@@ -1,7 +1,7 @@
 """How many workers the machine can hold: the ``--workers`` rule.
 
 A worker's peak resident memory on the shipped recipes at the sensors' full resolutions (camera 1936×1464 with
-depth, raw DNG, OS1-128 2048 columns, VLS-128, radar) is at most 630 MB (CNF30 on the VLS-128), 206 MB of it libraries
+depth, raw DNG, OS1-128 2048 columns, VLS-128, radar) is at most 600 MB (CNF06 on the camera; LiDAR recipes ≤ 375 MB), 207 MB of it libraries
 (``bench/bench_worker_memory.py``); :data:`WORKER_PEAK_BYTES` adds a margin. The number of workers is
 ``min(requested or CPU count, outputs to write, available memory // WORKER_PEAK_BYTES)``, at least 1; the
 available memory is the kernel's ``MemAvailable``, lowered to what the cgroup still allows when it sets a limit.
