@@ -108,7 +108,15 @@ def _summary(data: SensorData) -> dict:
     if s is None:
         s = _cloud_summary(data) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
-    return s
+        recorded = getattr(data, "recorded", None)
+        if recorded is not None and recorded not in _summaries and _same_cloud(data, recorded):
+            _summaries[recorded] = dict(s)      # apply_models' copy of the chain input that only notes `recorded`:
+    return s                                    # its own (unlinked) summary, so the chain's compare stays direct
+
+
+def _same_cloud(a: PointCloud, b: PointCloud) -> bool:
+    """Whether two clouds hold the very same arrays and settings (they may differ in ``recorded`` only)."""
+    return all(getattr(a, f.name) is getattr(b, f.name) for f in dataclasses.fields(a) if f.name != "recorded")
 
 
 # --- camera -----------------------------------------------------------------------------------------------------
