@@ -260,14 +260,17 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
     return _ssim(a, b, _ssim_moments(a), _ssim_moments(b), data_range)
 
 
-def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Local mean μ and local mean of the square of a grey image over the SSIM window (window inside the image);
-    a frame's are computed once (its summary) for all comparisons it is part of."""
+def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Local mean μ, its square μ² and the local variance (local mean of the square − μ²) of a grey image over the
+    SSIM window (window inside the image); a frame's are computed once (its summary) for all comparisons it is
+    part of."""
     r = SSIM_RADIUS_PX
     if min(x.shape) <= 2 * r:
         return None
     x = np.asarray(x, np.float32)
-    return _ssim_blur(x), _ssim_blur(x * x)
+    mu = _ssim_blur(x)
+    mu_sq = mu * mu
+    return mu, mu_sq, _ssim_blur(x * x) - mu_sq
 
 
 def _ssim_blur(x: np.ndarray) -> np.ndarray:
@@ -279,11 +282,11 @@ def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float 
     """:func:`ssim` from the images and their :func:`_ssim_moments`."""
     if moments_a is None or moments_b is None:
         return None
-    (mu_a, blur_aa), (mu_b, blur_bb) = moments_a, moments_b
-    mu_ab, mu_aa, mu_bb = mu_a * mu_b, mu_a * mu_a, mu_b * mu_b
+    (mu_a, mu_aa, var_a), (mu_b, mu_bb, var_b) = moments_a, moments_b
+    mu_ab = mu_a * mu_b
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
     num = (2 * mu_ab + c1) * (2 * (_ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32)) - mu_ab) + c2)
-    den = (mu_aa + mu_bb + c1) * (blur_aa - mu_aa + (blur_bb - mu_bb) + c2)
+    den = (mu_aa + mu_bb + c1) * (var_a + var_b + c2)
     return float(np.mean(num / den, dtype=np.float64))
 
 
