@@ -261,9 +261,9 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
 
 
 def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Local mean μ, its square μ² and the local variance (local mean of the square − μ²) of a grey image over the
-    SSIM window (window inside the image); a frame's are computed once (its summary) for all comparisons it is
-    part of."""
+    """Local mean μ, its square μ² and the local variance (local mean of the square − μ²) of a grey image over
+    the SSIM window (window inside the image); a frame's are computed once (its summary) for all comparisons it
+    is part of."""
     r = SSIM_RADIUS_PX
     if min(x.shape) <= 2 * r:
         return None
