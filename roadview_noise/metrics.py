@@ -3,8 +3,9 @@
 ``compare(before, after)`` returns a flat JSON-able dict; ``compound.apply_models`` stores it per step
 (``steps[i].metrics``: the step's input against its output) and the runner per output (``metrics``: the chain's
 input against the written output). Pure NumPy/OpenCV plus compiled passes over clouds; no I/O. Each data object is
-summarised once (cached while it lives; a step that returns the same pixels shares its input's summary), so a chain
-of n steps costs at most n + 1 summaries and n + 1 comparisons.
+summarised once (cached while it lives; a step that returns the same pixels shares its input's summary, and
+``apply_models``' copy of the input that only notes ``recorded`` shares the input's), so a chain of n steps costs
+at most n + 1 summaries and n + 1 comparisons; positions and depth maps that steps hand on unchanged are binned once.
 
 Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relative luminance Y = 0.2126 R +
 0.7152 G + 0.0722 B of the linear signal (raw Bayer: the mean of each 2×2 CFA cell), clipped to [0, 1] and
@@ -108,7 +109,15 @@ def _summary(data: SensorData) -> dict:
     if s is None:
         s = _cloud_summary(data) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
-    return s
+        recorded = getattr(data, "recorded", None)
+        if recorded is not None and recorded not in _summaries and _same_cloud(data, recorded):
+            _summaries[recorded] = dict(s)      # apply_models' copy of the chain input that only notes `recorded`:
+    return s                                    # its own (unlinked) summary, so the chain's compare stays direct
+
+
+def _same_cloud(a: PointCloud, b: PointCloud) -> bool:
+    """Whether two clouds hold the very same arrays and settings (they may differ in ``recorded`` only)."""
+    return all(getattr(a, f.name) is getattr(b, f.name) for f in dataclasses.fields(a) if f.name != "recorded")
 
 
 # --- camera -----------------------------------------------------------------------------------------------------
@@ -161,9 +170,27 @@ def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
     mean, std = cv2.meanStdDev(grey)
     s = {"grey": grey, "scale": f, "rms_contrast": float(std[0, 0]), "edge_density": edge_density(grey),
          "mean_level": float(mean[0, 0]), "ssim_moments": _ssim_moments(grey)}
-    if depth is not None:
-        s["depth_contrast"] = rms_contrast_per_depth_bin(grey, depth)
+    if depth is not None:                   # the steps share the depth map: its bins are found once
+        bins = _per_array(_last_depth, frame.depth_m, depth, DEPTH_BIN_EDGES_M,
+                          lambda: _depth_bin_index(np.asarray(depth, np.float32), np.asarray(DEPTH_BIN_EDGES_M)))
+        s["depth_contrast"] = _contrast_per_bin(grey, bins, len(DEPTH_BIN_EDGES_M) - 1)
     return s
+
+
+_last_depth: list = [None, None, None]      # weakref to a depth map, the key of its view (_per_array), bin index
+
+
+def _per_array(slot: list, owner: np.ndarray, view: np.ndarray, extra, compute):
+    """``compute()``, or the result kept in ``slot`` when the last call had the same ``owner`` array (identity)
+    and the same ``view`` of it (shape, strides, address) and ``extra``: what the steps of a chain that hand an
+    array on unchanged need to derive from it once."""
+    ref, key, result = slot
+    now = (view.shape, view.strides, view.ctypes.data, extra)
+    if ref is not None and ref() is owner and key == now:
+        return result
+    result = compute()
+    slot[:] = [weakref.ref(owner), now, result]
+    return result
 
 
 def edge_density(grey: np.ndarray) -> float:
@@ -178,27 +205,43 @@ def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
                                edges_m: tuple[float, ...] = DEPTH_BIN_EDGES_M) -> list[float | None]:
     """RMS contrast of the pixels in each depth bin [e_i, e_i+1) (the last bin includes ``inf``); None for a bin
     with fewer than 64 pixels (or no depth: NaN, negative)."""
-    n, total, squares = _depth_bin_sums(np.asarray(grey, np.float32), np.asarray(depth_m, np.float32),
-                                        np.asarray(edges_m, np.float64))
+    bins = _depth_bin_index(np.asarray(depth_m, np.float32), np.asarray(edges_m, np.float64))
+    return _contrast_per_bin(grey, bins, len(edges_m) - 1)
+
+
+def _contrast_per_bin(grey: np.ndarray, bins: np.ndarray, n_bins: int) -> list[float | None]:
+    """:func:`rms_contrast_per_depth_bin` from the pixels' bin index (:func:`_depth_bin_index`)."""
+    n, total, squares = _bin_sums(np.asarray(grey, np.float32), bins, n_bins)
     return [math.sqrt(max(q / k - (t / k) ** 2, 0.0)) if k >= MIN_BIN_PX else None
             for k, t, q in zip(n.tolist(), total.tolist(), squares.tolist())]
 
 
 @jit
-def _depth_bin_sums(grey, depth, edges):                        # pragma: no cover - compiled
-    """Per depth bin of ``edges`` (the last one open above): pixel count, sum and sum of squares of ``grey``."""
+def _depth_bin_index(depth, edges):                        # pragma: no cover - compiled
+    """Per pixel: its depth bin of ``edges`` (the last one open above), −1 without depth (NaN, negative)."""
     bins = edges.size - 1
+    index = np.empty(depth.shape, np.int8)
+    for i in range(depth.shape[0]):
+        for j in range(depth.shape[1]):
+            d = depth[i, j]
+            b = bins - 1
+            while b > 0 and d < edges[b]:
+                b -= 1
+            index[i, j] = b if d >= edges[0] else -1
+    return index
+
+
+@jit
+def _bin_sums(grey, index, bins):                        # pragma: no cover - compiled
+    """Per bin: pixel count, sum and sum of squares of ``grey`` (pixels of bin −1 are left out)."""
     n = np.zeros(bins, np.int64)
     total = np.zeros(bins)
     squares = np.zeros(bins)
     for i in range(grey.shape[0]):
         for j in range(grey.shape[1]):
-            d = depth[i, j]
-            if not d >= edges[0]:                                   # NaN, negative
+            b = index[i, j]
+            if b < 0:
                 continue
-            b = bins - 1
-            while b > 0 and d < edges[b]:
-                b -= 1
             g = np.float64(grey[i, j])
             n[b] += 1
             total[b] += g
@@ -218,14 +261,17 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
     return _ssim(a, b, _ssim_moments(a), _ssim_moments(b), data_range)
 
 
-def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """Local mean μ and local mean of the square of a grey image over the SSIM window (window inside the image);
-    a frame's are computed once (its summary) for all comparisons it is part of."""
+def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Local mean μ, its square μ² and the local variance (local mean of the square − μ²) of a grey image over
+    the SSIM window (window inside the image); a frame's are computed once (its summary) for all comparisons it
+    is part of."""
     r = SSIM_RADIUS_PX
     if min(x.shape) <= 2 * r:
         return None
     x = np.asarray(x, np.float32)
-    return _ssim_blur(x), _ssim_blur(x * x)
+    mu = _ssim_blur(x)
+    mu_sq = mu * mu
+    return mu, mu_sq, _ssim_blur(x * x) - mu_sq
 
 
 def _ssim_blur(x: np.ndarray) -> np.ndarray:
@@ -237,11 +283,11 @@ def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float 
     """:func:`ssim` from the images and their :func:`_ssim_moments`."""
     if moments_a is None or moments_b is None:
         return None
-    (mu_a, blur_aa), (mu_b, blur_bb) = moments_a, moments_b
-    mu_ab, mu_aa, mu_bb = mu_a * mu_b, mu_a * mu_a, mu_b * mu_b
+    (mu_a, mu_aa, var_a), (mu_b, mu_bb, var_b) = moments_a, moments_b
+    mu_ab = mu_a * mu_b
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
     num = (2 * mu_ab + c1) * (2 * (_ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32)) - mu_ab) + c2)
-    den = (mu_aa + mu_bb + c1) * (blur_aa - mu_aa + (blur_bb - mu_bb) + c2)
+    den = (mu_aa + mu_bb + c1) * (var_a + var_b + c2)
     return float(np.mean(num / den, dtype=np.float64))
 
 
@@ -306,20 +352,22 @@ def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins):       # p
     return (returns, hist, math.sqrt(max_r2), valid), counts, total, finite
 
 
-_last_geometry: list = [None, None, None]   # weakref to a positions array, its (shape, strides, address, bins), result
+_last_geometry: list = [None, None, None]   # weakref to a positions array, its key (_per_array), full pass
 
 
 def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int) -> tuple:
     """:func:`_cloud_pass`. A step that leaves the positions alone (intensity models) hands the same array on:
     the geometry of the last array is kept and only the attributes are counted again."""
-    ref, key, geometry = _last_geometry
-    now = (positions.shape, positions.strides, positions.ctypes.data, n_bins)
-    if ref is not None and ref() is positions and key == now:
-        return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins)[1:])
-    geometry, counts, total, finite = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M,
-                                                  n_bins)
-    _last_geometry[:] = [weakref.ref(positions), now, geometry]
-    return geometry, counts, total, finite
+    full = []
+
+    def geometry_of_full_pass():
+        full.append(_cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins))
+        return full[0][0]
+
+    geometry = _per_array(_last_geometry, positions, positions, n_bins, geometry_of_full_pass)
+    if full:
+        return full[0]
+    return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins)[1:])
 
 
 def _cloud_summary(cloud: PointCloud) -> dict:
@@ -377,10 +425,10 @@ def _link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray, float]:
         return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
     grid = b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"])
     effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.uint8)
-    index, moved = _match(b["positions"], a["positions"], b["valid"], a["valid"], effect, grid,
-                          len(a["positions"]) - a["codes"][3])
+    index, moved, change = _match(b["positions"], a["positions"], b["valid"], a["valid"], effect, grid,
+                                  len(a["positions"]) - a["codes"][3], b["values"], a["values"])
     a.setdefault("parent", (b, index, moved))
-    return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
+    return index, moved, change
 
 
 @jit
@@ -407,12 +455,15 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
 
 
 @jit
-def _match(pb, pa, valid_b, valid_a, effect_a, grid, survivors):       # pragma: no cover - compiled
+def _match(pb, pa, valid_b, valid_a, effect_a, grid, survivors, values_b, values_a):       # pragma: no cover
     """:func:`correspondence` of one step from the positions and returns, the effect codes of ``after`` and its
-    number of non-ADDED points. Positions are read only to tell the removed points of a list."""
+    number of non-ADDED points; and, in the same pass, :func:`_mean_change_in_place` of the values. Positions are
+    read only to tell the removed points of a list."""
     nb, na = pb.shape[0], pa.shape[0]
     index = np.full(nb, -1, np.int32)
     moved = np.zeros(nb, np.bool_)
+    has_values = values_b.shape[0] > 0 and values_a.shape[0] > 0
+    total, n = 0.0, 0
     j = 0
     for i in range(nb):
         if grid:                                # cell by cell
@@ -435,7 +486,18 @@ def _match(pb, pa, valid_b, valid_a, effect_a, grid, survivors):       # pragma:
             j += 1
         index[i] = k
         moved[i] = away
-    return index, moved
+        if has_values and not away:
+            d = _change(values_b, i, values_a, k)
+            if np.isfinite(d):
+                total += d
+                n += 1
+    return index, moved, (total / n if n else np.nan)
+
+
+@jit(inline="always")
+def _change(values_b, i, values_a, k):       # pragma: no cover - compiled
+    """Value change of point ``i`` of before, now point ``k`` of after (float64)."""
+    return float(values_a[k]) - float(values_b[i])
 
 
 @jit
@@ -446,7 +508,7 @@ def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no 
         return np.nan
     for i in range(index.shape[0]):
         if index[i] >= 0 and not moved[i]:
-            d = float(values_a[index[i]]) - float(values_b[i])
+            d = _change(values_b, i, values_a, index[i])
             if np.isfinite(d):
                 total += d
                 n += 1

@@ -300,3 +300,42 @@ def test_apply_models_records_step_metrics():
     assert m["removed"] + m["moved"] + m["attenuated"] + m["kept"] == 400
     _, off = apply_models(models, c, seed=1, key="k", sequence_id="s", metrics=False)
     assert off[0].metrics == {}
+
+
+def _fresh(cloud: PointCloud) -> PointCloud:
+    """The same cloud in new arrays (nothing of it summarised yet)."""
+    return dataclasses.replace(cloud, positions_m=cloud.positions_m.copy(), recorded=None,
+                               fields={k: v.copy() for k, v in cloud.fields.items()},
+                               effect=None if cloud.effect is None else cloud.effect.copy())
+
+
+@pytest.mark.parametrize("chain", [("power.lidar", "fog.lidar"), ("fog.lidar", "rain.lidar")])
+def test_a_chain_summarises_its_input_once_and_its_metrics_equal_a_fresh_computation(monkeypatch, chain):
+    """apply_models hands the steps a copy of the input that notes ``recorded``: the runner's whole-chain compare
+    of the input it holds reuses that copy's summary (three cloud passes for two steps), with the same metrics
+    as clouds that were never summarised."""
+    import roadview_noise.metrics as metrics_module
+
+    passes = []
+    real_pass = metrics_module._cloud_pass
+    monkeypatch.setattr(metrics_module, "_cloud_pass", lambda *a: passes.append(1) or real_pass(*a))
+    c = lidar_list(400, seed=3)
+    kwargs = {"power.lidar": {}, "fog.lidar": {"visibility_m": 30.0}, "rain.lidar": {"rain_rate_mm_per_h": 20.0}}
+    models = [get_model(m)(**kwargs[m]) for m in chain]
+    out, records = apply_models(models, c, seed=2, key="k", sequence_id="s")
+    whole = compare(c, out)
+    assert len(passes) == 3
+    assert whole == compare(_fresh(c), _fresh(out))
+    assert whole["points_in"] == records[0].metrics["points_in"] == 400
+
+
+def test_steps_sharing_a_depth_map_give_the_contrast_of_a_fresh_one():
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(0, 120, (40, 60)).astype(np.float32)
+    depth[::9, ::7] = np.inf
+    frames = [frame_of_codes(rng.integers(0, 65536, (40, 60)) / 65535, depth) for _ in range(3)]
+    shared = [compare(frames[0], frames[1]), compare(frames[1], frames[2])]
+    alone = [compare(*(dataclasses.replace(f, depth_m=depth.copy()) for f in pair))
+             for pair in ((frames[0], frames[1]), (frames[1], frames[2]))]
+    assert shared == alone
+    assert shared[0]["rms_contrast_per_depth_bin_out"] != shared[1]["rms_contrast_per_depth_bin_out"]
