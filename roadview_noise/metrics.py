@@ -111,8 +111,8 @@ def _summary(data: SensorData) -> dict:
         _summaries[data] = s
         recorded = getattr(data, "recorded", None)
         if recorded is not None and recorded not in _summaries and _same_cloud(data, recorded):
-            _summaries[recorded] = dict(s)      # apply_models' copy of the chain input that only notes `recorded`:
-    return s                                    # its own (unlinked) summary, so the chain's compare stays direct
+            _summaries[recorded] = s            # apply_models' copy of the chain input that only notes `recorded`:
+    return s                                    # the same summary, so the chain's compare composes the steps' links
 
 
 def _same_cloud(a: PointCloud, b: PointCloud) -> bool:
