@@ -118,12 +118,20 @@ def _flat_cells(ring, column, valid, rows, shift, columns):       # pragma: no c
     (empty: a grid) a point's column is its index mod W."""
     out = np.empty(len(ring), np.int64)
     gridded = len(column) == 0
+    own = 0                                             # i mod W, counted (no integer division per point)
     for i in range(len(ring)):
         if valid[i]:
-            c = ((i % columns if gridded else column[i]) + shift[ring[i]]) % columns
-            out[i] = rows[ring[i]] * columns + (c + columns if c < 0 else c)
+            c = (own if gridded else column[i]) + shift[ring[i]]
+            if c >= columns:                            # both terms in [0, W) in practice: one subtraction
+                c -= columns
+            if c < 0 or c >= columns:
+                c %= columns
+            out[i] = rows[ring[i]] * columns + c
         else:
             out[i] = -1
+        own += 1
+        if own == columns:
+            own = 0
     return out
 
 
