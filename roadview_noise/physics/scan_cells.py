@@ -23,7 +23,7 @@ import numpy as np
 
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
-from .firing_grid import firing_grid
+from .firing_grid import _wrap, firing_grid
 from .lidar_geometry import has_return, ring_index, ring_rows
 
 SHIFT_SAMPLE = 16384           # returns looked at (evenly strided) to measure each beam's destagger shift
@@ -107,8 +107,7 @@ def _firing_columns(firing, ring, valid, shift, columns):       # pragma: no cov
     per_rad = columns / (2.0 * math.pi)
     for i in range(len(ring)):
         if valid[i]:
-            c = int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)) % columns
-            out[i] = c + columns if c < 0 else c
+            out[i] = _wrap(int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)), columns)
     return out
 
 
@@ -121,12 +120,7 @@ def _flat_cells(ring, column, valid, rows, shift, columns):       # pragma: no c
     own = 0                                             # i mod W, counted (no integer division per point)
     for i in range(len(ring)):
         if valid[i]:
-            c = (own if gridded else column[i]) + shift[ring[i]]
-            if c >= columns:                            # both terms in [0, W) in practice: one subtraction
-                c -= columns
-            if c < 0 or c >= columns:
-                c %= columns
-            out[i] = rows[ring[i]] * columns + c
+            out[i] = rows[ring[i]] * columns + _wrap((own if gridded else column[i]) + shift[ring[i]], columns)
         else:
             out[i] = -1
         own += 1
