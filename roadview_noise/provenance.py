@@ -68,9 +68,10 @@ def combine(before: np.ndarray, step: np.ndarray) -> np.ndarray:
 
 def mark(cloud: PointCloud, mask: np.ndarray, effect: Effect) -> PointCloud:
     """The cloud with ``effect`` combined into the masked points' codes (other points keep theirs)."""
-    current = np.zeros(len(cloud), np.uint8) if cloud.effect is None else cloud.effect
-    step = np.where(mask, np.uint8(effect), KEPT)
-    return dataclasses.replace(cloud, effect=combine(current, step))
+    out = np.zeros(len(cloud), np.uint8) if cloud.effect is None else cloud.effect.copy()
+    idx = np.flatnonzero(mask)                          # unmasked points keep theirs: combine(c, KEPT) = c
+    out[idx] = combine(out[idx], np.full(len(idx), np.uint8(effect)))
+    return dataclasses.replace(cloud, effect=out)
 
 
 def gather(values: np.ndarray, origin: np.ndarray, fill=0) -> np.ndarray:

@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
+from .lidar_geometry import _azimuths, beam_of, has_return, ring_index, ring_search_table, ring_source
 
 TWO_PI = 2.0 * math.pi
 STEP_SAMPLE_BEAMS = 4           # the most populated beams measure the column step from their neighbour gaps
@@ -232,11 +232,14 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
     firing = np.empty(n)
     counts = np.zeros(channels, np.int64)
     recover = len(carried) == 0
+    x, y = np.empty(n), np.empty(n)
     for i in range(n):
-        x, y = positions[i, 0], positions[i, 1]
-        b = beam_of(x, y, positions[i, 2], z_offset, rho_offset, tan_mid, order) if recover else carried[i]
+        x[i], y[i] = positions[i, 0], positions[i, 1]
+    azimuth = _azimuths(y, x)                           # one vectorised loop over contiguous coordinates
+    for i in range(n):
+        b = beam_of(x[i], y[i], positions[i, 2], z_offset, rho_offset, tan_mid, order) if recover else carried[i]
         ring[i] = b
-        firing[i] = atan2(y, x) + offsets[b]
+        firing[i] = azimuth[i] + offsets[b]
         counts[b] += 1
     return ring, firing, counts
 

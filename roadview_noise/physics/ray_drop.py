@@ -216,8 +216,11 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
     px = np.empty(9)
     py = np.empty(9)
     pz = np.empty(9)
+    r, row_start = 0, 0
     for i in range(len(at)):
-        r = at[i] // columns
+        if not row_start <= at[i] < row_start + columns:     # (cells mostly come row by row: no division)
+            r = at[i] // columns
+            row_start = r * columns
         base = at[i] + 2 * r + w + 1
         out[i, 3] = elevation[r]
         q0, q1, q2, q3 = padded[base + ring[0]], padded[base + ring[1]], padded[base + ring[2]], padded[base + ring[3]]
@@ -367,11 +370,13 @@ class AdditiveLogistic:
 @jit
 def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
     """:meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat beyond the
-    outer ones), its interpolated value added to the logit; then the logistic function."""
+    outer ones), its interpolated value added to the logit; then the logistic function. Neighbouring rays mostly
+    fall in the same segment, so the previous ray's is tried before searching from the first knot."""
     n = len(f)
     z = np.full(n, intercept)
     for j in range(len(columns)):
         col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+        k = lo0
         for i in range(n):
             x = f[i, col]
             if not x > knots[lo0]:
@@ -379,9 +384,10 @@ def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       
             elif x >= knots[hi0]:
                 z[i] += values[hi0]
             else:
-                k = lo0
-                while knots[k + 1] <= x:
-                    k += 1
+                if not (knots[k] <= x and x < knots[k + 1]):
+                    k = lo0
+                    while knots[k + 1] <= x:
+                        k += 1
                 z[i] += values[k] + (x - knots[k]) * slopes[k]
     for i in range(n):
         z[i] = 1.0 / (1.0 + math.exp(-z[i]))

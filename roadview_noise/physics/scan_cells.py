@@ -23,7 +23,7 @@ import numpy as np
 
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
-from .firing_grid import firing_grid
+from .firing_grid import _wrap, firing_grid
 from .lidar_geometry import has_return, ring_index, ring_rows
 
 SHIFT_SAMPLE = 16384           # returns looked at (evenly strided) to measure each beam's destagger shift
@@ -107,8 +107,7 @@ def _firing_columns(firing, ring, valid, shift, columns):       # pragma: no cov
     per_rad = columns / (2.0 * math.pi)
     for i in range(len(ring)):
         if valid[i]:
-            c = int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)) % columns
-            out[i] = c + columns if c < 0 else c
+            out[i] = _wrap(int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)), columns)
     return out
 
 
@@ -118,12 +117,15 @@ def _flat_cells(ring, column, valid, rows, shift, columns):       # pragma: no c
     (empty: a grid) a point's column is its index mod W."""
     out = np.empty(len(ring), np.int64)
     gridded = len(column) == 0
+    own = 0                                             # i mod W, counted (no integer division per point)
     for i in range(len(ring)):
         if valid[i]:
-            c = ((i % columns if gridded else column[i]) + shift[ring[i]]) % columns
-            out[i] = rows[ring[i]] * columns + (c + columns if c < 0 else c)
+            out[i] = rows[ring[i]] * columns + _wrap((own if gridded else column[i]) + shift[ring[i]], columns)
         else:
             out[i] = -1
+        own += 1
+        if own == columns:
+            own = 0
     return out
 
 

@@ -126,13 +126,17 @@ def _attenuate(cloud: PointCloud, t: np.ndarray, partial: np.ndarray, model_id: 
     were attenuated and kept, and the threshold notes."""
     rays = cloud_rays(cloud, model_id, "ignore")
     profile = rays.profile
-    n = len(cloud)
+    at = np.flatnonzero(partial)                        # (indices: one pass over the mask, not one per use)
     field = cloud.fields["intensity"]
-    reported = field[partial].astype(np.float64) * t[partial]
-    below = np.zeros(n, dtype=bool)
-    below[partial] = (rays.signal[:n][partial] * t[partial] < rays.threshold) | too_faint(reported, profile)
-    values = field.astype(np.float64)
-    values[partial] = stored_intensity(reported, profile)
-    changed = partial & ~below & (np.abs(values - field) >= 0.5 * intensity_resolution(profile))
-    out = mark(cloud.with_fields(intensity=values.astype(field.dtype)), changed, Effect.ATTENUATED)
-    return out, below, int(np.count_nonzero(partial & ~below)), {k: v for k, v in rays.notes.items()}
+    t_at = t[at]
+    reported = field[at].astype(np.float64) * t_at
+    below = np.zeros(len(cloud), dtype=bool)
+    below_at = (rays.signal[at] * t_at < rays.threshold) | too_faint(reported, profile)
+    below[at] = below_at
+    stored = np.asarray(stored_intensity(reported, profile), dtype=np.float64)
+    values = field.copy()
+    values[at] = stored.astype(field.dtype)
+    changed = np.zeros(len(cloud), dtype=bool)
+    changed[at] = ~below_at & (np.abs(stored - field[at]) >= 0.5 * intensity_resolution(profile))
+    out = mark(cloud.with_fields(intensity=values), changed, Effect.ATTENUATED)
+    return out, below, int(np.count_nonzero(~below_at)), {k: v for k, v in rays.notes.items()}
