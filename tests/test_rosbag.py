@@ -311,10 +311,12 @@ def test_ros1_chunk_compression_is_kept(tmp_path):
     assert [m[:3] for m in messages(src)] == [m[:3] for m in messages(out)]
 
 
-def test_a_dying_worker_stops_the_run_without_output(tmp_path):
-    """A worker killed on one message (SIGKILL, as the out-of-memory killer does) breaks the bag's pool: the run
-    stops with an error naming the bag and writes nothing. The test model is adopted by the workers
-    (registry.plugin_models), as in file runs."""
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_dying_worker_costs_its_message_only(tmp_path, workers):
+    """A worker killed on one message (SIGKILL, as the out-of-memory killer does), as in a file run: that message is
+    tried once more on a fresh worker, then recorded as failed ("worker died") and copied unchanged; every other
+    message is augmented and written in order, the bag is complete, the exit status is 1. The test model is adopted
+    by the workers (registry.plugin_models), as in file runs."""
     import injected_models
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
@@ -325,25 +327,44 @@ def test_a_dying_worker_stops_the_run_without_output(tmp_path):
     bag = tmp_path / "cam.bag"
     writer = Writer(bag)
     writer.open()
-    conn = writer.add_connection("/cam", rm.IMAGE, typestore=store)
-    for k in range(3):
-        pixels = np.full((48, 64, 3), 90, np.uint8)
+    cam, copy = (writer.add_connection(t, rm.IMAGE, typestore=store) for t in ("/cam", "/cam_unmapped"))
+    for k in range(4):
+        pixels = ((np.arange(48 * 64 * 3) * 7 + k) % 200).astype(np.uint8).reshape(48, 64, 3)
         pixels[0, 0] = 255 if k == 1 else 90                                          # the poison frame
         header = store.types["std_msgs/msg/Header"](seq=k, stamp=store.types["builtin_interfaces/msg/Time"](
             sec=k, nanosec=0), frame_id="cam")
         msg = store.types["sensor_msgs/msg/Image"](header=header, height=48, width=64, encoding="rgb8",
                                                    is_bigendian=0, step=192, data=pixels.ravel())
-        writer.write(conn, 10**9 * k + 1, bytes(store.serialize_ros1(msg, rm.IMAGE)))
+        raw = bytes(store.serialize_ros1(msg, rm.IMAGE))
+        writer.write(cam, 10**9 * k + 1, raw)
+        writer.write(copy, 10**9 * k + 2, raw)
     writer.close()
+    trace = tmp_path / "trace.txt"
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(json.dumps({"topics": {"/cam": "camera"}, "chains": {"camera": [
+        {"model": "test_crash.camera", "params": {"trace_path": str(trace)}}]}}))
+    out = tmp_path / "out" / "o.bag"
     register(injected_models.CrashCamera)
     try:
-        recipe = parse_bag_recipe({"topics": {"/cam": "camera"},
-                                   "chains": {"camera": [{"model": "test_crash.camera"}]}})
-        with pytest.raises(InputError, match=f"{bag}: a worker process died"):
-            run_bag(recipe, bag, tmp_path / "out" / "o.bag", workers=2, progress=False, echo=lambda _: None)
+        r = CliRunner().invoke(app, ["augment", "-r", str(recipe), str(bag), str(out), "-q", "-j", str(workers)])
     finally:
         MODELS.pop(injected_models.CrashCamera.id, None)
-    assert not list((tmp_path / "out").iterdir())
+    assert r.exit_code == 1, r.output
+    assert "Traceback" not in r.output and "3 messages augmented, 1 failed" in r.output, r.output
+    assert trace.read_text().split().count("poison") == 2                     # tried twice, never a third time
+    entries = [json.loads(x) for x in manifest_path(out).read_text().splitlines()]
+    assert [(e["key"], e["status"]) for e in entries] == [
+        (f"/cam@{k * 10**9}", "failed" if k == 1 else "ok") for k in range(4)]
+    bad = entries[1]
+    assert bad["error"].startswith(f"{bag}: /cam@1000000000: worker died: signal 9")
+    assert bad["worker_deaths"] == 2 and bad["copied_unchanged"] is True
+    before, after = messages(bag), messages(out)
+    assert [m[:3] for m in before] == [m[:3] for m in after]                   # complete, in record order
+    assert after[2] == before[2] and [m[3] for m in after[1::2]] == [m[3] for m in before[1::2]]   # copied
+    assert [e.get("output_sha256") for e in entries] == [
+        None if k == 1 else hashlib.sha256(after[2 * k][3]).hexdigest() for k in range(4)]
+    assert json.loads(run_record_path(out).read_text())["counts"] == {"augmented": 3, "failed": 1, "messages": 8}
+    assert not list(out.parent.glob(f"*{TMP_SUFFIX}*"))
 
 
 def test_a_bad_profile_stops_the_run_before_anything_is_written(bag, tmp_path):
