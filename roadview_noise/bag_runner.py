@@ -23,8 +23,8 @@ import time
 import traceback
 import warnings
 from collections import deque
-from contextlib import ExitStack
-from dataclasses import asdict, dataclass
+from contextlib import ExitStack, closing
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Container, Iterable, Iterator
@@ -34,11 +34,13 @@ from .errors import InputError, RecipeError, RvNoiseError
 from .io import ros_messages as rm
 from .io.atomic import atomic_path
 from .io.rosbag import bag_kind, bag_output, header_stamp_ns, open_bag, output_kind, remove_stale_siblings
+from .io.spool import Payload, Spool, load, put_beside
 from .manifest import dumps, library_versions, read_manifest, write_run_json
 from .runner import RunSummary
 
 DEPTH_WINDOW_NS = 1_000_000_000       # an aligned depth message is looked for within ±1 s of record time
 MAX_IN_FLIGHT_BYTES = 256 << 20       # serialised messages held between reading and writing
+TASKS_AHEAD_PER_WORKER = 4            # messages read ahead of the oldest unwritten one (a slow one stalls no worker)
 MANIFEST_SUFFIX = ".manifest.jsonl"
 RUN_SUFFIX = ".run.json"
 
@@ -81,7 +83,7 @@ class MessageJob:
     stamp_ns: int
     repeat: int                      # earlier messages of the topic with the same stamp
     record_time_ns: int
-    raw: bytes
+    raw: bytes                       # (a spool.Spooled on its way to a worker)
     depth: tuple[str, bytes] | None  # (msgtype, raw) of the aligned depth message
 
     @property
@@ -269,9 +271,12 @@ def _serialize(typestore: Any, is2: bool, msg: Any, msgtype: str, like: bytes) -
 # --- parallel, in order, bounded --------------------------------------------------------------------------------------
 
 
-def _augment_task(task: tuple[int, MessageJob], blob: bytes) -> tuple[dict[str, Any], bytes | None]:
-    """The executor's task function: ``task`` = (sequence number, job), the context is the pickled BagContext."""
-    return augment_message(blob, task[1])
+def _augment_task(task: tuple[int, MessageJob], blob: bytes) -> tuple[dict[str, Any], Payload | None]:
+    """The executor's task function: ``task`` = (sequence number, job with its message spooled or inline), the
+    context is the pickled BagContext; the output comes back the way the message came (:mod:`io.spool`)."""
+    job = task[1]
+    entry, out = augment_message(blob, replace(job, raw=load(job.raw)))
+    return entry, None if out is None else put_beside(job.raw, out, ".out")
 
 
 def ordered_map(fn: Callable, context: Any, items: Iterable[tuple[Any, Any, int]], workers: int, *,
@@ -280,9 +285,9 @@ def ordered_map(fn: Callable, context: Any, items: Iterable[tuple[Any, Any, int]
     ``fn((k, task), context)`` (``None`` for an item without task), or the :class:`executor.WorkerDeath` /
     :class:`executor.TaskError` of a task whose worker died or that raised. Tasks run on the file runner's crash-safe
     :class:`executor.ProcessExecutor` (``workers`` processes, also for one: a dying worker costs its message, not the
-    run; the run's plugin models adopted). At most 2·``workers`` tasks and ``max_bytes`` of items are held between
-    reading and yielding (the source answers :data:`executor.NOT_NOW` while over), so memory stays bounded on long
-    bags while the workers stay busy."""
+    run; the run's plugin models adopted). At most ``TASKS_AHEAD_PER_WORKER``·``workers`` tasks and ``max_bytes`` of
+    items are held between reading and yielding (the source answers :data:`executor.NOT_NOW` while over), so memory
+    stays bounded on long bags while the workers stay busy."""
     from .executor import NOT_NOW, ProcessExecutor
     from .registry import adopt, plugin_models
 
@@ -298,7 +303,7 @@ def ordered_map(fn: Callable, context: Any, items: Iterable[tuple[Any, Any, int]
     def source() -> Iterator:
         nonlocal held, tasks
         for k, (item, task, size) in enumerate(items):
-            while ready or (pending and (held > max_bytes or tasks >= 2 * workers)):
+            while ready or (pending and (held > max_bytes or tasks >= TASKS_AHEAD_PER_WORKER * workers)):
                 yield NOT_NOW                   # the head is running (or waits to be yielded): let results in
             slot = [item, None, task is None, size, task is not None]
             pending.append(slot)
@@ -478,14 +483,17 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         try:
             with atomic_path(manifest_path(out_bag)) as manifest_tmp, \
                     open(manifest_tmp, "w", encoding="utf-8") as log, bag_output(out_bag, reader) as out:
-                jobs = message_jobs(reader, plan, syncs, is2, in_bag)
+                spool = stack.enter_context(closing(Spool()))
+                jobs = spooled(message_jobs(reader, plan, syncs, is2, in_bag), spool)
                 done = ordered_map(_augment_task, blob, jobs, n_workers, max_bytes=max_in_flight_bytes)
-                for (conn, t, raw, job), result in done:
+                for (conn, t, raw, job, sent), result in done:
                     bar.update(1)
                     if job is None:
                         out.write(conn, t, raw)
                         continue
+                    spool.discard(sent.raw)
                     entry, data = result if isinstance(result, tuple) else (_lost_entry(job, result, in_bag), None)
+                    data = None if data is None else spool.take(data)
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
                     tally.add(entry)
@@ -538,6 +546,14 @@ def message_jobs(reader: Any, plan: BagPlan, syncs: dict[str, DepthSync], is2: b
         depth = syncs[topic.spec.depth_topic].take(stamp, t) if topic.spec.depth_topic else None
         job = MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw, depth)
         yield (conn, t, raw, job), job, len(raw) + (len(depth[1]) if depth else 0)
+
+
+def spooled(jobs: Iterator[tuple[tuple, MessageJob | None, int]], spool: Spool) -> Iterator[tuple[tuple, Any, int]]:
+    """:func:`message_jobs` with each job's message put in ``spool`` on its way to a worker; the job as sent is
+    appended to the item (its spool file is discarded when the result is in)."""
+    for item, job, size in jobs:
+        sent = None if job is None else replace(job, raw=spool.put(job.raw))
+        yield (*item, sent), sent, size
 
 
 def stamped_messages(reader: Any, mapped: Container[int], is2: bool, bag: Path, connections: list | None = None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +160,37 @@ def test_two_workers_write_the_same_bytes(bag, augmented, tmp_path):
              for e in map(json.loads, manifest_path(augmented).read_text().splitlines())]
     assert strip == [{k: v for k, v in e.items() if k not in ("seconds", "steps")}
                      for e in map(json.loads, manifest_path(out).read_text().splitlines())]
+
+
+def test_messages_travel_inline_when_nothing_can_be_spooled(bag, augmented, tmp_path, monkeypatch):
+    """Messages go to the workers through spool files (io/spool.py); without a usable temporary folder they go
+    through the pipes, with the same bytes. A spool folder of a process that no longer exists is removed; the run's
+    own is gone when it ends."""
+    import subprocess
+    import tempfile
+
+    from roadview_noise.io import spool
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = Path(tempfile.gettempdir()) / f"{spool.PREFIX}{dead.pid}-x"
+    stale.mkdir()
+    (stale / "0").write_bytes(b"left by a killed run")
+    put, sent = spool.Spool.put, []
+    monkeypatch.setattr(spool.Spool, "put", lambda self, data: sent.append(put(self, data)) or sent[-1])
+    out = tmp_path / "spooled" / augmented.name
+    run_bag(bag_recipe(), bag, out, workers=2, progress=False)
+    assert len(sent) == 12 and all(isinstance(x, spool.Spooled) for x in sent)
+    assert not stale.exists() and not list(Path(tempfile.gettempdir()).glob(f"{spool.PREFIX}{os.getpid()}-*"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing"))
+    inline = tmp_path / "inline" / augmented.name
+    run_bag(bag_recipe(), bag, inline, workers=2, progress=False)
+    assert len(sent) == 24 and all(isinstance(x, bytes) for x in sent[12:])
+    for a, b in ((out, inline), (augmented, out)):
+        files = sorted(p.name for p in [a, *a.glob("*")] if p.is_file())
+        for name in files:
+            x, y = (a / name, b / name) if a.is_dir() else (a, b)
+            assert x.read_bytes() == y.read_bytes(), name
 
 
 def test_replay_reproduces_one_message(augmented, tmp_path):
