@@ -84,7 +84,7 @@ class MessageJob:
     repeat: int                      # earlier messages of the topic with the same stamp
     record_time_ns: int
     raw: bytes                       # (a spool.Spooled on its way to a worker)
-    depth: tuple[str, bytes] | None  # (msgtype, raw) of the aligned depth message
+    depth: tuple[str, bytes] | None  # (msgtype, raw) of the aligned depth message (raw spooled, like ``raw``)
 
     @property
     def key(self) -> str:
@@ -275,7 +275,8 @@ def _augment_task(task: tuple[int, MessageJob], blob: bytes) -> tuple[dict[str, 
     """The executor's task function: ``task`` = (sequence number, job with its message spooled or inline), the
     context is the pickled BagContext; the output comes back the way the message came (:mod:`io.spool`)."""
     job = task[1]
-    entry, out = augment_message(blob, replace(job, raw=load(job.raw)))
+    depth = None if job.depth is None else (job.depth[0], load(job.depth[1]))
+    entry, out = augment_message(blob, replace(job, raw=load(job.raw), depth=depth))
     return entry, None if out is None else put_beside(job.raw, out, ".out")
 
 
@@ -491,7 +492,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     if job is None:
                         out.write(conn, t, raw)
                         continue
-                    spool.discard(sent.raw)
+                    spool.discard(sent.raw, *sent.depth[1:2] if sent.depth else ())
                     entry, data = result if isinstance(result, tuple) else (_lost_entry(job, result, in_bag), None)
                     data = None if data is None else spool.take(data)
                     out.write(conn, t, raw if data is None else data)
@@ -549,10 +550,13 @@ def message_jobs(reader: Any, plan: BagPlan, syncs: dict[str, DepthSync], is2: b
 
 
 def spooled(jobs: Iterator[tuple[tuple, MessageJob | None, int]], spool: Spool) -> Iterator[tuple[tuple, Any, int]]:
-    """:func:`message_jobs` with each job's message put in ``spool`` on its way to a worker; the job as sent is
-    appended to the item (its spool file is discarded when the result is in)."""
+    """:func:`message_jobs` with each job's message and depth message put in ``spool`` on their way to a worker;
+    the job as sent is appended to the item (its spool files are discarded when the result is in)."""
     for item, job, size in jobs:
-        sent = None if job is None else replace(job, raw=spool.put(job.raw))
+        sent = None
+        if job is not None:
+            depth = None if job.depth is None else (job.depth[0], spool.put(job.depth[1]))
+            sent = replace(job, raw=spool.put(job.raw), depth=depth)
         yield (*item, sent), sent, size
 
 
