@@ -407,3 +407,23 @@ def test_a_bad_profile_stops_the_run_before_anything_is_written(bag, tmp_path):
                                           r"profile: .*no LiDAR profile 'os1-12'"):
         run_bag(recipe, bag, tmp_path / ("o.bag" if bag.suffix == ".bag" else "o"), workers=1, progress=False)
     assert not list(tmp_path.iterdir())
+
+
+def test_writeback_starts_every_so_many_bytes(tmp_path, monkeypatch):
+    """The output bag's pages are handed to the kernel for writing as the run goes (io/writeback.py), so the fsync
+    before the rename waits for little; without a file or the call it does nothing."""
+    from roadview_noise.io import writeback
+
+    calls = []
+    monkeypatch.setattr(writeback, "_sync_file_range", lambda: lambda *a: calls.append(a))
+    f = tmp_path / "bag"
+    f.write_bytes(b"x" * 100)
+    wb = writeback.Writeback(f, every_bytes=40)
+    for _ in range(5):
+        wb.wrote(20)
+    assert [a[1:] for a in calls] == [(0, 0, writeback.SYNC_FILE_RANGE_WRITE)] * 2
+    wb.close()
+    assert wb.fd is None
+    none = writeback.Writeback(None)
+    none.wrote(1 << 30)
+    assert none.fd is None and len(calls) == 2
