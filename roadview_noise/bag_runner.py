@@ -1,8 +1,9 @@
 """The bag pipeline: augment the mapped topics of a ROS bag, copy every other message unchanged, write one bag.
 
-Messages are read in record order; those of mapped topics go to worker processes (:func:`ordered_map`, bounded in
-flight), and every message is written in record order with its record time. A message whose augmentation fails is
-recorded in the manifest and copied unchanged, never dropped.
+Messages are read in record order; those of mapped topics go to worker processes (:func:`ordered_map` on the file
+runner's crash-safe executor, bounded in flight), and every message is written in record order with its record time.
+A message whose augmentation fails, or whose worker dies (twice), is recorded in the manifest and copied unchanged,
+never dropped.
 
 Keys. A message is ``TOPIC@STAMP`` (header stamp in ns; ``#k`` for the k-th repeat of a stamp on its topic), which
 ``rvnoise replay`` takes. Every random draw is keyed by the message's **seed key**, the path ``rvnoise export`` gives
@@ -22,8 +23,8 @@ import time
 import traceback
 import warnings
 from collections import deque
-from contextlib import ExitStack
-from dataclasses import asdict, dataclass
+from contextlib import ExitStack, closing
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Container, Iterable, Iterator
@@ -33,11 +34,13 @@ from .errors import InputError, RecipeError, RvNoiseError
 from .io import ros_messages as rm
 from .io.atomic import atomic_path
 from .io.rosbag import bag_kind, bag_output, header_stamp_ns, open_bag, output_kind, remove_stale_siblings
+from .io.spool import Payload, Spool, load, put_beside
 from .manifest import dumps, library_versions, read_manifest, write_run_json
 from .runner import RunSummary
 
 DEPTH_WINDOW_NS = 1_000_000_000       # an aligned depth message is looked for within ±1 s of record time
 MAX_IN_FLIGHT_BYTES = 256 << 20       # serialised messages held between reading and writing
+TASKS_AHEAD_PER_WORKER = 4            # messages read ahead of the oldest unwritten one (a slow one stalls no worker)
 MANIFEST_SUFFIX = ".manifest.jsonl"
 RUN_SUFFIX = ".run.json"
 
@@ -80,8 +83,8 @@ class MessageJob:
     stamp_ns: int
     repeat: int                      # earlier messages of the topic with the same stamp
     record_time_ns: int
-    raw: bytes
-    depth: tuple[str, bytes] | None  # (msgtype, raw) of the aligned depth message
+    raw: bytes                       # (a spool.Spooled on its way to a worker)
+    depth: tuple[str, bytes] | None  # (msgtype, raw) of the aligned depth message (raw spooled, like ``raw``)
 
     @property
     def key(self) -> str:
@@ -268,55 +271,68 @@ def _serialize(typestore: Any, is2: bool, msg: Any, msgtype: str, like: bytes) -
 # --- parallel, in order, bounded --------------------------------------------------------------------------------------
 
 
-def ordered_map(fn: Callable, items: Iterable[tuple[Any, tuple | None, int]], workers: int, *,
+def _augment_task(task: tuple[int, MessageJob], blob: bytes) -> tuple[dict[str, Any], Payload | None]:
+    """The executor's task function: ``task`` = (sequence number, job with its message spooled or inline), the
+    context is the pickled BagContext; the output comes back the way the message came (:mod:`io.spool`)."""
+    job = task[1]
+    depth = None if job.depth is None else (job.depth[0], load(job.depth[1]))
+    entry, out = augment_message(blob, replace(job, raw=load(job.raw), depth=depth))
+    return entry, None if out is None else put_beside(job.raw, out, ".out")
+
+
+def ordered_map(fn: Callable, context: Any, items: Iterable[tuple[Any, Any, int]], workers: int, *,
                 max_bytes: int = MAX_IN_FLIGHT_BYTES) -> Iterator[tuple[Any, Any]]:
-    """Yield ``(item, fn(*args))`` (``None`` for an item without args) in the order of ``items`` =
-    ``(item, args, size in bytes)``: the one place the bag runner meets a process pool (the main process when
-    ``workers`` ≤ 1). At most 2·``workers`` calls and ``max_bytes`` of pending items are in flight, so memory stays
-    bounded on long bags while the workers stay busy. The pool is the standard library's, its workers started like
-    the file runner's (:mod:`roadview_noise.executor`: fork server with the models imported, one thread per numeric
-    library, exit with the run, models registered at run time adopted); unlike that executor it breaks when a
-    worker dies (:class:`concurrent.futures.process.BrokenProcessPool`)."""
-    if workers <= 1:
-        for item, args, _ in items:
-            yield item, (fn(*args) if args is not None else None)
-        return
-    from concurrent.futures import ProcessPoolExecutor
+    """Yield ``(item, result)`` in the order of ``items`` = ``(item, task or None, size in bytes)``: ``result`` is
+    ``fn((k, task), context)`` (``None`` for an item without task), or the :class:`executor.WorkerDeath` /
+    :class:`executor.TaskError` of a task whose worker died or that raised. Tasks run on the file runner's crash-safe
+    :class:`executor.ProcessExecutor` (``workers`` processes, also for one: a dying worker costs its message, not the
+    run; the run's plugin models adopted). At most ``TASKS_AHEAD_PER_WORKER``·``workers`` tasks and ``max_bytes`` of
+    items are held between reading and yielding (the source answers :data:`executor.NOT_NOW` while over), so memory
+    stays bounded on long bags while the workers stay busy."""
+    from .executor import NOT_NOW, ProcessExecutor
+    from .registry import adopt, plugin_models
 
-    from .executor import _context, _starting          # the file runner's way of starting workers
-    from .registry import plugin_models
+    pending: deque[list] = deque()          # [item, result, done, size, is task] in the order of items
+    ready: deque[list] = deque()            # done at the head of the order, to be yielded
+    slots: dict[int, list] = {}
+    held = tasks = 0
 
-    pool = ProcessPoolExecutor(workers, mp_context=_context(), initializer=_worker_start,
-                               initargs=(os.getpid(), plugin_models()))
-    pending: deque = deque()
-    in_flight = calls = 0
+    def advance() -> None:
+        while pending and pending[0][2]:
+            ready.append(pending.popleft())
+
+    def source() -> Iterator:
+        nonlocal held, tasks
+        for k, (item, task, size) in enumerate(items):
+            while ready or (pending and (held > max_bytes or tasks >= TASKS_AHEAD_PER_WORKER * workers)):
+                yield NOT_NOW                   # the head is running (or waits to be yielded): let results in
+            slot = [item, None, task is None, size, task is not None]
+            pending.append(slot)
+            held += size
+            if task is None:
+                advance()
+                continue
+            slots[k] = slot
+            tasks += 1
+            yield k, task
+
+    executor = ProcessExecutor(fn, context, max(1, workers), setup=(adopt, (plugin_models(),)))
     try:
-        for item, args, size in items:
-            future = None
-            if args is not None:
-                with _starting():                       # the first submit starts the workers
-                    future = pool.submit(fn, *args)
-            pending.append((item, future, size))
-            in_flight += size
-            calls += future is not None
-            while pending and (in_flight > max_bytes or calls > 2 * workers):
-                done, future, size = pending.popleft()
-                in_flight -= size
-                calls -= future is not None
-                yield done, (future.result() if future is not None else None)
-        for done, future, _ in pending:
-            yield done, (future.result() if future is not None else None)
+        for task, result in executor.map(source()):
+            if task is not NOT_NOW:
+                slot = slots.pop(task[0])
+                slot[1], slot[2] = result, True
+                advance()
+            while ready:
+                item, result, _, size, is_task = ready.popleft()
+                held -= size
+                tasks -= is_task
+                yield item, result
+        advance()
+        for item, result, *_ in ready:
+            yield item, result
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _worker_start(parent_pid: int, plugins: tuple) -> None:
-    """A bag worker's start: :func:`executor.worker_setup` and the run's plugin models."""
-    from .executor import worker_setup
-    from .registry import adopt
-
-    worker_setup(parent_pid)
-    adopt(plugins)
+        executor.close()
 
 
 # --- planning and the run -------------------------------------------------------------------------------------------
@@ -468,14 +484,17 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         try:
             with atomic_path(manifest_path(out_bag)) as manifest_tmp, \
                     open(manifest_tmp, "w", encoding="utf-8") as log, bag_output(out_bag, reader) as out:
-                jobs = message_jobs(reader, plan, syncs, is2, blob, in_bag)
-                done = ordered_map(augment_message, jobs, n_workers, max_bytes=max_in_flight_bytes)
-                for (conn, t, raw), result in _worker_deaths_named(done, in_bag):
+                spool = stack.enter_context(closing(Spool()))
+                jobs = spooled(message_jobs(reader, plan, syncs, is2, in_bag), spool)
+                done = ordered_map(_augment_task, blob, jobs, n_workers, max_bytes=max_in_flight_bytes)
+                for (conn, t, raw, job, sent), result in done:
                     bar.update(1)
-                    if result is None:
+                    if job is None:
                         out.write(conn, t, raw)
                         continue
-                    entry, data = result
+                    spool.discard(sent.raw, *sent.depth[1:2] if sent.depth else ())
+                    entry, data = result if isinstance(result, tuple) else (_lost_entry(job, result, in_bag), None)
+                    data = None if data is None else spool.take(data)
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
                     tally.add(entry)
@@ -500,33 +519,45 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
     return summary
 
 
-def _worker_deaths_named(results: Iterator, bag: Path) -> Iterator:
-    """``results``, with a dead worker (which breaks the pool) as an InputError naming the bag and the last message
-    written: the run stops and leaves no output."""
-    from concurrent.futures.process import BrokenProcessPool
+def _lost_entry(job: MessageJob, result: Any, bag: Path) -> dict[str, Any]:
+    """The manifest entry of a message whose worker died (as a file run records it, :func:`runner._result_entry`)
+    or whose task raised past :func:`augment_message`: failed, copied unchanged."""
+    from .executor import WorkerDeath
 
-    last = "its first message"
-    try:
-        for (conn, t, raw), result in results:
-            yield (conn, t, raw), result
-            last = f"{conn.topic} at record time {t}"
-    except BrokenProcessPool:
-        raise InputError(f"a worker process died (killed: out of memory, or a native crash) on a message after {last}; "
-                         "nothing was written; run again with fewer --workers if memory ran out",
-                         file=str(bag)) from None
+    entry: dict[str, Any] = {
+        "key": job.key, "topic": job.topic, "stamp_ns": job.stamp_ns, "record_time_ns": job.record_time_ns,
+        "msgtype": job.msgtype, "input_sha256": hashlib.sha256(job.raw).hexdigest(), "status": "failed",
+        "copied_unchanged": True}
+    if isinstance(result, WorkerDeath):
+        again = " (tried twice, not retried again)" if result.deaths > 1 else ""
+        entry.update(error=f"{bag}: {job.key}: {result.reason}{again}", worker_deaths=result.deaths)
+    else:
+        entry.update(error=f"{bag}: {job.key}: internal error {result.message}", traceback=result.traceback)
+    return entry
 
 
-def message_jobs(reader: Any, plan: BagPlan, syncs: dict[str, DepthSync], is2: bool, blob: bytes, bag: Path
-                 ) -> Iterator[tuple[tuple[Any, int, bytes], tuple | None, int]]:
-    """Every message in record order as ``((connection, record time, raw), worker args or None, bytes held)``."""
+def message_jobs(reader: Any, plan: BagPlan, syncs: dict[str, DepthSync], is2: bool, bag: Path
+                 ) -> Iterator[tuple[tuple[Any, int, bytes, MessageJob | None], MessageJob | None, int]]:
+    """Every message in record order as ``((connection, record time, raw, job), job or None, bytes held)``."""
     for conn, t, raw, stamp, repeat in stamped_messages(reader, plan.mapped, is2, bag):
         topic = plan.mapped.get(id(conn))
         if topic is None:
-            yield (conn, t, raw), None, len(raw)
+            yield (conn, t, raw, None), None, len(raw)
             continue
         depth = syncs[topic.spec.depth_topic].take(stamp, t) if topic.spec.depth_topic else None
         job = MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw, depth)
-        yield (conn, t, raw), (blob, job), len(raw) + (len(depth[1]) if depth else 0)
+        yield (conn, t, raw, job), job, len(raw) + (len(depth[1]) if depth else 0)
+
+
+def spooled(jobs: Iterator[tuple[tuple, MessageJob | None, int]], spool: Spool) -> Iterator[tuple[tuple, Any, int]]:
+    """:func:`message_jobs` with each job's message and depth message put in ``spool`` on their way to a worker;
+    the job as sent is appended to the item (its spool files are discarded when the result is in)."""
+    for item, job, size in jobs:
+        sent = None
+        if job is not None:
+            depth = None if job.depth is None else (job.depth[0], spool.put(job.depth[1]))
+            sent = replace(job, raw=spool.put(job.raw), depth=depth)
+        yield (*item, sent), sent, size
 
 
 def stamped_messages(reader: Any, mapped: Container[int], is2: bool, bag: Path, connections: list | None = None

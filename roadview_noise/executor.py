@@ -16,6 +16,9 @@ OpenBLAS/OpenMP/numba at one thread and ``cv2.setNumThreads(1)`` per worker.
 The interface (:class:`Executor`): ``map(tasks)`` pulls tasks lazily from any iterable (at most ``workers`` in
 flight) and yields ``(task, result)`` pairs as they complete; ``result`` is the function's return value, a
 :class:`WorkerDeath` or a :class:`TaskError`. :class:`InlineExecutor` runs the same contract in the calling process.
+A source that must wait for its caller (an ordered consumer bounding what it holds, the bag runner) yields
+:data:`NOT_NOW` instead of a task: ``map`` yields ``(NOT_NOW, None)`` at once and asks again later; the source may do
+so only while a task is running or when its caller can make progress without one.
 """
 
 from __future__ import annotations
@@ -45,6 +48,14 @@ THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module, then the warm-up (see _context)
 WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
+
+
+class _NotNow:
+    def __repr__(self) -> str:
+        return "NOT_NOW"
+
+
+NOT_NOW = _NotNow()                 # "no task yet" from a task source (see the module docstring)
 
 
 @dataclass(frozen=True)
@@ -252,10 +263,14 @@ class ProcessExecutor(Generic[T, C]):
                         w.tid, w.task = retry.popleft()
                     elif not exhausted:
                         try:
-                            w.task = next(source)
+                            task = next(source)
                         except StopIteration:
                             exhausted = True
                             continue
+                        if task is NOT_NOW:                # the source waits for its caller: hand control back
+                            yield NOT_NOW, None
+                            continue
+                        w.task = task
                         w.tid, next_tid = next_tid, next_tid + 1
                     else:
                         continue
@@ -266,7 +281,9 @@ class ProcessExecutor(Generic[T, C]):
                         pass                       # its death is seen below and the task re-sent
                 busy = [w for w in self._pool if w.task is not None]
                 if not busy:
-                    return
+                    if exhausted:
+                        return
+                    continue                               # every worker idle after NOT_NOW: ask the source again
                 timeout = None
                 if self.timeout_s is not None:
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
@@ -344,6 +361,9 @@ class InlineExecutor(Generic[T, C]):
 
     def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
         for task in tasks:
+            if task is NOT_NOW:
+                yield task, None
+                continue
             try:
                 yield task, self.fn(task, self.context)
             except Exception as exc:

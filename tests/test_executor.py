@@ -7,7 +7,7 @@ import os
 import signal
 import time
 
-from roadview_noise.executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, death_reason
+from roadview_noise.executor import NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, death_reason
 
 
 def work(task: int, context: dict) -> tuple[int, int]:
@@ -51,6 +51,32 @@ def test_timeout_and_early_close():
     next(it)
     it.close()                                                     # leaving early stops every worker
     assert not ex._pool
+
+
+def test_a_source_that_waits_gets_control_back():
+    """A source that yields NOT_NOW is handed back ``(NOT_NOW, None)`` at once and asked again later (also when no
+    task is running); every real task still runs once. Here: a wait before every task (the first while nothing runs),
+    and no task ahead of the results the caller saw."""
+    for ex in (ProcessExecutor(work, {}, 2), InlineExecutor(work, {})):
+        seen: list = []
+        waits = 0
+
+        def source():
+            nonlocal waits
+            for t in range(6):
+                waits += 1
+                yield NOT_NOW
+                while t > len(seen):
+                    waits += 1
+                    yield NOT_NOW
+                yield t
+
+        for task, result in ex.map(source()):
+            if task is NOT_NOW:
+                assert result is None
+            else:
+                seen.append(result)
+        assert seen == [(t, t * t) for t in range(6)] and waits >= 6
 
 
 def test_inline_executor_same_contract():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -161,6 +162,38 @@ def test_two_workers_write_the_same_bytes(bag, augmented, tmp_path):
                      for e in map(json.loads, manifest_path(out).read_text().splitlines())]
 
 
+def test_messages_travel_inline_when_nothing_can_be_spooled(bag, augmented, tmp_path, monkeypatch):
+    """Messages go to the workers through spool files (io/spool.py); without a usable temporary folder they go
+    through the pipes, with the same bytes. A spool folder of a process that no longer exists is removed; the run's
+    own is gone when it ends."""
+    import subprocess
+    import tempfile
+
+    from roadview_noise.io import spool
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    stale = Path(tempfile.gettempdir()) / f"{spool.PREFIX}{dead.pid}-x"
+    stale.mkdir()
+    (stale / "0").write_bytes(b"left by a killed run")
+    put, sent = spool.Spool.put, []
+    monkeypatch.setattr(spool.Spool, "put", lambda self, data: sent.append(put(self, data)) or sent[-1])
+    out = tmp_path / "spooled" / augmented.name
+    run_bag(bag_recipe(), bag, out, workers=2, progress=False)
+    first = len(sent)                                       # 12 messages and the depth messages of the cameras
+    assert first > 12 and all(isinstance(x, spool.Spooled) for x in sent)
+    assert not stale.exists() and not list(Path(tempfile.gettempdir()).glob(f"{spool.PREFIX}{os.getpid()}-*"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing"))
+    inline = tmp_path / "inline" / augmented.name
+    run_bag(bag_recipe(), bag, inline, workers=2, progress=False)
+    assert len(sent) == 2 * first and all(isinstance(x, bytes) for x in sent[first:])
+    for a, b in ((out, inline), (augmented, out)):
+        files = sorted(p.name for p in [a, *a.glob("*")] if p.is_file())
+        for name in files:
+            x, y = (a / name, b / name) if a.is_dir() else (a, b)
+            assert x.read_bytes() == y.read_bytes(), name
+
+
 def test_replay_reproduces_one_message(augmented, tmp_path):
     entry = json.loads(manifest_path(augmented).read_text().splitlines()[4])
     r = replay_bag(manifest_path(augmented), entry["key"], out_file=tmp_path / "msg.bin")
@@ -311,10 +344,12 @@ def test_ros1_chunk_compression_is_kept(tmp_path):
     assert [m[:3] for m in messages(src)] == [m[:3] for m in messages(out)]
 
 
-def test_a_dying_worker_stops_the_run_without_output(tmp_path):
-    """A worker killed on one message (SIGKILL, as the out-of-memory killer does) breaks the bag's pool: the run
-    stops with an error naming the bag and writes nothing. The test model is adopted by the workers
-    (registry.plugin_models), as in file runs."""
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_dying_worker_costs_its_message_only(tmp_path, workers):
+    """A worker killed on one message (SIGKILL, as the out-of-memory killer does), as in a file run: that message is
+    tried once more on a fresh worker, then recorded as failed ("worker died") and copied unchanged; every other
+    message is augmented and written in order, the bag is complete, the exit status is 1. The test model is adopted
+    by the workers (registry.plugin_models), as in file runs."""
     import injected_models
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
@@ -325,25 +360,44 @@ def test_a_dying_worker_stops_the_run_without_output(tmp_path):
     bag = tmp_path / "cam.bag"
     writer = Writer(bag)
     writer.open()
-    conn = writer.add_connection("/cam", rm.IMAGE, typestore=store)
-    for k in range(3):
-        pixels = np.full((48, 64, 3), 90, np.uint8)
+    cam, copy = (writer.add_connection(t, rm.IMAGE, typestore=store) for t in ("/cam", "/cam_unmapped"))
+    for k in range(4):
+        pixels = ((np.arange(48 * 64 * 3) * 7 + k) % 200).astype(np.uint8).reshape(48, 64, 3)
         pixels[0, 0] = 255 if k == 1 else 90                                          # the poison frame
         header = store.types["std_msgs/msg/Header"](seq=k, stamp=store.types["builtin_interfaces/msg/Time"](
             sec=k, nanosec=0), frame_id="cam")
         msg = store.types["sensor_msgs/msg/Image"](header=header, height=48, width=64, encoding="rgb8",
                                                    is_bigendian=0, step=192, data=pixels.ravel())
-        writer.write(conn, 10**9 * k + 1, bytes(store.serialize_ros1(msg, rm.IMAGE)))
+        raw = bytes(store.serialize_ros1(msg, rm.IMAGE))
+        writer.write(cam, 10**9 * k + 1, raw)
+        writer.write(copy, 10**9 * k + 2, raw)
     writer.close()
+    trace = tmp_path / "trace.txt"
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(json.dumps({"topics": {"/cam": "camera"}, "chains": {"camera": [
+        {"model": "test_crash.camera", "params": {"trace_path": str(trace)}}]}}))
+    out = tmp_path / "out" / "o.bag"
     register(injected_models.CrashCamera)
     try:
-        recipe = parse_bag_recipe({"topics": {"/cam": "camera"},
-                                   "chains": {"camera": [{"model": "test_crash.camera"}]}})
-        with pytest.raises(InputError, match=f"{bag}: a worker process died"):
-            run_bag(recipe, bag, tmp_path / "out" / "o.bag", workers=2, progress=False, echo=lambda _: None)
+        r = CliRunner().invoke(app, ["augment", "-r", str(recipe), str(bag), str(out), "-q", "-j", str(workers)])
     finally:
         MODELS.pop(injected_models.CrashCamera.id, None)
-    assert not list((tmp_path / "out").iterdir())
+    assert r.exit_code == 1, r.output
+    assert "Traceback" not in r.output and "3 messages augmented, 1 failed" in r.output, r.output
+    assert trace.read_text().split().count("poison") == 2                     # tried twice, never a third time
+    entries = [json.loads(x) for x in manifest_path(out).read_text().splitlines()]
+    assert [(e["key"], e["status"]) for e in entries] == [
+        (f"/cam@{k * 10**9}", "failed" if k == 1 else "ok") for k in range(4)]
+    bad = entries[1]
+    assert bad["error"].startswith(f"{bag}: /cam@1000000000: worker died: signal 9")
+    assert bad["worker_deaths"] == 2 and bad["copied_unchanged"] is True
+    before, after = messages(bag), messages(out)
+    assert [m[:3] for m in before] == [m[:3] for m in after]                   # complete, in record order
+    assert after[2] == before[2] and [m[3] for m in after[1::2]] == [m[3] for m in before[1::2]]   # copied
+    assert [e.get("output_sha256") for e in entries] == [
+        None if k == 1 else hashlib.sha256(after[2 * k][3]).hexdigest() for k in range(4)]
+    assert json.loads(run_record_path(out).read_text())["counts"] == {"augmented": 3, "failed": 1, "messages": 8}
+    assert not list(out.parent.glob(f"*{TMP_SUFFIX}*"))
 
 
 def test_a_bad_profile_stops_the_run_before_anything_is_written(bag, tmp_path):
@@ -353,3 +407,23 @@ def test_a_bad_profile_stops_the_run_before_anything_is_written(bag, tmp_path):
                                           r"profile: .*no LiDAR profile 'os1-12'"):
         run_bag(recipe, bag, tmp_path / ("o.bag" if bag.suffix == ".bag" else "o"), workers=1, progress=False)
     assert not list(tmp_path.iterdir())
+
+
+def test_writeback_starts_every_so_many_bytes(tmp_path, monkeypatch):
+    """The output bag's pages are handed to the kernel for writing as the run goes (io/writeback.py), so the fsync
+    before the rename waits for little; without a file or the call it does nothing."""
+    from roadview_noise.io import writeback
+
+    calls = []
+    monkeypatch.setattr(writeback, "_sync_file_range", lambda: lambda *a: calls.append(a))
+    f = tmp_path / "bag"
+    f.write_bytes(b"x" * 100)
+    wb = writeback.Writeback(f, every_bytes=40)
+    for _ in range(5):
+        wb.wrote(20)
+    assert [a[1:] for a in calls] == [(0, 0, writeback.SYNC_FILE_RANGE_WRITE)] * 2
+    wb.close()
+    assert wb.fd is None
+    none = writeback.Writeback(None)
+    none.wrote(1 << 30)
+    assert none.fd is None and len(calls) == 2

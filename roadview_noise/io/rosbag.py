@@ -23,6 +23,7 @@ from typing import Any, Iterator
 
 from ..errors import InputError
 from .atomic import TMP_SUFFIX
+from .writeback import Writeback
 
 BAG_SUFFIXES = {".bag": "ros1", ".mcap": "ros2", ".db3": "ros2"}
 
@@ -90,8 +91,8 @@ def remove_stale_siblings(path: Path) -> None:
 class BagOutput:
     """Connections and messages of the output bag (see :func:`bag_output`)."""
 
-    def __init__(self, writer: Any, reader: Any, is2: bool):
-        self.writer = writer
+    def __init__(self, writer: Any, reader: Any, is2: bool, writeback: Writeback):
+        self.writer, self.writeback = writer, writeback
         self.connections: dict[int, Any] = {}
         for conn in reader.connections:
             self.connections[id(conn)] = self._add(conn, reader.typestore, is2)
@@ -109,6 +110,7 @@ class BagOutput:
 
     def write(self, conn: Any, record_time_ns: int, data: bytes) -> None:
         self.writer.write(self.connections[id(conn)], record_time_ns, data)
+        self.writeback.wrote(len(data))
 
 
 @contextmanager
@@ -129,7 +131,7 @@ def bag_output(path: str | os.PathLike, reader: Any) -> Iterator[BagOutput]:
         compression = _ros1_compression(reader)
         if compression:
             writer.set_compression(Writer1.CompressionFormat[compression.upper()])
-        made = tmp
+        made = data_file = tmp
     else:
         # rosbags names the storage file after the bag folder: write tmp/<name>/<name>.mcap, then move it in place
         tmp.mkdir()
@@ -142,10 +144,14 @@ def bag_output(path: str | os.PathLike, reader: Any) -> Iterator[BagOutput]:
         if mode:
             writer.set_compression(CompressionMode[mode.upper()], CompressionFormat.ZSTD)
         made = folder / f"{folder.name}{storage}" if single else folder
+        data_file = folder / f"{folder.name}{storage}" if storage == ".mcap" else None   # sqlite writes its own
     try:
         writer.open()
-        out = BagOutput(writer, reader, is2=output_kind(path) == "ros2")
-        yield out
+        writeback = Writeback(data_file)
+        try:
+            yield BagOutput(writer, reader, is2=output_kind(path) == "ros2", writeback=writeback)
+        finally:
+            writeback.close()
         writer.close()
         for p in ([made] if made.is_file() else sorted(made.iterdir())):
             _fsync(p)
