@@ -40,6 +40,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
+from bench_foundation import median_ms      # bench/ is the script's folder, first on sys.path
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = {
@@ -174,16 +175,6 @@ def startup(name: str, sensor: str, tree: Path, out: Path) -> float:
 # --- single frames ---------------------------------------------------------------------------------------------------
 
 
-def _median_ms(fn, repeat: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
-
-
 def single_frame(tree: Path, repeat: int) -> dict[str, float]:
     """compression.camera vs the codec alone and albumentations on one frame; albumentations' weather transforms."""
     from roadview_noise.allocator import keep_freed_memory
@@ -201,12 +192,12 @@ def single_frame(tree: Path, repeat: int) -> dict[str, float]:
     model = CompressionCamera(quality=15)
     rgb8 = srgb.linear_to_code(changed)
     res = {"compression.camera (Q15, after a weather step)":
-           _median_ms(lambda: model.apply(frame, state={}, drawn={}, rng=None), repeat),
+           median_ms(lambda: model.apply(frame, state={}, drawn={}, rng=None), repeat),
            "OpenCV JPEG encode + decode alone (Q15)":
-           _median_ms(lambda: cv2.imdecode(cv2.imencode(".jpg", rgb8, [cv2.IMWRITE_JPEG_QUALITY, 15])[1],
+           median_ms(lambda: cv2.imdecode(cv2.imencode(".jpg", rgb8, [cv2.IMWRITE_JPEG_QUALITY, 15])[1],
                                            cv2.IMREAD_COLOR), repeat),
-           "sRGB linear → 8-bit codes (tables)": _median_ms(lambda: srgb.linear_to_code(changed), repeat),
-           "sRGB 8-bit codes → linear (tables)": _median_ms(lambda: srgb.code_to_linear(rgb8), repeat)}
+           "sRGB linear → 8-bit codes (tables)": median_ms(lambda: srgb.linear_to_code(changed), repeat),
+           "sRGB 8-bit codes → linear (tables)": median_ms(lambda: srgb.code_to_linear(rgb8), repeat)}
     try:
         import albumentations as A
     except ImportError:
@@ -214,7 +205,7 @@ def single_frame(tree: Path, repeat: int) -> dict[str, float]:
     for label, t in [("albumentations ImageCompression (Q15)", A.ImageCompression(quality_range=(15, 15), p=1)),
                      ("albumentations RandomFog", A.RandomFog(p=1)), ("albumentations RandomRain", A.RandomRain(p=1)),
                      ("albumentations RandomSnow", A.RandomSnow(p=1))]:
-        res[f"{label} {A.__version__}"] = _median_ms(lambda: t(image=rgb8), repeat)
+        res[f"{label} {A.__version__}"] = median_ms(lambda: t(image=rgb8), repeat)
     return res
 
 

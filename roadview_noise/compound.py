@@ -133,11 +133,10 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
     step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
     collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
-    input and output. A cloud remembers itself as ``recorded`` (the sensor's own data) for the steps that
-    calibrate the sensor on it."""
+    input and output. Each later step's cloud notes the chain's input as ``recorded`` (the sensor's own data), for
+    the steps that calibrate the sensor on it."""
     records = []
-    if isinstance(data, PointCloud) and data.recorded is None and len(models) > 1:
-        data = dataclasses.replace(data, recorded=data)
+    recorded = data if isinstance(data, PointCloud) and data.recorded is None else None
     for i, model in enumerate(models):
         if model.sensor != sensor_kind(data):
             raise ModelError(f"acts on {model.sensor} data, got {sensor_kind(data)} data", model=model.id)
@@ -147,7 +146,10 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
             state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
         rng = derive_rng(seed, key, i, model.id)
         drawn = model.draw(rng, data)
-        out, diagnostics = model.apply(step_input(data), state=state, drawn=drawn, rng=rng)
+        given = step_input(data)
+        if recorded is not None and given is not recorded and given.recorded is None:
+            given = dataclasses.replace(given, recorded=recorded)
+        out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
         before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
                                   compare(before, data) if metrics else {}))

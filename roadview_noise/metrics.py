@@ -3,9 +3,9 @@
 ``compare(before, after)`` returns a flat JSON-able dict; ``compound.apply_models`` stores it per step
 (``steps[i].metrics``: the step's input against its output) and the runner per output (``metrics``: the chain's
 input against the written output). Pure NumPy/OpenCV plus compiled passes over clouds; no I/O. Each data object is
-summarised once (cached while it lives; a step that returns the same pixels shares its input's summary, and
-``apply_models``' copy of the input that only notes ``recorded`` shares the input's), so a chain of n steps costs
-at most n + 1 summaries and n + 1 comparisons; positions and depth maps that steps hand on unchanged are binned once.
+summarised once (cached while it lives; a step that returns the same pixels shares its input's summary), so a
+chain of n steps costs at most n + 1 summaries and n + 1 comparisons; positions and depth maps that steps hand on
+unchanged are binned once.
 
 Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relative luminance Y = 0.2126 R +
 0.7152 G + 0.0722 B of the linear signal (raw Bayer: the mean of each 2×2 CFA cell), clipped to [0, 1] and
@@ -109,15 +109,7 @@ def _summary(data: SensorData) -> dict:
     if s is None:
         s = _cloud_summary(data) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
-        recorded = getattr(data, "recorded", None)
-        if recorded is not None and recorded not in _summaries and _same_cloud(data, recorded):
-            _summaries[recorded] = s            # apply_models' copy of the chain input that only notes `recorded`:
-    return s                                    # the same summary, so the chain's compare composes the steps' links
-
-
-def _same_cloud(a: PointCloud, b: PointCloud) -> bool:
-    """Whether two clouds hold the very same arrays and settings (they may differ in ``recorded`` only)."""
-    return all(getattr(a, f.name) is getattr(b, f.name) for f in dataclasses.fields(a) if f.name != "recorded")
+    return s
 
 
 # --- camera -----------------------------------------------------------------------------------------------------

@@ -308,8 +308,9 @@ class PointCloud:
     :class:`~roadview_noise.provenance.Effect` codes (None: none reported), ``attributes`` per-point arrays the chain
     knows but does not write. :meth:`select`, :meth:`drop` and :meth:`concat` keep all of them aligned.
 
-    ``recorded``: the chain's input as the sensor recorded it (set by :func:`~roadview_noise.compound.apply_models`):
-    what a step calibrates the sensor on, rather than on what earlier steps made of the data."""
+    ``recorded``: the chain's input as the sensor recorded it (set by :func:`~roadview_noise.compound.apply_models`
+    on the clouds of the steps after the first): what a step calibrates the sensor on, rather than on what earlier
+    steps made of the data."""
 
     positions_m: np.ndarray
     fields: Mapping[str, np.ndarray]

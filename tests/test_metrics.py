@@ -311,9 +311,9 @@ def _fresh(cloud: PointCloud) -> PointCloud:
 
 @pytest.mark.parametrize("chain", [("power.lidar", "fog.lidar"), ("fog.lidar", "rain.lidar")])
 def test_a_chain_summarises_its_input_once_and_its_metrics_equal_a_fresh_computation(monkeypatch, chain):
-    """apply_models hands the steps a copy of the input that notes ``recorded``: the runner's whole-chain compare
-    of the input it holds reuses that copy's summary (three cloud passes for two steps), with the same metrics
-    as clouds that were never summarised."""
+    """The runner's whole-chain compare of the input it holds reuses the first step's summary of it (three cloud
+    passes for two steps, although later steps' clouds note the input as ``recorded``), with the same metrics as
+    clouds that were never summarised."""
     import roadview_noise.metrics as metrics_module
 
     passes = []
