@@ -9,7 +9,10 @@ unit's own calibration (``beam_intrinsics.json``: 8-bit reflectivity channel), t
    scene, not sensor — and leaving them out scores better on held-out sectors);
 2. validates both against the constant drop rate: fit on one half of the columns, test on the other (both ways), and
    leave-one-out over 4 disjoint azimuth sectors (other scene content, same sensor);
-3. prints the AUC and log-loss of each, and how stable the physical coefficients are across the sector fits.
+3. prints the AUC and log-loss of each, and how stable the physical coefficients are across the sector fits;
+4. with ``--other-grid FILE`` (repeatable; range images in the same layout, e.g. the other frames of the same Ouster
+   capture written by ``bench/ouster_pcap_grids.py``): scores the committed defaults, and both back-ends fitted on
+   all of scan0, on each other scan — the check that a fit on one scan generalises to other scans of the sensor.
 """
 
 from __future__ import annotations
@@ -25,16 +28,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from roadview_noise.models.lidar.ray_drop import RayDropLidar  # noqa: E402
 from roadview_noise.physics.ray_drop import FEATURES  # noqa: E402
 from roadview_noise.profiles.lidar import load_lidar_profile  # noqa: E402
-from roadview_noise.ray_drop_fit import (azimuth_sectors, column_halves, fit_additive, fit_physical,  # noqa: E402
-                                         scan_examples, scores)
+from roadview_noise.ray_drop_fit import (azimuth_sectors, column_halves, compare, fit_additive,  # noqa: E402
+                                         fit_physical, scan_examples, scores)
 from roadview_noise.types import PointCloud  # noqa: E402
 
 
-def real_grid(data: Path) -> PointCloud:
-    """scan0_grid.npz as a full 128×1024 grid cloud (zero position = no return), reflectivity as intensity."""
-    g = np.load(data / "os1-128" / "scan0_grid.npz")
+def real_grid(data: Path, grid: Path | None = None) -> PointCloud:
+    """scan0_grid.npz (or ``grid``, same layout) as a full 128×1024 grid cloud (zero position = no return),
+    reflectivity as intensity."""
+    g = np.load(grid or data / "os1-128" / "scan0_grid.npz")
     profile = load_lidar_profile(str(data / "os1-128" / "beam_intrinsics.json"))
     rows, cols = g["range_mm"].shape
     xyz = g["xyz_m"].reshape(-1, 3).astype(np.float64)
@@ -61,10 +66,27 @@ def _summary(title: str, folds: list[dict]) -> dict:
     return out
 
 
+def other_scans(cells, args) -> dict:
+    """Fit on all of scan0 (without elevation, as the defaults), score on each other scan; the committed defaults too."""
+    print("\n=== other scans of the sensor (fitted on all of scan0, without elevation) ===")
+    defaults = RayDropLidar().physical()
+    out = {}
+    for path in args.other_grid:
+        other = scan_examples(real_grid(args.data, path), path.stem)
+        r = compare(cells, other, ("elevation_rad",))
+        r["defaults"] = scores(other.dropped, defaults.drop_probability(other.features, other.receiver))
+        print(f"  {path.name}: {len(other)} rays, drop rate {r['test_drop_rate']:.4f}   "
+              + "   ".join(_row(k, r[k]) for k in ("constant", "defaults", "physical", "learned")))
+        out[path.name] = r
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
+    ap.add_argument("--other-grid", type=Path, action="append", default=[],
+                    help="another scan of the same sensor (npz in scan0_grid.npz's layout) to test on")
     args = ap.parse_args()
     if not (args.data / "os1-128" / "scan0_grid.npz").is_file():
         sys.exit(f"no {args.data}/os1-128/scan0_grid.npz: the real scan is not available here")
@@ -100,6 +122,8 @@ def main() -> None:
             print(f"  {k:<30} " + " ".join(f"{c[k]:+.4g}" for c in coefs))
         report[label] = {"physical": dataclasses.asdict(physical), "halves": halves, "sectors": sectors,
                          "sector_coefficients": coefs}
+    if args.other_grid:
+        report["other scans"] = other_scans(cells, args)
     if args.json:
         args.json.write_text(json.dumps(report, indent=1))
 
