@@ -10,13 +10,21 @@ bookkeeping), in ms and as a share of the per-file time with metrics on. The inc
 metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches).
 CPU time is the steadier figure on a shared machine.
 
+``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
+of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
+on alternately (the order flips every round), ``--repeat`` rounds after one untimed round. Figures per recipe: the
+median wall time off → on, the median sum of the workers' per-file times (manifest ``seconds``), the growth of the
+``metrics`` phase per file, and the manifest's bytes per line.
+
 Inputs: sample data generated at full resolution (camera 1936×1464 PNG with its depth EXR, the same frame as a raw
-DNG, the OS1-128 128×2048 grid PCD, radar PCD), and the real OS1-128 scan ``../shared/data/os1-128/scan0.bin``
-(107 647 points, its own beam table) when present. Recipes: camera weather (fog, rain, snow), CNF05 (fog →
+DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list — what ``--whole-run`` and ``bench/run.py`` run
+on —, radar PCD), and the real OS1-128 scan ``../shared/data/os1-128/scan0.bin`` (107 647 points, its own beam
+table) when present. Recipes: camera weather (fog, rain, snow), CNF05 (fog →
 windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR weather (fog, rain, snow), CNF20, CNF22;
 radar rain and CNF25.
 
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
+    .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
 """
 
 from __future__ import annotations
@@ -26,6 +34,7 @@ from roadview_noise.executor import worker_setup
 worker_setup()      # before numpy/cv2/numba load: one thread each, as in a worker
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
 import tempfile  # noqa: E402
@@ -34,8 +43,9 @@ from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
 
-from roadview_noise.recipe import load_recipe  # noqa: E402
-from roadview_noise.runner import RunContext, plan, process  # noqa: E402
+from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
+from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
+from roadview_noise.runner import RunContext, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,15 +60,18 @@ CASES = {
     "cnf11": ("camera/",),
     "cnf12": ("camera/",),
     "cnf13": ("camera/",),
-    "weather-fog-lidar": ("lidar/os1-128-grid/", "real"),
-    "weather-rain-lidar": ("lidar/os1-128-grid/", "real"),
-    "weather-snow-lidar": ("lidar/os1-128-grid/", "real"),
-    "cnf20": ("lidar/os1-128-grid/", "real"),
-    "cnf22": ("lidar/os1-128-grid/", "real"),
+    "weather-fog-lidar": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
+    "weather-rain-lidar": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
+    "weather-snow-lidar": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
+    "cnf20": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
+    "cnf22": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
     "weather-rain-radar": ("radar/",),
     "cnf25-radar": ("radar/",),
 }
 REAL_SCAN = "lidar/os1-128-real/seq/000000.bin"
+#: whole runs: recipe → the sensor tree of bench/run.py it runs on
+WHOLE_RUN = {"weather-rain-lidar": "lidar", "weather-fog-lidar": "lidar", "weather-snow-lidar": "lidar",
+             "cnf20": "lidar", "cnf22": "lidar", "cnf11": "camera", "cnf05": "camera", "cnf25-radar": "radar"}
 
 
 def recipe_file(name: str, metrics: bool, real: bool, tmp: Path) -> Path:
@@ -110,11 +123,57 @@ def bench_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat
             f"({(metrics1 - metrics0) / wall1 * 100:4.1f} %)")
 
 
+def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool) -> tuple[float, float, float, int]:
+    """(wall s, sum of the per-file seconds, metrics phase s per file, manifest bytes per line) of one run."""
+    from run import INPUTS      # bench/run.py: the trees' input globs (bench/ is first on sys.path)
+
+    body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
+    body["inputs"] = dict(INPUTS[sensor])
+    body.setdefault("output", {})["metrics"] = metrics
+    recipe = parse_recipe(body, source=name, base_dir=ROOT / "recipes")
+    shutil.rmtree(out, ignore_errors=True)
+    t0 = time.perf_counter()
+    run(recipe, tree, out, workers=1, progress=False, echo=lambda m: None, warn=lambda m: None, profile=True)
+    wall = time.perf_counter() - t0
+    lines = (out / MANIFEST_NAME).read_bytes().splitlines()
+    entries = [e for e in map(json.loads, lines) if "seconds" in e]
+    shutil.rmtree(out)
+    return (wall, sum(e["seconds"] for e in entries),
+            statistics.mean(e["profile"]["metrics"] for e in entries), sum(map(len, lines)) // len(lines))
+
+
+def whole_runs(names: list[str], repeat: int, frames: int) -> None:
+    from run import build_trees
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        trees = build_trees(tmp / "trees", frames, 3)
+        print(f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, median of {repeat} rounds:")
+        print(f"  {'recipe':<20} {'wall s':^27}   {'sum of per-file s':^27}   metrics ms/file   bytes/line")
+        for name in names:
+            sensor = WHOLE_RUN[name]
+            samples = {False: [], True: []}
+            for r in range(repeat + 1):
+                for on in ((False, True) if r % 2 else (True, False)):
+                    got = whole_run_once(name, sensor, trees[sensor], tmp / "out", on)
+                    if r:
+                        samples[on].append(got)
+            med = {on: [statistics.median(s[i] for s in samples[on]) for i in range(4)] for on in (False, True)}
+            (w0, f0, m0, b0), (w1, f1, m1, b1) = med[False], med[True]
+            print(f"  {name:<20} {w0:6.2f} → {w1:6.2f} ({(w1 / w0 - 1) * 100:+5.1f} %)   {f0:6.2f} → {f1:6.2f} "
+                  f"({(f1 / f0 - 1) * 100:+5.1f} %)   {(m1 - m0) * 1e3:6.1f}       {b0:5.0f} → {b1:5.0f}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7, help="runs per case with metrics off and on (default 7)")
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(CASES)}")
+    ap.add_argument("--whole-run", action="store_true", help="whole augment runs instead of single files")
+    ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
+    if args.whole_run:
+        whole_runs(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames)
+        return
     names = args.recipes.split(",") if args.recipes else list(CASES)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

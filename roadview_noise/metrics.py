@@ -97,17 +97,20 @@ def compare(before: SensorData, after: SensorData) -> dict[str, Any]:
             _summaries[after] = _summary(before)          # the step changed no pixel (wind: conditions only)
     else:
         raise TypeError(f"cannot compare {type(before).__name__} with {type(after).__name__}")
-    b, a = _summary(before), _summary(after)
+    b = _summary(before)
+    a = _summary(after, b)
     done = a.setdefault("compared", {})                 # (before summary, result) by id: a chain whose step left
     if id(b) not in done:                               # the pixels alone compares input and output once
         done[id(b)] = (b, fn(b, a))
     return dict(done[id(b)][1])
 
 
-def _summary(data: SensorData) -> dict:
+def _summary(data: SensorData, before: dict | None = None) -> dict:
+    """The summary of ``data`` (cached); a cloud's first one is linked to ``before``, its step input's, when given
+    (:func:`_cloud_summary`)."""
     s = _summaries.get(data)
     if s is None:
-        s = _cloud_summary(data) if isinstance(data, PointCloud) else _frame_summary(data)
+        s = _cloud_summary(data, before) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
     return s
 
@@ -304,12 +307,27 @@ def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
 # --- point clouds -------------------------------------------------------------------------------------------------
 
 
-@jit
-def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins):       # pragma: no cover - compiled
-    """One pass over a cloud: which points are returns, how many, the farthest return's range, returns per range
-    bin — or, when ``known_valid`` (which points are returns) is given (non-empty), none of these — and over the
-    returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all KEPT) and the sum and count
-    of the finite ``values`` (NaN values are skipped)."""
+NO_LINK, GRID_LINK, LIST_LINK = 0, 1, 2     # _cloud_pass: no correspondence, cell by cell, in list order
+
+
+def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b):
+    """:func:`_pass` compiled for this ``link`` (a constant there, so each variant's loop holds only its own
+    branches)."""
+    return _PASSES[link](positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b)
+
+
+@jit(inline="always")
+def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b):  # pragma: no cover
+    """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
+    returns per range bin — or, when ``known_valid`` (which points are returns) is given (non-empty), none of
+    these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
+    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped).
+
+    With ``link`` (GRID_LINK, LIST_LINK), in the same pass: :func:`correspondence` of the points of ``before``
+    (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the index of its
+    return here (−1: none) and whether it moved along its ray — and the mean change from ``values_b`` to
+    ``values`` of the points that stayed in place (NaN if none). A list is walked in order (surviving points keep
+    their order, ADDED points are new); ``before``'s positions are read only to tell its removed points."""
     n = positions.shape[0]
     known = known_valid.shape[0] == n and n > 0
     valid = known_valid if known else np.empty(n, np.bool_)
@@ -318,51 +336,130 @@ def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins):       # p
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
     inv_bin, top = 1.0 / bin_m, n_bins - 1
     returns, max_r2, total, finite = 0, 0.0, 0.0, 0
-    for i in range(n):
+    nb = pb.shape[0] if link != NO_LINK else 0
+    index = np.full(nb, -1, np.int32)
+    moved = np.zeros(nb, np.bool_)
+    changes = has_values and values_b.shape[0] > 0
+    in_order = True                         # a list without removals: its i-th survivor is before's i-th point
+    if link == LIST_LINK:
+        survivors = n
+        for j in range(n if has_codes else 0):
+            if codes[j] == 3 and (valid[j] if known else _is_return(positions, j)):
+                survivors -= 1
+        in_order = survivors == nb
+    change, changed, i = 0.0, 0, 0
+    for j in range(n):
+        c = codes[j] if has_codes else 0
+        found, away = False, False          # the point of before it is (index i), moved along its ray
+        if link == GRID_LINK:
+            i, found, away = j, True, c == 2
+        elif link == LIST_LINK and c != 3 and i < nb:   # ADDED: new, never a survivor
+            found, away = True, c == 2
+            if not in_order:
+                while i < nb:
+                    if _same_position(pb, i, positions, j) and valid_b[i]:
+                        away = False
+                        break
+                    if _same_ray(pb, i, positions, j):
+                        away = True
+                        break
+                    i += 1                  # before's point i was removed
+                found = i < nb
         if known:
-            if not valid[i]:
-                continue
+            ok = valid[j]
         else:
-            x, y, z = positions[i, 0], positions[i, 1], positions[i, 2]
+            x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
             r2 = x * x + y * y + z * z
             ok = r2 > 0.0 and r2 < np.inf
-            valid[i] = ok
-            if not ok:
-                continue
-            returns += 1
-            max_r2 = max(max_r2, r2)
-            b = math.sqrt(r2) * inv_bin
-            hist[np.int64(b) if b < top else top] += 1
-        c = codes[i] if has_codes else 0
-        if c <= 3:
-            counts[c] += 1
-        if has_values:
-            v = float(values[i])
-            if np.isfinite(v):
-                total += v
-                finite += 1
-    return (returns, hist, math.sqrt(max_r2), valid), counts, total, finite
+            valid[j] = ok
+            if ok:
+                returns += 1
+                max_r2 = max(max_r2, r2)
+                b = math.sqrt(r2) * inv_bin
+                hist[np.int64(b) if b < top else top] += 1
+        if ok:
+            if c <= 3:
+                counts[c] += 1
+            if has_values:
+                v = float(values[j])
+                if np.isfinite(v):
+                    total += v
+                    finite += 1
+        if not found or (link == GRID_LINK and not (ok and valid_b[j])):
+            continue
+        index[i] = j
+        moved[i] = away
+        if changes and not away:
+            d = _change(values_b, i, values, j)
+            if np.isfinite(d):
+                change += d
+                changed += 1
+        i += 1
+    return ((returns, hist, math.sqrt(max_r2), valid), counts, total, finite,
+            (index, moved, change / changed if changed else np.nan))
+
+
+@jit
+def _plain_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, NO_LINK, pb, valid_b, values_b)
+
+
+@jit
+def _grid_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, GRID_LINK, pb, valid_b, values_b)
+
+
+@jit
+def _list_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, LIST_LINK, pb, valid_b, values_b)
+
+
+_PASSES = {NO_LINK: _plain_pass, GRID_LINK: _grid_pass, LIST_LINK: _list_pass}
+
+
+@jit(inline="always")
+def _same_position(p, i, q, j):       # pragma: no cover - compiled
+    return p[i, 0] == q[j, 0] and p[i, 1] == q[j, 1] and p[i, 2] == q[j, 2]
+
+
+@jit(inline="always")
+def _is_return(p, j):       # pragma: no cover - compiled
+    """Point ``j`` of positions ``p`` is a return (as :func:`_cloud_pass` tells it)."""
+    r2 = p[j, 0] * p[j, 0] + p[j, 1] * p[j, 1] + p[j, 2] * p[j, 2]
+    return r2 > 0.0 and r2 < np.inf
 
 
 _last_geometry: list = [None, None, None]   # weakref to a positions array, its key (_per_array), full pass
 
 
-def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int) -> tuple:
-    """:func:`_cloud_pass`. A step that leaves the positions alone (intensity models) hands the same array on:
-    the geometry of the last array is kept and only the attributes are counted again."""
+def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int,
+                      link: int, before: dict | None) -> tuple:
+    """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. A step that leaves the
+    positions alone (intensity models) hands the same array on: the geometry of the last array is kept and only
+    the attributes are counted again."""
+    if before is None:
+        linked = (positions[:0], np.zeros(0, np.bool_), values[:0])
+    else:
+        linked = (before["positions"], before["valid"], before["values"])
     full = []
 
     def geometry_of_full_pass():
-        full.append(_cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins))
+        full.append(_cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked))
         return full[0][0]
 
     geometry = _per_array(_last_geometry, positions, positions, n_bins, geometry_of_full_pass)
     if full:
         return full[0]
-    return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins)[1:])
+    return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
 
 
-def _cloud_summary(cloud: PointCloud) -> dict:
+def _link_mode(b: dict, a: dict) -> int:
+    return GRID_LINK if b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"]) else LIST_LINK
+
+
+def _cloud_summary(cloud: PointCloud, before: dict | None = None) -> dict:
+    """The summary of a cloud; with ``before`` (the summary of the cloud it came from: its step's input), also
+    its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place)."""
     codes = effect_codes(cloud)
     codes = np.zeros(0, np.uint8) if codes is None else np.asarray(codes)
     radar = cloud.sensor == "radar"
@@ -371,13 +468,16 @@ def _cloud_summary(cloud: PointCloud) -> dict:
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
     n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
-    (returns, hist, max_r, valid), counts, total, finite = _summarise_points(positions, codes, values, n_bins)
+    s = {"positions": positions, "values": values, "grid": cloud.grid_shape is not None}
+    link = NO_LINK if before is None else _link_mode(before, s)
+    (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(positions, codes, values,
+                                                                                      n_bins, link, before)
     used = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
-    s = {"returns": int(returns), "codes": [int(c) for c in counts], "max_range_m": float(max_r),
-         "hist": [int(h) for h in hist[:used]], "radar": radar,
-         "mean_value": float(total / finite) if finite else None,
-         "positions": positions, "valid": valid, "values": values, "effect": codes,
-         "grid": cloud.grid_shape is not None}
+    s.update({"returns": int(returns), "codes": [int(c) for c in counts], "max_range_m": float(max_r),
+              "hist": [int(h) for h in hist[:used]], "radar": radar,
+              "mean_value": float(total / finite) if finite else None, "valid": valid, "effect": codes})
+    if before is not None:
+        s["parent"] = (before, *matched)
     if isinstance(cloud.profile, LidarProfile):
         s["intensity_unit"] = cloud.profile.intensity_unit
     ids = object_ids(cloud)
@@ -396,30 +496,50 @@ def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, n
     Across several steps (``after`` came from ``before`` through compared steps, as in ``apply_models``) the
     correspondences of the steps are composed, so an alignment error in one step and removals in the next are
     told apart."""
-    index, moved, _ = _link(_summary(before), _summary(after))
+    b = _summary(before)
+    a = _summary(after, b)
+    if a is b:
+        n = len(b["positions"])
+        return np.arange(n), np.zeros(n, bool)
+    chain = _chain(b, a)
+    if chain is None:
+        return _direct_link(b, a)[:2]
+    index, moved = chain[-2]["parent"][1:3]
+    for s in reversed(chain[:-2]):
+        index, moved = _compose(index, moved, *s["parent"][1:3])
     return index, moved
 
 
-def _link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray, float]:
-    """:func:`correspondence` of two cloud summaries and the mean value change (intensity, SNR) of the points that
-    stayed in place (NaN if none). The first summary ``a`` is matched with becomes its parent (in ``apply_models``:
-    its step's input)."""
+def _mean_change(b: dict, a: dict) -> float:
+    """The mean value change (intensity, SNR) from summary ``b`` to ``a`` of the points that stayed in place
+    (:func:`correspondence`; NaN if none)."""
     if a is b:
-        n = len(b["positions"])
-        return np.arange(n), np.zeros(n, bool), (0.0 if len(b["values"]) else math.nan)
+        return 0.0 if len(b["values"]) else math.nan
+    chain = _chain(b, a)
+    if chain is None:
+        return _direct_link(b, a)[2]
+    if len(chain) == 2:
+        return a["parent"][3]
+    index, moved = chain[-2]["parent"][1:3]
+    for s in reversed(chain[1:-2]):
+        index, moved = _compose(index, moved, *s["parent"][1:3])
+    return _mean_change_through(index, moved, *a["parent"][1:3], b["values"], a["values"])
+
+
+def _chain(b: dict, a: dict) -> list[dict] | None:
+    """The summaries from ``a`` back to ``b`` through their parents (steps), or None if ``b`` is not one."""
     chain = [a]
     while chain[-1] is not b and "parent" in chain[-1] and len(chain) < 64:
         chain.append(chain[-1]["parent"][0])
-    if chain[-1] is b:                                          # compose the steps' correspondences
-        index, moved = chain[-2]["parent"][1:]
-        for s in reversed(chain[:-2]):
-            index, moved = _compose(index, moved, *s["parent"][1:])
-        return index, moved, _mean_change_in_place(index, moved, b["values"], a["values"])
-    grid = b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"])
-    effect = a["effect"] if len(a["effect"]) else np.zeros(len(a["positions"]), np.uint8)
-    index, moved, change = _match(b["positions"], a["positions"], b["valid"], a["valid"], effect, grid,
-                                  len(a["positions"]) - a["codes"][3], b["values"], a["values"])
-    a.setdefault("parent", (b, index, moved))
+    return chain if chain[-1] is b else None
+
+
+def _direct_link(b: dict, a: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """Correspondence and mean value change of two summaries that are not linked by steps; the first summary
+    ``a`` is matched with becomes its parent."""
+    index, moved, change = _cloud_pass(a["positions"], a["valid"], a["effect"], a["values"], RANGE_BIN_M, 1,
+                                       _link_mode(b, a), b["positions"], b["valid"], b["values"])[-1]
+    a.setdefault("parent", (b, index, moved, change))
     return index, moved, change
 
 
@@ -446,46 +566,6 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
     return pp > 0 and qq > 0 and dot > 0 and cx * cx + cy * cy + cz * cz <= 1e-12 * pp * qq
 
 
-@jit
-def _match(pb, pa, valid_b, valid_a, effect_a, grid, survivors, values_b, values_a):       # pragma: no cover
-    """:func:`correspondence` of one step from the positions and returns, the effect codes of ``after`` and its
-    number of non-ADDED points; and, in the same pass, :func:`_mean_change_in_place` of the values. Positions are
-    read only to tell the removed points of a list."""
-    nb, na = pb.shape[0], pa.shape[0]
-    index = np.full(nb, -1, np.int32)
-    moved = np.zeros(nb, np.bool_)
-    has_values = values_b.shape[0] > 0 and values_a.shape[0] > 0
-    total, n = 0.0, 0
-    j = 0
-    for i in range(nb):
-        if grid:                                # cell by cell
-            if not (valid_b[i] and valid_a[i]):
-                continue
-            k, away = i, effect_a[i] == 2
-        else:
-            while j < na and effect_a[j] == 3:  # ADDED: new, never a survivor
-                j += 1
-            if j >= na:
-                break
-            if survivors == nb:                 # nothing removed: survivors in order (positions may change)
-                k, away = j, effect_a[j] == 2
-            elif pb[i, 0] == pa[j, 0] and pb[i, 1] == pa[j, 1] and pb[i, 2] == pa[j, 2] and valid_b[i]:
-                k, away = j, False
-            elif _same_ray(pb, i, pa, j):
-                k, away = j, True
-            else:
-                continue                        # removed
-            j += 1
-        index[i] = k
-        moved[i] = away
-        if has_values and not away:
-            d = _change(values_b, i, values_a, k)
-            if np.isfinite(d):
-                total += d
-                n += 1
-    return index, moved, (total / n if n else np.nan)
-
-
 @jit(inline="always")
 def _change(values_b, i, values_a, k):       # pragma: no cover - compiled
     """Value change of point ``i`` of before, now point ``k`` of after (float64)."""
@@ -493,14 +573,16 @@ def _change(values_b, i, values_a, k):       # pragma: no cover - compiled
 
 
 @jit
-def _mean_change_in_place(index, moved, values_b, values_a):       # pragma: no cover - compiled
-    """Mean of ``values_a[index[i]] - values_b[i]`` over the points that stayed in place (NaN if none)."""
+def _mean_change_through(index_ab, moved_ab, index_bc, moved_bc, values_a, values_c):       # pragma: no cover
+    """Mean of ``values_c[k] - values_a[i]`` over the points ``i`` of a that stayed in place through a → b → c
+    (correspondences a → b and b → c; :func:`_compose` and the mean in one pass; NaN if none)."""
     total, n = 0.0, 0
-    if values_b.shape[0] == 0 or values_a.shape[0] == 0:
+    if values_a.shape[0] == 0 or values_c.shape[0] == 0:
         return np.nan
-    for i in range(index.shape[0]):
-        if index[i] >= 0 and not moved[i]:
-            d = _change(values_b, i, values_a, index[i])
+    for i in range(index_ab.shape[0]):
+        k = index_ab[i]
+        if k >= 0 and index_bc[k] >= 0 and not (moved_ab[i] or moved_bc[k]):
+            d = _change(values_a, i, values_c, index_bc[k])
             if np.isfinite(d):
                 total += d
                 n += 1
@@ -529,7 +611,7 @@ def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
         "points_per_10m_out": a["hist"] + [0] * (n_bins - len(a["hist"])),
     }
     vb, va = b["mean_value"], a["mean_value"]
-    change = float(_link(b, a)[2])
+    change = float(_mean_change(b, a))
     change = None if math.isnan(change) else change
     if a["radar"]:
         out.update(mean_snr_in_db=vb, mean_snr_out_db=va, mean_snr_change_db=change)

@@ -275,6 +275,46 @@ def test_alignment_then_removal_composes_the_steps():
     assert m["mean_intensity_change"] == pytest.approx(-8 / 97, rel=1e-5)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_three_step_chain_against_its_construction(seed):
+    """Alignment (every point shifted, none removed) → weather (random removals, moves along the ray,
+    attenuations, additions) → an intensity step that keeps the positions array: each step's counts and the
+    chain's correspondence and mean intensity change equal what the construction says, point by point."""
+    rng = np.random.default_rng(seed)
+    n = 300
+    c0 = lidar_list(n, seed=seed)
+    c1 = dataclasses.replace(c0, positions_m=c0.positions_m * 1.001)
+    keep = rng.random(n) > 0.2
+    label = np.where(rng.random(n) < 0.1, Effect.MOVED, np.where(rng.random(n) < 0.3, Effect.ATTENUATED,
+                                                                 Effect.KEPT)).astype(np.uint8)
+    pos = c1.positions_m.copy()
+    pos[label == Effect.MOVED] *= 0.5
+    intensity = c1.fields["intensity"] - 3 * (label == Effect.ATTENUATED)
+    c2 = dataclasses.replace(c1, positions_m=pos).with_fields(intensity=intensity.astype(np.float32)).select(keep)
+    added = rng.uniform(2, 20, (5, 3))
+    c2 = c2.concat(added, {"intensity": np.full(5, 7, np.float32)})
+    c2 = with_effect_codes(c2, np.concatenate([label[keep], np.full(5, Effect.ADDED, np.uint8)]))
+    c3 = c2.with_fields(intensity=c2.fields["intensity"] * 0.5)
+    assert c3.positions_m is c2.positions_m
+    steps = [compare(c0, c1), compare(c1, c2), compare(c2, c3)]             # as apply_models does
+    moves, attenuations = keep & (label == Effect.MOVED), keep & (label == Effect.ATTENUATED)
+    assert steps[0]["removed"] == 0 and steps[0]["mean_intensity_change"] == 0.0
+    assert steps[1]["removed"] == n - keep.sum() and steps[1]["added"] == 5
+    assert steps[1]["moved"] == moves.sum() and steps[1]["attenuated"] == attenuations.sum()
+    assert steps[1]["mean_intensity_change"] == pytest.approx(-3 * attenuations.sum() / (keep.sum() - moves.sum()))
+    expected_index = np.where(keep, np.cumsum(keep) - 1, -1)
+    index, moved = correspondence(c0, c3)
+    assert np.array_equal(index, expected_index) and np.array_equal(moved, moves)
+    in_place = keep & ~moves
+    final = c3.fields["intensity"][expected_index[in_place]].astype(np.float64)
+    m = compare(c0, c3)
+    assert m["mean_intensity_change"] == pytest.approx(np.mean(final - c0.fields["intensity"][in_place]), rel=1e-6)
+    assert m["points_out"] == keep.sum() + 5 and m["removed"] == n - keep.sum()
+    r = np.linalg.norm(c3.positions_m, axis=1)
+    assert m["max_range_m_out"] == pytest.approx(r.max())
+    assert m["points_per_10m_out"][: int(r.max() // 10) + 1] == np.bincount((r // 10).astype(int)).tolist()
+
+
 def test_radar_snr_change_in_db():
     rng = np.random.default_rng(4)
     pos = rng.uniform(5, 80, (50, 3))
