@@ -569,7 +569,7 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
 @jit(inline="always")
 def _change(values_b, i, values_a, k):       # pragma: no cover - compiled
     """Value change of point ``i`` of before, now point ``k`` of after (float64)."""
-    return float(values_a[k]) - float(values_b[i])
+    return np.float64(values_a[k]) - np.float64(values_b[i])
 
 
 @jit
