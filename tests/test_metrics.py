@@ -187,6 +187,16 @@ def test_identity_cloud_nothing_removed():
     assert m["points_per_10m_in"] == np.bincount((c.ranges_m // 10).astype(int)).tolist()
 
 
+def test_value_change_is_taken_in_float64():
+    """float32 intensities 1 and 1e-8: their difference in float32 would round to 1 exactly."""
+    c = lidar_list(n=1)
+    before = PointCloud(c.positions_m, {"intensity": np.array([1e-8], np.float32)}, "lidar", profile=c.profile)
+    after = PointCloud(c.positions_m, {"intensity": np.array([1.0], np.float32)}, "lidar", profile=c.profile)
+    expected = float(np.float64(np.float32(1.0)) - np.float64(np.float32(1e-8)))
+    assert expected != 1.0
+    assert compare(before, after)["mean_intensity_change"] == expected
+
+
 def test_known_drop_mask_moves_and_additions_give_exact_counts():
     c = lidar_list()
     drop = np.zeros(100, bool)
