@@ -78,6 +78,10 @@ def augment(
         return _augment_bag(input_dir, output_dir, recipe, workers, overwrite, quiet,
                             refused=[o for o, value in options.items() if value])
     limits = Limits(max_pixels=int(max_pixels), max_points=int(max_points), task_timeout_s=task_timeout)
+    if backend == "local" and not dry_run:
+        from roadview_noise.prestart import start_for
+
+        start_for(recipe)                # the workers' fork server imports the models while the recipe is checked
     try:
         r = with_input_overrides(load_recipe(recipe), depth=depth, camera_profile=camera_profile,
                                  lidar_profile=lidar_profile, radar_profile=radar_profile)

@@ -32,11 +32,12 @@ import sys
 import threading
 import time
 import traceback
+import weakref
 from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing.connection import wait
-from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, TypeVar
+from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, Sequence, TypeVar
 
 T = TypeVar("T")
 C = TypeVar("C")
@@ -45,7 +46,7 @@ MAX_DEATHS_PER_TASK = 2            # a task that kills this many workers is not 
 WATCHDOG_PERIOD_S = 1.0
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
-PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module, then the warm-up (see _context)
+PRELOAD = ["cv2", "roadview_noise.runner", "roadview_noise.metrics"]   # + the run's models, the warm-up (_preload)
 WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
 
@@ -195,20 +196,43 @@ def _starting() -> Iterator[None]:
                 os.environ[k] = v
 
 
-def _context():
-    if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
+def _preload(models: Sequence[str] | None) -> list[str]:
+    """What the fork server imports: the runner, ``models`` (None: every model module), then the warm-up."""
+    if models is None:
         import pkgutil
 
-        from . import models
+        from . import models as package
+
+        models = [m.name for m in pkgutil.walk_packages(package.__path__, package.__name__ + ".")]
+    return PRELOAD + list(models) + [WARM_UP]
+
+
+_live: "weakref.WeakSet[ProcessExecutor]" = weakref.WeakSet()   # executors with workers: their fork server stays
+
+
+def start_server(models: Sequence[str] | None = None) -> None:
+    """Start the fork server for ``models`` now, so it imports them while the caller plans the run."""
+    _context(models)
+
+
+def _context(models: Sequence[str] | None = None):
+    """The start method: a fork server preloading ``models`` (see :func:`_preload`); one already running that lacks
+    some of them is restarted when no executor uses it (else a worker imports what it lacks on first use)."""
+    if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
+        from multiprocessing import forkserver
 
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(PRELOAD + [m.name for m in pkgutil.walk_packages(models.__path__,
-                                                                                       models.__name__ + ".")]
-                                   + [WARM_UP])
-        with _starting():                # the server imports numpy once, with one BLAS thread per worker
-            from multiprocessing import forkserver
-
-            forkserver.ensure_running()
+        want = _preload(models)
+        server = getattr(forkserver, "_forkserver", None)
+        running = getattr(server, "_forkserver_pid", None) is not None
+        have = set(getattr(server, "_preload_modules", ()) or ())
+        if running and not set(want) <= have and not _live and hasattr(server, "_stop"):
+            server._stop()
+            running = False
+        if not running:
+            ctx.set_forkserver_preload(want)
+            with _starting():            # the server imports numpy once, with one BLAS thread per worker
+                forkserver.ensure_running()
         return ctx
     return mp.get_context("spawn")
 
@@ -224,15 +248,17 @@ class _Worker:
 
 class ProcessExecutor(Generic[T, C]):
     """``workers`` processes running ``fn(task, context)``; see the module docstring. ``setup``: ``(function,
-    args)`` each worker calls once at start (importable by reference)."""
+    args)`` each worker calls once at start (importable by reference); ``models``: the model modules the workers
+    need, imported once by the fork server (None: all of them)."""
 
     def __init__(self, fn: Callable[[T, C], Any], context: C, workers: int, *, setup: tuple | None = None,
-                 max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None):
+                 max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None,
+                 models: Sequence[str] | None = None):
         self.fn, self.context, self.workers = fn, context, max(1, int(workers))
         self.setup = setup
         self.max_deaths = max_deaths
         self.timeout_s = timeout_s
-        self._ctx = _context()
+        self._ctx = _context(models)
         self._pool: list[_Worker] = []
         self.deaths = 0
 
@@ -253,6 +279,7 @@ class ProcessExecutor(Generic[T, C]):
         next_tid = 0
         startup_deaths = 0
         try:
+            _live.add(self)
             while len(self._pool) < self.workers:
                 self._pool.append(self._start())
             while True:
@@ -334,6 +361,7 @@ class ProcessExecutor(Generic[T, C]):
     def close(self) -> None:
         """Stop every worker: a polite ``None`` to idle ones, SIGKILL to busy ones and to any that lingers."""
         pool, self._pool = self._pool, []
+        _live.discard(self)
         for w in pool:
             try:
                 if w.task is None and w.proc.is_alive():
