@@ -2,9 +2,12 @@
 
 joblib/loky and ``concurrent.futures`` break the whole pool when one worker dies (a native crash on one bad file, the
 kernel's out-of-memory killer): every task in flight is lost and the run aborts. :class:`ProcessExecutor` gives each
-worker its own pipe and sends it one task at a time, so it always knows which task a dead worker was running: that
+worker its own pipe and knows which task a dead worker was running: that
 task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
-is affected. Workers get the run context once at start and then only small task keys (never arrays).
+is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds a second task, queued in its pipe, so it
+never waits for the parent between two small files; it runs them in order, so the first unanswered task is still
+the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get the run
+context once at start and then only small task keys (never arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
@@ -35,7 +38,7 @@ import traceback
 import weakref
 from collections import deque
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, Sequence, TypeVar
 
@@ -49,6 +52,7 @@ THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 PRELOAD = ["cv2", "roadview_noise.runner", "roadview_noise.metrics"]   # + the run's models, the warm-up (_preload)
 WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
+QUEUE_BELOW_S = 0.05               # tasks shorter than this get a second one queued behind them (see _depth)
 
 
 class _NotNow:
@@ -241,9 +245,8 @@ def _context(models: Sequence[str] | None = None):
 class _Worker:
     proc: Any
     conn: Any
-    task: Any = None
-    tid: int = -1
-    started: float = 0.0
+    queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered; the first one is running
+    started: float = 0.0                            # when the first of ``queue`` started
 
 
 class ProcessExecutor(Generic[T, C]):
@@ -260,6 +263,7 @@ class ProcessExecutor(Generic[T, C]):
         self.timeout_s = timeout_s
         self._ctx = _context(models)
         self._pool: list[_Worker] = []
+        self._task_s = float("inf")                 # recent seconds per task (moving average)
         self.deaths = 0
 
     def _start(self) -> _Worker:
@@ -270,6 +274,10 @@ class ProcessExecutor(Generic[T, C]):
             proc.start()
         child.close()
         return _Worker(proc, parent)
+
+    def _depth(self) -> int:
+        """Tasks a worker holds: a second one queued behind short tasks, so it never waits for the parent."""
+        return 2 if self._task_s < QUEUE_BELOW_S else 1
 
     def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
         source = iter(tasks)
@@ -284,29 +292,29 @@ class ProcessExecutor(Generic[T, C]):
                 self._pool.append(self._start())
             while True:
                 for w in self._pool:
-                    if w.task is not None:
-                        continue
-                    if retry:
-                        w.tid, w.task = retry.popleft()
-                    elif not exhausted:
+                    while len(w.queue) < self._depth():
+                        if retry:
+                            tid, task = retry.popleft()
+                        elif not exhausted:
+                            try:
+                                task = next(source)
+                            except StopIteration:
+                                exhausted = True
+                                break
+                            if task is NOT_NOW:            # the source waits for its caller: hand control back
+                                yield NOT_NOW, None
+                                break
+                            tid, next_tid = next_tid, next_tid + 1
+                        else:
+                            break
+                        if not w.queue:
+                            w.started = time.monotonic()
+                        w.queue.append((tid, task))
                         try:
-                            task = next(source)
-                        except StopIteration:
-                            exhausted = True
-                            continue
-                        if task is NOT_NOW:                # the source waits for its caller: hand control back
-                            yield NOT_NOW, None
-                            continue
-                        w.task = task
-                        w.tid, next_tid = next_tid, next_tid + 1
-                    else:
-                        continue
-                    w.started = time.monotonic()
-                    try:
-                        w.conn.send((w.tid, w.task))
-                    except (BrokenPipeError, OSError):
-                        pass                       # its death is seen below and the task re-sent
-                busy = [w for w in self._pool if w.task is not None]
+                            w.conn.send((tid, task))
+                        except (BrokenPipeError, OSError):
+                            break                          # its death is seen below and its tasks re-sent
+                busy = [w for w in self._pool if w.queue]
                 if not busy:
                     if exhausted:
                         return
@@ -316,24 +324,29 @@ class ProcessExecutor(Generic[T, C]):
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
                 ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool], timeout))
                 for i, w in enumerate(self._pool):
-                    if w.task is not None and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
+                    if w.queue and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
                             and time.monotonic() - w.started >= self.timeout_s:
                         w.proc.kill()
                         w.proc.join()
                         w.conn.close()
-                        task = w.task
+                        (_, task), *waiting = w.queue
+                        retry.extend(waiting)
                         self._pool[i] = self._start()
                         yield task, WorkerDeath(f"took longer than {self.timeout_s:g} s; its worker was stopped", 1)
                         continue
                     result, got = None, False
-                    if w.task is not None and w.conn in ready:
+                    if w.queue and w.conn in ready:
                         try:
                             tid, result = w.conn.recv()
-                            got = tid == w.tid
+                            got = tid == w.queue[0][0]
                         except (EOFError, OSError):
                             got = False
                     if got:
-                        task, w.task = w.task, None
+                        now = time.monotonic()
+                        took = now - w.started
+                        self._task_s = took if self._task_s == float("inf") else 0.75 * self._task_s + 0.25 * took
+                        _, task = w.queue.popleft()
+                        w.started = now                    # the worker took the next queued task at once
                         yield task, result
                         continue
                     if w.proc.sentinel not in ready and w.proc.is_alive():
@@ -342,18 +355,19 @@ class ProcessExecutor(Generic[T, C]):
                     reason = death_reason(w.proc.exitcode)
                     w.conn.close()
                     self.deaths += 1
-                    if w.task is None:
+                    if not w.queue:
                         startup_deaths += 1
                         if startup_deaths > 3 * self.workers:
                             raise RuntimeError(f"workers keep dying before they get a task ({reason})")
                     else:
-                        n = deaths[w.tid] = deaths.get(w.tid, 0) + 1
+                        (tid, task), *waiting = w.queue    # it died running the first; the others never started
+                        retry.extend(waiting)
+                        n = deaths[tid] = deaths.get(tid, 0) + 1
                         if n >= self.max_deaths:
-                            task = w.task
                             self._pool[i] = self._start()
                             yield task, WorkerDeath(reason, n)
                             continue
-                        retry.append((w.tid, w.task))
+                        retry.append((tid, task))
                     self._pool[i] = self._start()
         finally:
             self.close()
@@ -364,7 +378,7 @@ class ProcessExecutor(Generic[T, C]):
         _live.discard(self)
         for w in pool:
             try:
-                if w.task is None and w.proc.is_alive():
+                if not w.queue and w.proc.is_alive():
                     w.conn.send(None)
                 else:
                     w.proc.kill()
