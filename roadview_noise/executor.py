@@ -221,7 +221,8 @@ def start_server(models: Sequence[str] | None = None) -> None:
 
 def _context(models: Sequence[str] | None = None):
     """The start method: a fork server preloading ``models`` (see :func:`_preload`); one already running that lacks
-    some of them is restarted when no executor uses it (else a worker imports what it lacks on first use)."""
+    some of them is restarted with what it had and them, when no executor uses it (else a worker imports what it
+    lacks on first use)."""
     if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
         from multiprocessing import forkserver
 
@@ -229,10 +230,11 @@ def _context(models: Sequence[str] | None = None):
         want = _preload(models)
         server = getattr(forkserver, "_forkserver", None)
         running = getattr(server, "_forkserver_pid", None) is not None
-        have = set(getattr(server, "_preload_modules", ()) or ())
-        if running and not set(want) <= have and not _live and hasattr(server, "_stop"):
+        have = list(getattr(server, "_preload_modules", ()) or ())
+        if running and not set(want) <= set(have) and not _live and hasattr(server, "_stop"):
             server._stop()
             running = False
+            want = _preload(list(dict.fromkeys(m for m in have + want if m not in PRELOAD and m != WARM_UP)))
         if not running:
             ctx.set_forkserver_preload(want)
             with _starting():            # the server imports numpy once, with one BLAS thread per worker

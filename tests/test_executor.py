@@ -8,7 +8,7 @@ import signal
 import time
 
 from roadview_noise.executor import (NOT_NOW, QUEUE_BELOW_S, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath,
-                                     death_reason)
+                                     death_reason, start_server)
 
 
 def work(task: int, context: dict) -> tuple[int, int]:
@@ -102,3 +102,20 @@ def test_short_tasks_are_queued_and_a_death_costs_only_the_running_one(tmp_path)
     assert isinstance(results[30], WorkerDeath) and results[30].deaths == 2
     assert all(results[t] == (t, t * t) for t in range(40) if t != 30)
     assert ex.deaths == 3
+
+
+def test_fork_server_keeps_what_it_preloaded():
+    """The fork server is started once for the modules a run needs and restarted (with what it had and the new
+    ones) only when a later run needs a module it lacks."""
+    from multiprocessing import forkserver
+
+    forkserver._forkserver._stop()              # earlier tests' server preloaded every model
+    start_server(["roadview_noise.models.radar.fog"])
+    pid = forkserver._forkserver._forkserver_pid
+    start_server(["roadview_noise.models.radar.fog"])
+    assert forkserver._forkserver._forkserver_pid == pid
+    start_server(["roadview_noise.models.radar.rain"])
+    assert forkserver._forkserver._forkserver_pid != pid
+    assert {"roadview_noise.models.radar.fog", "roadview_noise.models.radar.rain"} <= \
+        set(forkserver._forkserver._preload_modules)
+    assert dict(ProcessExecutor(work, {}, 1).map([3])) == {3: (3, 9)}
