@@ -38,3 +38,21 @@ def test_an_unindexed_model_is_still_found(monkeypatch):
     monkeypatch.setattr(registry, "MODULES", {})
     assert registry.get_model("fog.lidar").id == "fog.lidar"
     assert registry.known("fog.lidar") and not registry.known("fog.nowhere")
+
+
+def test_the_fork_server_guess_matches_every_shipped_recipe():
+    """``prestart.guess_modules`` (the YAML only, before the check) names exactly what the checked recipe needs, so
+    the fork server the CLI starts early is never restarted for a shipped recipe."""
+    from pathlib import Path
+
+    from roadview_noise.bag_recipe import is_bag_recipe, read_recipe_yaml
+    from roadview_noise.prestart import guess_modules
+    from roadview_noise.recipe import load_recipe
+    from roadview_noise.runner import worker_modules
+
+    recipes = [p for p in sorted(Path(registry.__file__).parents[1].joinpath("recipes").glob("*.yaml"))
+               if not is_bag_recipe(read_recipe_yaml(p))]
+    assert len(recipes) > 20
+    for path in recipes:
+        assert set(guess_modules(path)) == set(worker_modules(load_recipe(path))), path.name
+    assert guess_modules(Path(registry.__file__)) is None                  # not a recipe: nothing guessed
