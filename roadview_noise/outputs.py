@@ -159,14 +159,11 @@ def _failed(entry: dict, error: str) -> dict:
 
 
 def commit(out_root: Path, entry: dict) -> None:
-    """Rename an entry's staged temporaries onto their final names (their folders checked again: one ``realpath``
-    when the folder is there, inside OUT; else created or refused component by component)."""
-    root = os.path.realpath(out_root)
+    """Rename an entry's staged temporaries onto their final names (their folders checked again)."""
+    root = Path(os.path.realpath(out_root))
     for tmp, final in entry.pop("staged", []):
         target = out_root / final
-        folder = os.path.realpath(target.parent)
-        if not ((folder == root or folder.startswith(root + os.sep)) and os.path.isdir(folder)):
-            ensure_dir_inside(target.parent, Path(root))
+        ensure_dir_inside(target.parent, root)
         os.replace(out_root / tmp, target)
 
 
