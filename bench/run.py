@@ -11,7 +11,10 @@ copied. Then, per sensor, with 1 and 2 processes:
 - **augment**: ``runner.run`` of each weather recipe and one CNF (in-process, so the wall time includes the fork
   server, the workers' start and the manifest), ``--profile`` on: per-model ms in the workers at the D3.5 rates and
   each worker's peak RSS come from the manifest;
-- **start-up**: ``rvnoise augment --limit 1`` in a fresh process, minus the file's own time;
+- **start-up**: ``rvnoise augment --limit 1`` in a fresh process, minus the file's own time, and in all (the augment
+  rows exclude it: the fork server is started for each recipe before its timed runs);
+- **small files**: fog.radar on 10× the radar tree's files, 1 and 2 workers: what each file costs beyond its own time
+  (task hand-over, the main process's manifest line and rename), the main process's CPU and the workers' busy share;
 - ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame,
   and albumentations' nearest weather transforms (``RandomFog``, ``RandomRain``, ``RandomSnow``) on the same frames,
   when albumentations is installed (``.venv/bin/pip install --no-deps albumentations==2.0.8 albucore==0.0.24
@@ -141,24 +144,57 @@ def augment(name: str, sensor: str, tree: Path, out: Path, workers: int) -> dict
     from roadview_noise.runner import run
 
     recipe = recipe_for(name, sensor)
-    t0 = time.perf_counter()
+    warm = out.with_name(out.name + "-warm")        # the fork server's start is start-up, measured by startup()
+    run(recipe, tree, warm, workers=1, limit=1, progress=False, echo=lambda m: None)
+    shutil.rmtree(warm)
+    cpu0, t0 = _cpu_s(), time.perf_counter()
     s = run(recipe, tree, out, workers=workers, progress=False, echo=lambda m: None, profile=True)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, _cpu_s() - cpu0
     entries = [e for e in read_manifest(out / "manifest.jsonl") if e["status"] == "ok"]
     models: dict[str, list[float]] = {}
     for e in entries[1:] or entries:                # the first file of a run pays first-use costs
         for m, sec in e["profile"]["models"].items():
             models.setdefault(m, []).append(sec)
-    return {"wall": wall, "done": s.done, "failed": s.failed,
+    return {"wall": wall, "done": s.done, "failed": s.failed, "main_cpu_ms": 1e3 * cpu / max(s.done, 1),
+            "busy": sum(e["seconds"] for e in entries) / (wall * workers),
             "models_ms": {m: 1e3 * statistics.median(v) for m, v in models.items()},
             "file_ms": 1e3 * statistics.median(e["seconds"] for e in entries),
+            "file_mean_ms": 1e3 * statistics.mean(e["seconds"] for e in entries),
             "split_ms": {k: 1e3 * statistics.median(e["profile"][k] for e in entries)
                          for k in entries[0]["profile"] if k not in ("models", "total", "peak_rss_mb")},
             "peak_rss_mb": max(e["profile"].get("peak_rss_mb", 0) for e in entries)}
 
 
-def startup(name: str, sensor: str, tree: Path, out: Path) -> float:
-    """Seconds of a one-file CLI run beyond the file's own time (process start, imports, workers, manifest)."""
+def _cpu_s() -> float:
+    """CPU seconds of this (the main) process so far."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def small_files(tree: Path, root: Path, copies: int) -> dict:
+    """fog.radar on ``copies`` × the radar tree's files with 1 and 2 workers: files/s, the wall time per file beyond
+    the in-worker time, the main process's CPU per file and the workers' busy share (in-worker time / wall)."""
+    many = root / "radar-many"
+    dst = many / "radar" / "seq0"
+    dst.mkdir(parents=True)
+    src = tree / "radar" / "seq0"
+    for side in src.glob("*.yaml"):
+        shutil.copy(side, dst)
+    files = sorted(src.glob("*.pcd"))
+    for k in range(len(files) * copies):
+        shutil.copy(files[k % len(files)], dst / f"{k:06d}.pcd")
+    r = {w: augment("weather-fog-radar", "radar", many, root / f"many-{w}", w) for w in (1, 2)}
+    shutil.rmtree(many)
+    for w in (1, 2):
+        shutil.rmtree(root / f"many-{w}")
+    return r
+
+
+def startup(name: str, sensor: str, tree: Path, out: Path) -> tuple[float, float]:
+    """Seconds of a one-file CLI run: beyond the file's own time (process start, imports, workers, manifest), and
+    in all."""
     from roadview_noise.manifest import read_manifest
 
     recipe = out.parent / f"{name}-startup.yaml"
@@ -169,7 +205,7 @@ def startup(name: str, sensor: str, tree: Path, out: Path) -> float:
     subprocess.run([str(Path(sys.executable).with_name("rvnoise")), "augment", "--recipe", str(recipe), str(tree),
                     str(out), "--limit", "1", "--workers", "1", "--quiet"], check=True, capture_output=True)
     wall = time.perf_counter() - t0
-    return wall - read_manifest(out / "manifest.jsonl")[0]["seconds"]
+    return wall - read_manifest(out / "manifest.jsonl")[0]["seconds"], wall
 
 
 # --- single frames ---------------------------------------------------------------------------------------------------
@@ -295,10 +331,22 @@ def main() -> None:
         print("|---|" + "---|" * len(next(iter(splits.values()))))
         for name, sp in splits.items():
             print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in sp.values()) + " |")
-        print("\n| start-up of a one-file run (CLI process, beyond the file's own time) | s |\n|---|---|")
+        print("\n| start-up of a one-file run (CLI process) | beyond the file's own time s | in all s |\n|---|---|---|")
         for sensor, name in (("camera", "weather-fog"), ("lidar", "weather-fog-lidar"),
                              ("radar", "weather-fog-radar")):
-            print(f"| {name} | {startup(name, sensor, trees[sensor], root / f'start-{name}'):.2f} |")
+            beyond, wall = startup(name, sensor, trees[sensor], root / f"start-{name}")
+            print(f"| {name} | {beyond:.2f} | {wall:.2f} |")
+        many = small_files(trees["radar"], root, 10)
+        print(f"\n| small files: weather-fog-radar on {many[1]['done']} radar files | 1 worker | 2 workers |\n"
+              "|---|---|---|")
+        print(f"| files/s | {many[1]['done'] / many[1]['wall']:.0f} | {many[2]['done'] / many[2]['wall']:.0f} |")
+        print(f"| 2 w / 1 w | | {many[1]['wall'] / many[2]['wall']:.2f} |")
+        for key, label in (("file_mean_ms", "in-worker ms/file"), ("main_cpu_ms", "main process CPU ms/file")):
+            print(f"| {label} | {many[1][key]:.2f} | {many[2][key]:.2f} |")
+        print("| wall ms/file beyond the in-worker time (× workers) | "
+              + " | ".join(f"{1e3 * many[w]['wall'] * w / many[w]['done'] - many[w]['file_mean_ms']:.2f}" for w in (1, 2))
+              + " |")
+        print(f"| workers busy (in-worker time / wall) | {100 * many[1]['busy']:.0f} % | {100 * many[2]['busy']:.0f} % |")
         print("\n| one 1936×1464 frame, one core | ms |\n|---|---|")
         for label, ms in single_frame(trees["camera"], 9).items():
             print(f"| {label} | {ms:.1f} |")

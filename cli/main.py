@@ -66,6 +66,12 @@ def augment(
     Input options override the recipe's and are recorded in run.json's resolved recipe. A ROS bag as INPUT_DIR:
     the recipe's topics are augmented into the output bag (README "ROS bags")."""
     from roadview_noise.io.rosbag import bag_kind
+
+    if bag_kind(input_dir) is None and backend == "local" and not dry_run:
+        from roadview_noise.prestart import start_for
+
+        start_for(recipe)                # the workers' fork server imports the models while the recipe is checked
+
     from roadview_noise.overrides import with_input_overrides
     from roadview_noise.recipe import load_recipe
     from roadview_noise.runner import Limits, run

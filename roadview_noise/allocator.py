@@ -11,7 +11,6 @@ the process then holds on to its peak memory, which a batch worker reaches withi
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 from functools import lru_cache
 
 M_TRIM_THRESHOLD = -1          # glibc mallopt parameters (malloc.h)
@@ -26,8 +25,7 @@ def keep_freed_memory() -> bool:
     """Serve every ``malloc`` from the heap (mmap threshold 32 MB, no mmap'ed chunks) and trim only above 1 GB (once
     per process); False where the C library has no ``mallopt`` (macOS, musl) or refuses the values."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        mallopt = ctypes.CDLL(None).mallopt   # the C library already loaded (find_library runs ldconfig: ≈ 5 ms)
     except (OSError, AttributeError):
         return False
     return all(mallopt(parameter, value) for parameter, value in ((M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES),

@@ -13,10 +13,9 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 from .errors import ModelError, RecipeError
-from .metrics import compare
 from .model import Model, Scope, Stage
 from .provenance import follow, step_input
-from .registry import get_model, load_all
+from .registry import get_model, known
 from .seeding import derive_rng
 from .types import PointCloud, SensorData, sensor_kind
 
@@ -82,18 +81,16 @@ def order_chain(model_ids: Sequence[str], *, as_written: bool = False, where: st
 
     Refuses (``RecipeError``): unknown or unfinished models, mixed sensors, the same model twice, a modifier
     without a weather model after it, and — unless ``as_written`` — an order that contradicts the stages."""
-    models = load_all()
     planned = {m for cnf in CNFS.values() for ids in cnf.chains.values() for m in ids}
     for i, mid in enumerate(model_ids):
-        if mid in planned and mid not in models:
+        if mid in planned and not known(mid):
             raise RecipeError(f"model {mid!r} is not implemented yet (`rvnoise list` marks the CNFs that run)",
                               key=f"{where}[{i}].model")
-        if mid not in models:
-            try:
-                get_model(mid)
-            except ModelError as e:
-                raise RecipeError(str(e), key=f"{where}[{i}].model") from None
-    classes = [models[m] for m in model_ids]
+        try:
+            get_model(mid)
+        except ModelError as e:
+            raise RecipeError(str(e), key=f"{where}[{i}].model") from None
+    classes = [get_model(m) for m in model_ids]
     sensors = {c.sensor for c in classes}
     if len(sensors) > 1:
         raise RecipeError(f"a chain acts on one sensor, got models for {', '.join(sorted(sensors))}", key=where)
@@ -135,6 +132,8 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
     input and output. Each later step's cloud notes the chain's input as ``recorded`` (the sensor's own data), for
     the steps that calibrate the sensor on it."""
+    from .metrics import compare          # numba: only where a chain runs, not where recipes are checked
+
     records = []
     recorded = data if isinstance(data, PointCloud) and data.recorded is None else None
     for i, model in enumerate(models):

@@ -2,9 +2,12 @@
 
 joblib/loky and ``concurrent.futures`` break the whole pool when one worker dies (a native crash on one bad file, the
 kernel's out-of-memory killer): every task in flight is lost and the run aborts. :class:`ProcessExecutor` gives each
-worker its own pipe and sends it one task at a time, so it always knows which task a dead worker was running: that
+worker its own pipe and knows which task a dead worker was running: that
 task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
-is affected. Workers get the run context once at start and then only small task keys (never arrays).
+is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds a second task, queued in its pipe, so it
+never waits for the parent between two small files; it runs them in order, so the first unanswered task is still
+the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get the run
+context once at start and then only small task keys (never arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
@@ -32,11 +35,12 @@ import sys
 import threading
 import time
 import traceback
+import weakref
 from collections import deque
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import wait
-from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, TypeVar
+from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, Sequence, TypeVar
 
 T = TypeVar("T")
 C = TypeVar("C")
@@ -45,9 +49,10 @@ MAX_DEATHS_PER_TASK = 2            # a task that kills this many workers is not 
 WATCHDOG_PERIOD_S = 1.0
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
-PRELOAD = ["cv2", "roadview_noise.runner"]           # + every model module, then the warm-up (see _context)
+PRELOAD = ["cv2", "roadview_noise.runner", "roadview_noise.metrics"]   # + the run's models, the warm-up (_preload)
 WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
+QUEUE_BELOW_S = 0.05               # tasks shorter than this get a second one queued behind them (see _depth)
 
 
 class _NotNow:
@@ -195,20 +200,45 @@ def _starting() -> Iterator[None]:
                 os.environ[k] = v
 
 
-def _context():
-    if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
+def _preload(models: Sequence[str] | None) -> list[str]:
+    """What the fork server imports: the runner, ``models`` (None: every model module), then the warm-up."""
+    if models is None:
         import pkgutil
 
-        from . import models
+        from . import models as package
+
+        models = [m.name for m in pkgutil.walk_packages(package.__path__, package.__name__ + ".")]
+    return PRELOAD + list(models) + [WARM_UP]
+
+
+_live: "weakref.WeakSet[ProcessExecutor]" = weakref.WeakSet()   # executors with workers: their fork server stays
+
+
+def start_server(models: Sequence[str] | None = None) -> None:
+    """Start the fork server for ``models`` now, so it imports them while the caller plans the run."""
+    _context(models)
+
+
+def _context(models: Sequence[str] | None = None):
+    """The start method: a fork server preloading ``models`` (see :func:`_preload`); one already running that lacks
+    some of them is restarted with what it had and them, when no executor uses it (else a worker imports what it
+    lacks on first use)."""
+    if "forkserver" in mp.get_all_start_methods() and sys.platform.startswith("linux"):
+        from multiprocessing import forkserver
 
         ctx = mp.get_context("forkserver")
-        ctx.set_forkserver_preload(PRELOAD + [m.name for m in pkgutil.walk_packages(models.__path__,
-                                                                                       models.__name__ + ".")]
-                                   + [WARM_UP])
-        with _starting():                # the server imports numpy once, with one BLAS thread per worker
-            from multiprocessing import forkserver
-
-            forkserver.ensure_running()
+        want = _preload(models)
+        server = getattr(forkserver, "_forkserver", None)
+        running = getattr(server, "_forkserver_pid", None) is not None
+        have = list(getattr(server, "_preload_modules", ()) or ())
+        if running and not set(want) <= set(have) and not _live and hasattr(server, "_stop"):
+            server._stop()
+            running = False
+            want = _preload(list(dict.fromkeys(m for m in have + want if m not in PRELOAD and m != WARM_UP)))
+        if not running:
+            ctx.set_forkserver_preload(want)
+            with _starting():            # the server imports numpy once, with one BLAS thread per worker
+                forkserver.ensure_running()
         return ctx
     return mp.get_context("spawn")
 
@@ -217,23 +247,25 @@ def _context():
 class _Worker:
     proc: Any
     conn: Any
-    task: Any = None
-    tid: int = -1
-    started: float = 0.0
+    queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered; the first one is running
+    started: float = 0.0                            # when the first of ``queue`` started
 
 
 class ProcessExecutor(Generic[T, C]):
     """``workers`` processes running ``fn(task, context)``; see the module docstring. ``setup``: ``(function,
-    args)`` each worker calls once at start (importable by reference)."""
+    args)`` each worker calls once at start (importable by reference); ``models``: the model modules the workers
+    need, imported once by the fork server (None: all of them)."""
 
     def __init__(self, fn: Callable[[T, C], Any], context: C, workers: int, *, setup: tuple | None = None,
-                 max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None):
+                 max_deaths: int = MAX_DEATHS_PER_TASK, timeout_s: float | None = None,
+                 models: Sequence[str] | None = None):
         self.fn, self.context, self.workers = fn, context, max(1, int(workers))
         self.setup = setup
         self.max_deaths = max_deaths
         self.timeout_s = timeout_s
-        self._ctx = _context()
+        self._ctx = _context(models)
         self._pool: list[_Worker] = []
+        self._task_s = float("inf")                 # recent seconds per task (moving average)
         self.deaths = 0
 
     def _start(self) -> _Worker:
@@ -245,6 +277,10 @@ class ProcessExecutor(Generic[T, C]):
         child.close()
         return _Worker(proc, parent)
 
+    def _depth(self) -> int:
+        """Tasks a worker holds: a second one queued behind short tasks, so it never waits for the parent."""
+        return 2 if self._task_s < QUEUE_BELOW_S else 1
+
     def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
         source = iter(tasks)
         retry: deque[tuple[int, T]] = deque()
@@ -253,33 +289,34 @@ class ProcessExecutor(Generic[T, C]):
         next_tid = 0
         startup_deaths = 0
         try:
+            _live.add(self)
             while len(self._pool) < self.workers:
                 self._pool.append(self._start())
             while True:
                 for w in self._pool:
-                    if w.task is not None:
-                        continue
-                    if retry:
-                        w.tid, w.task = retry.popleft()
-                    elif not exhausted:
+                    while len(w.queue) < self._depth():
+                        if retry:
+                            tid, task = retry.popleft()
+                        elif not exhausted:
+                            try:
+                                task = next(source)
+                            except StopIteration:
+                                exhausted = True
+                                break
+                            if task is NOT_NOW:            # the source waits for its caller: hand control back
+                                yield NOT_NOW, None
+                                break
+                            tid, next_tid = next_tid, next_tid + 1
+                        else:
+                            break
+                        if not w.queue:
+                            w.started = time.monotonic()
+                        w.queue.append((tid, task))
                         try:
-                            task = next(source)
-                        except StopIteration:
-                            exhausted = True
-                            continue
-                        if task is NOT_NOW:                # the source waits for its caller: hand control back
-                            yield NOT_NOW, None
-                            continue
-                        w.task = task
-                        w.tid, next_tid = next_tid, next_tid + 1
-                    else:
-                        continue
-                    w.started = time.monotonic()
-                    try:
-                        w.conn.send((w.tid, w.task))
-                    except (BrokenPipeError, OSError):
-                        pass                       # its death is seen below and the task re-sent
-                busy = [w for w in self._pool if w.task is not None]
+                            w.conn.send((tid, task))
+                        except (BrokenPipeError, OSError):
+                            break                          # its death is seen below and its tasks re-sent
+                busy = [w for w in self._pool if w.queue]
                 if not busy:
                     if exhausted:
                         return
@@ -289,24 +326,29 @@ class ProcessExecutor(Generic[T, C]):
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
                 ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool], timeout))
                 for i, w in enumerate(self._pool):
-                    if w.task is not None and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
+                    if w.queue and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
                             and time.monotonic() - w.started >= self.timeout_s:
                         w.proc.kill()
                         w.proc.join()
                         w.conn.close()
-                        task = w.task
+                        (_, task), *waiting = w.queue
+                        retry.extend(waiting)
                         self._pool[i] = self._start()
                         yield task, WorkerDeath(f"took longer than {self.timeout_s:g} s; its worker was stopped", 1)
                         continue
                     result, got = None, False
-                    if w.task is not None and w.conn in ready:
+                    if w.queue and w.conn in ready:
                         try:
                             tid, result = w.conn.recv()
-                            got = tid == w.tid
+                            got = tid == w.queue[0][0]
                         except (EOFError, OSError):
                             got = False
                     if got:
-                        task, w.task = w.task, None
+                        now = time.monotonic()
+                        took = now - w.started
+                        self._task_s = took if self._task_s == float("inf") else 0.75 * self._task_s + 0.25 * took
+                        _, task = w.queue.popleft()
+                        w.started = now                    # the worker took the next queued task at once
                         yield task, result
                         continue
                     if w.proc.sentinel not in ready and w.proc.is_alive():
@@ -315,18 +357,19 @@ class ProcessExecutor(Generic[T, C]):
                     reason = death_reason(w.proc.exitcode)
                     w.conn.close()
                     self.deaths += 1
-                    if w.task is None:
+                    if not w.queue:
                         startup_deaths += 1
                         if startup_deaths > 3 * self.workers:
                             raise RuntimeError(f"workers keep dying before they get a task ({reason})")
                     else:
-                        n = deaths[w.tid] = deaths.get(w.tid, 0) + 1
+                        (tid, task), *waiting = w.queue    # it died running the first; the others never started
+                        retry.extend(waiting)
+                        n = deaths[tid] = deaths.get(tid, 0) + 1
                         if n >= self.max_deaths:
-                            task = w.task
                             self._pool[i] = self._start()
                             yield task, WorkerDeath(reason, n)
                             continue
-                        retry.append((w.tid, w.task))
+                        retry.append((tid, task))
                     self._pool[i] = self._start()
         finally:
             self.close()
@@ -334,9 +377,10 @@ class ProcessExecutor(Generic[T, C]):
     def close(self) -> None:
         """Stop every worker: a polite ``None`` to idle ones, SIGKILL to busy ones and to any that lingers."""
         pool, self._pool = self._pool, []
+        _live.discard(self)
         for w in pool:
             try:
-                if w.task is None and w.proc.is_alive():
+                if not w.queue and w.proc.is_alive():
                     w.conn.send(None)
                 else:
                     w.proc.kill()

@@ -160,9 +160,10 @@ def _failed(entry: dict, error: str) -> dict:
 
 def commit(out_root: Path, entry: dict) -> None:
     """Rename an entry's staged temporaries onto their final names (their folders checked again)."""
+    root = Path(os.path.realpath(out_root))
     for tmp, final in entry.pop("staged", []):
         target = out_root / final
-        ensure_dir_inside(target.parent, Path(os.path.realpath(out_root)))
+        ensure_dir_inside(target.parent, root)
         os.replace(out_root / tmp, target)
 
 

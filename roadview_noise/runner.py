@@ -26,25 +26,24 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from . import annotations, profiling
+from . import annotations, prestart, profiling
 from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import InputError, OutputError, RecipeError, RvNoiseError
-from .executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath
+from .executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
 from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes
 from .io.headers import check_size
 from .lock import OutputLock
 from .manifest import (MANIFEST_NAME, RUN_NAME, iter_manifest, library_versions, read_manifest, sha256_file,
                        write_manifest, write_run_json)
-from .metrics import compare
 from .native_output import captured_output
 from .outputs import Ledger, PreviousRun, commit, discard, files_intact, remove_listed
 from .profiling import span
 from .recipe import Recipe, draw_value
-from .registry import adopt, get_model, plugin_models
+from .registry import adopt, get_model, model_modules, plugin_models
 from .resources import choose_workers
 from .seeding import derive_rng
 from .walk import WalkFailure, os_error_text
@@ -313,6 +312,8 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                 elif len(records) == 1:                    # one step: its metrics compare input and output already
                     entry["metrics"] = records[0].metrics
                 else:
+                    from .metrics import compare      # numba: imported where files are processed only
+
                     entry["metrics"] = compare(data, out)
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)
@@ -388,6 +389,8 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
     if scheduler is not None and backend != "dask":
         raise RecipeError("--scheduler needs --backend dask")
     in_real, out_real = check_roots(in_root, out_root)
+    if backend == "local" and not dry_run:
+        start_server(worker_modules(recipe))               # it imports while the input tree is walked
     cap = None if yes else MAX_OUTPUTS_WITHOUT_YES
     planned, unreadable = count_plan(in_real, recipe, limit, cap)
     if cap is not None and planned > cap:
@@ -440,6 +443,11 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
     return summary
 
 
+def worker_modules(recipe: Recipe) -> list[str]:
+    """The modules the fork server imports for a run of ``recipe`` (:mod:`roadview_noise.prestart`)."""
+    return prestart.worker_modules(recipe.sensor, model_modules(recipe.model_ids))
+
+
 def _executor(ctx: RunContext, workers: int | None, backend: str, scheduler: str | None):
     """The executor of a backend (see :func:`run`); both run :func:`process` on tasks and yield as completed."""
     setup = (adopt, (plugin_models(),))
@@ -448,7 +456,8 @@ def _executor(ctx: RunContext, workers: int | None, backend: str, scheduler: str
 
         return DaskExecutor(process, ctx, workers=workers, scheduler=scheduler, setup=setup,
                             timeout_s=ctx.limits.task_timeout_s)
-    return ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s)
+    return ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s,
+                           models=worker_modules(ctx.recipe))
 
 
 def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool) -> PreviousRun:

@@ -7,7 +7,8 @@ import os
 import signal
 import time
 
-from roadview_noise.executor import NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, death_reason
+from roadview_noise.executor import (NOT_NOW, QUEUE_BELOW_S, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath,
+                                     death_reason, start_server)
 
 
 def work(task: int, context: dict) -> tuple[int, int]:
@@ -88,3 +89,33 @@ def test_death_reasons_in_words():
     assert death_reason(-9) == "worker died: signal 9 (SIGKILL: out of memory or killed)"
     assert "SIGSEGV" in death_reason(-11) and "native code" in death_reason(-11)
     assert death_reason(2) == "worker died: it exited with code 2"
+
+
+def test_short_tasks_are_queued_and_a_death_costs_only_the_running_one(tmp_path):
+    """Behind short tasks each worker holds a second one; a worker that dies is blamed for the task it was running
+    only: the task queued behind it runs on a fresh worker, with no death counted."""
+    ctx = {"exit": (30,), "kill_once": (22,), "dir": str(tmp_path)}
+    ex = ProcessExecutor(work, ctx, 2)
+    results = dict(ex.map(range(40)))
+    assert ex._task_s < QUEUE_BELOW_S                                 # the queue was in use when they died
+    assert sorted(results) == list(range(40))
+    assert isinstance(results[30], WorkerDeath) and results[30].deaths == 2
+    assert all(results[t] == (t, t * t) for t in range(40) if t != 30)
+    assert ex.deaths == 3
+
+
+def test_fork_server_keeps_what_it_preloaded():
+    """The fork server is started once for the modules a run needs and restarted (with what it had and the new
+    ones) only when a later run needs a module it lacks."""
+    from multiprocessing import forkserver
+
+    forkserver._forkserver._stop()              # earlier tests' server preloaded every model
+    start_server(["roadview_noise.models.radar.fog"])
+    pid = forkserver._forkserver._forkserver_pid
+    start_server(["roadview_noise.models.radar.fog"])
+    assert forkserver._forkserver._forkserver_pid == pid
+    start_server(["roadview_noise.models.radar.rain"])
+    assert forkserver._forkserver._forkserver_pid != pid
+    assert {"roadview_noise.models.radar.fog", "roadview_noise.models.radar.rain"} <= \
+        set(forkserver._forkserver._preload_modules)
+    assert dict(ProcessExecutor(work, {}, 1).map([3])) == {3: (3, 9)}

@@ -95,8 +95,12 @@ def recorded_writes() -> Iterator[list[Path]]:
 
 def ensure_dir_inside(folder: Path, root: Path) -> Path:
     """Create ``folder`` (and missing parents) below the real ``root`` one component at a time; refuse any existing
-    component that is not a folder or whose real path leaves ``root``. Returns the folder's real path."""
+    component that is not a folder or whose real path leaves ``root``. Returns the folder's real path. A folder that
+    is there and resolves inside ``root`` costs one ``realpath`` (every output of a run lands in a few folders)."""
     folder = Path(os.path.abspath(folder))
+    real = os.path.realpath(folder)
+    if (real == str(root) or real.startswith(str(root).rstrip(os.sep) + os.sep)) and os.path.isdir(real):
+        return Path(real)
     try:
         rel = folder.relative_to(root)
     except ValueError:
