@@ -174,7 +174,7 @@ def _scan_rays(n: int = 6000):
 @pytest.mark.parametrize("rate", [0.5, 5.0], ids=["light", "heavy"])
 def test_fused_pass_has_the_law_of_the_staged_pipeline(rate):
     """The strongest return's one compiled pass (:func:`strongest_returns`: draw, summed pulses and detection per ray,
-    compiled with contracted multiply-adds, its uniforms interleaved with the draws) against the same stages run one
+    its uniforms interleaved with the draws) against the same stages run one
     after the other on the same rays (:func:`draw_particles`, :func:`lidar_echo.select_returns`,
     :func:`lidar_detection.detect`), 24 frames each of a 6000-ray scan of targets and sky in snow:
     - per outcome (no return / target / weather) and ray group (sky, targets below and above 20 m, faint and bright),
