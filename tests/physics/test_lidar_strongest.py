@@ -8,9 +8,16 @@ import math
 
 import numpy as np
 import pytest
+from scipy import stats
 
-from roadview_noise.physics import dsd, lidar_particles, lidar_strongest
+from roadview_noise.models.lidar.snow import SnowLidar
+from roadview_noise.physics import dsd, lidar_echo, lidar_particles, lidar_strongest
+from roadview_noise.physics.lidar_detection import detect
+from roadview_noise.physics.lidar_medium import pulse_length_m
 from roadview_noise.physics.lidar_particles import Beam, ParticleMedium
+from roadview_noise.physics.lidar_rays import cloud_rays
+from roadview_noise.profiles.lidar import os1_128
+from roadview_noise.types import PointCloud
 
 OS1_BEAM = Beam(4.75e-3, math.pi / 1000, 0.5, 5.0)
 LENGTH_M = 3.0
@@ -133,3 +140,87 @@ def test_medium_changes_give_new_tables():
     assert lidar_strongest.brightest_tables(snow(), OS1_BEAM, 2e-7, LENGTH_M) is a
     assert lidar_strongest.brightest_tables(dataclasses.replace(snow(), reflectance=0.5), OS1_BEAM, 2e-7,
                                             LENGTH_M) is not a
+
+
+@pytest.mark.parametrize("octave", range(0, 16))
+def test_octaves_by_comparison_equal_frexp(octave):
+    """The draw's octaves without frexp (:func:`lidar_strongest._own_level`, :func:`_octave_near`) give what
+    ``frexp`` gives, at and next to every power of two and on random values of and below the band's octave."""
+    rng = np.random.default_rng(octave)
+    two = 2.0 ** np.arange(-3, octave + 2)
+    values = np.concatenate([two, np.nextafter(two, 0), np.nextafter(two, np.inf),
+                             2.0 ** rng.uniform(-4, octave + 1, 500), [0.0, 1e-300]])
+    for v in values:
+        exponent = math.frexp(v)[1] - 1
+        assert lidar_strongest._own_level(v) == min(max(exponent, 0), lidar_strongest.OWN_LEVELS - 1), v
+        if v < 2.0 ** (octave + 1):
+            assert lidar_strongest._octave_near(v, octave) == max(exponent, 0), v
+
+
+def _scan_rays(n: int = 6000):
+    """A 1 × n OS1-128 range image in photons: Lambertian 2–90 % targets at 2–60 m on three rays in four, sky on the
+    rest (empty rays the weather fills)."""
+    rng = np.random.default_rng(0)
+    r = rng.uniform(2.0, 60.0, n)
+    az, el = rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.3, 0.3, n)
+    pos = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], axis=1)
+    sky = np.arange(n) % 4 == 0
+    intensity = np.where(sky, 0.0, 65535 * rng.uniform(0.02, 0.9, n) / r ** 2)
+    cloud = PointCloud(np.where(sky[:, None], 0.0, pos), {"intensity": intensity}, "lidar",
+                       dataclasses.replace(os1_128(), detection_threshold=2.42), grid_shape=(1, n))
+    return cloud_rays(cloud, "snow.lidar")
+
+
+@pytest.mark.parametrize("rate", [0.5, 5.0], ids=["light", "heavy"])
+def test_fused_pass_has_the_law_of_the_staged_pipeline(rate):
+    """The strongest return's one compiled pass (:func:`strongest_returns`: draw, summed pulses and detection per ray,
+    its uniforms interleaved with the draws) against the same stages run one
+    after the other on the same rays (:func:`draw_particles`, :func:`lidar_echo.select_returns`,
+    :func:`lidar_detection.detect`), 24 frames each of a 6000-ray scan of targets and sky in snow:
+    - per outcome (no return / target / weather) and ray group (sky, targets below and above 20 m, faint and bright),
+      a χ² test of homogeneity of the two 2 × 15 tables of counts, p > 0.001;
+    - ranges and received signals of the weather returns and signals of the targets: two-sample Kolmogorov–Smirnov,
+      p > 0.001.
+    The drawn particles: the same mean within 4 Poisson SDs."""
+    rays = _scan_rays()
+    model = SnowLidar(snowfall_rate_mm_per_h=rate)
+    medium, beam = model.medium(), Beam.of(rays.profile)
+    tau_h = rays.profile.pulse_half_power_width_s
+    level, _ = lidar_particles.draw_level(medium, beam, rays.threshold, model.draw_fraction_of_threshold,
+                                          pulse_length_m(tau_h))
+    tables = lidar_strongest.brightest_tables(medium, beam, float(level), float(pulse_length_m(tau_h)))
+    strong = rays.has_target & (rays.signal * np.exp(-2 * medium.alpha_per_m * rays.range_m) > 8 * rays.threshold)
+    group = np.where(~rays.has_target, 0, 1 + (rays.range_m > 20.0) + 2 * strong)
+    frames = 24
+    results = []
+    for fused in (True, False):
+        counts, weather_range, weather_signal, target_signal, drawn = np.zeros((3, 5)), [], [], [], 0
+        for seed in range(frames):
+            rng = np.random.default_rng(seed)
+            if fused:
+                returns, m = lidar_strongest.strongest_returns(rng, rays, medium, beam, level)
+            else:
+                d = lidar_strongest.draw_particles(rng, rays.range_m, rays.signal, rays.has_target,
+                                                   medium.alpha_per_m, tables, rays.threshold)
+                candidates = lidar_echo.select_returns(d.ray, d.range_m, d.signal, rays.range_m, d.target,
+                                                       rays.has_target, tau_h, rays.receiver.weakest_return,
+                                                       "strongest", d.beam_fraction, tables.background, d.shadow,
+                                                       d.level)
+                n_weather = int(np.count_nonzero(candidates.kind == lidar_echo.WEATHER))
+                returns = detect(rays, candidates, "strongest", rng.random((n_weather, 3)), per_ray=False)
+                m = len(d.ray)
+            np.add.at(counts, (returns.kind, group), 1)
+            weather = returns.kind == lidar_echo.WEATHER
+            weather_range.append(returns.range_m[weather])
+            weather_signal.append(returns.signal[weather])
+            target_signal.append(returns.signal[returns.kind == lidar_echo.TARGET])
+            drawn += m
+        results.append((counts, *map(np.concatenate, (weather_range, weather_signal, target_signal)), drawn))
+    (c_a, r_a, s_a, t_a, n_a), (c_b, r_b, s_b, t_b, n_b) = results
+    assert len(r_a) > 2000 and len(t_a) > 2000
+    table = np.stack([c_a.ravel(), c_b.ravel()])
+    table = table[:, table.sum(axis=0) > 0]
+    assert stats.chi2_contingency(table).pvalue > 1e-3
+    for a, b in ((r_a, r_b), (s_a, s_b), (t_a, t_b)):
+        assert stats.ks_2samp(a, b).pvalue > 1e-3
+    assert abs(n_a - n_b) < 4 * math.sqrt(n_a + n_b)
