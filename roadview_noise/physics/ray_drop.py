@@ -40,7 +40,6 @@ from scipy.special import ndtr
 
 from ..types import PointCloud
 from .compiled import jit
-from .lidar_intensity import sensor_constant
 from .lidar_rays import Rays, cloud_rays
 from .receiver import Receiver
 from .scan_cells import ScanCells, row_elevation_rad, scan_cells
@@ -69,8 +68,8 @@ class ScanRays:
 
     def receiver(self) -> Receiver:
         """The datasheet receiver in units of K (never calibrated from the data: an ideal scan may hold returns no
-        real sensor detects)."""
-        return Receiver.of(self.rays.profile, sensor_constant(self.rays.profile))
+        real sensor detects: :func:`scan_rays` reads the rays with ``calibrate=False``)."""
+        return self.rays.receiver
 
     def features(self, at: np.ndarray, positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`ray_features` of the image cells ``at``."""
@@ -80,7 +79,7 @@ class ScanRays:
 
 def scan_rays(cloud: PointCloud, model_id: str) -> ScanRays:
     """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`)."""
-    rays = cloud_rays(cloud, model_id, "ignore")
+    rays = cloud_rays(cloud, model_id, "ignore", calibrate=False)
     cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)])
     with np.errstate(divide="ignore"):
         log_signal = np.log(rays.signal / rays.datasheet_threshold)
@@ -93,11 +92,12 @@ def ray_features(cells: ScanCells, log_signal: np.ndarray, range_m: np.ndarray, 
                  elevation_by_row: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(len(at), 4) features (:data:`FEATURES`) of the image cells ``at`` (flat indices) from the points' values
     (per point; only returns shown in their cell count), and each cell's number of returning neighbours (0–8)."""
-    return _neighbour_features(cells.index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
-                               np.ascontiguousarray(range_m, dtype=np.float64),
-                               np.ascontiguousarray(positions_m, dtype=np.float64),
-                               np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64),
-                               cells.columns)
+    features, median_range, support = _neighbour_features(
+        cells.index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
+        np.ascontiguousarray(range_m, dtype=np.float64), np.ascontiguousarray(positions_m, dtype=np.float64),
+        np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64), cells.columns)
+    np.log(median_range, out=features[:, 1])            # numpy's SIMD log, not one libm call per ray
+    return features, support
 
 
 @jit(inline="always")
@@ -201,8 +201,8 @@ def _padded(index, columns):       # pragma: no cover - compiled
 @jit
 def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
     """:func:`ray_features` over the cells ``at`` of the image ``index`` (the point each cell shows, −1: none):
-    medians of the returning neighbours' log signal and range (the cell's own values without any), and |n̂·d̂| with n
-    the area vector of the polygon of the returning neighbours in order around the cell and d the sum of their
+    medians of the returning neighbours' log signal and range (the cell's own values without any; the range returned
+    apart, for the caller's vectorised log), and |n̂·d̂| with n the area vector of the polygon of the returning neighbours in order around the cell and d the sum of their
     positions (1 with fewer than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the
     full ring of 8 the same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
     w = columns + 2
@@ -210,6 +210,7 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
     # the 8 neighbours in order around the cell, as offsets in the padded image
     ring = np.array([-w - 1, -w, -w + 1, 1, w + 1, w, w - 1, -1])
     out = np.empty((len(at), 4))
+    median_range = np.empty(len(at))
     support = np.empty(len(at), np.int64)
     buf_s = np.empty(8)
     buf_r = np.empty(8)
@@ -228,7 +229,7 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
         if min(min(min(q0, q1), min(q2, q3)), min(min(q4, q5), min(q6, q7))) >= 0:      # the full ring (most cells)
             support[i] = 8
             out[i, 0] = _ring_median(log_signal, q0, q1, q2, q3, q4, q5, q6, q7)
-            out[i, 1] = math.log(_ring_median(range_m, q0, q1, q2, q3, q4, q5, q6, q7))
+            median_range[i] = _ring_median(range_m, q0, q1, q2, q3, q4, q5, q6, q7)
             out[i, 2] = _ring_cos(pos, q0, q1, q2, q3, q4, q5, q6, q7)
             continue
         k = 0
@@ -244,11 +245,11 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
         support[i] = k
         if k > 0:
             out[i, 0] = _median(buf_s, k)
-            out[i, 1] = math.log(_median(buf_r, k))
+            median_range[i] = _median(buf_r, k)
         else:
             own = index[at[i]]
             out[i, 0] = log_signal[own] if own >= 0 else np.nan
-            out[i, 1] = math.log(range_m[own]) if own >= 0 else np.nan
+            median_range[i] = range_m[own] if own >= 0 else np.nan
         cos = 1.0
         if k >= 3:
             px[k], py[k], pz[k] = px[0], py[0], pz[0]          # close the polygon
@@ -264,7 +265,7 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
                 dz += pz[j]
             cos = _cos_between(nx, ny, nz, dx, dy, dz)
         out[i, 2] = cos
-    return out, support
+    return out, median_range, support
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -315,20 +316,23 @@ class PhysicalRayDrop:
         """``1 − (1 − p_0)·p_detect(ln S_eff / T)`` of every ray (one compiled pass, linear interpolation in the
         :func:`detection_table`)."""
         x, p = detection_table(receiver, float(self.log_signal_sd))
-        return _physical_drop(np.ascontiguousarray(features, dtype=np.float64), self.log_gain - self.range_exponent
+        features = np.asarray(features, dtype=np.float64)
+        log_cos = np.log(np.maximum(features[:, 2], MIN_COS))      # numpy's SIMD log, not one libm call per ray
+        return _physical_drop(np.ascontiguousarray(features), log_cos, self.log_gain - self.range_exponent
                               * math.log(REFERENCE_RANGE_M), self.range_exponent, self.incidence_exponent,
                               self.elevation_linear_per_rad, self.elevation_quadratic_per_rad2,
                               self.floor_drop_probability, x[0], 1.0 / TABLE_STEP, p)
 
 
 @jit
-def _physical_drop(f, offset, a_range, a_cos, e1, e2, floor, x0, inv_h, table):       # pragma: no cover - compiled
-    """:meth:`PhysicalRayDrop.drop_probability`: ``x = ln S/T + offset + a_R ln R + a_θ ln cos θ + e1 ω + e2 ω²``."""
+def _physical_drop(f, log_cos, offset, a_range, a_cos, e1, e2, floor, x0, inv_h, table):  # pragma: no cover - compiled
+    """:meth:`PhysicalRayDrop.drop_probability`: ``x = ln S/T + offset + a_R ln R + a_θ ln cos θ + e1 ω + e2 ω²``
+    (``log_cos``: ln cos θ per ray, floored)."""
     out = np.empty(len(f))
     last = len(table) - 1
     for i in range(len(f)):
         e = f[i, 3]
-        x = (f[i, 0] + offset + a_range * f[i, 1] + a_cos * math.log(max(f[i, 2], MIN_COS)) + e * (e1 + e2 * e))
+        x = (f[i, 0] + offset + a_range * f[i, 1] + a_cos * log_cos[i] + e * (e1 + e2 * e))
         u = (x - x0) * inv_h
         if not u > 0.0:                                  # (NaN: no estimate, as for no signal)
             detect = table[0]
@@ -359,18 +363,22 @@ class AdditiveLogistic:
         return out
 
     def drop_probability(self, features: np.ndarray) -> np.ndarray:
-        """``1 / (1 + e^{−logit})`` in one compiled pass (the same piecewise-linear interpolation as :meth:`logit`)."""
+        """``1 / (1 + e^{−logit})``: the logit in one compiled pass (the same piecewise-linear interpolation as
+        :meth:`logit`), the logistic function vectorised."""
         columns = np.array([FEATURES.index(n) for n in self.features], dtype=np.int64)
         starts = np.cumsum([0] + [len(k) for k in self.knots]).astype(np.int64)
         slopes = np.concatenate([np.append(np.diff(v) / np.diff(k), 0.0) for k, v in zip(self.knots, self.values)])
-        return _additive_drop(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
-                              np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
+        z = _additive_logit(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
+                            np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
+        np.exp(-z, out=z)                               # numpy's SIMD exp, not one libm call per ray
+        z += 1.0
+        return np.reciprocal(z, out=z)
 
 
 @jit
-def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
-    """:meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat beyond the
-    outer ones), its interpolated value added to the logit; then the logistic function. Neighbouring rays mostly
+def _additive_logit(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
+    """The logit of :meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat
+    beyond the outer ones), its interpolated value added to the intercept. Neighbouring rays mostly
     fall in the same segment, so the previous ray's is tried before searching from the first knot."""
     n = len(f)
     z = np.full(n, intercept)
@@ -389,6 +397,4 @@ def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       
                     while knots[k + 1] <= x:
                         k += 1
                 z[i] += values[k] + (x - knots[k]) * slopes[k]
-    for i in range(n):
-        z[i] = 1.0 / (1.0 + math.exp(-z[i]))
     return z
