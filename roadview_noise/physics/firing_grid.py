@@ -79,9 +79,13 @@ class FiringGrid:
         return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep])
 
     def describe(self) -> str:
-        p = self.profile
-        note = "" if self.columns == p.columns else f"; profile {p.name!r} says {p.columns}"
-        return f"{p.channels}x{self.columns} firing grid measured from the list{note}"
+        return describe_grid(self.profile, self.columns)
+
+
+def describe_grid(profile: LidarProfile, columns: int) -> str:
+    """What a firing grid of ``columns`` measured from a list is, for the manifest."""
+    note = "" if columns == profile.columns else f"; profile {profile.name!r} says {profile.columns}"
+    return f"{profile.channels}x{columns} firing grid measured from the list{note}"
 
 
 @jit
@@ -181,9 +185,42 @@ def _empty_cells(occupied, fires, in_view, shift, offsets, step):       # pragma
     return ring[:m], col[:m]
 
 
+@dataclass(frozen=True, eq=False)
+class FiringColumns:
+    """The firing grid measured from a point list, before its empty cells are looked for: every point's ``ring`` and
+    firing azimuth ``firing_rad``, the measured column count ``columns`` and per-beam ``shift`` (in steps), which
+    points are returns (``valid``)."""
+
+    ring: np.ndarray
+    firing_rad: np.ndarray
+    columns: int
+    shift: np.ndarray
+    valid: np.ndarray
+
+
 def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringGrid | str:
     """The empty rays of a point-list scan (see the module doc), or the reason it has no firing grid. ``range_m``:
     the points' ranges if known, 0 where a point is no return."""
+    measured = firing_columns(cloud, profile, range_m)
+    return measured if isinstance(measured, str) else empty_rays(measured, profile)
+
+
+def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
+    """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc)."""
+    ring, firing, columns, shift, valid = (measured.ring, measured.firing_rad, measured.columns, measured.shift,
+                                           measured.valid)
+    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
+    step = TWO_PI / columns
+    occupied, like, seen = _cells(firing, valid, ring, offsets, shift, step, columns, profile.channels)
+    m = VIEW_MARGIN_STEPS
+    in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
+    er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
+    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing)
+
+
+def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringColumns | str:
+    """The rings, firing azimuths, column count and per-beam shifts of a point list's firing grid (module doc), or
+    the reason it has none; :func:`firing_grid` then finds the empty cells."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     if range_m is None:
         range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
@@ -214,11 +251,7 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
              + 1j * np.bincount(ring[sample], turn.imag, profile.channels))
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
-    occupied, like, seen = _cells(firing, valid, ring, offsets, shift, step, columns, profile.channels)
-    m = VIEW_MARGIN_STEPS
-    in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
-    er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
-    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing)
+    return FiringColumns(ring, firing, columns, shift, valid)
 
 
 @jit

@@ -125,7 +125,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     recorded = cloud.recorded
     if not calibrate:
         weakest = math.inf
-    elif recorded is not None and recorded is not cloud and "intensity" in recorded.fields:
+    elif (recorded is not None and "intensity" in recorded.fields      # (the chain's first step: the same arrays)
+          and not (recorded.positions_m is cloud.positions_m and recorded.fields["intensity"] is intensity)):
         weakest = _ray_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
                                np.asarray(recorded.fields["intensity"]), compensated, per_reading, 0.0,
                                intensity_step(profile))[3]

@@ -77,10 +77,11 @@ class ScanRays:
                             row_elevation_rad(self.rays.profile), at)
 
 
-def scan_rays(cloud: PointCloud, model_id: str) -> ScanRays:
-    """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`)."""
+def scan_rays(cloud: PointCloud, model_id: str, empty: bool = True) -> ScanRays:
+    """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`; ``empty=False``: without the empty
+    cells, which only fitting needs)."""
     rays = cloud_rays(cloud, model_id, "ignore", calibrate=False)
-    cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)])
+    cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)], empty)
     with np.errstate(divide="ignore"):
         log_signal = np.log(rays.signal / rays.datasheet_threshold)
     if isinstance(cells, str):

@@ -15,7 +15,6 @@ Collisions (two returns of a list in one cell: dual returns) keep the nearest in
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
-from .firing_grid import _wrap, firing_grid
+from .firing_grid import _wrap, describe_grid, empty_rays, firing_columns
 from .lidar_geometry import has_return, ring_index, ring_rows
 
 SHIFT_SAMPLE = 16384           # returns looked at (evenly strided) to measure each beam's destagger shift
@@ -60,9 +59,11 @@ class ScanCells:
         return out.reshape((self.rows, self.columns) + values.shape[1:])
 
 
-def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> ScanCells | str:
+def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | None = None,
+               empty: bool = True) -> ScanCells | str:
     """The cells of a grid or a point list (module doc), or why a point list has none. ``range_m``: the points'
-    ranges if known (0: no return)."""
+    ranges if known (0: no return); ``empty=False``: leave the empty cells out (``empty`` holds none; a list's
+    firing grid is then not searched for them)."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     valid = has_return(positions) if range_m is None else np.asarray(range_m) > 0
     if cloud.grid_shape is not None:
@@ -76,19 +77,20 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
                     f"{profile.name!r}")
         column = None                                   # a grid point's column is its index mod the columns
         source = f"{n_rows}x{columns} grid"
-        empty_at = np.flatnonzero(~valid)
+        empty_at = np.flatnonzero(~valid) if empty else np.zeros(0, np.int64)
         empty_ring, empty_column = ring[empty_at], empty_at % columns
     else:
-        ring = ring_index(cloud, profile)
-        if "ring" not in cloud.fields:                  # recovered once, for the firing grid too
-            cloud = dataclasses.replace(cloud, fields={**cloud.fields, "ring": ring})
-        grid = firing_grid(cloud, profile, range_m)
-        if isinstance(grid, str):
-            return f"no firing grid: {grid}"
-        columns = grid.columns
-        column = _firing_columns(grid.firing_rad, ring, valid, grid.shift, columns)
-        source = grid.describe()
-        empty_ring, empty_column = grid.ring, grid.column
+        measured = firing_columns(cloud, profile, range_m)
+        if isinstance(measured, str):
+            return f"no firing grid: {measured}"
+        ring, columns = measured.ring, measured.columns
+        column = _firing_columns(measured.firing_rad, ring, valid, measured.shift, columns)
+        source = describe_grid(profile, columns)
+        if empty:
+            grid = empty_rays(measured, profile)
+            empty_ring, empty_column = grid.ring, grid.column
+        else:
+            empty_ring = empty_column = np.zeros(0, np.int64)
     ring = np.asarray(ring, dtype=np.int64)
     shift = _destagger_shift(positions, valid, ring, column, columns, profile.channels)
     rows = ring_rows(profile)

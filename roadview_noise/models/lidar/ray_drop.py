@@ -76,7 +76,7 @@ class RayDropLidar(Model):
                                self.floor_drop_probability)
 
     def apply(self, data, *, state, drawn, rng):
-        sr = scan_rays(data, self.id)
+        sr = scan_rays(data, self.id, empty=False)
         n = len(data)
         idx = np.flatnonzero(sr.rays.has_target[:n])
         r = sr.rays.range_m[idx]
