@@ -246,9 +246,9 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
     step = TWO_PI / columns                             # the grid closes on itself
     sample = np.flatnonzero(valid[::PHASE_SAMPLE_STRIDE]) * PHASE_SAMPLE_STRIDE
     # weighted by range: near returns carry the mm-scale beam-origin parallax
-    turn = range_m[sample] * np.exp(-2j * np.pi * firing[sample] / step)
-    phase = (np.bincount(ring[sample], turn.real, profile.channels)
-             + 1j * np.bincount(ring[sample], turn.imag, profile.channels))
+    weight, angle = range_m[sample], firing[sample] * (TWO_PI / step)
+    phase = (np.bincount(ring[sample], weight * np.cos(angle), profile.channels)      # (real cos and sin: SIMD,
+             - 1j * np.bincount(ring[sample], weight * np.sin(angle), profile.channels))  # unlike a complex exp)
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
     return FiringColumns(ring, firing, columns, shift, valid)
