@@ -371,7 +371,7 @@ class AdditiveLogistic:
         slopes = np.concatenate([np.append(np.diff(v) / np.diff(k), 0.0) for k, v in zip(self.knots, self.values)])
         z = _additive_logit(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
                             np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
-        np.exp(-z, out=z)                               # numpy's SIMD exp, not one libm call per ray
+        np.exp(np.negative(z, out=z), out=z)            # numpy's SIMD exp, not one libm call per ray
         z += 1.0
         return np.reciprocal(z, out=z)
 
