@@ -378,28 +378,24 @@ class AdditiveLogistic:
 
 @jit
 def _additive_logit(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
-    """The logit of :meth:`AdditiveLogistic.drop_probability`: per ray and feature the segment among the knots (flat
-    beyond the outer ones), its interpolated value added to the intercept (one pass over the rays). Neighbouring rays
-    mostly fall in the same segment, so each feature's previous one is tried before searching from the first knot."""
+    """The logit of :meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat
+    beyond the outer ones), its interpolated value added to the intercept. Neighbouring rays mostly fall in the same
+    segment, so the previous ray's is tried before searching from the first knot."""
     n = len(f)
-    z = np.empty(n)
-    segment = starts[:-1].copy()
-    for i in range(n):
-        acc = intercept
-        for j in range(len(columns)):
-            lo0, hi0 = starts[j], starts[j + 1] - 1
-            x = f[i, columns[j]]
+    z = np.full(n, intercept)
+    for j in range(len(columns)):
+        col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+        k = lo0
+        for i in range(n):
+            x = f[i, col]
             if not x > knots[lo0]:
-                acc += values[lo0]
+                z[i] += values[lo0]
             elif x >= knots[hi0]:
-                acc += values[hi0]
+                z[i] += values[hi0]
             else:
-                k = segment[j]
                 if not (knots[k] <= x and x < knots[k + 1]):
                     k = lo0
                     while knots[k + 1] <= x:
                         k += 1
-                    segment[j] = k
-                acc += values[k] + (x - knots[k]) * slopes[k]
-        z[i] = acc
+                z[i] += values[k] + (x - knots[k]) * slopes[k]
     return z
