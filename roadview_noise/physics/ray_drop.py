@@ -94,7 +94,7 @@ def ray_features(cells: ScanCells, log_signal: np.ndarray, range_m: np.ndarray, 
     """(len(at), 4) features (:data:`FEATURES`) of the image cells ``at`` (flat indices) from the points' values
     (per point; only returns shown in their cell count), and each cell's number of returning neighbours (0–8)."""
     features, median_range, support = _neighbour_features(
-        cells.index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
+        cells.padded_index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
         np.ascontiguousarray(range_m, dtype=np.float64), np.ascontiguousarray(positions_m, dtype=np.float64),
         np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64), cells.columns)
     np.log(median_range, out=features[:, 1])            # numpy's SIMD log, not one libm call per ray
@@ -184,35 +184,19 @@ def _median(buf, k):       # pragma: no cover - compiled
 
 
 @jit
-def _padded(index, columns):       # pragma: no cover - compiled
-    """The index image with a border: a row of −1 above and below, the first and last columns copied across the
-    360° seam, so that every neighbour sits at a fixed offset."""
-    rows = len(index) // columns
+def _neighbour_features(padded, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
+    """:func:`ray_features` over the cells ``at`` of the image ``padded`` (the point each cell shows, −1: none;
+    :meth:`ScanCells.padded_index_image`): medians of the returning neighbours' log signal and range (the cell's own
+    values without any; the range returned apart, for the caller's vectorised log), and |n̂·d̂| with n the area vector
+    of the polygon of the returning neighbours in order around the cell and d the sum of their positions (1 with fewer
+    than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the full ring of 8 the
+    same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
     w = columns + 2
-    out = np.full((rows + 2) * w, -1, np.int64)
-    for r in range(rows):
-        base = (r + 1) * w
-        for c in range(columns):
-            out[base + c + 1] = index[r * columns + c]
-        out[base] = index[r * columns + columns - 1]
-        out[base + columns + 1] = index[r * columns]
-    return out
-
-
-@jit
-def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
-    """:func:`ray_features` over the cells ``at`` of the image ``index`` (the point each cell shows, −1: none):
-    medians of the returning neighbours' log signal and range (the cell's own values without any; the range returned
-    apart, for the caller's vectorised log), and |n̂·d̂| with n the area vector of the polygon of the returning neighbours in order around the cell and d the sum of their
-    positions (1 with fewer than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the
-    full ring of 8 the same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
-    w = columns + 2
-    padded = _padded(index, columns)
     # the 8 neighbours in order around the cell, as offsets in the padded image
     ring = np.array([-w - 1, -w, -w + 1, 1, w + 1, w, w - 1, -1])
     out = np.empty((len(at), 4))
     median_range = np.empty(len(at))
-    support = np.empty(len(at), np.int64)
+    support = np.empty(len(at), np.int8)                # (0–8: one byte, a pass over the rays less to memory)
     buf_s = np.empty(8)
     buf_r = np.empty(8)
     px = np.empty(9)
@@ -248,7 +232,7 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
             out[i, 0] = _median(buf_s, k)
             median_range[i] = _median(buf_r, k)
         else:
-            own = index[at[i]]
+            own = padded[base]
             out[i, 0] = log_signal[own] if own >= 0 else np.nan
             median_range[i] = range_m[own] if own >= 0 else np.nan
         cos = 1.0
@@ -318,7 +302,8 @@ class PhysicalRayDrop:
         :func:`detection_table`)."""
         x, p = detection_table(receiver, float(self.log_signal_sd))
         features = np.asarray(features, dtype=np.float64)
-        log_cos = np.log(np.maximum(features[:, 2], MIN_COS))      # numpy's SIMD log, not one libm call per ray
+        log_cos = np.maximum(features[:, 2], MIN_COS)
+        np.log(log_cos, out=log_cos)                    # numpy's SIMD log, not one libm call per ray
         return _physical_drop(np.ascontiguousarray(features), log_cos, self.log_gain - self.range_exponent
                               * math.log(REFERENCE_RANGE_M), self.range_exponent, self.incidence_exponent,
                               self.elevation_linear_per_rad, self.elevation_quadratic_per_rad2,

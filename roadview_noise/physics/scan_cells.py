@@ -46,9 +46,11 @@ class ScanCells:
     def shape(self) -> tuple[int, int]:
         return self.rows, self.columns
 
-    def index_image(self) -> np.ndarray:
-        """(rows·columns,) int64: the point each cell shows, −1 where none."""
-        return _index_image(self.cell, self.shown, self.rows * self.columns)
+    def padded_index_image(self) -> np.ndarray:
+        """((rows + 2)·(columns + 2),) int64: the point each cell shows, −1 where none, with a border — a row of −1
+        above and below, the first and last columns copied across the 360° seam — so that every neighbour of a cell
+        sits at a fixed offset: cell ``q`` of row r at ``q + 2r + columns + 3``."""
+        return _padded_index_image(self.cell, self.shown, self.rows, self.columns)
 
     def image(self, values: np.ndarray, fill=0.0) -> np.ndarray:
         """(rows, columns) image of per-point ``values`` (or (N, k) → (rows, columns, k)) at the shown points,
@@ -186,11 +188,23 @@ def _first_in_cell(cell, n_cells):       # pragma: no cover - compiled
 
 
 @jit
-def _index_image(cell, shown, n_cells):       # pragma: no cover - compiled
-    out = np.full(n_cells, -1, np.int64)
+def _padded_index_image(cell, shown, rows, columns):       # pragma: no cover - compiled
+    w = columns + 2
+    out = np.full((rows + 2) * w, -1, np.int64)
+    per_column = 1.0 / columns
     for i in range(len(cell)):
         if shown[i]:
-            out[cell[i]] = i
+            q = cell[i]
+            r = int(q * per_column)                     # the row, without an integer division per point
+            if r * columns > q:
+                r -= 1
+            elif (r + 1) * columns <= q:
+                r += 1
+            out[q + 2 * r + w + 1] = i
+    for r in range(rows):
+        base = (r + 1) * w
+        out[base] = out[base + columns]
+        out[base + columns + 1] = out[base + 1]
     return out
 
 
