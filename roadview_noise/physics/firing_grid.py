@@ -261,17 +261,20 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
     :func:`lidar_geometry.beam_of`), firing azimuth ``atan2(y, x) + offset[ring]``
     (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring."""
     n = len(positions)
-    ring = np.empty(n, np.int64)
+    recover = len(carried) == 0
+    ring = np.empty(n, np.int64) if recover else carried        # (a carried ring is not copied)
     firing = np.empty(n)
     counts = np.zeros(channels, np.int64)
-    recover = len(carried) == 0
     x, y = np.empty(n), np.empty(n)
     for i in range(n):
         x[i], y[i] = positions[i, 0], positions[i, 1]
     azimuth = _azimuths(y, x)                           # one vectorised loop over contiguous coordinates
     for i in range(n):
-        b = beam_of(x[i], y[i], positions[i, 2], z_offset, rho_offset, tan_mid, order) if recover else carried[i]
-        ring[i] = b
+        if recover:
+            b = beam_of(x[i], y[i], positions[i, 2], z_offset, rho_offset, tan_mid, order)
+            ring[i] = b
+        else:
+            b = carried[i]
         firing[i] = azimuth[i] + offsets[b]
         counts[b] += 1
     return ring, firing, counts

@@ -82,8 +82,9 @@ def scan_rays(cloud: PointCloud, model_id: str, empty: bool = True) -> ScanRays:
     cells, which only fitting needs)."""
     rays = cloud_rays(cloud, model_id, "ignore", calibrate=False)
     cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)], empty)
+    log_signal = np.divide(rays.signal, rays.datasheet_threshold)
     with np.errstate(divide="ignore"):
-        log_signal = np.log(rays.signal / rays.datasheet_threshold)
+        np.log(log_signal, out=log_signal)
     if isinstance(cells, str):
         return ScanRays(rays, None, cells, log_signal)
     return ScanRays(rays, cells, "", log_signal)

@@ -77,7 +77,7 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
         else:
             return (f"a {n_rows}-row grid without a ring field does not fit the {profile.channels} beams of profile "
                     f"{profile.name!r}")
-        column = None                                   # a grid point's column is its index mod the columns
+        firing = None                                   # a grid point's column is its index mod the columns
         source = f"{n_rows}x{columns} grid"
         empty_at = np.flatnonzero(~valid) if empty else np.zeros(0, np.int64)
         empty_ring, empty_column = ring[empty_at], empty_at % columns
@@ -85,8 +85,7 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
         measured = firing_columns(cloud, profile, range_m)
         if isinstance(measured, str):
             return f"no firing grid: {measured}"
-        ring, columns = measured.ring, measured.columns
-        column = _firing_columns(measured.firing_rad, ring, valid, measured.shift, columns)
+        ring, columns, firing = measured.ring, measured.columns, measured.firing_rad
         source = describe_grid(profile, columns)
         if empty:
             grid = empty_rays(measured, profile)
@@ -94,9 +93,17 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
         else:
             empty_ring = empty_column = np.zeros(0, np.int64)
     ring = np.asarray(ring, dtype=np.int64)
-    shift = _destagger_shift(positions, valid, ring, column, columns, profile.channels)
+    if firing is None:
+        column_at = None
+    else:
+        def column_at(at):
+            return _firing_columns(firing[at], ring[at], valid[at], measured.shift, columns)
+    shift = _destagger_shift(positions, valid, ring, column_at, columns, profile.channels)
     rows = ring_rows(profile)
-    cell = _flat_cells(ring, np.zeros(0, np.int64) if column is None else column, valid, rows, shift, columns)
+    if firing is None:
+        cell = _flat_cells(ring, np.zeros(0, np.int64), valid, rows, shift, columns)
+    else:
+        cell = _list_cells(firing, ring, valid, measured.shift, rows, shift, columns)
     empty = _flat_cells(np.asarray(empty_ring, dtype=np.int64), np.asarray(empty_column, dtype=np.int64),
                         np.ones(len(empty_ring), dtype=bool), rows, shift, columns)
     return ScanCells(profile.channels, columns, cell, _nearest_in_cell(cell, positions, profile.channels * columns),
@@ -111,7 +118,27 @@ def _firing_columns(firing, ring, valid, shift, columns):       # pragma: no cov
     per_rad = columns / (2.0 * math.pi)
     for i in range(len(ring)):
         if valid[i]:
-            out[i] = _wrap(int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)), columns)
+            out[i] = _firing_column(firing[i], shift[ring[i]], per_rad, columns)
+    return out
+
+
+@jit(inline="always")
+def _firing_column(firing, shift, per_rad, columns):       # pragma: no cover - compiled
+    return _wrap(int(math.floor(-firing * per_rad - shift + 0.5)), columns)
+
+
+@jit
+def _list_cells(firing, ring, valid, firing_shift, rows, shift, columns):       # pragma: no cover - compiled
+    """:func:`_flat_cells` of a list's returns at their :func:`_firing_columns`, in one pass."""
+    out = np.empty(len(ring), np.int64)
+    per_rad = columns / (2.0 * math.pi)
+    for i in range(len(ring)):
+        b = ring[i]
+        if valid[i]:
+            out[i] = rows[b] * columns + _wrap(_firing_column(firing[i], firing_shift[b], per_rad, columns) + shift[b],
+                                               columns)
+        else:
+            out[i] = -1
     return out
 
 
@@ -133,17 +160,17 @@ def _flat_cells(ring, column, valid, rows, shift, columns):       # pragma: no c
     return out
 
 
-def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray, column: np.ndarray | None,
-                     columns: int, channels: int) -> np.ndarray:
+def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray, column_at, columns: int,
+                     channels: int) -> np.ndarray:
     """Per beam, the column shift that puts its returns at their azimuth column: the most common
     ``rint(−azimuth/step) − column`` (or ``+azimuth`` when the columns turn counter-clockwise) among sampled returns
-    (``column`` None: a grid's, the index mod the columns)."""
+    (``column_at(indices)``: their columns; None: a grid's, the index mod the columns)."""
     stride = max(1, len(ring) // SHIFT_SAMPLE)
     idx = np.arange(0, len(ring), stride)[valid[::stride]]
     if len(idx) == 0:
         return np.zeros(channels, dtype=np.int64)
     azimuth_steps = np.arctan2(positions[idx, 1], positions[idx, 0]) * (columns / (2 * math.pi))
-    sampled_column = idx % columns if column is None else column[idx]
+    sampled_column = idx % columns if column_at is None else column_at(idx)
     best, best_share = np.zeros(channels, dtype=np.int64), -1.0
     for sign in (-1.0, 1.0):
         offset = np.mod(np.rint(sign * azimuth_steps).astype(np.int64) - sampled_column, columns)
