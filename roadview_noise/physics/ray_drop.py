@@ -364,24 +364,27 @@ class AdditiveLogistic:
 
 @jit
 def _additive_logit(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
-    """The logit of :meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat
-    beyond the outer ones), its interpolated value added to the intercept. Neighbouring rays mostly fall in the same
-    segment, so the previous ray's is tried before searching from the first knot."""
+    """The logit of :meth:`AdditiveLogistic.drop_probability`. Each feature's piecewise-linear function (flat beyond
+    its outer knots) as a sum of ramps, ``g(x) = v_0 + Σ_q s_q · clip(x − k_q, 0, k_{q+1} − k_q)`` (a missing value:
+    v_0), which compiles to SIMD without branches; rays in blocks that stay in the L1 cache."""
     n = len(f)
-    z = np.full(n, intercept)
-    for j in range(len(columns)):
-        col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
-        k = lo0
-        for i in range(n):
-            x = f[i, col]
-            if not x > knots[lo0]:
-                z[i] += values[lo0]
-            elif x >= knots[hi0]:
-                z[i] += values[hi0]
-            else:
-                if not (knots[k] <= x and x < knots[k + 1]):
-                    k = lo0
-                    while knots[k + 1] <= x:
-                        k += 1
-                z[i] += values[k] + (x - knots[k]) * slopes[k]
+    z = np.empty(n)
+    block = 1024
+    x = np.empty(block)
+    acc = np.empty(block)
+    for b0 in range(0, n, block):
+        m = min(n, b0 + block) - b0
+        acc[:m] = intercept
+        for j in range(len(columns)):
+            col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+            v0 = values[lo0]
+            for i in range(m):
+                xi = f[b0 + i, col]
+                x[i] = xi if xi == xi else -np.inf
+                acc[i] += v0
+            for q in range(lo0, hi0):
+                k, width, slope = knots[q], knots[q + 1] - knots[q], slopes[q]
+                for i in range(m):
+                    acc[i] += slope * min(max(x[i] - k, 0.0), width)
+        z[b0:b0 + m] = acc[:m]
     return z
