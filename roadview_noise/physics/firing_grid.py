@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import _azimuths, beam_of, has_return, ring_index, ring_search_table, ring_source
+from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
 
 TWO_PI = 2.0 * math.pi
 STEP_SAMPLE_BEAMS = 4           # the most populated beams measure the column step from their neighbour gaps
@@ -259,24 +259,29 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
                         channels):       # pragma: no cover - compiled
     """One pass over the points: ring (``carried``, or when it is empty the beam of nearest elevation,
     :func:`lidar_geometry.beam_of`), firing azimuth ``atan2(y, x) + offset[ring]``
-    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring."""
+    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring, in blocks of points."""
     n = len(positions)
     recover = len(carried) == 0
     ring = np.empty(n, np.int64) if recover else carried        # (a carried ring is not copied)
     firing = np.empty(n)
     counts = np.zeros(channels, np.int64)
-    x, y = np.empty(n), np.empty(n)
-    for i in range(n):
-        x[i], y[i] = positions[i, 0], positions[i, 1]
-    azimuth = _azimuths(y, x)                           # one vectorised loop over contiguous coordinates
-    for i in range(n):
-        if recover:
-            b = beam_of(x[i], y[i], positions[i, 2], z_offset, rho_offset, tan_mid, order)
-            ring[i] = b
-        else:
-            b = carried[i]
-        firing[i] = azimuth[i] + offsets[b]
-        counts[b] += 1
+    block = 1024                                        # points whose coordinates stay in the L1 cache
+    x, y = np.empty(block), np.empty(block)
+    for b0 in range(0, n, block):
+        m = min(n, b0 + block) - b0
+        for i in range(m):
+            x[i], y[i] = positions[b0 + i, 0], positions[b0 + i, 1]
+        for i in range(m):                              # one vectorised loop over contiguous coordinates
+            firing[b0 + i] = atan2(y[i], x[i])
+        for i in range(m):
+            p = b0 + i
+            if recover:
+                b = beam_of(x[i], y[i], positions[p, 2], z_offset, rho_offset, tan_mid, order)
+                ring[p] = b
+            else:
+                b = carried[p]
+            firing[p] += offsets[b]
+            counts[b] += 1
     return ring, firing, counts
 
 
