@@ -174,13 +174,32 @@ def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray,
     best, best_share = np.zeros(channels, dtype=np.int64), -1.0
     for sign in (-1.0, 1.0):
         offset = np.mod(np.rint(sign * azimuth_steps).astype(np.int64) - sampled_column, columns)
-        counts = np.bincount(ring[idx] * columns + offset, minlength=channels * columns).reshape(channels, columns)
-        share = counts.max(axis=1).sum() / len(idx)
+        mode, hits = _most_common(ring[idx], offset, channels, columns)
+        share = hits / len(idx)
         if share > best_share:
-            best, best_share = counts.argmax(axis=1), share
+            best, best_share = mode, share
             if sign < 0 and share > 0.5:
                 break                                   # clockwise (Ouster, Velodyne) is the common case
     return best.astype(np.int64)
+
+
+@jit
+def _most_common(ring, offset, channels, columns):       # pragma: no cover - compiled
+    """Per beam the most common ``offset`` (0 … columns − 1; the smallest of a tie, 0 without any) and how many
+    samples the beams' most common offsets hold together (an int32 count table, one pass over it)."""
+    counts = np.zeros((channels, columns), np.int32)
+    for i in range(len(ring)):
+        counts[ring[i], offset[i]] += 1
+    mode = np.zeros(channels, np.int64)
+    hits = 0
+    for b in range(channels):
+        best = 0
+        for c in range(1, columns):
+            if counts[b, c] > counts[b, best]:
+                best = c
+        mode[b] = best
+        hits += counts[b, best]
+    return mode, hits
 
 
 def _nearest_in_cell(cell: np.ndarray, positions: np.ndarray, n_cells: int) -> np.ndarray:

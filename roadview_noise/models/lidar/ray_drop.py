@@ -78,8 +78,8 @@ class RayDropLidar(Model):
     def apply(self, data, *, state, drawn, rng):
         sr = scan_rays(data, self.id, empty=False)
         n = len(data)
-        idx = np.flatnonzero(sr.rays.has_target[:n])
-        every = len(idx) == n                           # (a point list: its points, without copies)
+        every = bool(sr.rays.has_target[:n].all())      # (a point list: its points, without copies)
+        idx = np.arange(n) if every else np.flatnonzero(sr.rays.has_target[:n])
         r = sr.rays.range_m[:n] if every else sr.rays.range_m[idx]
         if sr.cells is not None:
             features, _ = sr.features(sr.cells.cell if every else sr.cells.cell[idx], data.positions_m)
