@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import _azimuths, beam_of, has_return, ring_index, ring_search_table, ring_source
+from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
 
 TWO_PI = 2.0 * math.pi
 STEP_SAMPLE_BEAMS = 4           # the most populated beams measure the column step from their neighbour gaps
@@ -79,9 +79,13 @@ class FiringGrid:
         return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep])
 
     def describe(self) -> str:
-        p = self.profile
-        note = "" if self.columns == p.columns else f"; profile {p.name!r} says {p.columns}"
-        return f"{p.channels}x{self.columns} firing grid measured from the list{note}"
+        return describe_grid(self.profile, self.columns)
+
+
+def describe_grid(profile: LidarProfile, columns: int) -> str:
+    """What a firing grid of ``columns`` measured from a list is, for the manifest."""
+    note = "" if columns == profile.columns else f"; profile {profile.name!r} says {profile.columns}"
+    return f"{profile.channels}x{columns} firing grid measured from the list{note}"
 
 
 @jit
@@ -181,9 +185,42 @@ def _empty_cells(occupied, fires, in_view, shift, offsets, step):       # pragma
     return ring[:m], col[:m]
 
 
+@dataclass(frozen=True, eq=False)
+class FiringColumns:
+    """The firing grid measured from a point list, before its empty cells are looked for: every point's ``ring`` and
+    firing azimuth ``firing_rad``, the measured column count ``columns`` and per-beam ``shift`` (in steps), which
+    points are returns (``valid``)."""
+
+    ring: np.ndarray
+    firing_rad: np.ndarray
+    columns: int
+    shift: np.ndarray
+    valid: np.ndarray
+
+
 def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringGrid | str:
     """The empty rays of a point-list scan (see the module doc), or the reason it has no firing grid. ``range_m``:
     the points' ranges if known, 0 where a point is no return."""
+    measured = firing_columns(cloud, profile, range_m)
+    return measured if isinstance(measured, str) else empty_rays(measured, profile)
+
+
+def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
+    """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc)."""
+    ring, firing, columns, shift, valid = (measured.ring, measured.firing_rad, measured.columns, measured.shift,
+                                           measured.valid)
+    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
+    step = TWO_PI / columns
+    occupied, like, seen = _cells(firing, valid, ring, offsets, shift, step, columns, profile.channels)
+    m = VIEW_MARGIN_STEPS
+    in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
+    er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
+    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing)
+
+
+def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringColumns | str:
+    """The rings, firing azimuths, column count and per-beam shifts of a point list's firing grid (module doc), or
+    the reason it has none; :func:`firing_grid` then finds the empty cells."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     if range_m is None:
         range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
@@ -209,16 +246,12 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
     step = TWO_PI / columns                             # the grid closes on itself
     sample = np.flatnonzero(valid[::PHASE_SAMPLE_STRIDE]) * PHASE_SAMPLE_STRIDE
     # weighted by range: near returns carry the mm-scale beam-origin parallax
-    turn = range_m[sample] * np.exp(-2j * np.pi * firing[sample] / step)
-    phase = (np.bincount(ring[sample], turn.real, profile.channels)
-             + 1j * np.bincount(ring[sample], turn.imag, profile.channels))
+    weight, angle = range_m[sample], firing[sample] * (TWO_PI / step)
+    phase = (np.bincount(ring[sample], weight * np.cos(angle), profile.channels)      # (real cos and sin: SIMD,
+             - 1j * np.bincount(ring[sample], weight * np.sin(angle), profile.channels))  # unlike a complex exp)
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
-    occupied, like, seen = _cells(firing, valid, ring, offsets, shift, step, columns, profile.channels)
-    m = VIEW_MARGIN_STEPS
-    in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
-    er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
-    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing)
+    return FiringColumns(ring, firing, columns, shift, valid)
 
 
 @jit
@@ -226,21 +259,29 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
                         channels):       # pragma: no cover - compiled
     """One pass over the points: ring (``carried``, or when it is empty the beam of nearest elevation,
     :func:`lidar_geometry.beam_of`), firing azimuth ``atan2(y, x) + offset[ring]``
-    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring."""
+    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring, in blocks of points."""
     n = len(positions)
-    ring = np.empty(n, np.int64)
+    recover = len(carried) == 0
+    ring = np.empty(n, np.int64) if recover else carried        # (a carried ring is not copied)
     firing = np.empty(n)
     counts = np.zeros(channels, np.int64)
-    recover = len(carried) == 0
-    x, y = np.empty(n), np.empty(n)
-    for i in range(n):
-        x[i], y[i] = positions[i, 0], positions[i, 1]
-    azimuth = _azimuths(y, x)                           # one vectorised loop over contiguous coordinates
-    for i in range(n):
-        b = beam_of(x[i], y[i], positions[i, 2], z_offset, rho_offset, tan_mid, order) if recover else carried[i]
-        ring[i] = b
-        firing[i] = azimuth[i] + offsets[b]
-        counts[b] += 1
+    block = 1024                                        # points whose coordinates stay in the L1 cache
+    x, y = np.empty(block), np.empty(block)
+    for b0 in range(0, n, block):
+        m = min(n, b0 + block) - b0
+        for i in range(m):
+            x[i], y[i] = positions[b0 + i, 0], positions[b0 + i, 1]
+        for i in range(m):                              # one vectorised loop over contiguous coordinates
+            firing[b0 + i] = atan2(y[i], x[i])
+        for i in range(m):
+            p = b0 + i
+            if recover:
+                b = beam_of(x[i], y[i], positions[p, 2], z_offset, rho_offset, tan_mid, order)
+                ring[p] = b
+            else:
+                b = carried[p]
+            firing[p] += offsets[b]
+            counts[b] += 1
     return ring, firing, counts
 
 

@@ -87,14 +87,15 @@ class Rays:
         return int(np.count_nonzero(self.faint))
 
 
-def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Rays:
+def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calibrate: bool = True) -> Rays:
     """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K).
 
     Intensities are read with :func:`lidar_intensity.resolve_profile` (a warning is printed once per process and
     kept in ``notes``); rays without a return get the profile's max range as ``empty_rays`` says (module doc), a
     point list's empty rays appended after its points (a list without a regular firing grid keeps only its points,
     and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest return of the cloud as
-    recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive)."""
+    recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive);
+    ``calibrate=False`` keeps the datasheet receiver (ray drop) and does not read the recorded cloud."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
         raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
@@ -122,7 +123,10 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill") -> Ra
                                                   profile.max_range_m if grid and fill else 0.0,
                                                   intensity_step(profile))
     recorded = cloud.recorded
-    if recorded is not None and recorded is not cloud and "intensity" in recorded.fields:
+    if not calibrate:
+        weakest = math.inf
+    elif (recorded is not None and "intensity" in recorded.fields      # (the chain's first step: the same arrays)
+          and not (recorded.positions_m is cloud.positions_m and recorded.fields["intensity"] is intensity)):
         weakest = _ray_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
                                np.asarray(recorded.fields["intensity"]), compensated, per_reading, 0.0,
                                intensity_step(profile))[3]

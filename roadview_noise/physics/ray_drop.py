@@ -40,7 +40,6 @@ from scipy.special import ndtr
 
 from ..types import PointCloud
 from .compiled import jit
-from .lidar_intensity import sensor_constant
 from .lidar_rays import Rays, cloud_rays
 from .receiver import Receiver
 from .scan_cells import ScanCells, row_elevation_rad, scan_cells
@@ -69,8 +68,8 @@ class ScanRays:
 
     def receiver(self) -> Receiver:
         """The datasheet receiver in units of K (never calibrated from the data: an ideal scan may hold returns no
-        real sensor detects)."""
-        return Receiver.of(self.rays.profile, sensor_constant(self.rays.profile))
+        real sensor detects: :func:`scan_rays` reads the rays with ``calibrate=False``)."""
+        return self.rays.receiver
 
     def features(self, at: np.ndarray, positions_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:func:`ray_features` of the image cells ``at``."""
@@ -78,12 +77,14 @@ class ScanRays:
                             row_elevation_rad(self.rays.profile), at)
 
 
-def scan_rays(cloud: PointCloud, model_id: str) -> ScanRays:
-    """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`)."""
-    rays = cloud_rays(cloud, model_id, "ignore")
-    cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)])
+def scan_rays(cloud: PointCloud, model_id: str, empty: bool = True) -> ScanRays:
+    """Validate a LiDAR cloud and read its rays and cells (:class:`ScanRays`; ``empty=False``: without the empty
+    cells, which only fitting needs)."""
+    rays = cloud_rays(cloud, model_id, "ignore", calibrate=False)
+    cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)], empty)
+    log_signal = np.divide(rays.signal, rays.datasheet_threshold)
     with np.errstate(divide="ignore"):
-        log_signal = np.log(rays.signal / rays.datasheet_threshold)
+        np.log(log_signal, out=log_signal)
     if isinstance(cells, str):
         return ScanRays(rays, None, cells, log_signal)
     return ScanRays(rays, cells, "", log_signal)
@@ -93,11 +94,12 @@ def ray_features(cells: ScanCells, log_signal: np.ndarray, range_m: np.ndarray, 
                  elevation_by_row: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(len(at), 4) features (:data:`FEATURES`) of the image cells ``at`` (flat indices) from the points' values
     (per point; only returns shown in their cell count), and each cell's number of returning neighbours (0–8)."""
-    return _neighbour_features(cells.index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
-                               np.ascontiguousarray(range_m, dtype=np.float64),
-                               np.ascontiguousarray(positions_m, dtype=np.float64),
-                               np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64),
-                               cells.columns)
+    features, median_range, support = _neighbour_features(
+        cells.padded_index_image(), np.ascontiguousarray(log_signal, dtype=np.float64),
+        np.ascontiguousarray(range_m, dtype=np.float64), np.ascontiguousarray(positions_m, dtype=np.float64),
+        np.asarray(elevation_by_row, dtype=np.float64), np.ascontiguousarray(at, dtype=np.int64), cells.columns)
+    np.log(median_range, out=features[:, 1])            # numpy's SIMD log, not one libm call per ray
+    return features, support
 
 
 @jit(inline="always")
@@ -183,34 +185,19 @@ def _median(buf, k):       # pragma: no cover - compiled
 
 
 @jit
-def _padded(index, columns):       # pragma: no cover - compiled
-    """The index image with a border: a row of −1 above and below, the first and last columns copied across the
-    360° seam, so that every neighbour sits at a fixed offset."""
-    rows = len(index) // columns
+def _neighbour_features(padded, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
+    """:func:`ray_features` over the cells ``at`` of the image ``padded`` (the point each cell shows, −1: none;
+    :meth:`ScanCells.padded_index_image`): medians of the returning neighbours' log signal and range (the cell's own
+    values without any; the range returned apart, for the caller's vectorised log), and |n̂·d̂| with n the area vector
+    of the polygon of the returning neighbours in order around the cell and d the sum of their positions (1 with fewer
+    than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the full ring of 8 the
+    same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
     w = columns + 2
-    out = np.full((rows + 2) * w, -1, np.int64)
-    for r in range(rows):
-        base = (r + 1) * w
-        for c in range(columns):
-            out[base + c + 1] = index[r * columns + c]
-        out[base] = index[r * columns + columns - 1]
-        out[base + columns + 1] = index[r * columns]
-    return out
-
-
-@jit
-def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns):       # pragma: no cover - compiled
-    """:func:`ray_features` over the cells ``at`` of the image ``index`` (the point each cell shows, −1: none):
-    medians of the returning neighbours' log signal and range (the cell's own values without any), and |n̂·d̂| with n
-    the area vector of the polygon of the returning neighbours in order around the cell and d the sum of their
-    positions (1 with fewer than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the
-    full ring of 8 the same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
-    w = columns + 2
-    padded = _padded(index, columns)
     # the 8 neighbours in order around the cell, as offsets in the padded image
     ring = np.array([-w - 1, -w, -w + 1, 1, w + 1, w, w - 1, -1])
     out = np.empty((len(at), 4))
-    support = np.empty(len(at), np.int64)
+    median_range = np.empty(len(at))
+    support = np.empty(len(at), np.int8)                # (0–8: one byte, a pass over the rays less to memory)
     buf_s = np.empty(8)
     buf_r = np.empty(8)
     px = np.empty(9)
@@ -228,7 +215,7 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
         if min(min(min(q0, q1), min(q2, q3)), min(min(q4, q5), min(q6, q7))) >= 0:      # the full ring (most cells)
             support[i] = 8
             out[i, 0] = _ring_median(log_signal, q0, q1, q2, q3, q4, q5, q6, q7)
-            out[i, 1] = math.log(_ring_median(range_m, q0, q1, q2, q3, q4, q5, q6, q7))
+            median_range[i] = _ring_median(range_m, q0, q1, q2, q3, q4, q5, q6, q7)
             out[i, 2] = _ring_cos(pos, q0, q1, q2, q3, q4, q5, q6, q7)
             continue
         k = 0
@@ -244,11 +231,11 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
         support[i] = k
         if k > 0:
             out[i, 0] = _median(buf_s, k)
-            out[i, 1] = math.log(_median(buf_r, k))
+            median_range[i] = _median(buf_r, k)
         else:
-            own = index[at[i]]
+            own = padded[base]
             out[i, 0] = log_signal[own] if own >= 0 else np.nan
-            out[i, 1] = math.log(range_m[own]) if own >= 0 else np.nan
+            median_range[i] = range_m[own] if own >= 0 else np.nan
         cos = 1.0
         if k >= 3:
             px[k], py[k], pz[k] = px[0], py[0], pz[0]          # close the polygon
@@ -264,7 +251,7 @@ def _neighbour_features(index, log_signal, range_m, pos, elevation, at, columns)
                 dz += pz[j]
             cos = _cos_between(nx, ny, nz, dx, dy, dz)
         out[i, 2] = cos
-    return out, support
+    return out, median_range, support
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -315,20 +302,24 @@ class PhysicalRayDrop:
         """``1 − (1 − p_0)·p_detect(ln S_eff / T)`` of every ray (one compiled pass, linear interpolation in the
         :func:`detection_table`)."""
         x, p = detection_table(receiver, float(self.log_signal_sd))
-        return _physical_drop(np.ascontiguousarray(features, dtype=np.float64), self.log_gain - self.range_exponent
+        features = np.asarray(features, dtype=np.float64)
+        log_cos = np.maximum(features[:, 2], MIN_COS)
+        np.log(log_cos, out=log_cos)                    # numpy's SIMD log, not one libm call per ray
+        return _physical_drop(np.ascontiguousarray(features), log_cos, self.log_gain - self.range_exponent
                               * math.log(REFERENCE_RANGE_M), self.range_exponent, self.incidence_exponent,
                               self.elevation_linear_per_rad, self.elevation_quadratic_per_rad2,
                               self.floor_drop_probability, x[0], 1.0 / TABLE_STEP, p)
 
 
 @jit
-def _physical_drop(f, offset, a_range, a_cos, e1, e2, floor, x0, inv_h, table):       # pragma: no cover - compiled
-    """:meth:`PhysicalRayDrop.drop_probability`: ``x = ln S/T + offset + a_R ln R + a_θ ln cos θ + e1 ω + e2 ω²``."""
+def _physical_drop(f, log_cos, offset, a_range, a_cos, e1, e2, floor, x0, inv_h, table):  # pragma: no cover - compiled
+    """:meth:`PhysicalRayDrop.drop_probability`: ``x = ln S/T + offset + a_R ln R + a_θ ln cos θ + e1 ω + e2 ω²``
+    (``log_cos``: ln cos θ per ray, floored)."""
     out = np.empty(len(f))
     last = len(table) - 1
     for i in range(len(f)):
         e = f[i, 3]
-        x = (f[i, 0] + offset + a_range * f[i, 1] + a_cos * math.log(max(f[i, 2], MIN_COS)) + e * (e1 + e2 * e))
+        x = (f[i, 0] + offset + a_range * f[i, 1] + a_cos * log_cos[i] + e * (e1 + e2 * e))
         u = (x - x0) * inv_h
         if not u > 0.0:                                  # (NaN: no estimate, as for no signal)
             detect = table[0]
@@ -359,36 +350,41 @@ class AdditiveLogistic:
         return out
 
     def drop_probability(self, features: np.ndarray) -> np.ndarray:
-        """``1 / (1 + e^{−logit})`` in one compiled pass (the same piecewise-linear interpolation as :meth:`logit`)."""
+        """``1 / (1 + e^{−logit})``: the logit in one compiled pass (the same piecewise-linear interpolation as
+        :meth:`logit`), the logistic function vectorised."""
         columns = np.array([FEATURES.index(n) for n in self.features], dtype=np.int64)
         starts = np.cumsum([0] + [len(k) for k in self.knots]).astype(np.int64)
         slopes = np.concatenate([np.append(np.diff(v) / np.diff(k), 0.0) for k, v in zip(self.knots, self.values)])
-        return _additive_drop(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
-                              np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
+        z = _additive_logit(np.ascontiguousarray(features, dtype=np.float64), columns, starts,
+                            np.concatenate(self.knots), np.concatenate(self.values), slopes, float(self.intercept))
+        np.exp(np.negative(z, out=z), out=z)            # numpy's SIMD exp, not one libm call per ray
+        z += 1.0
+        return np.reciprocal(z, out=z)
 
 
 @jit
-def _additive_drop(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
-    """:meth:`AdditiveLogistic.drop_probability`: per feature and ray the segment among the knots (flat beyond the
-    outer ones), its interpolated value added to the logit; then the logistic function. Neighbouring rays mostly
-    fall in the same segment, so the previous ray's is tried before searching from the first knot."""
+def _additive_logit(f, columns, starts, knots, values, slopes, intercept):       # pragma: no cover - compiled
+    """The logit of :meth:`AdditiveLogistic.drop_probability`. Each feature's piecewise-linear function (flat beyond
+    its outer knots) as a sum of ramps, ``g(x) = v_0 + Σ_q s_q · clip(x − k_q, 0, k_{q+1} − k_q)`` (a missing value:
+    v_0), which compiles to SIMD without branches; rays in blocks that stay in the L1 cache."""
     n = len(f)
-    z = np.full(n, intercept)
-    for j in range(len(columns)):
-        col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
-        k = lo0
-        for i in range(n):
-            x = f[i, col]
-            if not x > knots[lo0]:
-                z[i] += values[lo0]
-            elif x >= knots[hi0]:
-                z[i] += values[hi0]
-            else:
-                if not (knots[k] <= x and x < knots[k + 1]):
-                    k = lo0
-                    while knots[k + 1] <= x:
-                        k += 1
-                z[i] += values[k] + (x - knots[k]) * slopes[k]
-    for i in range(n):
-        z[i] = 1.0 / (1.0 + math.exp(-z[i]))
+    z = np.empty(n)
+    block = 1024
+    x = np.empty(block)
+    acc = np.empty(block)
+    for b0 in range(0, n, block):
+        m = min(n, b0 + block) - b0
+        acc[:m] = intercept
+        for j in range(len(columns)):
+            col, lo0, hi0 = columns[j], starts[j], starts[j + 1] - 1
+            v0 = values[lo0]
+            for i in range(m):
+                xi = f[b0 + i, col]
+                x[i] = xi if xi == xi else -np.inf
+                acc[i] += v0
+            for q in range(lo0, hi0):
+                k, width, slope = knots[q], knots[q + 1] - knots[q], slopes[q]
+                for i in range(m):
+                    acc[i] += slope * min(max(x[i] - k, 0.0), width)
+        z[b0:b0 + m] = acc[:m]
     return z

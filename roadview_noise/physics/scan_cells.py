@@ -15,7 +15,6 @@ Collisions (two returns of a list in one cell: dual returns) keep the nearest in
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -23,7 +22,7 @@ import numpy as np
 
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
-from .firing_grid import _wrap, firing_grid
+from .firing_grid import _wrap, describe_grid, empty_rays, firing_columns
 from .lidar_geometry import has_return, ring_index, ring_rows
 
 SHIFT_SAMPLE = 16384           # returns looked at (evenly strided) to measure each beam's destagger shift
@@ -47,9 +46,11 @@ class ScanCells:
     def shape(self) -> tuple[int, int]:
         return self.rows, self.columns
 
-    def index_image(self) -> np.ndarray:
-        """(rows·columns,) int64: the point each cell shows, −1 where none."""
-        return _index_image(self.cell, self.shown, self.rows * self.columns)
+    def padded_index_image(self) -> np.ndarray:
+        """((rows + 2)·(columns + 2),) int64: the point each cell shows, −1 where none, with a border — a row of −1
+        above and below, the first and last columns copied across the 360° seam — so that every neighbour of a cell
+        sits at a fixed offset: cell ``q`` of row r at ``q + 2r + columns + 3``."""
+        return _padded_index_image(self.cell, self.shown, self.rows, self.columns)
 
     def image(self, values: np.ndarray, fill=0.0) -> np.ndarray:
         """(rows, columns) image of per-point ``values`` (or (N, k) → (rows, columns, k)) at the shown points,
@@ -60,9 +61,11 @@ class ScanCells:
         return out.reshape((self.rows, self.columns) + values.shape[1:])
 
 
-def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> ScanCells | str:
+def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | None = None,
+               empty: bool = True) -> ScanCells | str:
     """The cells of a grid or a point list (module doc), or why a point list has none. ``range_m``: the points'
-    ranges if known (0: no return)."""
+    ranges if known (0: no return); ``empty=False``: leave the empty cells out (``empty`` holds none; a list's
+    firing grid is then not searched for them)."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     valid = has_return(positions) if range_m is None else np.asarray(range_m) > 0
     if cloud.grid_shape is not None:
@@ -74,25 +77,33 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
         else:
             return (f"a {n_rows}-row grid without a ring field does not fit the {profile.channels} beams of profile "
                     f"{profile.name!r}")
-        column = None                                   # a grid point's column is its index mod the columns
+        firing = None                                   # a grid point's column is its index mod the columns
         source = f"{n_rows}x{columns} grid"
-        empty_at = np.flatnonzero(~valid)
+        empty_at = np.flatnonzero(~valid) if empty else np.zeros(0, np.int64)
         empty_ring, empty_column = ring[empty_at], empty_at % columns
     else:
-        ring = ring_index(cloud, profile)
-        if "ring" not in cloud.fields:                  # recovered once, for the firing grid too
-            cloud = dataclasses.replace(cloud, fields={**cloud.fields, "ring": ring})
-        grid = firing_grid(cloud, profile, range_m)
-        if isinstance(grid, str):
-            return f"no firing grid: {grid}"
-        columns = grid.columns
-        column = _firing_columns(grid.firing_rad, ring, valid, grid.shift, columns)
-        source = grid.describe()
-        empty_ring, empty_column = grid.ring, grid.column
+        measured = firing_columns(cloud, profile, range_m)
+        if isinstance(measured, str):
+            return f"no firing grid: {measured}"
+        ring, columns, firing = measured.ring, measured.columns, measured.firing_rad
+        source = describe_grid(profile, columns)
+        if empty:
+            grid = empty_rays(measured, profile)
+            empty_ring, empty_column = grid.ring, grid.column
+        else:
+            empty_ring = empty_column = np.zeros(0, np.int64)
     ring = np.asarray(ring, dtype=np.int64)
-    shift = _destagger_shift(positions, valid, ring, column, columns, profile.channels)
+    if firing is None:
+        column_at = None
+    else:
+        def column_at(at):
+            return _firing_columns(firing[at], ring[at], valid[at], measured.shift, columns)
+    shift = _destagger_shift(positions, valid, ring, column_at, columns, profile.channels)
     rows = ring_rows(profile)
-    cell = _flat_cells(ring, np.zeros(0, np.int64) if column is None else column, valid, rows, shift, columns)
+    if firing is None:
+        cell = _flat_cells(ring, np.zeros(0, np.int64), valid, rows, shift, columns)
+    else:
+        cell = _list_cells(firing, ring, valid, measured.shift, rows, shift, columns)
     empty = _flat_cells(np.asarray(empty_ring, dtype=np.int64), np.asarray(empty_column, dtype=np.int64),
                         np.ones(len(empty_ring), dtype=bool), rows, shift, columns)
     return ScanCells(profile.channels, columns, cell, _nearest_in_cell(cell, positions, profile.channels * columns),
@@ -107,7 +118,27 @@ def _firing_columns(firing, ring, valid, shift, columns):       # pragma: no cov
     per_rad = columns / (2.0 * math.pi)
     for i in range(len(ring)):
         if valid[i]:
-            out[i] = _wrap(int(math.floor(-firing[i] * per_rad - shift[ring[i]] + 0.5)), columns)
+            out[i] = _firing_column(firing[i], shift[ring[i]], per_rad, columns)
+    return out
+
+
+@jit(inline="always")
+def _firing_column(firing, shift, per_rad, columns):       # pragma: no cover - compiled
+    return _wrap(int(math.floor(-firing * per_rad - shift + 0.5)), columns)
+
+
+@jit
+def _list_cells(firing, ring, valid, firing_shift, rows, shift, columns):       # pragma: no cover - compiled
+    """:func:`_flat_cells` of a list's returns at their :func:`_firing_columns`, in one pass."""
+    out = np.empty(len(ring), np.int64)
+    per_rad = columns / (2.0 * math.pi)
+    for i in range(len(ring)):
+        b = ring[i]
+        if valid[i]:
+            out[i] = rows[b] * columns + _wrap(_firing_column(firing[i], firing_shift[b], per_rad, columns) + shift[b],
+                                               columns)
+        else:
+            out[i] = -1
     return out
 
 
@@ -129,27 +160,46 @@ def _flat_cells(ring, column, valid, rows, shift, columns):       # pragma: no c
     return out
 
 
-def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray, column: np.ndarray | None,
-                     columns: int, channels: int) -> np.ndarray:
+def _destagger_shift(positions: np.ndarray, valid: np.ndarray, ring: np.ndarray, column_at, columns: int,
+                     channels: int) -> np.ndarray:
     """Per beam, the column shift that puts its returns at their azimuth column: the most common
     ``rint(−azimuth/step) − column`` (or ``+azimuth`` when the columns turn counter-clockwise) among sampled returns
-    (``column`` None: a grid's, the index mod the columns)."""
+    (``column_at(indices)``: their columns; None: a grid's, the index mod the columns)."""
     stride = max(1, len(ring) // SHIFT_SAMPLE)
     idx = np.arange(0, len(ring), stride)[valid[::stride]]
     if len(idx) == 0:
         return np.zeros(channels, dtype=np.int64)
     azimuth_steps = np.arctan2(positions[idx, 1], positions[idx, 0]) * (columns / (2 * math.pi))
-    sampled_column = idx % columns if column is None else column[idx]
+    sampled_column = idx % columns if column_at is None else column_at(idx)
     best, best_share = np.zeros(channels, dtype=np.int64), -1.0
     for sign in (-1.0, 1.0):
         offset = np.mod(np.rint(sign * azimuth_steps).astype(np.int64) - sampled_column, columns)
-        counts = np.bincount(ring[idx] * columns + offset, minlength=channels * columns).reshape(channels, columns)
-        share = counts.max(axis=1).sum() / len(idx)
+        mode, hits = _most_common(ring[idx], offset, channels, columns)
+        share = hits / len(idx)
         if share > best_share:
-            best, best_share = counts.argmax(axis=1), share
+            best, best_share = mode, share
             if sign < 0 and share > 0.5:
                 break                                   # clockwise (Ouster, Velodyne) is the common case
     return best.astype(np.int64)
+
+
+@jit
+def _most_common(ring, offset, channels, columns):       # pragma: no cover - compiled
+    """Per beam the most common ``offset`` (0 … columns − 1; the smallest of a tie, 0 without any) and how many
+    samples the beams' most common offsets hold together (an int32 count table, one pass over it)."""
+    counts = np.zeros((channels, columns), np.int32)
+    for i in range(len(ring)):
+        counts[ring[i], offset[i]] += 1
+    mode = np.zeros(channels, np.int64)
+    hits = 0
+    for b in range(channels):
+        best = 0
+        for c in range(1, columns):
+            if counts[b, c] > counts[b, best]:
+                best = c
+        mode[b] = best
+        hits += counts[b, best]
+    return mode, hits
 
 
 def _nearest_in_cell(cell: np.ndarray, positions: np.ndarray, n_cells: int) -> np.ndarray:
@@ -184,11 +234,23 @@ def _first_in_cell(cell, n_cells):       # pragma: no cover - compiled
 
 
 @jit
-def _index_image(cell, shown, n_cells):       # pragma: no cover - compiled
-    out = np.full(n_cells, -1, np.int64)
+def _padded_index_image(cell, shown, rows, columns):       # pragma: no cover - compiled
+    w = columns + 2
+    out = np.full((rows + 2) * w, -1, np.int64)
+    per_column = 1.0 / columns
     for i in range(len(cell)):
         if shown[i]:
-            out[cell[i]] = i
+            q = cell[i]
+            r = int(q * per_column)                     # the row, without an integer division per point
+            if r * columns > q:
+                r -= 1
+            elif (r + 1) * columns <= q:
+                r += 1
+            out[q + 2 * r + w + 1] = i
+    for r in range(rows):
+        base = (r + 1) * w
+        out[base] = out[base + columns]
+        out[base + columns + 1] = out[base + 1]
     return out
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from ..types import LidarProfile
 from .blob_mask import blob_mask
 from .compiled import jit
-from .lidar_geometry import _azimuths, ring_rows
+from .lidar_geometry import atan2, ring_rows
 
 SHAPES = ("square", "blob")
 WINDOWS = ("static", "rotating")
@@ -129,28 +129,35 @@ def window_transmission(positions_m: np.ndarray, ring: np.ndarray, profile: Lida
 
 @jit
 def _window_transmission(pos, ring, rows, table, columns, row_obstructed):       # pragma: no cover - compiled
-    """Per point: 1 on a row without obstruction (no azimuth needed) or without a return, else its cell's value. The
-    azimuths of all points first, in one vectorised loop over contiguous coordinates (most rows hold a patch)."""
+    """Per point: 1 on a row without obstruction (no azimuth needed) or without a return, else its cell's value. In
+    blocks of points that stay in the L1 cache: their coordinates copied contiguous, the azimuths in one vectorised
+    loop (most rows hold a patch), then the lookups."""
     n = len(ring)
-    x = np.empty(n)
-    y = np.empty(n)
-    for i in range(n):
-        x[i] = pos[i, 0]
-        y[i] = pos[i, 1]
-    azimuth = _azimuths(y, x)
+    block = 1024
+    x = np.empty(block)
+    y = np.empty(block)
+    azimuth = np.empty(block)
     out = np.empty(n)
     per_rad = columns / (2.0 * math.pi)
-    for i in range(n):
-        row = rows[ring[i]]
-        if not row_obstructed[row]:
-            out[i] = 1.0
-            continue
-        z = pos[i, 2]
-        if not (math.isfinite(x[i] + y[i] + z) and (x[i] != 0.0 or y[i] != 0.0 or z != 0.0)):
-            out[i] = 1.0
-            continue
-        turn = -azimuth[i]
-        if turn < 0.0:
-            turn += 2.0 * math.pi
-        out[i] = table[row * columns + min(int(turn * per_rad), columns - 1)]
+    for b0 in range(0, n, block):
+        m = min(n, b0 + block) - b0
+        for i in range(m):
+            x[i] = pos[b0 + i, 0]
+            y[i] = pos[b0 + i, 1]
+        for i in range(m):
+            azimuth[i] = atan2(y[i], x[i])
+        for i in range(m):
+            p = b0 + i
+            row = rows[ring[p]]
+            if not row_obstructed[row]:
+                out[p] = 1.0
+                continue
+            z = pos[p, 2]
+            if not (math.isfinite(x[i] + y[i] + z) and (x[i] != 0.0 or y[i] != 0.0 or z != 0.0)):
+                out[p] = 1.0
+                continue
+            turn = -azimuth[i]
+            if turn < 0.0:
+                turn += 2.0 * math.pi
+            out[p] = table[row * columns + min(int(turn * per_rad), columns - 1)]
     return out

@@ -16,6 +16,7 @@ from roadview_noise.errors import ModelError
 from roadview_noise.io.ray_drop_model import read_model, write_model
 from roadview_noise.models.lidar.ray_drop import RayDropLidar
 from roadview_noise.models.lidar.rain import RainLidar
+from roadview_noise.physics.lidar_intensity import sensor_constant
 from roadview_noise.physics.lidar_rays import cloud_rays
 from roadview_noise.physics.ray_drop import AdditiveLogistic
 from roadview_noise.physics.scan_cells import scan_cells
@@ -130,3 +131,19 @@ def test_learned_back_end_needs_a_model_file(tmp_path):
     bad.write_text('{"schema": "something else"}')
     with pytest.raises(Exception, match="bad.json"):
         run([RayDropLidar(backend="learned", model_file=str(bad))], scan(columns=64))
+
+
+def test_ray_drop_keeps_the_datasheet_receiver_and_a_first_step_reads_its_input_once():
+    cloud = scan(range_m=np.random.default_rng(5).uniform(30, 150, (128, 512)), reflectance=1.0)   # counts 3 … 73
+    datasheet = cloud_rays(cloud, "w", "ignore", calibrate=False).receiver
+    calibrated = cloud_rays(cloud, "w", "ignore").receiver
+    assert calibrated.threshold < datasheet.threshold       # faint returns: the weather's receiver is more sensitive
+    assert datasheet.threshold == cloud.profile.detection_threshold / sensor_constant(cloud.profile)
+    # the chain's input as `recorded`: the same receiver whether it shares the step input's arrays or is a copy
+    copy = dataclasses.replace(cloud, positions_m=cloud.positions_m.copy(),
+                               fields={k: v.copy() for k, v in cloud.fields.items()})
+    fainter = dataclasses.replace(copy, fields={**copy.fields, "intensity": copy.fields["intensity"] // 2})
+    shared = cloud_rays(dataclasses.replace(cloud, recorded=cloud), "w", "ignore").receiver
+    assert shared == cloud_rays(dataclasses.replace(cloud, recorded=copy), "w", "ignore").receiver == calibrated
+    assert cloud_rays(dataclasses.replace(cloud, recorded=fainter), "w", "ignore").receiver.threshold < \
+        calibrated.threshold

@@ -75,6 +75,18 @@ def test_physical_model_is_monotone_and_additive_model_evaluates_its_knots():
     np.testing.assert_allclose(logit, [1.0, -1.0, -3.0])                   # flat beyond the outer knots
 
 
+def test_additive_drop_probability_is_the_logistic_of_its_logit():
+    rng = np.random.default_rng(4)
+    a = AdditiveLogistic(("log_signal", "cos_incidence", "log_range"),
+                         (np.sort(rng.normal(size=8)), np.array([0.1, 0.5, 1.0]), np.array([0.0, 2.0, 3.0, 5.0])),
+                         (rng.normal(size=8), np.array([2.0, 0.0, -1.0]), np.array([-3.0, 0.0, 1.0, 4.0])), -2.5)
+    f = rng.normal(1.0, 2.0, (5000, 4))
+    f[rng.random((5000, 4)) < 0.01] = np.nan                    # no estimate: the lowest knot's value
+    f[::7, 0] = a.knots[0][rng.integers(0, 8, len(f[::7]))]      # exactly on the knots
+    expected = 1.0 / (1.0 + np.exp(-a.logit(np.nan_to_num(f, nan=-np.inf))))
+    np.testing.assert_allclose(a.drop_probability(f), expected, rtol=1e-12, atol=0)
+
+
 def test_neighbour_median_of_any_count():
     from roadview_noise.physics.ray_drop import _median
 

@@ -78,3 +78,11 @@ def test_unstructured_list_has_no_cells():
     jumbled = dataclasses.replace(cloud, positions_m=cloud.positions_m * rng.uniform(0.5, 2, (len(cloud), 1))
                                   + rng.normal(0, 0.3, cloud.positions_m.shape))
     assert isinstance(scan_cells(jumbled, os1_128()), str)
+
+
+def test_cells_without_the_empty_ones_are_the_same_cells():
+    r = _ranges(seed=3)
+    for cloud in (scan(range_m=r, grid=True), scan(range_m=r)):
+        full, lean = scan_cells(cloud, cloud.profile), scan_cells(cloud, cloud.profile, empty=False)
+        assert np.array_equal(full.cell, lean.cell) and np.array_equal(full.shown, lean.shown)
+        assert full.source == lean.source and len(full.empty) == int(np.sum(r == 0)) and len(lean.empty) == 0

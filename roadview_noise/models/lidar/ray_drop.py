@@ -76,12 +76,13 @@ class RayDropLidar(Model):
                                self.floor_drop_probability)
 
     def apply(self, data, *, state, drawn, rng):
-        sr = scan_rays(data, self.id)
+        sr = scan_rays(data, self.id, empty=False)
         n = len(data)
-        idx = np.flatnonzero(sr.rays.has_target[:n])
-        r = sr.rays.range_m[idx]
+        every = bool(sr.rays.has_target[:n].all())      # (a point list: its points, without copies)
+        idx = np.arange(n) if every else np.flatnonzero(sr.rays.has_target[:n])
+        r = sr.rays.range_m[:n] if every else sr.rays.range_m[idx]
         if sr.cells is not None:
-            features, _ = sr.features(sr.cells.cell[idx], data.positions_m)
+            features, _ = sr.features(sr.cells.cell if every else sr.cells.cell[idx], data.positions_m)
             source = f"neighbours on the {sr.cells.source}"
         else:
             elevation = np.deg2rad(np.asarray(sr.rays.profile.beam_elevation_deg))[ring_index(data, sr.rays.profile)]
@@ -100,8 +101,11 @@ class RayDropLidar(Model):
         if self.strength != 1.0:
             p *= self.strength
         drop = rng.random(len(idx)) < p
-        mask = np.zeros(n, dtype=bool)
-        mask[idx[drop]] = True
+        if every:
+            mask = drop
+        else:
+            mask = np.zeros(n, dtype=bool)
+            mask[idx[drop]] = True
         diagnostics.update(returns_in=len(idx), dropped=int(drop.sum()),
                            drop_fraction=float(drop.mean()) if len(idx) else 0.0,
                            mean_drop_probability=float(p.mean()) if len(idx) else 0.0,
