@@ -160,7 +160,8 @@ def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str) -
     linear_rgb = np.asarray(linear_rgb)
     if linear_rgb.ndim != 3 or linear_rgb.shape[2] != 3:
         raise ValueError(f"expected linear RGB of shape (H, W, 3), got {linear_rgb.shape}")
-    n_nan = int(np.count_nonzero(np.isnan(linear_rgb)))
+    has_nan = linear_rgb.size and np.isnan(np.min(linear_rgb))       # the minimum is NaN if any value is: ½ the time
+    n_nan = int(np.count_nonzero(np.isnan(linear_rgb))) if has_nan else 0   # of counting them on every frame
     if n_nan:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
     if encoding.channels not in (1, 3, 4):
@@ -296,7 +297,10 @@ def display_srgb(linear: np.ndarray) -> np.ndarray:
 
 
 def bgr_order(codes: np.ndarray) -> np.ndarray:
-    """RGB(A) code values in OpenCV's BGR(A) order (a new C-order array)."""
+    """RGB(A) code values in OpenCV's BGR(A) order, C-order: the storage itself when ``codes`` is the RGB view of
+    BGR codes (:func:`encode_pixels`, a decoded file's kept codes), else a new array."""
+    if codes.shape[2] == 3 and codes[..., ::-1].flags.c_contiguous:
+        return codes[..., ::-1]
     return cv2.cvtColor(codes, cv2.COLOR_RGB2BGR if codes.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
 
 
@@ -307,6 +311,8 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
             raise ValueError("float32 images are stored linear")
         return np.asarray(linear, dtype=np.float32)
     if encoding.transfer == "srgb":
+        if np.ndim(linear) == 3 and np.shape(linear)[2] == 3:       # RGB view of BGR codes: OpenCV writes them as
+            return srgb.linear_to_code(linear, encoding.bit_depth, bgr=True)[..., ::-1]     # they are
         return srgb.linear_to_code(linear, encoding.bit_depth)
     if encoding.transfer == "linear" and encoding.bit_depth in (8, 16):
         full = 2 ** encoding.bit_depth - 1

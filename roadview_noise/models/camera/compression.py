@@ -53,8 +53,7 @@ class CompressionCamera(Model):
                              "mosaic (models.md §2.7). Compress the camera's RGB output instead: give the PNG/TIFF "
                              "frames after the ISP, or keep compression.camera out of the chains for raw inputs "
                              "(e.g. `inputs: {camera: ...}` without `raw:`)", model=self.id)
-        rgb = srgb.linear_to_code(data.linear_rgb, 8)          # the frame's own codes when nothing changed it
-        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        bgr = srgb.linear_to_code(data.linear_rgb, 8, bgr=True)    # the frame's own codes when nothing changed it
         ok, bitstream = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.quality,
                                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
                                                    CHROMA_SUBSAMPLING[self.chroma_subsampling]])
