@@ -3,16 +3,17 @@
 One implementation for the image readers/writers (``roadview_noise.io``) and for models that must see what a camera
 writes (JPEG compression). Linear values are on the 0–1 scale (1.0 = full scale of the encoding).
 
-Integer code values ↔ linear float32 go through tables, never a per-pixel power, in one compiled pass that also
-handles any strides (a BGR ↔ RGB view costs no copy):
+Integer code values ↔ linear float32 go through tables, never a per-pixel power, in one compiled pass; OpenCV's BGR
+order is written (``bgr=True``) and read (a channel-reversed view) in the same pass, never by a separate copy:
 
 - code → linear: a 256- or 65 536-entry table of the exact decoded values.
 - linear → code: the code is the number of decision levels ``T_c = decode((c + ½) / M)`` at or below the value,
-  so it is the exact float64 rounding of ``M · encode(v)``. A float32 value's bit pattern, shifted right by 16
-  (8-bit) or 8 (16-bit) bits, indexes a bucket that holds at most one decision level (checked when the table is
-  built); the table gives the code at the bucket's start and the next level, so one comparison finishes the job.
-  The float32 ``pow`` used before differed from the exact rounding by one code for values within float32
-  rounding of a decision level (83 in 10⁷ uniform 8-bit values).
+  so it is the exact float64 rounding of ``M · encode(v)``. A float32 value's bit pattern, shifted right, indexes a
+  bucket that holds at most one decision level (checked when the table is built); the table gives the code at the
+  bucket's start and, if the bucket holds a level, one comparison with it finishes the job. 8 bit: all 2²⁰ patterns
+  >> 12 (2 MB, negatives and NaN included, no range checks: ~0.5 ns a value); 16 bit: patterns >> 8 from the
+  bucket of T_0 / 2 to 1.0, with range checks. The float32 ``pow`` used before differed from the exact rounding by
+  one code for values within float32 rounding of a decision level (83 in 10⁷ uniform 8-bit values).
 
 A frame that has not changed since it was decoded keeps its codes (:func:`attach_codes`): the linear array is made
 read-only and :func:`linear_to_code` returns the codes it came from, so an unchanged frame (a chain of JPEG
