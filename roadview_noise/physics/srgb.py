@@ -68,6 +68,16 @@ def _decision_levels(bits: int) -> np.ndarray:
     return np.append(levels32.view(np.uint32), np.uint32(_INF_BITS + 1))
 
 
+def _bucket_codes(levels: np.ndarray, shift: int, first: int, last: int) -> tuple[np.ndarray, np.ndarray]:
+    """For the buckets ``first … last`` of bit patterns >> ``shift``: the number of ``levels`` (sorted bit patterns)
+    at or below each bucket's first pattern (its code) and the number inside the rest of the bucket."""
+    bucket = (levels >> np.uint32(shift)).astype(np.int64)
+    on_start = (levels & np.uint32((1 << shift) - 1)) == 0
+    code = np.cumsum(np.bincount(np.clip(bucket + ~on_start - first, 0, None), minlength=last - first + 2))
+    inside = np.bincount(bucket[~on_start] - first, minlength=last - first + 2)
+    return code[:last - first + 1], inside[:last - first + 1]
+
+
 @lru_cache(maxsize=1)
 def encode8_table() -> tuple[np.ndarray, np.ndarray]:
     """(entry of every bucket, decision levels) of 8-bit linear → code. A float32 value's bit pattern shifted right
@@ -75,13 +85,11 @@ def encode8_table() -> tuple[np.ndarray, np.ndarray]:
     bucket; 256 + c marks a bucket that holds the decision level ``levels[c]``: the code is c + (v ≥ level). The
     bucket of +inf also holds the NaN patterns: +inf → 255, NaN → 256, which wraps to 0."""
     levels = _decision_levels(8)
-    starts = np.arange((_INF_BITS >> _SHIFT8) + 1, dtype=np.uint32) << np.uint32(_SHIFT8)   # 0 … +inf
-    code = np.searchsorted(levels, starts, side="right")
-    inside = np.searchsorted(levels, starts + np.uint32((1 << _SHIFT8) - 1), side="right") - code
+    code, inside = _bucket_codes(levels, _SHIFT8, 0, _INF_BITS >> _SHIFT8)     # 0 … +inf
     if inside.max() > 1:                                               # table too coarse for one comparison
         raise AssertionError("sRGB 8-bit encode table: a bucket holds two decision levels")
     table = np.zeros(1 << (32 - _SHIFT8), np.uint16)                  # negative and NaN patterns: code 0
-    table[:starts.size] = code + 256 * inside
+    table[:code.size] = code + 256 * inside
     table.flags.writeable = levels.flags.writeable = False
     return table, levels
 
@@ -116,15 +124,13 @@ def encode16_table() -> tuple[int, np.ndarray, np.ndarray]:
     """(first bucket, code at each bucket's start, next decision level above it) of 16-bit linear → code: the bit
     pattern shifted right by 8 indexes a bucket that holds at most one decision level (2²⁴ buckets would take 64 MB,
     so the table starts at the bucket of T_0 / 2 and ends at 1.0)."""
-    levels = _decision_levels(16)[:-1]
+    levels = _decision_levels(16)
     first = int((levels[:1].view(np.float32) / np.float32(2)).view(np.uint32)[0]) >> _SHIFT16
-    last = _ONE_BITS >> _SHIFT16
-    starts = np.arange(first, last + 1, dtype=np.uint32) << np.uint32(_SHIFT16)
-    code = np.searchsorted(levels, starts, side="right")               # levels at or below each bucket's start
-    nxt = np.append(levels, [np.uint32(_INF_BITS)] * 2)
-    if np.any(nxt[code + 1] < starts + np.uint32(1 << _SHIFT16)):     # two levels in one bucket: table too coarse
+    code, inside = _bucket_codes(levels, _SHIFT16, first, _ONE_BITS >> _SHIFT16)
+    if inside.max() > 1:                                               # table too coarse for one comparison
         raise AssertionError("sRGB 16-bit encode table: a bucket holds two decision levels")
-    code, nxt = code.astype(np.uint16), nxt[code]
+    nxt = levels[code]                                                 # (the level above 65 534 is +inf + 1)
+    code = code.astype(np.uint16)
     code.flags.writeable = nxt.flags.writeable = False
     return first, code, nxt
 
