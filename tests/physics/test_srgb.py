@@ -117,13 +117,14 @@ def test_8bit_codes_are_exact_for_every_float32():
         np.testing.assert_array_equal(srgb.linear_to_code(v).astype(np.int64), _reference_codes(v, 8))
 
 
-def test_8bit_codes_of_random_bit_patterns_negatives_infinities_and_nan():
-    bits = np.random.default_rng(11).integers(0, 2 ** 32, 2_000_000, dtype=np.uint64).astype(np.uint32)
-    bits[:6] = [0x7F800000, 0x7F800001, 0x7F800FFF, 0x7F801000, 0xFF800000, 0x80000001]   # ±inf, NaN beside +inf
-    v = bits.view(np.float32)                             # every sign, exponent, NaN payload
-    np.testing.assert_array_equal(srgb.linear_to_code(v).astype(np.int64), _reference_codes(v, 8))
+@pytest.mark.parametrize("bits", [8, 16])
+def test_codes_of_random_bit_patterns_negatives_infinities_and_nan(bits):
+    patterns = np.random.default_rng(11).integers(0, 2 ** 32, 2_000_000, dtype=np.uint64).astype(np.uint32)
+    patterns[:6] = [0x7F800000, 0x7F800001, 0x7F800FFF, 0x7F801000, 0xFF800000, 0x80000001]   # ±inf, NaN by +inf
+    v = patterns.view(np.float32)                         # every sign, exponent, NaN payload
+    np.testing.assert_array_equal(srgb.linear_to_code(v, bits).astype(np.int64), _reference_codes(v, bits))
     u = np.random.default_rng(12).random(2_000_000).astype(np.float32)
-    np.testing.assert_array_equal(srgb.linear_to_code(u).astype(np.int64), _reference_codes(u, 8))
+    np.testing.assert_array_equal(srgb.linear_to_code(u, bits).astype(np.int64), _reference_codes(u, bits))
 
 
 @pytest.mark.parametrize("bits", [8, 16])
