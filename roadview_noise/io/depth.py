@@ -122,7 +122,8 @@ def _holes_as_nan(depth: np.ndarray) -> np.ndarray:
     when ``depth`` is writable float32 (the readers' own fresh arrays), else on a float32 copy."""
     if depth.dtype != np.float32 or not depth.flags.writeable:
         depth = depth.astype(np.float32)
-    np.copyto(depth, np.float32(np.nan), where=~(depth > 0))
+    if not depth.size or not depth.min() > 0:            # NaN propagates through min: one pass when there is no hole
+        np.copyto(depth, np.float32(np.nan), where=~(depth > 0))
     return depth
 
 
