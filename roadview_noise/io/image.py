@@ -160,8 +160,9 @@ def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str) -
     linear_rgb = np.asarray(linear_rgb)
     if linear_rgb.ndim != 3 or linear_rgb.shape[2] != 3:
         raise ValueError(f"expected linear RGB of shape (H, W, 3), got {linear_rgb.shape}")
-    has_nan = linear_rgb.size and np.isnan(np.min(linear_rgb))       # the minimum is NaN if any value is: ½ the time
-    n_nan = int(np.count_nonzero(np.isnan(linear_rgb))) if has_nan else 0   # of counting them on every frame
+    # the minimum is NaN when any value is: one pass, half the time of counting NaN on every frame
+    has_nan = linear_rgb.size and np.isnan(np.min(linear_rgb))
+    n_nan = int(np.count_nonzero(np.isnan(linear_rgb))) if has_nan else 0
     if n_nan:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
     if encoding.channels not in (1, 3, 4):
@@ -311,8 +312,9 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
             raise ValueError("float32 images are stored linear")
         return np.asarray(linear, dtype=np.float32)
     if encoding.transfer == "srgb":
-        if np.ndim(linear) == 3 and np.shape(linear)[2] == 3:       # RGB view of BGR codes: OpenCV writes them as
-            return srgb.linear_to_code(linear, encoding.bit_depth, bgr=True)[..., ::-1]     # they are
+        if np.ndim(linear) == 3 and np.shape(linear)[2] == 3:
+            # the RGB view of BGR codes: bgr_order hands their storage to OpenCV as it is
+            return srgb.linear_to_code(linear, encoding.bit_depth, bgr=True)[..., ::-1]
         return srgb.linear_to_code(linear, encoding.bit_depth)
     if encoding.transfer == "linear" and encoding.bit_depth in (8, 16):
         full = 2 ** encoding.bit_depth - 1
