@@ -306,7 +306,8 @@ def bgr_order(codes: np.ndarray) -> np.ndarray:
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
-    """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped, rounded) or float32 (linear TIFF)."""
+    """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped, rounded) or float32 (linear TIFF); sRGB
+    colour codes are the RGB view of an array in OpenCV's BGR order, written so by one compiled pass."""
     if encoding.bit_depth == 32:
         if encoding.transfer != "linear":
             raise ValueError("float32 images are stored linear")
