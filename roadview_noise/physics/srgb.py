@@ -135,23 +135,31 @@ def encode16_table() -> tuple[int, np.ndarray, np.ndarray]:
     return first, code, nxt
 
 
+@jit(inline="always")
+def _code16(b, first, code, nxt_bits):
+    """16-bit code of the float32 value with bit pattern ``b`` (:func:`encode16_table`)."""
+    if b >= _ONE_BITS:                                   # ≥ 1 (or NaN / negative, sorted out here)
+        return 65535 if b <= _INF_BITS else 0
+    n = np.int64(b >> _SHIFT16) - first                 # 0 ≤ v < 1: bit patterns sort like the values
+    if n < 0:
+        return 0
+    n = min(n, code.size - 1)
+    return code[n] + 1 if b >= nxt_bits[n] else code[n]
+
+
 @jit
 def _encode16_kernel(xbits, out, first, code, nxt_bits):
-    """``out`` = 16-bit codes of the float32 values whose bit patterns are ``xbits`` (both (H, W, C), any strides)."""
-    top = code.size - 1
-    for i in range(xbits.shape[0]):
-        for j in range(xbits.shape[1]):
-            for k in range(xbits.shape[2]):
-                b = xbits[i, j, k]
-                if b >= _ONE_BITS:                       # ≥ 1 (or NaN / negative, sorted out below)
-                    out[i, j, k] = 65535 if b <= _INF_BITS else 0
-                else:                                    # 0 ≤ v < 1: bit patterns sort like the values
-                    n = np.int64(b >> _SHIFT16) - first
-                    if n < 0:
-                        out[i, j, k] = 0
-                    else:
-                        n = min(n, top)
-                        out[i, j, k] = code[n] + 1 if b >= nxt_bits[n] else code[n]
+    """``out`` = 16-bit codes of the float32 values whose bit patterns are ``xbits`` (1-D, same size)."""
+    for i in range(xbits.size):
+        out[i] = _code16(xbits[i], first, code, nxt_bits)
+
+
+@jit
+def _encode16_reversed_kernel(xbits, out, first, code, nxt_bits):
+    """As :func:`_encode16_kernel` for (N, 3) pixels, written with the channel order reversed (RGB → BGR)."""
+    for p in range(xbits.shape[0]):
+        for k in range(3):
+            out[p, 2 - k] = _code16(xbits[p, k], first, code, nxt_bits)
 
 
 def _as_3d(a: np.ndarray) -> np.ndarray:
@@ -189,16 +197,14 @@ def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False) -> n
         return np.ascontiguousarray(kept[..., ::-1]) if bgr else kept
     with span("convert"):
         v = np.asarray(linear, dtype=np.float32)
+        xbits = np.ascontiguousarray(v).view(np.uint32)
         out = np.empty(v.shape, dtype)
-        if bits == 8:
-            xbits = np.ascontiguousarray(v).view(np.uint32)
-            if bgr:
-                _encode8_reversed_kernel(xbits.reshape(-1, 3), out.reshape(-1, 3), *encode8_table())
-            else:
-                _encode8_kernel(xbits.reshape(-1), out.reshape(-1), *encode8_table())
-            return out
-        src, dst = _kernel_views(v.view(np.uint32), out[..., ::-1] if bgr else out)
-        _encode16_kernel(src, dst, *encode16_table())
+        table = encode8_table() if bits == 8 else encode16_table()
+        if bgr:
+            (_encode8_reversed_kernel if bits == 8 else _encode16_reversed_kernel)(
+                xbits.reshape(-1, 3), out.reshape(-1, 3), *table)
+        else:
+            (_encode8_kernel if bits == 8 else _encode16_kernel)(xbits.reshape(-1), out.reshape(-1), *table)
     return out
 
 
