@@ -37,10 +37,10 @@ def resolve_holes(depth_m: np.ndarray, policy: str, *, source: str = "") -> tupl
     InputError (naming ``source``) for policy ``error`` or a map without any valid pixel."""
     if policy not in HOLE_POLICIES:
         raise ValueError(f"unknown depth_holes policy {policy!r}; expected one of {HOLE_POLICIES}")
+    if not depth_m.size or not np.isnan(depth_m.min()):     # NaN propagates through min: one pass without holes
+        return depth_m, None, {"holes": 0}
     holes = np.isnan(depth_m)
     n = int(np.count_nonzero(holes))
-    if n == 0:
-        return depth_m, None, {"holes": 0}
     fraction = n / holes.size
     notes = {"holes": n, "hole_fraction": round(fraction, 6), "policy": policy}
     if policy == "error" or n == holes.size:

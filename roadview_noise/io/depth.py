@@ -118,9 +118,12 @@ def _decode(path: Path, fmt: str, profile: CameraProfile | None, baseline_m: flo
 
 
 def _holes_as_nan(depth: np.ndarray) -> np.ndarray:
-    """Float depth with every value that is not a valid range (NaN, ≤ 0) as NaN; ``inf`` (sky) is kept."""
-    depth = depth.astype(np.float32, copy=True)
-    depth[~(depth > 0)] = np.nan
+    """Float depth with every value that is not a valid range (NaN, ≤ 0) as NaN; ``inf`` (sky) is kept. In place
+    when ``depth`` is writable float32 (the readers' own fresh arrays), else on a float32 copy."""
+    if depth.dtype != np.float32 or not depth.flags.writeable:
+        depth = depth.astype(np.float32)
+    if not depth.size or not depth.min() > 0:            # NaN propagates through min: one pass when there is no hole
+        np.copyto(depth, np.float32(np.nan), where=~(depth > 0))
     return depth
 
 
@@ -196,7 +199,7 @@ def _read_exr(path: Path) -> np.ndarray:
     if pixels.ndim != 2 or pixels.dtype.kind != "f":
         raise InputError(f"EXR channel {name!r} is {pixels.dtype} with shape {pixels.shape}; expected float depth",
                          file=str(path))
-    return pixels.astype(np.float32)
+    return pixels.astype(np.float32, copy=False)                     # our own array: a float32 channel as it is
 
 
 def _read_npy(path: Path) -> np.ndarray:
@@ -209,4 +212,4 @@ def _read_npy(path: Path) -> np.ndarray:
     if depth.ndim != 2 or depth.dtype.kind != "f":
         raise InputError(f".npy depth must be a 2-D float array in metres, got {depth.dtype} with shape "
                          f"{depth.shape}", file=str(path))
-    return depth.astype(np.float32)
+    return depth.astype(np.float32, copy=False)

@@ -160,7 +160,9 @@ def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str) -
     linear_rgb = np.asarray(linear_rgb)
     if linear_rgb.ndim != 3 or linear_rgb.shape[2] != 3:
         raise ValueError(f"expected linear RGB of shape (H, W, 3), got {linear_rgb.shape}")
-    n_nan = int(np.count_nonzero(np.isnan(linear_rgb)))
+    # the minimum is NaN when any value is: one pass, half the time of counting NaN on every frame
+    has_nan = linear_rgb.size and np.isnan(np.min(linear_rgb))
+    n_nan = int(np.count_nonzero(np.isnan(linear_rgb))) if has_nan else 0
     if n_nan:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
     if encoding.channels not in (1, 3, 4):
@@ -296,17 +298,24 @@ def display_srgb(linear: np.ndarray) -> np.ndarray:
 
 
 def bgr_order(codes: np.ndarray) -> np.ndarray:
-    """RGB(A) code values in OpenCV's BGR(A) order (a new C-order array)."""
+    """RGB(A) code values in OpenCV's BGR(A) order, C-order: the storage itself when ``codes`` is the RGB view of
+    BGR codes (:func:`encode_pixels`, a decoded file's kept codes), else a new array."""
+    if codes.shape[2] == 3 and codes[..., ::-1].flags.c_contiguous:
+        return codes[..., ::-1]
     return cv2.cvtColor(codes, cv2.COLOR_RGB2BGR if codes.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:
-    """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped, rounded) or float32 (linear TIFF)."""
+    """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped, rounded) or float32 (linear TIFF); sRGB
+    colour codes are the RGB view of an array in OpenCV's BGR order, written so by one compiled pass."""
     if encoding.bit_depth == 32:
         if encoding.transfer != "linear":
             raise ValueError("float32 images are stored linear")
         return np.asarray(linear, dtype=np.float32)
     if encoding.transfer == "srgb":
+        if np.ndim(linear) == 3 and np.shape(linear)[2] == 3:
+            # the RGB view of BGR codes: bgr_order hands their storage to OpenCV as it is
+            return srgb.linear_to_code(linear, encoding.bit_depth, bgr=True)[..., ::-1]
         return srgb.linear_to_code(linear, encoding.bit_depth)
     if encoding.transfer == "linear" and encoding.bit_depth in (8, 16):
         full = 2 ** encoding.bit_depth - 1

@@ -3,16 +3,17 @@
 One implementation for the image readers/writers (``roadview_noise.io``) and for models that must see what a camera
 writes (JPEG compression). Linear values are on the 0–1 scale (1.0 = full scale of the encoding).
 
-Integer code values ↔ linear float32 go through tables, never a per-pixel power, in one compiled pass that also
-handles any strides (a BGR ↔ RGB view costs no copy):
+Integer code values ↔ linear float32 go through tables, never a per-pixel power, in one compiled pass; OpenCV's BGR
+order is written (``bgr=True``) and read (a channel-reversed view) in the same pass, never by a separate copy:
 
 - code → linear: a 256- or 65 536-entry table of the exact decoded values.
 - linear → code: the code is the number of decision levels ``T_c = decode((c + ½) / M)`` at or below the value,
-  so it is the exact float64 rounding of ``M · encode(v)``. A float32 value's bit pattern, shifted right by 16
-  (8-bit) or 8 (16-bit) bits, indexes a bucket that holds at most one decision level (checked when the table is
-  built); the table gives the code at the bucket's start and the next level, so one comparison finishes the job.
-  The float32 ``pow`` used before differed from the exact rounding by one code for values within float32
-  rounding of a decision level (83 in 10⁷ uniform 8-bit values).
+  so it is the exact float64 rounding of ``M · encode(v)``. A float32 value's bit pattern, shifted right, indexes a
+  bucket that holds at most one decision level (checked when the table is built); the table gives the code at the
+  bucket's start and, if the bucket holds a level, one comparison with it finishes the job. 8 bit: all 2²⁰ patterns
+  >> 12 (2 MB, negatives and NaN included, no range checks: ~0.5 ns a value); 16 bit: patterns >> 8 from the
+  bucket of T_0 / 2 to 1.0, with range checks. The float32 ``pow`` used before differed from the exact rounding by
+  one code for values within float32 rounding of a decision level (83 in 10⁷ uniform 8-bit values).
 
 A frame that has not changed since it was decoded keeps its codes (:func:`attach_codes`): the linear array is made
 read-only and :func:`linear_to_code` returns the codes it came from, so an unchanged frame (a chain of JPEG
@@ -31,7 +32,9 @@ from .compiled import jit
 
 LINEAR_THRESHOLD = 0.0031308    # linear value where the power segment starts
 ENCODED_THRESHOLD = 0.04045     # the same point on the encoded axis (12.92 · 0.0031308)
-_BUCKET_SHIFT = {8: 16, 16: 8}  # float32 mantissa bits below the bucket index of linear → code
+_SHIFT8, _SHIFT16 = 12, 8        # float32 bits below the bucket index of 8- and 16-bit linear → code
+_ONE_BITS = 0x3F800000          # float32 1.0
+_INF_BITS = 0x7F800000          # float32 +inf; larger patterns are NaN, ≥ 2³¹ negative
 
 
 def encode(linear: np.ndarray) -> np.ndarray:
@@ -55,49 +58,108 @@ def _uint_dtype(bits: int) -> type:
 # --- linear → code ---------------------------------------------------------------------------------------------------
 
 
-@lru_cache(maxsize=2)
-def encode_table(bits: int) -> tuple[int, np.ndarray, np.ndarray]:
-    """(first bucket, code at each bucket's start, next decision level above it as float32) for ``bits``."""
-    dtype, shift = _uint_dtype(bits), _BUCKET_SHIFT[bits]
+def _decision_levels(bits: int) -> np.ndarray:
+    """The float32 bit patterns of the decision levels T_0 … T_{M−1}, each rounded up to a float32 (so that
+    v ≥ T ⇔ v ≥ T32 for a float32 v), followed by the pattern just above +inf (NaN)."""
     full = 2 ** bits - 1
-    levels = decode((np.arange(full) + 0.5) / full)                 # float64 decision levels T_0 … T_{M−1}
+    levels = decode((np.arange(full) + 0.5) / full)                 # float64 decision levels
     levels32 = levels.astype(np.float32)
-    levels32[levels32 < levels] = np.nextafter(levels32[levels32 < levels], np.float32(np.inf))   # v ≥ T ⇔ v ≥ T32
-    first = int(np.float32(levels32[0] / 2).view(np.uint32)) >> shift
-    last = int(np.float32(1.0).view(np.uint32)) >> shift
-    starts = (np.arange(first, last + 1, dtype=np.uint64) << np.uint64(shift)).astype(np.uint32).view(np.float32)
-    code = np.searchsorted(levels32, starts, side="right")            # levels at or below each bucket's start
-    nxt = np.append(levels32, np.float32(np.inf))[code]
-    ends = ((np.arange(first, last + 1, dtype=np.uint64) + 1) << np.uint64(shift)).astype(np.uint32).view(np.float32)
-    after = np.append(levels32, [np.float32(np.inf)] * 2)[code + 1]
-    if np.any(after < ends[:len(after)]):                              # two levels in one bucket: table too coarse
-        raise AssertionError(f"sRGB {bits}-bit encode table: a bucket holds two decision levels")
-    code, nxt = code.astype(dtype), nxt.astype(np.float32)
+    levels32[levels32 < levels] = np.nextafter(levels32[levels32 < levels], np.float32(np.inf))
+    return np.append(levels32.view(np.uint32), np.uint32(_INF_BITS + 1))
+
+
+def _bucket_codes(levels: np.ndarray, shift: int, first: int, last: int) -> tuple[np.ndarray, np.ndarray]:
+    """For the buckets ``first … last`` of bit patterns >> ``shift``: the number of ``levels`` (sorted bit patterns)
+    at or below each bucket's first pattern (its code) and the number inside the rest of the bucket."""
+    bucket = (levels >> np.uint32(shift)).astype(np.int64)
+    on_start = (levels & np.uint32((1 << shift) - 1)) == 0
+    code = np.cumsum(np.bincount(np.clip(bucket + ~on_start - first, 0, None), minlength=last - first + 2))
+    inside = np.bincount(bucket[~on_start] - first, minlength=last - first + 2)
+    return code[:last - first + 1], inside[:last - first + 1]
+
+
+@lru_cache(maxsize=1)
+def encode8_table() -> tuple[np.ndarray, np.ndarray]:
+    """(entry of every bucket, decision levels) of 8-bit linear → code. A float32 value's bit pattern shifted right
+    by 12 indexes one of 2²⁰ buckets (2 MB; negatives and NaN included). An entry < 256 is the code of the whole
+    bucket; 256 + c marks a bucket that holds the decision level ``levels[c]``: the code is c + (v ≥ level). The
+    bucket of +inf also holds the NaN patterns: +inf → 255, NaN → 256, which wraps to 0."""
+    levels = _decision_levels(8)
+    code, inside = _bucket_codes(levels, _SHIFT8, 0, _INF_BITS >> _SHIFT8)     # 0 … +inf
+    if inside.max() > 1:                                               # table too coarse for one comparison
+        raise AssertionError("sRGB 8-bit encode table: a bucket holds two decision levels")
+    table = np.zeros(1 << (32 - _SHIFT8), np.uint16)                  # negative and NaN patterns: code 0
+    table[:code.size] = code + 256 * inside
+    table.flags.writeable = levels.flags.writeable = False
+    return table, levels
+
+
+@jit(inline="always")
+def _code8(b, table, levels):
+    """8-bit code of the float32 value with bit pattern ``b`` (:func:`encode8_table`)."""
+    e = table[b >> np.uint32(_SHIFT8)]
+    if e < 256:
+        return e
+    c = e - 256
+    return (c + (b >= levels[c])) & 255
+
+
+@jit
+def _encode8_kernel(xbits, out, table, levels):
+    """``out`` = 8-bit codes of the float32 values whose bit patterns are ``xbits`` (1-D, same size)."""
+    for i in range(xbits.size):
+        out[i] = _code8(xbits[i], table, levels)
+
+
+@jit
+def _encode8_reversed_kernel(xbits, out, table, levels):
+    """As :func:`_encode8_kernel` for (N, 3) pixels, written with the channel order reversed (RGB → BGR)."""
+    for p in range(xbits.shape[0]):
+        for k in range(3):
+            out[p, 2 - k] = _code8(xbits[p, k], table, levels)
+
+
+@lru_cache(maxsize=1)
+def encode16_table() -> tuple[int, np.ndarray, np.ndarray]:
+    """(first bucket, code at each bucket's start, next decision level above it) of 16-bit linear → code: the bit
+    pattern shifted right by 8 indexes a bucket that holds at most one decision level (2²⁴ buckets would take 64 MB,
+    so the table starts at the bucket of T_0 / 2 and ends at 1.0)."""
+    levels = _decision_levels(16)
+    first = int((levels[:1].view(np.float32) / np.float32(2)).view(np.uint32)[0]) >> _SHIFT16
+    code, inside = _bucket_codes(levels, _SHIFT16, first, _ONE_BITS >> _SHIFT16)
+    if inside.max() > 1:                                               # table too coarse for one comparison
+        raise AssertionError("sRGB 16-bit encode table: a bucket holds two decision levels")
+    nxt = levels[code]                                                 # (the level above 65 534 is +inf + 1)
+    code = code.astype(np.uint16)
     code.flags.writeable = nxt.flags.writeable = False
     return first, code, nxt
 
 
-_ONE_BITS = 0x3F800000                  # float32 1.0
-_INF_BITS = 0x7F800000                  # float32 +inf; larger patterns are NaN, ≥ 2³¹ negative
+@jit(inline="always")
+def _code16(b, first, code, nxt_bits):
+    """16-bit code of the float32 value with bit pattern ``b`` (:func:`encode16_table`)."""
+    if b >= _ONE_BITS:                                   # ≥ 1 (or NaN / negative, sorted out here)
+        return 65535 if b <= _INF_BITS else 0
+    n = np.int64(b >> _SHIFT16) - first                 # 0 ≤ v < 1: bit patterns sort like the values
+    if n < 0:
+        return 0
+    n = min(n, code.size - 1)
+    return code[n] + 1 if b >= nxt_bits[n] else code[n]
 
 
 @jit
-def _encode_kernel(xbits, out, first, shift, code, nxt_bits, full):
-    """``out`` = codes of the float32 values whose bit patterns are ``xbits`` (both (H, W, C), any strides)."""
-    top = code.size - 1
-    for i in range(xbits.shape[0]):
-        for j in range(xbits.shape[1]):
-            for k in range(xbits.shape[2]):
-                b = xbits[i, j, k]
-                if b >= _ONE_BITS:                       # ≥ 1 (or NaN / negative, sorted out below)
-                    out[i, j, k] = full if b <= _INF_BITS else 0
-                else:                                    # 0 ≤ v < 1: bit patterns sort like the values
-                    n = np.int64(b >> shift) - first
-                    if n < 0:
-                        out[i, j, k] = 0
-                    else:
-                        n = min(n, top)
-                        out[i, j, k] = code[n] + 1 if b >= nxt_bits[n] else code[n]
+def _encode16_kernel(xbits, out, first, code, nxt_bits):
+    """``out`` = 16-bit codes of the float32 values whose bit patterns are ``xbits`` (1-D, same size)."""
+    for i in range(xbits.size):
+        out[i] = _code16(xbits[i], first, code, nxt_bits)
+
+
+@jit
+def _encode16_reversed_kernel(xbits, out, first, code, nxt_bits):
+    """As :func:`_encode16_kernel` for (N, 3) pixels, written with the channel order reversed (RGB → BGR)."""
+    for p in range(xbits.shape[0]):
+        for k in range(3):
+            out[p, 2 - k] = _code16(xbits[p, k], first, code, nxt_bits)
 
 
 def _as_3d(a: np.ndarray) -> np.ndarray:
@@ -118,20 +180,31 @@ def _kernel_views(src: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, np.ndar
     return _as_3d(src), _as_3d(out)
 
 
-def linear_to_code(linear: np.ndarray, bits: int = 8) -> np.ndarray:
+def _reversed_rgb(a: np.ndarray) -> bool:
+    """Whether ``a`` is the channel-reversed view of a C-contiguous (H, W, 3) array (OpenCV's BGR seen as RGB)."""
+    return a.ndim == 3 and a.shape[2] == 3 and not a.flags.c_contiguous and a[..., ::-1].flags.c_contiguous
+
+
+def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False) -> np.ndarray:
     """Integer sRGB code values (uint8 or uint16) of linear radiance: clipped to [0, 1], encoded, rounded to the
     nearest code (exactly; module docstring); NaN gives 0. A new C-order array, or — for an unchanged decoded frame —
-    the read-only codes it was decoded from."""
+    the read-only codes it was decoded from. ``bgr``: (H, W, 3) RGB in, C-order BGR codes out (OpenCV's order)."""
     dtype = _uint_dtype(bits)
+    if bgr and (np.ndim(linear) != 3 or np.shape(linear)[2] != 3):
+        raise ValueError(f"bgr codes need (H, W, 3) RGB, got shape {np.shape(linear)}")
     kept = attached_codes(linear, bits)
     if kept is not None:
-        return kept
+        return np.ascontiguousarray(kept[..., ::-1]) if bgr else kept
     with span("convert"):
         v = np.asarray(linear, dtype=np.float32)
-        first, code, nxt = encode_table(bits)
+        xbits = np.ascontiguousarray(v).view(np.uint32)
         out = np.empty(v.shape, dtype)
-        _encode_kernel(_as_3d(v).view(np.uint32), _as_3d(out), first, _BUCKET_SHIFT[bits], code,
-                       nxt.view(np.uint32), 2 ** bits - 1)
+        table = encode8_table() if bits == 8 else encode16_table()
+        if bgr:
+            (_encode8_reversed_kernel if bits == 8 else _encode16_reversed_kernel)(
+                xbits.reshape(-1, 3), out.reshape(-1, 3), *table)
+        else:
+            (_encode8_kernel if bits == 8 else _encode16_kernel)(xbits.reshape(-1), out.reshape(-1), *table)
     return out
 
 
@@ -153,6 +226,14 @@ def _decode_kernel(codes, table, out):
                 out[i, j, k] = table[codes[i, j, k]]
 
 
+@jit
+def _decode_reversed_kernel(codes, table, out):
+    """As :func:`_decode_kernel` for (N, 3) pixels read with the channel order reversed (BGR → RGB)."""
+    for p in range(codes.shape[0]):
+        for k in range(3):
+            out[p, k] = table[codes[p, 2 - k]]
+
+
 def code_to_linear(code: np.ndarray, bits: int = 8) -> np.ndarray:
     """Linear radiance (float32, 0–1, C order) of integer sRGB code values, by table look-up; the result keeps
     ``code`` (:func:`attach_codes`)."""
@@ -162,8 +243,11 @@ def code_to_linear(code: np.ndarray, bits: int = 8) -> np.ndarray:
         raise ValueError(f"expected {np.dtype(dtype).name} code values, got {code.dtype}")
     with span("convert"):
         out = np.empty(code.shape, np.float32)
-        src, dst = _kernel_views(code, out)
-        _decode_kernel(src, _decode_table(bits), dst)
+        if _reversed_rgb(code):                          # OpenCV's BGR seen as RGB: read it in place
+            _decode_reversed_kernel(code[..., ::-1].reshape(-1, 3), _decode_table(bits), out.reshape(-1, 3))
+        else:
+            src, dst = _kernel_views(code, out)
+            _decode_kernel(src, _decode_table(bits), dst)
     return attach_codes(out, code, bits)
 
 

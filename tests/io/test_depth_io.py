@@ -129,3 +129,18 @@ def test_bad_depth_inputs(tmp_path):
     with pytest.raises(InputError, match="IEND") as err:
         read_depth(tmp_path / "cut.png", profile=PROFILE)
     assert "cut.png" in str(err.value)
+
+
+def test_holes_become_nan_in_the_readers_own_arrays_and_on_a_copy_of_any_other():
+    from roadview_noise.io.depth import _holes_as_nan
+
+    d = np.array([[1.0, 0.0], [-1.0, np.inf]], np.float32)
+    fixed = _holes_as_nan(d)                            # a reader's fresh float32 array: in place, no copy
+    assert fixed is d and np.isnan(d[0, 1]) and np.isnan(d[1, 0]) and d[0, 0] == 1 and np.isinf(d[1, 1])
+    frozen = np.array([[2.0, -3.0]], np.float32)
+    frozen.flags.writeable = False
+    got = _holes_as_nan(frozen)
+    assert got is not frozen and frozen[0, 1] == -3 and np.isnan(got[0, 1])
+    half = np.array([[0.0, 5.0]], np.float16)           # an EXR HALF channel
+    got = _holes_as_nan(half)
+    assert got.dtype == np.float32 and np.isnan(got[0, 0]) and half[0, 0] == 0

@@ -239,3 +239,27 @@ def test_exr_image_stays_linear_hdr(tmp_path, half):
         exr.write(str(tmp_path / "depth.exr"))
     with pytest.raises(InputError, match="R, G, B"):
         read_image(tmp_path / "depth.exr")
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_colour_codes_reach_opencv_in_bgr_order_without_a_swap_copy(bits):
+    from roadview_noise.io.image import bgr_order, codes_from_image
+    from roadview_noise.physics import srgb
+
+    linear = np.random.default_rng(21).random((9, 11, 3)).astype(np.float32)
+    codes = codes_from_image(linear, ImageEncoding(bit_depth=bits))
+    np.testing.assert_array_equal(codes, srgb.linear_to_code(linear, bits))          # RGB order for every reader
+    stored = bgr_order(codes)
+    assert stored.flags.c_contiguous and np.shares_memory(stored, codes)                # OpenCV gets the storage
+    np.testing.assert_array_equal(stored, codes[..., ::-1])
+    rgb = np.ascontiguousarray(codes)                                                  # plain RGB: swapped copy
+    assert not np.shares_memory(bgr_order(rgb), rgb)
+    np.testing.assert_array_equal(bgr_order(rgb), codes[..., ::-1])
+
+
+def test_a_nan_anywhere_is_refused_by_the_writer(tmp_path):
+    linear = np.full((4, 5, 3), 0.5, np.float32)
+    linear[3, 4, 2] = np.nan
+    with pytest.raises(ValueError, match="1 NaN"):
+        write_image(tmp_path / "x.png", linear, ImageEncoding())
+    assert not (tmp_path / "x.png").exists()

@@ -90,3 +90,56 @@ def test_an_unchanged_frame_returns_its_own_codes_and_cannot_change():
     assert srgb.attached_codes(changed, 8) is None
     np.testing.assert_array_equal(srgb.linear_to_code(changed), srgb.linear_to_code(changed.copy()))
     assert srgb.attached_codes(linear, 16) is None    # other bit depth: converted
+
+
+# --- 8-bit direct table: every bucket, every pattern class; BGR in and out (issue 19) --------------------------------
+
+
+def _reference_codes(v: np.ndarray, bits: int) -> np.ndarray:
+    """The float64 definition: the number of decision levels at or below the clipped value; NaN → 0."""
+    full = 2 ** bits - 1
+    levels = srgb.decode((np.arange(full) + 0.5) / full)
+    with np.errstate(invalid="ignore"):                   # signalling NaN payloads
+        x = np.clip(np.nan_to_num(v.astype(np.float64), nan=0.0), 0.0, 1.0)
+    return np.searchsorted(levels, x, side="right")
+
+
+def test_8bit_codes_are_exact_for_every_float32():
+    # the code is monotone in v and a bucket of the table holds at most one decision level, so checking the first
+    # and last value of every bucket from 0 to +inf plus the values at and beside every level checks every float32
+    table, levels = srgb.encode8_table()
+    starts = np.arange((0x7F800000 >> 12) + 1, dtype=np.uint32) << np.uint32(12)
+    ends = starts + np.uint32(4095)
+    level_values = levels[:-1].view(np.float32)
+    beside = np.concatenate([level_values, np.nextafter(level_values, np.float32(0)),
+                             np.nextafter(level_values, np.float32(2))])
+    for v in (starts[:-1].view(np.float32), ends[:-1].view(np.float32), beside):
+        np.testing.assert_array_equal(srgb.linear_to_code(v).astype(np.int64), _reference_codes(v, 8))
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_codes_of_random_bit_patterns_negatives_infinities_and_nan(bits):
+    patterns = np.random.default_rng(11).integers(0, 2 ** 32, 2_000_000, dtype=np.uint64).astype(np.uint32)
+    patterns[:6] = [0x7F800000, 0x7F800001, 0x7F800FFF, 0x7F801000, 0xFF800000, 0x80000001]   # ±inf, NaN by +inf
+    v = patterns.view(np.float32)                         # every sign, exponent, NaN payload
+    np.testing.assert_array_equal(srgb.linear_to_code(v, bits).astype(np.int64), _reference_codes(v, bits))
+    u = np.random.default_rng(12).random(2_000_000).astype(np.float32)
+    np.testing.assert_array_equal(srgb.linear_to_code(u, bits).astype(np.int64), _reference_codes(u, bits))
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_bgr_codes_are_the_rgb_codes_reversed(bits):
+    rgb = np.random.default_rng(13).uniform(-0.1, 1.1, (31, 17, 3)).astype(np.float32)
+    bgr = srgb.linear_to_code(rgb, bits, bgr=True)
+    assert bgr.flags.c_contiguous
+    np.testing.assert_array_equal(bgr, srgb.linear_to_code(rgb, bits)[..., ::-1])
+    with pytest.raises(ValueError, match="RGB"):
+        srgb.linear_to_code(rgb[..., 0], bits, bgr=True)
+
+
+def test_kept_codes_come_back_in_bgr_order_without_a_copy():
+    bgr = np.random.default_rng(14).integers(0, 256, (6, 5, 3), dtype=np.uint8)   # as OpenCV decodes a file
+    linear = srgb.code_to_linear(bgr[..., ::-1])
+    np.testing.assert_array_equal(linear, srgb.code_to_linear(np.ascontiguousarray(bgr[..., ::-1])))
+    assert np.shares_memory(srgb.linear_to_code(linear, bgr=True), bgr)
+    np.testing.assert_array_equal(srgb.linear_to_code(linear, bgr=True), bgr)

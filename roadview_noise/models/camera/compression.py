@@ -30,7 +30,8 @@ class CompressionCamera(Model):
 
     The linear frame is clipped to [0, 1], sRGB-encoded and rounded to 8 bits — the bytes a camera would hand to
     its encoder (this fixes the reference's [BUG] of passing unclipped float arrays) — then JPEG-coded with
-    OpenCV/libjpeg at ``quality`` (D3.5: 15) and decoded back to linear float (table look-ups; a frame nothing
+    OpenCV/libjpeg at ``quality`` (D3.5: 15) and decoded back to linear float (table look-ups that write and read
+    OpenCV's BGR order in the same pass; a frame nothing
     changed before is coded from the codes it was read with, and the decoded codes travel with the result,
     ``physics.srgb.attach_codes``, so an 8-bit writer after it stores them as they are). ``chroma_subsampling``
     defaults to libjpeg's 4:2:0, which D3.5 used implicitly. Diagnostic ``compression_ratio`` = H·W·3 / bitstream
@@ -53,8 +54,7 @@ class CompressionCamera(Model):
                              "mosaic (models.md §2.7). Compress the camera's RGB output instead: give the PNG/TIFF "
                              "frames after the ISP, or keep compression.camera out of the chains for raw inputs "
                              "(e.g. `inputs: {camera: ...}` without `raw:`)", model=self.id)
-        rgb = srgb.linear_to_code(data.linear_rgb, 8)          # the frame's own codes when nothing changed it
-        bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+        bgr = srgb.linear_to_code(data.linear_rgb, 8, bgr=True)    # the frame's own codes when nothing changed it
         ok, bitstream = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.quality,
                                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
                                                    CHROMA_SUBSAMPLING[self.chroma_subsampling]])
