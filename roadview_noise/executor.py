@@ -5,8 +5,9 @@ kernel's out-of-memory killer): every task in flight is lost and the run aborts.
 worker its own pipe and knows which task a dead worker was running: that
 task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
 is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds a second task, queued in its pipe, so it
-never waits for the parent between two small files; it runs them in order, so the first unanswered task is still
-the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get the run
+never waits for the parent between two small files (only a task of at most ``QUEUE_MAX_BYTES``: sending it never
+blocks on a worker that is itself blocked sending a large result); it runs them in order, so the first unanswered
+task is still the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get the run
 context once at start and then only small task keys (never arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
@@ -40,6 +41,7 @@ from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
+from multiprocessing.reduction import ForkingPickler
 from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, Sequence, TypeVar
 
 T = TypeVar("T")
@@ -53,6 +55,7 @@ PRELOAD = ["cv2", "roadview_noise.runner", "roadview_noise.metrics"]   # + the r
 WARM_UP = "roadview_noise.warmup"
 PR_SET_PDEATHSIG = 1
 QUEUE_BELOW_S = 0.05               # tasks shorter than this get a second one queued behind them (see _depth)
+QUEUE_MAX_BYTES = 16 * 1024        # only a task this small is queued behind a running one: its send never blocks
 
 
 class _NotNow:
@@ -309,11 +312,17 @@ class ProcessExecutor(Generic[T, C]):
                             tid, next_tid = next_tid, next_tid + 1
                         else:
                             break
+                        payload = ForkingPickler.dumps((tid, task))
+                        if w.queue and len(payload) > QUEUE_MAX_BYTES:
+                            # a busy worker may be blocked sending us its result: writing more than its pipe
+                            # holds would block both; the task waits for an idle worker
+                            retry.appendleft((tid, task))
+                            break
                         if not w.queue:
                             w.started = time.monotonic()
                         w.queue.append((tid, task))
                         try:
-                            w.conn.send((tid, task))
+                            w.conn.send_bytes(payload)
                         except (BrokenPipeError, OSError):
                             break                          # its death is seen below and its tasks re-sent
                 busy = [w for w in self._pool if w.queue]

@@ -119,3 +119,24 @@ def test_fork_server_keeps_what_it_preloaded():
     assert {"roadview_noise.models.radar.fog", "roadview_noise.models.radar.rain"} <= \
         set(forkserver._forkserver._preload_modules)
     assert dict(ProcessExecutor(work, {}, 1).map([3])) == {3: (3, 9)}
+
+
+def echo_large(task: tuple[int, bytes], context: dict) -> bytes:
+    """Answer at once with a result far larger than a pipe holds."""
+    return task[1] * 8
+
+
+def test_large_tasks_behind_large_results_never_deadlock():
+    """Short tasks are queued, but a large one is not sent to a busy worker: that worker may be blocked sending its
+    own large result, and both sides would wait for each other for ever (a ROS bag's inline messages did this)."""
+    import threading
+
+    ex = ProcessExecutor(echo_large, {}, 2)
+    tasks = [(i, bytes([i]) * 512 * 1024) for i in range(24)]
+    done: dict = {}
+    runner = threading.Thread(target=lambda: done.update(ex.map(tasks)), daemon=True)
+    runner.start()
+    runner.join(120)
+    assert not runner.is_alive(), "the executor deadlocked"
+    assert len(done) == 24 and all(done[t] == t[1] * 8 for t in tasks)
+    assert ex._task_s < QUEUE_BELOW_S                                 # short tasks: the queue would have been used
