@@ -118,26 +118,30 @@ def _squares(rng: np.random.Generator, rows: int, columns: int, p: float, lo: in
 
 
 def window_transmission(positions_m: np.ndarray, ring: np.ndarray, profile: LidarProfile,
-                        transmission: np.ndarray) -> np.ndarray:
-    """(N,) the window's two-way transmission for every point (1 for points without a return) from a
-    ``channels × columns`` table: row of its ring by elevation, column of its azimuth ``φ = atan2(y, x)`` turning
-    clockwise, ``floor(((−φ) mod 2π) / step)`` (one column: a rotating window, every azimuth)."""
+                        transmission: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points the window dims and their two-way transmission, as (indices ascending, t): every point whose cell
+    of the ``channels × columns`` table is not 1 (the others, and points without a return, pass everything). The
+    cell: row of the point's ring by elevation, column of its azimuth ``φ = atan2(y, x)`` turning clockwise,
+    ``floor(((−φ) mod 2π) / step)`` (one column: a rotating window, every azimuth). Sparse: a window dims few points,
+    so no full-length array is written."""
     table = np.ascontiguousarray(transmission, dtype=np.float64)
     return _window_transmission(np.ascontiguousarray(positions_m, dtype=np.float64), np.asarray(ring),
-                                ring_rows(profile), table.reshape(-1), table.shape[1], np.any(table < 1, axis=1))
+                                ring_rows(profile), table.reshape(-1), table.shape[1], np.any(table != 1, axis=1))
 
 
 @jit
 def _window_transmission(pos, ring, rows, table, columns, row_obstructed):       # pragma: no cover - compiled
-    """Per point: 1 on a row without obstruction (no azimuth needed) or without a return, else its cell's value. In
-    blocks of points that stay in the L1 cache: their coordinates copied contiguous, the azimuths in one vectorised
-    loop (most rows hold a patch), then the lookups."""
+    """Per point: nothing on a row without obstruction (no azimuth needed) or without a return, else its cell's value
+    when not 1. In blocks of points that stay in the L1 cache: their coordinates copied contiguous, the azimuths in
+    one vectorised loop (most rows hold a patch), then the lookups."""
     n = len(ring)
     block = 1024
     x = np.empty(block)
     y = np.empty(block)
     azimuth = np.empty(block)
-    out = np.empty(n)
+    at = np.empty(n, np.int64)                          # (pages never written are never touched)
+    t = np.empty(n)
+    k = 0
     per_rad = columns / (2.0 * math.pi)
     for b0 in range(0, n, block):
         m = min(n, b0 + block) - b0
@@ -150,14 +154,16 @@ def _window_transmission(pos, ring, rows, table, columns, row_obstructed):      
             p = b0 + i
             row = rows[ring[p]]
             if not row_obstructed[row]:
-                out[p] = 1.0
                 continue
             z = pos[p, 2]
             if not (math.isfinite(x[i] + y[i] + z) and (x[i] != 0.0 or y[i] != 0.0 or z != 0.0)):
-                out[p] = 1.0
                 continue
             turn = -azimuth[i]
             if turn < 0.0:
                 turn += 2.0 * math.pi
-            out[p] = table[row * columns + min(int(turn * per_rad), columns - 1)]
-    return out
+            value = table[row * columns + min(int(turn * per_rad), columns - 1)]
+            if value != 1.0:
+                at[k] = p
+                t[k] = value
+                k += 1
+    return at[:k].copy(), t[:k].copy()

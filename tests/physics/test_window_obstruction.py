@@ -71,9 +71,13 @@ def test_window_cells_of_points_and_aspect():
     el = np.deg2rad(np.asarray(prof.beam_elevation_deg))[ring]
     pos = 10 * np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
     cell_number = -1.0 - np.arange(128 * 2048).reshape(128, 2048)               # a table that names its cells
-    t = window_transmission(np.vstack([pos, np.zeros((1, 3))]), np.append(ring, 5), prof, cell_number)
-    assert (-1 - t).tolist() == [0, 127 * 2048 + 1536, 64 * 2048 + 1024, -2.0]    # no return: transmission 1
-    assert (-1 - window_transmission(pos, ring, prof, cell_number[:, :1])).tolist() == [0, 127 * 2048, 64 * 2048]
+    at, t = window_transmission(np.vstack([pos, np.zeros((1, 3))]), np.append(ring, 5), prof, cell_number)
+    assert at.tolist() == [0, 1, 2] and (-1 - t).tolist() == [0, 127 * 2048 + 1536, 64 * 2048 + 1024]  # no return
+    at, t = window_transmission(pos, ring, prof, cell_number[:, :1])
+    assert at.tolist() == [0, 1, 2] and (-1 - t).tolist() == [0, 127 * 2048, 64 * 2048]
     clear = np.ones((128, 2048))
     clear[3, 5] = 0.0
-    assert window_transmission(pos, ring, prof, clear).tolist() == [1.0, 1.0, 1.0]
+    at, t = window_transmission(pos, ring, prof, clear)
+    assert len(at) == 0 and len(t) == 0
+    clear[127, 1536] = 0.25                                         # only the dimmed points, ascending
+    assert [a.tolist() for a in window_transmission(pos[::-1], ring[::-1], prof, clear)] == [[1], [0.25]]

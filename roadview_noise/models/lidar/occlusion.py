@@ -100,43 +100,43 @@ class OcclusionLidar(Model):
                              model=self.id, field="state")
         pattern = window_pattern(self._spec(profile), *grid, int(drawn_pattern["pattern_seed"]))
         if pattern.obstructed_fraction > 0:
-            t = window_transmission(data.positions_m, ring_index(data, profile), profile, pattern.transmission)
+            at, t = window_transmission(data.positions_m, ring_index(data, profile), profile, pattern.transmission)
         else:
-            t = np.ones(len(data))
-        remove = t == 0
-        partial = ((t > 0) & (t < 1)) if pattern.partial else None
+            at, t = np.zeros(0, dtype=np.int64), np.zeros(0)
+        blocked = at[t == 0]
+        remove = np.zeros(len(data), dtype=bool)
+        remove[blocked] = True
         out = data
         diagnostics = {"window": drawn_pattern["window"], "seeds": int(pattern.seeds),
                        "blocked_fraction": pattern.blocked_fraction,
-                       "obstructed_fraction": pattern.obstructed_fraction, "points_blocked": int(remove.sum())}
+                       "obstructed_fraction": pattern.obstructed_fraction, "points_blocked": len(blocked)}
+        removed = len(blocked)
+        partial = ((t > 0) & (t < 1)) if pattern.partial else None
         if partial is not None and partial.any():
-            out, below, attenuated, notes = _attenuate(data, t, partial, self.id)
-            remove |= below
+            out, below, attenuated, notes = _attenuate(data, at[partial], t[partial], self.id)
+            remove[below] = True
+            removed += len(below)
             diagnostics.update(points_attenuated=attenuated, **notes)
-        diagnostics["points_removed"] = int(remove.sum())
+        diagnostics["points_removed"] = removed
         return out.drop(remove), diagnostics
 
 
-def _attenuate(cloud: PointCloud, t: np.ndarray, partial: np.ndarray, model_id: str
+def _attenuate(cloud: PointCloud, at: np.ndarray, t: np.ndarray, model_id: str
                ) -> tuple[PointCloud, np.ndarray, int, dict]:
-    """Returns behind partial patches: signal and stored intensity × t (linear in the signal for either intensity
-    kind), rounded as the sensor stores it; those below the receiver's threshold (:func:`lidar_rays.cloud_rays`: the
-    weather's, calibrated below the weakest recorded return) or too faint to store are to be removed. Returns the
-    cloud with the new intensities (effect ATTENUATED where they changed visibly), the points to remove, how many
-    were attenuated and kept, and the threshold notes."""
+    """Returns ``at`` behind partial patches (transmission ``t``): signal and stored intensity × t (linear in the
+    signal for either intensity kind), rounded as the sensor stores it; those below the receiver's threshold
+    (:func:`lidar_rays.cloud_rays`: the weather's, calibrated below the weakest recorded return) or too faint to store
+    are to be removed. Returns the cloud with the new intensities (effect ATTENUATED where they changed visibly), the
+    indices of the points to remove, how many were attenuated and kept, and the threshold notes."""
     rays = cloud_rays(cloud, model_id, "ignore")
     profile = rays.profile
-    at = np.flatnonzero(partial)                        # (indices: one pass over the mask, not one per use)
     field = cloud.fields["intensity"]
-    t_at = t[at]
-    reported = field[at].astype(np.float64) * t_at
-    below = np.zeros(len(cloud), dtype=bool)
-    below_at = (rays.signal[at] * t_at < rays.threshold) | too_faint(reported, profile)
-    below[at] = below_at
+    reported = field[at].astype(np.float64) * t
+    below_at = (rays.signal[at] * t < rays.threshold) | too_faint(reported, profile)
     stored = np.asarray(stored_intensity(reported, profile), dtype=np.float64)
     values = field.copy()
     values[at] = stored.astype(field.dtype)
     changed = np.zeros(len(cloud), dtype=bool)
     changed[at] = ~below_at & (np.abs(stored - field[at]) >= 0.5 * intensity_resolution(profile))
     out = mark(cloud.with_fields(intensity=values), changed, Effect.ATTENUATED)
-    return out, below, int(np.count_nonzero(~below_at)), {k: v for k, v in rays.notes.items()}
+    return out, at[below_at], int(np.count_nonzero(~below_at)), {k: v for k, v in rays.notes.items()}
