@@ -87,7 +87,8 @@ class Rays:
         return int(np.count_nonzero(self.faint))
 
 
-def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calibrate: bool = True) -> Rays:
+def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calibrate: bool = True,
+               at: np.ndarray | None = None) -> Rays:
     """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K).
 
     Intensities are read with :func:`lidar_intensity.resolve_profile` (a warning is printed once per process and
@@ -95,7 +96,9 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     point list's empty rays appended after its points (a list without a regular firing grid keeps only its points,
     and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest return of the cloud as
     recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive);
-    ``calibrate=False`` keeps the datasheet receiver (ray drop) and does not read the recorded cloud."""
+    ``calibrate=False`` keeps the datasheet receiver (ray drop) and does not read the recorded cloud. ``at``
+    (indices; only with ``empty_rays="ignore"``): the rays of those points only, the receiver still calibrated on the
+    whole cloud (a step that changes a few points does not write every point's signal)."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
         raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
@@ -105,6 +108,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
                          model=model_id, field="intensity")
     if empty_rays not in EMPTY_RAYS:
         raise ModelError(f"empty_rays {empty_rays!r} is not one of {EMPTY_RAYS}", model=model_id, field="empty_rays")
+    if at is not None and empty_rays != "ignore":
+        raise ValueError("the rays of some points only (at) have no empty rays: use empty_rays='ignore'")
     intensity = np.asarray(cloud.fields["intensity"])
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     scale = resolve_profile(profile, intensity, positions, model_id)
@@ -119,9 +124,13 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     fill = empty_rays != "ignore"
     grid = cloud.grid_shape is not None
     per_reading = 1.0 / white_reading(profile) if compensated else 1.0 / k
-    r, signal, has_target, weakest = _ray_signals(positions, intensity, compensated, per_reading,
-                                                  profile.max_range_m if grid and fill else 0.0,
-                                                  intensity_step(profile))
+    if at is None:
+        r, signal, has_target, weakest = _ray_signals(positions, intensity, compensated, per_reading,
+                                                      profile.max_range_m if grid and fill else 0.0,
+                                                      intensity_step(profile))
+    else:
+        r, signal, has_target, _ = _ray_signals(positions[at], intensity[at], compensated, per_reading, 0.0,
+                                                intensity_step(profile))
     recorded = cloud.recorded
     if not calibrate:
         weakest = math.inf
@@ -130,6 +139,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         weakest = _ray_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
                                np.asarray(recorded.fields["intensity"]), compensated, per_reading, 0.0,
                                intensity_step(profile))[3]
+    elif at is not None:
+        weakest = _weakest_signal(positions, intensity, compensated, per_reading, intensity_step(profile))
     try:
         receiver = Receiver.of(profile, k).calibrated(weakest)
     except ValueError as e:
@@ -177,10 +188,8 @@ def _above_horizon(cloud: PointCloud, profile: LidarProfile) -> np.ndarray:
 @jit
 def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step):       # pragma: no cover - compiled
     """Per point: range (``empty_range_m`` where the point is zero), received signal in units of K that the stored
-    value stands for (``I·scale`` or, range-compensated, ``I·scale / R²``; 0 without a return) and whether it is a
-    return; and the weakest signal any return can have: its stored value minus half a ``step``, at least half the
-    value (a reading of one step can be half a step; continuous values: the value). A stored 0 (a sensor that writes
-    faint returns as 0) stands for a quarter step and can be an eighth: it was detected."""
+    value stands for (:func:`_point_signal`; 0 without a return) and whether it is a return; and the weakest signal
+    any return can have."""
     n = len(intensity)
     r = np.empty(n)
     signal = np.empty(n)
@@ -191,16 +200,38 @@ def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step):
         has[i] = ri > 0
         if ri > 0:
             r[i] = ri
-            value = float(intensity[i])
-            low = max(value - 0.5 * step, 0.5 * value)
-            if value <= 0.0 and step > 0.0:
-                value = 0.25 * step
-                low = 0.125 * step
-            per = scale / (ri * ri) if compensated else scale
-            signal[i] = value * per
-            if low * per < weakest:
-                weakest = low * per
+            signal[i], low = _point_signal(ri, intensity[i], compensated, scale, step)
+            if low < weakest:
+                weakest = low
         else:
             r[i] = empty_range_m
             signal[i] = 0.0
     return r, signal, has, weakest
+
+
+@jit
+def _weakest_signal(positions, intensity, compensated, scale, step):       # pragma: no cover - compiled
+    """The weakest signal any return of the points can have (:func:`_ray_signals`' last value alone)."""
+    weakest = math.inf
+    for i in range(len(intensity)):
+        ri = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
+        if ri > 0:
+            low = _point_signal(ri, intensity[i], compensated, scale, step)[1]
+            if low < weakest:
+                weakest = low
+    return weakest
+
+
+@jit(inline="always")
+def _point_signal(ri, stored, compensated, scale, step):       # pragma: no cover - compiled
+    """(signal, weakest signal) of a return at range ``ri`` > 0 with the stored value: ``I·scale`` or,
+    range-compensated, ``I·scale / R²``; the weakest is its stored value minus half a ``step``, at least half the
+    value (a reading of one step can be half a step; continuous values: the value). A stored 0 (a sensor that writes
+    faint returns as 0) stands for a quarter step and can be an eighth: it was detected."""
+    value = float(stored)
+    low = max(value - 0.5 * step, 0.5 * value)
+    if value <= 0.0 and step > 0.0:
+        value = 0.25 * step
+        low = 0.125 * step
+    per = scale / (ri * ri) if compensated else scale
+    return value * per, low * per

@@ -128,11 +128,11 @@ def _attenuate(cloud: PointCloud, at: np.ndarray, t: np.ndarray, model_id: str
     (:func:`lidar_rays.cloud_rays`: the weather's, calibrated below the weakest recorded return) or too faint to store
     are to be removed. Returns the cloud with the new intensities (effect ATTENUATED where they changed visibly), the
     indices of the points to remove, how many were attenuated and kept, and the threshold notes."""
-    rays = cloud_rays(cloud, model_id, "ignore")
+    rays = cloud_rays(cloud, model_id, "ignore", at=at)
     profile = rays.profile
     field = cloud.fields["intensity"]
     reported = field[at].astype(np.float64) * t
-    below_at = (rays.signal[at] * t < rays.threshold) | too_faint(reported, profile)
+    below_at = (rays.signal * t < rays.threshold) | too_faint(reported, profile)
     stored = np.asarray(stored_intensity(reported, profile), dtype=np.float64)
     values = field.copy()
     values[at] = stored.astype(field.dtype)
