@@ -137,9 +137,16 @@ def _median8(a0, a1, a2, a3, a4, a5, a6, a7):       # pragma: no cover - compile
 
 
 @jit(inline="always")
-def _ring_median(values, q0, q1, q2, q3, q4, q5, q6, q7):       # pragma: no cover - compiled
-    """:func:`_median8` of ``values`` at the 8 indices."""
-    return _median8(values[q0], values[q1], values[q2], values[q3], values[q4], values[q5], values[q6], values[q7])
+def _gather8(dst, k, values, q0, q1, q2, q3, q4, q5, q6, q7):       # pragma: no cover - compiled
+    """``dst[:, k]`` = ``values`` at the 8 indices (one column of a block of rings)."""
+    dst[0, k], dst[1, k], dst[2, k], dst[3, k] = values[q0], values[q1], values[q2], values[q3]
+    dst[4, k], dst[5, k], dst[6, k], dst[7, k] = values[q4], values[q5], values[q6], values[q7]
+
+
+@jit(inline="always")
+def _median8_at(v, k):       # pragma: no cover - compiled
+    """:func:`_median8` of ``v[:, k]``."""
+    return _median8(v[0, k], v[1, k], v[2, k], v[3, k], v[4, k], v[5, k], v[6, k], v[7, k])
 
 
 @jit(inline="always")
@@ -169,6 +176,17 @@ def _ring_cos(pos, q0, q1, q2, q3, q4, q5, q6, q7):       # pragma: no cover - c
     return _cos_between(nx, ny, nz, dx, dy, dz)
 
 
+@jit
+def _full_medians(ring_s, ring_r, full, k_full, out, median_range):       # pragma: no cover - compiled
+    """The medians of a block of full rings (:func:`_neighbour_features`), vectorised, then put in place."""
+    res_s, res_r = np.empty(k_full), np.empty(k_full)
+    for k in range(k_full):
+        res_s[k] = _median8_at(ring_s, k)
+        res_r[k] = _median8_at(ring_r, k)
+    for k in range(k_full):
+        out[full[k], 0], median_range[full[k]] = res_s[k], res_r[k]
+
+
 @jit(inline="always")
 def _cos_between(nx, ny, nz, dx, dy, dz):       # pragma: no cover - compiled
     """|n̂·d̂|, 1 when either vector (nearly) vanishes."""
@@ -191,7 +209,8 @@ def _neighbour_features(padded, log_signal, range_m, pos, elevation, at, columns
     values without any; the range returned apart, for the caller's vectorised log), and |n̂·d̂| with n the area vector
     of the polygon of the returning neighbours in order around the cell and d the sum of their positions (1 with fewer
     than 3 of them, or collinear ones). The area vector is Newell's ``Σ v_i × v_{i+1}``; for the full ring of 8 the
-    same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products)."""
+    same sum as ``Σ_{i even} v_{i+1} × (v_{i+2} − v_i)`` (4 cross products). The full rings' medians (most cells)
+    are taken per block of cells in one vectorised loop (:func:`_full_medians`)."""
     w = columns + 2
     # the 8 neighbours in order around the cell, as offsets in the padded image
     ring = np.array([-w - 1, -w, -w + 1, 1, w + 1, w, w - 1, -1])
@@ -203,7 +222,11 @@ def _neighbour_features(padded, log_signal, range_m, pos, elevation, at, columns
     px = np.empty(9)
     py = np.empty(9)
     pz = np.empty(9)
+    block = 1024                    # full rings' values gathered per block, their medians in one vectorised loop
+    full = np.empty(block, np.int64)
+    ring_s, ring_r = np.empty((8, block)), np.empty((8, block))
     r, row_start = 0, 0
+    k_full = 0
     for i in range(len(at)):
         if not row_start <= at[i] < row_start + columns:     # (cells mostly come row by row: no division)
             r = at[i] // columns
@@ -214,8 +237,13 @@ def _neighbour_features(padded, log_signal, range_m, pos, elevation, at, columns
         q4, q5, q6, q7 = padded[base + ring[4]], padded[base + ring[5]], padded[base + ring[6]], padded[base + ring[7]]
         if min(min(min(q0, q1), min(q2, q3)), min(min(q4, q5), min(q6, q7))) >= 0:      # the full ring (most cells)
             support[i] = 8
-            out[i, 0] = _ring_median(log_signal, q0, q1, q2, q3, q4, q5, q6, q7)
-            median_range[i] = _ring_median(range_m, q0, q1, q2, q3, q4, q5, q6, q7)
+            full[k_full] = i
+            _gather8(ring_s, k_full, log_signal, q0, q1, q2, q3, q4, q5, q6, q7)
+            _gather8(ring_r, k_full, range_m, q0, q1, q2, q3, q4, q5, q6, q7)
+            k_full += 1
+            if k_full == block:
+                _full_medians(ring_s, ring_r, full, k_full, out, median_range)
+                k_full = 0
             out[i, 2] = _ring_cos(pos, q0, q1, q2, q3, q4, q5, q6, q7)
             continue
         k = 0
@@ -251,6 +279,7 @@ def _neighbour_features(padded, log_signal, range_m, pos, elevation, at, columns
                 dz += pz[j]
             cos = _cos_between(nx, ny, nz, dx, dy, dz)
         out[i, 2] = cos
+    _full_medians(ring_s, ring_r, full, k_full, out, median_range)
     return out, median_range, support
 
 
