@@ -96,3 +96,33 @@ def test_neighbour_median_of_any_count():
             b = rng.normal(size=8)
             b[rng.random(8) < 0.3] = b[0]                                  # ties
             assert _median(b.copy(), k) == pytest.approx(np.median(b[:k]), abs=1e-15)
+
+
+def test_neighbour_medians_and_support_against_numpy():
+    """:func:`_neighbour_features` on an image with holes (full rings and partial ones, several blocks of full
+    rings and a partial last one): each cell's medians of its returning neighbours' values (wrapped over the seam,
+    none above the top or below the bottom row) equal ``np.median``, its support their count."""
+    from roadview_noise.physics.ray_drop import _neighbour_features
+
+    rng = np.random.default_rng(5)
+    rows, columns = 9, 700
+    filled = rng.random((rows, columns)) > 0.08
+    image = np.full((rows, columns), -1, dtype=np.int64)
+    image[filled] = np.arange(filled.sum())
+    padded = np.full((rows + 2, columns + 2), -1, dtype=np.int64)
+    padded[1:-1, 1:-1] = image
+    padded[1:-1, 0], padded[1:-1, -1] = image[:, -1], image[:, 0]
+    n = int(filled.sum())
+    log_signal, range_m, pos = rng.normal(size=n), rng.uniform(1, 50, n), rng.normal(size=(n, 3))
+    at = np.flatnonzero(filled.ravel())
+    out, median_range, support = _neighbour_features(padded.ravel(), log_signal, range_m, pos, np.zeros(rows), at,
+                                                     columns)
+    for i, q in enumerate(at):
+        r, c = divmod(int(q), columns)
+        around = [image[rr, cc % columns] for rr in (r - 1, r, r + 1) for cc in (c - 1, c, c + 1)
+                  if (rr, cc) != (r, c) and 0 <= rr < rows]
+        p = [a for a in around if a >= 0]
+        assert support[i] == len(p)
+        if p:
+            assert out[i, 0] == np.median(log_signal[p]) and median_range[i] == np.median(range_m[p])
+    assert np.count_nonzero(support == 8) > 2048
