@@ -82,15 +82,15 @@ def order_chain(model_ids: Sequence[str], *, as_written: bool = False, where: st
     Refuses (``RecipeError``): unknown or unfinished models, mixed sensors, the same model twice, a modifier
     without a weather model after it, and — unless ``as_written`` — an order that contradicts the stages."""
     planned = {m for cnf in CNFS.values() for ids in cnf.chains.values() for m in ids}
+    classes = []
     for i, mid in enumerate(model_ids):
         if mid in planned and not known(mid):
             raise RecipeError(f"model {mid!r} is not implemented yet (`rvnoise list` marks the CNFs that run)",
                               key=f"{where}[{i}].model")
         try:
-            get_model(mid)
+            classes.append(get_model(mid))
         except ModelError as e:
             raise RecipeError(str(e), key=f"{where}[{i}].model") from None
-    classes = [get_model(m) for m in model_ids]
     sensors = {c.sensor for c in classes}
     if len(sensors) > 1:
         raise RecipeError(f"a chain acts on one sensor, got models for {', '.join(sorted(sensors))}", key=where)

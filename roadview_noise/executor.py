@@ -7,8 +7,8 @@ task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if
 is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds a second task, queued in its pipe, so it
 never waits for the parent between two small files (only a task of at most ``QUEUE_MAX_BYTES``: sending it never
 blocks on a worker that is itself blocked sending a large result); it runs them in order, so the first unanswered
-task is still the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get the run
-context once at start and then only small task keys (never arrays).
+task is still the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get
+the run context once at start and then only small task keys (never arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
