@@ -14,8 +14,12 @@
 
 Each model is timed in its own process (fresh heap; pin the bench to one core with ``taskset -c 0``). Prints per-model
 ms per frame (min and median of 15 frames after a warm-up; the model alone, ``apply_models(metrics=False)``, and apart
-the per-step metrics ``augment`` adds by default), the tracemalloc peak, the visible particles drawn, and
-the speed-up of the median over the MATLAB reference (18 / 24 / 30 s per frame for fog / rain / snow, models.md §6).
+the per-step metrics ``augment`` adds by default), the median CPU time of the process's thread (``time.thread_time``:
+on a shared, loaded machine it leaves out the time the process waits for a core, so it varies less than the wall
+time; cache contention still shows), the tracemalloc peak, the visible particles drawn, and the speed-up of the median
+over the MATLAB reference (18 / 24 / 30 s per frame for fog / rain / snow, models.md §6). Rain and snow also print
+their stages (CPU ms, median of 15 frames): cloud → rays (:func:`lidar_rays.cloud_rays`), the particle kernel
+(:func:`lidar_weather.particle_returns`: draw, summed pulses, detection) and rays → cloud (:func:`lidar_output.assemble`).
 Run: ``taskset -c 0 .venv/bin/python bench/bench_lidar_weather.py``.
 """
 
@@ -42,8 +46,9 @@ from roadview_noise.models.lidar.fog import FogLidar  # noqa: E402
 from roadview_noise.models.lidar.rain import RainLidar  # noqa: E402
 from roadview_noise.models.lidar.snow import SnowLidar  # noqa: E402
 from roadview_noise.physics.lidar_intensity import sensor_constant  # noqa: E402
+from roadview_noise.physics.lidar_output import assemble  # noqa: E402
 from roadview_noise.physics.lidar_rays import cloud_rays  # noqa: E402
-from roadview_noise.physics.lidar_weather import precipitation  # noqa: E402
+from roadview_noise.physics.lidar_weather import particle_returns, precipitation  # noqa: E402
 from roadview_noise.profiles.lidar import os1_128, os1_128_reflectivity  # noqa: E402
 from roadview_noise.provenance import Effect
 from roadview_noise.types import PointCloud  # noqa: E402
@@ -105,22 +110,42 @@ def real_scan() -> PointCloud | None:
     return PointCloud(a[:, :3].astype(np.float64), {"intensity": a[:, 3].copy()}, "lidar", os1_128_reflectivity())
 
 
-def time_model(model, cloud: PointCloud) -> tuple[float, float, float, dict]:
-    """(min, median) ms per frame over REPEATS after one warm-up frame (cached tables), the median ms of the per-step
-    metrics that ``augment`` adds by default (:func:`metrics.compare`, timed apart: ``output: {metrics: false}``
-    turns them off), and the diagnostics."""
+def time_model(model, cloud: PointCloud) -> tuple[float, float, float, float, dict]:
+    """(min, median) ms per frame over REPEATS after one warm-up frame (cached tables), the median CPU ms of the
+    thread, the median ms of the per-step metrics that ``augment`` adds by default (:func:`metrics.compare`, timed
+    apart: ``output: {metrics: false}`` turns them off), and the diagnostics."""
     apply_models([model], cloud, seed=1, key="warm", sequence_id="s", metrics=False)
-    times, metric_times = [], []
+    times, cpu_times, metric_times = [], [], []
     for i in range(REPEATS):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         out, rec = apply_models([model], cloud, seed=1, key=f"bench{i}", sequence_id="s", metrics=False)
         times.append(time.perf_counter() - t0)
+        cpu_times.append(time.thread_time() - c0)
         before = dataclasses.replace(cloud)            # a new object: its summary is not cached
         t0 = time.perf_counter()
         compare(before, out)
         metric_times.append(time.perf_counter() - t0)
-    return (min(times) * 1e3, statistics.median(times) * 1e3, statistics.median(metric_times) * 1e3,
-            rec[0].diagnostics)
+    return (min(times) * 1e3, statistics.median(times) * 1e3, statistics.median(cpu_times) * 1e3,
+            statistics.median(metric_times) * 1e3, rec[0].diagnostics)
+
+
+def stage_times(model, cloud: PointCloud) -> dict:
+    """Median CPU ms per frame of the stages of rain or snow (module doc), REPEATS frames after a warm-up."""
+    medium = model.medium()
+    times = {"rays": [], "kernel": [], "output": []}
+    for i in range(REPEATS + 1):
+        c0 = time.thread_time()
+        rays = cloud_rays(cloud, model.id, model.empty_rays)
+        c1 = time.thread_time()
+        returns, _ = particle_returns(np.random.default_rng(i), rays, medium, model.return_mode,
+                                      model.draw_fraction_of_threshold)
+        c2 = time.thread_time()
+        assemble(cloud, rays, returns)
+        c3 = time.thread_time()
+        if i:
+            for key, t in zip(times, (c1 - c0, c2 - c1, c3 - c2)):
+                times[key].append(t)
+    return {key: statistics.median(t) * 1e3 for key, t in times.items()}
 
 
 def peak_memory_mb(model, cloud: PointCloud) -> float:
@@ -136,26 +161,34 @@ def measure(scene: str, model_id: str) -> None:
     keep_freed_memory()                                # as the batch workers do (roadview_noise.runner.process)
     cloud = synthetic_grid() if scene == "synthetic" else real_scan()
     model = D35[model_id]
-    lo, med, metrics_ms, diag = time_model(model, cloud)
-    print(json.dumps({"min_ms": lo, "median_ms": med, "metrics_ms": metrics_ms, "peak_mb": peak_memory_mb(model, cloud),
-                      "diag": diag}))
+    lo, med, cpu, metrics_ms, diag = time_model(model, cloud)
+    stages = stage_times(model, cloud) if model_id != "fog.lidar" else {}
+    print(json.dumps({"min_ms": lo, "median_ms": med, "cpu_ms": cpu, "metrics_ms": metrics_ms,
+                      "peak_mb": peak_memory_mb(model, cloud), "stages_cpu_ms": stages, "diag": diag}))
 
 
 def report(name: str, scene: str, cloud: PointCloud) -> None:
     """Each model in its own process (one core, fresh heap), so no model pays for another's memory layout."""
     print(f"\n{name}: {len(cloud)} rays, {int(np.count_nonzero(cloud.positions_m.any(axis=1)))} returns")
-    print(f"{'model':12s} {'min ms':>7s} {'median':>7s} {'metrics':>8s} {'peak MB':>8s} {'speed-up':>9s}  "
-          "kept/attenuated/moved/removed/added  particles")
+    print(f"{'model':12s} {'min ms':>7s} {'median':>7s} {'cpu ms':>7s} {'metrics':>8s} {'peak MB':>8s} "
+          f"{'speed-up':>9s}  kept/attenuated/moved/removed/added  particles")
+    stages = {}
     for mid in D35:
         res = subprocess.run([sys.executable, __file__, "--measure", scene, mid], capture_output=True, text=True,
                              check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
         r = json.loads(res.stdout.strip().splitlines()[-1])
         d = r["diag"]
         counts = "/".join(str(d[k]) for k in ("kept", "attenuated", "moved", "removed", "added"))
-        print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['metrics_ms']:8.1f} {r['peak_mb']:8.1f} "
-              f"{MATLAB_S[mid] * 1e3 / r['median_ms']:8.0f}×  {counts}  {d.get('particles_drawn', '')}")
+        print(f"{mid:12s} {r['min_ms']:7.1f} {r['median_ms']:7.1f} {r['cpu_ms']:7.1f} {r['metrics_ms']:8.1f} "
+              f"{r['peak_mb']:8.1f} {MATLAB_S[mid] * 1e3 / r['median_ms']:8.0f}×  {counts}  "
+              f"{d.get('particles_drawn', '')}")
+        if r["stages_cpu_ms"]:
+            stages[mid] = r["stages_cpu_ms"]
     print(f"  empty rays: {d['empty_rays']} ({d['empty_rays_source']}); detection threshold "
           f"{d['detection_threshold']:.3g} ({d['detection_threshold_source']})")
+    for mid, st in stages.items():
+        print(f"  {mid} stages (CPU ms, median): cloud → rays {st['rays']:.1f}, particle kernel {st['kernel']:.1f}, "
+              f"rays → cloud {st['output']:.1f}")
 
 
 def firing_grid_time(cloud: PointCloud) -> None:
