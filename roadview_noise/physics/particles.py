@@ -110,16 +110,28 @@ class SizeClasses:
     def sample_diameters_mm(self, cls: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Inverse CDF within each particle's class (``u`` uniform in [0, 1)), float32."""
         q = self.quantiles_mm.shape[1] - 1
-        return lerp_table(self.quantiles_mm.ravel(), cls * (q + 1), u * np.float32(q), q)
+        base = np.arange(self.quantiles_mm.shape[0], dtype=np.int64) * (q + 1)
+        return lerp_table(self.quantiles_mm.ravel(), base, np.full(base.size, q, np.float32), cls, u, q)
 
 
-def lerp_table(table: np.ndarray, offset: np.ndarray | int, t: np.ndarray, n: int) -> np.ndarray:
-    """Linear interpolation in equally spaced tables: ``table[offset + t]`` for t in [0, n] (float32)."""
-    t = np.asarray(t, dtype=np.float32)
-    j = np.minimum(t.astype(np.int32), n - 1)
-    frac = t - j.astype(np.float32)
-    lo = table[offset + j]
-    return lo + frac * (table[offset + j + 1] - lo)
+def lerp_table(table: np.ndarray, base: np.ndarray, scale: np.ndarray, cls: np.ndarray, u: np.ndarray,
+               n: int) -> np.ndarray:
+    """Linear interpolation in equally spaced tables, float32: ``table[base[c] + t]`` at ``t = u · scale[c]`` in
+    [0, n], c = ``cls`` of each value (one compiled pass)."""
+    out = np.empty(np.shape(u), np.float32)
+    _lerp_kernel(table, base, np.asarray(scale, np.float32), cls, np.asarray(u, np.float32), n, out)
+    return out
+
+
+@jit(error_model="numpy")
+def _lerp_kernel(table, base, scale, cls, u, n, out):                        # pragma: no cover - compiled
+    for i in range(u.size):
+        c = cls[i]
+        t = u[i] * scale[c]
+        j = min(np.int32(t), n - 1)
+        frac = t - np.float32(j)
+        lo = table[base[c] + j]
+        out[i] = lo + frac * (table[base[c] + j + 1] - lo)
 
 
 def size_classes(n_of_d: Callable[[np.ndarray], np.ndarray], d_min_mm: float, d_max_mm: float) -> SizeClasses:
@@ -284,7 +296,8 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     u = rng.random((4, cls.size), dtype=np.float32)
     d = classes.sample_diameters_mm(cls, u[0])
     q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
-    z = np.exp(np.log(lerp_table(z3_quantiles, 0, u[1] * q[cls], DEPTH_QUANTILES)) * np.float32(1 / 3))  # ∛
+    z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
+               * np.float32(1 / 3))                                                   # ∛
     col = u[2] * np.float32(profile.width_px) - np.float32(0.5)
     row = u[3] * (bottom_row_px(profile, z) + np.float32(0.5)) - np.float32(0.5)
     x = (col - np.float32(profile.cx_px)) * z / np.float32(profile.fx_px)
@@ -330,54 +343,162 @@ class Streaks(NamedTuple):
 
 def streak_geometry(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
                     d_min_m: float) -> Streaks:
-    """Each particle's streak: the segment between its exposure end points with uniform line density (total =
-    the particle's image area), lengthened by its footprint, on the grid of its footprint level."""
-    h, w = profile.height_px, profile.width_px
-    u0, v0, z0, u1, v1, z1 = streak_endpoints(profile, particles, conditions, exposure_s)
-    z = particles.z
-    r = np.sqrt(particles.x ** 2 + particles.y ** 2 + z * z)                 # range at mid-exposure
-    # image area of a sphere: (π/4) D² f_x f_y / (r² cos³θ) = (π/4) D² f_x f_y k / Z², k = r/Z
-    mass = np.float32(math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px) * particles.d_mm ** 2 * r / (z * z * z)
-    d_px = particles.d_mm * np.float32(1e-3 * focal_px(profile)) / z
-    c_px = defocus_px(profile, z)
-    footprint = np.sqrt(d_px * d_px + c_px * c_px)
-    level = footprint_level(footprint)
-    inv = LEVEL_INVERSE_SCALE[level]
-    # major (a) and minor (b) axis coordinates on the level's grid (arithmetic selects: np.where is 6× slower)
-    du, dv = u1 - u0, v1 - v0
-    vertical = np.abs(dv) >= np.abs(du)
-    a0, b0 = u0 + vertical * (v0 - u0), v0 + vertical * (u0 - v0)
-    da, db = du + vertical * (dv - du), dv + vertical * (du - dv)
-    offset = np.float32(0.5) * inv - np.float32(0.5)
-    a0, b0, da, db = a0 * inv + offset, b0 * inv + offset, da * inv, db * inv
-    slope = db / (da + (da == 0))                      # |slope| ≤ 1; 0 for a particle still in the image
-    half = np.float32(0.5) * footprint * inv           # lengthen by the footprint, from the lower end a0 ≤ a1
-    a_lo = np.minimum(a0, a0 + da)
-    b0 = b0 + slope * (a_lo - half - a0)
-    a0, a1 = a_lo - half, a_lo + np.abs(da) + half
-    density = mass * inv * inv / (a1 - a0)
-    n_major = np.ceil((np.float32(w) + vertical * np.float32(h - w)) * inv)
-    lo, hi = np.maximum(a0, np.float32(-0.5)), np.minimum(a1, n_major - np.float32(0.5))
-    first = np.floor(lo + np.float32(0.5))
-    count = (np.minimum(np.floor(hi + np.float32(0.5)), n_major - 1) - first + 1).astype(np.int32)
-    count[(hi <= lo) | (np.minimum(z0, z1) <= np.float32(0.5 * d_min_m))] = 0   # off-grid, or crossing the camera
-    return Streaks(level, vertical, a0, lo, hi, first.astype(np.int32), count, b0, slope, density, r)
+    """Each particle's streak: the segment between its exposure end points (:func:`streak_endpoints`) with
+    uniform line density (total = the particle's image area), lengthened by its footprint, on the grid of its
+    footprint level."""
+    return _streaks_of_rows(profile, particle_rows(particles), conditions, exposure_s, d_min_m)
+
+
+PARTICLE_ROW = ("x", "y", "z", "d_mm", "fall_speed_m_per_s")     # the columns of :func:`particle_rows`
+
+
+def particle_rows(particles: Particles) -> np.ndarray:
+    """The particles as (N, 5) float32 rows (:data:`PARTICLE_ROW`)."""
+    return np.stack([getattr(particles, name) for name in PARTICLE_ROW], axis=1).astype(np.float32, copy=False)
+
+
+def _streaks_of_rows(profile: CameraProfile, rows: np.ndarray, conditions: Conditions, exposure_s: float,
+                     d_min_m: float) -> Streaks:
+    """:func:`streak_geometry` of particles given as :func:`particle_rows`: one compiled pass, float32 operation by
+    operation as the NumPy expressions of the formulas (tests/physics/test_particles.py keeps them as the oracle)."""
+    n = rows.shape[0]
+    half_t = np.float32(exposure_s / 2)
+    hx, hy, hz = (np.float32(c) * half_t for c in relative_velocity_optical(conditions, 0.0)[0])
+    zf = profile.focus_distance_m
+    f, fn, pitch = profile.focal_length_m, profile.f_number, profile.pixel_pitch_m
+    k_defocus = f * f / (fn * pitch) if math.isinf(zf) else f * f / (fn * (zf - f) * pitch)    # defocus_px
+    camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px, hx, hy, hz, half_t,
+                       math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px, 1e-3 * focal_px(profile), k_defocus,
+                       0.0 if math.isinf(zf) else zf, 0.5 * d_min_m], dtype=np.float32)
+    out = Streaks(np.empty(n, np.int8), np.empty(n, bool), *(np.empty(n, np.float32) for _ in range(3)),
+                  np.empty(n, np.int32), np.empty(n, np.int32), *(np.empty(n, np.float32) for _ in range(4)))
+    _streak_geometry_kernel(rows, camera, not math.isinf(zf), profile.width_px, profile.height_px,
+                            footprint_level_bounds(), LEVEL_INVERSE_SCALE, *out)
+    return out
+
+
+@jit(error_model="numpy")
+def _streak_geometry_kernel(rows, camera, finite_focus, w, h, bounds, inverse_scale,
+                            level, vertical, a0, lo, hi, first, count, b0, slope, density, range_m):
+    """:func:`streak_geometry` of the particle ``rows[i]`` into entry i of the outputs."""  # pragma: no cover
+    n = rows.shape[0]
+    fx, fy, cx, cy, hx, hy_base, hz, half_t, k_mass, k_dpx, k_defocus, zf, z_cross = camera
+    b_1, b_2, b_3, b_4, b_5 = bounds
+    one, half, zero = np.float32(1), np.float32(0.5), np.float32(0)
+    w32, hw32 = np.float32(w), np.float32(h - w)
+    for i in range(n):
+        xp, yp, zp, dp, fs = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4]
+        # exposure end points P ∓ v_rel T/2 (streak_endpoints)
+        hy = hy_base + fs * half_t
+        z0, z1 = zp - hz, zp + hz
+        u0, v0 = fx * (xp - hx) / z0 + cx, fy * (yp - hy) / z0 + cy
+        u1, v1 = fx * (xp + hx) / z1 + cx, fy * (yp + hy) / z1 + cy
+        r = np.sqrt(xp * xp + yp * yp + zp * zp)
+        mass = k_mass * (dp * dp) * r / (zp * zp * zp)
+        d_px = dp * k_dpx / zp
+        c_px = k_defocus * abs(zp - zf) / zp if finite_focus else k_defocus / zp
+        footprint = np.sqrt(d_px * d_px + c_px * c_px)
+        lv = ((footprint >= b_1) + (footprint >= b_2) + (footprint >= b_3) + (footprint >= b_4) +
+              (footprint >= b_5))
+        inv = inverse_scale[lv]
+        du, dv = u1 - u0, v1 - v0
+        vert = abs(dv) >= abs(du)
+        vf = one if vert else zero
+        pa0, pb0 = u0 + vf * (v0 - u0), v0 + vf * (u0 - v0)
+        da, db = du + vf * (dv - du), dv + vf * (du - dv)
+        offset = half * inv - half
+        pa0, pb0, da, db = pa0 * inv + offset, pb0 * inv + offset, da * inv, db * inv
+        sl = db / (da + (one if da == zero else zero))
+        hf = half * footprint * inv
+        a_lo = min(pa0, pa0 + da)
+        pb0 = pb0 + sl * (a_lo - hf - pa0)
+        pa0, pa1 = a_lo - hf, a_lo + abs(da) + hf
+        n_major = np.ceil((w32 + vf * hw32) * inv)
+        plo, phi = max(pa0, -half), min(pa1, n_major - half)
+        pfirst = np.floor(plo + half)
+        pcount = min(np.floor(phi + half), n_major - one) - pfirst + one
+        level[i], vertical[i], a0[i], lo[i], hi[i] = lv, vert, pa0, plo, phi
+        first[i] = np.int32(pfirst)
+        count[i] = 0 if phi <= plo or min(z0, z1) <= z_cross else np.int32(pcount)
+        b0[i], slope[i], density[i], range_m[i] = pb0, sl, mass * inv * inv / (pa1 - pa0), r
+
+
+@lru_cache(maxsize=1)
+def footprint_level_bounds() -> np.ndarray:
+    """The smallest float32 footprints (px) of levels 1 … MAX_LEVEL under :func:`footprint_level`, found by
+    scanning its NumPy evaluation around each nominal step (``DISK_PER_SCALE_PX·2^(l−½)``, and the level-1 gate),
+    so the compiled rasteriser assigns exactly its levels."""
+    nominal = [math.sqrt(BILINEAR_DISK_PX * 2 * DISK_PER_SCALE_PX)] + [DISK_PER_SCALE_PX * 2 ** (lv - 0.5)
+                                                                       for lv in range(2, MAX_LEVEL + 1)]
+    bounds = []
+    for lv, x in enumerate(nominal, start=1):
+        bits = np.arange(-4096, 4097, dtype=np.int64) + int(np.float32(x).view(np.int32))
+        f = bits.astype(np.int32).view(np.float32)
+        step = np.flatnonzero(np.diff(footprint_level(f) >= lv))
+        if step.size != 1 or footprint_level(f[:1])[0] >= lv or footprint_level(f[-1:])[0] < lv:
+            raise AssertionError(f"footprint level {lv}: no single step near {x} px")
+        bounds.append(f[step[0] + 1])
+    out = np.array(bounds, np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def raster_order(profile: CameraProfile, particles: Particles) -> np.ndarray:
     """Particle indices in raster order of the pixel blocks (8 × 8 px or coarser, ≤ 2¹⁶ blocks) holding their
     mid-exposure images: visited in this order, the rasteriser's reads of the depth map and writes to the grids
-    stay in cache (2–3× faster for 10⁵ particles). A radix sort of 16-bit block numbers."""
+    stay in cache (2–3× faster for 10⁵ particles). A stable sort of the block numbers."""
+    return raster_sorted(profile, particles)[0]
+
+
+def raster_sorted(profile: CameraProfile, particles: Particles) -> tuple[np.ndarray, np.ndarray]:
+    """(:func:`raster_order`, the :func:`particle_rows` in that order): two passes of an 8-bit radix sort that
+    carry the rows along (streaming writes; gathering them in the order afterwards costs a cache miss per value)."""
     h, w = profile.height_px, profile.width_px
-    block = 8
-    while -(-h // block) * -(-w // block) > 1 << 16:
-        block *= 2
-    z = particles.z
-    col = np.clip(np.float32(profile.fx_px) * particles.x / z + np.float32(profile.cx_px), 0, w - 1)
-    row = np.clip(np.float32(profile.fy_px) * particles.y / z + np.float32(profile.cy_px), 0, h - 1)
-    blocks_per_row = -(-w // block)
-    key = (row.astype(np.int32) // block * blocks_per_row + col.astype(np.int32) // block).astype(np.uint16)
-    return np.argsort(key, kind="stable")
+    shift = 3                                         # 8 px
+    while -(-h >> shift) * -(-w >> shift) > 1 << 16:
+        shift += 1
+    camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px], np.float32)
+    n = particles.z.size
+    order, rows = np.empty(n, np.int64), np.empty((n, len(PARTICLE_ROW)), np.float32)
+    _raster_sort_kernel(*(np.asarray(getattr(particles, name), np.float32) for name in PARTICLE_ROW), camera, w, h,
+                        shift, order, rows)
+    return order, rows
+
+
+@jit(error_model="numpy")
+def _raster_sort_kernel(x, y, z, d_mm, fall_speed, camera, w, h, shift, order, rows):  # pragma: no cover
+    """``order`` = the stable sort of the particles by block number (< 2¹⁶; blocks of 2^shift px), ``rows`` their
+    (x, y, z, d_mm, fall_speed) in that order."""
+    fx, fy, cx, cy = camera
+    blocks_per_row = (w + (1 << shift) - 1) >> shift
+    n = z.size
+    key = np.empty(n, np.uint16)
+    start = np.zeros((2, 257), np.int64)
+    for p in range(n):
+        col = min(max(fx * x[p] / z[p] + cx, np.float32(0)), np.float32(w - 1))
+        row = min(max(fy * y[p] / z[p] + cy, np.float32(0)), np.float32(h - 1))
+        key[p] = (np.int32(row) >> shift) * blocks_per_row + (np.int32(col) >> shift)
+    for p in range(n):
+        start[0, (key[p] & 255) + 1] += 1
+        start[1, (key[p] >> 8) + 1] += 1
+    for d in range(2):
+        for b in range(1, 257):
+            start[d, b] += start[d, b - 1]
+    low_index, low_high, low_rows = np.empty(n, np.int64), np.empty(n, np.uint8), np.empty_like(rows)
+    for p in range(n):                                             # by the low byte
+        k = key[p]
+        j = start[0, k & 255]
+        start[0, k & 255] = j + 1
+        low_index[j], low_high[j] = p, k >> 8
+        low_rows[j, 0], low_rows[j, 1], low_rows[j, 2], low_rows[j, 3], low_rows[j, 4] = \
+            x[p], y[p], z[p], d_mm[p], fall_speed[p]
+    for i in range(n):                                             # then, stably, by the high byte
+        b = low_high[i]
+        j = start[1, b]
+        start[1, b] = j + 1
+        order[j] = low_index[i]
+        for c in range(5):
+            rows[j, c] = low_rows[i, c]
 
 
 def level_offsets(height: int, width: int, top_level: int) -> np.ndarray:
@@ -450,8 +571,7 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
     h, w = profile.height_px, profile.width_px
     if particles.z.size == 0:
         return np.zeros((h, w), dtype=np.float32), 0
-    streaks = streak_geometry(profile, particles.take(raster_order(profile, particles)), conditions, exposure_s,
-                              d_min_m)
+    streaks = _streaks_of_rows(profile, raster_sorted(profile, particles)[1], conditions, exposure_s, d_min_m)
     top = int(streaks.level[streaks.count > 0].max(initial=0))
     offsets = level_offsets(h, w, top)
     pyramid = np.zeros(offsets[-1], dtype=np.float32)
