@@ -346,22 +346,23 @@ def streak_geometry(profile: CameraProfile, particles: Particles, conditions: Co
     """Each particle's streak: the segment between its exposure end points (:func:`streak_endpoints`) with
     uniform line density (total = the particle's image area), lengthened by its footprint, on the grid of its
     footprint level."""
-    return _streaks_of_rows(profile, particle_rows(particles), conditions, exposure_s, d_min_m)
+    return _streaks_of_columns(profile, particle_columns(particles), conditions, exposure_s, d_min_m)
 
 
-PARTICLE_ROW = ("x", "y", "z", "d_mm", "fall_speed_m_per_s")     # the columns of :func:`particle_rows`
+PARTICLE_COLUMNS = ("x", "y", "z", "d_mm", "fall_speed_m_per_s")     # the rows of :func:`particle_columns`
 
 
-def particle_rows(particles: Particles) -> np.ndarray:
-    """The particles as (N, 5) float32 rows (:data:`PARTICLE_ROW`)."""
-    return np.stack([getattr(particles, name) for name in PARTICLE_ROW], axis=1).astype(np.float32, copy=False)
+def particle_columns(particles: Particles) -> np.ndarray:
+    """The particles as (5, N) float32 (:data:`PARTICLE_COLUMNS`)."""
+    return np.stack([getattr(particles, name) for name in PARTICLE_COLUMNS]).astype(np.float32, copy=False)
 
 
-def _streaks_of_rows(profile: CameraProfile, rows: np.ndarray, conditions: Conditions, exposure_s: float,
-                     d_min_m: float) -> Streaks:
-    """:func:`streak_geometry` of particles given as :func:`particle_rows`: one compiled pass, float32 operation by
-    operation as the NumPy expressions of the formulas (tests/physics/test_particles.py keeps them as the oracle)."""
-    n = rows.shape[0]
+def _streaks_of_columns(profile: CameraProfile, columns: np.ndarray, conditions: Conditions, exposure_s: float,
+                        d_min_m: float) -> Streaks:
+    """:func:`streak_geometry` of particles given as :func:`particle_columns`: one compiled, vectorised pass, float32
+    operation by operation as the NumPy expressions of the formulas (tests/physics/test_particles.py keeps them as
+    the oracle)."""
+    n = columns.shape[1]
     half_t = np.float32(exposure_s / 2)
     hx, hy, hz = (np.float32(c) * half_t for c in relative_velocity_optical(conditions, 0.0)[0])
     zf = profile.focus_distance_m
@@ -372,24 +373,24 @@ def _streaks_of_rows(profile: CameraProfile, rows: np.ndarray, conditions: Condi
                        0.0 if math.isinf(zf) else zf, 0.5 * d_min_m], dtype=np.float32)
     out = Streaks(np.empty(n, np.int8), np.empty(n, bool), *(np.empty(n, np.float32) for _ in range(3)),
                   np.empty(n, np.int32), np.empty(n, np.int32), *(np.empty(n, np.float32) for _ in range(4)))
-    _streak_geometry_kernel(rows, camera, not math.isinf(zf), profile.width_px, profile.height_px,
-                            footprint_level_bounds(), LEVEL_INVERSE_SCALE, *out)
+    _streak_geometry_kernel(*columns, camera, not math.isinf(zf), profile.width_px, profile.height_px,
+                            footprint_level_bounds(), *out)
     return out
 
 
 @jit(error_model="numpy")
-def _streak_geometry_kernel(rows, camera, finite_focus, w, h, bounds, inverse_scale,
+def _streak_geometry_kernel(x, y, z, d_mm, fall_speed, camera, finite_focus, w, h, bounds,
                             level, vertical, a0, lo, hi, first, count, b0, slope, density, range_m):
-    """:func:`streak_geometry` of the particle ``rows[i]`` into entry i of the outputs."""  # pragma: no cover
-    n = rows.shape[0]
+    """:func:`streak_geometry` of particle i into entry i of the outputs; branch-free (selects), so that LLVM
+    vectorises it (5× faster than a table look-up of the level scale or min/max calls allow)."""  # pragma: no cover
     fx, fy, cx, cy, hx, hy_base, hz, half_t, k_mass, k_dpx, k_defocus, zf, z_cross = camera
     b_1, b_2, b_3, b_4, b_5 = bounds
     one, half, zero = np.float32(1), np.float32(0.5), np.float32(0)
     w32, hw32 = np.float32(w), np.float32(h - w)
-    for i in range(n):
-        xp, yp, zp, dp, fs = rows[i, 0], rows[i, 1], rows[i, 2], rows[i, 3], rows[i, 4]
+    for i in range(z.size):
+        xp, yp, zp, dp = x[i], y[i], z[i], d_mm[i]
         # exposure end points P ∓ v_rel T/2 (streak_endpoints)
-        hy = hy_base + fs * half_t
+        hy = hy_base + fall_speed[i] * half_t
         z0, z1 = zp - hz, zp + hz
         u0, v0 = fx * (xp - hx) / z0 + cx, fy * (yp - hy) / z0 + cy
         u1, v1 = fx * (xp + hx) / z1 + cx, fy * (yp + hy) / z1 + cy
@@ -398,9 +399,9 @@ def _streak_geometry_kernel(rows, camera, finite_focus, w, h, bounds, inverse_sc
         d_px = dp * k_dpx / zp
         c_px = k_defocus * abs(zp - zf) / zp if finite_focus else k_defocus / zp
         footprint = np.sqrt(d_px * d_px + c_px * c_px)
-        lv = ((footprint >= b_1) + (footprint >= b_2) + (footprint >= b_3) + (footprint >= b_4) +
-              (footprint >= b_5))
-        inv = inverse_scale[lv]
+        lv = (np.int32(footprint >= b_1) + np.int32(footprint >= b_2) + np.int32(footprint >= b_3) +
+              np.int32(footprint >= b_4) + np.int32(footprint >= b_5))
+        inv = one / np.float32(np.int32(1) << lv)                     # 2^-level, exact
         du, dv = u1 - u0, v1 - v0
         vert = abs(dv) >= abs(du)
         vf = one if vert else zero
@@ -410,16 +411,19 @@ def _streak_geometry_kernel(rows, camera, finite_focus, w, h, bounds, inverse_sc
         pa0, pb0, da, db = pa0 * inv + offset, pb0 * inv + offset, da * inv, db * inv
         sl = db / (da + (one if da == zero else zero))
         hf = half * footprint * inv
-        a_lo = min(pa0, pa0 + da)
+        a_lo = pa0 if pa0 <= pa0 + da else pa0 + da
         pb0 = pb0 + sl * (a_lo - hf - pa0)
         pa0, pa1 = a_lo - hf, a_lo + abs(da) + hf
         n_major = np.ceil((w32 + vf * hw32) * inv)
-        plo, phi = max(pa0, -half), min(pa1, n_major - half)
+        plo = pa0 if pa0 >= -half else -half
+        phi = pa1 if pa1 <= n_major - half else n_major - half
         pfirst = np.floor(plo + half)
-        pcount = min(np.floor(phi + half), n_major - one) - pfirst + one
+        last = np.floor(phi + half)
+        pcount = (last if last <= n_major - one else n_major - one) - pfirst + one
+        crossing = (z0 if z0 <= z1 else z1) <= z_cross
         level[i], vertical[i], a0[i], lo[i], hi[i] = lv, vert, pa0, plo, phi
         first[i] = np.int32(pfirst)
-        count[i] = 0 if phi <= plo or min(z0, z1) <= z_cross else np.int32(pcount)
+        count[i] = 0 if phi <= plo or crossing else np.int32(pcount)
         b0[i], slope[i], density[i], range_m[i] = pb0, sl, mass * inv * inv / (pa1 - pa0), r
 
 
@@ -447,58 +451,69 @@ def raster_order(profile: CameraProfile, particles: Particles) -> np.ndarray:
     """Particle indices in raster order of the pixel blocks (8 × 8 px or coarser, ≤ 2¹⁶ blocks) holding their
     mid-exposure images: visited in this order, the rasteriser's reads of the depth map and writes to the grids
     stay in cache (2–3× faster for 10⁵ particles). A stable sort of the block numbers."""
-    return raster_sorted(profile, particles)[0]
+    order = np.empty(particles.z.size, np.int64)
+    _raster_sort(profile, particles, order)
+    return order
 
 
-def raster_sorted(profile: CameraProfile, particles: Particles) -> tuple[np.ndarray, np.ndarray]:
-    """(:func:`raster_order`, the :func:`particle_rows` in that order): two passes of an 8-bit radix sort that
-    carry the rows along (streaming writes; gathering them in the order afterwards costs a cache miss per value)."""
+def raster_sorted_columns(profile: CameraProfile, particles: Particles) -> np.ndarray:
+    """The :func:`particle_columns` in :func:`raster_order`."""
+    return _raster_sort(profile, particles, np.empty(0, np.int64))
+
+
+def _raster_sort(profile: CameraProfile, particles: Particles, order: np.ndarray) -> np.ndarray:
+    """Two passes of an 8-bit radix sort that carry the particle columns along (streaming writes; gathering them in
+    the order afterwards costs a cache miss per value); ``order`` (size 0: not wanted) gets the indices."""
     h, w = profile.height_px, profile.width_px
     shift = 3                                         # 8 px
     while -(-h >> shift) * -(-w >> shift) > 1 << 16:
         shift += 1
     camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px], np.float32)
-    n = particles.z.size
-    order, rows = np.empty(n, np.int64), np.empty((n, len(PARTICLE_ROW)), np.float32)
-    _raster_sort_kernel(*(np.asarray(getattr(particles, name), np.float32) for name in PARTICLE_ROW), camera, w, h,
-                        shift, order, rows)
-    return order, rows
+    columns = np.empty((len(PARTICLE_COLUMNS), particles.z.size), np.float32)
+    _raster_sort_kernel(particle_columns(particles), camera, w, h, shift, order, columns)
+    return columns
 
 
 @jit(error_model="numpy")
-def _raster_sort_kernel(x, y, z, d_mm, fall_speed, camera, w, h, shift, order, rows):  # pragma: no cover
-    """``order`` = the stable sort of the particles by block number (< 2¹⁶; blocks of 2^shift px), ``rows`` their
-    (x, y, z, d_mm, fall_speed) in that order."""
+def _raster_sort_kernel(columns, camera, w, h, shift, order, out):            # pragma: no cover - compiled
+    """``out`` = the particle ``columns`` stably sorted by block number (< 2¹⁶; blocks of 2^shift px), ``order``
+    (unless empty) their indices."""
     fx, fy, cx, cy = camera
+    x, y, z = columns[0], columns[1], columns[2]
     blocks_per_row = (w + (1 << shift) - 1) >> shift
     n = z.size
+    with_order = order.size > 0
     key = np.empty(n, np.uint16)
     start = np.zeros((2, 257), np.int64)
     for p in range(n):
         col = min(max(fx * x[p] / z[p] + cx, np.float32(0)), np.float32(w - 1))
         row = min(max(fy * y[p] / z[p] + cy, np.float32(0)), np.float32(h - 1))
-        key[p] = (np.int32(row) >> shift) * blocks_per_row + (np.int32(col) >> shift)
-    for p in range(n):
-        start[0, (key[p] & 255) + 1] += 1
-        start[1, (key[p] >> 8) + 1] += 1
+        k = (np.int32(row) >> shift) * blocks_per_row + (np.int32(col) >> shift)
+        key[p] = k
+        start[0, (k & 255) + 1] += 1
+        start[1, (k >> 8) + 1] += 1
     for d in range(2):
         for b in range(1, 257):
             start[d, b] += start[d, b - 1]
-    low_index, low_high, low_rows = np.empty(n, np.int64), np.empty(n, np.uint8), np.empty_like(rows)
+    low_index = np.empty(n if with_order else 0, np.int32)
+    low_high, low = np.empty(n, np.uint8), np.empty_like(out)
     for p in range(n):                                             # by the low byte
         k = key[p]
         j = start[0, k & 255]
         start[0, k & 255] = j + 1
-        low_index[j], low_high[j] = p, k >> 8
-        low_rows[j, 0], low_rows[j, 1], low_rows[j, 2], low_rows[j, 3], low_rows[j, 4] = \
-            x[p], y[p], z[p], d_mm[p], fall_speed[p]
+        low_high[j] = k >> 8
+        for c in range(5):
+            low[c, j] = columns[c, p]
+        if with_order:
+            low_index[j] = p
     for i in range(n):                                             # then, stably, by the high byte
         b = low_high[i]
         j = start[1, b]
         start[1, b] = j + 1
-        order[j] = low_index[i]
         for c in range(5):
-            rows[j, c] = low_rows[i, c]
+            out[c, j] = low[c, i]
+        if with_order:
+            order[j] = low_index[i]
 
 
 def level_offsets(height: int, width: int, top_level: int) -> np.ndarray:
@@ -571,7 +586,7 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
     h, w = profile.height_px, profile.width_px
     if particles.z.size == 0:
         return np.zeros((h, w), dtype=np.float32), 0
-    streaks = _streaks_of_rows(profile, raster_sorted(profile, particles)[1], conditions, exposure_s, d_min_m)
+    streaks = _streaks_of_columns(profile, raster_sorted_columns(profile, particles), conditions, exposure_s, d_min_m)
     top = int(streaks.level[streaks.count > 0].max(initial=0))
     offsets = level_offsets(h, w, top)
     pyramid = np.zeros(offsets[-1], dtype=np.float32)
