@@ -70,7 +70,6 @@ SNOW_DSDS = ("gunn_marshall", "sekhon_srivastava", "brandes")
 BILINEAR_DISK_PX = 4.0 / math.sqrt(6.0)
 DISK_PER_SCALE_PX = 4.0 / math.sqrt(3.0)
 MAX_LEVEL = 5
-LEVEL_INVERSE_SCALE = (0.5 ** np.arange(MAX_LEVEL + 1)).astype(np.float32)
 VEIL_LUT_SIZE = 256           # depth bins of the veil table (≤ 256: the kernel indexes them with uint8)
 
 
@@ -363,6 +362,15 @@ def _streaks_of_columns(profile: CameraProfile, columns: np.ndarray, conditions:
     operation by operation as the NumPy expressions of the formulas (tests/physics/test_particles.py keeps them as
     the oracle)."""
     n = columns.shape[1]
+    out = Streaks(np.empty(n, np.int8), np.empty(n, bool), *(np.empty(n, np.float32) for _ in range(3)),
+                  np.empty(n, np.int32), np.empty(n, np.int32), *(np.empty(n, np.float32) for _ in range(4)))
+    _streak_geometry_kernel(*columns, *_streak_constants(profile, conditions, exposure_s, d_min_m), *out)
+    return out
+
+
+def _streak_constants(profile: CameraProfile, conditions: Conditions, exposure_s: float, d_min_m: float) -> tuple:
+    """The arguments of :func:`_streak_geometry_kernel` after the particles: float32 camera and motion constants,
+    whether the focus is finite, the image size and :func:`footprint_level_bounds`."""
     half_t = np.float32(exposure_s / 2)
     hx, hy, hz = (np.float32(c) * half_t for c in relative_velocity_optical(conditions, 0.0)[0])
     zf = profile.focus_distance_m
@@ -371,11 +379,7 @@ def _streaks_of_columns(profile: CameraProfile, columns: np.ndarray, conditions:
     camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px, hx, hy, hz, half_t,
                        math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px, 1e-3 * focal_px(profile), k_defocus,
                        0.0 if math.isinf(zf) else zf, 0.5 * d_min_m], dtype=np.float32)
-    out = Streaks(np.empty(n, np.int8), np.empty(n, bool), *(np.empty(n, np.float32) for _ in range(3)),
-                  np.empty(n, np.int32), np.empty(n, np.int32), *(np.empty(n, np.float32) for _ in range(4)))
-    _streak_geometry_kernel(*columns, camera, not math.isinf(zf), profile.width_px, profile.height_px,
-                            footprint_level_bounds(), *out)
-    return out
+    return camera, not math.isinf(zf), profile.width_px, profile.height_px, footprint_level_bounds()
 
 
 @jit(error_model="numpy")
@@ -450,70 +454,92 @@ def footprint_level_bounds() -> np.ndarray:
 def raster_order(profile: CameraProfile, particles: Particles) -> np.ndarray:
     """Particle indices in raster order of the pixel blocks (8 × 8 px or coarser, ≤ 2¹⁶ blocks) holding their
     mid-exposure images: visited in this order, the rasteriser's reads of the depth map and writes to the grids
-    stay in cache (2–3× faster for 10⁵ particles). A stable sort of the block numbers."""
-    order = np.empty(particles.z.size, np.int64)
-    _raster_sort(profile, particles, order)
-    return order
+    stay in cache (2–3× faster for 10⁵ particles). A stable sort of the block numbers (:func:`block_keys`)."""
+    return np.argsort(block_keys(profile, particles), kind="stable")
 
 
-def raster_sorted_columns(profile: CameraProfile, particles: Particles) -> np.ndarray:
-    """The :func:`particle_columns` in :func:`raster_order`."""
-    return _raster_sort(profile, particles, np.empty(0, np.int64))
-
-
-def _raster_sort(profile: CameraProfile, particles: Particles, order: np.ndarray) -> np.ndarray:
-    """Two passes of an 8-bit radix sort that carry the particle columns along (streaming writes; gathering them in
-    the order afterwards costs a cache miss per value); ``order`` (size 0: not wanted) gets the indices."""
+def block_keys(profile: CameraProfile, particles: Particles) -> np.ndarray:
+    """The number (uint16) of the 8 × 8 px or coarser block (≤ 2¹⁶ blocks, raster order) holding each particle's
+    mid-exposure image."""
     h, w = profile.height_px, profile.width_px
     shift = 3                                         # 8 px
     while -(-h >> shift) * -(-w >> shift) > 1 << 16:
         shift += 1
     camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px], np.float32)
-    columns = np.empty((len(PARTICLE_COLUMNS), particles.z.size), np.float32)
-    _raster_sort_kernel(particle_columns(particles), camera, w, h, shift, order, columns)
-    return columns
+    key = np.empty(particles.z.size, np.uint16)
+    _block_keys_kernel(particles.x, particles.y, particles.z, camera, w, h, shift, key)
+    return key
 
 
 @jit(error_model="numpy")
-def _raster_sort_kernel(columns, camera, w, h, shift, order, out):            # pragma: no cover - compiled
-    """``out`` = the particle ``columns`` stably sorted by block number (< 2¹⁶; blocks of 2^shift px), ``order``
-    (unless empty) their indices."""
+def _block_keys_kernel(x, y, z, camera, w, h, shift, key):                    # pragma: no cover - compiled
     fx, fy, cx, cy = camera
-    x, y, z = columns[0], columns[1], columns[2]
     blocks_per_row = (w + (1 << shift) - 1) >> shift
-    n = z.size
-    with_order = order.size > 0
-    key = np.empty(n, np.uint16)
-    start = np.zeros((2, 257), np.int64)
-    for p in range(n):
+    for p in range(z.size):
         col = min(max(fx * x[p] / z[p] + cx, np.float32(0)), np.float32(w - 1))
         row = min(max(fy * y[p] / z[p] + cy, np.float32(0)), np.float32(h - 1))
-        k = (np.int32(row) >> shift) * blocks_per_row + (np.int32(col) >> shift)
-        key[p] = k
-        start[0, (k & 255) + 1] += 1
-        start[1, (k >> 8) + 1] += 1
-    for d in range(2):
-        for b in range(1, 257):
-            start[d, b] += start[d, b - 1]
-    low_index = np.empty(n if with_order else 0, np.int32)
-    low_high, low = np.empty(n, np.uint8), np.empty_like(out)
-    for p in range(n):                                             # by the low byte
-        k = key[p]
-        j = start[0, k & 255]
-        start[0, k & 255] = j + 1
-        low_high[j] = k >> 8
-        for c in range(5):
-            low[c, j] = columns[c, p]
-        if with_order:
-            low_index[j] = p
-    for i in range(n):                                             # then, stably, by the high byte
-        b = low_high[i]
-        j = start[1, b]
-        start[1, b] = j + 1
-        for c in range(5):
-            out[c, j] = low[c, i]
-        if with_order:
-            order[j] = low_index[i]
+        key[p] = (np.int32(row) >> shift) * blocks_per_row + (np.int32(col) >> shift)
+
+
+@jit(error_model="numpy")
+def _render_streaks(x, y, z, d_mm, fall_speed, key, camera, finite_focus, w, h, bounds, pyramid, offsets,
+                    depth_m):                                          # pragma: no cover - compiled
+    """:func:`splat_streaks` of the :func:`streak_geometry` of the particles in :func:`raster_order` (``key``:
+    :func:`block_keys`), without the sorted particle and streak arrays: the particles are first distributed by
+    the key's high byte (a band of blocks: one streaming pass), then each band is sorted by the low byte, given
+    its streaks and splatted while it is in cache. The same order, so the same sums, as the whole sort. Returns
+    the highest level drawn and the number of visible particles."""
+    n = z.size
+    start = np.zeros(257, np.int64)
+    for p in range(n):
+        start[(key[p] >> 8) + 1] += 1
+    for b in range(256):
+        start[b + 1] += start[b]
+    fill = start[:256].copy()
+    banded, low_byte = np.empty((n, 5), np.float32), np.empty(n, np.uint8)   # rows: 256 write streams
+    for p in range(n):
+        b = key[p] >> 8
+        j = fill[b]
+        fill[b] = j + 1
+        low_byte[j] = key[p] & 255
+        banded[j, 0], banded[j, 1], banded[j, 2], banded[j, 3], banded[j, 4] = \
+            x[p], y[p], z[p], d_mm[p], fall_speed[p]
+    size = np.max(start[1:] - start[:256])
+    cols = np.empty((5, size), np.float32)
+    level, vertical = np.empty(size, np.int8), np.empty(size, np.bool_)
+    first, count = np.empty(size, np.int32), np.empty(size, np.int32)
+    a0, lo, hi, b0, slope, density, range_m = (np.empty(size, np.float32), np.empty(size, np.float32),
+                                                np.empty(size, np.float32), np.empty(size, np.float32),
+                                                np.empty(size, np.float32), np.empty(size, np.float32),
+                                                np.empty(size, np.float32))
+    visible = np.empty(size, np.bool_)
+    top, n_visible = 0, 0
+    low_start = np.empty(257, np.int64)
+    for b in range(256):
+        m = start[b + 1] - start[b]
+        if m == 0:
+            continue
+        low_start[:] = 0
+        for i in range(start[b], start[b + 1]):
+            low_start[low_byte[i] + 1] += 1
+        for k in range(256):
+            low_start[k + 1] += low_start[k]
+        for i in range(start[b], start[b + 1]):
+            j = low_start[low_byte[i]]
+            low_start[low_byte[i]] = j + 1
+            for c in range(5):
+                cols[c, j] = banded[i, c]
+        _streak_geometry_kernel(cols[0, :m], cols[1, :m], cols[2, :m], cols[3, :m], cols[4, :m], camera,
+                                finite_focus, w, h, bounds, level[:m], vertical[:m], a0[:m], lo[:m], hi[:m],
+                                first[:m], count[:m], b0[:m], slope[:m], density[:m], range_m[:m])
+        visible[:m] = False
+        splat_streaks(pyramid, offsets, depth_m, level[:m], vertical[:m], a0[:m], lo[:m], hi[:m], first[:m],
+                      count[:m], b0[:m], slope[:m], density[:m], range_m[:m], visible[:m])
+        for i in range(m):
+            if count[i] > 0:
+                top = max(top, level[i])
+                n_visible += visible[i]
+    return top, n_visible
 
 
 def level_offsets(height: int, width: int, top_level: int) -> np.ndarray:
@@ -586,19 +612,18 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
     h, w = profile.height_px, profile.width_px
     if particles.z.size == 0:
         return np.zeros((h, w), dtype=np.float32), 0
-    streaks = _streaks_of_columns(profile, raster_sorted_columns(profile, particles), conditions, exposure_s, d_min_m)
-    top = int(streaks.level[streaks.count > 0].max(initial=0))
-    offsets = level_offsets(h, w, top)
+    offsets = level_offsets(h, w, MAX_LEVEL)
     pyramid = np.zeros(offsets[-1], dtype=np.float32)
-    visible = np.zeros(particles.z.size, dtype=bool)
-    splat_streaks(pyramid, offsets, np.ascontiguousarray(depth_m, dtype=np.float32), *streaks, visible)
+    top, n_visible = _render_streaks(*particle_columns(particles), block_keys(profile, particles),
+                                     *_streak_constants(profile, conditions, exposure_s, d_min_m), pyramid, offsets,
+                                     np.ascontiguousarray(depth_m, dtype=np.float32))
     # collapse the pyramid (grids hold opacity per full-resolution pixel): each level is upsampled ×2 into the
     # next finer one
     grids = [pyramid[offsets[lv]:offsets[lv + 1]].reshape(-(-h // (1 << lv)), -(-w // (1 << lv)))
              for lv in range(top + 1)]
     for lv in range(top - 1, -1, -1):
         add_upsampled(grids[lv], grids[lv + 1])
-    return cv2.min(grids[0], 1.0, dst=grids[0]), int(np.count_nonzero(visible))
+    return cv2.min(grids[0], 1.0, dst=grids[0]), int(n_visible)
 
 
 @jit(error_model="numpy")
