@@ -297,11 +297,27 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
     z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
                * np.float32(1 / 3))                                                   # ∛
-    col = u[2] * np.float32(profile.width_px) - np.float32(0.5)
-    row = u[3] * (bottom_row_px(profile, z) + np.float32(0.5)) - np.float32(0.5)
-    x = (col - np.float32(profile.cx_px)) * z / np.float32(profile.fx_px)
-    y = (row - np.float32(profile.cy_px)) * z / np.float32(profile.fy_px)
+    # image column uniform, row uniform above the ground (bottom_row_px), back-projected at Z; float32 as NumPy
+    # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x, y alike
+    camera = np.array([profile.width_px, profile.height_px - 0.5, profile.cy_px,
+                       profile.height_above_ground_m * profile.fy_px, profile.cx_px, profile.fx_px, profile.fy_px],
+                      np.float32)
+    x, y = np.empty_like(z), np.empty_like(z)
+    _position_kernel(u[2], u[3], z, camera, x, y)
     return Particles(x, y, z, d, np.asarray(fall_speed(d), dtype=np.float32)), float(lam.sum())
+
+
+@jit(error_model="numpy")
+def _position_kernel(u_col, u_row, z, camera, x, y):                          # pragma: no cover - compiled
+    width, bottom, cy, ground, cx, fx, fy = camera
+    half = np.float32(0.5)
+    for i in range(z.size):
+        zi = z[i]
+        col = u_col[i] * width - half
+        lowest = cy + ground / zi
+        row = u_row[i] * ((bottom if bottom <= lowest else lowest) + half) - half
+        x[i] = (col - cx) * zi / fx
+        y[i] = (row - cy) * zi / fy
 
 
 # --- rasterisation ---------------------------------------------------------------------------------------------
@@ -614,7 +630,8 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
         return np.zeros((h, w), dtype=np.float32), 0
     offsets = level_offsets(h, w, MAX_LEVEL)
     pyramid = np.zeros(offsets[-1], dtype=np.float32)
-    top, n_visible = _render_streaks(*particle_columns(particles), block_keys(profile, particles),
+    top, n_visible = _render_streaks(*(np.asarray(getattr(particles, name), np.float32) for name in PARTICLE_COLUMNS),
+                                     block_keys(profile, particles),
                                      *_streak_constants(profile, conditions, exposure_s, d_min_m), pyramid, offsets,
                                      np.ascontiguousarray(depth_m, dtype=np.float32))
     # collapse the pyramid (grids hold opacity per full-resolution pixel): each level is upsampled ×2 into the
