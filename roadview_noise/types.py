@@ -6,7 +6,9 @@ All arrays are owned by the object; models return new objects (``dataclasses.rep
 Conventions
 - Vehicle/sensor frame for 3-D vectors (point positions, wind, ego velocity): x forward, y left, z up (ISO 8855).
 - Camera images are linear radiance in RGB order, float32, 1.0 = full scale of the input encoding;
-  sRGB ↔ linear and BGR ↔ RGB happen once, in ``roadview_noise.io``.
+  sRGB ↔ linear and BGR ↔ RGB happen once, in ``roadview_noise.io`` (``physics.srgb``). A frame may instead hold
+  the 8-bit sRGB codes its linear values are the decoding of (``CameraFrame.srgb8_codes``; after JPEG the linear
+  values are decoded only when read).
 - Raw Bayer frames keep digital numbers (as float32, exact for 16-bit) with the CFA pattern and levels as stated by
   the file; rounding/clipping happens once, at writing.
 """

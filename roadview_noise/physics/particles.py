@@ -298,7 +298,8 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
                * np.float32(1 / 3))                                                   # ∛
     # image column uniform, row uniform above the ground (bottom_row_px), back-projected at Z; float32 as NumPy
-    # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x, y alike
+    # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x
+    # (y alike)
     camera = np.array([profile.width_px, profile.height_px - 0.5, profile.cy_px,
                        profile.height_above_ground_m * profile.fy_px, profile.cx_px, profile.fx_px, profile.fy_px],
                       np.float32)
