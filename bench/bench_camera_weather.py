@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from roadview_noise.allocator import keep_freed_memory
 from roadview_noise.compound import apply_models
 from roadview_noise.profiles.camera import lucid_triton_028s
 from roadview_noise.registry import get_model
@@ -69,6 +70,7 @@ def setup(doc: str) -> tuple[argparse.Namespace, CameraFrame, RawFrame]:
     ap.add_argument("--save", type=Path, help="write one sRGB PNG per case here")
     args = ap.parse_args()
     cv2.setNumThreads(1)
+    keep_freed_memory()                                        # as in the runner's workers
     frame = synthetic_scene(lucid_triton_028s())
     print(f"frame {frame.shape[1]}×{frame.shape[0]}, {args.repeat} frames per case, one core")
     return args, frame, bayer(frame)

@@ -227,8 +227,11 @@ def single_frame(tree: Path, repeat: int) -> dict[str, float]:
     frame = CameraFrame(changed, carla_pinhole(linear.shape[1], linear.shape[0]))
     model = CompressionCamera(quality=15)
     rgb8 = srgb.linear_to_code(changed)
+    first = CameraFrame(linear, frame.profile)           # the frame as decoded: it keeps its codes
     res = {"compression.camera (Q15, after a weather step)":
            median_ms(lambda: model.apply(frame, state={}, drawn={}, rng=None), repeat),
+           "compression.camera (Q15, first step: the frame as decoded)":
+           median_ms(lambda: model.apply(first, state={}, drawn={}, rng=None), repeat),
            "OpenCV JPEG encode + decode alone (Q15)":
            median_ms(lambda: cv2.imdecode(cv2.imencode(".jpg", rgb8, [cv2.IMWRITE_JPEG_QUALITY, 15])[1],
                                            cv2.IMREAD_COLOR), repeat),

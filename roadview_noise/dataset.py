@@ -294,7 +294,7 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
 
     with recorded_writes() as written:
         if isinstance(data, CameraFrame):
-            image_io.write_image(out_path, data.linear_rgb, data.encoding, alpha=data.alpha)
+            image_io.write_frame(out_path, data)
         elif isinstance(data, RawFrame):
             raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
                              data.encoding, template=source)

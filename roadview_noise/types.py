@@ -6,13 +6,16 @@ All arrays are owned by the object; models return new objects (``dataclasses.rep
 Conventions
 - Vehicle/sensor frame for 3-D vectors (point positions, wind, ego velocity): x forward, y left, z up (ISO 8855).
 - Camera images are linear radiance in RGB order, float32, 1.0 = full scale of the input encoding;
-  sRGB ↔ linear and BGR ↔ RGB happen once, in ``roadview_noise.io``.
+  sRGB ↔ linear and BGR ↔ RGB happen once, in ``roadview_noise.io`` (``physics.srgb``). A frame may instead hold
+  the 8-bit sRGB codes its linear values are the decoding of (``CameraFrame.srgb8_codes``; after JPEG the linear
+  values are decoded only when read).
 - Raw Bayer frames keep digital numbers (as float32, exact for 16-bit) with the CFA pattern and levels as stated by
   the file; rounding/clipping happens once, at writing.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from dataclasses import dataclass, field
@@ -205,7 +208,36 @@ class CameraFrame:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.linear_rgb.shape[:2]
+        return self.__dict__.get("_srgb8", self.__dict__.get("linear_rgb")).shape[:2]
+
+    # --- 8-bit sRGB codes that stand for the linear values (JPEG output, an unchanged decoded 8-bit file) --------
+    def srgb8_codes(self) -> np.ndarray | None:
+        """The 8-bit sRGB codes (H, W, 3) uint8 RGB, read-only, possibly a channel-reversed view) whose exact
+        decoding is this frame's ``linear_rgb``, or None. Consumers that want codes (the writer, JPEG, metrics)
+        use them instead of re-encoding, and a frame made by :meth:`with_srgb8_codes` is never decoded then."""
+        from .physics import srgb
+        kept = self.__dict__.get("_srgb8")
+        return kept if kept is not None else srgb.attached_codes(self.linear_rgb, 8)
+
+    def with_srgb8_codes(self, codes: np.ndarray) -> "CameraFrame":
+        """This frame with 8-bit sRGB ``codes`` (H, W, 3) RGB as its image: ``linear_rgb`` is their decoding
+        (``physics.srgb.code_to_linear``), computed when first read."""
+        if codes.dtype != np.uint8 or codes.shape != self.shape + (3,):
+            raise ValueError(f"expected {self.shape + (3,)} uint8 codes, got {codes.shape} {codes.dtype}")
+        frame = copy.copy(self)
+        frame.__dict__.pop("linear_rgb", None)
+        codes.flags.writeable = False
+        frame.__dict__["_srgb8"] = codes
+        return frame
+
+    def __getattr__(self, name: str):
+        """``linear_rgb`` of a frame made by :meth:`with_srgb8_codes`, decoded on first use (and kept)."""
+        codes = self.__dict__.get("_srgb8")
+        if name != "linear_rgb" or codes is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        from .physics import srgb
+        linear = self.__dict__["linear_rgb"] = srgb.code_to_linear(codes, 8)     # keeps the codes (attach_codes)
+        return linear
 
     # --- per-site API shared with RawFrame: per-channel physics is written once for both ----------------------
     def signal(self) -> np.ndarray:

@@ -31,7 +31,8 @@ import tifffile
 
 from ..errors import InputError
 from ..physics import srgb
-from ..types import ImageEncoding
+from ..physics.srgb import bgr_order
+from ..types import CameraFrame, ImageEncoding
 from .atomic import atomic_path, write_bytes_atomic
 
 SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr"}
@@ -111,13 +112,33 @@ def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: Image
     """Encode (H, W, 3) linear RGB like ``encoding`` (sRGB or linear, bit depth, channels, JPEG quality, ICC
     profile) and write it atomically. Integer encodings are clipped to [0, 1] and rounded here, once; float32 TIFF
     and EXR are written unclipped. A 4-channel encoding without ``alpha`` gets an opaque alpha plane."""
-    name = Path(path).name
-    if image_format(path) != encoding.fmt:
-        raise ValueError(f"{name}: suffix does not match the encoding format {encoding.fmt!r}")
+    name = _checked_name(path, encoding)
     if encoding.fmt == "exr":
         _write_exr_image(path, _stored_pixels(linear_rgb, encoding, name), encoding, alpha)
         return
     write_bytes_atomic(path, encode_image(linear_rgb, encoding, alpha, name=name))
+
+
+def write_frame(path: str | Path, frame: CameraFrame) -> None:
+    """:func:`write_image` of a camera frame; for an 8-bit sRGB colour encoding, the codes the frame holds
+    (:meth:`CameraFrame.srgb8_codes`: a JPEG output, an unchanged decoded file) are stored as they are and its
+    linear values are never decoded."""
+    enc = frame.encoding
+    kept = frame.srgb8_codes() if (enc.transfer, enc.bit_depth) == ("srgb", 8) and enc.channels in (3, 4) \
+        and enc.fmt != "exr" else None
+    if kept is None:
+        write_image(path, frame.linear_rgb, enc, alpha=frame.alpha)
+        return
+    name = _checked_name(path, enc)
+    write_bytes_atomic(path, encode_codes(_with_alpha(kept, enc, frame.alpha), enc, name=name))
+
+
+def _checked_name(path: str | Path, encoding: ImageEncoding) -> str:
+    """The file name of ``path``; ValueError when its suffix is not ``encoding``'s format."""
+    name = Path(path).name
+    if image_format(path) != encoding.fmt:
+        raise ValueError(f"{name}: suffix does not match the encoding format {encoding.fmt!r}")
+    return name
 
 
 def encode_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
@@ -130,7 +151,11 @@ def codes_from_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.
                      name: str = "image") -> np.ndarray:
     """Code values of linear RGB for an integer or float32 TIFF ``encoding``, grey (H, W) or RGB(A) (H, W, C): the
     inverse of :func:`image_from_codes`; ``name`` identifies the image in errors."""
-    codes = encode_pixels(_stored_pixels(linear_rgb, encoding, name), encoding)
+    return _with_alpha(encode_pixels(_stored_pixels(linear_rgb, encoding, name), encoding), encoding, alpha)
+
+
+def _with_alpha(codes: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None) -> np.ndarray:
+    """``codes`` with the alpha plane appended for a 4-channel encoding (opaque without ``alpha``)."""
     if encoding.channels == 4:
         if alpha is None:
             alpha = np.full(codes.shape[:2], 1.0 if codes.dtype == np.float32 else np.iinfo(codes.dtype).max)
@@ -295,14 +320,6 @@ def display_srgb(linear: np.ndarray) -> np.ndarray:
     """sRGB-encoded float32 values in [0, 1] (8-bit codes / 255) of linear radiance: the image as a display, a JPEG
     or a depth network sees it (monocular depth input, edge guides)."""
     return srgb.linear_to_code(linear, 8).astype(np.float32) * np.float32(1 / 255)
-
-
-def bgr_order(codes: np.ndarray) -> np.ndarray:
-    """RGB(A) code values in OpenCV's BGR(A) order, C-order: the storage itself when ``codes`` is the RGB view of
-    BGR codes (:func:`encode_pixels`, a decoded file's kept codes), else a new array."""
-    if codes.shape[2] == 3 and codes[..., ::-1].flags.c_contiguous:
-        return codes[..., ::-1]
-    return cv2.cvtColor(codes, cv2.COLOR_RGB2BGR if codes.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding) -> np.ndarray:

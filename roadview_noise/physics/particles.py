@@ -70,7 +70,6 @@ SNOW_DSDS = ("gunn_marshall", "sekhon_srivastava", "brandes")
 BILINEAR_DISK_PX = 4.0 / math.sqrt(6.0)
 DISK_PER_SCALE_PX = 4.0 / math.sqrt(3.0)
 MAX_LEVEL = 5
-LEVEL_INVERSE_SCALE = (0.5 ** np.arange(MAX_LEVEL + 1)).astype(np.float32)
 VEIL_LUT_SIZE = 256           # depth bins of the veil table (≤ 256: the kernel indexes them with uint8)
 
 
@@ -110,16 +109,28 @@ class SizeClasses:
     def sample_diameters_mm(self, cls: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Inverse CDF within each particle's class (``u`` uniform in [0, 1)), float32."""
         q = self.quantiles_mm.shape[1] - 1
-        return lerp_table(self.quantiles_mm.ravel(), cls * (q + 1), u * np.float32(q), q)
+        base = np.arange(self.quantiles_mm.shape[0], dtype=np.int64) * (q + 1)
+        return lerp_table(self.quantiles_mm.ravel(), base, np.full(base.size, q, np.float32), cls, u, q)
 
 
-def lerp_table(table: np.ndarray, offset: np.ndarray | int, t: np.ndarray, n: int) -> np.ndarray:
-    """Linear interpolation in equally spaced tables: ``table[offset + t]`` for t in [0, n] (float32)."""
-    t = np.asarray(t, dtype=np.float32)
-    j = np.minimum(t.astype(np.int32), n - 1)
-    frac = t - j.astype(np.float32)
-    lo = table[offset + j]
-    return lo + frac * (table[offset + j + 1] - lo)
+def lerp_table(table: np.ndarray, base: np.ndarray, scale: np.ndarray, cls: np.ndarray, u: np.ndarray,
+               n: int) -> np.ndarray:
+    """Linear interpolation in equally spaced tables, float32: ``table[base[c] + t]`` at ``t = u · scale[c]`` in
+    [0, n], c = ``cls`` of each value (one compiled pass)."""
+    out = np.empty(np.shape(u), np.float32)
+    _lerp_kernel(table, base, np.asarray(scale, np.float32), cls, np.asarray(u, np.float32), n, out)
+    return out
+
+
+@jit(error_model="numpy")
+def _lerp_kernel(table, base, scale, cls, u, n, out):                        # pragma: no cover - compiled
+    for i in range(u.size):
+        c = cls[i]
+        t = u[i] * scale[c]
+        j = min(np.int32(t), n - 1)
+        frac = t - np.float32(j)
+        lo = table[base[c] + j]
+        out[i] = lo + frac * (table[base[c] + j + 1] - lo)
 
 
 def size_classes(n_of_d: Callable[[np.ndarray], np.ndarray], d_min_mm: float, d_max_mm: float) -> SizeClasses:
@@ -284,12 +295,30 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     u = rng.random((4, cls.size), dtype=np.float32)
     d = classes.sample_diameters_mm(cls, u[0])
     q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
-    z = np.exp(np.log(lerp_table(z3_quantiles, 0, u[1] * q[cls], DEPTH_QUANTILES)) * np.float32(1 / 3))  # ∛
-    col = u[2] * np.float32(profile.width_px) - np.float32(0.5)
-    row = u[3] * (bottom_row_px(profile, z) + np.float32(0.5)) - np.float32(0.5)
-    x = (col - np.float32(profile.cx_px)) * z / np.float32(profile.fx_px)
-    y = (row - np.float32(profile.cy_px)) * z / np.float32(profile.fy_px)
+    z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
+               * np.float32(1 / 3))                                                   # ∛
+    # image column uniform, row uniform above the ground (bottom_row_px), back-projected at Z; float32 as NumPy
+    # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x
+    # (y alike)
+    camera = np.array([profile.width_px, profile.height_px - 0.5, profile.cy_px,
+                       profile.height_above_ground_m * profile.fy_px, profile.cx_px, profile.fx_px, profile.fy_px],
+                      np.float32)
+    x, y = np.empty_like(z), np.empty_like(z)
+    _position_kernel(u[2], u[3], z, camera, x, y)
     return Particles(x, y, z, d, np.asarray(fall_speed(d), dtype=np.float32)), float(lam.sum())
+
+
+@jit(error_model="numpy")
+def _position_kernel(u_col, u_row, z, camera, x, y):                          # pragma: no cover - compiled
+    width, bottom, cy, ground, cx, fx, fy = camera
+    half = np.float32(0.5)
+    for i in range(z.size):
+        zi = z[i]
+        col = u_col[i] * width - half
+        lowest = cy + ground / zi
+        row = u_row[i] * ((bottom if bottom <= lowest else lowest) + half) - half
+        x[i] = (col - cx) * zi / fx
+        y[i] = (row - cy) * zi / fy
 
 
 # --- rasterisation ---------------------------------------------------------------------------------------------
@@ -330,54 +359,204 @@ class Streaks(NamedTuple):
 
 def streak_geometry(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
                     d_min_m: float) -> Streaks:
-    """Each particle's streak: the segment between its exposure end points with uniform line density (total =
-    the particle's image area), lengthened by its footprint, on the grid of its footprint level."""
-    h, w = profile.height_px, profile.width_px
-    u0, v0, z0, u1, v1, z1 = streak_endpoints(profile, particles, conditions, exposure_s)
-    z = particles.z
-    r = np.sqrt(particles.x ** 2 + particles.y ** 2 + z * z)                 # range at mid-exposure
-    # image area of a sphere: (π/4) D² f_x f_y / (r² cos³θ) = (π/4) D² f_x f_y k / Z², k = r/Z
-    mass = np.float32(math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px) * particles.d_mm ** 2 * r / (z * z * z)
-    d_px = particles.d_mm * np.float32(1e-3 * focal_px(profile)) / z
-    c_px = defocus_px(profile, z)
-    footprint = np.sqrt(d_px * d_px + c_px * c_px)
-    level = footprint_level(footprint)
-    inv = LEVEL_INVERSE_SCALE[level]
-    # major (a) and minor (b) axis coordinates on the level's grid (arithmetic selects: np.where is 6× slower)
-    du, dv = u1 - u0, v1 - v0
-    vertical = np.abs(dv) >= np.abs(du)
-    a0, b0 = u0 + vertical * (v0 - u0), v0 + vertical * (u0 - v0)
-    da, db = du + vertical * (dv - du), dv + vertical * (du - dv)
-    offset = np.float32(0.5) * inv - np.float32(0.5)
-    a0, b0, da, db = a0 * inv + offset, b0 * inv + offset, da * inv, db * inv
-    slope = db / (da + (da == 0))                      # |slope| ≤ 1; 0 for a particle still in the image
-    half = np.float32(0.5) * footprint * inv           # lengthen by the footprint, from the lower end a0 ≤ a1
-    a_lo = np.minimum(a0, a0 + da)
-    b0 = b0 + slope * (a_lo - half - a0)
-    a0, a1 = a_lo - half, a_lo + np.abs(da) + half
-    density = mass * inv * inv / (a1 - a0)
-    n_major = np.ceil((np.float32(w) + vertical * np.float32(h - w)) * inv)
-    lo, hi = np.maximum(a0, np.float32(-0.5)), np.minimum(a1, n_major - np.float32(0.5))
-    first = np.floor(lo + np.float32(0.5))
-    count = (np.minimum(np.floor(hi + np.float32(0.5)), n_major - 1) - first + 1).astype(np.int32)
-    count[(hi <= lo) | (np.minimum(z0, z1) <= np.float32(0.5 * d_min_m))] = 0   # off-grid, or crossing the camera
-    return Streaks(level, vertical, a0, lo, hi, first.astype(np.int32), count, b0, slope, density, r)
+    """Each particle's streak: the segment between its exposure end points (:func:`streak_endpoints`) with
+    uniform line density (total = the particle's image area), lengthened by its footprint, on the grid of its
+    footprint level."""
+    return _streaks_of_columns(profile, particle_columns(particles), conditions, exposure_s, d_min_m)
+
+
+PARTICLE_COLUMNS = ("x", "y", "z", "d_mm", "fall_speed_m_per_s")     # the rows of :func:`particle_columns`
+
+
+def particle_columns(particles: Particles) -> np.ndarray:
+    """The particles as (5, N) float32 (:data:`PARTICLE_COLUMNS`)."""
+    return np.stack([getattr(particles, name) for name in PARTICLE_COLUMNS]).astype(np.float32, copy=False)
+
+
+def _streaks_of_columns(profile: CameraProfile, columns: np.ndarray, conditions: Conditions, exposure_s: float,
+                        d_min_m: float) -> Streaks:
+    """:func:`streak_geometry` of particles given as :func:`particle_columns`: one compiled, vectorised pass, float32
+    operation by operation as the NumPy expressions of the formulas (tests/physics/test_particles.py keeps them as
+    the oracle)."""
+    n = columns.shape[1]
+    out = Streaks(np.empty(n, np.int8), np.empty(n, bool), *(np.empty(n, np.float32) for _ in range(3)),
+                  np.empty(n, np.int32), np.empty(n, np.int32), *(np.empty(n, np.float32) for _ in range(4)))
+    _streak_geometry_kernel(*columns, *_streak_constants(profile, conditions, exposure_s, d_min_m), *out)
+    return out
+
+
+def _streak_constants(profile: CameraProfile, conditions: Conditions, exposure_s: float, d_min_m: float) -> tuple:
+    """The arguments of :func:`_streak_geometry_kernel` after the particles: float32 camera and motion constants,
+    whether the focus is finite, the image size and :func:`footprint_level_bounds`."""
+    half_t = np.float32(exposure_s / 2)
+    hx, hy, hz = (np.float32(c) * half_t for c in relative_velocity_optical(conditions, 0.0)[0])
+    zf = profile.focus_distance_m
+    f, fn, pitch = profile.focal_length_m, profile.f_number, profile.pixel_pitch_m
+    k_defocus = f * f / (fn * pitch) if math.isinf(zf) else f * f / (fn * (zf - f) * pitch)    # defocus_px
+    camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px, hx, hy, hz, half_t,
+                       math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px, 1e-3 * focal_px(profile), k_defocus,
+                       0.0 if math.isinf(zf) else zf, 0.5 * d_min_m], dtype=np.float32)
+    return camera, not math.isinf(zf), profile.width_px, profile.height_px, footprint_level_bounds()
+
+
+@jit(error_model="numpy")
+def _streak_geometry_kernel(x, y, z, d_mm, fall_speed, camera, finite_focus, w, h, bounds,
+                            level, vertical, a0, lo, hi, first, count, b0, slope, density, range_m):
+    """:func:`streak_geometry` of particle i into entry i of the outputs; branch-free (selects), so that LLVM
+    vectorises it (5× faster than a table look-up of the level scale or min/max calls allow)."""  # pragma: no cover
+    fx, fy, cx, cy, hx, hy_base, hz, half_t, k_mass, k_dpx, k_defocus, zf, z_cross = camera
+    b_1, b_2, b_3, b_4, b_5 = bounds
+    one, half, zero = np.float32(1), np.float32(0.5), np.float32(0)
+    w32, hw32 = np.float32(w), np.float32(h - w)
+    for i in range(z.size):
+        xp, yp, zp, dp = x[i], y[i], z[i], d_mm[i]
+        # exposure end points P ∓ v_rel T/2 (streak_endpoints)
+        hy = hy_base + fall_speed[i] * half_t
+        z0, z1 = zp - hz, zp + hz
+        u0, v0 = fx * (xp - hx) / z0 + cx, fy * (yp - hy) / z0 + cy
+        u1, v1 = fx * (xp + hx) / z1 + cx, fy * (yp + hy) / z1 + cy
+        r = np.sqrt(xp * xp + yp * yp + zp * zp)
+        mass = k_mass * (dp * dp) * r / (zp * zp * zp)
+        d_px = dp * k_dpx / zp
+        c_px = k_defocus * abs(zp - zf) / zp if finite_focus else k_defocus / zp
+        footprint = np.sqrt(d_px * d_px + c_px * c_px)
+        lv = (np.int32(footprint >= b_1) + np.int32(footprint >= b_2) + np.int32(footprint >= b_3) +
+              np.int32(footprint >= b_4) + np.int32(footprint >= b_5))
+        inv = one / np.float32(np.int32(1) << lv)                     # 2^-level, exact
+        du, dv = u1 - u0, v1 - v0
+        vert = abs(dv) >= abs(du)
+        vf = one if vert else zero
+        pa0, pb0 = u0 + vf * (v0 - u0), v0 + vf * (u0 - v0)
+        da, db = du + vf * (dv - du), dv + vf * (du - dv)
+        offset = half * inv - half
+        pa0, pb0, da, db = pa0 * inv + offset, pb0 * inv + offset, da * inv, db * inv
+        sl = db / (da + (one if da == zero else zero))
+        hf = half * footprint * inv
+        a_lo = pa0 if pa0 <= pa0 + da else pa0 + da
+        pb0 = pb0 + sl * (a_lo - hf - pa0)
+        pa0, pa1 = a_lo - hf, a_lo + abs(da) + hf
+        n_major = np.ceil((w32 + vf * hw32) * inv)
+        plo = pa0 if pa0 >= -half else -half
+        phi = pa1 if pa1 <= n_major - half else n_major - half
+        pfirst = np.floor(plo + half)
+        last = np.floor(phi + half)
+        pcount = (last if last <= n_major - one else n_major - one) - pfirst + one
+        crossing = (z0 if z0 <= z1 else z1) <= z_cross
+        level[i], vertical[i], a0[i], lo[i], hi[i] = lv, vert, pa0, plo, phi
+        first[i] = np.int32(pfirst)
+        count[i] = 0 if phi <= plo or crossing else np.int32(pcount)
+        b0[i], slope[i], density[i], range_m[i] = pb0, sl, mass * inv * inv / (pa1 - pa0), r
+
+
+@lru_cache(maxsize=1)
+def footprint_level_bounds() -> np.ndarray:
+    """The smallest float32 footprints (px) of levels 1 … MAX_LEVEL under :func:`footprint_level`, found by
+    scanning its NumPy evaluation around each nominal step (``DISK_PER_SCALE_PX·2^(l−½)``, and the level-1 gate),
+    so the compiled rasteriser assigns exactly its levels."""
+    nominal = [math.sqrt(BILINEAR_DISK_PX * 2 * DISK_PER_SCALE_PX)] + [DISK_PER_SCALE_PX * 2 ** (lv - 0.5)
+                                                                       for lv in range(2, MAX_LEVEL + 1)]
+    bounds = []
+    for lv, x in enumerate(nominal, start=1):
+        bits = np.arange(-4096, 4097, dtype=np.int64) + int(np.float32(x).view(np.int32))
+        f = bits.astype(np.int32).view(np.float32)
+        step = np.flatnonzero(np.diff(footprint_level(f) >= lv))
+        if step.size != 1 or footprint_level(f[:1])[0] >= lv or footprint_level(f[-1:])[0] < lv:
+            raise AssertionError(f"footprint level {lv}: no single step near {x} px")
+        bounds.append(f[step[0] + 1])
+    out = np.array(bounds, np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def raster_order(profile: CameraProfile, particles: Particles) -> np.ndarray:
     """Particle indices in raster order of the pixel blocks (8 × 8 px or coarser, ≤ 2¹⁶ blocks) holding their
     mid-exposure images: visited in this order, the rasteriser's reads of the depth map and writes to the grids
-    stay in cache (2–3× faster for 10⁵ particles). A radix sort of 16-bit block numbers."""
+    stay in cache (2–3× faster for 10⁵ particles). A stable sort of the block numbers (:func:`block_keys`)."""
+    return np.argsort(block_keys(profile, particles), kind="stable")
+
+
+def block_keys(profile: CameraProfile, particles: Particles) -> np.ndarray:
+    """The number (uint16) of the 8 × 8 px or coarser block (≤ 2¹⁶ blocks, raster order) holding each particle's
+    mid-exposure image."""
     h, w = profile.height_px, profile.width_px
-    block = 8
-    while -(-h // block) * -(-w // block) > 1 << 16:
-        block *= 2
-    z = particles.z
-    col = np.clip(np.float32(profile.fx_px) * particles.x / z + np.float32(profile.cx_px), 0, w - 1)
-    row = np.clip(np.float32(profile.fy_px) * particles.y / z + np.float32(profile.cy_px), 0, h - 1)
-    blocks_per_row = -(-w // block)
-    key = (row.astype(np.int32) // block * blocks_per_row + col.astype(np.int32) // block).astype(np.uint16)
-    return np.argsort(key, kind="stable")
+    shift = 3                                         # 8 px
+    while -(-h >> shift) * -(-w >> shift) > 1 << 16:
+        shift += 1
+    camera = np.array([profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px], np.float32)
+    key = np.empty(particles.z.size, np.uint16)
+    _block_keys_kernel(particles.x, particles.y, particles.z, camera, w, h, shift, key)
+    return key
+
+
+@jit(error_model="numpy")
+def _block_keys_kernel(x, y, z, camera, w, h, shift, key):                    # pragma: no cover - compiled
+    fx, fy, cx, cy = camera
+    blocks_per_row = (w + (1 << shift) - 1) >> shift
+    for p in range(z.size):
+        col = min(max(fx * x[p] / z[p] + cx, np.float32(0)), np.float32(w - 1))
+        row = min(max(fy * y[p] / z[p] + cy, np.float32(0)), np.float32(h - 1))
+        key[p] = (np.int32(row) >> shift) * blocks_per_row + (np.int32(col) >> shift)
+
+
+@jit(error_model="numpy")
+def _render_streaks(x, y, z, d_mm, fall_speed, key, camera, finite_focus, w, h, bounds, pyramid, offsets,
+                    depth_m):                                          # pragma: no cover - compiled
+    """:func:`splat_streaks` of the :func:`streak_geometry` of the particles in :func:`raster_order` (``key``:
+    :func:`block_keys`), without the sorted particle and streak arrays: the particles are first distributed by
+    the key's high byte (a band of blocks: one streaming pass), then each band is sorted by the low byte, given
+    its streaks and splatted while it is in cache. The same order, so the same sums, as the whole sort. Returns
+    the highest level drawn and the number of visible particles."""
+    n = z.size
+    start = np.zeros(257, np.int64)
+    for p in range(n):
+        start[(key[p] >> 8) + 1] += 1
+    for b in range(256):
+        start[b + 1] += start[b]
+    fill = start[:256].copy()
+    banded, low_byte = np.empty((n, 5), np.float32), np.empty(n, np.uint8)   # rows: 256 write streams
+    for p in range(n):
+        b = key[p] >> 8
+        j = fill[b]
+        fill[b] = j + 1
+        low_byte[j] = key[p] & 255
+        banded[j, 0], banded[j, 1], banded[j, 2], banded[j, 3], banded[j, 4] = \
+            x[p], y[p], z[p], d_mm[p], fall_speed[p]
+    size = np.max(start[1:] - start[:256])
+    cols = np.empty((5, size), np.float32)
+    level, vertical = np.empty(size, np.int8), np.empty(size, np.bool_)
+    first, count = np.empty(size, np.int32), np.empty(size, np.int32)
+    a0, lo, hi, b0, slope, density, range_m = (np.empty(size, np.float32), np.empty(size, np.float32),
+                                                np.empty(size, np.float32), np.empty(size, np.float32),
+                                                np.empty(size, np.float32), np.empty(size, np.float32),
+                                                np.empty(size, np.float32))
+    visible = np.empty(size, np.bool_)
+    top, n_visible = 0, 0
+    low_start = np.empty(257, np.int64)
+    for b in range(256):
+        m = start[b + 1] - start[b]
+        if m == 0:
+            continue
+        low_start[:] = 0
+        for i in range(start[b], start[b + 1]):
+            low_start[low_byte[i] + 1] += 1
+        for k in range(256):
+            low_start[k + 1] += low_start[k]
+        for i in range(start[b], start[b + 1]):
+            j = low_start[low_byte[i]]
+            low_start[low_byte[i]] = j + 1
+            for c in range(5):
+                cols[c, j] = banded[i, c]
+        _streak_geometry_kernel(cols[0, :m], cols[1, :m], cols[2, :m], cols[3, :m], cols[4, :m], camera,
+                                finite_focus, w, h, bounds, level[:m], vertical[:m], a0[:m], lo[:m], hi[:m],
+                                first[:m], count[:m], b0[:m], slope[:m], density[:m], range_m[:m])
+        visible[:m] = False
+        splat_streaks(pyramid, offsets, depth_m, level[:m], vertical[:m], a0[:m], lo[:m], hi[:m], first[:m],
+                      count[:m], b0[:m], slope[:m], density[:m], range_m[:m], visible[:m])
+        for i in range(m):
+            if count[i] > 0:
+                top = max(top, level[i])
+                n_visible += visible[i]
+    return top, n_visible
 
 
 def level_offsets(height: int, width: int, top_level: int) -> np.ndarray:
@@ -450,20 +629,19 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
     h, w = profile.height_px, profile.width_px
     if particles.z.size == 0:
         return np.zeros((h, w), dtype=np.float32), 0
-    streaks = streak_geometry(profile, particles.take(raster_order(profile, particles)), conditions, exposure_s,
-                              d_min_m)
-    top = int(streaks.level[streaks.count > 0].max(initial=0))
-    offsets = level_offsets(h, w, top)
+    offsets = level_offsets(h, w, MAX_LEVEL)
     pyramid = np.zeros(offsets[-1], dtype=np.float32)
-    visible = np.zeros(particles.z.size, dtype=bool)
-    splat_streaks(pyramid, offsets, np.ascontiguousarray(depth_m, dtype=np.float32), *streaks, visible)
+    top, n_visible = _render_streaks(*(np.asarray(getattr(particles, name), np.float32) for name in PARTICLE_COLUMNS),
+                                     block_keys(profile, particles),
+                                     *_streak_constants(profile, conditions, exposure_s, d_min_m), pyramid, offsets,
+                                     np.ascontiguousarray(depth_m, dtype=np.float32))
     # collapse the pyramid (grids hold opacity per full-resolution pixel): each level is upsampled ×2 into the
     # next finer one
     grids = [pyramid[offsets[lv]:offsets[lv + 1]].reshape(-(-h // (1 << lv)), -(-w // (1 << lv)))
              for lv in range(top + 1)]
     for lv in range(top - 1, -1, -1):
         add_upsampled(grids[lv], grids[lv + 1])
-    return cv2.min(grids[0], 1.0, dst=grids[0]), int(np.count_nonzero(visible))
+    return cv2.min(grids[0], 1.0, dst=grids[0]), int(n_visible)
 
 
 @jit(error_model="numpy")

@@ -25,6 +25,7 @@ from __future__ import annotations
 import weakref
 from functools import lru_cache
 
+import cv2
 import numpy as np
 
 from ..profiling import span
@@ -194,7 +195,7 @@ def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False) -> n
         raise ValueError(f"bgr codes need (H, W, 3) RGB, got shape {np.shape(linear)}")
     kept = attached_codes(linear, bits)
     if kept is not None:
-        return np.ascontiguousarray(kept[..., ::-1]) if bgr else kept
+        return bgr_order(kept) if bgr else kept
     with span("convert"):
         v = np.asarray(linear, dtype=np.float32)
         xbits = np.ascontiguousarray(v).view(np.uint32)
@@ -206,6 +207,14 @@ def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False) -> n
         else:
             (_encode8_kernel if bits == 8 else _encode16_kernel)(xbits.reshape(-1), out.reshape(-1), *table)
     return out
+
+
+def bgr_order(codes: np.ndarray) -> np.ndarray:
+    """RGB(A) code values in OpenCV's BGR(A) order, C-order: the storage itself when ``codes`` is the RGB view of
+    BGR codes (:func:`..io.image.encode_pixels`, a decoded file's kept codes, a JPEG output), else a new array."""
+    if codes.shape[2] == 3 and codes[..., ::-1].flags.c_contiguous:
+        return codes[..., ::-1]
+    return cv2.cvtColor(codes, cv2.COLOR_RGB2BGR if codes.shape[2] == 3 else cv2.COLOR_RGBA2BGRA)
 
 
 # --- code → linear ---------------------------------------------------------------------------------------------------

@@ -182,3 +182,31 @@ def test_codes_travel_with_the_frame_and_change_nothing():
     kept = srgb.attached_codes(out_kept.linear_rgb, 8)
     assert kept is not None
     np.testing.assert_array_equal(kept, srgb.linear_to_code(out_plain.linear_rgb.copy()))
+
+
+def test_jpeg_output_holds_its_codes_and_decodes_only_when_read(tmp_path):
+    # issue 19: the JPEG result is its decoded 8-bit codes; the linear values are computed only when a later step
+    # reads them, and then they are exactly the codes' decoding; the writer stores the codes without decoding
+    from roadview_noise.io.image import read_image, write_frame, write_image
+    import dataclasses
+    import pickle
+
+    out, _ = run(CompressionCamera(quality=20), frame())
+    codes = out.srgb8_codes()
+    assert codes is not None and codes.dtype == np.uint8 and codes.shape == (H, W, 3) and out.shape == (H, W)
+    assert "linear_rgb" not in vars(out)                                     # not decoded yet
+    write_frame(tmp_path / "kept.png", out)
+    assert "linear_rgb" not in vars(out)                                     # the writer did not decode it
+    again = pickle.loads(pickle.dumps(out))                                  # to and from a worker
+    np.testing.assert_array_equal(again.srgb8_codes(), codes)
+    linear = out.linear_rgb                                                  # a later step reads it
+    np.testing.assert_array_equal(linear, srgb.code_to_linear(np.ascontiguousarray(codes)))
+    assert out.linear_rgb is linear and out.srgb8_codes() is codes
+    write_image(tmp_path / "plain.png", linear.copy(), out.encoding)         # the same pixels, encoded afresh
+    assert (tmp_path / "kept.png").read_bytes() == (tmp_path / "plain.png").read_bytes()
+    np.testing.assert_array_equal(read_image(tmp_path / "kept.png")[0], linear)
+    moved = dataclasses.replace(again, depth_m=np.ones((H, W), np.float32))  # other fields change: codes stay valid
+    np.testing.assert_array_equal(moved.srgb8_codes(), codes)
+    assert out.with_signal(linear * np.float32(0.5)).srgb8_codes() is None   # a changed image has none
+    with pytest.raises(ValueError, match="uint8 codes"):
+        frame().with_srgb8_codes(codes[:10])

@@ -411,3 +411,69 @@ def test_coverage_does_not_depend_on_the_particle_order():
     cov2, n_visible2 = _render(LUCID, shuffled, depth=depth)
     assert n_visible2 == n_visible
     np.testing.assert_allclose(cov2, cov, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("rain, wind", [(True, (0.0, 10.0, 0.0)), (False, (0.0, -6.0, 0.0))])
+def test_banded_renderer_is_the_sorted_splat_exactly(rain, wind):
+    """The renderer distributes the particles into bands of blocks and sorts each band in cache: the same visiting
+    order, so the same float sums, as the whole raster sort followed by streak_geometry and splat_streaks — and
+    streak_geometry's compiled float32 pass equals the NumPy expressions operation by operation."""
+    classes = P.rain_classes(50.0) if rain else P.snow_classes(3.03, "gunn_marshall")
+    speed = P.rain_fall_speed_m_per_s if rain else snow_power_law_m_per_s
+    parts, _ = P.sample_particles(np.random.default_rng(5), LUCID, classes, np.full(len(classes.number), 6.0),
+                                  0.5, 30.0, speed)
+    conditions = Conditions(wind_velocity_m_per_s=wind, ego_velocity_m_per_s=(8.0, 0.0, 0.0))
+    depth = np.full((LUCID.height_px, LUCID.width_px), np.inf, np.float32)
+    depth[600:, 900:] = 1.2
+    ordered = parts.take(P.raster_order(LUCID, parts))
+    streaks = P.streak_geometry(LUCID, ordered, conditions, 0.005, 0.5)
+    for got, want in zip(streaks, _numpy_streak_geometry(LUCID, ordered, conditions, 0.005, 0.5)):
+        np.testing.assert_array_equal(got, want)
+    offsets = P.level_offsets(*depth.shape, P.MAX_LEVEL)
+    expected, visible = np.zeros(offsets[-1], np.float32), np.zeros(parts.z.size, bool)
+    P.splat_streaks(expected, offsets, depth, *streaks, visible)
+    pyramid = np.zeros_like(expected)
+    top, n_visible = P._render_streaks(*P.particle_columns(parts), P.block_keys(LUCID, parts),
+                                       *P._streak_constants(LUCID, conditions, 0.005, 0.5), pyramid, offsets, depth)
+    assert pyramid.tobytes() == expected.tobytes() and n_visible == visible.sum() > 0
+    assert top == streaks.level[streaks.count > 0].max()
+    assert parts.z.size > 20_000 and len(np.unique(P.block_keys(LUCID, parts) >> 8)) > 100
+
+
+def _numpy_streak_geometry(profile, particles, conditions, exposure_s, d_min_m) -> P.Streaks:
+    """The NumPy formulation of the streak geometry (the renderer's until issue 19), as the oracle."""
+    h, w = profile.height_px, profile.width_px
+    u0, v0, z0, u1, v1, z1 = P.streak_endpoints(profile, particles, conditions, exposure_s)
+    z = particles.z
+    r = np.sqrt(particles.x ** 2 + particles.y ** 2 + z * z)
+    mass = np.float32(math.pi / 4 * 1e-6 * profile.fx_px * profile.fy_px) * particles.d_mm ** 2 * r / (z * z * z)
+    d_px = particles.d_mm * np.float32(1e-3 * P.focal_px(profile)) / z
+    c_px = P.defocus_px(profile, z)
+    footprint = np.sqrt(d_px * d_px + c_px * c_px)
+    level = P.footprint_level(footprint)
+    inv = (0.5 ** np.arange(P.MAX_LEVEL + 1)).astype(np.float32)[level]
+    du, dv = u1 - u0, v1 - v0
+    vertical = np.abs(dv) >= np.abs(du)
+    a0, b0 = u0 + vertical * (v0 - u0), v0 + vertical * (u0 - v0)
+    da, db = du + vertical * (dv - du), dv + vertical * (du - dv)
+    offset = np.float32(0.5) * inv - np.float32(0.5)
+    a0, b0, da, db = a0 * inv + offset, b0 * inv + offset, da * inv, db * inv
+    slope = db / (da + (da == 0))
+    half = np.float32(0.5) * footprint * inv
+    a_lo = np.minimum(a0, a0 + da)
+    b0 = b0 + slope * (a_lo - half - a0)
+    a0, a1 = a_lo - half, a_lo + np.abs(da) + half
+    density = mass * inv * inv / (a1 - a0)
+    n_major = np.ceil((np.float32(w) + vertical * np.float32(h - w)) * inv)
+    lo, hi = np.maximum(a0, np.float32(-0.5)), np.minimum(a1, n_major - np.float32(0.5))
+    first = np.floor(lo + np.float32(0.5))
+    count = (np.minimum(np.floor(hi + np.float32(0.5)), n_major - 1) - first + 1).astype(np.int32)
+    count[(hi <= lo) | (np.minimum(z0, z1) <= np.float32(0.5 * d_min_m))] = 0
+    return P.Streaks(level, vertical, a0, lo, hi, first.astype(np.int32), count, b0, slope, density, r)
+
+
+def test_footprint_level_bounds_reproduce_footprint_level():
+    bounds = P.footprint_level_bounds()
+    f = np.concatenate([np.geomspace(0.01, 200.0, 200_001).astype(np.float32),
+                        *(np.nextafter(b, np.float32([-np.inf, np.inf])).astype(np.float32) for b in bounds), bounds])
+    np.testing.assert_array_equal((f[:, None] >= bounds).sum(axis=1), P.footprint_level(f))

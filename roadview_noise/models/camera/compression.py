@@ -30,10 +30,10 @@ class CompressionCamera(Model):
 
     The linear frame is clipped to [0, 1], sRGB-encoded and rounded to 8 bits — the bytes a camera would hand to
     its encoder (this fixes the reference's [BUG] of passing unclipped float arrays) — then JPEG-coded with
-    OpenCV/libjpeg at ``quality`` (D3.5: 15) and decoded back to linear float (table look-ups that write and read
-    OpenCV's BGR order in the same pass; a frame nothing
-    changed before is coded from the codes it was read with, and the decoded codes travel with the result,
-    ``physics.srgb.attach_codes``, so an 8-bit writer after it stores them as they are). ``chroma_subsampling``
+    OpenCV/libjpeg at ``quality`` (D3.5: 15) and decoded; the result holds the decoded codes
+    (``CameraFrame.with_srgb8_codes``): its linear values are computed only if a later step reads them, and an 8-bit
+    sRGB writer stores the codes as they are. A frame that holds valid codes (``CameraFrame.srgb8_codes``: unchanged
+    since it was read, or a JPEG output) is coded from them. ``chroma_subsampling``
     defaults to libjpeg's 4:2:0, which D3.5 used implicitly. Diagnostic ``compression_ratio`` = H·W·3 / bitstream
     bytes (D3.5 reports ≈125:1 rain, 142:1 fog, 104:1 snow at Q 15 on its CARLA frame). Raw Bayer frames are refused:
     a camera never JPEG-codes the mosaic."""
@@ -54,14 +54,15 @@ class CompressionCamera(Model):
                              "mosaic (models.md §2.7). Compress the camera's RGB output instead: give the PNG/TIFF "
                              "frames after the ISP, or keep compression.camera out of the chains for raw inputs "
                              "(e.g. `inputs: {camera: ...}` without `raw:`)", model=self.id)
-        bgr = srgb.linear_to_code(data.linear_rgb, 8, bgr=True)    # the frame's own codes when nothing changed it
+        kept = data.srgb8_codes()                                  # the frame's own codes when nothing changed it
+        bgr = srgb.linear_to_code(data.linear_rgb, 8, bgr=True) if kept is None else srgb.bgr_order(kept)
         ok, bitstream = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.quality,
                                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
                                                    CHROMA_SUBSAMPLING[self.chroma_subsampling]])
         if not ok:
             raise ModelError("OpenCV could not JPEG-encode the frame", model=self.id)
         decoded = cv2.imdecode(bitstream, cv2.IMREAD_COLOR)
-        out = data.with_signal(srgb.code_to_linear(decoded[..., ::-1], 8))    # keeps the codes for the writer
+        out = data.with_srgb8_codes(decoded[..., ::-1])           # linear values decoded only when read
         return out, {
             "compression_ratio": float(bgr.size / bitstream.size),
             "bytes": int(bitstream.size),
