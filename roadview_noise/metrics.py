@@ -142,7 +142,7 @@ def luminance_area(rgb: np.ndarray, f: int) -> np.ndarray:
     """Relative luminance (``LUMINANCE_WEIGHTS``) of (H, W, 3) linear RGB box-filtered by f×f and decimated, as
     :func:`_reduce` then the weights, in one read of the frame (float32; the edge rows/columns that do not fill
     a block are left out). Per block and channel the f values of each column are summed first, then the f
-    column sums; the float32 rounding differs from OpenCV's area resize by ≤ 2 ulp."""
+    column sums: the float32 rounding differs from OpenCV's area resize then ``cv2.transform`` by a few ulp."""
     h, w = rgb.shape[0] // f, rgb.shape[1] // f
     out = np.empty((h, w), np.float32)
     _luminance_area(np.ascontiguousarray(rgb, dtype=np.float32), f, np.asarray(LUMINANCE_WEIGHTS, np.float32), out)
@@ -210,9 +210,10 @@ def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
 @jit
 def _grey_statistics(grey, limit, bins, n_bins):               # pragma: no cover - compiled
     """One pass over a grey image (float32, ≥ 1×1): the sum and the sum of squares of its values (float64), the
-    number of pixels whose squared 3×3 Sobel gradient is ≥ ``limit`` (:func:`edge_density`, the same float32
-    arithmetic as OpenCV's separable filter with replicated borders), and with ``bins`` (the pixels' depth bin,
-    −1 none; empty: no bins) the count, sum and sum of squares per bin (:func:`_bin_sums`)."""
+    number of pixels whose squared 3×3 Sobel gradient is ≥ ``limit`` (:func:`edge_density`: replicated borders,
+    OpenCV's separable-filter order of float32 operations; a gradient within float32 rounding of the threshold
+    may be counted differently), and with ``bins`` (the pixels' depth bin, −1 none; empty: no bins) the count,
+    sum and sum of squares per bin (pixels of bin −1 are left out)."""
     h, w = grey.shape
     with_bins = bins.shape[0] == h and bins.shape[1] == w
     n, bin_total, bin_squares = np.zeros(n_bins, np.int64), np.zeros(n_bins), np.zeros(n_bins)
@@ -279,7 +280,7 @@ def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
 
 def _contrast_per_bin(grey: np.ndarray, bins: np.ndarray, n_bins: int) -> list[float | None]:
     """:func:`rms_contrast_per_depth_bin` from the pixels' bin index (:func:`_depth_bin_index`)."""
-    return _contrast_of_sums(*_bin_sums(np.asarray(grey, np.float32), bins, n_bins))
+    return _contrast_of_sums(*_grey_statistics(np.asarray(grey, np.float32), _edge_limit(), bins, n_bins)[3])
 
 
 def _contrast_of_sums(n: np.ndarray, total: np.ndarray, squares: np.ndarray) -> list[float | None]:
@@ -301,24 +302,6 @@ def _depth_bin_index(depth, edges):                        # pragma: no cover - 
                 b -= 1
             index[i, j] = b if d >= edges[0] else -1
     return index
-
-
-@jit
-def _bin_sums(grey, index, bins):                        # pragma: no cover - compiled
-    """Per bin: pixel count, sum and sum of squares of ``grey`` (pixels of bin −1 are left out)."""
-    n = np.zeros(bins, np.int64)
-    total = np.zeros(bins)
-    squares = np.zeros(bins)
-    for i in range(grey.shape[0]):
-        for j in range(grey.shape[1]):
-            b = index[i, j]
-            if b < 0:
-                continue
-            g = np.float64(grey[i, j])
-            n[b] += 1
-            total[b] += g
-            squares[b] += g * g
-    return n, total, squares
 
 
 def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:
