@@ -337,14 +337,14 @@ def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float 
         return None
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
     blur_ab = _ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32))
-    return float(_ssim_mean(*moments_a, *moments_b, blur_ab, c1, c2))
+    return float(np.mean(_ssim_map(*moments_a, *moments_b, blur_ab, c1, c2), dtype=np.float64))
 
 
 @jit
-def _ssim_mean(mu_a, blur_aa, mu_b, blur_bb, blur_ab, c1, c2):       # pragma: no cover - compiled
-    """Mean over the pixels of Wang et al.'s Eq. 13 from the local means of a, b, a², b² and ab (variances and
-    covariance: local mean of the product − product of the means; float32 per pixel, float64 mean)."""
-    total = 0.0
+def _ssim_map(mu_a, blur_aa, mu_b, blur_bb, blur_ab, c1, c2):       # pragma: no cover - compiled
+    """Wang et al.'s Eq. 13 per pixel (float32) from the local means of a, b, a², b² and ab (variances and
+    covariance: local mean of the product − product of the means)."""
+    out = np.empty(mu_a.shape, np.float32)
     two = np.float32(2.0)
     for i in range(mu_a.shape[0]):
         for j in range(mu_a.shape[1]):
@@ -352,8 +352,8 @@ def _ssim_mean(mu_a, blur_aa, mu_b, blur_bb, blur_ab, c1, c2):       # pragma: n
             mu_aa, mu_bb, mu_ab = ma * ma, mb * mb, ma * mb
             num = (two * mu_ab + c1) * (two * (blur_ab[i, j] - mu_ab) + c2)
             den = (mu_aa + mu_bb + c1) * ((blur_aa[i, j] - mu_aa) + (blur_bb[i, j] - mu_bb) + c2)
-            total += np.float64(num / den)
-    return total / mu_a.size
+            out[i, j] = num / den
+    return out
 
 
 def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
