@@ -10,6 +10,11 @@ bookkeeping), in ms and as a share of the per-file time with metrics on. The inc
 metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches).
 CPU time is the steadier figure on a shared machine.
 
+``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
+(each step's input against its output, then the chain's input against its output) on the chain's frames or clouds,
+made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
+× 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
+
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
 on alternately (the order flips every round), ``--repeat`` rounds after one untimed round. Figures per recipe: the
@@ -24,6 +29,7 @@ windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR we
 radar rain and CNF25.
 
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
+    .venv/bin/python bench/bench_metrics.py --compare-only [--repeat N] [--recipes cnf11,cnf05]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
 """
 
@@ -34,6 +40,7 @@ from roadview_noise.executor import worker_setup
 worker_setup()      # before numpy/cv2/numba load: one thread each, as in a worker
 
 import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
@@ -43,9 +50,11 @@ from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
 
+from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
+from roadview_noise.metrics import compare  # noqa: E402
 from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
-from roadview_noise.runner import RunContext, plan, process, run  # noqa: E402
+from roadview_noise.runner import RunContext, build_models, load, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -123,6 +132,36 @@ def bench_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat
             f"({(metrics1 - metrics0) / wall1 * 100:4.1f} %)")
 
 
+def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
+    """CPU ms of the ``compare`` calls of one file's chain (``--compare-only``)."""
+    real = folder == "real"
+    in_root = roots["real" if real else "gen"]
+    recipe = load_recipe(recipe_file(name, True, real, tmp))
+    tasks = [t for t in plan(in_root, recipe) if real or t.sample.relpath.startswith(folder)]
+    if not tasks:
+        return None
+    task = tasks[0]
+    data = load(task.sample, in_root, recipe)
+    models = build_models(recipe, task)
+    chain = [data] + [apply_models(models[: i + 1], data, seed=recipe.seed, key=task.out_relpath,
+                                   sequence_id=task.sample.sequence_id, metrics=False)[0] for i in range(len(models))]
+
+    def once() -> float:
+        items = [dataclasses.replace(d) for d in chain]             # new objects: no cached summaries
+        t0 = time.process_time()
+        for before, after in zip(items, items[1:]):
+            compare(before, after)
+        if len(items) > 2:
+            compare(items[0], items[-1])
+        return (time.process_time() - t0) * 1e3
+
+    once()
+    times = sorted(once() for _ in range(3 * repeat))
+    q1, med, q3 = (statistics.quantiles(times, n=4) if len(times) > 1 else times * 3)
+    label = "real OS1-128 scan0.bin" if real else task.sample.relpath
+    return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]"
+
+
 def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool) -> tuple[float, float, float, int]:
     """(wall s, sum of the per-file seconds, metrics phase s per file, manifest bytes per line) of one run."""
     from run import INPUTS      # bench/run.py: the trees' input globs (bench/ is first on sys.path)
@@ -169,6 +208,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=7, help="runs per case with metrics off and on (default 7)")
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--whole-run", action="store_true", help="whole augment runs instead of single files")
+    ap.add_argument("--compare-only", action="store_true", help="CPU time of the chain's metrics calls alone")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     if args.whole_run:
@@ -184,13 +224,16 @@ def main() -> None:
             shutil.copy(SHARED_OS1 / "scan0.bin", roots["real"] / REAL_SCAN)
         else:
             print("(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
-        print(f"per file in the worker, metrics off → on, median of {args.repeat} runs each:")
-        print(f"  {'recipe':<12} {'input':<38} {'CPU ms':^29}   {'wall ms':^29}   metrics phase ms (share)")
+        if args.compare_only:
+            print(f"metrics.compare calls of one file's chain, CPU ms, median [quartiles] of {3 * args.repeat}:")
+        else:
+            print(f"per file in the worker, metrics off → on, median of {args.repeat} runs each:")
+            print(f"  {'recipe':<12} {'input':<38} {'CPU ms':^29}   {'wall ms':^29}   metrics phase ms (share)")
         for name in names:
             for folder in CASES[name]:
                 if folder == "real" and not (roots["real"] / REAL_SCAN).is_file():
                     continue
-                line = bench_case(name, folder, roots, tmp, args.repeat)
+                line = (compare_case if args.compare_only else bench_case)(name, folder, roots, tmp, args.repeat)
                 if line:
                     print(line, flush=True)
 

@@ -138,6 +138,39 @@ def _reduce(img: np.ndarray, f: int) -> np.ndarray:
     return cv2.resize(img[: h * f, : w * f], (w, h), interpolation=cv2.INTER_AREA)
 
 
+def luminance_area(rgb: np.ndarray, f: int) -> np.ndarray:
+    """Relative luminance (``LUMINANCE_WEIGHTS``) of (H, W, 3) linear RGB box-filtered by f×f and decimated, as
+    :func:`_reduce` then the weights, in one read of the frame (float32; the edge rows/columns that do not fill
+    a block are left out). Per block and channel the f values of each column are summed first, then the f
+    column sums: the float32 rounding differs from OpenCV's area resize then ``cv2.transform`` by a few ulp."""
+    h, w = rgb.shape[0] // f, rgb.shape[1] // f
+    out = np.empty((h, w), np.float32)
+    _luminance_area(np.ascontiguousarray(rgb, dtype=np.float32), f, np.asarray(LUMINANCE_WEIGHTS, np.float32), out)
+    return out
+
+
+@jit
+def _luminance_area(rgb, f, weights, out):                   # pragma: no cover - compiled
+    h, w = out.shape
+    n = w * f * 3                                           # the values of a row that fill whole blocks
+    rows = rgb.reshape(rgb.shape[0], rgb.shape[1] * 3)
+    scale = np.float32(1.0) / np.float32(f * f)
+    acc = np.empty(n, np.float32)
+    for i in range(h):
+        acc[:] = rows[i * f, :n]
+        for k in range(1, f):                               # column sums of the block row: contiguous, vectorised
+            row = rows[i * f + k]
+            for j in range(n):
+                acc[j] += row[j]
+        for j in range(w):
+            r, g, b = acc[j * f * 3], acc[j * f * 3 + 1], acc[j * f * 3 + 2]
+            for k in range(1, f):
+                r += acc[(j * f + k) * 3]
+                g += acc[(j * f + k) * 3 + 1]
+                b += acc[(j * f + k) * 3 + 2]
+            out[i, j] = (r * scale) * weights[0] + (g * scale) * weights[1] + (b * scale) * weights[2]
+
+
 def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None, int]:
     """(sRGB-encoded grey image 0–1 float32 at the metric scale, depth at the same pixels or None, factor)."""
     if isinstance(frame, RawFrame):
@@ -148,9 +181,7 @@ def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None,
         block = 2 * f
     else:
         f = metric_scale(*frame.shape)
-        y = _reduce(frame.linear_rgb, f)
-        if y.ndim == 3:
-            y = cv2.transform(y, np.array([LUMINANCE_WEIGHTS], np.float32))
+        y = luminance_area(frame.linear_rgb, f)
         block = f
     grey = linear_to_code(y, 16).astype(np.float32) * np.float32(1 / 65535)
     depth = None
@@ -162,14 +193,53 @@ def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None,
 
 def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
     grey, depth, f = _grey(frame)
-    mean, std = cv2.meanStdDev(grey)
-    s = {"grey": grey, "scale": f, "rms_contrast": float(std[0, 0]), "edge_density": edge_density(grey),
-         "mean_level": float(mean[0, 0]), "ssim_moments": _ssim_moments(grey)}
+    n_bins = len(DEPTH_BIN_EDGES_M) - 1
+    bins = np.zeros((0, 0), np.int8)
     if depth is not None:                   # the steps share the depth map: its bins are found once
         bins = _per_array(_last_depth, frame.depth_m, depth, DEPTH_BIN_EDGES_M,
                           lambda: _depth_bin_index(np.asarray(depth, np.float32), np.asarray(DEPTH_BIN_EDGES_M)))
-        s["depth_contrast"] = _contrast_per_bin(grey, bins, len(DEPTH_BIN_EDGES_M) - 1)
+    total, squares, edges, per_bin = _grey_statistics(grey, _edge_limit(), bins, n_bins)
+    mean = total / grey.size
+    s = {"grey": grey, "scale": f, "rms_contrast": math.sqrt(max(squares / grey.size - mean * mean, 0.0)),
+         "edge_density": edges / grey.size, "mean_level": mean, "ssim_moments": _ssim_moments(grey)}
+    if depth is not None:
+        s["depth_contrast"] = _contrast_of_sums(*per_bin)
     return s
+
+
+@jit
+def _grey_statistics(grey, limit, bins, n_bins):               # pragma: no cover - compiled
+    """One pass over a grey image (float32, ≥ 1×1): the sum and the sum of squares of its values (float64), the
+    number of pixels whose squared 3×3 Sobel gradient is ≥ ``limit`` (:func:`edge_density`: replicated borders,
+    OpenCV's separable-filter order of float32 operations; a gradient within float32 rounding of the threshold
+    may be counted differently), and with ``bins`` (the pixels' depth bin, −1 none; empty: no bins) the count,
+    sum and sum of squares per bin (pixels of bin −1 are left out)."""
+    h, w = grey.shape
+    with_bins = bins.shape[0] == h and bins.shape[1] == w
+    n, bin_total, bin_squares = np.zeros(n_bins, np.int64), np.zeros(n_bins), np.zeros(n_bins)
+    total, squares, edges = 0.0, 0.0, 0
+    two = np.float32(2.0)
+    for i in range(h):
+        up, down = grey[max(i - 1, 0)], grey[min(i + 1, h - 1)]
+        row = grey[i]
+        for j in range(w):
+            left, right = max(j - 1, 0), min(j + 1, w - 1)
+            gx = two * (row[right] - row[left]) + ((up[right] - up[left]) + (down[right] - down[left]))
+            above = two * up[j] + (up[left] + up[right])
+            below = two * down[j] + (down[left] + down[right])
+            gy = below - above
+            if gx * gx + gy * gy >= limit:
+                edges += 1
+            g = np.float64(row[j])
+            total += g
+            squares += g * g
+            if with_bins:
+                b = bins[i, j]
+                if b >= 0:
+                    n[b] += 1
+                    bin_total[b] += g
+                    bin_squares[b] += g * g
+    return total, squares, edges, (n, bin_total, bin_squares)
 
 
 _last_depth: list = [None, None, None]      # weakref to a depth map, the key of its view (_per_array), bin index
@@ -192,8 +262,12 @@ def edge_density(grey: np.ndarray) -> float:
     """Fraction of pixels whose gradient (3×3 Sobel / 8, grey levels per pixel) is ≥ ``EDGE_GRADIENT_PER_PX``."""
     gx = cv2.Sobel(grey, cv2.CV_32F, 1, 0, borderType=cv2.BORDER_REPLICATE)
     gy = cv2.Sobel(grey, cv2.CV_32F, 0, 1, borderType=cv2.BORDER_REPLICATE)
-    limit = np.float32((8 * EDGE_GRADIENT_PER_PX) ** 2) * np.float32(1 - 1e-6)  # a float32 step of exactly 5 % counts
-    return float(np.count_nonzero(gx * gx + gy * gy >= limit)) / grey.size
+    return float(np.count_nonzero(gx * gx + gy * gy >= _edge_limit())) / grey.size
+
+
+def _edge_limit() -> np.float32:
+    """The squared Sobel gradient of :func:`edge_density`'s threshold (a float32 step of exactly 5 % counts)."""
+    return np.float32((8 * EDGE_GRADIENT_PER_PX) ** 2) * np.float32(1 - 1e-6)
 
 
 def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
@@ -206,7 +280,11 @@ def rms_contrast_per_depth_bin(grey: np.ndarray, depth_m: np.ndarray,
 
 def _contrast_per_bin(grey: np.ndarray, bins: np.ndarray, n_bins: int) -> list[float | None]:
     """:func:`rms_contrast_per_depth_bin` from the pixels' bin index (:func:`_depth_bin_index`)."""
-    n, total, squares = _bin_sums(np.asarray(grey, np.float32), bins, n_bins)
+    return _contrast_of_sums(*_grey_statistics(np.asarray(grey, np.float32), _edge_limit(), bins, n_bins)[3])
+
+
+def _contrast_of_sums(n: np.ndarray, total: np.ndarray, squares: np.ndarray) -> list[float | None]:
+    """RMS contrast per bin from its pixel count, sum and sum of squares (None below ``MIN_BIN_PX`` pixels)."""
     return [math.sqrt(max(q / k - (t / k) ** 2, 0.0)) if k >= MIN_BIN_PX else None
             for k, t, q in zip(n.tolist(), total.tolist(), squares.tolist())]
 
@@ -226,24 +304,6 @@ def _depth_bin_index(depth, edges):                        # pragma: no cover - 
     return index
 
 
-@jit
-def _bin_sums(grey, index, bins):                        # pragma: no cover - compiled
-    """Per bin: pixel count, sum and sum of squares of ``grey`` (pixels of bin −1 are left out)."""
-    n = np.zeros(bins, np.int64)
-    total = np.zeros(bins)
-    squares = np.zeros(bins)
-    for i in range(grey.shape[0]):
-        for j in range(grey.shape[1]):
-            b = index[i, j]
-            if b < 0:
-                continue
-            g = np.float64(grey[i, j])
-            n[b] += 1
-            total[b] += g
-            squares[b] += g * g
-    return n, total, squares
-
-
 def psnr_db(a: np.ndarray, b: np.ndarray, peak: float = 1.0) -> float:
     """Peak signal-to-noise ratio (dB) of ``b`` against ``a``; ``inf`` when they are identical."""
     mse = cv2.norm(np.asarray(a, np.float32), np.asarray(b, np.float32), cv2.NORM_L2SQR) / np.size(a)
@@ -256,17 +316,14 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
     return _ssim(a, b, _ssim_moments(a), _ssim_moments(b), data_range)
 
 
-def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Local mean μ, its square μ² and the local variance (local mean of the square − μ²) of a grey image over
-    the SSIM window (window inside the image); a frame's are computed once (its summary) for all comparisons it
-    is part of."""
+def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Local mean μ and local mean of the square of a grey image over the SSIM window (window inside the image);
+    a frame's are computed once (its summary) for all comparisons it is part of."""
     r = SSIM_RADIUS_PX
     if min(x.shape) <= 2 * r:
         return None
     x = np.asarray(x, np.float32)
-    mu = _ssim_blur(x)
-    mu_sq = mu * mu
-    return mu, mu_sq, _ssim_blur(x * x) - mu_sq
+    return _ssim_blur(x), _ssim_blur(x * x)
 
 
 def _ssim_blur(x: np.ndarray) -> np.ndarray:
@@ -278,12 +335,25 @@ def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float 
     """:func:`ssim` from the images and their :func:`_ssim_moments`."""
     if moments_a is None or moments_b is None:
         return None
-    (mu_a, mu_aa, var_a), (mu_b, mu_bb, var_b) = moments_a, moments_b
-    mu_ab = mu_a * mu_b
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
-    num = (2 * mu_ab + c1) * (2 * (_ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32)) - mu_ab) + c2)
-    den = (mu_aa + mu_bb + c1) * (var_a + var_b + c2)
-    return float(np.mean(num / den, dtype=np.float64))
+    blur_ab = _ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32))
+    return float(np.mean(_ssim_map(*moments_a, *moments_b, blur_ab, c1, c2), dtype=np.float64))
+
+
+@jit
+def _ssim_map(mu_a, blur_aa, mu_b, blur_bb, blur_ab, c1, c2):       # pragma: no cover - compiled
+    """Wang et al.'s Eq. 13 per pixel (float32) from the local means of a, b, a², b² and ab (variances and
+    covariance: local mean of the product − product of the means)."""
+    out = np.empty(mu_a.shape, np.float32)
+    two = np.float32(2.0)
+    for i in range(mu_a.shape[0]):
+        for j in range(mu_a.shape[1]):
+            ma, mb = mu_a[i, j], mu_b[i, j]
+            mu_aa, mu_bb, mu_ab = ma * ma, mb * mb, ma * mb
+            num = (two * mu_ab + c1) * (two * (blur_ab[i, j] - mu_ab) + c2)
+            den = (mu_aa + mu_bb + c1) * ((blur_aa[i, j] - mu_aa) + (blur_bb[i, j] - mu_bb) + c2)
+            out[i, j] = num / den
+    return out
 
 
 def _compare_frames(b: dict, a: dict) -> dict[str, Any]:

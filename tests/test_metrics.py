@@ -128,6 +128,77 @@ def test_ssim_matches_scikit_image():
     assert ssim(a[:8], a[:8]) is None                       # smaller than the 11×11 window
 
 
+@pytest.mark.parametrize("f", [1, 2, 3, 7])
+def test_luminance_area_is_the_area_resize_then_the_luminance_weights(f):
+    """The one-pass reduction equals OpenCV's area resize then the Rec. 709 weights to float32 rounding, leaves
+    out the rows/columns that do not fill a block, reads any memory layout alike and keeps the channel order."""
+    import cv2
+
+    from roadview_noise.metrics import LUMINANCE_WEIGHTS, luminance_area
+
+    rng = np.random.default_rng(f)
+    rgb = (rng.random((101, 157, 3), dtype=np.float32) * np.array([1.0, 0.3, 3.0], np.float32)).astype(np.float32)
+    h, w = 101 // f, 157 // f
+    ref = cv2.transform(cv2.resize(rgb[: h * f, : w * f], (w, h), interpolation=cv2.INTER_AREA),
+                        np.array([LUMINANCE_WEIGHTS], np.float32))
+    got = luminance_area(rgb, f)
+    assert got.shape == (h, w) and got.dtype == np.float32
+    np.testing.assert_allclose(got, ref, rtol=2e-6, atol=1e-7)
+    view = np.ascontiguousarray(rgb[::-1, ::-1])[::-1, ::-1]           # the same pixels, negative strides
+    np.testing.assert_array_equal(luminance_area(view, f), got)
+    red = np.zeros((4 * f, 4 * f, 3), np.float32)
+    red[..., 0] = 1.0
+    np.testing.assert_allclose(luminance_area(red, f), LUMINANCE_WEIGHTS[0], rtol=1e-6)
+
+
+def test_one_pass_grey_statistics_equal_opencv_sobel_and_numpy():
+    """The summary's single pass counts the edges of :func:`edge_density` (OpenCV's Sobel, replicated borders) —
+    on levels that put many gradients exactly at the threshold; a count may differ only by gradients within
+    float32 rounding of it — and gives NumPy's mean, standard deviation and per-bin sums."""
+    import cv2
+
+    from roadview_noise.metrics import _edge_limit, _grey_statistics, edge_density
+
+    rng = np.random.default_rng(11)
+    y, x = np.mgrid[0:63, 0:97]
+    grey = (0.5 + 0.15 * np.sin(x / 4.0) * np.cos(y / 5.0) + rng.normal(0, 0.003, x.shape)).astype(np.float32)
+    grey[45:] = (rng.integers(0, 2, (18, 97)) * 0.05 + 0.4).astype(np.float32)   # steps of exactly 5 %
+    bins = rng.integers(-1, 5, grey.shape).astype(np.int8)
+    for img in (grey, grey[:1], grey[:, :1], np.ascontiguousarray(grey.T)):
+        total, squares, edges, _ = _grey_statistics(img, _edge_limit(), np.zeros((0, 0), np.int8), 5)
+        gx, gy = (cv2.Sobel(img, cv2.CV_32F, dx, 1 - dx, borderType=cv2.BORDER_REPLICATE) for dx in (1, 0))
+        ties = np.count_nonzero(np.abs(gx * gx + gy * gy - _edge_limit()) <= 1e-5 * _edge_limit())
+        assert abs(edges - round(edge_density(img) * img.size)) <= ties
+        assert total == pytest.approx(float(np.sum(img, dtype=np.float64)), rel=1e-12)
+        assert squares == pytest.approx(float(np.sum(img.astype(np.float64) ** 2)), rel=1e-12)
+    assert 0.2 < edge_density(grey) < 0.8
+    n, total, squares = _grey_statistics(grey, _edge_limit(), bins, 5)[3]
+    g = grey.astype(np.float64)
+    for b in range(5):
+        assert n[b] == np.count_nonzero(bins == b)
+        assert total[b] == pytest.approx(g[bins == b].sum(), rel=1e-12)
+        assert squares[b] == pytest.approx((g[bins == b] ** 2).sum(), rel=1e-12)
+
+
+def test_ssim_equals_equation_13_in_float64():
+    """The compiled SSIM mean equals Wang et al.'s Eq. 13 evaluated in float64 from the same Gaussian window."""
+    import cv2
+
+    rng = np.random.default_rng(4)
+    a = rng.random((70, 90), dtype=np.float32)
+    b = np.clip(a * 0.7 + rng.normal(0.1, 0.05, a.shape), 0, 1).astype(np.float32)
+
+    def blur(x):
+        return cv2.GaussianBlur(x, (11, 11), 1.5)[5:-5, 5:-5]
+
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    mu_a, mu_b = blur(a64), blur(b64)
+    var_a, var_b, cov = blur(a64 * a64) - mu_a ** 2, blur(b64 * b64) - mu_b ** 2, blur(a64 * b64) - mu_a * mu_b
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ref = np.mean((2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2)))
+    assert ssim(a, b) == pytest.approx(ref, rel=1e-5)
+
+
 def test_metric_scale_leaves_at_most_65536_pixels():
     assert metric_scale(1464, 1936) == 7                                       # 209 × 276
     assert metric_scale(366, 484) == 2                                         # 183 × 242
