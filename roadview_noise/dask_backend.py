@@ -98,7 +98,8 @@ class DaskExecutor:
         self._pending: dict[Any, Any] = {}
 
     def _check_workers(self) -> None:
-        """Refuse workers that would give other bytes (other library versions) or run several files at once."""
+        """Refuse workers that would give other bytes (other library versions or CPU math extensions) or run several
+        files at once."""
         self.client.wait_for_workers(1, timeout=60)
         threads = {w: n for w, n in self.client.nthreads().items() if n != 1}
         if threads:
@@ -109,8 +110,9 @@ class DaskExecutor:
             if theirs != mine:
                 diff = {k: (mine.get(k), theirs.get(k)) for k in set(mine) | set(theirs) if mine.get(k) !=
                         theirs.get(k)}
-                raise RecipeError(f"Dask worker {worker} runs other library versions, so its outputs could differ "
-                                  f"(here, there): {diff}; install the same versions on every worker")
+                raise RecipeError(f"Dask worker {worker} runs other library versions or CPU math extensions, so "
+                                  f"its outputs could differ (here, there): {diff}; install the same versions on "
+                                  f"every worker and use machines of one CPU family")
 
     def map(self, tasks: Iterable[Any]) -> Iterator[tuple[Any, Any]]:
         from distributed import wait

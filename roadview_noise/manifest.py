@@ -93,7 +93,22 @@ def library_versions() -> dict[str, str]:
     for name, dists in _VERSIONED.items():
         versions[name] = _installed_version(name, dists)
     versions["platform"] = platform.platform()
+    versions["cpu_math"] = cpu_math_features()
     return versions
+
+
+# CPU extensions that select NumPy's SIMD float kernels and glibc's libm variants (exp, atan2 … have FMA versions):
+# machines that differ in them may round a transcendental function differently in the last bit.
+_MATH_FEATURES = ("FMA3", "AVX2", "AVX512F", "AVX512_SKX", "ASIMD", "ASIMDHP", "SVE", "VSX2", "VSX3", "VX")
+
+
+def cpu_math_features() -> str:
+    """The CPU extensions among ``_MATH_FEATURES`` that NumPy detected here ("baseline" if none)."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:                                     # NumPy < 2
+        from numpy.core._multiarray_umath import __cpu_features__ as features
+    return " ".join(f for f in _MATH_FEATURES if features.get(f)) or "baseline"
 
 
 def _installed_version(module: str, dists: tuple[str, ...]) -> str:

@@ -36,6 +36,27 @@ def test_dask_local_cluster_writes_what_two_local_workers_write(tmp_path, tree):
     assert not any(p.name.startswith(".") for p in (tmp_path / "dask").rglob("*") if p.name != ".rvnoise.lock")
 
 
+def test_a_worker_with_other_cpu_math_extensions_is_refused():
+    """NumPy's SIMD kernels and glibc's FMA variants of exp/atan2 depend on the CPU: a worker on another CPU family
+    could round differently, so the client refuses it as it refuses other library versions."""
+    from roadview_noise import dask_backend
+    from roadview_noise.errors import RecipeError
+    from roadview_noise.manifest import library_versions
+
+    here = library_versions()
+    assert here["cpu_math"]                                  # recorded in run.json and compared with each worker
+
+    class Client:
+        def wait_for_workers(self, n, timeout): pass
+        def nthreads(self): return {"tcp://a:1": 1, "tcp://b:1": 1}
+        def run(self, fn): return {"tcp://a:1": fn(), "tcp://b:1": {**fn(), "cpu_math": "baseline"}}
+
+    executor = object.__new__(dask_backend.DaskExecutor)
+    executor.client = Client()
+    with pytest.raises(RecipeError, match=r"tcp://b:1 .*CPU math.*cpu_math"):
+        executor._check_workers()
+
+
 def test_backend_options_are_checked(tmp_path, tree):
     recipe = _recipe(tmp_path, CAMERA)
     r = _augment(tree, tmp_path / "o", "--recipe", recipe, "--scheduler", "tcp://127.0.0.1:1")
