@@ -7,10 +7,15 @@ on stderr, never a traceback); 130 interrupted.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Optional
 
-import typer
+from roadview_noise.prestart import start_from_command_line
+
+start_from_command_line(sys.argv)        # the workers' fork server imports while typer and the recipe load
+
+import typer  # noqa: E402
 
 from roadview_noise.errors import RvNoiseError
 

@@ -11,15 +11,15 @@ that the workers inherit the table instead of each building it (``models.camera.
 
 from __future__ import annotations
 
-import gc
 import sys
 
 _done = False
 
 
 def warm_up() -> int:
-    """Load the cached compiled versions of every numba kernel of the package's loaded modules; returns how many.
-    Uses numba's cache index (``Dispatcher._cache``), so an unknown numba version costs only the warm-up."""
+    """Load the cached compiled versions of every numba kernel of the package's loaded modules (module-level
+    kernels: ``@jit`` decorates module functions; a scan of the module dicts, not of every object); returns how
+    many. Uses numba's cache index (``Dispatcher._cache``), so an unknown numba version costs only the warm-up."""
     global _done
     if _done:
         return 0
@@ -29,8 +29,9 @@ def warm_up() -> int:
     except ImportError:                              # pragma: no cover - numba is a dependency
         return 0
     loaded = 0
-    kernels = [o for o in gc.get_objects() if isinstance(o, CPUDispatcher)
-               and getattr(o.py_func, "__module__", "").startswith("roadview_noise.")]
+    kernels = {id(o): o for name, module in list(sys.modules.items()) if name.startswith("roadview_noise.")
+               for o in list(vars(module).values()) if isinstance(o, CPUDispatcher)
+               and getattr(o.py_func, "__module__", "").startswith("roadview_noise.")}.values()
     for kernel in kernels:
         try:
             cache = kernel._cache

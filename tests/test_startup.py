@@ -1,0 +1,57 @@
+"""Start-up (issue 19): the fork server started from the raw command line, before typer loads; the server leaving
+at once when the run's process exits."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from roadview_noise import prestart
+
+
+@pytest.mark.parametrize("argv, recipe", [
+    (["augment", "--recipe", "r.yaml", "in", "out"], "r.yaml"),
+    (["augment", "in", "out", "-r", "r.yaml", "--workers", "2"], "r.yaml"),
+    (["augment", "--recipe=r.yaml", "in", "out", "--backend", "local"], "r.yaml"),
+    (["augment", "-rr.yaml", "in", "out", "--backend=local"], "r.yaml"),
+    (["augment", "--recipe", "r.yaml", "in", "out", "--dry-run"], None),
+    (["augment", "--recipe", "r.yaml", "in", "out", "--backend", "dask"], None),
+    (["augment", "--recipe", "r.yaml", "in", "out", "--backend=dask"], None),
+    (["augment", "--recipe", "r.yaml", "--help"], None),
+    (["augment", "in", "out", "--recipe"], None),
+    (["validate", "r.yaml"], None),
+    ([], None),
+])
+def test_fork_server_started_from_the_raw_command_line(monkeypatch, argv, recipe):
+    started = []
+    monkeypatch.setattr(prestart, "start_for", lambda path: started.append(str(path)))
+    prestart.start_from_command_line(["rvnoise", *argv])
+    assert started == ([recipe] if recipe else [])
+
+
+def test_the_fork_server_leaves_without_tearing_down(tmp_path):
+    """A module the server preloaded registers an exit handler; the server's fast exit, imported after it, runs
+    first (handlers run last-in first-out), so the handler never runs: the interpreter is not torn down. The run's
+    process still gets its result and its pipes close."""
+    marker = tmp_path / "torn-down"
+    (tmp_path / "teardown_marker.py").write_text(textwrap.dedent(f"""
+        import atexit
+        atexit.register(lambda: open({str(marker)!r}, "w").close())
+    """))
+    script = textwrap.dedent(f"""
+        from roadview_noise.executor import ProcessExecutor
+        from tests.test_executor import work
+
+        print(dict(ProcessExecutor(work, {{}}, 1, models=["teardown_marker"]).map([4])))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          cwd=str(Path(__file__).resolve().parents[1]),
+                          env={**os.environ, "PYTHONPATH": str(tmp_path)})   # the server's sys.path (3.11 ignores ours)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "{4: (4, 16)}"
+    assert not marker.exists()
