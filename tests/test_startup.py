@@ -3,6 +3,7 @@ at once when the run's process exits."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from roadview_noise import prestart
+from test_cli import tree  # noqa: F401 - fixture
 
 
 @pytest.mark.parametrize("argv, recipe", [
@@ -55,3 +57,16 @@ def test_the_fork_server_leaves_without_tearing_down(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "{4: (4, 16)}"
     assert not marker.exists()
+
+
+def test_run_json_records_the_worker_start(tmp_path, tree):
+    """run.json's ``worker_start_seconds``: from starting the workers to the first file's start in a worker, a part
+    of the run's wall time."""
+    from test_cli import CAMERA, _recipe
+
+    from roadview_noise.recipe import load_recipe
+    from roadview_noise.runner import run
+
+    run(load_recipe(_recipe(tmp_path, CAMERA)), tree, tmp_path / "o", workers=2, progress=False, echo=lambda m: None)
+    record = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert 0 <= record["worker_start_seconds"] < record["wall_seconds"]
