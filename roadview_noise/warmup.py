@@ -6,7 +6,8 @@ warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the ca
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
 A model module whose first file builds a constant table may define ``warm_up()``: it is called here too, once, so
-that the workers inherit the table instead of each building it (``models.camera.fog``: the Mie table, ≈ 0.5 s).
+that the workers inherit the table instead of each building it (``models.camera.fog``: the Mie table, ≈ 0.5 s);
+when a camera model is loaded, the sRGB tables of :data:`CAMERA_TABLES` are built too.
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ from __future__ import annotations
 import sys
 
 _done = False
+# physics/srgb.py's lookup tables that every camera output (and the camera metrics) needs, built on first use
+# (≈ 40 ms of one core per worker): built here when a camera model is loaded, so that every worker inherits them
+CAMERA_TABLES = ("encode8_table", "encode16_table")
 
 
 def warm_up() -> int:
@@ -45,6 +49,13 @@ def warm_up() -> int:
     for name, module in list(sys.modules.items()):
         if name.startswith("roadview_noise.models.") and callable(getattr(module, "warm_up", None)):
             module.warm_up()
+    if any(name.startswith("roadview_noise.models.camera.") for name in sys.modules):
+        from .physics import srgb
+
+        for table in CAMERA_TABLES:
+            build = getattr(srgb, table, None)
+            if callable(build):
+                build()
     return loaded
 
 

@@ -70,3 +70,15 @@ def test_run_json_records_the_worker_start(tmp_path, tree):
     run(load_recipe(_recipe(tmp_path, CAMERA)), tree, tmp_path / "o", workers=2, progress=False, echo=lambda m: None)
     record = json.loads((tmp_path / "o" / "run.json").read_text())
     assert 0 <= record["worker_start_seconds"] < record["wall_seconds"]
+
+
+@pytest.mark.parametrize("model, built", [("roadview_noise.models.camera.fog", "1 1"),
+                                          ("roadview_noise.models.radar.fog", "0 0")])
+def test_warm_up_builds_the_srgb_tables_for_camera_runs_only(model, built):
+    """The fork server's warm-up builds physics/srgb.py's tables once when a camera model is loaded (the workers
+    inherit them), and not for other sensors' runs."""
+    code = (f"import {model}, roadview_noise.warmup; from roadview_noise.physics import srgb; "
+            "print(srgb.encode8_table.cache_info().currsize, srgb.encode16_table.cache_info().currsize)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == built
