@@ -6,8 +6,8 @@ warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the ca
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
 A model module whose first file builds a constant table may define ``warm_up()``: it is called here too, once, so
-that the workers inherit the table instead of each building it (``models.camera.fog``: the Mie table, ≈ 0.5 s);
-when a camera model is loaded, the sRGB tables of :data:`CAMERA_TABLES` are built too.
+that the workers inherit the table instead of each building it; when a camera model is loaded, the sRGB tables of
+:data:`CAMERA_TABLES` are built too.
 """
 
 from __future__ import annotations
