@@ -68,26 +68,32 @@ def start_for(recipe_path: Path) -> None:
         start_server(modules)
 
 
-def start_from_command_line(argv: Sequence[str]) -> None:
-    """Start the fork server from ``rvnoise augment``'s raw arguments, before the command line's own imports
-    (typer, pydantic: ≈ 0.15 s). Only a plain local run: no ``--help``, ``--dry-run`` or other backend; a recipe
-    given as ``--recipe R``, ``--recipe=R``, ``-r R`` or ``-rR``. The command still calls :func:`start_for` once
-    parsed, a no-op when this one started the server (a ROS bag's recipe names no chain: nothing is started)."""
+def local_run_recipe(argv: Sequence[str]) -> str | None:
+    """The recipe of a plain local ``rvnoise augment`` run from its raw arguments: no ``--help``, ``--dry-run`` or
+    other backend; a recipe given as ``--recipe R``, ``--recipe=R``, ``-r R`` or ``-rR``. None otherwise."""
     args = list(argv[1:])
     if args[:1] != ["augment"] or {"--help", "--dry-run"} & set(args):
-        return
+        return None
     recipe = None
     for i, a in enumerate(args):
         value = args[i + 1] if i + 1 < len(args) else None
         if a in ("--backend", "--recipe", "-r") and value is None:
-            return
+            return None
         if a == "--backend" and value != "local" or a.startswith("--backend=") and a != "--backend=local":
-            return
+            return None
         if a in ("--recipe", "-r"):
             recipe = value
         elif a.startswith("--recipe="):
             recipe = a.split("=", 1)[1]
         elif a.startswith("-r") and not a.startswith("--") and len(a) > 2:
             recipe = a[2:]
+    return recipe or None
+
+
+def start_from_command_line(argv: Sequence[str]) -> None:
+    """Start the fork server for :func:`local_run_recipe` before the command line's own imports (typer, pydantic:
+    ≈ 0.15 s). The command still calls :func:`start_for` once parsed, a no-op when this one started the server (a
+    ROS bag's recipe names no chain: nothing is started)."""
+    recipe = local_run_recipe(argv)
     if recipe:
         start_for(Path(recipe))

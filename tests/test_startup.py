@@ -82,3 +82,27 @@ def test_warm_up_builds_the_srgb_tables_for_camera_runs_only(model, built):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == built
+
+
+@pytest.mark.parametrize("command, torn_down", [("augment", False), ("validate", True)])
+def test_a_local_run_ends_without_tearing_down(tmp_path, tree, command, torn_down):
+    """The console script's app: after a local ``augment`` the process leaves at once (an exit handler registered
+    before it never runs) with the command's exit code and everything written; other commands end as usual."""
+    from test_cli import CAMERA, _recipe
+
+    recipe, marker, out = _recipe(tmp_path, CAMERA), tmp_path / "torn-down", tmp_path / "o"
+    args = ["augment", "--recipe", str(recipe), str(tree), str(out), "--workers", "1", "--quiet"] \
+        if command == "augment" else ["validate", str(recipe)]
+    code = textwrap.dedent(f"""
+        import atexit, sys
+        atexit.register(lambda: open({str(marker)!r}, "w").close())
+        sys.argv = ["rvnoise", *{args!r}]
+        from roadview_noise.cli.main import app
+        app()
+    """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert marker.exists() == torn_down
+    if command == "augment":
+        assert "written" in done.stdout
+        assert json.loads((out / "run.json").read_text())["state"] == "complete"
