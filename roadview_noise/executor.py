@@ -5,12 +5,10 @@ kernel's out-of-memory killer): every task in flight is lost and the run aborts.
 worker its own pipe and knows which task a dead worker was running: that
 task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
 is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds a second task, queued in its pipe, so it
-never waits for the parent between two small files, and three behind tasks shorter than ``QUEUE_DEEP_BELOW_S`` (a
-parent that is not scheduled for a few ms does not starve it); the tasks queued behind a running one total at most
-``QUEUE_MAX_BYTES``, so sending one never blocks on a worker that is itself blocked sending a large result. It runs
-them in order, so the first unanswered task is still the one a dead worker was running, and the queued ones are
-re-sent without a death counted. Workers get the run context once at start and then only small task keys (never
-arrays).
+never waits for the parent between two small files (only a task of at most ``QUEUE_MAX_BYTES``: sending it never
+blocks on a worker that is itself blocked sending a large result); it runs them in order, so the first unanswered
+task is still the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get
+the run context once at start and then only small task keys (never arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
@@ -58,8 +56,7 @@ WARM_UP = "roadview_noise.warmup"
 SERVER_EXIT = "roadview_noise.server_exit"     # the server's fast exit (imported by the server only)
 PR_SET_PDEATHSIG = 1
 QUEUE_BELOW_S = 0.05               # tasks shorter than this get a second one queued behind them (see _depth)
-QUEUE_DEEP_BELOW_S = 0.01          # … and shorter than this, three
-QUEUE_MAX_BYTES = 16 * 1024        # the tasks queued behind a running one total at most this: a send never blocks
+QUEUE_MAX_BYTES = 16 * 1024        # only a task this small is queued behind a running one: its send never blocks
 
 
 class _NotNow:
@@ -257,7 +254,6 @@ class _Worker:
     proc: Any
     conn: Any
     queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered; the first one is running
-    sizes: deque = field(default_factory=deque)     # their pickled sizes, bytes
     started: float = 0.0                            # when the first of ``queue`` started
 
 
@@ -288,8 +284,8 @@ class ProcessExecutor(Generic[T, C]):
         return _Worker(proc, parent)
 
     def _depth(self) -> int:
-        """Tasks a worker holds: more queued behind short tasks, so it never waits for the parent."""
-        return 4 if self._task_s < QUEUE_DEEP_BELOW_S else 2 if self._task_s < QUEUE_BELOW_S else 1
+        """Tasks a worker holds: a second one queued behind short tasks, so it never waits for the parent."""
+        return 2 if self._task_s < QUEUE_BELOW_S else 1
 
     def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
         source = iter(tasks)
@@ -320,7 +316,7 @@ class ProcessExecutor(Generic[T, C]):
                         else:
                             break
                         payload = ForkingPickler.dumps((tid, task))
-                        if w.queue and sum(w.sizes) - w.sizes[0] + len(payload) > QUEUE_MAX_BYTES:
+                        if w.queue and len(payload) > QUEUE_MAX_BYTES:
                             # a busy worker may be blocked sending us its result: writing more than its pipe
                             # holds would block both; the task waits for an idle worker
                             retry.appendleft((tid, task))
@@ -328,7 +324,6 @@ class ProcessExecutor(Generic[T, C]):
                         if not w.queue:
                             w.started = time.monotonic()
                         w.queue.append((tid, task))
-                        w.sizes.append(len(payload))
                         try:
                             w.conn.send_bytes(payload)
                         except (BrokenPipeError, OSError):
@@ -365,7 +360,6 @@ class ProcessExecutor(Generic[T, C]):
                         took = now - w.started
                         self._task_s = took if self._task_s == float("inf") else 0.75 * self._task_s + 0.25 * took
                         _, task = w.queue.popleft()
-                        w.sizes.popleft()
                         w.started = now                    # the worker took the next queued task at once
                         yield task, result
                         continue

@@ -140,23 +140,3 @@ def test_large_tasks_behind_large_results_never_deadlock():
     assert not runner.is_alive(), "the executor deadlocked"
     assert len(done) == 24 and all(done[t] == t[1] * 8 for t in tasks)
     assert ex._task_s < QUEUE_BELOW_S                                 # short tasks: the queue would have been used
-
-
-def test_very_short_tasks_are_queued_deeper_within_the_byte_budget(tmp_path):
-    """Behind very short tasks a worker holds up to three queued ones, as long as they total at most
-    QUEUE_MAX_BYTES; a death still costs only the running task."""
-    from roadview_noise.executor import QUEUE_DEEP_BELOW_S, QUEUE_MAX_BYTES
-
-    ex = ProcessExecutor(work, {"kill_once": (57,), "dir": str(tmp_path)}, 1)
-    seen = []
-    for task, result in ex.map(range(80)):
-        seen.append(result)
-        if task == 40:
-            # the answered task has just left its queue: 3 are still held (at depth 2 it would be 1)
-            assert ex._task_s < QUEUE_DEEP_BELOW_S and len(ex._pool[0].queue) == 3
-    assert sorted(seen) == [(t, t * t) for t in range(80)] and ex.deaths == 1    # 57 retried once, no other blamed
-    ex = ProcessExecutor(echo_large, {}, 1)
-    big = [(i, bytes([i]) * (QUEUE_MAX_BYTES // 3)) for i in range(30)]
-    for task, result in ex.map(big):
-        assert len(ex._pool[0].queue) <= 2       # 1 running + 2 queued fit the budget, 3 do not; the answered one left
-        assert result == task[1] * 8
