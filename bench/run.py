@@ -12,7 +12,8 @@ copied. Then, per sensor, with 1 and 2 processes:
   server, the workers' start and the manifest), ``--profile`` on: per-model ms in the workers at the D3.5 rates and
   each worker's peak RSS come from the manifest;
 - **start-up**: ``rvnoise augment --limit 1`` in a fresh process, minus the file's own time, and in all (the augment
-  rows exclude it: the fork server is started for each recipe before its timed runs);
+  rows exclude it: the fork server is started for each recipe before its timed runs); and the worker start-up of
+  that run (run.json ``worker_start_seconds``: from starting the workers to the first file's start in a worker);
 - **small files**: fog.radar on 10× the radar tree's files, 1 and 2 workers: what each file costs beyond its own time
   (task hand-over, the main process's manifest line and rename), the main process's CPU and the workers' busy share;
 - ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame,
@@ -192,9 +193,10 @@ def small_files(tree: Path, root: Path, copies: int) -> dict:
     return r
 
 
-def startup(name: str, sensor: str, tree: Path, out: Path) -> tuple[float, float]:
-    """Seconds of a one-file CLI run: beyond the file's own time (process start, imports, workers, manifest), and
-    in all."""
+def startup(name: str, sensor: str, tree: Path, out: Path) -> tuple[float, float, float]:
+    """Seconds of a one-file CLI run: beyond the file's own time (process start, imports, workers, manifest), in
+    all, and the worker start-up (run.json ``worker_start_seconds``: from starting the workers to the first file's
+    start in a worker)."""
     from roadview_noise.manifest import read_manifest
 
     recipe = out.parent / f"{name}-startup.yaml"
@@ -205,7 +207,8 @@ def startup(name: str, sensor: str, tree: Path, out: Path) -> tuple[float, float
     subprocess.run([str(Path(sys.executable).with_name("rvnoise")), "augment", "--recipe", str(recipe), str(tree),
                     str(out), "--limit", "1", "--workers", "1", "--quiet"], check=True, capture_output=True)
     wall = time.perf_counter() - t0
-    return wall - read_manifest(out / "manifest.jsonl")[0]["seconds"], wall
+    worker = json.loads((out / "run.json").read_text())["worker_start_seconds"]
+    return wall - read_manifest(out / "manifest.jsonl")[0]["seconds"], wall, worker
 
 
 # --- single frames ---------------------------------------------------------------------------------------------------
@@ -334,11 +337,12 @@ def main() -> None:
         print("|---|" + "---|" * len(next(iter(splits.values()))))
         for name, sp in splits.items():
             print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in sp.values()) + " |")
-        print("\n| start-up of a one-file run (CLI process) | beyond the file's own time s | in all s |\n|---|---|---|")
+        print("\n| start-up of a one-file run (CLI process) | beyond the file's own time s | in all s | worker "
+              "start-up s |\n|---|---|---|---|")
         for sensor, name in (("camera", "weather-fog"), ("lidar", "weather-fog-lidar"),
                              ("radar", "weather-fog-radar")):
-            beyond, wall = startup(name, sensor, trees[sensor], root / f"start-{name}")
-            print(f"| {name} | {beyond:.2f} | {wall:.2f} |")
+            beyond, wall, worker = startup(name, sensor, trees[sensor], root / f"start-{name}")
+            print(f"| {name} | {beyond:.2f} | {wall:.2f} | {worker:.2f} |")
         many = small_files(trees["radar"], root, 10)
         print(f"\n| small files: weather-fog-radar on {many[1]['done']} radar files | 1 worker | 2 workers |\n"
               "|---|---|---|")

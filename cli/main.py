@@ -7,16 +7,39 @@ on stderr, never a traceback); 130 interrupted.
 
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
-import typer
+from roadview_noise.prestart import local_run_recipe, start_from_command_line
+
+start_from_command_line(sys.argv)        # the workers' fork server imports while typer and the recipe load
+
+import typer  # noqa: E402
 
 from roadview_noise.errors import RvNoiseError
 
-app = typer.Typer(name="rvnoise", no_args_is_help=True, add_completion=False, rich_markup_mode="markdown",
-                  help="Batch augmentation of camera, raw Bayer, LiDAR and 4D-radar data with the ROADVIEW "
-                       "compound sensor noise models (weather × noise factor, CNF01–CNF30).")
+
+class _App(typer.Typer):
+    """The console script's app. A local ``augment`` run ends without tearing its interpreter down (numba, scipy,
+    OpenCV, pydantic: ≈ 0.1 s), like its fork server (``server_exit``): by then the run has closed everything it
+    wrote and released its lock. Other commands, and the app under a test runner, end as usual."""
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        try:
+            return super().__call__(*args, **kwargs)
+        except SystemExit as done:
+            if isinstance(done.code, (int, type(None))) and local_run_recipe(sys.argv):
+                sys.stdout.flush()
+                sys.stderr.flush()
+                os._exit(done.code or 0)
+            raise
+
+
+app = _App(name="rvnoise", no_args_is_help=True, add_completion=False, rich_markup_mode="markdown",
+           help="Batch augmentation of camera, raw Bayer, LiDAR and 4D-radar data with the ROADVIEW "
+                "compound sensor noise models (weather × noise factor, CNF01–CNF30).")
 
 
 def _fail(message: str, code: int = 2) -> None:

@@ -53,6 +53,7 @@ THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1"}
 PRELOAD = ["cv2", "roadview_noise.runner", "roadview_noise.metrics"]   # + the run's models, the warm-up (_preload)
 WARM_UP = "roadview_noise.warmup"
+SERVER_EXIT = "roadview_noise.server_exit"     # the server's fast exit (imported by the server only)
 PR_SET_PDEATHSIG = 1
 QUEUE_BELOW_S = 0.05               # tasks shorter than this get a second one queued behind them (see _depth)
 QUEUE_MAX_BYTES = 16 * 1024        # only a task this small is queued behind a running one: its send never blocks
@@ -204,14 +205,15 @@ def _starting() -> Iterator[None]:
 
 
 def _preload(models: Sequence[str] | None) -> list[str]:
-    """What the fork server imports: the runner, ``models`` (None: every model module), then the warm-up."""
+    """What the fork server imports: the runner, ``models`` (None: every model module), the warm-up, then its fast
+    exit (:mod:`roadview_noise.server_exit`)."""
     if models is None:
         import pkgutil
 
         from . import models as package
 
         models = [m.name for m in pkgutil.walk_packages(package.__path__, package.__name__ + ".")]
-    return PRELOAD + list(models) + [WARM_UP]
+    return PRELOAD + list(models) + [WARM_UP, SERVER_EXIT]
 
 
 _live: "weakref.WeakSet[ProcessExecutor]" = weakref.WeakSet()   # executors with workers: their fork server stays
@@ -237,7 +239,8 @@ def _context(models: Sequence[str] | None = None):
         if running and not set(want) <= set(have) and not _live and hasattr(server, "_stop"):
             server._stop()
             running = False
-            want = _preload(list(dict.fromkeys(m for m in have + want if m not in PRELOAD and m != WARM_UP)))
+            want = _preload(list(dict.fromkeys(m for m in have + want
+                                               if m not in PRELOAD and m not in (WARM_UP, SERVER_EXIT))))
         if not running:
             ctx.set_forkserver_preload(want)
             with _starting():            # the server imports numpy once, with one BLAS thread per worker

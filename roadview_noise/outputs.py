@@ -82,6 +82,7 @@ class Ledger:
     def __init__(self, out_root: Path, log: TextIO, on_log_error: Callable[[OSError], None], *,
                  fail_fast: bool = False):
         self.out_root = out_root
+        self.real_root = Path(os.path.realpath(out_root))
         self.log = log
         self.on_log_error = on_log_error
         self.fail_fast = fail_fast
@@ -125,7 +126,7 @@ class Ledger:
                                    f"({exc.strerror or exc}); its output was not kept")
             return entry
         try:
-            commit(self.out_root, entry)
+            commit(self.out_root, entry, self.real_root)
         except OSError as exc:
             discard(self.out_root, entry)
             entry = _failed(entry, f"{entry['input']}: could not move its output into place: {exc}")
@@ -158,9 +159,10 @@ def _failed(entry: dict, error: str) -> dict:
     return entry
 
 
-def commit(out_root: Path, entry: dict) -> None:
-    """Rename an entry's staged temporaries onto their final names (their folders checked again)."""
-    root = Path(os.path.realpath(out_root))
+def commit(out_root: Path, entry: dict, real_root: Path | None = None) -> None:
+    """Rename an entry's staged temporaries onto their final names (their folders checked again); ``real_root``:
+    the real path of ``out_root`` when the caller knows it (the ledger: once per run, not once per file)."""
+    root = real_root or Path(os.path.realpath(out_root))
     for tmp, final in entry.pop("staged", []):
         target = out_root / final
         ensure_dir_inside(target.parent, root)

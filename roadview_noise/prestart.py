@@ -9,21 +9,28 @@ of the checked recipe (:func:`worker_modules`) and the fork server is restarted 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 # What a worker would otherwise import on its first file (dataset.load/save, the sensor's profile, libraries the
 # models import on first use): imported by the fork server once for all workers.
 FIRST_USE_IMPORTS = ["roadview_noise.io.image", "roadview_noise.io.pointcloud", "roadview_noise.io.raw"]
 SENSOR_FIRST_USE_IMPORTS = {
-    "camera": ["roadview_noise.camera_inputs", "roadview_noise.io.depth", "roadview_noise.profiles.camera"],
+    "camera": ["roadview_noise.camera_inputs", "roadview_noise.io.depth", "roadview_noise.depth.holes",
+               "roadview_noise.depth.calibration", "roadview_noise.profiles.camera"],
     "lidar": ["roadview_noise.profiles.lidar"],
-    "radar": ["roadview_noise.profiles.radar", "scipy.optimize"],
+    "radar": ["roadview_noise.profiles.radar"],
+}
+MODEL_FIRST_USE_IMPORTS = {          # CA-CFAR's tier ratios (physics/radar_cfar.py) solve with brentq on first use
+    "roadview_noise.models.radar.rain": ["scipy.optimize"],
+    "roadview_noise.models.radar.snow": ["scipy.optimize"],
 }
 
 
 def worker_modules(sensor: str, model_modules: Iterable[str]) -> list[str]:
     """The modules the fork server imports for a run on ``sensor`` data with models from ``model_modules``."""
-    return FIRST_USE_IMPORTS + SENSOR_FIRST_USE_IMPORTS.get(sensor, []) + list(model_modules)
+    model_modules = list(model_modules)
+    extra = [m for module in model_modules for m in MODEL_FIRST_USE_IMPORTS.get(module, ())]
+    return FIRST_USE_IMPORTS + SENSOR_FIRST_USE_IMPORTS.get(sensor, []) + list(dict.fromkeys(extra)) + model_modules
 
 
 def guess_modules(recipe_path: Path) -> list[str] | None:
@@ -59,3 +66,34 @@ def start_for(recipe_path: Path) -> None:
         from .executor import start_server
 
         start_server(modules)
+
+
+def local_run_recipe(argv: Sequence[str]) -> str | None:
+    """The recipe of a plain local ``rvnoise augment`` run from its raw arguments: no ``--help``, ``--dry-run`` or
+    other backend; a recipe given as ``--recipe R``, ``--recipe=R``, ``-r R`` or ``-rR``. None otherwise."""
+    args = list(argv[1:])
+    if args[:1] != ["augment"] or {"--help", "--dry-run"} & set(args):
+        return None
+    recipe = None
+    for i, a in enumerate(args):
+        value = args[i + 1] if i + 1 < len(args) else None
+        if a in ("--backend", "--recipe", "-r") and value is None:
+            return None
+        if a == "--backend" and value != "local" or a.startswith("--backend=") and a != "--backend=local":
+            return None
+        if a in ("--recipe", "-r"):
+            recipe = value
+        elif a.startswith("--recipe="):
+            recipe = a.split("=", 1)[1]
+        elif a.startswith("-r") and not a.startswith("--") and len(a) > 2:
+            recipe = a[2:]
+    return recipe or None
+
+
+def start_from_command_line(argv: Sequence[str]) -> None:
+    """Start the fork server for :func:`local_run_recipe` before the command line's own imports (typer, pydantic:
+    ≈ 0.15 s). The command still calls :func:`start_for` once parsed, a no-op when this one started the server (a
+    ROS bag's recipe names no chain: nothing is started)."""
+    recipe = local_run_recipe(argv)
+    if recipe:
+        start_for(Path(recipe))

@@ -99,6 +99,7 @@ class RunSummary:
     notes: list[str] = field(default_factory=list)   # what the user must know (disk full, stopped early, …)
     warnings: list[str] = field(default_factory=list)  # about the inputs as a whole (camera_inputs.InputWarnings)
     state: str = "complete"
+    worker_start_s: float | None = None  # from starting the workers to the first file's start (see _execute)
 
 
 # --- planning --------------------------------------------------------------------------------------------------------
@@ -414,6 +415,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         n_workers, capped = (workers, None) if backend == "dask" and scheduler is not None else \
             choose_workers(workers, planned)
         ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile)
+        workers_started = time.monotonic()
         executor = _executor(ctx, n_workers, backend, scheduler)       # the fork server imports meanwhile
         previous = PreviousRun()
         try:
@@ -429,7 +431,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
             except OSError as e:
                 raise OutputError(f"cannot write in the output folder {str(out_root)!r}: {os_error_text(e)}") \
                     from None
-            tally, log = _execute(ctx, previous, summary, executor, limit, fail_fast, progress)
+            tally, log = _execute(ctx, previous, summary, executor, limit, fail_fast, progress, workers_started)
             _finish(ctx, previous, tally, log, summary, record, started, lock, prune=limit is None)
         finally:
             executor.close()
@@ -546,8 +548,10 @@ class _Log:
 
 
 def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, executor: Any, limit: int | None,
-             fail_fast: bool, progress: bool) -> tuple[_Tally, _Log]:
-    """Run the plan, appending each entry to the manifest as it is released in plan order (``outputs.Ledger``)."""
+             fail_fast: bool, progress: bool, workers_started: float) -> tuple[_Tally, _Log]:
+    """Run the plan, appending each entry to the manifest as it is released in plan order (``outputs.Ledger``).
+    ``summary.worker_start_s``: from ``workers_started`` (monotonic; the executor's creation) to the first file's
+    start in a worker (its result's arrival minus its in-worker seconds)."""
     from tqdm import tqdm
 
     tally, where = _Tally(summary), _Log()
@@ -582,6 +586,9 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             ledger = Ledger(ctx.out_root, log, log_errors.append, fail_fast=fail_fast)
             try:
                 for task, result in executor.map(to_run(ledger)):
+                    if summary.worker_start_s is None and isinstance(result, dict):
+                        summary.worker_start_s = round(time.monotonic() - result.get("seconds", 0.0)
+                                                       - workers_started, 4)
                     record(ledger.put(task.index, _result_entry(task, result)))
                     if ledger.stopped:
                         break
@@ -631,6 +638,7 @@ def _finish(ctx: RunContext, previous: PreviousRun, tally: _Tally, log: _Log, su
     summary.seconds = time.time() - started
     summary.warnings = tally.warnings()
     final = {**record, "state": summary.state, "wall_seconds": round(summary.seconds, 3),
+             "worker_start_seconds": summary.worker_start_s,
              "warnings": summary.warnings,
              "counts": {"planned": summary.planned, "done": summary.done, "skipped": summary.skipped,
                         "failed": summary.failed}, "notes": summary.notes}

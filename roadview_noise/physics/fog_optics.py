@@ -26,11 +26,19 @@ import numpy as np
 
 from .cfa import CHANNEL_WAVELENGTH_M, WATER_INDEX
 from .dsd import CE_FOG_LOGNORMAL, lognormal_fog
-from .mie import efficiency_table, size_parameter
 
 FOG_RADIUS_GRID_UM = tuple(np.linspace(0.1, 10.0, 199))
 FOG_TABLES = ("corrected", "reference")
 
+# The corrected table as :func:`mie_extinction_table` computes it, V (m) → σ (m⁻¹) in R, G, B order: stored, as
+# the Mie integrals cost ≈ 0.3 s of every process that runs camera fog (miepython compiles on first call);
+# tests/physics/test_fog_optics.py recomputes it and fails when an input (distributions, grid, indices) changes
+CORRECTED_FOG_EXTINCTION_PER_M = {
+    10.0: (0.27922036848816995, 0.27699576417240457, 0.2747665102673743),
+    20.0: (0.14050051969076488, 0.1393152185563323, 0.13812612902904714),
+    30.0: (0.09855382133570577, 0.09768575165619714, 0.0968067553832276),
+    50.0: (0.06663970886417574, 0.06585409851185306, 0.06505576323687524),
+}
 # D3.5 library table (models.md §2.1), V (m) → σ (m⁻¹) in R, G, B order
 REFERENCE_FOG_EXTINCTION_PER_M = {
     10.0: (0.2989, 0.2934, 0.2889),
@@ -44,6 +52,8 @@ def mie_fog_extinction_per_m(n_cm3: float, s: float, mu: float, wavelength_m: fl
     """Extinction (m⁻¹) of a log-normal droplet population at one wavelength, over the 0.1–10 µm radius grid.
 
     Units: r² in µm² (10⁻¹² m²) × n(r) dr in cm⁻³ (10⁶ m⁻³) → 10⁻⁶ m⁻¹."""
+    from .mie import efficiency_table, size_parameter          # miepython: only where the table is computed
+
     r_um = np.asarray(FOG_RADIUS_GRID_UM)
     x = size_parameter(r_um * 1e-6, wavelength_m)
     q_ext, _ = efficiency_table(complex(m), tuple(x))
@@ -53,18 +63,23 @@ def mie_fog_extinction_per_m(n_cm3: float, s: float, mu: float, wavelength_m: fl
 
 @lru_cache(maxsize=None)
 def ce_extinction_table(table: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(visibilities (4,), σ (4, 3) R, G, B)`` of a fog table; computed once."""
+    """``(visibilities (4,), σ (4, 3) R, G, B)`` of a fog table (both stored; ``corrected``: see
+    :data:`CORRECTED_FOG_EXTINCTION_PER_M`)."""
     if table not in FOG_TABLES:
         raise ValueError(f"unknown fog table {table!r}; expected one of {FOG_TABLES}")
     vis = np.array(sorted(CE_FOG_LOGNORMAL))
-    if table == "reference":
-        sigma = np.array([REFERENCE_FOG_EXTINCTION_PER_M[v] for v in vis])
-    else:
-        sigma = np.array([[mie_fog_extinction_per_m(*CE_FOG_LOGNORMAL[v], lam, m)
-                           for lam, m in zip(CHANNEL_WAVELENGTH_M, WATER_INDEX)] for v in vis])
+    stored = REFERENCE_FOG_EXTINCTION_PER_M if table == "reference" else CORRECTED_FOG_EXTINCTION_PER_M
+    sigma = np.array([stored[v] for v in vis])
     vis.flags.writeable = False
     sigma.flags.writeable = False
     return vis, sigma
+
+
+def mie_extinction_table() -> tuple[np.ndarray, np.ndarray]:
+    """The corrected table computed by Mie theory: ``(visibilities (4,), σ (4, 3) R, G, B)``."""
+    vis = np.array(sorted(CE_FOG_LOGNORMAL))
+    return vis, np.array([[mie_fog_extinction_per_m(*CE_FOG_LOGNORMAL[v], lam, m)
+                           for lam, m in zip(CHANNEL_WAVELENGTH_M, WATER_INDEX)] for v in vis])
 
 
 def fog_extinction_per_m(visibility_m: float, table: str = "corrected") -> np.ndarray:

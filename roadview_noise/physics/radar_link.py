@@ -17,6 +17,7 @@ import math
 from functools import lru_cache
 
 import numpy as np
+from scipy.special import lambertw
 
 from .dsd import CE_FOG_LOGNORMAL, lognormal_fog_lwc_g_per_m3
 
@@ -159,10 +160,9 @@ def noise_floor_dbm(if_bandwidth_hz: float, noise_figure_db: float) -> float:
 
 def detection_range_in_weather_m(clear_range_m: float, gamma_db_per_km: float) -> float:
     """Range at which a target detected just at ``clear_range_m`` in clear air is detected in weather: solves
-    ``40 log10(R0/R) = 2 γ R / 1000`` (radar equation R⁻⁴ plus two-way loss)."""
+    ``40 log10(R0/R) = 2 γ R / 1000`` (radar equation R⁻⁴ plus two-way loss). With ``k = γ ln 10 / 20000`` per m
+    that is ``k R e^{k R} = k R0``, so ``R = W0(k R0) / k`` (Lambert W, principal branch: ``k R0 > 0``)."""
     if gamma_db_per_km <= 0:
         return float(clear_range_m)
-    f = lambda r: 40 * math.log10(clear_range_m / r) - 2 * gamma_db_per_km * r / 1000
-    from scipy.optimize import brentq  # here, not at import (≈ 0.2 s)
-
-    return float(brentq(f, clear_range_m * 1e-9, clear_range_m, xtol=1e-9 * clear_range_m))
+    k = gamma_db_per_km * math.log(10.0) / 20000.0
+    return float(lambertw(k * clear_range_m).real) / k

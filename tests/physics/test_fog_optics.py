@@ -11,7 +11,8 @@ from roadview_noise.physics.atmosphere import LN_MOR
 from roadview_noise.physics.cfa import CHANNEL_WAVELENGTH_M, WATER_INDEX
 from roadview_noise.physics.dsd import CE_FOG_LOGNORMAL, lognormal_fog
 from roadview_noise.physics.fog_optics import (FOG_RADIUS_GRID_UM, REFERENCE_FOG_EXTINCTION_PER_M,
-                                               ce_extinction_table, fog_extinction_per_m)
+                                               ce_extinction_table, fog_extinction_per_m,
+                                               mie_extinction_table)
 from roadview_noise.physics.mie import efficiencies
 
 # models.md §2.1 oracle (correct size parameter), B, G, R order as printed there
@@ -88,3 +89,12 @@ def test_bad_inputs():
         fog_extinction_per_m(0.0)
     with pytest.raises(ValueError):
         fog_extinction_per_m(30.0, "shipped")
+
+
+def test_stored_corrected_table_is_the_mie_computation():
+    """The stored table equals the Mie integrals over the CE distributions (rtol 1e-12: a newer miepython may move
+    the last bits; any change of the inputs moves it far more)."""
+    vis, sigma = ce_extinction_table("corrected")
+    mie_vis, mie_sigma = mie_extinction_table()
+    np.testing.assert_array_equal(vis, mie_vis)
+    np.testing.assert_allclose(sigma, mie_sigma, rtol=1e-12, atol=0)

@@ -110,3 +110,14 @@ def test_detection_range_in_weather_solves_radar_equation():
     assert all(a > b for a, b in zip(ranges, ranges[1:]))
     for g, r in zip((1.0, 5.0, 9.72, 20.0), ranges):
         assert 40 * math.log10(r0 / r) == pytest.approx(2 * g * r / 1000, abs=1e-6)
+
+
+def test_detection_range_in_weather_matches_a_bracketing_root_finder():
+    """The Lambert-W closed form against scipy's brentq on the same equation, over 8 decades of attenuation."""
+    from scipy.optimize import brentq
+
+    for r0 in (3.0, 200.0, 1000.0):
+        for g in (1e-6, 1e-3, 1.17, 30.0, 1e3, 1e4):
+            f = lambda r: 40 * math.log10(r0 / r) - 2 * g * r / 1000
+            root = brentq(f, r0 * 1e-12, r0, xtol=1e-14 * r0, rtol=1e-15)
+            assert detection_range_in_weather_m(r0, g) == pytest.approx(root, rel=1e-12)

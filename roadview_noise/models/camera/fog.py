@@ -11,7 +11,7 @@ import numpy as np
 from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...physics.cfa import SiteLayout
-from ...physics.fog_optics import FOG_TABLES, ce_extinction_table, fog_extinction_per_m
+from ...physics.fog_optics import FOG_TABLES, fog_extinction_per_m
 from ...physics.photometry import (SAMPLE_STEP_PX, absolute_radiance, composite, estimation_depth, frame_depth_m,
                                       site_transmission, sky_radiance)
 from ...registry import register
@@ -81,8 +81,3 @@ class FogCamera(Model):
             "airlight": [float(a) for a in airlight],
             "mean_transmission": mean_t,
         }
-
-
-def warm_up() -> None:
-    """Build the default Mie extinction table (≈ 0.5 s) once in the fork server, not in every worker (``warmup``)."""
-    ce_extinction_table("corrected")

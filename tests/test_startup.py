@@ -1,0 +1,109 @@
+"""Start-up (issue 19): the fork server started from the raw command line, before typer loads; the server leaving
+at once when the run's process exits."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from roadview_noise import prestart
+from test_cli import tree  # noqa: F401 - fixture
+
+
+@pytest.mark.parametrize("argv, recipe", [
+    (["augment", "--recipe", "r.yaml", "in", "out"], "r.yaml"),
+    (["augment", "in", "out", "-r", "r.yaml", "--workers", "2"], "r.yaml"),
+    (["augment", "--recipe=r.yaml", "in", "out", "--backend", "local"], "r.yaml"),
+    (["augment", "-rr.yaml", "in", "out", "--backend=local"], "r.yaml"),
+    (["augment", "--recipe", "r.yaml", "in", "out", "--dry-run"], None),
+    (["augment", "--recipe", "r.yaml", "in", "out", "--backend", "dask"], None),
+    (["augment", "--recipe", "r.yaml", "in", "out", "--backend=dask"], None),
+    (["augment", "--recipe", "r.yaml", "--help"], None),
+    (["augment", "in", "out", "--recipe"], None),
+    (["validate", "r.yaml"], None),
+    ([], None),
+])
+def test_fork_server_started_from_the_raw_command_line(monkeypatch, argv, recipe):
+    started = []
+    monkeypatch.setattr(prestart, "start_for", lambda path: started.append(str(path)))
+    prestart.start_from_command_line(["rvnoise", *argv])
+    assert started == ([recipe] if recipe else [])
+
+
+def test_the_fork_server_leaves_without_tearing_down(tmp_path):
+    """A module the server preloaded registers an exit handler; the server's fast exit, imported after it, runs
+    first (handlers run last-in first-out), so the handler never runs: the interpreter is not torn down. The run's
+    process still gets its result and its pipes close."""
+    marker = tmp_path / "torn-down"
+    (tmp_path / "teardown_marker.py").write_text(textwrap.dedent(f"""
+        import atexit
+        atexit.register(lambda: open({str(marker)!r}, "w").close())
+    """))
+    script = textwrap.dedent(f"""
+        from roadview_noise.executor import ProcessExecutor
+        from tests.test_executor import work
+
+        print(dict(ProcessExecutor(work, {{}}, 1, models=["teardown_marker"]).map([4])))
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          cwd=str(Path(__file__).resolve().parents[1]),
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(
+                              filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")]))})   # the server's path
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "{4: (4, 16)}"
+    assert not marker.exists()
+
+
+def test_run_json_records_the_worker_start(tmp_path, tree):
+    """run.json's ``worker_start_seconds``: from starting the workers to the first file's start in a worker, a part
+    of the run's wall time."""
+    from test_cli import CAMERA, _recipe
+
+    from roadview_noise.recipe import load_recipe
+    from roadview_noise.runner import run
+
+    run(load_recipe(_recipe(tmp_path, CAMERA)), tree, tmp_path / "o", workers=2, progress=False, echo=lambda m: None)
+    record = json.loads((tmp_path / "o" / "run.json").read_text())
+    assert 0 <= record["worker_start_seconds"] < record["wall_seconds"]
+
+
+@pytest.mark.parametrize("model, built", [("roadview_noise.models.camera.fog", "1 1"),
+                                          ("roadview_noise.models.radar.fog", "0 0")])
+def test_warm_up_builds_the_srgb_tables_for_camera_runs_only(model, built):
+    """The fork server's warm-up builds physics/srgb.py's tables once when a camera model is loaded (the workers
+    inherit them), and not for other sensors' runs."""
+    code = (f"import {model}, roadview_noise.warmup; from roadview_noise.physics import srgb; "
+            "print(srgb.encode8_table.cache_info().currsize, srgb.encode16_table.cache_info().currsize)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == built
+
+
+@pytest.mark.parametrize("command, torn_down", [("augment", False), ("validate", True)])
+def test_a_local_run_ends_without_tearing_down(tmp_path, tree, command, torn_down):
+    """The console script's app: after a local ``augment`` the process leaves at once (an exit handler registered
+    before it never runs) with the command's exit code and everything written; other commands end as usual."""
+    from test_cli import CAMERA, _recipe
+
+    recipe, marker, out = _recipe(tmp_path, CAMERA), tmp_path / "torn-down", tmp_path / "o"
+    args = ["augment", "--recipe", str(recipe), str(tree), str(out), "--workers", "1", "--quiet"] \
+        if command == "augment" else ["validate", str(recipe)]
+    code = textwrap.dedent(f"""
+        import atexit, sys
+        atexit.register(lambda: open({str(marker)!r}, "w").close())
+        sys.argv = ["rvnoise", *{args!r}]
+        from roadview_noise.cli.main import app
+        app()
+    """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert marker.exists() == torn_down
+    if command == "augment":
+        assert "written" in done.stdout
+        assert json.loads((out / "run.json").read_text())["state"] == "complete"
