@@ -219,6 +219,11 @@ class CameraFrame:
         kept = self.__dict__.get("_srgb8")
         return kept if kept is not None else srgb.attached_codes(self.linear_rgb, 8)
 
+    def undecoded_srgb8_codes(self) -> np.ndarray | None:
+        """The codes of a frame made by :meth:`with_srgb8_codes` while its ``linear_rgb`` has not been decoded yet
+        (a reader that can work on the codes then spares the decode), else None."""
+        return None if "linear_rgb" in self.__dict__ else self.__dict__.get("_srgb8")
+
     def with_srgb8_codes(self, codes: np.ndarray) -> "CameraFrame":
         """This frame with 8-bit sRGB ``codes`` (H, W, 3) RGB as its image: ``linear_rgb`` is their decoding
         (``physics.srgb.code_to_linear``), computed when first read."""

@@ -151,6 +151,35 @@ def test_luminance_area_is_the_area_resize_then_the_luminance_weights(f):
     np.testing.assert_allclose(luminance_area(red, f), LUMINANCE_WEIGHTS[0], rtol=1e-6)
 
 
+@pytest.mark.parametrize("f", [1, 2, 7])
+def test_codes_luminance_area_is_the_decoded_frames_bit_for_bit(f):
+    """A JPEG output's summary reads its 8-bit codes (RGB, or OpenCV's BGR seen channel-reversed) and gives exactly
+    the luminance of the decoded frame, without decoding it."""
+    from roadview_noise.metrics import codes_luminance_area, luminance_area
+    from roadview_noise.physics.srgb import code_to_linear
+
+    rng = np.random.default_rng(f)
+    bgr = rng.integers(0, 256, (101, 157, 3), dtype=np.uint8)
+    for codes in (bgr[..., ::-1], np.ascontiguousarray(bgr[..., ::-1])):
+        np.testing.assert_array_equal(codes_luminance_area(codes, f), luminance_area(code_to_linear(codes), f))
+
+
+def test_a_jpeg_outputs_metrics_never_decode_it():
+    """Metrics of a frame that holds its codes (compression.camera's output) leave it undecoded and equal the
+    metrics of the same frame decoded."""
+    from roadview_noise.metrics import compare
+    from roadview_noise.physics.srgb import code_to_linear
+
+    rng = np.random.default_rng(3)
+    before = CameraFrame(rng.random((96, 128, 3), dtype=np.float32), PROFILE.resized(128, 96))
+    codes = rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    after = before.with_srgb8_codes(codes)
+    got = compare(before, after)
+    assert after.undecoded_srgb8_codes() is codes
+    decoded = dataclasses.replace(before, linear_rgb=code_to_linear(codes))
+    assert got == compare(before, decoded)
+
+
 def test_one_pass_grey_statistics_equal_opencv_sobel_and_numpy():
     """The summary's single pass counts the edges of :func:`edge_density` (OpenCV's Sobel, replicated borders) —
     on levels that put many gradients exactly at the threshold; a count may differ only by gradients within

@@ -181,7 +181,7 @@ def _kernel_views(src: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, np.ndar
     return _as_3d(src), _as_3d(out)
 
 
-def _reversed_rgb(a: np.ndarray) -> bool:
+def reversed_rgb(a: np.ndarray) -> bool:
     """Whether ``a`` is the channel-reversed view of a C-contiguous (H, W, 3) array (OpenCV's BGR seen as RGB)."""
     return a.ndim == 3 and a.shape[2] == 3 and not a.flags.c_contiguous and a[..., ::-1].flags.c_contiguous
 
@@ -221,7 +221,7 @@ def bgr_order(codes: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=2)
-def _decode_table(bits: int) -> np.ndarray:
+def decode_table(bits: int) -> np.ndarray:
     table = decode(np.arange(2 ** bits) / (2 ** bits - 1)).astype(np.float32)
     table.flags.writeable = False
     return table
@@ -252,11 +252,11 @@ def code_to_linear(code: np.ndarray, bits: int = 8) -> np.ndarray:
         raise ValueError(f"expected {np.dtype(dtype).name} code values, got {code.dtype}")
     with span("convert"):
         out = np.empty(code.shape, np.float32)
-        if _reversed_rgb(code):                          # OpenCV's BGR seen as RGB: read it in place
-            _decode_reversed_kernel(code[..., ::-1].reshape(-1, 3), _decode_table(bits), out.reshape(-1, 3))
+        if reversed_rgb(code):                          # OpenCV's BGR seen as RGB: read it in place
+            _decode_reversed_kernel(code[..., ::-1].reshape(-1, 3), decode_table(bits), out.reshape(-1, 3))
         else:
             src, dst = _kernel_views(code, out)
-            _decode_kernel(src, _decode_table(bits), dst)
+            _decode_kernel(src, decode_table(bits), dst)
     return attach_codes(out, code, bits)
 
 
