@@ -5,6 +5,11 @@ The fork server imports this module (``executor.PRELOAD``) after the models, so 
 warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the cache yet (a first run after an
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
+Kernels that only one kind of data calls (:data:`KIND_KERNELS`: the sRGB edges and the frame metrics for camera
+and raw frames, the point-cloud metrics and codec for LiDAR and radar clouds) are loaded only when a model of that
+kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a camera run the
+point-cloud ones. With no model loaded, every kernel is.
+
 A model module whose first file builds a constant table may define ``warm_up()``: it is called here too, once, so
 that the workers inherit the table instead of each building it; when a camera model is loaded, the sRGB tables of
 :data:`CAMERA_TABLES` are built too.
@@ -18,12 +23,36 @@ _done = False
 # physics/srgb.py's lookup tables that every camera output (and the camera metrics) needs, built on first use
 # (≈ 40 ms of one core per worker): built here when a camera model is loaded, so that every worker inherits them
 CAMERA_TABLES = ("encode8_table", "encode16_table")
+# The kernels only one kind of data calls, by module (None: all of the module's); a model's kind is its package
+_IMAGE = {"roadview_noise.physics.srgb": None,
+          "roadview_noise.metrics": ("_luminance_area", "_codes_luminance_area", "_block_luminance", "_grey_statistics",
+                                     "_depth_bin_index", "_ssim_map")}
+_POINTS = {"roadview_noise.io.pointcloud": None,
+           "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_same_position",
+                                      "_is_return", "_compose", "_same_ray", "_change", "_mean_change_through")}
+KIND_KERNELS = {"camera": _IMAGE, "lidar": _POINTS, "radar": _POINTS}
+
+
+def loaded_kinds() -> set[str]:
+    """The kinds of data (:data:`KIND_KERNELS`) the loaded model modules take; all of them when none is loaded."""
+    kinds = {name.split(".")[2] for name in list(sys.modules)
+             if name.startswith("roadview_noise.models.") and name.count(".") >= 3} & set(KIND_KERNELS)
+    return kinds or set(KIND_KERNELS)
+
+
+def needed(module: str, name: str, kinds: set[str]) -> bool:
+    """Whether a run on ``kinds`` of data may call kernel ``name`` of ``module``: it is listed for no kind in
+    :data:`KIND_KERNELS`, or for one of ``kinds``."""
+    listed = [kind for kind, table in KIND_KERNELS.items()
+              if module in table and (table[module] is None or name in table[module])]
+    return not listed or bool(kinds.intersection(listed))
 
 
 def warm_up() -> int:
-    """Load the cached compiled versions of every numba kernel of the package's loaded modules (module-level
-    kernels: ``@jit`` decorates module functions; a scan of the module dicts, not of every object); returns how
-    many. Uses numba's cache index (``Dispatcher._cache``), so an unknown numba version costs only the warm-up."""
+    """Load the cached compiled versions of every numba kernel of the package's loaded modules that the loaded
+    models' kinds of data may call (:func:`needed`; module-level kernels: ``@jit`` decorates module functions; a scan
+    of the module dicts, not of every object); returns how many. Uses numba's cache index (``Dispatcher._cache``),
+    so an unknown numba version costs only the warm-up."""
     global _done
     if _done:
         return 0
@@ -32,10 +61,11 @@ def warm_up() -> int:
         from numba.core.registry import CPUDispatcher
     except ImportError:                              # pragma: no cover - numba is a dependency
         return 0
-    loaded = 0
+    loaded, kinds = 0, loaded_kinds()
     kernels = {id(o): o for name, module in list(sys.modules.items()) if name.startswith("roadview_noise.")
                for o in list(vars(module).values()) if isinstance(o, CPUDispatcher)
-               and getattr(o.py_func, "__module__", "").startswith("roadview_noise.")}.values()
+               and getattr(o.py_func, "__module__", "").startswith("roadview_noise.")
+               and needed(o.py_func.__module__, o.py_func.__name__, kinds)}.values()
     for kernel in kernels:
         try:
             cache = kernel._cache

@@ -85,6 +85,45 @@ def test_warm_up_builds_the_srgb_tables_for_camera_runs_only(model, built):
     assert done.stdout.strip() == built
 
 
+def test_every_kernel_listed_by_kind_exists():
+    """The warm-up's lists of kernels by kind of data name real kernels (a renamed kernel would be loaded on first
+    use instead, silently)."""
+    import importlib
+
+    from numba.core.registry import CPUDispatcher
+
+    from roadview_noise.warmup import KIND_KERNELS
+
+    for table in KIND_KERNELS.values():
+        for module, names in table.items():
+            kernels = {o.py_func.__name__ for o in vars(importlib.import_module(module)).values()
+                       if isinstance(o, CPUDispatcher)}
+            assert kernels and set(names or ()) <= kernels, (module, set(names or ()) - kernels)
+
+
+def test_warm_up_loads_only_the_kernels_of_the_loaded_kinds():
+    """A radar run's warm-up skips the frame metrics and sRGB kernels, a camera run's the point-cloud ones; kernels
+    of no listed kind (a model's physics) and runs with no model loaded keep everything."""
+    from roadview_noise.warmup import needed
+
+    assert not needed("roadview_noise.metrics", "_ssim_map", {"radar"})
+    assert not needed("roadview_noise.physics.srgb", "_encode8_reversed_kernel", {"lidar"})
+    assert needed("roadview_noise.metrics", "_list_pass", {"radar"})
+    assert not needed("roadview_noise.metrics", "_list_pass", {"camera"})
+    assert needed("roadview_noise.metrics", "_ssim_map", {"camera"})
+    assert needed("roadview_noise.physics.firing_grid", "_cells", {"camera"})
+    assert needed("roadview_noise.metrics", "_ssim_map", {"camera", "radar"})
+    code = "import roadview_noise.models.radar.fog, roadview_noise.warmup as w; print(sorted(w.loaded_kinds()))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "['radar']"
+    from roadview_noise.warmup import KIND_KERNELS
+
+    code = "import roadview_noise.warmup as w; print(sorted(w.loaded_kinds()))"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.stdout.strip() == str(sorted(KIND_KERNELS)), done.stderr
+
+
 @pytest.mark.parametrize("command, torn_down", [("augment", False), ("validate", True)])
 def test_a_local_run_ends_without_tearing_down(tmp_path, tree, command, torn_down):
     """The console script's app: after a local ``augment`` the process leaves at once (an exit handler registered
