@@ -288,17 +288,19 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
     cloud's ``rv_effect``) and annotation files; a DNG keeps the colour metadata of its ``source``. Returns every
     file written (recorded by ``io/atomic``, so no writer can forget one), the main output first: the runner records
     each with its sha256 in the manifest."""
-    from .io import image as image_io
-    from .io import pointcloud as cloud_io
-    from .io import raw as raw_io
-
-    with recorded_writes() as written:
+    with recorded_writes() as written:         # each writer imported for its kind only (a cloud's: no OpenCV/TIFF)
         if isinstance(data, CameraFrame):
+            from .io import image as image_io
+
             image_io.write_frame(out_path, data)
         elif isinstance(data, RawFrame):
+            from .io import raw as raw_io
+
             raw_io.write_raw(out_path, data.dn, data.cfa_pattern, data.black_level_dn, data.white_level_dn,
                              data.encoding, template=source)
         else:
+            from .io import pointcloud as cloud_io
+
             cloud_io.write_pointcloud(out_path, data, effect=recipe.spec.output.effect)
         write_annotations(annotations)
     return sorted(written, key=lambda p: p.name != Path(out_path).name)

@@ -12,11 +12,13 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 # What a worker would otherwise import on its first file (dataset.load/save, the sensor's profile, libraries the
-# models import on first use): imported by the fork server once for all workers.
-FIRST_USE_IMPORTS = ["roadview_noise.io.image", "roadview_noise.io.pointcloud", "roadview_noise.io.raw"]
+# models import on first use): imported by the fork server once for all workers. A LiDAR or radar worker reads and
+# writes clouds only: the image and raw readers/writers (tifffile) are for camera runs.
+FIRST_USE_IMPORTS = ["roadview_noise.io.pointcloud"]
 SENSOR_FIRST_USE_IMPORTS = {
-    "camera": ["roadview_noise.camera_inputs", "roadview_noise.io.depth", "roadview_noise.depth.holes",
-               "roadview_noise.depth.calibration", "roadview_noise.profiles.camera"],
+    "camera": ["roadview_noise.io.image", "roadview_noise.io.raw", "roadview_noise.camera_inputs",
+               "roadview_noise.io.depth", "roadview_noise.depth.holes", "roadview_noise.depth.calibration",
+               "roadview_noise.profiles.camera"],
     "lidar": ["roadview_noise.profiles.lidar"],
     "radar": ["roadview_noise.profiles.radar"],
 }

@@ -124,6 +124,32 @@ def test_warm_up_loads_only_the_kernels_of_the_loaded_kinds():
     assert done.stdout.strip() == str(sorted(KIND_KERNELS)), done.stderr
 
 
+def test_a_cloud_run_needs_no_image_writers(tmp_path):
+    """A LiDAR/radar run's server does not preload the image and raw readers/writers, and saving a cloud does not
+    import them (nor tifffile) either: the worker never needs them."""
+    from roadview_noise.prestart import worker_modules
+
+    assert "roadview_noise.io.image" in worker_modules("camera", [])
+    modules = worker_modules("radar", ["roadview_noise.models.radar.fog"])
+    assert not {"roadview_noise.io.image", "roadview_noise.io.raw"} & set(modules)
+    code = textwrap.dedent(f"""
+        import importlib, sys
+        import numpy as np
+        for m in {modules!r}: importlib.import_module(m)
+        from types import SimpleNamespace
+        from roadview_noise.dataset import save
+        from roadview_noise.types import PointCloud
+        cloud = PointCloud(np.ones((4, 3), np.float32), {{"intensity": np.ones(4, np.float32)}}, "radar")
+        recipe = SimpleNamespace(spec=SimpleNamespace(output=SimpleNamespace(effect="none")))
+        save(cloud, __import__("pathlib").Path({str(tmp_path / "a.pcd")!r}), recipe)
+        print(sorted(m for m in ("tifffile", "roadview_noise.io.image", "roadview_noise.io.raw") if m in sys.modules))
+    """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+    assert (tmp_path / "a.pcd").stat().st_size > 0
+
+
 @pytest.mark.parametrize("command, torn_down", [("augment", False), ("validate", True)])
 def test_a_local_run_ends_without_tearing_down(tmp_path, tree, command, torn_down):
     """The console script's app: after a local ``augment`` the process leaves at once (an exit handler registered
