@@ -51,7 +51,7 @@ import numpy as np
 
 from .physics.compiled import jit
 from .physics.lidar_geometry import has_return
-from .physics.srgb import decode_table, reversed_rgb, linear_to_code
+from .physics.srgb import decode_table, linear_to_code, reversed_rgb
 from .provenance import Effect
 from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
 
@@ -172,13 +172,14 @@ def _luminance_area(rgb, f, weights, out):                   # pragma: no cover 
     n = out.shape[1] * f * 3                                # the values of a row that fill whole blocks
     rows = rgb.reshape(rgb.shape[0], rgb.shape[1] * 3)
     acc = np.empty(n, np.float32)
+    channel = np.arange(3)
     for i in range(out.shape[0]):
         acc[:] = rows[i * f, :n]
         for k in range(1, f):                               # column sums of the block row: contiguous, vectorised
             row = rows[i * f + k]
             for j in range(n):
                 acc[j] += row[j]
-        _block_luminance(acc, f, np.arange(3), weights, out[i])
+        _block_luminance(acc, f, channel, weights, out[i])
 
 
 @jit

@@ -468,13 +468,6 @@ def footprint_level_bounds() -> np.ndarray:
     return out
 
 
-def raster_order(profile: CameraProfile, particles: Particles) -> np.ndarray:
-    """Particle indices in raster order of the pixel blocks (8 × 8 px or coarser, ≤ 2¹⁶ blocks) holding their
-    mid-exposure images: visited in this order, the rasteriser's reads of the depth map and writes to the grids
-    stay in cache (2–3× faster for 10⁵ particles). A stable sort of the block numbers (:func:`block_keys`)."""
-    return np.argsort(block_keys(profile, particles), kind="stable")
-
-
 def block_keys(profile: CameraProfile, particles: Particles) -> np.ndarray:
     """The number (uint16) of the 8 × 8 px or coarser block (≤ 2¹⁶ blocks, raster order) holding each particle's
     mid-exposure image."""
@@ -501,8 +494,9 @@ def _block_keys_kernel(x, y, z, camera, w, h, shift, key):                    # 
 @jit(error_model="numpy")
 def _render_streaks(x, y, z, d_mm, fall_speed, key, camera, finite_focus, w, h, bounds, pyramid, offsets,
                     depth_m):                                          # pragma: no cover - compiled
-    """:func:`splat_streaks` of the :func:`streak_geometry` of the particles in :func:`raster_order` (``key``:
-    :func:`block_keys`), without the sorted particle and streak arrays: the particles are first distributed by
+    """:func:`splat_streaks` of the :func:`streak_geometry` of the particles in raster order of their blocks
+    (``key``: :func:`block_keys`; visited so, the reads of the depth map and the writes to the grids stay in
+    cache), without the sorted particle and streak arrays: the particles are first distributed by
     the key's high byte (a band of blocks: one streaming pass), then each band is sorted by the low byte, given
     its streaks and splatted while it is in cache. The same order, so the same sums, as the whole sort. Returns
     the highest level drawn and the number of visible particles."""
