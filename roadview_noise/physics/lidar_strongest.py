@@ -15,12 +15,7 @@ particle directly, by inverse transform, and none of the fainter ones it would o
 - Drawn per ray: the brightest if it reaches the ray's own level ``ℓ 2^j`` (a target of attenuated signal S_t:
   ``j = ⌊log2(S_t/T)⌋`` ≤ 11, T the threshold — one or two weaker particles cannot outshine it; 0 without a target),
   then every particle down to the cut ``c = ℓ 2^(⌊log2(s1/ℓ)⌋ − 1)``, between s1/4 and s1/2: those can change the
-  brightest's summed peak by a quarter or more, or, two together, outshine it. A *clear* brightest — s1 at least
-  :data:`CLEAR_FACTOR` (4) times both the threshold and the attenuated target, so that no fainter particle changes
-  whether the ray returns weather — cuts one octave higher, ``c = ℓ 2^⌊log2(s1/ℓ)⌋`` (between s1/2 and s1: pairs
-  of those can still outshine it); what the particles between the two cuts add to its peak is then their mean
-  (a 0.4 % lower mean weather-return intensity in snow on the real OS1-128 scan, within the seed-to-seed spread;
-  README "LiDAR weather on real scans", round 6).
+  brightest's summed peak by a quarter or more, or, two together, outshine it.
 - Undrawn (below c, or below the own level when nothing reaches it): their means, as :mod:`lidar_particles` treats
   the particles below ℓ — backscatter as a soft target (the :class:`lidar_echo.SoftBackground` of every particle
   below the ray's level, added to each cluster's peak and to the target's crest) and beam cover (the mean cover of
@@ -55,8 +50,7 @@ RANGE_STEP_M = 0.02             # Λ tables: range step
 SUBSTEPS = 4                    # … integrated on a 4× finer grid
 QUANTILES = 1024                # range quantiles per level band
 OWN_LEVELS = 12                 # a target's own level ℓ 2^j, j < 12
-CUT_OCTAVES = 1                 # a ray draws down to ℓ 2^(⌊log2(s1/ℓ)⌋ − 1) …
-CLEAR_FACTOR = 4.0              # … or to ℓ 2^⌊log2(s1/ℓ)⌋ when s1 ≥ 4 × both the threshold and its target
+CUT_OCTAVES = 1                 # a ray draws down to ℓ 2^(⌊log2(s1/ℓ)⌋ − 1)
 MAX_DRAWN = 256                 # particles drawn on one ray at most (a safety bound; a ray draws a few)
 
 
@@ -310,9 +304,9 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
     (``e``: one exponential shared by the rays until one holds a particle — a ray without one leaves it ``E − Λ``,
     again exponential); the brightest particle's level band, walked up from the own level by octaves, then quarter
     octaves; the particles down to the cut (rank spacings, bands walked down), sorted by range once drawn. Octaves
-    by comparisons, not frexp (:func:`_own_level`, :func:`_octave_near`); a clear brightest cuts one octave higher
-    (module doc). Returns (the exponential left for the next ray, the end of its particles, its draw level in
-    octaves above the base, the mean beam cover of its undrawn particles)."""
+    by comparisons, not frexp (:func:`_own_level`, :func:`_octave_near`). Returns (the exponential left for the next
+    ray, the end of its particles, its draw level in octaves above the base, the mean beam cover of its undrawn
+    particles)."""
     rows, levels = lam.shape
     octaves = cover.shape[0]
     level = _own_level(t_att / threshold)
@@ -347,8 +341,7 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
             f = s / (full[0, kr] + (full[0, kr + 1] - full[0, kr]) * tr)
             p_range[m], p_signal[m], p_fraction[m] = r, s, f
             if m == first:
-                clear = s >= CLEAR_FACTOR * max(t_att, threshold)
-                level = max(_octave_near(s * inv_base, g // LEVELS_PER_OCTAVE) - (0 if clear else CUT_OCTAVES), 0)
+                level = max(_octave_near(s * inv_base, g // LEVELS_PER_OCTAVE) - CUT_OCTAVES, 0)
                 g_cut = level * LEVELS_PER_OCTAVE
             m += 1
             if m - first == MAX_DRAWN:
