@@ -24,7 +24,7 @@ The drawn particles and the target then give the ray's return exactly as :func:`
 every particle above ℓ (summed pulses, exact peaks). Against that exhaustive draw
 (``tests/models/test_lidar_weather.py``): the same weather-return counts, ranges and intensities within Monte-Carlo
 noise, targets kept in place within 1 % — for one or two particles per ray instead of a dozen on the real OS1-128
-scan in snow (129 k flakes instead of 1.08 M; the two-pass draw it replaces drew 300 k). What a target in place
+scan in snow (151 k flakes instead of 1.08 M; the two-pass draw it replaces drew 300 k). What a target in place
 loses is the fluctuation of the faint particles in front of it (their mean backscatter stays).
 """
 

@@ -34,9 +34,8 @@ class RainLidar(Model):
       are ADDED); diameters by inverse CDF of the
       truncated exponential (the reference set the *mean* to Λ). Only drops whose return reaches
       ``draw_fraction_of_threshold`` (1/16) of the threshold are drawn (an exact thinning); for the strongest
-      return each ray draws its brightest drop directly and those within a factor 2–4 of it (1–2 when it is ≥ 4×
-      both the threshold and the target), in front of a bright target only when one can outshine it
-      (:mod:`lidar_strongest`); the others act through their means (α, beam
+      return each ray draws its brightest drop directly and those within a factor 2–4 of it, in front of a bright
+      target only when one can outshine it (:mod:`lidar_strongest`); the others act through their means (α, beam
       cover, backscatter as a soft background; :mod:`lidar_particles`).
     - Drop return ``K ρ f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
       ρ = Fresnel 0.0199, ``f = min(1, (D/2w)²)``; target ``I e^{−2αR}(1 − Σ f)``; pulses closer than ``c τ_H``

@@ -54,8 +54,7 @@ class SnowLidar(Model):
       rays without a return, ``empty_rays``: a full grid's no-return cells, a point list's empty firing-grid cells;
       they then get ADDED flake returns), drawn when their return
       reaches ``draw_fraction_of_threshold`` (½) of the threshold — for the strongest return each ray's brightest
-      flake directly and those within a factor 2–4 of it (1–2 when it is ≥ 4× both the threshold and the target), in
-      front of a bright target only when one can outshine it
+      flake directly and those within a factor 2–4 of it, in front of a bright target only when one can outshine it
       (:mod:`lidar_strongest`); the others act through their means: α, beam cover, backscatter
       (:mod:`lidar_particles`); flake
       return ``K ρ_s f ξ(r) e^{−2αr}/r²`` with the profile's sensor constant K (ρ = 1 at 1 m) and overlap ξ,
