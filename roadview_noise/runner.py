@@ -263,7 +263,7 @@ def _profile_split(spans: dict[str, float], entry: dict, cpu_s: float) -> dict[s
              "convert": get("load.convert", 0.0) + get("save.convert", 0.0),
              "metrics": get("chain", 0.0) - sum(steps.values()) + get("metrics", 0.0),
              "encode": get("save", 0.0) - get("save.convert", 0.0) - get("save.write", 0.0),
-             "write": get("save.write", 0.0)}
+             "write": get("save.write", 0.0) + get("sync", 0.0)}
     split["other"] = entry["seconds"] - sum(split.values()) - sum(steps.values())
     rounded = {k: round(max(v, 0.0), 5) for k, v in split.items()}
     return {**rounded, "models": {m: round(x, 5) for m, x in steps.items()}, "total": entry["seconds"],
