@@ -10,7 +10,11 @@ copied. Then, per sensor, with 1 and 2 processes:
   the I/O every camera weather recipe must do;
 - **augment**: ``runner.run`` of each weather recipe and one CNF (in-process, so the wall time includes the fork
   server, the workers' start and the manifest), ``--profile`` on: per-model ms in the workers at the D3.5 rates and
-  each worker's peak RSS come from the manifest;
+  each worker's peak RSS come from the manifest; what bounds 2 workers / 1 worker: the **worker CPU ms/file** with
+  1 and 2 workers (thread CPU time, ``profile.cpu``: the cores' shared caches and memory bandwidth, not the wait
+  for a core that a loaded machine adds), each worker's **first file + CPU ms** (its per-process tables and
+  first-use costs: every worker pays it, side by side, so on few files it weighs like a fixed cost) and the run's
+  time **beyond the files** (wall − in-worker seconds / workers: worker start, run record, lock, manifest, close);
 - **start-up**: ``rvnoise augment --limit 1`` in a fresh process, minus the file's own time, and in all (the augment
   rows exclude it: the fork server is started for each recipe before its timed runs); and the worker start-up of
   that run (run.json ``worker_start_seconds``: from starting the workers to the first file's start in a worker);
@@ -22,9 +26,11 @@ copied. Then, per sensor, with 1 and 2 processes:
   stringzilla simsimd``: its wheel's opencv-python-headless would shadow opencv-contrib);
 - **memory**: the main process's peak RSS for 100 and 10 000 tiny radar files (``--quick`` skips it).
 
-Figures are medians; ratios are measured in the same run. A shared machine makes absolute figures noisy.
+Figures are medians (``--repeat R``: R runs of each copy and recipe, 1 and 2 workers alternating); ratios are
+measured in the same run. A shared machine makes absolute figures noisy. ``--sensors lidar,radar``, ``--recipes``,
+``--only-table`` and ``--small-files`` measure a part of the table; ``--copies 12`` gives 48 files per sensor.
 
-    .venv/bin/python bench/run.py [--frames N] [--quick]
+    .venv/bin/python bench/run.py [--frames N] [--copies C] [--quick] [--repeat R] [--sensors S] [--only-table]
 """
 
 from __future__ import annotations
@@ -60,24 +66,28 @@ PHOTO_NOISE_CODES = 2.0
 # --- data ------------------------------------------------------------------------------------------------------------
 
 
-def build_trees(root: Path, frames: int, copies: int) -> dict[str, Path]:
-    """One input tree per sensor under ``root`` with ``frames × copies`` files each (see module docstring)."""
+def build_trees(root: Path, frames: int, copies: int, sensors: list[str]) -> dict[str, Path]:
+    """One input tree per sensor of ``sensors`` under ``root`` with ``frames × copies`` files each (see module
+    docstring)."""
     from roadview_noise.sampledata.generate import generate
 
     src = root / "render"
     generate(src, frames=frames, seed=0)
-    trees = {s: root / s for s in RECIPES}
+    trees = {s: root / s for s in sensors}
     rng = np.random.default_rng(0)
-    cam = trees["camera"] / "camera" / "seq0"
-    cam.mkdir(parents=True)
-    shutil.copy(src / "camera" / "seq0" / "camera.yaml", cam)
-    for k in range(frames * copies):
-        i = k % frames
-        img = cv2.imread(str(src / "camera" / "seq0" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
-        noisy = np.clip(np.rint(img + rng.normal(0, PHOTO_NOISE_CODES, img.shape)), 0, 255).astype(np.uint8)
-        cv2.imwrite(str(cam / f"{k:06d}.png"), noisy)
-        shutil.copy(src / "camera" / "seq0" / f"{i:06d}_depth.exr", cam / f"{k:06d}_depth.exr")
+    if "camera" in trees:
+        cam = trees["camera"] / "camera" / "seq0"
+        cam.mkdir(parents=True)
+        shutil.copy(src / "camera" / "seq0" / "camera.yaml", cam)
+        for k in range(frames * copies):
+            i = k % frames
+            img = cv2.imread(str(src / "camera" / "seq0" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
+            noisy = np.clip(np.rint(img + rng.normal(0, PHOTO_NOISE_CODES, img.shape)), 0, 255).astype(np.uint8)
+            cv2.imwrite(str(cam / f"{k:06d}.png"), noisy)
+            shutil.copy(src / "camera" / "seq0" / f"{i:06d}_depth.exr", cam / f"{k:06d}_depth.exr")
     for sensor, folder in (("lidar", src / "lidar" / "os1-128" / "seq0"), ("radar", src / "radar" / "seq0")):
+        if sensor not in trees:
+            continue
         dst = trees[sensor] / sensor / "seq0"
         dst.mkdir(parents=True)
         for side in folder.glob("*.yaml"):
@@ -161,8 +171,13 @@ def augment(name: str, sensor: str, tree: Path, out: Path, workers: int) -> dict
             "models_ms": {m: 1e3 * statistics.median(v) for m, v in models.items()},
             "file_ms": 1e3 * statistics.median(e["seconds"] for e in entries),
             "file_mean_ms": 1e3 * statistics.mean(e["seconds"] for e in entries),
+            "cpu_ms": 1e3 * statistics.median(e["profile"]["cpu"] for e in entries[workers:] or entries),
+            "first_extra_ms": 1e3 * (entries[0]["profile"]["cpu"] - statistics.median(e["profile"]["cpu"]
+                                                                                   for e in entries[1:]))
+            if len(entries) > 1 else 0.0,
+            "beyond_ms": 1e3 * (wall - sum(e["seconds"] for e in entries) / workers),
             "split_ms": {k: 1e3 * statistics.median(e["profile"][k] for e in entries)
-                         for k in entries[0]["profile"] if k not in ("models", "total", "peak_rss_mb")},
+                         for k in entries[0]["profile"] if k not in ("models", "total", "cpu", "peak_rss_mb")},
             "peak_rss_mb": max(e["profile"].get("peak_rss_mb", 0) for e in entries)}
 
 
@@ -291,79 +306,140 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=4, help="rendered frames (each copied to make 12 per sensor)")
     ap.add_argument("--copies", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="skip the 10 000-file memory run")
+    ap.add_argument("--sensors", default=",".join(RECIPES), help="comma-separated sensors to measure (default: all)")
+    ap.add_argument("--recipes", help="comma-separated recipes of those sensors to run (default: all of them)")
+    ap.add_argument("--only-table", action="store_true",
+                    help="only the copy/augment table (no per-model, start-up, small-file or single-frame rows)")
+    ap.add_argument("--small-files", action="store_true", help="only the small-files table (radar)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="runs of each copy and recipe per worker count, 1 and 2 workers alternating (medians)")
     args = ap.parse_args()
+    sensors = [x for x in args.sensors.split(",") if x]
+    unknown = set(sensors) - set(RECIPES)
+    if unknown:
+        ap.error(f"unknown sensor(s) {sorted(unknown)}; choose from {list(RECIPES)}")
+    if args.small_files:
+        sensors = ["radar"]
+    recipes = {s: [r for r in RECIPES[s] if not args.recipes or r in args.recipes.split(",")] for s in sensors}
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="rvnoise-bench-") as tmp:
         root = Path(tmp)
-        trees = build_trees(root, args.frames, args.copies)
+        trees = build_trees(root, args.frames, args.copies, sensors)
         n = args.frames * args.copies
         print(f"# rvnoise bench/run.py — {n} files per sensor, {os.cpu_count()} cores, load average {load:.1f} "
               f"at the start (medians; ratios from this run)\n")
-        print("| sensor | recipe | 1 worker files/s | 2 workers files/s | 2 w / 1 w | vs copy (1 w / 2 w) | "
-              "vs floor (1 w / 2 w) | in-worker ms/file | peak RSS/worker MB |")
-        print("|---|---|---|---|---|---|---|---|---|")
-        per_model: dict[str, list[float]] = {}
-        splits = {}
-        for sensor, names in RECIPES.items():
-            tree = trees[sensor]
-            copy = {p: n / plain_copy(sensor, tree, root / f"copy-{sensor}-{p}", p) for p in (1, 2)}
-            floor = copy if sensor != "camera" else \
-                {p: n / plain_copy(sensor, tree, root / f"floor-{sensor}-{p}", p, True) for p in (1, 2)}
-            label = "decode + encode copy" if sensor == "camera" else "read + write copy"
-            print(f"| {sensor} | *{label}* | {copy[1]:.2f} | {copy[2]:.2f} | {copy[2] / copy[1]:.2f} | | | | |")
-            if sensor == "camera":
-                print(f"| camera | *floor: copy + depth decode* | {floor[1]:.2f} | {floor[2]:.2f} | "
-                      f"{floor[2] / floor[1]:.2f} | | | | |")
-            for name in names:
-                r = {w: augment(name, sensor, tree, root / f"{name}-{w}", w) for w in (1, 2)}
-                fps = {w: r[w]["done"] / r[w]["wall"] for w in (1, 2)}
-                print(f"| {sensor} | {name} | {fps[1]:.2f} | {fps[2]:.2f} | {fps[2] / fps[1]:.2f} | "
-                      f"{fps[1] / copy[1]:.2f} / {fps[2] / copy[2]:.2f} | {fps[1] / floor[1]:.2f} / "
-                      f"{fps[2] / floor[2]:.2f} | {r[1]['file_ms']:.0f} | "
-                      f"{max(r[1]['peak_rss_mb'], r[2]['peak_rss_mb']):.0f} |")
-                for m, ms in r[1]["models_ms"].items():
-                    per_model.setdefault(m, []).append(ms)
-                splits[name] = r[1]["split_ms"]
-                for w in (1, 2):
-                    shutil.rmtree(root / f"{name}-{w}")
-            for p in (1, 2):
-                shutil.rmtree(root / f"copy-{sensor}-{p}")
-                if sensor == "camera":
-                    shutil.rmtree(root / f"floor-{sensor}-{p}")
-        print("\n| model (D3.5 rates, in the workers) | ms/frame |\n|---|---|")
-        for m, v in sorted(per_model.items()):
-            print(f"| {m} | {statistics.median(v):.1f} |")
-        print("\n| recipe | " + " | ".join(next(iter(splits.values()))) + " |")
-        print("|---|" + "---|" * len(next(iter(splits.values()))))
-        for name, sp in splits.items():
-            print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in sp.values()) + " |")
-        print("\n| start-up of a one-file run (CLI process) | beyond the file's own time s | in all s | worker "
-              "start-up s |\n|---|---|---|---|")
-        for sensor, name in (("camera", "weather-fog"), ("lidar", "weather-fog-lidar"),
-                             ("radar", "weather-fog-radar")):
-            beyond, wall, worker = startup(name, sensor, trees[sensor], root / f"start-{name}")
-            print(f"| {name} | {beyond:.2f} | {wall:.2f} | {worker:.2f} |")
-        many = small_files(trees["radar"], root, 10)
-        print(f"\n| small files: weather-fog-radar on {many[1]['done']} radar files | 1 worker | 2 workers |\n"
-              "|---|---|---|")
-        print(f"| files/s | {many[1]['done'] / many[1]['wall']:.0f} | {many[2]['done'] / many[2]['wall']:.0f} |")
-        print(f"| 2 w / 1 w | | {many[1]['wall'] / many[2]['wall']:.2f} |")
-        for key, label in (("file_mean_ms", "in-worker ms/file"), ("main_cpu_ms", "main process CPU ms/file")):
-            print(f"| {label} | {many[1][key]:.2f} | {many[2][key]:.2f} |")
-        print("| wall ms/file beyond the in-worker time (× workers) | "
-              + " | ".join(f"{1e3 * many[w]['wall'] * w / many[w]['done'] - many[w]['file_mean_ms']:.2f}" for w in (1, 2))
-              + " |")
-        print(f"| workers busy (in-worker time / wall) | {100 * many[1]['busy']:.0f} % | {100 * many[2]['busy']:.0f} % |")
-        print("\n| one 1936×1464 frame, one core | ms |\n|---|---|")
-        for label, ms in single_frame(trees["camera"], 9).items():
-            print(f"| {label} | {ms:.1f} |")
-        if not args.quick:
+        if not args.small_files:
+            per_model, splits = table(root, trees, recipes, n, args.repeat)
+        if not (args.small_files or args.only_table):
+            details(per_model, splits)
+            startup_table(root, trees)
+        if "radar" in trees and not args.only_table:
+            small_files_table(trees["radar"], root)
+        if "camera" in trees and not args.only_table:
+            print("\n| one 1936×1464 frame, one core | ms |\n|---|---|")
+            for label, ms in single_frame(trees["camera"], 9).items():
+                print(f"| {label} | {ms:.1f} |")
+        if not (args.quick or args.only_table or args.small_files):
             mem = memory(root)
             print("\n| main process, fog.radar on tiny files, 2 workers | files | peak RSS MB | s |\n|---|---|---|---|")
             for k, v in mem.items():
                 print(f"| {k} files | {v['done']} | {v['peak_kb'] / 1024:.1f} | {v['seconds']:.1f} |")
             print(f"\n10 000 / 100 files peak RSS: {mem[10_000]['peak_kb'] / mem[100]['peak_kb']:.3f}")
     print(f"\nload average at the end: {os.getloadavg()[0]:.1f}")
+
+
+def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: int,
+          repeat: int = 1) -> tuple[dict, dict]:
+    """The copy/augment rows of each sensor (files/s: the median of ``repeat`` runs); returns the per-model ms and
+    each recipe's split (1 worker)."""
+    print("| sensor | recipe | 1 worker files/s | 2 workers files/s | 2 w / 1 w | vs copy (1 w / 2 w) | "
+          "vs floor (1 w / 2 w) | in-worker ms/file | peak RSS/worker MB | worker CPU ms/file (1 w / 2 w) | "
+          "first file + CPU ms (1 w) | beyond the files ms (1 w / 2 w) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    per_model: dict[str, list[float]] = {}
+    splits = {}
+    for sensor, names in recipes.items():
+        tree = trees[sensor]
+        copy = _medians(repeat, lambda p: n / plain_copy(sensor, tree, root / f"copy-{sensor}-{p}", p))
+        floor = copy if sensor != "camera" else \
+            _medians(repeat, lambda p: n / plain_copy(sensor, tree, root / f"floor-{sensor}-{p}", p, True))
+        label = "decode + encode copy" if sensor == "camera" else "read + write copy"
+        print(f"| {sensor} | *{label}* | {copy[1]:.2f} | {copy[2]:.2f} | {copy[2] / copy[1]:.2f} | | | | | | | |")
+        if sensor == "camera":
+            print(f"| camera | *floor: copy + depth decode* | {floor[1]:.2f} | {floor[2]:.2f} | "
+                  f"{floor[2] / floor[1]:.2f} | | | | | | | |")
+        for name in names:
+            runs: dict[int, list[dict]] = {1: [], 2: []}
+
+            def one(w: int) -> float:
+                out = root / f"{name}-{w}"
+                shutil.rmtree(out, ignore_errors=True)
+                runs[w].append(augment(name, sensor, tree, out, w))
+                return runs[w][-1]["done"] / runs[w][-1]["wall"]
+
+            fps = _medians(repeat, one)
+            r = {w: runs[w][0] for w in (1, 2)}
+            print(f"| {sensor} | {name} | {fps[1]:.2f} | {fps[2]:.2f} | {fps[2] / fps[1]:.2f} | "
+                  f"{fps[1] / copy[1]:.2f} / {fps[2] / copy[2]:.2f} | {fps[1] / floor[1]:.2f} / "
+                  f"{fps[2] / floor[2]:.2f} | {r[1]['file_ms']:.0f} | "
+                  f"{max(r[1]['peak_rss_mb'], r[2]['peak_rss_mb']):.0f} | {r[1]['cpu_ms']:.1f} / "
+                  f"{r[2]['cpu_ms']:.1f} | {r[1]['first_extra_ms']:.0f} | "
+                  f"{r[1]['beyond_ms']:.0f} / {r[2]['beyond_ms']:.0f} |", flush=True)
+            for m, ms in r[1]["models_ms"].items():
+                per_model.setdefault(m, []).append(ms)
+            splits[name] = r[1]["split_ms"]
+            for w in (1, 2):
+                shutil.rmtree(root / f"{name}-{w}")
+        for p in (1, 2):
+            shutil.rmtree(root / f"copy-{sensor}-{p}")
+            if sensor == "camera":
+                shutil.rmtree(root / f"floor-{sensor}-{p}")
+    return per_model, splits
+
+
+def _medians(repeat: int, measure) -> dict[int, float]:
+    """The median of ``repeat`` values of ``measure(processes)`` for 1 and 2 processes, measured alternately."""
+    got: dict[int, list[float]] = {1: [], 2: []}
+    for _ in range(repeat):
+        for p in (1, 2):
+            got[p].append(measure(p))
+    return {p: statistics.median(v) for p, v in got.items()}
+
+
+def details(per_model: dict, splits: dict) -> None:
+    """Per-model ms and each recipe's split of a file's time."""
+    print("\n| model (D3.5 rates, in the workers) | ms/frame |\n|---|---|")
+    for m, v in sorted(per_model.items()):
+        print(f"| {m} | {statistics.median(v):.1f} |")
+    if not splits:
+        return
+    print("\n| recipe | " + " | ".join(next(iter(splits.values()))) + " |")
+    print("|---|" + "---|" * len(next(iter(splits.values()))))
+    for name, sp in splits.items():
+        print(f"| {name} | " + " | ".join(f"{v:.1f}" for v in sp.values()) + " |")
+
+
+def startup_table(root: Path, trees: dict[str, Path]) -> None:
+    print("\n| start-up of a one-file run (CLI process) | beyond the file's own time s | in all s | worker "
+          "start-up s |\n|---|---|---|---|")
+    for sensor, name in (("camera", "weather-fog"), ("lidar", "weather-fog-lidar"), ("radar", "weather-fog-radar")):
+        if sensor in trees:
+            beyond, wall, worker = startup(name, sensor, trees[sensor], root / f"start-{name}")
+            print(f"| {name} | {beyond:.2f} | {wall:.2f} | {worker:.2f} |")
+
+
+def small_files_table(tree: Path, root: Path) -> None:
+    many = small_files(tree, root, 10)
+    print(f"\n| small files: weather-fog-radar on {many[1]['done']} radar files | 1 worker | 2 workers |\n"
+          "|---|---|---|")
+    print(f"| files/s | {many[1]['done'] / many[1]['wall']:.0f} | {many[2]['done'] / many[2]['wall']:.0f} |")
+    print(f"| 2 w / 1 w | | {many[1]['wall'] / many[2]['wall']:.2f} |")
+    for key, label in (("file_mean_ms", "in-worker ms/file"), ("main_cpu_ms", "main process CPU ms/file")):
+        print(f"| {label} | {many[1][key]:.2f} | {many[2][key]:.2f} |")
+    print("| wall ms/file beyond the in-worker time (× workers) | "
+          + " | ".join(f"{1e3 * many[w]['wall'] * w / many[w]['done'] - many[w]['file_mean_ms']:.2f}" for w in (1, 2))
+          + " |")
+    print(f"| workers busy (in-worker time / wall) | {100 * many[1]['busy']:.0f} % | {100 * many[2]['busy']:.0f} % |")
 
 
 if __name__ == "__main__":

@@ -233,7 +233,7 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     """Read, run the chain, stage the output files; return the manifest entry (failures are recorded, not raised).
     The files stay fsynced temporaries listed under ``staged`` until the runner has recorded them."""
     keep_freed_memory()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.thread_time()
     s, recipe = task.sample, ctx.recipe
     entry: dict[str, Any] = {
         "output": task.out_relpath, "input": s.relpath, "modality": s.modality, "sequence": s.sequence_id,
@@ -246,12 +246,14 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
         entry["library_messages"] = printed
     entry["seconds"] = round(time.perf_counter() - t0, 4)
     if ctx.profile:
-        entry["profile"] = _profile_split(spans, entry)
+        entry["profile"] = _profile_split(spans, entry, time.thread_time() - cpu0)
     return entry
 
 
-def _profile_split(spans: dict[str, float], entry: dict) -> dict[str, Any]:
-    """The manifest's ``profile`` of one file (seconds; :mod:`roadview_noise.profiling`) from the spans."""
+def _profile_split(spans: dict[str, float], entry: dict, cpu_s: float) -> dict[str, Any]:
+    """The manifest's ``profile`` of one file (seconds; :mod:`roadview_noise.profiling`) from the spans, with the
+    worker thread's CPU seconds for the file (``cpu``: below ``total`` by the time it waited for storage or for a
+    core)."""
     steps: dict[str, float] = {}
     for step in entry.get("steps", ()):
         steps[step["model"]] = steps.get(step["model"], 0.0) + step["seconds"]
@@ -261,11 +263,11 @@ def _profile_split(spans: dict[str, float], entry: dict) -> dict[str, Any]:
              "convert": get("load.convert", 0.0) + get("save.convert", 0.0),
              "metrics": get("chain", 0.0) - sum(steps.values()) + get("metrics", 0.0),
              "encode": get("save", 0.0) - get("save.convert", 0.0) - get("save.write", 0.0),
-             "write": get("save.write", 0.0)}
+             "write": get("save.write", 0.0) + get("sync", 0.0)}
     split["other"] = entry["seconds"] - sum(split.values()) - sum(steps.values())
     rounded = {k: round(max(v, 0.0), 5) for k, v in split.items()}
     return {**rounded, "models": {m: round(x, 5) for m, x in steps.items()}, "total": entry["seconds"],
-            "peak_rss_mb": _peak_rss_mb()}
+            "cpu": round(cpu_s, 5), "peak_rss_mb": _peak_rss_mb()}
 
 
 def _peak_rss_mb() -> float:

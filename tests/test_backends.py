@@ -72,10 +72,12 @@ def test_profile_says_where_each_files_time_goes(tmp_path, tree):
     for e in read_manifest(tmp_path / "o" / "manifest.jsonl"):
         p = e["profile"]
         assert set(p) == {"read", "hash", "decode", "convert", "models", "metrics", "encode", "write", "other",
-                          "total", "peak_rss_mb"}
+                          "total", "cpu", "peak_rss_mb"}
         assert 20 < p["peak_rss_mb"] < 4000
+        assert 0 < p["cpu"] <= p["total"] + 1e-3
         assert set(p["models"]) == {"compression.camera"}
-        parts = [v for k, v in p.items() if k not in ("models", "total", "peak_rss_mb")] + list(p["models"].values())
+        parts = [v for k, v in p.items() if k not in ("models", "total", "cpu", "peak_rss_mb")] + \
+            list(p["models"].values())
         assert all(v >= 0 for v in parts) and p["decode"] > 0 and p["encode"] > 0 and p["hash"] > 0
         assert sum(parts) == pytest.approx(p["total"], rel=0.02, abs=2e-4)
     plain = _augment(tree, tmp_path / "p", "--recipe", _recipe(tmp_path, CAMERA), "--workers", 1)

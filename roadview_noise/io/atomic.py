@@ -7,9 +7,11 @@ two process-wide settings the batch runner makes here apply to all of them:
 - :func:`confined_to` (the output root): every write's real parent folder must lie inside it; folders are created one
   by one and a symlink that leads out of the root is refused, never followed (:func:`ensure_dir_inside`).
 - :func:`recorded_writes`: the list of files a block wrote (``dataset.save`` returns it).
-- :func:`staged_writes`: writes stop at the fsynced temporary and are listed (``(temporary, final)`` pairs); the
-  caller renames them with :meth:`Staged.commit` after recording them, or removes them with :meth:`Staged.discard`.
-  So a run records every file before it appears under its final name.
+- :func:`staged_writes`: writes stop at the temporary and are listed (``(temporary, final)`` pairs); the caller
+  renames them with :meth:`Staged.commit` after recording them, or removes them with :meth:`Staged.discard`.
+  So a run records every file before it appears under its final name. Each temporary's writeback starts when it is
+  written and the block's end waits for all of them (fsync): what the block does after writing (hashing the
+  outputs) overlaps the disk's work, and a temporary is on storage before the block returns.
 """
 
 from __future__ import annotations
@@ -21,8 +23,11 @@ from pathlib import Path
 from typing import Iterator
 
 from ..profiling import span
+from .writeback import start_writeback
 
 TMP_SUFFIX = ".rvnoise-tmp"
+WRITEBACK_MIN_BYTES = 64 * 1024      # a staged file this large starts its writeback at once (below: the fsync's I/O
+                                     # is a few pages, not worth a system call more per file)
 
 _root: Path | None = None            # real path every write must stay inside (None: unconfined)
 _stage: "Staged | None" = None       # collects writes instead of renaming them
@@ -35,15 +40,23 @@ class OutsideRootError(OSError):
 
 @dataclass
 class Staged:
-    """Files written (fsynced temporaries) but not yet renamed to their final names."""
+    """Files written (temporaries, on storage after :meth:`sync`) but not yet renamed to their final names."""
 
     files: list[tuple[Path, Path]] = field(default_factory=list)     # (temporary, final)
+    unsynced: list[Path] = field(default_factory=list)                # temporaries not fsynced yet
+
+    def sync(self) -> None:
+        """Wait until every temporary is on storage (fsync; their writeback started when they were written)."""
+        while self.unsynced:
+            _fsync(self.unsynced[0], "sync")
+            self.unsynced.pop(0)
 
     def finals(self) -> list[Path]:
         return [final for _, final in self.files]
 
     def commit(self) -> None:
-        """Rename every temporary onto its final name (checking the final folder again)."""
+        """Rename every temporary onto its final name (checking the final folder again), once on storage."""
+        self.sync()
         for tmp, final in self.files:
             if _root is not None:
                 _check_inside(final.parent, _root)
@@ -53,7 +66,7 @@ class Staged:
     def discard(self) -> None:
         for tmp, _ in self.files:
             _unlink_quietly(tmp)
-        self.files = []
+        self.files, self.unsynced = [], []
 
 
 @contextmanager
@@ -69,12 +82,14 @@ def confined_to(root: str | os.PathLike) -> Iterator[Path]:
 
 @contextmanager
 def staged_writes() -> Iterator[Staged]:
-    """Collect the writes of the block as fsynced temporaries; on an error they are removed."""
+    """Collect the writes of the block as temporaries, on storage when the block ends (see the module docstring); on
+    an error, the fsync's included, they are removed."""
     global _stage
     previous, _stage = _stage, Staged()
     stage = _stage
     try:
         yield stage
+        stage.sync()
     except BaseException:
         stage.discard()
         raise
@@ -154,11 +169,14 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     done = False
     try:
         yield tmp
-        with span("write"), open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
         if _stage is not None:
+            with span("write"):
+                if os.stat(tmp).st_size >= WRITEBACK_MIN_BYTES:
+                    start_writeback(tmp)
             _stage.files.append((tmp, path))
+            _stage.unsynced.append(tmp)
         else:
+            _fsync(tmp, "write")
             os.replace(tmp, path)
         done = True
         for written in _records:
@@ -166,6 +184,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if not done:
             _unlink_quietly(tmp)
+
+
+def _fsync(path: Path, span_name: str) -> None:
+    with span(span_name), open(path, "rb+") as fh:
+        os.fsync(fh.fileno())
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:

@@ -1,0 +1,22 @@
+"""run.json's library versions: installed distributions read once per process, the imported-module fallback not."""
+
+import sys
+import types
+from importlib.metadata import version
+
+from roadview_noise import manifest
+
+
+def test_versions_are_the_installed_distributions():
+    got = manifest.library_versions()
+    assert got["scipy"] == version("scipy")
+    assert got["numpy"] == version("numpy")
+    got["scipy"] = "changed by a caller"
+    assert manifest.library_versions()["scipy"] == version("scipy")     # each call returns its own record
+
+
+def test_a_library_without_distribution_falls_back_to_the_imported_module(monkeypatch):
+    monkeypatch.setitem(manifest._VERSIONED, "rvnoise_fake_lib", ("rvnoise-fake-dist",))
+    assert manifest.library_versions()["rvnoise_fake_lib"] == "unavailable"
+    monkeypatch.setitem(sys.modules, "rvnoise_fake_lib", types.SimpleNamespace(__version__="9.9"))
+    assert manifest.library_versions()["rvnoise_fake_lib"] == "9.9"      # the cached look-up found no distribution
