@@ -153,14 +153,20 @@ def _add_row(row, i, f, acc, channel, weights, blocks):       # pragma: no cover
     b = i // f
     if b >= blocks.shape[0]:
         return
-    n, k = acc.shape[0], i - b * f
+    k = i - b * f
     if k == 0:
-        acc[:] = row[:n]
+        acc[:] = row[:acc.shape[0]]
     else:
-        for j in range(n):
-            acc[j] += row[j]
+        _add_to(acc, row)
     if k == f - 1:
         _block_luminance(acc, f, channel, weights, blocks[b])
+
+
+@jit
+def _add_to(acc, row):       # pragma: no cover - compiled
+    """acc += row[:len(acc)] (a function of its own: inlined into the passes, the loop is not vectorised)."""
+    for j in range(acc.shape[0]):
+        acc[j] += row[j]
 
 
 @jit
@@ -216,15 +222,16 @@ def _encode8_blocks(linear, reverse, table, levels, f, weights, out, blocks):   
 def _codes_luminance_area(codes, f, table, channel, weights, out):   # pragma: no cover - compiled
     n = out.shape[1] * f * 3
     rows = codes.reshape(codes.shape[0], codes.shape[1] * 3)
-    acc = np.empty(n, np.float32)
+    acc, decoded = np.empty(n, np.float32), np.empty(n, np.float32)
     for i in range(out.shape[0]):
         first = rows[i * f]
         for j in range(n):
             acc[j] = table[first[j]]
         for k in range(1, f):                               # the same float32 sums as _luminance_area's
             row = rows[i * f + k]
-            for j in range(n):
-                acc[j] += table[row[j]]
+            for j in range(n):                              # look-ups first, then a vectorised sum
+                decoded[j] = table[row[j]]
+            _add_to(acc, decoded)
         _block_luminance(acc, f, channel, weights, out[i])
 
 
