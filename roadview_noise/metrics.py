@@ -12,6 +12,8 @@ Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relat
 sRGB-encoded (IEC 61966-2-1). Frames are first reduced with a box filter by the smallest integer factor
 ``metric_scale`` that leaves at most 65 536 pixels — the ≈ 256-px scale at which Wang et al.'s reference code
 evaluates SSIM — so a metric describes the image at that viewing scale and costs about the same at any resolution.
+The reduced luminance comes from :mod:`roadview_noise.luminance`: in a run, the 8-bit sRGB decode of the input and
+the encodes of the JPEG step and the writer take it in their pass (:class:`Deferred`), else a read of its own.
 
 - ``psnr_db``: 10·log10(1 / MSE) of the grey images (0–1); ``inf`` when identical.
 - ``ssim``: mean SSIM of the grey images (Wang et al. 2004, IEEE TIP 13(4), Eq. 13: 11×11 Gaussian window σ = 1.5,

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from roadview_noise import luminance, metrics
 from roadview_noise.compound import apply_models
@@ -82,6 +83,13 @@ def test_runner_metrics_equal_the_eager_comparison(tmp_path, monkeypatch, name, 
     entry = process(task, RunContext(ROOT / "sample_data", tmp_path, recipe))
     assert entry["status"] == "ok", entry.get("error")
     assert len(reads) == full_reads
+    body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
+    body.setdefault("output", {})["metrics"] = False
+    (tmp_path / "off.yaml").write_text(yaml.safe_dump(body))
+    (tmp_path / "off").mkdir()
+    off = process(task, RunContext(ROOT / "sample_data", tmp_path / "off", load_recipe(tmp_path / "off.yaml")))
+    assert off["status"] == "ok", off.get("error")
+    assert off["output_sha256"] == entry["output_sha256"] and off["metrics"] == {}   # the same output bytes
     luminance.collect(False)
     data = load(task.sample, ROOT / "sample_data", recipe)
     out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
