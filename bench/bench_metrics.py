@@ -7,13 +7,16 @@ on alternately, ``--repeat`` times each after one untimed run of each. Figures p
 time and wall time, off → on, and the increase in %; and the growth of the ``metrics`` phase of the
 ``--profile`` split (the manifest's per-file ``profile``; on minus off, as it also holds the chain's own
 bookkeeping), in ms and as a share of the per-file time with metrics on. The increase also holds what the
-metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches).
+metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches),
+and the work they add to the 8-bit sRGB decode and encode passes that take a frame's luminance on the way
+(``roadview_noise.luminance``; that work is counted in the ``convert``/``encode`` phases, not in ``metrics``).
 CPU time is the steadier figure on a shared machine.
 
 ``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
 (each step's input against its output, then the chain's input against its output) on the chain's frames or clouds,
 made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
+The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
 
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
