@@ -7,13 +7,21 @@ on alternately, ``--repeat`` times each after one untimed run of each. Figures p
 time and wall time, off → on, and the increase in %; and the growth of the ``metrics`` phase of the
 ``--profile`` split (the manifest's per-file ``profile``; on minus off, as it also holds the chain's own
 bookkeeping), in ms and as a share of the per-file time with metrics on. The increase also holds what the
-metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches).
+metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches),
+and the work they add to the 8-bit sRGB decode and encode passes that take a frame's luminance on the way
+(``roadview_noise.luminance``; that work is counted in the ``convert``/``encode`` phases, not in ``metrics``).
 CPU time is the steadier figure on a shared machine.
 
 ``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
 (each step's input against its output, then the chain's input against its output) on the chain's frames or clouds,
 made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
+The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
+
+``--fusion``: per case, the per-file CPU time with metrics off, on, and on with the sRGB passes left plain (each
+frame's luminance read by the metrics themselves, ``luminance.collect`` kept off), interleaved in this process,
+medians of ``--repeat``: what taking the luminance in the decode/encode passes saves, steadier than two worktrees'
+runs on a loaded machine.
 
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
@@ -30,6 +38,7 @@ radar rain and CNF25.
 
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --compare-only [--repeat N] [--recipes cnf11,cnf05]
+    .venv/bin/python bench/bench_metrics.py --fusion [--repeat N] [--recipes cnf11,cnf05]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
 """
 
@@ -50,6 +59,7 @@ from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
 
+from roadview_noise import luminance  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
@@ -132,6 +142,36 @@ def bench_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat
             f"({(metrics1 - metrics0) / wall1 * 100:4.1f} %)")
 
 
+def fusion_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
+    """Per-file CPU ms with metrics off, on, and on without the sRGB passes' luminance (``--fusion``)."""
+    in_root = roots["gen"]
+    ctxs = {on: RunContext(in_root, tmp / "out", load_recipe(recipe_file(name, on, False, tmp)), profile=True)
+            for on in (False, True)}
+    (tmp / "out").mkdir(exist_ok=True)
+    tasks = [t for t in plan(in_root, ctxs[True].recipe) if t.sample.relpath.startswith(folder)]
+    if folder == "real" or not tasks:
+        return None
+    collect = luminance.collect
+    samples: dict[str, list[float]] = {"off": [], "fused": [], "plain": []}
+
+    def once(kind: str) -> float:
+        luminance.collect = collect if kind != "plain" else (lambda on: collect(False))
+        try:
+            return run_once(tasks[0], ctxs[kind != "off"])[0]
+        finally:
+            luminance.collect = collect
+
+    for r in range(repeat + 1):
+        for kind in samples:
+            cpu = once(kind)
+            if r:
+                samples[kind].append(cpu)
+    off, fused, plain = (statistics.median(samples[k]) * 1e3 for k in samples)
+    return (f"  {name:<12} {tasks[0].sample.relpath:<38} off {off:7.1f}   on {fused:7.1f} "
+            f"({(fused / off - 1) * 100:+5.1f} %)   on, plain sRGB passes {plain:7.1f} "
+            f"({(plain / off - 1) * 100:+5.1f} %)")
+
+
 def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
     """CPU ms of the ``compare`` calls of one file's chain (``--compare-only``)."""
     real = folder == "real"
@@ -209,6 +249,7 @@ def main() -> None:
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--whole-run", action="store_true", help="whole augment runs instead of single files")
     ap.add_argument("--compare-only", action="store_true", help="CPU time of the chain's metrics calls alone")
+    ap.add_argument("--fusion", action="store_true", help="metrics off / on / on without the sRGB passes' luminance")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     if args.whole_run:
@@ -224,7 +265,9 @@ def main() -> None:
             shutil.copy(SHARED_OS1 / "scan0.bin", roots["real"] / REAL_SCAN)
         else:
             print("(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
-        if args.compare_only:
+        if args.fusion:
+            print(f"per file in the worker, CPU ms, medians of {args.repeat} interleaved runs:")
+        elif args.compare_only:
             print(f"metrics.compare calls of one file's chain, CPU ms, median [quartiles] of {3 * args.repeat}:")
         else:
             print(f"per file in the worker, metrics off → on, median of {args.repeat} runs each:")
@@ -233,7 +276,8 @@ def main() -> None:
             for folder in CASES[name]:
                 if folder == "real" and not (roots["real"] / REAL_SCAN).is_file():
                     continue
-                line = (compare_case if args.compare_only else bench_case)(name, folder, roots, tmp, args.repeat)
+                case = fusion_case if args.fusion else compare_case if args.compare_only else bench_case
+                line = case(name, folder, roots, tmp, args.repeat)
                 if line:
                     print(line, flush=True)
 

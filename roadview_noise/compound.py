@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 from .errors import ModelError, RecipeError
 from .model import Model, Scope, Stage
@@ -18,6 +18,9 @@ from .provenance import follow, step_input
 from .registry import get_model, known
 from .seeding import derive_rng
 from .types import PointCloud, SensorData, sensor_kind
+
+if TYPE_CHECKING:
+    from .metrics import Deferred
 
 
 @dataclass(frozen=True)
@@ -122,7 +125,8 @@ class StepRecord:
 
 
 def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: str,
-                 sequence_id: str, metrics: bool = True) -> tuple[SensorData, list[StepRecord]]:
+                 sequence_id: str, metrics: bool = True,
+                 deferred: Deferred | None = None) -> tuple[SensorData, list[StepRecord]]:
     """Run instantiated models in order on one frame or cloud.
 
     Frame rng: ``derive_rng(seed, key, step_index, model.id)``; sequence (sensor-instance) rng:
@@ -130,9 +134,13 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
     step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
     collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
-    input and output. Each later step's cloud notes the chain's input as ``recorded`` (the sensor's own data), for
+    input and output; with ``deferred`` (:class:`metrics.Deferred`), the last step's are filled in by its ``settle``
+    (each earlier step's when the next step has run: its JPEG encode may keep the frame's luminance). Each later
+    step's cloud notes the chain's input as ``recorded`` (the sensor's own data), for
     the steps that calibrate the sensor on it."""
-    from .metrics import compare          # numba: only where a chain runs, not where recipes are checked
+    from .metrics import Deferred          # numba: only where a chain runs, not where recipes are checked
+
+    pending = deferred if deferred is not None else Deferred()
 
     records = []
     recorded = data if isinstance(data, PointCloud) and data.recorded is None else None
@@ -151,5 +159,8 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
         out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
         before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
-                                  compare(before, data) if metrics else {}))
+                                  pending.compare(before, data) if metrics else {}))
+        pending.settle(keep=data)
+    if deferred is None:
+        pending.settle()
     return data, records

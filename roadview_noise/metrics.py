@@ -12,6 +12,8 @@ Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relat
 sRGB-encoded (IEC 61966-2-1). Frames are first reduced with a box filter by the smallest integer factor
 ``metric_scale`` that leaves at most 65 536 pixels — the ≈ 256-px scale at which Wang et al.'s reference code
 evaluates SSIM — so a metric describes the image at that viewing scale and costs about the same at any resolution.
+The reduced luminance comes from :mod:`roadview_noise.luminance`: in a run, the 8-bit sRGB decode of the input and
+the encodes of the JPEG step and the writer take it in their pass (:class:`Deferred`), else a read of its own.
 
 - ``psnr_db``: 10·log10(1 / MSE) of the grey images (0–1); ``inf`` when identical.
 - ``ssim``: mean SSIM of the grey images (Wang et al. 2004, IEEE TIP 13(4), Eq. 13: 11×11 Gaussian window σ = 1.5,
@@ -49,17 +51,16 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .luminance import blocks_of, codes_luminance_area, luminance_area, metric_scale, want
 from .physics.compiled import jit
 from .physics.lidar_geometry import has_return
-from .physics.srgb import decode_table, linear_to_code, reversed_rgb
+from .physics.srgb import linear_to_code
 from .provenance import Effect
 from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
 
 OBJECT_FIELDS = ("object_id", "ObjIdx")     # per-point object/instance id (CARLA semantic LiDAR: ObjIdx); ≤ 0 = none
 RANGE_BIN_M = 10.0
 DEPTH_BIN_EDGES_M = (0.0, 10.0, 20.0, 40.0, 80.0, math.inf)
-MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
-LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
 MIN_BIN_PX = 64
 EDGE_GRADIENT_PER_PX = 0.025                # half of a 5 % step (a step's Sobel/8 on each side is half the step)
 SSIM_SIGMA_PX, SSIM_RADIUS_PX, SSIM_K1, SSIM_K2 = 1.5, 5, 0.01, 0.03
@@ -105,6 +106,38 @@ def compare(before: SensorData, after: SensorData) -> dict[str, Any]:
     return dict(done[id(b)][1])
 
 
+class Deferred:
+    """:func:`compare` calls whose results are filled in later, by :meth:`settle`: by then a camera frame may have
+    gone through an 8-bit sRGB pass that kept its luminance blocks (:func:`luminance.collect`: the next step's JPEG
+    encode, the writer's encode), so its summary reads no full frame of its own. The results are :func:`compare`'s,
+    computed in the order of the calls; other data (raw frames, clouds) is compared at once."""
+
+    def __init__(self) -> None:
+        self._calls: list[tuple[SensorData, SensorData, dict]] = []
+
+    def compare(self, before: SensorData, after: SensorData) -> dict[str, Any]:
+        """An empty dict that :meth:`settle` fills with ``compare(before, after)`` (at once unless a frame)."""
+        if not isinstance(after, CameraFrame):
+            self.settle()
+            return compare(before, after)
+        for frame in (before, after):
+            if isinstance(frame, CameraFrame) and frame.undecoded_srgb8_codes() is None:   # not a JPEG output's
+                want(frame.linear_rgb)
+        result: dict[str, Any] = {}
+        self._calls.append((before, after, result))
+        return result
+
+    def settle(self, keep: SensorData | None = None) -> None:
+        """Fill the dicts of the calls made so far, in order, up to the first whose ``after`` is ``keep`` (data that
+        a later pass may still go through)."""
+        calls, self._calls = self._calls, []
+        for i, (before, after, result) in enumerate(calls):
+            if after is keep:
+                self._calls = calls[i:]
+                return
+            result.update(compare(before, after))
+
+
 def _summary(data: SensorData, before: dict | None = None) -> dict:
     """The summary of ``data`` (cached); a cloud's first one is linked to ``before``, its step input's, when given
     (:func:`_cloud_summary`)."""
@@ -126,90 +159,12 @@ def _pixels(frame: CameraFrame | RawFrame) -> np.ndarray:
     return frame.linear_rgb if codes is None else codes
 
 
-def metric_scale(height_px: int, width_px: int) -> int:
-    """Integer box-filter factor of the camera metrics: the smallest that leaves ≤ 65 536 pixels."""
-    f = max(1, math.ceil(math.sqrt(height_px * width_px / MAX_METRIC_PIXELS)))
-    while (height_px // f) * (width_px // f) > MAX_METRIC_PIXELS:
-        f += 1
-    return f
-
-
 def _reduce(img: np.ndarray, f: int) -> np.ndarray:
     """Box-filter by f×f and decimate (the edge rows/columns that do not fill a block are left out)."""
     if f == 1:
         return img
     h, w = img.shape[0] // f, img.shape[1] // f
     return cv2.resize(img[: h * f, : w * f], (w, h), interpolation=cv2.INTER_AREA)
-
-
-def luminance_area(rgb: np.ndarray, f: int) -> np.ndarray:
-    """Relative luminance (``LUMINANCE_WEIGHTS``) of (H, W, 3) linear RGB box-filtered by f×f and decimated, as
-    :func:`_reduce` then the weights, in one read of the frame (float32; the edge rows/columns that do not fill
-    a block are left out). Per block and channel the f values of each column are summed first, then the f
-    column sums: the float32 rounding differs from OpenCV's area resize then ``cv2.transform`` by a few ulp."""
-    h, w = rgb.shape[0] // f, rgb.shape[1] // f
-    out = np.empty((h, w), np.float32)
-    _luminance_area(np.ascontiguousarray(rgb, dtype=np.float32), f, np.asarray(LUMINANCE_WEIGHTS, np.float32), out)
-    return out
-
-
-def codes_luminance_area(codes: np.ndarray, f: int) -> np.ndarray:
-    """:func:`luminance_area` of the linear decoding (``srgb.code_to_linear``) of 8-bit sRGB codes (H, W, 3) RGB,
-    possibly OpenCV's BGR seen channel-reversed, bit for bit, in one read of the codes (a quarter of the bytes of
-    the decoded frame, and no decode)."""
-    h, w = codes.shape[0] // f, codes.shape[1] // f
-    out = np.empty((h, w), np.float32)
-    if reversed_rgb(codes):
-        codes, channel = codes[..., ::-1], np.array([2, 1, 0])    # memory order B, G, R
-    else:
-        codes, channel = np.ascontiguousarray(codes), np.array([0, 1, 2])
-    _codes_luminance_area(codes, f, decode_table(8), channel, np.asarray(LUMINANCE_WEIGHTS, np.float32), out)
-    return out
-
-
-@jit
-def _luminance_area(rgb, f, weights, out):                   # pragma: no cover - compiled
-    n = out.shape[1] * f * 3                                # the values of a row that fill whole blocks
-    rows = rgb.reshape(rgb.shape[0], rgb.shape[1] * 3)
-    acc = np.empty(n, np.float32)
-    channel = np.arange(3)
-    for i in range(out.shape[0]):
-        acc[:] = rows[i * f, :n]
-        for k in range(1, f):                               # column sums of the block row: contiguous, vectorised
-            row = rows[i * f + k]
-            for j in range(n):
-                acc[j] += row[j]
-        _block_luminance(acc, f, channel, weights, out[i])
-
-
-@jit
-def _codes_luminance_area(codes, f, table, channel, weights, out):   # pragma: no cover - compiled
-    n = out.shape[1] * f * 3
-    rows = codes.reshape(codes.shape[0], codes.shape[1] * 3)
-    acc = np.empty(n, np.float32)
-    for i in range(out.shape[0]):
-        first = rows[i * f]
-        for j in range(n):
-            acc[j] = table[first[j]]
-        for k in range(1, f):                               # the same float32 sums as _luminance_area's
-            row = rows[i * f + k]
-            for j in range(n):
-                acc[j] += table[row[j]]
-        _block_luminance(acc, f, channel, weights, out[i])
-
-
-@jit
-def _block_luminance(acc, f, channel, weights, out_row):        # pragma: no cover - compiled
-    """One row of blocks from the column sums ``acc`` of its f rows (memory channel ``channel[c]`` of RGB c)."""
-    scale = np.float32(1.0) / np.float32(f * f)
-    for j in range(out_row.shape[0]):
-        base = j * f * 3
-        r, g, b = acc[base + channel[0]], acc[base + channel[1]], acc[base + channel[2]]
-        for k in range(1, f):
-            r += acc[base + k * 3 + channel[0]]
-            g += acc[base + k * 3 + channel[1]]
-            b += acc[base + k * 3 + channel[2]]
-        out_row[j] = (r * scale) * weights[0] + (g * scale) * weights[1] + (b * scale) * weights[2]
 
 
 def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None, int]:
@@ -223,7 +178,11 @@ def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None,
     else:
         f = metric_scale(*frame.shape)
         codes = frame.undecoded_srgb8_codes()             # a JPEG output: its codes, not a decode of them
-        y = luminance_area(frame.linear_rgb, f) if codes is None else codes_luminance_area(codes, f)
+        if codes is not None:
+            y = codes_luminance_area(codes, f)
+        else:                                             # kept by an sRGB pass over the frame, else read here
+            y = blocks_of(frame.linear_rgb, f)
+            y = luminance_area(frame.linear_rgb, f) if y is None else y
         block = f
     grey = linear_to_code(y, 16).astype(np.float32) * np.float32(1 / 65535)
     depth = None

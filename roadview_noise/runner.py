@@ -286,6 +286,10 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
     """The body of :func:`process`: fills ``entry``."""
     s, recipe = task.sample, ctx.recipe
     try:
+        from . import luminance, metrics      # numba: imported where files are processed only
+
+        luminance.collect(recipe.spec.output.metrics)   # the frames' sRGB passes keep their luminance for the metrics
+        deferred = metrics.Deferred()                   # filled after the writer's encode (metrics.Deferred)
         source = input_path(ctx.in_root, s.relpath)
         entry["input_sha256"] = sha256_input(source)
         depth = None
@@ -307,17 +311,14 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             with profiling.span("chain"):
                 out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed,
                                             key=task.out_relpath, sequence_id=s.sequence_id,
-                                            metrics=recipe.spec.output.metrics)
-            entry["steps"] = [asdict(r) for r in records]
+                                            metrics=recipe.spec.output.metrics, deferred=deferred)
             with profiling.span("metrics"):
                 if not recipe.spec.output.metrics:
                     entry["metrics"] = {}
                 elif len(records) == 1:                    # one step: its metrics compare input and output already
                     entry["metrics"] = records[0].metrics
                 else:
-                    from .metrics import compare      # numba: imported where files are processed only
-
-                    entry["metrics"] = compare(data, out)
+                    entry["metrics"] = deferred.compare(data, out)
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
@@ -325,6 +326,9 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             with confined_to(ctx.out_root), staged_writes() as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
+                with profiling.span("metrics"):
+                    deferred.settle()
+                entry["steps"] = [asdict(r) for r in records]
                 with profiling.span("hash"):
                     entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(),
                                        "sha256": sha256_file(tmp)} for tmp, final in stage.files]

@@ -20,9 +20,8 @@ import sys
 
 _done = False
 # The kernels only one kind of data calls, by module (None: all of the module's); a model's kind is its package
-_IMAGE = {"roadview_noise.physics.srgb": None,
-          "roadview_noise.metrics": ("_luminance_area", "_codes_luminance_area", "_block_luminance", "_grey_statistics",
-                                     "_depth_bin_index", "_ssim_map")}
+_IMAGE = {"roadview_noise.physics.srgb": None, "roadview_noise.luminance": None,
+          "roadview_noise.metrics": ("_grey_statistics", "_depth_bin_index", "_ssim_map")}
 _POINTS = {"roadview_noise.io.pointcloud": None,
            "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_same_position",
                                       "_is_return", "_compose", "_same_ray", "_change", "_mean_change_through")}

@@ -134,7 +134,7 @@ def test_luminance_area_is_the_area_resize_then_the_luminance_weights(f):
     out the rows/columns that do not fill a block, reads any memory layout alike and keeps the channel order."""
     import cv2
 
-    from roadview_noise.metrics import LUMINANCE_WEIGHTS, luminance_area
+    from roadview_noise.luminance import LUMINANCE_WEIGHTS, luminance_area
 
     rng = np.random.default_rng(f)
     rgb = (rng.random((101, 157, 3), dtype=np.float32) * np.array([1.0, 0.3, 3.0], np.float32)).astype(np.float32)

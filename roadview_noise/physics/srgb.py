@@ -37,6 +37,11 @@ _SHIFT8, _SHIFT16 = 12, 8        # float32 bits below the bucket index of 8- and
 _ONE_BITS = 0x3F800000          # float32 1.0
 _INF_BITS = 0x7F800000          # float32 +inf; larger patterns are NaN, ≥ 2³¹ negative
 
+#: While the camera metrics collect (``roadview_noise.luminance.collect``): the object whose ``decode8(code, out)`` /
+#: ``encode8(linear, out, bgr)`` do the 8-bit passes of an (H, W, 3) frame (the same values) and keep its luminance
+#: blocks, returning False for what they do not take; None otherwise.
+side_pass = None
+
 
 def encode(linear: np.ndarray) -> np.ndarray:
     """Encoded sRGB value (0–1) of a linear value (0–1); float in, float out, no clipping."""
@@ -201,7 +206,9 @@ def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False) -> n
         xbits = np.ascontiguousarray(v).view(np.uint32)
         out = np.empty(v.shape, dtype)
         table = encode8_table() if bits == 8 else encode16_table()
-        if bgr:
+        if bits == 8 and side_pass is not None and side_pass.encode8(v, out, bgr):
+            pass                                        # with the metrics' luminance (roadview_noise.luminance)
+        elif bgr:
             (_encode8_reversed_kernel if bits == 8 else _encode16_reversed_kernel)(
                 xbits.reshape(-1, 3), out.reshape(-1, 3), *table)
         else:
@@ -252,7 +259,9 @@ def code_to_linear(code: np.ndarray, bits: int = 8) -> np.ndarray:
         raise ValueError(f"expected {np.dtype(dtype).name} code values, got {code.dtype}")
     with span("convert"):
         out = np.empty(code.shape, np.float32)
-        if reversed_rgb(code):                          # OpenCV's BGR seen as RGB: read it in place
+        if bits == 8 and side_pass is not None and side_pass.decode8(code, out):
+            pass                                        # with the metrics' luminance (roadview_noise.luminance)
+        elif reversed_rgb(code):                          # OpenCV's BGR seen as RGB: read it in place
             _decode_reversed_kernel(code[..., ::-1].reshape(-1, 3), decode_table(bits), out.reshape(-1, 3))
         else:
             src, dst = _kernel_views(code, out)

@@ -1,0 +1,249 @@
+"""Relative luminance of camera frames box-filtered at the camera metrics' scale (:mod:`roadview_noise.metrics`),
+in a read of its own or inside the 8-bit sRGB passes that touch every pixel of a frame anyway.
+
+Y = 0.2126 R + 0.7152 G + 0.0722 B of linear RGB (sRGB / Rec. 709 primaries), averaged over f×f blocks, f the
+smallest integer that leaves ≤ 65 536 blocks (:func:`metric_scale`; edge rows/columns that do not fill a block are
+left out). Per block and channel the f values of each column are summed first (float32, rows in order), then the
+f column sums: every path here — a float frame, 8-bit codes, the decode and encode passes — rounds the same, so
+its blocks are bit for bit those of :func:`luminance_area` of the frame's linear values.
+
+While :func:`collect` is on (the runner, for a recipe with metrics), ``physics.srgb`` hands its 8-bit decode
+(codes → linear: a file read, a JPEG output read by a later step) and encode (linear → codes: the writer, JPEG
+compression) of an (H, W, 3) frame to :class:`SidePass`, which does the same pass and sums the blocks in it — an
+encode only for a linear array the metrics asked for (:func:`want`) — and :func:`blocks_of` finds them by the
+linear array: the metrics then read no full frame of their own for it. The decoded or encoded values are those of
+the plain passes; the linear array is made read-only (its blocks can never go stale; a decoded one is already).
+Off (the default), the passes are the plain ones.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+
+from .physics import srgb
+from .physics.compiled import jit
+from .physics.srgb import _code8, decode_table, encode8_table, reversed_rgb
+
+MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
+RGB, BGR = np.arange(3), np.arange(3)[::-1].copy()   # memory channel of R, G, B
+
+_BLOCKS: dict[int, tuple[weakref.ref, int, np.ndarray]] = {}   # id(linear) → (its weakref, f, blocks)
+_WANTED: dict[int, tuple[weakref.ref]] = {}                      # id(linear) → (its weakref,): encode with blocks
+
+
+def metric_scale(height_px: int, width_px: int) -> int:
+    """Integer box-filter factor of the camera metrics: the smallest that leaves ≤ 65 536 pixels."""
+    f = max(1, math.ceil(math.sqrt(height_px * width_px / MAX_METRIC_PIXELS)))
+    while (height_px // f) * (width_px // f) > MAX_METRIC_PIXELS:
+        f += 1
+    return f
+
+
+def _weights() -> np.ndarray:
+    return np.asarray(LUMINANCE_WEIGHTS, np.float32)
+
+
+def luminance_area(rgb: np.ndarray, f: int) -> np.ndarray:
+    """Relative luminance of (H, W, 3) linear RGB box-filtered by f×f and decimated (float32; module doc), in one
+    read of the frame. The float32 rounding differs from OpenCV's area resize then ``cv2.transform`` by a few
+    ulp."""
+    h, w = rgb.shape[0] // f, rgb.shape[1] // f
+    out = np.empty((h, w), np.float32)
+    rgb = np.ascontiguousarray(rgb, dtype=np.float32)
+    _luminance_area(rgb.reshape(rgb.shape[0], -1), f, _weights(), out)
+    return out
+
+
+def codes_luminance_area(codes: np.ndarray, f: int) -> np.ndarray:
+    """:func:`luminance_area` of the linear decoding (``srgb.code_to_linear``) of 8-bit sRGB codes (H, W, 3) RGB,
+    possibly OpenCV's BGR seen channel-reversed, bit for bit, in one read of the codes (a quarter of the bytes of
+    the decoded frame, and no decode)."""
+    h, w = codes.shape[0] // f, codes.shape[1] // f
+    out = np.empty((h, w), np.float32)
+    if reversed_rgb(codes):
+        codes, channel = codes[..., ::-1], BGR
+    else:
+        codes, channel = np.ascontiguousarray(codes), RGB
+    _codes_luminance_area(codes, f, decode_table(8), channel, _weights(), out)
+    return out
+
+
+def blocks_of(linear: np.ndarray, f: int) -> np.ndarray | None:
+    """The f×f luminance blocks an sRGB pass kept for this very (read-only) linear array, else None."""
+    item = _BLOCKS.get(id(linear))
+    if item is None or item[0]() is not linear or item[1] != f or linear.flags.writeable:
+        return None
+    return item[2]
+
+
+def want(linear: np.ndarray) -> None:
+    """Ask for the blocks of this linear array when an 8-bit encode passes over it (while collecting)."""
+    _WANTED[id(linear)] = (_ref(linear, _WANTED),)
+
+
+def _wanted(linear: np.ndarray) -> bool:
+    item = _WANTED.get(id(linear))
+    return item is not None and item[0]() is linear
+
+
+def _keep(linear: np.ndarray, f: int, blocks: np.ndarray) -> None:
+    linear.flags.writeable = False
+    _BLOCKS[id(linear)] = (_ref(linear, _BLOCKS), f, blocks)
+
+
+def _ref(linear: np.ndarray, registry: dict) -> weakref.ref:
+    """A weak reference to ``linear`` that removes its entry (keyed by id, the reference first) from ``registry``
+    when it dies."""
+    key = id(linear)
+
+    def forget(ref):
+        if registry.get(key, (None,))[0] is ref:
+            del registry[key]
+
+    return weakref.ref(linear, forget)
+
+
+def collect(on: bool) -> None:
+    """Have the 8-bit sRGB passes of frames keep their luminance blocks (``on``), or not (module doc)."""
+    srgb.side_pass = SidePass if on else None
+
+
+class SidePass:
+    """The 8-bit sRGB passes of ``physics.srgb`` with the luminance blocks (``srgb.side_pass`` while collecting).
+    Each returns False, having done nothing, for what is not an (H, W, 3) frame of the expected layout."""
+
+    @staticmethod
+    def decode8(code: np.ndarray, out: np.ndarray) -> bool:
+        """``out`` (float32, C order) = the decoding of 8-bit ``code`` (H, W, 3) RGB or its BGR view."""
+        if code.ndim != 3 or code.shape[2] != 3 or not out.flags.c_contiguous:
+            return False
+        reverse = reversed_rgb(code)
+        if reverse:
+            code = code[..., ::-1]
+        elif not code.flags.c_contiguous:
+            return False
+        f = metric_scale(*code.shape[:2])
+        blocks = np.empty((code.shape[0] // f, code.shape[1] // f), np.float32)
+        _decode8_blocks(code, reverse, decode_table(8), f, _weights(), out, blocks)
+        _keep(out, f, blocks)
+        return True
+
+    @staticmethod
+    def encode8(linear: np.ndarray, out: np.ndarray, bgr: bool) -> bool:
+        """``out`` (uint8, C order) = the 8-bit codes of float32 ``linear`` (H, W, 3) RGB, in BGR order if ``bgr``,
+        when ``linear`` is wanted (:func:`want`)."""
+        if not _wanted(linear) or linear.ndim != 3 or linear.shape[2] != 3 \
+                or linear.dtype != np.float32 or not linear.flags.c_contiguous:
+            return False
+        f = metric_scale(*linear.shape[:2])
+        blocks = np.empty((linear.shape[0] // f, linear.shape[1] // f), np.float32)
+        _encode8_blocks(linear, bgr, *encode8_table(), f, _weights(), out, blocks)
+        _keep(linear, f, blocks)
+        return True
+
+
+@jit(inline="always")
+def _add_row(row, i, f, acc, channel, weights, blocks):       # pragma: no cover - compiled
+    """Add row ``i`` of a float32 RGB frame (W·3 values) to the column sums ``acc`` of its block row; its last
+    row finishes the blocks' luminance."""
+    b = i // f
+    if b >= blocks.shape[0]:
+        return
+    k = i - b * f
+    if k == 0:
+        acc[:] = row[:acc.shape[0]]
+    else:
+        _add_to(acc, row)
+    if k == f - 1:
+        _block_luminance(acc, f, channel, weights, blocks[b])
+
+
+@jit
+def _add_to(acc, row):       # pragma: no cover - compiled
+    """acc += row[:len(acc)] (a function of its own: inlined into the passes, the loop is not vectorised)."""
+    for j in range(acc.shape[0]):
+        acc[j] += row[j]
+
+
+@jit
+def _luminance_area(rows, f, weights, out):                   # pragma: no cover - compiled
+    acc = np.empty(out.shape[1] * f * 3, np.float32)
+    channel = np.arange(3)
+    for i in range(out.shape[0] * f):
+        _add_row(rows[i], i, f, acc, channel, weights, out)
+
+
+@jit
+def _decode8_blocks(codes, reverse, table, f, weights, out, blocks):     # pragma: no cover - compiled
+    """``out`` (H, W, 3 RGB) = ``table`` of ``codes`` (H, W, 3; BGR if ``reverse``), and its luminance blocks; row
+    by row, each added to the block sums while in cache."""
+    acc = np.empty(blocks.shape[1] * f * 3, np.float32)
+    rgb = np.arange(3)
+    w = codes.shape[1]
+    for i in range(codes.shape[0]):
+        src, dst = codes[i], out[i]
+        if reverse:
+            for p in range(w):
+                for k in range(3):
+                    dst[p, k] = table[src[p, 2 - k]]
+        else:
+            for p in range(w):
+                for k in range(3):
+                    dst[p, k] = table[src[p, k]]
+        _add_row(dst.reshape(w * 3), i, f, acc, rgb, weights, blocks)
+
+
+@jit
+def _encode8_blocks(linear, reverse, table, levels, f, weights, out, blocks):   # pragma: no cover - compiled
+    """``out`` (H, W, 3) = the 8-bit codes of float32 ``linear`` (H, W, 3 RGB), BGR if ``reverse``, and its
+    luminance blocks."""
+    acc = np.empty(blocks.shape[1] * f * 3, np.float32)
+    rgb = np.arange(3)
+    w = linear.shape[1]
+    for i in range(linear.shape[0]):
+        src, dst = linear[i], out[i]
+        bits = src.view(np.uint32)
+        if reverse:
+            for p in range(w):
+                for k in range(3):
+                    dst[p, 2 - k] = _code8(bits[p, k], table, levels)
+        else:
+            for p in range(w):
+                for k in range(3):
+                    dst[p, k] = _code8(bits[p, k], table, levels)
+        _add_row(src.reshape(w * 3), i, f, acc, rgb, weights, blocks)
+
+
+@jit
+def _codes_luminance_area(codes, f, table, channel, weights, out):   # pragma: no cover - compiled
+    n = out.shape[1] * f * 3
+    rows = codes.reshape(codes.shape[0], codes.shape[1] * 3)
+    acc, decoded = np.empty(n, np.float32), np.empty(n, np.float32)
+    for i in range(out.shape[0]):
+        first = rows[i * f]
+        for j in range(n):
+            acc[j] = table[first[j]]
+        for k in range(1, f):                               # the same float32 sums as _luminance_area's
+            row = rows[i * f + k]
+            for j in range(n):                              # look-ups first, then a vectorised sum
+                decoded[j] = table[row[j]]
+            _add_to(acc, decoded)
+        _block_luminance(acc, f, channel, weights, out[i])
+
+
+@jit
+def _block_luminance(acc, f, channel, weights, out_row):        # pragma: no cover - compiled
+    """One row of blocks from the column sums ``acc`` of its f rows (memory channel ``channel[c]`` of RGB c)."""
+    scale = np.float32(1.0) / np.float32(f * f)
+    for j in range(out_row.shape[0]):
+        base = j * f * 3
+        r, g, b = acc[base + channel[0]], acc[base + channel[1]], acc[base + channel[2]]
+        for k in range(1, f):
+            r += acc[base + k * 3 + channel[0]]
+            g += acc[base + k * 3 + channel[1]]
+            b += acc[base + k * 3 + channel[2]]
+        out_row[j] = (r * scale) * weights[0] + (g * scale) * weights[1] + (b * scale) * weights[2]
