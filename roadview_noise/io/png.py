@@ -13,6 +13,8 @@ in the file's channel order (grey, RGB, RGBA), native byte order.
 
 from __future__ import annotations
 
+import sys
+
 import cv2
 import numpy as np
 from isal import isal_zlib
@@ -83,8 +85,9 @@ def decode_png(data: bytes) -> np.ndarray | None:
     bad_row = _unfilter(filtered, pixel_bytes, out)
     if bad_row >= 0:
         raise PNGError(f"unknown filter type {filtered[bad_row, 0]} on row {bad_row}")
-    if bit_depth == 16:
-        out = out.view(">u2").astype(np.uint16)
+    if bit_depth == 16:                              # big-endian samples → native, in place
+        out = out.view(">u2").byteswap(inplace=True).view(np.uint16) if sys.byteorder == "little" else \
+            out.view(np.uint16)
     return out.reshape(height, width, channels) if channels > 1 else out.reshape(height, width)
 
 
