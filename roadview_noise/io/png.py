@@ -139,35 +139,45 @@ def _chunk(kind: bytes, body: bytes) -> bytes:
 @jit
 def _unfilter(filtered: np.ndarray, bpp: int, out: np.ndarray) -> int:
     """Undo the per-row filters (PNG spec §9.2) of ``filtered`` (H, 1 + row bytes) into ``out`` (H, row bytes);
-    ``bpp`` is the bytes per complete pixel. Returns the first row with an unknown filter type, else −1."""
+    ``bpp`` is the bytes per complete pixel. Returns the first row with an unknown filter type, else −1. Byte sums
+    wrap modulo 256 on the store."""
     height, n = out.shape
+    zero = np.zeros(n, np.uint8)                    # the row above the first one
     for y in range(height):
         kind = filtered[y, 0]
         src = filtered[y, 1:]
         row = out[y]
-        if kind == 0 or (kind == 2 and y == 0):     # None; Up on the first row (the row above is zero)
+        above = out[y - 1] if y > 0 else zero
+        if kind == 0:                               # None
             row[:] = src
         elif kind == 1:                             # Sub
             row[:bpp] = src[:bpp]
             for i in range(bpp, n):
                 row[i] = src[i] + row[i - bpp]
         elif kind == 2:                             # Up
-            above = out[y - 1]
             for i in range(n):
                 row[i] = src[i] + above[i]
         elif kind == 3:                             # Average
-            for i in range(n):
-                a = np.int32(row[i - bpp]) if i >= bpp else 0
-                b = np.int32(out[y - 1, i]) if y > 0 else 0
-                row[i] = src[i] + np.uint8((a + b) >> 1)
-        elif kind == 4:                             # Paeth
-            for i in range(n):
-                a = np.int32(row[i - bpp]) if i >= bpp else 0
-                b = np.int32(out[y - 1, i]) if y > 0 else 0
-                c = np.int32(out[y - 1, i - bpp]) if y > 0 and i >= bpp else 0
-                p = a + b - c
-                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
-                row[i] = src[i] + np.uint8(a if pa <= pb and pa <= pc else b if pb <= pc else c)
+            for i in range(bpp):
+                row[i] = src[i] + (above[i] >> 1)
+            for i in range(bpp, n):
+                row[i] = src[i] + ((np.int32(row[i - bpp]) + np.int32(above[i])) >> 1)
+        elif kind == 4:
+            _paeth_row(src, row, above, bpp)
         else:
             return y
     return -1
+
+
+@jit
+def _paeth_row(src: np.ndarray, row: np.ndarray, above: np.ndarray, bpp: int) -> None:
+    """Paeth: each byte predicted by the nearest of a (left), b (above), c (above left) to a + b − c, chosen without
+    branches (noisy rows mispredict them)."""
+    for i in range(bpp):
+        row[i] = src[i] + above[i]
+    for i in range(bpp, row.size):
+        a, b, c = np.int32(row[i - bpp]), np.int32(above[i]), np.int32(above[i - bpp])
+        pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - c - c)
+        near_bc = b if pb <= pc else c
+        nearest = pb if pb <= pc else pc
+        row[i] = src[i] + np.uint8(a if pa <= nearest else near_bc)
