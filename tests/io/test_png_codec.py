@@ -95,6 +95,19 @@ def test_encode_refuses_other_sample_types():
         encode_png(np.zeros((4, 4, 2), np.uint8))
 
 
+@pytest.mark.parametrize("extra", [b"gAMA", b"sBIT", b"sRGB+gAMA"])
+def test_colour_chunks_opencv_ignores_are_ignored(extra):
+    """IMREAD_UNCHANGED applies no gamma, significant-bits shift or rendering intent: nor does the codec."""
+    bodies = {b"gAMA": (100000).to_bytes(4, "big"), b"sBIT": bytes([5, 6, 5]), b"sRGB": b"\x00"}
+    codes = _photo((20, 30, 3), np.uint8, seed=9)
+    data = encode_png(codes)
+    added = b"".join(_chunk(k, bodies[k]) for k in extra.split(b"+"))
+    data = data[:33] + added + data[33:]                                     # after the 25-byte IHDR chunk
+    np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED),
+                                  _opencv_order(codes))
+    np.testing.assert_array_equal(decode_png(data), codes)
+
+
 # --- the kinds left to OpenCV ------------------------------------------------------------------------------------
 
 
