@@ -28,6 +28,7 @@ _CHANNELS = {0: 1, 2: 3, 6: 4}                  # colour type → samples per pi
 _COLOUR_TYPE = {v: k for k, v in _CHANNELS.items()}
 _OTHER_KIND_CHUNKS = (b"tRNS", b"acTL")        # transparency → an added alpha plane; an animation: OpenCV's
 _IDAT_BYTES = 8192                              # libpng's (and so OpenCV's) IDAT chunk size
+_EXTRA_BYTES = 1 << 20                          # inflated at a time past the image's bytes (then discarded)
 _SUB = 1
 
 
@@ -74,13 +75,19 @@ def decode_png(data: bytes) -> np.ndarray | None:
     channels = _CHANNELS[colour_type]
     pixel_bytes = channels * bit_depth // 8
     row_bytes = width * pixel_bytes
-    try:
-        stream = isal_zlib.decompress(b"".join(idat))
+    size = height * (row_bytes + 1)
+    inflate = isal_zlib.decompressobj()
+    try:                     # the image's bytes, then the rest in 1 MB pieces (a bomb stays small) to the stream's end
+        stream = inflate.decompress(b"".join(idat), size)
+        while not inflate.eof and inflate.decompress(inflate.unconsumed_tail, _EXTRA_BYTES):
+            pass
     except isal_zlib.error as exc:
         raise PNGError(f"corrupt compressed image data ({exc})") from None
-    if width == 0 or height == 0 or len(stream) < height * (row_bytes + 1):
+    if size == 0 or len(stream) < size:
         raise PNGError(f"not enough image data: {len(stream)} bytes for {height} rows of {width} pixels")
-    filtered = np.frombuffer(stream, np.uint8, count=height * (row_bytes + 1)).reshape(height, row_bytes + 1)
+    if not inflate.eof:
+        raise PNGError("corrupt compressed image data (the stream stops before its end and checksum)")
+    filtered = np.frombuffer(stream, np.uint8).reshape(height, row_bytes + 1)
     out = np.empty((height, row_bytes), np.uint8)
     bad_row = _unfilter(filtered, pixel_bytes, out)
     if bad_row >= 0:

@@ -171,6 +171,23 @@ def _rebuilt(data: bytes, stream: bytes) -> bytes:
     return data[:ihdr_end] + _chunk(b"IDAT", stream) + _chunk(b"IEND", b"")
 
 
+def test_a_stream_longer_than_the_image_is_inflated_only_as_far_as_the_image():
+    """libpng stops at the last row; so does the codec: 60 MB of zeros behind 16×12 pixels cost no memory."""
+    import tracemalloc
+
+    codes = _photo((16, 12, 3), np.uint8)
+    rows = zlib.decompress(_idat(encode_png(codes)))
+    data = _rebuilt(encode_png(codes), zlib.compress(rows + bytes(60_000_000), 9))
+    tracemalloc.start()
+    try:
+        decoded = decode_png(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(decoded, codes)
+    assert peak < 2_000_000, peak
+
+
 @pytest.mark.parametrize("damage, match", [
     ("crc", "CRC error in the IDAT"),
     ("stream", "corrupt compressed image data"),
