@@ -65,6 +65,24 @@ def test_decode_follows_the_filter_chosen_per_row():
     np.testing.assert_array_equal(_opencv_order(decode_png(data)), bgr)
 
 
+@pytest.mark.parametrize("mode", ["L", "RGB", "RGBA", "I;16"])
+@pytest.mark.parametrize("level", [0, 1, 9])
+def test_decode_of_another_writer_gives_opencvs_pixels(mode, level):
+    """Pillow's own encoder (its filter heuristics, its deflate levels): another writer's streams and row filters."""
+    Image = pytest.importorskip("PIL.Image")
+    dtype = np.uint16 if mode == "I;16" else np.uint8
+    shape = (45, 66) if mode in ("L", "I;16") else (45, 66, len(mode))
+    codes = _photo(shape, dtype, seed=level)
+    buf = io.BytesIO()
+    Image.fromarray(codes).save(buf, format="PNG", compress_level=level)
+    data = buf.getvalue()
+    colour_type = {"L": 0, "I;16": 0, "RGB": 2, "RGBA": 6}[mode]
+    assert data[24:26] == bytes([8 * np.dtype(dtype).itemsize, colour_type])     # IHDR: the kind we asked for
+    ref = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(_opencv_order(decode_png(data)), ref)
+    np.testing.assert_array_equal(decode_png(data), codes)
+
+
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 @pytest.mark.parametrize("channels", [1, 3, 4])
 def test_encode_has_opencvs_pixels_and_size(dtype, channels):
