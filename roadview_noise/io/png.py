@@ -7,7 +7,8 @@ level 1 with the RLE strategy, 8192-byte IDAT chunks — so they have the size o
 is zlib's: on the bench frames the bytes are the same).
 
 :func:`decode_png` returns None for a kind it does not handle (palette, grey + alpha, bit depths 1–4, Adam7
-interlacing, a ``tRNS`` transparency chunk, an animated PNG): the caller decodes those with OpenCV. Code values come
+interlacing, a ``tRNS`` transparency chunk, an animated PNG, an unknown critical chunk): the caller decodes those
+with OpenCV. Code values come
 in the file's channel order (grey, RGB, RGBA), native byte order.
 """
 
@@ -27,6 +28,7 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _CHANNELS = {0: 1, 2: 3, 6: 4}                  # colour type → samples per pixel (grey, RGB, RGBA)
 _COLOUR_TYPE = {v: k for k, v in _CHANNELS.items()}
 _OTHER_KIND_CHUNKS = (b"tRNS", b"acTL")        # transparency → an added alpha plane; an animation: OpenCV's
+_CRITICAL = (b"IHDR", b"PLTE", b"IDAT", b"IEND")  # the critical chunks a decoder knows (PNG spec §5.6)
 _IDAT_BYTES = 8192                              # libpng's (and so OpenCV's) IDAT chunk size
 _EXTRA_BYTES = 1 << 20                          # inflated at a time past the image's bytes (then discarded)
 _SUB = 1
@@ -68,8 +70,8 @@ def decode_png(data: bytes) -> np.ndarray | None:
         return None
     idat = []
     for kind, pos, length in chunks:
-        if kind in _OTHER_KIND_CHUNKS:
-            return None
+        if kind in _OTHER_KIND_CHUNKS or (kind[:1].isupper() and kind not in _CRITICAL):
+            return None                             # (an unknown critical chunk: libpng's call)
         if kind == b"IDAT":
             idat.append(memoryview(data)[pos:pos + length])
     channels = _CHANNELS[colour_type]

@@ -166,6 +166,16 @@ def test_other_kinds_are_decoded_by_opencv(kind):
     np.testing.assert_array_equal(_opencv_order(codes), ref)
 
 
+def test_an_unknown_critical_chunk_is_left_to_opencv():
+    """A decoder must not decode past a critical chunk it does not know (PNG spec §5.4): libpng refuses the file."""
+    data = encode_png(_photo((8, 8, 3), np.uint8))
+    data = data[:33] + _chunk(b"ZZZZ", b"\x00") + data[33:]
+    assert decode_png(data) is None
+    with pytest.raises(InputError, match="OpenCV cannot decode") as err:
+        decode_codes(data, "png", source="odd.png")
+    assert "odd.png" in str(err.value)
+
+
 # --- damaged files -----------------------------------------------------------------------------------------------
 
 
