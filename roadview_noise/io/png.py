@@ -8,8 +8,8 @@ is zlib's: on the bench frames the bytes are the same).
 
 :func:`decode_png` returns None for a kind it does not handle (palette, grey + alpha, bit depths 1–4, Adam7
 interlacing, a ``tRNS`` transparency chunk, an animated PNG, an unknown critical chunk): the caller decodes those
-with OpenCV. Code values come
-in the file's channel order (grey, RGB, RGBA), native byte order.
+with OpenCV. Code values come in the file's channel order (grey, RGB, RGBA), native byte order. The stream is
+inflated into the image's size, then to its end in pieces that are dropped: a decompression bomb stays small.
 """
 
 from __future__ import annotations
