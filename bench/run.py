@@ -7,7 +7,9 @@ copied. Then, per sensor, with 1 and 2 processes:
 
 - **copy**: the plain loop a user would write with the same codecs — read, decode, encode, write (+ fsync, as rvnoise
   writes) each file; for the camera also **floor**: the copy plus decoding the depth sidecar the recipes read, i.e.
-  the I/O every camera weather recipe must do;
+  the I/O every camera weather recipe must do. The camera copy and floor use OpenCV's PNG codec; a second copy uses
+  rvnoise's (``io/png.py``, ≈ 2× faster, the same pixels and file size), and the camera recipes are stated against
+  both;
 - **augment**: ``runner.run`` of each weather recipe and one CNF (in-process, so the wall time includes the fork
   server, the workers' start and the manifest), ``--profile`` on: per-model ms in the workers at the D3.5 rates and
   each worker's peak RSS come from the manifest; what bounds 2 workers / 1 worker: the **worker CPU ms/file** with
@@ -117,14 +119,18 @@ def _write_synced(path: Path, data: bytes) -> None:
 
 
 def _copy_one(job: tuple) -> None:
-    sensor, src, dst, with_depth = job
+    sensor, src, dst, with_depth, codec = job
     if sensor == "camera":
-        img = cv2.imdecode(np.frombuffer(Path(src).read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+        from roadview_noise.io.png import decode_png, encode_png
+
+        data = Path(src).read_bytes()
+        img = decode_png(data) if codec == "rvnoise" else cv2.imdecode(np.frombuffer(data, np.uint8),
+                                                                         cv2.IMREAD_UNCHANGED)
         if with_depth:
             from roadview_noise.io.image import read_exr_channels
 
             read_exr_channels(str(src).replace(".png", "_depth.exr"))
-        _write_synced(Path(dst), cv2.imencode(".png", img)[1].tobytes())
+        _write_synced(Path(dst), encode_png(img) if codec == "rvnoise" else cv2.imencode(".png", img)[1].tobytes())
         return
     from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
 
@@ -132,11 +138,13 @@ def _copy_one(job: tuple) -> None:
     write_pointcloud(dst, cloud, effect="none")
 
 
-def plain_copy(sensor: str, tree: Path, out: Path, processes: int, with_depth: bool = False) -> float:
-    """Wall seconds of the plain copy of every input with ``processes`` processes."""
+def plain_copy(sensor: str, tree: Path, out: Path, processes: int, with_depth: bool = False,
+               codec: str = "opencv") -> float:
+    """Wall seconds of the plain copy of every input with ``processes`` processes; camera frames with OpenCV's PNG
+    codec or rvnoise's (``io/png.py``, the one ``augment`` uses)."""
     files = sorted(tree.rglob("*.png" if sensor == "camera" else "*.pcd"))
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(sensor, str(f), str(out / f.name), with_depth) for f in files]
+    jobs = [(sensor, str(f), str(out / f.name), with_depth, codec) for f in files]
     t0 = time.perf_counter()
     if processes == 1:
         for j in jobs:
@@ -358,6 +366,7 @@ def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: 
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     per_model: dict[str, list[float]] = {}
     splits = {}
+    same_codec: dict[str, tuple[float, float]] = {}
     for sensor, names in recipes.items():
         tree = trees[sensor]
         copy = _medians(repeat, lambda p: n / plain_copy(sensor, tree, root / f"copy-{sensor}-{p}", p))
@@ -368,6 +377,9 @@ def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: 
         if sensor == "camera":
             print(f"| camera | *floor: copy + depth decode* | {floor[1]:.2f} | {floor[2]:.2f} | "
                   f"{floor[2] / floor[1]:.2f} | | | | | | | |")
+            own = _medians(repeat, lambda p: n / plain_copy(sensor, tree, root / f"own-{p}", p, codec="rvnoise"))
+            print(f"| camera | *copy with rvnoise's PNG codec (augment's)* | {own[1]:.2f} | {own[2]:.2f} | "
+                  f"{own[2] / own[1]:.2f} | {own[1] / copy[1]:.2f} / {own[2] / copy[2]:.2f} | | | | | | |")
         for name in names:
             runs: dict[int, list[dict]] = {1: [], 2: []}
 
@@ -385,6 +397,8 @@ def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: 
                   f"{max(r[1]['peak_rss_mb'], r[2]['peak_rss_mb']):.0f} | {r[1]['cpu_ms']:.1f} / "
                   f"{r[2]['cpu_ms']:.1f} | {r[1]['first_extra_ms']:.0f} | "
                   f"{r[1]['beyond_ms']:.0f} / {r[2]['beyond_ms']:.0f} |", flush=True)
+            if sensor == "camera":
+                same_codec[name] = (fps[1] / own[1], fps[2] / own[2])
             for m, ms in r[1]["models_ms"].items():
                 per_model.setdefault(m, []).append(ms)
             splits[name] = r[1]["split_ms"]
@@ -394,6 +408,11 @@ def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: 
             shutil.rmtree(root / f"copy-{sensor}-{p}")
             if sensor == "camera":
                 shutil.rmtree(root / f"floor-{sensor}-{p}")
+                shutil.rmtree(root / f"own-{p}")
+    if same_codec:
+        print("\n| camera recipe | vs the copy with rvnoise's PNG codec (1 w / 2 w) |\n|---|---|")
+        for name, (one, two) in same_codec.items():
+            print(f"| {name} | {one:.2f} / {two:.2f} |")
     return per_model, splits
 
 

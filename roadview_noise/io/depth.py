@@ -30,7 +30,7 @@ from ..errors import InputError
 from ..types import CameraProfile
 from ..units import planar_depth_to_range
 from .atomic import atomic_path, write_bytes_atomic
-from .image import PNG_SIGNATURE, check_structure, read_exr_channels, write_exr_channels
+from .image import PNG_SIGNATURE, check_structure, decode_codes, read_exr_channels, write_exr_channels
 
 CARLA_FAR_M = 1000.0
 CARLA_MAX_CODE = 2 ** 24 - 1
@@ -173,16 +173,13 @@ def _read_png(path: Path) -> np.ndarray:
     except OSError as exc:
         raise InputError(f"cannot read depth PNG: {exc.strerror or exc}", file=str(path)) from exc
     check_structure(data, "png", path)
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise InputError("cannot decode the depth PNG", file=str(path))
-    return img
+    return decode_codes(data, "png", source=path)
 
 
 def _carla_planar(img: np.ndarray, path: Path) -> np.ndarray:
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4):
-        raise InputError(f"a CARLA depth PNG is 8-bit BGR(A); got {img.dtype} with shape {img.shape}", file=str(path))
-    b, g, r = (img[..., k].astype(np.uint32) for k in range(3))
+        raise InputError(f"a CARLA depth PNG is 8-bit colour; got {img.dtype} with shape {img.shape}", file=str(path))
+    r, g, b = (img[..., k].astype(np.uint32) for k in range(3))
     code = r + (g << 8) + (b << 16)
     z = (code * (CARLA_FAR_M / CARLA_MAX_CODE)).astype(np.float32)
     z[z >= CARLA_FAR_M] = np.inf

@@ -1,7 +1,8 @@
 """Camera image reader/writer: PNG, JPEG, TIFF (8/16-bit sRGB, float32 linear TIFF), OpenEXR (half/float linear)
 ↔ linear RGB float32.
 
-Decoding with OpenCV (``IMREAD_UNCHANGED``: no EXIF rotation, no bit-depth reduction); BGR ↔ RGB and sRGB ↔ linear
+Decoding with OpenCV (``IMREAD_UNCHANGED``: no EXIF rotation, no bit-depth reduction) — the common PNG kinds (8/16-bit
+grey, RGB, RGBA) by :mod:`.png`, which gives OpenCV's pixels in half its time; BGR ↔ RGB and sRGB ↔ linear
 happen here and nowhere else (the sRGB arithmetic itself is ``physics/srgb.py``). 8/16-bit files are sRGB encoded
 (IEC 61966-2-1); float32 TIFF and EXR are linear and are written back unclipped (HDR stays HDR), EXR with the same
 half/float channel type. 1.0 is the full scale of the encoding. Grey files are replicated to three channels and
@@ -10,8 +11,8 @@ channels).
 
 Written back like the input: bit depth, channels, alpha plane, JPEG quality (estimated from the input's
 quantisation tables unless the recipe states one) and the embedded ICC colour profile (PNG ``iCCP`` chunk, JPEG
-``APP2 ICC_PROFILE`` segments, TIFF tag 34675), copied unchanged. TIFF is written by tifffile (Deflate), the others
-by OpenCV.
+``APP2 ICC_PROFILE`` segments, TIFF tag 34675), copied unchanged. TIFF is written by tifffile (Deflate), PNG by
+:mod:`.png` (OpenCV's settings and file size), JPEG by OpenCV.
 
 OpenCV decodes some truncated files without an error (a JPEG cut short gets a grey bottom), so the structure is checked
 first: PNG needs its IEND chunk, JPEG its EOI marker, TIFF strips/tiles inside the file.
@@ -34,13 +35,12 @@ from ..physics import srgb
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
 from .atomic import atomic_path, write_bytes_atomic
+from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png
 
 SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr"}
-_EXTENSION = {"png": ".png", "jpeg": ".jpg"}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 _RGB_ORDER = {3: slice(None, None, -1), 4: [2, 1, 0, 3]}    # OpenCV's BGR(A) → RGB(A) (3 channels: a view)
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_IEND = b"IEND\xaeB`\x82"            # chunk type + CRC of the (empty) IEND chunk
 _JPEG_SOI, _JPEG_EOI = b"\xff\xd8", b"\xff\xd9"
 _TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
@@ -74,13 +74,26 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
     """:func:`read_image` of the bytes of a PNG, JPEG or TIFF file (also a ROS CompressedImage's data); ``source``
     names it in errors."""
     check_structure(data, fmt, source)
+    codes = decode_codes(data, fmt, source=source)
+    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
+    return image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc_profile(data, fmt))
+
+
+def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
+    """Code values of a PNG, JPEG or TIFF file's bytes, grey (H, W) or RGB(A) (H, W, C) as stored: the common PNG
+    kinds by :mod:`.png`, the rest by OpenCV."""
+    if fmt == "png":
+        try:
+            codes = decode_png(data)
+        except PNGError as exc:
+            raise InputError(f"corrupt PNG: {exc}", file=str(source)) from None
+        if codes is not None:
+            return codes
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"OpenCV cannot decode this {fmt.upper()} file (corrupt or unsupported variant)",
                          file=str(source))
-    codes = img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
-    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    return image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc_profile(data, fmt))
+    return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
 
 
 def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int = ImageEncoding.jpeg_quality,
@@ -168,12 +181,13 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     ``encoding.icc_profile`` embedded."""
     if encoding.fmt == "tiff":
         return _encode_tiff(codes, encoding.icc_profile)
-    if encoding.fmt not in _EXTENSION:
+    if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
+    if encoding.fmt == "png":
+        return embed_icc_profile(encode_png(codes), "png", encoding.icc_profile)
     if codes.ndim == 3:
         codes = bgr_order(codes)
-    params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)] if encoding.fmt == "jpeg" else []
-    ok, buf = cv2.imencode(_EXTENSION[encoding.fmt], np.ascontiguousarray(codes), params)
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(codes), [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)])
     if not ok:
         raise OSError(f"{name}: OpenCV could not encode {encoding}")
     return embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile)
