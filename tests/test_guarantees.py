@@ -644,9 +644,7 @@ def test_workers_exit_when_the_main_process_is_killed(tmp_path, tree):
 
 
 def test_interrupted_run_is_recorded(tmp_path, tree):
-    pid_dir = tmp_path / "pids"
-    pid_dir.mkdir()
-    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5, "pid_dir": str(pid_dir)}}],
+    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5}}],
             "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
     code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; from roadview_noise.registry import register; "
             "[register(c) for c in injected_models.INJECTED]; "
@@ -654,10 +652,10 @@ def test_interrupted_run_is_recorded(tmp_path, tree):
             f"run(load_recipe({str(_recipe(tmp_path, body))!r}), {str(tree)!r}, {str(tmp_path / 'o')!r}, "
             "workers=1, progress=False)")
     main = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    manifest = tmp_path / "o" / "manifest.jsonl"         # interrupted once a file is done: its line is written (flushed)
     deadline = time.time() + 60
-    while time.time() < deadline and not list(pid_dir.iterdir()):
+    while time.time() < deadline and not (manifest.is_file() and manifest.read_text().endswith("\n")):
         time.sleep(0.05)
-    time.sleep(0.8)
     main.send_signal(signal.SIGINT)
     _, err = main.communicate(timeout=60)
     assert b"KeyboardInterrupt" in err
