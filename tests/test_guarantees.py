@@ -637,7 +637,7 @@ def test_workers_exit_when_the_main_process_is_killed(tmp_path, tree):
     finally:
         main.send_signal(signal.SIGKILL)
         main.wait()
-    deadline = time.time() + 10
+    deadline = time.time() + 60
     while time.time() < deadline and any(_running(p) for p in helpers):
         time.sleep(0.05)
     assert not [p for p in helpers if _running(p)]
