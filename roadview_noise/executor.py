@@ -349,7 +349,7 @@ class ProcessExecutor(Generic[T, C]):
                         yield task, WorkerDeath(f"took longer than {self.timeout_s:g} s; its worker was stopped", 1)
                         continue
                     result, got = None, False
-                    if w.queue and w.conn in ready:
+                    if w.queue and ready & {w.conn, w.proc.sentinel}:     # a dead worker's answers first
                         try:
                             tid, result = w.conn.recv()
                             got = tid == w.queue[0][0]
@@ -363,8 +363,8 @@ class ProcessExecutor(Generic[T, C]):
                         w.started = now                    # the worker took the next queued task at once
                         yield task, result
                         continue
-                    if w.proc.sentinel not in ready and w.proc.is_alive():
-                        continue
+                    if w.proc.sentinel not in ready:
+                        continue        # alive, or died after wait(): its answers are read before its death
                     w.proc.join()
                     reason = death_reason(w.proc.exitcode)
                     w.conn.close()

@@ -5,6 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, settings
+
+# a loaded CI machine must never fail a property test on time: no per-example deadline, no "too slow" health check
+settings.register_profile("rvnoise", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("rvnoise")
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"

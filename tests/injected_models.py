@@ -54,8 +54,10 @@ class SleepCamera(Model):
     sensor: ClassVar[str] = "camera"
     sleep_s: float = param(0.5, unit="s", ge=0)
     pid_dir: str = param("", doc="folder that gets one file per worker pid")
+    trace_path: str = param("", doc="file that gets one line per call")
 
     def apply(self, data, *, state, drawn, rng):
+        _trace(self.trace_path, str(os.getpid()))
         if self.pid_dir:
             Path(self.pid_dir, str(os.getpid())).touch()
         time.sleep(self.sleep_s if not _poisoned(data) else 3600)

@@ -7,13 +7,17 @@ import os
 import signal
 import time
 
-from roadview_noise.executor import (NOT_NOW, QUEUE_BELOW_S, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath,
-                                     death_reason, start_server)
+import pytest
+
+from roadview_noise import executor
+from roadview_noise.executor import (NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, death_reason,
+                                     start_server)
 
 
 def work(task: int, context: dict) -> tuple[int, int]:
     """Square the task; die on the tasks the context names (``exit``: os._exit, ``kill``: SIGKILL once, then
-    work, by a marker file), sleep on ``sleep``, raise on ``raise``."""
+    work, by a marker file), sleep on ``sleep``, raise on ``raise``; every task takes ``pause_s`` first."""
+    time.sleep(context.get("pause_s", 0.0))
     if task in context.get("exit", ()):
         os._exit(3)
     if task in context.get("kill_once", ()):
@@ -91,17 +95,46 @@ def test_death_reasons_in_words():
     assert death_reason(2) == "worker died: it exited with code 2"
 
 
-def test_short_tasks_are_queued_and_a_death_costs_only_the_running_one(tmp_path):
+@pytest.fixture
+def queue_below_s(monkeypatch) -> float:
+    """Every task counts as short, so the queue is in use from the second task on: on a loaded machine a task's
+    measured time (which includes a fresh worker's start) may exceed ``QUEUE_BELOW_S``, and the queue would not be
+    used when the tests need it."""
+    monkeypatch.setattr(executor, "QUEUE_BELOW_S", 60.0)
+    return executor.QUEUE_BELOW_S
+
+
+def test_short_tasks_are_queued_and_a_death_costs_only_the_running_one(tmp_path, queue_below_s):
     """Behind short tasks each worker holds a second one; a worker that dies is blamed for the task it was running
     only: the task queued behind it runs on a fresh worker, with no death counted."""
     ctx = {"exit": (30,), "kill_once": (22,), "dir": str(tmp_path)}
     ex = ProcessExecutor(work, ctx, 2)
     results = dict(ex.map(range(40)))
-    assert ex._task_s < QUEUE_BELOW_S                                 # the queue was in use when they died
+    assert ex._task_s < queue_below_s                                 # the queue was in use when they died
     assert sorted(results) == list(range(40))
     assert isinstance(results[30], WorkerDeath) and results[30].deaths == 2
     assert all(results[t] == (t, t * t) for t in range(40) if t != 30)
     assert ex.deaths == 3
+
+
+def test_a_worker_that_answers_then_dies_is_blamed_for_the_task_it_died_on(monkeypatch, queue_below_s):
+    """A loaded machine: the parent is descheduled between ``wait()`` and reading what it returned, and meanwhile a
+    worker answers its task and dies on the one queued behind it. Its answer is kept and the death is blamed on the
+    task it died on (once more on retry), never on the one it answered."""
+    real_wait = executor.wait
+
+    def slow_wait(objects, timeout=None):
+        ready = real_wait(objects, timeout)
+        time.sleep(0.1)
+        return ready
+
+    monkeypatch.setattr(executor, "wait", slow_wait)
+    ex = ProcessExecutor(work, {"exit": (3, 6), "pause_s": 0.03}, 2)
+    results = dict(ex.map(range(10)))
+    assert sorted(results) == list(range(10))
+    assert all(isinstance(results[t], WorkerDeath) and results[t].deaths == 2 for t in (3, 6))
+    assert all(results[t] == (t, t * t) for t in range(10) if t not in (3, 6))
+    assert ex.deaths == 4
 
 
 def test_fork_server_keeps_what_it_preloaded():
@@ -126,7 +159,7 @@ def echo_large(task: tuple[int, bytes], context: dict) -> bytes:
     return task[1] * 8
 
 
-def test_large_tasks_behind_large_results_never_deadlock():
+def test_large_tasks_behind_large_results_never_deadlock(queue_below_s):
     """Short tasks are queued, but a large one is not sent to a busy worker: that worker may be blocked sending its
     own large result, and both sides would wait for each other for ever (a ROS bag's inline messages did this)."""
     import threading
@@ -139,4 +172,4 @@ def test_large_tasks_behind_large_results_never_deadlock():
     runner.join(120)
     assert not runner.is_alive(), "the executor deadlocked"
     assert len(done) == 24 and all(done[t] == t[1] * 8 for t in tasks)
-    assert ex._task_s < QUEUE_BELOW_S                                 # short tasks: the queue would have been used
+    assert ex._task_s < queue_below_s                                 # short tasks: the queue would have been used

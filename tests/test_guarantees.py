@@ -637,16 +637,15 @@ def test_workers_exit_when_the_main_process_is_killed(tmp_path, tree):
     finally:
         main.send_signal(signal.SIGKILL)
         main.wait()
-    deadline = time.time() + 10
+    deadline = time.time() + 60
     while time.time() < deadline and any(_running(p) for p in helpers):
         time.sleep(0.05)
     assert not [p for p in helpers if _running(p)]
 
 
 def test_interrupted_run_is_recorded(tmp_path, tree):
-    pid_dir = tmp_path / "pids"
-    pid_dir.mkdir()
-    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5, "pid_dir": str(pid_dir)}}],
+    trace = tmp_path / "calls"
+    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5, "trace_path": str(trace)}}],
             "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
     code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; from roadview_noise.registry import register; "
             "[register(c) for c in injected_models.INJECTED]; "
@@ -654,10 +653,13 @@ def test_interrupted_run_is_recorded(tmp_path, tree):
             f"run(load_recipe({str(_recipe(tmp_path, body))!r}), {str(tree)!r}, {str(tmp_path / 'o')!r}, "
             "workers=1, progress=False)")
     main = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # interrupted once the first file is recorded (its manifest line) and the second one started (0.5 s tasks are
+    # not queued: one worker gets the second file only after the main process has recorded the first)
+    manifest = tmp_path / "o" / "manifest.jsonl"
     deadline = time.time() + 60
-    while time.time() < deadline and not list(pid_dir.iterdir()):
+    while time.time() < deadline and not (manifest.is_file() and manifest.read_text().endswith("\n")
+                                          and trace.is_file() and len(trace.read_text().splitlines()) >= 2):
         time.sleep(0.05)
-    time.sleep(0.8)
     main.send_signal(signal.SIGINT)
     _, err = main.communicate(timeout=60)
     assert b"KeyboardInterrupt" in err
