@@ -523,8 +523,10 @@ class _Tally:
     def add(self, e: dict, *, released: bool = True) -> None:
         self.inputs.add(e)
         self.model_warnings.update({w.rsplit(" (×", 1)[0] for w in e.get("warnings", ())})
-        if not released:
-            return
+        if released:
+            self.count(e)
+
+    def count(self, e: dict) -> None:
         s = self.summary
         if e.pop("skipped", False):
             s.skipped += 1
@@ -541,6 +543,26 @@ class _Tally:
         intensity unit read from the data reaches stderr once, not once per file)."""
         return self.inputs.lines() + [f"{text} ({n} file{'s' if n > 1 else ''}; in the manifest)"
                                       for text, n in self.model_warnings.items()]
+
+
+def _recount(manifest: Path, start: int, tally: _Tally) -> None:
+    """The run's counts from its own manifest lines (from byte ``start``; of an output's lines the last one wins, as
+    in the manifest) after an interrupt, which can land between an entry's line and its count."""
+    try:
+        with open(manifest, "rb") as fh:
+            fh.seek(start)
+            entries = {}
+            for line in fh:
+                if line.endswith(b"\n"):
+                    e = json.loads(line)
+                    entries[(e.get("output"), e.get("input"))] = e
+    except (OSError, ValueError):                      # the counts as tallied, at most one short
+        return
+    s = tally.summary
+    s.done = s.skipped = s.failed = s.warned = 0
+    s.failures.clear()
+    for e in entries.values():
+        tally.count(e)
 
 
 @dataclass
@@ -605,6 +627,8 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             summary.state = "stopped at the first failure (--fail-fast)"
     except KeyboardInterrupt:                          # recorded like any other end; run() raises it again
         summary.state = "interrupted"
+        if ledger is not None:
+            _recount(ctx.out_root / MANIFEST_NAME, where.start, tally)
     except RuntimeError as e:                          # workers cannot start: report it, keep what was done
         summary.state = f"aborted: {e}"
         summary.notes.append(f"run aborted: {e}")

@@ -669,6 +669,30 @@ def test_interrupted_run_is_recorded(tmp_path, tree):
     assert not (tmp_path / "o" / ".rvnoise.lock").exists()
 
 
+def test_an_interrupt_between_an_entrys_line_and_its_count_is_counted(tmp_path, tree, monkeypatch):
+    # Ctrl-C lands after the ledger wrote the second file's manifest line, before the run counted it: run.json
+    # still counts what the manifest holds
+    from roadview_noise import runner
+
+    add, calls = runner._Tally.add, []
+
+    def interrupted_add(self, e, *, released=True):
+        calls.append(e)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        add(self, e, released=released)
+
+    monkeypatch.setattr(runner._Tally, "add", interrupted_add)
+    body = {"chain": [{"model": "compression.camera"}], "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(load_recipe(_recipe(tmp_path, body)), tree, tmp_path / "o", workers=1, progress=False)
+    record = json.loads((tmp_path / "o" / "run.json").read_text())
+    entries = read_manifest(tmp_path / "o" / "manifest.jsonl")
+    assert record["state"] == "interrupted" and len(entries) >= 2
+    assert record["counts"]["done"] == sum(e["status"] == "ok" for e in entries) >= 2
+    assert_out_equals_manifest(tmp_path / "o")
+
+
 def test_huge_sweep_is_planned_lazily_and_refused_without_yes(tmp_path, tree):
     from roadview_noise.runner import iter_tasks
 
