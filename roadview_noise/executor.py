@@ -339,7 +339,8 @@ class ProcessExecutor(Generic[T, C]):
                 ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool], timeout))
                 for i, w in enumerate(self._pool):
                     if w.queue and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
-                            and time.monotonic() - w.started >= self.timeout_s:
+                            and time.monotonic() - w.started >= self.timeout_s \
+                            and not w.conn.poll():         # an answer that came after wait() is kept (read next)
                         w.proc.kill()
                         w.proc.join()
                         w.conn.close()

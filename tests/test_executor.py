@@ -137,6 +137,22 @@ def test_a_worker_that_answers_then_dies_is_blamed_for_the_task_it_died_on(monke
     assert ex.deaths == 4
 
 
+def test_an_answer_that_arrives_after_the_wait_is_kept_not_timed_out(monkeypatch):
+    """The parent's wait() times out at the task's limit and the worker's answer arrives before the parent looks:
+    the answer is kept, the worker not stopped."""
+    real_wait = executor.wait
+
+    def slow_wait(objects, timeout=None):
+        ready = real_wait(objects, timeout)
+        if not ready:
+            time.sleep(2.0)                     # the answer (due ≈ 0.1 s after the limit) arrives meanwhile
+        return ready
+
+    monkeypatch.setattr(executor, "wait", slow_wait)
+    ex = ProcessExecutor(work, {"pause_s": 0.6}, 1, timeout_s=0.5)
+    assert dict(ex.map([4])) == {4: (4, 16)} and ex.deaths == 0
+
+
 def test_fork_server_keeps_what_it_preloaded():
     """The fork server is started once for the modules a run needs and restarted (with what it had and the new
     ones) only when a later run needs a module it lacks."""
