@@ -546,23 +546,16 @@ class _Tally:
 
 
 def _recount(manifest: Path, start: int, tally: _Tally) -> None:
-    """The run's counts from its own manifest lines (from byte ``start``; of an output's lines the last one wins, as
-    in the manifest) after an interrupt, which can land between an entry's line and its count."""
+    """The run's counts from its own manifest lines (:func:`_final_lines`: a superseded line dropped) after an
+    interrupt, which can land between an entry's line and its count."""
+    counted = _Tally(RunSummary())
     try:
-        with open(manifest, "rb") as fh:
-            fh.seek(start)
-            entries = {}
-            for line in fh:
-                if line.endswith(b"\n"):
-                    e = json.loads(line)
-                    entries[(e.get("output"), e.get("input"))] = e
-    except (OSError, ValueError):                      # the counts as tallied, at most one short
+        for e in _final_lines(manifest, start, (), counted):
+            counted.count(e)
+    except OSError:                                    # the counts as tallied, at most one short
         return
-    s = tally.summary
-    s.done = s.skipped = s.failed = s.warned = 0
-    s.failures.clear()
-    for e in entries.values():
-        tally.count(e)
+    s, c = tally.summary, counted.summary
+    s.done, s.skipped, s.failed, s.warned, s.failures = c.done, c.skipped, c.failed, c.warned, c.failures
 
 
 @dataclass

@@ -47,9 +47,9 @@ class Staged:
 
     def sync(self) -> None:
         """Wait until every temporary is on storage (fsync; their writeback started when they were written)."""
-        while self.unsynced:
-            _fsync(self.unsynced[0], "sync")
-            self.unsynced.pop(0)
+        for tmp in self.unsynced:
+            _fsync(tmp, "sync")
+        self.unsynced = []
 
     def finals(self) -> list[Path]:
         return [final for _, final in self.files]
