@@ -166,6 +166,7 @@ class RadarProfile:
     snr_threshold_db: float | None = None     # None: estimated from the clear data
     rcs_compensates_weather: bool = False
     power_unit: str = "relative"              # "dBm" when the power field is absolute received power
+    elevation_measured: bool | None = None    # False: 2-D radar (z = 0); None: from the data (physics/radar_frame.py)
 
 
 SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]

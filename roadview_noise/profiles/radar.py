@@ -9,6 +9,15 @@ mapping):
   power, rcs): 77 GHz, 120° × 28°, 300 m.
 - ``vod``: View-of-Delft-style short-range 3+1D radar (ZF FRGen21 class): 77 GHz, 100 m; its files carry RCS and
   radial velocities but no SNR/power, so detection works on ``rcs_dbsm − 40 log10 r`` (models/radar/detection.py).
+- ``ars408``: Continental ARS 408-21, the 2-D radar of nuScenes (``RADAR_*`` PCDs). From its datasheet
+  (ARS 408-21 technical data, Continental Engineering Services): 76–77 GHz; far range 0.20–250 m, near range up to
+  70/100 m at ±45° and 20 m at ±60°; range resolution 0.39 m near / 1.79 m far; velocity resolution 0.43 km/h
+  near / 0.37 km/h far. The clutter model works in the first 20 m, so the profile takes the near-range scan:
+  120° azimuth, 0.39 m, 0.43 km/h = 0.119 m/s, and the far scan's 250 m as ``max_range_m``. Assumed (datasheet
+  values not re-checked here; override if yours differ): 3.2° near-range azimuth resolution at boresight and a
+  20° elevation beam. No elevation measurement (z = 0 in the files): one 20° elevation cell,
+  ``elevation_measured: false``. Its files carry RCS (dBsm) but neither SNR nor power, so IF bandwidth and noise
+  figure (defaults) are unused.
 
 Every profile has a Doppler bin width ``velocity_resolution_m_per_s`` (default 0.1035 m/s, the RISE analysis: 512
 bins over ±26.5 m/s; it sets the Doppler cells of the clutter model) and a ``power_unit``: ``relative`` (default;
@@ -49,9 +58,16 @@ def vod() -> RadarProfile:
                         max_range_m=100.0, if_bandwidth_hz=20e6, noise_figure_db=12.0)
 
 
+def ars408() -> RadarProfile:
+    """Continental ARS 408-21 (nuScenes), near-range scan and far-range reach (module docstring)."""
+    return RadarProfile("ars408", frequency_hz=76.5e9, fov_azimuth_deg=120.0, fov_elevation_deg=20.0,
+                        azimuth_resolution_deg=3.2, elevation_resolution_deg=20.0, range_resolution_m=0.39,
+                        velocity_resolution_m_per_s=0.43 / 3.6, max_range_m=250.0, elevation_measured=False)
+
+
 POWER_UNITS = ("relative", "dBm")
 
-BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod}
+BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod, "ars408": ars408}
 
 
 def default_radar_profile() -> RadarProfile:
@@ -70,8 +86,8 @@ def _override(base: RadarProfile, fields: dict, source: str) -> RadarProfile:
     for key, value in fields.items():
         if key == "name" or (key == "snr_threshold_db" and value is None):
             continue
-        if key == "rcs_compensates_weather":
-            if not isinstance(value, bool):
+        if key in ("rcs_compensates_weather", "elevation_measured"):
+            if not isinstance(value, bool) and not (key == "elevation_measured" and value is None):
                 raise InputError(f"{key} must be true or false, got {value!r}", file=source)
             continue
         if key == "power_unit":

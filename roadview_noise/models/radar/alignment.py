@@ -9,8 +9,10 @@ from typing import ClassVar
 import numpy as np
 
 from ...model import Model, Scope, Stage, param
+from ...physics.radar_frame import ego_velocity_m_per_s, is_planar, rotated_velocity_fields, to_plane
 from ...registry import register
 from ...types import PointCloud
+from .detection import profile_of
 
 
 def rotation_matrix(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
@@ -31,7 +33,9 @@ class AlignmentRadar(Model):
     origin, ``p' = R p`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``: the cloud as reported in the assumed mounting
     frame. Ranges, radial velocities, RCS and SNR are unchanged (a rotation keeps the ray); the ego-motion
     compensated velocity, computed by the radar with the assumed mounting, becomes
-    ``v_r_comp' = v_r_comp + v_ego·(r̂' − r̂)`` (``cloud.conditions.ego_velocity_m_per_s``)."""
+    ``v_r_comp' = v_r_comp + v_ego·(r̂' − r̂)``; Cartesian velocity fields (nuScenes ``vx, vy``, ``vx_comp,
+    vy_comp``) turn with the sensor (physics/radar_frame.py, which also gives the ego velocity: the recipe's, else
+    the data's). A 2-D radar (z = 0) reports the turned point in its plane at the same range and azimuth."""
 
     id: ClassVar[str] = "alignment.radar"
     stage: ClassVar[Stage] = Stage.EMITTER
@@ -50,13 +54,11 @@ class AlignmentRadar(Model):
     def apply(self, data: PointCloud, *, state, drawn, rng):
         rot = rotation_matrix(state["yaw_deg"], state["pitch_deg"], state["roll_deg"])
         before = data.positions_m
-        after = before @ rot.T
-        out = dataclasses.replace(data, positions_m=after)
-        ego = np.asarray(data.conditions.ego_velocity_m_per_s, dtype=float)
-        if "v_r_comp_m_per_s" in data.fields and np.any(ego):
-            r = np.maximum(np.linalg.norm(before, axis=1), 1e-12)
-            v = data.fields["v_r_comp_m_per_s"]
-            out = out.with_fields(v_r_comp_m_per_s=(v + (after - before) @ ego / r).astype(v.dtype, copy=False))
+        planar = is_planar(data, profile_of(data))
+        after = to_plane(before @ rot.T) if planar else before @ rot.T
+        ego, _ = ego_velocity_m_per_s(data, planar)
+        out = dataclasses.replace(data, positions_m=after).with_fields(
+            **rotated_velocity_fields(data, rot, after, ego))
         shift = np.linalg.norm(after - before, axis=1)
         return out, {"points": len(data), "rms_displacement_m": float(np.sqrt(np.mean(shift ** 2))) if len(shift)
                      else 0.0, "rotation_deg": float(np.rad2deg(np.arccos(np.clip((np.trace(rot) - 1) / 2, -1, 1))))}

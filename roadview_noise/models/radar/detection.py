@@ -68,7 +68,9 @@ def detection(cloud: PointCloud, quantile: float, model_id: str, ranges_m: np.nd
         name, values = RCS_STATISTIC, np.asarray(fields["rcs_dbsm"], dtype=float) - _log_r4(r)
     else:
         raise ModelError("a radar cloud needs snr_db, power_db or rcs_dbsm to decide detection "
-                         f"(has {sorted(fields)})", model=model_id)
+                         f"(has {sorted(fields)}); name the file field that holds one in the recipe's field_map "
+                         "(inputs: {radar: …, field_map: {FILE_FIELD: snr_db}}), e.g. {intensity: snr_db} for "
+                         "ti_mmwave_rospkg clouds, whose intensity is the detection SNR in dB", model=model_id)
     profile = profile_of(cloud)
     if profile.snr_threshold_db is not None and (name == "snr_db" or
                                                  (name == "power_db" and profile.power_unit == "dBm")):

@@ -16,6 +16,9 @@ from ...physics.radar_cfar import CaCfar, FixedThreshold
 from ...physics.radar_clutter import (SCATTERING, ClutterCells, Hydrometeors, ResolutionGrid,
                                       backscatter_per_volume_per_m, clutter_cells, generate_clutter,
                                       radar_wavelength_m)
+from ...io.radar_formats import added_detection_fields
+from ...physics.radar_frame import (ego_velocity_m_per_s, grid_profile, is_planar, new_point_velocity_fields,
+                                    radial_velocity_m_per_s, to_plane)
 from ...physics.radar_link import detection_range_in_weather_m, two_way_loss_db
 from ...provenance import Effect, mark
 from ...types import PointCloud, RadarProfile
@@ -34,7 +37,7 @@ class RadarWeather(Model):
     ``RCS' = RCS − L`` (unless the profile says the radar compensates), points with ``D − L < t + ΔT`` removed
     (models.md §4.1 [PROP]; detection statistic and threshold: models/radar/detection.py; ΔT the CFAR threshold rise
     in precipitation clutter, 0 without clutter). Effect (provenance.Effect): ATTENUATED where L > 0, else
-    KEPT."""
+    KEPT. 2-D radars, Cartesian velocity fields and the ego velocity: physics/radar_frame.py."""
 
     stage: ClassVar[Stage] = Stage.MEDIUM
     sensor: ClassVar[str] = "radar"
@@ -47,8 +50,8 @@ class RadarWeather(Model):
     def gamma_db_per_km(self, profile: RadarProfile) -> float:
         """Specific attenuation at the radar frequency."""
 
-    def frame_clutter(self, data: PointCloud, ranges_m: np.ndarray, det: Detection, gamma: float
-                      ) -> tuple[ClutterCells | None, dict]:
+    def frame_clutter(self, data: PointCloud, ranges_m: np.ndarray, det: Detection, gamma: float,
+                      ego_m_per_s: np.ndarray, planar: bool) -> tuple[ClutterCells | None, dict]:
         """The precipitation clutter of the frame and its diagnostics; fog has none (backscatter ∝ D⁶ of 10 µm
         droplets is negligible)."""
         return None, {}
@@ -59,8 +62,10 @@ class RadarWeather(Model):
         r = data.ranges_m
         det = detection(data, self.snr_threshold_quantile, self.id, r)
         loss = two_way_loss_db(gamma, r)
-        cells, clutter_diag = self.frame_clutter(data, r, det, gamma)
-        rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data)
+        planar = is_planar(data, profile)
+        ego, ego_source = ego_velocity_m_per_s(data, planar)
+        cells, clutter_diag = self.frame_clutter(data, r, det, gamma, ego, planar)
+        rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data, ego)
         margin = det.values_db - loss - det.threshold_db
         keep = margin >= rise
         out = mark(with_loss(data, loss), loss > 0, Effect.ATTENUATED).drop(~keep)
@@ -74,7 +79,9 @@ class RadarWeather(Model):
             **det.diagnostics(), **clutter_diag,
         }
         if cells is not None:
-            out, added = _add_clutter(out, data, det, cells, rng)
+            diagnostics.update({"ego_velocity_m_per_s": [float(v) for v in ego], "ego_velocity_source": ego_source,
+                                "elevation_measured": not planar})
+            out, added = _add_clutter(out, data, det, cells, rng, ego, planar)
             diagnostics.update(added)
             if isinstance(cells.detector, CaCfar):
                 diagnostics.update({
@@ -84,39 +91,40 @@ class RadarWeather(Model):
         return out, diagnostics
 
 
-def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud) -> np.ndarray:
+def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud, ego: np.ndarray) -> np.ndarray:
     """Per point, the rise of its detection threshold caused by the clutter of its own resolution cell (CA-CFAR:
-    ``10 log10(1 + α μ/σ_t)``; fixed threshold: 0). Doppler: ``v_r_m_per_s``, or a static world ``−v_ego·r̂``."""
+    ``10 log10(1 + α μ/σ_t)``; fixed threshold: 0). Doppler: the raw radial velocity (``v_r_m_per_s``, or ``v·r̂``
+    of Cartesian ``vx, vy``), or a static world ``−v_ego·r̂``."""
     if isinstance(cells.detector, FixedThreshold) or not len(cloud):
         return np.zeros(len(cloud))
-    if "v_r_m_per_s" in cloud.fields:
-        v_r = np.asarray(cloud.fields["v_r_m_per_s"], dtype=float)
-    else:
+    v_r = radial_velocity_m_per_s(cloud)
+    if v_r is None:
         r = np.maximum(cloud.ranges_m, 1e-12)
-        v_r = -(cloud.positions_m @ np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)) / r
+        v_r = -(cloud.positions_m @ ego) / r
     return cells.detector.threshold_rise_db(cells.ratio_at(cloud.positions_m, v_r))
 
 
 def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: ClutterCells,
-                 rng) -> tuple[PointCloud, dict]:
-    """Draw the clutter points and give them the fields of ``cloud`` (calibrated on the ``clear`` input)."""
+                 rng, ego: np.ndarray, planar: bool) -> tuple[PointCloud, dict]:
+    """Draw the clutter points and give them the fields of ``cloud`` (calibrated on the ``clear`` input); a 2-D
+    radar reports them in its plane (physics/radar_frame.py)."""
     profile = profile_of(cloud)
     constant, gamma = cells.radar_constant_db, cells.gamma_db_per_km
     pts = generate_clutter(rng, cells)
-    r = np.linalg.norm(pts.positions_m, axis=1)
+    positions = to_plane(pts.positions_m) if planar else pts.positions_m
+    r = np.linalg.norm(positions, axis=1)
     rcs = pts.detection_db - constant + 40 * np.log10(r)
     if profile.rcs_compensates_weather:
         rcs = rcs + two_way_loss_db(gamma, r)
-    ego = np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)
-    new = {"rcs_dbsm": rcs, "v_r_m_per_s": pts.v_r_m_per_s,
-           "v_r_comp_m_per_s": pts.v_r_m_per_s + pts.positions_m @ ego / np.maximum(r, 1e-12)}
+    new = {**added_detection_fields(clear, len(r)), "rcs_dbsm": rcs,
+           **new_point_velocity_fields(cloud, positions, pts.v_r_m_per_s, ego)}
     if det.statistic != RCS_STATISTIC:
         new[det.statistic] = pts.detection_db
         offset = power_minus_snr_db(clear)
         if offset is not None:
             new["power_db"] = pts.detection_db + offset
     new = {k: v for k, v in new.items() if k in cloud.fields}
-    out = cloud.concat(pts.positions_m, new)
+    out = cloud.concat(positions, new)
     return out, {"clutter_points": len(r), "clutter_expected_points": cells.expected_count,
                  "clutter_backscatter_per_m": backscatter_per_volume_per_m(cells.hydrometeors, cells.wavelength_m),
                  "radar_constant_db": constant}
@@ -174,8 +182,8 @@ class PrecipitationRadar(RadarWeather):
     def hydrometeors(self, profile: RadarProfile) -> Hydrometeors | None:
         """The falling particles, None when there are none (zero rate)."""
 
-    def frame_clutter(self, data, ranges_m, det, gamma):
-        profile = profile_of(data)
+    def frame_clutter(self, data, ranges_m, det, gamma, ego_m_per_s, planar):
+        profile = grid_profile(profile_of(data), planar)
         h = self.hydrometeors(profile)
         if not self.clutter or h is None:
             return None, {"clutter_points": 0}
@@ -192,9 +200,8 @@ class PrecipitationRadar(RadarWeather):
                               profile.velocity_resolution_m_per_s, self.clutter_min_range_m, max_range_m)
         detector = (CaCfar(self.cfar_pfa, self.cfar_reference_cells) if self.detector == "cfar"
                     else FixedThreshold())
-        ego = np.asarray(data.conditions.ego_velocity_m_per_s, dtype=float)
         wind = np.asarray(data.conditions.wind_velocity_m_per_s, dtype=float)
-        cells = clutter_cells(h, grid, radar_wavelength_m(profile.frequency_hz), wind - ego, constant,
+        cells = clutter_cells(h, grid, radar_wavelength_m(profile.frequency_hz), wind - ego_m_per_s, constant,
                               det.threshold_db, gamma, detector)
         diag = {"detector": self.detector}
         if isinstance(detector, CaCfar):
