@@ -462,7 +462,9 @@ def render_cloud(run: ChainRun, panel_px: int = 480, colour_by: str = "range") -
     rows = [side_by_side(panels)]
     width = rows[0].shape[1]
     if radar:
-        rows.append(_legend(width, [("SNR colour", TEXT_BGR), ("clutter (added)", ADDED_BGR),
+        shade = next((label for key, label in (("snr_db", "SNR colour"), ("rcs_dbsm", "RCS colour"))
+                      if key in first.fields), "no SNR/RCS")
+        rows.append(_legend(width, [(shade, TEXT_BGR), ("clutter (added)", ADDED_BGR),
                                     ("removed", RADAR_REMOVED_BGR)], extent))
         return stack_rows(rows)
     columns = None

@@ -159,3 +159,18 @@ def test_a_cloud_without_detection_fields_says_how_to_map_one():
     cloud = PointCloud(np.ones((5, 3)), {"intensity": np.ones(5, np.float32)}, "radar", load_radar_profile(None))
     with pytest.raises(ModelError, match=r"field_map.*\{intensity: snr_db\}"):
         run(get_model("fog.radar")(), cloud)
+
+
+@pytest.mark.parametrize("fields, label", [({"snr_db"}, "SNR colour"), ({"rcs_dbsm"}, "RCS colour"),
+                                           ({"v_r_m_per_s"}, "no SNR/RCS")])
+def test_radar_preview_legend_names_the_field_it_colours_by(monkeypatch, fields, label):
+    from roadview_noise import preview
+    from roadview_noise.metrics import compare
+
+    rng = np.random.default_rng(0)
+    cloud = PointCloud(rng.uniform(2, 40, (50, 3)), {f: rng.uniform(-5, 30, 50) for f in fields}, "radar")
+    seen = []
+    real_legend = preview._legend
+    monkeypatch.setattr(preview, "_legend", lambda w, items, e: seen.extend(items) or real_legend(w, items, e))
+    preview.render_cloud(preview.ChainRun("t", [("input", cloud), ("x", cloud)], [], compare(cloud, cloud)), 160)
+    assert seen[0][0] == label
