@@ -32,6 +32,7 @@ from ..errors import InputError
 from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
+from .radar_formats import fixed_field_layout
 
 FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin")
 
@@ -144,7 +145,7 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
     ``effect="auto"``: the cloud's effect codes (``cloud.effect``, provenance.Effect, when a step reported them) are
     appended as a uint8 field ``rv_effect`` (PCD/PLY; ``rv_effect_2``, … if the input already has a field of that
     name: an input field is never overwritten) or written to the sidecar :func:`effect_sidecar_path` (fixed-layout
-    ``.bin``); ``"none"``: not written. Fields outside the layout, or layout fields missing from the cloud, are
+    ``.bin``, nuScenes radar PCD: io/radar_formats.py); ``"none"``: not written. Fields outside the layout, or layout fields missing from the cloud, are
     refused."""
     if effect not in ("auto", "none"):
         raise ValueError(f"effect must be 'auto' or 'none', got {effect!r}")
@@ -153,7 +154,8 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
     if _family(cloud_format(path, cloud.sensor)) != family:
         raise ValueError(f"{Path(path).name}: suffix does not match the cloud's layout format {layout.fmt!r}")
     columns, added = output_columns(cloud, layout, effect=effect, name=Path(path).name)
-    if added is not None and family != "bin":
+    sidecar = family == "bin" or fixed_field_layout(layout)
+    if added is not None and not sidecar:
         columns.append(added)
     if layout.fmt == "pcd":
         data = _pcd_bytes(columns, layout.pcd_data, cloud.grid_shape)
@@ -163,7 +165,7 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
         data = np.stack([c for _, _, c in columns], axis=1).astype("<f4").tobytes()
     write_bytes_atomic(path, data)
     written = [Path(path)]
-    if added is not None and family == "bin":
+    if added is not None and sidecar:
         written.append(effect_sidecar_path(path))
         write_bytes_atomic(written[-1], added[2].tobytes())
     return written

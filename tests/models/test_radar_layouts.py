@@ -174,3 +174,20 @@ def test_radar_preview_legend_names_the_field_it_colours_by(monkeypatch, fields,
     monkeypatch.setattr(preview, "_legend", lambda w, items, e: seen.extend(items) or real_legend(w, items, e))
     preview.render_cloud(preview.ChainRun("t", [("input", cloud), ("x", cloud)], [], compare(cloud, cloud)), 160)
     assert seen[0][0] == label
+
+
+def test_nuscenes_output_keeps_the_18_fields_the_devkit_asserts_and_puts_effects_in_a_sidecar(tmp_path):
+    from roadview_noise.io.pointcloud import effect_sidecar_path
+
+    nuscenes_pcd(tmp_path / "in.pcd", n=200)
+    cloud = read_pointcloud(tmp_path / "in.pcd", sensor="radar")
+    out, _ = run(get_model("rain.radar")(rain_rate_mm_per_h=50.0, cfar_pfa=1e-2), cloud)
+    written = write_pointcloud(tmp_path / "out.pcd", out)
+    lines = (tmp_path / "out.pcd").read_bytes().split(b"\n")[:11]
+    # nuscenes-devkit RadarPointCloud.from_file: fixed header lines, 18 dims, invalid_state 4th from the end
+    assert lines[2].split()[1:] == [f.encode() for f in NUS_FIELDS] and lines[10] == b"DATA binary"
+    assert written == [tmp_path / "out.pcd", effect_sidecar_path(tmp_path / "out.pcd")]
+    codes = np.fromfile(written[1], np.uint8)
+    np.testing.assert_array_equal(codes, out.effect)
+    back = read_pointcloud(tmp_path / "out.pcd", sensor="radar")
+    assert len(back) == len(out) and set(back.fields) == set(cloud.fields)
