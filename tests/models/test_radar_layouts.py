@@ -191,3 +191,17 @@ def test_nuscenes_output_keeps_the_18_fields_the_devkit_asserts_and_puts_effects
     np.testing.assert_array_equal(codes, out.effect)
     back = read_pointcloud(tmp_path / "out.pcd", sensor="radar")
     assert len(back) == len(out) and set(back.fields) == set(cloud.fields)
+
+
+def test_view_of_delft_raw_and_compensated_doppler_give_the_3d_ego_velocity(tmp_path):
+    rng = np.random.default_rng(3)
+    n, ego = 80, np.array([8.0, -0.4, 0.2])
+    az, el, r = rng.uniform(-0.8, 0.8, n), rng.uniform(-0.2, 0.2, n), rng.uniform(2, 50, n)
+    u = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    v_comp = np.where(rng.random(n) < 0.3, rng.normal(0, 5, n), 0.0)
+    table = np.column_stack([r[:, None] * u, rng.uniform(-10, 20, n), v_comp - u @ ego, v_comp, np.zeros(n)])
+    table.astype("<f4").tofile(tmp_path / "00001.bin")
+    cloud = read_pointcloud(tmp_path / "00001.bin", sensor="radar")
+    v, source = ego_velocity_m_per_s(cloud, planar=False)
+    np.testing.assert_allclose(v, ego, atol=1e-3)
+    assert source.startswith("data")
