@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from ..errors import InputError
 from ..physics.lidar_intensity import OUSTER_WHITE_REFLECTIVITY, reflectivity_variant
 from ..types import IntensityUnit, LidarProfile
 from . import check_keys, load_profile
+from .ouster_metadata import read_ouster_metadata
 
 _DATA = Path(__file__).with_name("data")
 OS1_SENSOR_CONSTANT = 65535.0           # photons·m²: signal of a ρ = 1 target at 1 m (see os1_128)
@@ -146,33 +146,27 @@ BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vl
 
 
 def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:
-    """Profile from an Ouster sensor metadata JSON (``beam_altitude_angles``, beam-origin and z offsets,
-    ``data_format.columns_per_frame``). ``data_format.udp_profile_lidar`` says what the intensity can be: a profile
-    without a signal channel (RNG15_RFL8_NIR8, the low-bandwidth one) carries only the 8-bit calibrated reflectivity,
-    which the profile then states; with a signal channel (LEGACY, RNG19_RFL8_SIG16_NIR16, …) a file may hold either,
-    so the profile leaves it to the data (:func:`lidar_intensity.resolve_profile`, with a warning)."""
-    try:
-        j = json.loads(Path(path).read_text())
-        elev = tuple(float(a) for a in j["beam_altitude_angles"])
-        azim = tuple(float(a) for a in j.get("beam_azimuth_angles", [0.0] * len(elev)))
-        origin = float(j.get("lidar_origin_to_beam_origin_mm", 0.0)) / 1000
-        z = float(j.get("lidar_to_sensor_transform", [0.0] * 12)[11]) / 1000
-        data_format = j.get("data_format") or {}
-        udp = str(data_format.get("udp_profile_lidar", ""))
-        columns = int(data_format.get("columns_per_frame", 0))
-    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
-        raise InputError(f"not an Ouster metadata JSON with beam_altitude_angles ({e})", file=str(path)) from None
-    base = os1_128() if len(elev) == 128 else dataclasses.replace(os1_128(), name=f"ouster-{len(elev)}")
-    if udp in OUSTER_REFLECTIVITY_ONLY:
+    """Profile from an Ouster sensor metadata JSON, legacy or non-legacy format (:mod:`.ouster_metadata`, which
+    refuses malformed files): beam angles (the lit rows), beam-origin and z offsets, ``columns_per_frame`` (or
+    ``lidar_mode``). ``udp_profile_lidar`` says what the intensity can be: a packet profile without a signal channel
+    (RNG15_RFL8_NIR8, the low-bandwidth one) carries only the 8-bit calibrated reflectivity, which the profile then
+    states; with a signal channel (LEGACY, RNG19_RFL8_SIG16_NIR16, …) a file may hold either, so the profile leaves
+    it to the data (:func:`lidar_intensity.resolve_profile`, with a warning). Radiometry, range and receiver are the
+    OS1-128's for every Ouster model (ASSUMPTION for OS-0 / OS-2 units: their optics differ)."""
+    meta = read_ouster_metadata(path)
+    elev = meta.beam_altitude_deg
+    os1 = not meta.prod_line or meta.prod_line.startswith("OS-1-")
+    name = "os1-128" if len(elev) == 128 and os1 else f"ouster-{meta.prod_line.lower() or len(elev)}"
+    base = dataclasses.replace(os1_128(), name=name)
+    if meta.udp_profile_lidar in OUSTER_REFLECTIVITY_ONLY:
         base = dataclasses.replace(reflectivity_variant(base), intensity_source=f"Ouster metadata {Path(path).name}: "
-                                   f"udp_profile_lidar {udp} carries only the 8-bit reflectivity")
+                                   f"udp_profile_lidar {meta.udp_profile_lidar} carries only the 8-bit reflectivity")
     else:
         base = dataclasses.replace(base, intensity_source="")
-    if columns > 0:
-        base = dataclasses.replace(base, columns=columns)
     return dataclasses.replace(base, name=overrides.pop("name", base.name), beam_elevation_deg=elev,
-                               beam_azimuth_offset_deg=azim, beam_origin_offset_m=origin, sensor_z_offset_m=z,
-                               **overrides)
+                               beam_azimuth_offset_deg=meta.beam_azimuth_deg, columns=meta.columns,
+                               beam_origin_offset_m=meta.beam_origin_offset_m,
+                               sensor_z_offset_m=meta.sensor_z_offset_m, **overrides)
 
 
 def from_beam_table_csv(path: Path, base: LidarProfile | None = None, **overrides) -> LidarProfile:
