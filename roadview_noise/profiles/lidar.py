@@ -37,6 +37,8 @@ OS1_OVERLAP_START_M = 0.5               # Ouster OS1 datasheet minimum range
 OS1_OVERLAP_FULL_M = 5.0                # assumed full receiver overlap of the biaxial OS1 (see os1_128)
 HDL64_DETECTION_THRESHOLD = 0.1 / 50.0 ** 2
 OS1_THRESHOLD_OVER_NOISE = 3.28         # one background photon per pulse window at the datasheet threshold (see os1_128)
+HDL32_SENSOR_CONSTANT = 25_000.0        # m², fitted on a real nuScenes scan (see hdl_32e)
+HDL32_WHITE_REFLECTIVITY = 100.0        # HDL-32E FW 2.0: diffuse 0–100 for 0–100 %
 KITTI_INTENSITY_STEP = 0.01             # KITTI stores the HDL-64E intensity as multiples of 0.01
 #: Ouster lidar packet profiles that carry only the 8-bit calibrated reflectivity (no signal channel)
 OUSTER_REFLECTIVITY_ONLY = ("RNG15_RFL8_NIR8", "FUSA_RNG15_RFL8_NIR8_DUAL")
@@ -141,8 +143,38 @@ def kitti_hdl64() -> LidarProfile:
                    intensity_step=KITTI_INTENSITY_STEP)
 
 
+def hdl_32e() -> LidarProfile:
+    """Velodyne HDL-32E (nuScenes LIDAR_TOP): 32 lasers from −30.67° to +10.67° in 4/3° steps (user manual 63-9113,
+    vertical angle table: −30.67, −29.33, … +9.33, +10.67 in firing order), ring 0 the LOWEST beam (the Velodyne ROS
+    driver's ring, nuScenes' fifth column: the median elevation of ring k in a real nuScenes scan is
+    −30.67° + 1.33° k within 0.3°), 905 nm, 100 m (datasheet: "up to 100 m"), rotating head, no azimuth offsets.
+
+    Columns 2170 at 10 Hz: one firing cycle every 46.08 µs (32 × 1.152 µs, manual's firing sequence), 21 700 per
+    second, 695 000 points/s (datasheet); nuScenes records at 20 Hz: 1085 columns (its scans hold 32 × 1084
+    points). The firing grid of a list is measured anyway (:mod:`physics.firing_grid`).
+    Intensity: calibrated 8-bit reflectivity (HDL-32E firmware 2.0 description: diffuse targets 0–100 for
+    0–100 % reflectivity, retro-reflectors 101–255), range-compensated: W = 100. Sensor constant: signal in units
+    of the detection threshold (1); K = 25 000 m², FITTED on a real nuScenes scan: the faintest readings at
+    65 / 75 / 85 m are 16 / 22 / 30, i.e. ``K = 100 R² / I`` = 26 400 / 25 600 / 24 100 (ρ = 0.8 then reaches
+    141 m, 10 % 50 m; the datasheet's 100 m at ρ = 0.4).
+    Minimum range 1 m (manual: "the minimum return distance for the HDL-32E is approximately 1 meter. Ignore returns
+    closer than this"; nuScenes' devkit drops points within 1 m too): nuScenes stores every firing, the no-returns
+    as points at the ego vehicle's displacement during the sweep (23 % of a real scan, all within 1 m): they are
+    no-return rays, not returns (``min_range_m``). Receiver overlap Hahner's (0.9–1.0 m, LidarProfile default),
+    ASSUMPTION as for :func:`vls_128`.
+    Beam radius, divergence and pulse: ASSUMPTION, the VLS-128's (:func:`vls_128`; no HDL-32E figure at hand).
+    Receiver: APD, generic ASSUMPTIONS (LidarProfile defaults)."""
+    elev = tuple(round(-32.0 + 4.0 / 3.0 * (k + 1), 2) for k in range(32))       # −30.67, −29.33, … +10.67
+    return LidarProfile(
+        "hdl-32e", elev, (0.0,) * 32, columns=2170, wavelength_m=905e-9, beam_radius_m=6.0e-3,
+        beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9, max_range_m=100.0, min_range_m=1.0,
+        intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0, intensity_kind="reflectivity",
+        sensor_constant=HDL32_SENSOR_CONSTANT, reflectivity_white_reading=HDL32_WHITE_REFLECTIVITY,
+        detection_threshold=1.0, window="rotating")
+
+
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
-           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64}
+           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64, "hdl-32e": hdl_32e}
 
 
 def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:
