@@ -149,9 +149,10 @@ def hdl_32e() -> LidarProfile:
     driver's ring, nuScenes' fifth column: the median elevation of ring k in a real nuScenes scan is
     −30.67° + 1.33° k within 0.3°), 905 nm, 100 m (datasheet: "up to 100 m"), rotating head, no azimuth offsets.
 
-    Columns 2170 at 10 Hz: one firing cycle every 46.08 µs (32 × 1.152 µs, manual's firing sequence), 21 700 per
-    second, 695 000 points/s (datasheet); nuScenes records at 20 Hz: 1085 columns (its scans hold 32 × 1084
-    points). The firing grid of a list is measured anyway (:mod:`physics.firing_grid`).
+    Columns 1085 at 20 Hz, as nuScenes records (2170 at the default 10 Hz: give ``columns: 2170``): one firing
+    cycle every 46.08 µs (32 × 1.152 µs, manual's firing sequence), 21 700 per second, 695 000 points/s
+    (datasheet); a real nuScenes scan holds 32 × 1084 points and its measured firing grid has 1085 columns. The
+    firing grid of a list is measured anyway (:mod:`physics.firing_grid`); range images use ``columns``.
     Intensity: calibrated 8-bit reflectivity (HDL-32E firmware 2.0 description: diffuse targets 0–100 for
     0–100 % reflectivity, retro-reflectors 101–255), range-compensated: W = 100. Sensor constant: signal in units
     of the detection threshold (1); K = 25 000 m², FITTED on a real nuScenes scan: the faintest readings at
@@ -166,7 +167,7 @@ def hdl_32e() -> LidarProfile:
     Receiver: APD, generic ASSUMPTIONS (LidarProfile defaults)."""
     elev = tuple(round(-32.0 + 4.0 / 3.0 * (k + 1), 2) for k in range(32))       # −30.67, −29.33, … +10.67
     return LidarProfile(
-        "hdl-32e", elev, (0.0,) * 32, columns=2170, wavelength_m=905e-9, beam_radius_m=6.0e-3,
+        "hdl-32e", elev, (0.0,) * 32, columns=1085, wavelength_m=905e-9, beam_radius_m=6.0e-3,
         beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9, max_range_m=100.0, min_range_m=1.0,
         intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0, intensity_kind="reflectivity",
         sensor_constant=HDL32_SENSOR_CONSTANT, reflectivity_white_reading=HDL32_WHITE_REFLECTIVITY,
