@@ -11,6 +11,7 @@ import pytest
 
 from roadview_noise.errors import InputError
 from roadview_noise.io.pointcloud import read_pointcloud
+from roadview_noise.physics.firing_grid import firing_grid
 from roadview_noise.physics.lidar_intensity import IntensityWarning, resolve_profile
 from roadview_noise.physics.lidar_rays import cloud_rays
 from roadview_noise.profiles.lidar import default_profile, hdl_32e, load_lidar_profile
@@ -100,3 +101,17 @@ def test_bin_with_another_column_count_is_refused(tmp_path):
     kitti = tmp_path / "kitti.bin"
     np.column_stack([xyz, rng.uniform(0, 1, n)]).astype("<f4").tofile(kitti)
     assert len(read_pointcloud(kitti)) == n
+
+
+def test_camera_fov_crop_is_reported_and_not_filled():
+    """A scan cropped to the camera's field of view (KITTI's x ≥ 2.9 m): no empty ray in the cropped-away
+    azimuths, and the manifest's source line says how many columns were out of view."""
+    cloud, empty = nuscenes_like()
+    keep = (cloud.positions_m[:, 0] >= 2.9) & ~empty
+    cropped = dataclasses.replace(cloud.drop(~keep), profile=cloud.profile)
+    grid = firing_grid(cropped, cropped.profile)
+    assert not isinstance(grid, str), grid
+    direction = grid.directions(np.arange(len(grid.ring)))
+    assert len(grid.ring) > 0 and np.all(direction[:, 0] > 0)           # nothing behind the sensor
+    out = int(grid.describe().split("; ")[-1].split(" of ")[0])
+    assert 0.5 * 1085 < out < 0.8 * 1085 and "out of view (a crop" in grid.describe()
