@@ -2,16 +2,16 @@
 
 Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal`` photons, default for the D3.5
 CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
-per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and ``kitti-hdl64``
-(uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Each states its intensity kind, sensor constant K
-(signal of a ρ = 1 target at 1 m), white reading W of a reflectivity channel, how it stores intensities (step, faint
-readings), detection threshold (signal units), receiver noise and overlap with their source
-(:mod:`roadview_noise.physics.lidar_intensity` converts every intensity to the received signal,
-:mod:`roadview_noise.physics.receiver` detects in noise). Files: an Ouster metadata JSON (``beam_altitude_angles``;
-``udp_profile_lidar`` says which channel the intensity is, ``columns_per_frame`` the columns), a per-laser CSV
-(``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML profile. Without any profile the default OS1-128 does not
-state its intensity unit: the weather models read it from the data and warn. Ring recovery lives in
-:mod:`roadview_noise.physics.lidar_geometry`.
+per-laser table, the sensor of D3.5 ch. 4), ``hdl-32e`` (Velodyne HDL-32E of nuScenes), ``carla-64`` (uniform
+CARLA-style ray caster), and ``kitti-hdl64`` (uniform approximation of an HDL-64E with KITTI's 0–1 intensities).
+Each states its intensity kind, sensor constant K (signal of a ρ = 1 target at 1 m), white reading W of a
+reflectivity channel, how it stores intensities (step, faint readings), detection threshold (signal units), receiver
+noise and overlap with their source (:mod:`roadview_noise.physics.lidar_intensity` converts every intensity to the
+received signal, :mod:`roadview_noise.physics.receiver` detects in noise). Files: an Ouster metadata JSON of any
+firmware, legacy or non-legacy format (:mod:`.ouster_metadata`; ``udp_profile_lidar`` says which channel the
+intensity is, ``columns_per_frame`` the columns), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``)
+or a YAML profile. Without any profile the default OS1-128 does not state its intensity unit: the weather models
+read it from the data and warn. Ring recovery lives in :mod:`roadview_noise.physics.lidar_geometry`.
 """
 
 from __future__ import annotations
