@@ -127,6 +127,7 @@ class LidarProfile:
     detection_threshold: float = 2.42          # in SIGNAL units (the unit of K/m²), not the stored intensity
     overlap_start_m: float = 0.9               # receiver overlap ξ(r): 0 up to here (Hahner et al. 2021) ...
     overlap_full_m: float = 1.0                # ... rising linearly to 1 here
+    min_range_m: float = 0.0                   # points closer are no-return placeholders, not returns (nuScenes)
     beam_origin_offset_m: float = 0.0          # Ouster lidar_origin_to_beam_origin (horizontal)
     sensor_z_offset_m: float = 0.0             # Ouster lidar_to_sensor_transform z (points are in the sensor frame)
     window: str = "static"                     # "static" (Ouster) or "rotating" (Velodyne head), §3.8

@@ -539,11 +539,38 @@ def _ply_bytes(columns: list[Column], mode: str) -> bytes:
 
 def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
     point = 4 * len(names)
+    lidar = names in (BIN_FIELDS["kitti_bin"], BIN_FIELDS["nuscenes_bin"])
     if len(data) % point:
         raise InputError(f"size {len(data)} bytes is not a multiple of the {point}-byte point "
-                         f"({', '.join(names)} as float32)", file=str(path))
+                         f"({', '.join(names)} as float32)" + (_other_columns(data, names) if lidar else ""),
+                         file=str(path))
     table = np.frombuffer(data, "<f4").reshape(-1, len(names))
+    top = float(np.max(np.abs(np.nan_to_num(table[:, :3], nan=0.0, posinf=0.0, neginf=0.0)), initial=0.0))
+    if lidar and top > MAX_COORDINATE_M:     # (non-finite coordinates: refused by cloud_from_columns)
+        raise InputError(f"not N×{len(names)} float32 ({', '.join(names)}): coordinates reach {top:.3g} m"
+                         + _other_columns(data, names), file=str(path))
     return [(name, "<f4", np.ascontiguousarray(table[:, i])) for i, name in enumerate(names)]
+
+
+MAX_COORDINATE_M = 1.0e4     # farther than any LiDAR sees: a .bin read with the wrong column count
+
+
+def _plausible(table: np.ndarray) -> bool:
+    xyz = table[:, :3]
+    return bool(len(xyz) and np.isfinite(xyz).all() and np.abs(xyz).max(initial=0.0) <= MAX_COORDINATE_M)
+
+
+def _other_columns(data: bytes, names: tuple[str, ...]) -> str:
+    """What a LiDAR ``.bin`` that does not fit its fixed layout fits instead: its points may have another number of
+    float32 columns (Waymo's KITTI-format export: 6, x y z intensity elongation timestamp; Lyft and nuScenes: 5),
+    which a byte count divisible by both does not reveal."""
+    floats = np.frombuffer(data[:len(data) - len(data) % 4], "<f4")
+    fits = [k for k in range(3, 9) if k != len(names) and len(floats) % k == 0 and _plausible(floats.reshape(-1, k))]
+    if not fits:
+        return "; no other column count gives plausible coordinates either"
+    return (f"; read as {' or '.join(map(str, fits))} float32 columns it is plausible (Waymo's KITTI-format export "
+            f"has 6: x, y, z, intensity, elongation, timestamp; nuScenes and Lyft 5, named .pcd.bin): convert it to "
+            f"PCD with its own fields, or rename a 5-column file .pcd.bin")
 
 
 # --- LZF (liblzf stream format, as used by PCD binary_compressed) ---------------------------------------------------

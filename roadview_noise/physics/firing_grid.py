@@ -59,6 +59,7 @@ class FiringGrid:
     shift: np.ndarray
     profile: LidarProfile
     firing_rad: np.ndarray
+    out_of_view: int = 0        # azimuth bins (of ``columns``) farther than the view margin from every return
 
     def directions(self, cells: np.ndarray, range_m: np.ndarray | None = None) -> np.ndarray:
         """(len(cells), 3) unit vectors of the empty cells ``cells`` (indices into ``ring``/``column``), times
@@ -79,7 +80,9 @@ class FiringGrid:
         return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep])
 
     def describe(self) -> str:
-        return describe_grid(self.profile, self.columns)
+        crop = (f"; {self.out_of_view} of {self.columns} columns out of view (a crop, an azimuth window or lost "
+                f"packets): not filled" if self.out_of_view else "")
+        return describe_grid(self.profile, self.columns) + crop
 
 
 def describe_grid(profile: LidarProfile, columns: int) -> str:
@@ -215,7 +218,8 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     m = VIEW_MARGIN_STEPS
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
-    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing)
+    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
+                      int(np.count_nonzero(~in_view)))
 
 
 def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringColumns | str:

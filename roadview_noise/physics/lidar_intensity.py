@@ -254,13 +254,15 @@ class IntensityWarning(UserWarning):
 
 
 def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: np.ndarray,
-                    model_id: str) -> IntensityScale:
+                    model_id: str, ring: np.ndarray | None = None) -> IntensityScale:
     """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
     are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
     channels), the data decide (:func:`read_intensity`) — 8-bit range-compensated values are read as the sensor's
     calibrated reflectivity (:func:`reflectivity_variant`) — and the warning says what was assumed, what the data
     showed and how to state it. Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
-    power variance) may have changed what the intensities look like."""
+    power variance) may have changed what the intensities look like. ``ring``: the cloud's ring field, if any; when
+    it counts at most half the profile's beams, the warning says so (a nuScenes HDL-32E scan read with the default
+    OS1-128, :func:`beam_count_hint`)."""
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
         raise _unknown_kind(profile)
@@ -269,7 +271,7 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
         return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
     reading = read_intensity(intensity, positions_m)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
-           "reflectivity) or intensity_unit in the recipe")
+           "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe") + beam_count_hint(profile, ring)
     if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:
         adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
         return IntensityScale(adopted, f"8-bit reflectivity read from the data ({reading.describe()}); nothing "
@@ -283,4 +285,21 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     return IntensityScale(profile, f"{said}: nothing stated it, assumed ({reading.describe()})",
                           f"{model_id}: no profile states the intensity unit and the data {seen} "
                           f"({reading.describe()}): read as {said}; {how}")
+
+
+#: built-in profiles to suggest for a ring field counting this many beams
+PROFILE_FOR_BEAMS = {32: "hdl-32e for a Velodyne HDL-32E (nuScenes)", 64: "kitti-hdl64 for KITTI, carla-64 for CARLA"}
+
+
+def beam_count_hint(profile: LidarProfile, ring: np.ndarray | None) -> str:
+    """'' or a note for the warning when a cloud's ring field counts at most half the profile's beams: its rings
+    then index the profile's first beams, which are other beams of another sensor."""
+    if ring is None or len(ring) == 0 or not np.issubdtype(np.asarray(ring).dtype, np.number):
+        return ""
+    beams = int(np.max(ring)) + 1
+    if beams > profile.channels // 2:
+        return ""
+    fit = PROFILE_FOR_BEAMS.get(beams)
+    return (f"; the cloud's ring field counts {beams} beams (0…{beams - 1}) but profile {profile.name!r} has "
+            f"{profile.channels}, so its rings index other beams" + (f": give lidar_profile {fit}" if fit else ""))
 

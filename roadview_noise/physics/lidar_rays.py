@@ -112,7 +112,7 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         raise ValueError("the rays of some points only (at) have no empty rays: use empty_rays='ignore'")
     intensity = np.asarray(cloud.fields["intensity"])
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    scale = resolve_profile(profile, intensity, positions, model_id)
+    scale = resolve_profile(profile, intensity, positions, model_id, cloud.fields.get("ring"))
     if scale.warning:
         warnings.warn(scale.warning, IntensityWarning, stacklevel=3)
     profile = scale.profile
@@ -127,10 +127,10 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     if at is None:
         r, signal, has_target, weakest = _ray_signals(positions, intensity, compensated, per_reading,
                                                       profile.max_range_m if grid and fill else 0.0,
-                                                      intensity_step(profile))
+                                                      intensity_step(profile), profile.min_range_m)
     else:
         r, signal, has_target, _ = _ray_signals(positions[at], intensity[at], compensated, per_reading, 0.0,
-                                                intensity_step(profile))
+                                                intensity_step(profile), profile.min_range_m)
     recorded = cloud.recorded
     if not calibrate:
         weakest = math.inf
@@ -138,9 +138,10 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
           and not (recorded.positions_m is cloud.positions_m and recorded.fields["intensity"] is intensity)):
         weakest = _ray_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
                                np.asarray(recorded.fields["intensity"]), compensated, per_reading, 0.0,
-                               intensity_step(profile))[3]
+                               intensity_step(profile), profile.min_range_m)[3]
     elif at is not None:
-        weakest = _weakest_signal(positions, intensity, compensated, per_reading, intensity_step(profile))
+        weakest = _weakest_signal(positions, intensity, compensated, per_reading, intensity_step(profile),
+                                  profile.min_range_m)
     try:
         receiver = Receiver.of(profile, k).calibrated(weakest)
     except ValueError as e:
@@ -186,10 +187,11 @@ def _above_horizon(cloud: PointCloud, profile: LidarProfile) -> np.ndarray:
 
 
 @jit
-def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step):       # pragma: no cover - compiled
-    """Per point: range (``empty_range_m`` where the point is zero), received signal in units of K that the stored
-    value stands for (:func:`_point_signal`; 0 without a return) and whether it is a return; and the weakest signal
-    any return can have."""
+def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step, min_range_m):  # pragma: no cover
+    """Per point: range (``empty_range_m`` where the point is zero or a no-return placeholder closer than the
+    profile's ``min_range_m``), received signal in units of K that the stored value stands for
+    (:func:`_point_signal`; 0 without a return) and whether it is a return; and the weakest signal any return can
+    have."""
     n = len(intensity)
     r = np.empty(n)
     signal = np.empty(n)
@@ -197,8 +199,8 @@ def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step):
     weakest = math.inf
     for i in range(n):
         ri = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
-        has[i] = ri > 0
-        if ri > 0:
+        has[i] = ri > 0 and ri >= min_range_m
+        if has[i]:
             r[i] = ri
             signal[i], low = _point_signal(ri, intensity[i], compensated, scale, step)
             if low < weakest:
@@ -210,12 +212,12 @@ def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step):
 
 
 @jit
-def _weakest_signal(positions, intensity, compensated, scale, step):       # pragma: no cover - compiled
+def _weakest_signal(positions, intensity, compensated, scale, step, min_range_m):       # pragma: no cover
     """The weakest signal any return of the points can have (:func:`_ray_signals`' last value alone)."""
     weakest = math.inf
     for i in range(len(intensity)):
         ri = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
-        if ri > 0:
+        if ri > 0 and ri >= min_range_m:
             low = _point_signal(ri, intensity[i], compensated, scale, step)[1]
             if low < weakest:
                 weakest = low

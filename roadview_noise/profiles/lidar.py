@@ -2,23 +2,22 @@
 
 Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal`` photons, default for the D3.5
 CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
-per-laser table, the sensor of D3.5 ch. 4), ``carla-64`` (uniform CARLA-style ray caster), and ``kitti-hdl64``
-(uniform approximation of an HDL-64E with KITTI's 0–1 intensities). Each states its intensity kind, sensor constant K
-(signal of a ρ = 1 target at 1 m), white reading W of a reflectivity channel, how it stores intensities (step, faint
-readings), detection threshold (signal units), receiver noise and overlap with their source
-(:mod:`roadview_noise.physics.lidar_intensity` converts every intensity to the received signal,
-:mod:`roadview_noise.physics.receiver` detects in noise). Files: an Ouster metadata JSON (``beam_altitude_angles``;
-``udp_profile_lidar`` says which channel the intensity is, ``columns_per_frame`` the columns), a per-laser CSV
-(``laser_id, elevation_deg, azimuth_offset_deg``) or a YAML profile. Without any profile the default OS1-128 does not
-state its intensity unit: the weather models read it from the data and warn. Ring recovery lives in
-:mod:`roadview_noise.physics.lidar_geometry`.
+per-laser table, the sensor of D3.5 ch. 4), ``hdl-32e`` (Velodyne HDL-32E of nuScenes), ``carla-64`` (uniform
+CARLA-style ray caster), and ``kitti-hdl64`` (uniform approximation of an HDL-64E with KITTI's 0–1 intensities).
+Each states its intensity kind, sensor constant K (signal of a ρ = 1 target at 1 m), white reading W of a
+reflectivity channel, how it stores intensities (step, faint readings), detection threshold (signal units), receiver
+noise and overlap with their source (:mod:`roadview_noise.physics.lidar_intensity` converts every intensity to the
+received signal, :mod:`roadview_noise.physics.receiver` detects in noise). Files: an Ouster metadata JSON of any
+firmware, legacy or non-legacy format (:mod:`.ouster_metadata`; ``udp_profile_lidar`` says which channel the
+intensity is, ``columns_per_frame`` the columns), a per-laser CSV (``laser_id, elevation_deg, azimuth_offset_deg``)
+or a YAML profile. Without any profile the default OS1-128 does not state its intensity unit: the weather models
+read it from the data and warn. Ring recovery lives in :mod:`roadview_noise.physics.lidar_geometry`.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,7 @@ from ..errors import InputError
 from ..physics.lidar_intensity import OUSTER_WHITE_REFLECTIVITY, reflectivity_variant
 from ..types import IntensityUnit, LidarProfile
 from . import check_keys, load_profile
+from .ouster_metadata import read_ouster_metadata
 
 _DATA = Path(__file__).with_name("data")
 OS1_SENSOR_CONSTANT = 65535.0           # photons·m²: signal of a ρ = 1 target at 1 m (see os1_128)
@@ -37,6 +37,8 @@ OS1_OVERLAP_START_M = 0.5               # Ouster OS1 datasheet minimum range
 OS1_OVERLAP_FULL_M = 5.0                # assumed full receiver overlap of the biaxial OS1 (see os1_128)
 HDL64_DETECTION_THRESHOLD = 0.1 / 50.0 ** 2
 OS1_THRESHOLD_OVER_NOISE = 3.28         # one background photon per pulse window at the datasheet threshold (see os1_128)
+HDL32_SENSOR_CONSTANT = 25_000.0        # m², fitted on a real nuScenes scan (see hdl_32e)
+HDL32_WHITE_REFLECTIVITY = 100.0        # HDL-32E FW 2.0: diffuse 0–100 for 0–100 %
 KITTI_INTENSITY_STEP = 0.01             # KITTI stores the HDL-64E intensity as multiples of 0.01
 #: Ouster lidar packet profiles that carry only the 8-bit calibrated reflectivity (no signal channel)
 OUSTER_REFLECTIVITY_ONLY = ("RNG15_RFL8_NIR8", "FUSA_RNG15_RFL8_NIR8_DUAL")
@@ -141,38 +143,63 @@ def kitti_hdl64() -> LidarProfile:
                    intensity_step=KITTI_INTENSITY_STEP)
 
 
+def hdl_32e() -> LidarProfile:
+    """Velodyne HDL-32E (nuScenes LIDAR_TOP): 32 lasers from −30.67° to +10.67° in 4/3° steps (user manual 63-9113,
+    vertical angle table: −30.67, −29.33, … +9.33, +10.67 in firing order), ring 0 the LOWEST beam (the Velodyne ROS
+    driver's ring, nuScenes' fifth column: the median elevation of ring k in a real nuScenes scan is
+    −30.67° + 1.33° k within 0.3°), 905 nm, 100 m (datasheet: "up to 100 m"), rotating head, no azimuth offsets.
+
+    Columns 1085 at 20 Hz, as nuScenes records (2170 at the default 10 Hz: give ``columns: 2170``): one firing
+    cycle every 46.08 µs (32 × 1.152 µs, manual's firing sequence), 21 700 per second, 695 000 points/s
+    (datasheet); a real nuScenes scan holds 32 × 1084 points and its measured firing grid has 1085 columns. The
+    firing grid of a list is measured anyway (:mod:`physics.firing_grid`); range images use ``columns``.
+    Intensity: calibrated 8-bit reflectivity (HDL-32E firmware 2.0 description: diffuse targets 0–100 for
+    0–100 % reflectivity, retro-reflectors 101–255), range-compensated: W = 100. Sensor constant: signal in units
+    of the detection threshold (1); K = 25 000 m², FITTED on a real nuScenes scan: the faintest readings at
+    65 / 75 / 85 m are 16 / 22 / 30, i.e. ``K = 100 R² / I`` = 26 400 / 25 600 / 24 100 (ρ = 0.8 then reaches
+    141 m, 10 % 50 m; the datasheet's 100 m at ρ = 0.4).
+    Minimum range 1 m (manual: "the minimum return distance for the HDL-32E is approximately 1 meter. Ignore returns
+    closer than this"; nuScenes' devkit drops points within 1 m too): nuScenes stores every firing, the no-returns
+    as points at the ego vehicle's displacement during the sweep (23 % of a real scan, all within 1 m): they are
+    no-return rays, not returns (``min_range_m``). Receiver overlap Hahner's (0.9–1.0 m, LidarProfile default),
+    ASSUMPTION as for :func:`vls_128`.
+    Beam radius, divergence and pulse: ASSUMPTION, the VLS-128's (:func:`vls_128`; no HDL-32E figure at hand).
+    Receiver: APD, generic ASSUMPTIONS (LidarProfile defaults)."""
+    elev = tuple(round(-32.0 + 4.0 / 3.0 * (k + 1), 2) for k in range(32))       # −30.67, −29.33, … +10.67
+    return LidarProfile(
+        "hdl-32e", elev, (0.0,) * 32, columns=1085, wavelength_m=905e-9, beam_radius_m=6.0e-3,
+        beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9, max_range_m=100.0, min_range_m=1.0,
+        intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0, intensity_kind="reflectivity",
+        sensor_constant=HDL32_SENSOR_CONSTANT, reflectivity_white_reading=HDL32_WHITE_REFLECTIVITY,
+        detection_threshold=1.0, window="rotating")
+
+
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
-           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64}
+           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64, "hdl-32e": hdl_32e}
 
 
 def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:
-    """Profile from an Ouster sensor metadata JSON (``beam_altitude_angles``, beam-origin and z offsets,
-    ``data_format.columns_per_frame``). ``data_format.udp_profile_lidar`` says what the intensity can be: a profile
-    without a signal channel (RNG15_RFL8_NIR8, the low-bandwidth one) carries only the 8-bit calibrated reflectivity,
-    which the profile then states; with a signal channel (LEGACY, RNG19_RFL8_SIG16_NIR16, …) a file may hold either,
-    so the profile leaves it to the data (:func:`lidar_intensity.resolve_profile`, with a warning)."""
-    try:
-        j = json.loads(Path(path).read_text())
-        elev = tuple(float(a) for a in j["beam_altitude_angles"])
-        azim = tuple(float(a) for a in j.get("beam_azimuth_angles", [0.0] * len(elev)))
-        origin = float(j.get("lidar_origin_to_beam_origin_mm", 0.0)) / 1000
-        z = float(j.get("lidar_to_sensor_transform", [0.0] * 12)[11]) / 1000
-        data_format = j.get("data_format") or {}
-        udp = str(data_format.get("udp_profile_lidar", ""))
-        columns = int(data_format.get("columns_per_frame", 0))
-    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
-        raise InputError(f"not an Ouster metadata JSON with beam_altitude_angles ({e})", file=str(path)) from None
-    base = os1_128() if len(elev) == 128 else dataclasses.replace(os1_128(), name=f"ouster-{len(elev)}")
-    if udp in OUSTER_REFLECTIVITY_ONLY:
+    """Profile from an Ouster sensor metadata JSON, legacy or non-legacy format (:mod:`.ouster_metadata`, which
+    refuses malformed files): beam angles (the lit rows), beam-origin and z offsets, ``columns_per_frame`` (or
+    ``lidar_mode``). ``udp_profile_lidar`` says what the intensity can be: a packet profile without a signal channel
+    (RNG15_RFL8_NIR8, the low-bandwidth one) carries only the 8-bit calibrated reflectivity, which the profile then
+    states; with a signal channel (LEGACY, RNG19_RFL8_SIG16_NIR16, …) a file may hold either, so the profile leaves
+    it to the data (:func:`lidar_intensity.resolve_profile`, with a warning). Radiometry, range and receiver are the
+    OS1-128's for every Ouster model (ASSUMPTION for OS-0 / OS-2 units: their optics differ)."""
+    meta = read_ouster_metadata(path)
+    elev = meta.beam_altitude_deg
+    os1 = not meta.prod_line or meta.prod_line.startswith("OS-1-")
+    name = "os1-128" if len(elev) == 128 and os1 else f"ouster-{meta.prod_line.lower() or len(elev)}"
+    base = dataclasses.replace(os1_128(), name=name)
+    if meta.udp_profile_lidar in OUSTER_REFLECTIVITY_ONLY:
         base = dataclasses.replace(reflectivity_variant(base), intensity_source=f"Ouster metadata {Path(path).name}: "
-                                   f"udp_profile_lidar {udp} carries only the 8-bit reflectivity")
+                                   f"udp_profile_lidar {meta.udp_profile_lidar} carries only the 8-bit reflectivity")
     else:
         base = dataclasses.replace(base, intensity_source="")
-    if columns > 0:
-        base = dataclasses.replace(base, columns=columns)
     return dataclasses.replace(base, name=overrides.pop("name", base.name), beam_elevation_deg=elev,
-                               beam_azimuth_offset_deg=azim, beam_origin_offset_m=origin, sensor_z_offset_m=z,
-                               **overrides)
+                               beam_azimuth_offset_deg=meta.beam_azimuth_deg, columns=meta.columns,
+                               beam_origin_offset_m=meta.beam_origin_offset_m,
+                               sensor_z_offset_m=meta.sensor_z_offset_m, **overrides)
 
 
 def from_beam_table_csv(path: Path, base: LidarProfile | None = None, **overrides) -> LidarProfile:

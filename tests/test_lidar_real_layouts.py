@@ -1,0 +1,117 @@
+"""Real LiDAR dataset layouts, built synthetically: the HDL-32E of nuScenes (its no-return placeholders), the ring
+field of another sensor read with the default profile, and fixed-layout .bin files with another column count
+(Waymo's 6-column KITTI-format export, Lyft's 5 columns)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from roadview_noise.errors import InputError
+from roadview_noise.io.pointcloud import read_pointcloud
+from roadview_noise.physics.firing_grid import firing_grid
+from roadview_noise.physics.lidar_intensity import IntensityWarning, resolve_profile
+from roadview_noise.physics.lidar_rays import cloud_rays
+from roadview_noise.profiles.lidar import default_profile, hdl_32e, load_lidar_profile
+from roadview_noise.types import PointCloud
+
+
+def test_hdl_32e_datasheet_values():
+    """32 beams −30.67°…+10.67° in 4/3° steps, ring 0 the lowest (the Velodyne driver's and nuScenes' ring), 8-bit
+    calibrated reflectivity (white = 100), 100 m, a 1 m minimum range; K reproduces the faintest reading at 75 m
+    of a real nuScenes scan (22): ρ = I/100 at the threshold, K = 100 R² / I within 3 %."""
+    p = load_lidar_profile("hdl-32e")
+    elev = np.asarray(p.beam_elevation_deg)
+    assert p.channels == 32 and elev[0] == pytest.approx(-30.67) and elev[-1] == pytest.approx(10.67)
+    assert np.allclose(np.diff(elev), 4 / 3, atol=0.0101)                  # rounded to 0.01° as in the manual
+    assert (p.intensity_unit, p.intensity_full_scale, p.intensity_kind) == ("uint8", 255.0, "reflectivity")
+    assert (p.reflectivity_white_reading, p.max_range_m, p.min_range_m, p.wavelength_m) == (100.0, 100.0, 1.0, 905e-9)
+    assert p.sensor_constant == pytest.approx(100 * 75.0 ** 2 / 22, rel=0.03)
+
+
+def nuscenes_like(fill: float = 0.7, columns: int = 1085, seed: int = 0) -> tuple[PointCloud, np.ndarray]:
+    """A nuScenes LIDAR_TOP-style scan: every firing of 32 rings × ``columns`` stored, column by column; a return
+    2–80 m away (uint8 reflectivity, ring field) or, for a no-return, the point at the ego vehicle's displacement
+    since the sweep started (up to 0.9 m at 18 m/s, 20 Hz), as the ego-motion compensation leaves a zero range.
+    Returns the cloud and the no-return mask."""
+    rng = np.random.default_rng(seed)
+    profile = hdl_32e()
+    c = np.arange(columns)
+    az = 0.4 - 2 * np.pi * c / columns
+    el = np.deg2rad(np.asarray(profile.beam_elevation_deg))
+    ring = np.tile(np.arange(32), columns)
+    col = np.repeat(c, 32)
+    r = rng.uniform(2, 80, len(ring))
+    pos = r[:, None] * np.stack([np.cos(el[ring]) * np.cos(az[col]), np.cos(el[ring]) * np.sin(az[col]),
+                                 np.sin(el[ring])], 1)
+    empty = rng.random(len(ring)) > fill
+    ego = np.stack([0.9 * col / columns, 0.01 * np.ones(len(col)), np.zeros(len(col))], 1)
+    pos[empty] = ego[empty]
+    fields = {"intensity": np.rint(rng.uniform(5, 60, len(ring))).astype(np.float32),
+              "ring": ring.astype(np.float32)}
+    return PointCloud(pos, fields, "lidar", profile), empty
+
+
+def test_nuscenes_no_return_placeholders_are_empty_rays():
+    """nuScenes stores no-returns as points within 1 m (the HDL-32E's minimum range): they are no-return rays, so the
+    list's firing grid is found and every one of them is an empty ray that fog or snow can return on. Read as
+    returns (min_range_m 0, the behaviour before), their azimuths break the grid: no empty ray at all."""
+    cloud, empty = nuscenes_like()
+    rays = cloud_rays(cloud, "fog.lidar")
+    assert rays.listed is not None, rays.empty_source
+    assert rays.listed.columns == 1085 and len(rays.listed.ring) == np.count_nonzero(empty)
+    assert not rays.has_target[:len(cloud)][empty].any() and rays.has_target[:len(cloud)][~empty].all()
+    before = dataclasses.replace(cloud, profile=dataclasses.replace(cloud.profile, min_range_m=0.0))
+    assert cloud_rays(before, "fog.lidar").listed is None
+
+
+def test_ring_field_of_a_smaller_sensor_is_pointed_out():
+    """A nuScenes scan read with the default OS1-128 (nothing stated): its rings 0–31 index the OS1's top 32 beams;
+    the warning says so and names hdl-32e. A ring field spanning the profile's beams adds nothing."""
+    cloud, _ = nuscenes_like()
+    pos, intensity = cloud.positions_m, cloud.fields["intensity"]
+    scale = resolve_profile(default_profile(), intensity, pos, "fog.lidar", cloud.fields["ring"])
+    assert "ring field counts 32 beams (0…31) but profile 'os1-128' has 128" in scale.warning
+    assert "lidar_profile hdl-32e" in scale.warning
+    full = np.arange(len(pos)) % 128
+    assert "ring field" not in resolve_profile(default_profile(), intensity, pos, "fog.lidar", full).warning
+    with pytest.warns(IntensityWarning, match="hdl-32e"):
+        cloud_rays(dataclasses.replace(cloud, profile=default_profile()), "fog.lidar")
+
+
+def test_bin_with_another_column_count_is_refused(tmp_path):
+    """Waymo's KITTI-format velodyne .bin has 6 float32 columns (x y z intensity elongation timestamp): with an even
+    point count its size is a multiple of KITTI's 16-byte point, and it used to be read as garbage (timestamps as
+    coordinates of 1.5e15 m). Now refused, naming the column count that fits; Lyft's 5 columns likewise."""
+    rng = np.random.default_rng(1)
+    n = 800
+    xyz = rng.uniform(-70, 70, (n, 3))
+    waymo = np.column_stack([xyz, rng.uniform(0, 1, n), rng.uniform(0, 1.5, n), np.full(n, 1.55e15)])
+    path = tmp_path / "0000000.bin"
+    waymo.astype("<f4").tofile(path)
+    with pytest.raises(InputError, match=r"reach 1\.55e\+15 m; read as 6 float32 columns it is plausible") as e:
+        read_pointcloud(path)
+    assert "0000000.bin" in str(e.value)
+    lyft = tmp_path / "lyft.bin"
+    np.column_stack([xyz[:5], np.full(5, 100.0), np.ones(5)]).astype("<f4").tofile(lyft)
+    with pytest.raises(InputError, match="read as 5 float32 columns it is plausible"):
+        read_pointcloud(lyft)
+    kitti = tmp_path / "kitti.bin"
+    np.column_stack([xyz, rng.uniform(0, 1, n)]).astype("<f4").tofile(kitti)
+    assert len(read_pointcloud(kitti)) == n
+
+
+def test_camera_fov_crop_is_reported_and_not_filled():
+    """A scan cropped to the camera's field of view (KITTI's x ≥ 2.9 m): no empty ray in the cropped-away
+    azimuths, and the manifest's source line says how many columns were out of view."""
+    cloud, empty = nuscenes_like()
+    keep = (cloud.positions_m[:, 0] >= 2.9) & ~empty
+    cropped = dataclasses.replace(cloud.drop(~keep), profile=cloud.profile)
+    grid = firing_grid(cropped, cropped.profile)
+    assert not isinstance(grid, str), grid
+    direction = grid.directions(np.arange(len(grid.ring)))
+    assert len(grid.ring) > 0 and np.all(direction[:, 0] > 0)           # nothing behind the sensor
+    out = int(grid.describe().split("; ")[-1].split(" of ")[0])
+    assert 0.5 * 1085 < out < 0.8 * 1085 and "out of view (a crop" in grid.describe()
