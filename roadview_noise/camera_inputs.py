@@ -38,8 +38,9 @@ from .registry import get_model
 from .types import CameraFrame, CameraProfile, RawFrame
 
 FALLBACK_FOV_H_DEG = 80.8          # the ROADVIEW Lucid Triton TRI028S + 6 mm lens (profiles/camera.py)
-DEPTH_OPTIONS = ("point inputs.depth (or --depth) at your depth files, or set inputs.depth_source: lidar (the paired "
-                 "LiDAR scan), onnx (a monocular depth model) or ground_plane (a flat-road prior)")
+DEPTH_OPTIONS = ("point inputs.depth (or --depth) at your depth files, or set inputs.depth_source (or "
+                 "--depth-source): lidar (the paired LiDAR scan), onnx (a monocular depth model) or ground_plane (a "
+                 "flat-road prior)")
 
 
 def needs_camera_geometry(recipe: Recipe) -> bool:
