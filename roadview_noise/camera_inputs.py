@@ -178,10 +178,30 @@ class _Geometry:
         inputs = self.recipe.spec.inputs
         if inputs.calibration is None:
             return None
-        cal = load_calibration(self.origin.sidecar(inputs.calibration, "calibration", self.recipe.base_dir),
-                               kitti_camera=inputs.kitti_camera)
+        if isinstance(inputs.calibration, str):
+            cal = load_calibration(self.origin.sidecar(inputs.calibration, "calibration", self.recipe.base_dir),
+                                   kitti_camera=inputs.kitti_camera)
+        else:
+            cal = self._nuscenes(inputs.calibration.nuscenes)
         self.notes["calibration"] = _relative(Path(cal.source), self.origin.in_root)
         return cal
+
+    def _nuscenes(self, tables: str):
+        """``calibration: {nuscenes: VERSION}``: the image's (and paired scan's) calibrated_sensor records."""
+        from .depth.nuscenes import nuscenes_calibration
+
+        sample = getattr(self.origin, "sample", None)
+        if sample is None:
+            raise InputError("calibration {nuscenes: …} needs image files under the dataroot", file=self.origin.name)
+        inputs = self.recipe.spec.inputs
+        root = Path(self.origin.in_root).resolve()
+        folder = (root / tables).resolve()
+        if not folder.is_relative_to(root):
+            raise InputError(f"calibration {{nuscenes: {tables!r}}} is outside the input folder", file=self.origin.name)
+        lidar = inputs.depth_source == "lidar" and inputs.lidar_depth is not None
+        scan = depth_relpath_for(sample.relpath, inputs.lidar_depth.scan) \
+            if lidar and inputs.lidar_depth.scan is not None else None
+        return nuscenes_calibration(folder, sample.relpath, lidar=lidar, scan_rel=scan)
 
     @cached_property
     def profile(self) -> CameraProfile:
@@ -276,12 +296,18 @@ def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal)
     from .io.image import display_srgb
 
     spec = recipe.spec.inputs.lidar_depth
-    scan_rel = depth_relpath_for(origin.sample.relpath, spec.scan)
+    cal = geometry.calibration
+    if spec.scan is None:
+        if cal is None or cal.paired_scan is None:
+            raise InputError("inputs.lidar_depth.scan is needed (only nuScenes tables pair the scan themselves)",
+                             file=origin.name)
+        scan_rel = cal.paired_scan
+    else:
+        scan_rel = depth_relpath_for(origin.sample.relpath, spec.scan)
     scan_path = origin.in_root / scan_rel
     if not scan_path.is_file():
         raise InputError(f"no paired LiDAR scan {scan_rel!r} (inputs.lidar_depth.scan: {spec.scan!r})",
                          file=origin.name)
-    cal = geometry.calibration
     if cal is None or cal.lidar_to_camera is None:
         raise InputError("depth_source lidar needs the LiDAR → camera transform: inputs.calibration (a KITTI "
                          "calib .txt, or a .yaml with lidar_to_camera)", file=origin.name)

@@ -51,6 +51,7 @@ class Calibration:
     baseline_m: float | None = None
     height_above_ground_m: float | None = None
     pitch_rad: float | None = None
+    paired_scan: str | None = None                                     # the LiDAR scan the tables pair (nuScenes)
 
     def intrinsics_for(self, width_px: int, height_px: int) -> tuple[float, float, float, float] | None:
         """The intrinsics on an image of this size (pixel centres at integer coordinates; scaled when the

@@ -40,6 +40,8 @@ from .ground_plane import ground_plane_range
 DENSIFY = ("nearest", "bilateral")
 MIN_DEPTH_M = 0.1                   # points nearer than this to the camera plane are not projected
 RANGE_BIN_RATIO = 1.02              # range bins of the top-of-view envelope: 2 % wide
+MAX_LASER_OFFSET_M = 0.5            # a laser sits within this height of the scan's origin (HDL-64E: ≈ 0.2 m)
+SPACING_MEDIAN_FACTOR = 4.0         # LiDAR column spacing: at most this × the median gap of neighbours in a row
 
 
 def project_returns(points_m: np.ndarray, lidar_to_camera: np.ndarray,
@@ -80,11 +82,16 @@ def drop_occluded(rows: np.ndarray, cols: np.ndarray, range_m: np.ndarray, shape
 
 def column_spacing_px(rows: np.ndarray, cols: np.ndarray) -> int:
     """Horizontal spacing of the projected LiDAR columns: the 90th percentile of the gaps between neighbouring
-    returns of an image row (≥ 1 px)."""
+    returns of an image row, at most ``SPACING_MEDIAN_FACTOR`` × their median (≥ 1 px). The bound matters for a
+    sparse scanner whose scan lines cross the image rows (nuScenes' HDL-32E on CAM_FRONT: neighbours in a row
+    are mostly other beams' crossings, 90th percentile 711 px, median 9 px): spread over ±711 px, the highest
+    return of the frame would close the sky of every column."""
     order = np.lexsort((cols, rows))
     r, c = rows[order], cols[order]
     gaps = np.diff(c)[np.diff(r) == 0]
-    return max(1, int(np.ceil(np.percentile(gaps, 90)))) if gaps.size else 1
+    if not gaps.size:
+        return 1
+    return max(1, int(np.ceil(min(np.percentile(gaps, 90), SPACING_MEDIAN_FACTOR * np.median(gaps)))))
 
 
 def at_top_of_view(range_m: np.ndarray, elevation_rad: np.ndarray, tolerance_rad: float) -> np.ndarray:
@@ -92,9 +99,11 @@ def at_top_of_view(range_m: np.ndarray, elevation_rad: np.ndarray, tolerance_rad
 
     A beam of elevation θ whose laser sits z₀ above the origin reaches ``tan e = tan θ + z₀ / r`` at range r: a
     straight line in (1/r, tan e), above which no return lies. The top beam's line is an edge of the upper convex
-    hull of the returns in that plane (of the highest return per 2 %-wide range bin): the edge along which most of
-    those bins' highest returns lie (within ``tolerance_rad``). A return is at the top of the view when its
-    elevation is within ``tolerance_rad`` of that line at its range."""
+    hull of the returns in that plane (of the highest return per 2 %-wide range bin) whose slope z₀ is a laser's
+    offset (at most ``MAX_LASER_OFFSET_M``; a flat open road is such a line too, of slope −(LiDAR height)): the
+    edge along which most of those bins' highest returns lie (within ``tolerance_rad``), else the level line
+    through the highest return. A return is at the top of the view when its elevation is within
+    ``tolerance_rad`` of that line at its range."""
     x = 1.0 / np.maximum(range_m, MIN_DEPTH_M)
     y = np.tan(elevation_rad)
     bins = np.floor(np.log(x) / np.log(RANGE_BIN_RATIO)).astype(np.int64)
@@ -105,6 +114,8 @@ def at_top_of_view(range_m: np.ndarray, elevation_rad: np.ndarray, tolerance_rad
     best, best_support = (0.0, float(hy.max())), -1
     for i in range(len(hx) - 1):
         slope = (hy[i + 1] - hy[i]) / (hx[i + 1] - hx[i])
+        if abs(slope) > MAX_LASER_OFFSET_M:                # e.g. the open road: z = −(LiDAR height), a "beam" too
+            continue
         line = (slope, hy[i] - slope * hx[i])
         support = int(np.count_nonzero(np.arctan(by) >= np.arctan(line[0] * bx + line[1]) - tolerance_rad))
         if support > best_support:

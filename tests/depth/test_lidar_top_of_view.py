@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from roadview_noise.depth.calibration import load_calibration
-from roadview_noise.depth.lidar import at_top_of_view, lidar_depth
+from roadview_noise.depth.lidar import at_top_of_view, column_spacing_px, lidar_depth
 
 LASER_HEIGHT_M = 0.2         # the laser above the point-cloud origin
 LIDAR_HEIGHT_M = 1.73        # KITTI's Velodyne above the road
@@ -83,3 +83,36 @@ def test_real_kitti_scan_puts_no_sky_over_the_houses(tmp_path):
     depth, valid, notes = lidar_depth(points, cal.lidar_to_camera, cal.intrinsics_for(1242, 375), 1242, 375)
     assert notes["returns_used"] > 10000
     assert notes["sky_fraction"] < 0.05
+
+
+def test_sparse_scan_lines_crossing_the_rows_keep_the_sky():
+    """nuScenes-like: 32 beams (−30°…+10.67°) whose scan lines cross the image rows (camera rolled 4° against
+    the LiDAR), a building at 6 m on the left, open road elsewhere. Neighbours in an image row are mostly other
+    beams (real CAM_FRONT frame: 90th-percentile gap 711 px): the column spacing must not spread the building's
+    top over the frame."""
+    elevation = np.radians(np.linspace(-30.67, 10.67, 32))[:, None]
+    azimuth = np.radians(np.arange(-40.0, 40.0, 0.16))[None, :]
+    d = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                     np.sin(elevation)), axis=-1).reshape(-1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(d[:, 2] < 0, -1.84 / d[:, 2], np.inf)
+        t_wall = np.where(d[:, 1] > np.sin(np.radians(25)), 6.0 / d[:, 0], np.inf)
+    t = np.minimum(t_ground, t_wall)
+    points = d[t < 70] * t[t < 70, None]
+    roll = np.radians(4.0)
+    to_camera = np.eye(4)
+    to_camera[:3, :3] = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]]) \
+        @ [[0, -1, 0], [0, 0, -1], [1, 0, 0]]
+    depth, _, notes = lidar_depth(points, to_camera, (F, F, W / 2 - 0.5, H / 2 - 0.5), W, H)
+    assert np.isinf(depth[:10, W // 2:]).mean() > 0.9                   # open road: sky above
+    assert np.isfinite(depth[12:40, :30]).all()                        # the building
+
+
+def test_column_spacing_is_bounded_by_the_median_gap():
+    """Rows of a sparse scan (the real nuScenes CAM_FRONT frame: gaps 9 px median, 711 px 90th percentile): the
+    beams' own neighbours set the spacing, not the crossings of other beams far along the row."""
+    rows = np.repeat(np.arange(50), 4)
+    cols = np.tile([100, 109, 118, 900], 50)                           # gaps 9, 9, 782 per row
+    assert column_spacing_px(rows, cols) == 36
+    dense = np.tile(np.arange(0, 400, 8), 20), np.repeat(np.arange(20), 50)
+    assert column_spacing_px(dense[1], dense[0]) == 8
