@@ -28,6 +28,7 @@ LIDAR = {"token": "lid0", "sensor_token": "s-lid", "translation": [0.985793, 0.0
          "camera_intrinsic": []}
 IMAGE = "samples/CAM_FRONT/n015-2018-07-24-11-22-45+0800__CAM_FRONT__1532402927612460.jpg"
 SCAN = "samples/LIDAR_TOP/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
+ROOT = Path(__file__).resolve().parents[2]
 SWEEP = "sweeps/LIDAR_TOP/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927597000.pcd.bin"
 
 
@@ -107,8 +108,10 @@ def _recipe(tmp_path, inputs) -> Path:
 
 
 def test_lidar_depth_with_the_tables_pairing(tmp_path):
+    """The shipped example recipe, on a dataroot in nuScenes' layout (its tables' folder renamed)."""
     root = _dataroot(tmp_path)
-    recipe = _recipe(tmp_path, {"depth_source": "lidar", "lidar_depth": {}, "calibration": {"nuscenes": "v1.0-mini"}})
+    (root / "v1.0-mini").rename(root / "v1.0-trainval")
+    recipe = ROOT / "recipes" / "examples" / "depth-lidar-nuscenes.yaml"
     s = run(load_recipe(recipe), root, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None,
             warn=lambda *_: None)
     assert s.failed == 0 and s.done == 1, s.failures
