@@ -340,7 +340,9 @@ def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
     model = Path(spec.model)
     model = model if model.is_absolute() else recipe.base_dir / model
     if not model.is_file():
-        raise InputError(f"no ONNX depth model {str(model)!r} ({geometry.origin.key('onnx_depth')}.model)",
+        raise InputError(f"no ONNX depth model {str(model)!r} ({geometry.origin.key('onnx_depth')}.model, relative "
+                         f"to the recipe's folder): export a metric monocular depth network to ONNX (its first "
+                         f"output × scale_m must be metres) or use depth_source ground_plane",
                          file=geometry.origin.name)
     image = signal()
     if image.ndim != 3:

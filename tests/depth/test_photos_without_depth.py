@@ -64,3 +64,14 @@ def test_preview_every_cnf_of_a_photo_with_a_depth_source(tmp_path):
     assert Image.open(sheet).height > 4 * Image.open(tmp_path / "s2.png").height
     bad = runner.invoke(app, ["preview", "--all-cnfs", str(photo), "--depth-source", "stereo"])
     assert bad.exit_code == 2 and "--depth-source" in bad.output
+
+
+def test_missing_onnx_model_says_what_to_do(tmp_path):
+    root = _photos(tmp_path)
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text('schema: rvnoise.recipe/1\nchain: [{model: fog.camera}]\n'
+                      'inputs: {camera: "**/*.jpg", depth_source: onnx, onnx_depth: {model: depth.onnx}}\n')
+    r = runner.invoke(app, ["augment", "--recipe", str(recipe), str(root), str(tmp_path / "out"), "--quiet"])
+    assert r.exit_code == 1
+    error = json.loads((tmp_path / "out" / "manifest.jsonl").read_text().splitlines()[0])["error"]
+    assert str(tmp_path / "depth.onnx") in error and "export a metric monocular depth network to ONNX" in error
