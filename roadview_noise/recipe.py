@@ -95,7 +95,7 @@ class InputsSpec(_Strict):
     ground_plane: GroundPlaneSpec = Field(default_factory=GroundPlaneSpec)
     calibration: str | NuscenesRule | None = None   # per-image: Cityscapes .json, KITTI .txt, rvnoise .yaml; or
                                                     # {nuscenes: v1.0-trainval} (the tables' folder under IN/)
-    kitti_camera: int = Field(2, ge=0, le=3)   # the rectified camera of a KITTI calibration the images are from
+    kitti_camera: int = Field(2, ge=0, le=4)   # the camera of a KITTI calibration the images are from (Waymo: 0–4)
     camera_fov_h_deg: float | None = Field(None, gt=0, lt=180)  # without a profile: square pixels, centred
     camera_profile: str | dict[str, Any] | None = None   # built-in, file ({dir} = the input file's folder), mapping
     lidar_profile: str | dict[str, Any] | None = None
