@@ -16,8 +16,9 @@ compensated: nuScenes triggers each camera when the top LiDAR sweeps across the 
 view (Caesar et al. 2020, "nuScenes", §2 Sensor synchronization), so the points the image shows were measured
 within a few milliseconds of it.
 
-``sample_data.json`` of v1.0-trainval holds millions of records: it is scanned once per process for the
-``filename``, ``calibrated_sensor_token`` and ``sample_token`` of each record (memory-mapped, not parsed whole).
+``sample_data.json`` of v1.0-trainval holds millions of records (≈ 1 GB): it is memory-mapped, and once per
+process and sensor folder (``samples/CAM_FRONT/``, …) the records of that folder's files are found by their
+``filename`` and only those are read (``calibrated_sensor_token``, ``sample_token``, ``is_key_frame``).
 """
 
 from __future__ import annotations
@@ -34,8 +35,6 @@ import numpy as np
 from ..errors import InputError
 from .calibration import Calibration
 
-_RECORD = re.compile(rb"\{[^{}]*\}")
-_FILENAME = re.compile(rb'"filename"\s*:\s*"([^"]*)"')
 _SENSOR = re.compile(rb'"calibrated_sensor_token"\s*:\s*"(\w+)"')
 _SAMPLE = re.compile(rb'"sample_token"\s*:\s*"(\w+)"')
 _KEY_FRAME = re.compile(rb'"is_key_frame"\s*:\s*true')
@@ -47,12 +46,11 @@ def nuscenes_calibration(tables_dir: Path, image_rel: str, *, lidar: bool = Fals
     """The calibration of the image ``image_rel`` (path relative to the dataroot, the folder above
     ``tables_dir``); with ``lidar``, the LiDAR → camera transform of the scan ``scan_rel`` (relative to the
     dataroot), by default the LIDAR_TOP key frame of the image's sample (module docstring)."""
-    tables_dir = Path(tables_dir).resolve()
-    index, sensors, lidar_of_sample = _tables(str(tables_dir))
-    camera = _record(index, sensors, image_rel, tables_dir)
+    tables = str(Path(tables_dir).resolve())
+    camera = _calibrated_sensor(tables, image_rel)
     if not camera.get("camera_intrinsic"):
         raise InputError(f"the calibrated_sensor record of {image_rel!r} has no camera_intrinsic (not a camera)",
-                         file=str(tables_dir / "calibrated_sensor.json"))
+                         file=str(Path(tables) / "calibrated_sensor.json"))
     k = np.asarray(camera["camera_intrinsic"], dtype=float).reshape(3, 3)
     ego_from_camera = _pose(camera)
     axis = ego_from_camera[:3, :3] @ [0.0, 0.0, 1.0]                    # optical axis in the ego frame
@@ -60,26 +58,32 @@ def nuscenes_calibration(tables_dir: Path, image_rel: str, *, lidar: bool = Fals
     lidar_to_camera = None
     if lidar:
         if scan_rel is None:
-            scan_rel = lidar_of_sample.get(index[image_rel][1])
+            sample = _folder_records(tables, _folder(image_rel))[image_rel][1]
+            scan_rel = _lidar_key_frames(tables).get(sample)
             if scan_rel is None:
                 raise InputError(f"no {LIDAR_FOLDER} key frame in the sample of {image_rel!r}",
-                                 file=str(tables_dir / "sample_data.json"))
-        lidar_to_camera = np.linalg.inv(ego_from_camera) @ _pose(_record(index, sensors, scan_rel, tables_dir))
-    return Calibration(str(tables_dir / "calibrated_sensor.json"),
+                                 file=str(Path(tables) / "sample_data.json"))
+        lidar_to_camera = np.linalg.inv(ego_from_camera) @ _pose(_calibrated_sensor(tables, scan_rel))
+    return Calibration(str(Path(tables) / "calibrated_sensor.json"),
                        intrinsics_px=(k[0, 0], k[1, 1], k[0, 2], k[1, 2]), lidar_to_camera=lidar_to_camera,
                        height_above_ground_m=float(camera["translation"][2]), pitch_rad=pitch, paired_scan=scan_rel)
 
 
-def _record(index: dict[str, tuple[str, str]], sensors: dict[str, dict], rel: str, tables_dir: Path) -> dict:
-    if rel not in index:
+def _folder(rel: str) -> str:
+    return rel.rsplit("/", 1)[0] + "/" if "/" in rel else ""
+
+
+def _calibrated_sensor(tables: str, rel: str) -> dict:
+    """The calibrated_sensor record of the sample_data file ``rel``; InputError naming the table."""
+    found = _folder_records(tables, _folder(rel)).get(rel)
+    if found is None:
         raise InputError(f"no sample_data record with filename {rel!r} (the file's path relative to the "
-                         f"dataroot {str(tables_dir.parent)!r})", file=str(tables_dir / "sample_data.json"))
-    token = index[rel][0]
+                         f"dataroot {str(Path(tables).parent)!r})", file=str(Path(tables) / "sample_data.json"))
     try:
-        return sensors[token]
+        return _sensors(tables)[found[0]]
     except KeyError:
-        raise InputError(f"calibrated_sensor {token} of {rel!r} is missing",
-                         file=str(tables_dir / "calibrated_sensor.json")) from None
+        raise InputError(f"calibrated_sensor {found[0]} of {rel!r} is missing",
+                         file=str(Path(tables) / "calibrated_sensor.json")) from None
 
 
 def _pose(record: dict) -> np.ndarray:
@@ -87,7 +91,8 @@ def _pose(record: dict) -> np.ndarray:
     w, x, y, z = (float(v) for v in record["rotation"])
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if not n > 0:
-        raise ValueError(f"calibrated_sensor {record.get('token')}: zero rotation quaternion")
+        raise InputError(f"calibrated_sensor {record.get('token')}: zero rotation quaternion",
+                         file="calibrated_sensor.json")
     w, x, y, z = w / n, x / n, y / n, z / n
     m = np.eye(4)
     m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -98,24 +103,36 @@ def _pose(record: dict) -> np.ndarray:
 
 
 @lru_cache(maxsize=2)
-def _tables(tables: str) -> tuple[dict[str, tuple[str, str]], dict[str, dict], dict[str, str]]:
-    """Of a tables folder: sample_data filename → (calibrated_sensor token, sample token); calibrated_sensor
-    token → record; sample token → its LIDAR_TOP key frame's filename."""
-    folder = Path(tables)
-    index: dict[str, tuple[str, str]] = {}
-    lidar_of_sample: dict[str, str] = {}
+def _sensors(tables: str) -> dict[str, dict]:
+    """calibrated_sensor token → record."""
     try:
-        sensors = {r["token"]: r for r in json.loads((folder / "calibrated_sensor.json").read_text())}
-        with open(folder / "sample_data.json", "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-            for m in _RECORD.finditer(mm):
-                record = m.group()
-                f, c, s = _FILENAME.search(record), _SENSOR.search(record), _SAMPLE.search(record)
-                if not (f and c and s):
-                    continue
-                name, sample = f.group(1).decode(), s.group(1).decode()
-                index[name] = (c.group(1).decode(), sample)
-                if name.startswith(LIDAR_FOLDER) and _KEY_FRAME.search(record):
-                    lidar_of_sample[sample] = name
+        return {r["token"]: r for r in json.loads((Path(tables) / "calibrated_sensor.json").read_text())}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise InputError(f"cannot read the nuScenes tables ({exc})", file=tables) from None
-    return index, sensors, lidar_of_sample
+
+
+@lru_cache(maxsize=16)
+def _folder_records(tables: str, folder: str) -> dict[str, tuple[str, str, bool]]:
+    """filename → (calibrated_sensor token, sample token, key frame) of the sample_data records of the files in
+    ``folder`` (one sensor's folder, e.g. ``samples/CAM_FRONT/``): a search for those filenames in the
+    memory-mapped table, then the record around each."""
+    pattern = re.compile(rb'"filename"\s*:\s*"(' + re.escape(folder.encode()) + rb'[^"/]+)"')
+    out: dict[str, tuple[str, str, bool]] = {}
+    try:
+        with open(Path(tables) / "sample_data.json", "rb") as fh, \
+                mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            for m in pattern.finditer(mm):
+                record = mm[mm.rfind(b"{", 0, m.start()):mm.find(b"}", m.end()) + 1]
+                c, s = _SENSOR.search(record), _SAMPLE.search(record)
+                if c and s:
+                    out[m.group(1).decode()] = (c.group(1).decode(), s.group(1).decode(),
+                                                _KEY_FRAME.search(record) is not None)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the nuScenes tables ({exc})", file=tables) from None
+    return out
+
+
+@lru_cache(maxsize=2)
+def _lidar_key_frames(tables: str) -> dict[str, str]:
+    """sample token → filename of its LIDAR_TOP key frame."""
+    return {sample: name for name, (_, sample, key) in _folder_records(tables, LIDAR_FOLDER).items() if key}
