@@ -362,8 +362,8 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
 
     spec = recipe.spec.inputs.ground_plane
     profile, cal = geometry.profile, geometry.calibration
-    height = spec.camera_height_m or (cal.height_above_ground_m if cal is not None else None) or \
-        profile.height_above_ground_m
+    cal_height = cal.height_above_ground_m if cal is not None else None
+    height = spec.camera_height_m or cal_height or profile.height_above_ground_m
     if spec.pitch_deg is not None:
         pitch = math.radians(spec.pitch_deg)
     else:
@@ -371,8 +371,11 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
     depth = ground_plane_range((profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px), profile.width_px,
                                profile.height_px, camera_height_m=height, pitch_rad=pitch,
                                sky_distance_m=spec.sky_distance_m)
-    return depth, None, {"source": "ground_plane", "camera_height_m": height, "pitch_deg": math.degrees(pitch),
-                         "sky_distance_m": spec.sky_distance_m}
+    notes = {"source": "ground_plane", "camera_height_m": height, "pitch_deg": math.degrees(pitch),
+             "sky_distance_m": spec.sky_distance_m}
+    if not (spec.camera_height_m or cal_height):
+        notes["camera_height_from"] = f"camera profile {profile.name}"
+    return depth, None, notes
 
 
 def _depth_warnings(notes: dict | None) -> list[str]:
@@ -383,6 +386,8 @@ def _depth_warnings(notes: dict | None) -> list[str]:
         out.append("depth_holes_filled")
     if notes.get("source") == "ground_plane":
         out.append("depth_ground_plane")
+        if "camera_height_from" in notes:
+            out.append("ground_plane_profile_height")
     return out
 
 
@@ -397,6 +402,7 @@ class InputWarnings:
         self.files: dict[str, int] = {}
         self.worst_hole_fraction = 0.0
         self.fovs: set[float] = set()
+        self.heights: set[float] = set()
 
     def add(self, entry: dict) -> None:
         inputs = entry.get("inputs") or {}
@@ -406,6 +412,8 @@ class InputWarnings:
                 self.worst_hole_fraction = max(self.worst_hole_fraction, inputs["depth"]["hole_fraction"])
             elif kind == "intrinsics_from_fov":
                 self.fovs.add(inputs["camera"]["fov_h_deg"])
+            elif kind == "ground_plane_profile_height":
+                self.heights.add(inputs["depth"]["camera_height_m"])
 
     def lines(self) -> list[str]:
         n, lines = self.files, []
@@ -421,4 +429,9 @@ class InputWarnings:
         if "depth_ground_plane" in n:
             lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road and "
                          "one distance above the horizon, a crude guess (parameters in the manifest, inputs.depth)")
+        if "ground_plane_profile_height" in n:
+            lines.append(f"ground plane of {n['ground_plane_profile_height']} file(s) seen from the camera "
+                         f"profile's height {', '.join(f'{h:g}' for h in sorted(self.heights))} m, not your camera's "
+                         "(1.51 m on nuScenes, 1.65 m on KITTI): state inputs.ground_plane.camera_height_m or a "
+                         "calibration with the height")
         return lines

@@ -45,6 +45,8 @@ def test_depth_source_on_the_command_line(tmp_path):
     assert r.exit_code == 0, r.output
     line = json.loads((out / "manifest.jsonl").read_text().splitlines()[0])
     assert line["inputs"]["depth"]["source"] == "ground_plane"
+    assert line["inputs"]["depth"]["camera_height_from"].startswith("camera profile")      # not the user's camera
+    assert "profile's height 1 m, not your camera's" in r.output
     run = json.loads((out / "run.json").read_text())
     assert "ground_plane" in json.dumps(run)                          # the resolved recipe carries it
     bad = runner.invoke(app, ["augment", "--recipe", str(ROOT / "recipes" / "weather-fog.yaml"), str(root),
