@@ -77,3 +77,14 @@ def test_missing_onnx_model_says_what_to_do(tmp_path):
     assert r.exit_code == 1
     error = json.loads((tmp_path / "out" / "manifest.jsonl").read_text().splitlines()[0])["error"]
     assert str(tmp_path / "depth.onnx") in error and "export a metric monocular depth network to ONNX" in error
+
+
+def test_a_dataset_layout_the_recipe_globs_miss_is_named(tmp_path):
+    """nuScenes keeps its photos in samples/CAM_*/: the shipped recipes' camera/** globs find nothing there."""
+    root = tmp_path / "nuscenes"
+    (root / "samples" / "CAM_FRONT").mkdir(parents=True)
+    Image.fromarray(np.zeros((9, 16, 3), np.uint8)).save(root / "samples" / "CAM_FRONT" / "a.jpg")
+    r = runner.invoke(app, ["augment", "--recipe", str(ROOT / "recipes" / "weather-fog.yaml"), str(root),
+                            str(tmp_path / "out"), "--quiet"])
+    assert r.exit_code == 2
+    assert "inputs.camera: ['camera/**/*.png', 'camera/**/*.jpg']" in r.output and "samples/CAM_*/*.jpg" in r.output
