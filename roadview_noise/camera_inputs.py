@@ -310,7 +310,7 @@ def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal)
                          file=origin.name)
     if cal is None or cal.lidar_to_camera is None:
         raise InputError("depth_source lidar needs the LiDAR → camera transform: inputs.calibration (a KITTI "
-                         "calib .txt, or a .yaml with lidar_to_camera)", file=origin.name)
+                         "calib .txt, a .yaml with lidar_to_camera, or {nuscenes: VERSION})", file=origin.name)
     profile = geometry.profile
     cloud = cloud_io.read_pointcloud(scan_path, sensor="lidar")
     ground = None
