@@ -71,6 +71,8 @@ def augment(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     depth: Optional[str] = typer.Option(None, "--depth", help="Depth sidecar pattern, relative to each image's "
                                         "folder (inputs.depth), e.g. '{stem}_depth.npy'."),
+    depth_source: Optional[str] = typer.Option(None, "--depth-source", help="file | lidar | onnx | ground_plane "
+                                               "(inputs.depth_source; README 'Which depth do I have?')."),
     camera_profile: Optional[str] = typer.Option(None, "--camera-profile", help="Camera profile: built-in or file "
                                                  "(inputs.camera_profile)."),
     lidar_profile: Optional[str] = typer.Option(None, "--lidar-profile", help="LiDAR profile: built-in or file "
@@ -101,15 +103,17 @@ def augment(
 
     if bag_kind(input_dir) is not None:
         options = {"--resume": resume, "--dry-run": dry_run, "--limit": limit, "--fail-fast": fail_fast,
-                   "--task-timeout": task_timeout, "--depth": depth, "--camera-profile": camera_profile,
+                   "--task-timeout": task_timeout, "--depth": depth, "--depth-source": depth_source,
+                   "--camera-profile": camera_profile,
                    "--lidar-profile": lidar_profile, "--radar-profile": radar_profile, "--report": report,
                    "--backend dask": backend != "local", "--scheduler": scheduler, "--profile": profile}
         return _augment_bag(input_dir, output_dir, recipe, workers, overwrite, quiet,
                             refused=[o for o, value in options.items() if value])
     limits = Limits(max_pixels=int(max_pixels), max_points=int(max_points), task_timeout_s=task_timeout)
     try:
-        r = with_input_overrides(load_recipe(recipe), depth=depth, camera_profile=camera_profile,
-                                 lidar_profile=lidar_profile, radar_profile=radar_profile)
+        r = with_input_overrides(load_recipe(recipe), depth=depth, depth_source=depth_source,
+                                 camera_profile=camera_profile, lidar_profile=lidar_profile,
+                                 radar_profile=radar_profile)
         s = run(r, input_dir, output_dir, workers=workers, resume=resume, overwrite=overwrite, dry_run=dry_run,
                 limit=limit, fail_fast=fail_fast, yes=yes, limits=limits, progress=not quiet, echo=typer.echo,
                 warn=lambda m: typer.echo(m, err=True), backend=backend, scheduler=scheduler, profile=profile)
@@ -277,16 +281,22 @@ def preview(
     panel_px: Optional[int] = typer.Option(None, "--panel-px", min=120, help="Width of one panel "
                                            "[default: 480, 320 on contact sheets]."),
     colour: str = typer.Option("range", "--colour", help="LiDAR colour: range or intensity."),
+    depth: Optional[str] = typer.Option(None, "--depth", help="Depth sidecar pattern of an image (inputs.depth)."),
+    depth_source: Optional[str] = typer.Option(None, "--depth-source", help="file | lidar | onnx | ground_plane "
+                                               "(inputs.depth_source), e.g. ground_plane for photos without depth."),
 ) -> None:
     """Show what a recipe (or every CNF) does to one file, step by step, through the same code and random draws as
     `augment`: camera frames side by side with a zoomed inset, LiDAR bird's-eye views and range images, radar
     bird's-eye views; removed, moved and added points highlighted."""
     from roadview_noise import preview as pv
+    from roadview_noise.overrides import with_input_overrides
 
     if sensor not in (None, "camera", "lidar", "radar"):
         _fail(f"--sensor must be camera, lidar or radar, got {sensor!r}")
     if colour not in ("range", "intensity"):
         _fail(f"--colour must be range or intensity, got {colour!r}")
+    if depth_source not in (None, "file", "lidar", "onnx", "ground_plane"):
+        _fail(f"--depth-source must be file, lidar, onnx or ground_plane, got {depth_source!r}")
     if all_cnfs == (recipe is not None):
         _fail("give either --recipe (a recipe file or a CNF id) or --all-cnfs")
     if out is None:
@@ -297,9 +307,10 @@ def preview(
             target = out if len(files) == 1 else out / f"{pv.file_label(f, input_root)}-{kind}.png"
             if all_cnfs:
                 img = pv.contact_sheet(f, kind, in_root=input_root, seed=seed, panel_px=panel_px or 320,
-                                       colour_by=colour)
+                                       colour_by=colour, depth=depth, depth_source=depth_source)
             else:
                 r = pv.recipe_from(recipe, sensor or (kind if kind != "camera" else None), seed)
+                r = with_input_overrides(r, depth=depth, depth_source=depth_source)
                 sample, root = pv.sample_for(f, r, input_root)
                 img = pv.render(pv.run_chain(r, sample, root, title=f"{f.name}: {' -> '.join(r.model_ids)}"),
                                 panel_px or 480, colour)

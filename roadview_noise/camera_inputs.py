@@ -38,8 +38,9 @@ from .registry import get_model
 from .types import CameraFrame, CameraProfile, RawFrame
 
 FALLBACK_FOV_H_DEG = 80.8          # the ROADVIEW Lucid Triton TRI028S + 6 mm lens (profiles/camera.py)
-DEPTH_OPTIONS = ("point inputs.depth (or --depth) at your depth files, or set inputs.depth_source: lidar (the paired "
-                 "LiDAR scan), onnx (a monocular depth model) or ground_plane (a flat-road prior)")
+DEPTH_OPTIONS = ("point inputs.depth (or --depth) at your depth files, or set inputs.depth_source (or "
+                 "--depth-source): lidar (the paired LiDAR scan), onnx (a monocular depth model) or ground_plane (a "
+                 "flat-road prior)")
 
 
 def needs_camera_geometry(recipe: Recipe) -> bool:
@@ -177,10 +178,30 @@ class _Geometry:
         inputs = self.recipe.spec.inputs
         if inputs.calibration is None:
             return None
-        cal = load_calibration(self.origin.sidecar(inputs.calibration, "calibration", self.recipe.base_dir),
-                               kitti_camera=inputs.kitti_camera)
+        if isinstance(inputs.calibration, str):
+            cal = load_calibration(self.origin.sidecar(inputs.calibration, "calibration", self.recipe.base_dir),
+                                   kitti_camera=inputs.kitti_camera)
+        else:
+            cal = self._nuscenes(inputs.calibration.nuscenes)
         self.notes["calibration"] = _relative(Path(cal.source), self.origin.in_root)
         return cal
+
+    def _nuscenes(self, tables: str):
+        """``calibration: {nuscenes: VERSION}``: the image's (and paired scan's) calibrated_sensor records."""
+        from .depth.nuscenes import nuscenes_calibration
+
+        sample = getattr(self.origin, "sample", None)
+        if sample is None:
+            raise InputError("calibration {nuscenes: …} needs image files under the dataroot", file=self.origin.name)
+        inputs = self.recipe.spec.inputs
+        root = Path(self.origin.in_root).resolve()
+        folder = (root / tables).resolve()
+        if not folder.is_relative_to(root):
+            raise InputError(f"calibration {{nuscenes: {tables!r}}} is outside the input folder", file=self.origin.name)
+        lidar = inputs.depth_source == "lidar" and inputs.lidar_depth is not None
+        scan = depth_relpath_for(sample.relpath, inputs.lidar_depth.scan) \
+            if lidar and inputs.lidar_depth.scan is not None else None
+        return nuscenes_calibration(folder, sample.relpath, lidar=lidar, scan_rel=scan)
 
     @cached_property
     def profile(self) -> CameraProfile:
@@ -275,15 +296,21 @@ def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal)
     from .io.image import display_srgb
 
     spec = recipe.spec.inputs.lidar_depth
-    scan_rel = depth_relpath_for(origin.sample.relpath, spec.scan)
+    cal = geometry.calibration
+    if spec.scan is None:
+        if cal is None or cal.paired_scan is None:
+            raise InputError("inputs.lidar_depth.scan is needed (only nuScenes tables pair the scan themselves)",
+                             file=origin.name)
+        scan_rel = cal.paired_scan
+    else:
+        scan_rel = depth_relpath_for(origin.sample.relpath, spec.scan)
     scan_path = origin.in_root / scan_rel
     if not scan_path.is_file():
         raise InputError(f"no paired LiDAR scan {scan_rel!r} (inputs.lidar_depth.scan: {spec.scan!r})",
                          file=origin.name)
-    cal = geometry.calibration
     if cal is None or cal.lidar_to_camera is None:
         raise InputError("depth_source lidar needs the LiDAR → camera transform: inputs.calibration (a KITTI "
-                         "calib .txt, or a .yaml with lidar_to_camera)", file=origin.name)
+                         "calib .txt, a .yaml with lidar_to_camera, or {nuscenes: VERSION})", file=origin.name)
     profile = geometry.profile
     cloud = cloud_io.read_pointcloud(scan_path, sensor="lidar")
     ground = None
@@ -313,7 +340,9 @@ def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
     model = Path(spec.model)
     model = model if model.is_absolute() else recipe.base_dir / model
     if not model.is_file():
-        raise InputError(f"no ONNX depth model {str(model)!r} ({geometry.origin.key('onnx_depth')}.model)",
+        raise InputError(f"no ONNX depth model {str(model)!r} ({geometry.origin.key('onnx_depth')}.model, relative "
+                         f"to the recipe's folder): export a metric monocular depth network to ONNX (its first "
+                         f"output × scale_m must be metres) or use depth_source ground_plane",
                          file=geometry.origin.name)
     image = signal()
     if image.ndim != 3:
@@ -333,8 +362,8 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
 
     spec = recipe.spec.inputs.ground_plane
     profile, cal = geometry.profile, geometry.calibration
-    height = spec.camera_height_m or (cal.height_above_ground_m if cal is not None else None) or \
-        profile.height_above_ground_m
+    cal_height = cal.height_above_ground_m if cal is not None else None
+    height = spec.camera_height_m or cal_height or profile.height_above_ground_m
     if spec.pitch_deg is not None:
         pitch = math.radians(spec.pitch_deg)
     else:
@@ -342,8 +371,11 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
     depth = ground_plane_range((profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px), profile.width_px,
                                profile.height_px, camera_height_m=height, pitch_rad=pitch,
                                sky_distance_m=spec.sky_distance_m)
-    return depth, None, {"source": "ground_plane", "camera_height_m": height, "pitch_deg": math.degrees(pitch),
-                         "sky_distance_m": spec.sky_distance_m}
+    notes = {"source": "ground_plane", "camera_height_m": height, "pitch_deg": math.degrees(pitch),
+             "sky_distance_m": spec.sky_distance_m}
+    if not (spec.camera_height_m or cal_height):
+        notes["camera_height_from"] = f"camera profile {profile.name}"
+    return depth, None, notes
 
 
 def _depth_warnings(notes: dict | None) -> list[str]:
@@ -354,6 +386,8 @@ def _depth_warnings(notes: dict | None) -> list[str]:
         out.append("depth_holes_filled")
     if notes.get("source") == "ground_plane":
         out.append("depth_ground_plane")
+        if "camera_height_from" in notes:
+            out.append("ground_plane_profile_height")
     return out
 
 
@@ -368,6 +402,7 @@ class InputWarnings:
         self.files: dict[str, int] = {}
         self.worst_hole_fraction = 0.0
         self.fovs: set[float] = set()
+        self.heights: set[float] = set()
 
     def add(self, entry: dict) -> None:
         inputs = entry.get("inputs") or {}
@@ -377,6 +412,8 @@ class InputWarnings:
                 self.worst_hole_fraction = max(self.worst_hole_fraction, inputs["depth"]["hole_fraction"])
             elif kind == "intrinsics_from_fov":
                 self.fovs.add(inputs["camera"]["fov_h_deg"])
+            elif kind == "ground_plane_profile_height":
+                self.heights.add(inputs["depth"]["camera_height_m"])
 
     def lines(self) -> list[str]:
         n, lines = self.files, []
@@ -392,4 +429,9 @@ class InputWarnings:
         if "depth_ground_plane" in n:
             lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road and "
                          "one distance above the horizon, a crude guess (parameters in the manifest, inputs.depth)")
+        if "ground_plane_profile_height" in n:
+            lines.append(f"ground plane of {n['ground_plane_profile_height']} file(s) seen from the camera "
+                         f"profile's height {', '.join(f'{h:g}' for h in sorted(self.heights))} m, not your camera's "
+                         "(1.51 m on nuScenes, 1.65 m on KITTI): state inputs.ground_plane.camera_height_m or a "
+                         "calibration with the height")
         return lines

@@ -1,4 +1,4 @@
-"""Command-line overrides of a recipe's input settings (``rvnoise augment --depth/--camera-profile/...``).
+"""Command-line overrides of a recipe's input settings (``rvnoise augment --depth/--depth-source/--camera-profile/...``).
 
 They are applied to the recipe itself, which is then validated again: the resolved recipe in ``run.json``, its
 sha256, ``replay`` and ``--resume`` all see the values that were run, exactly as if the recipe had said them.
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from .recipe import Recipe, parse_recipe
 
-INPUT_OVERRIDES = ("depth", "camera_profile", "lidar_profile", "radar_profile")
+INPUT_OVERRIDES = ("depth", "depth_source", "camera_profile", "lidar_profile", "radar_profile")
 
 
 def with_input_overrides(recipe: Recipe, **values: str | None) -> Recipe:

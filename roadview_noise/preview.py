@@ -502,8 +502,11 @@ def note_row(width: int, text: str) -> np.ndarray:
 
 
 def contact_sheet(path: Path, sensor: str, *, in_root: Path | None = None, seed: int = 0, panel_px: int = 320,
-                  colour_by: str = "range") -> np.ndarray:
-    """Every CNF applicable to ``sensor`` on one file: one row per CNF, a note for a CNF that cannot run."""
+                  colour_by: str = "range", **input_overrides: str | None) -> np.ndarray:
+    """Every CNF applicable to ``sensor`` on one file: one row per CNF, a note for a CNF that cannot run;
+    ``input_overrides`` (``depth``, ``depth_source``, …: :func:`overrides.with_input_overrides`) apply to each."""
+    from .overrides import with_input_overrides
+
     rows: list[np.ndarray | str] = []
     for name, recipe in applicable_cnfs(sensor, seed):
         cnf = CNFS[name]
@@ -512,6 +515,7 @@ def contact_sheet(path: Path, sensor: str, *, in_root: Path | None = None, seed:
             rows.append(f"{head}: {recipe}")
             continue
         try:
+            recipe = with_input_overrides(recipe, **input_overrides)
             sample, root = sample_for(path, recipe, in_root)
             run = run_chain(recipe, sample, root, title=f"{head}: {' -> '.join(recipe.model_ids)}")
             rows.append(render(run, panel_px, colour_by))

@@ -25,7 +25,7 @@ from typing import Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .annotations import AnnotationsSpec
+from .annotations import AnnotationsSpec, NuscenesRule
 from .compound import cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .input_checks import check_inputs
@@ -50,7 +50,7 @@ class StepSpec(_Strict):
 class LidarDepthSpec(_Strict):
     """``depth_source: lidar`` (roadview_noise/depth/lidar.py)."""
 
-    scan: str                                      # paired scan, a pattern like `depth`
+    scan: str | None = None                        # paired scan, a pattern like `depth` (None: nuScenes tables)
     densify: Literal["nearest", "bilateral"] = "nearest"
     ground_plane: bool = True                      # flat ground below the lowest return where it fits the returns
 
@@ -93,8 +93,9 @@ class InputsSpec(_Strict):
     lidar_depth: LidarDepthSpec | None = None
     onnx_depth: OnnxDepthSpec | None = None
     ground_plane: GroundPlaneSpec = Field(default_factory=GroundPlaneSpec)
-    calibration: str | None = None             # per-image: Cityscapes camera .json, KITTI calib .txt, rvnoise .yaml
-    kitti_camera: int = Field(2, ge=0, le=3)   # the rectified camera of a KITTI calibration the images are from
+    calibration: str | NuscenesRule | None = None   # per-image: Cityscapes .json, KITTI .txt, rvnoise .yaml; or
+                                                    # {nuscenes: v1.0-trainval} (the tables' folder under IN/)
+    kitti_camera: int = Field(2, ge=0, le=4)   # the camera of a KITTI calibration the images are from (Waymo: 0–4)
     camera_fov_h_deg: float | None = Field(None, gt=0, lt=180)  # without a profile: square pixels, centred
     camera_profile: str | dict[str, Any] | None = None   # built-in, file ({dir} = the input file's folder), mapping
     lidar_profile: str | dict[str, Any] | None = None
@@ -111,10 +112,15 @@ class InputsSpec(_Strict):
         for source, key in (("lidar", "lidar_depth"), ("onnx", "onnx_depth")):
             if self.depth_source == source and getattr(self, key) is None:
                 raise ValueError(f"depth_source {source} needs `{key}:` (see the README, 'Which depth do I have?')")
-        for key in ("depth", "calibration"):
-            check_pattern(getattr(self, key))
+        check_pattern(self.depth)
+        if isinstance(self.calibration, str):
+            check_pattern(self.calibration)
         if self.lidar_depth is not None:
-            check_pattern(self.lidar_depth.scan)
+            if self.lidar_depth.scan is not None:
+                check_pattern(self.lidar_depth.scan)
+            elif not isinstance(self.calibration, NuscenesRule):
+                raise ValueError("lidar_depth needs `scan:` (a pattern of the paired scan); only "
+                                 "`calibration: {nuscenes: …}` pairs the scan itself")
         return self
 
 

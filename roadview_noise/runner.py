@@ -404,7 +404,13 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         raise RecipeError(f"the recipe plans more than {cap:,} outputs ({len(recipe.variants):,} variant(s) per "
                           "input); say --yes to run it anyway, or narrow the sweep or the inputs (--limit)")
     if planned == 0 and unreadable == 0:
-        raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs")
+        inputs = recipe.spec.inputs
+        globs = "; ".join(f"inputs.{k}: {getattr(inputs, k)}" for k in ("camera", "raw", "lidar", "radar")
+                          if getattr(inputs, k))
+        example = (", e.g. camera: 'samples/CAM_*/*.jpg' (nuScenes), '**/image_2/*.png' (KITTI)"
+                   if recipe.sensor == "camera" else "")
+        raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs"
+                          f"{f' ({globs})' if globs else ''}; set the globs of your layout{example}")
     summary = RunSummary(planned=planned, dry_run=dry_run)
     if dry_run:
         for t in iter_plan(in_real, recipe, limit):

@@ -186,6 +186,9 @@ class ImageEncoding:
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
     icc_profile: bytes | None = None   # embedded ICC colour profile of the file, written back unchanged
+    exif: bytes | None = None          # EXIF (TIFF-structured, orientation included) of the file, written back unchanged
+    jpeg_sampling: int | None = None   # JPEG chroma subsampling as OpenCV's IMWRITE_JPEG_SAMPLING_FACTOR code
+    jpeg_progressive: bool = False     # JPEG: progressive (SOF2) rather than baseline
 
 
 @dataclass(frozen=True, eq=False)

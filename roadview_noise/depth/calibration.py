@@ -7,7 +7,8 @@ Camera frame: OpenCV (x right, y down, z forward); a pixel (u, v) looks along ``
   ``extrinsic: {baseline, x, y, z, yaw, pitch, roll}`` (m, rad; z = camera height above the ground, pitch > 0
   looks down).
 - KITTI calibration text (object benchmark ``calib/*.txt``: ``P0``–``P3``, ``R0_rect``, ``Tr_velo_to_cam``; or the
-  raw recordings' ``P_rect_0N``, ``R_rect_00`` with ``R``/``T`` of ``calib_velo_to_cam.txt`` in one file): the
+  raw recordings' ``P_rect_0N``, ``R_rect_00`` with ``R``/``T`` of ``calib_velo_to_cam.txt`` in one file; or
+  Waymo in mmdetection3d's KITTI format: ``P0``–``P4``, ``R0_rect`` and one ``Tr_velo_to_cam_N`` per camera): the
   rectified camera N (default 2, the left colour camera) has ``K = P_N[:, :3]`` and sits at ``t_N = K⁻¹ P_N[:, 3]``
   in the rectified frame, so a Velodyne point maps to ``[I | t_N] · R_rect · Tr_velo_to_cam · X``; ``S_rect_0N``
   (if present) is the image size K refers to. A file without the Velodyne transform gives the intrinsics only.
@@ -51,6 +52,7 @@ class Calibration:
     baseline_m: float | None = None
     height_above_ground_m: float | None = None
     pitch_rad: float | None = None
+    paired_scan: str | None = None                                     # the LiDAR scan the tables pair (nuScenes)
 
     def intrinsics_for(self, width_px: int, height_px: int) -> tuple[float, float, float, float] | None:
         """The intrinsics on an image of this size (pixel centres at integer coordinates; scaled when the
@@ -113,8 +115,9 @@ def _kitti(text: str, path: str, camera: int) -> Calibration:
     intrinsics = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     size = rows.get(f"S_rect_{camera:02d}")
     size = (int(size[0]), int(size[1])) if size is not None else None
-    if "Tr_velo_to_cam" in rows:
-        velo = np.vstack([rows["Tr_velo_to_cam"].reshape(3, 4), [0, 0, 0, 1]])
+    velo_key = next((k for k in (f"Tr_velo_to_cam_{camera}", "Tr_velo_to_cam") if k in rows), None)
+    if velo_key is not None:
+        velo = np.vstack([rows[velo_key].reshape(3, 4), [0, 0, 0, 1]])
     elif "R" in rows and "T" in rows:
         velo = np.eye(4)
         velo[:3, :3], velo[:3, 3] = rows["R"].reshape(3, 3), rows["T"]
@@ -131,7 +134,8 @@ def _first(rows: dict, keys: tuple[str, ...], path: str) -> np.ndarray:
     for k in keys:
         if k in rows:
             return rows[k]
-    raise InputError(f"KITTI calibration has none of {', '.join(keys)}", file=path)
+    raise InputError(f"KITTI calibration has none of {', '.join(keys)} (expected the devkit's 'KEY: values' lines, "
+                     f"as in calib/*.txt)", file=path)
 
 
 def _rvnoise_yaml(data, path: str) -> Calibration:

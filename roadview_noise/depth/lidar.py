@@ -8,9 +8,13 @@
    cannot see), so a return whose range exceeds the nearest return within ``occlusion_window_px`` by more than
    ``occlusion_tolerance`` (relative) is hidden from the camera and dropped.
 3. Sky. Per image column, above its highest return there is sky (range ``inf``) — unless that return is at the
-   top of the scan's vertical field of view (within ``top_beam_tolerance_deg`` of the highest return elevation of
-   the whole scan), where the scene may go on above what the LiDAR sees: there the depth is extended upwards
-   and marked not valid. Columns without a return take the nearest column's rows.
+   top of the scan's vertical field of view, where the scene may go on above what the LiDAR sees: there the depth
+   is extended upwards and marked not valid. Columns without a return take the nearest column's rows. The top of
+   the field of view is found per range (:func:`at_top_of_view`, within ``top_beam_tolerance_deg``): the elevation
+   of one beam seen from the scanner's origin is not constant, a laser that sits a height z₀ above the origin
+   (HDL-64E: about 0.2 m on KITTI's scans) reaches ``atan(tan θ + z₀ / r)`` — +3.4° at 8 m and +2.1° at 70 m for
+   its nominal +2° — so one threshold for the whole scan calls the far top-beam returns lower beams and puts sky
+   over houses and trees.
 4. Densification in image space, in inverse range: ``nearest`` gives each pixel the value of the nearest return
    (Euclidean distance in pixels; OpenCV distance transform with labels); ``bilateral`` then smooths that map with
    a joint bilateral filter guided by the image, so depth edges between returns follow image edges (OpenCV
@@ -35,6 +39,9 @@ from .ground_plane import ground_plane_range
 
 DENSIFY = ("nearest", "bilateral")
 MIN_DEPTH_M = 0.1                   # points nearer than this to the camera plane are not projected
+RANGE_BIN_RATIO = 1.02              # range bins of the top-of-view envelope: 2 % wide
+MAX_LASER_OFFSET_M = 0.5            # a laser sits within this height of the scan's origin (HDL-64E: ≈ 0.2 m)
+SPACING_MEDIAN_FACTOR = 4.0         # LiDAR column spacing: at most this × the median gap of neighbours in a row
 
 
 def project_returns(points_m: np.ndarray, lidar_to_camera: np.ndarray,
@@ -75,19 +82,67 @@ def drop_occluded(rows: np.ndarray, cols: np.ndarray, range_m: np.ndarray, shape
 
 def column_spacing_px(rows: np.ndarray, cols: np.ndarray) -> int:
     """Horizontal spacing of the projected LiDAR columns: the 90th percentile of the gaps between neighbouring
-    returns of an image row (≥ 1 px)."""
+    returns of an image row, at most ``SPACING_MEDIAN_FACTOR`` × their median (≥ 1 px). The bound matters for a
+    sparse scanner whose scan lines cross the image rows (nuScenes' HDL-32E on CAM_FRONT: neighbours in a row
+    are mostly other beams' crossings, 90th percentile 711 px, median 9 px): spread over ±711 px, the highest
+    return of the frame would close the sky of every column."""
     order = np.lexsort((cols, rows))
     r, c = rows[order], cols[order]
     gaps = np.diff(c)[np.diff(r) == 0]
-    return max(1, int(np.ceil(np.percentile(gaps, 90)))) if gaps.size else 1
+    if not gaps.size:
+        return 1
+    return max(1, int(np.ceil(min(np.percentile(gaps, 90), SPACING_MEDIAN_FACTOR * np.median(gaps)))))
 
 
-def column_extent(rows: np.ndarray, cols: np.ndarray, elevation_rad: np.ndarray, width_px: int,
-                  top_beam_tolerance_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def at_top_of_view(range_m: np.ndarray, elevation_rad: np.ndarray, tolerance_rad: float) -> np.ndarray:
+    """Boolean mask of the returns at the top of the scan's vertical field of view (module docstring, 3.).
+
+    A beam of elevation θ whose laser sits z₀ above the origin reaches ``tan e = tan θ + z₀ / r`` at range r: a
+    straight line in (1/r, tan e), above which no return lies. The top beam's line is an edge of the upper convex
+    hull of the returns in that plane (of the highest return per 2 %-wide range bin) whose slope z₀ is a laser's
+    offset (at most ``MAX_LASER_OFFSET_M``; a flat open road is such a line too, of slope −(LiDAR height)): the
+    edge along which most of those bins' highest returns lie (within ``tolerance_rad``), else the level line
+    through the highest return. A return is at the top of the view when its elevation is within
+    ``tolerance_rad`` of that line at its range."""
+    x = 1.0 / np.maximum(range_m, MIN_DEPTH_M)
+    y = np.tan(elevation_rad)
+    bins = np.floor(np.log(x) / np.log(RANGE_BIN_RATIO)).astype(np.int64)
+    order = np.lexsort((-y, bins))
+    first = order[np.r_[True, bins[order][1:] != bins[order][:-1]]]       # highest return per bin, by range
+    bx, by = x[first], y[first]
+    hx, hy = _upper_hull(bx, by)
+    best, best_support = (0.0, float(hy.max())), -1
+    for i in range(len(hx) - 1):
+        slope = (hy[i + 1] - hy[i]) / (hx[i + 1] - hx[i])
+        if abs(slope) > MAX_LASER_OFFSET_M:                # e.g. the open road: z = −(LiDAR height), a "beam" too
+            continue
+        line = (slope, hy[i] - slope * hx[i])
+        support = int(np.count_nonzero(np.arctan(by) >= np.arctan(line[0] * bx + line[1]) - tolerance_rad))
+        if support > best_support:
+            best, best_support = line, support
+    return elevation_rad >= np.arctan(best[0] * x + best[1]) - tolerance_rad
+
+
+def _upper_hull(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices of the upper convex hull of points sorted by ascending ``x`` (Andrew's monotone chain); a few
+    hundred points (one per range bin)."""
+    hx: list[float] = []
+    hy: list[float] = []
+    for px, py in zip(x.tolist(), y.tolist()):
+        while len(hx) >= 2 and (hx[-1] - hx[-2]) * (py - hy[-2]) - (hy[-1] - hy[-2]) * (px - hx[-2]) >= 0:
+            hx.pop()
+            hy.pop()
+        hx.append(px)
+        hy.append(py)
+    return np.array(hx), np.array(hy)
+
+
+def column_extent(rows: np.ndarray, cols: np.ndarray, range_m: np.ndarray, elevation_rad: np.ndarray,
+                  width_px: int, top_beam_tolerance_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per image column: row of the highest and of the lowest return within ± the LiDAR column spacing, and
-    whether that highest return is at the top of the scan's field of view (clipped). Columns without a return in
-    reach take the nearest column's values."""
-    clipped = elevation_rad >= elevation_rad.max() - top_beam_tolerance_rad
+    whether that highest return is at the top of the scan's field of view (clipped, :func:`at_top_of_view`).
+    Columns without a return in reach take the nearest column's values."""
+    clipped = at_top_of_view(range_m, elevation_rad, top_beam_tolerance_rad)
     big = np.iinfo(np.int64).max // 4
     key = np.full(width_px, big, dtype=np.int64)                    # 2·row + (0 clipped | 1): min = highest,
     np.minimum.at(key, cols, 2 * rows + (~clipped).astype(np.int64))   # a clipped return winning a tie
@@ -142,7 +197,7 @@ def lidar_depth(points_m: np.ndarray, lidar_to_camera: np.ndarray, intrinsics_px
         guide = np.asarray(guide_srgb, dtype=np.float32)
         dense = cv2.ximgproc.jointBilateralFilter(guide, dense, d=9, sigmaColor=0.1, sigmaSpace=4.0)
         dense[known] = inverse[known]
-    top, bottom, clipped = column_extent(rows, cols, elev, width_px, np.radians(top_beam_tolerance_deg))
+    top, bottom, clipped = column_extent(rows, cols, rng, elev, width_px, np.radians(top_beam_tolerance_deg))
     r = np.arange(height_px)[:, None]
     sky = (r < top[None, :]) & ~clipped[None, :]
     with np.errstate(divide="ignore"):

@@ -10,8 +10,9 @@ written back as Rec. 709 luminance Y = 0.2126 R + 0.7152 G + 0.0722 B of the lin
 channels).
 
 Written back like the input: bit depth, channels, alpha plane, JPEG quality (estimated from the input's
-quantisation tables unless the recipe states one) and the embedded ICC colour profile (PNG ``iCCP`` chunk, JPEG
-``APP2 ICC_PROFILE`` segments, TIFF tag 34675), copied unchanged. TIFF is written by tifffile (Deflate), PNG by
+quantisation tables unless the recipe states one), JPEG chroma subsampling and progressive mode, the embedded ICC
+colour profile (PNG ``iCCP`` chunk, JPEG ``APP2 ICC_PROFILE`` segments, TIFF tag 34675) and the EXIF data (JPEG
+``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged. TIFF is written by tifffile (Deflate), PNG by
 :mod:`.png` (OpenCV's settings and file size), JPEG by OpenCV.
 
 OpenCV decodes some truncated files without an error (a JPEG cut short gets a grey bottom), so the structure is checked
@@ -20,6 +21,7 @@ first: PNG needs its IEND chunk, JPEG its EOI marker, TIFF strips/tiles inside t
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import zlib
@@ -47,6 +49,11 @@ _TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _ICC_TIFF_TAG = 34675
 _ICC_JPEG_HEADER = b"ICC_PROFILE\x00"
 _ICC_JPEG_CHUNK = 65519                   # 65535 − 2 (length) − 14 (header, sequence number, count)
+_EXIF_JPEG_HEADER = b"Exif\x00\x00"
+# luma H×V sampling (chroma 1×1) → OpenCV IMWRITE_JPEG_SAMPLING_FACTOR: 4:4:4, 4:2:2, 4:2:0, 4:4:0, 4:1:1
+_OPENCV_SAMPLING = {0x11: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444, 0x21: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422,
+                    0x22: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420, 0x12: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_440,
+                    0x41: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_411}
 
 
 def image_format(path: str | os.PathLike) -> str:
@@ -76,7 +83,10 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
     check_structure(data, fmt, source)
     codes = decode_codes(data, fmt, source=source)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    return image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc_profile(data, fmt))
+    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality,
+                                               icc=icc_profile(data, fmt))
+    layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
+    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), **layout), alpha
 
 
 def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
@@ -184,13 +194,17 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
-        return embed_icc_profile(encode_png(codes), "png", encoding.icc_profile)
+        return embed_exif(embed_icc_profile(encode_png(codes), "png", encoding.icc_profile), "png", encoding.exif)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality),
+              cv2.IMWRITE_JPEG_PROGRESSIVE, int(encoding.jpeg_progressive)]
     if codes.ndim == 3:
         codes = bgr_order(codes)
-    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(codes), [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality)])
+        if encoding.jpeg_sampling is not None:
+            params += [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, encoding.jpeg_sampling]
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(codes), params)
     if not ok:
         raise OSError(f"{name}: OpenCV could not encode {encoding}")
-    return embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile)
+    return embed_exif(embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
 
 
 def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str) -> np.ndarray:
@@ -306,17 +320,80 @@ def embed_icc_profile(data: bytes, fmt: str, icc: bytes | None) -> bytes:
     if not icc:
         return data
     if fmt == "png":
-        body = b"ICC Profile\x00\x00" + zlib.compress(icc)
-        chunk = len(body).to_bytes(4, "big") + b"iCCP" + body + zlib.crc32(b"iCCP" + body).to_bytes(4, "big")
-        ihdr_end = len(PNG_SIGNATURE) + 12 + int.from_bytes(data[8:12], "big")
-        return data[:ihdr_end] + chunk + data[ihdr_end:]
+        return _insert_png_chunk(data, b"iCCP", b"ICC Profile\x00\x00" + zlib.compress(icc))
     parts = [icc[i:i + _ICC_JPEG_CHUNK] for i in range(0, len(icc), _ICC_JPEG_CHUNK)]
     segments = b"".join(b"\xff\xe2" + (len(p) + 16).to_bytes(2, "big") + _ICC_JPEG_HEADER + bytes([k + 1, len(parts)])
                         + p for k, p in enumerate(parts))
+    return _insert_jpeg_segments(data, segments)
+
+
+def _insert_png_chunk(data: bytes, kind: bytes, body: bytes) -> bytes:
+    """PNG bytes with the chunk ``kind`` holding ``body`` right after IHDR (before any IDAT)."""
+    chunk = len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
+    ihdr_end = len(PNG_SIGNATURE) + 12 + int.from_bytes(data[8:12], "big")
+    return data[:ihdr_end] + chunk + data[ihdr_end:]
+
+
+def _insert_jpeg_segments(data: bytes, segments: bytes) -> bytes:
+    """JPEG bytes with marker ``segments`` after SOI and the JFIF APP0 segment, which must stay first."""
     pos = 2
-    if data[2:4] == b"\xff\xe0":                      # JFIF APP0 must stay first
+    if data[2:4] == b"\xff\xe0":
         pos += 2 + int.from_bytes(data[4:6], "big")
     return data[:pos] + segments + data[pos:]
+
+
+# --- EXIF metadata and the JPEG frame layout ------------------------------------------------------------------------
+
+
+def exif_block(data: bytes, fmt: str) -> bytes | None:
+    """The EXIF data (a TIFF structure: byte order, IFD0 with the orientation tag 274, …) of a JPEG (``APP1
+    Exif``, CIPA DC-008 §4.7.2) or PNG (``eXIf`` chunk, PNG 1.5 extensions); None for TIFF and files without.
+
+    Pixels are read as stored (no EXIF rotation), so the EXIF is written back unchanged: a viewer shows the output
+    turned like the input, and boxes and masks in stored pixel coordinates stay aligned. Its thumbnail, if any, is
+    the input's."""
+    if fmt == "jpeg":
+        for marker, segment in _jpeg_segments(data):
+            if marker == 0xE1 and segment.startswith(_EXIF_JPEG_HEADER):
+                return segment[len(_EXIF_JPEG_HEADER):] or None
+        return None
+    if fmt == "png":
+        pos = len(PNG_SIGNATURE)
+        while pos + 8 <= len(data):
+            length, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
+            if kind == b"eXIf":
+                return data[pos + 8:pos + 8 + length] or None
+            if kind == b"IDAT":
+                return None
+            pos += 12 + length
+    return None
+
+
+def embed_exif(data: bytes, fmt: str, exif: bytes | None) -> bytes:
+    """PNG or JPEG bytes with ``exif`` (:func:`exif_block`) embedded: an ``eXIf`` chunk after IHDR, or an
+    ``APP1 Exif`` segment after SOI and JFIF APP0. EXIF too long for one JPEG segment is left out."""
+    if not exif:
+        return data
+    if fmt == "png":
+        return _insert_png_chunk(data, b"eXIf", exif)
+    body = _EXIF_JPEG_HEADER + exif
+    if len(body) + 2 > 0xFFFF:
+        return data
+    return _insert_jpeg_segments(data, b"\xff\xe1" + (len(body) + 2).to_bytes(2, "big") + body)
+
+
+def _jpeg_frame_layout(data: bytes) -> dict:
+    """``jpeg_sampling`` (OpenCV's code of the luma sampling factors, chroma at 1 × 1) and ``jpeg_progressive``
+    from the JPEG's start-of-frame segment (T.81 B.2.2); no sampling code for grey, CMYK or unusual factors."""
+    for marker, seg in _jpeg_segments(data):
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            comps = [seg[6 + 3 * i:9 + 3 * i] for i in range(seg[5])] if len(seg) > 5 else []
+            factors = [c[1] for c in comps if len(c) == 3]
+            sampling = None
+            if len(factors) == 3 and factors[1] == factors[2] == 0x11 and factors[0] in _OPENCV_SAMPLING:
+                sampling = _OPENCV_SAMPLING[factors[0]]
+            return {"jpeg_sampling": sampling, "jpeg_progressive": marker in (0xC2, 0xC6, 0xCA, 0xCE)}
+    return {}
 
 
 def _jpeg_segments(data: bytes):
