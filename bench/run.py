@@ -63,6 +63,8 @@ RECIPES = {
 INPUTS = {"camera": {"camera": "camera/**/*.png", "depth": "{stem}_depth.exr"},
           "lidar": {"lidar": "lidar/**/*.pcd"}, "radar": {"radar": "radar/**/*.pcd"}}
 PHOTO_NOISE_CODES = 2.0
+TABLE_CACHE_ENV = "RVNOISE_TABLE_CACHE"     # roadview_noise.table_cache.ENV (not imported before the fork server)
+COLD_TABLES = False                         # --cold-tables
 
 
 # --- data ------------------------------------------------------------------------------------------------------------
@@ -166,6 +168,8 @@ def augment(name: str, sensor: str, tree: Path, out: Path, workers: int) -> dict
     warm = out.with_name(out.name + "-warm")        # the fork server's start is start-up, measured by startup()
     run(recipe, tree, warm, workers=1, limit=1, progress=False, echo=lambda m: None)
     shutil.rmtree(warm)
+    if COLD_TABLES:                                 # this run builds its tables as a first run would
+        shutil.rmtree(Path(os.environ[TABLE_CACHE_ENV]), ignore_errors=True)
     cpu0, t0 = _cpu_s(), time.perf_counter()
     s = run(recipe, tree, out, workers=workers, progress=False, echo=lambda m: None, profile=True)
     wall, cpu = time.perf_counter() - t0, _cpu_s() - cpu0
@@ -319,6 +323,9 @@ def main() -> None:
     ap.add_argument("--only-table", action="store_true",
                     help="only the copy/augment table (no per-model, start-up, small-file or single-frame rows)")
     ap.add_argument("--small-files", action="store_true", help="only the small-files table (radar)")
+    ap.add_argument("--cold-tables", action="store_true",
+                    help="every timed run starts with an empty table cache, as a first run after an install or an "
+                         "edit (default: the tables on disk, as a repeated run finds them)")
     ap.add_argument("--repeat", type=int, default=1,
                     help="runs of each copy and recipe per worker count, 1 and 2 workers alternating (medians)")
     args = ap.parse_args()
@@ -332,10 +339,15 @@ def main() -> None:
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="rvnoise-bench-") as tmp:
         root = Path(tmp)
+        if args.cold_tables:                # before the first fork server: the workers read the server's env
+            global COLD_TABLES
+            COLD_TABLES = True
+            os.environ[TABLE_CACHE_ENV] = str(root / "tables")
         trees = build_trees(root, args.frames, args.copies, sensors)
         n = args.frames * args.copies
         print(f"# rvnoise bench/run.py — {n} files per sensor, {os.cpu_count()} cores, load average {load:.1f} "
-              f"at the start (medians; ratios from this run)\n")
+              f"at the start (medians; ratios from this run); physics tables "
+              f"{'built by every run (--cold-tables)' if COLD_TABLES else 'read from the table cache'}\n")
         if not args.small_files:
             per_model, splits = table(root, trees, recipes, n, args.repeat)
         if not (args.small_files or args.only_table):
