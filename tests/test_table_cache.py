@@ -160,9 +160,11 @@ PHYSICS_TABLES = [
 ]
 
 
-def _in_worker(task: int, context: None) -> str:
+def _in_worker(task: int, context: None) -> tuple[str, bool]:
+    """The table's digest in a worker, and whether its file was there to be read."""
     fn, args = PHYSICS_TABLES[task]
-    return _digest(fn(*args))
+    stored = (table_cache.cache_dir() / table_cache.key(fn.uncached, args, {})).is_file()
+    return _digest(fn(*args)), stored
 
 
 @pytest.mark.parametrize("i", range(len(PHYSICS_TABLES)), ids=[f.__name__ for f, _ in PHYSICS_TABLES])
@@ -179,8 +181,8 @@ def test_the_physics_tables_read_back_exactly(folder, i):
 
 
 def test_a_worker_reads_the_tables_this_process_built(tmp_path):
-    """Workers inherit the fork server's environment, so this test uses the folder the server uses (the default
-    one unless the session set another): a table built and stored here is what a worker returns."""
+    """Workers inherit the fork server's environment, so this test uses the session's folder (conftest), the one
+    the server uses: a table built and stored here is what a worker returns."""
     if table_cache.cache_dir() is None:
         pytest.skip("the table cache is off in this session")
     expected = []
@@ -192,4 +194,30 @@ def test_a_worker_reads_the_tables_this_process_built(tmp_path):
         got = dict(ex.map(range(len(PHYSICS_TABLES))))
     finally:
         ex.close()
-    assert [got[i] for i in range(len(PHYSICS_TABLES))] == expected
+    assert [got[i] for i in range(len(PHYSICS_TABLES))] == [(d, True) for d in expected]
+
+
+@pytest.mark.parametrize("name, prefix", [("weather-snow-lidar", "lidar/os1-128/"), ("weather-fog-lidar", "lidar/"),
+                                          ("weather-rain-radar", "radar/"), ("weather-snow-radar", "radar/")])
+def test_outputs_do_not_depend_on_the_cache(tmp_path, monkeypatch, name, prefix):
+    """One file's output bytes with the cache off, with tables built into an empty cache, and read back from it."""
+    from roadview_noise.recipe import load_recipe
+    from roadview_noise.runner import RunContext, plan, process
+
+    root = Path(__file__).resolve().parents[1]
+    recipe = load_recipe(root / "recipes" / f"{name}.yaml")
+    task = next(t for t in plan(root / "sample_data", recipe) if t.sample.relpath.startswith(prefix))
+    outputs = []
+    for i, setting in enumerate(["off", str(tmp_path / "tables"), str(tmp_path / "tables")]):
+        monkeypatch.setenv(table_cache.ENV, setting)
+        for fn, _ in PHYSICS_TABLES + [(radar_clutter._doppler_shape_tables, ()),
+                                       (radar_clutter.cell_doppler_probabilities, ())]:
+            fn.cache_clear()                                # a new worker
+        out = tmp_path / f"out{i}"
+        out.mkdir()
+        entry = process(task, RunContext(root / "sample_data", out.resolve(), recipe))
+        assert entry["status"] == "ok", entry.get("error")
+        outputs.append(entry["output_sha256"])
+        if i == 1:
+            assert _files(tmp_path / "tables")                # the run stored its tables
+    assert outputs[0] == outputs[1] == outputs[2]
