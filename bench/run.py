@@ -28,11 +28,16 @@ copied. Then, per sensor, with 1 and 2 processes:
   stringzilla simsimd``: its wheel's opencv-python-headless would shadow opencv-contrib);
 - **memory**: the main process's peak RSS for 100 and 10 000 tiny radar files (``--quick`` skips it).
 
+Physics tables (``roadview_noise/table_cache.py``): each recipe's one-file warm-up run leaves them on disk, so the
+timed runs read them as a repeated run does; ``--cold-tables`` gives the bench a folder of its own and empties it
+before each timed run, so every worker builds them as on a first run after an install or an edit.
+
 Figures are medians (``--repeat R``: R runs of each copy and recipe, 1 and 2 workers alternating); ratios are
 measured in the same run. A shared machine makes absolute figures noisy. ``--sensors lidar,radar``, ``--recipes``,
 ``--only-table`` and ``--small-files`` measure a part of the table; ``--copies 12`` gives 48 files per sensor.
 
     .venv/bin/python bench/run.py [--frames N] [--copies C] [--quick] [--repeat R] [--sensors S] [--only-table]
+                                  [--cold-tables]
 """
 
 from __future__ import annotations
