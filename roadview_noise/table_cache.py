@@ -13,8 +13,11 @@ whose misses look on disk first: a table is built once per machine, code and par
   name (atomic); two writers of one key write the same bytes. A file whose length or CRC-32 does not match (a crash
   mid-write on a filesystem that reorders) is rebuilt and replaced; a folder that cannot be written costs only the
   cache.
-- **Bounded**: after a write the folder is pruned to :data:`MAX_BYTES`, least recently written first (tables of
-  parameters drawn per file do not pile up).
+- **Bounded**: after a write the folder is pruned to :data:`MAX_BYTES`, least recently written first; a process
+  writes at most :data:`MAX_WRITES_PER_PROCESS` tables (a run keyed by parameters drawn per file, or by a value
+  fitted per frame, would otherwise write a table per file: it still reads what is there). Only functions whose
+  keys repeat across files belong here (``radar_clutter.cell_doppler_probabilities``, keyed by each frame's fitted
+  ego velocity, does not).
 
 ``RVNOISE_TABLE_CACHE``: the folder (default ``$XDG_CACHE_HOME/rvnoise/tables``, else ``~/.cache/rvnoise/tables``);
 ``off`` disables it. The files are pickles: the folder must be as trusted as the package's own ``__pycache__``
@@ -37,10 +40,12 @@ from typing import Any, Callable
 
 ENV = "RVNOISE_TABLE_CACHE"
 MAX_BYTES = 256 * 1024 ** 2
+MAX_WRITES_PER_PROCESS = 12
 VERSIONED = ("numpy", "scipy", "miepython")     # libraries whose results the tables depend on
 _MAGIC = b"RVNTAB1\n"
 _HEADER = struct.Struct("<8sQI")                 # magic, payload length, CRC-32 of the payload
 _MISSING = object()
+_writes = 0                                      # tables this process wrote
 
 
 def cache_dir() -> Path | None:
@@ -148,10 +153,13 @@ def load_or_build(fn: Callable, args: tuple, kwargs: dict) -> Any:
         name = key(fn, args, kwargs)
     except Exception:                    # an argument that does not pickle: no disk cache for that call
         return fn(*args, **kwargs)
+    global _writes
     value = read(folder / name)
     if value is _MISSING:
         value = fn(*args, **kwargs)
-        write(folder, name, value)
+        if _writes < MAX_WRITES_PER_PROCESS:
+            _writes += 1
+            write(folder, name, value)
     return value
 
 

@@ -40,6 +40,12 @@ def _same(a: dict, b: dict) -> bool:
         for k in a)
 
 
+@pytest.fixture(autouse=True)
+def write_budget(monkeypatch) -> None:
+    """Each test starts with this process's write budget unused (other tests of the session spend it)."""
+    monkeypatch.setattr(table_cache, "_writes", 0)
+
+
 @pytest.fixture
 def folder(tmp_path, monkeypatch) -> Path:
     d = tmp_path / "tables"
@@ -107,6 +113,18 @@ def test_off_and_unwritable_folders_cost_only_the_cache(tmp_path, monkeypatch):
     _table.cache_clear()
     assert _same(_table(10, 1.0), _table.uncached(10, 1.0))
     assert blocker.read_text() == "x"
+
+
+def test_a_process_writes_a_bounded_number_of_tables(folder, monkeypatch):
+    """Keys that change with every file (parameters drawn per file) stop being written after the budget; what is
+    stored is still read."""
+    monkeypatch.setattr(table_cache, "MAX_WRITES_PER_PROCESS", 3)
+    for n in range(1, 7):
+        _table(n, 1.0)
+    assert len(_files(folder)) == 3 and len(BUILT) == 6
+    _table.cache_clear()
+    _table(1, 1.0)                                         # stored: read, not built
+    assert len(BUILT) == 6
 
 
 def test_prune_keeps_the_most_recent_within_the_budget(folder):

@@ -258,7 +258,7 @@ def _expand(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return owner, np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
 
 
-@disk_cached(maxsize=8)
+@lru_cache(maxsize=8)
 def cell_doppler_probabilities(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                                relative_velocity_m_per_s: tuple[float, float, float]
                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
