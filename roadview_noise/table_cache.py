@@ -20,7 +20,7 @@ whose misses look on disk first: a table is built once per machine, code and par
   ego velocity, does not).
 
 ``RVNOISE_TABLE_CACHE``: the folder (default ``$XDG_CACHE_HOME/rvnoise/tables``, else ``~/.cache/rvnoise/tables``);
-``off`` disables it. The files are pickles: the folder must be as trusted as the package's own ``__pycache__``
+``off`` disables it. Workers see the fork server's environment (the ``rvnoise`` command's). The files are pickles: the folder must be as trusted as the package's own ``__pycache__``
 (it is created private, mode 0700).
 """
 
