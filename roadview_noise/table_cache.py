@@ -20,8 +20,8 @@ whose misses look on disk first: a table is built once per machine, code and par
   ego velocity, does not).
 
 ``RVNOISE_TABLE_CACHE``: the folder (default ``$XDG_CACHE_HOME/rvnoise/tables``, else ``~/.cache/rvnoise/tables``);
-``off`` disables it. Workers see the fork server's environment (the ``rvnoise`` command's). The files are pickles: the folder must be as trusted as the package's own ``__pycache__``
-(it is created private, mode 0700).
+``off`` disables it. Workers see the fork server's environment (the ``rvnoise`` command's). The files are
+pickles: the folder must be as trusted as the package's own ``__pycache__`` (it is created private, mode 0700).
 """
 
 from __future__ import annotations
@@ -61,13 +61,16 @@ def cache_dir() -> Path | None:
 def code_version() -> str:
     """SHA-256 of every module of the package (path and bytes), Python's version, the machine and
     :data:`VERSIONED` libraries' versions: what a table's values may depend on besides its arguments. Computed once
-    per process (≈ 25 ms, most of it ``importlib.metadata``'s import; the fork server's warm-up computes it for its
-    workers)."""
+    per process (the fork server's warm-up computes it for its workers)."""
     from importlib import metadata
 
     root = Path(__file__).resolve().parent
+    modules = []
+    for folder, subfolders, names in os.walk(root):
+        subfolders[:] = [d for d in subfolders if d != "__pycache__"]      # numba's cache files live there
+        modules += [Path(folder, n) for n in names if n.endswith(".py")]
     digest = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    for path in sorted(modules):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     for name in VERSIONED:
         try:
