@@ -9,6 +9,8 @@ whose misses look on disk first: a table is built once per machine, code and par
 - **Exact**: the file holds the pickled return value, so a worker gets bit for bit what the function would return.
   The key is the SHA-256 of the pickled arguments and of :func:`code_version` (the package's source, Python's,
   NumPy's, SciPy's and miepython's versions, the machine): an edit to any module or an upgrade builds new tables.
+  Arrays read back are read-only (they share the file's buffer): a cached table is shared by every caller of the
+  process already, so nothing may write into it.
 - **Safe under concurrent runs**: a table is written to a temporary file in the cache folder and renamed onto its
   name (atomic); two writers of one key write the same bytes. A file whose length or CRC-32 does not match (a crash
   mid-write on a filesystem that reorders) is rebuilt and replaced; a folder that cannot be written costs only the
@@ -85,7 +87,7 @@ def code_version() -> str:
 def key(fn: Callable, args: tuple, kwargs: dict) -> str:
     """The file name of ``fn(*args, **kwargs)``'s table: the function's name and a SHA-256 of its pickled
     arguments and :func:`code_version`."""
-    blob = pickle.dumps((args, sorted(kwargs.items())), protocol=4)
+    blob = pickle.dumps((args, sorted(kwargs.items())), protocol=4)    # 4: an array's bytes whatever its flags
     digest = hashlib.sha256(code_version().encode() + b"\0" + blob).hexdigest()
     return f"{fn.__module__}.{fn.__qualname__}-{digest}.pkl"
 

@@ -31,7 +31,9 @@ def _table(n: int, scale: float, pause_s: float = 0.0) -> dict:
 
 
 def _digest(value) -> str:
-    return hashlib.sha256(pickle.dumps(value, protocol=5)).hexdigest()
+    """SHA-256 of the value's bytes (protocol 4: protocol 5 pickles a read-only array, as tables read back are,
+    differently from a writeable one with the same bytes)."""
+    return hashlib.sha256(pickle.dumps(value, protocol=4)).hexdigest()
 
 
 def _same(a: dict, b: dict) -> bool:
