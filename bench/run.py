@@ -28,11 +28,16 @@ copied. Then, per sensor, with 1 and 2 processes:
   stringzilla simsimd``: its wheel's opencv-python-headless would shadow opencv-contrib);
 - **memory**: the main process's peak RSS for 100 and 10 000 tiny radar files (``--quick`` skips it).
 
+Physics tables (``roadview_noise/table_cache.py``): each recipe's one-file warm-up run leaves them on disk, so the
+timed runs read them as a repeated run does; ``--cold-tables`` gives the bench a folder of its own and empties it
+before each timed run, so every worker builds them as on a first run after an install or an edit.
+
 Figures are medians (``--repeat R``: R runs of each copy and recipe, 1 and 2 workers alternating); ratios are
 measured in the same run. A shared machine makes absolute figures noisy. ``--sensors lidar,radar``, ``--recipes``,
 ``--only-table`` and ``--small-files`` measure a part of the table; ``--copies 12`` gives 48 files per sensor.
 
     .venv/bin/python bench/run.py [--frames N] [--copies C] [--quick] [--repeat R] [--sensors S] [--only-table]
+                                  [--cold-tables]
 """
 
 from __future__ import annotations
@@ -63,6 +68,8 @@ RECIPES = {
 INPUTS = {"camera": {"camera": "camera/**/*.png", "depth": "{stem}_depth.exr"},
           "lidar": {"lidar": "lidar/**/*.pcd"}, "radar": {"radar": "radar/**/*.pcd"}}
 PHOTO_NOISE_CODES = 2.0
+TABLE_CACHE_ENV = "RVNOISE_TABLE_CACHE"     # roadview_noise.table_cache.ENV (not imported before the fork server)
+COLD_TABLES = False                         # --cold-tables
 
 
 # --- data ------------------------------------------------------------------------------------------------------------
@@ -166,6 +173,8 @@ def augment(name: str, sensor: str, tree: Path, out: Path, workers: int) -> dict
     warm = out.with_name(out.name + "-warm")        # the fork server's start is start-up, measured by startup()
     run(recipe, tree, warm, workers=1, limit=1, progress=False, echo=lambda m: None)
     shutil.rmtree(warm)
+    if COLD_TABLES:                                 # this run builds its tables as a first run would
+        shutil.rmtree(Path(os.environ[TABLE_CACHE_ENV]), ignore_errors=True)
     cpu0, t0 = _cpu_s(), time.perf_counter()
     s = run(recipe, tree, out, workers=workers, progress=False, echo=lambda m: None, profile=True)
     wall, cpu = time.perf_counter() - t0, _cpu_s() - cpu0
@@ -319,6 +328,9 @@ def main() -> None:
     ap.add_argument("--only-table", action="store_true",
                     help="only the copy/augment table (no per-model, start-up, small-file or single-frame rows)")
     ap.add_argument("--small-files", action="store_true", help="only the small-files table (radar)")
+    ap.add_argument("--cold-tables", action="store_true",
+                    help="every timed run starts with an empty table cache, as a first run after an install or an "
+                         "edit (default: the tables on disk, as a repeated run finds them)")
     ap.add_argument("--repeat", type=int, default=1,
                     help="runs of each copy and recipe per worker count, 1 and 2 workers alternating (medians)")
     args = ap.parse_args()
@@ -332,10 +344,15 @@ def main() -> None:
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="rvnoise-bench-") as tmp:
         root = Path(tmp)
+        if args.cold_tables:                # before the first fork server: the workers read the server's env
+            global COLD_TABLES
+            COLD_TABLES = True
+            os.environ[TABLE_CACHE_ENV] = str(root / "tables")
         trees = build_trees(root, args.frames, args.copies, sensors)
         n = args.frames * args.copies
         print(f"# rvnoise bench/run.py — {n} files per sensor, {os.cpu_count()} cores, load average {load:.1f} "
-              f"at the start (medians; ratios from this run)\n")
+              f"at the start (medians; ratios from this run); physics tables "
+              f"{'built by every run (--cold-tables)' if COLD_TABLES else 'read from the table cache'}\n")
         if not args.small_files:
             per_model, splits = table(root, trees, recipes, n, args.repeat)
         if not (args.small_files or args.only_table):

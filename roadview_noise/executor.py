@@ -90,7 +90,7 @@ class Executor(Protocol):
         """Run ``fn(task, context)`` for each task; yield ``(task, result)`` as tasks complete."""
 
     def close(self) -> None:
-        """Stop the workers (also when ``map`` was left early)."""
+        """Stop the workers (also when ``map`` was left early) and wait for them."""
 
 
 def death_reason(exitcode: int | None) -> str:
@@ -255,6 +255,7 @@ class _Worker:
     conn: Any
     queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered; the first one is running
     started: float = 0.0                            # when the first of ``queue`` started
+    stopping: bool = False                          # told to exit (ProcessExecutor.stop), not joined yet
 
 
 class ProcessExecutor(Generic[T, C]):
@@ -296,6 +297,8 @@ class ProcessExecutor(Generic[T, C]):
         startup_deaths = 0
         try:
             _live.add(self)
+            self._join([w for w in self._pool if w.stopping])      # a second map after a stop: fresh workers
+            self._pool = [w for w in self._pool if not w.stopping]
             while len(self._pool) < self.workers:
                 self._pool.append(self._start())
             while True:
@@ -385,20 +388,37 @@ class ProcessExecutor(Generic[T, C]):
                         retry.append((tid, task))
                     self._pool[i] = self._start()
         finally:
-            self.close()
+            self.stop()
 
-    def close(self) -> None:
-        """Stop every worker: a polite ``None`` to idle ones, SIGKILL to busy ones and to any that lingers."""
-        pool, self._pool = self._pool, []
-        _live.discard(self)
-        for w in pool:
+    def stop(self) -> None:
+        """Tell every idle worker to exit (a polite ``None``) without waiting for it — :meth:`close` waits; the
+        runner closes the executor after the run's record is written, so their exit overlaps it — and SIGKILL busy
+        ones and wait for those (``map`` does this when it ends): no worker writes anything after ``stop``."""
+        killed = []
+        for w in self._pool:
+            if w.stopping:
+                continue
+            w.stopping = True
             try:
                 if not w.queue and w.proc.is_alive():
                     w.conn.send(None)
                 else:
                     w.proc.kill()
+                    killed.append(w)
             except (BrokenPipeError, OSError):
-                pass
+                killed.append(w)
+        self._join(killed)
+
+    def close(self) -> None:
+        """Stop every worker (:meth:`stop`) and wait for them; SIGKILL to any that lingers."""
+        self.stop()
+        pool, self._pool = self._pool, []
+        _live.discard(self)
+        self._join(pool)
+
+    @staticmethod
+    def _join(pool: list[_Worker]) -> None:
+        """Wait up to 5 s for the stopped workers of ``pool`` to exit, then SIGKILL the rest."""
         deadline = time.monotonic() + 5
         for w in pool:
             w.proc.join(max(0.0, deadline - time.monotonic()))

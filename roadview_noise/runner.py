@@ -620,7 +620,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
                     if ledger.stopped:
                         break
             finally:
-                executor.close()
+                getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
                 ledger.discard_pending()
         if ledger.stopped:
             summary.state = "stopped at the first failure (--fail-fast)"

@@ -12,6 +12,8 @@ point-cloud ones. With no model loaded, every kernel is.
 
 When a camera model is loaded, physics/srgb.py's encode tables are built here too, so that the workers inherit
 them instead of each building them on its first file (≈ 40 ms).
+When a model whose tables are kept on disk is loaded (:mod:`roadview_noise.table_cache`), the cache's code
+version is computed here once (≈ 25 ms that each worker would pay on its first table).
 """
 
 from __future__ import annotations
@@ -76,6 +78,10 @@ def warm_up() -> int:
 
         srgb.encode8_table()
         srgb.encode16_table()
+    if "roadview_noise.table_cache" in sys.modules:         # a model with tables on disk is loaded
+        from . import table_cache
+
+        table_cache.code_version()
     return loaded
 
 

@@ -42,7 +42,9 @@ def test_deaths_retries_and_errors(tmp_path):
     assert results[5] == (5, 25)                                   # killed once, retried on a fresh worker
     assert isinstance(results[7], TaskError) and "bad task 7" in results[7].message
     assert all(results[t] == (t, t * t) for t in range(12) if t not in (3, 7))
-    assert ex.deaths == 3 and not ex._pool
+    assert ex.deaths == 3 and all(w.stopping for w in ex._pool)        # told to exit when map ended
+    ex.close()
+    assert not ex._pool
 
 
 def test_timeout_and_early_close():
@@ -55,9 +57,25 @@ def test_timeout_and_early_close():
     it = ex.map(iter(range(1000)))
     next(it)
     it.close()                                                     # leaving early stops every worker
+    assert ex._pool and all(w.stopping for w in ex._pool)
+    ex.close()                                                     # and close waits for them
     assert not ex._pool
 
 
+def test_map_tells_its_workers_to_exit_and_a_second_map_gets_fresh_ones():
+    """When ``map`` ends its workers are told to exit (``close`` waits for them: the runner closes after writing the
+    run record); a second ``map`` on the same executor starts fresh workers, with no death counted."""
+    ex = ProcessExecutor(work, {}, 2)
+    try:
+        assert dict(ex.map(range(4))) == {t: (t, t * t) for t in range(4)}
+        first = [w.proc for w in ex._pool]
+        assert len(first) == 2 and all(w.stopping for w in ex._pool)
+        assert dict(ex.map(range(4, 8))) == {t: (t, t * t) for t in range(4, 8)}
+        assert ex.deaths == 0 and all(not p.is_alive() for p in first)
+        assert not {w.proc for w in ex._pool} & set(first)
+    finally:
+        ex.close()
+    assert not ex._pool
 def test_a_source_that_waits_gets_control_back():
     """A source that yields NOT_NOW is handed back ``(NOT_NOW, None)`` at once and asked again later (also when no
     task is running); every real task still runs once. Here: a wait before every task (the first while nothing runs),

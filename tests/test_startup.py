@@ -85,6 +85,18 @@ def test_warm_up_builds_the_srgb_tables_for_camera_runs_only(model, built):
     assert done.stdout.strip() == built
 
 
+@pytest.mark.parametrize("model, computed", [("roadview_noise.models.lidar.snow", "1"),
+                                             ("roadview_noise.models.radar.rain", "1"),
+                                             ("roadview_noise.models.camera.fog", "0")])
+def test_warm_up_computes_the_table_cache_version_where_tables_are_cached(model, computed):
+    """The fork server's warm-up computes the table cache's code version (roadview_noise/table_cache.py) once when
+    a model whose tables are kept on disk is loaded (the workers inherit it), and does not load the cache for
+    camera runs."""
+    code = (f"import sys, {model}, roadview_noise.warmup; t = sys.modules.get('roadview_noise.table_cache'); "
+            "print(t.code_version.cache_info().currsize if t else 0)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == computed
 def test_every_kernel_listed_by_kind_exists():
     """The warm-up's lists of kernels by kind of data name real kernels (a renamed kernel would be loaded on first
     use instead, silently)."""

@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
+
+from ..table_cache import disk_cached
 
 SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
 HAHNER_FOG_PULSE_S = 20e-9              # half-power pulse width of Hahner et al. 2021
@@ -88,7 +89,7 @@ class SoftTargetTable:
         return float(self.g_max_s_per_m2[-1]), float(self.fog_range_m[-1])
 
 
-@lru_cache(maxsize=32)
+@disk_cached(maxsize=32)
 def soft_target_table(alpha_per_m: float, tau_h_s: float, r1_m: float, r2_m: float) -> SoftTargetTable:
     """Pulse-integral table of a homogeneous soft target (Hahner 2021 Eq. 8–10), cached per (α, τ_H, R1, R2) with the
     overlap R1, R2 of the profile.

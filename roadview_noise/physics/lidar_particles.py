@@ -39,6 +39,7 @@ from . import dsd
 from .compiled import jit
 from .lidar_echo import SoftBackground
 from .lidar_medium import particle_signal
+from ..table_cache import disk_cached
 
 VISIBLE_FRACTION = 0.5        # default: particles returning less than this fraction of the threshold are not drawn
 TABLE_STEP_M = 0.01
@@ -159,7 +160,7 @@ def faint_backscatter_per_m(medium: ParticleMedium, beam: Beam, level: float, r_
     return beam.full_beam_signal(medium, r_m) * faint_cross_section_per_m(medium, beam, level, r_m)
 
 
-@lru_cache(maxsize=16)
+@disk_cached(maxsize=16)
 def faint_background(medium: ParticleMedium, beam: Beam, level: float, length_m: float) -> SoftBackground:
     """The undrawn particles as a soft target: their mean backscatter :func:`faint_backscatter_per_m` (0.05 m grid
     to 1000 m; compact for the cache) under the pulse window of length ``L = c τ_H``

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
@@ -44,6 +43,7 @@ from .lidar_medium import pulse_length_m
 from .lidar_particles import BACKGROUND_STEP_M, TABLE_MAX_RANGE_M, Beam, ParticleMedium, faint_background, \
     faint_backscatter_per_m, faint_cross_section_per_m, scratch_buffer, table_lerp, visibility_diameter_mm
 from .lidar_rays import Rays
+from ..table_cache import disk_cached
 
 LEVELS_PER_OCTAVE = 4           # Λ tables: levels ℓ 2^(g/4)
 RANGE_STEP_M = 0.02             # Λ tables: range step
@@ -86,7 +86,7 @@ class BrightestTables:
         return np.where(self.band_total > 0, q / np.maximum(self.band_total, 1e-300), 0.0)
 
 
-@lru_cache(maxsize=4)
+@disk_cached(maxsize=4)
 def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, length_m: float) -> BrightestTables:
     """The tables of :class:`BrightestTables` for particles returning at least ``base_level`` (units of K) and pulses
     of length ``length_m`` = c τ_H (trapezoid integrals on 5 mm, tabulated every 2 cm; backgrounds:

@@ -40,10 +40,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 from scipy.special import gammainc, gammaincc, gammainccinv
+
+from ..table_cache import disk_cached
 
 PROBABILITY_TIERS = 30      # cells are sampled in tiers P ∈ (2^{−j−1}, 2^{−j}] P_max; below 2^{−30} P_max neglected
 
@@ -132,7 +133,7 @@ class CaCfar:
 Detector = FixedThreshold | CaCfar
 
 
-@lru_cache(maxsize=32)
+@disk_cached(maxsize=32)
 def tier_ratios(detector: Detector) -> np.ndarray:
     """``y_j`` with ``P(y_j) = 2^{−j} P_max``, j = 1 … 30 (decreasing): a cell with ``y_{j+1} ≤ y < y_j`` has
     ``P ≤ 2^{−j} P_max``; cells below ``y_30`` (P < 9.3·10⁻¹⁰ P_max) are neglected."""

@@ -42,6 +42,7 @@ from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
 from .radar_cfar import PROBABILITY_TIERS, Detector, FixedThreshold, tier_ratios
 from .radar_link import SPEED_OF_LIGHT_M_PER_S, water_permittivity
+from ..table_cache import disk_cached
 
 RAIN_D_MAX_MM = 10.0                        # RISE: Marshall–Palmer drops up to 10 mm
 SNOW_D_MAX_MM = 10.0
@@ -106,7 +107,7 @@ _MIE_TABLE_SIZE = 1000
 _MIE_D_MIN_MM = 1e-3
 
 
-@lru_cache(maxsize=16)
+@disk_cached(maxsize=16)
 def _mie_backscatter_table(permittivity: complex, wavelength_m: float, d_max_mm: float):
     """``(log D, log Q_back)`` on 1000 log-spaced diameters from 1 µm to d_max (cached)."""
     d = np.geomspace(_MIE_D_MIN_MM, d_max_mm, _MIE_TABLE_SIZE)
@@ -212,7 +213,7 @@ def angular_cell_index(positions_m: np.ndarray, az_edges_rad: np.ndarray, el_edg
     return i_az * n_el + i_el
 
 
-@lru_cache(maxsize=16)
+@disk_cached(maxsize=16)
 def _doppler_shape_tables(h: Hydrometeors, wavelength_m: float, z_edges: tuple[float, ...], dx: float):
     """Per elevation row j, the distribution of ``X = v_t z`` (v_t backscatter-weighted over the DSD, z = sin el
     uniform over the row): CDF ``G_j`` and its integral ``H_j`` on a common grid x0 + i·dx."""
