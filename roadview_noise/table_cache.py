@@ -8,7 +8,7 @@ whose misses look on disk first: a table is built once per machine, code and par
 
 - **Exact**: the file holds the pickled return value, so a worker gets bit for bit what the function would return.
   The key is the SHA-256 of the pickled arguments and of :func:`code_version` (the package's source, Python's,
-  NumPy's, SciPy's and miepython's versions, the machine): an edit to any module or an upgrade builds new tables.
+  NumPy's, SciPy's, miepython's, numba's and llvmlite's versions, the machine): an edit to any module or an upgrade builds new tables.
   Arrays read back are read-only (they share the file's buffer): a cached table is shared by every caller of the
   process already, so nothing may write into it.
 - **Safe under concurrent runs**: a table is written to a temporary file in the cache folder and renamed onto its
@@ -20,6 +20,9 @@ whose misses look on disk first: a table is built once per machine, code and par
   fitted per frame, would otherwise write a table per file: it still reads what is there). Only functions whose
   keys repeat across files belong here (``radar_clutter.cell_doppler_probabilities``, keyed by each frame's fitted
   ego velocity, does not).
+
+Not ``joblib.Memory``: it keys a call on the function's own source, not on the modules and compiled kernels the
+table is computed with, and it does not bound the folder or check a file's integrity.
 
 ``RVNOISE_TABLE_CACHE``: the folder (default ``$XDG_CACHE_HOME/rvnoise/tables``, else ``~/.cache/rvnoise/tables``);
 ``off`` disables it. Workers see the fork server's environment (the ``rvnoise`` command's). The files are
@@ -43,7 +46,7 @@ from typing import Any, Callable
 ENV = "RVNOISE_TABLE_CACHE"
 MAX_BYTES = 256 * 1024 ** 2
 MAX_WRITES_PER_PROCESS = 12
-VERSIONED = ("numpy", "scipy", "miepython")     # libraries whose results the tables depend on
+VERSIONED = ("numpy", "scipy", "miepython", "numba", "llvmlite")     # libraries the tables are computed with
 _MAGIC = b"RVNTAB1\n"
 _HEADER = struct.Struct("<8sQI")                 # magic, payload length, CRC-32 of the payload
 _MISSING = object()
