@@ -8,7 +8,8 @@ whose misses look on disk first: a table is built once per machine, code and par
 
 - **Exact**: the file holds the pickled return value, so a worker gets bit for bit what the function would return.
   The key is the SHA-256 of the pickled arguments and of :func:`code_version` (the package's source, Python's,
-  NumPy's, SciPy's, miepython's, numba's and llvmlite's versions, the machine): an edit to any module or an upgrade builds new tables.
+  NumPy's, SciPy's, miepython's, numba's and llvmlite's versions, the machine): an edit to any module or an
+  upgrade builds new tables.
   Arrays read back are read-only (they share the file's buffer): a cached table is shared by every caller of the
   process already, so nothing may write into it.
 - **Safe under concurrent runs**: a table is written to a temporary file in the cache folder and renamed onto its
