@@ -363,8 +363,8 @@ def plan_bag(recipe: BagRecipe, reader: Any, bag: Path) -> BagPlan:
             allowed = rm.SENSOR_TYPES[topic.sensor]
             if conn.msgtype not in allowed:
                 raise RecipeError(f"{bag}: topic {name} carries {conn.msgtype}, which a {topic.sensor} topic cannot "
-                                  f"read (expected {' or '.join(allowed)})", file=recipe.source,
-                                  key=f"topics.{name}")
+                                  f"read (expected {' or '.join(allowed)}){rm.type_hint(conn.msgtype)}",
+                                  file=recipe.source, key=f"topics.{name}")
             mapped[id(conn)] = topic
         want = topic.spec.depth_topic
         if want is not None:

@@ -1,0 +1,246 @@
+"""ROS bags laid out as real drivers write them, built in tmp_path with rosbags' writers.
+
+Layouts (the drivers' declared PointCloud2 fields):
+- ouster-ros ``original`` point (``ouster_ros::Point``): x y z float32 at 0/4/8, 4 padding bytes (PCL's
+  ``PCL_ADD_POINT4D``, which holds 1.0f), intensity float32 @16, t uint32 @20, reflectivity uint16 @24, ring uint16 @26,
+  ambient uint16 @28, range uint32 @32, point_step 48; organised beams × columns, ``is_dense`` false; a no-return
+  pixel is x=y=z=0 with range 0 in drivers before 0.10, NaN x/y/z since (the maintainer in ouster-ros PR #406).
+- velodyne_pointcloud ``PointXYZIRT`` as its PointCloud2Modifier packs it: x y z intensity float32, ring uint16 @16,
+  time float32 @18, point_step 22; its organised cloud has **one row per firing** (width = lasers, height grows by
+  one per firing) and NaN x/y/z/intensity where a laser saw nothing (``OrganizedCloudXYZIRT::addPoint``).
+- Livox ``CustomMsg`` (livox_ros_driver2 with ``xfer_format: 1``) is not a PointCloud2.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadview_noise.bag_recipe import parse_bag_recipe
+from roadview_noise.bag_runner import manifest_path, run_bag
+from roadview_noise.errors import RecipeError
+from roadview_noise.io import ros_messages as rm
+from roadview_noise.io.pointcloud import read_pointcloud
+from roadview_noise.io.rosbag import open_bag
+from roadview_noise.provenance import Effect
+
+ROOT = Path(__file__).resolve().parents[1]
+GRID_PCD = ROOT / "sample_data/lidar/os1-128-grid/seq0/000000.pcd"      # 128 beams × 256 columns, zeros = no return
+STAMP = 1_700_000_000_100_000_000
+TOPIC = "/points"
+PROFILE = {"base": "os1-128", "columns": 256}
+OUSTER_ORIGINAL = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("t", 20, 6),
+                   ("reflectivity", 24, 4), ("ring", 26, 4), ("ambient", 28, 4), ("range", 32, 6)]
+VELODYNE_XYZIRT = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7), ("ring", 16, 4), ("time", 18, 7)]
+
+
+def store(ros2: bool):
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+
+
+def header(types, ros2: bool, frame_id: str):
+    time = types.types["builtin_interfaces/msg/Time"](sec=STAMP // 10 ** 9, nanosec=STAMP % 10 ** 9)
+    return types.types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id, **({} if ros2 else {"seq": 7}))
+
+
+def scan() -> tuple[dict[str, np.ndarray], tuple[int, int]]:
+    """The sample OS1-128 grid as per-cell values (beam-major), no-return cells at the origin."""
+    cloud = read_pointcloud(GRID_PCD)
+    p = cloud.positions_m.astype(np.float32)
+    r = np.linalg.norm(p, axis=1)
+    values = {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2], "intensity": cloud.fields["intensity"],
+              "t": np.rint(cloud.fields["time_s"] * 1e9), "reflectivity": np.minimum(cloud.fields["intensity"], 255),
+              "ring": cloud.fields["ring"], "ambient": np.full(len(p), 7), "range": np.rint(r * 1000),
+              "time": cloud.fields["time_s"]}
+    return values, cloud.grid_shape
+
+
+def cloud2(types, ros2: bool, fields, step: int, values: dict, shape: tuple[int, int], *, big: bool = False,
+           pad_one_at: int | None = None):
+    order = ">" if big else "<"
+    record = np.dtype({"names": [f[0] for f in fields], "offsets": [f[1] for f in fields],
+                       "formats": [order + rm.POINTFIELD_TYPES[f[2]] for f in fields], "itemsize": step})
+    points = np.zeros(shape[0] * shape[1], record)
+    for name, _, _ in fields:
+        points[name] = values[name]
+    raw = points.view(np.uint8).reshape(len(points), step)
+    if pad_one_at is not None:                              # PCL's 4th coordinate: 1.0f in the padding
+        raw[:, pad_one_at:pad_one_at + 4] = np.frombuffer(np.array(1.0, order + "f4").tobytes(), np.uint8)
+    pf = types.types["sensor_msgs/msg/PointField"]
+    return types.types["sensor_msgs/msg/PointCloud2"](
+        header=header(types, ros2, "os_sensor"), height=shape[0], width=shape[1],
+        fields=[pf(name=n, offset=o, datatype=d, count=1) for n, o, d in fields], is_bigendian=big, point_step=step,
+        row_step=shape[1] * step, data=raw.ravel(), is_dense=False)
+
+
+def write_bag(path: Path, ros2: bool, types, messages: list[tuple[str, str, object]], qos=()) -> None:
+    """One message per (topic, msgtype, msg), in order, 10 ms apart."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    writer = Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP) if ros2 else Writer1(path)
+    writer.open()
+    conns = {}
+    for k, (topic, msgtype, msg) in enumerate(messages):
+        if topic not in conns:
+            extra = {"offered_qos_profiles": qos} if ros2 else {}
+            conns[topic] = writer.add_connection(topic, msgtype, typestore=types, **extra)
+        raw = types.serialize_cdr(msg, msgtype) if ros2 else types.serialize_ros1(msg, msgtype)
+        writer.write(conns[topic], STAMP + k * 10_000_000, raw)
+    writer.close()
+
+
+def run(tmp_path: Path, name: str, ros2: bool, msg, chain="CNF20") -> tuple[list, object]:
+    """Augment a one-cloud bag: (output messages of TOPIC, manifest entry)."""
+    types = store(ros2)
+    src = tmp_path / (name if ros2 else f"{name}.bag")
+    write_bag(src, ros2, types, [(TOPIC, rm.POINTCLOUD2, msg)])
+    out = tmp_path / (f"{name}-out" if ros2 else f"{name}-out.bag")
+    recipe = parse_bag_recipe({"seed": 5, "topics": {TOPIC: {"sensor": "lidar", "lidar_profile": PROFILE}},
+                               "chains": {"lidar": chain}}, base_dir=ROOT)
+    summary = run_bag(recipe, src, out, workers=1, progress=False)
+    entry = json.loads(manifest_path(out).read_text().splitlines()[0])
+    assert (summary.done, summary.failed) == (1, 0), summary.failures
+    with open_bag(out) as reader:
+        got = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()]
+    return got, entry
+
+
+def columns_of(msg) -> dict[str, np.ndarray]:
+    return {name: values for name, _, values in rm.cloud_columns(msg, source="t")}
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_ouster_ros_no_returns_as_nan_are_empty_rays(tmp_path, ros2):
+    """ouster-ros ≥ 0.10 writes a no-return pixel as NaN x/y/z: it used to fail the message ("NaN coordinates");
+    now it is a no-return ray like the older drivers' zeros — the same weather returns fill the same cells — and a
+    cell still empty after the chain is written back byte for byte (NaN). Every field, offset, the padding (1.0f),
+    organised shape, is_dense, header and point_step + rv_effect survive."""
+    types = store(ros2)
+    values, shape = scan()
+    empty = ~(values["x"] != 0) & ~(values["y"] != 0) & ~(values["z"] != 0)
+    assert 1000 < empty.sum() < empty.size
+    zeros = cloud2(types, ros2, OUSTER_ORIGINAL, 48, values, shape, pad_one_at=12)
+    nan = {**values, **{a: np.where(empty, np.nan, values[a]) for a in "xyz"}}
+    marked = cloud2(types, ros2, OUSTER_ORIGINAL, 48, nan, shape, pad_one_at=12)
+    (out0,), _ = run(tmp_path, "zeros", ros2, zeros)
+    (out1,), entry = run(tmp_path, "nan", ros2, marked)
+    assert entry["status"] == "ok"
+    for out, msg in ((out0, zeros), (out1, marked)):
+        assert [(f.name, f.offset, f.datatype, f.count) for f in out.fields[:-1]] == \
+               [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+        assert (out.fields[-1].name, out.fields[-1].offset, out.point_step) == ("rv_effect", 48, 49)
+        assert (out.height, out.width, out.is_dense, out.is_bigendian) == (*shape, False, False)
+        assert out.header.frame_id == "os_sensor" and out.header.stamp == msg.header.stamp
+        raw = np.asarray(out.data, np.uint8).reshape(-1, 49)
+        assert (raw[:, 12:16].view("<f4") == 1.0).all()                      # padding kept
+    c0, c1 = columns_of(out0), columns_of(out1)
+    still = np.isnan(c1["x"])
+    np.testing.assert_array_equal(still, (c0["x"] == 0) & (c0["y"] == 0) & (c0["z"] == 0))
+    for name in c0:
+        np.testing.assert_array_equal(c1[name][~still], c0[name][~still], err_msg=name)
+    filled = empty & ~still
+    assert filled.sum() > 0 and (c1["rv_effect"][filled] == Effect.ADDED).all()    # weather on the empty rays
+    raw_in = np.asarray(marked.data, np.uint8).reshape(-1, 48)
+    np.testing.assert_array_equal(np.asarray(out1.data, np.uint8).reshape(-1, 49)[still, :48], raw_in[still])
+
+
+@pytest.mark.parametrize("big", [False, True])
+def test_velodyne_organised_cloud_has_a_row_per_firing(tmp_path, big):
+    """velodyne_pointcloud's organised cloud stores a row per firing and a column per laser (ring = column), with
+    NaN for no return. It is read as the beams × azimuths grid it is (and written back in its own order): the
+    result equals, cell for cell, the same scan stored beam-major with zeros; big-endian too."""
+    types = store(True)
+    values, (beams, columns) = scan()
+    empty = ~(values["x"] != 0) & ~(values["y"] != 0) & ~(values["z"] != 0)
+    reference = cloud2(types, True, VELODYNE_XYZIRT, 22, values, (beams, columns))
+    transposed = {k: np.asarray(v).reshape(beams, columns).T.ravel() for k, v in values.items()}
+    cell_empty = empty.reshape(beams, columns).T.ravel()
+    for k in ("x", "y", "z", "intensity"):
+        transposed[k] = np.where(cell_empty, np.nan, transposed[k])
+    firing_major = cloud2(types, True, VELODYNE_XYZIRT, 22, transposed, (columns, beams), big=big)
+    (ref,), _ = run(tmp_path, "ref", True, reference)
+    (out,), entry = run(tmp_path, "velodyne", True, firing_major)
+    assert (out.height, out.width, out.point_step, out.is_bigendian) == (columns, beams, 23, big)
+    c_ref, c_out = columns_of(ref), columns_of(out)
+    still = np.isnan(c_out["x"])
+    for name, v in c_ref.items():
+        back = v.reshape(beams, columns).T.ravel()
+        np.testing.assert_array_equal(c_out[name][~still], back[~still], err_msg=name)
+    assert still.sum() < cell_empty.sum() and (c_out["rv_effect"][cell_empty & ~still] == Effect.ADDED).all()
+    assert np.isnan(c_out["intensity"][still]).all() and (c_out["ring"] == np.tile(np.arange(beams), columns)).all()
+
+
+def test_a_cell_the_chain_empties_gets_the_drivers_nan():
+    """A return removed from a NaN-marked grid becomes NaN x/y/z (not a point at the origin); a zero-marked grid
+    keeps zeros."""
+    import dataclasses
+
+    types = store(True)
+    values, shape = scan()
+    empty = ~(values["x"] != 0)
+    nan = {**values, **{a: np.where(empty, np.nan, values[a]) for a in "xyz"}}
+    for marker, vals in (("nan", nan), ("zero", values)):
+        msg = cloud2(types, True, OUSTER_ORIGINAL, 48, vals, shape)
+        cloud = rm.cloud_to_pointcloud(msg, sensor="lidar", profile=None, field_map=None, source="t")
+        assert cloud.grid_shape == shape and np.isfinite(cloud.positions_m).all()
+        remove = ~empty & (np.arange(len(empty)) % 7 == 0)
+        out = rm.pointcloud_to_cloud2(msg, cloud.drop(remove), effect="auto", source="t")
+        x = columns_of(out)["x"]
+        assert (np.isnan(x[remove]) if marker == "nan" else x[remove] == 0).all()
+        assert (np.isnan(x[empty]) if marker == "nan" else x[empty] == 0).all()
+        assert dataclasses.replace(out, data=None).fields[-1].name == "rv_effect"
+
+
+def test_ros2_qos_and_counts_survive(tmp_path):
+    """Sensor-data QoS (best effort, volatile, keep last 5) of a driver's topic and of a copied topic are kept;
+    the reopened output has the input's connections and message counts."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    types = store(True)
+    values, shape = scan()
+    qos = [Qos(QosHistory.KEEP_LAST, 5, QosReliability.BEST_EFFORT, QosDurability.VOLATILE, QosTime(0, 0),
+               QosTime(0, 0), QosLiveliness.AUTOMATIC, QosTime(0, 0), False)]
+    msg = cloud2(types, True, OUSTER_ORIGINAL, 48, values, shape)
+    text = types.types["std_msgs/msg/String"](data="ok")
+    src = tmp_path / "drive"
+    write_bag(src, True, types, [(TOPIC, rm.POINTCLOUD2, msg), ("/diag", "std_msgs/msg/String", text),
+                                 ("/diag", "std_msgs/msg/String", text)], qos=qos)
+    out = tmp_path / "out"
+    recipe = parse_bag_recipe({"seed": 5, "topics": {TOPIC: {"sensor": "lidar", "lidar_profile": PROFILE}},
+                               "chains": {"lidar": "CNF20"}}, base_dir=ROOT)
+    assert run_bag(recipe, src, out, workers=1, progress=False).done == 1
+    with open_bag(src) as a, open_bag(out) as b:
+        assert [(c.topic, c.msgtype, c.msgcount, c.ext.offered_qos_profiles) for c in a.connections] == \
+               [(c.topic, c.msgtype, c.msgcount, c.ext.offered_qos_profiles) for c in b.connections]
+        assert b.message_count == 3 and [t for _, t, _ in a.messages()] == [t for _, t, _ in b.messages()]
+
+
+def test_livox_custom_msg_is_refused_naming_topic_and_fix(tmp_path):
+    """A Livox CustomMsg topic mapped as a LiDAR is refused before anything is written, saying what it is and how
+    to record a PointCloud2 instead."""
+    from rosbags.typesys import get_types_from_msg
+
+    types = store(False)
+    point = "uint32 offset_time\nfloat32 x\nfloat32 y\nfloat32 z\nuint8 reflectivity\nuint8 tag\nuint8 line\n"
+    custom = ("std_msgs/Header header\nuint64 timebase\nuint32 point_num\nuint8 lidar_id\nuint8[3] rsvd\n"
+              "CustomPoint[] points\n")
+    types.register({**get_types_from_msg(point, "livox_ros_driver2/msg/CustomPoint"),
+                    **get_types_from_msg(custom, "livox_ros_driver2/msg/CustomMsg")})
+    cls = types.types["livox_ros_driver2/msg/CustomMsg"]
+    msg = cls(header=header(types, False, "livox_frame"), timebase=STAMP, point_num=0, lidar_id=0,
+              rsvd=np.zeros(3, np.uint8), points=[])
+    src = tmp_path / "livox.bag"
+    write_bag(src, False, types, [("/livox/lidar", "livox_ros_driver2/msg/CustomMsg", msg)])
+    recipe = parse_bag_recipe({"seed": 5, "topics": {"/livox/lidar": {"sensor": "lidar"}},
+                               "chains": {"lidar": "CNF20"}}, base_dir=ROOT)
+    out = tmp_path / "out.bag"
+    with pytest.raises(RecipeError, match=r"/livox/lidar carries livox_ros_driver2/msg/CustomMsg.*xfer_format"):
+        run_bag(recipe, src, out, workers=1, progress=False)
+    assert not out.exists()
