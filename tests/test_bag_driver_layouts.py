@@ -61,13 +61,13 @@ def scan() -> tuple[dict[str, np.ndarray], tuple[int, int]]:
 
 
 def cloud2(types, ros2: bool, fields, step: int, values: dict, shape: tuple[int, int], *, big: bool = False,
-           pad_one_at: int | None = None):
+           pad_one_at: int | None = None, dense: bool = False):
     order = ">" if big else "<"
-    record = np.dtype({"names": [f[0] for f in fields], "offsets": [f[1] for f in fields],
+    record = np.dtype({"names": [f"f{i}" for i in range(len(fields))], "offsets": [f[1] for f in fields],
                        "formats": [order + rm.POINTFIELD_TYPES[f[2]] for f in fields], "itemsize": step})
     points = np.zeros(shape[0] * shape[1], record)
-    for name, _, _ in fields:
-        points[name] = values[name]
+    for i, (name, _, _) in enumerate(fields):
+        points[f"f{i}"] = values[name]
     raw = points.view(np.uint8).reshape(len(points), step)
     if pad_one_at is not None:                              # PCL's 4th coordinate: 1.0f in the padding
         raw[:, pad_one_at:pad_one_at + 4] = np.frombuffer(np.array(1.0, order + "f4").tobytes(), np.uint8)
@@ -75,7 +75,7 @@ def cloud2(types, ros2: bool, fields, step: int, values: dict, shape: tuple[int,
     return types.types["sensor_msgs/msg/PointCloud2"](
         header=header(types, ros2, "os_sensor"), height=shape[0], width=shape[1],
         fields=[pf(name=n, offset=o, datatype=d, count=1) for n, o, d in fields], is_bigendian=big, point_step=step,
-        row_step=shape[1] * step, data=raw.ravel(), is_dense=False)
+        row_step=shape[1] * step, data=raw.ravel(), is_dense=dense)
 
 
 def write_bag(path: Path, ros2: bool, types, messages: list[tuple[str, str, object]], qos=()) -> None:
@@ -168,6 +168,7 @@ def test_velodyne_organised_cloud_has_a_row_per_firing(tmp_path, big):
     (ref,), _ = run(tmp_path, "ref", True, reference)
     (out,), entry = run(tmp_path, "velodyne", True, firing_major)
     assert (out.height, out.width, out.point_step, out.is_bigendian) == (columns, beams, 23, big)
+    assert "input_warnings" not in entry                        # NaN intensity of a no-return cell is no bad point
     c_ref, c_out = columns_of(ref), columns_of(out)
     still = np.isnan(c_out["x"])
     for name, v in c_ref.items():
@@ -244,3 +245,70 @@ def test_livox_custom_msg_is_refused_naming_topic_and_fix(tmp_path):
     with pytest.raises(RecipeError, match=r"/livox/lidar carries livox_ros_driver2/msg/CustomMsg.*xfer_format"):
         run_bag(recipe, src, out, workers=1, progress=False)
     assert not out.exists()
+
+
+def test_export_of_a_nan_marked_velodyne_cloud_augments_like_the_bag(tmp_path):
+    """`rvnoise export` writes the NaN-marked, firing-major cloud as the beam-major PCD grid with zeros for no
+    return (the file path's convention); augmenting that PCD with the same chain and seed gives the bag's points
+    (its NaN cells are the PCD's zero cells)."""
+    from roadview_noise.bag_export import export_bag
+    from roadview_noise.recipe import parse_recipe
+    from roadview_noise.runner import run as run_files
+
+    types = store(True)
+    values, (beams, columns) = scan()
+    empty = ~(values["x"] != 0) & ~(values["y"] != 0) & ~(values["z"] != 0)
+    transposed = {k: np.asarray(v).reshape(beams, columns).T.ravel() for k, v in values.items()}
+    cell_empty = empty.reshape(beams, columns).T.ravel()
+    for k in ("x", "y", "z", "intensity"):
+        transposed[k] = np.where(cell_empty, np.nan, transposed[k])
+    (out,), _ = run(tmp_path, "velodyne", True, cloud2(types, True, VELODYNE_XYZIRT, 22, transposed,
+                                                       (columns, beams)))
+    recipe = parse_bag_recipe({"seed": 5, "topics": {TOPIC: {"sensor": "lidar", "lidar_profile": PROFILE}},
+                               "chains": {"lidar": "CNF20"}}, base_dir=ROOT)
+    tree = tmp_path / "tree"
+    export_bag(tmp_path / "velodyne", tree, recipe=recipe)
+    (pcd,) = sorted(tree.glob("points/*.pcd"))
+    exported = read_pointcloud(pcd)
+    assert exported.grid_shape == (beams, columns) and np.isfinite(exported.positions_m).all()
+    spec = {**recipe.topics[TOPIC].recipe.resolved_dict(), "inputs": {"lidar": "points/*.pcd"}}
+    s = run_files(parse_recipe(spec), tree, tmp_path / "files", workers=1, progress=False)
+    assert (s.done, s.failed) == (1, 0), s.failures
+    files = read_pointcloud(tmp_path / "files/points" / pcd.name)
+    bag = {k: v.reshape(columns, beams).T.ravel() for k, v in columns_of(out).items()}
+    still = np.isnan(bag["x"])
+    np.testing.assert_array_equal(still, ~files.positions_m.any(axis=1))
+    np.testing.assert_array_equal(bag["x"][~still], files.positions_m[~still, 0].astype(np.float32))
+    np.testing.assert_array_equal(bag["rv_effect"], files.fields["rv_effect"])
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_unorganised_cloud_with_small_and_wide_types_and_repeated_names(tmp_path, ros2):
+    """A point list (height 1, dense) with uint8 intensity, uint16 ring, float64 time stamps, an int8 tag and two
+    padding fields both named ``_`` (as PCL names padding), aligned to 32 bytes: every field keeps its offset,
+    datatype and — on every point that came from the input — its value; the weather's points are appended."""
+    types = store(ros2)
+    values, _ = scan()
+    keep = (values["x"] != 0) | (values["y"] != 0) | (values["z"] != 0)
+    n = int(keep.sum())
+    fields = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("_", 12, 7), ("intensity", 16, 2), ("tag", 17, 1),
+              ("ring", 18, 4), ("_", 20, 6), ("timestamp", 24, 8)]
+    listed = {k: np.asarray(v)[keep] for k, v in values.items()}
+    listed.update(intensity=np.minimum(np.rint(listed["intensity"]), 255), tag=np.arange(n) % 3 - 1, _=0,
+                  timestamp=1.7e9 + np.arange(n) * 1e-6)     # unique: finds each kept point's input
+    msg = cloud2(types, ros2, fields, 32, listed, (1, n), dense=True)
+    (out,), entry = run(tmp_path, "list", ros2, msg, chain=[{"model": "fog.lidar", "params": {"visibility_m": 30}}])
+    assert [(f.name, f.offset, f.datatype) for f in out.fields[:-1]] == [(a, b, c) for a, b, c in fields]
+    assert (out.height, out.point_step, out.is_dense, out.fields[-1].name) == (1, 33, True, "rv_effect")
+    got = np.asarray(out.data, np.uint8).reshape(-1, 33)
+    cols = columns_of(out)
+    kept = cols["rv_effect"] != Effect.ADDED
+    assert kept.sum() <= n < len(got) and entry["status"] == "ok"
+    inp = rm.cloud_columns(msg, source="t")
+    by_time = {t: i for i, t in enumerate(listed["timestamp"])}
+    src = np.array([by_time[t] for t in cols["timestamp"][kept]])
+    for name, _, v in inp:
+        if name not in ("x", "y", "z", "intensity"):
+            np.testing.assert_array_equal(cols[name][kept], v[src], err_msg=name)
+    assert cols["intensity"].dtype == np.uint8 and cols["tag"].dtype == np.int8
+    assert got.shape[0] == out.width

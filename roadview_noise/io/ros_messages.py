@@ -15,9 +15,12 @@ unchanged by the writers here, which return a new message of the same class.
   measurement, too close) are holes (NaN, for the recipe's ``depth_holes``), +inf (nothing within range) stays.
 - PointCloud2: fields (any of the eight PointField datatypes, ``count`` ≥ 1, any offsets, padding, big-endian)
   are read in offset order and named like file fields (:func:`..io.pointcloud.cloud_from_columns`); an organised
-  cloud (height > 1) is a full grid (``grid_shape``). Written back with every input field at its offset and
-  datatype, then the field :func:`..io.pointcloud.output_columns` adds (the weather-effect code ``rv_effect``, uint8)
-  appended after the input's ``point_step``; an organised cloud keeps height × width when the point count is unchanged.
+  cloud (height > 1) is a full grid (``grid_shape``, beams × azimuths: a cloud stored a row per firing, Velodyne's,
+  is read transposed, :class:`GridCells`) whose cells with NaN x/y/z (the driver's no-return marker) are no-return
+  cells. Written back with every input field at its offset and datatype (a point from the input starts from its
+  bytes: padding kept), then the field :func:`..io.pointcloud.output_columns` adds (the weather-effect code
+  ``rv_effect``, uint8) appended after the input's ``point_step``; an organised cloud keeps height × width, its
+  order and its no-return marker when the point count is unchanged.
 """
 
 from __future__ import annotations
