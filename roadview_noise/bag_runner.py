@@ -479,6 +479,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         blob = pickle.dumps(BagContext(str(in_bag), is2, dict(reader.typestore.fielddefs), recipe,
                                        in_bag.resolve().parent, capture_output=True))
         syncs = depth_syncs(stack, in_bag, plan, is2)
+        camera_info = sorted({c.topic for c in reader.connections if c.msgtype == rm.CAMERA_INFO})
+        assumed: set[str] = set()              # camera topics whose intrinsics were assumed from a FOV
         n_messages = reader.message_count
         bar = tqdm(total=n_messages, unit="msg", disable=not progress, file=sys.stderr, dynamic_ncols=True)
         try:
@@ -498,6 +500,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
                     tally.add(entry)
+                    if "intrinsics_from_fov" in (entry.get("inputs") or {}).get("warnings", ()):
+                        assumed.add(entry["topic"])
                     summary.planned += 1
                     counts = topics[entry["topic"]]
                     counts["messages"] += 1
@@ -506,6 +510,11 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
             bar.close()
     summary.seconds = time.time() - started
     summary.warnings = tally.warnings()
+    if assumed and camera_info:
+        summary.warnings.append(
+            f"the bag's {rm.CAMERA_INFO} topic(s) {', '.join(camera_info)} are not read: intrinsics of "
+            f"{', '.join(sorted(assumed))} were assumed, not taken from them; state them with the topic's "
+            "camera_profile (fx_px, fy_px, cx_px, cy_px = K[0], K[4], K[2], K[5] of the CameraInfo)")
     for line in summary.warnings:
         echo(f"rvnoise: warning: {line}")
     write_run_json(run_record_path(out_bag), {

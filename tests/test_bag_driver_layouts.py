@@ -312,3 +312,90 @@ def test_unorganised_cloud_with_small_and_wide_types_and_repeated_names(tmp_path
             np.testing.assert_array_equal(cols[name][kept], v[src], err_msg=name)
     assert cols["intensity"].dtype == np.uint8 and cols["tag"].dtype == np.int8
     assert got.shape[0] == out.width
+
+
+NUSCENES_RADAR = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("dyn_prop", 12, 1), ("id", 13, 3), ("rcs", 15, 7),
+                  ("vx", 19, 7), ("vy", 23, 7), ("vx_comp", 27, 7), ("vy_comp", 31, 7), ("is_quality_valid", 35, 1),
+                  ("ambig_state", 36, 1), ("x_rms", 37, 1), ("y_rms", 38, 1), ("invalid_state", 39, 1),
+                  ("pdh0", 40, 1), ("vx_rms", 41, 1), ("vy_rms", 42, 1)]      # nuScenes radar PCD, packed: 43 bytes
+TI_MMWAVE = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("velocity", 20, 7)]   # PCL aligned: 32
+
+
+@pytest.mark.parametrize("layout", ["ti_mmwave", "ars408"])
+def test_radar_point_clouds_of_real_drivers(tmp_path, layout):
+    """ti_mmwave_rospkg (x y z intensity velocity, intensity = SNR dB, mapped with field_map) and a Continental ARS
+    408 cluster list in nuScenes' 18 fields go through CNF25; every field keeps its offset, type and the values of
+    the points that stay, the effect code is appended."""
+    rng = np.random.default_rng(3)
+    n = 120
+    r, az = rng.uniform(5, 80, n), rng.uniform(-0.8, 0.8, n)
+    values = {"x": r * np.cos(az), "y": r * np.sin(az), "z": np.zeros(n) if layout == "ars408" else
+              rng.uniform(-1, 1, n), "intensity": rng.uniform(8, 30, n), "velocity": rng.uniform(-10, 10, n),
+              "dyn_prop": rng.integers(0, 7, n), "id": np.arange(n), "rcs": rng.uniform(-5, 20, n),
+              "vx": rng.normal(0, 3, n), "vy": rng.normal(0, 1, n), "is_quality_valid": np.ones(n),
+              "ambig_state": np.full(n, 3), "x_rms": np.full(n, 3), "y_rms": np.full(n, 4),
+              "invalid_state": np.zeros(n), "pdh0": np.ones(n), "vx_rms": np.full(n, 5), "vy_rms": np.full(n, 6)}
+    values.update(vx_comp=values["vx"] + 12.0 * np.cos(az) ** 2, vy_comp=values["vy"] + 12.0 * np.cos(az) * np.sin(az))
+    fields, step = (TI_MMWAVE, 32) if layout == "ti_mmwave" else (NUSCENES_RADAR, 43)
+    types = store(False)
+    msg = cloud2(types, False, fields, step, values, (1, n), dense=True)
+    src = tmp_path / "radar.bag"
+    write_bag(src, False, types, [("/radar", rm.POINTCLOUD2, msg)])
+    spec = ({"sensor": "radar", "field_map": {"intensity": "snr_db"}} if layout == "ti_mmwave" else
+            {"sensor": "radar", "radar_profile": "ars408"})
+    recipe = parse_bag_recipe({"seed": 5, "topics": {"/radar": spec}, "chains": {"radar": "CNF25"}}, base_dir=ROOT)
+    out = tmp_path / "out.bag"
+    summary = run_bag(recipe, src, out, workers=1, progress=False)
+    assert (summary.done, summary.failed) == (1, 0), summary.failures
+    with open_bag(out) as reader:
+        (got,) = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()]
+    assert [(f.name, f.offset, f.datatype) for f in got.fields[:-1]] == fields
+    assert (got.fields[-1].name, got.point_step) == ("rv_effect", step + 1)
+    cols = columns_of(got)
+    kept = (cols["rv_effect"] != Effect.ADDED) & np.isin(cols["x"], np.float32(values["x"]))
+    src_index = np.searchsorted(np.float32(values["x"]), cols["x"][kept], sorter=np.argsort(np.float32(values["x"])))
+    order = np.argsort(np.float32(values["x"]))[src_index]
+    assert kept.sum() > n // 2
+    for name, _, datatype in fields:
+        if name not in ("x", "y", "z", "rcs", "intensity", "velocity", "vx", "vy", "vx_comp", "vy_comp"):
+            np.testing.assert_array_equal(cols[name][kept], np.asarray(values[name])[order].astype(
+                rm.POINTFIELD_TYPES[datatype]), err_msg=name)
+
+
+def test_camera_info_topics_not_read_are_named_when_intrinsics_are_assumed(tmp_path):
+    """A bag with a CameraInfo topic whose camera topic has no profile: the run says the CameraInfo was not read and
+    how to state its K, instead of only "intrinsics from a FOV"."""
+    from rosbags.rosbag1 import Writer
+
+    from roadview_noise.sampledata.bag import RECIPE_TOPICS, write_sample_bag
+
+    src = tmp_path / "in.bag"
+    write_sample_bag(ROOT / "sample_data", src, frames=1)
+    types = store(False)
+    bag = tmp_path / "info.bag"
+    with open_bag(src) as reader:
+        writer = Writer(bag)
+        writer.open()
+        conns = {id(c): writer.add_connection(c.topic, c.msgtype, typestore=types) for c in reader.connections}
+        info = writer.add_connection("/camera/camera_info", rm.CAMERA_INFO, typestore=types)
+        for c, t, raw in reader.messages():
+            writer.write(conns[id(c)], t, raw)
+        msg = types.types[rm.CAMERA_INFO](
+            header=header(types, False, "camera"), height=1464, width=1936, distortion_model="plumb_bob",
+            D=np.zeros(5), K=np.array([1200.0, 0, 968, 0, 1200, 732, 0, 0, 1]), R=np.eye(3).ravel(),
+            P=np.zeros(12), binning_x=0, binning_y=0,
+            roi=types.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                                 do_rectify=False))
+        writer.write(info, STAMP, types.serialize_ros1(msg, rm.CAMERA_INFO))
+        writer.close()
+    topics = {"/camera/image/compressed": RECIPE_TOPICS["/camera/image/compressed"]}
+    recipe = parse_bag_recipe({"seed": 5, "topics": topics, "chains": {"camera": "CNF16"}}, base_dir=ROOT)
+    summary = run_bag(recipe, bag, tmp_path / "out.bag", workers=1, progress=False, echo=lambda _: None)
+    assert summary.done == 1
+    (line,) = [w for w in summary.warnings if "CameraInfo" in w]
+    assert "/camera/camera_info are not read" in line and "/camera/image/compressed" in line and "K[0]" in line
+    with_profile = {"/camera/image/compressed": {**topics["/camera/image/compressed"],
+                                                 "camera_profile": "lucid_triton_028s"}}
+    recipe = parse_bag_recipe({"seed": 5, "topics": with_profile, "chains": {"camera": "CNF16"}}, base_dir=ROOT)
+    summary = run_bag(recipe, bag, tmp_path / "out2.bag", workers=1, progress=False, echo=lambda _: None)
+    assert not [w for w in summary.warnings if "CameraInfo" in w]
