@@ -184,8 +184,9 @@ def depth_image_m(msg: Any, msgtype: str, *, source: str) -> np.ndarray:
 # --- PointCloud2 ----------------------------------------------------------------------------------------------------
 
 
-def cloud_columns(msg: Any, *, source: str) -> list[Column]:
-    """Per-point fields of a PointCloud2 in offset order as (name, little-endian dtype string, native values)."""
+def cloud_columns(msg: Any, *, source: str, stored: np.ndarray | None = None) -> list[Column]:
+    """Per-point fields of a PointCloud2 in offset order as (name, little-endian dtype string, native values);
+    ``stored``: its :func:`point_bytes` if already read."""
     order = ">" if msg.is_bigendian else "<"
     fields = sorted(msg.fields, key=lambda f: f.offset)
     if not fields:
@@ -207,7 +208,7 @@ def cloud_columns(msg: Any, *, source: str) -> list[Column]:
         raise InputError(f"PointCloud2 fields end at byte {end}, beyond point_step {step}", file=source)
     record = np.dtype({"names": [f"f{i}" for i in range(len(fields))], "formats": formats, "offsets": offsets,
                        "itemsize": step})
-    points = point_bytes(msg, source=source).reshape(-1).view(record)
+    points = (point_bytes(msg, source=source) if stored is None else stored).reshape(-1).view(record)
     columns = []
     for i, (f, fmt) in enumerate(zip(fields, formats)):
         base, shape = (fmt.subdtype if fmt.subdtype else (fmt, ()))
@@ -312,20 +313,26 @@ def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: st
     n = len(cloud)
     keys = [k for k, _, _ in layout.fields]
     source_bytes = point_bytes(msg, source=source)
-    msg_columns = cloud_columns(msg, source=source)
+    msg_columns = cloud_columns(msg, source=source, stored=source_bytes) if int(msg.height) > 1 else []
     grid = grid_cells(msg, msg_columns, keys)
     to_msg = np.arange(len(source_bytes)) if grid.order is None else grid.order   # message index of a cloud index
     cells = grid.shape is not None and cloud.grid_shape == grid.shape and n == len(source_bytes)
-    origin = np.arange(n) if cloud.origin is None else np.asarray(cloud.origin)
     points = np.zeros(n, record)
     raw = points.view(np.uint8).reshape(n, step)
-    from_input = origin >= 0
-    raw[from_input, :step_in] = source_bytes[to_msg[origin[from_input]]]
+    origin = None if cloud.origin is None else np.asarray(cloud.origin)
+    if origin is not None and len(origin) == len(source_bytes) and (origin == np.arange(len(origin))).all():
+        origin = None                                                  # a grid's cells: the identity
+    if origin is None and grid.order is None and n == len(source_bytes):
+        raw[:, :step_in] = source_bytes
+    else:
+        origin = np.arange(n) if origin is None else origin
+        from_input = origin >= 0
+        raw[from_input, :step_in] = np.take(source_bytes, to_msg[origin[from_input]], axis=0)
     for i, (_, _, values) in enumerate(columns):
         points[f"f{i}"] = values
     if cells and grid.empty.any():
         empty_now = ~cloud.positions_m.any(axis=1)
-        raw[empty_now & grid.empty, :step_in] = source_bytes[to_msg[empty_now & grid.empty]]
+        raw[empty_now & grid.empty, :step_in] = np.take(source_bytes, to_msg[empty_now & grid.empty], axis=0)
         xyz = [i for i, key in enumerate(keys) if key in ("x", "y", "z")]
         returned = np.zeros(len(source_bytes), bool)
         for i in xyz:
