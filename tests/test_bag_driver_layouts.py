@@ -399,3 +399,46 @@ def test_camera_info_topics_not_read_are_named_when_intrinsics_are_assumed(tmp_p
     recipe = parse_bag_recipe({"seed": 5, "topics": with_profile, "chains": {"camera": "CNF16"}}, base_dir=ROOT)
     summary = run_bag(recipe, bag, tmp_path / "out2.bag", workers=1, progress=False, echo=lambda _: None)
     assert not [w for w in summary.warnings if "CameraInfo" in w]
+
+
+VLS_PCD = ROOT / "sample_data/lidar/vls-128/seq0/000000.pcd"
+VELODYNE_PCL_ALIGNED = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 16, 7), ("ring", 20, 4),
+                        ("time", 24, 7)]                   # velodyne_ros::Point as LIO-style tools publish it: 32 bytes
+
+
+@pytest.mark.parametrize("fields, step", [(VELODYNE_XYZIRT, 22), (VELODYNE_PCL_ALIGNED, 32)])
+def test_velodyne_point_list_augments_like_its_pcd(tmp_path, fields, step):
+    """A VLS-128 scan as velodyne_pointcloud's (unorganised) point list, packed (22 bytes) or PCL-aligned (32):
+    the bag's output equals the exported PCD's, augmented by the file path with the same chain and seed — the
+    firing grid measured from the list, weather on its empty rays."""
+    from roadview_noise.bag_export import export_bag
+    from roadview_noise.recipe import parse_recipe
+    from roadview_noise.runner import run as run_files
+
+    cloud = read_pointcloud(VLS_PCD)
+    values = {"x": cloud.positions_m[:, 0], "y": cloud.positions_m[:, 1], "z": cloud.positions_m[:, 2],
+              "intensity": cloud.fields["intensity"], "ring": cloud.fields["ring"], "time": cloud.fields["time_s"]}
+    types = store(False)
+    src = tmp_path / "vls.bag"
+    write_bag(src, False, types, [(TOPIC, rm.POINTCLOUD2, cloud2(types, False, fields, step, values,
+                                                                 (1, len(cloud)), dense=True))])
+    recipe = parse_bag_recipe({"seed": 5, "topics": {TOPIC: {"sensor": "lidar", "lidar_profile": "vls-128"}},
+                               "chains": {"lidar": "CNF20"}}, base_dir=ROOT)
+    out = tmp_path / "out.bag"
+    summary = run_bag(recipe, src, out, workers=1, progress=False)
+    assert (summary.done, summary.failed) == (1, 0), summary.failures
+    entry = json.loads(manifest_path(out).read_text())
+    with open_bag(out) as reader:
+        (got,) = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages()]
+    tree = tmp_path / "tree"
+    export_bag(src, tree, recipe=recipe)
+    spec = {**recipe.topics[TOPIC].recipe.resolved_dict(), "inputs": {"lidar": "points/*.pcd"}}
+    s = run_files(parse_recipe(spec), tree, tmp_path / "files", workers=1, progress=False)
+    assert (s.done, s.failed) == (1, 0), s.failures
+    (pcd,) = (tmp_path / "files/points").glob("*.pcd")
+    files = read_pointcloud(pcd)
+    cols = columns_of(got)
+    assert len(cols["x"]) == len(files) > len(cloud) and "firing grid" in json.dumps(entry["steps"])
+    np.testing.assert_array_equal(cols["x"], files.positions_m[:, 0].astype(np.float32))
+    np.testing.assert_array_equal(cols["time"], files.fields["time_s"])
+    np.testing.assert_array_equal(cols["rv_effect"], files.fields["rv_effect"])
