@@ -248,7 +248,8 @@ class TopicImage:
         if kind == "planar":
             p = geometry.profile
             z = planar_depth_to_range(z, p.fx_px, p.fy_px, p.cx_px, p.cy_px)
-        notes = {"source": "topic", "topic": depth_topic, "encoding": msg.encoding, "kind": kind}
+        notes = {"source": "topic", "topic": depth_topic, "kind": kind,
+                 "encoding": msg.format if depth_type == rm.COMPRESSED_IMAGE else msg.encoding}
         return np.ascontiguousarray(z, dtype=np.float32), notes, where
 
 
@@ -371,9 +372,10 @@ def plan_bag(recipe: BagRecipe, reader: Any, bag: Path) -> BagPlan:
             if want not in by_topic:
                 raise RecipeError(f"depth topic {want!r} is not in {str(bag)!r}{suggest(want, by_topic)}",
                                   file=recipe.source, key=f"topics.{name}.depth_topic")
-            bad = [c.msgtype for c in by_topic[want] if c.msgtype != rm.IMAGE]
+            bad = [c.msgtype for c in by_topic[want] if c.msgtype not in (rm.IMAGE, rm.COMPRESSED_IMAGE)]
             if bad:
-                raise RecipeError(f"{bag}: depth topic {want} carries {bad[0]}, not {rm.IMAGE}", file=recipe.source,
+                raise RecipeError(f"{bag}: depth topic {want} carries {bad[0]}, not {rm.IMAGE} (or a "
+                                  f"compressedDepth {rm.COMPRESSED_IMAGE})", file=recipe.source,
                                   key=f"topics.{name}.depth_topic")
             depth[want] = by_topic[want]
     check_profiles(recipe, bag)

@@ -442,3 +442,94 @@ def test_velodyne_point_list_augments_like_its_pcd(tmp_path, fields, step):
     np.testing.assert_array_equal(cols["x"], files.positions_m[:, 0].astype(np.float32))
     np.testing.assert_array_equal(cols["time"], files.fields["time_s"])
     np.testing.assert_array_equal(cols["rv_effect"], files.fields["rv_effect"])
+
+
+def compressed_depth_msg(types, z_m: np.ndarray, encoding: str, *, codec: str = " png", frame_id: str = "camera"):
+    """A CompressedImage as compressed_depth_image_transport writes it (its documented ConfigHeader + 16-bit PNG);
+    32FC1 quantised with its defaults (depth_max 10 m, depth_quantization 100)."""
+    import struct
+
+    import cv2
+
+    if encoding == "16UC1":
+        a = b = 0.0
+        v = np.rint(np.nan_to_num(z_m, nan=0.0) * 1000).astype(np.uint16)
+    else:
+        a = 100.0 * 101.0
+        b = 1.0 - a / 10.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = np.where(np.isfinite(z_m) & (z_m > 0), np.rint(a / z_m + b), 0).astype(np.uint16)
+    ok, png = cv2.imencode(".png", v)
+    assert ok
+    data = np.frombuffer(struct.pack("<iff", 0, a, b) + png.tobytes(), np.uint8)
+    return types.types["sensor_msgs/msg/CompressedImage"](header=header(types, True, frame_id),
+                                                          format=f"{encoding}; compressedDepth{codec}", data=data)
+
+
+def test_compressed_depth_decodes_to_metres():
+    """16UC1 (mm, lossless) and 32FC1 (inverse-depth quantisation: z = A/(v − B)) compressedDepth images give the
+    depth in metres with holes as NaN; RVL and a headerless payload are refused naming the problem."""
+    from roadview_noise.errors import InputError
+
+    types = store(True)
+    z = np.linspace(0.5, 9.5, 48, dtype=np.float32).reshape(6, 8)
+    z[0, :3] = np.nan
+    got16 = rm.depth_image_m(compressed_depth_msg(types, z, "16UC1", codec=""), rm.COMPRESSED_IMAGE, source="t")
+    np.testing.assert_allclose(got16, np.rint(z * 1000) / 1000, rtol=0, atol=1e-6)
+    got32 = rm.depth_image_m(compressed_depth_msg(types, z, "32FC1"), rm.COMPRESSED_IMAGE, source="t")
+    assert np.isnan(got32[0, :3]).all() and np.isnan(got16[0, :3]).all()
+    np.testing.assert_allclose(got32, z, rtol=np.nanmax(z) / 10100 * 1.01)    # one quantisation step: z²/A
+    with pytest.raises(InputError, match="codec 'rvl' is not supported"):
+        rm.depth_image_m(compressed_depth_msg(types, z, "16UC1", codec=" rvl"), rm.COMPRESSED_IMAGE, source="t")
+    bare = compressed_depth_msg(types, z, "16UC1")
+    with pytest.raises(InputError, match="not a 12-byte header and a PNG"):
+        rm.depth_image_m(type(bare)(header=bare.header, format=bare.format, data=bare.data[12:]),
+                         rm.COMPRESSED_IMAGE, source="t")
+
+
+def test_compressed_depth_topic_gives_the_same_camera_output_as_a_16uc1_image(tmp_path):
+    """A camera chain that needs depth reads a compressedDepth topic: same pixels as with the same depth as a 16UC1
+    Image topic (it used to be refused: "depth topic carries CompressedImage")."""
+    from roadview_noise.sampledata.bag import RECIPE_TOPICS, write_sample_bag
+
+    src = tmp_path / "in"
+    write_sample_bag(ROOT / "sample_data", src, ros2=True, frames=1)
+    types = store(True)
+    outputs = []
+    for kind in ("image", "compressed"):
+        messages = []
+        with open_bag(src) as reader:
+            for c, _, raw in reader.messages():
+                if c.topic == "/camera/image/compressed":
+                    messages.append((c.topic, c.msgtype, reader.deserialize(raw, c.msgtype)))
+                elif c.topic == "/camera/depth":
+                    z = rm.depth_image_m(reader.deserialize(raw, c.msgtype), rm.IMAGE, source="t")
+                    if kind == "image":
+                        mm = np.rint(np.nan_to_num(z, nan=0.0) * 1000).astype("<u2")
+                        msg = types.types[rm.IMAGE](header=header(types, True, "camera"), height=mm.shape[0],
+                                                    width=mm.shape[1], encoding="16UC1", is_bigendian=0,
+                                                    step=mm.strides[0], data=mm.view(np.uint8).ravel())
+                        messages.append((c.topic, rm.IMAGE, msg))
+                    else:
+                        messages.append((c.topic, rm.COMPRESSED_IMAGE, compressed_depth_msg(types, z, "16UC1")))
+        for i, (topic, msgtype, msg) in enumerate(messages):      # the camera message's stamp on its depth
+            if topic == "/camera/image/compressed":
+                stamp = msg.header.stamp
+        messages = [(t, m, type(x)(**{**{k: getattr(x, k) for k in x.__dataclass_fields__},
+                                      "header": type(x.header)(stamp=stamp, frame_id="camera")}))
+                    for t, m, x in messages]
+        bag = tmp_path / kind
+        write_bag(bag, True, types, messages)
+        topics = {"/camera/image/compressed": RECIPE_TOPICS["/camera/image/compressed"]}
+        recipe = parse_bag_recipe({"seed": 5, "topics": topics, "chains": {"camera": "CNF16"}}, base_dir=ROOT)
+        out = tmp_path / f"{kind}-out"
+        summary = run_bag(recipe, bag, out, workers=1, progress=False, echo=lambda _: None)
+        assert (summary.done, summary.failed) == (1, 0), summary.failures
+        entry = json.loads(manifest_path(out).read_text())
+        assert entry["inputs"]["depth"]["encoding"] == ("16UC1" if kind == "image" else "16UC1; compressedDepth png")
+        with open_bag(out) as reader:
+            outputs.append([bytes(raw) for c, _, raw in reader.messages() if c.topic == "/camera/image/compressed"])
+    assert outputs[0] == outputs[1]
+    from roadview_noise.bag_export import export_bag
+
+    assert set(export_bag(tmp_path / "compressed", tmp_path / "tree")["topics"]) == {"/camera/image/compressed"}

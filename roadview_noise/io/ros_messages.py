@@ -11,8 +11,9 @@ unchanged by the writers here, which return a new message of the same class.
   like an 8/16-bit PNG (``8UC3``/``16UC3`` in OpenCV's BGR order; ``16UC1`` is a 16-bit grey image on a camera
   topic): :class:`CameraFrame`. ``bayer_{rggb,bggr,gbrg,grbg}{8,16}`` are CFA digital numbers: :class:`RawFrame` with
   black level 0 and white level 2^bits − 1 unless the topic states its levels. Rows may be padded (``step``).
-- Depth (aligned depth topic, REP 118): Image ``32FC1`` (m) or ``16UC1``/``mono16`` (mm); 0, NaN and −inf (no
-  measurement, too close) are holes (NaN, for the recipe's ``depth_holes``), +inf (nothing within range) stays.
+- Depth (aligned depth topic, REP 118): Image ``32FC1`` (m) or ``16UC1``/``mono16`` (mm), or a ``compressedDepth``
+  CompressedImage (PNG codec); 0, NaN and −inf (no measurement, too close) are holes (NaN, for the recipe's
+  ``depth_holes``), +inf (nothing within range) stays.
 - PointCloud2: fields (any of the eight PointField datatypes, ``count`` ≥ 1, any offsets, padding, big-endian)
   are read in offset order and named like file fields (:func:`..io.pointcloud.cloud_from_columns`); an organised
   cloud (height > 1) is a full grid (``grid_shape``, beams × azimuths: a cloud stored a row per firing, Velodyne's,
@@ -26,6 +27,7 @@ unchanged by the writers here, which return a new message of the same class.
 from __future__ import annotations
 
 import dataclasses
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -170,14 +172,46 @@ def frame_to_image(msg: Any, msgtype: str, frame: CameraFrame | RawFrame, *, sou
 
 
 def depth_image_m(msg: Any, msgtype: str, *, source: str) -> np.ndarray:
-    """Depth (m, float32) of a depth Image (REP 118): ``32FC1`` metres or 16-bit millimetres; no measurement (0,
-    NaN, −inf) → NaN (a hole)."""
-    if msgtype != IMAGE:
-        raise InputError(f"a depth topic must carry sensor_msgs/Image ({', '.join(DEPTH_ENCODINGS)}), not {msgtype}",
-                         file=source)
-    pixels = image_pixels(msg, allowed=DEPTH_ENCODINGS, source=source)
-    z = pixels.astype(np.float32) * np.float32(1.0 if pixels.dtype.kind == "f" else 1e-3)
+    """Depth (m, float32) of a depth Image (REP 118): ``32FC1`` metres or 16-bit millimetres, or of a
+    ``compressedDepth`` CompressedImage (:func:`compressed_depth`); no measurement (0, NaN, −inf) → NaN (a hole)."""
+    if msgtype == COMPRESSED_IMAGE:
+        z = compressed_depth(msg, source=source)
+    elif msgtype == IMAGE:
+        pixels = image_pixels(msg, allowed=DEPTH_ENCODINGS, source=source)
+        z = pixels.astype(np.float32) * np.float32(1.0 if pixels.dtype.kind == "f" else 1e-3)
+    else:
+        raise InputError(f"a depth topic must carry sensor_msgs/Image ({', '.join(DEPTH_ENCODINGS)}) or a "
+                         f"compressedDepth CompressedImage, not {msgtype}", file=source)
     z[~(z > 0)] = np.nan
+    return z
+
+
+def compressed_depth(msg: Any, *, source: str) -> np.ndarray:
+    """Depth (m, float32; NaN where none) of a CompressedImage of ROS' compressed_depth_image_transport: ``format``
+    ``16UC1; compressedDepth png`` (or without the codec, older publishers) or ``32FC1; compressedDepth png``; the data
+    are a 12-byte ConfigHeader (int32 format, float32 depthQuantA, depthQuantB; little-endian) then a 16-bit PNG:
+    millimetres for 16UC1, quantised inverse depth for 32FC1, z = A / (v − B) with v = 0 no measurement."""
+    import cv2
+
+    encoding, _, rest = msg.format.partition(";")
+    encoding, codec = encoding.strip(), rest.strip().removeprefix("compressedDepth").strip() or "png"
+    if "compressedDepth" not in msg.format or encoding not in ("16UC1", "32FC1"):
+        raise InputError(f"CompressedImage format {msg.format!r} is not a 16UC1 or 32FC1 compressedDepth image",
+                         file=source)
+    if codec != "png":
+        raise InputError(f"compressedDepth codec {codec!r} is not supported (png is)", file=source)
+    data = np.asarray(msg.data, np.uint8).tobytes()
+    if len(data) < 20 or data[12:20] != b"\x89PNG\r\n\x1a\n":
+        raise InputError(f"compressedDepth data ({len(data)} bytes) is not a 12-byte header and a PNG", file=source)
+    _, quant_a, quant_b = struct.unpack_from("<iff", data)
+    v = cv2.imdecode(np.frombuffer(data, np.uint8, offset=12), cv2.IMREAD_UNCHANGED)
+    if v is None or v.dtype != np.uint16 or v.ndim != 2:
+        raise InputError("compressedDepth PNG is not a 16-bit single-channel image", file=source)
+    if encoding == "16UC1":
+        return v.astype(np.float32) * np.float32(1e-3)
+    with np.errstate(divide="ignore"):
+        z = np.float32(quant_a) / (v.astype(np.float32) - np.float32(quant_b))
+    z[v == 0] = np.nan
     return z
 
 
