@@ -444,6 +444,11 @@ def test_velodyne_point_list_augments_like_its_pcd(tmp_path, fields, step):
     np.testing.assert_array_equal(cols["rv_effect"], files.fields["rv_effect"])
 
 
+def to_mm(z_m: np.ndarray) -> np.ndarray:
+    """16-bit millimetres as a driver stores them: no measurement 0, beyond 65.535 m the largest value."""
+    return np.rint(np.minimum(np.nan_to_num(z_m, nan=0.0, posinf=65.535), 65.535) * 1000).astype(np.uint16)
+
+
 def compressed_depth_msg(types, z_m: np.ndarray, encoding: str, *, codec: str = " png", frame_id: str = "camera"):
     """A CompressedImage as compressed_depth_image_transport writes it (its documented ConfigHeader + 16-bit PNG);
     32FC1 quantised with its defaults (depth_max 10 m, depth_quantization 100)."""
@@ -453,7 +458,7 @@ def compressed_depth_msg(types, z_m: np.ndarray, encoding: str, *, codec: str = 
 
     if encoding == "16UC1":
         a = b = 0.0
-        v = np.rint(np.nan_to_num(z_m, nan=0.0) * 1000).astype(np.uint16)
+        v = to_mm(z_m)
     else:
         a = 100.0 * 101.0
         b = 1.0 - a / 10.0
@@ -505,7 +510,7 @@ def test_compressed_depth_topic_gives_the_same_camera_output_as_a_16uc1_image(tm
                 elif c.topic == "/camera/depth":
                     z = rm.depth_image_m(reader.deserialize(raw, c.msgtype), rm.IMAGE, source="t")
                     if kind == "image":
-                        mm = np.rint(np.nan_to_num(z, nan=0.0) * 1000).astype("<u2")
+                        mm = to_mm(z).astype("<u2")
                         msg = types.types[rm.IMAGE](header=header(types, True, "camera"), height=mm.shape[0],
                                                     width=mm.shape[1], encoding="16UC1", is_bigendian=0,
                                                     step=mm.strides[0], data=mm.view(np.uint8).ravel())
