@@ -155,6 +155,11 @@ def _augment(ctx: BagContext, typestore: Any, topic: BagTopic, job: MessageJob, 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             msg = _deserialize(typestore, ctx.is2, job.raw, job.msgtype, source)
+            if job.msgtype == rm.POINTCLOUD2 and int(msg.height) * int(msg.width) == 0:
+                entry.update(status="empty", skipped=True, copied_unchanged=True,
+                             note="0 points (a radar frame without detections, a LiDAR with nothing in view): "
+                                  "nothing to augment")
+                return None
             seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype, source)
             entry["seed_key"] = seed_key
             data = message_data(ctx, typestore, topic, msg, job, source)
@@ -507,7 +512,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     summary.planned += 1
                     counts = topics[entry["topic"]]
                     counts["messages"] += 1
-                    counts["ok" if entry["status"] == "ok" else "failed"] += 1
+                    status = entry["status"] if entry["status"] in ("ok", "empty") else "failed"
+                    counts[status] = counts.get(status, 0) + 1
         finally:
             bar.close()
     summary.seconds = time.time() - started
@@ -525,7 +531,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         "recipe_sha256": recipe.sha256(), "seed": recipe.seed, "input_bag": str(in_bag.resolve()),
         "output_bag": str(out_bag.resolve()), "workers": n_workers, "started_unix": started,
         "wall_seconds": round(summary.seconds, 3), "warnings": summary.warnings, "topics": topics,
-        "counts": {"augmented": summary.done, "failed": summary.failed, "messages": n_messages},
+        "counts": {"augmented": summary.done, "failed": summary.failed, "messages": n_messages,
+                   **({"empty": summary.skipped} if summary.skipped else {})},
     })
     return summary
 

@@ -538,3 +538,36 @@ def test_compressed_depth_topic_gives_the_same_camera_output_as_a_16uc1_image(tm
     from roadview_noise.bag_export import export_bag
 
     assert set(export_bag(tmp_path / "compressed", tmp_path / "tree")["topics"]) == {"/camera/image/compressed"}
+
+
+def test_an_empty_cloud_is_copied_and_counted_not_failed(tmp_path):
+    """A radar frame without detections (width 0, as ti_mmwave and ARS 408 drivers publish them) is copied unchanged
+    and counted as empty, not failed: the run exits 0 (it used to fail "the point cloud is empty (0 points)")."""
+    from typer.testing import CliRunner
+
+    from cli.main import app
+    from roadview_noise.bag_runner import run_record_path
+
+    types = store(False)
+    rng = np.random.default_rng(1)
+    n = 40
+    values = {"x": rng.uniform(5, 50, n), "y": rng.uniform(-5, 5, n), "z": np.zeros(n),
+              "intensity": rng.uniform(8, 30, n), "velocity": rng.uniform(-5, 5, n)}
+    empty = cloud2(types, False, TI_MMWAVE, 32, {k: v[:0] for k, v in values.items()}, (1, 0), dense=True)
+    full = cloud2(types, False, TI_MMWAVE, 32, values, (1, n), dense=True)
+    src = tmp_path / "radar.bag"
+    write_bag(src, False, types, [("/radar", rm.POINTCLOUD2, empty), ("/radar", rm.POINTCLOUD2, full)])
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text('seed: 5\ntopics:\n  /radar: {sensor: radar, field_map: {intensity: snr_db}}\n'
+                      'chains: {radar: CNF25}\n')
+    out = tmp_path / "out.bag"
+    result = CliRunner().invoke(app, ["augment", "--recipe", str(recipe), str(src), str(out)])
+    assert result.exit_code == 0, result.output
+    assert "1 messages augmented, 0 failed (copied unchanged), 1 empty clouds (copied unchanged)" in result.output
+    record = json.loads(run_record_path(out).read_text())
+    assert record["counts"] == {"augmented": 1, "failed": 0, "messages": 2, "empty": 1}
+    assert record["topics"]["/radar"] == {"messages": 2, "ok": 1, "failed": 0, "empty": 1}
+    first = json.loads(manifest_path(out).read_text().splitlines()[0])
+    assert first["status"] == "empty" and first["copied_unchanged"] is True
+    with open_bag(src) as a, open_bag(out) as b:
+        assert next(a.messages())[2] == next(b.messages())[2]
