@@ -571,3 +571,50 @@ def test_an_empty_cloud_is_copied_and_counted_not_failed(tmp_path):
     assert first["status"] == "empty" and first["copied_unchanged"] is True
     with open_bag(src) as a, open_bag(out) as b:
         assert next(a.messages())[2] == next(b.messages())[2]
+
+
+def test_real_ouster_scan_nan_marked_zero_marked_and_pcd_agree(tmp_path, shared_data):
+    """The real OS1-128 range image (128 × 1024, 23 425 no-return cells) as ouster-ros messages — no-returns NaN
+    (≥ 0.10) and zeros (older) — and as a PCD grid through the file path: CNF20 puts the same weather returns in
+    the same empty cells and leaves the same points (real data: skipped when ../shared/data is absent)."""
+    from roadview_noise.bag_export import export_bag
+    from roadview_noise.recipe import parse_recipe
+    from roadview_noise.runner import run as run_files
+
+    grid = np.load(shared_data / "os1-128/scan0_grid.npz")
+    xyz = grid["xyz_m"].reshape(-1, 3)
+    empty = grid["range_mm"].ravel() == 0
+    beams, columns = grid["range_mm"].shape
+    values = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2], "intensity": grid["reflectivity"].ravel(),
+              "t": np.tile(np.arange(columns) * 97656, beams), "reflectivity": grid["reflectivity"].ravel(),
+              "ring": np.repeat(np.arange(beams), columns), "ambient": grid["near_ir"].ravel(),
+              "range": grid["range_mm"].ravel()}
+    types = store(True)
+    nan = {**values, **{a: np.where(empty, np.nan, values[a]) for a in "xyz"}}
+    global PROFILE
+    saved, PROFILE = PROFILE, "os1-128"
+    try:
+        (zero_out,), _ = run(tmp_path, "zeros", True, cloud2(types, True, OUSTER_ORIGINAL, 48, values,
+                                                             (beams, columns), pad_one_at=12))
+        (nan_out,), _ = run(tmp_path, "nan", True, cloud2(types, True, OUSTER_ORIGINAL, 48, nan, (beams, columns),
+                                                          pad_one_at=12))
+    finally:
+        PROFILE = saved
+    recipe = parse_bag_recipe({"seed": 5, "topics": {TOPIC: {"sensor": "lidar", "lidar_profile": "os1-128"}},
+                               "chains": {"lidar": "CNF20"}}, base_dir=ROOT)
+    tree = tmp_path / "tree"
+    export_stem = f"points/{STAMP:019d}.pcd"
+    export_bag(tmp_path / "nan", tree, recipe=recipe)                  # the NaN-marked bag, as a user would
+    spec = {**recipe.topics[TOPIC].recipe.resolved_dict(), "inputs": {"lidar": "points/*.pcd"}}
+    s = run_files(parse_recipe(spec), tree, tmp_path / "files", workers=1, progress=False)
+    assert (s.done, s.failed) == (1, 0), s.failures
+    files = read_pointcloud(tmp_path / "files" / export_stem)
+    c0, c1 = columns_of(zero_out), columns_of(nan_out)
+    still = np.isnan(c1["x"])
+    filled = empty & ~still
+    assert empty.sum() == 23425 and filled.sum() > 0 and (c1["rv_effect"][filled] == Effect.ADDED).all()
+    np.testing.assert_array_equal(still, ~files.positions_m.any(axis=1))
+    for name in ("x", "y", "z"):
+        np.testing.assert_array_equal(c1[name][~still], c0[name][~still])
+        np.testing.assert_array_equal(c0[name], files.positions_m[:, "xyz".index(name)].astype(np.float32))
+    np.testing.assert_array_equal(c1["rv_effect"], files.fields["rv_effect"])
