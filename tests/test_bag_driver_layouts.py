@@ -147,6 +147,10 @@ def test_ouster_ros_no_returns_as_nan_are_empty_rays(tmp_path, ros2):
         np.testing.assert_array_equal(c1[name][~still], c0[name][~still], err_msg=name)
     filled = empty & ~still
     assert filled.sum() > 0 and (c1["rv_effect"][filled] == Effect.ADDED).all()    # weather on the empty rays
+    new = (c1["rv_effect"] == Effect.MOVED) | (c1["rv_effect"] == Effect.ADDED)     # Ouster range (mm) follows
+    xyz = np.stack([c1[a] for a in "xyz"], axis=1).astype(np.float64)
+    np.testing.assert_allclose(c1["range"][new], np.linalg.norm(xyz[new], axis=1) * 1000, atol=1)   # float32 x y z
+    np.testing.assert_array_equal(c1["range"][~new], np.rint(values["range"])[~new])
     raw_in = np.asarray(marked.data, np.uint8).reshape(-1, 48)
     np.testing.assert_array_equal(np.asarray(out1.data, np.uint8).reshape(-1, 49)[still, :48], raw_in[still])
 
