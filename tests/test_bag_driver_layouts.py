@@ -155,17 +155,19 @@ def test_ouster_ros_no_returns_as_nan_are_empty_rays(tmp_path, ros2):
     np.testing.assert_array_equal(np.asarray(out1.data, np.uint8).reshape(-1, 49)[still, :48], raw_in[still])
 
 
-@pytest.mark.parametrize("big", [False, True])
-def test_velodyne_organised_cloud_has_a_row_per_firing(tmp_path, big):
+@pytest.mark.parametrize("big, laser_order", [(False, "ring"), (True, "ring"), (False, "firing")])
+def test_velodyne_organised_cloud_has_a_row_per_firing(tmp_path, big, laser_order):
     """velodyne_pointcloud's organised cloud stores a row per firing and a column per laser (ring = column), with
-    NaN for no return. It is read as the beams × azimuths grid it is (and written back in its own order): the
+    NaN for no return; rslidar_sdk's (without send_by_rows) too, its lasers in firing order (ring constant down a
+    column, not equal to it). It is read as the beams × azimuths grid it is (and written back in its own order): the
     result equals, cell for cell, the same scan stored beam-major with zeros; big-endian too."""
     types = store(True)
     values, (beams, columns) = scan()
     empty = ~(values["x"] != 0) & ~(values["y"] != 0) & ~(values["z"] != 0)
     reference = cloud2(types, True, VELODYNE_XYZIRT, 22, values, (beams, columns))
-    transposed = {k: np.asarray(v).reshape(beams, columns).T.ravel() for k, v in values.items()}
-    cell_empty = empty.reshape(beams, columns).T.ravel()
+    lasers = np.arange(beams) if laser_order == "ring" else np.random.default_rng(2).permutation(beams)
+    transposed = {k: np.asarray(v).reshape(beams, columns)[lasers].T.ravel() for k, v in values.items()}
+    cell_empty = empty.reshape(beams, columns)[lasers].T.ravel()
     for k in ("x", "y", "z", "intensity"):
         transposed[k] = np.where(cell_empty, np.nan, transposed[k])
     firing_major = cloud2(types, True, VELODYNE_XYZIRT, 22, transposed, (columns, beams), big=big)
@@ -176,10 +178,10 @@ def test_velodyne_organised_cloud_has_a_row_per_firing(tmp_path, big):
     c_ref, c_out = columns_of(ref), columns_of(out)
     still = np.isnan(c_out["x"])
     for name, v in c_ref.items():
-        back = v.reshape(beams, columns).T.ravel()
+        back = v.reshape(beams, columns)[lasers].T.ravel()
         np.testing.assert_array_equal(c_out[name][~still], back[~still], err_msg=name)
     assert still.sum() < cell_empty.sum() and (c_out["rv_effect"][cell_empty & ~still] == Effect.ADDED).all()
-    assert np.isnan(c_out["intensity"][still]).all() and (c_out["ring"] == np.tile(np.arange(beams), columns)).all()
+    assert np.isnan(c_out["intensity"][still]).all() and (c_out["ring"] == np.tile(lasers, columns)).all()
 
 
 def test_a_cell_the_chain_empties_gets_the_drivers_nan():

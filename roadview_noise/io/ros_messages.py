@@ -269,7 +269,8 @@ def point_bytes(msg: Any, *, source: str) -> np.ndarray:
 class GridCells:
     """How an organised PointCloud2 (height > 1) is rvnoise's grid of beams × azimuths (``shape``, None for a point
     list): ``order`` the message index of each grid cell when the message stores the transpose (Velodyne's organised
-    clouds: a row per firing, a column per laser — told by the ``ring`` field equal to the column), else None;
+    clouds, rslidar_sdk's unless ``send_by_rows``: a row per firing, a column per laser — told by a ``ring`` field
+    constant down each column; grid rows sorted by ring), else None;
     ``empty`` per grid cell: x, y or z not finite, the driver's no-return marker (ouster-ros since 0.10, Velodyne
     organised clouds), read as a no-return cell (position zero) and written back as it was."""
 
@@ -288,8 +289,9 @@ def grid_cells(msg: Any, columns: list[Column], keys: list[str]) -> GridCells:
     ring = columns[where["ring"]][2] if "ring" in where and columns[where["ring"]][2].ndim == 1 else None
     if ring is not None and w > 1:
         ring = ring.reshape(h, w)
-        if (ring == np.arange(w)).all() and not (ring == np.arange(h)[:, None]).all():
-            shape, order = (w, h), np.arange(h * w).reshape(h, w).T.ravel()
+        if (ring == ring[:1]).all() and not (ring == ring[:, :1]).all():         # one ring per column
+            by_ring = np.argsort(ring[0], kind="stable")                         # grid rows in ring order
+            shape, order = (w, h), np.arange(h * w).reshape(h, w)[:, by_ring].T.ravel()
     empty = np.zeros(h * w, bool)
     for axis in "xyz":
         if axis in where and columns[where[axis]][2].ndim == 1 and columns[where[axis]][2].dtype.kind == "f":
