@@ -472,8 +472,9 @@ def _augment_bag(in_bag: Path, out_bag: Path, recipe: Path, workers: Optional[in
     except RvNoiseError as e:
         _fail(str(e))
     _print_problems(s, failed="failed (copied unchanged)", unit="message")
-    typer.echo(f"rvnoise: {s.done} messages augmented, {s.failed} failed (copied unchanged) in {s.seconds:.1f} s → "
-               f"{out_bag} (manifest: {manifest_path(out_bag)})")
+    empty = f", {s.skipped} empty clouds (copied unchanged)" if s.skipped else ""
+    typer.echo(f"rvnoise: {s.done} messages augmented, {s.failed} failed (copied unchanged){empty} in "
+               f"{s.seconds:.1f} s → {out_bag} (manifest: {manifest_path(out_bag)})")
     if s.failed:
         raise typer.Exit(1)
 

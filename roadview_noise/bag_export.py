@@ -97,6 +97,8 @@ def sensor_topics(reader: Any, is2: bool) -> BagRecipe:
     for conn in reader.connections:
         if conn.msgtype == rm.IMAGE and _first(reader, conn).encoding not in rm.CAMERA_ENCODINGS:
             continue
+        if conn.msgtype == rm.COMPRESSED_IMAGE and "compresseddepth" in _first(reader, conn).format.lower():
+            continue                                    # a depth image, not a picture
         if conn.msgtype in rm.SENSOR_TYPES["camera"]:
             topics.setdefault(conn.topic, {"sensor": "camera"})
         elif conn.msgtype == rm.POINTCLOUD2:

@@ -155,6 +155,11 @@ def _augment(ctx: BagContext, typestore: Any, topic: BagTopic, job: MessageJob, 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             msg = _deserialize(typestore, ctx.is2, job.raw, job.msgtype, source)
+            if job.msgtype == rm.POINTCLOUD2 and int(msg.height) * int(msg.width) == 0:
+                entry.update(status="empty", skipped=True, copied_unchanged=True,
+                             note="0 points (a radar frame without detections, a LiDAR with nothing in view): "
+                                  "nothing to augment")
+                return None
             seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype, source)
             entry["seed_key"] = seed_key
             data = message_data(ctx, typestore, topic, msg, job, source)
@@ -248,7 +253,8 @@ class TopicImage:
         if kind == "planar":
             p = geometry.profile
             z = planar_depth_to_range(z, p.fx_px, p.fy_px, p.cx_px, p.cy_px)
-        notes = {"source": "topic", "topic": depth_topic, "encoding": msg.encoding, "kind": kind}
+        notes = {"source": "topic", "topic": depth_topic, "kind": kind,
+                 "encoding": msg.format if depth_type == rm.COMPRESSED_IMAGE else msg.encoding}
         return np.ascontiguousarray(z, dtype=np.float32), notes, where
 
 
@@ -363,17 +369,18 @@ def plan_bag(recipe: BagRecipe, reader: Any, bag: Path) -> BagPlan:
             allowed = rm.SENSOR_TYPES[topic.sensor]
             if conn.msgtype not in allowed:
                 raise RecipeError(f"{bag}: topic {name} carries {conn.msgtype}, which a {topic.sensor} topic cannot "
-                                  f"read (expected {' or '.join(allowed)})", file=recipe.source,
-                                  key=f"topics.{name}")
+                                  f"read (expected {' or '.join(allowed)}){rm.type_hint(conn.msgtype)}",
+                                  file=recipe.source, key=f"topics.{name}")
             mapped[id(conn)] = topic
         want = topic.spec.depth_topic
         if want is not None:
             if want not in by_topic:
                 raise RecipeError(f"depth topic {want!r} is not in {str(bag)!r}{suggest(want, by_topic)}",
                                   file=recipe.source, key=f"topics.{name}.depth_topic")
-            bad = [c.msgtype for c in by_topic[want] if c.msgtype != rm.IMAGE]
+            bad = [c.msgtype for c in by_topic[want] if c.msgtype not in (rm.IMAGE, rm.COMPRESSED_IMAGE)]
             if bad:
-                raise RecipeError(f"{bag}: depth topic {want} carries {bad[0]}, not {rm.IMAGE}", file=recipe.source,
+                raise RecipeError(f"{bag}: depth topic {want} carries {bad[0]}, not {rm.IMAGE} (or a "
+                                  f"compressedDepth {rm.COMPRESSED_IMAGE})", file=recipe.source,
                                   key=f"topics.{name}.depth_topic")
             depth[want] = by_topic[want]
     check_profiles(recipe, bag)
@@ -479,6 +486,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         blob = pickle.dumps(BagContext(str(in_bag), is2, dict(reader.typestore.fielddefs), recipe,
                                        in_bag.resolve().parent, capture_output=True))
         syncs = depth_syncs(stack, in_bag, plan, is2)
+        camera_info = sorted({c.topic for c in reader.connections if c.msgtype == rm.CAMERA_INFO})
+        assumed: set[str] = set()              # camera topics whose intrinsics were assumed from a FOV
         n_messages = reader.message_count
         bar = tqdm(total=n_messages, unit="msg", disable=not progress, file=sys.stderr, dynamic_ncols=True)
         try:
@@ -498,14 +507,22 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
                     tally.add(entry)
+                    if "intrinsics_from_fov" in (entry.get("inputs") or {}).get("warnings", ()):
+                        assumed.add(entry["topic"])
                     summary.planned += 1
                     counts = topics[entry["topic"]]
                     counts["messages"] += 1
-                    counts["ok" if entry["status"] == "ok" else "failed"] += 1
+                    status = entry["status"] if entry["status"] in ("ok", "empty") else "failed"
+                    counts[status] = counts.get(status, 0) + 1
         finally:
             bar.close()
     summary.seconds = time.time() - started
     summary.warnings = tally.warnings()
+    if assumed and camera_info:
+        summary.warnings.append(
+            f"the bag's {rm.CAMERA_INFO} topic(s) {', '.join(camera_info)} are not read: intrinsics of "
+            f"{', '.join(sorted(assumed))} were assumed, not taken from them; state them with the topic's "
+            "camera_profile (fx_px, fy_px, cx_px, cy_px = K[0], K[4], K[2], K[5] of the CameraInfo)")
     for line in summary.warnings:
         echo(f"rvnoise: warning: {line}")
     write_run_json(run_record_path(out_bag), {
@@ -514,7 +531,8 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         "recipe_sha256": recipe.sha256(), "seed": recipe.seed, "input_bag": str(in_bag.resolve()),
         "output_bag": str(out_bag.resolve()), "workers": n_workers, "started_unix": started,
         "wall_seconds": round(summary.seconds, 3), "warnings": summary.warnings, "topics": topics,
-        "counts": {"augmented": summary.done, "failed": summary.failed, "messages": n_messages},
+        "counts": {"augmented": summary.done, "failed": summary.failed, "messages": n_messages,
+                   **({"empty": summary.skipped} if summary.skipped else {})},
     })
     return summary
 

@@ -32,6 +32,7 @@ from ..errors import InputError
 from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
+from .derived_fields import with_derived
 from .radar_formats import fixed_field_layout
 
 FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin")
@@ -185,7 +186,7 @@ def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "aut
     columns: list[Column] = []
     for key, file_name, dt in layout.fields:
         values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
-        columns.append((file_name, dt, _cast(values, dt, key)))
+        columns.append((file_name, dt, _cast(with_derived(values, file_name, dt, cloud), dt, key)))
     if effect == "none" or cloud.effect is None:
         return columns, None
     field = effect_field_name([file_name for _, file_name, _ in layout.fields])

@@ -11,18 +11,23 @@ unchanged by the writers here, which return a new message of the same class.
   like an 8/16-bit PNG (``8UC3``/``16UC3`` in OpenCV's BGR order; ``16UC1`` is a 16-bit grey image on a camera
   topic): :class:`CameraFrame`. ``bayer_{rggb,bggr,gbrg,grbg}{8,16}`` are CFA digital numbers: :class:`RawFrame` with
   black level 0 and white level 2^bits − 1 unless the topic states its levels. Rows may be padded (``step``).
-- Depth (aligned depth topic, REP 118): Image ``32FC1`` (m) or ``16UC1``/``mono16`` (mm); 0, NaN and −inf (no
-  measurement, too close) are holes (NaN, for the recipe's ``depth_holes``), +inf (nothing within range) stays.
+- Depth (aligned depth topic, REP 118): Image ``32FC1`` (m) or ``16UC1``/``mono16`` (mm), or a ``compressedDepth``
+  CompressedImage (PNG codec); 0, NaN and −inf (no measurement, too close) are holes (NaN, for the recipe's
+  ``depth_holes``), +inf (nothing within range) stays.
 - PointCloud2: fields (any of the eight PointField datatypes, ``count`` ≥ 1, any offsets, padding, big-endian)
   are read in offset order and named like file fields (:func:`..io.pointcloud.cloud_from_columns`); an organised
-  cloud (height > 1) is a full grid (``grid_shape``). Written back with every input field at its offset and
-  datatype, then the field :func:`..io.pointcloud.output_columns` adds (the weather-effect code ``rv_effect``, uint8)
-  appended after the input's ``point_step``; an organised cloud keeps height × width when the point count is unchanged.
+  cloud (height > 1) is a full grid (``grid_shape``, beams × azimuths: a cloud stored a row per firing, Velodyne's,
+  is read transposed, :class:`GridCells`) whose cells with NaN x/y/z (the driver's no-return marker) are no-return
+  cells. Written back with every input field at its offset and datatype (a point from the input starts from its
+  bytes: padding kept), then the field :func:`..io.pointcloud.output_columns` adds (the weather-effect code
+  ``rv_effect``, uint8) appended after the input's ``point_step``; an organised cloud keeps height × width, its
+  order and its no-return marker when the point count is unchanged.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,11 +36,12 @@ import numpy as np
 from ..errors import InputError
 from ..types import CFA_PATTERNS, CameraFrame, CameraProfile, CloudLayout, PointCloud, RawEncoding, RawFrame
 from . import image as image_io
-from .pointcloud import Column, cloud_from_columns, output_columns
+from .pointcloud import Column, _canonical_keys, cloud_from_columns, output_columns
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"             # not read (run warning when intrinsics are assumed)
 SENSOR_TYPES = {"camera": (COMPRESSED_IMAGE, IMAGE), "lidar": (POINTCLOUD2,), "radar": (POINTCLOUD2,)}
 
 # PointField datatype → NumPy base type (sensor_msgs/PointField constants INT8 … FLOAT64)
@@ -71,6 +77,14 @@ def _pixel_layouts() -> dict[str, PixelLayout]:
 PIXEL_LAYOUTS = _pixel_layouts()
 CAMERA_ENCODINGS = tuple(k for k, v in PIXEL_LAYOUTS.items() if v.dtype != "f4")
 DEPTH_ENCODINGS = ("32FC1", "16UC1", "mono16")
+
+
+def type_hint(msgtype: str) -> str:
+    """What to do about a message type rvnoise does not read, where a common driver writes it ('' otherwise)."""
+    if msgtype.startswith("livox_ros_driver") and msgtype.endswith("/CustomMsg"):
+        return ("; a Livox CustomMsg is the driver's own point list, not a PointCloud2: record with "
+                "livox_ros_driver2's xfer_format 0 (PointCloud2) or convert the topic first")
+    return ""
 
 
 def compressed_format(fmt: str, *, source: str) -> str:
@@ -158,22 +172,55 @@ def frame_to_image(msg: Any, msgtype: str, frame: CameraFrame | RawFrame, *, sou
 
 
 def depth_image_m(msg: Any, msgtype: str, *, source: str) -> np.ndarray:
-    """Depth (m, float32) of a depth Image (REP 118): ``32FC1`` metres or 16-bit millimetres; no measurement (0,
-    NaN, −inf) → NaN (a hole)."""
-    if msgtype != IMAGE:
-        raise InputError(f"a depth topic must carry sensor_msgs/Image ({', '.join(DEPTH_ENCODINGS)}), not {msgtype}",
-                         file=source)
-    pixels = image_pixels(msg, allowed=DEPTH_ENCODINGS, source=source)
-    z = pixels.astype(np.float32) * np.float32(1.0 if pixels.dtype.kind == "f" else 1e-3)
+    """Depth (m, float32) of a depth Image (REP 118): ``32FC1`` metres or 16-bit millimetres, or of a
+    ``compressedDepth`` CompressedImage (:func:`compressed_depth`); no measurement (0, NaN, −inf) → NaN (a hole)."""
+    if msgtype == COMPRESSED_IMAGE:
+        z = compressed_depth(msg, source=source)
+    elif msgtype == IMAGE:
+        pixels = image_pixels(msg, allowed=DEPTH_ENCODINGS, source=source)
+        z = pixels.astype(np.float32) * np.float32(1.0 if pixels.dtype.kind == "f" else 1e-3)
+    else:
+        raise InputError(f"a depth topic must carry sensor_msgs/Image ({', '.join(DEPTH_ENCODINGS)}) or a "
+                         f"compressedDepth CompressedImage, not {msgtype}", file=source)
     z[~(z > 0)] = np.nan
+    return z
+
+
+def compressed_depth(msg: Any, *, source: str) -> np.ndarray:
+    """Depth (m, float32; NaN where none) of a CompressedImage of ROS' compressed_depth_image_transport: ``format``
+    ``16UC1; compressedDepth png`` (or without the codec, older publishers) or ``32FC1; compressedDepth png``; the data
+    are a 12-byte ConfigHeader (int32 format, float32 depthQuantA, depthQuantB; little-endian) then a 16-bit PNG:
+    millimetres for 16UC1, quantised inverse depth for 32FC1, z = A / (v − B) with v = 0 no measurement."""
+    import cv2
+
+    encoding, _, rest = msg.format.partition(";")
+    encoding, codec = encoding.strip(), rest.strip().removeprefix("compressedDepth").strip() or "png"
+    if "compressedDepth" not in msg.format or encoding not in ("16UC1", "32FC1"):
+        raise InputError(f"CompressedImage format {msg.format!r} is not a 16UC1 or 32FC1 compressedDepth image",
+                         file=source)
+    if codec != "png":
+        raise InputError(f"compressedDepth codec {codec!r} is not supported (png is)", file=source)
+    data = np.asarray(msg.data, np.uint8).tobytes()
+    if len(data) < 20 or data[12:20] != b"\x89PNG\r\n\x1a\n":
+        raise InputError(f"compressedDepth data ({len(data)} bytes) is not a 12-byte header and a PNG", file=source)
+    _, quant_a, quant_b = struct.unpack_from("<iff", data)
+    v = cv2.imdecode(np.frombuffer(data, np.uint8, offset=12), cv2.IMREAD_UNCHANGED)
+    if v is None or v.dtype != np.uint16 or v.ndim != 2:
+        raise InputError("compressedDepth PNG is not a 16-bit single-channel image", file=source)
+    if encoding == "16UC1":
+        return v.astype(np.float32) * np.float32(1e-3)
+    with np.errstate(divide="ignore"):
+        z = np.float32(quant_a) / (v.astype(np.float32) - np.float32(quant_b))
+    z[v == 0] = np.nan
     return z
 
 
 # --- PointCloud2 ----------------------------------------------------------------------------------------------------
 
 
-def cloud_columns(msg: Any, *, source: str) -> list[Column]:
-    """Per-point fields of a PointCloud2 in offset order as (name, little-endian dtype string, native values)."""
+def cloud_columns(msg: Any, *, source: str, stored: np.ndarray | None = None) -> list[Column]:
+    """Per-point fields of a PointCloud2 in offset order as (name, little-endian dtype string, native values);
+    ``stored``: its :func:`point_bytes` if already read."""
     order = ">" if msg.is_bigendian else "<"
     fields = sorted(msg.fields, key=lambda f: f.offset)
     if not fields:
@@ -190,19 +237,12 @@ def cloud_columns(msg: Any, *, source: str) -> list[Column]:
         formats.append(np.dtype((order + base, (count,))) if count > 1 else np.dtype(order + base))
         offsets.append(int(f.offset))
         end = int(f.offset) + formats[-1].itemsize
-    step, h, w = int(msg.point_step), int(msg.height), int(msg.width)
+    step = int(msg.point_step)
     if end > step:
         raise InputError(f"PointCloud2 fields end at byte {end}, beyond point_step {step}", file=source)
     record = np.dtype({"names": [f"f{i}" for i in range(len(fields))], "formats": formats, "offsets": offsets,
                        "itemsize": step})
-    data = np.asarray(msg.data, np.uint8)
-    row_step = int(msg.row_step)
-    if h * w and (row_step < w * step or len(data) < row_step * (h - 1) + w * step):
-        raise InputError(f"PointCloud2 of {h}×{w} points × {step} bytes (row_step {row_step}) needs "
-                         f"{row_step * h} bytes, the message has {len(data)}", file=source)
-    if h * w and row_step != w * step:
-        data = np.ascontiguousarray(np.lib.stride_tricks.as_strided(data, (h, w * step), (row_step, 1)))
-    points = np.frombuffer(data, record, count=h * w)
+    points = (point_bytes(msg, source=source) if stored is None else stored).reshape(-1).view(record)
     columns = []
     for i, (f, fmt) in enumerate(zip(fields, formats)):
         base, shape = (fmt.subdtype if fmt.subdtype else (fmt, ()))
@@ -212,23 +252,90 @@ def cloud_columns(msg: Any, *, source: str) -> list[Column]:
     return columns
 
 
+def point_bytes(msg: Any, *, source: str) -> np.ndarray:
+    """The points of a PointCloud2 as stored, row padding removed: (height·width, point_step) uint8."""
+    step, h, w = int(msg.point_step), int(msg.height), int(msg.width)
+    data = np.asarray(msg.data, np.uint8)
+    row_step = int(msg.row_step)
+    if h * w and (row_step < w * step or len(data) < row_step * (h - 1) + w * step):
+        raise InputError(f"PointCloud2 of {h}×{w} points × {step} bytes (row_step {row_step}) needs "
+                         f"{row_step * h} bytes, the message has {len(data)}", file=source)
+    if h * w and row_step != w * step:
+        data = np.lib.stride_tricks.as_strided(data, (h, w * step), (row_step, 1))
+    return np.ascontiguousarray(data[:h * w * step] if data.ndim == 1 else data).reshape(h * w, step)
+
+
+@dataclass(frozen=True)
+class GridCells:
+    """How an organised PointCloud2 (height > 1) is rvnoise's grid of beams × azimuths (``shape``, None for a point
+    list): ``order`` the message index of each grid cell when the message stores the transpose (Velodyne's organised
+    clouds, rslidar_sdk's unless ``send_by_rows``: a row per firing, a column per laser — told by a ``ring`` field
+    constant down each column; grid rows sorted by ring), else None;
+    ``empty`` per grid cell: x, y or z not finite, the driver's no-return marker (ouster-ros since 0.10, Velodyne
+    organised clouds), read as a no-return cell (position zero) and written back as it was."""
+
+    shape: tuple[int, int] | None
+    order: np.ndarray | None
+    empty: np.ndarray
+
+
+def grid_cells(msg: Any, columns: list[Column], keys: list[str]) -> GridCells:
+    """:class:`GridCells` of a message whose per-point ``columns`` (storage order) have canonical ``keys``."""
+    h, w = int(msg.height), int(msg.width)
+    where = {k: i for i, k in enumerate(keys)}
+    if h <= 1:
+        return GridCells(None, None, np.zeros(h * w, bool))
+    shape, order = (h, w), None
+    ring = columns[where["ring"]][2] if "ring" in where and columns[where["ring"]][2].ndim == 1 else None
+    if ring is not None and w > 1:
+        ring = ring.reshape(h, w)
+        if (ring == ring[:1]).all() and not (ring == ring[:, :1]).all():         # one ring per column
+            by_ring = np.argsort(ring[0], kind="stable")                         # grid rows in ring order
+            shape, order = (w, h), np.arange(h * w).reshape(h, w)[:, by_ring].T.ravel()
+    empty = np.zeros(h * w, bool)
+    for axis in "xyz":
+        if axis in where and columns[where[axis]][2].ndim == 1 and columns[where[axis]][2].dtype.kind == "f":
+            empty |= ~np.isfinite(columns[where[axis]][2])
+    return GridCells(shape, order, empty if order is None else empty[order])
+
+
 def cloud_to_pointcloud(msg: Any, *, sensor: str, profile, field_map: dict[str, str] | None,
                         source: str) -> PointCloud:
     """A cloud from a PointCloud2 (see module docstring); InputError names ``source``."""
-    grid = (int(msg.height), int(msg.width)) if int(msg.height) > 1 else None
-    return cloud_from_columns(cloud_columns(msg, source=source), fmt="pcd", mode="binary", grid_shape=grid,
-                              sensor=sensor, profile=profile, field_map=field_map, source=source)
+    columns = cloud_columns(msg, source=source)
+    keys = _canonical_keys([c[0] for c in columns], field_map, source)
+    grid = grid_cells(msg, columns, keys)
+    if grid.order is not None:
+        columns = [(name, dt, values[grid.order]) for name, dt, values in columns]
+    if grid.empty.any():
+        columns = [(name, dt, _no_return(values, grid.empty, key in ("x", "y", "z")))
+                   for key, (name, dt, values) in zip(keys, columns)]
+    return cloud_from_columns(columns, fmt="pcd", mode="binary", grid_shape=grid.shape, sensor=sensor,
+                              profile=profile, field_map=field_map, source=source)
+
+
+def _no_return(values: np.ndarray, empty: np.ndarray, position: bool) -> np.ndarray:
+    """A column with the no-return cells as rvnoise's grid has them: position 0, non-finite values 0."""
+    if not (position or values.dtype.kind == "f"):
+        return values
+    values = values.copy()
+    cells = values[empty]
+    values[empty] = 0 if position else np.where(np.isfinite(cells), cells, 0)
+    return values
 
 
 def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: str) -> Any:
-    """``msg`` carrying ``cloud``: the input fields at their offsets and datatypes, added fields appended."""
+    """``msg`` carrying ``cloud``: the input fields at their offsets and datatypes, added fields appended. A point
+    that descends from an input point starts from its bytes (padding kept); a no-return cell of the input that is
+    still one is written back byte for byte (NaN marker included), and a cell the chain emptied gets NaN x/y/z when
+    the input marks no-returns so."""
     layout = cloud.layout or CloudLayout("pcd", ())
     columns, added = output_columns(cloud, layout, effect=effect, name=source)
     fields = sorted(msg.fields, key=lambda f: f.offset)
     point_field = type(fields[0])
     out_fields = list(msg.fields)
     offsets = [int(f.offset) for f in fields]
-    step = int(msg.point_step)
+    step_in = step = int(msg.point_step)
     if added is not None:
         base = np.dtype(added[1])
         out_fields.append(point_field(name=added[0], offset=step, datatype=_POINTFIELD_CODE[base.str[1:]], count=1))
@@ -240,9 +347,41 @@ def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: st
                        "formats": [np.dtype(dt).newbyteorder(order) for _, dt, _ in columns],
                        "offsets": offsets, "itemsize": step})
     n = len(cloud)
+    keys = [k for k, _, _ in layout.fields]
+    source_bytes = point_bytes(msg, source=source)
+    msg_columns = cloud_columns(msg, source=source, stored=source_bytes) if int(msg.height) > 1 else []
+    grid = grid_cells(msg, msg_columns, keys)
+    to_msg = np.arange(len(source_bytes)) if grid.order is None else grid.order   # message index of a cloud index
+    cells = grid.shape is not None and cloud.grid_shape == grid.shape and n == len(source_bytes)
     points = np.zeros(n, record)
+    raw = points.view(np.uint8).reshape(n, step)
+    origin = None if cloud.origin is None else np.asarray(cloud.origin)
+    if origin is not None and len(origin) == len(source_bytes) and (origin == np.arange(len(origin))).all():
+        origin = None                                                  # a grid's cells: the identity
+    if origin is None and grid.order is None and n == len(source_bytes):
+        raw[:, :step_in] = source_bytes
+    else:
+        origin = np.arange(n) if origin is None else origin
+        from_input = origin >= 0
+        raw[from_input, :step_in] = np.take(source_bytes, to_msg[origin[from_input]], axis=0)
     for i, (_, _, values) in enumerate(columns):
         points[f"f{i}"] = values
-    h, w = cloud.grid_shape if cloud.grid_shape and cloud.grid_shape[0] * cloud.grid_shape[1] == n else (1, n)
+    if cells and grid.empty.any():
+        empty_now = ~cloud.positions_m.any(axis=1)
+        raw[empty_now & grid.empty, :step_in] = np.take(source_bytes, to_msg[empty_now & grid.empty], axis=0)
+        xyz = [i for i, key in enumerate(keys) if key in ("x", "y", "z")]
+        returned = np.zeros(len(source_bytes), bool)
+        for i in xyz:
+            returned |= msg_columns[i][2] != 0
+        emptied = empty_now & ~grid.empty & returned[to_msg]
+        for i in xyz:
+            if points.dtype[f"f{i}"].kind == "f":
+                points[f"f{i}"][emptied] = np.nan
+    if cells and grid.order is not None:
+        stored = np.empty_like(points)
+        stored[grid.order] = points
+        points, (h, w) = stored, (int(msg.height), int(msg.width))
+    else:
+        h, w = cloud.grid_shape if cloud.grid_shape and cloud.grid_shape[0] * cloud.grid_shape[1] == n else (1, n)
     return dataclasses.replace(msg, height=h, width=w, fields=out_fields, point_step=step, row_step=w * step,
                                data=points.view(np.uint8))
