@@ -336,6 +336,7 @@ class CloudLayout:
     fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | npz
     fields: tuple[tuple[str, str, str], ...]
     pcd_data: str = "binary"       # PCD: ascii | binary | binary_compressed; PLY: ascii | binary_little_endian | ...
+    no_return: str = "zero"        # a grid's no-return cells as stored: "zero" x/y/z, or "nan" (PCL's organised clouds)
 
 
 @dataclass(frozen=True, eq=False)

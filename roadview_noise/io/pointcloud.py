@@ -129,14 +129,29 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
         if axis not in where or columns[where[axis]][2].ndim != 1:
             raise InputError(f"no scalar {axis!r} field (fields: {[c[0] for c in columns]})", file=str(source))
     positions = np.stack([columns[where[a]][2] for a in "xyz"], axis=1).astype(np.float64)
-    n_bad = int(np.count_nonzero(~np.isfinite(positions).all(axis=1)))
-    if n_bad:
-        raise InputError(f"{n_bad} of {n} points have NaN or infinite coordinates", file=str(source))
+    empty = ~np.isfinite(positions).all(axis=1)
+    if empty.any() and grid_shape is None:
+        raise InputError(f"{int(np.count_nonzero(empty))} of {n} points have NaN or infinite coordinates "
+                         "(only an organised cloud, HEIGHT > 1, may mark its no-return cells so)", file=str(source))
+    if empty.any():
+        positions[empty] = 0.0
+        columns = [(name, dt, _cleared(values, empty)) for name, dt, values in columns]
     fields = {k: _native(col) for k, (_, _, col) in zip(keys, columns) if k not in ("x", "y", "z")}
     layout = CloudLayout(fmt=fmt, fields=tuple((k, name, dt) for k, (name, dt, _) in zip(keys, columns)),
-                         pcd_data=mode)
+                         pcd_data=mode, no_return="nan" if empty.any() else "zero")
     return PointCloud(positions_m=positions, fields=fields, sensor=sensor, profile=profile, layout=layout,
                       grid_shape=grid_shape)
+
+
+def _cleared(values: np.ndarray, empty: np.ndarray) -> np.ndarray:
+    """A column with the no-return cells ``empty`` of an organised cloud that marks them with non-finite x/y/z
+    (PCL, ouster-ros ≥ 0.10, velodyne_pointcloud) as rvnoise's grid has them: non-finite values 0, others kept."""
+    if values.dtype.kind != "f" or np.isfinite(values[empty]).all():
+        return values
+    values = values.copy()
+    cells = values[empty]
+    values[empty] = np.where(np.isfinite(cells), cells, 0)
+    return values
 
 
 def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str = "auto") -> list[Path]:
@@ -183,9 +198,14 @@ def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "aut
     if extra or missing:
         raise ValueError(f"{name}: cloud fields do not match the {layout.fmt} layout "
                          f"(not in layout: {extra}; missing from cloud: {missing})")
+    no_return = None
+    if layout.no_return == "nan" and cloud.grid_shape is not None:
+        no_return = ~cloud.positions_m.any(axis=1)              # written back as the input marked them: NaN x/y/z
     columns: list[Column] = []
     for key, file_name, dt in layout.fields:
         values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
+        if no_return is not None and key in ("x", "y", "z") and no_return.any():
+            values = np.where(no_return, np.nan, values)
         columns.append((file_name, dt, _cast(with_derived(values, file_name, dt, cloud), dt, key)))
     if effect == "none" or cloud.effect is None:
         return columns, None

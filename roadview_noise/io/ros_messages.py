@@ -307,21 +307,8 @@ def cloud_to_pointcloud(msg: Any, *, sensor: str, profile, field_map: dict[str, 
     grid = grid_cells(msg, columns, keys)
     if grid.order is not None:
         columns = [(name, dt, values[grid.order]) for name, dt, values in columns]
-    if grid.empty.any():
-        columns = [(name, dt, _no_return(values, grid.empty, key in ("x", "y", "z")))
-                   for key, (name, dt, values) in zip(keys, columns)]
     return cloud_from_columns(columns, fmt="pcd", mode="binary", grid_shape=grid.shape, sensor=sensor,
                               profile=profile, field_map=field_map, source=source)
-
-
-def _no_return(values: np.ndarray, empty: np.ndarray, position: bool) -> np.ndarray:
-    """A column with the no-return cells as rvnoise's grid has them: position 0, non-finite values 0."""
-    if not (position or values.dtype.kind == "f"):
-        return values
-    values = values.copy()
-    cells = values[empty]
-    values[empty] = 0 if position else np.where(np.isfinite(cells), cells, 0)
-    return values
 
 
 def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: str) -> Any:
