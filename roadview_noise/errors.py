@@ -24,6 +24,11 @@ class InputError(RvNoiseError):
         super().__init__(f"{file}: {message}" if file else message)
 
 
+class EmptyCloudError(InputError):
+    """A point cloud with no point to augment (0 points, or only the all-NaN point that marks an empty frame, as in
+    nuScenes' radar sweeps without detections): ``augment`` writes it unchanged."""
+
+
 class ModelError(RvNoiseError):
     """A model was given parameters or data it cannot work with: names the model and the field."""
 

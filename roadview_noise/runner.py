@@ -31,10 +31,10 @@ from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
-from .errors import InputError, OutputError, RecipeError, RvNoiseError
+from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
 from .executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
 from .invalid_points import drop_invalid_points
-from .io.atomic import confined_to, remove_stale_temporaries, staged_writes
+from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
 from .lock import OutputLock
 from .manifest import (MANIFEST_NAME, RUN_NAME, iter_manifest, library_versions, read_manifest, sha256_file,
@@ -300,7 +300,10 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             with profiling.phase("load", "convert"):
-                data = load(s, ctx.in_root, recipe)
+                try:
+                    data = load(s, ctx.in_root, recipe)
+                except EmptyCloudError as e:
+                    return _copy_unchanged(task, ctx, source, entry, str(e))
             if getattr(data, "input_notes", None):
                 entry["inputs"] = dict(data.input_notes)
             data, dropped = drop_invalid_points(data, file=str(source))
@@ -330,13 +333,9 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                     deferred.settle()
                 entry["steps"] = [asdict(r) for r in records]
                 with profiling.span("hash"):
-                    entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(),
-                                       "sha256": sha256_file(tmp)} for tmp, final in stage.files]
-                entry["staged"] = [[tmp.relative_to(ctx.out_root).as_posix(),
-                                    final.relative_to(ctx.out_root).as_posix()] for tmp, final in stage.files]
+                    _staged_files(stage, ctx, task, entry)
         if caught:
             entry["warnings"] = _warning_list(caught)
-        entry["output_sha256"] = next(f["sha256"] for f in entry["files"] if f["path"] == task.out_relpath)
         entry["status"] = "ok"
     except RvNoiseError as e:
         entry.update(status="failed", error=str(e) if s.relpath in str(e) else f"{s.relpath}: {e}")
@@ -351,6 +350,25 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         for key in ("files", "output_sha256"):
             entry.pop(key, None)
         discard(ctx.out_root, entry)
+
+
+def _staged_files(stage, ctx: RunContext, task: Task, entry: dict[str, Any]) -> None:
+    """The entry's ``files`` (path, sha256 of the staged bytes), ``staged`` (temporary → final) and
+    ``output_sha256``."""
+    entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(), "sha256": sha256_file(tmp)}
+                      for tmp, final in stage.files]
+    entry["staged"] = [[tmp.relative_to(ctx.out_root).as_posix(), final.relative_to(ctx.out_root).as_posix()]
+                       for tmp, final in stage.files]
+    entry["output_sha256"] = next(f["sha256"] for f in entry["files"] if f["path"] == task.out_relpath)
+
+
+def _copy_unchanged(task: Task, ctx: RunContext, source: Path, entry: dict[str, Any], why: str) -> None:
+    """An input with nothing to augment (:class:`EmptyCloudError`: a radar frame without detections) is written
+    unchanged, so that the output tree stays complete (a dataset's loader expects every sweep); no steps run."""
+    with confined_to(ctx.out_root), staged_writes() as stage:
+        write_bytes_atomic(ctx.out_root / task.out_relpath, source.read_bytes())
+        _staged_files(stage, ctx, task, entry)
+    entry.update(status="ok", copied_unchanged=True, note=why.removeprefix(f"{source}: "), metrics={}, steps=[])
 
 
 def _result_entry(task: Task, result: Any) -> dict:

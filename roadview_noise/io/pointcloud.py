@@ -28,7 +28,7 @@ from typing import Mapping
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import EmptyCloudError, InputError
 from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
@@ -123,13 +123,16 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
     keys = _canonical_keys([c[0] for c in columns], field_map, source)
     n = len(columns[0][2])
     if n == 0:
-        raise InputError("the point cloud is empty (0 points)", file=str(source))
+        raise EmptyCloudError("the point cloud is empty (0 points)", file=str(source))
     where = {k: i for i, k in enumerate(keys)}
     for axis in "xyz":
         if axis not in where or columns[where[axis]][2].ndim != 1:
             raise InputError(f"no scalar {axis!r} field (fields: {[c[0] for c in columns]})", file=str(source))
     positions = np.stack([columns[where[a]][2] for a in "xyz"], axis=1).astype(np.float64)
     empty = ~np.isfinite(positions).all(axis=1)
+    if empty.all() and grid_shape is None:
+        raise EmptyCloudError(f"every point ({n}) has NaN or infinite coordinates: an empty frame's marker (as "
+                              "nuScenes writes a radar sweep without detections)", file=str(source))
     if empty.any() and grid_shape is None:
         raise InputError(f"{int(np.count_nonzero(empty))} of {n} points have NaN or infinite coordinates "
                          "(only an organised cloud, HEIGHT > 1, may mark its no-return cells so)", file=str(source))
