@@ -103,6 +103,8 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read point cloud: {exc.strerror or exc}", file=str(path)) from exc
+    if not data:                       # no header either: a failed copy, not a frame without points
+        raise InputError("the file is empty (0 bytes)", file=str(path))
     grid_shape = None
     if fmt == "pcd":
         columns, mode, grid_shape = _read_pcd(data, path)

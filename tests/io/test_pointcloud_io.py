@@ -385,7 +385,7 @@ def test_bad_bin_size_nan_empty_and_suffix(tmp_path):
     _expect(tmp_path / "nan.bin", "2 of 5 points have NaN or infinite coordinates")
 
     (tmp_path / "empty.bin").write_bytes(b"")
-    _expect(tmp_path / "empty.bin", r"empty \(0 points\)")
+    _expect(tmp_path / "empty.bin", r"the file is empty \(0 bytes\)")
     (tmp_path / "empty.pcd").write_bytes(_pcd_header(OUSTER[:3], 0, "binary"))
     _expect(tmp_path / "empty.pcd", r"empty \(0 points\)")
 
