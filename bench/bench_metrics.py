@@ -13,7 +13,8 @@ and the work they add to the 8-bit sRGB decode and encode passes that take a fra
 CPU time is the steadier figure on a shared machine.
 
 ``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
-(each step's input against its output, then the chain's input against its output) on the chain's frames or clouds,
+(each step's input against its output, with the step's own output as ``apply_models`` hands it in, then the chain's
+input against its output) on the chain's frames or clouds,
 made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
 The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
@@ -59,7 +60,7 @@ from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
 
-from roadview_noise import luminance  # noqa: E402
+from roadview_noise import compound, luminance  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
@@ -182,15 +183,27 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
         return None
     task = tasks[0]
     data = load(task.sample, in_root, recipe)
-    models = build_models(recipe, task)
-    chain = [data] + [apply_models(models[: i + 1], data, seed=recipe.seed, key=task.out_relpath,
-                                   sequence_id=task.sample.sequence_id, metrics=False)[0] for i in range(len(models))]
+    chain, steps = [data], [None]                   # each step's result and its own output (step provenance)
+
+    follow = compound.follow
+
+    def recording(before, out, *args, **kwargs):
+        steps.append(out)
+        chain.append(follow(before, out, *args, **kwargs))
+        return chain[-1]
+
+    compound.follow = recording
+    try:
+        apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
+                     sequence_id=task.sample.sequence_id, metrics=False)
+    finally:
+        compound.follow = follow
 
     def once() -> float:
         items = [dataclasses.replace(d) for d in chain]             # new objects: no cached summaries
         t0 = time.process_time()
-        for before, after in zip(items, items[1:]):
-            compare(before, after)
+        for before, after, step in zip(items, items[1:], steps[1:]):
+            compare(before, after, step)                            # as apply_models does
         if len(items) > 2:
             compare(items[0], items[-1])
         return (time.process_time() - t0) * 1e3
