@@ -3,11 +3,12 @@ change a single value.)
 
 Runs ``rvnoise augment`` with this worktree's code and with a baseline worktree's (``--baseline``, e.g. ../main;
 each in a subprocess with its own tree first on ``PYTHONPATH``) on the LiDAR and radar recipes, on ``sample_data``
-and on the real OS1-128 scan (``../shared/data/os1-128/scan0.bin`` with its own beam table, when present), and
+on the real OS1-128 scan (``../shared/data/os1-128/scan0.bin`` with its own beam table, when present) and with
+``--generated`` on the full-resolution generated tree of ``bench/bench_metrics.py`` (128×2048 grid and list), and
 compares per output: the manifest's ``metrics``, every step's ``metrics`` (parsed JSON: equal floats are equal
 bits) and the output files' sha256. Prints one line per recipe and input tree, exits 1 on any difference.
 
-    .venv/bin/python bench/check_metrics_identical.py --baseline ../main [--recipes cnf25,cnf22] [--workers 2]
+    .venv/bin/python bench/check_metrics_identical.py --baseline ../main [--recipes cnf25,cnf22] [--generated]
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ def main() -> int:
     ap.add_argument("--baseline", type=Path, required=True, help="the other worktree (e.g. ../main)")
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(RECIPES)}")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--generated", action="store_true", help="also the full-resolution generated sample tree")
     args = ap.parse_args()
     recipes = args.recipes.split(",") if args.recipes else RECIPES
     different = 0
@@ -64,9 +66,14 @@ def main() -> int:
             (real / "lidar" / "os1-128-real").mkdir(parents=True)
             shutil.copy(SHARED_OS1 / "scan0.bin", real / "lidar" / "os1-128-real" / "000000.bin")
             trees["real OS1-128"] = (real, ["--lidar-profile", str(SHARED_OS1 / "beam_intrinsics.json")])
+        if args.generated:
+            from roadview_noise.sampledata.generate import generate
+
+            generate(tmp / "generated", frames=1, seed=0)
+            trees["generated"] = (tmp / "generated", [])
         for recipe in recipes:
             for label, (tree, extra) in trees.items():
-                if label != "sample_data" and "radar" in recipe:
+                if label == "real OS1-128" and "radar" in recipe:
                     continue
                 runs = [augment(code, recipe, tree, tmp / "out", args.workers, extra)
                         for code in (args.baseline.resolve(), ROOT)]

@@ -602,6 +602,8 @@ def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, n
     Full grids match cell by cell (moved: effect MOVED). Point lists rely on the models' contract: surviving points
     keep their order and ADDED points are new. When nothing was removed, the i-th point is the i-th survivor;
     otherwise a survivor is found in place when its position is unchanged, or moved when it lies on the same ray.
+    A chain step compared with its own output (``compare(before, after, step)``, as ``apply_models`` does) is
+    linked by that output's provenance instead, with the same result and without the search (:func:`_pass`).
     Across several steps (``after`` came from ``before`` through compared steps, as in ``apply_models``) the
     correspondences of the steps are composed, so an alignment error in one step and removals in the next are
     told apart."""
