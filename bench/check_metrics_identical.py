@@ -28,15 +28,25 @@ RECIPES = (["weather-rain-lidar", "weather-fog-lidar", "weather-snow-lidar"]
            + [f"cnf{n}" for n in range(19, 31)]
            + ["weather-rain-radar", "weather-fog-radar", "weather-snow-radar", "cnf25-radar", "cnf26-radar",
               "cnf27-radar"])
-RUN = "import sys; from roadview_noise.cli.main import app; sys.argv = ['rvnoise', *sys.argv[1:]]; app()"
+#: one run in a fresh interpreter: the recipe, input tree, output folder, workers and LiDAR profile ('' = the recipe's)
+RUN = """import sys
+from pathlib import Path
+from roadview_noise.overrides import with_input_overrides
+from roadview_noise.recipe import load_recipe
+from roadview_noise.runner import run
+recipe, tree, out, workers, lidar_profile = sys.argv[1:]
+recipe = with_input_overrides(load_recipe(Path(recipe)), lidar_profile=lidar_profile or None)
+run(recipe, Path(tree), Path(out), workers=int(workers), progress=False, echo=lambda m: None, warn=lambda m: None)
+"""
 
 
-def augment(code: Path, recipe: str, tree: Path, out: Path, workers: int, extra: list[str]) -> dict[str, dict]:
-    """The manifest entries (by output path) of one run with the code of worktree ``code``."""
+def augment(code: Path, recipe: str, tree: Path, out: Path, workers: int, lidar_profile: str) -> dict[str, dict]:
+    """The manifest entries (by output path) of one ``runner.run`` with the code of the tree ``code`` (a worktree
+    or an export of a commit: ``git archive``)."""
     env = {**os.environ, "PYTHONPATH": str(code)}
-    cmd = [sys.executable, "-c", RUN, "augment", "--recipe", str(ROOT / "recipes" / f"{recipe}.yaml"), str(tree),
-           str(out), "--workers", str(workers), "--quiet", *extra]
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
+    cmd = [sys.executable, "-c", RUN, str(ROOT / "recipes" / f"{recipe}.yaml"), str(tree), str(out), str(workers),
+           lidar_profile]
+    subprocess.run(cmd, env=env, cwd=code, check=True)     # cwd: the tree is first on sys.path
     entries = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
     shutil.rmtree(out)
     return {e["output"]: e for e in entries if "output" in e}
@@ -44,14 +54,15 @@ def augment(code: Path, recipe: str, tree: Path, out: Path, workers: int, extra:
 
 def essentials(entry: dict) -> dict:
     """What must not change: the metrics of the output and of every step, the files' hashes, the status."""
-    return {"status": entry.get("status"), "metrics": entry.get("metrics"),
+    return {"status": entry.get("status"), "error": entry.get("error"), "metrics": entry.get("metrics"),
             "steps": [s.get("metrics") for s in entry.get("steps", [])],
             "files": [f.get("sha256") for f in entry.get("files", [])]}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--baseline", type=Path, required=True, help="the other worktree (e.g. ../main)")
+    ap.add_argument("--baseline", type=Path, required=True,
+                    help="the other code: a worktree (../main) or an export (git archive COMMIT | tar -x -C DIR)")
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(RECIPES)}")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--generated", action="store_true", help="also the full-resolution generated sample tree")
@@ -60,22 +71,22 @@ def main() -> int:
     different = 0
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        trees = {"sample_data": (ROOT / "sample_data", [])}
+        trees = {"sample_data": (ROOT / "sample_data", "")}
         if (SHARED_OS1 / "scan0.bin").is_file():
             real = tmp / "real"
             (real / "lidar" / "os1-128-real").mkdir(parents=True)
             shutil.copy(SHARED_OS1 / "scan0.bin", real / "lidar" / "os1-128-real" / "000000.bin")
-            trees["real OS1-128"] = (real, ["--lidar-profile", str(SHARED_OS1 / "beam_intrinsics.json")])
+            trees["real OS1-128"] = (real, str(SHARED_OS1 / "beam_intrinsics.json"))
         if args.generated:
             from roadview_noise.sampledata.generate import generate
 
             generate(tmp / "generated", frames=1, seed=0)
-            trees["generated"] = (tmp / "generated", [])
+            trees["generated"] = (tmp / "generated", "")
         for recipe in recipes:
-            for label, (tree, extra) in trees.items():
+            for label, (tree, lidar_profile) in trees.items():
                 if label == "real OS1-128" and "radar" in recipe:
                     continue
-                runs = [augment(code, recipe, tree, tmp / "out", args.workers, extra)
+                runs = [augment(code, recipe, tree, tmp / "out", args.workers, lidar_profile)
                         for code in (args.baseline.resolve(), ROOT)]
                 bad = sorted(k for k in set(runs[0]) | set(runs[1])
                              if k not in runs[0] or k not in runs[1]
