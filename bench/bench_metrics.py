@@ -14,7 +14,8 @@ CPU time is the steadier figure on a shared machine.
 
 ``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
 (each step's input against its output, with the step's own output as ``apply_models`` hands it in, then the chain's
-input against its output) on the chain's frames or clouds,
+input against its output) on the chain's frames or clouds, and interleaved with it the same calls without the
+steps' outputs (``positional``: clouds linked by matching positions, as before the steps' provenance was used),
 made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
 The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
@@ -199,20 +200,25 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
     finally:
         compound.follow = follow
 
-    def once() -> float:
+    def once(by_step: bool) -> float:
         items = [dataclasses.replace(d) for d in chain]             # new objects: no cached summaries
         t0 = time.process_time()
         for before, after, step in zip(items, items[1:], steps[1:]):
-            compare(before, after, step)                            # as apply_models does
+            compare(before, after, step if by_step else None)       # by_step: as apply_models does
         if len(items) > 2:
             compare(items[0], items[-1])
         return (time.process_time() - t0) * 1e3
 
-    once()
-    times = sorted(once() for _ in range(3 * repeat))
-    q1, med, q3 = (statistics.quantiles(times, n=4) if len(times) > 1 else times * 3)
+    times: dict[bool, list[float]] = {True: [], False: []}
+    for r in range(3 * repeat + 1):
+        for by_step in (True, False):
+            t = once(by_step)
+            if r:
+                times[by_step].append(t)
+    (q1, med, q3), (_, positional, _) = (statistics.quantiles(times[k], n=4) if len(times[k]) > 1 else times[k] * 3
+                                         for k in (True, False))
     label = "real OS1-128 scan0.bin" if real else task.sample.relpath
-    return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]"
+    return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]   positional {positional:7.2f} ms"
 
 
 def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool) -> tuple[float, float, float, int]:
