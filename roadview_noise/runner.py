@@ -404,13 +404,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         raise RecipeError(f"the recipe plans more than {cap:,} outputs ({len(recipe.variants):,} variant(s) per "
                           "input); say --yes to run it anyway, or narrow the sweep or the inputs (--limit)")
     if planned == 0 and unreadable == 0:
-        inputs = recipe.spec.inputs
-        globs = "; ".join(f"inputs.{k}: {getattr(inputs, k)}" for k in ("camera", "raw", "lidar", "radar")
-                          if getattr(inputs, k))
-        example = (", e.g. camera: 'samples/CAM_*/*.jpg' (nuScenes), '**/image_2/*.png' (KITTI)"
-                   if recipe.sensor == "camera" else "")
-        raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs"
-                          f"{f' ({globs})' if globs else ''}; set the globs of your layout{example}")
+        raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs")
     summary = RunSummary(planned=planned, dry_run=dry_run)
     if dry_run:
         for t in iter_plan(in_real, recipe, limit):
@@ -620,7 +614,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
                     if ledger.stopped:
                         break
             finally:
-                getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
+                executor.close()
                 ledger.discard_pending()
         if ledger.stopped:
             summary.state = "stopped at the first failure (--fail-fast)"
