@@ -121,3 +121,26 @@ def test_an_alignment_after_added_points_keeps_its_correspondence():
     index, moved = correspondence(c1, c2)
     assert np.array_equal(index[:200], np.arange(200)) and not moved.any()
     assert (index[200:] == -1).all()                 # the added points of step 0: new, not linked
+
+
+@pytest.mark.parametrize("case", ["no-return point", "removed point on the next one's ray"])
+def test_the_provenance_links_what_the_position_walk_cannot(case):
+    """A list step that removes point 10: with a no-return point (0, 0, 0) kept at 5, or with point 10 lying on
+    point 11's ray, the walk loses the points after it; the step's provenance links every survivor in place."""
+    rng = np.random.default_rng(7)
+    c0 = random_list(rng, 50, "lidar", ring=False)
+    pos = c0.positions_m.copy()
+    if case == "no-return point":
+        pos[5] = 0.0
+    else:
+        pos[10] = pos[11] * 0.5
+    c0 = dataclasses.replace(c0, positions_m=pos)
+    keep = np.ones(50, bool)
+    keep[10] = False
+    out = step_input(c0).select(keep)
+    c1 = follow_points(c0, out, 0)
+    compare(c0, c1, out)
+    index, moved = correspondence(c0, c1)
+    assert np.array_equal(index, np.where(keep, np.cumsum(keep) - 1, -1)) and not moved.any()
+    walked, _ = correspondence(fresh(c0), fresh(c1))
+    assert not np.array_equal(walked, index)
