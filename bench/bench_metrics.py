@@ -13,7 +13,9 @@ and the work they add to the 8-bit sRGB decode and encode passes that take a fra
 CPU time is the steadier figure on a shared machine.
 
 ``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
-(each step's input against its output, then the chain's input against its output) on the chain's frames or clouds,
+(each step's input against its output, with the step's own output as ``apply_models`` hands it in, then the chain's
+input against its output) on the chain's frames or clouds, and interleaved with it the same calls without the
+steps' outputs (``positional``: clouds linked by matching positions, as before the steps' provenance was used),
 made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
 The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
@@ -59,7 +61,7 @@ from pathlib import Path  # noqa: E402
 
 import yaml  # noqa: E402
 
-from roadview_noise import luminance  # noqa: E402
+from roadview_noise import compound, luminance  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
@@ -182,24 +184,41 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
         return None
     task = tasks[0]
     data = load(task.sample, in_root, recipe)
-    models = build_models(recipe, task)
-    chain = [data] + [apply_models(models[: i + 1], data, seed=recipe.seed, key=task.out_relpath,
-                                   sequence_id=task.sample.sequence_id, metrics=False)[0] for i in range(len(models))]
+    chain, steps = [data], [None]                   # each step's result and its own output (step provenance)
 
-    def once() -> float:
+    follow = compound.follow
+
+    def recording(before, out, *args, **kwargs):
+        steps.append(out)
+        chain.append(follow(before, out, *args, **kwargs))
+        return chain[-1]
+
+    compound.follow = recording
+    try:
+        apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
+                     sequence_id=task.sample.sequence_id, metrics=False)
+    finally:
+        compound.follow = follow
+
+    def once(by_step: bool) -> float:
         items = [dataclasses.replace(d) for d in chain]             # new objects: no cached summaries
         t0 = time.process_time()
-        for before, after in zip(items, items[1:]):
-            compare(before, after)
+        for before, after, step in zip(items, items[1:], steps[1:]):
+            compare(before, after, step if by_step else None)       # by_step: as apply_models does
         if len(items) > 2:
             compare(items[0], items[-1])
         return (time.process_time() - t0) * 1e3
 
-    once()
-    times = sorted(once() for _ in range(3 * repeat))
-    q1, med, q3 = (statistics.quantiles(times, n=4) if len(times) > 1 else times * 3)
+    times: dict[bool, list[float]] = {True: [], False: []}
+    for r in range(3 * repeat + 1):
+        for by_step in (True, False):
+            t = once(by_step)
+            if r:
+                times[by_step].append(t)
+    (q1, med, q3), (_, positional, _) = (statistics.quantiles(times[k], n=4) if len(times[k]) > 1 else times[k] * 3
+                                         for k in (True, False))
     label = "real OS1-128 scan0.bin" if real else task.sample.relpath
-    return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]"
+    return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]   positional {positional:7.2f} ms"
 
 
 def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool) -> tuple[float, float, float, int]:

@@ -88,8 +88,13 @@ def object_ids(cloud: PointCloud) -> np.ndarray | None:
     return None
 
 
-def compare(before: SensorData, after: SensorData) -> dict[str, Any]:
-    """Metrics of ``after`` against ``before`` (the same sensor); see the module doc for names and units."""
+def compare(before: SensorData, after: SensorData, step: SensorData | None = None) -> dict[str, Any]:
+    """Metrics of ``after`` against ``before`` (the same sensor); see the module doc for names and units.
+
+    ``step``: for clouds, the chain step's own output of which ``after`` is ``provenance.follow(before, step)``
+    — its step-relative ``origin`` and ``effect`` tell which point of ``before`` each point of ``after`` is, so
+    :func:`correspondence` reads them instead of matching positions (the same result on clouds that keep the
+    models' contract; see :func:`_pass`)."""
     if isinstance(before, PointCloud) and isinstance(after, PointCloud):
         fn = _compare_clouds
     elif isinstance(before, (CameraFrame, RawFrame)) and isinstance(after, (CameraFrame, RawFrame)):
@@ -99,7 +104,7 @@ def compare(before: SensorData, after: SensorData) -> dict[str, Any]:
     else:
         raise TypeError(f"cannot compare {type(before).__name__} with {type(after).__name__}")
     b = _summary(before)
-    a = _summary(after, b)
+    a = _summary(after, b, step if isinstance(step, PointCloud) else None)
     done = a.setdefault("compared", {})                 # (before summary, result) by id: a chain whose step left
     if id(b) not in done:                               # the pixels alone compares input and output once
         done[id(b)] = (b, fn(b, a))
@@ -115,11 +120,12 @@ class Deferred:
     def __init__(self) -> None:
         self._calls: list[tuple[SensorData, SensorData, dict]] = []
 
-    def compare(self, before: SensorData, after: SensorData) -> dict[str, Any]:
-        """An empty dict that :meth:`settle` fills with ``compare(before, after)`` (at once unless a frame)."""
+    def compare(self, before: SensorData, after: SensorData, step: SensorData | None = None) -> dict[str, Any]:
+        """An empty dict that :meth:`settle` fills with ``compare(before, after)`` (at once unless a frame, then
+        with ``step``: :func:`compare`)."""
         if not isinstance(after, CameraFrame):
             self.settle()
-            return compare(before, after)
+            return compare(before, after, step)
         for frame in (before, after):
             if isinstance(frame, CameraFrame) and frame.undecoded_srgb8_codes() is None:   # not a JPEG output's
                 want(frame.linear_rgb)
@@ -138,12 +144,12 @@ class Deferred:
             result.update(compare(before, after))
 
 
-def _summary(data: SensorData, before: dict | None = None) -> dict:
+def _summary(data: SensorData, before: dict | None = None, step: PointCloud | None = None) -> dict:
     """The summary of ``data`` (cached); a cloud's first one is linked to ``before``, its step input's, when given
     (:func:`_cloud_summary`)."""
     s = _summaries.get(data)
     if s is None:
-        s = _cloud_summary(data, before) if isinstance(data, PointCloud) else _frame_summary(data)
+        s = _cloud_summary(data, before, step) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
     return s
 
@@ -378,27 +384,32 @@ def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
 # --- point clouds -------------------------------------------------------------------------------------------------
 
 
-NO_LINK, GRID_LINK, LIST_LINK = 0, 1, 2     # _cloud_pass: no correspondence, cell by cell, in list order
+NO_LINK, GRID_LINK, LIST_LINK, STEP_LINK = 0, 1, 2, 3   # _cloud_pass: no correspondence, cell by cell, in
+#                                                       list order, by the step's provenance
+_NO_STEP = (np.zeros(0, np.int64), np.zeros(0, np.uint8))
 
 
-def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b):
+def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
     """:func:`_pass` compiled for this ``link`` (a constant there, so each variant's loop holds only its own
     branches)."""
-    return _PASSES[link](positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b)
+    return _PASSES[link](positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step)
 
 
 @jit(inline="always")
-def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b):  # pragma: no cover
+def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step):  # pragma: no cover
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
     returns per range bin — or, when ``known_valid`` (which points are returns) is given (non-empty), none of
     these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
     KEPT) and the sum and count of the finite ``values`` (NaN values are skipped).
 
-    With ``link`` (GRID_LINK, LIST_LINK), in the same pass: :func:`correspondence` of the points of ``before``
-    (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the index of its
-    return here (−1: none) and whether it moved along its ray — and the mean change from ``values_b`` to
+    With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK), in the same pass: :func:`correspondence` of the points of
+    ``before`` (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the index
+    of its return here (−1: none) and whether it moved along its ray — and the mean change from ``values_b`` to
     ``values`` of the points that stayed in place (NaN if none). A list is walked in order (surviving points keep
-    their order, ADDED points are new); ``before``'s positions are read only to tell its removed points."""
+    their order, ADDED points are new); ``before``'s positions are read only to tell its removed points. With
+    STEP_LINK, ``step`` (the step's own origin and effect codes, :mod:`~roadview_noise.provenance`; empty: the
+    identity, KEPT) says where each point comes from: the walk's result without walking, ``before``'s positions
+    read only where the step moved a point (a MOVED return at its old position stayed in place)."""
     n = positions.shape[0]
     known = known_valid.shape[0] == n and n > 0
     valid = known_valid if known else np.empty(n, np.bool_)
@@ -411,8 +422,10 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
     index = np.full(nb, -1, np.int32)
     moved = np.zeros(nb, np.bool_)
     changes = has_values and values_b.shape[0] > 0
+    step_origin, step_codes = step
+    has_origin, has_step_codes = step_origin.shape[0] > 0, step_codes.shape[0] > 0
     in_order = True                         # a list without removals: its i-th survivor is before's i-th point
-    if link == LIST_LINK:
+    if link == LIST_LINK or link == STEP_LINK:
         survivors = n
         for j in range(n if has_codes else 0):
             if codes[j] == 3 and (valid[j] if known else _is_return(positions, j)):
@@ -436,6 +449,14 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
                         break
                     i += 1                  # before's point i was removed
                 found = i < nb
+        elif link == STEP_LINK and c != 3:
+            i = step_origin[j] if has_origin else j
+            found = i >= 0
+            if in_order:
+                away = c == 2
+            else:                           # moved by the step, unless to where it was
+                away = has_step_codes and step_codes[j] == 2 and not (_same_position(pb, i, positions, j)
+                                                                      and valid_b[i])
         if known:
             ok = valid[j]
         else:
@@ -471,21 +492,26 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
 
 
 @jit
-def _plain_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, NO_LINK, pb, valid_b, values_b)
+def _plain_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, NO_LINK, pb, valid_b, values_b, step)
 
 
 @jit
-def _grid_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, GRID_LINK, pb, valid_b, values_b)
+def _grid_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, GRID_LINK, pb, valid_b, values_b, step)
 
 
 @jit
-def _list_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, LIST_LINK, pb, valid_b, values_b)
+def _list_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, LIST_LINK, pb, valid_b, values_b, step)
 
 
-_PASSES = {NO_LINK: _plain_pass, GRID_LINK: _grid_pass, LIST_LINK: _list_pass}
+@jit
+def _step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, STEP_LINK, pb, valid_b, values_b, step)
+
+
+_PASSES = {NO_LINK: _plain_pass, GRID_LINK: _grid_pass, LIST_LINK: _list_pass, STEP_LINK: _step_pass}
 
 
 @jit(inline="always")
@@ -504,14 +530,14 @@ _last_geometry: list = [None, None, None]   # weakref to a positions array, its 
 
 
 def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int,
-                      link: int, before: dict | None) -> tuple:
+                      link: int, before: dict | None, step: tuple = _NO_STEP) -> tuple:
     """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. A step that leaves the
     positions alone (intensity models) hands the same array on: the geometry of the last array is kept and only
     the attributes are counted again."""
     if before is None:
-        linked = (positions[:0], np.zeros(0, np.bool_), values[:0])
+        linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
     else:
-        linked = (before["positions"], before["valid"], before["values"])
+        linked = (before["positions"], before["valid"], before["values"], step)
     full = []
 
     def geometry_of_full_pass():
@@ -524,13 +550,25 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
 
 
-def _link_mode(b: dict, a: dict) -> int:
-    return GRID_LINK if b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"]) else LIST_LINK
+def _link_mode(b: dict, a: dict, by_step: bool = False) -> int:
+    if b["grid"] and a["grid"] and len(b["positions"]) == len(a["positions"]):
+        return GRID_LINK
+    return STEP_LINK if by_step else LIST_LINK
 
 
-def _cloud_summary(cloud: PointCloud, before: dict | None = None) -> dict:
+def _step_provenance(step: PointCloud | None) -> tuple[np.ndarray, np.ndarray]:
+    """A step's own origin and effect codes (:func:`_pass`'s ``step``; empty arrays: identity, KEPT)."""
+    if step is None:
+        return _NO_STEP
+    origin, codes = step.origin, step.effect
+    return (_NO_STEP[0] if origin is None else np.asarray(origin, np.int64),
+            _NO_STEP[1] if codes is None else np.asarray(codes, np.uint8))
+
+
+def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointCloud | None = None) -> dict:
     """The summary of a cloud; with ``before`` (the summary of the cloud it came from: its step's input), also
-    its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place)."""
+    its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place), from
+    ``step``'s provenance when given (:func:`compare`)."""
     codes = effect_codes(cloud)
     codes = np.zeros(0, np.uint8) if codes is None else np.asarray(codes)
     radar = cloud.sensor == "radar"
@@ -540,9 +578,9 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None) -> dict:
     max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
     n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
     s = {"positions": positions, "values": values, "grid": cloud.grid_shape is not None}
-    link = NO_LINK if before is None else _link_mode(before, s)
-    (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(positions, codes, values,
-                                                                                      n_bins, link, before)
+    link = NO_LINK if before is None else _link_mode(before, s, step is not None)
+    (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(
+        positions, codes, values, n_bins, link, before, _step_provenance(step))
     used = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
     s.update({"returns": int(returns), "codes": [int(c) for c in counts], "max_range_m": float(max_r),
               "hist": [int(h) for h in hist[:used]], "radar": radar,
@@ -564,6 +602,8 @@ def correspondence(before: PointCloud, after: PointCloud) -> tuple[np.ndarray, n
     Full grids match cell by cell (moved: effect MOVED). Point lists rely on the models' contract: surviving points
     keep their order and ADDED points are new. When nothing was removed, the i-th point is the i-th survivor;
     otherwise a survivor is found in place when its position is unchanged, or moved when it lies on the same ray.
+    A chain step compared with its own output (``compare(before, after, step)``, as ``apply_models`` does) is
+    linked by that output's provenance instead, with the same result and without the search (:func:`_pass`).
     Across several steps (``after`` came from ``before`` through compared steps, as in ``apply_models``) the
     correspondences of the steps are composed, so an alignment error in one step and removals in the next are
     told apart."""
