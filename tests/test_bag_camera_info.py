@@ -16,7 +16,7 @@ import pytest
 
 from roadview_noise.bag_camera_info import CameraInfoIndex
 from roadview_noise.bag_recipe import parse_bag_recipe
-from roadview_noise.bag_runner import manifest_path, run_bag
+from roadview_noise.bag_runner import manifest_path, replay_bag, run_bag
 from roadview_noise.errors import RecipeError
 from roadview_noise.io import ros_messages as rm
 from roadview_noise.io.camera_info import (camera_info_intrinsics, camera_info_topic, default_matrix,
@@ -204,6 +204,8 @@ def test_k_from_camera_info_reaches_the_model(tmp_path, ros2):
     assert camera["from"] == f"CameraInfo /cam/camera_info@{T0} (K)" and camera["profile"] == "camera_info"
     assert (camera["fx_px"], camera["fy_px"], camera["cx_px"], camera["cy_px"]) == K1
     assert camera["camera_info"]["topic"] == "/cam/camera_info" and camera["camera_info"]["stamp_ns"] == T0
+    replayed = replay_bag(manifest_path(out), f"/cam/image_raw@{stamps[1]}")
+    assert replayed["match"], replayed                         # replay pairs the same CameraInfo
     stated = {"/cam/image_raw": {"sensor": "camera", "camera_profile": profile_of(K1)}}
     _, stated_entries, stated_out = augment(tmp_path, bag, stated, "stated")
     assert stated_entries[0]["inputs"]["camera"]["from"].startswith("recipe topics./cam/image_raw.camera_profile")
