@@ -500,6 +500,8 @@ def export(
         summary = export_bag(bag, out_dir, recipe=r, overwrite=overwrite)
     except RvNoiseError as e:
         _fail(str(e))
+    for line in summary["warnings"]:
+        typer.echo(f"rvnoise: warning: {line}", err=True)
     topics = ", ".join(f"{t} ({n})" for t, n in summary["topics"].items())
     typer.echo(f"rvnoise: {summary['files']} files → {out_dir}: {topics}")
 

@@ -11,7 +11,9 @@ tree and augmenting the bag with the same chains and seed give the same pixels a
 - PointCloud2: binary ``.pcd`` with the message's fields in offset order, names and types (padding dropped;
   organised clouds keep WIDTH × HEIGHT);
 - per topic folder the resolved profile as a complete sidecar: ``camera.yaml`` (the topic's profile fitted to the
-  image size, or the pinhole assumed from ``camera_fov_h_deg`` without one),
+  image size, else the intrinsics of its CameraInfo (:mod:`roadview_noise.bag_camera_info`) at its first message —
+  a warning counts the messages whose CameraInfo states others —, else the pinhole assumed from
+  ``camera_fov_h_deg``),
   ``lidar.yaml`` (with the recipe's intensity scale) or ``radar.yaml``.
 
 With a recipe, its mapped topics are exported with their profiles (its chains are not run); without one, every
@@ -49,18 +51,20 @@ PROFILE_SIDECARS = {"camera": "camera.yaml", "lidar": "lidar.yaml", "radar": "ra
 
 
 def export_bag(bag: Path, out_dir: Path, *, recipe: BagRecipe | None = None, overwrite: bool = False) -> dict:
-    """Write the tree (module docstring); returns ``{"files": n, "topics": {topic: messages}}``."""
+    """Write the tree (module docstring); returns ``{"files": n, "topics": {topic: messages}, "warnings": [...]}``."""
     bag, out_dir = Path(bag), Path(out_dir)
     if bag_kind(bag) is None:
         raise RecipeError(f"input {str(bag)!r} is not a ROS bag (.bag, .mcap, .db3, or a ROS 2 bag folder)")
     if out_dir.exists() and any(out_dir.iterdir()) and not overwrite:
         raise RecipeError(f"{str(out_dir)!r} is not empty; use --overwrite to write over its files")
-    summary: dict[str, Any] = {"files": 0, "topics": {}}
+    summary: dict[str, Any] = {"files": 0, "topics": {}, "warnings": []}
+    written: dict[str, Any] = {}                     # topic → the profile of its sidecar
+    differing: dict[str, int] = {}                   # topic → messages whose camera geometry differs from it
     with ExitStack() as stack:
         reader = stack.enter_context(open_bag(bag))
         is2 = bag_kind(bag) == "ros2"
         recipe = recipe or sensor_topics(reader, is2)
-        plan = plan_bag(recipe, reader, bag)
+        plan = plan_bag(recipe, reader, bag, every_camera=True)
         ctx = BagContext(str(bag), is2, dict(reader.typestore.fielddefs), recipe, bag.resolve().parent)
         _, typestore = _context(pickle.dumps(ctx))
         syncs = depth_syncs(stack, bag, plan, is2)
@@ -68,7 +72,8 @@ def export_bag(bag: Path, out_dir: Path, *, recipe: BagRecipe | None = None, ove
         for conn, t, raw, stamp, repeat in stamped_messages(reader, plan.mapped, is2, bag, connections=mapped):
             topic = plan.mapped[id(conn)]
             job = MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw,
-                             syncs[topic.spec.depth_topic].take(stamp, t) if topic.spec.depth_topic else None)
+                             syncs[topic.spec.depth_topic].take(stamp, t) if topic.spec.depth_topic else None,
+                             plan.camera_info.at(conn.topic, stamp))
             source = f"{bag}: {job.key}"
             msg = _deserialize(typestore, is2, raw, conn.msgtype, source)
             data = sensor_data(ctx, topic, msg, conn.msgtype, source)
@@ -83,10 +88,17 @@ def export_bag(bag: Path, out_dir: Path, *, recipe: BagRecipe | None = None, ove
                     depth, _, _ = origin.depth(topic.recipe, geometry)
                     write_depth_exr(path.with_name(path.name.split(".")[0] + "_depth.exr"), depth)
                     summary["files"] += 1
-            if conn.topic not in summary["topics"]:
+            if conn.topic not in written:
                 write_profile(path.parent / PROFILE_SIDECARS[topic.sensor], profile)
+                written[conn.topic] = profile
                 summary["files"] += 1
+            elif profile != written[conn.topic]:
+                differing[conn.topic] = differing.get(conn.topic, 0) + 1
             summary["topics"][conn.topic] = summary["topics"].get(conn.topic, 0) + 1
+    for name, n in differing.items():
+        summary["warnings"].append(f"{n} message(s) of {name} have other intrinsics (their CameraInfo changed) than "
+                                   f"its camera.yaml, which holds the first message's: augmenting the tree uses "
+                                   "those for every image of the folder")
     return summary
 
 

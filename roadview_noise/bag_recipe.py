@@ -32,8 +32,9 @@ from .registry import get_model, suggest
 
 SENSORS = ("camera", "lidar", "radar")
 BAG_KEYS = ("topics", "chains")
-_PER_SENSOR = {"camera": ("camera_profile", "camera_fov_h_deg", "depth_source", "depth_topic", "depth_kind",
-                          "depth_holes", "onnx_depth", "ground_plane", "black_level_dn", "white_level_dn"),
+_PER_SENSOR = {"camera": ("camera_profile", "camera_fov_h_deg", "camera_info_topic", "camera_info_matrix",
+                          "depth_source", "depth_topic", "depth_kind", "depth_holes", "onnx_depth", "ground_plane",
+                          "black_level_dn", "white_level_dn"),
                "lidar": ("lidar_profile", "intensity_unit", "intensity_full_scale", "field_map"),
                "radar": ("radar_profile", "field_map")}
 
@@ -44,6 +45,8 @@ class TopicSpec(_Strict):
     sensor: Literal["camera", "lidar", "radar"]
     camera_profile: str | dict[str, Any] | None = None
     camera_fov_h_deg: float | None = Field(None, gt=0, lt=180)  # without a profile: square pixels, centred
+    camera_info_topic: str | None = None                       # default: <namespace>/camera_info (bag_camera_info)
+    camera_info_matrix: Literal["K", "P"] | None = None        # default: P for image_rect*, else K
     lidar_profile: str | dict[str, Any] | None = None
     radar_profile: str | dict[str, Any] | None = None
     depth_source: Literal["topic", "onnx", "ground_plane"] = "topic"   # topic: depth_topic (the file source's role)
@@ -200,6 +203,13 @@ def _topic_specs(raw: Any, source: str) -> dict[str, TopicSpec]:
                               key=f"{key}.{foreign[0]}")
         specs[name] = spec
     for name, spec in specs.items():
+        if spec.camera_info_topic is not None and not spec.camera_info_topic.startswith("/"):
+            raise RecipeError(f"topic names start with '/', got {spec.camera_info_topic!r}", file=source,
+                              key=f"topics.{name}.camera_info_topic")
+        stated = [k for k in ("camera_profile", "camera_fov_h_deg") if getattr(spec, k) is not None]
+        if stated and (spec.camera_info_topic or spec.camera_info_matrix):
+            raise RecipeError(f"give {stated[0]} or the intrinsics of a CameraInfo topic, not both (a stated "
+                              "profile wins over the bag's CameraInfo)", file=source, key=f"topics.{name}.{stated[0]}")
         if spec.depth_topic is not None and spec.depth_topic in specs:
             raise RecipeError(f"depth topic {spec.depth_topic!r} is itself mapped to a sensor", file=source,
                               key=f"topics.{name}.depth_topic")

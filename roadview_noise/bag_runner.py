@@ -29,6 +29,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Container, Iterable, Iterator
 
+from .bag_camera_info import CameraInfoIndex, CameraInfoWarnings, paired_topics
 from .bag_recipe import BagRecipe, BagTopic, topic_folder
 from .errors import InputError, RecipeError, RvNoiseError
 from .io import ros_messages as rm
@@ -85,6 +86,7 @@ class MessageJob:
     record_time_ns: int
     raw: bytes                       # (a spool.Spooled on its way to a worker)
     depth: tuple[str, bytes] | None  # (msgtype, raw) of the aligned depth message (raw spooled, like ``raw``)
+    camera_info: tuple[str, int, bytes, bool] | None = None   # CameraInfoIndex.at: (topic, stamp, raw, after)
 
     @property
     def key(self) -> str:
@@ -230,6 +232,18 @@ class TopicImage:
     def key(self, setting: str) -> str:
         return f"topics.{self.topic.name}.{setting}"
 
+    def stated_intrinsics(self, width_px: int, height_px: int):
+        """The intrinsics of the image's CameraInfo (:mod:`roadview_noise.bag_camera_info`), None without one."""
+        from .bag_camera_info import stated_intrinsics
+
+        info = self.job.camera_info
+        if info is None:
+            return None
+        where = f"{info[0]}@{info[1]}"                        # errors read "<bag>: <camera key>: <where>: …"
+        msg = _deserialize(self.typestore, self.ctx.is2, info[2], rm.CAMERA_INFO, where)
+        return stated_intrinsics(msg, info, self.topic.name, self.topic.spec.camera_info_matrix, width_px,
+                                 height_px, source=where)
+
     def depth(self, recipe, geometry) -> tuple[Any, dict, str]:
         """Range along each pixel ray (m; NaN holes, ``inf`` too far) of the aligned depth message: planar z
         (REP 118) unless the topic's ``depth_kind`` is ``range``."""
@@ -346,15 +360,19 @@ def ordered_map(fn: Callable, context: Any, items: Iterable[tuple[Any, Any, int]
 
 @dataclass
 class BagPlan:
-    """The bag's connections by role: mapped topic connections, depth topic connections per depth topic."""
+    """The bag's connections by role: mapped topic connections, depth topic connections per depth topic; the
+    CameraInfo messages of the camera topics that take their intrinsics from one."""
 
     mapped: dict[int, BagTopic]           # id(connection) → topic
     depth: dict[str, list]                # depth topic → its connections
+    camera_info: CameraInfoIndex
 
 
-def plan_bag(recipe: BagRecipe, reader: Any, bag: Path) -> BagPlan:
+def plan_bag(recipe: BagRecipe, reader: Any, bag: Path, *, every_camera: bool = False) -> BagPlan:
     """Check the recipe against the bag before anything is written: every mapped and depth topic exists and carries
-    a message type its sensor reads (RecipeError names the bag, the topic and the type)."""
+    a message type its sensor reads (RecipeError names the bag, the topic and the type); read the CameraInfo
+    messages of the camera topics that take their intrinsics from one (every camera topic without a stated profile
+    with ``every_camera``, for export)."""
     from .registry import suggest
 
     by_topic: dict[str, list] = {}
@@ -384,7 +402,8 @@ def plan_bag(recipe: BagRecipe, reader: Any, bag: Path) -> BagPlan:
                                   key=f"topics.{name}.depth_topic")
             depth[want] = by_topic[want]
     check_profiles(recipe, bag)
-    return BagPlan(mapped, depth)
+    pairs = paired_topics(recipe, by_topic, bag, every_camera=every_camera)
+    return BagPlan(mapped, depth, CameraInfoIndex.read(reader, pairs, bag_kind(bag) == "ros2", bag))
 
 
 def check_profiles(recipe: BagRecipe, bag: Path) -> None:
@@ -486,8 +505,9 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         blob = pickle.dumps(BagContext(str(in_bag), is2, dict(reader.typestore.fielddefs), recipe,
                                        in_bag.resolve().parent, capture_output=True))
         syncs = depth_syncs(stack, in_bag, plan, is2)
-        camera_info = sorted({c.topic for c in reader.connections if c.msgtype == rm.CAMERA_INFO})
-        assumed: set[str] = set()              # camera topics whose intrinsics were assumed from a FOV
+        unpaired = sorted({c.topic for c in reader.connections if c.msgtype == rm.CAMERA_INFO} -
+                          set(plan.camera_info.topic_of.values()))
+        info_warnings = CameraInfoWarnings(unpaired)
         n_messages = reader.message_count
         bar = tqdm(total=n_messages, unit="msg", disable=not progress, file=sys.stderr, dynamic_ncols=True)
         try:
@@ -507,8 +527,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
                     tally.add(entry)
-                    if "intrinsics_from_fov" in (entry.get("inputs") or {}).get("warnings", ()):
-                        assumed.add(entry["topic"])
+                    info_warnings.add(entry)
                     summary.planned += 1
                     counts = topics[entry["topic"]]
                     counts["messages"] += 1
@@ -517,12 +536,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
         finally:
             bar.close()
     summary.seconds = time.time() - started
-    summary.warnings = tally.warnings()
-    if assumed and camera_info:
-        summary.warnings.append(
-            f"the bag's {rm.CAMERA_INFO} topic(s) {', '.join(camera_info)} are not read: intrinsics of "
-            f"{', '.join(sorted(assumed))} were assumed, not taken from them; state them with the topic's "
-            "camera_profile (fx_px, fy_px, cx_px, cy_px = K[0], K[4], K[2], K[5] of the CameraInfo)")
+    summary.warnings = tally.warnings() + info_warnings.lines()
     for line in summary.warnings:
         echo(f"rvnoise: warning: {line}")
     write_run_json(run_record_path(out_bag), {
@@ -563,7 +577,8 @@ def message_jobs(reader: Any, plan: BagPlan, syncs: dict[str, DepthSync], is2: b
             yield (conn, t, raw, None), None, len(raw)
             continue
         depth = syncs[topic.spec.depth_topic].take(stamp, t) if topic.spec.depth_topic else None
-        job = MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw, depth)
+        info = plan.camera_info.at(conn.topic, stamp)
+        job = MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw, depth, info)
         yield (conn, t, raw, job), job, len(raw) + (len(depth[1]) if depth else 0)
 
 
@@ -663,5 +678,6 @@ def find_job(reader: Any, plan: BagPlan, is2: bool, bag: Path, key: str) -> Mess
             depth = None
             if topic.spec.depth_topic:
                 depth = DepthSync(reader.messages(connections=plan.depth[topic.spec.depth_topic]), is2).take(stamp, t)
-            return MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw, depth)
+            return MessageJob(conn.topic, conn.msgtype, stamp, repeat, t, raw, depth,
+                              plan.camera_info.at(conn.topic, stamp))
     raise InputError(f"no message {key} in the bag", file=str(bag))

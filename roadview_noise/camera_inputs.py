@@ -4,9 +4,11 @@ the depth from what the user has (recipe ``inputs``; README "Which depth do I ha
 Camera geometry (intrinsics, exposure, pixel pitch) is looked for only when a step of the chain declares
 ``Model.uses_camera_geometry`` or the depth needs intrinsics (planar depth, disparity, LiDAR projection, ground
 plane). Then, in order: the intrinsics of the image's calibration file (``inputs.calibration``) over the recipe's
-profile or the folder's ``camera.yaml``; else the profile (fitted to the image size); else — no profile — a
-centred pinhole with square pixels from the image size and a horizontal field of view (``inputs.camera_fov_h_deg``,
-default the ROADVIEW Lucid Triton's 80.8°) with the Lucid's optics, which a run-level warning states. A frame whose
+profile or the folder's ``camera.yaml``; else the profile (fitted to the image size); else — no profile — the
+intrinsics the input states (a bag camera topic's CameraInfo, :mod:`roadview_noise.bag_camera_info`) unless
+``inputs.camera_fov_h_deg`` is given; else a centred pinhole with square pixels from the image size and a
+horizontal field of view (``inputs.camera_fov_h_deg``, default the ROADVIEW Lucid Triton's 80.8°) with the Lucid's
+optics, which a run-level warning states. A frame whose
 chain needs no geometry carries a nominal profile of that kind that no step reads.
 
 Depth (``inputs.depth_source``): ``file`` (``inputs.depth`` sidecars in any format of :mod:`roadview_noise.io.depth`),
@@ -126,6 +128,11 @@ class FileImage:
     def key(setting: str) -> str:
         return f"inputs.{setting}"
 
+    @staticmethod
+    def stated_intrinsics(width_px: int, height_px: int) -> None:
+        """Intrinsics the input itself states (a bag's CameraInfo): none for a file."""
+        return None
+
     def sidecar(self, pattern: str, key: str, recipe_dir: Path) -> Path:
         """A sidecar pattern resolved next to the image (``..`` allowed), else in the recipe's folder."""
         rel = depth_relpath_for(self.sample.relpath, pattern)
@@ -213,6 +220,7 @@ class _Geometry:
             spec = _sidecar_default(spec, folder, "camera.yaml")
         cal = self.calibration
         intrinsics = cal.intrinsics_for(w, h) if cal is not None else None
+        stated = None
         if spec is not None:
             base = _camera_profile(spec, folder)
             source = (f"recipe {self.origin.key('camera_profile')}" if inputs.camera_profile is not None
@@ -226,32 +234,46 @@ class _Geometry:
         else:
             fov = inputs.camera_fov_h_deg or FALLBACK_FOV_H_DEG
             fov_key = self.origin.key("camera_fov_h_deg")
-            profile = assumed_profile(w, h, fov)
-            source = (f"image size and horizontal FOV {fov:g}° "
-                      f"({fov_key if inputs.camera_fov_h_deg else 'default: the Lucid Triton'})")
-            if intrinsics is None:
-                self.warnings.append("intrinsics_from_fov")
+            if inputs.camera_fov_h_deg is None and intrinsics is None:
+                stated = self.origin.stated_intrinsics(w, h)
+            if stated is not None and stated.intrinsics is not None:
+                profile, source = intrinsics_profile(stated.name, w, h, stated.intrinsics), stated.source
+                self.warnings.extend(stated.warnings)
             else:
-                profile = dataclasses.replace(profile, name="calibration", **_intrinsics_fields(intrinsics))
+                profile = assumed_profile(w, h, fov)
+                source = (f"image size and horizontal FOV {fov:g}° "
+                          f"({fov_key if inputs.camera_fov_h_deg else 'default: the Lucid Triton'})")
+                if intrinsics is None:
+                    self.warnings.append("intrinsics_from_fov")
+                else:
+                    profile = dataclasses.replace(profile, name="calibration", **_intrinsics_fields(intrinsics))
         if intrinsics is not None:
             source = f"calibration intrinsics over {source}"
         self.notes["camera"] = {"profile": profile.name, "from": source, "fx_px": round(profile.fx_px, 4),
                                 "fy_px": round(profile.fy_px, 4), "cx_px": round(profile.cx_px, 4),
                                 "cy_px": round(profile.cy_px, 4), "fov_h_deg": round(profile.fov_h_deg, 4)}
+        if stated is not None:
+            self.notes["camera"].update(stated.notes)
         self.resolved = profile
         return profile
 
 
 def assumed_profile(width_px: int, height_px: int, fov_h_deg: float) -> CameraProfile:
-    """Centred pinhole, square pixels, horizontal FOV ``fov_h_deg``, with the Lucid Triton's exposure, f-number and
-    focal length; the pixel pitch follows from them (``f / f_x``) so that defocus agrees with the intrinsics."""
+    """Centred pinhole, square pixels, horizontal FOV ``fov_h_deg``, with the Lucid Triton's optics
+    (:func:`intrinsics_profile`)."""
+    pin = CameraProfile.from_fov(f"assumed_fov{fov_h_deg:g}", width_px, height_px, fov_h_deg)
+    return intrinsics_profile(pin.name, width_px, height_px, (pin.fx_px, pin.fy_px, pin.cx_px, pin.cy_px))
+
+
+def intrinsics_profile(name: str, width_px: int, height_px: int, intrinsics) -> CameraProfile:
+    """A profile of the intrinsics ``(fx, fy, cx, cy)`` (px) with the Lucid Triton's exposure, f-number and focal
+    length; the pixel pitch follows from them (``f / f_x``) so that defocus agrees with the intrinsics."""
     from .profiles.camera import lucid_triton_028s
 
     lucid = lucid_triton_028s()
-    pin = CameraProfile.from_fov(f"assumed_fov{fov_h_deg:g}", width_px, height_px, fov_h_deg)
-    return dataclasses.replace(lucid, name=pin.name, width_px=width_px, height_px=height_px,
-                               **_intrinsics_fields((pin.fx_px, pin.fy_px, pin.cx_px, pin.cy_px)),
-                               pixel_pitch_m=lucid.focal_length_m / pin.fx_px)
+    fields = _intrinsics_fields(intrinsics)
+    return dataclasses.replace(lucid, name=name, width_px=width_px, height_px=height_px, **fields,
+                               pixel_pitch_m=lucid.focal_length_m / fields["fx_px"])
 
 
 def _intrinsics_fields(intrinsics) -> dict[str, float]:

@@ -366,9 +366,10 @@ def test_radar_point_clouds_of_real_drivers(tmp_path, layout):
                 rm.POINTFIELD_TYPES[datatype]), err_msg=name)
 
 
-def test_camera_info_topics_not_read_are_named_when_intrinsics_are_assumed(tmp_path):
-    """A bag with a CameraInfo topic whose camera topic has no profile: the run says the CameraInfo was not read and
-    how to state its K, instead of only "intrinsics from a FOV"."""
+def test_a_binned_camera_info_gives_the_sample_drive_camera_its_intrinsics(tmp_path):
+    """The sample drive's 484×366 camera with the CameraInfo a driver binning the 1936×1464 Lucid 4×4 publishes
+    next to it: the camera topic takes that K, scaled to its pixels (rain's depth conversion and geometry use it),
+    no intrinsics are assumed; a stated profile wins over it."""
     from rosbags.rosbag1 import Writer
 
     from roadview_noise.sampledata.bag import RECIPE_TOPICS, write_sample_bag
@@ -384,10 +385,13 @@ def test_camera_info_topics_not_read_are_named_when_intrinsics_are_assumed(tmp_p
         info = writer.add_connection("/camera/camera_info", rm.CAMERA_INFO, typestore=types)
         for c, t, raw in reader.messages():
             writer.write(conns[id(c)], t, raw)
+            if c.topic == "/camera/image/compressed":
+                stamp = reader.deserialize(raw, c.msgtype).header.stamp          # the image's: sync by stamp
         msg = types.types[rm.CAMERA_INFO](
-            header=header(types, False, "camera"), height=1464, width=1936, distortion_model="plumb_bob",
+            header=types.types["std_msgs/msg/Header"](seq=1, stamp=stamp, frame_id="camera"), height=1464,
+            width=1936, distortion_model="plumb_bob",
             D=np.zeros(5), K=np.array([1200.0, 0, 968, 0, 1200, 732, 0, 0, 1]), R=np.eye(3).ravel(),
-            P=np.zeros(12), binning_x=0, binning_y=0,
+            P=np.zeros(12), binning_x=4, binning_y=4,
             roi=types.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                                  do_rectify=False))
         writer.write(info, STAMP, types.serialize_ros1(msg, rm.CAMERA_INFO))
@@ -395,14 +399,19 @@ def test_camera_info_topics_not_read_are_named_when_intrinsics_are_assumed(tmp_p
     topics = {"/camera/image/compressed": RECIPE_TOPICS["/camera/image/compressed"]}
     recipe = parse_bag_recipe({"seed": 5, "topics": topics, "chains": {"camera": "CNF16"}}, base_dir=ROOT)
     summary = run_bag(recipe, bag, tmp_path / "out.bag", workers=1, progress=False, echo=lambda _: None)
-    assert summary.done == 1
-    (line,) = [w for w in summary.warnings if "CameraInfo" in w]
-    assert "/camera/camera_info are not read" in line and "/camera/image/compressed" in line and "K[0]" in line
+    assert (summary.done, summary.failed) == (1, 0), summary.failures
+    assert not [w for w in summary.warnings if "CameraInfo" in w or "FOV" in w]
+    (entry,) = [json.loads(line) for line in manifest_path(tmp_path / "out.bag").read_text().splitlines()]
+    camera = entry["inputs"]["camera"]
+    assert (camera["fx_px"], camera["fy_px"], camera["cx_px"], camera["cy_px"]) == (300.0, 300.0, 241.625, 182.625)
+    assert camera["camera_info"]["binning"] == [4, 4] and camera["from"].startswith("CameraInfo /camera/camera_info")
     with_profile = {"/camera/image/compressed": {**topics["/camera/image/compressed"],
                                                  "camera_profile": "lucid_triton_028s"}}
     recipe = parse_bag_recipe({"seed": 5, "topics": with_profile, "chains": {"camera": "CNF16"}}, base_dir=ROOT)
     summary = run_bag(recipe, bag, tmp_path / "out2.bag", workers=1, progress=False, echo=lambda _: None)
-    assert not [w for w in summary.warnings if "CameraInfo" in w]
+    (entry,) = [json.loads(line) for line in manifest_path(tmp_path / "out2.bag").read_text().splitlines()]
+    assert "camera_info" not in entry["inputs"]["camera"] and entry["inputs"]["camera"]["profile"] == \
+        "lucid_triton_028s"
 
 
 VLS_PCD = ROOT / "sample_data/lidar/vls-128/seq0/000000.pcd"

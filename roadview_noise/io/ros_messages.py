@@ -41,7 +41,7 @@ from .pointcloud import Column, _canonical_keys, cloud_from_columns, output_colu
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"             # not read (run warning when intrinsics are assumed)
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"             # a camera topic's intrinsics: io/camera_info.py
 SENSOR_TYPES = {"camera": (COMPRESSED_IMAGE, IMAGE), "lidar": (POINTCLOUD2,), "radar": (POINTCLOUD2,)}
 
 # PointField datatype → NumPy base type (sensor_msgs/PointField constants INT8 … FLOAT64)
