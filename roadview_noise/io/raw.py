@@ -1,9 +1,10 @@
 """Raw Bayer frames: DNG (read with rawpy/LibRaw, written with tifffile) and plain ``.raw`` + YAML sidecar.
 
-Digital numbers are returned as stored (uint16, visible area), with the 2×2 CFA pattern and the black/white levels the
-file states. ``RawFrame`` has one black level: per-channel black levels that differ by more than
-``MAX_BLACK_SPREAD_DN`` are refused rather than averaged, since averaging would bias the darker channels; within the
-tolerance their mean is used.
+Digital numbers are returned as LibRaw decodes them (uint16, visible area, LinearizationTable applied), with the 2×2
+CFA pattern of the visible area's top-left site and the black/white levels the file states (the black level from the
+DNG tags, :mod:`.dng_layout`). ``RawFrame`` has one black level: black levels that differ by more than
+``MAX_BLACK_SPREAD_DN`` over the frame (per CFA position, per row or column) are refused rather than averaged, since
+averaging would bias the darker sites; within the tolerance their mean is used.
 
 Plain raw sidecar ``<stem>.yaml``: ``width``, ``height``, ``dtype`` (uint16), ``byte_order`` (little | big),
 ``cfa_pattern`` (RGGB | BGGR | GRBG | GBRG), ``black_level_dn``, ``white_level_dn``.
@@ -12,6 +13,7 @@ Plain raw sidecar ``<stem>.yaml``: ``width``, ``height``, ``dtype`` (uint16), ``
 from __future__ import annotations
 
 import os
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -21,17 +23,13 @@ import yaml
 
 from ..errors import InputError
 from ..types import CFA_PATTERNS, RawEncoding
+from . import dng_layout
 from .atomic import atomic_path, write_bytes_atomic
 
 MAX_BLACK_SPREAD_DN = 1.0
 MIN_DNG_SIDE_PX = 22            # LibRaw rejects raw images narrower or lower than this
 SIDECAR_KEYS = ("width", "height", "dtype", "byte_order", "cfa_pattern", "black_level_dn", "white_level_dn")
 _BYTE_ORDERS = {"little": "<", "big": ">"}
-# camera/colour tags copied from a template DNG: Make, Model, Orientation, UniqueCameraModel, ColorMatrix1/2,
-# CameraCalibration1/2, AnalogBalance, AsShotNeutral, AsShotWhiteXY, BaselineExposure, CalibrationIlluminant1/2,
-# ForwardMatrix1/2
-TEMPLATE_TAGS = (271, 272, 274, 50708, 50721, 50722, 50723, 50724, 50727, 50728, 50729, 50730, 50778, 50779,
-                 50964, 50965)
 
 RawParts = tuple[np.ndarray, str, float, float]
 
@@ -60,8 +58,9 @@ def write_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_l
 
 def read_dng(path: str | os.PathLike) -> RawParts:
     """Bayer DNG via rawpy: visible raw area, CFA pattern of its top-left site, black and white level (DN).
-    The TIFF structure is checked first (:func:`check_dng_structure`), so a truncated file is named as such."""
-    check_dng_structure(path)
+    The TIFF structure is checked first (:func:`check_dng_structure`), so a truncated file or one rvnoise cannot use
+    is named as such."""
+    layout = check_dng_structure(path)
     try:
         with rawpy.imread(str(path)) as raw:
             if raw.raw_pattern is None or raw.raw_pattern.shape != (2, 2):
@@ -76,7 +75,13 @@ def read_dng(path: str | os.PathLike) -> RawParts:
             from exc
     if pattern not in CFA_PATTERNS:
         raise InputError(f"CFA pattern {pattern!r} is not one of {CFA_PATTERNS}", file=str(path))
-    if np.ptp(blacks) > MAX_BLACK_SPREAD_DN:
+    if layout.black_spread_dn > MAX_BLACK_SPREAD_DN:
+        raise InputError(f"the black level varies by {layout.black_spread_dn:g} DN over the frame "
+                         f"({layout.black_source}), more than {MAX_BLACK_SPREAD_DN} DN; rvnoise needs one black level",
+                         file=str(path))
+    if layout.black_mean_dn is not None:
+        return dn, pattern, layout.black_mean_dn, white
+    if np.ptp(blacks) > MAX_BLACK_SPREAD_DN:         # no black tag: LibRaw's estimate (e.g. from masked areas)
         raise InputError(f"per-channel black levels {blacks.tolist()} differ by more than {MAX_BLACK_SPREAD_DN} DN; "
                          "rvnoise needs one black level", file=str(path))
     return dn, pattern, float(blacks.mean()), white
@@ -91,9 +96,10 @@ _LIBRAW_WORDS = {
 }
 
 
-def check_dng_structure(path: str | os.PathLike) -> None:
-    """Raise :class:`InputError` for a file that is not TIFF-structured or whose image data (of any IFD or
-    sub-IFD) ends beyond the end of the file."""
+def check_dng_structure(path: str | os.PathLike) -> dng_layout.DngLayout:
+    """The raw image's layout (:func:`.dng_layout.inspect`); :class:`InputError` for a file that is not
+    TIFF-structured, whose image data (of any IFD or sub-IFD) ends beyond the end of the file, or that rvnoise
+    cannot use."""
     try:
         size = os.path.getsize(path)
     except OSError as exc:
@@ -104,19 +110,26 @@ def check_dng_structure(path: str | os.PathLike) -> None:
             for page in tif.pages:
                 for p in (page, *(page.pages or ())):
                     end = max(end, max((o + c for o, c in zip(p.dataoffsets, p.databytecounts)), default=0))
+            if end > size:
+                raise InputError(f"truncated DNG: its image data ends at byte {end}, the file has {size} bytes",
+                                 file=str(path))
+            return dng_layout.inspect(tif, path)
+    except InputError:
+        raise
     except Exception as exc:                       # tifffile raises many types for a damaged directory
         raise InputError(f"corrupt or truncated DNG: its TIFF directory cannot be read ({exc})", file=str(path)) \
             from None
-    if end > size:
-        raise InputError(f"truncated DNG: its image data ends at byte {end}, the file has {size} bytes",
-                         file=str(path))
 
 
 def write_dng(path: str | os.PathLike, dn_uint16: np.ndarray, cfa_pattern: str, black_level_dn: float,
               white_level_dn: float, *, template: str | os.PathLike | None = None) -> None:
-    """Minimal uncompressed DNG 1.4 (CFA photometric 32803) that LibRaw reads back with the same pattern, levels and
-    values. Colour tags are neutral (identity ColorMatrix1, D65, unit AsShotNeutral) unless ``template`` (the input
-    DNG) is given: its camera and colour tags (:data:`TEMPLATE_TAGS`, from its first IFD) are copied so raw
+    """Uncompressed single-IFD DNG 1.4 (CFA photometric 32803, 16 bits) that LibRaw reads back with the same pattern,
+    white level and values, and tifffile with the same black level (a fractional black, the mean of per-site levels,
+    is written as a RATIONAL; LibRaw reads its integer part). Colour tags are neutral (identity ColorMatrix1, D65,
+    unit AsShotNeutral) unless ``template`` (the input DNG) is given: its AsShotNeutral if it has one, its camera,
+    colour-profile and rendering tags are copied, and its default crop and opcode lists 2/3 when the frame is its
+    whole active area
+    (:func:`.dng_layout.template_tags`, which also lists what is dropped: previews, EXIF, noise profile), so raw
     converters render the output like the input. Values are rounded and clipped to 0…65535 (not to the white level:
     the file keeps what the models produced). Both sides must be at least ``MIN_DNG_SIDE_PX``, or LibRaw cannot read
     the file back."""
@@ -125,7 +138,7 @@ def write_dng(path: str | os.PathLike, dn_uint16: np.ndarray, cfa_pattern: str, 
         raise ValueError(f"DNG of {dn.shape[1]}×{dn.shape[0]} px: LibRaw reads only frames of at least "
                          f"{MIN_DNG_SIDE_PX} px per side")
     _check_pattern(cfa_pattern)
-    black, white = _integral_level(black_level_dn, "black"), _integral_level(white_level_dn, "white")
+    white = _integral_level(white_level_dn, "white")
     cfa = bytes("RGB".index(c) for c in cfa_pattern)
     identity = (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1)   # 3×3 SRATIONAL numerator/denominator pairs
     tags = [
@@ -137,32 +150,30 @@ def write_dng(path: str | os.PathLike, dn_uint16: np.ndarray, cfa_pattern: str, 
         (50710, "B", 3, (0, 1, 2), True),               # CFAPlaneColor
         (50711, "H", 1, 1, True),                       # CFALayout: rectangular
         (50713, "H", 2, (1, 1), True),                  # BlackLevelRepeatDim
-        (50714, "I", 1, black, True),                   # BlackLevel
+        _black_tag(black_level_dn),                     # BlackLevel
         (50717, "I", 1, white, True),                   # WhiteLevel
         (50721, "2i", 9, identity, True),               # ColorMatrix1
         (50728, "2I", 3, (1, 1, 1, 1, 1, 1), True),     # AsShotNeutral
         (50778, "H", 1, 21, True),                      # CalibrationIlluminant1: D65
     ]
     if template is not None:
-        copied = _template_tags(template)
-        tags = [t for t in tags if t[0] not in {c[0] for c in copied}] + copied
+        copied = dng_layout.template_tags(template, dn.shape)
+        if any(c[0] in dng_layout.OPCODE_LISTS for c in copied):
+            copied.append((50707, "B", 4, (1, 3, 0, 0), True))     # opcode lists need a DNG 1.3 reader
+        # the input's white balance or none (a raw converter's default), never a made-up neutral one
+        tags = [t for t in tags if t[0] not in {c[0] for c in copied} | {50728}] + copied
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, dn, photometric=32803, extratags=tags, metadata=None, subfiletype=0)
 
 
-def _template_tags(template: str | os.PathLike) -> list[tuple]:
-    try:
-        with tifffile.TiffFile(template) as tif:
-            found = tif.pages[0].tags
-            return [(code, int(tag.dtype), tag.count, _tag_value(tag.value), True)
-                    for code in TEMPLATE_TAGS if (tag := found.get(code)) is not None]
-    except (OSError, tifffile.TiffFileError, IndexError) as exc:
-        raise InputError(f"cannot read DNG metadata: {exc}", file=str(template)) from exc
-
-
-def _tag_value(value):
-    """Tag value as tifffile writes it (enums such as Orientation as their integer)."""
-    return int(value) if isinstance(value, int) else value
+def _black_tag(black_level_dn: float) -> tuple:
+    """BlackLevel as a LONG, or as the nearest RATIONAL with a denominator ≤ 2¹⁶ when it is fractional."""
+    if not 0 <= black_level_dn <= 65535:
+        raise ValueError(f"DNG black level must be 0…65535 DN, got {black_level_dn}")
+    if black_level_dn == round(black_level_dn):
+        return 50714, "I", 1, int(round(black_level_dn)), True
+    q = Fraction(black_level_dn).limit_denominator(1 << 16)
+    return 50714, "2I", 1, (q.numerator, q.denominator), True
 
 
 def read_plain_raw(path: str | os.PathLike) -> RawParts:

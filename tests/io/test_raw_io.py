@@ -49,7 +49,7 @@ def test_dng_rejects_spread_black_levels(tmp_path):
             (50717, "I", 1, 65535, True),
             (50721, "2i", 9, (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1), True)]
     tifffile.imwrite(tmp_path / "b.dng", dn, photometric=32803, extratags=tags, metadata=None, subfiletype=0)
-    with pytest.raises(InputError, match="black levels") as err:
+    with pytest.raises(InputError, match="black level varies by 12 DN") as err:
         read_dng(tmp_path / "b.dng")
     assert "b.dng" in str(err.value)
 
@@ -58,7 +58,9 @@ def test_dng_writer_refuses_frames_libraw_cannot_read(tmp_path):
     with pytest.raises(ValueError, match="at least 22 px"):
         write_dng(tmp_path / "small.dng", _dn(shape=(21, 64)), "RGGB", 0, 65535)
     with pytest.raises(ValueError, match="integer"):
-        write_dng(tmp_path / "frac.dng", _dn(), "RGGB", 63.5, 65535)
+        write_dng(tmp_path / "frac.dng", _dn(), "RGGB", 64, 4095.5)
+    with pytest.raises(ValueError, match="0…65535"):
+        write_dng(tmp_path / "neg.dng", _dn(), "RGGB", -1, 65535)
 
 
 def test_dng_bad_files(tmp_path):
