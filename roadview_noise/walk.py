@@ -8,7 +8,9 @@ symlinks, symlinked folders (never followed: they would lead out of the input tr
 it could not stat. Only the folders where some pattern can match a file are walked (and only their problems are reported).
 
 Patterns are ``pathlib`` globs relative to the input root (``*``, ``?``, ``[...]`` within one name; ``**`` a whole
-segment matching any number of folders), case-sensitive; names starting with ``.`` are never inputs.
+segment matching any number of folders), case-sensitive but for a pattern's file extension (``*.jpg`` matches
+``IMG_0001.JPG``, ``*.dng`` a Leica's ``L1000001.DNG``: cameras write upper-case extensions, and every reader
+takes the suffix in any case); names starting with ``.`` are never inputs.
 """
 
 from __future__ import annotations
@@ -66,14 +68,20 @@ def _segments(pattern: str) -> list[str]:
     return [p for p in pattern.split("/") if p not in ("", ".")]
 
 
+EXTENSION = re.compile(r"(.*?)((?:\.[A-Za-z0-9]+)+)")     # a name segment's literal trailing extension(s)
+
+
 def glob_regex(pattern: str) -> re.Pattern:
-    """The compiled regex of a pathlib glob over POSIX relative paths."""
+    """The compiled regex of a pathlib glob over POSIX relative paths; the last segment's literal extension
+    (``.jpg``, ``.pcd.bin``) matches in any case."""
     parts = _segments(pattern)
     rx = ""
     for k, seg in enumerate(parts):
         last = k == len(parts) - 1
         if seg == "**":
             rx += "(?:[^/]+/)*"
+        elif last and (m := EXTENSION.fullmatch(seg)):
+            rx += _segment_regex(m[1]) + f"(?i:{re.escape(m[2])})"
         else:
             rx += _segment_regex(seg) + ("" if last else "/")
     return re.compile(rx)

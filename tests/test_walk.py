@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -24,15 +25,36 @@ def _random_tree(root: Path, rng) -> None:
             (root / folder / name).write_bytes(b"x")
 
 
+def _any_case_extension(pattern: str) -> str:
+    """The pathlib glob whose last segment's literal extension matches in any case (``*.png`` → ``*.[pP][nN][gG]``),
+    as rvnoise's patterns do."""
+    head, _, name = pattern.rpartition("/")
+    m = re.fullmatch(r"(.*?)((?:\.[A-Za-z0-9]+)+)", name)
+    if m is None:
+        return pattern
+    ext = "".join(f"[{c.lower()}{c.upper()}]" if c.isalpha() else c for c in m[2])
+    return f"{head}/{m[1]}{ext}" if head else f"{m[1]}{ext}"
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_walk_matches_pathlib_glob(tmp_path, seed):
     root = tmp_path / f"t{seed}"
     _random_tree(root, np.random.default_rng(seed))
     for pattern in PATTERNS:
-        want = sorted(p.relative_to(root).as_posix() for p in root.glob(pattern)
+        want = sorted(p.relative_to(root).as_posix() for p in root.glob(_any_case_extension(pattern))
                       if p.is_file() and not p.name.startswith("."))
         got = [item[0] for item in walk(root, Matcher([("m", pattern)]))]
         assert got == want, pattern
+
+
+def test_extension_matches_in_any_case_the_rest_does_not():
+    rx = glob_regex("raw/**/*.dng")
+    assert rx.fullmatch("raw/a/L1000001.DNG") and rx.fullmatch("raw/x.Dng") and rx.fullmatch("raw/b/c.dng")
+    assert not rx.fullmatch("RAW/x.dng") and not rx.fullmatch("raw/x.dngx") and not rx.fullmatch("raw/x.DNG.txt")
+    rx = glob_regex("lidar/*.pcd.bin")
+    assert rx.fullmatch("lidar/a.PCD.BIN") and not rx.fullmatch("lidar/a.bin")
+    assert glob_regex("cam/seqA/000001.png").fullmatch("cam/seqA/000001.PNG")
+    assert not glob_regex("cam/seqA/000001.png").fullmatch("cam/seqA/000001X.png")
 
 
 def test_first_matching_modality_wins_and_exclusions():
