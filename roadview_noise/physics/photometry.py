@@ -4,6 +4,8 @@ and the per-site compositing of a frame with them.
 The reference code used absolute constants (airlight 600/1500, sun 6000, flakes 255 on an 8-bit scale) that
 saturate fog and streaks (models.md §7.3). Estimating from the image makes every weather radiance follow the
 image, including an image darkened by an earlier low-light step (D3.5 Eq. 1 coupling).
+The weather's sky (fog's airlight, the cloud cover of rain and snow) takes its level from the frame's sky and its
+colour from the frame's illuminant (:func:`airlight_radiance`): a clear blue sky is not the colour of fog.
 Statistics use the sites of a 4-pixel lattice (1/16 of the frame; the lattice keeps a mosaic's CFA phase): the
 mean of ~10⁵ sites per channel is exact to far below one code value, at 1/16 of the cost.
 
@@ -24,34 +26,124 @@ from .cfa import SiteLayout
 from .compiled import jit
 
 SAMPLE_STEP_PX = 4
-BRIGHTEST_FRACTION = 0.001            # "sky" when the depth map has none: the brightest 0.1 % of sites
-MIN_SKY_SAMPLES = 16                  # fewer sampled sky sites per channel than this: use the brightest sites
+BLOCK_PX = 4                          # raw illuminant estimate: colours of 4×4-pixel block means …
+BLOCK_STEP_PX = 8                     # … on an 8-pixel lattice (1/4 of the frame read)
+BRIGHTEST_FRACTION = 0.001            # "sky" when the depth map has none: the brightest 0.1 % of pixels
+MIN_SKY_SAMPLES = 16                  # fewer sampled sky sites per channel than this: use the brightest pixels
 ENVIRONMENT_ROWS_FRACTION = 0.6       # upper 3/5 of the image ≈ the wide upward cone a raindrop refracts
+LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])   # Y of linear R, G, B (ITU-R BT.709 = sRGB primaries)
+CLIPPED_LEVEL = 0.98                  # a pixel with a channel at/above this (full scale 1) has lost its colour
+GREY_ANGLES_DEG = (15.0, 8.0)        # raw illuminant: grey blocks within this angle of the estimate, per pass
+MIN_GREY_BLOCKS = 16                  # fewer grey blocks than this: keep the estimate so far
 
 
-def sky_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
-    """Per-channel (R, G, B) sky radiance: mean over sky sites (depth ``inf``), else — no sky in view — mean of the
-    brightest 0.1 % of each channel's sites with a valid depth. NaN in ``depth_m`` marks pixels whose depth is not
-    valid (filled holes, :func:`estimation_depth`): they are neither sky nor candidates for the brightest sites, so
-    a dark hole never becomes the airlight."""
+def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+    """Per-channel (R, G, B) radiance of the weather's own sky — fog's airlight at infinity, the overcast sky of
+    rain and snow: level :func:`sky_luminance`, colour :func:`illuminant_chromaticity`.
+
+    Fog droplets (size parameter ≫ 1) scatter all visible wavelengths alike, so the airlight has the colour of the
+    light falling on the fog (sun + sky), not of the clear sky the fog hides (Rayleigh blue): Narasimhan & Nayar
+    (2002, IJCV 48(3), dichromatic atmospheric scattering: airlight colour = the illuminant's in fog and haze;
+    2003, PAMI 25(6)); Koschmieder (1924) sets its level to the horizon sky's luminance. The same holds for the
+    cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` marks pixels whose depth
+    is not valid (filled holes, :func:`estimation_depth`): never sky, never among the brightest pixels (their
+    colour still counts in a raw frame's illuminant estimate)."""
+    return sky_luminance(layout, signal, depth_m) * illuminant_chromaticity(layout, signal, depth_m)
+
+
+def sky_luminance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> float:
+    """Luminance Y (BT.709 weights; on a raw mosaic the same weights on the camera's channels) of the mean sky
+    radiance (sites of depth ``inf``), else — no sky in view — the mean Y of the brightest 0.1 % of the pixels with
+    a valid depth (models.md §2.1 [PROP])."""
     sky = layout.channel_samples(signal, step=SAMPLE_STEP_PX, mask=np.isinf(depth_m))
     if all(s.size >= MIN_SKY_SAMPLES for s in sky):
-        return np.array([s.mean(dtype=np.float64) for s in sky])
-    out = []
-    for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX, mask=_valid_or_none(depth_m)):
-        k = max(1, math.ceil(BRIGHTEST_FRACTION * s.size))
-        out.append(np.partition(s, s.size - k)[s.size - k:].mean(dtype=np.float64))
-    return np.array(out)
+        return float(LUMINANCE_WEIGHTS @ np.array([s.mean(dtype=np.float64) for s in sky]))
+    y = pixel_samples(layout, signal, _valid_or_none(depth_m)) @ LUMINANCE_WEIGHTS
+    k = max(1, math.ceil(BRIGHTEST_FRACTION * y.size))
+    return float(np.partition(y, y.size - k)[y.size - k:].mean())
 
 
-def environment_radiance(layout: SiteLayout, signal: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """Per-channel mean radiance of the upper 3/5 of the image (models.md §2.2 [PROP] ``E_env``), over the pixels
-    where ``valid`` (H, W) is true if given."""
+def illuminant_chromaticity(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+    """Colour of the scene illuminant as the frame renders a white surface, (R, G, B) scaled to luminance Y = 1.
+
+    RGB frames are white-balanced (the camera's AWB, with the full raw data, made its illuminant estimate neutral):
+    neutral. Casts such an image keeps (sunset, sodium lamps) are not estimated: on the real nuScenes and KITTI
+    photos the frame estimates we tried (grey world, grey pixels, white patch) differed by up to 30 % (blue) from
+    method to method — more than the casts those photos show.
+    A raw mosaic is in the camera's unbalanced channels and its white (DNG AsShotNeutral) is not carried by the
+    frame, so it is estimated: grey pixels (Huo et al. 2006, IEEE Trans. Consum. Electron. 52(2); on grey world,
+    Buchsbaum 1980; survey: Gijsenij, Gevers & van de Weijer 2011, IEEE TIP 20(9)) — start from the grey-world
+    mean of the non-sky pixels (the sky is a light source, not a reflector) averaged in 4×4 blocks (so a dark
+    frame's noise does not scatter their colours), unclipped; then twice keep the blocks within 15°, then 8°, of
+    the estimate and take their sum. Too few blocks: the estimate so far."""
+    if not layout.mosaic:
+        return np.ones(3)
+    grid = block_means(layout, signal)
+    step = BLOCK_STEP_PX
+    surfaces = ~np.isinf(depth_m[:grid.shape[0] * step:step, :grid.shape[1] * step:step])
+    p = grid[surfaces] if surfaces.any() else grid.reshape(-1, 3)
+    p = p[(p.max(axis=1) < CLIPPED_LEVEL) & (p.sum(axis=1) > 0)]
+    estimate = p.sum(axis=0)
+    if p.shape[0] < MIN_GREY_BLOCKS or not np.all(estimate > 0):
+        return np.ones(3)
+    direction = p / np.linalg.norm(p, axis=1, keepdims=True)
+    for angle_deg in GREY_ANGLES_DEG:
+        grey = direction @ (estimate / np.linalg.norm(estimate)) >= math.cos(math.radians(angle_deg))
+        if grey.sum() < MIN_GREY_BLOCKS:
+            break
+        estimate = p[grey].sum(axis=0)
+    return estimate / float(LUMINANCE_WEIGHTS @ estimate)
+
+
+def block_means(layout: SiteLayout, signal: np.ndarray) -> np.ndarray:
+    """(rows, cols, 3) float64 R, G, B means of a mosaic's ``BLOCK_PX``² blocks (whole CFA cells) whose top-left
+    sites are the ``BLOCK_STEP_PX`` lattice points."""
+    b, step = BLOCK_PX, BLOCK_STEP_PX
+    h, w = (n // step * step for n in signal.shape)
+    blocks = signal[:h, :w].reshape(h // step, step, w // step, step)
+    rgb = np.zeros((h // step, w // step, 3))
+    count = np.zeros(3)
+    for (i, j), c in layout.cells:                     # the block's sites of this CFA phase
+        for y in range(i, b, 2):
+            for x in range(j, b, 2):
+                rgb[..., c] += blocks[:, y, :, x]
+                count[c] += 1
+    rgb /= count
+    return rgb
+
+
+def pixel_samples(layout: SiteLayout, signal: np.ndarray, mask: np.ndarray | None = None,
+                  step: int = SAMPLE_STEP_PX) -> np.ndarray:
+    """(N, 3) float64 R, G, B of the pixels on a ``step`` lattice where the (H, W) ``mask`` is true there; on a
+    mosaic a pixel is the 2×2 CFA cell at the lattice point (its two G sites averaged)."""
+    if layout.mosaic:
+        h, w = signal.shape
+        rgb = np.zeros((len(range(0, h - 1, step)), len(range(0, w - 1, step)), 3))
+        count = np.zeros(3)
+        for (i, j), c in layout.cells:
+            rgb[..., c] += signal[i:h - 1 + i:step, j:w - 1 + j:step]
+            count[c] += 1
+        rgb /= count
+        m = None if mask is None else mask[:h - 1:step, :w - 1:step]
+    else:
+        rgb = signal[::step, ::step].astype(np.float64)
+        m = None if mask is None else mask[::step, ::step]
+    return rgb.reshape(-1, 3) if m is None else rgb[m]
+
+
+def environment_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray, sky: np.ndarray
+                         ) -> np.ndarray:
+    """Per-channel mean radiance of the upper 3/5 of the image (models.md §2.2 [PROP] ``E_env``) over the sites
+    with a valid depth, sky sites (depth ``inf``) counting as ``sky`` (R, G, B): under rain the drop refracts the
+    cloud cover, not the clear sky of the input frame."""
     rows = max(1, round(ENVIRONMENT_ROWS_FRACTION * signal.shape[0]))
-    samples = layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows, mask=valid)
-    if any(s.size == 0 for s in samples):
-        samples = layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows)
-    return np.array([s.mean(dtype=np.float64) for s in samples])
+    is_sky = np.isinf(depth_m)
+    seen = layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows, mask=np.isfinite(depth_m))
+    n_sky = [s.size for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows, mask=is_sky)]
+    if any(s.size + n == 0 for s, n in zip(seen, n_sky)):
+        return np.array([s.mean(dtype=np.float64)
+                         for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows)])
+    return np.array([(s.sum(dtype=np.float64) + n * a) / (s.size + n) for s, n, a in zip(seen, n_sky, sky)])
 
 
 def estimation_depth(frame, depth_m: np.ndarray) -> np.ndarray:
@@ -97,9 +189,11 @@ RAIN_REFRACTED_FRACTION = 0.94        # share of a drop's radiance refracted fro
 
 def raindrop_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
     """``S_c = 0.94 E_env,c + 0.06 E_sky,c`` (models.md §2.2 [PROP], after Garg & Nayar 2007): a drop refracts a
-    wide cone of the scene in front of the camera and reflects the sky."""
-    return (RAIN_REFRACTED_FRACTION * environment_radiance(layout, signal, _valid_or_none(depth_m)) +
-            (1.0 - RAIN_REFRACTED_FRACTION) * sky_radiance(layout, signal, depth_m))
+    wide cone of the scene in front of the camera and reflects the sky — the rain's overcast sky,
+    :func:`airlight_radiance`, in both terms."""
+    sky = airlight_radiance(layout, signal, depth_m)
+    return (RAIN_REFRACTED_FRACTION * environment_radiance(layout, signal, depth_m, sky) +
+            (1.0 - RAIN_REFRACTED_FRACTION) * sky)
 
 
 # --- per-site compositing -------------------------------------------------------------------------------------

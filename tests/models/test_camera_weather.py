@@ -15,6 +15,7 @@ from roadview_noise.compound import apply_models, order_chain
 from roadview_noise.errors import ModelError, RecipeError
 from roadview_noise.model import Stage
 from roadview_noise.physics.fog_optics import fog_extinction_per_m
+from roadview_noise.physics.photometry import LUMINANCE_WEIGHTS
 from roadview_noise.profiles.camera import lucid_triton_028s
 from roadview_noise.registry import load_all
 from roadview_noise.types import CameraFrame, Conditions, RawFrame, cfa_index_map
@@ -81,19 +82,22 @@ def test_fog_reference_table_reproduces_the_d35_pixel():
 
 
 def test_fog_sky_becomes_the_estimated_airlight():
+    """Airlight: the sky's luminance in the illuminant's colour — neutral in white-balanced RGB — not the clear
+    sky's blue (physics.photometry.airlight_radiance; tests/physics/test_airlight.py)."""
     frame = scene()
     out, diag = run(Fog(), frame)
     sky = np.isinf(frame.depth_m)
-    np.testing.assert_allclose(diag["airlight"], (0.6, 0.7, 0.9), rtol=1e-6)
-    np.testing.assert_allclose(out.linear_rgb[sky], np.broadcast_to([0.6, 0.7, 0.9], (sky.sum(), 3)), rtol=1e-6)
+    sky_y = LUMINANCE_WEIGHTS @ np.float32([0.6, 0.7, 0.9])
+    np.testing.assert_allclose(diag["airlight"], np.full(3, sky_y), rtol=1e-6)
+    np.testing.assert_allclose(out.linear_rgb[sky], np.broadcast_to(diag["airlight"], (sky.sum(), 3)), rtol=1e-6)
     np.testing.assert_allclose(diag["extinction_per_m"], fog_extinction_per_m(30.0))
 
 
 def test_fog_without_sky_uses_the_brightest_sites():
     frame = scene(sky=False)
     _, diag = run(Fog(), frame)
-    img = frame.linear_rgb
-    assert all(0.9 * img[..., c].max() < a <= img[..., c].max() + 1e-6 for c, a in enumerate(diag["airlight"]))
+    y = frame.linear_rgb @ LUMINANCE_WEIGHTS.astype(np.float32)
+    assert 0.9 * y.max() < LUMINANCE_WEIGHTS @ diag["airlight"] <= y.max() + 1e-6
 
 
 def test_fog_user_airlight_follows_the_luminance_factor():
@@ -178,8 +182,10 @@ def test_weather_scales_with_the_scene_under_low_light(model):
 
 
 def test_snow_flake_radiance_is_reflectance_times_sky():
+    """White flakes lit like the fog: ρ_s × the airlight fog estimates (sky luminance, illuminant colour)."""
     _, diag = run(Snow(flake_reflectance=0.9), scene())
-    np.testing.assert_allclose(diag["particle_radiance"], 0.9 * np.array([0.6, 0.7, 0.9]), rtol=1e-6)
+    _, fog = run(Fog(), scene())
+    np.testing.assert_allclose(diag["particle_radiance"], 0.9 * np.array(fog["airlight"]), rtol=1e-6)
 
 
 def test_rain_raw_and_rgb_share_the_particles():

@@ -12,8 +12,8 @@ from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...physics.cfa import SiteLayout
 from ...physics.fog_optics import FOG_TABLES, fog_extinction_per_m
-from ...physics.photometry import (SAMPLE_STEP_PX, absolute_radiance, composite, estimation_depth, frame_depth_m,
-                                      site_transmission, sky_radiance)
+from ...physics.photometry import (SAMPLE_STEP_PX, absolute_radiance, airlight_radiance, composite, estimation_depth,
+                                      frame_depth_m, site_transmission)
 from ...registry import register
 
 
@@ -40,11 +40,13 @@ class FogCamera(Model):
     a bug; ``reference`` reproduces the D3.5 library's table (≈ 6 % more extinction) for comparisons with D3.5.
     With the default table a black target at d = V = 30 m keeps 5.3 % (R 5.2, G 5.3, B 5.5 %), the MOR
     definition's 5 %; the reference table gives 4.4 % (G).
-    Airlight ``A_c``: estimated from the frame (sky sites, else the brightest 0.1 %; never from pixels whose depth
-    is not valid, e.g. filled holes), so it follows an earlier
-    low-light step; a user value is in linear full-scale units of the undarkened scene and is scaled by
-    ``conditions.luminance_factor``. Runs per CFA site on raw mosaics with the site's wavelength. Wind does not
-    change fog (models.md §2.9: small, nearly static droplets in a homogeneous medium).
+    Airlight ``A_c``: estimated from the frame, so it follows an earlier low-light step: its luminance from the sky
+    sites (else the brightest 0.1 % of pixels), its colour from the illuminant (grey pixels of the scene), since fog
+    droplets scatter all wavelengths alike (Narasimhan & Nayar 2002; ``physics.photometry.airlight_radiance``);
+    never from pixels whose depth is not valid, e.g. filled holes. A user value is in linear full-scale units of
+    the undarkened scene and is scaled by ``conditions.luminance_factor``. Runs per CFA site on raw mosaics with
+    the site's wavelength. Wind does not change fog (models.md §2.9: small, nearly static droplets in a homogeneous
+    medium).
     Diagnostics: extinction per channel, airlight used, mean transmission per channel over the non-sky sites.
     """
 
@@ -69,7 +71,7 @@ class FogCamera(Model):
         signal = data.signal()
         sigma = fog_extinction_per_m(self.visibility_m, self.fog_table)
         if self.airlight is None:
-            airlight = sky_radiance(layout, signal, estimation_depth(data, depth))
+            airlight = airlight_radiance(layout, signal, estimation_depth(data, depth))
         else:
             airlight = absolute_radiance(self.airlight, data.conditions.luminance_factor)
         t = site_transmission(layout, depth, sigma)

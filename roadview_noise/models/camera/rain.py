@@ -72,7 +72,8 @@ class RainCamera(PrecipitationCamera):
     in the streaks, radiance from the image, no box-volume density error).
 
     Per site: ``I' = S + (1 − M)·t·(I − S)``, M the streak opacity, t the veil transmission, S the drop radiance
-    ``0.94 E_env + 0.06 E_sky`` estimated from the frame, so darker scenes (low light before the weather, Eq. 1)
+    ``0.94 E_env + 0.06 E_sky`` estimated from the frame (E_sky, also standing for the sky inside E_env: the rain's
+    overcast sky, sky luminance in the illuminant's colour), so darker scenes (low light before the weather, Eq. 1)
     get darker streaks. Sky sites (range inf) look through the whole rain layer and take the drop radiance.
     Wind and ego motion come from ``conditions`` (wind.camera, Eq. 2). Runs per CFA site on raw mosaics.
     Diagnostics: particles expected / drawn (explicit) / visible (in front of the scene where their streak starts),

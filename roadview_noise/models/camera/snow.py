@@ -9,7 +9,7 @@ from ...errors import ModelError
 from ...model import param
 from ...physics.dsd import BRANDES_SNOW_GAMMA, SNOW_HABITS
 from ...physics.particles import SNOW_DSDS, snow_classes
-from ...physics.photometry import sky_radiance
+from ...physics.photometry import airlight_radiance
 from ...registry import register
 from .rain import PrecipitationCamera
 
@@ -29,8 +29,9 @@ class SnowCamera(PrecipitationCamera):
       (dry aggregates; imaging extinction, Q = 1: the diffraction lobe stays in the pixel).
     - Fall speed of the habit, ``v = a D^b`` (dry aggregates 0.8 D^0.16 m/s, Locatelli & Hobbs 1974), replacing the
       reference's garbled constant 0.65 m/s.
-    - Flake radiance ``S_c = ρ_s E_sky,c`` with ρ_s = 0.9 (Hahner et al. 2022) and the sky radiance estimated
-      from the frame, instead of the reference's constant 255 (emissive-looking flakes at night).
+    - Flake radiance ``S_c = ρ_s E_sky,c`` with ρ_s = 0.9 (Hahner et al. 2022) and ``E_sky`` the snow's overcast
+      sky estimated from the frame (sky luminance, illuminant colour: white flakes lit by the scene's light, not
+      tinted by a clear blue sky), instead of the reference's constant 255 (emissive-looking flakes at night).
     With wind, flakes drift with the air (short relaxation time), so their streaks tilt more than rain's —
     the physics; D3.5's opposite statement is discussed in models.md §2.9 (see wind.camera lateral_response)."""
 
@@ -58,4 +59,4 @@ class SnowCamera(PrecipitationCamera):
         return SNOW_HABITS[self.snow_habit].fall_speed_m_per_s(d_mm)
 
     def radiance(self, layout, signal, depth_m):
-        return self.flake_reflectance * sky_radiance(layout, signal, depth_m)
+        return self.flake_reflectance * airlight_radiance(layout, signal, depth_m)
