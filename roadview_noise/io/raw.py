@@ -13,6 +13,7 @@ Plain raw sidecar ``<stem>.yaml``: ``width``, ``height``, ``dtype`` (uint16), ``
 from __future__ import annotations
 
 import os
+import warnings
 from fractions import Fraction
 from pathlib import Path
 
@@ -27,6 +28,11 @@ from . import dng_layout
 from .atomic import atomic_path, write_bytes_atomic
 
 MAX_BLACK_SPREAD_DN = 1.0
+UNTAGGED_BLACK_HINT = 0.01     # no black-level tag and the darkest sample above this fraction of white: warn
+
+
+class BlackLevelWarning(UserWarning):
+    """A DNG states no black level and its data suggest one above the DNG default 0 (the manifest records it)."""
 MIN_DNG_SIDE_PX = 22            # LibRaw rejects raw images narrower or lower than this
 SIDECAR_KEYS = ("width", "height", "dtype", "byte_order", "cfa_pattern", "black_level_dn", "white_level_dn")
 _BYTE_ORDERS = {"little": "<", "big": ">"}
@@ -84,7 +90,14 @@ def read_dng(path: str | os.PathLike) -> RawParts:
     if np.ptp(blacks) > MAX_BLACK_SPREAD_DN:         # no black tag: LibRaw's estimate (e.g. from masked areas)
         raise InputError(f"per-channel black levels {blacks.tolist()} differ by more than {MAX_BLACK_SPREAD_DN} DN; "
                          "rvnoise needs one black level", file=str(path))
-    return dn, pattern, float(blacks.mean()), white
+    black, darkest = float(blacks.mean()), int(dn.min()) if dn.size else 0
+    if darkest - black > UNTAGGED_BLACK_HINT * white:
+        warnings.warn(BlackLevelWarning(
+            f"{path}: no BlackLevel tag, so the black level is {black:g} DN (the DNG default), but no sample is below "
+            f"{darkest} DN ({darkest / white:.1%} of white {white:g}): the sensor's black is likely higher (e.g. "
+            "PiDNG files of Raspberry Pi cameras), and noise and weather radiances would then be computed on its "
+            "offset; add the BlackLevel tag to the file (e.g. with exiftool) if so"))
+    return dn, pattern, black, white
 
 
 _LIBRAW_WORDS = {

@@ -5,6 +5,7 @@ what rvnoise refuses and what the written DNG keeps. Real files (/work/realdata/
 from __future__ import annotations
 
 import struct
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ import rawpy
 import tifffile
 
 from roadview_noise.errors import InputError
-from roadview_noise.io.raw import read_dng, write_dng
+from roadview_noise.io.raw import BlackLevelWarning, read_dng, write_dng
 
 IDENTITY = (1, 1, 0, 1, 0, 1, 0, 1, 1, 1, 0, 1, 0, 1, 0, 1, 1, 1)
 COLOUR = (7, 10, -2, 10, -1, 10, -4, 10, 12, 10, 1, 10, -1, 10, 2, 10, 6, 10)
@@ -99,6 +100,17 @@ def test_fractional_black_of_per_site_levels_is_written_and_read_back(tmp_path):
     assert black == 64.5                                                     # the mean of the four sites
     write_dng(tmp_path / "out.dng", dn, pattern, black, white, template=src)
     assert read_dng(tmp_path / "out.dng")[2] == 64.5
+
+
+def test_untagged_black_above_zero_is_warned_not_guessed(tmp_path):
+    dark = np.full((48, 64), 70, np.uint16)
+    dark[::3, ::5] = 900
+    with pytest.warns(BlackLevelWarning, match=r"no BlackLevel tag.*no sample is below 70 DN"):
+        assert read_dng(_single(tmp_path / "pi.dng", dark))[2] == 0               # the DNG default, not a guess
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_dng(_single(tmp_path / "z.dng", dark - 70))                          # data reaching 0: nothing to say
+        read_dng(_single(tmp_path / "t.dng", dark, (50714, "H", 1, 64, True)))    # tagged: the tag holds
 
 
 def test_rational_black_level_is_read_exactly(tmp_path):
