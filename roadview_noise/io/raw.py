@@ -93,10 +93,10 @@ def read_dng(path: str | os.PathLike) -> RawParts:
     black, darkest = float(blacks.mean()), int(dn.min()) if dn.size else 0
     if darkest - black > UNTAGGED_BLACK_HINT * white:
         warnings.warn(BlackLevelWarning(
-            f"{path}: no BlackLevel tag, so the black level is {black:g} DN (the DNG default), but no sample is below "
-            f"{darkest} DN ({darkest / white:.1%} of white {white:g}): the sensor's black is likely higher (e.g. "
-            "PiDNG files of Raspberry Pi cameras), and noise and weather radiances would then be computed on its "
-            "offset; add the BlackLevel tag to the file (e.g. with exiftool) if so"))
+            "a DNG without a BlackLevel tag is read with black 0 DN (the DNG default), but none of its samples is "
+            f"below {UNTAGGED_BLACK_HINT:.0%} of white: the sensor's black is likely higher (e.g. PiDNG files of "
+            "Raspberry Pi cameras), and noise and weather radiances would then ride on that offset; add the tag "
+            "(e.g. with exiftool) if so"))
     return dn, pattern, black, white
 
 

@@ -105,7 +105,7 @@ def test_fractional_black_of_per_site_levels_is_written_and_read_back(tmp_path):
 def test_untagged_black_above_zero_is_warned_not_guessed(tmp_path):
     dark = np.full((48, 64), 70, np.uint16)
     dark[::3, ::5] = 900
-    with pytest.warns(BlackLevelWarning, match=r"no BlackLevel tag.*no sample is below 70 DN"):
+    with pytest.warns(BlackLevelWarning, match=r"without a BlackLevel tag.*none of its samples is below 1% of white"):
         assert read_dng(_single(tmp_path / "pi.dng", dark))[2] == 0               # the DNG default, not a guess
     with warnings.catch_warnings():
         warnings.simplefilter("error")
