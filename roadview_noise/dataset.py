@@ -267,7 +267,7 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
         return load_camera_sample(sample, in_root, recipe)
     return cloud_io.read_pointcloud(path, sensor=sample.modality,
                                     profile=cloud_profile_for(sample.modality, inputs, file_dir, recipe),
-                                    field_map=dict(inputs.field_map) or None)
+                                    field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields)
 
 
 def cloud_profile_for(sensor: str, inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):

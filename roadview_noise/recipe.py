@@ -103,6 +103,8 @@ class InputsSpec(_Strict):
     intensity_unit: Literal["photons", "uint8", "unit"] | None = None
     intensity_full_scale: float | None = Field(default=None, gt=0)
     field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
+    bin_fields: tuple[str, ...] | None = None  # a LiDAR .bin's float32 columns when not KITTI's (x y z intensity) or
+                                               # nuScenes' .pcd.bin (+ ring): e.g. Waymo's KITTI-format export
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
     annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -90,9 +90,11 @@ def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
 
 def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
                     profile: LidarProfile | RadarProfile | None = None, field_map: Mapping[str, str] | None = None,
-                    fmt: str | None = None) -> PointCloud:
+                    fmt: str | None = None, bin_fields: Sequence[str] | None = None) -> PointCloud:
     """Read a cloud: float64 positions, fields under canonical names in their file dtype, and the layout to write
-    it back with (see module docstring)."""
+    it back with (see module docstring). ``bin_fields``: the float32 columns of a LiDAR ``.bin``/``.pcd.bin`` that
+    is not in its fixed layout (Waymo's KITTI-format export: x y z intensity elongation timestamp); x, y, z first.
+    """
     if sensor not in ("lidar", "radar"):
         raise ValueError(f"sensor must be 'lidar' or 'radar', got {sensor!r}")
     path = Path(path)
@@ -111,7 +113,7 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
     elif fmt == "ply":
         columns, mode = _read_ply(data, path)
     else:
-        columns, mode = _read_bin(data, BIN_FIELDS[fmt], path), "binary"
+        columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path), "binary"
     return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
                               field_map=field_map, source=path)
 
@@ -563,9 +565,20 @@ def _ply_bytes(columns: list[Column], mode: str) -> bytes:
 # --- fixed-layout .bin ---------------------------------------------------------------------------------------------
 
 
+def _bin_names(fmt: str, bin_fields: Sequence[str] | None, path) -> tuple[str, ...]:
+    """The columns of a ``.bin``: the format's fixed ones, or a LiDAR file's ``bin_fields`` (x, y, z first)."""
+    if bin_fields is None or fmt == "vod_bin":
+        return BIN_FIELDS[fmt]
+    names = tuple(bin_fields)
+    if names[:3] != ("x", "y", "z") or len(set(names)) != len(names):
+        raise InputError(f"inputs.bin_fields {list(names)} must start with x, y, z and name each column once",
+                         file=str(path))
+    return names
+
+
 def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
     point = 4 * len(names)
-    lidar = names in (BIN_FIELDS["kitti_bin"], BIN_FIELDS["nuscenes_bin"])
+    lidar = names != BIN_FIELDS["vod_bin"]
     if len(data) % point:
         raise InputError(f"size {len(data)} bytes is not a multiple of the {point}-byte point "
                          f"({', '.join(names)} as float32)" + (_other_columns(data, names) if lidar else ""),
@@ -595,8 +608,8 @@ def _other_columns(data: bytes, names: tuple[str, ...]) -> str:
     if not fits:
         return "; no other column count gives plausible coordinates either"
     return (f"; read as {' or '.join(map(str, fits))} float32 columns it is plausible (Waymo's KITTI-format export "
-            f"has 6: x, y, z, intensity, elongation, timestamp; nuScenes and Lyft 5, named .pcd.bin): convert it to "
-            f"PCD with its own fields, or rename a 5-column file .pcd.bin")
+            f"has 6: x, y, z, intensity, elongation, timestamp; nuScenes and Lyft 5, named .pcd.bin): name its "
+            f"columns with inputs.bin_fields (e.g. [x, y, z, intensity, elongation, timestamp])")
 
 
 # --- LZF (liblzf stream format, as used by PCD binary_compressed) ---------------------------------------------------
