@@ -168,8 +168,8 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
     ``effect="auto"``: the cloud's effect codes (``cloud.effect``, provenance.Effect, when a step reported them) are
     appended as a uint8 field ``rv_effect`` (PCD/PLY; ``rv_effect_2``, … if the input already has a field of that
     name: an input field is never overwritten) or written to the sidecar :func:`effect_sidecar_path` (fixed-layout
-    ``.bin``, nuScenes radar PCD: io/radar_formats.py); ``"none"``: not written. Fields outside the layout, or layout fields missing from the cloud, are
-    refused."""
+    ``.bin``, nuScenes radar PCD: io/radar_formats.py); ``"none"``: not written. Fields outside the layout, or
+    layout fields missing from the cloud, are refused."""
     if effect not in ("auto", "none"):
         raise ValueError(f"effect must be 'auto' or 'none', got {effect!r}")
     layout = cloud.layout or default_layout(path, cloud)
@@ -205,14 +205,13 @@ def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "aut
     if extra or missing:
         raise ValueError(f"{name}: cloud fields do not match the {layout.fmt} layout "
                          f"(not in layout: {extra}; missing from cloud: {missing})")
-    no_return = None
-    if layout.no_return == "nan" and cloud.grid_shape is not None:
-        no_return = ~cloud.positions_m.any(axis=1)              # written back as the input marked them: NaN x/y/z
+    positions = cloud.positions_m
+    if layout.no_return == "nan" and cloud.grid_shape is not None:     # no-return cells as the input marked them
+        no_return = ~positions.any(axis=1)
+        positions = np.where(no_return[:, None], np.nan, positions) if no_return.any() else positions
     columns: list[Column] = []
     for key, file_name, dt in layout.fields:
-        values = cloud.positions_m[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
-        if no_return is not None and key in ("x", "y", "z") and no_return.any():
-            values = np.where(no_return, np.nan, values)
+        values = positions[:, "xyz".index(key)] if key in ("x", "y", "z") else cloud.fields[key]
         columns.append((file_name, dt, _cast(with_derived(values, file_name, dt, cloud), dt, key)))
     if effect == "none" or cloud.effect is None:
         return columns, None

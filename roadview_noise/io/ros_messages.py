@@ -315,7 +315,7 @@ def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: st
     """``msg`` carrying ``cloud``: the input fields at their offsets and datatypes, added fields appended. A point
     that descends from an input point starts from its bytes (padding kept); a no-return cell of the input that is
     still one is written back byte for byte (NaN marker included), and a cell the chain emptied gets NaN x/y/z when
-    the input marks no-returns so."""
+    the input marks no-returns so (``CloudLayout.no_return``, :func:`..io.pointcloud.output_columns`)."""
     layout = cloud.layout or CloudLayout("pcd", ())
     columns, added = output_columns(cloud, layout, effect=effect, name=source)
     fields = sorted(msg.fields, key=lambda f: f.offset)
@@ -353,17 +353,9 @@ def pointcloud_to_cloud2(msg: Any, cloud: PointCloud, *, effect: str, source: st
         raw[from_input, :step_in] = np.take(source_bytes, to_msg[origin[from_input]], axis=0)
     for i, (_, _, values) in enumerate(columns):
         points[f"f{i}"] = values
-    if cells and grid.empty.any():
-        empty_now = ~cloud.positions_m.any(axis=1)
-        raw[empty_now & grid.empty, :step_in] = np.take(source_bytes, to_msg[empty_now & grid.empty], axis=0)
-        xyz = [i for i, key in enumerate(keys) if key in ("x", "y", "z")]
-        returned = np.zeros(len(source_bytes), bool)
-        for i in xyz:
-            returned |= msg_columns[i][2] != 0
-        emptied = empty_now & ~grid.empty & returned[to_msg]
-        for i in xyz:
-            if points.dtype[f"f{i}"].kind == "f":
-                points[f"f{i}"][emptied] = np.nan
+    if cells and grid.empty.any():             # (cells the chain emptied have NaN x/y/z: output_columns)
+        still = ~cloud.positions_m.any(axis=1) & grid.empty
+        raw[still, :step_in] = np.take(source_bytes, to_msg[still], axis=0)
     if cells and grid.order is not None:
         stored = np.empty_like(points)
         stored[grid.order] = points
