@@ -31,7 +31,7 @@ from typing import Any, Callable, Container, Iterable, Iterator
 
 from .bag_camera_info import CameraInfoIndex, CameraInfoWarnings, paired_topics
 from .bag_recipe import BagRecipe, BagTopic, topic_folder
-from .errors import InputError, RecipeError, RvNoiseError
+from .errors import EmptyCloudError, InputError, RecipeError, RvNoiseError
 from .io import ros_messages as rm
 from .io.atomic import atomic_path
 from .io.rosbag import bag_kind, bag_output, header_stamp_ns, open_bag, output_kind, remove_stale_siblings
@@ -157,14 +157,15 @@ def _augment(ctx: BagContext, typestore: Any, topic: BagTopic, job: MessageJob, 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             msg = _deserialize(typestore, ctx.is2, job.raw, job.msgtype, source)
-            if job.msgtype == rm.POINTCLOUD2 and int(msg.height) * int(msg.width) == 0:
-                entry.update(status="empty", skipped=True, copied_unchanged=True,
-                             note="0 points (a radar frame without detections, a LiDAR with nothing in view): "
-                                  "nothing to augment")
-                return None
             seed_key = export_stem(job.topic, job.stamp_ns, job.repeat) + export_suffix(msg, job.msgtype, source)
             entry["seed_key"] = seed_key
-            data = message_data(ctx, typestore, topic, msg, job, source)
+            try:
+                data = message_data(ctx, typestore, topic, msg, job, source)
+            except EmptyCloudError as e:       # a radar frame without detections: nothing to augment, as for files
+                entry.pop("seed_key")
+                entry.update(status="empty", skipped=True, copied_unchanged=True,
+                             note=str(e).removeprefix(f"{source}: "))
+                return None
             if getattr(data, "input_notes", None):
                 entry["inputs"] = dict(data.input_notes)
             data, dropped = drop_invalid_points(data, file=source)
