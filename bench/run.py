@@ -22,8 +22,8 @@ copied. Then, per sensor, with 1 and 2 processes:
   that run (run.json ``worker_start_seconds``: from starting the workers to the first file's start in a worker);
 - **small files**: fog.radar on 10× the radar tree's files, 1 and 2 workers: what each file costs beyond its own time
   (task hand-over, the main process's manifest line and rename), the main process's CPU and the workers' busy share;
-- ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame,
-  and albumentations' nearest weather transforms (``RandomFog``, ``RandomRain``, ``RandomSnow``) on the same frames,
+- ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame
+  (as 8-bit codes, and as the float32 frame a float-valued step hands on, which albumentations converts), and albumentations' nearest weather transforms (``RandomFog``, ``RandomRain``, ``RandomSnow``) on the same frames,
   when albumentations is installed (``.venv/bin/pip install --no-deps albumentations==2.0.8 albucore==0.0.24
   stringzilla simsimd``: its wheel's opencv-python-headless would shadow opencv-contrib);
 - **memory**: the main process's peak RSS for 100 and 10 000 tiny radar files (``--quick`` skips it).
@@ -280,6 +280,10 @@ def single_frame(tree: Path, repeat: int) -> dict[str, float]:
                      ("albumentations RandomFog", A.RandomFog(p=1)), ("albumentations RandomRain", A.RandomRain(p=1)),
                      ("albumentations RandomSnow", A.RandomSnow(p=1))]:
         res[f"{label} {A.__version__}"] = median_ms(lambda: t(image=rgb8), repeat)
+    # the frame a float-valued step hands on (codes / 255 as float32): albumentations converts it to uint8 and back
+    codes01 = rgb8.astype(np.float32) / np.float32(255)
+    res[f"albumentations ImageCompression (Q15) {A.__version__}, float32 frame"] = median_ms(
+        lambda: A.ImageCompression(quality_range=(15, 15), p=1)(image=codes01), repeat)
     return res
 
 
