@@ -89,6 +89,11 @@ def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
         return "ply"
     if name.endswith(".txt") and sensor == "radar":
         return "txt"
+    if name.endswith((".h5", ".hdf5")):
+        raise InputError("HDF5 is not read: a RadarScenes radar_data.h5 holds a whole sequence (every scan of its 4 "
+                         "sensors, indexed by scenes.json), and rvnoise augments one frame per file; write each "
+                         "scan as a PCD with roadview_noise.io.radar_formats.radarscenes_scan (README: Radar inputs)",
+                         file=str(path))
     raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin or .pcd.bin"
                      + (" (.txt: radar only)" if name.endswith(".txt") else ""), file=str(path))
 
