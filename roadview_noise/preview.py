@@ -65,10 +65,12 @@ class ChainRun:
 
 def guess_sensor(path: Path) -> str:
     """camera for images and raw files; for clouds radar when the file has radar fields (RCS, Doppler, SNR), else
-    lidar (a View-of-Delft ``.bin`` needs ``--sensor radar``)."""
+    lidar (a View-of-Delft ``.bin`` needs ``--sensor radar``); a ``.txt`` table is radar (Astyx)."""
     name = path.name.lower()
     if name.endswith(CAMERA_SUFFIXES + RAW_SUFFIXES):
         return "camera"
+    if name.endswith(".txt"):
+        return "radar"
     if name.endswith(".bin"):
         return "lidar"
     from .io.pointcloud import read_pointcloud

@@ -15,6 +15,7 @@ from roadview_noise.cli.main import app
 from roadview_noise.compound import apply_models
 from roadview_noise.errors import EmptyCloudError, InputError
 from roadview_noise.io.pointcloud import effect_sidecar_path, read_pointcloud, write_pointcloud
+from roadview_noise.preview import guess_sensor
 from roadview_noise.profiles.radar import load_radar_profile
 from roadview_noise.provenance import Effect
 from roadview_noise.registry import get_model
@@ -124,6 +125,7 @@ def test_a_header_without_rows_is_an_empty_frame_and_lidar_txt_is_refused(tmp_pa
     astyx_file(tmp_path / "l.txt")
     with pytest.raises(InputError, match=r"\.txt: radar only"):
         read_pointcloud(tmp_path / "l.txt", sensor="lidar")
+    assert guess_sensor(tmp_path / "l.txt") == "radar"                     # rvnoise preview
 
 
 def test_astyx_6455_profile_from_the_paper_and_the_files():
