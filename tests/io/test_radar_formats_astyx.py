@@ -172,3 +172,24 @@ def test_cli_augments_an_astyx_tree(tmp_path):
     assert (tmp_path / "out" / "radar_6455" / "000000.txt").read_bytes() == data
     entries = [json.loads(line) for line in (tmp_path / "out" / "manifest.jsonl").read_text().splitlines()]
     assert any(e.get("status") == "ok" for e in entries)
+
+
+@pytest.mark.parametrize("ending", ["", "\n\n\n", "\n  \n"])
+def test_text_after_the_last_row_is_kept(tmp_path, ending):
+    text = "X Y Z V_r Mag\n1 2 3 0.5 45\n4 5 6 0 46" + ending
+    (tmp_path / "e.txt").write_text(text)
+    cloud = read_pointcloud(tmp_path / "e.txt", sensor="radar")
+    write_pointcloud(tmp_path / "o.txt", cloud.select(np.array([1, 0])), effect="none")     # rows reordered
+    assert (tmp_path / "o.txt").read_text() == "X Y Z V_r Mag\n4 5 6 0 46\n1 2 3 0.5 45" + ending
+
+
+def test_a_cloud_built_in_memory_is_written_as_a_table_with_its_field_names(tmp_path):
+    astyx_file(tmp_path / "a.txt", astyx_rows(5))
+    built = read_pointcloud(tmp_path / "a.txt", sensor="radar")
+    built = type(built)(built.positions_m, dict(built.fields), "radar")               # no layout
+    write_pointcloud(tmp_path / "m.txt", built, effect="none")
+    lines = (tmp_path / "m.txt").read_text().splitlines()
+    assert lines[0] == "x y z v_r_m_per_s power_db" and len(lines) == 6
+    back = read_pointcloud(tmp_path / "m.txt", sensor="radar")
+    np.testing.assert_array_equal(back.positions_m, built.positions_m)
+    np.testing.assert_array_equal(back.fields["power_db"], built.fields["power_db"])
