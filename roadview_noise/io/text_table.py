@@ -83,7 +83,7 @@ def parse(data: bytes, path, negate: Callable[[tuple[str, ...]], Iterable[str]] 
 
 def table_bytes(columns: list[tuple[str, str, np.ndarray]], table: TextTable, origin: np.ndarray | None) -> bytes:
     """The file bytes of ``columns`` (the table's, in its order) laid out as ``table``; ``origin``: the input row
-    each point descends from (−1: new; None: row i is point i)."""
+    each point descends from (−1: new; None: row i is point i, a cloud built in memory has none)."""
     names = tuple(name for name, _, _ in columns)
     if names != table.names:
         raise ValueError(f"columns {list(names)} are not the text table's {list(table.names)}")
@@ -91,7 +91,7 @@ def table_bytes(columns: list[tuple[str, str, np.ndarray]], table: TextTable, or
                        for (_, _, c), neg in zip(columns, table.negated)], axis=1)
     n = len(stored)
     src = np.arange(n) if origin is None else np.asarray(origin, np.int64)
-    keep = src >= 0
+    keep = (src >= 0) & (src < len(table.rows))
     same = np.zeros(n, bool)
     if keep.any():
         before = table.values[src[keep]]
