@@ -5,8 +5,8 @@ The values are read as float64 (:func:`parse`); :class:`TextTable` keeps what wr
 the first row, each row's text and value, the line terminator and what follows the last row. The writer
 (:func:`table_bytes`) puts back a row's own text when the point descends from that row (``origin``) with every value
 bit for bit unchanged, so an identity chain gives the input byte for byte; a new or changed row is printed with
-the table's format, the first (most precise) of :data:`FORMATS` that reproduces every value as the file has it
-(else ``%.17g``, which round-trips any float64). Columns whose stored sign is the opposite of the canonical field's
+the table's format, the first (most precise) of :data:`FORMATS` that reproduces every value of the first
+:data:`FORMAT_SAMPLE_ROWS` rows as the file has them (else ``%.17g``, which round-trips any float64). Columns whose stored sign is the opposite of the canonical field's
 (``negated``; io/radar_formats.py) are negated on reading and back on writing.
 """
 
@@ -21,6 +21,7 @@ from ..errors import InputError
 
 FORMATS = ("%.18g", "%.17g", "%.9g", "%.6g")      # C's printf / std::setprecision of float64 and float32 writers
 ROUND_TRIP = "%.17g"
+FORMAT_SAMPLE_ROWS = 256          # a writer prints every row alike; checking all of them costs most of the read
 _SPACE = np.array([b" "[0], b"\t"[0], b"\r"[0], b"\n"[0], b"\v"[0], b"\f"[0]], np.uint8)
 
 
@@ -76,7 +77,7 @@ def parse(data: bytes, path, negate: Callable[[tuple[str, ...]], Iterable[str]] 
     columns = [(name, "<f8", -values[:, j] if neg else values[:, j].copy())
                for j, (name, neg) in enumerate(zip(names, negated))]
     table = TextTable(names, newline.join(lines[:start + 1]) + newline, _object_array(rows), values,
-                      _format(tokens, values),
+                      _format(tokens[:FORMAT_SAMPLE_ROWS], values[:FORMAT_SAMPLE_ROWS]),
                       negated, newline, newline.join([b""] + lines[end:]) if end < len(lines) else b"")
     return columns, table
 
