@@ -1,5 +1,6 @@
-"""Whitespace-separated text point tables: optional blank lines, one header line naming the columns, then one point
-per line (Astyx HiRes2019 ``radar_6455/*.txt``: a blank line, ``X Y Z V_r Mag``, values printed with ``%.18g``).
+"""Whitespace-separated text point tables: optional blank lines, one header line naming the columns (after a ``#``
+if it starts with one, as ``numpy.savetxt`` writes it), then one point per line (Astyx HiRes2019
+``radar_6455/*.txt``: a blank line, ``X Y Z V_r Mag``, values printed with ``%.18g``).
 
 The values are read as float64 (:func:`parse`); :class:`TextTable` keeps what writing back needs: the bytes up to
 the first row, each row's text and value, the line terminator and what follows the last row. The writer
@@ -50,7 +51,7 @@ def parse(data: bytes, path, negate: Callable[[tuple[str, ...]], Iterable[str]] 
     if start is None:
         raise InputError("not a text point table: the file holds only blank lines", file=str(path))
     try:
-        names = tuple(lines[start].decode("ascii").split())
+        names = tuple(lines[start].decode("ascii").lstrip().lstrip("#").split())    # numpy.savetxt: "# a b"
     except UnicodeDecodeError:
         raise InputError("not a text point table (non-ASCII bytes in the first line)", file=str(path)) from None
     if _numeric(names):

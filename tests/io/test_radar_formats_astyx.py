@@ -92,6 +92,8 @@ def test_a_recipe_field_map_wins_over_the_astyx_names(tmp_path):
 
 
 def test_other_text_tables_need_their_columns_named(tmp_path):
+    (tmp_path / "h.txt").write_text("# X Y Z V_r Mag\n1 2 3 0.5 45\n")              # numpy.savetxt's header
+    assert read_pointcloud(tmp_path / "h.txt", sensor="radar").layout.text.names == ("X", "Y", "Z", "V_r", "Mag")
     (tmp_path / "t.txt").write_text("x y z snr\n1 2 3 10\n4 5 6 12\n")
     cloud = read_pointcloud(tmp_path / "t.txt", sensor="radar")
     assert sorted(cloud.fields) == ["snr_db"] and cloud.layout.text.negated == (False,) * 4
