@@ -7,8 +7,9 @@ the first row, each row's text and value, the line terminator and what follows t
 (:func:`table_bytes`) puts back a row's own text when the point descends from that row (``origin``) with every value
 bit for bit unchanged, so an identity chain gives the input byte for byte; a new or changed row is printed with
 the table's format, the first (most precise) of :data:`FORMATS` that reproduces every value of the first
-:data:`FORMAT_SAMPLE_ROWS` rows as the file has them (else ``%.17g``, which round-trips any float64). Columns whose stored sign is the opposite of the canonical field's
-(``negated``; io/radar_formats.py) are negated on reading and back on writing.
+:data:`FORMAT_SAMPLE_ROWS` rows as the file has them (else ``%.17g``, which round-trips any float64). Columns
+whose stored sign is the opposite of the canonical field's (``negated``; io/radar_formats.py) are negated on
+reading and back on writing.
 """
 
 from __future__ import annotations
