@@ -22,8 +22,8 @@ mapping):
   dataset paper (Meyer & Kuschk, "Automotive Radar Dataset for Deep Learning Based 3D Object Detection", EuRAD
   2019, §II): 110° × 10° field of view, 100 m range, 13 Hz. From the files (io/radar_formats.py; 13 frames of
   the public copy): ranges in 0.075 m steps (range resolution), radial velocities in 0.0812 m/s steps (Doppler
-  bin) within ±5.2 m/s, detections out to ±60° azimuth and ±19° elevation (beyond the paper's field of view:
-  kept as the paper says). Assumed (no datasheet found; override if yours differ): 77 GHz, 1° × 2° angular
+  bin) within ±5.2 m/s, detections out to about ±65° azimuth (87° at most) and ±19° elevation (beyond the
+  paper's field of view, which the profile keeps: it only sizes the clutter grid, and these files have no clutter). Assumed (no datasheet found; override if yours differ): 77 GHz, 1° × 2° angular
   resolution (the generic grid). Elevation is measured (z varies). Its ``Mag`` is a relative level in dB
   (``power_db``, ``power_unit: relative``): the threshold is the frame's weakest detection (45 in every frame
   checked); there is no RCS, so no clutter.
