@@ -65,10 +65,12 @@ class ChainRun:
 
 def guess_sensor(path: Path) -> str:
     """camera for images and raw files; for clouds radar when the file has radar fields (RCS, Doppler, SNR), else
-    lidar (a View-of-Delft ``.bin`` needs ``--sensor radar``)."""
+    lidar (a View-of-Delft ``.bin`` needs ``--sensor radar``); a ``.txt`` table is radar (Astyx)."""
     name = path.name.lower()
     if name.endswith(CAMERA_SUFFIXES + RAW_SUFFIXES):
         return "camera"
+    if name.endswith(".txt"):
+        return "radar"
     if name.endswith(".bin"):
         return "lidar"
     from .io.pointcloud import read_pointcloud
@@ -353,9 +355,17 @@ def _bev_uv(positions: np.ndarray, extent_m: float, px: int, height: int) -> tup
     return u, v
 
 
+RADAR_SHADES = (("snr_db", "SNR colour"), ("power_db", "power colour"), ("rcs_dbsm", "RCS colour"))
+
+
+def _radar_shade(cloud: PointCloud) -> tuple[np.ndarray | None, str]:
+    """The detection field a radar cloud is coloured by (SNR, else power, else RCS) and its legend label."""
+    return next(((cloud.fields[k], label) for k, label in RADAR_SHADES if k in cloud.fields), (None, "no SNR/RCS"))
+
+
 def _point_colours(cloud: PointCloud, colour_by: str, lo: float, hi: float) -> np.ndarray:
     if cloud.sensor == "radar":
-        values = cloud.fields.get("snr_db", cloud.fields.get("rcs_dbsm"))
+        values = _radar_shade(cloud)[0]
         values = np.zeros(len(cloud)) if values is None else values
         return _colormap(values, lo, hi, cv2.COLORMAP_VIRIDIS)
     if colour_by == "intensity" and "intensity" in cloud.fields:
@@ -365,7 +375,7 @@ def _point_colours(cloud: PointCloud, colour_by: str, lo: float, hi: float) -> n
 
 def _value_range(cloud: PointCloud, colour_by: str, extent_m: float) -> tuple[float, float]:
     if cloud.sensor == "radar":
-        v = cloud.fields.get("snr_db", cloud.fields.get("rcs_dbsm"))
+        v = _radar_shade(cloud)[0]
         v = np.zeros(1) if v is None else np.asarray(v, np.float64)
         return float(np.percentile(v, 2)), float(np.percentile(v, 98)) + 1e-6
     if colour_by == "intensity" and "intensity" in cloud.fields:
@@ -462,8 +472,7 @@ def render_cloud(run: ChainRun, panel_px: int = 480, colour_by: str = "range") -
     rows = [side_by_side(panels)]
     width = rows[0].shape[1]
     if radar:
-        shade = next((label for key, label in (("snr_db", "SNR colour"), ("rcs_dbsm", "RCS colour"))
-                      if key in first.fields), "no SNR/RCS")
+        shade = _radar_shade(first)[1]
         rows.append(_legend(width, [(shade, TEXT_BGR), ("clutter (added)", ADDED_BGR),
                                     ("removed", RADAR_REMOVED_BGR)], extent))
         return stack_rows(rows)

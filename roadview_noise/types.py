@@ -333,10 +333,11 @@ class CloudLayout:
     Canonical names: x, y, z, intensity, ring, time_s, rcs_dbsm, v_r_m_per_s, v_r_comp_m_per_s, snr_db, power_db;
     any other field (``label`` included) keeps its file name."""
 
-    fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | npz
+    fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | txt | npz
     fields: tuple[tuple[str, str, str], ...]
     pcd_data: str = "binary"       # PCD: ascii | binary | binary_compressed; PLY: ascii | binary_little_endian | ...
     no_return: str = "zero"        # a grid's no-return cells as stored: "zero" x/y/z, or "nan" (PCL's organised clouds)
+    text: object = None            # txt: header, rows and number formats to write back (io/text_table.TextTable)
 
 
 @dataclass(frozen=True, eq=False)

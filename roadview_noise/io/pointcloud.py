@@ -10,6 +10,8 @@ Formats (by suffix, or ``fmt``):
 - ``kitti_bin`` (``.bin``): N×4 float32 x, y, z, intensity.
 - ``nuscenes_bin`` (``.pcd.bin``): N×5 float32 x, y, z, intensity, ring.
 - ``vod_bin`` (``.bin`` with ``sensor="radar"``): View-of-Delft N×7 float32 x, y, z, RCS, v_r, v_r_compensated, time.
+- ``txt`` (``.txt`` with ``sensor="radar"``): a text table, a header line naming the columns and one point per line
+  (Astyx HiRes2019 radar, io/radar_formats.py), float64; written back row for row (io/text_table.py).
 
 File fields get canonical names (types.CloudLayout) through :data:`ALIASES` (first alias present wins; a recipe's
 ``field_map`` {file name: canonical} overrides); every other field (a user's ``label`` too) keeps its file name and
@@ -33,9 +35,10 @@ from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
-from .radar_formats import fixed_field_layout
+from . import text_table
+from .radar_formats import fixed_field_layout, text_table_fields
 
-FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin")
+FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "txt")
 
 # canonical name ← file names in priority order (the first one present in the file wins)
 ALIASES: dict[str, tuple[str, ...]] = {
@@ -74,7 +77,7 @@ Column = tuple[str, str, np.ndarray]          # (file name, file dtype string, v
 
 def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
     """Format id from the file name: ``.pcd``, ``.ply``, ``.pcd.bin`` (nuScenes), ``.bin`` (KITTI, or View-of-Delft
-    for radar)."""
+    for radar), ``.txt`` (radar: a text table such as Astyx's)."""
     name = Path(path).name.lower()
     if name.endswith(".pcd.bin"):
         return "nuscenes_bin"
@@ -84,8 +87,15 @@ def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
         return "pcd"
     if name.endswith(".ply"):
         return "ply"
-    raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin or .pcd.bin",
-                     file=str(path))
+    if name.endswith(".txt") and sensor == "radar":
+        return "txt"
+    if name.endswith((".h5", ".hdf5")):
+        raise InputError("HDF5 is not read: a RadarScenes radar_data.h5 holds a whole sequence (every scan of its 4 "
+                         "sensors, indexed by scenes.json), and rvnoise augments one frame per file; write each "
+                         "scan as a PCD with roadview_noise.io.radar_formats.radarscenes_scan (README: Radar inputs)",
+                         file=str(path))
+    raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin or .pcd.bin"
+                     + (" (.txt: radar only)" if name.endswith(".txt") else ""), file=str(path))
 
 
 def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
@@ -107,23 +117,25 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
         raise InputError(f"cannot read point cloud: {exc.strerror or exc}", file=str(path)) from exc
     if not data:                       # no header either: a failed copy, not a frame without points
         raise InputError("the file is empty (0 bytes)", file=str(path))
-    grid_shape = None
+    grid_shape, table = None, None
     if fmt == "pcd":
         columns, mode, grid_shape = _read_pcd(data, path)
     elif fmt == "ply":
         columns, mode = _read_ply(data, path)
+    elif fmt == "txt":
+        columns, mode, table, field_map = _read_txt(data, field_map, path)
     else:
         columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path), "binary"
     return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
-                              field_map=field_map, source=path)
+                              field_map=field_map, source=path, text=table)
 
 
 def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape: tuple[int, int] | None,
                        sensor: str, profile: LidarProfile | RadarProfile | None,
-                       field_map: Mapping[str, str] | None, source) -> PointCloud:
+                       field_map: Mapping[str, str] | None, source, text=None) -> PointCloud:
     """A cloud from stored columns (file name, dtype string, values) in storage order: canonical names, float64
-    positions, the layout to store it back with; :class:`InputError` (naming ``source``) for an empty cloud, missing
-    or non-scalar x/y/z and non-finite coordinates."""
+    positions, the layout to store it back with (``text``: a text table's, io/text_table.py); :class:`InputError`
+    (naming ``source``) for an empty cloud, missing or non-scalar x/y/z and non-finite coordinates."""
     keys = _canonical_keys([c[0] for c in columns], field_map, source)
     n = len(columns[0][2])
     if n == 0:
@@ -145,7 +157,7 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
         columns = [(name, dt, _cleared(values, empty)) for name, dt, values in columns]
     fields = {k: _native(col) for k, (_, _, col) in zip(keys, columns) if k not in ("x", "y", "z")}
     layout = CloudLayout(fmt=fmt, fields=tuple((k, name, dt) for k, (name, dt, _) in zip(keys, columns)),
-                         pcd_data=mode, no_return="nan" if empty.any() else "zero")
+                         pcd_data=mode, no_return="nan" if empty.any() else "zero", text=text)
     return PointCloud(positions_m=positions, fields=fields, sensor=sensor, profile=profile, layout=layout,
                       grid_shape=grid_shape)
 
@@ -184,6 +196,9 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
         data = _pcd_bytes(columns, layout.pcd_data, cloud.grid_shape)
     elif layout.fmt == "ply":
         data = _ply_bytes(columns, layout.pcd_data)
+    elif layout.fmt == "txt":
+        data = text_table.table_bytes(columns, layout.text or text_table.new_table(tuple(c[0] for c in columns)),
+                                      cloud.origin)
     else:
         data = np.stack([c for _, _, c in columns], axis=1).astype("<f4").tobytes()
     write_bytes_atomic(path, data)
@@ -220,8 +235,8 @@ def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "aut
 
 
 def _family(fmt: str) -> str:
-    """``pcd`` | ``ply`` | ``bin``: the formats a file suffix can tell apart."""
-    return fmt if fmt in ("pcd", "ply") else "bin"
+    """``pcd`` | ``ply`` | ``txt`` | ``bin``: the formats a file suffix can tell apart."""
+    return fmt if fmt in ("pcd", "ply", "txt") else "bin"
 
 
 def effect_sidecar_path(path: str | os.PathLike) -> Path:
@@ -242,13 +257,17 @@ def effect_field_name(file_fields: list[str]) -> str:
 
 
 def default_layout(path: str | os.PathLike, cloud: PointCloud) -> CloudLayout:
-    """Layout for a cloud built in memory: the fixed ``.bin`` layouts, or float32 x, y, z followed by the cloud's
-    fields in their dtypes for PCD (binary) and PLY (binary little-endian)."""
+    """Layout for a cloud built in memory: the fixed ``.bin`` layouts, float64 x, y, z and the cloud's fields for a
+    text table, or float32 x, y, z followed by the cloud's fields in their dtypes for PCD (binary) and PLY (binary
+    little-endian)."""
     fmt = cloud_format(path, cloud.sensor)
     if fmt in BIN_FIELDS:
         names = BIN_FIELDS[fmt]
         keys = _canonical_keys(list(names), None, path)
         return CloudLayout(fmt, tuple((k, n, "<f4") for k, n in zip(keys, names)))
+    if fmt == "txt":
+        names = ("x", "y", "z", *cloud.fields)
+        return CloudLayout(fmt, tuple((k, k, "<f8") for k in names), "ascii", text=text_table.new_table(names))
     fields = [(a, a, "<f4") for a in "xyz"]
     fields += [(k, k, _dtype_str(np.asarray(v).dtype, np.asarray(v).shape[1:])) for k, v in cloud.fields.items()]
     return CloudLayout(fmt, tuple(fields), "binary" if fmt == "pcd" else "binary_little_endian")
@@ -559,6 +578,16 @@ def _ply_bytes(columns: list[Column], mode: str) -> bytes:
     header = "\n".join(["ply", f"format {mode} 1.0", f"element vertex {n}", *props, "end_header", ""])
     body = _ascii_bytes(columns) if mode == "ascii" else _records(columns, _PLY_ENDIAN[mode]).tobytes()
     return header.encode("ascii") + body
+
+
+# --- text tables ---------------------------------------------------------------------------------------------------
+
+
+def _read_txt(data: bytes, field_map: Mapping[str, str] | None, path):
+    """Columns, mode, :class:`~.text_table.TextTable` and field map (Astyx's completed, io/radar_formats.py) of a
+    text table."""
+    columns, table = text_table.parse(data, path, negate=lambda names: text_table_fields(names, field_map)[1])
+    return columns, "ascii", table, text_table_fields(table.names, field_map)[0]
 
 
 # --- fixed-layout .bin ---------------------------------------------------------------------------------------------

@@ -18,6 +18,15 @@ mapping):
   20° elevation beam. No elevation measurement (z = 0 in the files): one 20° elevation cell,
   ``elevation_measured: false``. Its files carry RCS (dBsm) but neither SNR nor power, so IF bandwidth and noise
   figure (defaults) are unused.
+- ``astyx-6455``: Astyx 6455 HiRes, the 3-D radar of the Astyx HiRes2019 dataset (``radar_6455/*.txt``). From the
+  dataset paper (Meyer & Kuschk, "Automotive Radar Dataset for Deep Learning Based 3D Object Detection", EuRAD
+  2019, §II): 110° × 10° field of view, 100 m range, 13 Hz. From the files (io/radar_formats.py; 13 frames of
+  the public copy): ranges in 0.075 m steps (range resolution), radial velocities in 0.0812 m/s steps (Doppler
+  bin) within ±5.2 m/s, detections out to about ±65° azimuth (87° at most) and ±19° elevation (beyond the
+  paper's field of view, which the profile keeps: it only sizes the clutter grid, and these files have no clutter). Assumed (no datasheet found; override if yours differ): 77 GHz, 1° × 2° angular
+  resolution (the generic grid). Elevation is measured (z varies). Its ``Mag`` is a relative level in dB
+  (``power_db``, ``power_unit: relative``): the threshold is the frame's weakest detection (45 in every frame
+  checked); there is no RCS, so no clutter.
 
 Every profile has a Doppler bin width ``velocity_resolution_m_per_s`` (default 0.1035 m/s, the RISE analysis: 512
 bins over ±26.5 m/s; it sets the Doppler cells of the clutter model) and a ``power_unit``: ``relative`` (default;
@@ -65,9 +74,17 @@ def ars408() -> RadarProfile:
                         velocity_resolution_m_per_s=0.43 / 3.6, max_range_m=250.0, elevation_measured=False)
 
 
+def astyx_6455() -> RadarProfile:
+    """Astyx 6455 HiRes (Astyx HiRes2019): paper and file values, assumptions marked (module docstring)."""
+    return RadarProfile("astyx-6455", frequency_hz=77e9, fov_azimuth_deg=110.0, fov_elevation_deg=10.0,
+                        azimuth_resolution_deg=1.0, elevation_resolution_deg=2.0, range_resolution_m=0.075,
+                        velocity_resolution_m_per_s=0.0812, max_range_m=100.0, elevation_measured=True)
+
+
 POWER_UNITS = ("relative", "dBm")
 
-BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod, "ars408": ars408}
+BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod, "ars408": ars408,
+           "astyx-6455": astyx_6455}
 
 
 def default_radar_profile() -> RadarProfile:

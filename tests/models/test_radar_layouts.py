@@ -162,7 +162,7 @@ def test_a_cloud_without_detection_fields_says_how_to_map_one():
 
 
 @pytest.mark.parametrize("fields, label", [({"snr_db"}, "SNR colour"), ({"rcs_dbsm"}, "RCS colour"),
-                                           ({"v_r_m_per_s"}, "no SNR/RCS")])
+                                           ({"power_db", "rcs_dbsm"}, "power colour"), ({"v_r_m_per_s"}, "no SNR/RCS")])
 def test_radar_preview_legend_names_the_field_it_colours_by(monkeypatch, fields, label):
     from roadview_noise import preview
     from roadview_noise.metrics import compare
