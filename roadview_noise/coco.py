@@ -81,8 +81,9 @@ class CocoRun:
         """What the user should know before the run (file names that resolve to no file)."""
         if not self.missing:
             return []
-        return [f"{len(self.missing)} of the {len(self.by_path)} images of {self.relpath} are no file under "
-                f"{self.image_root!r} (e.g. {', '.join(self.missing[:EXAMPLES])}); they keep their annotations"]
+        return [f"{len(self.missing)} of the {len(self.by_path)} images of {self.relpath} do not exist under the "
+                f"image root {self.image_root!r} (e.g. {', '.join(self.missing[:EXAMPLES])}); they keep their "
+                "annotations"]
 
     # --- the plan and the results -------------------------------------------------------------------------------
 

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from pycocotools import mask as coco_mask
+from test_annotations import WarpTestCamera as AffineCamera
 
 from roadview_noise import coco_warp
 from roadview_noise.dataset import Sample, load
@@ -22,7 +23,6 @@ from roadview_noise.errors import RecipeError
 from roadview_noise.io import coco as coco_io
 from roadview_noise.io.image import write_image
 from roadview_noise.manifest import read_manifest
-from roadview_noise.model import Model, Stage
 from roadview_noise.physics.warp import Warp
 from roadview_noise.recipe import parse_recipe
 from roadview_noise.registry import MODELS
@@ -33,33 +33,11 @@ W, H = 80, 60
 REAL_COCO = Path("/work/realdata/mmdet3d/tests/data/kitti/kitti_infos_mono3d.coco.json")
 
 
-@dataclass(frozen=True)
-class AffineCamera(Model):
-    """Geometric test model: magnify about the centre by 1/0.93, shift by (6.3, −4.6) px (pixel centres at integers).
-    Pull map ``x_in = cx + 0.93 (x_out − 6.3 − cx)``; :meth:`forward` is its closed-form inverse."""
-
-    id: ClassVar[str] = "coco_affine_test.camera"
-    stage: ClassVar[Stage] = Stage.WINDSCREEN
-    sensor: ClassVar[str] = "camera"
-    scale: ClassVar[float] = 1 / 0.93
-    shift: ClassVar[tuple[float, float]] = (6.3, -4.6)
-
-    def warp(self, data, *, state, drawn):
-        h, w = data.shape
-        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
-        cx, cy = (w - 1) / 2, (h - 1) / 2
-        return Warp(((u - self.shift[0] - cx) / self.scale + cx).astype(np.float32),
-                    ((v - self.shift[1] - cy) / self.scale + cy).astype(np.float32))
-
-    @classmethod
-    def forward_coco(cls, x, y):
-        """COCO coordinates (pixel i on [i, i + 1]) of the output of an input position."""
-        cx, cy = (W - 1) / 2, (H - 1) / 2
-        return ((np.asarray(x) - 0.5 - cx) * cls.scale + cx + cls.shift[0] + 0.5,
-                (np.asarray(y) - 0.5 - cy) * cls.scale + cy + cls.shift[1] + 0.5)
-
-    def apply(self, data, *, state, drawn, rng):
-        return data.with_signal(self.warp(data, state=state, drawn=drawn).apply(data.signal())), {}
+def forward_coco(x, y):
+    """COCO coordinates (pixel i on [i, i + 1]) of an input position after :class:`AffineCamera`'s closed-form
+    forward map (magnify about the centre by 1/0.93, shift by (6.3, −4.6) px)."""
+    fx, fy = AffineCamera().forward(np.asarray(x) - 0.5, np.asarray(y) - 0.5, W, H)
+    return fx + 0.5, fy + 0.5
 
 
 @dataclass(frozen=True)
@@ -190,17 +168,17 @@ def test_identity_warp_and_photometric_chain_keep_every_value(coco_tree, tmp_pat
 
 def test_affine_warp_moves_every_kind_to_closed_form_positions(coco_tree, tmp_path):
     out = tmp_path / "out"
-    assert _run(_recipe("coco_affine_test.camera", tmp_path), coco_tree, out).failed == 0
+    assert _run(_recipe("warp_test.camera", tmp_path), coco_tree, out).failed == 0
     src, got = _dataset(), _out(out)
     s = AffineCamera.scale
     assert [a["id"] for a in got["annotations"]] == [11, 21, 12, 13, 14, 31]     # 15 left the image: dropped
     assert {k: v for k, v in got.items() if k != "annotations"} == {k: v for k, v in src.items() if k != "annotations"}
     ann = _by_id(got)
     # polygon inside: each vertex at the closed-form position, no vertex added (an affine map bends no edge)
-    x, y = AffineCamera.forward_coco(POLY_INSIDE[0::2], POLY_INSIDE[1::2])
+    x, y = forward_coco(POLY_INSIDE[0::2], POLY_INSIDE[1::2])
     np.testing.assert_allclose(ann[11]["segmentation"][0], np.stack([x, y], 1).ravel(), atol=6e-4)
     # polygon across the top edge: the moved rectangle clipped at y = 0
-    (x0, x1), (y0, y1) = AffineCamera.forward_coco([50.0, 60.0], [1.0, 10.0])
+    (x0, x1), (y0, y1) = forward_coco([50.0, 60.0], [1.0, 10.0])
     assert y0 < 0
     top = np.array(ann[11]["segmentation"][1]).reshape(-1, 2)
     expected = np.array([[x0, 0], [x1, 0], [x1, y1], [x0, y1]])
@@ -211,19 +189,19 @@ def test_affine_warp_moves_every_kind_to_closed_form_positions(coco_tree, tmp_pa
     area_in = shoelace(np.reshape(POLY_INSIDE, (-1, 2))) + 90.0
     area_out = shoelace(np.reshape(POLY_INSIDE, (-1, 2))) * s * s + (x1 - x0) * y1
     assert ann[11]["area"] == pytest.approx(300.5 * area_out / area_in, abs=1e-3)   # the input's own convention kept
-    kx, ky = AffineCamera.forward_coco([25.0], [25.0])
+    kx, ky = forward_coco([25.0], [25.0])
     assert ann[11]["keypoints"] == [pytest.approx(kx[0], abs=6e-4), pytest.approx(ky[0], abs=6e-4), 2, 0, 0, 0, 0, 0, 0]
     assert ann[11]["num_keypoints"] == 1 and ann[11]["score"] == 0.5
     # box without segmentation: its moved outline; mmdetection3d's center2d moves, depth and 3-D box kept
-    (bx0, bx1), (by0, by1) = AffineCamera.forward_coco([30.0, 42.0], [40.0, 48.0])
+    (bx0, bx1), (by0, by1) = forward_coco([30.0, 42.0], [40.0, 48.0])
     np.testing.assert_allclose(ann[14]["bbox"], [bx0, by0, bx1 - bx0, by1 - by0], atol=2e-3)
     assert ann[14]["area"] == pytest.approx(96.0 * s * s, rel=1e-4)
-    cx, cy = AffineCamera.forward_coco([36.0], [44.0])
+    cx, cy = forward_coco([36.0], [44.0])
     np.testing.assert_allclose(ann[14]["center2d"], [cx[0], cy[0], 12.5], atol=6e-4)
     assert ann[14]["bbox_cam3d"] == [1, 2, 3]
     # RLE: nearest-neighbour through the map (the oracle pulls input pixels at the rounded map), same kind out
     warp = AffineCamera().warp(load(Sample("images/a.png", "camera", "images"), coco_tree,
-                                    _recipe("coco_affine_test.camera", tmp_path)), state={}, drawn={})
+                                    _recipe("warp_test.camera", tmp_path)), state={}, drawn={})
     xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
     inside = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
     for i, kind in ((12, list), (13, str)):
@@ -282,14 +260,14 @@ def test_windscreen_moved_polygons_agree_with_the_moved_mask(tmp_path):
 
 
 def test_two_workers_write_what_one_writes(coco_tree, tmp_path):
-    recipe = _recipe("coco_affine_test.camera", tmp_path)
+    recipe = _recipe("warp_test.camera", tmp_path)
     one, two = tmp_path / "one", tmp_path / "two"
     assert _run(recipe, coco_tree, one).failed == 0
     summary = _run(recipe, coco_tree, two, workers=2)
     assert summary.failed == 0 and summary.workers == 2
     assert (one / "annotations/instances.json").read_bytes() == (two / "annotations/instances.json").read_bytes()
-    strip = ("seconds", "profile", "library_messages")
-    lines = [[{k: v for k, v in e.items() if k not in strip and k != "steps"} for e in read_manifest(d / "manifest.jsonl")]
+    timed = ("seconds", "steps")                                 # wall-clock times, per file and per step
+    lines = [[{k: v for k, v in e.items() if k not in timed} for e in read_manifest(d / "manifest.jsonl")]
              for d in (one, two)]
     assert lines[0] == lines[1]
 
@@ -297,7 +275,7 @@ def test_two_workers_write_what_one_writes(coco_tree, tmp_path):
 @pytest.mark.slow
 def test_dask_backend_writes_the_same_coco_file(coco_tree, tmp_path):
     pytest.importorskip("distributed")
-    recipe = _recipe("coco_affine_test.camera", tmp_path)
+    recipe = _recipe("warp_test.camera", tmp_path)
     local, dask = tmp_path / "local", tmp_path / "dask"
     assert _run(recipe, coco_tree, local).failed == 0
     assert _run(recipe, coco_tree, dask, workers=2, backend="dask").failed == 0
@@ -309,7 +287,7 @@ def test_failed_image_keeps_its_annotations_and_is_listed(coco_tree, tmp_path):
     data["images"][1]["width"] = 81                             # b.png is 80 px wide: that image fails
     (coco_tree / "annotations/instances.json").write_text(json.dumps(data))
     out = tmp_path / "out"
-    summary = _run(_recipe("coco_affine_test.camera", tmp_path), coco_tree, out)
+    summary = _run(_recipe("warp_test.camera", tmp_path), coco_tree, out)
     assert summary.failed == 1 and "81×60" in summary.failures[0] and "80×60" in summary.failures[0]
     got = _by_id(_out(out))
     assert got[21] == _by_id(data)[21] and got[11] != _by_id(data)[11]
@@ -318,7 +296,7 @@ def test_failed_image_keeps_its_annotations_and_is_listed(coco_tree, tmp_path):
 
 
 def test_resumed_run_writes_what_a_full_run_writes(coco_tree, tmp_path):
-    recipe = _recipe("coco_affine_test.camera", tmp_path)
+    recipe = _recipe("warp_test.camera", tmp_path)
     full, part = tmp_path / "full", tmp_path / "part"
     assert _run(recipe, coco_tree, full).failed == 0
     first = _run(recipe, coco_tree, part, limit=1)
@@ -361,7 +339,7 @@ def test_file_names_that_do_not_resolve_refuse_the_run(coco_tree, tmp_path):
 def test_images_of_the_run_without_a_record_are_reported(coco_tree, tmp_path):
     shutil.copy(coco_tree / "images/a.png", coco_tree / "images/c.png")
     out = tmp_path / "out"
-    summary = _run(_recipe("coco_affine_test.camera", tmp_path), coco_tree, out)
+    summary = _run(_recipe("warp_test.camera", tmp_path), coco_tree, out)
     assert summary.failed == 0 and any("images/c.png" in n and "no record" in n for n in summary.notes)
     entry = next(e for e in read_manifest(out / "manifest.jsonl") if e["input"] == "images/c.png")
     assert "coco" not in entry
@@ -389,7 +367,7 @@ def test_mmdetection3d_kitti_mono3d_file(tmp_path):
 
 
 def test_resume_redoes_images_whose_record_is_for_another_coco_file(coco_tree, tmp_path):
-    recipe = _recipe("coco_affine_test.camera", tmp_path)
+    recipe = _recipe("warp_test.camera", tmp_path)
     out = tmp_path / "out"
     assert _run(recipe, coco_tree, out).done == 3
     data = _dataset()
@@ -397,5 +375,5 @@ def test_resume_redoes_images_whose_record_is_for_another_coco_file(coco_tree, t
     (coco_tree / "annotations/instances.json").write_text(json.dumps(data))
     again = _run(recipe, coco_tree, out, resume=True)
     assert again.skipped == 0 and again.done == 3                       # every record was of the old file
-    (bx0, _), _ = AffineCamera.forward_coco([12.0, 32.0], [10.0, 25.0])
+    (bx0, _), _ = forward_coco([12.0, 32.0], [10.0, 25.0])
     assert _by_id(_out(out))[21]["bbox"][0] == pytest.approx(bx0, abs=2e-3)
