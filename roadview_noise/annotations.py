@@ -106,6 +106,7 @@ class AnnotationsSpec(_Strict):
     def check_sensor(self, sensor: str) -> None:
         """RecipeError for annotations the chain's sensor has none of (masks of a cloud, point labels of an image)."""
         from .errors import RecipeError
+        from .input_checks import escapes
 
         wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "boxes_2d", "coco")
         for name in wrong:
@@ -116,6 +117,10 @@ class AnnotationsSpec(_Strict):
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
         if self.coco_image_root is not None and self.coco is None:
             raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
+        for name in ("coco", "coco_image_root"):
+            why = escapes(getattr(self, name) or "")
+            if why:
+                raise RecipeError(f"{getattr(self, name)!r} {why}", key=f"inputs.annotations.{name}")
 
     def rules(self) -> list[tuple[str, PathRule]]:
         """(role, rule) of every sidecar declared."""

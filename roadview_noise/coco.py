@@ -28,7 +28,6 @@ from typing import Any
 from .coco_warp import GEOMETRY_KEYS, CocoImage
 from .dataset import output_relpath
 from .errors import InputError, RecipeError
-from .input_checks import escapes
 from .io import coco as coco_io
 from .io.atomic import confined_to, staged_writes
 from .manifest import sha256_file
@@ -40,10 +39,7 @@ class CocoRun:
     """The COCO file of a run: its images by input path, the per-image records of the run's entries."""
 
     def __init__(self, in_root: Path, relpath: str, image_root: str | None, suffixes: list[str]):
-        why = escapes(relpath) or (escapes(image_root) if image_root else None)
         key = "inputs.annotations.coco"
-        if why:
-            raise RecipeError(f"{relpath!r} {why}", key=key)
         self.relpath = posixpath.normpath(relpath)
         path = in_root / self.relpath
         if Path(os.path.realpath(in_root)) not in Path(os.path.realpath(path)).parents:
@@ -176,13 +172,15 @@ class CocoRun:
             released += ledger.put(ledger.next, entry)
         return released
 
-    def run_notes(self) -> list[str]:
-        """What the run's summary says about the file (inputs without a record)."""
-        if not self.unlisted:
-            return []
-        return [f"{self.unlisted} input image(s) have no record in {self.relpath} under the image root "
-                f"{self.image_root!r} (e.g. {', '.join(self.unlisted_examples)}): they are augmented without "
-                "COCO annotations"]
+    def run_notes(self, written: bool) -> list[str]:
+        """What the run's summary says about the file: not written (the run stopped early), inputs without a
+        record."""
+        notes = [] if written else [f"{self.relpath} was not written (the run stopped early); --resume writes it"]
+        if self.unlisted:
+            notes.append(f"{self.unlisted} input image(s) have no record in {self.relpath} under the image root "
+                         f"{self.image_root!r} (e.g. {', '.join(self.unlisted_examples)}): they are augmented "
+                         "without COCO annotations")
+        return notes
 
 
 def _key(image_id: Any) -> Any:

@@ -650,9 +650,9 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
                     record(ledger.put(task.index, _result_entry(task, result)))
                     if ledger.stopped:
                         break
-                if coco_run is not None and not ledger.stopped:
-                    record(coco_run.release(ledger, ctx.out_root, previous))
-                    summary.notes += coco_run.run_notes()
+                if coco_run is not None:
+                    record(() if ledger.stopped else coco_run.release(ledger, ctx.out_root, previous))
+                    summary.notes += coco_run.run_notes(written=not ledger.stopped)
             finally:
                 getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
                 ledger.discard_pending()

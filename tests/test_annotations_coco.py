@@ -293,6 +293,9 @@ def test_failed_image_keeps_its_annotations_and_is_listed(coco_tree, tmp_path):
     assert got[21] == _by_id(data)[21] and got[11] != _by_id(data)[11]
     entry = next(e for e in read_manifest(out / "manifest.jsonl") if e["modality"] == "coco")
     assert entry["coco"]["images_failed"] == ["b.png"]
+    stopped = _run(_recipe("warp_test.camera", tmp_path), coco_tree, tmp_path / "stopped", fail_fast=True)
+    assert not (tmp_path / "stopped/annotations").exists()                 # stopped early: no file, and says so
+    assert any("was not written" in n and "--resume" in n for n in stopped.notes)
 
 
 def test_resumed_run_writes_what_a_full_run_writes(coco_tree, tmp_path):
