@@ -11,14 +11,15 @@ at the end of the run.
   file's ``annotations``, dropped ones with their id), so a resumed run rebuilds the file from kept entries too.
 - After the last image the file is written to OUT at the same relative path (a sweep variant's suffix before its
   suffix, its images' ``file_name`` with that variant's suffix), atomically, with its own manifest entry: every key
-  as read, annotations in their order with their ids; an image that failed, or is not in the run, keeps its
-  annotations as read (listed in the entry). A run that stops early (``--fail-fast``, Ctrl-C) does not write it:
+  as read, annotations in their order with their ids (copied byte for byte when nothing moved); an image that
+  failed, or is not in the run, keeps its annotations as read (listed in the entry). A run that stops early (``--fail-fast``, Ctrl-C) does not write it:
   ``--resume`` does.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import posixpath
 from collections import defaultdict
@@ -29,7 +30,7 @@ from .coco_warp import GEOMETRY_KEYS, CocoImage
 from .dataset import output_relpath
 from .errors import InputError, RecipeError
 from .io import coco as coco_io
-from .io.atomic import confined_to, staged_writes
+from .io.atomic import confined_to, staged_writes, write_bytes_atomic
 from .manifest import sha256_file
 
 EXAMPLES = 3                      # example paths in a warning
@@ -48,7 +49,7 @@ class CocoRun:
             self.data = coco_io.read_coco(path)
         except InputError as exc:
             raise RecipeError(str(exc), key=key) from None
-        self.sha256 = sha256_file(path)
+        self.path, self.sha256 = path, sha256_file(path)
         self.image_root = posixpath.normpath(image_root if image_root is not None else posixpath.dirname(self.relpath)
                                              or ".")
         self.suffixes = suffixes
@@ -116,8 +117,9 @@ class CocoRun:
 
     # --- the output ----------------------------------------------------------------------------------------------
 
-    def output(self, variant: int) -> tuple[dict, dict]:
-        """The output dataset of one variant and the summary for its manifest entry."""
+    def output(self, variant: int) -> tuple[dict | None, dict]:
+        """The output dataset of one variant (None: the file as read, nothing moved or renamed) and the summary for
+        its manifest entry."""
         suffix = self.suffixes[variant]
         images, done = list(self.data["images"]), {}
         for pos, img in enumerate(images):
@@ -147,7 +149,7 @@ class CocoRun:
                    "inputs_not_in_file": self.unlisted,
                    "annotations": len(annotations), "annotations_moved": sum(f is not None for f in changes.values()),
                    "annotations_dropped": dropped}
-        return data, summary
+        return (None if not changes and not (suffix and done) else data), summary
 
     def release(self, ledger, out_root: Path, previous) -> list[dict]:
         """Write the output file of every variant as an entry of the ledger (staged, recorded, renamed); returns
@@ -160,7 +162,12 @@ class CocoRun:
                      "input_sha256": self.sha256, "coco": summary}
             try:
                 with confined_to(out_root), staged_writes() as stage:
-                    coco_io.write_coco(out_root / out_rel, data)
+                    raw = self.path.read_bytes() if data is None else b""
+                    if data is None and hashlib.sha256(raw).hexdigest() == self.sha256:
+                        write_bytes_atomic(out_root / out_rel, raw)          # byte for byte, as masks are
+                        entry["copied_unchanged"] = True
+                    else:
+                        coco_io.write_coco(out_root / out_rel, data or self.data)
                 files = [(tmp.relative_to(out_root).as_posix(), final.relative_to(out_root).as_posix())
                          for tmp, final in stage.files]
                 entry.update(status="ok", files=[{"path": f, "sha256": sha256_file(out_root / t)} for t, f in files],
