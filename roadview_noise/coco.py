@@ -54,11 +54,14 @@ class CocoRun:
                                              or ".")
         self.suffixes = suffixes
         self.by_path: dict[str, int] = {}
+        ids = set()
         for i, img in enumerate(self.data["images"]):
             rel = posixpath.normpath(posixpath.join(self.image_root, str(img["file_name"])))
-            if rel in self.by_path:
-                raise RecipeError(f"{self.relpath}: images[{i}] repeats file_name {img['file_name']!r}", key=key)
+            if not isinstance(img["id"], (int, float, str)) or _key(img["id"]) in ids or rel in self.by_path:
+                raise RecipeError(f"{self.relpath}: images[{i}] (id {img['id']!r}, file_name {img['file_name']!r}) "
+                                  "repeats an id or a file_name, or its id is neither a number nor a string", key=key)
             self.by_path[rel] = i
+            ids.add(_key(img["id"]))
         self.annotations_of: dict[Any, list[int]] = defaultdict(list)
         for i, ann in enumerate(self.data.get("annotations", [])):
             self.annotations_of[_key(ann["image_id"])].append(i)

@@ -335,6 +335,14 @@ def test_file_names_that_do_not_resolve_refuse_the_run(coco_tree, tmp_path):
     assert not (tmp_path / "o").exists()
     with pytest.raises(RecipeError, match="outside|'\\.\\.'"):
         _run(_recipe("compression.camera", tmp_path, coco="../x.json"), coco_tree, tmp_path / "o")
+    (coco_tree / "annotations/instances.json").write_text('{"images": [{"id": 1}]}')
+    with pytest.raises(RecipeError, match="instances.json.*images\\[0\\] has no 'file_name'"):
+        _run(_recipe("compression.camera", tmp_path), coco_tree, tmp_path / "o")
+    data = _dataset()
+    data["images"][1]["id"] = 1
+    (coco_tree / "annotations/instances.json").write_text(json.dumps(data))
+    with pytest.raises(RecipeError, match="images\\[1\\] .*repeats an id"):
+        _run(_recipe("compression.camera", tmp_path), coco_tree, tmp_path / "o")
     with pytest.raises(RecipeError, match="coco"):
         parse_recipe({"schema": "rvnoise.recipe/1", "chain": [{"model": "rain.lidar"}],
                       "inputs": {"lidar": "*.pcd", "annotations": {"coco": "c.json"}}}, base_dir=tmp_path)
