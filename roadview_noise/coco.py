@@ -12,8 +12,9 @@ at the end of the run.
 - After the last image the file is written to OUT at the same relative path (a sweep variant's suffix before its
   suffix, its images' ``file_name`` with that variant's suffix), atomically, with its own manifest entry: every key
   as read, annotations in their order with their ids (copied byte for byte when nothing moved); an image that
-  failed, or is not in the run, keeps its annotations as read (listed in the entry). A run that stops early (``--fail-fast``, Ctrl-C) does not write it:
-  ``--resume`` does.
+  failed, or is not in the run, keeps its annotations as read (listed in the entry). A run that stops early
+  (``--fail-fast``, Ctrl-C) does not write it: ``--resume`` does. The main process holds the parsed file and one
+  record per image until then.
 """
 
 from __future__ import annotations
