@@ -65,14 +65,18 @@ class CocoRun:
             ids.add(_key(img["id"]))
         self.annotations_of: dict[Any, list[int]] = defaultdict(list)
         for i, ann in enumerate(self.data.get("annotations", [])):
+            if not isinstance(ann["image_id"], (int, float, str)):
+                raise RecipeError(f"{self.relpath}: annotations[{i}] has image_id {ann['image_id']!r}, neither a "
+                                  "number nor a string", key=key)
             self.annotations_of[_key(ann["image_id"])].append(i)
         self.missing = [rel for rel in self.by_path if not (in_root / rel).is_file()]
         if self.by_path and len(self.missing) == len(self.by_path):
-            first = next(iter(self.by_path))
+            first, name = next(iter(self.by_path)), str(self.data["images"][0]["file_name"])
+            hint = ("the file names are absolute paths: rvnoise reads them relative to coco_image_root, so rewrite "
+                    "them relative to a folder of IN" if posixpath.isabs(name) else
+                    "set inputs.annotations.coco_image_root to the folder the file names are relative to")
             raise RecipeError(f"none of the {len(self.by_path)} images of {self.relpath} is a file under the image "
-                              f"root {self.image_root!r} (e.g. file_name "
-                              f"{self.data['images'][0]['file_name']!r} → {first!r}); set "
-                              "inputs.annotations.coco_image_root to the folder the file names are relative to",
+                              f"root {self.image_root!r} (e.g. file_name {name!r} → {first!r}); {hint}",
                               key="inputs.annotations.coco_image_root")
         self.records: dict[tuple[int, int], dict] = {}            # (variant, image position) → record
         self.failed: dict[int, list[str]] = defaultdict(list)     # variant → file names
