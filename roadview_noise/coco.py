@@ -30,6 +30,7 @@ from typing import Any
 from .coco_warp import GEOMETRY_KEYS, CocoImage
 from .dataset import output_relpath
 from .errors import InputError, RecipeError
+from .input_checks import escapes
 from .io import coco as coco_io
 from .io.atomic import confined_to, staged_writes, write_bytes_atomic
 from .manifest import sha256_file
@@ -69,7 +70,7 @@ class CocoRun:
                 raise RecipeError(f"{self.relpath}: annotations[{i}] has image_id {ann['image_id']!r}, neither a "
                                   "number nor a string", key=key)
             self.annotations_of[_key(ann["image_id"])].append(i)
-        self.missing = [rel for rel in self.by_path if not (in_root / rel).is_file()]
+        self.missing = [rel for rel in self.by_path if escapes(rel) or not (in_root / rel).is_file()]
         if self.by_path and len(self.missing) == len(self.by_path):
             first, name = next(iter(self.by_path)), str(self.data["images"][0]["file_name"])
             hint = ("the file names are absolute paths: rvnoise reads them relative to coco_image_root, so rewrite "
