@@ -95,6 +95,8 @@ class AnnotationsSpec(_Strict):
     boxes_3d: PathRule | None = None
     boxes_3d_format: Literal["kitti", "json", "csv"] | None = None     # None: .json, .csv, else KITTI
     calib: PathRule | None = None
+    coco: str | None = None                  # one COCO JSON for the dataset, relative to IN (roadview_noise.coco)
+    coco_image_root: str | None = None       # folder under IN its file_name values are relative to (default: its own)
 
     @field_validator("masks", mode="before")
     @classmethod
@@ -104,14 +106,21 @@ class AnnotationsSpec(_Strict):
     def check_sensor(self, sensor: str) -> None:
         """RecipeError for annotations the chain's sensor has none of (masks of a cloud, point labels of an image)."""
         from .errors import RecipeError
+        from .input_checks import escapes
 
-        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "boxes_2d")
+        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "boxes_2d", "coco")
         for name in wrong:
             if getattr(self, name):
                 raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
                                   f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
         if self.calib is not None and self.boxes_3d is None:
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
+        if self.coco_image_root is not None and self.coco is None:
+            raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
+        for name in ("coco", "coco_image_root"):
+            why = escapes(getattr(self, name) or "")
+            if why:
+                raise RecipeError(f"{getattr(self, name)!r} {why}", key=f"inputs.annotations.{name}")
 
     def rules(self) -> list[tuple[str, PathRule]]:
         """(role, rule) of every sidecar declared."""

@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from . import annotations, prestart, profiling
+from . import annotations, coco, coco_warp, prestart, profiling
 from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
@@ -69,6 +69,7 @@ class Task:
     variant_index: int
     out_relpath: str
     index: int = 0                      # position in the plan (walk failures included)
+    coco: Any = field(default=None, compare=False)   # coco_warp.CocoImage of a COCO file's image (coco.CocoRun)
 
 
 @dataclass(frozen=True)
@@ -326,6 +327,8 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                                                recipe.variants[task.variant_index].suffix)
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
                           if v})
+            if task.coco is not None:
+                entry["coco"] = coco_warp.move_image(task.coco, data.shape, out.warps)
             with confined_to(ctx.out_root), staged_writes() as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
@@ -429,7 +432,10 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
                    if recipe.sensor == "camera" else "")
         raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs"
                           f"{f' ({globs})' if globs else ''}; set the globs of your layout{example}")
-    summary = RunSummary(planned=planned, dry_run=dry_run)
+    coco_run = coco.open_run(in_real, recipe)
+    for note in coco_run.notes() if coco_run else ():
+        warn(f"rvnoise: warning: {note}")
+    summary = RunSummary(planned=planned + (len(recipe.variants) if coco_run else 0), dry_run=dry_run)
     if dry_run:
         for t in iter_plan(in_real, recipe, limit):
             if isinstance(t, Unreadable):
@@ -461,7 +467,8 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
             except OSError as e:
                 raise OutputError(f"cannot write in the output folder {str(out_root)!r}: {os_error_text(e)}") \
                     from None
-            tally, log = _execute(ctx, previous, summary, executor, limit, fail_fast, progress, workers_started)
+            tally, log = _execute(ctx, previous, summary, executor, limit, fail_fast, progress, workers_started,
+                                  coco_run)
             _finish(ctx, previous, tally, log, summary, record, started, lock, prune=limit is None)
         finally:
             executor.close()
@@ -593,10 +600,12 @@ class _Log:
 
 
 def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, executor: Any, limit: int | None,
-             fail_fast: bool, progress: bool, workers_started: float) -> tuple[_Tally, _Log]:
-    """Run the plan, appending each entry to the manifest as it is released in plan order (``outputs.Ledger``).
-    ``summary.worker_start_s``: from ``workers_started`` (monotonic; the executor's creation) to the first file's
-    start in a worker (its result's arrival minus its in-worker seconds)."""
+             fail_fast: bool, progress: bool, workers_started: float,
+             coco_run: coco.CocoRun | None = None) -> tuple[_Tally, _Log]:
+    """Run the plan, appending each entry to the manifest as it is released in plan order (``outputs.Ledger``);
+    a COCO file's output is released after the plan. ``summary.worker_start_s``: from ``workers_started``
+    (monotonic; the executor's creation) to the first file's start in a worker (its result's arrival minus its
+    in-worker seconds)."""
     from tqdm import tqdm
 
     tally, where = _Tally(summary), _Log()
@@ -608,6 +617,8 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             if e.get("output") is not None:
                 bar.update(1)
             tally.add(e)
+            if coco_run is not None:
+                coco_run.collect(e)
 
     def to_run(ledger: Ledger) -> Iterator[Task]:
         """The tasks for the workers; walk failures and outputs ``--resume`` keeps go to the ledger directly."""
@@ -617,8 +628,10 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             if isinstance(item, Unreadable):
                 record(ledger.put(item.index, _walk_entry(item.failure)))
                 continue
+            item = coco_run.attach(item) if coco_run is not None else item
             kept = previous.get(item.out_relpath)
-            if kept is not None and _still_valid(ctx, item, kept):
+            if kept is not None and _still_valid(ctx, item, kept) and \
+                    (coco_run is None or coco_run.keeps(item, kept)):
                 ledger.claim(kept)
                 record(ledger.put(item.index, {**kept, "skipped": True}))
                 continue
@@ -637,6 +650,9 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
                     record(ledger.put(task.index, _result_entry(task, result)))
                     if ledger.stopped:
                         break
+                if coco_run is not None:
+                    record(() if ledger.stopped else coco_run.release(ledger, ctx.out_root, previous))
+                    summary.notes += coco_run.run_notes(written=not ledger.stopped)
             finally:
                 getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
                 ledger.discard_pending()
@@ -754,6 +770,9 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
         from .registry import suggest
         raise RecipeError(f"no output {key!r} in {str(manifest_path)!r}{suggest(key, known)}")
     entry = entries[-1]
+    if entry.get("modality") == "coco":
+        raise RecipeError(f"{key!r} is the run's COCO file, assembled from its images' entries (their 'coco' "
+                          "records): replay an image")
     recipe = parse_recipe(record["recipe"], source=str(run_path), base_dir=Path(record["recipe_base_dir"]))
     in_root = Path(os.path.realpath(input_root or record["input_root"]))
     limits = Limits(**{k: v for k, v in record.get("limits", {}).items() if k in Limits.__dataclass_fields__})
