@@ -64,7 +64,10 @@ def test_examples_on_the_sample_drive(tmp_path, sample, name):
         assert depth["source"] == "lidar" and entries[0]["depth"] is None
         assert _median_rel(_loaded_depth(recipe, SAMPLE).depth_m, sample[1]) < 0.05
     elif name == "depth-ground-plane":
-        assert depth == {"source": "ground_plane", "camera_height_m": 1.0, "pitch_deg": 0.0, "sky_distance_m": 100.0}
+        assert {k: depth[k] for k in ("source", "camera_height_m", "pitch_deg", "sky_distance_m", "objects")} == {
+            "source": "ground_plane", "camera_height_m": 1.0, "pitch_deg": 0.0, "sky_distance_m": 100.0,
+            "objects": True}
+        assert depth["road_seed_pixels"] > 0 and 0 < depth["sky_fraction"] < 1
         assert len(lines) == 1 and "ground-plane prior" in lines[0]
     elif name == "photo-jpeg-only":
         assert depth is None and "camera" not in entries[0].get("inputs", {})
