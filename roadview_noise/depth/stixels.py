@@ -36,12 +36,14 @@ from scipy.ndimage import uniform_filter
 from ..units import ray_factor
 
 WORK_HEIGHT_PX = 540                # steps 1–3 at about this image height
-SEED_FORWARD_M = (4.0, 15.0)        # the ego lane ahead whose look is the road's
+SEED_FORWARD_M = (4.0, 10.0)        # the ego lane ahead whose look is the road's
 SEED_HALF_WIDTH_M = 1.5
 MIN_SEED_PIXELS = 200               # fewer: no road is learnt and the flat prior stays
 COLOUR_BINS = 16                    # per axis: luminance, (r − g)/Σ, (b − g)/Σ
 CHROMA_RANGE = 0.2                  # chromaticity differences binned over ±this
-ROAD_BIN_FRACTION = 0.0135          # a colour is the road's when its bin and its 26 neighbours hold this of the lane
+ROAD_BIN_FRACTION = 0.0135          # a colour is in a band of the lane when its bin and 26 neighbours hold this
+LANE_BANDS = 10                     # the lane cut in bands of rows, near to far
+ROAD_BAND_SHARE = 0.3               # a road colour is in this share of the bands: a lead car's far rows are not
 ROAD_TEXTURE_FACTOR = 1.5           # × the lane's 95th-percentile texture
 LANE_MARK_M = 0.25
 MIN_OBJECT_M = 0.25                 # the lowest object is at least this tall (a kerb, a road mark is not)
@@ -108,11 +110,11 @@ def _row_directions(height_px: int, fy: float, cy: float, pitch_rad: float) -> t
 def _features(img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Luminance (sRGB codes in [0, 1], BT.709 weights), chromaticity (r − g and b − g over r + g + b) and texture
     (mean absolute Laplacian of the luminance over 5×5 px)."""
-    r, g, b = cv2.split(img)
     luma = cv2.transform(img, np.array([[0.2126, 0.7152, 0.0722]], np.float32))
-    total = r + g + b + np.float32(1e-3)
+    diffs = cv2.transform(img, np.array([[1, -1, 0], [0, -1, 1], [1, 1, 1]], np.float32))   # r − g, b − g, Σ
+    inv = 1.0 / (diffs[..., 2] + np.float32(1e-3))
     texture = cv2.blur(np.abs(cv2.Laplacian(luma, cv2.CV_32F, ksize=3)), (5, 5))
-    return luma, (r - g) / total, (b - g) / total, texture
+    return luma, diffs[..., 0] * inv, diffs[..., 1] * inv, texture
 
 
 def _seed_mask(down: np.ndarray, fwd: np.ndarray, fx: float, cx: float, width_px: int,
@@ -129,17 +131,27 @@ def _seed_mask(down: np.ndarray, fwd: np.ndarray, fx: float, cx: float, width_px
 def _road_like(luma, rg, bg, texture, seed, lane_mark_px: float) -> np.ndarray:
     """Pixels whose colour is common in the lane and whose texture is not above the lane's (module docstring, 1.)."""
     b = COLOUR_BINS
-    code = np.clip(luma * b, 0, b - 1).astype(np.int32) * (b * b)
-    code += np.clip((rg / (2 * CHROMA_RANGE) + 0.5) * b, 0, b - 1).astype(np.int32) * b
-    code += np.clip((bg / (2 * CHROMA_RANGE) + 0.5) * b, 0, b - 1).astype(np.int32)
-    lane = code[seed]
-    hist = uniform_filter(np.bincount(lane, minlength=b ** 3).reshape(b, b, b).astype(np.float64), size=3,
-                          mode="constant") * 27                                     # a bin and its neighbours
-    common = (hist >= ROAD_BIN_FRACTION * lane.size).ravel()
+    code = _bins(luma, b, 0.0) * (b * b) + _bins(rg, b / (2 * CHROMA_RANGE), b / 2) * b \
+        + _bins(bg, b / (2 * CHROMA_RANGE), b / 2)
+    lane_rows, _ = np.nonzero(seed)                                                # ascending
+    band = (np.arange(lane_rows.size) * LANE_BANDS // max(lane_rows.size, 1)).astype(np.int32)
+    band = band[np.searchsorted(lane_rows, lane_rows)]                             # a row in one band only
+    hist = np.bincount(band * b ** 3 + code[seed], minlength=LANE_BANDS * b ** 3).astype(np.float32)
+    hist = uniform_filter(hist.reshape(LANE_BANDS, b, b, b), size=(1, 3, 3, 3), mode="constant") * 27
+    per_band = np.bincount(band, minlength=LANE_BANDS).astype(np.float32)[:, None, None, None]
+    present = hist >= ROAD_BIN_FRACTION * np.maximum(per_band, 1)                  # a bin and its neighbours
+    common = (present.mean(axis=0) >= ROAD_BAND_SHARE).ravel()
     ok = common[code] & (texture <= ROAD_TEXTURE_FACTOR * np.percentile(texture[seed], 95))
     road = cv2.blur(ok.view(np.uint8) * np.uint8(255), (5, 5)) >= 128
     k = max(3, int(round(lane_mark_px)) | 1)
     return cv2.morphologyEx(road.view(np.uint8), cv2.MORPH_CLOSE, np.ones((1, k), np.uint8)).view(bool)
+
+
+def _bins(values: np.ndarray, per_unit: float, offset: float) -> np.ndarray:
+    """``floor(values × per_unit + offset)`` clipped to 0 … COLOUR_BINS − 1, as int32."""
+    q = values * np.float32(per_unit)
+    q += np.float32(offset)
+    return np.clip(q, 0, COLOUR_BINS - 1, out=q).astype(np.int32)
 
 
 def _contact_rows(road: np.ndarray, object_rows: np.ndarray) -> np.ndarray:
@@ -167,8 +179,8 @@ def _sky(luma, rg, bg, texture, horizon: int, lane_luma: float) -> np.ndarray:
         level = SKY_LUMA_RATIO * lane_luma
     colour &= luma > level
     sky = _top_connected(smooth & colour, horizon)
-    # the texture's 5×5 window reaches 2 px past an edge: there the colour alone decides
-    sky |= cv2.dilate(sky.view(np.uint8), np.ones((5, 5), np.uint8)).view(bool) & colour
+    # the texture (3×3 Laplacian, 5×5 mean) reaches 3 px past an edge: there the colour alone decides
+    sky |= cv2.dilate(sky.view(np.uint8), np.ones((7, 7), np.uint8)).view(bool) & colour
     if horizon:                                   # what the sky encloses without reaching the horizon is sky too
         n, labels = cv2.connectedComponents((~sky[:horizon]).view(np.uint8), connectivity=8)
         grounded = np.zeros(n, bool)
