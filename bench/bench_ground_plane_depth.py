@@ -38,6 +38,7 @@ from roadview_noise.depth.ground_plane import ground_plane_range
 from roadview_noise.depth.lidar import drop_occluded, lidar_depth, project_returns
 from roadview_noise.depth.nuscenes import nuscenes_calibration
 from roadview_noise.depth.stixels import object_range
+from roadview_noise.physics import srgb
 from roadview_noise.io.pointcloud import read_pointcloud
 
 REAL = Path(os.environ.get("RVNOISE_REALDATA", "/work/realdata/mmdet3d"))
@@ -66,10 +67,10 @@ NUS_SCAN = "samples/LIDAR_TOP/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__15324029
 def kitti(tmp: Path) -> dict:
     (tmp / "calib.txt").write_text(KITTI_CALIB)
     cal = load_calibration(tmp / "calib.txt")
-    srgb = np.asarray(Image.open(REAL / "demo/data/kitti/000008.png").convert("RGB"), np.float32) / 255
+    codes = np.asarray(Image.open(REAL / "demo/data/kitti/000008.png").convert("RGB"))
     points = np.fromfile(REAL / "demo/data/kitti/000008.bin", np.float32).reshape(-1, 4)[:, :3]
-    h, w = srgb.shape[:2]
-    return {"name": "KITTI 000008", "srgb": srgb, "K": cal.intrinsics_for(w, h), "height_m": 1.65, "pitch": 0.0,
+    h, w = codes.shape[:2]
+    return {"name": "KITTI 000008", "srgb": codes, "K": cal.intrinsics_for(w, h), "height_m": 1.65, "pitch": 0.0,
             "points": points, "to_camera": cal.lidar_to_camera, "sky_boxes": [(770, 0, 920, 40), (640, 0, 700, 15)],
             "object": ("silver car", (355, 185, 610, 345))}
 
@@ -84,9 +85,9 @@ def nuscenes(tmp: Path) -> dict:
     (tables / "calibrated_sensor.json").write_text(json.dumps([NUS_CAM, NUS_LIDAR]))
     cal = nuscenes_calibration(tables, NUS_IMAGE, lidar=True)
     demo = REAL / "demo/data/nuscenes"
-    srgb = np.asarray(Image.open(demo / Path(NUS_IMAGE).name).convert("RGB"), np.float32) / 255
+    codes = np.asarray(Image.open(demo / Path(NUS_IMAGE).name).convert("RGB"))
     points = read_pointcloud(demo / Path(NUS_SCAN).name, sensor="lidar").positions_m
-    return {"name": "nuScenes CAM_FRONT", "srgb": srgb, "K": cal.intrinsics_px, "height_m": cal.height_above_ground_m,
+    return {"name": "nuScenes CAM_FRONT", "srgb": codes, "K": cal.intrinsics_px, "height_m": cal.height_above_ground_m,
             "pitch": cal.pitch_rad, "points": points, "to_camera": cal.lidar_to_camera,
             "sky_boxes": [(580, 20, 900, 170), (1000, 20, 1200, 120), (1300, 150, 1380, 200), (1480, 120, 1590, 180)],
             "object": ("truck", (140, 230, 590, 610))}
@@ -127,23 +128,26 @@ def metrics(depth: np.ndarray, ref: dict) -> dict:
             "LiDAR sky kept far": float(np.mean(depth[ref["sky"]] >= 0.99 * SKY_M))}
 
 
-def timing(repeats: int = 15) -> tuple[float, float, float, float]:
-    """Median and spread (min–max) of object_range and of the flat prior at 1920×1080 (one OpenCV thread), run
-    alternately on the nuScenes photo scaled up."""
+def timing(repeats: int = 15) -> dict[str, tuple[float, float, float]]:
+    """Median, min and max (s) at 1920×1080 on one OpenCV thread, run alternately on the nuScenes photo scaled up:
+    ``object_range`` on the 8-bit codes; the sRGB encoding of a linear frame (``linear_to_code``: the pipeline
+    passes a decoded, unchanged frame's own codes without it, a frame from a float source pays it); the flat
+    prior."""
     cv2.setNumThreads(1)
     src = Image.open(REAL / "demo/data/nuscenes" / Path(NUS_IMAGE).name).convert("RGB").resize((1920, 1080))
-    srgb = np.asarray(src, np.float32) / 255
+    codes = np.asarray(src)
+    linear = srgb.decode(codes / 255.0).astype(np.float32)
     k = (1266.4 * 1.2, 1266.4 * 1.2, 979.5, 589.8)
-    a, b = [], []
+    runs = {"object_range": lambda: object_range(codes, k, camera_height_m=1.51),
+            "linear_to_code": lambda: srgb.linear_to_code(linear, 8),
+            "flat prior": lambda: ground_plane_range(k, 1920, 1080, camera_height_m=1.51)}
+    times: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        object_range(srgb, k, camera_height_m=1.51)
-        t1 = time.perf_counter()
-        ground_plane_range(k, 1920, 1080, camera_height_m=1.51)
-        t2 = time.perf_counter()
-        a.append(t1 - t0)
-        b.append(t2 - t1)
-    return statistics.median(a), min(a), max(a), statistics.median(b)
+        for name, run in runs.items():
+            t0 = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - t0)
+    return {name: (statistics.median(v), min(v), max(v)) for name, v in times.items()}
 
 
 def main() -> None:
@@ -166,9 +170,9 @@ def main() -> None:
               f"{np.median(ref['range_m'][obj]):.1f} m, mean T {np.mean(np.exp(-3.912 * ref['range_m'][obj] / MOR_M)):.3f}")
         for key in before:
             print(f"  {key:22s} flat {before[key]:8.3f}   objects {after[key]:8.3f}")
-    med, lo, hi, flat_med = timing()
-    print(f"object_range 1920x1080, 1 thread: median {med * 1e3:.1f} ms (min {lo * 1e3:.1f}, max {hi * 1e3:.1f}); "
-          f"flat prior {flat_med * 1e3:.1f} ms")
+    print("1920x1080, one OpenCV thread, alternating: " + "; ".join(
+        f"{name} median {m * 1e3:.1f} ms (min {lo * 1e3:.1f}, max {hi * 1e3:.1f})"
+        for name, (m, lo, hi) in timing().items()))
 
 
 if __name__ == "__main__":

@@ -383,7 +383,7 @@ def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
 def _depth_ground_plane(recipe: Recipe, geometry: _Geometry, signal):
     from .depth.ground_plane import ground_plane_range
     from .depth.stixels import object_range
-    from .io.image import display_srgb
+    from .physics.srgb import linear_to_code
 
     spec = recipe.spec.inputs.ground_plane
     profile, cal = geometry.profile, geometry.calibration
@@ -398,8 +398,8 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry, signal):
              "sky_distance_m": spec.sky_distance_m}
     image = signal() if spec.objects else None
     if image is not None and image.ndim == 3:
-        depth, found = object_range(display_srgb(image), intrinsics, camera_height_m=height, pitch_rad=pitch,
-                                    sky_distance_m=spec.sky_distance_m)
+        depth, found = object_range(linear_to_code(image, 8), intrinsics, camera_height_m=height, pitch_rad=pitch,
+                                    sky_distance_m=spec.sky_distance_m)       # the decoded frame's own codes
         notes.update(found)
     else:
         depth = ground_plane_range(intrinsics, profile.width_px, profile.height_px, camera_height_m=height,

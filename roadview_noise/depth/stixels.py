@@ -4,16 +4,21 @@ of Hoiem, Efros & Hebert (2005, SIGGRAPH, "Automatic Photo Pop-up"), from one ph
 
 Per image column, from the bottom up: road, the lowest object standing on it, whatever is above that, sky.
 
-1. Road. Its look is learnt from the ego lane ahead (ground points 4–15 m forward, ±1.5 m sideways on the flat
-   ground of :mod:`.ground_plane`: the lane the vehicle drives in, free in most frames): the colours (a histogram
-   of luminance × chromaticity, so sunlit and shadowed asphalt both count) and the texture (mean absolute
-   Laplacian) of those pixels. A pixel looks like road when its colour is common in the lane and its texture not
-   above the lane's (5×5 majority); not-road gaps in a row narrower than a lane mark (0.25 m at 4 m) are closed.
-2. Contact row. Per column, the bottom row of the lowest run of ``MIN_OBJECT_M`` / ``sky_distance_m`` ×
-   f_y rows (≥ 3) of not-road pixels: where the lowest object stands on the ground.
-3. Sky. Smooth, bright (≥ 0.9 × the lane's median luminance), blue or grey pixels above the horizon, thin dark
-   lines (cables) closed, connected to the top border; what they enclose without reaching the horizon (clouds)
-   too. The photometry's own sky test (depth ``inf``) needs a depth map, so this is the photo's.
+1. Road. Its look is learnt from the ego lane ahead (ground points 4–10 m forward, ±1.5 m sideways on the flat
+   ground of :mod:`.ground_plane`: the lane the vehicle drives in, free in most frames), cut into 10 bands of rows:
+   a colour (a bin of luminance × chromaticity, 16³, with its neighbours) is the road's when it is common in at
+   least 30 % of the bands — sunlit and shadowed asphalt both, not a lead car filling the lane's far rows. A pixel
+   looks like road when its colour is the road's and its texture (mean absolute Laplacian) not above 1.5 × the
+   lane's 95th percentile (5×5 majority); not-road gaps in a row narrower than a lane mark (0.25 m at 4 m) close.
+2. Contact row. Per column, the lowest row r from which the rows up that a ``MIN_OBJECT_M`` (0.25 m) tall object
+   standing at r's ground distance covers (``0.25 f_y / Z(r)``, ≥ 3) are all not road: the bottom of the lowest
+   object — a kerb, a road mark or a lane line seen edge-on is lower than that.
+3. Sky. Smooth (texture < 0.1), blue pixels above the horizon brighter than 0.9 × the lane's median luminance,
+   connected to the top border (thin dark lines, cables, closed), give the sky's level; then smooth blue or grey
+   pixels above 0.9 × that level connected to the top (clouds join), what they enclose without reaching the
+   horizon, and a 3-px band at their edge where the colour alone decides (the texture window reaches past the
+   edge). Without a blue sky (overcast) the grey pixels above 0.9 × the lane's median luminance. The photometry's
+   own sky test (depth ``inf``) needs a depth map, so this one reads the photo.
 4. Depth. Below the contact row the flat ground (range ``h |r| / r_down``); from it up a vertical plane facing the
    camera at the contact point's horizontal distance ``Z = h r_fwd / r_down`` (level frame, pitch θ:
    ``r_fwd = cos θ − y sin θ``, ``r_down = y cos θ + sin θ``, ``y = (v − c_y) / f_y``), range ``Z |r| / r_fwd``.
@@ -22,7 +27,7 @@ Per image column, from the bottom up: road, the lowest object standing on it, wh
    gets its depth.
 
 Steps 1–3 run on the image reduced to about ``WORK_HEIGHT_PX`` rows (INTER_AREA), so a contact row is exact to
-the reduction factor (1 up to 810 rows, 2 at 1080); step 4 at full resolution. Deterministic (no randomness).
+the reduction factor (1 up to 599 rows, 2 up to 999, 3 at 1080); step 4 at full resolution. Deterministic.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from scipy.ndimage import uniform_filter
 
 from ..units import ray_factor
 
-WORK_HEIGHT_PX = 540                # steps 1–3 at about this image height
+WORK_HEIGHT_PX = 400                # steps 1–3 at about this image height
 SEED_FORWARD_M = (4.0, 10.0)        # the ego lane ahead whose look is the road's
 SEED_HALF_WIDTH_M = 1.5
 MIN_SEED_PIXELS = 200               # fewer: no road is learnt and the flat prior stays
@@ -56,15 +61,17 @@ SKY_MAX_RG = 0.02
 def object_range(srgb: np.ndarray, intrinsics_px: tuple[float, float, float, float], *, camera_height_m: float,
                  pitch_rad: float = 0.0, sky_distance_m: float = 100.0) -> tuple[np.ndarray, dict]:
     """``(range_m, notes)``: (H, W) float32 range along the pixel rays of a flat ground with vertical objects
-    standing on it (module docstring), from the sRGB image ``srgb`` (H, W, 3) in [0, 1]."""
+    standing on it (module docstring), from the sRGB image ``srgb`` (H, W, 3): 8-bit codes (uint8) or floats in
+    [0, 1]."""
     if not camera_height_m > 0 or not sky_distance_m > 0:
         raise ValueError("camera_height_m and sky_distance_m must be > 0")
-    img = np.asarray(srgb, dtype=np.float32)
+    img = np.asarray(srgb)
     height_px, width_px = img.shape[:2]
     fx, fy, cx, cy = intrinsics_px
     scale = max(1, int(round(height_px / WORK_HEIGHT_PX)))
     small = img if scale == 1 else cv2.resize(img, (width_px // scale, height_px // scale),
                                               interpolation=cv2.INTER_AREA)
+    small = small.astype(np.float32) * np.float32(1 / 255) if small.dtype == np.uint8 else small.astype(np.float32)
     sh, sw = small.shape[:2]
     s_down, s_fwd = _row_directions(sh, fy / scale, (cy + 0.5) / scale - 0.5, pitch_rad)
     s_horizon = int(np.searchsorted(s_down, 0.0, side="right"))      # first row below the horizon (rows ascend)
