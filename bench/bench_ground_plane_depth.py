@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import os
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -38,30 +39,21 @@ from roadview_noise.depth.ground_plane import ground_plane_range
 from roadview_noise.depth.lidar import drop_occluded, lidar_depth, project_returns
 from roadview_noise.depth.nuscenes import nuscenes_calibration
 from roadview_noise.depth.stixels import object_range
-from roadview_noise.physics import srgb
 from roadview_noise.io.pointcloud import read_pointcloud
+from roadview_noise.physics import srgb
 
 REAL = Path(os.environ.get("RVNOISE_REALDATA", "/work/realdata/mmdet3d"))
 SKY_M = 100.0
 MOR_M = 30.0
-KITTI_CALIB = """P2: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 \
-2.163791e-01 0.000000e+00 0.000000e+00 1.000000e+00 2.745884e-03
-R0_rect: 9.999239e-01 9.837760e-03 -7.445048e-03 -9.869795e-03 9.999421e-01 -4.278459e-03 7.402527e-03 \
-4.351614e-03 9.999631e-01
-Tr_velo_to_cam: 7.533745e-03 -9.999714e-01 -6.166020e-04 -4.069766e-03 1.480249e-02 7.280733e-04 -9.998902e-01 \
--7.631618e-02 9.998621e-01 7.523790e-03 1.480755e-02 -2.717806e-01
-"""
-# calibrated_sensor records of log n015-2018-07-24-11-22-45 (v1.0-mini scene-0061; as tests/depth/
-# test_nuscenes_calibration.py) at the full 1600×900 CAM_FRONT resolution
-NUS_CAM = {"token": "cam0", "sensor_token": "s-cam", "translation": [1.70079118954, 0.0159456324149, 1.51095763913],
-           "rotation": [0.4998015430569128, -0.5030316162024876, 0.4997798114386805, -0.49960984002925593],
-           "camera_intrinsic": [[1266.417203046554, 0.0, 816.2670197447984], [0.0, 1266.417203046554,
-                                                                               491.50706579294757], [0, 0, 1]]}
-NUS_LIDAR = {"token": "lid0", "sensor_token": "s-lid", "translation": [0.985793, 0.0, 1.84019],
-             "rotation": [0.706749235646644, -0.015300993788500868, 0.01739745181256607, -0.7070846669051719],
-             "camera_intrinsic": []}
-NUS_IMAGE = "samples/CAM_FRONT/n015-2018-07-24-11-22-45+0800__CAM_FRONT__1532402927612460.jpg"
-NUS_SCAN = "samples/LIDAR_TOP/n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
+# the calibrations the tests hold (one copy): KITTI's devkit calib of the 2011_09_26 drives, and the
+# calibrated_sensor records of log n015-2018-07-24-11-22-45 (v1.0-mini scene-0061), here at CAM_FRONT's full
+# 1600×900 (intrinsics of that camera, as mmdetection3d's nus_infos_mono3d.coco.json states them)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "depth"))
+from test_lidar_top_of_view import KITTI_CALIB  # noqa: E402
+from test_nuscenes_calibration import CAM, IMAGE as NUS_IMAGE, LIDAR, SCAN as NUS_SCAN  # noqa: E402
+
+NUS_CAM = {**CAM, "camera_intrinsic": [[1266.417203046554, 0.0, 816.2670197447984],
+                                       [0.0, 1266.417203046554, 491.50706579294757], [0.0, 0.0, 1.0]]}
 
 
 def kitti(tmp: Path) -> dict:
@@ -82,7 +74,7 @@ def nuscenes(tmp: Path) -> dict:
                 "filename": NUS_IMAGE}, {"token": "sd-lid", "sample_token": "smp1", "calibrated_sensor_token": "lid0",
                                          "is_key_frame": True, "filename": NUS_SCAN}]
     (tables / "sample_data.json").write_text(json.dumps(records))
-    (tables / "calibrated_sensor.json").write_text(json.dumps([NUS_CAM, NUS_LIDAR]))
+    (tables / "calibrated_sensor.json").write_text(json.dumps([NUS_CAM, LIDAR]))
     cal = nuscenes_calibration(tables, NUS_IMAGE, lidar=True)
     demo = REAL / "demo/data/nuscenes"
     codes = np.asarray(Image.open(demo / Path(NUS_IMAGE).name).convert("RGB"))

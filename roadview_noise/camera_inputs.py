@@ -459,9 +459,9 @@ class InputWarnings:
                          "pixels, centred); state them with inputs.camera_profile, --camera-profile or "
                          "inputs.camera_fov_h_deg (values in the manifest, inputs.camera)")
         if "depth_ground_plane" in n:
-            lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road, "
-                         "objects standing on it and one distance for the sky, a crude guess (parameters in the "
-                         "manifest, inputs.depth)")
+            lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road "
+                         "(with objects standing on it unless inputs.ground_plane.objects is false) and one distance "
+                         "for the sky, a crude guess (parameters in the manifest, inputs.depth)")
         if "ground_plane_profile_height" in n:
             lines.append(f"ground plane of {n['ground_plane_profile_height']} file(s) seen from the camera "
                          f"profile's height {', '.join(f'{h:g}' for h in sorted(self.heights))} m, not your camera's "
