@@ -73,29 +73,25 @@ def object_range(srgb: np.ndarray, intrinsics_px: tuple[float, float, float, flo
                                               interpolation=cv2.INTER_AREA)
     small = small.astype(np.float32) * np.float32(1 / 255) if small.dtype == np.uint8 else small.astype(np.float32)
     sh, sw = small.shape[:2]
-    s_down, s_fwd = _row_directions(sh, fy / scale, (cy + 0.5) / scale - 0.5, pitch_rad)
-    s_horizon = int(np.searchsorted(s_down, 0.0, side="right"))      # first row below the horizon (rows ascend)
+    s_fwd, s_ground, s_horizon = _rows(sh, fy / scale, (cy + 0.5) / scale - 0.5, pitch_rad, camera_height_m)
     luma, rg, bg, texture = _features(small)
-    seed = _seed_mask(s_down, s_fwd, fx / scale, (cx + 0.5) / scale - 0.5, sw, camera_height_m)
+    seed = _seed_mask(s_fwd, s_ground, fx / scale, (cx + 0.5) / scale - 0.5, sw)
     n_seed = int(np.count_nonzero(seed))
     if n_seed < MIN_SEED_PIXELS:
         contact, sky = np.full(sw, -1), np.zeros((sh, sw), bool)
     else:
         road = _road_like(luma, rg, bg, texture, seed, lane_mark_px=LANE_MARK_M * fx / scale / SEED_FORWARD_M[0])
-        contact = _contact_rows(road, MIN_OBJECT_M * fy / scale / np.minimum(s_fwd * camera_height_m / np.where(
-            s_down > 0, s_down, 1e-12), sky_distance_m))
+        object_rows = MIN_OBJECT_M * fy / scale / np.minimum(s_ground * s_fwd, sky_distance_m)
+        contact = _contact_rows(road, object_rows)
         sky = _sky(luma, rg, bg, texture, s_horizon, float(np.median(luma[seed])))
 
-    down, fwd = _row_directions(height_px, fy, cy, pitch_rad)
-    horizon = int(np.searchsorted(down, 0.0, side="right"))
+    fwd, ground, horizon = _rows(height_px, fy, cy, pitch_rad, camera_height_m)
     contact = np.where(contact >= 0, contact * scale + scale - 1, -1)              # the block's bottom row
     contact = np.pad(np.repeat(contact, scale), (0, width_px - sw * scale), mode="edge")
-    with np.errstate(divide="ignore"):
-        ground_m = np.where(down > 0, camera_height_m / down, np.inf)               # per row, per unit |r|
-    distance = ground_m * fwd                                                       # horizontal, per row
+    distance = ground * fwd                                                         # horizontal, per row
     z = np.where(contact >= horizon, distance[np.maximum(contact, 0)], np.inf)      # per column
-    per_unit = z.astype(np.float32)[None, :] / np.maximum(fwd, 1e-9).astype(np.float32)[:, None]   # Z / r_fwd
-    np.copyto(per_unit, ground_m.astype(np.float32)[:, None],
+    per_unit = z.astype(np.float32)[None, :] / fwd.astype(np.float32)[:, None]      # standing: Z / r_fwd
+    np.copyto(per_unit, ground.astype(np.float32)[:, None],
               where=np.arange(height_px)[:, None] > contact[None, :])               # below the contact: ground
     if sky.any():
         full_sky = sky if scale == 1 else cv2.resize(sky.view(np.uint8), (sw * scale, sh * scale),
@@ -108,10 +104,17 @@ def object_range(srgb: np.ndarray, intrinsics_px: tuple[float, float, float, flo
     return depth, notes
 
 
-def _row_directions(height_px: int, fy: float, cy: float, pitch_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the downward and the horizontal-forward component of the pixel ray (x, y, 1) in the level frame."""
+def _rows(height_px: int, fy: float, cy: float, pitch_rad: float, camera_height_m: float
+          ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per row, the horizontal-forward component ``r_fwd`` of the pixel ray (x, y, 1) in the level frame and the
+    ground's distance along it, ``h / r_down`` (inf at and above the horizon); and the first row below the
+    horizon."""
     y = (np.arange(height_px, dtype=np.float64) - cy) / fy
-    return y * math.cos(pitch_rad) + math.sin(pitch_rad), math.cos(pitch_rad) - y * math.sin(pitch_rad)
+    down = y * math.cos(pitch_rad) + math.sin(pitch_rad)
+    with np.errstate(divide="ignore"):
+        ground = np.where(down > 0, camera_height_m / down, np.inf)
+    fwd = np.maximum(math.cos(pitch_rad) - y * math.sin(pitch_rad), 1e-9)      # > 0 short of the zenith/nadir
+    return fwd, ground, int(np.searchsorted(down, 0.0, side="right"))
 
 
 def _features(img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -124,15 +127,12 @@ def _features(img: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
     return luma, diffs[..., 0] * inv, diffs[..., 1] * inv, texture
 
 
-def _seed_mask(down: np.ndarray, fwd: np.ndarray, fx: float, cx: float, width_px: int,
-               camera_height_m: float) -> np.ndarray:
+def _seed_mask(fwd: np.ndarray, ground: np.ndarray, fx: float, cx: float, width_px: int) -> np.ndarray:
     """The ego lane ahead on the flat ground: ``SEED_FORWARD_M`` forward, ±``SEED_HALF_WIDTH_M`` sideways."""
-    with np.errstate(divide="ignore"):
-        t = np.where(down > 0, camera_height_m / down, np.inf)           # ray length along (x, y, 1) to the ground
-    forward = t * fwd
+    forward = ground * fwd
     rows = (forward >= SEED_FORWARD_M[0]) & (forward <= SEED_FORWARD_M[1])
     lateral = np.abs(np.arange(width_px) - cx) / fx
-    return rows[:, None] & (lateral[None, :] * np.where(rows, t, 0.0)[:, None] <= SEED_HALF_WIDTH_M)
+    return rows[:, None] & (lateral[None, :] * np.where(rows, ground, 0.0)[:, None] <= SEED_HALF_WIDTH_M)
 
 
 def _road_like(luma, rg, bg, texture, seed, lane_mark_px: float) -> np.ndarray:
