@@ -13,7 +13,8 @@ chain needs no geometry carries a nominal profile of that kind that no step read
 
 Depth (``inputs.depth_source``): ``file`` (``inputs.depth`` sidecars in any format of :mod:`roadview_noise.io.depth`),
 ``lidar`` (the paired scan, :mod:`roadview_noise.depth.lidar`), ``onnx`` (a monocular model,
-:mod:`roadview_noise.depth.monocular`) or ``ground_plane`` (a flat-road prior, :mod:`roadview_noise.depth.ground_plane`);
+:mod:`roadview_noise.depth.monocular`) or ``ground_plane`` (a flat-road prior, :mod:`roadview_noise.depth.ground_plane`,
+with vertical objects standing on it, :mod:`roadview_noise.depth.stixels`);
 holes follow ``inputs.depth_holes`` (:mod:`roadview_noise.depth.holes`). What was done goes to the frame's
 ``input_notes`` (the manifest's ``inputs``), and what deserves a warning is summarised once per run
 (:class:`InputWarnings`).
@@ -306,7 +307,7 @@ def _depth(origin: Any, recipe: Recipe, geometry: _Geometry, signal: Callable[[]
     elif source == "onnx":
         depth, notes, where = _depth_onnx(recipe, geometry, signal)
     else:
-        return _depth_ground_plane(recipe, geometry)
+        return _depth_ground_plane(recipe, geometry, signal)
     depth, valid, holes = resolve_holes(depth, inputs.depth_holes, source=where)
     notes.update(holes)
     return depth, valid, notes
@@ -379,8 +380,10 @@ def _depth_onnx(recipe: Recipe, geometry: _Geometry, signal):
     return depth, {"source": "onnx", **notes, "kind": spec.kind, "input": spec.input}, str(model)
 
 
-def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
+def _depth_ground_plane(recipe: Recipe, geometry: _Geometry, signal):
     from .depth.ground_plane import ground_plane_range
+    from .depth.stixels import object_range
+    from .physics.srgb import linear_to_code
 
     spec = recipe.spec.inputs.ground_plane
     profile, cal = geometry.profile, geometry.calibration
@@ -390,11 +393,18 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry):
         pitch = math.radians(spec.pitch_deg)
     else:
         pitch = cal.pitch_rad if cal is not None and cal.pitch_rad is not None else 0.0
-    depth = ground_plane_range((profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px), profile.width_px,
-                               profile.height_px, camera_height_m=height, pitch_rad=pitch,
-                               sky_distance_m=spec.sky_distance_m)
+    intrinsics = (profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     notes = {"source": "ground_plane", "camera_height_m": height, "pitch_deg": math.degrees(pitch),
              "sky_distance_m": spec.sky_distance_m}
+    image = signal() if spec.objects else None
+    if image is not None and image.ndim == 3:
+        depth, found = object_range(linear_to_code(image, 8), intrinsics, camera_height_m=height, pitch_rad=pitch,
+                                    sky_distance_m=spec.sky_distance_m)       # the decoded frame's own codes
+        notes.update(found)
+    else:
+        depth = ground_plane_range(intrinsics, profile.width_px, profile.height_px, camera_height_m=height,
+                                   pitch_rad=pitch, sky_distance_m=spec.sky_distance_m)
+        notes["objects"] = False if image is None else "not on a raw mosaic: flat ground only"
     if not (spec.camera_height_m or cal_height):
         notes["camera_height_from"] = f"camera profile {profile.name}"
     return depth, None, notes
@@ -449,8 +459,9 @@ class InputWarnings:
                          "pixels, centred); state them with inputs.camera_profile, --camera-profile or "
                          "inputs.camera_fov_h_deg (values in the manifest, inputs.camera)")
         if "depth_ground_plane" in n:
-            lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road and "
-                         "one distance above the horizon, a crude guess (parameters in the manifest, inputs.depth)")
+            lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road "
+                         "(with objects standing on it unless inputs.ground_plane.objects is false) and one distance "
+                         "for the sky, a crude guess (parameters in the manifest, inputs.depth)")
         if "ground_plane_profile_height" in n:
             lines.append(f"ground plane of {n['ground_plane_profile_height']} file(s) seen from the camera "
                          f"profile's height {', '.join(f'{h:g}' for h in sorted(self.heights))} m, not your camera's "

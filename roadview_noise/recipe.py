@@ -73,6 +73,7 @@ class GroundPlaneSpec(_Strict):
     camera_height_m: float | None = Field(None, gt=0)   # None: the calibration's, else the camera profile's
     pitch_deg: float | None = Field(None, gt=-90, lt=90)  # > 0 looks down; None: the calibration's, else 0
     sky_distance_m: float = Field(100.0, gt=0)           # at and above the horizon, and the farthest ground
+    objects: bool = True              # vertical objects standing on the ground (depth/stixels.py); false: flat only
 
 
 class InputsSpec(_Strict):

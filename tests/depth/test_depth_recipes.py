@@ -64,7 +64,10 @@ def test_examples_on_the_sample_drive(tmp_path, sample, name):
         assert depth["source"] == "lidar" and entries[0]["depth"] is None
         assert _median_rel(_loaded_depth(recipe, SAMPLE).depth_m, sample[1]) < 0.05
     elif name == "depth-ground-plane":
-        assert depth == {"source": "ground_plane", "camera_height_m": 1.0, "pitch_deg": 0.0, "sky_distance_m": 100.0}
+        assert {k: depth[k] for k in ("source", "camera_height_m", "pitch_deg", "sky_distance_m", "objects")} == {
+            "source": "ground_plane", "camera_height_m": 1.0, "pitch_deg": 0.0, "sky_distance_m": 100.0,
+            "objects": True}
+        assert depth["road_seed_pixels"] > 0 and 0 < depth["sky_fraction"] < 1
         assert len(lines) == 1 and "ground-plane prior" in lines[0]
     elif name == "photo-jpeg-only":
         assert depth is None and "camera" not in entries[0].get("inputs", {})
@@ -197,3 +200,30 @@ def test_onnx_photos(tmp_path, tiny_depth_model):
     p = frame.profile
     np.testing.assert_allclose(frame.depth_m, 12.0 * ray_factor(160, 90, p.fx_px, p.fy_px, p.cx_px, p.cy_px),
                                rtol=1e-5)
+
+
+def test_ground_plane_objects_on_the_sample_drive(tmp_path, sample):
+    """Against the sample drive's rendered range: vertical objects standing on the road (the default) put the
+    buildings above the horizon nearer their range than the flat prior's one distance, keep the road and the sky;
+    ``objects: false`` is the flat prior."""
+    from roadview_noise.depth.ground_plane import ground_plane_range
+
+    profile, truth, _ = sample
+    text = (EXAMPLES / "depth-ground-plane.yaml").read_text()
+    (tmp_path / "flat.yaml").write_text(text.replace("sky_distance_m: 100}", "sky_distance_m: 100, objects: false}"))
+    objects = _loaded_depth(load_recipe(EXAMPLES / "depth-ground-plane.yaml"), SAMPLE)
+    flat = _loaded_depth(load_recipe(tmp_path / "flat.yaml"), SAMPLE)
+    k = (profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
+    np.testing.assert_array_equal(flat.depth_m, ground_plane_range(k, profile.width_px, profile.height_px,
+                                                                   camera_height_m=1.0))
+    assert flat.input_notes["depth"]["objects"] is False and objects.input_notes["depth"]["objects"] is True
+    seen = np.isfinite(truth)
+    above = seen & (np.arange(truth.shape[0])[:, None] < profile.cy_px)
+
+    def error(depth):
+        return float(np.median(np.abs(np.log(depth[above] / truth[above]))))
+
+    assert error(objects.depth_m) < 0.85 * error(flat.depth_m)
+    assert (objects.depth_m[~seen] == 100.0).mean() > 0.99
+    road = seen & (truth < 30.0) & (np.arange(truth.shape[0])[:, None] > profile.cy_px + 40)
+    assert np.median(np.abs(np.log(objects.depth_m[road] / truth[road]))) < 0.01
