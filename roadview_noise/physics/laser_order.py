@@ -1,8 +1,8 @@
 """Rings and firing columns of a point list stored laser by laser: KITTI's Velodyne HDL-64E ``.bin`` scans (raw,
 object detection, odometry, SemanticKITTI: N×4 float32 without a ring), models.md §3.0.
 
-The order (checked on 7 real full scans — five frames of two KITTI raw drives, SemanticKITTI 00/000000, another raw
-frame — and on the camera-view crops of mmdet3d's KITTI samples): the returns of one laser after another, lasers from
+The order (checked on 7 real full scans — five frames of one KITTI raw drive, one of another, SemanticKITTI 00/000000
+— and on the camera-view crops of mmdet3d's KITTI samples): the returns of one laser after another, lasers from
 the highest to the lowest (their mean elevations fall run by run), each laser's returns in firing order over one
 revolution that starts and ends facing forward (+x, azimuth 0) and turns counter-clockwise seen from above
 (θ = atan2(y, x) mod 2π grows within a laser). Hence, on the returns in storage order:
