@@ -21,10 +21,10 @@ revolution that starts and ends facing forward (+x, azimuth 0) and turns counter
   ``max(1, rint(gap/step))`` firings after the previous (a gap of k firings lies within k ± 0.54 steps: counted
   exactly). Its grid column, in :mod:`firing_grid`'s clockwise convention, is ``−index mod W``.
 
-Confidence — else the reason, and the weather acts on the returns only: exactly one run per laser of the profile
-(a crop — KITTI's camera-view ``velodyne_reduced`` — leaves lasers without returns, whose place in the order is
-unknown; shuffled or re-sorted points break into many runs or few); the runs' mean elevations falling (at least 90 % of
-neighbouring runs); at least 93 % of a laser's neighbouring returns consecutive firings (real scans 98 %, a random
+Confidence — else the reason, and the weather acts on the returns only: one run per laser of the profile, or at least
+half as many that fit the beam table as consecutive lasers in exactly one place (:func:`_first_laser`: a crop such
+as KITTI's camera-view ``velodyne_reduced`` loses lasers without returns in view; shuffled or re-sorted points break
+into many runs or few); the runs' mean elevations falling (at least 90 % of neighbouring runs); at least 93 % of a laser's neighbouring returns consecutive firings (real scans 98 %, a random
 10 % thinning 88 %: its gaps would be filled as empty rays); W within 0.4 … 2.5× the profile's ``columns``.
 Three compiled passes over the returns (runs and gap histogram, consecutive gaps, columns): ≈ 3 ms for 120 k points.
 """
@@ -49,6 +49,7 @@ CONSECUTIVE_GAP = 1.25              # gaps below this × the median gap are cons
 MIN_CONSECUTIVE = 0.93              # fraction of a laser's neighbour gaps that must be consecutive firings
 MIN_FALLING = 0.9                   # fraction of neighbouring runs whose mean elevation falls
 COLUMN_RANGE = (0.4, 2.5)           # measured columns over the profile's
+MATCH_DEG = 0.12                    # a crop's runs match the table within this (half the smallest spacing)
 GAP_BIN_RAD = 1e-5                  # histogram bin of the gaps whose median is taken (0.006 of a step)
 GAP_BINS = 10_000                   # bins up to 0.1 rad; longer gaps share the last
 
@@ -75,13 +76,19 @@ def laser_order(positions_m: np.ndarray, profile: LidarProfile) -> LaserOrder | 
     channels = profile.channels
     if len(at) < 2 * channels:
         return f"only {len(at)} returns for {channels} lasers"
-    theta, ring, runs, tan_sum, gaps = _runs(p if len(at) == len(p) else p[at], channels)
-    if runs != channels:
-        return (f"{runs} laser runs in the storage order for the {channels} lasers of profile {profile.name!r} (a "
-                f"crop without some lasers, shuffled, sorted or merged points)")
-    falling = float(np.mean(np.diff(tan_sum / np.bincount(ring, minlength=channels)) < 0))
+    returns = p if len(at) == len(p) else p[at]
+    theta, ring, runs, tan_sum, gaps = _runs(returns, channels)
+    if not channels // 2 <= runs <= channels:
+        return (f"{runs} laser runs in the storage order for the {channels} lasers of profile {profile.name!r} "
+                f"(shuffled, sorted or merged points)")
+    falling = float(np.mean(np.diff(tan_sum[:runs] / np.bincount(ring, minlength=runs)) < 0))
     if falling < MIN_FALLING:
         return f"the lasers' elevations do not fall run by run ({100 * falling:.0f} % of neighbouring runs do)"
+    if runs < channels:
+        first = _first_laser(returns, ring, runs, profile)
+        if isinstance(first, str):
+            return first
+        ring = ring + first
     counted = np.cumsum(gaps)
     median_rad = (np.searchsorted(counted, 0.5 * counted[-1]) + 0.5) * GAP_BIN_RAD
     total_rad, consecutive = _consecutive(theta, ring, CONSECUTIVE_GAP * median_rad)
@@ -98,6 +105,30 @@ def laser_order(positions_m: np.ndarray, profile: LidarProfile) -> LaserOrder | 
     out_ring, out_column = np.zeros(len(p), np.int64), np.zeros(len(p), np.int64)
     out_ring[at], out_column[at] = ring, column
     return LaserOrder(out_ring, out_column, columns)
+
+
+def _first_laser(returns: np.ndarray, ring: np.ndarray, runs: int, profile: LidarProfile) -> int | str:
+    """The laser of the first of fewer runs than lasers (a crop: KITTI's camera-view ``velodyne_reduced`` loses the
+    lowest lasers, which see only the ground below the image; the highest may see only sky): the runs are consecutive
+    lasers, placed where every run's median elevation, seen from its laser's origin (``beam_z_offset_m``), lies within
+    MATCH_DEG of the table — the one placement that does (on mmdet3d's real crops: within 0.07°, the next placement
+    7° off), else why not."""
+    table = np.asarray(profile.beam_elevation_deg)
+    offsets = np.asarray(profile.beam_z_offset_m or (0.0,) * profile.channels, dtype=np.float64)
+    heights = np.unique(offsets)
+    rho = np.hypot(returns[:, 0], returns[:, 1])
+    bounds = np.flatnonzero(np.diff(ring)) + 1
+    median = np.array([[np.median(e) for e in np.split(np.rad2deg(np.arctan2(returns[:, 2] - h, rho)), bounds)]
+                       for h in heights])                                   # (heights, runs)
+    row, run = np.searchsorted(heights, offsets), np.arange(runs)
+    fits = [k for k in range(profile.channels - runs + 1)
+            if np.abs(median[row[k + run], run] - table[k + run]).max() < MATCH_DEG]
+    if len(fits) == 1:
+        return fits[0]
+    return (f"{runs} laser runs in the storage order for the {profile.channels} lasers of profile {profile.name!r}: "
+            f"{'no' if not fits else len(fits)} placement{'' if len(fits) == 1 else 's'} of them as consecutive "
+            f"lasers matching its beam table within {MATCH_DEG}° (a crop that lost a laser between others, merged "
+            f"points)")
 
 
 @jit

@@ -136,20 +136,23 @@ def kitti_hdl64() -> LidarProfile:
 
     Beam table: KITTI's unit, FITTED on real scans (``data/kitti_hdl64.yaml``: 64 elevations, ring 0 the highest, as
     KITTI stores them; +1.97° … −8.72° upper block, −8.89° … −24.83° lower, the S2 layout of +2° … −8.33° at 1/3°
-    and −8.83° … −24.33° at 1/2°); no azimuth offsets (KITTI's points are computed with them). Stored laser by laser
+    and −8.83° … −24.33° at 1/2°; the lasers' origins 0.2 m / 0.1 m above the scan's, ``beam_z_offset_m``); no
+    azimuth offsets (KITTI's points are computed with them). Stored laser by laser
     (``storage_order: laser``): a ring-less ``.bin`` scan gets its rings and firing columns from that order
     (:mod:`roadview_noise.physics.laser_order`). Columns 2083: the S2 at 10 Hz (the grid of a scan is measured:
     2 162 … 2 172 on real KITTI scans).
     Detection threshold ``0.1 / (50 m)²`` (units of K/m²): HDL-64E S2 datasheet range 50 m on pavement (≈ 10 %); 80 %
     then reaches 141 m (datasheet: 120 m for cars and foliage). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m
     (LidarProfile default). Intensities in steps of 0.01 (as KITTI stores them); receiver as :func:`vls_128`."""
-    elevation = tuple(float(e) for e in _table("kitti_hdl64.yaml")["beam_elevation_deg"])
+    table = _table("kitti_hdl64.yaml")
+    elevation = tuple(float(e) for e in table["beam_elevation_deg"])
     return LidarProfile("kitti-hdl64", elevation, (0.0,) * len(elevation), columns=2083, wavelength_m=905e-9,
                         beam_radius_m=5e-3, beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9,
                         max_range_m=120.0, intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0,
                         intensity_kind="reflectivity", sensor_constant=1.0,
                         detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating",
-                        intensity_step=KITTI_INTENSITY_STEP, storage_order="laser")
+                        intensity_step=KITTI_INTENSITY_STEP, storage_order="laser",
+                        beam_z_offset_m=tuple(float(v) for v in table["beam_z_offset_m"]))
 
 
 def hdl_32e() -> LidarProfile:
@@ -240,7 +243,7 @@ def default_profile() -> LidarProfile:
 
 def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
     check_keys(fields, {f.name for f in dataclasses.fields(LidarProfile)}, "LiDAR", source)
-    for k in ("beam_elevation_deg", "beam_azimuth_offset_deg"):
+    for k in ("beam_elevation_deg", "beam_azimuth_offset_deg", "beam_z_offset_m"):
         if k in fields:
             fields[k] = tuple(float(v) for v in fields[k])
     if "beam_elevation_deg" in fields and "beam_azimuth_offset_deg" not in fields:
