@@ -248,9 +248,14 @@ def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
             fields[k] = tuple(float(v) for v in fields[k])
     if "beam_elevation_deg" in fields and "beam_azimuth_offset_deg" not in fields:
         fields["beam_azimuth_offset_deg"] = (0.0,) * len(fields["beam_elevation_deg"])
+    if "beam_elevation_deg" in fields and "beam_z_offset_m" not in fields:
+        fields["beam_z_offset_m"] = ()                 # the base's offsets belong to the base's beams
     if {"intensity_unit", "intensity_kind", "intensity_full_scale"} & set(fields):
         fields.setdefault("intensity_source", source)
     if len(fields.get("beam_elevation_deg", base.beam_elevation_deg)) != len(
             fields.get("beam_azimuth_offset_deg", base.beam_azimuth_offset_deg)):
         raise InputError("beam_elevation_deg and beam_azimuth_offset_deg differ in length", file=source)
+    offsets = fields.get("beam_z_offset_m", base.beam_z_offset_m)
+    if offsets and len(offsets) != len(fields.get("beam_elevation_deg", base.beam_elevation_deg)):
+        raise InputError("beam_z_offset_m and beam_elevation_deg differ in length", file=source)
     return dataclasses.replace(base, **fields)

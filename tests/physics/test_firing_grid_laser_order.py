@@ -16,10 +16,11 @@ import numpy as np
 import pytest
 
 from roadview_noise.compound import apply_models
+from roadview_noise.errors import InputError
 from roadview_noise.io.pointcloud import read_pointcloud
 from roadview_noise.physics.laser_order import FIRING_COLUMN, LaserOrderWarning, laser_order, with_laser_order
 from roadview_noise.physics.lidar_geometry import recover_ring
-from roadview_noise.profiles.lidar import hdl_32e, kitti_hdl64
+from roadview_noise.profiles.lidar import hdl_32e, kitti_hdl64, load_lidar_profile
 from roadview_noise.registry import get_model
 from roadview_noise.types import PointCloud
 
@@ -172,6 +173,16 @@ def test_profiles_without_a_storage_order_are_untouched():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert with_laser_order(with_ring) is with_ring           # a carried ring is never replaced
+
+
+def test_profile_fields_of_the_laser_order():
+    """``storage_order`` and ``beam_z_offset_m`` can be stated in a recipe's profile; offsets must fit the beams, and
+    a new beam table drops the base's offsets."""
+    stated = load_lidar_profile({"base": "vls-128", "storage_order": "laser", "beam_z_offset_m": [0.1] * 128})
+    assert stated.storage_order == "laser" and stated.beam_z_offset_m == (0.1,) * 128
+    with pytest.raises(InputError, match="beam_z_offset_m"):
+        load_lidar_profile({"base": "kitti-hdl64", "beam_z_offset_m": [0.2] * 32})
+    assert load_lidar_profile({"base": "kitti-hdl64", "beam_elevation_deg": [1.0, 0.0]}).beam_z_offset_m == ()
 
 
 def test_real_kitti_camera_view_crop():
