@@ -137,12 +137,16 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     input and output; with ``deferred`` (:class:`metrics.Deferred`), the last step's are filled in by its ``settle``
     (each earlier step's when the next step has run: its JPEG encode may keep the frame's luminance). Each later
     step's cloud notes the chain's input as ``recorded`` (the sensor's own data), for
-    the steps that calibrate the sensor on it."""
+    the steps that calibrate the sensor on it. A ring-less cloud stored laser by laser (KITTI) first gets its rings
+    and firing columns from that order (:func:`~roadview_noise.physics.laser_order.with_laser_order`)."""
     from .metrics import Deferred          # numba: only where a chain runs, not where recipes are checked
+    from .physics.laser_order import with_laser_order
 
     pending = deferred if deferred is not None else Deferred()
 
     records = []
+    if isinstance(data, PointCloud):
+        data = with_laser_order(data)
     recorded = data if isinstance(data, PointCloud) and data.recorded is None else None
     for i, model in enumerate(models):
         if model.sensor != sensor_kind(data):

@@ -143,6 +143,10 @@ class LidarProfile:
     photons_at_threshold: float = 100.0        # detected photo-electrons of a return at the detection threshold
     threshold_over_noise: float = 4.0          # detection threshold / noise floor (ambient + receiver noise) at S = 0
     excess_noise_factor: float = 3.0           # multiplication noise of the signal's shot noise (SPAD, PIN: 1)
+    storage_order: str = ""                    # "laser": a ring-less list stored laser by laser (KITTI), rings and
+    #                                            firing columns from that order (physics/laser_order.py)
+    beam_z_offset_m: tuple[float, ...] = ()    # per beam: height of its origin above the scan's (KITTI's HDL-64E:
+    #                                            fitted 0.2 m / 0.1 m), for placing a crop's laser runs; () = 0
 
     @property
     def channels(self) -> int:

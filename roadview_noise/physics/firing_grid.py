@@ -7,6 +7,9 @@ that ``beams × columns`` grid that hold no point:
 
 - ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
   the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
+- a ring-less list stored laser by laser (KITTI: profile ``storage_order: laser``) has its rings and firing columns
+  recovered from that order on the chain's input (:mod:`laser_order`; its encoder's 0.09° azimuth steps are no
+  whole number of firing steps) and carried as attributes; the rest below holds for it with no per-beam shift;
 - columns: *measured* from the data — the firing-azimuth step between neighbouring returns of one beam — because
   the column count is a recording mode (Ouster 512/1024/2048, Velodyne: rotation rate), not a property of the
   sensor; the profile's ``columns`` is only compared with it. A list whose azimuths are not on a regular step (a
@@ -33,6 +36,7 @@ from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
 from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
+from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
 STEP_SAMPLE_BEAMS = 4           # the most populated beams measure the column step from their neighbour gaps
@@ -87,6 +91,8 @@ class FiringGrid:
 
 def describe_grid(profile: LidarProfile, columns: int) -> str:
     """What a firing grid of ``columns`` measured from a list is, for the manifest."""
+    if profile.storage_order == LASER_ORDER:
+        return f"{profile.channels}x{columns} firing grid from the list's laser-by-laser storage order"
     note = "" if columns == profile.columns else f"; profile {profile.name!r} says {profile.columns}"
     return f"{profile.channels}x{columns} firing grid measured from the list{note}"
 
@@ -224,10 +230,14 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
 
 def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringColumns | str:
     """The rings, firing azimuths, column count and per-beam shifts of a point list's firing grid (module doc), or
-    the reason it has none; :func:`firing_grid` then finds the empty cells."""
+    the reason it has none; :func:`firing_grid` then finds the empty cells. A list stored laser by laser (KITTI)
+    takes its rings and columns from the attributes :func:`laser_order.with_laser_order` gave the chain's input."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     if range_m is None:
         range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
+    if profile.storage_order == LASER_ORDER and (FIRING_COLUMN in cloud.attributes
+                                                 or ring_source(cloud) == "elevation"):
+        return _laser_order_columns(cloud, profile, range_m)
     try:
         carried = ring_index(cloud, profile) if ring_source(cloud) != "elevation" else np.zeros(0, np.int64)
     except InputError as e:
@@ -256,6 +266,23 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
     return FiringColumns(ring, firing, columns, shift, valid)
+
+
+def _laser_order_columns(cloud, profile: LidarProfile, range_m: np.ndarray) -> FiringColumns | str:
+    """The firing grid of a list stored laser by laser: rings and columns carried as attributes, each point's firing
+    azimuth its column's (``−column·step``, no per-beam shift); without them, why the chain's input
+    (``cloud.recorded``) did not look stored that way (:func:`laser_order.laser_order`, only for the reason: rings
+    are never recovered after a step moved points)."""
+    if FIRING_COLUMN not in cloud.attributes:
+        found = laser_order((cloud if cloud.recorded is None else cloud.recorded).positions_m, profile)
+        return found if isinstance(found, str) else "rings and columns were not recovered from the chain's input"
+    try:
+        ring = ring_index(cloud, profile)
+    except InputError as e:
+        return str(e)
+    step = TWO_PI / profile.columns
+    firing = np.asarray(cloud.attributes[FIRING_COLUMN], dtype=np.float64) * -step
+    return FiringColumns(ring, firing, profile.columns, np.zeros(profile.channels), range_m > 0)
 
 
 @jit

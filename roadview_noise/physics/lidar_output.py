@@ -15,6 +15,7 @@ from ..provenance import NEW
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import FiringGrid
+from .laser_order import FIRING_COLUMN
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
 from .lidar_geometry import RING
 from .lidar_intensity import intensity_resolution, stored_signal
@@ -173,6 +174,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
         for carried in (fields, attributes):           # an added point's ring is its cell's, not its column's
             if len(cells) and RING in carried:
                 carried[RING][n_out:] = rays.listed.ring[cells]
+        if len(cells) and FIRING_COLUMN in attributes:  # ... and its firing column its cell's (laser order)
+            attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
     out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
                               effect=effect[:total], attributes=attributes)
     faint = rays.faint[:n]

@@ -3,7 +3,8 @@
 Built-ins: ``os1-128`` (the real unit calibration of an Ouster OS1-128, ``signal`` photons, default for the D3.5
 CNFs), ``os1-128-reflectivity`` (the same sensor storing its 8-bit calibrated reflectivity), ``vls-128`` (Velodyne
 per-laser table, the sensor of D3.5 ch. 4), ``hdl-32e`` (Velodyne HDL-32E of nuScenes), ``carla-64`` (uniform
-CARLA-style ray caster), and ``kitti-hdl64`` (uniform approximation of an HDL-64E with KITTI's 0–1 intensities).
+CARLA-style ray caster), and ``kitti-hdl64`` (KITTI's HDL-64E: fitted beam table, 0–1 intensities, stored laser by
+laser).
 Each states its intensity kind, sensor constant K (signal of a ρ = 1 target at 1 m), white reading W of a
 reflectivity channel, how it stores intensities (step, faint readings), detection threshold (signal units), receiver
 noise and overlap with their source (:mod:`roadview_noise.physics.lidar_intensity` converts every intensity to the
@@ -131,16 +132,27 @@ def carla_64() -> LidarProfile:
 
 
 def kitti_hdl64() -> LidarProfile:
-    """KITTI HDL-64E, uniform approximation (+2°…−24.8°), 905 nm, reflectance in [0, 1] (range-compensated, K = 1).
+    """KITTI's Velodyne HDL-64E S2, 905 nm, reflectance in [0, 1] (range-compensated, K = 1).
 
+    Beam table: KITTI's unit, FITTED on real scans (``data/kitti_hdl64.yaml``: 64 elevations, ring 0 the highest, as
+    KITTI stores them; +1.97° … −8.72° upper block, −8.89° … −24.83° lower, the S2 layout of +2° … −8.33° at 1/3°
+    and −8.83° … −24.33° at 1/2°; the lasers' origins 0.2 m / 0.1 m above the scan's, ``beam_z_offset_m``); no
+    azimuth offsets (KITTI's points are computed with them). Stored laser by laser
+    (``storage_order: laser``): a ring-less ``.bin`` scan gets its rings and firing columns from that order
+    (:mod:`roadview_noise.physics.laser_order`). Columns 2083: the S2 at 10 Hz (the grid of a scan is measured:
+    2 162 … 2 172 on real KITTI scans).
     Detection threshold ``0.1 / (50 m)²`` (units of K/m²): HDL-64E S2 datasheet range 50 m on pavement (≈ 10 %); 80 %
     then reaches 141 m (datasheet: 120 m for cars and foliage). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m
     (LidarProfile default). Intensities in steps of 0.01 (as KITTI stores them); receiver as :func:`vls_128`."""
-    return uniform("kitti-hdl64", 64, 2.0, -24.8, columns=2083, wavelength_m=905e-9, beam_radius_m=5e-3,
-                   beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9, max_range_m=120.0,
-                   intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0, intensity_kind="reflectivity",
-                   sensor_constant=1.0, detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating",
-                   intensity_step=KITTI_INTENSITY_STEP)
+    table = _table("kitti_hdl64.yaml")
+    elevation = tuple(float(e) for e in table["beam_elevation_deg"])
+    return LidarProfile("kitti-hdl64", elevation, (0.0,) * len(elevation), columns=2083, wavelength_m=905e-9,
+                        beam_radius_m=5e-3, beam_divergence_rad=1.5e-3, pulse_half_power_width_s=5e-9,
+                        max_range_m=120.0, intensity_unit=IntensityUnit.UNIT, intensity_full_scale=1.0,
+                        intensity_kind="reflectivity", sensor_constant=1.0,
+                        detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating",
+                        intensity_step=KITTI_INTENSITY_STEP, storage_order="laser",
+                        beam_z_offset_m=tuple(float(v) for v in table["beam_z_offset_m"]))
 
 
 def hdl_32e() -> LidarProfile:
@@ -231,14 +243,19 @@ def default_profile() -> LidarProfile:
 
 def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
     check_keys(fields, {f.name for f in dataclasses.fields(LidarProfile)}, "LiDAR", source)
-    for k in ("beam_elevation_deg", "beam_azimuth_offset_deg"):
+    for k in ("beam_elevation_deg", "beam_azimuth_offset_deg", "beam_z_offset_m"):
         if k in fields:
             fields[k] = tuple(float(v) for v in fields[k])
     if "beam_elevation_deg" in fields and "beam_azimuth_offset_deg" not in fields:
         fields["beam_azimuth_offset_deg"] = (0.0,) * len(fields["beam_elevation_deg"])
+    if "beam_elevation_deg" in fields and "beam_z_offset_m" not in fields:
+        fields["beam_z_offset_m"] = ()                 # the base's offsets belong to the base's beams
     if {"intensity_unit", "intensity_kind", "intensity_full_scale"} & set(fields):
         fields.setdefault("intensity_source", source)
     if len(fields.get("beam_elevation_deg", base.beam_elevation_deg)) != len(
             fields.get("beam_azimuth_offset_deg", base.beam_azimuth_offset_deg)):
         raise InputError("beam_elevation_deg and beam_azimuth_offset_deg differ in length", file=source)
+    offsets = fields.get("beam_z_offset_m", base.beam_z_offset_m)
+    if offsets and len(offsets) != len(fields.get("beam_elevation_deg", base.beam_elevation_deg)):
+        raise InputError("beam_z_offset_m and beam_elevation_deg differ in length", file=source)
     return dataclasses.replace(base, **fields)
