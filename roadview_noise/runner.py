@@ -37,8 +37,8 @@ from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
 from .lock import OutputLock
-from .manifest import (MANIFEST_NAME, RUN_NAME, iter_manifest, library_versions, read_manifest, sha256_file,
-                       write_manifest, write_run_json)
+from .manifest import (MANIFEST_NAME, RUN_NAME, encoded, iter_manifest, library_versions, read_manifest,
+                       sha256_file, write_manifest, write_run_json)
 from .native_output import captured_output
 from .outputs import Ledger, PreviousRun, commit, discard, files_intact, remove_listed
 from .profiling import span
@@ -248,6 +248,12 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     if ctx.profile:
         entry["profile"] = _profile_split(spans, entry, time.thread_time() - cpu0)
     return entry
+
+
+def process_encoded(task: Task, ctx: RunContext) -> dict[str, Any]:
+    """:func:`process` as a run's workers run it: the entry with its manifest line encoded in the worker
+    (``manifest.encoded``), for the main process to write as it is."""
+    return encoded(process(task, ctx))
 
 
 def _profile_split(spans: dict[str, float], entry: dict, cpu_s: float) -> dict[str, Any]:
@@ -481,14 +487,15 @@ def worker_modules(recipe: Recipe) -> list[str]:
 
 
 def _executor(ctx: RunContext, workers: int | None, backend: str, scheduler: str | None):
-    """The executor of a backend (see :func:`run`); both run :func:`process` on tasks and yield as completed."""
+    """The executor of a backend (see :func:`run`); both run :func:`process_encoded` on tasks and yield as
+    completed."""
     setup = (adopt, (plugin_models(),))
     if backend == "dask":
         from .dask_backend import DaskExecutor
 
-        return DaskExecutor(process, ctx, workers=workers, scheduler=scheduler, setup=setup,
+        return DaskExecutor(process_encoded, ctx, workers=workers, scheduler=scheduler, setup=setup,
                             timeout_s=ctx.limits.task_timeout_s)
-    return ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s,
+    return ProcessExecutor(process_encoded, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s,
                            models=worker_modules(ctx.recipe))
 
 
