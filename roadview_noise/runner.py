@@ -453,6 +453,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile)
         workers_started = time.monotonic()
         executor = _executor(ctx, n_workers, backend, scheduler)       # the fork server imports meanwhile
+        getattr(executor, "start", lambda: None)()      # workers fork and set up while the run record is written
         previous = PreviousRun()
         try:
             previous = _previous_run(out_real, recipe, resume, overwrite)
