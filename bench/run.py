@@ -6,7 +6,8 @@ its own noise: the rendered frames are smooth and PNG-code 10× faster than phot
 copied. Then, per sensor, with 1 and 2 processes:
 
 - **copy**: the plain loop a user would write with the same codecs — read, decode, encode, write (+ fsync, as rvnoise
-  writes) each file; for the camera also **floor**: the copy plus decoding the depth sidecar the recipes read, i.e.
+  writes) each file — run by the executor ``augment`` uses, one task per file, with 1 as with 2 worker processes
+  (``bench/plain_copy.py``: worker start and hand-over alike on both sides); for the camera also **floor**: the copy plus decoding the depth sidecar the recipes read, i.e.
   the I/O every camera weather recipe must do. The camera copy and floor use OpenCV's PNG codec; a second copy uses
   rvnoise's (``io/png.py``, ≈ 2× faster, the same pixels and file size), and the camera recipes are stated against
   both;
@@ -32,12 +33,19 @@ Physics tables (``roadview_noise/table_cache.py``): each recipe's one-file warm-
 timed runs read them as a repeated run does; ``--cold-tables`` gives the bench a folder of its own and empties it
 before each timed run, so every worker builds them as on a first run after an install or an edit.
 
+**Steady state** (``--steady N``, default 48; 0: off): every copy and recipe also runs on N files per sensor (radar:
+10 N, its files take ≈ 2 ms), and two columns give the **marginal** figures of the files after the first 12:
+(N − 12) / (wall(N) − wall(12)) files/s with 1 and 2 workers and their ratio. What a run pays once (the workers'
+start, each worker's first-file costs, the run record, the lock: ≈ 20–60 ms) is in both walls and cancels, so this
+is the 2 w / 1 w a run of 10⁵ frames sees; the 12-file column keeps the fixed cost in (a radar run of 12 files
+takes ≈ 60 ms in all). It is a difference of two walls: noisy on a loaded machine ("—" when not positive).
+
 Figures are medians (``--repeat R``: R runs of each copy and recipe, 1 and 2 workers alternating); ratios are
 measured in the same run. A shared machine makes absolute figures noisy. ``--sensors lidar,radar``, ``--recipes``,
 ``--only-table`` and ``--small-files`` measure a part of the table; ``--copies 12`` gives 48 files per sensor.
 
     .venv/bin/python bench/run.py [--frames N] [--copies C] [--quick] [--repeat R] [--sensors S] [--only-table]
-                                  [--cold-tables]
+                                  [--cold-tables] [--steady N]
 """
 
 from __future__ import annotations
