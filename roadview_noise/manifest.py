@@ -39,7 +39,9 @@ def dumps(obj: Any) -> str:
 
 
 LINE = "_line"                # a run's entry: its manifest line, encoded by the worker (:func:`encoded`)
-LINE_ONLY = ("steps", "metrics", "profile", "chain", "variant", "library_messages")   # read from the line only
+# the keys a run's main process gets in the line only (it must not read them from a worker's entry; full_entry
+# decodes them when it has to rewrite the entry)
+LINE_ONLY = ("steps", "metrics", "profile", "chain", "variant", "library_messages")
 
 
 def entry_line(entry: dict) -> str:

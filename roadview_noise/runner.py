@@ -619,13 +619,14 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
 
     def to_run(ledger: Ledger) -> Iterator[Task]:
         """The tasks for the workers; walk failures and outputs ``--resume`` keeps go to the ledger directly."""
+        resuming = bool(previous)                      # a fresh run asks nothing per file of the previous run's index
         for item in iter_plan(ctx.in_root, ctx.recipe, limit):
             if ledger.stopped:
                 return
             if isinstance(item, Unreadable):
                 record(ledger.put(item.index, _walk_entry(item.failure)))
                 continue
-            kept = previous.get(item.out_relpath)
+            kept = previous.get(item.out_relpath) if resuming else None
             if kept is not None and _still_valid(ctx, item, kept):
                 ledger.claim(kept)
                 record(ledger.put(item.index, {**kept, "skipped": True}))
