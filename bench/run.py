@@ -314,8 +314,8 @@ def main() -> None:
             COLD_TABLES = True
             os.environ[TABLE_CACHE_ENV] = str(root / "tables")
         n = args.frames * args.copies
-        steady = {s: args.steady * STEADY_FACTOR.get(s, 1) for s in sensors}
-        trees = build_trees(root, args.frames, {s: max(n, steady[s]) for s in sensors})
+        steady = {} if args.small_files else {s: args.steady * STEADY_FACTOR.get(s, 1) for s in sensors}
+        trees = build_trees(root, args.frames, {s: max(n, steady.get(s, 0)) for s in sensors})
         more = ", ".join(f"{s} {k}" for s, k in steady.items() if k > n)
         print(f"# rvnoise bench/run.py — {n} files per sensor{f' (marginal columns: {more})' if more else ''}, "
               f"{os.cpu_count()} cores, load average {load:.1f} "
@@ -356,8 +356,11 @@ def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: 
     splits = {}
     same_codec: dict[str, tuple[float, float]] = {}
 
+    def fps_of(walls: dict) -> dict[int, float]:
+        return {p: n / walls[n, p] for p in (1, 2)}
+
     def row(sensor: str, label: str, walls: dict, cells: list[str]) -> None:
-        fps = {p: n / walls[n, p] for p in (1, 2)}
+        fps = fps_of(walls)
         steady_cells = [""] * len(extra)
         if sensor in steady:
             m = _marginal(walls, n, steady[sensor])
@@ -377,7 +380,6 @@ def table(root: Path, trees: dict[str, Path], recipes: dict[str, list[str]], n: 
 
         copy = copies("copy")
         floor = copy if sensor != "camera" else copies("floor", with_depth=True)
-        fps_of = lambda walls: {p: n / walls[n, p] for p in (1, 2)}               # noqa: E731
         row(sensor, "*decode + encode copy*" if sensor == "camera" else "*read + write copy*", copy, [""] * 7)
         if sensor == "camera":
             row("camera", "*floor: copy + depth decode*", floor, [""] * 7)
