@@ -284,6 +284,15 @@ class ProcessExecutor(Generic[T, C]):
         child.close()
         return _Worker(proc, parent)
 
+    def start(self) -> None:
+        """Start the missing workers now rather than at :meth:`map`: a run starts them before it writes its record,
+        so that their fork and set-up overlap the main process's work, not the first files."""
+        _live.add(self)
+        self._join([w for w in self._pool if w.stopping])      # a second map after a stop: fresh workers
+        self._pool = [w for w in self._pool if not w.stopping]
+        while len(self._pool) < self.workers:
+            self._pool.append(self._start())
+
     def _depth(self) -> int:
         """Tasks a worker holds: a second one queued behind short tasks, so it never waits for the parent."""
         return 2 if self._task_s < QUEUE_BELOW_S else 1
@@ -296,11 +305,7 @@ class ProcessExecutor(Generic[T, C]):
         next_tid = 0
         startup_deaths = 0
         try:
-            _live.add(self)
-            self._join([w for w in self._pool if w.stopping])      # a second map after a stop: fresh workers
-            self._pool = [w for w in self._pool if not w.stopping]
-            while len(self._pool) < self.workers:
-                self._pool.append(self._start())
+            self.start()
             while True:
                 for w in self._pool:
                     while len(w.queue) < self._depth():

@@ -38,6 +38,41 @@ def dumps(obj: Any) -> str:
     return json.dumps(obj, default=_default, ensure_ascii=False, allow_nan=True)
 
 
+LINE = "_line"                # a run's entry: its manifest line, encoded by the worker (:func:`encoded`)
+# the keys a run's main process gets in the line only (it must not read them from a worker's entry; full_entry
+# decodes them when it has to rewrite the entry)
+LINE_ONLY = ("steps", "metrics", "profile", "chain", "variant", "library_messages")
+
+
+def entry_line(entry: dict) -> str:
+    """The manifest line of an entry (no newline; its ``staged`` temporaries are not recorded): the one a worker
+    encoded (:func:`encoded`), else encoded here."""
+    line = entry.get(LINE)
+    return line if line is not None else dumps({k: v for k, v in entry.items() if k not in ("staged", LINE)})
+
+
+def encoded(entry: dict) -> dict:
+    """``entry`` as a run's worker returns it: with its manifest line already encoded (:data:`LINE`) and without
+    the keys that only the line needs (:data:`LINE_ONLY`: steps, metrics …), so that the main process, the run's
+    one writer, neither unpickles nor encodes them but writes the line as it is (issue 19: with as many workers as
+    cores, each millisecond the main process spends per file is taken from a worker)."""
+    slim = {k: v for k, v in entry.items() if k not in LINE_ONLY}
+    slim[LINE] = entry_line(entry)
+    return slim
+
+
+def full_entry(entry: dict) -> dict:
+    """The whole entry of an :func:`encoded` one (read back from its line; ``staged`` kept), for the rare change
+    the main process makes to an entry after it ran (a failure it records); any other entry as it is."""
+    line = entry.get(LINE)
+    if line is None:
+        return entry
+    full = json.loads(line)
+    if "staged" in entry:
+        full["staged"] = entry["staged"]
+    return full
+
+
 def sha256_file(path: str | Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:

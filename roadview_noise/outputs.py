@@ -26,7 +26,7 @@ from typing import Callable, Container, Iterable, Iterator, TextIO
 
 from .input_checks import escapes
 from .io.atomic import ensure_dir_inside
-from .manifest import dumps, iter_manifest, sha256_file
+from .manifest import entry_line, full_entry, iter_manifest, sha256_file
 
 
 def listed_files(entry: dict) -> list[str]:
@@ -141,7 +141,7 @@ class Ledger:
         return entry
 
     def _write(self, entry: dict) -> None:
-        self.log.write(dumps({k: v for k, v in entry.items() if k != "staged"}) + "\n")
+        self.log.write(entry_line(entry) + "\n")
         self.log.flush()
 
     def claim(self, entry: dict) -> None:
@@ -154,7 +154,7 @@ class Ledger:
 
 
 def _failed(entry: dict, error: str) -> dict:
-    entry = {k: v for k, v in entry.items() if k not in ("files", "output_sha256", "staged")}
+    entry = {k: v for k, v in full_entry(entry).items() if k not in ("files", "output_sha256", "staged")}
     entry.update(status="failed", error=error)
     return entry
 

@@ -37,8 +37,8 @@ from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
 from .lock import OutputLock
-from .manifest import (MANIFEST_NAME, RUN_NAME, iter_manifest, library_versions, read_manifest, sha256_file,
-                       write_manifest, write_run_json)
+from .manifest import (MANIFEST_NAME, RUN_NAME, encoded, iter_manifest, library_versions, read_manifest,
+                       sha256_file, write_manifest, write_run_json)
 from .native_output import captured_output
 from .outputs import Ledger, PreviousRun, commit, discard, files_intact, remove_listed
 from .profiling import span
@@ -251,6 +251,12 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     return entry
 
 
+def process_encoded(task: Task, ctx: RunContext) -> dict[str, Any]:
+    """:func:`process` as a run's workers run it: the entry with its manifest line encoded in the worker
+    (``manifest.encoded``), for the main process to write as it is."""
+    return encoded(process(task, ctx))
+
+
 def _profile_split(spans: dict[str, float], entry: dict, cpu_s: float) -> dict[str, Any]:
     """The manifest's ``profile`` of one file (seconds; :mod:`roadview_noise.profiling`) from the spans, with the
     worker thread's CPU seconds for the file (``cpu``: below ``total`` by the time it waited for storage or for a
@@ -453,6 +459,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile)
         workers_started = time.monotonic()
         executor = _executor(ctx, n_workers, backend, scheduler)       # the fork server imports meanwhile
+        getattr(executor, "start", lambda: None)()      # workers fork and set up while the run record is written
         previous = PreviousRun()
         try:
             previous = _previous_run(out_real, recipe, resume, overwrite)
@@ -488,14 +495,15 @@ def worker_modules(recipe: Recipe) -> list[str]:
 
 
 def _executor(ctx: RunContext, workers: int | None, backend: str, scheduler: str | None):
-    """The executor of a backend (see :func:`run`); both run :func:`process` on tasks and yield as completed."""
+    """The executor of a backend (see :func:`run`); both run :func:`process_encoded` on tasks and yield as
+    completed."""
     setup = (adopt, (plugin_models(),))
     if backend == "dask":
         from .dask_backend import DaskExecutor
 
-        return DaskExecutor(process, ctx, workers=workers, scheduler=scheduler, setup=setup,
+        return DaskExecutor(process_encoded, ctx, workers=workers, scheduler=scheduler, setup=setup,
                             timeout_s=ctx.limits.task_timeout_s)
-    return ProcessExecutor(process, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s,
+    return ProcessExecutor(process_encoded, ctx, workers or 1, setup=setup, timeout_s=ctx.limits.task_timeout_s,
                            models=worker_modules(ctx.recipe))
 
 
@@ -622,6 +630,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
 
     def to_run(ledger: Ledger) -> Iterator[Task]:
         """The tasks for the workers; walk failures and outputs ``--resume`` keeps go to the ledger directly."""
+        resuming = bool(previous)                      # a fresh run asks nothing per file of the previous run's index
         for item in iter_plan(ctx.in_root, ctx.recipe, limit):
             if ledger.stopped:
                 return
@@ -629,7 +638,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
                 record(ledger.put(item.index, _walk_entry(item.failure)))
                 continue
             item = coco_run.attach(item) if coco_run is not None else item
-            kept = previous.get(item.out_relpath)
+            kept = previous.get(item.out_relpath) if resuming else None
             if kept is not None and _still_valid(ctx, item, kept) and \
                     (coco_run is None or coco_run.keeps(item, kept)):
                 ledger.claim(kept)

@@ -76,6 +76,20 @@ def test_map_tells_its_workers_to_exit_and_a_second_map_gets_fresh_ones():
     finally:
         ex.close()
     assert not ex._pool
+def test_workers_started_before_map_take_its_tasks():
+    """``start`` forks the workers before ``map`` (a run's record is written meanwhile); ``map`` uses those."""
+    ex = ProcessExecutor(work, {}, 2)
+    try:
+        ex.start()
+        started = [w.proc for w in ex._pool]
+        assert len(started) == 2 and all(p.is_alive() for p in started)
+        assert dict(ex.map(range(6))) == {t: (t, t * t) for t in range(6)}
+        assert [w.proc for w in ex._pool] == started and ex.deaths == 0
+    finally:
+        ex.close()
+    assert not ex._pool and all(not p.is_alive() for p in started)
+
+
 def test_a_source_that_waits_gets_control_back():
     """A source that yields NOT_NOW is handed back ``(NOT_NOW, None)`` at once and asked again later (also when no
     task is running); every real task still runs once. Here: a wait before every task (the first while nothing runs),
