@@ -27,6 +27,7 @@ from .dataset import DEFAULT_GLOBS, Sample, depth_relpath_for, load, output_relp
 from .errors import InputError, RecipeError, RvNoiseError
 from .io.atomic import write_bytes_atomic
 from .metrics import Effect, compare, correspondence, effect_codes
+from .physics.laser_order import with_laser_order
 from .recipe import SCHEMA, Recipe, parse_recipe
 from .registry import load_all
 from .runner import Task, build_models
@@ -151,6 +152,8 @@ def run_chain(recipe: Recipe, sample: Sample, in_root: Path, *, variant_index: i
     key = key or output_relpath(sample.relpath, recipe.variants[variant_index].suffix)
     task = Task(sample, variant_index, key)
     original = load(sample, in_root, recipe)
+    if isinstance(original, PointCloud):          # a KITTI scan's rings from its storage order, as apply_models finds
+        original = with_laser_order(original)     # them, so the input panel's range image has them too
     models = build_models(recipe, task)
     stages: list[tuple[str, SensorData]] = [("input", original)]
     records: list = []
