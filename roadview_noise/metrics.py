@@ -151,7 +151,7 @@ def _summary(data: SensorData, before: dict | None = None, step: PointCloud | No
     if s is None:
         if isinstance(data, PointCloud):
             s = _cloud_summary(data, before, step)
-            weakref.finalize(data, _drop_point_arrays, s)
+            s["cloud"] = weakref.ref(data, lambda _, s=s: _drop_point_arrays(s))    # (cheaper than finalize)
         else:
             s = _frame_summary(data)
         _summaries[data] = s
@@ -266,10 +266,11 @@ _last_depth: list = [None, None, None]      # weakref to a depth map, the key of
 
 def _per_array(slot: list, owner: np.ndarray, view: np.ndarray, extra, compute):
     """``compute()``, or the result kept in ``slot`` when the last call had the same ``owner`` array (identity)
-    and the same ``view`` of it (shape, strides, address) and ``extra``: what the steps of a chain that hand an
-    array on unchanged need to derive from it once."""
+    and the same ``view`` of it (shape, strides, address — not read for the owner itself, whose data cannot move
+    while its shape stays: ``ctypes.data`` costs µs) and ``extra``: what the steps of a chain that hand an array
+    on unchanged need to derive from it once."""
     ref, key, result = slot
-    now = (view.shape, view.strides, view.ctypes.data, extra)
+    now = (view.shape, view.strides, None if view is owner else view.ctypes.data, extra)
     if ref is not None and ref() is owner and key == now:
         return result
     result = compute()
