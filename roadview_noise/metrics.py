@@ -149,21 +149,9 @@ def _summary(data: SensorData, before: dict | None = None, step: PointCloud | No
     (:func:`_cloud_summary`)."""
     s = _summaries.get(data)
     if s is None:
-        if isinstance(data, PointCloud):
-            s = _cloud_summary(data, before, step)
-            s["cloud"] = weakref.ref(data, lambda _, s=s: _drop_point_arrays(s))    # (cheaper than finalize)
-        else:
-            s = _frame_summary(data)
+        s = _cloud_summary(data, before, step) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
     return s
-
-
-def _drop_point_arrays(s: dict) -> None:
-    """When a cloud is gone, its summary keeps only what a chain's later comparisons read of it (its ``parent``
-    link and counts): a chain's intermediate cloud then frees its positions and values when the next step has
-    replaced it, as without metrics, instead of holding them until the file is done."""
-    for key in ("positions", "values", "valid", "effect"):
-        s.pop(key, None)
 
 
 # --- camera -----------------------------------------------------------------------------------------------------

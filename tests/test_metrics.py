@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-import gc
 import math
-import weakref
 
 import numpy as np
 import pytest
@@ -460,30 +458,6 @@ def test_a_step_records_manifest_dict_is_its_asdict_with_the_metrics_handed_on()
     entry, copied = records[0].as_entry(), dataclasses.asdict(records[0])
     assert entry == copied and list(entry) == list(copied) and entry["metrics"]["points_in"] == 400
     assert entry["metrics"] is records[0].metrics
-
-
-def test_a_chains_intermediate_cloud_is_freed_with_its_arrays(monkeypatch):
-    """The cloud between two steps is freed with its point arrays once the next step has replaced it, as without
-    metrics (its summary keeps only its link to the steps around it), and the chain's metrics stay those of clouds
-    that were never summarised."""
-    import roadview_noise.compound as compound_module
-
-    positions = []                               # weak references to each step's result's positions
-    real_follow = compound_module.follow
-
-    def follow(*args, **kwargs):
-        result = real_follow(*args, **kwargs)
-        positions.append(weakref.ref(result.positions_m))
-        return result
-
-    monkeypatch.setattr(compound_module, "follow", follow)
-    c = lidar_list(400, seed=5)
-    models = [get_model("fog.lidar")(visibility_m=30.0), get_model("rain.lidar")(rain_rate_mm_per_h=20.0)]
-    out, records = apply_models(models, c, seed=2, key="k", sequence_id="s")
-    gc.collect()
-    assert positions[0]() is None and positions[1]() is out.positions_m
-    assert compare(c, out) == compare(_fresh(c), _fresh(out))
-    assert correspondence(c, out)[0].shape == (400,)
 
 
 def _fresh(cloud: PointCloud) -> PointCloud:
