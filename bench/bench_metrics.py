@@ -203,10 +203,10 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     med = {k: statistics.median(v) for k, v in samples.items()}
     q = {k: statistics.quantiles(v, n=4) if len(v) > 1 else v * 3 for k, v in samples.items()}
     label = "real OS1-128 scan0.bin" if real else tasks[0].sample.relpath
+    spread = ", ".join(f"{k} {q[k][0]:.2f}–{q[k][2]:.2f}" for k in kinds)
     return (f"  {name:<18} {label:<38} off {med['off']:6.2f}   base {med['base']:6.2f} "
             f"({(med['base'] / med['off'] - 1) * 100:+5.1f} %)   this {med['this']:6.2f} "
-            f"({(med['this'] / med['off'] - 1) * 100:+5.1f} %)   [quartiles: off {q['off'][0]:.2f}–{q['off'][2]:.2f}, "
-            f"base {q['base'][0]:.2f}–{q['base'][2]:.2f}, this {q['this'][0]:.2f}–{q['this'][2]:.2f}]")
+            f"({(med['this'] / med['off'] - 1) * 100:+5.1f} %)   [quartiles: {spread}]")
 
 
 def _baseline_version(tree: Path) -> tuple:
@@ -358,7 +358,8 @@ def main() -> None:
     ap.add_argument("--whole-run", action="store_true", help="whole augment runs instead of single files")
     ap.add_argument("--compare-only", action="store_true", help="CPU time of the chain's metrics calls alone")
     ap.add_argument("--fusion", action="store_true", help="metrics off / on / on without the sRGB passes' luminance")
-    ap.add_argument("--baseline", type=Path, help="per file: metrics off / on with DIR's metrics.py / on with this tree's")
+    ap.add_argument("--baseline", type=Path,
+                    help="per file: metrics off / on with DIR's metrics.py / on with this tree's")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     if args.whole_run:
