@@ -25,6 +25,14 @@ frame's luminance read by the metrics themselves, ``luminance.collect`` kept off
 medians of ``--repeat``: what taking the luminance in the decode/encode passes saves, steadier than two worktrees'
 runs on a loaded machine.
 
+``--baseline DIR``: per case, the per-file CPU time with metrics off, on with the metrics of another version of the
+code and on with this tree's, interleaved in this process (the order rotates every run), medians and quartiles of
+``--repeat``: a paired A/B of two versions on a shared machine. DIR is a worktree or an export of a commit (``git
+archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py`` is loaded beside this tree's (its relative
+imports resolve to this tree's modules, so use it for versions that differ in ``metrics.py``) and its step records
+are turned into manifest dicts as its ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
+The first runs of each check that both versions write the same metrics.
+
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
 on alternately (the order flips every round), ``--repeat`` rounds after one untimed round. Figures per recipe: the
@@ -41,6 +49,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --compare-only [--repeat N] [--recipes cnf11,cnf05]
     .venv/bin/python bench/bench_metrics.py --fusion [--repeat N] [--recipes cnf11,cnf05]
+    .venv/bin/python bench/bench_metrics.py --baseline DIR [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
 """
 
@@ -52,19 +61,25 @@ worker_setup()      # before numpy/cv2/numba load: one thread each, as in a work
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
+import importlib.util  # noqa: E402
 import json  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import numba  # noqa: E402
 import yaml  # noqa: E402
 
+import roadview_noise  # noqa: E402
 from roadview_noise import compound, luminance  # noqa: E402
+from roadview_noise import metrics as this_metrics  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
+from roadview_noise.physics import compiled  # noqa: E402
 from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
 from roadview_noise.runner import RunContext, build_models, load, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
@@ -142,6 +157,80 @@ def bench_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat
     return (f"  {name:<12} {label:<38} {cpu0:7.1f} → {cpu1:7.1f} ({(cpu1 / cpu0 - 1) * 100:+5.1f} %)   "
             f"{wall0:7.1f} → {wall1:7.1f} ({(wall1 / wall0 - 1) * 100:+5.1f} %)   {metrics1 - metrics0:6.1f} "
             f"({(metrics1 - metrics0) / wall1 * 100:4.1f} %)")
+
+
+def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int,
+                  baseline: Path) -> str | None:
+    """Per-file CPU ms with metrics off, on with ``baseline``'s metrics and on with this tree's (``--baseline``)."""
+    real = folder == "real"
+    in_root = roots["real" if real else "gen"]
+    ctxs = {on: RunContext(in_root, tmp / "out", load_recipe(recipe_file(name, on, real, tmp)), profile=False)
+            for on in (False, True)}
+    (tmp / "out").mkdir(exist_ok=True)
+    tasks = [t for t in plan(in_root, ctxs[True].recipe) if real or t.sample.relpath.startswith(folder)]
+    if not tasks:
+        return None
+    versions = {"base": _baseline_version(baseline), "this": (this_metrics, compound.StepRecord.as_entry)}
+
+    def once(kind: str) -> tuple[float, dict]:
+        if kind != "off":
+            module, compound.StepRecord.as_entry = versions[kind]
+            sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
+        try:
+            t0 = time.process_time()
+            entry = process(tasks[0], ctxs[kind != "off"])
+            cpu = time.process_time() - t0
+        finally:
+            sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = this_metrics
+            compound.StepRecord.as_entry = versions["this"][1]
+        if "error" in entry:
+            raise RuntimeError(f"{tasks[0].sample.relpath}: {entry['error']}")
+        for staged, _ in entry.get("staged", ()):
+            (ctxs[True].out_root / staged).unlink(missing_ok=True)
+        return cpu * 1e3, entry
+
+    def metrics_of(entry: dict) -> tuple:
+        return entry["metrics"], [step["metrics"] for step in entry["steps"]]
+
+    first = {kind: once(kind)[1] for kind in ("off", "base", "this")}          # warm-up; the values must agree
+    if metrics_of(first["base"]) != metrics_of(first["this"]):
+        raise RuntimeError(f"{name} {folder}: the two versions' metrics differ")
+    kinds = ("off", "base", "this")
+    samples: dict[str, list[float]] = {k: [] for k in kinds}
+    for r in range(repeat):
+        for kind in kinds[r % 3:] + kinds[:r % 3]:
+            samples[kind].append(once(kind)[0])
+    med = {k: statistics.median(v) for k, v in samples.items()}
+    q = {k: statistics.quantiles(v, n=4) if len(v) > 1 else v * 3 for k, v in samples.items()}
+    label = "real OS1-128 scan0.bin" if real else tasks[0].sample.relpath
+    spread = ", ".join(f"{k} {q[k][0]:.2f}–{q[k][2]:.2f}" for k in kinds)
+    return (f"  {name:<18} {label:<38} off {med['off']:6.2f}   base {med['base']:6.2f} "
+            f"({(med['base'] / med['off'] - 1) * 100:+5.1f} %)   this {med['this']:6.2f} "
+            f"({(med['this'] / med['off'] - 1) * 100:+5.1f} %)   [quartiles: {spread}]")
+
+
+def _baseline_version(tree: Path) -> tuple:
+    """(metrics module, ``StepRecord.as_entry``) of another version of the code (``--baseline``)."""
+    spec = importlib.util.spec_from_file_location("roadview_noise.metrics_baseline",
+                                                  tree / "roadview_noise" / "metrics.py")
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = "roadview_noise"                   # its relative imports: this tree's modules
+    jit = compiled.jit
+    compiled.jit = _uncached_jit                            # numba's cache would mix the module's two names
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        compiled.jit = jit
+    has_entry = "def as_entry(" in (tree / "roadview_noise" / "compound.py").read_text()
+    return module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict)
+
+
+def _uncached_jit(fn=None, **options):
+    """``physics.compiled.jit`` without numba's on-disk cache (for the baseline's metrics module)."""
+    def wrap(f):
+        return numba.njit(nogil=True, **options)(f)
+
+    return wrap(fn) if fn is not None else wrap
 
 
 def fusion_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
@@ -269,6 +358,8 @@ def main() -> None:
     ap.add_argument("--whole-run", action="store_true", help="whole augment runs instead of single files")
     ap.add_argument("--compare-only", action="store_true", help="CPU time of the chain's metrics calls alone")
     ap.add_argument("--fusion", action="store_true", help="metrics off / on / on without the sRGB passes' luminance")
+    ap.add_argument("--baseline", type=Path,
+                    help="per file: metrics off / on with DIR's metrics.py / on with this tree's")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     if args.whole_run:
@@ -284,7 +375,10 @@ def main() -> None:
             shutil.copy(SHARED_OS1 / "scan0.bin", roots["real"] / REAL_SCAN)
         else:
             print("(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
-        if args.fusion:
+        if args.baseline:
+            print(f"per file in the worker, CPU ms, medians of {args.repeat} interleaved runs: metrics off, on with "
+                  f"{args.baseline}'s metrics, on with this tree's:")
+        elif args.fusion:
             print(f"per file in the worker, CPU ms, medians of {args.repeat} interleaved runs:")
         elif args.compare_only:
             print(f"metrics.compare calls of one file's chain, CPU ms, median [quartiles] of {3 * args.repeat}:")
@@ -295,8 +389,11 @@ def main() -> None:
             for folder in CASES[name]:
                 if folder == "real" and not (roots["real"] / REAL_SCAN).is_file():
                     continue
-                case = fusion_case if args.fusion else compare_case if args.compare_only else bench_case
-                line = case(name, folder, roots, tmp, args.repeat)
+                if args.baseline:
+                    line = baseline_case(name, folder, roots, tmp, args.repeat, args.baseline.resolve())
+                else:
+                    case = fusion_case if args.fusion else compare_case if args.compare_only else bench_case
+                    line = case(name, folder, roots, tmp, args.repeat)
                 if line:
                     print(line, flush=True)
 

@@ -24,7 +24,7 @@ import traceback
 import warnings
 from collections import deque
 from contextlib import ExitStack, closing
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Container, Iterable, Iterator
@@ -176,7 +176,7 @@ def _augment(ctx: BagContext, typestore: Any, topic: BagTopic, job: MessageJob, 
             models = build_models(recipe, Task(Sample(seed_key, topic.sensor, topic.sequence_id), 0, seed_key))
             result, records = apply_models(models, data, seed=recipe.seed, key=seed_key,
                                            sequence_id=topic.sequence_id, metrics=metrics)
-            entry["steps"] = [asdict(r) for r in records]
+            entry["steps"] = [r.as_entry() for r in records]
             entry["metrics"] = compare(data, result) if metrics else {}
             new = (rm.frame_to_image(msg, job.msgtype, result, source=source) if topic.sensor == "camera" else
                    rm.pointcloud_to_cloud2(msg, result, effect=recipe.spec.output.effect, source=source))

@@ -123,6 +123,12 @@ class StepRecord:
     seconds: float = 0.0
     metrics: dict[str, Any] = field(default_factory=dict)     # metrics.compare(step input, step output)
 
+    def as_entry(self) -> dict[str, Any]:
+        """The manifest's dict of this step: ``dataclasses.asdict``, but the metrics handed on as they are (the flat
+        dict of JSON-ready values that :func:`metrics.compare` returned for this step, which nothing changes later;
+        a deep copy costs ≈ 1 µs a value, ≈ 0.1 ms a LiDAR step's range bins)."""
+        return {**dataclasses.asdict(dataclasses.replace(self, metrics={})), "metrics": self.metrics}
+
 
 def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: str,
                  sequence_id: str, metrics: bool = True,

@@ -254,10 +254,11 @@ _last_depth: list = [None, None, None]      # weakref to a depth map, the key of
 
 def _per_array(slot: list, owner: np.ndarray, view: np.ndarray, extra, compute):
     """``compute()``, or the result kept in ``slot`` when the last call had the same ``owner`` array (identity)
-    and the same ``view`` of it (shape, strides, address) and ``extra``: what the steps of a chain that hand an
-    array on unchanged need to derive from it once."""
+    and the same ``view`` of it (shape, strides, address — not read for the owner itself, whose data cannot move
+    while its shape stays: ``ctypes.data`` costs µs) and ``extra``: what the steps of a chain that hand an array
+    on unchanged need to derive from it once."""
     ref, key, result = slot
-    now = (view.shape, view.strides, view.ctypes.data, extra)
+    now = (view.shape, view.strides, None if view is owner else view.ctypes.data, extra)
     if ref is not None and ref() is owner and key == now:
         return result
     result = compute()
@@ -387,6 +388,7 @@ def _compare_frames(b: dict, a: dict) -> dict[str, Any]:
 NO_LINK, GRID_LINK, LIST_LINK, STEP_LINK = 0, 1, 2, 3   # _cloud_pass: no correspondence, cell by cell, in
 #                                                       list order, by the step's provenance
 _NO_STEP = (np.zeros(0, np.int64), np.zeros(0, np.uint8))
+_NO_CODES, _NO_VALUES = np.zeros(0, np.uint8), np.zeros(0)     # a cloud without effect codes, without values
 
 
 def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
@@ -487,7 +489,10 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
                 change += d
                 changed += 1
         i += 1
-    return ((returns, hist, math.sqrt(max_r2), valid), counts, total, finite,
+    used = n_bins                           # the bins up to the farthest return's
+    while used > 0 and hist[used - 1] == 0:
+        used -= 1
+    return ((returns, hist[:used], math.sqrt(max_r2), valid), counts, total, finite,
             (index, moved, change / changed if changed else np.nan))
 
 
@@ -568,12 +573,13 @@ def _step_provenance(step: PointCloud | None) -> tuple[np.ndarray, np.ndarray]:
 def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointCloud | None = None) -> dict:
     """The summary of a cloud; with ``before`` (the summary of the cloud it came from: its step's input), also
     its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place), from
-    ``step``'s provenance when given (:func:`compare`)."""
+    ``step``'s provenance when given (:func:`compare`). Counts and range bins are Python lists, made once (the
+    pass trims the bins, ``tolist`` converts them) for every comparison that reads them."""
     codes = effect_codes(cloud)
-    codes = np.zeros(0, np.uint8) if codes is None else np.asarray(codes)
+    codes = _NO_CODES if codes is None else np.asarray(codes)
     radar = cloud.sensor == "radar"
     values = cloud.fields.get("snr_db" if radar else "intensity")
-    values = np.zeros(0) if values is None or np.ndim(values) != 1 else np.asarray(values)
+    values = _NO_VALUES if values is None or np.ndim(values) != 1 else np.asarray(values)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
     n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
@@ -581,10 +587,8 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     link = NO_LINK if before is None else _link_mode(before, s, step is not None)
     (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(
         positions, codes, values, n_bins, link, before, _step_provenance(step))
-    used = int(np.flatnonzero(hist)[-1]) + 1 if hist.any() else 0
-    s.update({"returns": int(returns), "codes": [int(c) for c in counts], "max_range_m": float(max_r),
-              "hist": [int(h) for h in hist[:used]], "radar": radar,
-              "mean_value": float(total / finite) if finite else None, "valid": valid, "effect": codes})
+    s.update({"returns": returns, "codes": counts.tolist(), "max_range_m": max_r, "hist": hist.tolist(),
+              "radar": radar, "mean_value": total / finite if finite else None, "valid": valid, "effect": codes})
     if before is not None:
         s["parent"] = (before, *matched)
     if isinstance(cloud.profile, LidarProfile):

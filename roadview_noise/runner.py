@@ -340,7 +340,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
                 with profiling.span("metrics"):
                     deferred.settle()
-                entry["steps"] = [asdict(r) for r in records]
+                entry["steps"] = [r.as_entry() for r in records]
                 with profiling.span("hash"):
                     _staged_files(stage, ctx, task, entry)
         if caught:

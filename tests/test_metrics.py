@@ -452,6 +452,14 @@ def test_apply_models_records_step_metrics():
     assert off[0].metrics == {}
 
 
+def test_a_step_records_manifest_dict_is_its_asdict_with_the_metrics_handed_on():
+    c = lidar_list(400)
+    _, records = apply_models([get_model("fog.lidar")(visibility_m=30.0)], c, seed=1, key="k", sequence_id="s")
+    entry, copied = records[0].as_entry(), dataclasses.asdict(records[0])
+    assert entry == copied and list(entry) == list(copied) and entry["metrics"]["points_in"] == 400
+    assert entry["metrics"] is records[0].metrics
+
+
 def _fresh(cloud: PointCloud) -> PointCloud:
     """The same cloud in new arrays (nothing of it summarised yet)."""
     return dataclasses.replace(cloud, positions_m=cloud.positions_m.copy(), recorded=None,
