@@ -143,6 +143,8 @@ class LidarProfile:
     photons_at_threshold: float = 100.0        # detected photo-electrons of a return at the detection threshold
     threshold_over_noise: float = 4.0          # detection threshold / noise floor (ambient + receiver noise) at S = 0
     excess_noise_factor: float = 3.0           # multiplication noise of the signal's shot noise (SPAD, PIN: 1)
+    threshold_calibration: str = "data"        # "data": lowered below the weakest recorded return; "datasheet": kept,
+    #                                            the readings' low end is not radiometric (physics/receiver.py)
     storage_order: str = ""                    # "laser": a ring-less list stored laser by laser (KITTI), rings and
     #                                            firing columns from that order (physics/laser_order.py)
     beam_z_offset_m: tuple[float, ...] = ()    # per beam: height of its origin above the scan's (KITTI's HDL-64E:

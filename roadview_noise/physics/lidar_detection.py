@@ -4,9 +4,10 @@ every ray between its weather candidate and its target.
 A ray's candidate weather return (fog, a cluster of particle pulses) is measured in the receiver's noise — drawn, so
 weather returns spread in intensity and range and their number varies smoothly with the weather's strength — and
 competes with the ray's target, which keeps its recorded noise (its stored value times the transmission: zero
-weather strength gives the input back). Strongest return: the larger detected value wins; first return: a detected
-weather return in front wins. A return whose stored value would fall below the sensor's lowest reading is dropped
-when the profile says the sensor drops it (``faint_reading: no_return``).
+weather strength gives the input back; a recorded return of an unreliable reading counts at least the receiver's
+floor, :meth:`receiver.Receiver.recorded_floor`). Strongest return: the larger detected value wins; first return: a
+detected weather return in front wins. A return whose stored value would fall below the sensor's lowest reading is
+dropped when the profile says the sensor drops it (``faint_reading: no_return``).
 """
 
 from __future__ import annotations
@@ -38,11 +39,16 @@ def detect(rays: Rays, candidates: RayReturns, mode: str, uniforms: np.ndarray, 
         rays.range_m, np.ascontiguousarray(uniforms, dtype=np.float64), per_ray, mode == "strongest",
         float(rays.profile.overlap_start_m), rx.pulse_rise_m if rise_m is None else float(rise_m),
         *rx.kernel_params)
-    return without_faint(rays, RayReturns(kind, out_range, out_signal))
+    return stored_returns(rays, RayReturns(kind, out_range, out_signal))
 
 
-def without_faint(rays: Rays, returns: RayReturns) -> RayReturns:
-    """``returns`` with the returns the sensor would not store set to NO_RETURN (``faint_reading: no_return``)."""
+def stored_returns(rays: Rays, returns: RayReturns) -> RayReturns:
+    """``returns`` as the sensor stores them: a target in place gets back its reading times what the weather left of
+    its signal (decided with :attr:`Rays.decision_signal`), the returns the sensor would not store are set to
+    NO_RETURN (``faint_reading: no_return``)."""
+    if rays.floor > 0:
+        target = np.flatnonzero(returns.kind == TARGET)
+        returns.signal[target] *= rays.signal[target] / rays.decision_signal[target]
     if rays.profile.faint_reading == "no_return":
         k = sensor_constant(rays.profile)
         returns.kind[(returns.kind != NO_RETURN) & too_faint(

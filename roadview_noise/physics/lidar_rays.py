@@ -1,6 +1,8 @@
 """The cloud → rays stage of the LiDAR weather pipeline: every ray a weather model acts on, with its hard-target
 range and received signal, the rays that saw nothing (``empty_rays``), and the receiver that decides detections
-(its threshold calibrated from the recorded returns when the datasheet's lies above them, :mod:`receiver`).
+(its threshold calibrated from the recorded returns when the datasheet's lies above them, or the datasheet's with
+each recorded return counted at least at :meth:`receiver.Receiver.recorded_floor` when the profile's readings are not
+radiometric at their low end, ``threshold_calibration``: :mod:`receiver`).
 
 ``empty_rays`` — which rays without a return get weather:
 - ``fill`` (default): every no-return ray, for raw sensor output — a full grid's no-return cells, a point list's empty
@@ -33,7 +35,7 @@ from .firing_grid import FiringGrid, firing_grid
 from .lidar_geometry import ring_index, ring_source
 from .lidar_intensity import REFLECTIVITY, IntensityWarning, intensity_step, resolve_profile, sensor_constant, \
     white_reading
-from .receiver import Receiver
+from .receiver import THRESHOLD_CALIBRATIONS, Receiver
 
 EMPTY_RAYS = ("fill", "sky_only", "ignore")     # what a weather model does with rays that returned nothing
 
@@ -47,8 +49,10 @@ class Rays:
     of a point list; no-return rays that ``empty_rays`` leaves out). ``signal``: received signal of the target in
     units of the sensor constant K (m⁻², :func:`lidar_intensity.received_signal` / K) that its stored value stands
     for. ``receiver``: detection in units of K, calibrated from the data (:meth:`receiver.Receiver.calibrated`);
-    ``datasheet_threshold``: the profile's threshold / K. ``profile``: the one the intensities are read with
-    (:func:`lidar_intensity.resolve_profile`). ``notes``: what the manifest records about both."""
+    ``datasheet_threshold``: the profile's threshold / K. ``floor``: the signal a recorded return counts as at least
+    in the weather's decisions (:attr:`decision_signal`; 0 unless the profile's ``threshold_calibration`` is
+    ``datasheet``). ``profile``: the one the intensities are read with (:func:`lidar_intensity.resolve_profile`).
+    ``notes``: what the manifest records about both."""
 
     range_m: np.ndarray
     signal: np.ndarray
@@ -59,11 +63,20 @@ class Rays:
     listed: FiringGrid | None = None
     empty_source: str = ""
     notes: dict = dataclasses.field(default_factory=dict)
+    floor: float = 0.0
 
     @property
     def threshold(self) -> float:
         """The detection threshold in use (units of K)."""
         return self.receiver.threshold
+
+    @property
+    def decision_signal(self) -> np.ndarray:
+        """The signal the weather's decisions take for each ray's target: :attr:`signal`, at least :attr:`floor` on
+        the input's returns (they were detected, :meth:`receiver.Receiver.recorded_floor`)."""
+        if self.floor <= 0:
+            return self.signal
+        return np.where(self.has_target, np.maximum(self.signal, self.floor), self.signal)
 
     @property
     def n_points(self) -> int:
@@ -95,10 +108,12 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     kept in ``notes``); rays without a return get the profile's max range as ``empty_rays`` says (module doc), a
     point list's empty rays appended after its points (a list without a regular firing grid keeps only its points,
     and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest return of the cloud as
-    recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive);
-    ``calibrate=False`` keeps the datasheet receiver (ray drop) and does not read the recorded cloud. ``at``
-    (indices; only with ``empty_rays="ignore"``): the rays of those points only, the receiver still calibrated on the
-    whole cloud (a step that changes a few points does not write every point's signal)."""
+    recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive), or with the
+    profile's ``threshold_calibration: datasheet`` kept, the returns then counting at least the receiver's
+    :attr:`~receiver.Receiver.recorded_floor` (``Rays.floor``); ``calibrate=False`` keeps the datasheet receiver (ray
+    drop) and does not read the recorded cloud. ``at`` (indices; only with ``empty_rays="ignore"``): the rays of those
+    points only, the receiver still calibrated on the whole cloud (a step that changes a few points does not write
+    every point's signal)."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
         raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
@@ -108,6 +123,9 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
                          model=model_id, field="intensity")
     if empty_rays not in EMPTY_RAYS:
         raise ModelError(f"empty_rays {empty_rays!r} is not one of {EMPTY_RAYS}", model=model_id, field="empty_rays")
+    if profile.threshold_calibration not in THRESHOLD_CALIBRATIONS:
+        raise ModelError(f"threshold_calibration {profile.threshold_calibration!r} is not one of "
+                         f"{THRESHOLD_CALIBRATIONS}", model=model_id, field="threshold_calibration")
     if at is not None and empty_rays != "ignore":
         raise ValueError("the rays of some points only (at) have no empty rays: use empty_rays='ignore'")
     intensity = np.asarray(cloud.fields["intensity"])
@@ -132,7 +150,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         r, signal, has_target, _ = _ray_signals(positions[at], intensity[at], compensated, per_reading, 0.0,
                                                 intensity_step(profile), profile.min_range_m)
     recorded = cloud.recorded
-    if not calibrate:
+    datasheet = calibrate and profile.threshold_calibration == "datasheet"
+    if not calibrate or datasheet:
         weakest = math.inf
     elif (recorded is not None and "intensity" in recorded.fields      # (the chain's first step: the same arrays)
           and not (recorded.positions_m is cloud.positions_m and recorded.fields["intensity"] is intensity)):
@@ -148,10 +167,17 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         raise ModelError(str(e), model=model_id, field="receiver") from None
     notes = {"intensity_reading": scale.note, "detection_threshold": receiver.threshold * k,
              "detection_threshold_source": receiver.source}
+    floor = receiver.recorded_floor if datasheet else 0.0
+    if datasheet:
+        notes["detection_threshold_source"] = (
+            f"datasheet (threshold_calibration: datasheet, the readings' low end is not radiometric); "
+            f"{np.count_nonzero(has_target & (signal < floor))} recorded returns read below {floor * k:.4g} (what a "
+            f"return detected at the threshold measures on average) and count as that in the weather's decisions")
     if scale.warning:
         notes["intensity_warning"] = scale.warning
     rays = Rays(r, signal, has_target, receiver, profile.detection_threshold / k, profile,
-                empty_source="none (empty_rays: ignore)" if not fill else "no-return cells of the grid", notes=notes)
+                empty_source="none (empty_rays: ignore)" if not fill else "no-return cells of the grid", notes=notes,
+                floor=floor)
     if grid and empty_rays == "sky_only":
         below = ~has_target & ~_above_horizon(cloud, profile)
         r[below] = 0.0

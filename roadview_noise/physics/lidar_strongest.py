@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .compiled import jit
-from .lidar_detection import outshone, weather_decision, without_faint
+from .lidar_detection import outshone, stored_returns, weather_decision
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, BackgroundLevels, RayReturns, SoftBackground, cluster_scratch, \
     crest_background, ray_return
 from .lidar_medium import pulse_length_m
@@ -168,14 +168,15 @@ def strongest_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedi
     n = len(rays.range_m)
     kind, out_range, out_signal = np.zeros(n, np.uint8), np.empty(n), np.empty(n)
     drawn = _strongest(
-        rng, np.ascontiguousarray(rays.range_m, dtype=np.float64), np.ascontiguousarray(rays.signal, dtype=np.float64),
+        rng, np.ascontiguousarray(rays.range_m, dtype=np.float64),
+        np.ascontiguousarray(rays.decision_signal, dtype=np.float64),
         np.ascontiguousarray(rays.has_target, dtype=bool), medium.alpha_per_m, float(rx.threshold),
         float(rx.weakest_return), tables.base_level, tables.start_m, tables.step_m, tables.lam, tables.inv,
         tables.band_scale, tables.level_signal, tables.full, tables.cover, bg.cum, bg.peak, bg.at_target,
         bg.far_at_target, 1.0 / bg.step_m, length, float(rays.profile.overlap_start_m), rx.pulse_rise_m,
         *rx.kernel_params, kind, out_range, out_signal, np.empty(MAX_DRAWN), np.empty(MAX_DRAWN), np.empty(MAX_DRAWN),
         *cluster_scratch(MAX_DRAWN))
-    return without_faint(rays, RayReturns(kind, out_range, out_signal)), int(drawn)
+    return stored_returns(rays, RayReturns(kind, out_range, out_signal)), int(drawn)
 
 
 @jit(error_model="numpy", _nrt=False)

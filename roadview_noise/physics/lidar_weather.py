@@ -48,7 +48,7 @@ def fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per_m_sr: 
     table = soft_target_table(alpha_per_m, tau_h_s, p.overlap_start_m, p.overlap_full_m)
     g, fog_range = table.lookup(rays.range_m)
     fog_signal = soft_target_signal(g, beta_per_m_sr)
-    hard = hard_target_signal(rays.signal, alpha_per_m, rays.range_m)
+    hard = hard_target_signal(rays.decision_signal, alpha_per_m, rays.range_m)
     weather = (fog_signal > rays.receiver.weakest_return) & (rays.range_m > 0)
     kind = np.where(weather, WEATHER, np.where(rays.has_target, TARGET, NO_RETURN)).astype(np.uint8)
     candidates = RayReturns(kind, np.where(weather, fog_range, rays.range_m), np.where(weather, fog_signal, hard), hard)
@@ -107,7 +107,7 @@ def particle_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMediu
     particles = sample_particles(rng, rays.range_m, medium, beam, level, 1.0)
     weakest = rays.receiver.weakest_return if mode == "strongest" else rays.threshold
     candidates = select_returns(particles.ray, particles.range_m, particles.signal, rays.range_m,
-                                hard_target_signal(rays.signal, medium.alpha_per_m, rays.range_m),
+                                hard_target_signal(rays.decision_signal, medium.alpha_per_m, rays.range_m),
                                 rays.has_target, tau_h, weakest, mode, particles.beam_fraction, background)
     n_weather = int(np.count_nonzero(candidates.kind == WEATHER))
     return detect(rays, candidates, mode, rng.random((n_weather, 3)), per_ray=False), len(particles.ray)

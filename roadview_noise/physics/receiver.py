@@ -32,6 +32,27 @@ to the weakest signal the recorded returns can have (their stored value minus ha
 weakest returns differ by less than a quarter octave (each frame is calibrated by itself — workers see frames in any
 order — and the manifest records the value). The photons at the threshold stay, so the detector's statistics
 relative to its threshold are the profile's (its stated SNR at the threshold), only the signal scale moves.
+That reading of the data holds only where the stored values measure the received power down to the faintest return
+(``threshold_calibration: data``, the default: Ouster's photon counts and calibrated reflectivity, whose real scan is
+calibrated 11× below the datasheet).
+
+Recorded returns of a non-radiometric low end (``threshold_calibration: datasheet``, :meth:`Receiver.recorded_floor`):
+Velodyne units store a per-laser corrected, non-linear value (the HDL-64E S2's intensity correction with a focal
+distance and slope per laser, ROS velodyne_pointcloud's ``LaserCorrection``; Levinson & Thrun, "Unsupervised
+Calibration for Multi-beam Lasers", ISER 2010, fit each beam's remittance response for that reason; the HDL-32E's
+calibrated reflectivity, firmware 2.0, is an integer 0–100 for diffuse targets). Such data hold readings no receiver
+with the sensor's range could have detected: 20 % of a KITTI scan's returns store 0 (out to 80 m; 96 % of its
+returns beyond 60 m), 9 % read below the HDL-64E's datasheet threshold (10 % at 50 m); calibrated from them the
+threshold sat 215× below it — a receiver that detects a 10 % target at 730 m — and rain put a drop return on 99 %
+of the empty rays (nuScenes' HDL-32E: readings of 1–2 at 20–40 m, 11× below the threshold its far returns fit). The
+threshold then stays the datasheet's: the weather's particles are judged against it. A recorded return is still known
+to have been detected, but its reading does not say by how much; for the weather's decisions its signal is at least
+what a return detected at the threshold measures on average, ``E[M | M ≥ T] = T + σ(T)·√(2/π)`` for a measured value
+``M ~ N(T, σ(T)²)`` (the mean of a normal truncated at its median; 1.243 T for the generic APD of the Velodyne
+profiles); a reading above that counts as read. The bound T itself would not do: a return exactly at the threshold
+is lost to any trace of weather (the discontinuity of issue 14, item 2). With the floor zero strength gives the input
+back, a faint return is lost only once the weather takes more than its margin (round-trip transmission below
+``T / floor`` = 0.80), and a return in place is stored as its reading times the transmission (a 0 stays 0).
 """
 
 from __future__ import annotations
@@ -48,6 +69,7 @@ from scipy.special import gammainc, gammaln, ndtr, pdtr, pdtrc, xlogy
 from .compiled import jit
 
 RECEIVERS = ("spad", "apd")
+THRESHOLD_CALIBRATIONS = ("data", "datasheet")     # LidarProfile.threshold_calibration (module doc)
 #: 10–90 % rise time of the pulse sin²(π t / 2τ_H), in units of τ_H
 RISE_TIME_PER_TAU = 2 / math.pi * (math.asin(math.sqrt(0.9)) - math.asin(math.sqrt(0.1)))
 CALIBRATION_STEPS_PER_OCTAVE = 4
@@ -154,6 +176,12 @@ class Receiver:
         return dataclasses.replace(self, threshold=t * 2.0 ** (-j / CALIBRATION_STEPS_PER_OCTAVE),
                                    source=f"calibrated from the data: the weakest recorded return can be "
                                           f"{weakest_recorded:.4g}, below the datasheet threshold {t:.4g}")
+
+    @property
+    def recorded_floor(self) -> float:
+        """The signal a recorded return of an unreliable reading counts as at least: the mean measured value of a
+        return detected at the threshold, ``T + σ(T)·√(2/π)`` (module doc)."""
+        return self.threshold + float(self.noise_sd(self.threshold)) * math.sqrt(2.0 / math.pi)
 
     def in_units(self, unit: float) -> Receiver:
         """The same receiver with signals expressed in ``unit`` of the current ones."""

@@ -143,7 +143,10 @@ def kitti_hdl64() -> LidarProfile:
     2 162 … 2 172 on real KITTI scans).
     Detection threshold ``0.1 / (50 m)²`` (units of K/m²): HDL-64E S2 datasheet range 50 m on pavement (≈ 10 %); 80 %
     then reaches 141 m (datasheet: 120 m for cars and foliage). Receiver overlap: Hahner's R1 = 0.9 m, R2 = 1.0 m
-    (LidarProfile default). Intensities in steps of 0.01 (as KITTI stores them); receiver as :func:`vls_128`."""
+    (LidarProfile default). Intensities in steps of 0.01 (as KITTI stores them); receiver as :func:`vls_128`.
+    Threshold: the datasheet's (``threshold_calibration: datasheet``): KITTI's low readings are not radiometric (20 %
+    of a scan's returns store 0, out to 80 m; calibrated from them the threshold sat 215× lower), a recorded return
+    counts at least :meth:`physics.receiver.Receiver.recorded_floor`."""
     table = _table("kitti_hdl64.yaml")
     elevation = tuple(float(e) for e in table["beam_elevation_deg"])
     return LidarProfile("kitti-hdl64", elevation, (0.0,) * len(elevation), columns=2083, wavelength_m=905e-9,
@@ -152,6 +155,7 @@ def kitti_hdl64() -> LidarProfile:
                         intensity_kind="reflectivity", sensor_constant=1.0,
                         detection_threshold=HDL64_DETECTION_THRESHOLD, window="rotating",
                         intensity_step=KITTI_INTENSITY_STEP, storage_order="laser",
+                        threshold_calibration="datasheet",
                         beam_z_offset_m=tuple(float(v) for v in table["beam_z_offset_m"]))
 
 
@@ -176,14 +180,15 @@ def hdl_32e() -> LidarProfile:
     no-return rays, not returns (``min_range_m``). Receiver overlap Hahner's (0.9–1.0 m, LidarProfile default),
     ASSUMPTION as for :func:`vls_128`.
     Beam radius, divergence and pulse: ASSUMPTION, the VLS-128's (:func:`vls_128`; no HDL-32E figure at hand).
-    Receiver: APD, generic ASSUMPTIONS (LidarProfile defaults)."""
+    Receiver: APD, generic ASSUMPTIONS (LidarProfile defaults). Threshold: the datasheet's (``threshold_calibration:
+    datasheet``): the real scan's readings of 1–2 at 20–40 m would put it 11× below the one its far returns fit."""
     elev = tuple(round(-32.0 + 4.0 / 3.0 * (k + 1), 2) for k in range(32))       # −30.67, −29.33, … +10.67
     return LidarProfile(
         "hdl-32e", elev, (0.0,) * 32, columns=1085, wavelength_m=905e-9, beam_radius_m=6.0e-3,
         beam_divergence_rad=3.0e-3 / 2, pulse_half_power_width_s=6e-9, max_range_m=100.0, min_range_m=1.0,
         intensity_unit=IntensityUnit.UINT8, intensity_full_scale=255.0, intensity_kind="reflectivity",
         sensor_constant=HDL32_SENSOR_CONSTANT, reflectivity_white_reading=HDL32_WHITE_REFLECTIVITY,
-        detection_threshold=1.0, window="rotating")
+        detection_threshold=1.0, window="rotating", threshold_calibration="datasheet")
 
 
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
