@@ -334,7 +334,7 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, 3, sorted({WHOLE_RUN[n] for n in names}))
+        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN[n] for n in names})})
         print(f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, median of {repeat} rounds:")
         print(f"  {'recipe':<20} {'wall s':^27}   {'sum of per-file s':^27}   metrics ms/file   bytes/line")
         for name in names:
