@@ -150,7 +150,7 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         r, signal, has_target, _ = _ray_signals(positions[at], intensity[at], compensated, per_reading, 0.0,
                                                 intensity_step(profile), profile.min_range_m)
     recorded = cloud.recorded
-    datasheet = calibrate and profile.threshold_calibration == "datasheet"
+    datasheet = profile.threshold_calibration == "datasheet"
     if not calibrate or datasheet:
         weakest = math.inf
     elif (recorded is not None and "intensity" in recorded.fields      # (the chain's first step: the same arrays)
@@ -172,7 +172,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         notes["detection_threshold_source"] = (
             f"datasheet (threshold_calibration: datasheet, the readings' low end is not radiometric); "
             f"{np.count_nonzero(has_target & (signal < floor))} recorded returns read below {floor * k:.4g} (what a "
-            f"return detected at the threshold measures on average) and count as that in the weather's decisions")
+            f"return detected at the threshold measures on average) and count as that in the weather's and ray drop's "
+            f"decisions")
     if scale.warning:
         notes["intensity_warning"] = scale.warning
     rays = Rays(r, signal, has_target, receiver, profile.detection_threshold / k, profile,

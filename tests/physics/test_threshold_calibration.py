@@ -129,3 +129,27 @@ def test_real_velodyne_scans(path, profile):
     assert d["removed"] < 0.03 * d["points_in"]
     _, d = rain(cloud, 1e-3)
     assert d["moved"] + d["added"] + d["removed"] < 1e-3 * d["points_in"]
+
+
+def test_ray_drop_reads_unreliable_faint_readings_at_the_floor():
+    """Ray drop judges a recorded return of a ``threshold_calibration: datasheet`` profile as the weather does: a
+    reading below the floor counts as the floor (KITTI's zeros are no evidence of a return 200× below threshold), so
+    the far faint returns drop like returns reading exactly the floor — not like returns far below the threshold."""
+    faint = faint_far_kitti()
+    floor = cloud_rays(faint, "ray_drop.lidar", "ignore", calibrate=False).floor
+    assert floor > 0
+    r = np.linalg.norm(faint.positions_m, axis=1)
+    far = r > 30.0
+    at_floor_reading = np.where(far, floor * r ** 2 * 1.0001, faint.fields["intensity"]).astype(np.float32)
+    at_floor = dataclasses.replace(faint, fields={**faint.fields, "intensity": at_floor_reading})
+
+    def dropped_far(cloud):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out, _ = apply_models([get_model("ray_drop.lidar")()], cloud, seed=3, key="k", sequence_id="s",
+                                  metrics=False)
+        kept = np.zeros(len(cloud.positions_m), bool)
+        kept[out.origin[out.origin >= 0]] = True
+        return np.count_nonzero(far & ~kept)
+
+    assert abs(dropped_far(faint) - dropped_far(at_floor)) <= 0.01 * np.count_nonzero(far)
