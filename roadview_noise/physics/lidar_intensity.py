@@ -270,6 +270,7 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     if profile.intensity_source:
         return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
     reading = read_intensity(intensity, positions_m)
+    profile = stored_as_read(profile, reading)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
            "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe") + beam_count_hint(profile, ring)
     if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:
@@ -285,6 +286,15 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     return IntensityScale(profile, f"{said}: nothing stated it, assumed ({reading.describe()})",
                           f"{model_id}: no profile states the intensity unit and the data {seen} "
                           f"({reading.describe()}): read as {said}; {how}")
+
+
+def stored_as_read(profile: LidarProfile, reading: IntensityReading) -> LidarProfile:
+    """An assumed unit keeps the file's own resolution: intensities stored with fractions (Waymo's KITTI-format
+    export: 0.19, 0.036, … read with the default photon profile) are not whole counts, and rounding them to the
+    profile's step of 1 would store 0 for every one of them."""
+    if reading.values in ("[0, 1]", "floats") and intensity_step(profile) > 0:
+        return dataclasses.replace(profile, intensity_step=0.0)
+    return profile
 
 
 #: built-in profiles to suggest for a ring field counting this many beams

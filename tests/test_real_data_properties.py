@@ -1,0 +1,144 @@
+"""Properties of every registered model on real files (bench/audit_real_data.py audits all of them; here the ones
+that hold, fast): zero strength is the identity, outputs stay in what the sensor can report, weather is monotone in
+its strength, the same seed writes the same bytes. The real files are never committed: these tests skip without
+/work/realdata or ../shared/data. The synthetic tests at the end cover the faults the audit found, for CI."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from bench.audit_real_data import (MONOTONE, VANISH, Input, changed_fraction, digest, lost_returns,
+                                   luminance_contrast, range_problems, real_inputs, run, written)
+from roadview_noise.compound import apply_models
+from roadview_noise.physics.lidar_intensity import intensity_step, read_intensity, resolve_profile
+from roadview_noise.profiles.lidar import default_profile
+from roadview_noise.registry import get_model, load_all
+from roadview_noise.types import PointCloud
+
+
+def real(name: str) -> Input:
+    found = [i for i in real_inputs() if i.name == name]
+    if not found:
+        pytest.skip(f"real file {name} is absent (never committed)")
+    return found[0]
+
+
+LIDAR_MODELS = sorted(k for k, c in load_all().items() if c.sensor == "lidar")
+CAMERA_IDENTITY = ("fog.camera", "motion_blur.camera", "rain.camera", "snow.camera", "soiling.camera",
+                   "wind.camera", "windscreen.camera", "low_light.camera")
+RAW_IDENTITY = ("fog.camera", "motion_blur.camera", "rain.camera", "snow.camera", "soiling.camera",
+                "windscreen.camera")
+
+
+@pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "ouster-scan0.bin",
+                                  "waymo-0000000.bin"])
+@pytest.mark.parametrize("model_id", LIDAR_MODELS)
+def test_lidar_zero_strength_is_the_identity(model_id, name):
+    """Rate 0, visibility 10¹⁵ m, probability 0, σ 0: at most 0.1 % of the points change (all four: none)."""
+    _, data, out = run(real(name), model_id, VANISH[model_id])
+    assert changed_fraction(data, out) <= 1e-3
+
+
+@pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "waymo-0000000.bin"])
+@pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar", "fog.lidar", "ray_drop.lidar"])
+def test_lidar_weather_stays_in_the_sensor_and_repeats(model_id, name, tmp_path):
+    """At the default strength: finite, intensity within the profile's full scale (whole counts for 8-bit units), no
+    new point beyond max_range_m, the input's .bin columns; the same seed writes the same bytes."""
+    item = real(name)
+    recipe, data, out = run(item, model_id, {})
+    path = written(item, recipe, out, tmp_path)
+    assert range_problems(item, data, out, path) == []
+    first = digest(path)
+    recipe, _, out = run(item, model_id, {})
+    assert digest(written(item, recipe, out, tmp_path)) == first
+
+
+def test_more_rain_loses_no_fewer_returns_on_kitti():
+    """KITTI 000008, 2 seeds: lost returns at 1 / 20 / 100 mm/h rise (audit: 25, 632, 1 471)."""
+    item = real("kitti-000008.bin")
+    name, values = MONOTONE["rain.lidar"]
+    lost = [np.mean([lost_returns(*run(item, "rain.lidar", {name: v}, seed=s)[1:]) for s in (1, 2)])
+            for v in values]
+    assert lost[0] < lost[1] < lost[2]
+
+
+@pytest.mark.parametrize("model_id", CAMERA_IDENTITY)
+def test_camera_zero_strength_is_the_identity_on_a_kitti_photo(model_id):
+    _, data, out = run(real("kitti-000008.png"), model_id, VANISH[model_id])
+    assert changed_fraction(data, out) <= 1e-3
+
+
+@pytest.mark.parametrize("model_id", RAW_IDENTITY)
+def test_raw_zero_strength_is_the_identity_on_a_real_dng(model_id, tmp_path):
+    """The written DNG's DN equal the input's (a real 10-bit GBRG mosaic)."""
+    from roadview_noise.io.raw import read_raw
+
+    item = real("dng-minhtcai_camera_test")
+    recipe, _, out = run(item, model_id, VANISH[model_id])
+    assert changed_fraction(read_raw(item.path)[0], read_raw(written(item, recipe, out, tmp_path))[0]) <= 1e-3
+
+
+def test_lower_visibility_lowers_the_contrast_of_real_photos():
+    """Fog at 1 000 / 200 / 50 m on KITTI's and nuScenes' photos (ground-plane depth): RMS contrast falls."""
+    for name in ("kitti-000008.png", "nuscenes-CAM_BACK_LEFT"):
+        item = real(name)
+        c = [luminance_contrast(run(item, "fog.camera", {"visibility_m": v})[2]) for v in (1000.0, 200.0, 50.0)]
+        assert c[0] > c[1] > c[2], (name, c)
+
+
+@pytest.mark.parametrize("model_id", ["fog.camera", "rain.camera", "snow.camera", "soiling.camera"])
+def test_camera_weather_writes_the_input_dtype_and_repeats(model_id, tmp_path):
+    item = real("kitti-000008.png")
+    recipe, data, out = run(item, model_id, {})
+    path = written(item, recipe, out, tmp_path)
+    assert range_problems(item, data, out, path) == []
+    first = digest(path)
+    recipe, _, out = run(item, model_id, {})
+    assert digest(written(item, recipe, out, tmp_path)) == first
+
+
+# --- synthetic versions of the faults found (CI has no real data) -------------------------------------------
+
+
+def fractional_scan(n: int = 2000, seed: int = 0) -> PointCloud:
+    """A cloud like Waymo's KITTI-format export read without a profile: float intensities 0.01–1.5 (not whole
+    counts, not within [0, 1]) on returns 2–60 m away."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) * 0.1
+    pos = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(2, 60, (n, 1))
+    fields = {"intensity": rng.uniform(0.01, 1.5, n).astype(np.float32)}
+    return PointCloud(pos, fields, "lidar", default_profile())
+
+
+def test_an_assumed_unit_keeps_fractional_intensities_continuous():
+    """Nothing states the unit and the values have fractions: the default profile's unit is assumed (warned) but
+    not its step of one photon; whole counts keep it."""
+    cloud = fractional_scan()
+    reading = read_intensity(cloud.fields["intensity"], cloud.positions_m)
+    assert reading.values == "floats"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scale = resolve_profile(default_profile(), cloud.fields["intensity"], cloud.positions_m, "fog.lidar")
+        counts = np.rint(cloud.fields["intensity"] * 100)
+        kept = resolve_profile(default_profile(), counts, cloud.positions_m, "fog.lidar")
+    assert intensity_step(scale.profile) == 0.0
+    assert intensity_step(kept.profile) == 1.0
+
+
+@pytest.mark.parametrize("model_id, params", [("fog.lidar", {"visibility_m": 1e15}),
+                                              ("rain.lidar", {"rain_rate_mm_per_h": 0.0})])
+def test_vanishing_weather_keeps_fractional_intensities(model_id, params):
+    """Before: every intensity of a real Waymo scan (0.04–1.04) was rounded to whole photons, i.e. written as 0,
+    by fog at 10⁹ m visibility: 100 % of the points changed."""
+    cloud = fractional_scan()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out, _ = apply_models([get_model(model_id)(**params)], cloud, seed=1, key="k", sequence_id="s",
+                              metrics=False)
+    assert len(out.positions_m) == len(cloud.positions_m)
+    np.testing.assert_allclose(out.fields["intensity"], cloud.fields["intensity"], rtol=1e-6)
+
