@@ -35,6 +35,7 @@ import numpy as np
 
 from roadview_noise.compound import apply_models
 from roadview_noise.dataset import Sample, load, save
+from roadview_noise.errors import InputError, ModelError
 from roadview_noise.physics.srgb import linear_to_code
 from roadview_noise.provenance import Effect
 from roadview_noise.recipe import SCHEMA, parse_recipe
@@ -337,6 +338,8 @@ def audit(item: Input, model_id: str, scratch: Path) -> dict[str, str]:
         cells["determinism"] = "ok" if digest(written(item, recipe, out, scratch)) == first else "FAIL bytes differ"
         if model_id in MONOTONE:
             cells["monotone"] = monotone(item, model_id)
+    except (InputError, ModelError) as e:             # a file or chain refused with its reason: by design
+        cells["refused"] = f"n/a: {type(e).__name__}: {str(e)[:160]}"
     except Exception as e:                            # noqa: BLE001 - the audit reports every failure
         cells["error"] = f"{type(e).__name__}: {str(e)[:160]}"
     return cells

@@ -6,6 +6,7 @@ its strength, the same seed writes the same bytes. The real files are never comm
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -42,18 +43,22 @@ def test_lidar_zero_strength_is_the_identity(model_id, name):
     assert changed_fraction(data, out) <= 1e-3
 
 
-@pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "waymo-0000000.bin"])
+@pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "waymo-0000000.bin",
+                                  "waymo-unit30-0000000.bin"])
 @pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar", "fog.lidar", "ray_drop.lidar"])
 def test_lidar_weather_stays_in_the_sensor_and_repeats(model_id, name, tmp_path):
     """At the default strength: finite, intensity within the profile's full scale (whole counts for 8-bit units), no
     new point beyond max_range_m, the input's .bin columns; the same seed writes the same bytes."""
-    item = real(name)
+    in_sensor_range_and_repeatable(real(name), model_id, tmp_path)
+
+
+def in_sensor_range_and_repeatable(item: Input, model_id: str, scratch: Path) -> None:
     recipe, data, out = run(item, model_id, {})
-    path = written(item, recipe, out, tmp_path)
+    path = written(item, recipe, out, scratch)
     assert range_problems(item, data, out, path) == []
     first = digest(path)
     recipe, _, out = run(item, model_id, {})
-    assert digest(written(item, recipe, out, tmp_path)) == first
+    assert digest(written(item, recipe, out, scratch)) == first
 
 
 def test_more_rain_loses_no_fewer_returns_on_kitti():
@@ -91,13 +96,7 @@ def test_lower_visibility_lowers_the_contrast_of_real_photos():
 
 @pytest.mark.parametrize("model_id", ["fog.camera", "rain.camera", "snow.camera", "soiling.camera"])
 def test_camera_weather_writes_the_input_dtype_and_repeats(model_id, tmp_path):
-    item = real("kitti-000008.png")
-    recipe, data, out = run(item, model_id, {})
-    path = written(item, recipe, out, tmp_path)
-    assert range_problems(item, data, out, path) == []
-    first = digest(path)
-    recipe, _, out = run(item, model_id, {})
-    assert digest(written(item, recipe, out, tmp_path)) == first
+    in_sensor_range_and_repeatable(real("kitti-000008.png"), model_id, tmp_path)
 
 
 # --- synthetic versions of the faults found (CI has no real data) -------------------------------------------
