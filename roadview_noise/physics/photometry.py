@@ -47,8 +47,11 @@ def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarra
     2003, PAMI 25(6)); Koschmieder (1924) sets its level to the horizon sky's luminance. The same holds for the
     cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` marks pixels whose depth
     is not valid (filled holes, :func:`estimation_depth`): never sky, never among the brightest pixels (their
-    colour still counts in a raw frame's illuminant estimate)."""
-    return sky_luminance(layout, signal, depth_m) * illuminant_chromaticity(layout, signal, depth_m)
+    colour still counts in a raw frame's illuminant estimate). On a raw mosaic each channel is capped at the white
+    level (signal 1): a site records no more than saturation, and a clipped sky's level times a non-neutral white
+    would otherwise exceed it (fog on a real 10-bit DNG wrote up to 1 034 DN over a white level of 1 023)."""
+    sky = sky_luminance(layout, signal, depth_m) * illuminant_chromaticity(layout, signal, depth_m)
+    return np.minimum(sky, 1.0) if layout.mosaic else sky
 
 
 def sky_luminance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> float:

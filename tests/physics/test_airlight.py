@@ -100,3 +100,14 @@ def test_scale_invariance_carries_the_low_light_factor():
                                    0.008 * airlight_radiance(layout, signal, depth), rtol=1e-5)
         np.testing.assert_allclose(raindrop_radiance(layout, dark, depth),
                                    0.008 * raindrop_radiance(layout, signal, depth), rtol=1e-5)
+
+
+def test_raw_airlight_of_a_clipped_sky_stays_at_the_white_level():
+    """A sky clipped at white (signal 1 in every channel) under a warm illuminant: its luminance 1 times the warm
+    chromaticity would put R above white; a site records no more than saturation, so each raw channel is capped at
+    1 (the RGB airlight, neutral, is 1 already)."""
+    img, depth = scene(WARM, sky=(1.0, 1.0, 1.0))
+    raw = airlight_radiance(*mosaic(img), depth)
+    assert raw.max() == pytest.approx(1.0) and chroma(WARM).max() > 1.0
+    assert np.all(raw <= 1.0)
+    np.testing.assert_allclose(airlight_radiance(RGB, img, depth), np.ones(3), rtol=1e-6)
