@@ -7,8 +7,8 @@ copied. Then, per sensor, with 1 and 2 processes:
 
 - **copy**: the plain loop a user would write with the same codecs — read, decode, encode, write (+ fsync, as rvnoise
   writes) each file — run by the executor ``augment`` uses, one task per file, with 1 as with 2 worker processes
-  (``bench/plain_copy.py``: worker start and hand-over alike on both sides); for the camera also **floor**: the copy plus decoding the depth sidecar the recipes read, i.e.
-  the I/O every camera weather recipe must do. The camera copy and floor use OpenCV's PNG codec; a second copy uses
+  (``bench/plain_copy.py``: worker start and hand-over alike on both sides); for the camera also **floor**: the
+  copy plus decoding the depth sidecar the recipes read, i.e. the I/O every camera weather recipe must do. The camera copy and floor use OpenCV's PNG codec; a second copy uses
   rvnoise's (``io/png.py``, ≈ 2× faster, the same pixels and file size), and the camera recipes are stated against
   both;
 - **augment**: ``runner.run`` of each weather recipe and one CNF (in-process, so the wall time includes the fork
@@ -24,8 +24,9 @@ copied. Then, per sensor, with 1 and 2 processes:
 - **small files**: fog.radar on 10× the radar tree's files, 1 and 2 workers: what each file costs beyond its own time
   (task hand-over, the main process's manifest line and rename), the main process's CPU and the workers' busy share;
 - ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame
-  (as 8-bit codes, and as the float32 frame a float-valued step hands on, which albumentations converts), and albumentations' nearest weather transforms (``RandomFog``, ``RandomRain``, ``RandomSnow``) on the same frames,
-  when albumentations is installed (``.venv/bin/pip install --no-deps albumentations==2.0.8 albucore==0.0.24
+  (as 8-bit codes, and as the float32 frame a float-valued step hands on, which albumentations converts), and
+  albumentations' nearest weather transforms (``RandomFog``, ``RandomRain``, ``RandomSnow``) on the same frames, when
+  albumentations is installed (``.venv/bin/pip install --no-deps albumentations==2.0.8 albucore==0.0.24
   stringzilla simsimd``: its wheel's opencv-python-headless would shadow opencv-contrib);
 - **memory**: the main process's peak RSS for 100 and 10 000 tiny radar files (``--quick`` skips it).
 
@@ -169,8 +170,9 @@ def _cpu_s() -> float:
 
 
 def small_files(tree: Path, root: Path, copies: int, n: int) -> dict:
-    """fog.radar on ``copies`` × the radar tree's first ``n`` files with 1 and 2 workers: files/s, the wall time per file beyond
-    the in-worker time, the main process's CPU per file and the workers' busy share (in-worker time / wall)."""
+    """fog.radar on ``copies`` × the radar tree's first ``n`` files with 1 and 2 workers: files/s, the wall time per
+    file beyond the in-worker time, the main process's CPU per file and the workers' busy share (in-worker time /
+    wall)."""
     many = root / "radar-many"
     dst = many / "radar" / "seq0"
     dst.mkdir(parents=True)
@@ -238,14 +240,13 @@ def single_frame(tree: Path, repeat: int) -> dict[str, float]:
         import albumentations as A
     except ImportError:
         return res
-    for label, t in [("albumentations ImageCompression (Q15)", A.ImageCompression(quality_range=(15, 15), p=1)),
-                     ("albumentations RandomFog", A.RandomFog(p=1)), ("albumentations RandomRain", A.RandomRain(p=1)),
-                     ("albumentations RandomSnow", A.RandomSnow(p=1))]:
-        res[f"{label} {A.__version__}"] = median_ms(lambda: t(image=rgb8), repeat)
-    # the frame a float-valued step hands on (codes / 255 as float32): albumentations converts it to uint8 and back
-    codes01 = rgb8.astype(np.float32) / np.float32(255)
-    res[f"albumentations ImageCompression (Q15) {A.__version__}, float32 frame"] = median_ms(
-        lambda: A.ImageCompression(quality_range=(15, 15), p=1)(image=codes01), repeat)
+    jpeg = A.ImageCompression(quality_range=(15, 15), p=1)
+    codes01 = rgb8.astype(np.float32) / np.float32(255)   # a float-valued step's frame: converted to uint8 and back
+    for label, t, image in [("ImageCompression (Q15)", jpeg, rgb8), ("RandomFog", A.RandomFog(p=1), rgb8),
+                            ("RandomRain", A.RandomRain(p=1), rgb8), ("RandomSnow", A.RandomSnow(p=1), rgb8),
+                            ("ImageCompression (Q15)", jpeg, codes01)]:
+        frame = ", float32 frame" if image is codes01 else ""
+        res[f"albumentations {label} {A.__version__}{frame}"] = median_ms(lambda: t(image=image), repeat)
     return res
 
 
