@@ -19,7 +19,9 @@ on a shared, loaded machine it leaves out the time the process waits for a core,
 time; cache contention still shows), the tracemalloc peak, the visible particles drawn, and the speed-up of the median
 over the MATLAB reference (18 / 24 / 30 s per frame for fog / rain / snow, models.md §6). Rain and snow also print
 their stages (CPU ms, median of 15 frames): cloud → rays (:func:`lidar_rays.cloud_rays`), the particle kernel
-(:func:`lidar_weather.particle_returns`: draw, summed pulses, detection) and rays → cloud (:func:`lidar_output.assemble`).
+(:func:`lidar_weather.particle_returns`: draw, summed pulses, detection) and rays → cloud
+(:func:`lidar_output.assemble`), and the particle kernel on the no-return rays and on the points alone (CPU ms, ns per
+ray, particles drawn per ray).
 Run: ``taskset -c 0 .venv/bin/python bench/bench_lidar_weather.py``.
 """
 
@@ -145,7 +147,28 @@ def stage_times(model, cloud: PointCloud) -> dict:
         if i:
             for key, t in zip(times, (c1 - c0, c2 - c1, c3 - c2)):
                 times[key].append(t)
-    return {key: statistics.median(t) * 1e3 for key, t in times.items()}
+    stages = {key: statistics.median(t) * 1e3 for key, t in times.items()}
+    return stages | {"classes": class_times(model, rays)}
+
+
+def class_times(model, rays) -> dict:
+    """Per ray class (the no-return rays, the points: the cloud's returns): rays, median CPU ms of the particle
+    kernel on those rays alone and particles drawn per ray, REPEATS frames after a warm-up, the classes alternating."""
+    medium = model.medium()
+    classes = {"no-return rays": ~rays.has_target & (rays.range_m > 0), "points": rays.has_target}
+    subsets = {key: dataclasses.replace(rays, range_m=rays.range_m[m], signal=rays.signal[m],
+                                        has_target=rays.has_target[m], listed=None) for key, m in classes.items()}
+    times, drawn = {key: [] for key in classes}, {key: [] for key in classes}
+    for i in range(REPEATS + 1):
+        for key, sub in subsets.items():
+            c0 = time.thread_time()
+            _, n = particle_returns(np.random.default_rng(i), sub, medium, model.return_mode,
+                                    model.draw_fraction_of_threshold)
+            if i:
+                times[key].append(time.thread_time() - c0)
+                drawn[key].append(n)
+    return {key: [int(np.count_nonzero(m)), statistics.median(times[key]) * 1e3,
+                  statistics.mean(drawn[key]) / max(int(np.count_nonzero(m)), 1)] for key, m in classes.items()}
 
 
 def peak_memory_mb(model, cloud: PointCloud) -> float:
@@ -189,6 +212,9 @@ def report(name: str, scene: str, cloud: PointCloud) -> None:
     for mid, st in stages.items():
         print(f"  {mid} stages (CPU ms, median): cloud → rays {st['rays']:.1f}, particle kernel {st['kernel']:.1f}, "
               f"rays → cloud {st['output']:.1f}")
+        print(f"    its particle kernel by ray class (CPU ms, median; alone): " + ", ".join(
+            f"{n} {key} rays {ms:.1f} ({1e6 * ms / max(n, 1):.0f} ns per ray, {per:.2f} particles per ray)"
+            for key, (n, ms, per) in st["classes"].items()))
 
 
 def firing_grid_time(cloud: PointCloud) -> None:
