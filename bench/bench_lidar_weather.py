@@ -212,8 +212,8 @@ def report(name: str, scene: str, cloud: PointCloud) -> None:
     for mid, st in stages.items():
         print(f"  {mid} stages (CPU ms, median): cloud → rays {st['rays']:.1f}, particle kernel {st['kernel']:.1f}, "
               f"rays → cloud {st['output']:.1f}")
-        print(f"    its particle kernel by ray class (CPU ms, median; alone): " + ", ".join(
-            f"{n} {key} rays {ms:.1f} ({1e6 * ms / max(n, 1):.0f} ns per ray, {per:.2f} particles per ray)"
+        print("    its particle kernel by ray class (CPU ms, median; alone): " + ", ".join(
+            f"{n} {key} {ms:.1f} ms ({1e6 * ms / max(n, 1):.0f} ns per ray, {per:.2f} particles per ray)"
             for key, (n, ms, per) in st["classes"].items()))
 
 
