@@ -111,10 +111,15 @@ class CocoRun:
         return dataclasses.replace(task, coco=payload)
 
     def keeps(self, task, entry: dict) -> bool:
-        """Whether ``--resume`` may keep an earlier entry: it has the record of this file for a listed image."""
+        """Whether ``--resume`` may keep an earlier entry: it has the record of this file for a listed image (with
+        the distortion of a moved image, :mod:`.coco_camera`)."""
         listed = task.sample.relpath in self.by_path
         record = entry.get("coco")
-        return (record is not None and record.get("sha256") == self.sha256) if listed else record is None
+        if not listed:
+            return record is None
+        # a record of a moved image without its distortion is from a version that did not state it: redone
+        return record is not None and record.get("sha256") == self.sha256 and \
+            ("moved" not in record or "distortion" in record)
 
     def collect(self, entry: dict) -> None:
         """Take the record of a released entry (fresh or kept), or its failure."""

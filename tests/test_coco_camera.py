@@ -58,23 +58,28 @@ def _mono3d() -> dict:
             "annotations": anns, "categories": [{"id": 1, "name": "Car"}]}
 
 
-def _run_windscreen(in_root: Path, out: Path, coco: str, camera: str, params: dict, inputs: dict):
+def _run_windscreen(in_root: Path, out: Path, coco: str, camera: str, params: dict, inputs: dict, **kw):
     recipe = parse_recipe({"schema": "rvnoise.recipe/1", "seed": 3,
                            "chain": [{"model": "windscreen.camera", "params": params}],
                            "inputs": {"camera": camera, "annotations": {"coco": coco}, **inputs}},
                           base_dir=in_root.parent)
-    return run(recipe, in_root, out, progress=False, echo=lambda *_: None, workers=1)
+    return run(recipe, in_root, out, progress=False, echo=lambda *_: None, workers=1, **kw)
+
+
+def _synthetic(tmp_path: Path, **kw):
+    """The synthetic file and its one image (made on the first call) through the strong distortion into OUT."""
+    root = tmp_path / "in"
+    if not root.exists():
+        write_image(root / "image_2" / "000000.png", np.full((H, W, 3), 0.5, np.float32), ImageEncoding())
+        (root / "mono3d.coco.json").write_text(json.dumps(_mono3d()))
+    return _run_windscreen(root, tmp_path / "out", "mono3d.coco.json", "image_2/*.png",
+                           {**STRONG, "coefficient_units": "normalised"},
+                           {"camera_profile": {"width_px": W, "height_px": H, "K": K}}, **kw)
 
 
 def test_synthetic_mono3d_under_strong_distortion(tmp_path):
-    root = tmp_path / "in"
-    write_image(root / "image_2" / "000000.png", np.full((H, W, 3), 0.5, np.float32), ImageEncoding())
-    (root / "mono3d.coco.json").write_text(json.dumps(_mono3d()))
     out = tmp_path / "out"
-    summary = _run_windscreen(root, out, "mono3d.coco.json", "image_2/*.png",
-                              {**STRONG, "coefficient_units": "normalised"},
-                              {"camera_profile": {"width_px": W, "height_px": H, "K": K}})
-    assert summary.failed == 0
+    assert _synthetic(tmp_path).failed == 0
     src, got = _mono3d(), json.loads((out / "mono3d.coco.json").read_text())
     image = got["images"][0]
     assert {k: v for k, v in image.items() if k != coco_camera.KEY} == src["images"][0]     # cam_intrinsic kept
@@ -92,6 +97,22 @@ def test_synthetic_mono3d_under_strong_distortion(tmp_path):
     assert not 0 <= got["annotations"][3]["center2d"][0] <= W         # a truncated object's centre stays outside
     entry = next(e for e in read_manifest(out / "manifest.jsonl") if e.get("modality") == "coco")
     assert entry["coco"]["images_distorted"] == 1
+
+
+def test_resume_redoes_records_without_the_distortion(tmp_path):
+    """A manifest written before images stated their distortion (records without ``distortion``) is not kept by
+    ``--resume``: its images are redone, so the file states what the images went through."""
+    from roadview_noise.manifest import write_manifest
+
+    out = tmp_path / "out"
+    assert _synthetic(tmp_path).done == 2
+    old = [{**e, "coco": {k: v for k, v in e["coco"].items() if k != "distortion"}} if "coco" in e and
+           e.get("modality") != "coco" else e for e in read_manifest(out / "manifest.jsonl")]
+    write_manifest(out / "manifest.jsonl", old)
+    again = _synthetic(tmp_path, resume=True)
+    assert (again.skipped, again.done) == (0, 2)
+    assert coco_camera.KEY in json.loads((out / "mono3d.coco.json").read_text())["images"][0]
+    assert _synthetic(tmp_path, resume=True).skipped == 1               # a record with it is kept
 
 
 def test_a_second_run_appends_its_step():
