@@ -163,8 +163,8 @@ def _augment(ctx: BagContext, typestore: Any, topic: BagTopic, job: MessageJob, 
                 data = message_data(ctx, typestore, topic, msg, job, source)
             except EmptyCloudError as e:       # a radar frame without detections: nothing to augment, as for files
                 entry.pop("seed_key")
-                entry.update(status="empty", skipped=True, copied_unchanged=True,
-                             note=str(e).removeprefix(f"{source}: "))
+                entry.update(status="ok", copied_unchanged=True, note=str(e).removeprefix(f"{source}: "),
+                             metrics={}, steps=[], output_sha256=entry["input_sha256"])
                 return None
             if getattr(data, "input_notes", None):
                 entry["inputs"] = dict(data.input_notes)
@@ -527,12 +527,13 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                     data = None if data is None else spool.take(data)
                     out.write(conn, t, raw if data is None else data)
                     log.write(dumps(entry) + "\n")
-                    tally.add(entry)
+                    empty = _is_empty_copy(entry)
+                    tally.add({**entry, "skipped": True} if empty else entry)     # counted apart from augmented
                     info_warnings.add(entry)
                     summary.planned += 1
                     counts = topics[entry["topic"]]
                     counts["messages"] += 1
-                    status = entry["status"] if entry["status"] in ("ok", "empty") else "failed"
+                    status = "empty" if empty else entry["status"] if entry["status"] == "ok" else "failed"
                     counts[status] = counts.get(status, 0) + 1
         finally:
             bar.close()
@@ -550,6 +551,12 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
                    **({"empty": summary.skipped} if summary.skipped else {})},
     })
     return summary
+
+
+def _is_empty_copy(entry: dict[str, Any]) -> bool:
+    """Whether a message's entry is a cloud with nothing to augment, copied unchanged (``status: ok`` with
+    ``copied_unchanged``, as a file run records an empty cloud file; a failed message is copied unchanged too)."""
+    return entry.get("status") == "ok" and bool(entry.get("copied_unchanged"))
 
 
 def _lost_entry(job: MessageJob, result: Any, bag: Path) -> dict[str, Any]:

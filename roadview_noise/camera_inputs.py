@@ -57,15 +57,20 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraF
     from .io import raw as raw_io
 
     path = in_root / sample.relpath
+    notes: dict[str, Any] = {}
     if sample.modality == "camera":
         linear, encoding, alpha = image_io.read_image(path)
         frame = CameraFrame(linear, nominal_profile(linear.shape[1], linear.shape[0]), encoding=encoding,
                             alpha=alpha)
     else:
-        dn, pattern, black, white, raw_encoding = raw_io.read_raw(path)
+        stated = recipe.spec.inputs.raw_black_level_dn
+        dn, pattern, black, white, raw_encoding = raw_io.read_raw(path, stated)
         frame = RawFrame(dn.astype(np.float32), pattern, float(black), float(white),
                          nominal_profile(dn.shape[1], dn.shape[0]), encoding=raw_encoding)
-    return with_camera_inputs(frame, recipe, FileImage(sample, in_root))
+        if stated is not None:
+            notes["black_level"] = {"value_dn": float(black), "from": "recipe inputs.raw_black_level_dn"}
+    frame = with_camera_inputs(frame, recipe, FileImage(sample, in_root))
+    return dataclasses.replace(frame, input_notes={**frame.input_notes, **notes}) if notes else frame
 
 
 def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: Any) -> CameraFrame | RawFrame:

@@ -7,6 +7,7 @@ at the end of the run.
   with ``training/image_2/000007.png``). COCO's own layout (``annotations/instances_val2017.json``, images in
   ``val2017/``) says ``coco_image_root: val2017``. The run refuses to start when no ``file_name`` resolves to a file,
   and warns with a count and an example for file names that do not, and for images of the run with no record.
+- An image that a geometric step moved gets ``rv_distortion`` in its ``images`` entry (:mod:`.coco_camera`).
 - Each output image's manifest entry records its annotations' moves (``coco``: changed fields by position in the
   file's ``annotations``, dropped ones with their id), so a resumed run rebuilds the file from kept entries too.
 - After the last image the file is written to OUT at the same relative path (a sweep variant's suffix before its
@@ -27,6 +28,7 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
+from . import coco_camera
 from .coco_warp import GEOMETRY_KEYS, CocoImage
 from .dataset import output_relpath
 from .errors import InputError, RecipeError
@@ -109,10 +111,15 @@ class CocoRun:
         return dataclasses.replace(task, coco=payload)
 
     def keeps(self, task, entry: dict) -> bool:
-        """Whether ``--resume`` may keep an earlier entry: it has the record of this file for a listed image."""
+        """Whether ``--resume`` may keep an earlier entry: it has the record of this file for a listed image (with
+        the distortion of a moved image, :mod:`.coco_camera`)."""
         listed = task.sample.relpath in self.by_path
         record = entry.get("coco")
-        return (record is not None and record.get("sha256") == self.sha256) if listed else record is None
+        if not listed:
+            return record is None
+        # a record of a moved image without its distortion is from a version that did not state it: redone
+        return record is not None and record.get("sha256") == self.sha256 and \
+            ("moved" not in record or "distortion" in record)
 
     def collect(self, entry: dict) -> None:
         """Take the record of a released entry (fresh or kept), or its failure."""
@@ -135,8 +142,9 @@ class CocoRun:
             record = self.records.get((variant, pos))
             if record is not None:
                 done[_key(img["id"])] = record
+                images[pos] = coco_camera.image_entry(img, record)
                 if suffix:
-                    images[pos] = {**img, "file_name": output_relpath(str(img["file_name"]), suffix)}
+                    images[pos] = {**images[pos], "file_name": output_relpath(str(img["file_name"]), suffix)}
         changes: dict[int, dict | None] = {}
         for record in done.values():
             changes.update({p: f for p, f in record.get("moved", ())})
@@ -152,13 +160,14 @@ class CocoRun:
             annotations.append({**ann, **changes[pos]} if pos in changes else ann)
         data = {k: images if k == "images" else annotations if k == "annotations" else v
                 for k, v in self.data.items()}
-        summary = {"images": len(images), "images_done": len(done),
+        distorted = sum(bool(r.get("distortion")) for r in done.values())
+        summary = {"images": len(images), "images_done": len(done), "images_distorted": distorted,
                    "images_failed": self.failed.get(variant, []),
                    "images_not_in_run": len(images) - len(done) - len(self.failed.get(variant, [])),
                    "inputs_not_in_file": self.unlisted,
                    "annotations": len(annotations), "annotations_moved": sum(f is not None for f in changes.values()),
                    "annotations_dropped": dropped}
-        return (None if not changes and not (suffix and done) else data), summary
+        return (None if not changes and not distorted and not (suffix and done) else data), summary
 
     def release(self, ledger, out_root: Path, previous) -> list[dict]:
         """Write the output file of every variant as an entry of the ledger (staged, recorded, renamed); returns

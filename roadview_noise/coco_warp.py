@@ -32,6 +32,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from . import coco_camera
 from .errors import InputError
 from .io import coco as coco_io
 
@@ -56,9 +57,10 @@ class CocoImage:
 
 
 def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
-    """The manifest record of one image: ``moved`` [[position, changed fields], …] and ``dropped`` [[position,
-    id], …]; neither when nothing moves. InputError when the file's size of the image is not the image's, or an
-    annotation is malformed (naming its id). Every outline and point of the image moves in one batch."""
+    """The manifest record of one image: ``moved`` [[position, changed fields], …], ``dropped`` [[position, id],
+    …] and ``distortion`` (the warps as :mod:`.coco_camera` states them); none when nothing moves. InputError when
+    the file's size of the image is not the image's, or an annotation is malformed (naming its id). Every outline
+    and point of the image moves in one batch."""
     h, w = shape
     if (image.width, image.height) != (None, None) and (image.width, image.height) != (w, h):
         raise InputError(f"the COCO file gives {image.file_name!r} {image.width}×{image.height} px, the image is "
@@ -67,6 +69,7 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     warps = [wp for wp in warps if not _is_identity(wp)]
     if not warps:
         return record
+    record["distortion"] = coco_camera.steps(warps)          # the image is no longer pinhole (coco_camera)
     mover = _Mover(warps, w, h)
     parsed = []
     for _, ann in image.annotations:

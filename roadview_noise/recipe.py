@@ -20,7 +20,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Annotated, Any, Literal, Union
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -83,6 +83,9 @@ class InputsSpec(_Strict):
 
     camera: Globs | None = None
     raw: Globs | None = None
+    # instead of every raw file's own black level (a DNG's wrong or missing BlackLevel): one value, or one per site
+    # of the frame's 2×2 CFA, row by row from its top-left site (io/raw.py black_override)
+    raw_black_level_dn: Annotated[float, Field(ge=0)] | tuple[Annotated[float, Field(ge=0)], ...] | None = None
     lidar: Globs | None = None
     radar: Globs | None = None
     exclude: list[str] = Field(default_factory=list)
@@ -109,6 +112,13 @@ class InputsSpec(_Strict):
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
     annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes
+
+    @model_validator(mode="after")
+    def _raw_black_level(self) -> "InputsSpec":
+        if isinstance(self.raw_black_level_dn, tuple) and len(self.raw_black_level_dn) not in (1, 4):
+            raise ValueError(f"raw_black_level_dn has {len(self.raw_black_level_dn)} values: give one, or four (the "
+                             "2×2 CFA sites row by row from the frame's top-left site)")
+        return self
 
     @model_validator(mode="after")
     def _depth_source_settings(self) -> "InputsSpec":

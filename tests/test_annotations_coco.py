@@ -173,7 +173,10 @@ def test_affine_warp_moves_every_kind_to_closed_form_positions(coco_tree, tmp_pa
     src, got = _dataset(), _out(out)
     s = AffineCamera.scale
     assert [a["id"] for a in got["annotations"]] == [11, 21, 12, 13, 14, 31]     # 15 left the image: dropped
-    assert {k: v for k, v in got.items() if k != "annotations"} == {k: v for k, v in src.items() if k != "annotations"}
+    assert {k: v for k, v in got.items() if k not in ("annotations", "images")} == \
+        {k: v for k, v in src.items() if k not in ("annotations", "images")}
+    assert [{k: v for k, v in i.items() if k != "rv_distortion"} for i in got["images"]] == src["images"]
+    assert [i.get("rv_distortion") for i in got["images"]] == [[{"model": "pixel_map"}]] * 2 + [None]  # coco_camera
     ann = _by_id(got)
     # polygon inside: each vertex at the closed-form position, no vertex added (an affine map bends no edge)
     x, y = forward_coco(POLY_INSIDE[0::2], POLY_INSIDE[1::2])
@@ -370,7 +373,8 @@ def test_mmdetection3d_kitti_mono3d_file(tmp_path):
     out = tmp_path / "out"
     assert _run(recipe, tmp_path / "in", out).failed == 0
     src, got = json.loads(REAL_COCO.read_text()), _out(out, f"kitti/{REAL_COCO.name}")
-    assert got["images"] == src["images"] and got["categories"] == src["categories"]
+    assert [{k: v for k, v in i.items() if k != "rv_distortion"} for i in got["images"]] == src["images"]
+    assert got["categories"] == src["categories"]
     assert [a["id"] for a in got["annotations"]] == [a["id"] for a in src["annotations"]]
     for a, b in zip(src["annotations"], got["annotations"]):
         assert a["bbox"] != b["bbox"] and a["center2d"][2] == b["center2d"][2]

@@ -555,7 +555,8 @@ def test_compressed_depth_topic_gives_the_same_camera_output_as_a_16uc1_image(tm
 
 def test_an_empty_cloud_is_copied_and_counted_not_failed(tmp_path):
     """A radar frame without detections (width 0, as ti_mmwave and ARS 408 drivers publish them) is copied unchanged
-    and counted as empty, not failed: the run exits 0 (it used to fail "the point cloud is empty (0 points)")."""
+    and counted as empty, not failed: the run exits 0 (it used to fail "the point cloud is empty (0 points)"); its
+    entry says so in the words of a file run's empty cloud."""
     from typer.testing import CliRunner
 
     from cli.main import app
@@ -581,7 +582,10 @@ def test_an_empty_cloud_is_copied_and_counted_not_failed(tmp_path):
     assert record["counts"] == {"augmented": 1, "failed": 0, "messages": 2, "empty": 1}
     assert record["topics"]["/radar"] == {"messages": 2, "ok": 1, "failed": 0, "empty": 1}
     first = json.loads(manifest_path(out).read_text().splitlines()[0])
-    assert first["status"] == "empty" and first["copied_unchanged"] is True
+    # the vocabulary of a file run's empty cloud (test_empty_clouds.py): ok, copied unchanged, why, no steps
+    assert (first["status"], first["copied_unchanged"], first["steps"], first["metrics"]) == ("ok", True, [], {})
+    assert "0 points" in first["note"] and first["output_sha256"] == first["input_sha256"]
+    assert "skipped" not in first and "seed_key" not in first
     with open_bag(src) as a, open_bag(out) as b:
         assert next(a.messages())[2] == next(b.messages())[2]
 

@@ -10,6 +10,8 @@ or reports wrongly, what this module reads from the tags (DNG specification 1.7,
   numbers, and LibRaw rescales them to 14-bit integers, out of step with their black level tags), compressions
   LibRaw cannot decode for integer data (deflate, JPEG XL), image data with tiles or strips missing or empty (sample
   files whose pixels a metadata tool stripped: LibRaw would decode zeros);
+- the ActiveArea at any origin (LibRaw's visible area starts at an even row and column): CFAPattern and the
+  BlackLevel repeat pattern have their origin at its top-left site;
 - the black level over the active area: ``BlackLevel`` per position of its ``BlackLevelRepeatDim`` pattern plus the
   per-column ``BlackLevelDeltaH`` and per-row ``BlackLevelDeltaV`` (LibRaw averages the deltas away and reads only
   the first value of a repeat pattern larger than 2×2), exact for RATIONAL values;
@@ -57,6 +59,8 @@ class DngLayout:
     black_mean_dn: float | None         # mean black level over the active area; None: no black-level tag
     black_spread_dn: float              # max − min of the black level over the active area
     black_source: str                   # the tags it comes from, for messages
+    active_origin: tuple[int, int] = (0, 0)      # top, left of the active area in the raw image (any parity)
+    raw_hw: tuple[int, int] | None = None        # rows, columns of the raw IFD's image
 
 
 def inspect(tif: tifffile.TiffFile, path: str | os.PathLike) -> DngLayout:
@@ -83,7 +87,8 @@ def inspect(tif: tifffile.TiffFile, path: str | os.PathLike) -> DngLayout:
     _check_compression(ifd, path)
     _check_chunks(ifd, h, w, path)
     top, left, bottom, right = _ints(ifd.tags.get(50829), (0, 0, h, w))           # ActiveArea
-    return DngLayout((bottom - top, right - left), *_black(ifd.tags, bottom - top, right - left, path))
+    return DngLayout((bottom - top, right - left), *_black(ifd.tags, bottom - top, right - left, path), (top, left),
+                     (h, w))
 
 
 def raw_ifd(tif: tifffile.TiffFile, path: str | os.PathLike):

@@ -1,8 +1,9 @@
 """Raw Bayer frames: DNG (read with rawpy/LibRaw, written with tifffile) and plain ``.raw`` + YAML sidecar.
 
-Digital numbers are returned as LibRaw decodes them (uint16, visible area, LinearizationTable applied), with the 2×2
-CFA pattern of the visible area's top-left site and the black/white levels the file states (the black level from the
-DNG tags, :mod:`.dng_layout`). ``RawFrame`` has one black level: black levels that differ by more than
+Digital numbers are returned as LibRaw decodes them (uint16, the whole ActiveArea whatever the parity of its
+origin, LinearizationTable applied), with the 2×2 CFA pattern of the active area's top-left site and the black/white
+levels the file states (the black level from the DNG tags, :mod:`.dng_layout`) or the recipe's
+``inputs.raw_black_level_dn``. ``RawFrame`` has one black level: black levels that differ by more than
 ``MAX_BLACK_SPREAD_DN`` over the frame (per CFA position, per row or column) are refused rather than averaged, since
 averaging would bias the darker sites; within the tolerance their mean is used.
 
@@ -15,6 +16,7 @@ from __future__ import annotations
 import os
 import warnings
 from fractions import Fraction
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -38,16 +40,38 @@ SIDECAR_KEYS = ("width", "height", "dtype", "byte_order", "cfa_pattern", "black_
 _BYTE_ORDERS = {"little": "<", "big": ">"}
 
 RawParts = tuple[np.ndarray, str, float, float]
+BlackOverride = float | Sequence[float] | None
 
 
-def read_raw(path: str | os.PathLike) -> tuple[np.ndarray, str, float, float, RawEncoding]:
-    """``.dng`` or ``.raw`` (+ sidecar) by suffix: (dn uint16 (H, W), cfa_pattern, black, white, encoding)."""
+def read_raw(path: str | os.PathLike, black_level_dn: BlackOverride = None
+             ) -> tuple[np.ndarray, str, float, float, RawEncoding]:
+    """``.dng`` or ``.raw`` (+ sidecar) by suffix: (dn uint16 (H, W), cfa_pattern, black, white, encoding).
+    ``black_level_dn``: the black level to use instead of the file's (:func:`black_override`)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".dng":
-        return (*read_dng(path), RawEncoding(fmt="dng"))
+        return (*read_dng(path, black_level_dn), RawEncoding(fmt="dng"))
     if suffix == ".raw":
-        return (*read_plain_raw(path), RawEncoding(fmt="raw"))
+        dn, pattern, black, white = read_plain_raw(path)
+        if black_level_dn is not None:
+            black = black_override(black_level_dn, white, path)
+        return dn, pattern, black, white, RawEncoding(fmt="raw")
     raise InputError(f"unknown raw suffix {Path(path).suffix!r}; expected .dng or .raw", file=str(path))
+
+
+def black_override(black_level_dn: float | Sequence[float], white_level_dn: float, path) -> float:
+    """The one black level (DN) of a recipe's ``inputs.raw_black_level_dn`` for a file whose white level is
+    ``white_level_dn``: one value, or one per site of the frame's 2×2 CFA (row by row from its top-left site, as
+    the DNG BlackLevel with BlackLevelRepeatDim 2×2), whose mean is used when they differ by at most
+    ``MAX_BLACK_SPREAD_DN`` (else refused, as for the file's own tags)."""
+    levels = np.atleast_1d(np.asarray(black_level_dn, dtype=float))
+    if np.ptp(levels) > MAX_BLACK_SPREAD_DN:
+        raise InputError(f"inputs.raw_black_level_dn {levels.tolist()} differs by more than {MAX_BLACK_SPREAD_DN} DN "
+                         "between CFA sites; rvnoise needs one black level", file=str(path))
+    black = float(levels.mean())
+    if not 0 <= black < white_level_dn:
+        raise InputError(f"inputs.raw_black_level_dn {black:g} is not below the white level {white_level_dn:g}",
+                         file=str(path))
+    return black
 
 
 def write_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_level_dn: float,
@@ -62,18 +86,19 @@ def write_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_l
         raise ValueError(f"unknown raw format {encoding.fmt!r}")
 
 
-def read_dng(path: str | os.PathLike) -> RawParts:
-    """Bayer DNG via rawpy: visible raw area, CFA pattern of its top-left site, black and white level (DN).
-    The TIFF structure is checked first (:func:`check_dng_structure`), so a truncated file or one rvnoise cannot use
-    is named as such."""
+def read_dng(path: str | os.PathLike, black_level_dn: BlackOverride = None) -> RawParts:
+    """Bayer DNG via rawpy: the whole ActiveArea, CFA pattern of its top-left site, black and white level (DN);
+    ``black_level_dn`` instead of the file's black-level tags when given (:func:`black_override`). The TIFF
+    structure is checked first (:func:`check_dng_structure`), so a truncated file or one rvnoise cannot use is
+    named as such."""
     layout = check_dng_structure(path)
     try:
         with rawpy.imread(str(path)) as raw:
             if raw.raw_pattern is None or raw.raw_pattern.shape != (2, 2):
                 raise InputError("not a 2×2 Bayer CFA raw (linear DNG, X-Trans or other mosaic)", file=str(path))
-            dn = np.array(raw.raw_image_visible, dtype=np.uint16)
+            dn, colours = _active_area(raw, layout)
             letters = raw.color_desc.decode("ascii")
-            pattern = "".join(letters[c] for c in raw.raw_colors_visible[:2, :2].ravel())
+            pattern = "".join(letters[c] for c in colours.ravel())
             blacks = np.asarray(raw.black_level_per_channel, dtype=float)
             white = float(raw.white_level)
     except rawpy.LibRawError as exc:
@@ -81,6 +106,8 @@ def read_dng(path: str | os.PathLike) -> RawParts:
             from exc
     if pattern not in CFA_PATTERNS:
         raise InputError(f"CFA pattern {pattern!r} is not one of {CFA_PATTERNS}", file=str(path))
+    if black_level_dn is not None:
+        return dn, pattern, black_override(black_level_dn, white, path), white
     if layout.black_spread_dn > MAX_BLACK_SPREAD_DN:
         raise InputError(f"the black level varies by {layout.black_spread_dn:g} DN over the frame "
                          f"({layout.black_source}), more than {MAX_BLACK_SPREAD_DN} DN; rvnoise needs one black level",
@@ -95,9 +122,23 @@ def read_dng(path: str | os.PathLike) -> RawParts:
         warnings.warn(BlackLevelWarning(
             "a DNG without a BlackLevel tag is read with black 0 DN (the DNG default), but none of its samples is "
             f"below {UNTAGGED_BLACK_HINT:.0%} of white: the sensor's black is likely higher (e.g. PiDNG files of "
-            "Raspberry Pi cameras), and noise and weather radiances would then ride on that offset; add the tag "
-            "(e.g. with exiftool) if so"))
+            "Raspberry Pi cameras), and noise and weather radiances would then ride on that offset; if so, add the "
+            "tag (e.g. with exiftool) or set the recipe's inputs.raw_black_level_dn"))
     return dn, pattern, black, white
+
+
+def _active_area(raw, layout: dng_layout.DngLayout) -> tuple[np.ndarray, np.ndarray]:
+    """The samples of the whole ActiveArea (uint16) and the colour indices of its top-left 2×2 sites. LibRaw's
+    visible area starts at an even row and column (one row or column of an odd origin lost) and its colour map
+    keeps the CFAPattern's phase at the ActiveArea's origin, as the DNG specification puts it; the full raw image
+    is cropped here instead. A raw image whose size is not the IFD's (LibRaw cropped it itself) stays LibRaw's
+    visible area."""
+    top, left = layout.active_origin
+    if raw.raw_image.shape != layout.raw_hw:
+        return np.array(raw.raw_image_visible, dtype=np.uint16), raw.raw_colors_visible[:2, :2]
+    rows, cols = layout.active_hw
+    return (np.array(raw.raw_image[top:top + rows, left:left + cols], dtype=np.uint16),
+            raw.raw_colors[top:top + 2, left:left + 2])
 
 
 _LIBRAW_WORDS = {
