@@ -28,8 +28,8 @@ from roadview_noise.physics import particles                  # noqa: E402
 from roadview_noise.profiles.camera import lucid_triton_028s  # noqa: E402
 from roadview_noise.registry import get_model                 # noqa: E402
 
-STAGES = ("explicit_depth_limits", "sample_particles", "block_keys", "_render_streaks", "add_upsampled",
-          "render_coverage", "resolved_depth_limits", "unresolved_field", "add_unresolved_coverage", "veil_optical_depth_table",
+STAGES = ("particle_tables", "explicit_depth_limits", "sample_particles", "block_keys", "_render_streaks", "add_upsampled",
+          "render_coverage", "resolved_depth_limits", "unresolved_field", "transmit_through_particles", "veil_optical_depth_table",
           "veil_transmission", "composite")
 
 

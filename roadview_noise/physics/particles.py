@@ -807,44 +807,84 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
     return UnresolvedField(cuts, mark, mean, variance, expected)
 
 
-def add_unresolved_coverage(coverage: np.ndarray, profile: CameraProfile, depth_m: np.ndarray,
-                            field: UnresolvedField, d_max_m: float, rng: np.random.Generator) -> None:
-    """Add :func:`unresolved_field`'s per-pixel opacity to ``coverage`` (H, W) in place, clipped to 1: particles up
-    to the scene's planar depth, or to the ground's below the horizon (none are under the ground), at the
-    nearest bin of the veil table."""
+def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: CameraProfile, depth_m: np.ndarray,
+                               field: UnresolvedField | None, d_max_m: float, rng: np.random.Generator) -> float:
+    """``t ← t·(1 − M)`` in place per pixel, M the opacity of the explicit streaks (``coverage``) plus, with a
+    ``field``, the :func:`unresolved_field` draw (particles up to the scene's planar depth, or to the ground's below
+    the horizon: none are under the ground; at the nearest bin of the veil table), clipped to 1 (written back into
+    ``coverage``). Returns the mean M over the image."""
     h, w = coverage.shape
     k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     below = np.arange(h) - profile.cy_px
     with np.errstate(divide="ignore"):
         ground = np.where(below > 0, profile.height_above_ground_m * profile.fy_px / below, np.inf)
-    _unresolved_kernel(np.ascontiguousarray(depth_m, dtype=np.float32), k,
-                       np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m),
-                       field.cuts, field.mark, uniform_bits(rng, h * w), coverage)
+    if field is None:                                  # nothing drawn: a table that never counts, no uniforms
+        cuts, mark, bits = np.full((1, 1), UNIFORM_CODES, np.int32), np.zeros(1, np.float32), np.zeros(0, np.uint16)
+    else:
+        cuts, mark, bits = field.cuts, field.mark, uniform_bits(rng, h * w)
+    _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
+                     np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
+                     mark, bits, field is not None)
+    return float(cv2.mean(coverage)[0])
 
 
 @jit(error_model="numpy")
-def _unresolved_kernel(depth_m, k, ground_z, bins_per_m, cuts, mark, bits, coverage):   # pragma: no cover
-    """Per row: the bins (vectorised), the counts (a second cut is rare: no branch before it), the opacity."""
+def _transmit_kernel(t, coverage, depth_m, k, ground_z, bins_per_m, cuts, mark, bits, draw):  # pragma: no cover
+    """Per row: the bins (vectorised), the counts (a second cut is rare: no branch before it), the blend (M back
+    into ``coverage``)."""
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
-    bins, added = np.empty(w, np.uint8), np.empty(w, np.float32)
+    bins, added = np.empty(w, np.uint8), np.zeros(w, np.float32)
     for y in range(depth_m.shape[0]):
-        d, k_row, cov, limit, u_row = depth_m[y], k[y], coverage[y], ground_z[y], bits[y * w:(y + 1) * w]
+        d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
+        if draw:
+            limit, u_row = ground_z[y], bits[y * w:(y + 1) * w]
+            for x in range(w):
+                bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
+            for x in range(w):
+                b, u = bins[x], np.int32(u_row[x])
+                n = np.int32(u >= cuts[b, 0])
+                if u >= cuts[b, 1]:
+                    n = 2
+                    while u >= cuts[b, n]:
+                        n += 1
+                added[x] = np.float32(n) * mark[b]
         for x in range(w):
-            bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
-        for x in range(w):
-            b, u = bins[x], np.int32(u_row[x])
-            n = np.int32(u >= cuts[b, 0])
-            if u >= cuts[b, 1]:
-                n = 2
-                while u >= cuts[b, n]:
-                    n += 1
-            added[x] = np.float32(n) * mark[b]
-        for x in range(w):
-            cov[x] = min(cov[x] + added[x] * k_row[x], one)
+            m = min(cov[x] + added[x] * k_row[x], one)
+            cov[x] = m
+            t_row[x] *= one - m
 
 
 # --- one frame -------------------------------------------------------------------------------------------------
+
+class ParticleTables(NamedTuple):
+    """What :func:`render_precipitation` derives from the camera, the medium and the conditions alone: per class
+    the depth limits of the visible (:func:`explicit_depth_limits`) and of the resolved particles
+    (:func:`resolved_depth_limits`), the :func:`unresolved_field` between them, the
+    :func:`veil_optical_depth_table` of the rest (read-only arrays)."""
+
+    limits: np.ndarray
+    resolved: np.ndarray
+    unresolved: UnresolvedField | None
+    veil: tuple[np.ndarray, np.ndarray]
+
+
+@lru_cache(maxsize=8)
+def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                    conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float,
+                    min_extent_px: float) -> ParticleTables:
+    """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes)."""
+    limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                   min_opacity)
+    resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                     limits, min_extent_px)
+    field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
+                             d_max_m)
+    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m))
+    for a in (limits, resolved, *out.veil, *(field[:4] if field is not None else ())):
+        a.flags.writeable = False
+    return out
+
 
 def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_speed, radiance, exposure_s: float,
                          d_min_m: float, d_max_m: float, min_opacity: float, min_extent_px: float,
@@ -860,28 +900,19 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     layout = SiteLayout.of(frame)
     signal = frame.signal()
     s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
-    limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
-                                   min_opacity)
-    resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
-                                     limits, min_extent_px)
-    particles, expected = sample_particles(rng, profile, classes, resolved, d_min_m, d_max_m, fall_speed)
+    tables = particle_tables(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
+                             min_opacity, min_extent_px)
+    particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed)
     coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
-    field = unresolved_field(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, resolved, limits,
-                             d_max_m)
-    if field is not None:
-        add_unresolved_coverage(coverage, profile, depth, field, d_max_m, rng)
     sigma = classes.extinction_per_m()
-    t = veil_transmission(profile, depth, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), sigma,
-                          d_max_m)
-    mean_coverage = float(cv2.mean(coverage)[0])
-    np.subtract(np.float32(1.0), coverage, out=coverage)
-    np.multiply(t, coverage, out=t)
+    t = veil_transmission(profile, depth, tables.veil, sigma, d_max_m)
+    mean_coverage = transmit_through_particles(t, coverage, profile, depth, tables.unresolved, d_max_m, rng)
     out = composite(layout, signal, t, s)
     return frame.with_signal(out), {
         "particles_expected": expected,
         "particles_drawn": int(particles.z.size),
         "particles_visible": n_visible,
-        "particles_unresolved_expected": 0.0 if field is None else field.expected,
+        "particles_unresolved_expected": 0.0 if tables.unresolved is None else tables.unresolved.expected,
         "mean_streak_opacity": mean_coverage,
         "veil_extinction_per_m": sigma,
         "particle_radiance": [float(v) for v in s],

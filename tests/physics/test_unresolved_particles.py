@@ -1,5 +1,5 @@
 """Unresolved camera rain/snow particles drawn per pixel (physics/particles.py: resolved_depth_limits,
-unresolved_field, add_unresolved_coverage): the per-pixel compound-Poisson opacity has the mean and variance of
+unresolved_field, transmit_through_particles): the per-pixel compound-Poisson opacity has the mean and variance of
 the explicit particles it replaces, the mean image does not change, and the split is where streaks drop below a
 pixel."""
 
@@ -102,8 +102,11 @@ def test_per_pixel_draw_has_the_mean_and_variance_of_the_explicit_particles(prof
     for seed in range(6):
         cov_e, _ = P.render_coverage(profile, _explicit_unresolved(profile, classes, near, far, seed), Conditions(),
                                      0.005, depth, 0.5)
-        cov_s = np.zeros((h, w), np.float32)
-        P.add_unresolved_coverage(cov_s, profile, depth, field, 30.0, np.random.default_rng(seed))
+        t = np.ones((h, w), np.float32)
+        mean = P.transmit_through_particles(t, np.zeros((h, w), np.float32), profile, depth, field, 30.0,
+                                            np.random.default_rng(seed))
+        cov_s = 1 - t
+        assert mean == pytest.approx(cov_s.mean(), rel=1e-5)
         for r, sl in regions.items():
             explicit[r].append((cov_e / k)[sl].ravel())
             drawn[r].append((cov_s / k)[sl].ravel())
