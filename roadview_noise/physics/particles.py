@@ -36,6 +36,13 @@ shadow, Q = 1, because a camera pixel collects the forward diffraction lobe (λ/
 particles), the "extinction paradox" of Bohren & Huffman §4.4; this also makes the veil the exact mean of the
 explicit particles it replaces. The veil's path radiance is the particles' radiance S (Koschmieder with A = S),
 so the mean image does not depend on ``min_opacity``; only the texture of the sub-threshold particles is lost.
+
+Unresolved particles. Of the visible ones, those whose streak (motion + footprint) spans less than
+``min_extent_px`` (1 px: a point, whose only trace is the opacity it adds to one or two pixels) are not drawn one
+by one but per pixel: their summed opacity in a pixel is a compound-Poisson sum whose mean (the same optical depth
+as the veil's) and variance follow in closed form from the size classes, the depth slabs and the splat's pixel
+shares (:func:`unresolved_field`); each pixel draws a Poisson count with both moments matched. Snow at 3.03 mm/h
+on the Lucid frame: 0.26 M particles drawn one by one instead of 1.2 M, 0.97 M unresolved.
 """
 
 from __future__ import annotations
