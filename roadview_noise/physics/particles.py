@@ -36,6 +36,13 @@ shadow, Q = 1, because a camera pixel collects the forward diffraction lobe (λ/
 particles), the "extinction paradox" of Bohren & Huffman §4.4; this also makes the veil the exact mean of the
 explicit particles it replaces. The veil's path radiance is the particles' radiance S (Koschmieder with A = S),
 so the mean image does not depend on ``min_opacity``; only the texture of the sub-threshold particles is lost.
+
+Unresolved particles. Of the visible ones, those whose streak (motion + footprint) spans less than
+``min_extent_px`` (1 px: a point, whose only trace is the opacity it adds to one or two pixels) are not drawn one
+by one but per pixel: their summed opacity in a pixel is a compound-Poisson sum whose mean (the same optical depth
+as the veil's) and variance follow in closed form from the size classes, the depth slabs and the splat's pixel
+shares (:func:`unresolved_field`); each pixel draws a Poisson count with both moments matched. Snow at 3.03 mm/h
+on the Lucid frame: 0.26 M particles drawn one by one instead of 1.2 M, 0.97 M unresolved.
 """
 
 from __future__ import annotations
@@ -47,6 +54,7 @@ from typing import Callable, NamedTuple
 
 import cv2
 import numpy as np
+from scipy.special import pdtr, pdtrc
 
 from ..profiles.camera import fit_to_image
 from ..types import CameraProfile, Conditions
@@ -56,6 +64,7 @@ from .dsd import BRANDES_SNOW_GAMMA, gamma_dsd, marshall_palmer, snowfall
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
 from .photometry import composite, estimation_depth, frame_depth_m
+from .sensor_noise import uniform_bits
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -263,6 +272,28 @@ def explicit_depth_limits(profile: CameraProfile, exposure_s: float, classes: Si
     last = np.where(visible.any(axis=1), z.size - 1 - np.argmax(visible[:, ::-1], axis=1), -1)
     limits = np.where(last >= 0, z[np.maximum(last, 0)], d_min_m)
     return np.where(classes.number > 0, limits, d_min_m)
+
+
+def resolved_depth_limits(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                          conditions: Conditions, d_min_m: float, d_max_m: float, limits_m: np.ndarray,
+                          min_extent_px: float) -> np.ndarray:
+    """Per class, the planar depth up to which particles are drawn one by one (at most ``limits_m``, the
+    :func:`explicit_depth_limits`): the farthest Z on the same grid where the streak still spans ``min_extent_px``
+    pixels (motion during the exposure plus footprint). Beyond it a particle is an unresolved point whose only
+    trace is the opacity it adds to one or two pixels: :func:`unresolved_field` draws those per pixel. The motion
+    is bounded from above (lateral speed at the longer focal length plus the radial part of v_rel at the image
+    corner), so the test errs towards explicit particles."""
+    d = classes.rms_d_mm
+    v = relative_velocity_optical(conditions, fall_speed(d))
+    corner_px = math.hypot(max(profile.cx_px, profile.width_px - profile.cx_px),
+                           max(profile.cy_px, profile.height_px - profile.cy_px))
+    motion = exposure_s * (max(profile.fx_px, profile.fy_px) * np.hypot(v[:, 0], v[:, 1]) +
+                           np.abs(v[:, 2]) * corner_px)                                    # px·m
+    z = np.geomspace(d_min_m, d_max_m, 256)
+    footprint = np.hypot(d[:, None] * 1e-3 * focal_px(profile) / z[None, :], defocus_px(profile, z)[None, :])
+    resolved = motion[:, None] / z[None, :] + footprint >= min_extent_px
+    last = np.where(resolved.any(axis=1), z.size - 1 - np.argmax(resolved[:, ::-1], axis=1), -1)
+    return np.minimum(np.where(last >= 0, z[np.maximum(last, 0)], d_min_m), limits_m)
 
 
 # --- sampling --------------------------------------------------------------------------------------------------
@@ -710,10 +741,161 @@ def _veil_neg_optical_depth(depth_m, k, neg_h, bins_per_m, d_max_m, sigma, out):
             row[x] = max(k_row[x] * neg_h[nearest_bin[x]] - row[x], np.float32(-80))
 
 
+# --- unresolved particles: compound-Poisson opacity per pixel ----------------------------------------------------
+
+UNRESOLVED_CELLS = 256          # depth cells of the variance quadrature (midpoint rule, 1.6 % wide)
+UNRESOLVED_TAIL = 2.0 ** -24    # Poisson tail left out of the count tables (its mean is kept by the mark)
+UNIFORM_CODES = 1 << 16         # 16-bit uniforms (sensor_noise.uniform_bits)
+
+
+class UnresolvedField(NamedTuple):
+    """Per planar-depth bin b of the veil table (the scene, or the ground, nearest along the pixel's ray): a pixel
+    draws ``N`` = the number of ``cuts[b]`` ≤ its 16-bit uniform and gains the opacity ``N · mark[b] · k`` (k the
+    ray factor). ``mean``/``variance`` per unit k / k² are the moments matched; ``expected`` the number of
+    particles in the image above the ground."""
+
+    cuts: np.ndarray
+    mark: np.ndarray
+    mean: np.ndarray
+    variance: np.ndarray
+    expected: float
+
+
+def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                     conditions: Conditions, d_min_m: float, near_m: np.ndarray, far_m: np.ndarray,
+                     d_max_m: float) -> UnresolvedField | None:
+    """The particles of class i between planar depths ``near_m[i]`` and ``far_m[i]`` (unresolved points, see
+    :func:`resolved_depth_limits`) as one compound-Poisson opacity per pixel, or None if there are none.
+
+    Their opacity summed over a pixel whose ray meets the scene at planar depth z is a compound-Poisson sum: a
+    pixel's frustum holds ``n_i Z²/(f_x f_y) dZ`` particles per depth step, each of opacity (image area)
+    ``m = (π/4) D² f_x f_y k / Z²`` spread by :func:`splat_streaks` over a streak of ℓ px along its major axis
+    (motion + footprint) and two pixels across. Hence (Campbell's theorem) the mean ``k Σ_i σ_i |[near_i, far_i] ∩
+    [0, z]|`` — the same optical depth as the veil's, so the mean image is unchanged — and the variance
+    ``k² Σ_i ∫ σ_i m_i(Z) s(ℓ_i(Z)) dZ``, with ``s(ℓ) = ⅔ (1 − ℓ/3)`` (ℓ ≤ 1) or ``⅔ (ℓ − ⅓)/ℓ²`` the mean of
+    Σ (pixel share)² of a box of length ℓ at a uniform offset (⅔: the two-pixel split across). A pixel draws a
+    Poisson count of rate mean²/variance, each adding variance/mean: both moments matched per pixel (quantised to
+    16-bit uniforms; the mark is set so that the mean stays exact). What is not kept: the correlation between the
+    one to three pixels a single particle touches, and the spread of the individual opacities. The streak length
+    is the lateral motion's (the image centre's under ego motion)."""
+    field = (far_m > near_m) & (classes.number > 0)
+    if not field.any():
+        return None
+    near, far = near_m[field], far_m[field]
+    sigma = IMAGING_Q_EXT * classes.shadow_area_m2[field]
+    d = classes.rms_d_mm[field]
+    v = relative_velocity_optical(conditions, fall_speed(d))
+    # variance: midpoint rule on geometric cells, each class over the part of the cell inside [near_i, far_i]
+    edges = np.geomspace(near.min(), far.max(), UNRESOLVED_CELLS + 1)
+    mid = np.sqrt(edges[1:] * edges[:-1])
+    inside = np.clip(np.minimum(edges[1:, None], far) - np.maximum(edges[:-1, None], near), 0.0, None)
+    motion = exposure_s * np.maximum(np.abs(v[:, 0]) * profile.fx_px, np.abs(v[:, 1]) * profile.fy_px)
+    length = motion / mid[:, None] + np.hypot(d * 1e-3 * focal_px(profile) / mid[:, None],
+                                              defocus_px(profile, mid)[:, None])
+    share2 = np.where(length <= 1.0, 1.0 - length / 3.0, (length - 1.0 / 3.0) / length ** 2) * (2.0 / 3.0)
+    mass = math.pi / 4 * (d * 1e-3) ** 2 * profile.fx_px * profile.fy_px / mid[:, None] ** 2
+    cumulative = np.concatenate([[0.0], np.cumsum((inside * sigma * mass * share2).sum(axis=1))])
+    # per veil-table bin (the kernel's nearest bin of min(scene, ground, d_max))
+    z = np.linspace(0.0, d_max_m, VEIL_LUT_SIZE)
+    mean = np.clip(z[:, None] - near, 0.0, far - near) @ sigma
+    variance = np.interp(z, edges, cumulative)
+    rate = np.divide(mean ** 2, variance, out=np.zeros_like(mean), where=variance > 0)
+    counts = np.arange(int(rate.max() + 12 * math.sqrt(rate.max())) + 32)
+    top = int(np.argmax(pdtrc(counts, rate.max()) < UNRESOLVED_TAIL)) + 1      # P(N ≥ top) < the tail
+    cdf = pdtr(counts[:top], rate[:, None])
+    cuts = np.empty((VEIL_LUT_SIZE, top + 1), np.int32)
+    cuts[:, :top] = np.rint(cdf * UNIFORM_CODES)
+    cuts[:, 0] = np.where(mean > 0, np.minimum(cuts[:, 0], UNIFORM_CODES - 1), UNIFORM_CODES)   # never lose the mean
+    cuts[:, top] = UNIFORM_CODES                                                 # stops the count
+    counted = (UNIFORM_CODES - cuts[:, :top]).sum(axis=1) / UNIFORM_CODES        # E[N] of the quantised draw
+    mark = np.divide(mean, counted, out=np.zeros_like(mean), where=counted > 0).astype(np.float32)
+    z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
+    expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
+    return UnresolvedField(cuts, mark, mean, variance, expected)
+
+
+def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: CameraProfile, depth_m: np.ndarray,
+                               field: UnresolvedField | None, d_max_m: float, rng: np.random.Generator) -> float:
+    """``t ← t·(1 − M)`` in place per pixel, M the opacity of the explicit streaks (``coverage``) plus, with a
+    ``field``, the :func:`unresolved_field` draw (particles up to the scene's planar depth, or to the ground's below
+    the horizon: none are under the ground; at the nearest bin of the veil table), clipped to 1 (written back into
+    ``coverage``). Returns the mean M over the image."""
+    h, w = coverage.shape
+    k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
+    below = np.arange(h) - profile.cy_px
+    with np.errstate(divide="ignore"):
+        ground = np.where(below > 0, profile.height_above_ground_m * profile.fy_px / below, np.inf)
+    if field is None:                                  # nothing drawn: a table that never counts, no uniforms
+        cuts, mark, bits = np.full((1, 1), UNIFORM_CODES, np.int32), np.zeros(1, np.float32), np.zeros(0, np.uint16)
+    else:
+        cuts, mark, bits = field.cuts, field.mark, uniform_bits(rng, h * w)
+    _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
+                     np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
+                     mark, bits, field is not None)
+    return float(cv2.mean(coverage)[0])
+
+
+@jit(error_model="numpy")
+def _transmit_kernel(t, coverage, depth_m, k, ground_z, bins_per_m, cuts, mark, bits, draw):  # pragma: no cover
+    """Per row: the bins (vectorised), the counts (a second cut is rare: no branch before it), the blend (M back
+    into ``coverage``)."""
+    one, half = np.float32(1), np.float32(0.5)
+    w = depth_m.shape[1]
+    bins, added = np.empty(w, np.uint8), np.zeros(w, np.float32)
+    for y in range(depth_m.shape[0]):
+        d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
+        if draw:
+            limit, u_row = ground_z[y], bits[y * w:(y + 1) * w]
+            for x in range(w):
+                bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
+            for x in range(w):
+                b, u = bins[x], np.int32(u_row[x])
+                n = np.int32(u >= cuts[b, 0])
+                if u >= cuts[b, 1]:
+                    n = 2
+                    while u >= cuts[b, n]:
+                        n += 1
+                added[x] = np.float32(n) * mark[b]
+        for x in range(w):
+            m = min(cov[x] + added[x] * k_row[x], one)
+            cov[x] = m
+            t_row[x] *= one - m
+
+
 # --- one frame -------------------------------------------------------------------------------------------------
 
+class ParticleTables(NamedTuple):
+    """What :func:`render_precipitation` derives from the camera, the medium and the conditions alone: per class
+    the depth limits of the visible (:func:`explicit_depth_limits`) and of the resolved particles
+    (:func:`resolved_depth_limits`), the :func:`unresolved_field` between them, the
+    :func:`veil_optical_depth_table` of the rest (read-only arrays)."""
+
+    limits: np.ndarray
+    resolved: np.ndarray
+    unresolved: UnresolvedField | None
+    veil: tuple[np.ndarray, np.ndarray]
+
+
+@lru_cache(maxsize=8)
+def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                    conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float,
+                    min_extent_px: float) -> ParticleTables:
+    """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes)."""
+    limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                   min_opacity)
+    resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                     limits, min_extent_px)
+    field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
+                             d_max_m)
+    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m))
+    for a in (limits, resolved, *out.veil, *(field[:4] if field is not None else ())):
+        a.flags.writeable = False
+    return out
+
+
 def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_speed, radiance, exposure_s: float,
-                         d_min_m: float, d_max_m: float, min_opacity: float, rng: np.random.Generator):
+                         d_min_m: float, d_max_m: float, min_opacity: float, min_extent_px: float,
+                         rng: np.random.Generator):
     """Rain or snow on a camera or raw frame: explicit streaks in front of the scene, veil behind them.
 
     ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame (depth NaN
@@ -725,21 +907,19 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     layout = SiteLayout.of(frame)
     signal = frame.signal()
     s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
-    limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
-                                   min_opacity)
-    particles, expected = sample_particles(rng, profile, classes, limits, d_min_m, d_max_m, fall_speed)
+    tables = particle_tables(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
+                             min_opacity, min_extent_px)
+    particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed)
     coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
     sigma = classes.extinction_per_m()
-    t = veil_transmission(profile, depth, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), sigma,
-                          d_max_m)
-    mean_coverage = float(cv2.mean(coverage)[0])
-    np.subtract(np.float32(1.0), coverage, out=coverage)
-    np.multiply(t, coverage, out=t)
+    t = veil_transmission(profile, depth, tables.veil, sigma, d_max_m)
+    mean_coverage = transmit_through_particles(t, coverage, profile, depth, tables.unresolved, d_max_m, rng)
     out = composite(layout, signal, t, s)
     return frame.with_signal(out), {
         "particles_expected": expected,
         "particles_drawn": int(particles.z.size),
         "particles_visible": n_visible,
+        "particles_unresolved_expected": 0.0 if tables.unresolved is None else tables.unresolved.expected,
         "mean_streak_opacity": mean_coverage,
         "veil_extinction_per_m": sigma,
         "particle_radiance": [float(v) for v in s],

@@ -181,6 +181,25 @@ def test_weather_scales_with_the_scene_under_low_light(model):
     np.testing.assert_allclose(dark_out.linear_rgb, 0.05 * bright_out.linear_rgb, rtol=1e-4, atol=1e-7)
 
 
+def test_unresolved_snowflakes_drawn_per_pixel_keep_the_count_and_the_mean_image():
+    """The default draws flakes whose streak spans < 1 px per pixel (their compound-Poisson opacity); drawing every
+    visible flake one by one (``min_explicit_extent_px: 0``) gives the same expected count and the same mean
+    opacity and image, with more particles drawn one by one."""
+    frame = scene()
+    results = {}
+    for extent in (0.0, 1.0):
+        runs = [run(Snow(min_explicit_extent_px=extent), frame, seed) for seed in range(3)]
+        results[extent] = (np.mean([o.linear_rgb.mean(axis=(0, 1)) for o, _ in runs], axis=0),
+                           np.mean([d["mean_streak_opacity"] for _, d in runs]), runs[0][1])
+    (img0, m0, d0), (img1, m1, d1) = results[0.0], results[1.0]
+    assert d0["particles_unresolved_expected"] == 0 < d1["particles_unresolved_expected"]
+    assert d1["particles_drawn"] < d0["particles_drawn"]
+    assert d1["particles_expected"] + d1["particles_unresolved_expected"] == pytest.approx(d0["particles_expected"],
+                                                                                         rel=1e-9)
+    assert m1 == pytest.approx(m0, rel=0.02)
+    np.testing.assert_allclose(img1, img0, rtol=2e-3)
+
+
 def test_snow_flake_radiance_is_reflectance_times_sky():
     """White flakes lit like the fog: ρ_s × the airlight fog estimates (sky luminance, illuminant colour)."""
     _, diag = run(Snow(flake_reflectance=0.9), scene())

@@ -32,6 +32,11 @@ class PrecipitationCamera(Model):
                                       doc="a particle is drawn only if its peak pixel opacity reaches this; fainter "
                                           "ones (changing a pixel by < 2 % of its contrast with the particle) are "
                                           "rendered by their mean, in the veil; lower = more texture, slower")
+    min_explicit_extent_px: float = param(1.0, unit="px", ge=0,
+                                          doc="a visible particle is drawn one by one only if its streak (motion + "
+                                              "footprint) spans this many pixels; shorter (unresolved) ones add "
+                                              "their opacity per pixel, a compound-Poisson draw with their mean and "
+                                              "variance; 0 = all one by one (slower)")
 
     def validate(self) -> None:
         e = self.exposure_time_s
@@ -59,7 +64,7 @@ class PrecipitationCamera(Model):
         return render_precipitation(data, self.id, classes=self.size_classes(), fall_speed=self.fall_speed,
                                     radiance=self.radiance, exposure_s=exposure, d_min_m=self.min_distance_m,
                                     d_max_m=self.max_particle_distance_m, min_opacity=self.min_streak_opacity,
-                                    rng=rng)
+                                    min_extent_px=self.min_explicit_extent_px, rng=rng)
 
 
 @register
