@@ -11,17 +11,24 @@ radiometrically at that range. So it counts as the median of their range-free re
 ``S = K ρ cos θ / R²``: a target population, not a distance) in its range bin — bins of :data:`BIN_LOG_RANGE` in
 ln R, the medians of bins with at least :data:`MIN_READINGS` informative returns interpolated linearly in ln R,
 constant beyond the outer ones (the same population farther away reads ∝ R⁻²) — over R², and at least the floor (it
-was detected). The medians come from a histogram of ln(S·R²) in steps of :data:`LOG_STEP` (no sort). A scan with no
-bin of enough informative readings keeps the floor.
+was detected). The medians come from a histogram of ln(S·R²) in steps of :data:`LOG_STEP` (one compiled pass, no
+sort). A scan with no bin of enough informative readings keeps the floor.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from .compiled import jit
+
 BIN_LOG_RANGE = 0.25        # range bin width in ln R (R × 1.28)
+FIRST_RANGE_BIN = -10       # range bins k·BIN_LOG_RANGE ≤ ln R < (k+1)·BIN_LOG_RANGE from this k (0.08 m) …
+RANGE_BINS = 48             # … the last (beyond 12 km) takes all beyond
 MIN_READINGS = 32           # informative readings a range bin needs for its median
-LOG_STEP = 0.01             # histogram step of ln(S·R²) for the medians (1 %)
+LOG_STEP = 0.01             # histogram step of ln(S·R²) for the medians (1 %) …
+LOG_SPAN = 30.0             # … from the floor's (at 1 m) up: 10¹³ times the floor
 
 
 def uninformative(signal: np.ndarray, has_target: np.ndarray, stored: np.ndarray, floor: float) -> np.ndarray:
@@ -35,27 +42,55 @@ def population_signal(signal: np.ndarray, range_m: np.ndarray, has_target: np.nd
     """``signal`` with each ``unknown`` return's value replaced by the median range-free reading of the informative
     returns at its range over R², at least ``floor`` (module doc). Arrays per ray; ``unknown`` ⊆ ``has_target``."""
     out = np.array(signal, dtype=np.float64)
-    at = np.flatnonzero(unknown)
-    if len(at) == 0:
-        return out
-    known = np.flatnonzero(has_target & ~unknown)
-    estimate = np.full(len(at), floor)
-    if len(known):
-        log_r = np.log(range_m[known])
-        reading = np.log(signal[known]) + 2.0 * log_r
-        row = np.floor(log_r / BIN_LOG_RANGE).astype(np.int64)
-        row -= row.min()
-        low = reading.min()
-        col = ((reading - low) / LOG_STEP).astype(np.int64)
-        width = int(col.max()) + 1
-        hist = np.bincount(row * width + col, minlength=(int(row.max()) + 1) * width).reshape(-1, width)
-        counts = hist.sum(axis=1)
-        full = np.flatnonzero(counts >= MIN_READINGS)
-        if len(full):
-            cum = np.cumsum(hist[full], axis=1)
-            median = low + LOG_STEP * ((cum < 0.5 * counts[full, None]).sum(axis=1) + 0.5)
-            centre = (np.floor(log_r.min() / BIN_LOG_RANGE) + full + 0.5) * BIN_LOG_RANGE
-            log_r_at = np.log(range_m[at])
-            estimate = np.maximum(np.exp(np.interp(log_r_at, centre, median) - 2.0 * log_r_at), floor)
-    out[at] = estimate
+    if floor > 0 and unknown.any():
+        _fill(out, np.ascontiguousarray(range_m, dtype=np.float64), has_target, unknown, floor)
     return out
+
+
+@jit
+def _fill(signal, range_m, has_target, unknown, floor):       # pragma: no cover - compiled
+    """:func:`population_signal` in place: a histogram of ln(S·R²/floor) (:data:`LOG_STEP`, :data:`LOG_SPAN` wide,
+    the last bin for all above) per range bin of the informative returns (:data:`BIN_LOG_RANGE` from
+    :data:`FIRST_RANGE_BIN`, the last for all beyond), their medians, then each unknown return's value."""
+    rows, width = RANGE_BINS, int(LOG_SPAN / LOG_STEP)
+    hist = np.zeros((rows, width), np.int64)
+    log_min_r = FIRST_RANGE_BIN * BIN_LOG_RANGE
+    log_floor = math.log(floor)
+    for i in range(len(signal)):
+        if has_target[i] and not unknown[i]:
+            log_r = math.log(range_m[i])
+            row = min(max(int((log_r - log_min_r) / BIN_LOG_RANGE), 0), rows - 1)
+            col = min(max(int((math.log(signal[i]) + 2.0 * log_r - log_floor) / LOG_STEP), 0), width - 1)
+            hist[row, col] += 1
+    centre = np.empty(rows)
+    median = np.empty(rows)
+    m = 0
+    for row in range(rows):
+        total = 0
+        for col in range(width):
+            total += hist[row, col]
+        if total >= MIN_READINGS:
+            seen, col = 0, 0
+            while 2 * (seen + hist[row, col]) < total:
+                seen += hist[row, col]
+                col += 1
+            centre[m] = log_min_r + (row + 0.5) * BIN_LOG_RANGE
+            median[m] = log_floor + (col + 0.5) * LOG_STEP
+            m += 1
+    for i in range(len(signal)):
+        if unknown[i]:
+            if m == 0:
+                signal[i] = floor
+                continue
+            log_r = math.log(range_m[i])
+            if log_r <= centre[0]:
+                reading = median[0]
+            elif log_r >= centre[m - 1]:
+                reading = median[m - 1]
+            else:
+                j = 1
+                while centre[j] < log_r:
+                    j += 1
+                t = (log_r - centre[j - 1]) / (centre[j] - centre[j - 1])
+                reading = median[j - 1] + t * (median[j] - median[j - 1])
+            signal[i] = max(math.exp(reading - 2.0 * log_r), floor)
