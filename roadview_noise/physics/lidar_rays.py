@@ -35,6 +35,7 @@ from .firing_grid import FiringGrid, firing_grid
 from .lidar_geometry import ring_index, ring_source
 from .lidar_intensity import REFLECTIVITY, IntensityWarning, intensity_step, resolve_profile, sensor_constant, \
     white_reading
+from .reading_population import population_signal, uninformative
 from .receiver import THRESHOLD_CALIBRATIONS, Receiver
 
 EMPTY_RAYS = ("fill", "sky_only", "ignore")     # what a weather model does with rays that returned nothing
@@ -50,8 +51,9 @@ class Rays:
     units of the sensor constant K (m⁻², :func:`lidar_intensity.received_signal` / K) that its stored value stands
     for. ``receiver``: detection in units of K, calibrated from the data (:meth:`receiver.Receiver.calibrated`);
     ``datasheet_threshold``: the profile's threshold / K. ``floor``: the signal a recorded return counts as at least
-    in the weather's decisions (:attr:`decision_signal`; 0 unless the profile's ``threshold_calibration`` is
-    ``datasheet``). ``profile``: the one the intensities are read with (:func:`lidar_intensity.resolve_profile`).
+    in the weather's decisions (0 unless the profile's ``threshold_calibration`` is ``datasheet``); ``unread``: the
+    signal those decisions take instead of :attr:`signal` (:attr:`decision_signal`; None: the signal itself).
+    ``profile``: the one the intensities are read with (:func:`lidar_intensity.resolve_profile`).
     ``notes``: what the manifest records about both."""
 
     range_m: np.ndarray
@@ -64,6 +66,7 @@ class Rays:
     empty_source: str = ""
     notes: dict = dataclasses.field(default_factory=dict)
     floor: float = 0.0
+    unread: np.ndarray | None = None
 
     @property
     def threshold(self) -> float:
@@ -72,11 +75,10 @@ class Rays:
 
     @property
     def decision_signal(self) -> np.ndarray:
-        """The signal the weather's decisions take for each ray's target: :attr:`signal`, at least :attr:`floor` on
-        the input's returns (they were detected, :meth:`receiver.Receiver.recorded_floor`)."""
-        if self.floor <= 0:
-            return self.signal
-        return np.where(self.has_target, np.maximum(self.signal, self.floor), self.signal)
+        """The signal the weather's and ray drop's decisions take for each ray's target: :attr:`signal`, or, for a
+        return whose reading carries no radiometric information, what the scan's other readings at its range say, at
+        least :attr:`floor` (it was detected: :mod:`reading_population`)."""
+        return self.signal if self.unread is None else self.unread
 
     @property
     def n_points(self) -> int:
@@ -168,17 +170,24 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     notes = {"intensity_reading": scale.note, "detection_threshold": receiver.threshold * k,
              "detection_threshold_source": receiver.source}
     floor = receiver.recorded_floor if datasheet else 0.0
+    unread = None
     if datasheet:
+        all_r, all_signal, all_has = (r, signal, has_target) if at is None else _ray_signals(
+            positions, intensity, compensated, per_reading, 0.0, intensity_step(profile), profile.min_range_m)[:3]
+        unknown = uninformative(all_signal, all_has, intensity, floor)          # (the population: the whole cloud)
+        unread = population_signal(all_signal, all_r, all_has, unknown, floor)
+        if at is not None:
+            unread, unknown = unread[at], unknown[at]
         notes["detection_threshold_source"] = (
             f"datasheet (threshold_calibration: datasheet, the readings' low end is not radiometric); "
-            f"{np.count_nonzero(has_target & (signal < floor))} recorded returns read below {floor * k:.4g} (what a "
-            f"return detected at the threshold measures on average) and count as that in the weather's and ray drop's "
-            f"decisions")
+            f"{np.count_nonzero(unknown)} recorded returns read 0 or below {floor * k:.4g} (what a return detected at "
+            f"the threshold measures on average) and count as the median reading of the scan's other returns at their "
+            f"range, at least that, in the weather's and ray drop's decisions")
     if scale.warning:
         notes["intensity_warning"] = scale.warning
     rays = Rays(r, signal, has_target, receiver, profile.detection_threshold / k, profile,
                 empty_source="none (empty_rays: ignore)" if not fill else "no-return cells of the grid", notes=notes,
-                floor=floor)
+                floor=floor, unread=unread)
     if grid and empty_rays == "sky_only":
         below = ~has_target & ~_above_horizon(cloud, profile)
         r[below] = 0.0
@@ -194,7 +203,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         rays = dataclasses.replace(rays, range_m=np.concatenate([r, np.full(m, profile.max_range_m)]),
                                    signal=np.concatenate([signal, np.zeros(m)]),
                                    has_target=np.concatenate([has_target, np.zeros(m, dtype=bool)]), listed=listed,
-                                   empty_source=source)
+                                   empty_source=source,
+                                   unread=None if unread is None else np.concatenate([unread, np.zeros(m)]))
     return rays
 
 

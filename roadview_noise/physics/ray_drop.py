@@ -82,7 +82,7 @@ def scan_rays(cloud: PointCloud, model_id: str, empty: bool = True) -> ScanRays:
     cells, which only fitting needs)."""
     rays = cloud_rays(cloud, model_id, "ignore", calibrate=False)
     cells = scan_cells(cloud, rays.profile, rays.range_m[:len(cloud)], empty)
-    log_signal = np.divide(rays.decision_signal, rays.datasheet_threshold)     # unreliable readings at their floor
+    log_signal = np.divide(rays.decision_signal, rays.datasheet_threshold)     # unread readings: their population
     with np.errstate(divide="ignore"):
         np.log(log_signal, out=log_signal)
     if isinstance(cells, str):

@@ -49,7 +49,8 @@ threshold then stays the datasheet's: the weather's particles are judged against
 to have been detected, but its reading does not say by how much; for the weather's decisions its signal is at least
 what a return detected at the threshold measures on average, ``E[M | M ≥ T] = T + σ(T)·√(2/π)`` for a measured value
 ``M ~ N(T, σ(T)²)`` (the mean of a normal truncated at its median; 1.243 T for the generic APD of the Velodyne
-profiles); a reading above that counts as read. The bound T itself would not do: a return exactly at the threshold
+profiles); a reading above that counts as read, one below it (or a stored 0) as the median of the scan's readings
+at its range, at least the floor (:mod:`reading_population`). The bound T itself would not do: a return exactly at the threshold
 is lost to any trace of weather (the discontinuity of issue 14, item 2). With the floor zero strength gives the input
 back, a faint return is lost only once the weather takes more than its margin (round-trip transmission below
 ``T / floor`` = 0.80), and a return in place is stored as its reading times the transmission (a 0 stays 0).

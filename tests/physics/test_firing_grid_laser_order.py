@@ -71,22 +71,24 @@ def fog(cloud, chain=()):
     return out, records[-1].diagnostics
 
 
-def test_rings_and_columns_recovered_from_the_storage_order():
-    """Rings exactly; the firings between neighbouring returns exactly up to 5 firings apart (two 0.09° readings
-    differ from the true gap by less than half a 0.166° step); across the open sky (hundreds of firings) the
-    rotation rate's drift may add or lose one."""
-    cloud, ring, index, _ = kitti_scan()
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rings_and_columns_recovered_from_the_storage_order(seed):
+    """Rings exactly; the firings between neighbouring returns exactly, also across the open sky (hundreds of
+    firings, where the rotation rate's drift and the 0.09° readings at both ends put a count of the gap one off in
+    30 of 32 lasers: the phases of the stretches on either side and the drift measured per sector place it); so no
+    two returns of a laser share a cell."""
+    cloud, ring, index, _ = kitti_scan(seed)
     found = laser_order(cloud.positions_m, cloud.profile)
     assert not isinstance(found, str), found
     assert found.columns == COLUMNS
     np.testing.assert_array_equal(found.ring, ring)
     column = np.mod(-index, COLUMNS)                                         # firing_grid's clockwise columns
     same, gap = ring[1:] == ring[:-1], np.diff(index)
-    short = same & (gap <= 5)
-    np.testing.assert_array_equal(np.diff(found.column)[short], np.diff(column)[short])
+    assert np.count_nonzero(same & (gap > 100)) == 32                        # the upper block's sky
+    np.testing.assert_array_equal(np.diff(found.column)[same], np.diff(column)[same])
     off = np.mod(found.column - column + COLUMNS // 2, COLUMNS) - COLUMNS // 2
     assert np.abs(off).max() <= 2 and np.mean(off == 0) > 0.6
-    assert len(found.column) - len(np.unique(found.ring * COLUMNS + found.column)) < 0.002 * len(ring)
+    assert len(found.column) == len(np.unique(found.ring * COLUMNS + found.column))
     # the lasers' vertical offsets defeat the elevations: most returns of the upper block get another beam
     assert np.mean(recover_ring(cloud.positions_m, cloud.profile) == ring) < 0.5
 
