@@ -14,6 +14,7 @@ Run: ``taskset -c 0 .venv/bin/python bench/bench_box_warp.py --baseline /tmp/bas
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import itertools
 import os
@@ -73,8 +74,10 @@ class Package:
 
 
 def import_baseline(checkout: Path) -> Package:
-    """The baseline's ``roadview_noise`` copied to a temporary folder as ``roadview_noise_baseline``."""
+    """The baseline's ``roadview_noise`` copied to a temporary folder (removed at exit) as
+    ``roadview_noise_baseline``."""
     tmp = Path(tempfile.mkdtemp(prefix="rvnoise-baseline-"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)
     shutil.copytree(checkout / "roadview_noise", tmp / "roadview_noise_baseline",
                     ignore=shutil.ignore_patterns("__pycache__"))
     sys.path.insert(0, str(tmp))
