@@ -47,6 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from .errors import InputError
 from .io import annotations as ann_io
 from .io.atomic import write_bytes_atomic
+from .physics.outline_warp import forward_through, moved_boxes
 from .provenance import MADE_BY_STEP, REMOVED, gather, is_new
 from .types import CameraFrame, PointCloud, RawFrame
 
@@ -363,35 +364,28 @@ def write(annotated: Annotated | None) -> list[Path]:
 
 # --- camera boxes --------------------------------------------------------------------------------------------------
 
-BOX_EDGE_SAMPLES = 9                     # points per box edge moved through a warp (a distorted edge bends)
-
-
 def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.Boxes2D:
-    """Boxes moved through each warp's point map (:meth:`Warp.forward`): a box's outline (its edges sampled) is
-    moved and its bounding box taken, a polygon's vertices are moved; then clipped to the image (KITTI: pixel
-    coordinates 0 … W − 1; YOLO: the image edges). Boxes left with no area are dropped."""
+    """Boxes moved through the warps' point maps, all in one batch: a box becomes the bounding box of its moved
+    outline (:func:`~roadview_noise.physics.outline_warp.moved_boxes`, the mover of COCO boxes: edges split where
+    the map bends them), a polygon's vertices move; then clipped to the image (KITTI: pixel coordinates
+    0 … W − 1; YOLO: the image edges). Boxes left with no area are dropped."""
     if not warps:
         return boxes
-    tokens, points, kinds = [], [], []
     lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt == "kitti" else (-0.5, [width - 0.5, height - 0.5])
-    t = np.linspace(0.0, 1.0, BOX_EDGE_SAMPLES)
-    for words, pts, box in zip(boxes.tokens, boxes.points_px, boxes.is_box):
-        if box:
-            (x0, y0), (x1, y1) = pts
-            xs = np.concatenate([x0 + (x1 - x0) * t, np.full_like(t, x1), x1 - (x1 - x0) * t, np.full_like(t, x0)])
-            ys = np.concatenate([np.full_like(t, y0), y0 + (y1 - y0) * t, np.full_like(t, y1), y1 - (y1 - y0) * t])
-            pts = np.stack([xs, ys], axis=1)
-        for warp in warps:
-            pts = warp.forward(pts)
-        pts = np.clip(pts, lo_px, hi_px)
-        if box:
-            pts = np.array([pts.min(axis=0), pts.max(axis=0)])
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        if np.any(hi - lo <= 0):
+    is_box = np.asarray(boxes.is_box, dtype=bool)
+    box_pts = [p for p, box in zip(boxes.points_px, is_box) if box]
+    poly_pts = [p for p, box in zip(boxes.points_px, is_box) if not box]
+    moved_box = iter(moved_boxes(np.reshape(box_pts, (-1, 4)), lambda xy: forward_through(warps, xy)))
+    moved_poly = forward_through(warps, np.concatenate(poly_pts) if poly_pts else np.empty((0, 2)))
+    moved_poly = iter(np.split(moved_poly, np.cumsum([len(p) for p in poly_pts])[:-1]))
+    tokens, points, kinds = [], [], []
+    for words, box in zip(boxes.tokens, is_box):
+        pts = np.clip(next(moved_box).reshape(2, 2) if box else next(moved_poly), lo_px, hi_px)
+        if np.any(pts.max(axis=0) - pts.min(axis=0) <= 0):
             continue
         tokens.append(words)
         points.append(pts)
-        kinds.append(box)
+        kinds.append(bool(box))
     return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds)
 
 

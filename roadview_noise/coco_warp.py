@@ -5,15 +5,16 @@ The same :class:`~roadview_noise.physics.warp.Warp` that resampled the image mov
 annotations as read, value for value, as does a warp that is exactly the identity. COCO coordinates put pixel
 ``i`` on [i, i + 1], the warps pixel centres on integers: points are shifted by ½ px into the warp and back.
 
-- Polygons: each vertex moves; an edge whose moved midpoint lies more than ``OUTLINE_TOLERANCE_PX`` off the moved
-  chord (a distortion bends it) is split at its midpoint, up to ``MAX_SPLITS`` times, so the polygon follows the
-  bent outline and an affine warp adds no vertex. The moved polygon is clipped to the image (Sutherland–Hodgman);
-  a part with nothing left is removed.
+- Polygons: each vertex moves; an edge the warps bend is split (:mod:`roadview_noise.physics.outline_warp`, the
+  mover of KITTI / YOLO boxes too: split while the moved midpoint lies more than 0.1 px off the moved chord, ≤ 64
+  segments per edge), so the polygon follows the bent outline and an affine warp adds no vertex. The moved
+  polygon is clipped to the image (Sutherland–Hodgman); a part with nothing left is removed.
 - RLE masks (compressed string or uncompressed counts, as read): decoded, resampled nearest-neighbour through the
   warps like label images (0 where the map leaves the image), encoded in the same kind.
 - ``bbox``: a box that was the segmentation's box (within 1 px) becomes the moved segmentation's box; any other
-  box (no segmentation; an amodal or projected 3-D box) moves as its outline (edges split as above) and becomes the
-  box of the moved outline; clipped to the image.
+  box (no segmentation; an amodal or projected 3-D box) moves as its outline, exactly as KITTI / YOLO boxes do
+  (edges split as above, at 0.01 px: only the box's bounds are written) and becomes the box of the moved outline;
+  clipped to the image.
 - ``area``: scaled by the change of the segmentation's own measure (polygon area, mask pixel count, else box area),
   so an area that was COCO's mask pixel count or mmdetection3d's w·h stays so; mask pixel count exactly for RLE.
 - ``keypoints``: labelled points (v > 0) move; one that leaves the image becomes (0, 0, 0), COCO's "not labelled",
@@ -28,16 +29,15 @@ Coordinates written are rounded to ``DECIMALS`` places (1/1000 px).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from . import coco_camera
 from .errors import InputError
 from .io import coco as coco_io
+from .physics.outline_warp import box_ring, forward_through, moved_rings
 
-OUTLINE_TOLERANCE_PX = 0.1      # a moved edge bent further than this from its chord is split at its midpoint
-MAX_SPLITS = 6                  # so an edge becomes at most 2⁶ = 64 segments
 DECIMALS = 3
 SEGMENTATION_BOX_PX = 1.0       # a bbox within this of the segmentation's box is that box
 GEOMETRY_KEYS = ("id", "bbox", "segmentation", "area", "keypoints", "num_keypoints", "center2d")
@@ -74,7 +74,8 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     parsed = []
     for _, ann in image.annotations:
         parsed.append(_guarded(ann, image.file_name, _Parsed.of, ann))
-    rings = moved_rings([r for g in parsed for r in g.rings_in()], mover.points)
+    rings = moved_rings([r for g in parsed for r in g.rings_in()], mover.points,
+                        [b for g in parsed for b in g.ring_is_box()])
     points = mover.points(np.concatenate([g.points for g in parsed]) if parsed else np.empty((0, 2)))
     moved, dropped = [], []
     for (pos, ann), g in zip(image.annotations, parsed):
@@ -119,8 +120,7 @@ class _Parsed:
         polygons = [_ring(p) for p in seg] if isinstance(seg, list) else []
         corners = None
         if ann.get("bbox") is not None:
-            x0, y0, x1, y1 = _xyxy(ann["bbox"])
-            corners = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=np.float64)
+            corners = box_ring(_xyxy(ann["bbox"]))
         points = [np.empty((0, 2))]
         if ann.get("keypoints"):
             kp = np.asarray(ann["keypoints"], dtype=np.float64).reshape(-1, 3)
@@ -132,6 +132,9 @@ class _Parsed:
     def rings_in(self) -> list[np.ndarray]:
         return self.polygons + ([self.corners] if self.corners is not None else [])
 
+    def ring_is_box(self) -> list[bool]:
+        return [False] * len(self.polygons) + ([True] if self.corners is not None else [])
+
 
 class _Mover:
     """Moves annotations through a chain's warps into an image of ``width`` × ``height`` px."""
@@ -141,10 +144,7 @@ class _Mover:
 
     def points(self, xy: np.ndarray) -> np.ndarray:
         """COCO positions (N, 2) through every warp."""
-        q = np.asarray(xy, dtype=np.float64).reshape(-1, 2) - 0.5
-        for warp in self.warps if len(q) else ():
-            q = warp.forward(q)
-        return q + 0.5
+        return forward_through(self.warps, xy, shift_px=0.5)
 
     def annotation(self, ann: dict, g: _Parsed) -> dict | None:
         """The changed fields of one annotation, or None to drop it (module docstring)."""
@@ -211,49 +211,6 @@ class _Mover:
 
 
 # --- outlines and polygons -----------------------------------------------------------------------------------------
-
-
-def moved_rings(rings: list[np.ndarray], move: Callable[[np.ndarray], np.ndarray]) -> list[np.ndarray]:
-    """Closed outlines (each N, 2) through ``move``, all in one batch: an edge is split at its midpoint while the
-    moved midpoint lies more than ``OUTLINE_TOLERANCE_PX`` from the moved chord (at most ``MAX_SPLITS`` times;
-    only the halves of edges split last time are looked at again)."""
-    if not rings:
-        return []
-    p = np.concatenate(rings).astype(np.float64)
-    ring = np.repeat(np.arange(len(rings)), [len(r) for r in rings])
-    q = move(p)
-    active = np.ones(len(p), dtype=bool)                     # the edge from each point to the next is undecided
-    for _ in range(MAX_SPLITS):
-        nxt = _next_in_ring(ring)
-        edge = np.flatnonzero(active)
-        mid_p = (p[edge] + p[nxt[edge]]) / 2
-        mid_q = move(mid_p)
-        chord = q[nxt[edge]] - q[edge]
-        off = mid_q - q[edge]
-        length = np.hypot(chord[:, 0], chord[:, 1])
-        cross = np.abs(chord[:, 0] * off[:, 1] - chord[:, 1] * off[:, 0])
-        bent = np.where(length > 0, cross / np.maximum(length, 1e-300), np.hypot(off[:, 0], off[:, 1]))
-        split = np.zeros(len(p), dtype=bool)
-        split[edge[bent > OUTLINE_TOLERANCE_PX]] = True
-        if not split.any():
-            break
-        mids_p, mids_q = np.zeros_like(p), np.zeros_like(q)
-        mids_p[edge], mids_q[edge] = mid_p, mid_q
-        keep = np.stack([np.ones_like(split), split], axis=1).ravel()
-        p = np.stack([p, mids_p], axis=1).reshape(-1, 2)[keep]
-        q = np.stack([q, mids_q], axis=1).reshape(-1, 2)[keep]
-        ring = np.repeat(ring, 2)[keep]
-        active = np.stack([split, split], axis=1).ravel()[keep]
-    return np.split(q, np.cumsum(np.bincount(ring, minlength=len(rings)))[:-1])
-
-
-def _next_in_ring(ring: np.ndarray) -> np.ndarray:
-    """Index of each point's successor in its closed ring (points grouped by ring, in order)."""
-    nxt = np.arange(1, len(ring) + 1)
-    change = ring[1:] != ring[:-1]
-    last = np.append(change, True)
-    nxt[last] = np.flatnonzero(np.insert(change, 0, True))
-    return nxt
 
 
 def clip_polygon(poly: np.ndarray, width: float, height: float) -> np.ndarray:
