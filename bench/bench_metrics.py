@@ -79,7 +79,7 @@ from roadview_noise import metrics as this_metrics  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
-from roadview_noise.physics import compiled  # noqa: E402
+from roadview_noise.physics import compiled, return_ranges  # noqa: E402
 from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
 from roadview_noise.runner import RunContext, build_models, load, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
@@ -171,11 +171,14 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     if not tasks:
         return None
     versions = {"base": _baseline_version(baseline), "this": (this_metrics, compound.StepRecord.as_entry)}
+    collect = return_ranges.collect
 
     def once(kind: str) -> tuple[float, dict]:
         if kind != "off":
             module, compound.StepRecord.as_entry = versions[kind]
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
+        if kind == "base" and not hasattr(module, "return_ranges"):     # models note no geometry for it
+            return_ranges.collect = lambda on: collect(False)
         try:
             t0 = time.process_time()
             entry = process(tasks[0], ctxs[kind != "off"])
@@ -183,6 +186,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
         finally:
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = this_metrics
             compound.StepRecord.as_entry = versions["this"][1]
+            return_ranges.collect = collect
         if "error" in entry:
             raise RuntimeError(f"{tasks[0].sample.relpath}: {entry['error']}")
         for staged, _ in entry.get("staged", ()):

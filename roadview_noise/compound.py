@@ -146,9 +146,11 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     the steps that calibrate the sensor on it. A ring-less cloud stored laser by laser (KITTI) first gets its rings
     and firing columns from that order (:func:`~roadview_noise.physics.laser_order.with_laser_order`)."""
     from .metrics import Deferred          # numba: only where a chain runs, not where recipes are checked
+    from .physics import return_ranges
     from .physics.laser_order import with_laser_order
 
     pending = deferred if deferred is not None else Deferred()
+    return_ranges.collect(metrics)         # models note the return geometry of the clouds they write
 
     records = []
     if isinstance(data, PointCloud):
