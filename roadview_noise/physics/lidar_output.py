@@ -186,7 +186,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     grid = cloud.grid_shape is not None
     integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
     positions_in = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    n_bins = return_ranges.bin_count(cloud.profile) if return_ranges.wanted() and n == len(positions_in) else 0
+    n_bins = _bins_to_count(cloud, positions_in, n)
     geometry = (1.0 / return_ranges.RANGE_BIN_M, np.zeros(n_bins, np.int64), np.zeros(n_bins, np.int64),
                 np.empty(n if n_bins else 0, np.bool_), np.zeros(size if n_bins else 0, np.bool_))
     removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = _place_returns(
@@ -233,6 +233,16 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     return out, counts
 
 
+def _bins_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int) -> int:
+    """The range bins of the return geometry :func:`_place_returns` counts while the chain records metrics
+    (:mod:`return_ranges`); 0: none — not recorded, or the input's already known (an earlier step's output: then
+    counting the output's on the way saves the metrics no more than it costs here)."""
+    if not return_ranges.wanted() or n != len(positions_in):
+        return 0
+    n_bins = return_ranges.bin_count(cloud.profile)
+    return 0 if return_ranges.noted(positions_in, n_bins) is not None else n_bins
+
+
 def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, returns_out: list) -> None:
     """Count the output rows written after :func:`_place_returns` (weather returns on empty rays) into the output's
     geometry (``returns_out``: [returns, largest x² + y² + z²])."""
@@ -246,9 +256,9 @@ def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, retur
 def _note_returns(given: np.ndarray, positions_in: np.ndarray, positions_out: np.ndarray, n_bins: int,
                   geometry: tuple, returns_in: tuple, returns_out: list) -> None:
     """Hand the geometry :func:`_place_returns` counted to the metrics (:func:`return_ranges.note`): the input's
-    (unless it is a converted copy or already noted) and the output's."""
+    (unless it is a converted copy) and the output's."""
     _, hist_in, hist_out, valid_in, valid_out = geometry
-    if positions_in is given and return_ranges.noted(given, n_bins) is None:
+    if positions_in is given:
         return_ranges.note(given, n_bins, return_ranges.geometry_of(returns_in[0], hist_in, returns_in[1], valid_in))
     return_ranges.note(positions_out, n_bins, return_ranges.geometry_of(
         returns_out[0], hist_out, returns_out[1], valid_out[:len(positions_out)]))
