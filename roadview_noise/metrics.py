@@ -55,7 +55,7 @@ from .luminance import blocks_of, codes_luminance_area, luminance_area, metric_s
 from .physics.compiled import jit
 from .physics import return_ranges
 from .physics.lidar_geometry import has_return
-from .physics.return_ranges import RANGE_BIN_M, geometry_of, range_bin
+from .physics.return_ranges import RANGE_BIN_M
 from .physics.srgb import linear_to_code
 from .provenance import Effect
 from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
@@ -463,13 +463,15 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
         if known:
             ok = valid[j]
         else:
-            b, r2 = range_bin(positions[j, 0], positions[j, 1], positions[j, 2], inv_bin, top)
-            ok = b >= 0
+            x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
+            r2 = x * x + y * y + z * z
+            ok = r2 > 0.0 and r2 < np.inf
             valid[j] = ok
             if ok:
                 returns += 1
                 max_r2 = max(max_r2, r2)
-                hist[b] += 1
+                b = math.sqrt(r2) * inv_bin
+                hist[np.int64(b) if b < top else top] += 1
         if ok:
             if c <= 3:
                 counts[c] += 1
@@ -488,7 +490,10 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
                 change += d
                 changed += 1
         i += 1
-    return (geometry_of(returns, hist, max_r2, valid), counts, total, finite,
+    used = n_bins                           # the bins up to the farthest return's
+    while used > 0 and hist[used - 1] == 0:
+        used -= 1
+    return ((returns, hist[:used], math.sqrt(max_r2), valid), counts, total, finite,
             (index, moved, change / changed if changed else np.nan))
 
 
