@@ -21,7 +21,7 @@ from .lidar_geometry import RING
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
-from .return_ranges import range_bin
+from .return_ranges import add_point, range_bin
 
 
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
@@ -94,15 +94,11 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
     for i in range(n):
         b_in, r2_in = -1, 0.0
         if geo:
-            b_in, r2_in = range_bin(positions[i, 0], positions[i, 1], positions[i, 2], inv_bin, top)
-            valid_in[i] = b_in >= 0
-            if b_in >= 0:
-                hist_in[b_in] += 1
-                returns_in += 1
-                max_in = max(max_in, r2_in)
-                if kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
-                    hist_out[b_in] -= 1
-                    returns_out -= 1
+            b_in, r2_in, returns_in, max_in = add_point(positions, i, inv_bin, top, hist_in, valid_in, returns_in,
+                                                        max_in)
+            if b_in >= 0 and kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
+                hist_out[b_in] -= 1
+                returns_out -= 1
         scale = 1.0                                    # of the position
         effect = 0                                     # KEPT
         if kind[i] == NO_RETURN:

@@ -46,18 +46,25 @@ def range_bin(x, y, z, inv_bin, top):       # pragma: no cover - compiled
     return (np.int64(b) if b < top else top), r2
 
 
+@jit(inline="always")
+def add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2):       # pragma: no cover - compiled
+    """Count point ``j`` of ``positions`` into ``hist`` and ``valid`` (:func:`range_bin`): (its bin, its
+    x² + y² + z², ``returns`` and ``max_r2`` with it counted)."""
+    b, r2 = range_bin(positions[j, 0], positions[j, 1], positions[j, 2], inv_bin, top)
+    valid[j] = b >= 0
+    if b < 0:
+        return b, r2, returns, max_r2
+    hist[b] += 1
+    return b, r2, returns + 1, max(max_r2, r2)
+
+
 @jit
 def add_rows(positions, rows, inv_bin, hist, valid):       # pragma: no cover - compiled
     """Count the returns among ``rows`` of ``positions`` into ``hist`` and ``valid`` (rows counted as no return
     before): (returns added, their largest x² + y² + z²)."""
     returns, max_r2, top = 0, 0.0, hist.shape[0] - 1
     for j in rows:
-        b, r2 = range_bin(positions[j, 0], positions[j, 1], positions[j, 2], inv_bin, top)
-        valid[j] = b >= 0
-        if b >= 0:
-            hist[b] += 1
-            returns += 1
-            max_r2 = max(max_r2, r2)
+        returns, max_r2 = add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2)[2:]
     return returns, max_r2
 
 
