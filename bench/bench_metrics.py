@@ -16,7 +16,8 @@ CPU time is the steadier figure on a shared machine.
 (each step's input against its output, with the step's own output as ``apply_models`` hands it in, then the chain's
 input against its output) on the chain's frames or clouds, and interleaved with it the same calls without the
 steps' outputs (``positional``: clouds linked by matching positions, as before the steps' provenance was used),
-made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
+made once beforehand and handed in as new objects each time (nothing cached, no noted geometry: the chain runs
+with metrics off, so the models count none), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
 The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
 
@@ -31,6 +32,8 @@ code and on with this tree's, interleaved in this process (the order rotates eve
 archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py`` is loaded beside this tree's (its relative
 imports resolve to this tree's modules, so use it for versions that differ in ``metrics.py``) and its step records
 are turned into manifest dicts as its ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
+While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
+unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
 The first runs of each check that both versions write the same metrics.
 
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
