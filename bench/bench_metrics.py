@@ -16,7 +16,8 @@ CPU time is the steadier figure on a shared machine.
 (each step's input against its output, with the step's own output as ``apply_models`` hands it in, then the chain's
 input against its output) on the chain's frames or clouds, and interleaved with it the same calls without the
 steps' outputs (``positional``: clouds linked by matching positions, as before the steps' provenance was used),
-made once beforehand and handed in as new objects each time (nothing cached), median and quartiles of ``--repeat``
+made once beforehand and handed in as new objects each time (nothing cached, no noted geometry: the chain runs
+with metrics off, so the models count none), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
 The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
 
@@ -31,6 +32,8 @@ code and on with this tree's, interleaved in this process (the order rotates eve
 archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py`` is loaded beside this tree's (its relative
 imports resolve to this tree's modules, so use it for versions that differ in ``metrics.py``) and its step records
 are turned into manifest dicts as its ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
+While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
+unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
 The first runs of each check that both versions write the same metrics.
 
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
@@ -79,7 +82,7 @@ from roadview_noise import metrics as this_metrics  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
-from roadview_noise.physics import compiled  # noqa: E402
+from roadview_noise.physics import compiled, return_ranges  # noqa: E402
 from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
 from roadview_noise.runner import RunContext, build_models, load, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
@@ -171,11 +174,14 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     if not tasks:
         return None
     versions = {"base": _baseline_version(baseline), "this": (this_metrics, compound.StepRecord.as_entry)}
+    collect = return_ranges.collect
 
     def once(kind: str) -> tuple[float, dict]:
         if kind != "off":
             module, compound.StepRecord.as_entry = versions[kind]
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
+        if kind == "base" and not hasattr(module, "return_ranges"):     # models note no geometry for it
+            return_ranges.collect = lambda on: collect(False)
         try:
             t0 = time.process_time()
             entry = process(tasks[0], ctxs[kind != "off"])
@@ -183,6 +189,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
         finally:
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = this_metrics
             compound.StepRecord.as_entry = versions["this"][1]
+            return_ranges.collect = collect
         if "error" in entry:
             raise RuntimeError(f"{tasks[0].sample.relpath}: {entry['error']}")
         for staged, _ in entry.get("staged", ()):
@@ -291,6 +298,7 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
 
     def once(by_step: bool) -> float:
         items = [dataclasses.replace(d) for d in chain]             # new objects: no cached summaries
+        return_ranges.collect(False)                                # ... nor geometry kept for their arrays
         t0 = time.process_time()
         for before, after, step in zip(items, items[1:], steps[1:]):
             compare(before, after, step if by_step else None)       # by_step: as apply_models does

@@ -140,15 +140,18 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     sweep variant). The result carries its provenance relative to ``data`` (:mod:`roadview_noise.provenance`): each
     step gets a cloud with step-relative origin and effect, :func:`provenance.follow` composes them; a camera frame
     collects the warps of geometric steps. ``metrics``: record :func:`metrics.compare` of each step's
-    input and output; with ``deferred`` (:class:`metrics.Deferred`), the last step's are filled in by its ``settle``
-    (each earlier step's when the next step has run: its JPEG encode may keep the frame's luminance). Each later
-    step's cloud notes the chain's input as ``recorded`` (the sensor's own data), for
-    the steps that calibrate the sensor on it. A ring-less cloud stored laser by laser (KITTI) first gets its rings
+    input and output (models that write every position count its return geometry on the way:
+    :mod:`~roadview_noise.physics.return_ranges`); with ``deferred`` (:class:`metrics.Deferred`), the last
+    step's are filled in by its ``settle`` (each earlier step's when the next step has run: its JPEG encode may
+    keep the frame's luminance). Each later step's cloud notes the chain's input as ``recorded`` (the sensor's own
+    data), for the steps that calibrate the sensor on it. A ring-less cloud stored laser by laser (KITTI) first gets its rings
     and firing columns from that order (:func:`~roadview_noise.physics.laser_order.with_laser_order`)."""
     from .metrics import Deferred          # numba: only where a chain runs, not where recipes are checked
+    from .physics import return_ranges
     from .physics.laser_order import with_laser_order
 
     pending = deferred if deferred is not None else Deferred()
+    return_ranges.collect(metrics)         # models note the return geometry of the clouds they write
 
     records = []
     if isinstance(data, PointCloud):

@@ -53,13 +53,14 @@ import numpy as np
 
 from .luminance import blocks_of, codes_luminance_area, luminance_area, metric_scale, want
 from .physics.compiled import jit
+from .physics import return_ranges
 from .physics.lidar_geometry import has_return
+from .physics.return_ranges import RANGE_BIN_M
 from .physics.srgb import linear_to_code
 from .provenance import Effect
 from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
 
 OBJECT_FIELDS = ("object_id", "ObjIdx")     # per-point object/instance id (CARLA semantic LiDAR: ObjIdx); ≤ 0 = none
-RANGE_BIN_M = 10.0
 DEPTH_BIN_EDGES_M = (0.0, 10.0, 20.0, 40.0, 80.0, math.inf)
 MIN_BIN_PX = 64
 EDGE_GRADIENT_PER_PX = 0.025                # half of a 5 % step (a step's Sobel/8 on each side is half the step)
@@ -531,27 +532,21 @@ def _is_return(p, j):       # pragma: no cover - compiled
     return r2 > 0.0 and r2 < np.inf
 
 
-_last_geometry: list = [None, None, None]   # weakref to a positions array, its key (_per_array), full pass
-
-
 def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int,
                       link: int, before: dict | None, step: tuple = _NO_STEP) -> tuple:
-    """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. A step that leaves the
-    positions alone (intensity models) hands the same array on: the geometry of the last array is kept and only
-    the attributes are counted again."""
+    """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. The geometry of a positions
+    array is found once (:mod:`~roadview_noise.physics.return_ranges`): an array a step hands on unchanged
+    (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
+    counted."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
     else:
         linked = (before["positions"], before["valid"], before["values"], step)
-    full = []
-
-    def geometry_of_full_pass():
-        full.append(_cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked))
-        return full[0][0]
-
-    geometry = _per_array(_last_geometry, positions, positions, n_bins, geometry_of_full_pass)
-    if full:
-        return full[0]
+    geometry = return_ranges.noted(positions, n_bins)
+    if geometry is None:
+        full = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
+        return_ranges.note(positions, n_bins, full[0])
+        return full
     return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
 
 
@@ -581,8 +576,7 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     values = cloud.fields.get("snr_db" if radar else "intensity")
     values = _NO_VALUES if values is None or np.ndim(values) != 1 else np.asarray(values)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    max_range = getattr(cloud.profile, "max_range_m", None) or 300.0
-    n_bins = int(math.ceil(max_range / RANGE_BIN_M)) + 2                 # the last bin catches anything farther
+    n_bins = return_ranges.bin_count(cloud.profile)
     s = {"positions": positions, "values": values, "grid": cloud.grid_shape is not None}
     link = NO_LINK if before is None else _link_mode(before, s, step is not None)
     (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(

@@ -20,6 +20,8 @@ from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, R
 from .lidar_geometry import RING
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
+from . import return_ranges
+from .return_ranges import add_point, range_bin
 
 
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
@@ -71,16 +73,32 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
 
 @jit
 def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                   intensity_in, positions_out, intensity_out, effect_out, origin_out):   # pragma: no cover - compiled
+                   intensity_in, positions_out, intensity_out, effect_out, origin_out,
+                   geometry):   # pragma: no cover - compiled
     """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
     integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
-    removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
+    removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added).
+
+    ``geometry`` (inverse bin width, range histograms, return masks of the input and the output; empty histograms:
+    none): the points' :mod:`return_ranges` counted on the way (an output point at its input's position is its
+    input's return, in its bin); returns (returns, largest x² + y² + z²) of the input and of the output too."""
+    inv_bin, hist_in, hist_out, valid_in, valid_out = geometry
+    geo, top = hist_in.shape[0] > 0, hist_in.shape[0] - 1
+    returns_in = returns_out = 0
+    max_in = max_out = 0.0
     n = len(kind)
     removed = np.zeros(n, np.bool_)
     kept = attenuated = moved = n_removed = added = 0
     o = 0                                              # output index
     for i in range(n):
+        b_in, r2_in = -1, 0.0
+        if geo:
+            b_in, r2_in, returns_in, max_in = add_point(positions, i, inv_bin, top, hist_in, valid_in, returns_in,
+                                                        max_in)
+            if b_in >= 0 and kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
+                hist_out[b_in] -= 1
+                returns_out -= 1
         scale = 1.0                                    # of the position
         effect = 0                                     # KEPT
         if kind[i] == NO_RETURN:
@@ -117,8 +135,25 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
         origin_out[o] = i
         for c in range(3):
             positions_out[o, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
+        if geo:                                        # hist_out: the change from hist_in
+            b = b_in                                   # scale 1: the input's position, bit for bit
+            if scale != 1.0:
+                b, r2 = range_bin(positions_out[o, 0], positions_out[o, 1], positions_out[o, 2], inv_bin, top)
+                if b_in >= 0:
+                    hist_out[b_in] -= 1
+                    returns_out -= 1
+                if b >= 0:
+                    hist_out[b] += 1
+                    returns_out += 1
+                    max_out = max(max_out, r2)
+            elif b >= 0:
+                max_out = max(max_out, r2_in)
+            valid_out[o] = b >= 0
         o += 1
-    return removed, o, kept, attenuated, moved, n_removed, added
+    if geo:
+        hist_out += hist_in
+    return (removed, o, kept, attenuated, moved, n_removed, added,
+            ((returns_in, max_in), (returns_in + returns_out, max_out)))
 
 
 def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
@@ -146,13 +181,19 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     intensity = np.empty(size, intensity_in.dtype)
     grid = cloud.grid_shape is not None
     integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
-    removed, n_out, kept, attenuated, moved, n_removed, added = _place_returns(
+    positions_in = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+    n_bins = _bins_to_count(cloud, positions_in, n)
+    geometry = (1.0 / return_ranges.RANGE_BIN_M, np.zeros(n_bins, np.int64), np.zeros(n_bins, np.int64),
+                np.empty(n if n_bins else 0, np.bool_), np.zeros(size if n_bins else 0, np.bool_))
+    removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = _place_returns(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
         float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
-        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect, origin)
+        positions_in, intensity_in, positions, intensity, effect, origin, geometry)
+    returns_out, filled = list(returns_of[1]), added
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
+        _add_returns(positions, idx, geometry, returns_out)
     total = n_out + len(cells)
     fields = {**cloud.fields, "intensity": intensity[:total]}
     origin, attributes = origin[:total], cloud.attributes
@@ -166,6 +207,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
         if len(cells):
             _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
                           integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
+            _add_returns(positions, np.arange(n_out, total), geometry, returns_out)
             origin[n_out:] = NEW
             index = np.concatenate([index[:n_out], rays.listed.like[cells]])
             added += len(cells)
@@ -178,11 +220,44 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
     out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
                               effect=effect[:total], attributes=attributes)
+    if n_bins and (grid or not filled):                # (a list's rows past a removal are not its rays')
+        _note_returns(cloud.positions_m, positions_in, out.positions_m, n_bins, geometry, returns_of[0], returns_out)
     faint = rays.faint[:n]
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
               "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold,
               "removed_below_threshold_in": int(np.count_nonzero(removed & faint)), **empty_ray_counts(rays)}
     return out, counts
+
+
+def _bins_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int) -> int:
+    """The range bins of the return geometry :func:`_place_returns` counts while the chain records metrics
+    (:mod:`return_ranges`); 0: none — not recorded, or the input's already known (an earlier step's output: then
+    counting the output's on the way saves the metrics no more than it costs here)."""
+    if not return_ranges.wanted() or n != len(positions_in):
+        return 0
+    n_bins = return_ranges.bin_count(cloud.profile)
+    return 0 if return_ranges.noted(positions_in, n_bins) is not None else n_bins
+
+
+def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, returns_out: list) -> None:
+    """Count the output rows written after :func:`_place_returns` (weather returns on empty rays) into the output's
+    geometry (``returns_out``: [returns, largest x² + y² + z²])."""
+    inv_bin, _, hist_out, _, valid_out = geometry
+    if len(hist_out):
+        got, max_r2 = return_ranges.add_rows(positions, rows, inv_bin, hist_out, valid_out)
+        returns_out[0] += got
+        returns_out[1] = max(returns_out[1], max_r2)
+
+
+def _note_returns(given: np.ndarray, positions_in: np.ndarray, positions_out: np.ndarray, n_bins: int,
+                  geometry: tuple, returns_in: tuple, returns_out: list) -> None:
+    """Hand the geometry :func:`_place_returns` counted to the metrics (:func:`return_ranges.note`): the input's
+    (unless it is a converted copy) and the output's."""
+    _, hist_in, hist_out, valid_in, valid_out = geometry
+    if positions_in is given:
+        return_ranges.note(given, n_bins, return_ranges.geometry_of(returns_in[0], hist_in, returns_in[1], valid_in))
+    return_ranges.note(positions_out, n_bins, return_ranges.geometry_of(
+        returns_out[0], hist_out, returns_out[1], valid_out[:len(positions_out)]))
 
 
 def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,

@@ -1,0 +1,112 @@
+"""Which points of a cloud are returns, how many, the farthest one's range and the returns per 10 m range bin — the
+geometry half of a cloud's metrics summary (:mod:`roadview_noise.metrics`, issue 18), found once per positions array.
+
+A return is a point with 0 < x² + y² + z² < ∞ (a grid's no-return cells are all-zero); its range bin is
+⌊√(x² + y² + z²) / 10 m⌋, the last bin catching anything farther (:func:`range_bin`; the metrics' own pass computes
+the same expression inline, where a call compiled 15–25 % slower). A model's loop that reads and writes every
+position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`) counts it on the way
+while the chain records metrics (:func:`collect`) and notes the geometry of its input and output arrays
+(:func:`note`), so the metrics read neither array's positions again (:func:`noted`); the metrics note what they
+count themselves, so an array a step hands on unchanged is counted once. Same operations on the same values: the
+same geometry either way.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+
+from .compiled import jit
+
+RANGE_BIN_M = 10.0
+DEFAULT_MAX_RANGE_M = 300.0          # a cloud without a profile range
+_KEPT = 4                            # arrays whose geometry is kept (a chain's last step input and output, and more)
+
+_collecting = [False]
+_noted: dict[int, tuple] = {}        # id(array) → (weakref to it, key, geometry)
+
+
+def bin_count(profile) -> int:
+    """Range bins of a cloud of this sensor profile: up to its max range (300 m without one), then one for the
+    farther returns and one spare."""
+    max_range = getattr(profile, "max_range_m", None) or DEFAULT_MAX_RANGE_M
+    return int(math.ceil(max_range / RANGE_BIN_M)) + 2
+
+
+@jit(inline="always")
+def range_bin(x, y, z, inv_bin, top):       # pragma: no cover - compiled
+    """Point (x, y, z) (m, float64): (its range bin, −1 if it is no return; x² + y² + z²) with ``inv_bin`` = 1 / the
+    bin width and ``top`` the last bin (it holds everything farther)."""
+    r2 = x * x + y * y + z * z
+    if not (r2 > 0.0 and r2 < np.inf):
+        return -1, r2
+    b = math.sqrt(r2) * inv_bin
+    return (np.int64(b) if b < top else top), r2
+
+
+@jit(inline="always")
+def add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2):       # pragma: no cover - compiled
+    """Count point ``j`` of ``positions`` into ``hist`` and ``valid`` (:func:`range_bin`): (its bin, its
+    x² + y² + z², ``returns`` and ``max_r2`` with it counted)."""
+    b, r2 = range_bin(positions[j, 0], positions[j, 1], positions[j, 2], inv_bin, top)
+    valid[j] = b >= 0
+    if b < 0:
+        return b, r2, returns, max_r2
+    hist[b] += 1
+    return b, r2, returns + 1, max(max_r2, r2)
+
+
+@jit
+def add_rows(positions, rows, inv_bin, hist, valid):       # pragma: no cover - compiled
+    """Count the returns among ``rows`` of ``positions`` into ``hist`` and ``valid`` (rows counted as no return
+    before): (returns added, their largest x² + y² + z²)."""
+    returns, max_r2, top = 0, 0.0, hist.shape[0] - 1
+    for j in rows:
+        returns, max_r2 = add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2)[2:]
+    return returns, max_r2
+
+
+@jit
+def geometry_of(returns, hist, max_r2, valid):       # pragma: no cover - compiled
+    """The geometry as :func:`noted` gives it: (returns, the bins up to the farthest return's, its range m, the
+    per-point return mask)."""
+    used = hist.shape[0]
+    while used > 0 and hist[used - 1] == 0:
+        used -= 1
+    return returns, hist[:used], math.sqrt(max_r2), valid
+
+
+def collect(on: bool) -> None:
+    """Whether models note the geometry of the arrays they write (:func:`wanted`): on while a chain records
+    metrics (``compound.apply_models``)."""
+    _collecting[0] = on
+    if not on:
+        _noted.clear()
+
+
+def wanted() -> bool:
+    """A model that reads or writes every position should :func:`note` their geometry."""
+    return _collecting[0]
+
+
+def _key(positions: np.ndarray, n_bins: int) -> tuple:
+    return positions.shape, positions.strides, positions.dtype, n_bins
+
+
+def note(positions: np.ndarray, n_bins: int, geometry: tuple) -> None:
+    """Keep the geometry (:func:`geometry_of`, ``n_bins`` bins) of this positions array (float64 (N, 3),
+    C-contiguous) for :func:`noted`; it must not change afterwards (models hand their output on unchanged)."""
+    if len(_noted) >= _KEPT:
+        for k in [k for k, (ref, _, _) in _noted.items() if ref() is None] or list(_noted)[:1]:
+            del _noted[k]
+    _noted[id(positions)] = (weakref.ref(positions), _key(positions, n_bins), geometry)
+
+
+def noted(positions: np.ndarray, n_bins: int) -> tuple | None:
+    """The geometry :func:`note` kept for this very array (identity, shape, strides) and bin count, else None."""
+    got = _noted.get(id(positions))
+    if got is None or got[0]() is not positions or got[1] != _key(positions, n_bins):
+        return None
+    return got[2]

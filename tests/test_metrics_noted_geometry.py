@@ -1,0 +1,76 @@
+"""The return geometry a LiDAR weather model notes while it writes its output (``physics.return_ranges``) equals the
+metrics' own pass over the same arrays, value for value, and changes nothing the model writes; a step whose input's
+geometry is already known (a CNF's second step) notes none (issue 18)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadview_noise import metrics
+from roadview_noise.compound import apply_models
+from roadview_noise.physics import return_ranges
+from roadview_noise.recipe import load_recipe
+from roadview_noise.runner import build_models, load, plan
+
+ROOT = Path(__file__).resolve().parents[1]
+TREES = ("lidar/os1-128-grid/", "lidar/os1-128/", "lidar/vls-128/", "lidar/os1-128-kitti/")
+
+
+def own_pass(positions: np.ndarray, n_bins: int) -> tuple:
+    """The metrics' pass over an array whose geometry nobody noted."""
+    none = np.zeros(0, np.bool_)
+    return metrics._cloud_pass(positions, none, metrics._NO_CODES, metrics._NO_VALUES, metrics.RANGE_BIN_M, n_bins,
+                               metrics.NO_LINK, positions[:0], none, metrics._NO_VALUES)[0]
+
+
+def run_chain(recipe, task, data, metrics_on: bool):
+    return apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
+                        sequence_id=task.sample.sequence_id, metrics=metrics_on)
+
+
+@pytest.mark.parametrize("name", ["weather-fog-lidar", "weather-rain-lidar", "weather-snow-lidar", "cnf20"])
+@pytest.mark.parametrize("tree", TREES)
+def test_noted_geometry_is_the_metrics_own(monkeypatch, name, tree):
+    recipe = load_recipe(ROOT / "recipes" / f"{name}.yaml")
+    task = next((t for t in plan(ROOT / "sample_data", recipe) if t.sample.relpath.startswith(tree)), None)
+    if task is None:
+        pytest.skip(f"no {tree} input")
+    data = load(task.sample, ROOT / "sample_data", recipe)
+    by_model, note = [], return_ranges.note
+
+    def noting(positions, n_bins, geometry):
+        if sys._getframe(1).f_globals["__name__"] != metrics.__name__:
+            by_model.append((positions, n_bins, geometry))
+        note(positions, n_bins, geometry)
+
+    monkeypatch.setattr(return_ranges, "note", noting)
+    out, records = run_chain(recipe, task, data, True)
+    first_step = name.startswith("weather-")                       # a CNF's weather step gets a known input
+    assert any(p is out.positions_m for p, _, _ in by_model) == first_step
+    assert any(p is data.positions_m for p, _, _ in by_model) == first_step
+    for positions, n_bins, (returns, hist, max_range_m, valid) in by_model:
+        r, h, m, v = own_pass(positions, n_bins)
+        assert (returns, hist.tolist(), max_range_m) == (r, h.tolist(), m)
+        assert np.array_equal(valid, v)
+    assert records[-1].metrics["points_out"] == own_pass(out.positions_m, return_ranges.bin_count(out.profile))[0]
+    off, _ = run_chain(recipe, task, data, False)                   # the model writes the same cloud
+    assert np.array_equal(off.positions_m, out.positions_m)
+    assert all(np.array_equal(off.fields[k], out.fields[k]) for k in out.fields)
+    assert np.array_equal(off.effect, out.effect) and np.array_equal(off.origin, out.origin)
+
+
+def test_geometry_is_noted_only_while_a_chain_records_metrics():
+    return_ranges.collect(False)
+    assert not return_ranges.wanted()
+    positions = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [0.0, 25.0, 0.0]])
+    geometry = own_pass(positions, 4)
+    assert geometry[0] == 2 and geometry[1].tolist() == [1, 0, 1] and geometry[2] == 25.0
+    return_ranges.note(positions, 4, geometry)
+    assert return_ranges.noted(positions, 4) is geometry
+    assert return_ranges.noted(positions, 5) is None and return_ranges.noted(positions.copy(), 4) is None
+    return_ranges.collect(False)                                    # a chain without metrics forgets them
+    assert return_ranges.noted(positions, 4) is None
