@@ -19,8 +19,8 @@ from pathlib import Path
 
 from .walk import os_error_text
 
-SYNC_THREADS = 4            # fsyncs in flight at once (each thread waits on the storage, not on a core)
-MAX_WAITING = 64            # entries whose fsync is pending before the ledger waits for them
+SYNC_THREADS = 8            # fsyncs in flight at once (each thread waits on the storage, not on a core)
+MAX_WAITING = 256           # entries whose fsync is pending before the ledger waits for the oldest one
 
 
 def fsync_files(paths: list[Path]) -> None:
@@ -36,12 +36,13 @@ def fsync_files(paths: list[Path]) -> None:
 class SyncPool:
     """fsync of entries' staged temporaries (``entry["staged"]``: temporary → final, relative to ``out_root``) in
     :data:`SYNC_THREADS` daemon threads, keyed by the entry's plan index: :meth:`submit`, then :meth:`done` (no
-    wait) or :meth:`wait` (every submitted one). Per file the main thread pays a queue put and a set look-up."""
+    wait) after :meth:`wait` or on its own. Per file the main thread pays a queue put and a set look-up."""
 
     def __init__(self, out_root: Path, threads: int = SYNC_THREADS):
         self.out_root = out_root
         self.pending = 0                                   # submitted, not yet collected by :meth:`done`
         self._todo: queue.SimpleQueue = queue.SimpleQueue()
+        self._finished = threading.Condition()
         self._done: set[int] = set()
         self._errors: dict[int, Exception] = {}
         self._threads = [threading.Thread(target=self._work, name="rvnoise-fsync", daemon=True)
@@ -54,18 +55,17 @@ class SyncPool:
             job = self._todo.get()
             if job is None:
                 return
-            if isinstance(job, threading.Barrier):         # see wait
-                try:
-                    job.wait()
-                except threading.BrokenBarrierError:       # the waiter was interrupted
-                    pass
-                continue
             index, paths = job
+            error = None
             try:
                 fsync_files(paths)
             except Exception as exc:                       # noqa: BLE001 - failed here, reported by its entry
-                self._errors[index] = exc
-            self._done.add(index)
+                error = exc
+            with self._finished:
+                if error is not None:
+                    self._errors[index] = error
+                self._done.add(index)
+                self._finished.notify_all()
 
     def submit(self, index: int, staged: list[list[str]]) -> None:
         self.pending += 1
@@ -75,21 +75,15 @@ class SyncPool:
         """Whether entry ``index``'s fsync finished, and its error (collected: ask once after it is done)."""
         if index not in self._done:
             return False, None
-        self._done.discard(index)
-        self.pending -= 1
-        return True, self._errors.pop(index, None)
+        with self._finished:
+            self._done.discard(index)
+            self.pending -= 1
+            return True, self._errors.pop(index, None)
 
-    def wait(self) -> None:
-        """Until every fsync submitted so far has finished: one barrier per thread, queued after them; a thread that
-        takes it waits there, so each thread takes one, and when all are there every job before them is done."""
-        barrier = threading.Barrier(len(self._threads) + 1)
-        for _ in self._threads:
-            self._todo.put(barrier)
-        try:
-            barrier.wait()
-        except BaseException:                              # Ctrl-C: release the threads that wait there
-            barrier.abort()
-            raise
+    def wait(self, index: int) -> None:
+        """Until entry ``index``'s fsync (submitted) has finished."""
+        with self._finished:
+            self._finished.wait_for(lambda: index in self._done)
 
     def close(self) -> None:
         """Stop the threads after the fsyncs queued (a stopped run's temporaries may be gone: their errors are not

@@ -103,7 +103,9 @@ class Ledger:
             self.sync.submit(index, entry["staged"])
             self.syncing.add(index)
         self.pending[index] = entry
-        return self._release_ready(wait=self.sync is not None and self.sync.pending > MAX_WAITING)
+        if self.sync is not None and self.sync.pending > MAX_WAITING and self.next in self.syncing:
+            self.sync.wait(self.next)                  # the storage lags: wait for the oldest one
+        return self._release_ready(wait=False)
 
     def drain(self) -> list[dict]:
         """Release the entries that wait only for their fsync (after the last result)."""
@@ -117,7 +119,7 @@ class Ledger:
                 if not done:
                     if not wait:
                         break
-                    self.sync.wait()
+                    self.sync.wait(self.next)
                     done, error = self.sync.done(self.next)
                 self.syncing.discard(self.next)
             else:
