@@ -10,7 +10,7 @@ the rounds of files/s, the ratio to the copy of the same round, ms per file in a
 per file, and the wall ms per file beyond the in-worker time (× workers).
 
     .venv/bin/python bench/bench_small_files.py [--files 600] [--rounds 5] [--recipe weather-fog-radar]
-                                                [--base /tmp/main-code]
+                                                [--base /tmp/main-code] [--scratch DIR]
 """
 
 from __future__ import annotations
@@ -90,9 +90,11 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--recipe", default="weather-fog-radar")
     ap.add_argument("--base", type=Path, help="a second checkout's root (its roadview_noise/ is run as 'base')")
+    ap.add_argument("--scratch", type=Path, help="the folder for the trees (default: the system's temporary folder; "
+                    "a tmpfs takes the storage out: fsync costs nothing there)")
     args = ap.parse_args()
     codes = {"this": ROOT} | ({"base": args.base.resolve()} if args.base else {})
-    with tempfile.TemporaryDirectory(prefix="rvnoise-small-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="rvnoise-small-", dir=args.scratch) as tmp:
         scratch = Path(tmp)
         tree = build_tree(scratch, args.files)
         results: dict[tuple[str, int], list[dict]] = {}
