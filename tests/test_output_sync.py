@@ -26,14 +26,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _radar_tree(tmp_path: Path, files: int) -> Path:
-    src = ROOT / "sample_data" / "radar" / "seq0"
+    """The sample radar sequence with copies of its frames up to ``files`` frames (at least its own 3)."""
     dst = tmp_path / "in" / "radar" / "seq0"
-    dst.mkdir(parents=True)
-    for side in src.glob("*.yaml"):
-        shutil.copy(side, dst)
-    pcds = sorted(src.glob("*.pcd"))
-    for k in range(files):
-        shutil.copy(pcds[k % len(pcds)], dst / f"{k:06d}.pcd")
+    shutil.copytree(ROOT / "sample_data" / "radar" / "seq0", dst)
+    frames = sorted(dst.glob("*.pcd"))
+    for k in range(len(frames), files):
+        shutil.copy(frames[k % len(frames)], dst / f"{k:06d}.pcd")
     return tmp_path / "in"
 
 
