@@ -45,6 +45,9 @@ class SyncPool:
         self._finished = threading.Condition()
         self._done: set[int] = set()
         self._errors: dict[int, Exception] = {}
+        self.wake, self._wake_w = os.pipe()                # a byte per finished fsync (ProcessExecutor.wake)
+        os.set_blocking(self.wake, False)
+        os.set_blocking(self._wake_w, False)
         self._threads = [threading.Thread(target=self._work, name="rvnoise-fsync", daemon=True)
                          for _ in range(threads)]
         for t in self._threads:
@@ -66,10 +69,22 @@ class SyncPool:
                     self._errors[index] = error
                 self._done.add(index)
                 self._finished.notify_all()
+            try:
+                os.write(self._wake_w, b"s")
+            except BlockingIOError:                         # full: the reader is woken already
+                pass
 
     def submit(self, index: int, staged: list[list[str]]) -> None:
         self.pending += 1
         self._todo.put((index, [self.out_root / tmp for tmp, _ in staged]))
+
+    def woken(self) -> None:
+        """Empty the :attr:`wake` pipe (the caller is about to collect what finished)."""
+        try:
+            while os.read(self.wake, 4096):
+                pass
+        except BlockingIOError:
+            pass
 
     def done(self, index: int) -> tuple[bool, Exception | None]:
         """Whether entry ``index``'s fsync finished, and its error (collected: ask once after it is done)."""
@@ -92,6 +107,8 @@ class SyncPool:
             self._todo.put(None)
         for t in self._threads:
             t.join()
+        os.close(self.wake)
+        os.close(self._wake_w)
 
 
 def write_error(relpath: str, out_relpath: str, exc: BaseException) -> str:

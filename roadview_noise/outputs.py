@@ -107,6 +107,11 @@ class Ledger:
             self.sync.wait(self.next)                  # the storage lags: wait for the oldest one
         return self._release_ready(wait=False)
 
+    def synced(self) -> list[dict]:
+        """Release the entries whose fsync has finished since (the executor woke the caller for it)."""
+        self.sync.woken()
+        return self._release_ready(wait=False)
+
     def drain(self) -> list[dict]:
         """Release the entries that wait only for their fsync (after the last result)."""
         return self._release_ready(wait=True)

@@ -32,7 +32,7 @@ from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
-from .executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
+from .executor import NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
 from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
@@ -235,7 +235,8 @@ def _warning_list(caught: list) -> list[str]:
 
 def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     """Read, run the chain, stage the output files; return the manifest entry (failures are recorded, not raised).
-    The files stay fsynced temporaries listed under ``staged`` until the runner has recorded them."""
+    The files stay temporaries listed under ``staged`` (fsynced, unless ``ctx.fsync_outputs`` leaves that to the
+    run's main process) until the runner has recorded them."""
     keep_freed_memory()
     t0, cpu0 = time.perf_counter(), time.thread_time()
     s, recipe = task.sample, ctx.recipe
@@ -654,16 +655,24 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
         with open(ctx.out_root / MANIFEST_NAME, "a" if previous else "w", encoding="utf-8") as log:
             where.start = log.tell()
             ledger = Ledger(ctx.out_root, log, log_errors.append, fail_fast=fail_fast, sync=sync)
+            if sync is not None:
+                executor.wake = sync.wake                  # an fsync finished: its entry is released at once
             try:
                 for task, result in executor.map(to_run(ledger)):
+                    if task is NOT_NOW:
+                        record(ledger.synced())
+                        if ledger.stopped:
+                            break
+                        continue
                     if summary.worker_start_s is None and isinstance(result, dict):
                         summary.worker_start_s = round(time.monotonic() - result.get("seconds", 0.0)
                                                        - workers_started, 4)
                     record(ledger.put(task.index, _result_entry(task, result)))
                     if ledger.stopped:
                         break
-                record(ledger.drain())
+                record(ledger.drain())                     # the COCO file follows every image's entry
                 if coco_run is not None:
+                    ledger.sync = None                     # its file is staged and fsynced by this process
                     record(() if ledger.stopped else coco_run.release(ledger, ctx.out_root, previous))
                     summary.notes += coco_run.run_notes(written=not ledger.stopped)
             finally:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import errno
 import io
 import os
+import select
 import shutil
 import threading
 import time
@@ -141,7 +142,10 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
     time.sleep(0.05)                          # b's and c's fsyncs are done meanwhile
     assert released == [] and log.getvalue() == "" and not list(out.glob("*.pcd"))   # a is still on its way
     gate.set()
-    released += ledger.drain()
+    assert select.select([sync.wake], [], [], 5)[0]        # the fsync's end wakes the run's main loop (executor.wake)
+    sync.wait(0)
+    released += ledger.synced()
+    assert ledger.drain() == [] and not ledger.pending
     sync.close()
     assert [e["output"] for e in released] == ["a.pcd", "b.pcd", "c.pcd"]
     assert [line.split('"output": "')[1][0] for line in log.getvalue().splitlines()] == ["a", "b", "c"]
