@@ -22,7 +22,10 @@ flight) and yields ``(task, result)`` pairs as they complete; ``result`` is the 
 :class:`WorkerDeath` or a :class:`TaskError`. :class:`InlineExecutor` runs the same contract in the calling process.
 A source that must wait for its caller (an ordered consumer bounding what it holds, the bag runner) yields
 :data:`NOT_NOW` instead of a task: ``map`` yields ``(NOT_NOW, None)`` at once and asks again later; the source may do
-so only while a task is running or when its caller can make progress without one.
+so only while a task is running or when its caller can make progress without one. ``wake`` (a file descriptor the
+caller reads) also makes ``map`` yield ``(NOT_NOW, None)`` when it becomes readable while tasks of at least
+``QUEUE_BELOW_S`` run: the caller has work of its own to do then (the runner: entries whose fsync just finished,
+``output_sync``); behind shorter tasks the next result comes soon enough.
 """
 
 from __future__ import annotations
@@ -270,6 +273,7 @@ class ProcessExecutor(Generic[T, C]):
         self.setup = setup
         self.max_deaths = max_deaths
         self.timeout_s = timeout_s
+        self.wake: int | None = None                # see the module docstring
         self._ctx = _context(models)
         self._pool: list[_Worker] = []
         self._task_s = float("inf")                 # recent seconds per task (moving average)
@@ -344,7 +348,11 @@ class ProcessExecutor(Generic[T, C]):
                 timeout = None
                 if self.timeout_s is not None:
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
-                ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool], timeout))
+                wake = [] if self.wake is None or self._task_s < QUEUE_BELOW_S else [self.wake]   # short tasks:
+                # the next result comes soon enough, and a wake-up per file would cost the main process a loop
+                ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool] + wake, timeout))
+                if wake and self.wake in ready:
+                    yield NOT_NOW, None
                 for i, w in enumerate(self._pool):
                     if w.queue and not ready & {w.conn, w.proc.sentinel} and self.timeout_s is not None \
                             and time.monotonic() - w.started >= self.timeout_s \

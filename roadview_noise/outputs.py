@@ -1,7 +1,8 @@
 """OUT equals the manifest: every file in the output tree is listed, with its sha256, by exactly one manifest entry.
 
-Workers stage their files (fsynced temporaries, ``io/atomic.staged_writes``); :class:`Ledger` releases their results
-in plan order, so what happens is the same for any number of workers. Releasing an entry
+Workers stage their files (temporaries, ``io/atomic.staged_writes``); :class:`Ledger` releases their results in plan
+order, so what happens is the same for any number of workers. An entry waits until its temporaries are on storage
+(fsynced by its worker, or by the ledger's ``output_sync.SyncPool``: a local run); releasing it then
 
 1. claims its files: a file another input already wrote in this run fails the later entry (two inputs must never
    write one path, e.g. colliding sidecar names), and its temporaries are removed;
@@ -27,6 +28,7 @@ from typing import Callable, Container, Iterable, Iterator, TextIO
 from .input_checks import escapes
 from .io.atomic import ensure_dir_inside
 from .manifest import entry_line, full_entry, iter_manifest, sha256_file
+from .output_sync import MAX_WAITING, SyncPool, write_error
 
 
 def listed_files(entry: dict) -> list[str]:
@@ -77,10 +79,12 @@ def files_intact(out_root: Path, entry: dict) -> bool:
 
 class Ledger:
     """Releases results in plan order (see module docstring). ``put(index, entry)`` returns the entries released by
-    it. With ``fail_fast`` the first failed entry is the last one released (``stopped`` is then set)."""
+    it. With ``fail_fast`` the first failed entry is the last one released (``stopped`` is then set). With ``sync``,
+    an entry's staged temporaries are fsynced there and the entry waits for it (:meth:`drain`: the last ones); an
+    fsync that fails fails its entry, as a failed write in the worker would."""
 
     def __init__(self, out_root: Path, log: TextIO, on_log_error: Callable[[OSError], None], *,
-                 fail_fast: bool = False):
+                 fail_fast: bool = False, sync: SyncPool | None = None):
         self.out_root = out_root
         self.real_root = Path(os.path.realpath(out_root))
         self.log = log
@@ -91,12 +95,45 @@ class Ledger:
         self.superseded = False                       # a line was followed by one that replaces it
         self.pending: dict[int, dict] = {}
         self.next = 0
+        self.sync = sync
+        self.syncing: set[int] = set()                # plan indices whose fsync is pending (with ``sync``)
 
     def put(self, index: int, entry: dict) -> list[dict]:
+        if self.sync is not None and entry.get("staged"):
+            self.sync.submit(index, entry["staged"])
+            self.syncing.add(index)
         self.pending[index] = entry
+        if self.sync is not None and self.sync.pending > MAX_WAITING and self.next in self.syncing:
+            self.sync.wait(self.next)                  # the storage lags: wait for the oldest one
+        return self._release_ready(wait=False)
+
+    def synced(self) -> list[dict]:
+        """Release the entries whose fsync has finished since (the executor woke the caller for it)."""
+        self.sync.woken()
+        return self._release_ready(wait=False)
+
+    def drain(self) -> list[dict]:
+        """Release the entries that wait only for their fsync (after the last result)."""
+        return self._release_ready(wait=True)
+
+    def _release_ready(self, wait: bool) -> list[dict]:
         released = []
         while not self.stopped and self.next in self.pending:
-            entry = self._release(self.pending.pop(self.next))
+            if self.next in self.syncing:
+                done, error = self.sync.done(self.next)
+                if not done:
+                    if not wait:
+                        break
+                    self.sync.wait(self.next)
+                    done, error = self.sync.done(self.next)
+                self.syncing.discard(self.next)
+            else:
+                error = None
+            entry = self.pending.pop(self.next)
+            if error is not None:
+                discard(self.out_root, entry)
+                entry = _failed(entry, write_error(entry["input"], entry["output"], error))
+            entry = self._release(entry)
             released.append(entry)
             self.next += 1
             self.stopped = self.fail_fast and entry["status"] != "ok"
@@ -107,6 +144,7 @@ class Ledger:
         for entry in self.pending.values():
             discard(self.out_root, entry)
         self.pending.clear()
+        self.syncing.clear()
 
     def _release(self, entry: dict) -> dict:
         files = listed_files(entry) if entry.get("status") == "ok" else []

@@ -32,7 +32,7 @@ from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
-from .executor import InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
+from .executor import NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
 from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
@@ -40,6 +40,7 @@ from .lock import OutputLock
 from .manifest import (MANIFEST_NAME, RUN_NAME, encoded, iter_manifest, library_versions, read_manifest,
                        sha256_file, write_manifest, write_run_json)
 from .native_output import captured_output
+from .output_sync import SyncPool, write_error
 from .outputs import Ledger, PreviousRun, commit, discard, files_intact, remove_listed
 from .profiling import span
 from .recipe import Recipe, draw_value
@@ -76,7 +77,8 @@ class Task:
 class RunContext:
     """What every worker receives once: real input and output roots, the recipe, the limits; whether to collect
     what native libraries print (in worker processes) into the entry's ``library_messages``; whether to record
-    where each file's time goes (``profile``, :mod:`roadview_noise.profiling`)."""
+    where each file's time goes (``profile``, :mod:`roadview_noise.profiling`); whether the worker fsyncs its staged
+    files (``fsync_outputs``; False: the run's main process does, before their manifest lines, ``output_sync``)."""
 
     in_root: Path
     out_root: Path
@@ -84,6 +86,7 @@ class RunContext:
     limits: Limits = Limits()
     capture_output: bool = False
     profile: bool = False
+    fsync_outputs: bool = True
 
 
 @dataclass
@@ -232,7 +235,8 @@ def _warning_list(caught: list) -> list[str]:
 
 def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     """Read, run the chain, stage the output files; return the manifest entry (failures are recorded, not raised).
-    The files stay fsynced temporaries listed under ``staged`` until the runner has recorded them."""
+    The files stay temporaries listed under ``staged`` (fsynced, unless ``ctx.fsync_outputs`` leaves that to the
+    run's main process) until the runner has recorded them."""
     keep_freed_memory()
     t0, cpu0 = time.perf_counter(), time.thread_time()
     s, recipe = task.sample, ctx.recipe
@@ -335,7 +339,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                           if v})
             if task.coco is not None:
                 entry["coco"] = coco_warp.move_image(task.coco, data.shape, out.warps)
-            with confined_to(ctx.out_root), staged_writes() as stage:
+            with confined_to(ctx.out_root), staged_writes(sync=ctx.fsync_outputs) as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
                 with profiling.span("metrics"):
@@ -349,9 +353,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
     except RvNoiseError as e:
         entry.update(status="failed", error=str(e) if s.relpath in str(e) else f"{s.relpath}: {e}")
     except OSError as e:                   # the environment: disk full, a folder outside OUT, a vanished file
-        what = os_error_text(e) if e.strerror else str(e)
-        hint = "; free space and run again with --resume" if e.errno == 28 else ""
-        entry.update(status="failed", error=f"{s.relpath}: cannot write {task.out_relpath}: {what}{hint}")
+        entry.update(status="failed", error=write_error(s.relpath, task.out_relpath, e))
     except Exception as e:  # a bug or a library error on one file must not stop the run; keep the trace
         entry.update(status="failed", error=f"{s.relpath}: internal error {type(e).__name__}: {e}",
                      traceback=traceback.format_exc(limit=8))
@@ -374,7 +376,7 @@ def _staged_files(stage, ctx: RunContext, task: Task, entry: dict[str, Any]) -> 
 def _copy_unchanged(task: Task, ctx: RunContext, source: Path, entry: dict[str, Any], why: str) -> None:
     """An input with nothing to augment (:class:`EmptyCloudError`: a radar frame without detections) is written
     unchanged, so that the output tree stays complete (a dataset's loader expects every sweep); no steps run."""
-    with confined_to(ctx.out_root), staged_writes() as stage:
+    with confined_to(ctx.out_root), staged_writes(sync=ctx.fsync_outputs) as stage:
         write_bytes_atomic(ctx.out_root / task.out_relpath, source.read_bytes())
         _staged_files(stage, ctx, task, entry)
     entry.update(status="ok", copied_unchanged=True, note=why.removeprefix(f"{source}: "), metrics={}, steps=[])
@@ -456,7 +458,8 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
     with OutputLock(out_real, echo=warn) as lock, confined_to(out_real):
         n_workers, capped = (workers, None) if backend == "dask" and scheduler is not None else \
             choose_workers(workers, planned)
-        ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile)
+        ctx = RunContext(in_real, out_real, recipe, limits, capture_output=True, profile=profile,
+                         fsync_outputs=backend != "local")          # local: the main process fsyncs them
         workers_started = time.monotonic()
         executor = _executor(ctx, n_workers, backend, scheduler)       # the fork server imports meanwhile
         getattr(executor, "start", lambda: None)()      # workers fork and set up while the run record is written
@@ -647,24 +650,36 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             yield item
 
     ledger = None
+    sync = None if ctx.fsync_outputs else SyncPool(ctx.out_root)
     try:
         with open(ctx.out_root / MANIFEST_NAME, "a" if previous else "w", encoding="utf-8") as log:
             where.start = log.tell()
-            ledger = Ledger(ctx.out_root, log, log_errors.append, fail_fast=fail_fast)
+            ledger = Ledger(ctx.out_root, log, log_errors.append, fail_fast=fail_fast, sync=sync)
+            if sync is not None:
+                executor.wake = sync.wake                  # an fsync finished: its entry is released at once
             try:
                 for task, result in executor.map(to_run(ledger)):
+                    if task is NOT_NOW:
+                        record(ledger.synced())
+                        if ledger.stopped:
+                            break
+                        continue
                     if summary.worker_start_s is None and isinstance(result, dict):
                         summary.worker_start_s = round(time.monotonic() - result.get("seconds", 0.0)
                                                        - workers_started, 4)
                     record(ledger.put(task.index, _result_entry(task, result)))
                     if ledger.stopped:
                         break
+                record(ledger.drain())                     # the COCO file follows every image's entry
                 if coco_run is not None:
+                    ledger.sync = None                     # its file is staged and fsynced by this process
                     record(() if ledger.stopped else coco_run.release(ledger, ctx.out_root, previous))
                     summary.notes += coco_run.run_notes(written=not ledger.stopped)
             finally:
                 getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
                 ledger.discard_pending()
+                if sync is not None:
+                    sync.close()
         if ledger.stopped:
             summary.state = "stopped at the first failure (--fail-fast)"
     except KeyboardInterrupt:                          # recorded like any other end; run() raises it again

@@ -12,6 +12,8 @@ two process-wide settings the batch runner makes here apply to all of them:
   So a run records every file before it appears under its final name. Each temporary's writeback starts when it is
   written and the block's end waits for all of them (fsync): what the block does after writing (hashing the
   outputs) overlaps the disk's work, and a temporary is on storage before the block returns.
+  (A local run's workers leave that fsync to the main process, which does it in threads before it records them:
+  ``roadview_noise.output_sync``.)
 """
 
 from __future__ import annotations
@@ -81,15 +83,17 @@ def confined_to(root: str | os.PathLike) -> Iterator[Path]:
 
 
 @contextmanager
-def staged_writes() -> Iterator[Staged]:
+def staged_writes(sync: bool = True) -> Iterator[Staged]:
     """Collect the writes of the block as temporaries, on storage when the block ends (see the module docstring); on
-    an error, the fsync's included, they are removed."""
+    an error, the fsync's included, they are removed. ``sync=False``: the block ends without the fsync, which the
+    caller then owes before it records them (a run's main process, ``output_sync``)."""
     global _stage
     previous, _stage = _stage, Staged()
     stage = _stage
     try:
         yield stage
-        stage.sync()
+        if sync:
+            stage.sync()
     except BaseException:
         stage.discard()
         raise
