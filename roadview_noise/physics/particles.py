@@ -837,16 +837,32 @@ def count_buckets(cuts: np.ndarray) -> np.ndarray:
 
 def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: CameraProfile, depth_m: np.ndarray,
                                field: UnresolvedField | None, d_max_m: float, rng: np.random.Generator,
-                               blend: tuple[SiteLayout, np.ndarray, np.ndarray] | None = None,
-                               bins: np.ndarray | None = None) -> tuple[float, np.ndarray | None]:
+                               bins: np.ndarray | None = None) -> float:
     """``t ← t·(1 − M)`` in place per pixel, M the opacity of the explicit streaks (``coverage``) plus, with a
     ``field``, the :func:`unresolved_field` draw (particles up to the scene's planar depth, or to the ground's below
     the horizon: none are under the ground; at the nearest bin of the veil table), clipped to 1 (written back into
-    ``coverage``). Returns the mean M over the image, and None; with ``blend = (layout, signal, S)`` t is left as
-    it is and ``t·(1 − M)`` goes at once into :func:`~roadview_noise.physics.photometry.composite`'s blend
-    ``S + t·(1 − M)·(I − S)``, the same float32 operations in one pass: returns the mean M and the blended signal.
-    ``bins``: the scene's veil-table bins from :func:`veil_transmission` (then the nearer of those and the
-    ground's is the bin: the same, as rounding is monotonic), else computed here."""
+    ``coverage``). Returns the mean M over the image. ``bins``: the scene's veil-table bins from
+    :func:`veil_transmission` (the nearer of those and the ground's is the bin: the same, as rounding is
+    monotonic), else computed here."""
+    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, None)
+    return float(cv2.mean(coverage)[0])
+
+
+def blend_through_particles(layout: SiteLayout, signal: np.ndarray, values, t: np.ndarray, coverage: np.ndarray,
+                            profile: CameraProfile, depth_m: np.ndarray, field: UnresolvedField | None,
+                            d_max_m: float, rng: np.random.Generator, bins: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, float]:
+    """:func:`~roadview_noise.physics.photometry.composite` ``(layout, signal, t·(1 − M), values)`` with the
+    t·(1 − M) of :func:`transmit_through_particles` (same arguments; ``t`` is left as it is), in the same pass
+    and with the same float32 operations: the blended signal and the mean M."""
+    rows_values, rows = blend_operands(layout, signal, values)
+    out = np.empty_like(rows)
+    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, (rows_values, rows, out))
+    return out.reshape(np.shape(signal)), float(cv2.mean(coverage)[0])
+
+
+def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -> None:
+    """The pass of both: ``blend`` None or (S per value of a row, signal rows, output rows)."""
     h, w = coverage.shape
     k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     below = np.arange(h) - profile.cy_px
@@ -857,17 +873,12 @@ def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: Cam
                                      np.zeros(0, np.uint16))
     else:
         cuts, buckets, mark, bits = field.cuts, field.buckets, field.mark, uniform_bits(rng, h * w)
-    if blend is None:
-        values, signal, out = np.zeros((1, 1), np.float32), np.zeros((0, 0), np.float32), None
-    else:
-        layout, signal, values = blend
-        values, signal = blend_operands(layout, signal, values)
-        out = np.empty_like(signal)
+    if blend is None:                                  # t·(1 − M) back into t
+        blend = np.zeros((1, 1), np.float32), np.zeros((0, 0), np.float32), np.zeros((0, 0), np.float32)
     _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
                      np.empty((0, 0), np.uint8) if bins is None else bins,
                      np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
-                     buckets, mark, bits, field is not None, values, signal, signal if out is None else out)
-    return float(cv2.mean(coverage)[0]), None if out is None else out.reshape(blend[1].shape)
+                     buckets, mark, bits, field is not None, *blend)
 
 
 @jit(error_model="numpy")
@@ -981,8 +992,8 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     sigma = classes.extinction_per_m()
     bins = np.empty((h, w), np.uint8)
     t = veil_transmission(profile, depth, tables.veil, sigma, d_max_m, bins)
-    mean_coverage, out = transmit_through_particles(t, coverage, profile, depth, tables.unresolved, d_max_m, rng,
-                                                    blend=(layout, signal, s), bins=bins)
+    out, mean_coverage = blend_through_particles(layout, signal, s, t, coverage, profile, depth, tables.unresolved,
+                                                 d_max_m, rng, bins)
     return frame.with_signal(out), {
         "particles_expected": expected,
         "particles_drawn": int(particles.z.size),
