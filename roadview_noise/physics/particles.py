@@ -892,9 +892,8 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
-    bins, added, tm = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.float32)
-    walk, shift = np.empty(w, np.uint8), BUCKET_SHIFT
-    tm3 = np.empty(3 * w if rgb else 0, np.float32)
+    bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
+    tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
         if draw:
@@ -917,20 +916,26 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
                     while u >= cuts[b, n]:
                         n += 1
                     added[x] = np.float32(n) * mark[b]
-        for x in range(w):
-            m = min(cov[x] + added[x] * k_row[x], one)
-            cov[x] = m
-            tm[x] = t_row[x] * (one - m)
         if not blend:
-            t_row[:] = tm
+            for x in range(w):
+                m = min(cov[x] + added[x] * k_row[x], one)
+                cov[x] = m
+                t_row[x] *= one - m
         elif rgb:                                  # t·(1 − M) per value, then one contiguous (vectorised) loop
             for x in range(w):
-                tm3[3 * x] = tm[x]
-                tm3[3 * x + 1] = tm[x]
-                tm3[3 * x + 2] = tm[x]
+                m = min(cov[x] + added[x] * k_row[x], one)
+                cov[x] = m
+                tm = t_row[x] * (one - m)
+                tm3[3 * x] = tm
+                tm3[3 * x + 1] = tm
+                tm3[3 * x + 2] = tm
             _lerp_row(values[0], tm3, signal[y], out[y])
         else:
-            _lerp_row(values[y % values.shape[0]], tm, signal[y], out[y])
+            for x in range(w):
+                m = min(cov[x] + added[x] * k_row[x], one)
+                cov[x] = m
+                tm3[x] = t_row[x] * (one - m)
+            _lerp_row(values[y % values.shape[0]], tm3, signal[y], out[y])
 
 
 @jit(error_model="numpy")
