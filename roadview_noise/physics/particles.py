@@ -63,7 +63,7 @@ from .cfa import SiteLayout
 from .dsd import BRANDES_SNOW_GAMMA, gamma_dsd, marshall_palmer, snowfall
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
-from .photometry import composite, estimation_depth, frame_depth_m
+from .photometry import blend_operands, estimation_depth, frame_depth_m
 from .sensor_noise import uniform_bits
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
@@ -661,18 +661,19 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
                                      *_streak_constants(profile, conditions, exposure_s, d_min_m), pyramid, offsets,
                                      np.ascontiguousarray(depth_m, dtype=np.float32))
     # collapse the pyramid (grids hold opacity per full-resolution pixel): each level is upsampled ×2 into the
-    # next finer one
+    # next finer one, the last one clipped on the way
     grids = [pyramid[offsets[lv]:offsets[lv + 1]].reshape(-(-h // (1 << lv)), -(-w // (1 << lv)))
              for lv in range(top + 1)]
     for lv in range(top - 1, -1, -1):
-        add_upsampled(grids[lv], grids[lv + 1])
-    return cv2.min(grids[0], 1.0, dst=grids[0]), int(n_visible)
+        add_upsampled(grids[lv], grids[lv + 1], lv == 0)
+    return grids[0] if top else cv2.min(grids[0], 1.0, dst=grids[0]), int(n_visible)
 
 
 @jit(error_model="numpy")
-def add_upsampled(fine, coarse):                                      # pragma: no cover - compiled
+def add_upsampled(fine, coarse, clip=False):                          # pragma: no cover - compiled
     """``fine += ×2 upsampling of coarse`` (⌈h/2⌉ × ⌈w/2⌉), bilinear as OpenCV's INTER_LINEAR: fine pixel x
-    samples the coarse grid at (x + ½)/2 − ½, i.e. ¼ and ¾ of its two nearest cells, edge cells replicated."""
+    samples the coarse grid at (x + ½)/2 − ½, i.e. ¼ and ¾ of its two nearest cells, edge cells replicated;
+    the sums clipped to 1 with ``clip``."""
     hc, wc = coarse.shape
     q, tq = np.float32(0.25), np.float32(0.75)
     row = np.empty(wc + 2, np.float32)            # vertical blend of two coarse rows, padded by one cell each side
@@ -687,8 +688,12 @@ def add_upsampled(fine, coarse):                                      # pragma: 
             wide[2 * i] = q * row[i] + tq * row[i + 1]
             wide[2 * i + 1] = tq * row[i + 1] + q * row[i + 2]
         f = fine[y]
-        for x in range(f.size):
-            f[x] += wide[x]
+        if clip:
+            for x in range(f.size):
+                f[x] = min(f[x] + wide[x], np.float32(1))
+        else:
+            for x in range(f.size):
+                f[x] += wide[x]
 
 
 def footprint_level(footprint_px: np.ndarray) -> np.ndarray:
@@ -712,27 +717,30 @@ def veil_optical_depth_table(classes: SizeClasses, z_limits_m: np.ndarray, d_min
 
 
 def veil_transmission(profile: CameraProfile, depth_m: np.ndarray, table: tuple[np.ndarray, np.ndarray],
-                      sigma_per_m: float, d_max_m: float) -> np.ndarray:
+                      sigma_per_m: float, d_max_m: float, bins: np.ndarray | None = None) -> np.ndarray:
     """Per-pixel transmission (H, W) float32 of the veil to the scene point at range ``d`` (inf → 0):
     ``τ = k·H(min(d/k, d_max)) + σ·max(d − k d_max, 0)`` with k the ray factor (range/planar depth), H at the
-    nearest of the table's depth bins (< 12 cm)."""
+    nearest of the table's depth bins (< 12 cm); that bin is also written into ``bins`` ((H, W) uint8) if given,
+    for :func:`transmit_through_particles`."""
     k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     depth_m = np.ascontiguousarray(depth_m, dtype=np.float32)
     neg_tau = np.empty_like(depth_m)
     _veil_neg_optical_depth(depth_m, k, -np.asarray(table[1], dtype=np.float32),
                             np.float32((VEIL_LUT_SIZE - 1) / d_max_m), np.float32(d_max_m), np.float32(sigma_per_m),
-                            neg_tau)
+                            neg_tau, np.empty((0, 0), np.uint8) if bins is None else bins)
     return cv2.exp(neg_tau, dst=neg_tau)
 
 
 @jit(error_model="numpy")
-def _veil_neg_optical_depth(depth_m, k, neg_h, bins_per_m, d_max_m, sigma, out):   # pragma: no cover - compiled
+def _veil_neg_optical_depth(depth_m, k, neg_h, bins_per_m, d_max_m, sigma, out, bins):  # pragma: no cover
     """``−τ`` of :func:`veil_transmission` per pixel, floored at −80 (t > 2e-35 leaves no trace in float32, and
-    exp of −inf takes a slow path). Two loops per row: the first vectorises (divisions), the second is the table
-    lookup."""
-    nearest_bin = np.empty(depth_m.shape[1], np.uint8)
+    exp of −inf takes a slow path), and the nearest bins into ``bins`` unless it is empty. Two loops per row: the
+    first vectorises (divisions), the second is the table lookup."""
+    keep = bins.size > 0
+    row_bins = np.empty(depth_m.shape[1], np.uint8)
     for y in range(depth_m.shape[0]):
         d, k_row, row = depth_m[y], k[y], out[y]
+        nearest_bin = bins[y] if keep else row_bins
         for x in range(row.size):
             nearest_bin[x] = np.uint8(min(d[x] / k_row[x], d_max_m) * bins_per_m + np.float32(0.5))
             far = max(d[x] - k_row[x] * d_max_m, np.float32(0))
@@ -746,19 +754,23 @@ def _veil_neg_optical_depth(depth_m, k, neg_h, bins_per_m, d_max_m, sigma, out):
 UNRESOLVED_CELLS = 256          # depth cells of the variance quadrature (midpoint rule, 1.6 % wide)
 UNRESOLVED_TAIL = 2.0 ** -24    # Poisson tail left out of the count tables (its mean is kept by the mark)
 UNIFORM_CODES = 1 << 16         # 16-bit uniforms (sensor_noise.uniform_bits)
+BUCKET_SHIFT = 8                # count look-up per bin and high byte of the uniform (unresolved_field.buckets)
 
 
 class UnresolvedField(NamedTuple):
     """Per planar-depth bin b of the veil table (the scene, or the ground, nearest along the pixel's ray): a pixel
     draws ``N`` = the number of ``cuts[b]`` ≤ its 16-bit uniform and gains the opacity ``N · mark[b] · k`` (k the
     ray factor). ``mean``/``variance`` per unit k / k² are the moments matched; ``expected`` the number of
-    particles in the image above the ground."""
+    particles in the image above the ground. ``buckets`` (flat, bin × the uniform's high byte, uint8): N for every
+    uniform of the bucket, or +128 where a cut falls inside it (then N counts on from there; also where N could
+    exceed 127)."""
 
     cuts: np.ndarray
     mark: np.ndarray
     mean: np.ndarray
     variance: np.ndarray
     expected: float
+    buckets: np.ndarray
 
 
 def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
@@ -811,55 +823,126 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
     mark = np.divide(mean, counted, out=np.zeros_like(mean), where=counted > 0).astype(np.float32)
     z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
     expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
-    return UnresolvedField(cuts, mark, mean, variance, expected)
+    return UnresolvedField(cuts, mark, mean, variance, expected, count_buckets(cuts))
+
+
+def count_buckets(cuts: np.ndarray) -> np.ndarray:
+    """:class:`UnresolvedField`'s ``buckets`` of the (bins, counts) ``cuts`` table."""
+    start = np.arange(0, UNIFORM_CODES, 1 << BUCKET_SHIFT)
+    at_start = (cuts[:, None, :] <= start[None, :, None]).sum(axis=2)
+    at_end = (cuts[:, None, :] <= (start + (1 << BUCKET_SHIFT) - 1)[None, :, None]).sum(axis=2)
+    walk = (at_end != at_start) | (at_start > 127)
+    return (np.minimum(at_start, 127) + 128 * walk).astype(np.uint8).ravel()
 
 
 def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: CameraProfile, depth_m: np.ndarray,
-                               field: UnresolvedField | None, d_max_m: float, rng: np.random.Generator) -> float:
+                               field: UnresolvedField | None, d_max_m: float, rng: np.random.Generator,
+                               bins: np.ndarray | None = None) -> float:
     """``t ← t·(1 − M)`` in place per pixel, M the opacity of the explicit streaks (``coverage``) plus, with a
     ``field``, the :func:`unresolved_field` draw (particles up to the scene's planar depth, or to the ground's below
     the horizon: none are under the ground; at the nearest bin of the veil table), clipped to 1 (written back into
-    ``coverage``). Returns the mean M over the image."""
+    ``coverage``). Returns the mean M over the image. ``bins``: the scene's veil-table bins from
+    :func:`veil_transmission` (the nearer of those and the ground's is the bin: the same, as rounding is
+    monotonic), else computed here."""
+    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, None)
+    return float(cv2.mean(coverage)[0])
+
+
+def blend_through_particles(layout: SiteLayout, signal: np.ndarray, values, t: np.ndarray, coverage: np.ndarray,
+                            profile: CameraProfile, depth_m: np.ndarray, field: UnresolvedField | None,
+                            d_max_m: float, rng: np.random.Generator, bins: np.ndarray | None = None
+                            ) -> tuple[np.ndarray, float]:
+    """:func:`~roadview_noise.physics.photometry.composite` ``(layout, signal, t·(1 − M), values)`` with the
+    t·(1 − M) of :func:`transmit_through_particles` (same arguments; ``t`` is left as it is), in the same pass
+    and with the same float32 operations: the blended signal and the mean M."""
+    rows_values, rows = blend_operands(layout, signal, values)
+    out = np.empty_like(rows)
+    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, (rows_values, rows, out))
+    return out.reshape(np.shape(signal)), float(cv2.mean(coverage)[0])
+
+
+def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -> None:
+    """The pass of both: ``blend`` None or (S per value of a row, signal rows, output rows)."""
     h, w = coverage.shape
     k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     below = np.arange(h) - profile.cy_px
     with np.errstate(divide="ignore"):
         ground = np.where(below > 0, profile.height_above_ground_m * profile.fy_px / below, np.inf)
-    if field is None:                                  # nothing drawn: a table that never counts, no uniforms
-        cuts, mark, bits = np.full((1, 1), UNIFORM_CODES, np.int32), np.zeros(1, np.float32), np.zeros(0, np.uint16)
+    if field is None:                                  # nothing drawn: no tables, no uniforms
+        cuts, buckets, mark, bits = (np.zeros((0, 0), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32),
+                                     np.zeros(0, np.uint16))
     else:
-        cuts, mark, bits = field.cuts, field.mark, uniform_bits(rng, h * w)
+        cuts, buckets, mark, bits = field.cuts, field.buckets, field.mark, uniform_bits(rng, h * w)
+    if blend is None:                                  # t·(1 − M) back into t
+        blend = np.zeros((1, 1), np.float32), np.zeros((0, 0), np.float32), np.zeros((0, 0), np.float32)
     _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
+                     np.empty((0, 0), np.uint8) if bins is None else bins,
                      np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
-                     mark, bits, field is not None)
-    return float(cv2.mean(coverage)[0])
+                     buckets, mark, bits, field is not None, *blend)
 
 
 @jit(error_model="numpy")
-def _transmit_kernel(t, coverage, depth_m, k, ground_z, bins_per_m, cuts, mark, bits, draw):  # pragma: no cover
-    """Per row: the bins (vectorised), the counts (a second cut is rare: no branch before it), the blend (M back
-    into ``coverage``)."""
+def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, draw,
+                     values, signal, out):                                    # pragma: no cover - compiled
+    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given), the counts (from
+    ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
+    ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into
+    ``out`` (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic
+    sites)."""
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
-    bins, added = np.empty(w, np.uint8), np.zeros(w, np.float32)
+    blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
+    bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
+    tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
         if draw:
             limit, u_row = ground_z[y], bits[y * w:(y + 1) * w]
+            if scene_bins.size > 0:
+                ground_bin, scene_row = np.uint8(limit * bins_per_m + half), scene_bins[y]
+                for x in range(w):
+                    bins[x] = min(scene_row[x], ground_bin)
+            else:
+                for x in range(w):
+                    bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
             for x in range(w):
-                bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
+                b = np.int32(bins[x])
+                c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
+                walk[x] = c
+                added[x] = np.float32(c & 127) * mark[b]
             for x in range(w):
-                b, u = bins[x], np.int32(u_row[x])
-                n = np.int32(u >= cuts[b, 0])
-                if u >= cuts[b, 1]:
-                    n = 2
+                if walk[x] >= 128:
+                    b, u, n = bins[x], np.int32(u_row[x]), np.int32(walk[x] & 127)
                     while u >= cuts[b, n]:
                         n += 1
-                added[x] = np.float32(n) * mark[b]
-        for x in range(w):
-            m = min(cov[x] + added[x] * k_row[x], one)
-            cov[x] = m
-            t_row[x] *= one - m
+                    added[x] = np.float32(n) * mark[b]
+        if not blend:
+            for x in range(w):
+                m = min(cov[x] + added[x] * k_row[x], one)
+                cov[x] = m
+                t_row[x] *= one - m
+        elif rgb:                                  # t·(1 − M) per value, then one contiguous (vectorised) loop
+            for x in range(w):
+                m = min(cov[x] + added[x] * k_row[x], one)
+                cov[x] = m
+                tm = t_row[x] * (one - m)
+                tm3[3 * x] = tm
+                tm3[3 * x + 1] = tm
+                tm3[3 * x + 2] = tm
+            _lerp_row(values[0], tm3, signal[y], out[y])
+        else:
+            for x in range(w):
+                m = min(cov[x] + added[x] * k_row[x], one)
+                cov[x] = m
+                tm3[x] = t_row[x] * (one - m)
+            _lerp_row(values[y % values.shape[0]], tm3, signal[y], out[y])
+
+
+@jit(error_model="numpy")
+def _lerp_row(a, t, s, out):                                                  # pragma: no cover - compiled
+    """``out = a + t·(s − a)`` elementwise over one row."""
+    for i in range(out.size):
+        out[i] = a[i] + t[i] * (s[i] - a[i])
 
 
 # --- one frame -------------------------------------------------------------------------------------------------
@@ -888,7 +971,7 @@ def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClas
     field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
                              d_max_m)
     out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m))
-    for a in (limits, resolved, *out.veil, *(field[:4] if field is not None else ())):
+    for a in (limits, resolved, *out.veil, *(field[:4] + field[5:] if field is not None else ())):
         a.flags.writeable = False
     return out
 
@@ -912,9 +995,10 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed)
     coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
     sigma = classes.extinction_per_m()
-    t = veil_transmission(profile, depth, tables.veil, sigma, d_max_m)
-    mean_coverage = transmit_through_particles(t, coverage, profile, depth, tables.unresolved, d_max_m, rng)
-    out = composite(layout, signal, t, s)
+    bins = np.empty((h, w), np.uint8)
+    t = veil_transmission(profile, depth, tables.veil, sigma, d_max_m, bins)
+    out, mean_coverage = blend_through_particles(layout, signal, s, t, coverage, profile, depth, tables.unresolved,
+                                                 d_max_m, rng, bins)
     return frame.with_signal(out), {
         "particles_expected": expected,
         "particles_drawn": int(particles.z.size),

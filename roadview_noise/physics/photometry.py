@@ -247,6 +247,16 @@ def composite(layout: SiteLayout, signal: np.ndarray, t: np.ndarray, values, out
     return out
 
 
+def blend_operands(layout: SiteLayout, signal: np.ndarray, values) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`composite`'s operands for a kernel that blends row by row: the signal as contiguous float32 rows,
+    (H, W·3) RGB or (H, W) sites, and S per value of a row, (k, ·) rows repeating down the image (k = 1 for RGB,
+    ≤ 2 on a mosaic)."""
+    v = _channel_values(values)
+    signal = np.ascontiguousarray(signal, dtype=np.float32)
+    rows = _mosaic_rows(layout, v) if layout.mosaic else np.tile(v, signal.shape[1])[None, :]
+    return rows, signal.reshape(signal.shape[0], -1)
+
+
 def site_transmission(layout: SiteLayout, distance_m: np.ndarray, sigma_per_m) -> np.ndarray:
     """Per-site Beer–Lambert transmission ``exp(−σ_c d)`` of an (H, W) distance map (inf → 0), float32, with σ
     per channel (R, G, B). Distances are capped where the optical depth reaches 80 (t < 2·10⁻³⁵ leaves no trace
