@@ -40,7 +40,9 @@ The first runs of each check that both versions write the same metrics.
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
 on alternately (the order flips every round), ``--repeat`` rounds after one untimed round. Figures per recipe: the
 median wall time off → on, the median sum of the workers' per-file times (manifest ``seconds``), the growth of the
-``metrics`` phase per file, and the manifest's bytes per line.
+``metrics`` phase per file, and the manifest's bytes per line. With ``--baseline DIR``: paired whole runs of DIR's
+code and this tree's, each run in a fresh interpreter with its tree first on ``PYTHONPATH`` (so its workers run that
+code), metrics off and on, the order rotating every round; the sums of the per-file wall and CPU seconds.
 
 Inputs: sample data generated at full resolution (camera 1936×1464 PNG with its depth EXR, the same frame as a raw
 DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list — what ``--whole-run`` and ``bench/run.py`` run
@@ -54,6 +56,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py --fusion [--repeat N] [--recipes cnf11,cnf05]
     .venv/bin/python bench/bench_metrics.py --baseline DIR [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
+    .venv/bin/python bench/bench_metrics.py --whole-run --baseline DIR [--repeat N] [--frames N] [--recipes cnf22]
 """
 
 from __future__ import annotations
@@ -66,8 +69,10 @@ import argparse  # noqa: E402
 import dataclasses  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -318,8 +323,9 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
     return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]   positional {positional:7.2f} ms"
 
 
-def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool) -> tuple[float, float, float, int]:
-    """(wall s, sum of the per-file seconds, metrics phase s per file, manifest bytes per line) of one run."""
+def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool, cpu: bool = False) -> tuple:
+    """(wall s, sum of the per-file seconds, metrics phase s per file, manifest bytes per line[, sum of the per-file
+    CPU seconds with ``cpu``]) of one run."""
     from run import INPUTS      # bench/run.py: the trees' input globs (bench/ is first on sys.path)
 
     body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
@@ -333,8 +339,8 @@ def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool)
     lines = (out / MANIFEST_NAME).read_bytes().splitlines()
     entries = [e for e in map(json.loads, lines) if "seconds" in e]
     shutil.rmtree(out)
-    return (wall, sum(e["seconds"] for e in entries),
-            statistics.mean(e["profile"]["metrics"] for e in entries), sum(map(len, lines)) // len(lines))
+    return (wall, sum(e["seconds"] for e in entries), statistics.mean(e["profile"]["metrics"] for e in entries),
+            sum(map(len, lines)) // len(lines)) + ((sum(e["profile"]["cpu"] for e in entries),) if cpu else ())
 
 
 def whole_runs(names: list[str], repeat: int, frames: int) -> None:
@@ -359,6 +365,51 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
                   f"({(f1 / f0 - 1) * 100:+5.1f} %)   {(m1 - m0) * 1e3:6.1f}       {b0:5.0f} → {b1:5.0f}", flush=True)
 
 
+#: one whole run in a fresh interpreter (--whole-run --baseline): this bench, the code of the tree on PYTHONPATH
+ONE_RUN = """import json, sys
+sys.path.insert(0, sys.argv[1] + "/bench")
+from bench_metrics import whole_run_once
+from pathlib import Path
+print(json.dumps(whole_run_once(sys.argv[2], sys.argv[3], Path(sys.argv[4]), Path(sys.argv[5]), sys.argv[6] == "on",
+                                cpu=True)))
+"""
+
+
+def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path) -> None:
+    """``--whole-run --baseline DIR``: per round, whole runs with metrics off and on with DIR's code and with this
+    tree's, each in a fresh interpreter (its workers fork from a fork server importing that tree), the order of the
+    four rotating every round; medians of the sums of the per-file wall and CPU seconds and of each round's
+    increase (on against the same round's off: steadier under a changing load)."""
+    from run import build_trees
+
+    trees_code = {"base": baseline, "this": ROOT}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN[n] for n in names})})
+        print(f"whole augment runs, 1 worker, {frames * 3} files, fresh interpreter each, {repeat} rounds (one "
+              f"untimed): medians of the sums of the per-file wall s and CPU s, off → on, and of the increase paired "
+              f"within a round [its range]")
+        for name in names:
+            kinds = [(code, on) for code in ("base", "this") for on in ("off", "on")]
+            samples: dict[tuple, list] = {k: [] for k in kinds}
+            for r in range(repeat + 1):
+                for code, on in kinds[r % 4:] + kinds[:r % 4]:
+                    env = {**os.environ, "PYTHONPATH": str(trees_code[code])}
+                    got = subprocess.run([sys.executable, "-c", ONE_RUN, str(ROOT), name, WHOLE_RUN[name],
+                                          str(trees[WHOLE_RUN[name]]), str(tmp / "out"), on], env=env, check=True,
+                                         capture_output=True, text=True).stdout.splitlines()[-1]
+                    if r:
+                        samples[(code, on)].append(json.loads(got))
+            for code in ("base", "this"):
+                cols = []
+                for i, label in ((1, "wall"), (4, "CPU")):
+                    off, on = ([s[i] for s in samples[(code, k)]] for k in ("off", "on"))
+                    ratios = sorted((b / a - 1) * 100 for a, b in zip(off, on))      # paired within a round
+                    cols.append(f"{label} {statistics.median(off):5.3f} → {statistics.median(on):5.3f} s "
+                                f"({statistics.median(ratios):+5.1f} % [{ratios[0]:+.1f} … {ratios[-1]:+.1f}])")
+                print(f"  {name:<12} {code:<5} " + "   ".join(cols), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=7, help="runs per case with metrics off and on (default 7)")
@@ -367,9 +418,14 @@ def main() -> None:
     ap.add_argument("--compare-only", action="store_true", help="CPU time of the chain's metrics calls alone")
     ap.add_argument("--fusion", action="store_true", help="metrics off / on / on without the sRGB passes' luminance")
     ap.add_argument("--baseline", type=Path,
-                    help="per file: metrics off / on with DIR's metrics.py / on with this tree's")
+                    help="per file: metrics off / on with DIR's metrics.py / on with this tree's; with "
+                         "--whole-run: whole runs off/on with DIR's code and with this tree's, paired")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
+    if args.whole_run and args.baseline:
+        whole_runs_paired(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames,
+                          args.baseline.resolve())
+        return
     if args.whole_run:
         whole_runs(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames)
         return
