@@ -224,12 +224,13 @@ def _firing_columns(theta, ring, edges, columns):       # pragma: no cover - com
     start = 0
     phase_sum = 0.0
     before_phase, before_first, before_last, before_size, gap = 0.0, 0, 0, 0, 0
+    at = 0.0                            # F(θ) of the return before
     for i in range(n + 1):
-        at = _firings_at(theta[i], edges) if i < n else 0.0
+        before, at = at, _firings_at(theta[i], edges) if i < n else 0.0
         new_laser = i == n or i == 0 or ring[i] != ring[i - 1]
         k = 0
         if not new_laser:
-            k = max(1, int(math.floor(at - _firings_at(theta[i - 1], edges) + 0.5)))
+            k = max(1, int(math.floor(at - before + 0.5)))
         if new_laser or k > STRETCH_GAP:          # the stretch start … i − 1 ends: place it
             if i > 0:
                 phase = phase_sum / (i - start)
