@@ -45,6 +45,20 @@ def sekhon_srivastava(snowfall_rate_mm_per_h: float) -> tuple[float, float]:
 
 SNOW_LAWS = {"gunn_marshall": gunn_marshall, "sekhon_srivastava": sekhon_srivastava}
 
+#: Trace snow (Gunn 1965, McGill Stormy Weather Group, "Measurements on new-fallen snow", DTIC AD0621153): over a
+#: season of Montreal snowfalls the number of crystals reaching the ground is proportional to the rate, R/m̄ =
+#: 1.5 R cm⁻² s⁻¹ (R in mm/h of water; two thirds of the samples within a factor 2): a mean mass per crystal
+#: m̄ = 18.5 µg whatever the rate. The optical attenuation by falling snow is proportional to the rate as well
+#: (Warner & Gunn 1969, J. Appl. Meteor. 8: 11 dB/km per mm/h at 0.45 µm, 20 storms). Extrapolated to trace rates,
+#: the exponential laws' Λ ∝ S^−0.48 instead give ever more, ever lighter crystals (6.1e4 m⁻³ of mean melted
+#: diameter 0.014 mm at 0.001 mm/h; ASSUMPTION, not checked against the papers here: their fits rest on snowfalls
+#: of tenths of a mm/h and more). Their slope is therefore capped where their mean crystal mass ``π ρ_w / Λ³``
+#: (melted spheres) falls to m̄: Λ = (π · 1e-3 g mm⁻³ / m̄)^{1/3} = 5.536 mm⁻¹, reached at 0.199 mm/h
+#: (Gunn–Marshall) and 0.141 mm/h (Sekhon–Srivastava), below every D3.5 rate. Lighter snowfalls are fewer crystals
+#: of that kind (18 m⁻³ at 0.001 mm/h).
+TRACE_SNOW_CRYSTAL_MASS_G = 0.1 / 3600 / 1.5      # 1 mm/h of water = 0.1/3600 g cm⁻² s⁻¹, over 1.5 crystals cm⁻² s⁻¹
+TRACE_SNOW_SLOPE_PER_MM = (math.pi * 1e-3 / TRACE_SNOW_CRYSTAL_MASS_G) ** (1 / 3)
+
 
 def exponential_moment(n0: float, lam: float, k: int, d_min_mm, d_max_mm):
     """``∫_{Dmin}^{Dmax} D^k N0 e^{−ΛD} dD`` in m⁻³ mm^k (closed form via the regularised incomplete gamma); float
@@ -177,9 +191,10 @@ SNOW_HABITS = {
 @dataclass(frozen=True)
 class Snowfall:
     """Falling snow at a liquid-equivalent rate S: an exponential law ``N0 e^{−Λ D_m}`` in *melted* diameter D_m
-    (Λ from Gunn–Marshall or Sekhon–Srivastava), flakes of geometric diameter ``D = size(D_m)`` from the habit's
-    density–size law (models.md §2.3 correction), each falling at the habit's ``v(D)``, and N0 such that the
-    liquid-equivalent mass flux ``∫ (π/6) D_m³ v(D) N dD_m`` equals S. One distribution for camera and LiDAR.
+    (Λ from Gunn–Marshall or Sekhon–Srivastava, at most :data:`TRACE_SNOW_SLOPE_PER_MM`), flakes of geometric
+    diameter ``D = size(D_m)`` from the habit's density–size law (models.md §2.3 correction), each falling at the
+    habit's ``v(D)``, and N0 such that the liquid-equivalent mass flux ``∫ (π/6) D_m³ v(D) N dD_m`` equals S. One
+    distribution for camera and LiDAR.
 
     ``d_min_mm``, ``d_max_mm``: bounds in melted diameter (mm)."""
 
@@ -229,11 +244,13 @@ def _flux_per_n0(habit: SnowHabit, lam: float, d_min_mm: float, d_max_mm: float)
 
 def snowfall(rate_mm_per_h: float, law: str = "gunn_marshall", habit: str = "dry_aggregates",
              d_min_flake_mm: float = 0.0, d_max_flake_mm: float = 20.0) -> Snowfall:
-    """The :class:`Snowfall` of a liquid-equivalent rate (mm/h): Λ from ``law`` (:data:`SNOW_LAWS`), flakes from
-    ``habit`` (:data:`SNOW_HABITS`) between the flake diameters given (mm), N0 from the mass flux."""
+    """The :class:`Snowfall` of a liquid-equivalent rate (mm/h): Λ from ``law`` (:data:`SNOW_LAWS`), at most
+    :data:`TRACE_SNOW_SLOPE_PER_MM`, flakes from ``habit`` (:data:`SNOW_HABITS`) between the flake diameters given
+    (mm), N0 from the mass flux — so in trace snow (below 0.2 mm/h) the flakes keep their sizes while their number,
+    α and the mass flux scale with S and go to zero with it."""
     if habit not in SNOW_HABITS:
         raise ValueError(f"unknown snow habit {habit!r}; one of {sorted(SNOW_HABITS)}")
-    _, lam = SNOW_LAWS[law](rate_mm_per_h)
+    lam = min(SNOW_LAWS[law](rate_mm_per_h)[1], TRACE_SNOW_SLOPE_PER_MM)
     h = SNOW_HABITS[habit]
     lo, hi = float(h.size.melted_mm(d_min_flake_mm)), float(h.size.melted_mm(d_max_flake_mm))
     return Snowfall(rate_mm_per_h / 3.6e6 / _flux_per_n0(h, lam, lo, hi), lam, lo, hi, h)

@@ -56,8 +56,9 @@ def test_a_trace_of_rain_changes_almost_nothing(shared_data):
     """Rain at 0.001 mm/h changes < 0.1 % of the points: the threshold is calibrated below the scan's weakest returns
     (3 647 lie below the datasheet's 3.28 photons; the sensor detected them), targets keep their recorded value ×
     transmission, the 8-bit readings are stored in whole counts, and new drops add only the detections they cause.
-    Snow and fog go to the input as well (snow at 0.001 mm/h is Gunn–Marshall's 61 000 ice crystals per m³, which
-    the scan's sensitivity sees near the sensor on 4 % of the sky rays; 0.0001 mm/h changes 19 points)."""
+    Snow and fog go to the input as well (snow at 0.001 mm/h is 18 crystals of 18.5 µg per m³, physics/dsd.py, which
+    the scan's sensitivity sees within a few metres on 2.4 % of the sky rays: 0.60 % of the points change; 0.0001
+    mm/h changes 62 points; tests/physics/test_trace_snow.py)."""
     cloud = scan(shared_data)
     for model in (RainLidar(rain_rate_mm_per_h=0.001), SnowLidar(snowfall_rate_mm_per_h=0.0001),
                   FogLidar(visibility_m=1e7)):
