@@ -47,7 +47,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from .errors import InputError
 from .io import annotations as ann_io
 from .io.atomic import write_bytes_atomic
-from .physics.outline_warp import forward_through, moved_boxes
+from .physics.outline_warp import clip_polygon, forward_through, moved_boxes, moved_rings
 from .provenance import MADE_BY_STEP, REMOVED, gather, is_new
 from .types import CameraFrame, PointCloud, RawFrame
 
@@ -365,23 +365,25 @@ def write(annotated: Annotated | None) -> list[Path]:
 # --- camera boxes --------------------------------------------------------------------------------------------------
 
 def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.Boxes2D:
-    """Boxes moved through the warps' point maps, all in one batch: a box becomes the bounding box of its moved
-    outline (:func:`~roadview_noise.physics.outline_warp.moved_boxes`, the mover of COCO boxes: edges split where
-    the map bends them), a polygon's vertices move; then clipped to the image (KITTI: pixel coordinates
-    0 … W − 1; YOLO: the image edges). Boxes left with no area are dropped."""
+    """Boxes and polygons moved through the warps' point maps, all in one batch, by the mover of COCO outlines
+    (:mod:`~roadview_noise.physics.outline_warp`: edges split where the map bends them): a box becomes the bounding
+    box of its moved outline, clipped to the image (KITTI: pixel coordinates 0 … W − 1; YOLO: the image edges); a
+    polygon becomes its moved outline clipped to the image edges (Sutherland–Hodgman). Boxes and polygons left with
+    no area are dropped."""
     if not warps:
         return boxes
     lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt == "kitti" else (-0.5, [width - 0.5, height - 0.5])
     is_box = np.asarray(boxes.is_box, dtype=bool)
-    box_pts = [p for p, box in zip(boxes.points_px, is_box) if box]
-    poly_pts = [p for p, box in zip(boxes.points_px, is_box) if not box]
-    moved_box = iter(moved_boxes(np.reshape(box_pts, (-1, 4)), lambda xy: forward_through(warps, xy)))
-    moved_poly = forward_through(warps, np.concatenate(poly_pts) if poly_pts else np.empty((0, 2)))
-    moved_poly = iter(np.split(moved_poly, np.cumsum([len(p) for p in poly_pts])[:-1]))
+    move = lambda xy: forward_through(warps, xy)                                        # noqa: E731
+    moved_box = iter(moved_boxes(np.reshape([p for p, b in zip(boxes.points_px, is_box) if b], (-1, 4)), move))
+    moved_poly = iter(moved_rings([p for p, b in zip(boxes.points_px, is_box) if not b], move))
     tokens, points, kinds = [], [], []
     for words, box in zip(boxes.tokens, is_box):
-        pts = np.clip(next(moved_box).reshape(2, 2) if box else next(moved_poly), lo_px, hi_px)
-        if np.any(pts.max(axis=0) - pts.min(axis=0) <= 0):
+        if box:
+            pts = np.clip(next(moved_box).reshape(2, 2), lo_px, hi_px)
+        else:
+            pts = clip_polygon(next(moved_poly), width, height, origin_px=-0.5)
+        if len(pts) < (2 if box else 3) or np.any(pts.max(axis=0) - pts.min(axis=0) <= 0):
             continue
         tokens.append(words)
         points.append(pts)

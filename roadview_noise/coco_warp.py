@@ -36,7 +36,7 @@ import numpy as np
 from . import coco_camera
 from .errors import InputError
 from .io import coco as coco_io
-from .physics.outline_warp import box_ring, forward_through, moved_rings
+from .physics.outline_warp import box_ring, clip_polygon, forward_through, moved_rings
 
 DECIMALS = 3
 SEGMENTATION_BOX_PX = 1.0       # a bbox within this of the segmentation's box is that box
@@ -211,24 +211,6 @@ class _Mover:
 
 
 # --- outlines and polygons -----------------------------------------------------------------------------------------
-
-
-def clip_polygon(poly: np.ndarray, width: float, height: float) -> np.ndarray:
-    """A polygon (N, 2) clipped to [0, width] × [0, height] (Sutherland–Hodgman, one image edge at a time)."""
-    if len(poly) and poly.min() >= 0 and poly[:, 0].max() <= width and poly[:, 1].max() <= height:
-        return poly
-    for axis, bound, sign in ((0, 0.0, 1.0), (0, float(width), -1.0), (1, 0.0, 1.0), (1, float(height), -1.0)):
-        if len(poly) == 0:
-            break
-        nxt = np.roll(poly, -1, axis=0)
-        d0, d1 = sign * (poly[:, axis] - bound), sign * (nxt[:, axis] - bound)
-        in0, in1 = d0 >= 0, d1 >= 0
-        cross = in0 != in1
-        t = np.where(cross, d0 / np.where(cross, d0 - d1, 1.0), 0.0)
-        hit = poly + t[:, None] * (nxt - poly)
-        hit[:, axis] = bound
-        poly = np.stack([poly, hit], axis=1).reshape(-1, 2)[np.stack([in0, cross], axis=1).ravel()]
-    return poly
 
 
 def shoelace(poly: np.ndarray) -> float:

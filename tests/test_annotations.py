@@ -18,10 +18,12 @@ import pytest
 from roadview_noise import annotations
 from roadview_noise.compound import apply_models
 from roadview_noise.dataset import Sample, discover, load
+from roadview_noise.io import annotations as ann_io
 from roadview_noise.io.image import read_image, write_image
 from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
 from roadview_noise.manifest import read_manifest
 from roadview_noise.model import Model, Stage
+from roadview_noise.physics import outline_warp
 from roadview_noise.physics.warp import Warp
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.provenance import Effect, is_new
@@ -438,10 +440,34 @@ def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     x0, x1, y0, y1 = (x0 + 0.5) / 80, (x1 + 0.5) / 80, (y0 + 0.5) / 60, (y1 + 0.5) / 60
     np.testing.assert_allclose([float(v) for v in box[1:]], [(x0 + x1) / 2, (y0 + y1) / 2, x1 - x0, y1 - y0],
                                atol=1e-5)
+    # the polygon: an affine map moves its vertices exactly; two are pushed above the image, whose top edge cuts
+    # the two edges to the third (Sutherland–Hodgman), not the vertices' own y (that would move the edges)
     px, py = model.forward(np.array([0.1, 0.4, 0.4]) * 80 - 0.5, np.array([0.1, 0.1, 0.4]) * 60 - 0.5, 80, 60)
-    np.testing.assert_allclose(np.array(poly[1:], float).reshape(-1, 2),
-                               np.stack([np.clip(px + 0.5, 0, 80) / 80, np.clip(py + 0.5, 0, 60) / 60], 1), atol=1e-5)
-    assert np.any(py + 0.5 < 0)                                      # a vertex pushed off the image is clipped
+    a, b, c = np.stack([(px + 0.5) / 80, (py + 0.5) / 60], 1)
+    assert a[1] < 0 and b[1] < 0 < c[1]
+    cut = [p + (c - p) * (0 - p[1]) / (c[1] - p[1]) for p in (a, b)]
+    got = np.array(poly[1:], float).reshape(-1, 2)
+    assert len(got) == 3
+    np.testing.assert_allclose(got[np.lexsort(got.T[::-1])], np.array(sorted(map(tuple, [*cut, c]))), atol=1e-5)
+
+
+def test_yolo_polygon_follows_a_bending_map():
+    """A radial map bends a polygon's straight edges: the moved polygon gains vertices on them and stays within
+    2 × the outline tolerance of the exactly moved edges (each sampled at 2 000 points)."""
+    class Radial:
+        def forward(self, q):
+            d = q - [40.0, 30.0]
+            return [40.0, 30.0] + d * (1 + 4e-4 * (d ** 2).sum(axis=1, keepdims=True))
+    square = np.array([[20.0, 15.0], [60.0, 15.0], [60.0, 45.0], [20.0, 45.0]])
+    boxes = ann_io.Boxes2D("yolo", [["0"]], [square], [False])
+    (moved,) = annotations.warp_boxes(boxes, [Radial()], 400, 300).points_px
+    t = np.linspace(0, 1, 2000)[:, None]
+    dense = Radial().forward(np.concatenate([p + t * (q - p) for p, q in zip(square, np.roll(square, -1, 0))]))
+    assert len(moved) > 3 * len(square)
+    s = np.linspace(0, 1, 50)[:, None]
+    chords = np.concatenate([p + s * (q - p) for p, q in zip(moved, np.roll(moved, -1, 0))])
+    gap = np.min(np.hypot(*(chords[:, None, :] - dense[None, :, :]).transpose(2, 0, 1)), axis=1)
+    assert gap.max() < 2 * outline_warp.OUTLINE_TOLERANCE_PX
 
 
 def test_photometric_chain_copies_masks_byte_for_byte(cityscapes, tmp_path):

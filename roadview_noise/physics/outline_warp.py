@@ -1,5 +1,5 @@
-"""Outlines and boxes moved through a chain's warps: the one mover of COCO polygons and boxes and of KITTI / YOLO
-boxes, so an outline over the same pixels moves identically whatever file it came from.
+"""Outlines and boxes moved through a chain's warps: the one mover of COCO polygons and boxes, of KITTI / YOLO
+boxes and of YOLO polygons, so an outline over the same pixels moves identically whatever file it came from.
 
 Points move by each warp's forward map in turn (:meth:`~roadview_noise.physics.warp.Warp.forward`). A map that
 bends straight lines (lens or windscreen distortion) bends a box's edges, so moving its corners is not enough: an
@@ -63,6 +63,26 @@ def moved_boxes(boxes_xyxy: np.ndarray, move: Callable[[np.ndarray], np.ndarray]
                               np.ones(len(b), dtype=bool))
     starts = np.flatnonzero(np.r_[True, ring[1:] != ring[:-1]])
     return np.concatenate([np.minimum.reduceat(q, starts), np.maximum.reduceat(q, starts)], axis=1)
+
+
+def clip_polygon(poly: np.ndarray, width: float, height: float, origin_px: float = 0.0) -> np.ndarray:
+    """A polygon (N, 2) clipped to the image ``[o, o + width] × [o, o + height]``, ``o = origin_px`` (0 for COCO's
+    pixel edges, −½ for pixel-centre coordinates; Sutherland–Hodgman, one image edge at a time)."""
+    lo, hi = origin_px, (origin_px + float(width), origin_px + float(height))
+    if len(poly) and poly.min() >= lo and poly[:, 0].max() <= hi[0] and poly[:, 1].max() <= hi[1]:
+        return poly
+    for axis, bound, sign in ((0, lo, 1.0), (0, hi[0], -1.0), (1, lo, 1.0), (1, hi[1], -1.0)):
+        if len(poly) == 0:
+            break
+        nxt = np.roll(poly, -1, axis=0)
+        d0, d1 = sign * (poly[:, axis] - bound), sign * (nxt[:, axis] - bound)
+        in0, in1 = d0 >= 0, d1 >= 0
+        cross = in0 != in1
+        t = np.where(cross, d0 / np.where(cross, d0 - d1, 1.0), 0.0)
+        hit = poly + t[:, None] * (nxt - poly)
+        hit[:, axis] = bound
+        poly = np.stack([poly, hit], axis=1).reshape(-1, 2)[np.stack([in0, cross], axis=1).ravel()]
+    return poly
 
 
 def _moved_outlines(p: np.ndarray, ring: np.ndarray, move, is_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
