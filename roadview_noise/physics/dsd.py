@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import gamma as gamma_fn
+from scipy.optimize import brentq
 from scipy.special import gammainc
 
 from .fall_speed import snow_power_law_m_per_s
@@ -58,6 +59,18 @@ SNOW_LAWS = {"gunn_marshall": gunn_marshall, "sekhon_srivastava": sekhon_srivast
 #: of that kind (18 m⁻³ at 0.001 mm/h).
 TRACE_SNOW_CRYSTAL_MASS_G = 0.1 / 3600 / 1.5      # 1 mm/h of water = 0.1/3600 g cm⁻² s⁻¹, over 1.5 crystals cm⁻² s⁻¹
 TRACE_SNOW_SLOPE_PER_MM = (math.pi * 1e-3 / TRACE_SNOW_CRYSTAL_MASS_G) ** (1 / 3)
+
+
+def capped_snow_law(snowfall_rate_mm_per_h: float, law: str = "gunn_marshall") -> tuple[float, float]:
+    """``(N0, Λ)`` of a snow law (:data:`SNOW_LAWS`) with its slope capped at :data:`TRACE_SNOW_SLOPE_PER_MM`: the
+    law's own values down to the rate S_c where it reaches the cap; below, the same flakes (Λ at the cap) with their
+    number ∝ S, ``N0 = N0(S_c) · S / S_c`` (continuous at S_c; the radar's snow, whose N0 is the law's)."""
+    n0, lam = SNOW_LAWS[law](snowfall_rate_mm_per_h)
+    if lam <= TRACE_SNOW_SLOPE_PER_MM:
+        return n0, lam
+    s_c = brentq(lambda s: math.log(SNOW_LAWS[law](s)[1] / TRACE_SNOW_SLOPE_PER_MM), snowfall_rate_mm_per_h, 1e3,
+                 xtol=1e-15, rtol=1e-14)
+    return SNOW_LAWS[law](s_c)[0] * snowfall_rate_mm_per_h / s_c, TRACE_SNOW_SLOPE_PER_MM
 
 
 def exponential_moment(n0: float, lam: float, k: int, d_min_mm, d_max_mm):

@@ -37,7 +37,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft as sp_fft
 
-from .dsd import SNOW_LAWS, exponential_moment, marshall_palmer
+from .dsd import capped_snow_law, exponential_moment, marshall_palmer
 from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
 from .radar_cfar import PROBABILITY_TIERS, Detector, FixedThreshold, tier_ratios
@@ -82,8 +82,9 @@ def rain_drops(rain_rate_mm_per_h: float, frequency_hz: float = 77e9, temperatur
 
 
 def snow_flakes(snowfall_rate_mm_per_h: float, law: str = "gunn_marshall", scattering: str = "mie") -> Hydrometeors:
-    """Exponential snow DSD (liquid-equivalent rate) as solid ice spheres of the DSD diameter, ε_ice = 3.15 − 0.005i."""
-    n0, lam = SNOW_LAWS[law](snowfall_rate_mm_per_h)
+    """Exponential snow DSD (liquid-equivalent rate) as solid ice spheres of the DSD diameter, ε_ice = 3.15 − 0.005i;
+    below the law's fitted range the same crystals, fewer (:func:`~roadview_noise.physics.dsd.capped_snow_law`)."""
+    n0, lam = capped_snow_law(snowfall_rate_mm_per_h, law)
     return Hydrometeors("snow", n0, lam, SNOW_D_MAX_MM, ICE_PERMITTIVITY_77GHZ, scattering)
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy import integrate, stats
 
+from roadview_noise.physics.dsd import SNOW_LAWS, TRACE_SNOW_SLOPE_PER_MM
 from roadview_noise.physics.radar_cfar import CaCfar, FixedThreshold, ca_cfar_multiplier
 from roadview_noise.physics.radar_clutter import (
     Hydrometeors, ResolutionGrid, angular_cell_index, angular_edges_rad, backscatter_cross_section_m2,
@@ -258,3 +259,19 @@ def test_angular_cells():
     assert idx[0] == 60 * 15 + 7                 # boresight: az cell 60, el cell 7 (both edges at 0 → upper cell)
     assert idx[1] == 0 * 15 + 7                  # far right of the FOV: clipped to the edge cell
     assert idx[2] == 60 * 15 + 14                # 45° up: clipped to the top row
+
+
+@pytest.mark.parametrize("law", ["gunn_marshall", "sekhon_srivastava"])
+def test_radar_snow_below_the_fitted_range_is_fewer_of_the_same_crystals(law):
+    """Below the rate where the law's slope reaches Gunn's crystal mass (physics/dsd.py), the radar's snow keeps its
+    crystals (Λ at the cap) and their number falls ∝ S, continuous at the crossover; above it the law's own N0, Λ."""
+    lam_law = SNOW_LAWS[law]
+    s_c = (lam_law(1.0)[1] / TRACE_SNOW_SLOPE_PER_MM) ** (1 / {"gunn_marshall": 0.48, "sekhon_srivastava": 0.45}[law])
+    assert lam_law(s_c)[1] == pytest.approx(TRACE_SNOW_SLOPE_PER_MM, rel=1e-12)
+    for s in (1.02 * s_c, 0.5, 2.5):
+        h = snow_flakes(s, law)
+        assert (h.n0_per_m3_mm, h.lam_per_mm) == lam_law(s)
+    eta = [backscatter_per_volume_per_m(snow_flakes(s, law), RISE_LAMBDA_M) for s in (1e-3, 1e-2, 0.999 * s_c)]
+    assert eta[1] / eta[0] == pytest.approx(10, rel=1e-9) and eta[2] / eta[1] == pytest.approx(99.9 * s_c, rel=1e-9)
+    just_above = backscatter_per_volume_per_m(snow_flakes(1.001 * s_c, law), RISE_LAMBDA_M)
+    assert just_above / eta[2] == pytest.approx(1.0, abs=0.01)
