@@ -65,6 +65,7 @@ from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
 from .photometry import blend_operands, estimation_depth, frame_depth_m
 from .sensor_noise import uniform_bits
+from .streak_motion import MotionBands, band_volume, motion_bands
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -276,23 +277,27 @@ def explicit_depth_limits(profile: CameraProfile, exposure_s: float, classes: Si
 
 def resolved_depth_limits(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                           conditions: Conditions, d_min_m: float, d_max_m: float, limits_m: np.ndarray,
-                          min_extent_px: float) -> np.ndarray:
+                          min_extent_px: float, motion_px_m: np.ndarray | None = None) -> np.ndarray:
     """Per class, the planar depth up to which particles are drawn one by one (at most ``limits_m``, the
     :func:`explicit_depth_limits`): the farthest Z on the same grid where the streak still spans ``min_extent_px``
     pixels (motion during the exposure plus footprint). Beyond it a particle is an unresolved point whose only
     trace is the opacity it adds to one or two pixels: :func:`unresolved_field` draws those per pixel. The motion
     is bounded from above (lateral speed at the longer focal length plus the radial part of v_rel at the image
-    corner), so the test errs towards explicit particles."""
+    corner), so the test errs towards explicit particles; or ``motion_px_m`` ((bands, classes), px·m) gives the
+    bounds per band of the image (:func:`streak_motion.motion_bands`), and the limits are per band and class."""
     d = classes.rms_d_mm
-    v = relative_velocity_optical(conditions, fall_speed(d))
-    corner_px = math.hypot(max(profile.cx_px, profile.width_px - profile.cx_px),
-                           max(profile.cy_px, profile.height_px - profile.cy_px))
-    motion = exposure_s * (max(profile.fx_px, profile.fy_px) * np.hypot(v[:, 0], v[:, 1]) +
-                           np.abs(v[:, 2]) * corner_px)                                    # px·m
+    if motion_px_m is None:
+        v = relative_velocity_optical(conditions, fall_speed(d))
+        corner_px = math.hypot(max(profile.cx_px, profile.width_px - profile.cx_px),
+                               max(profile.cy_px, profile.height_px - profile.cy_px))
+        motion = exposure_s * (max(profile.fx_px, profile.fy_px) * np.hypot(v[:, 0], v[:, 1]) +
+                               np.abs(v[:, 2]) * corner_px)                                    # px·m
+    else:
+        motion = motion_px_m
     z = np.geomspace(d_min_m, d_max_m, 256)
     footprint = np.hypot(d[:, None] * 1e-3 * focal_px(profile) / z[None, :], defocus_px(profile, z)[None, :])
-    resolved = motion[:, None] / z[None, :] + footprint >= min_extent_px
-    last = np.where(resolved.any(axis=1), z.size - 1 - np.argmax(resolved[:, ::-1], axis=1), -1)
+    resolved = motion[..., :, None] / z + footprint >= min_extent_px
+    last = np.where(resolved.any(axis=-1), z.size - 1 - np.argmax(resolved[..., ::-1], axis=-1), -1)
     return np.minimum(np.where(last >= 0, z[np.maximum(last, 0)], d_min_m), limits_m)
 
 
@@ -314,20 +319,25 @@ class Particles:
 
 
 def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: SizeClasses,
-                     z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed) -> tuple[Particles, float]:
+                     z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed,
+                     bands: tuple[MotionBands, np.ndarray] | None = None) -> tuple[Particles, float]:
     """Marked Poisson process in the above-ground frustum slabs ``[d_min, Z_i]`` of each class: per-class Poisson
     counts, Z by inverse CDF of the slab volume (∝ Z² until the ground enters the image), then a uniform image
-    position above the ground. Returns (particles, expected count)."""
+    position above the ground. Returns (particles, expected count). With ``bands`` (:class:`MotionBands` and the
+    (bands, classes) depth limits of each band, at most ``z_limits_m``), only the particles up to the limit of the
+    band of their mid-exposure pixel are kept (the same process restricted to those slabs)."""
     z_grid, vol, z3_quantiles = above_ground_volume_table(profile, d_min_m, d_max_m)
     v_lim = np.interp(np.clip(z_limits_m, d_min_m, d_max_m), z_grid, vol)
     lam = classes.number * v_lim
     counts = rng.poisson(lam)
     cls = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
     u = rng.random((4, cls.size), dtype=np.float32)
-    d = classes.sample_diameters_mm(cls, u[0])
     q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
     z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
                * np.float32(1 / 3))                                                   # ∛
+    if bands is not None:
+        cls, u, z, lam = _keep_in_bands(profile, classes, bands, z_limits_m, d_min_m, d_max_m, cls, u, z)
+    d = classes.sample_diameters_mm(cls, u[0])
     # image column uniform, row uniform above the ground (bottom_row_px), back-projected at Z; float32 as NumPy
     # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x
     # (y alike)
@@ -337,6 +347,38 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     x, y = np.empty_like(z), np.empty_like(z)
     _position_kernel(u[2], u[3], z, camera, x, y)
     return Particles(x, y, z, d, np.asarray(fall_speed(d), dtype=np.float32)), float(lam.sum())
+
+
+def _keep_in_bands(profile: CameraProfile, classes: SizeClasses, bands: tuple[MotionBands, np.ndarray],
+                   z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, cls, u, z):
+    """:func:`sample_particles`' draws of the particles inside their band's limits, and the expected count per
+    class of those."""
+    motion, limits = bands
+    limits = np.minimum(np.clip(limits, d_min_m, d_max_m), np.clip(z_limits_m, d_min_m, d_max_m))
+    # a band whose limit is the sampled slab's keeps every particle (Z can pass the limit by float32 rounding)
+    threshold = np.where(limits >= np.clip(z_limits_m, d_min_m, d_max_m), np.inf, limits).astype(np.float32)
+    camera = np.array([profile.width_px, profile.height_px - 0.5, profile.cy_px,
+                       profile.height_above_ground_m * profile.fy_px], np.float32)
+    keep = np.empty(z.size, np.bool_)
+    _band_keep_kernel(u[2], u[3], z, cls, camera, motion.band, threshold, keep)
+    z_grid = np.geomspace(d_min_m, d_max_m, 1024)
+    volume = band_volume(profile, motion.rows, z_grid)
+    lam = classes.number * sum(np.interp(limits[b], z_grid, volume[b]) for b in range(limits.shape[0]))
+    return cls[keep], u[:, keep], z[keep], lam
+
+
+@jit(error_model="numpy")
+def _band_keep_kernel(u_col, u_row, z, cls, camera, band, threshold, keep):   # pragma: no cover - compiled
+    """``keep[i]``: particle i's Z is within the limit of its class in the band of its mid-exposure pixel (the
+    pixel of :func:`_position_kernel`'s column and row)."""
+    width, bottom, cy, ground = camera
+    h, w = band.shape
+    half = np.float32(0.5)
+    for i in range(z.size):
+        lowest = cy + ground / z[i]
+        col = min(np.int64(u_col[i] * width), w - 1)
+        row = min(np.int64(u_row[i] * ((bottom if bottom <= lowest else lowest) + half)), h - 1)
+        keep[i] = z[i] <= threshold[band[row, col], cls[i]]
 
 
 @jit(error_model="numpy")
@@ -763,7 +805,8 @@ class UnresolvedField(NamedTuple):
     ray factor). ``mean``/``variance`` per unit k / k² are the moments matched; ``expected`` the number of
     particles in the image above the ground. ``buckets`` (flat, bin × the uniform's high byte, uint8): N for every
     uniform of the bucket, or +128 where a cut falls inside it (then N counts on from there; also where N could
-    exceed 127)."""
+    exceed 127). ``band`` (H, W) uint8 or None: with motion bands (:func:`streak_motion.motion_bands`) the tables
+    hold one veil table of bins per band, and a pixel of band β reads bin ``β·VEIL_LUT_SIZE + b``."""
 
     cuts: np.ndarray
     mark: np.ndarray
@@ -771,11 +814,12 @@ class UnresolvedField(NamedTuple):
     variance: np.ndarray
     expected: float
     buckets: np.ndarray
+    band: np.ndarray | None = None
 
 
 def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                      conditions: Conditions, d_min_m: float, near_m: np.ndarray, far_m: np.ndarray,
-                     d_max_m: float) -> UnresolvedField | None:
+                     d_max_m: float, bands: MotionBands | None = None) -> UnresolvedField | None:
     """The particles of class i between planar depths ``near_m[i]`` and ``far_m[i]`` (unresolved points, see
     :func:`resolved_depth_limits`) as one compound-Poisson opacity per pixel, or None if there are none.
 
@@ -789,19 +833,65 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
     Poisson count of rate mean²/variance, each adding variance/mean: both moments matched per pixel (quantised to
     16-bit uniforms; the mark is set so that the mean stays exact). What is not kept: the correlation between the
     one to three pixels a single particle touches, and the spread of the individual opacities. The streak length
-    is the lateral motion's (the image centre's under ego motion)."""
+    is the lateral motion's; with ``bands`` (:func:`streak_motion.motion_bands`: motion that depends on the image
+    position), ``near_m`` is (bands, classes), the streak length the band's mean, and the tables are per band (band
+    b's bins at ``b·VEIL_LUT_SIZE + bin``; ``band`` the per-pixel map)."""
+    if bands is None:
+        moments = [_unresolved_moments(profile, exposure_s, classes, fall_speed, conditions, near_m, far_m, d_max_m)]
+    else:
+        moments = [_unresolved_moments(profile, exposure_s, classes, fall_speed, conditions, near_m[b], far_m,
+                                       d_max_m, bands.major[b]) for b in range(near_m.shape[0])]
+    if all(m is None for m in moments):
+        return None
+    empty = np.zeros(VEIL_LUT_SIZE)
+    mean = np.concatenate([empty if m is None else m[0] for m in moments])
+    variance = np.concatenate([empty if m is None else m[1] for m in moments])
+    rate = np.divide(mean ** 2, variance, out=np.zeros_like(mean), where=variance > 0)
+    counts = np.arange(int(rate.max() + 12 * math.sqrt(rate.max())) + 32)
+    top = int(np.argmax(pdtrc(counts, rate.max()) < UNRESOLVED_TAIL)) + 1      # P(N ≥ top) < the tail
+    cdf = pdtr(counts[:top], rate[:, None])
+    cuts = np.empty((mean.size, top + 1), np.int32)
+    cuts[:, :top] = np.rint(cdf * UNIFORM_CODES)
+    cuts[:, 0] = np.where(mean > 0, np.minimum(cuts[:, 0], UNIFORM_CODES - 1), UNIFORM_CODES)   # never lose the mean
+    cuts[:, top] = UNIFORM_CODES                                                 # stops the count
+    counted = (UNIFORM_CODES - cuts[:, :top]).sum(axis=1) / UNIFORM_CODES        # E[N] of the quantised draw
+    mark = np.divide(mean, counted, out=np.zeros_like(mean), where=counted > 0).astype(np.float32)
+    field = (far_m > near_m) & (classes.number > 0)
+    if bands is None:
+        z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
+        near, far = near_m[field], far_m[field]
+        expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
+    else:
+        z_grid = np.geomspace(d_min_m, d_max_m, 1024)
+        volume = band_volume(profile, bands.rows, z_grid)
+        expected = float(sum(classes.number @ np.where(field[b], np.interp(far_m, z_grid, volume[b]) -
+                                                       np.interp(near_m[b], z_grid, volume[b]), 0.0)
+                             for b in range(near_m.shape[0])))
+    return UnresolvedField(cuts, mark, mean, variance, expected, count_buckets(cuts),
+                           None if bands is None else bands.band)
+
+
+def _unresolved_moments(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                        conditions: Conditions, near_m: np.ndarray, far_m: np.ndarray, d_max_m: float,
+                        major_px_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`unresolved_field`'s mean and variance per unit ray factor at each veil-table bin, or None if no class
+    has particles between ``near_m`` and ``far_m``; the motion along the streak (px·m) is ``major_px_m`` per class
+    if given, else the lateral motion's."""
     field = (far_m > near_m) & (classes.number > 0)
     if not field.any():
         return None
     near, far = near_m[field], far_m[field]
     sigma = IMAGING_Q_EXT * classes.shadow_area_m2[field]
     d = classes.rms_d_mm[field]
-    v = relative_velocity_optical(conditions, fall_speed(d))
     # variance: midpoint rule on geometric cells, each class over the part of the cell inside [near_i, far_i]
     edges = np.geomspace(near.min(), far.max(), UNRESOLVED_CELLS + 1)
     mid = np.sqrt(edges[1:] * edges[:-1])
     inside = np.clip(np.minimum(edges[1:, None], far) - np.maximum(edges[:-1, None], near), 0.0, None)
-    motion = exposure_s * np.maximum(np.abs(v[:, 0]) * profile.fx_px, np.abs(v[:, 1]) * profile.fy_px)
+    if major_px_m is None:
+        v = relative_velocity_optical(conditions, fall_speed(d))
+        motion = exposure_s * np.maximum(np.abs(v[:, 0]) * profile.fx_px, np.abs(v[:, 1]) * profile.fy_px)
+    else:
+        motion = major_px_m[field]
     length = motion / mid[:, None] + np.hypot(d * 1e-3 * focal_px(profile) / mid[:, None],
                                               defocus_px(profile, mid)[:, None])
     share2 = np.where(length <= 1.0, 1.0 - length / 3.0, (length - 1.0 / 3.0) / length ** 2) * (2.0 / 3.0)
@@ -809,28 +899,20 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
     cumulative = np.concatenate([[0.0], np.cumsum((inside * sigma * mass * share2).sum(axis=1))])
     # per veil-table bin (the kernel's nearest bin of min(scene, ground, d_max))
     z = np.linspace(0.0, d_max_m, VEIL_LUT_SIZE)
-    mean = np.clip(z[:, None] - near, 0.0, far - near) @ sigma
-    variance = np.interp(z, edges, cumulative)
-    rate = np.divide(mean ** 2, variance, out=np.zeros_like(mean), where=variance > 0)
-    counts = np.arange(int(rate.max() + 12 * math.sqrt(rate.max())) + 32)
-    top = int(np.argmax(pdtrc(counts, rate.max()) < UNRESOLVED_TAIL)) + 1      # P(N ≥ top) < the tail
-    cdf = pdtr(counts[:top], rate[:, None])
-    cuts = np.empty((VEIL_LUT_SIZE, top + 1), np.int32)
-    cuts[:, :top] = np.rint(cdf * UNIFORM_CODES)
-    cuts[:, 0] = np.where(mean > 0, np.minimum(cuts[:, 0], UNIFORM_CODES - 1), UNIFORM_CODES)   # never lose the mean
-    cuts[:, top] = UNIFORM_CODES                                                 # stops the count
-    counted = (UNIFORM_CODES - cuts[:, :top]).sum(axis=1) / UNIFORM_CODES        # E[N] of the quantised draw
-    mark = np.divide(mean, counted, out=np.zeros_like(mean), where=counted > 0).astype(np.float32)
-    z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
-    expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
-    return UnresolvedField(cuts, mark, mean, variance, expected, count_buckets(cuts))
+    return np.clip(z[:, None] - near, 0.0, far - near) @ sigma, np.interp(z, edges, cumulative)
 
 
 def count_buckets(cuts: np.ndarray) -> np.ndarray:
     """:class:`UnresolvedField`'s ``buckets`` of the (bins, counts) ``cuts`` table."""
     start = np.arange(0, UNIFORM_CODES, 1 << BUCKET_SHIFT)
-    at_start = (cuts[:, None, :] <= start[None, :, None]).sum(axis=2)
-    at_end = (cuts[:, None, :] <= (start + (1 << BUCKET_SHIFT) - 1)[None, :, None]).sum(axis=2)
+    # the number of cuts ≤ u per row: one search in the rows laid end to end (each row's cuts are sorted)
+    offset = (np.arange(cuts.shape[0], dtype=np.int64) * 2 * UNIFORM_CODES)[:, None]
+    flat = (cuts + offset).ravel()
+
+    def at_most(u):
+        return np.searchsorted(flat, (u[None, :] + offset).ravel(), side="right").reshape(offset.size, -1) - \
+            np.arange(cuts.shape[0])[:, None] * cuts.shape[1]
+    at_start, at_end = at_most(start), at_most(start + (1 << BUCKET_SHIFT) - 1)
     walk = (at_end != at_start) | (at_start > 127)
     return (np.minimum(at_start, 127) + 128 * walk).astype(np.uint8).ravel()
 
@@ -868,23 +950,26 @@ def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -
     below = np.arange(h) - profile.cy_px
     with np.errstate(divide="ignore"):
         ground = np.where(below > 0, profile.height_above_ground_m * profile.fy_px / below, np.inf)
+    no_band = np.zeros((0, 0), np.uint8)
     if field is None:                                  # nothing drawn: no tables, no uniforms
-        cuts, buckets, mark, bits = (np.zeros((0, 0), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32),
-                                     np.zeros(0, np.uint16))
+        cuts, buckets, mark, bits, band = (np.zeros((0, 0), np.int32), np.zeros(0, np.uint8),
+                                           np.zeros(0, np.float32), np.zeros(0, np.uint16), no_band)
     else:
         cuts, buckets, mark, bits = field.cuts, field.buckets, field.mark, uniform_bits(rng, h * w)
+        band = no_band if field.band is None else field.band
     if blend is None:                                  # t·(1 − M) back into t
         blend = np.zeros((1, 1), np.float32), np.zeros((0, 0), np.float32), np.zeros((0, 0), np.float32)
     _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
                      np.empty((0, 0), np.uint8) if bins is None else bins,
                      np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
-                     buckets, mark, bits, field is not None, *blend)
+                     buckets, mark, bits, band, field is not None, *blend)
 
 
 @jit(error_model="numpy")
-def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, draw,
-                     values, signal, out):                                    # pragma: no cover - compiled
-    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given), the counts (from
+def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, band,
+                     draw, values, signal, out):                              # pragma: no cover - compiled
+    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given; offset by the
+    pixel's ``band`` unless it is empty), the counts (from
     ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
     ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into
     ``out`` (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic
@@ -892,7 +977,8 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
-    bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
+    bins, added, walk = np.empty(w, np.int32), np.zeros(w, np.float32), np.empty(w, np.uint8)
+    banded = band.size > 0
     tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
@@ -905,8 +991,12 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
             else:
                 for x in range(w):
                     bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
+            if banded:
+                band_row = band[y]
+                for x in range(w):
+                    bins[x] += np.int32(band_row[x]) << 8
             for x in range(w):
-                b = np.int32(bins[x])
+                b = bins[x]
                 c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
                 walk[x] = c
                 added[x] = np.float32(c & 127) * mark[b]
@@ -951,27 +1041,43 @@ class ParticleTables(NamedTuple):
     """What :func:`render_precipitation` derives from the camera, the medium and the conditions alone: per class
     the depth limits of the visible (:func:`explicit_depth_limits`) and of the resolved particles
     (:func:`resolved_depth_limits`), the :func:`unresolved_field` between them, the
-    :func:`veil_optical_depth_table` of the rest (read-only arrays)."""
+    :func:`veil_optical_depth_table` of the rest (read-only arrays); ``bands``, where the streak length depends on
+    the image position (:func:`streak_motion.motion_bands`: ego motion, head wind), the bands and the resolved
+    limits per band and class (``resolved`` is then their largest per class), else None."""
 
     limits: np.ndarray
     resolved: np.ndarray
     unresolved: UnresolvedField | None
     veil: tuple[np.ndarray, np.ndarray]
+    bands: tuple[MotionBands, np.ndarray] | None = None
 
 
 @lru_cache(maxsize=8)
 def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                     conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float,
                     min_extent_px: float) -> ParticleTables:
-    """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes)."""
+    """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes;
+    ≈ 0.1 s more with motion bands)."""
     limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
                                    min_opacity)
-    resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
-                                     limits, min_extent_px)
-    field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
-                             d_max_m)
-    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m))
-    for a in (limits, resolved, *out.veil, *(field[:4] + field[5:] if field is not None else ())):
+    bands = motion_bands(profile, exposure_s, relative_velocity_optical(conditions, fall_speed(classes.rms_d_mm)),
+                         classes.number, d_min_m, d_max_m, min_extent_px)
+    if bands is None:
+        resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                         limits, min_extent_px)
+        field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
+                                 d_max_m)
+        split = None
+    else:
+        per_band = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                         limits, min_extent_px, bands.bound)
+        resolved = per_band[bands.rows.sum(axis=1) > 0].max(axis=0)
+        field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, per_band, limits,
+                                 d_max_m, bands)
+        split = bands, per_band
+    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), split)
+    for a in (limits, resolved, *out.veil, *(split[1:] if split else ()),
+              *(a for a in (field or ()) if isinstance(a, np.ndarray))):
         a.flags.writeable = False
     return out
 
@@ -992,7 +1098,8 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
     tables = particle_tables(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
                              min_opacity, min_extent_px)
-    particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed)
+    particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed,
+                                           tables.bands)
     coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
     sigma = classes.extinction_per_m()
     bins = np.empty((h, w), np.uint8)
