@@ -65,7 +65,7 @@ from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
 from .photometry import blend_operands, estimation_depth, frame_depth_m
 from .sensor_noise import uniform_bits
-from .streak_motion import MotionBands, band_volume, motion_bands
+from .streak_motion import MotionBands, band_volume, motion_bands, pixel_band
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -320,12 +320,12 @@ class Particles:
 
 def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: SizeClasses,
                      z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed,
-                     bands: tuple[MotionBands, np.ndarray] | None = None) -> tuple[Particles, float]:
+                     split: BandSplit | None = None) -> tuple[Particles, float]:
     """Marked Poisson process in the above-ground frustum slabs ``[d_min, Z_i]`` of each class: per-class Poisson
     counts, Z by inverse CDF of the slab volume (∝ Z² until the ground enters the image), then a uniform image
-    position above the ground. Returns (particles, expected count). With ``bands`` (:class:`MotionBands` and the
-    (bands, classes) depth limits of each band, at most ``z_limits_m``), only the particles up to the limit of the
-    band of their mid-exposure pixel are kept (the same process restricted to those slabs)."""
+    position above the ground. Returns (particles, expected count). With a :class:`BandSplit` (made for these
+    ``z_limits_m``), only the particles up to the limit of the band of their mid-exposure pixel are kept (the same
+    process restricted to those slabs)."""
     z_grid, vol, z3_quantiles = above_ground_volume_table(profile, d_min_m, d_max_m)
     v_lim = np.interp(np.clip(z_limits_m, d_min_m, d_max_m), z_grid, vol)
     lam = classes.number * v_lim
@@ -335,8 +335,9 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
     z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
                * np.float32(1 / 3))                                                   # ∛
-    if bands is not None:
-        cls, u, z, lam = _keep_in_bands(profile, classes, bands, z_limits_m, d_min_m, d_max_m, cls, u, z)
+    if split is not None:
+        cls, u, z = _keep_in_bands(profile, split, cls, u, z)
+        lam = split.expected
     d = classes.sample_diameters_mm(cls, u[0])
     # image column uniform, row uniform above the ground (bottom_row_px), back-projected at Z; float32 as NumPy
     # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x
@@ -349,36 +350,32 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     return Particles(x, y, z, d, np.asarray(fall_speed(d), dtype=np.float32)), float(lam.sum())
 
 
-def _keep_in_bands(profile: CameraProfile, classes: SizeClasses, bands: tuple[MotionBands, np.ndarray],
-                   z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, cls, u, z):
-    """:func:`sample_particles`' draws of the particles inside their band's limits, and the expected count per
-    class of those."""
-    motion, limits = bands
-    limits = np.minimum(np.clip(limits, d_min_m, d_max_m), np.clip(z_limits_m, d_min_m, d_max_m))
-    # a band whose limit is the sampled slab's keeps every particle (Z can pass the limit by float32 rounding)
-    threshold = np.where(limits >= np.clip(z_limits_m, d_min_m, d_max_m), np.inf, limits).astype(np.float32)
+def _keep_in_bands(profile: CameraProfile, split: BandSplit, cls, u, z):
+    """:func:`sample_particles`' draws (classes, uniforms, Z) of the particles inside their band's limits, in place
+    (views of the first ones)."""
     camera = np.array([profile.width_px, profile.height_px - 0.5, profile.cy_px,
                        profile.height_above_ground_m * profile.fy_px], np.float32)
-    keep = np.empty(z.size, np.bool_)
-    _band_keep_kernel(u[2], u[3], z, cls, camera, motion.band, threshold, keep)
-    z_grid = np.geomspace(d_min_m, d_max_m, 1024)
-    volume = band_volume(profile, motion.rows, z_grid)
-    lam = classes.number * sum(np.interp(limits[b], z_grid, volume[b]) for b in range(limits.shape[0]))
-    return cls[keep], u[:, keep], z[keep], lam
+    n = _band_keep_kernel(u, z, cls, camera, profile.width_px, profile.height_px, split.bands.pixel,
+                          split.threshold)
+    return cls[:n], u[:, :n], z[:n]
 
 
 @jit(error_model="numpy")
-def _band_keep_kernel(u_col, u_row, z, cls, camera, band, threshold, keep):   # pragma: no cover - compiled
-    """``keep[i]``: particle i's Z is within the limit of its class in the band of its mid-exposure pixel (the
-    pixel of :func:`_position_kernel`'s column and row)."""
+def _band_keep_kernel(u, z, cls, camera, w, h, pixel, threshold):              # pragma: no cover - compiled
+    """Moves the particles whose Z is within the limit of their class in the band of their mid-exposure pixel
+    (:func:`_position_kernel`'s column and row) to the front, in order; returns their number."""
     width, bottom, cy, ground = camera
-    h, w = band.shape
     half = np.float32(0.5)
-    for i in range(z.size):
-        lowest = cy + ground / z[i]
-        col = min(np.int64(u_col[i] * width), w - 1)
-        row = min(np.int64(u_row[i] * ((bottom if bottom <= lowest else lowest) + half)), h - 1)
-        keep[i] = z[i] <= threshold[band[row, col], cls[i]]
+    u_d, u_col, u_row = u[0], u[2], u[3]
+    kept = 0
+    for i in range(z.size):                   # branch-free: every particle is written, the kept ones stay
+        zi, ci, col_u, row_u = z[i], cls[i], u_col[i], u_row[i]
+        lowest = cy + ground / zi
+        col = min(np.int32(col_u * width), np.int32(w - 1))
+        row = min(np.int32(row_u * ((bottom if bottom <= lowest else lowest) + half)), np.int32(h - 1))
+        cls[kept], z[kept], u_d[kept], u_col[kept], u_row[kept] = ci, zi, u_d[i], col_u, row_u
+        kept += np.int64(zi <= threshold[pixel_band(pixel, row, col), ci])
+    return kept
 
 
 @jit(error_model="numpy")
@@ -968,17 +965,16 @@ def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -
 @jit(error_model="numpy")
 def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, band,
                      draw, values, signal, out):                              # pragma: no cover - compiled
-    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given; offset by the
-    pixel's ``band`` unless it is empty), the counts (from
-    ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
+    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given; in the table of the
+    pixel's ``band`` unless it is empty), the counts (from ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
     ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into
     ``out`` (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic
     sites)."""
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
-    bins, added, walk = np.empty(w, np.int32), np.zeros(w, np.float32), np.empty(w, np.uint8)
-    banded = band.size > 0
+    bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
+    first_bin, banded = np.zeros(w, np.int32), band.size > 0          # of the pixel's band's table (0: no bands)
     tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
@@ -991,18 +987,23 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
             else:
                 for x in range(w):
                     bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
-            if banded:
+            if banded:                         # (a loop of its own: the offset slows the one without bands)
                 band_row = band[y]
                 for x in range(w):
-                    bins[x] += np.int32(band_row[x]) << 8
-            for x in range(w):
-                b = bins[x]
-                c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
-                walk[x] = c
-                added[x] = np.float32(c & 127) * mark[b]
+                    first_bin[x] = np.int32(band_row[x]) * VEIL_LUT_SIZE
+                    b = np.int32(bins[x]) + first_bin[x]
+                    c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
+                    walk[x] = c
+                    added[x] = np.float32(c & 127) * mark[b]
+            else:
+                for x in range(w):
+                    b = np.int32(bins[x])
+                    c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
+                    walk[x] = c
+                    added[x] = np.float32(c & 127) * mark[b]
             for x in range(w):
                 if walk[x] >= 128:
-                    b, u, n = bins[x], np.int32(u_row[x]), np.int32(walk[x] & 127)
+                    b, u, n = np.int32(bins[x]) + first_bin[x], np.int32(u_row[x]), np.int32(walk[x] & 127)
                     while u >= cuts[b, n]:
                         n += 1
                     added[x] = np.float32(n) * mark[b]
@@ -1041,15 +1042,47 @@ class ParticleTables(NamedTuple):
     """What :func:`render_precipitation` derives from the camera, the medium and the conditions alone: per class
     the depth limits of the visible (:func:`explicit_depth_limits`) and of the resolved particles
     (:func:`resolved_depth_limits`), the :func:`unresolved_field` between them, the
-    :func:`veil_optical_depth_table` of the rest (read-only arrays); ``bands``, where the streak length depends on
-    the image position (:func:`streak_motion.motion_bands`: ego motion, head wind), the bands and the resolved
-    limits per band and class (``resolved`` is then their largest per class), else None."""
+    :func:`veil_optical_depth_table` of the rest (read-only arrays); ``split``, where the streak length depends on
+    the image position (:func:`streak_motion.motion_bands`: ego motion, head wind), the :class:`BandSplit` of the
+    resolved limits per band (``resolved`` is then their largest per class), else None."""
 
     limits: np.ndarray
     resolved: np.ndarray
     unresolved: UnresolvedField | None
     veil: tuple[np.ndarray, np.ndarray]
-    bands: tuple[MotionBands, np.ndarray] | None = None
+    split: BandSplit | None = None
+
+
+class BandSplit(NamedTuple):
+    """The particles :func:`sample_particles` keeps in each band of :class:`MotionBands`: per band and class the
+    resolved depth ``limits`` (m), the float32 ``threshold`` the sampled Z is compared with (inf where the band
+    keeps the whole sampled slab: Z may pass its limit by float32 rounding), and per class the ``expected`` number
+    kept (volume of each band's slab above the ground)."""
+
+    bands: MotionBands
+    limits: np.ndarray
+    threshold: np.ndarray
+    expected: np.ndarray
+
+
+def band_split(profile: CameraProfile, classes: SizeClasses, bands: MotionBands, limits_m: np.ndarray,
+               z_limits_m: np.ndarray, d_min_m: float, d_max_m: float) -> BandSplit:
+    """:class:`BandSplit` of the (bands, classes) ``limits_m`` for particles sampled up to ``z_limits_m``."""
+    slab = np.clip(z_limits_m, d_min_m, d_max_m)
+    limits = np.minimum(np.clip(limits_m, d_min_m, d_max_m), slab)
+    threshold = np.where(limits >= slab, np.inf, limits).astype(np.float32)
+    z_grid = np.geomspace(d_min_m, d_max_m, 1024)
+    volume = band_volume(profile, bands.rows, z_grid)
+    expected = classes.number * sum(np.interp(limits[b], z_grid, volume[b]) for b in range(limits.shape[0]))
+    for a in (limits, threshold, expected):
+        a.flags.writeable = False
+    return BandSplit(bands, limits, threshold, expected)
+
+
+# thread CPU per frame (ns; issue 19 round 10, the 2-core VM): a particle drawn one by one (sampled, sorted,
+# splatted), a sampled particle's band test, a pixel's per-pixel draw (its uniform and count); motion bands are
+# used only where the particles they leave to the per-pixel draw save more than the bands cost
+COST_EXPLICIT_NS, COST_BAND_TEST_NS, COST_DRAW_NS = 48.0, 5.5, 2.1
 
 
 @lru_cache(maxsize=8)
@@ -1057,29 +1090,47 @@ def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClas
                     conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float,
                     min_extent_px: float) -> ParticleTables:
     """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes;
-    ≈ 0.1 s more with motion bands)."""
+    ≈ 0.1 s more with motion bands): the image-wide split, or the :func:`band_tables` where they are cheaper by
+    the ``COST_*`` figures."""
     limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
                                    min_opacity)
+    resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                     limits, min_extent_px)
+    field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
+                             d_max_m)
+    split = None
+    banded = band_tables(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m, limits,
+                         min_extent_px)
+    if banded is not None:
+        z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
+        pixels = profile.width_px * profile.height_px
+        cost = COST_EXPLICIT_NS * float(classes.number @ np.interp(resolved, z_grid, vol)) + \
+            (0.0 if field is None else COST_DRAW_NS * pixels)
+        cost_banded = COST_EXPLICIT_NS * float(banded[2].expected.sum()) + COST_DRAW_NS * pixels + \
+            COST_BAND_TEST_NS * float(classes.number @ np.interp(banded[0], z_grid, vol))
+        if cost_banded < cost:
+            resolved, field, split = banded
+    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), split)
+    for a in (limits, resolved, *out.veil, *(a for a in (field or ()) if isinstance(a, np.ndarray))):
+        a.flags.writeable = False
+    return out
+
+
+def band_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed, conditions: Conditions,
+                d_min_m: float, d_max_m: float, limits_m: np.ndarray, min_extent_px: float
+                ) -> tuple[np.ndarray, UnresolvedField | None, BandSplit] | None:
+    """With :func:`streak_motion.motion_bands` (None without): the resolved limits per class (the largest of the
+    bands'), the :func:`unresolved_field` per band and the :class:`BandSplit` of the particles to sample."""
     bands = motion_bands(profile, exposure_s, relative_velocity_optical(conditions, fall_speed(classes.rms_d_mm)),
                          classes.number, d_min_m, d_max_m, min_extent_px)
     if bands is None:
-        resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
-                                         limits, min_extent_px)
-        field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
-                                 d_max_m)
-        split = None
-    else:
-        per_band = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
-                                         limits, min_extent_px, bands.bound)
-        resolved = per_band[bands.rows.sum(axis=1) > 0].max(axis=0)
-        field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, per_band, limits,
-                                 d_max_m, bands)
-        split = bands, per_band
-    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), split)
-    for a in (limits, resolved, *out.veil, *(split[1:] if split else ()),
-              *(a for a in (field or ()) if isinstance(a, np.ndarray))):
-        a.flags.writeable = False
-    return out
+        return None
+    per_band = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                     limits_m, min_extent_px, bands.bound)
+    resolved = per_band[bands.rows.sum(axis=1) > 0].max(axis=0)
+    field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, per_band, limits_m,
+                             d_max_m, bands)
+    return resolved, field, band_split(profile, classes, bands, per_band, resolved, d_min_m, d_max_m)
 
 
 def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_speed, radiance, exposure_s: float,
@@ -1099,7 +1150,7 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     tables = particle_tables(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
                              min_opacity, min_extent_px)
     particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed,
-                                           tables.bands)
+                                           tables.split)
     coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
     sigma = classes.extinction_per_m()
     bins = np.empty((h, w), np.uint8)

@@ -21,7 +21,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..types import CameraProfile, Conditions
+from ..types import CameraProfile
+from .compiled import jit
 
 MOTION_BANDS = 16             # bands of |w| below min_extent · d_max (each 1/16 of it wide)
 VARIANCE_STRIDE_PX = 8        # pixel grid on which each band's mean major-axis motion is taken
@@ -31,12 +32,14 @@ class MotionBands(NamedTuple):
     """The image cut into bands of motion (see module docstring); band ``MOTION_BANDS`` is the last (every
     particle explicit). ``band`` (H, W) uint8 per pixel; per band and class (px·m, ×Z⁻¹ = px): ``bound`` an upper
     bound of the streak's motion anywhere in the band (inf in the last band), ``major`` the mean motion along the
-    streak's major axis; ``rows`` (bands, H) the number of pixels of each band per image row."""
+    streak's major axis; ``rows`` (bands, H) the number of pixels of each band per image row; ``pixel`` the
+    float32 constants of :func:`pixel_band` (f_x v_x, f_y v_y of the reference, c_x, c_y, v_z, 1/band width)."""
 
     band: np.ndarray
     bound: np.ndarray
     major: np.ndarray
     rows: np.ndarray
+    pixel: np.ndarray
 
 
 def motion_bands(profile: CameraProfile, exposure_s: float, v_rel: np.ndarray, number: np.ndarray,
@@ -52,11 +55,11 @@ def motion_bands(profile: CameraProfile, exposure_s: float, v_rel: np.ndarray, n
     ref = int(np.searchsorted(cumulative, 0.5 * cumulative[-1]))         # the number-weighted median class
     ax, ay = profile.fx_px * float(v_rel[ref, 0]), profile.fy_px * float(v_rel[ref, 1])
     width = min_extent_px * d_max_m / (MOTION_BANDS * exposure_s)        # px·m/s per band
-    cols, rows = np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)
-    wx = np.float32(ax) - (cols - np.float32(profile.cx_px)) * np.float32(vz)
-    wy = np.float32(ay) - (rows - np.float32(profile.cy_px)) * np.float32(vz)
-    speed = np.maximum(np.abs(wx)[None, :], np.abs(wy)[:, None])        # along the major axis, px·m/s
-    band = np.minimum(speed * np.float32(1.0 / width), np.float32(MOTION_BANDS)).astype(np.uint8)
+    pixel = np.array([ax, ay, profile.cx_px, profile.cy_px, vz, 1.0 / width], np.float32)
+    band = np.empty((h, w), np.uint8)
+    _band_map_kernel(pixel, band)
+    wx = pixel[0] - (np.arange(w, dtype=np.float32) - pixel[2]) * pixel[4]
+    wy = pixel[1] - (np.arange(h, dtype=np.float32) - pixel[3]) * pixel[4]
     # the band's upper edge, plus the class's fall speed off the reference's, times T and the 2nd-order factor
     offset = profile.fy_px * np.abs(v_rel[:, 1] - v_rel[ref, 1])
     ratio = (0.5 * vz * exposure_s / d_min_m) ** 2                     # < 1 unless the nearest ones pass the lens
@@ -78,9 +81,26 @@ def motion_bands(profile: CameraProfile, exposure_s: float, v_rel: np.ndarray, n
             major[b] = exposure_s * np.maximum(gx[on][:, None], np.abs(gy[on][:, None] + dy[None, :])).mean(axis=0)
     per_row = np.bincount((band + np.arange(0, h * (MOTION_BANDS + 1), MOTION_BANDS + 1, dtype=np.int32)[:, None])
                           .ravel(), minlength=h * (MOTION_BANDS + 1)).reshape(h, MOTION_BANDS + 1).T.copy()
-    for a in (band, bound, major, per_row):
+    for a in (band, bound, major, per_row, pixel):
         a.flags.writeable = False
-    return MotionBands(band, bound, major, per_row)
+    return MotionBands(band, bound, major, per_row, pixel)
+
+
+@jit(error_model="numpy")
+def pixel_band(pixel, row, col):                                             # pragma: no cover - compiled
+    """The band of the pixel (row, col): ``|w|`` along the major axis (``pixel``: :class:`MotionBands`' constants)
+    in band widths, the last band beyond."""
+    ax, ay, cx, cy, vz, per_width = pixel
+    wx = ax - (np.float32(col) - cx) * vz
+    wy = ay - (np.float32(row) - cy) * vz
+    return np.uint8(min(max(abs(wx), abs(wy)) * per_width, np.float32(MOTION_BANDS)))
+
+
+@jit(error_model="numpy")
+def _band_map_kernel(pixel, band):                                           # pragma: no cover - compiled
+    for row in range(band.shape[0]):
+        for col in range(band.shape[1]):
+            band[row, col] = pixel_band(pixel, row, col)
 
 
 def band_volume(profile: CameraProfile, rows: np.ndarray, z_m: np.ndarray) -> np.ndarray:
