@@ -42,7 +42,10 @@ Unresolved particles. Of the visible ones, those whose streak (motion + footprin
 by one but per pixel: their summed opacity in a pixel is a compound-Poisson sum whose mean (the same optical depth
 as the veil's) and variance follow in closed form from the size classes, the depth slabs and the splat's pixel
 shares (:func:`unresolved_field`); each pixel draws a Poisson count with both moments matched. Snow at 3.03 mm/h
-on the Lucid frame: 0.26 M particles drawn one by one instead of 1.2 M, 0.97 M unresolved.
+on the Lucid frame: 0.26 M particles drawn one by one instead of 1.2 M, 0.97 M unresolved. Under ego motion (or
+head wind) the streak length depends on the image position — far particles near the focus of expansion stay
+points — so the split is made per band of image motion (:mod:`.streak_motion`, :func:`band_tables`) where that
+costs less than the image-wide split (``COST_*``): at 5 m/s 0.41 M of the 1.23 M visible flakes are unresolved.
 """
 
 from __future__ import annotations
@@ -649,36 +652,45 @@ def splat_streaks(pyramid, offsets, depth_m, level, vertical, a0, lo, hi, first,
         scale = 1 << lv
         rows[lv], cols[lv] = (h + scale - 1) // scale, (w + scale - 1) // scale
         last_row[lv], last_col[lv] = (h - scale // 2 - 1) // scale, (w - scale // 2 - 1) // scale
+    flat = depth_m.ravel()
     for p in range(level.size):
-        lv = level[p]
+        n = count[p]
+        if n == 0:
+            continue
+        # per particle: its level's grid and the strides along the streak's major and minor axes, in the grid and
+        # (per grid cell, at its centre pixel) in the depth map
+        lv, vert = level[p], vertical[p]
         scale = 1 << lv
-        centre = scale // 2
         base, n_cols = offsets[lv], cols[lv]
-        n_minor = n_cols if vertical[p] else rows[lv]
-        for j in range(count[p]):
-            c = np.float32(first[p] + j)
-            seg_lo = max(lo[p], c - half_px)
-            seg_hi = min(hi[p], c + half_px)
-            weight = density[p] * max(seg_hi - seg_lo, np.float32(0))
-            b = b0[p] + (half_px * (seg_lo + seg_hi) - a0[p]) * slope[p]
+        n_minor = n_cols if vert else rows[lv]
+        s_major, s_minor = (n_cols, 1) if vert else (1, n_cols)
+        last_major, last_minor = (last_row[lv], last_col[lv]) if vert else (last_col[lv], last_row[lv])
+        d_major, d_minor = (w * scale, scale) if vert else (scale, w * scale)
+        d_centre = (scale // 2) * (w + 1)
+        f0, lo_p, hi_p, a0_p, b0_p, sl, dens, r = first[p], lo[p], hi[p], a0[p], b0[p], slope[p], density[p], \
+            range_m[p]
+        for j in range(n):
+            ci = f0 + j
+            c = np.float32(ci)
+            seg_lo = max(lo_p, c - half_px)
+            seg_hi = min(hi_p, c + half_px)
+            weight = dens * max(seg_hi - seg_lo, np.float32(0))
+            b = b0_p + (half_px * (seg_lo + seg_hi) - a0_p) * sl
             b_floor = np.floor(b)
             frac = b - b_floor
             bi = int(b_floor)
             nearest = bi + 1 if frac >= half_px else bi
-            ci = first[p] + j
-            row, col = (ci, nearest) if vertical[p] else (nearest, ci)
             in_front = (0 <= nearest < n_minor and
-                        depth_m[min(row, last_row[lv]) * scale + centre,
-                                min(col, last_col[lv]) * scale + centre] > range_m[p])
+                        flat[min(ci, last_major) * d_major + min(nearest, last_minor) * d_minor + d_centre] > r)
             if j == 0:
                 visible[p] = in_front
             if not in_front:
                 continue
-            cell = base + (ci * n_cols + bi if vertical[p] else bi * n_cols + ci)
+            cell = base + ci * s_major + bi * s_minor
             if bi >= 0:
                 pyramid[cell] += weight * (np.float32(1) - frac)
             if bi + 1 < n_minor:
-                pyramid[cell + (1 if vertical[p] else n_cols)] += weight * frac
+                pyramid[cell + s_minor] += weight * frac
 
 
 def render_coverage(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
@@ -923,8 +935,7 @@ def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: Cam
     ``coverage``). Returns the mean M over the image. ``bins``: the scene's veil-table bins from
     :func:`veil_transmission` (the nearer of those and the ground's is the bin: the same, as rounding is
     monotonic), else computed here."""
-    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, None)
-    return float(cv2.mean(coverage)[0])
+    return _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, None)
 
 
 def blend_through_particles(layout: SiteLayout, signal: np.ndarray, values, t: np.ndarray, coverage: np.ndarray,
@@ -936,12 +947,12 @@ def blend_through_particles(layout: SiteLayout, signal: np.ndarray, values, t: n
     and with the same float32 operations: the blended signal and the mean M."""
     rows_values, rows = blend_operands(layout, signal, values)
     out = np.empty_like(rows)
-    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, (rows_values, rows, out))
-    return out.reshape(np.shape(signal)), float(cv2.mean(coverage)[0])
+    mean = _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, (rows_values, rows, out))
+    return out.reshape(np.shape(signal)), mean
 
 
-def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -> None:
-    """The pass of both: ``blend`` None or (S per value of a row, signal rows, output rows)."""
+def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -> float:
+    """The pass of both: ``blend`` None or (S per value of a row, signal rows, output rows); the mean M."""
     h, w = coverage.shape
     k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     below = np.arange(h) - profile.cy_px
@@ -956,10 +967,12 @@ def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -
         band = no_band if field.band is None else field.band
     if blend is None:                                  # t·(1 − M) back into t
         blend = np.zeros((1, 1), np.float32), np.zeros((0, 0), np.float32), np.zeros((0, 0), np.float32)
-    _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
-                     np.empty((0, 0), np.uint8) if bins is None else bins,
-                     np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
-                     buckets, mark, bits, band, field is not None, *blend)
+    total = _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
+                             np.empty((0, 0), np.uint8) if bins is None else bins,
+                             np.minimum(ground, d_max_m).astype(np.float32),
+                             np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts, buckets, mark, bits, band,
+                             field is not None, *blend)
+    return total / coverage.size
 
 
 @jit(error_model="numpy")
@@ -969,13 +982,14 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
     pixel's ``band`` unless it is empty), the counts (from ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
     ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into
     ``out`` (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic
-    sites)."""
+    sites); returns Σ M."""
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
     bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
     first_bin, banded = np.zeros(w, np.int32), band.size > 0          # of the pixel's band's table (0: no bands)
     tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
+    total = 0.0                                                                  # Σ M
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
         if draw:
@@ -1027,6 +1041,17 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
                 cov[x] = m
                 tm3[x] = t_row[x] * (one - m)
             _lerp_row(values[y % values.shape[0]], tm3, signal[y], out[y])
+        total += _row_sum(cov)
+    return total
+
+
+@jit(error_model="numpy", fastmath=True)
+def _row_sum(a):                                                              # pragma: no cover - compiled
+    """Σ a (float64; in any order: vectorised)."""
+    total = 0.0
+    for i in range(a.size):
+        total += np.float64(a[i])
+    return total
 
 
 @jit(error_model="numpy")

@@ -7,12 +7,14 @@ derivative of ``u = f_x X/Z + c_x``; the exposure's end points ``P ∓ v_rel T/2
 vanishes at the focus of expansion and grows in proportion to the distance from it, so that far particles near
 the focus of expansion stay points (unresolved) even at speed while the same particles near the border streak.
 
-:func:`motion_split` cuts the image into bands of ``|w(p)|`` for a reference fall speed (the number-weighted
-median class's): per band and size class an upper bound of the streak length times Z (the band's upper edge
-plus ``f_y |v_t,i − v_t,ref|`` and the second-order factor, all times T) gives the depth up to which a
-particle is drawn one by one there (:func:`particles.resolved_depth_limits`), and the band's mean major-axis
-motion the variance of the per-pixel draw beyond it (:func:`particles.unresolved_field`). Pixels whose band
-would reach ``min_extent · d_max`` are in a last band where every visible particle is drawn one by one."""
+:func:`motion_bands` cuts the image into bands of the motion along the streak's major axis,
+``max(|w_x|, |w_y|)`` (the splat's extent), for a reference fall speed (the number-weighted median class's): per
+band and size class an upper bound of the streak length times Z (the band's upper edge, plus ``½|v_z|`` for a
+particle anywhere in its pixel and ``f_y |v_t,i − v_t,ref|`` for its own fall speed, times T and the second-order
+factor) gives the depth up to which a particle is drawn one by one there
+(:func:`particles.resolved_depth_limits`), and the band's mean major-axis motion the variance of the per-pixel
+draw beyond it (:func:`particles.unresolved_field`). Pixels whose band would reach ``min_extent · d_max`` are in a
+last band where every visible particle is drawn one by one."""
 
 from __future__ import annotations
 
@@ -64,7 +66,7 @@ def motion_bands(profile: CameraProfile, exposure_s: float, v_rel: np.ndarray, n
     offset = profile.fy_px * np.abs(v_rel[:, 1] - v_rel[ref, 1])
     ratio = (0.5 * vz * exposure_s / d_min_m) ** 2                     # < 1 unless the nearest ones pass the lens
     second_order = 1.0 / (1.0 - ratio) if ratio < 1.0 else math.inf
-    edge = width * np.arange(1, MOTION_BANDS + 1)
+    edge = width * np.arange(1, MOTION_BANDS + 1) + 0.5 * abs(vz)
     bound = np.full((MOTION_BANDS + 1, number.size), np.inf)
     bound[:-1] = exposure_s * second_order * (edge[:, None] + offset[None, :])
     # mean |w| along the major axis per band and class, on a grid of pixels (the band's bound where it has none)
