@@ -1107,7 +1107,7 @@ def band_split(profile: CameraProfile, classes: SizeClasses, bands: MotionBands,
 # thread CPU per frame (ns; issue 19 round 10, the 2-core VM): a particle drawn one by one (sampled, sorted,
 # splatted), a sampled particle's band test, a pixel's per-pixel draw (its uniform and count); motion bands are
 # used only where the particles they leave to the per-pixel draw save more than the bands cost
-COST_EXPLICIT_NS, COST_BAND_TEST_NS, COST_DRAW_NS = 48.0, 5.5, 2.1
+COST_EXPLICIT_NS, COST_BAND_TEST_NS, COST_DRAW_NS = 48.0, 6.0, 2.0
 
 
 @lru_cache(maxsize=8)
