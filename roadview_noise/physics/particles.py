@@ -979,10 +979,11 @@ def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -
 def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, band,
                      draw, values, signal, out):                              # pragma: no cover - compiled
     """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given; in the table of the
-    pixel's ``band`` unless it is empty), the counts (from ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
-    ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into
-    ``out`` (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic
-    sites); returns Σ M."""
+    pixel's ``band`` unless it is empty), the counts (from ``buckets``, vectorised; then counting on through
+    ``cuts`` where a bucket says so, rare), then M back into ``coverage`` and either t·(1 − M) back into ``t``
+    (``signal`` empty) or the blend of ``composite`` into ``out``
+    (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic sites);
+    returns Σ M."""
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w

@@ -100,6 +100,7 @@ def pixel_band(pixel, row, col):                                             # p
 
 @jit(error_model="numpy")
 def _band_map_kernel(pixel, band):                                           # pragma: no cover - compiled
+    """:func:`pixel_band` of every pixel into ``band`` (H, W)."""
     for row in range(band.shape[0]):
         for col in range(band.shape[1]):
             band[row, col] = pixel_band(pixel, row, col)

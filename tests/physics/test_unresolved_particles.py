@@ -149,8 +149,8 @@ def _band_split(prof, conditions, seed):
 def test_motion_bands_draw_per_pixel_only_particles_shorter_than_a_pixel(conditions):
     """With ego motion (or head wind) the streak length depends on the image position: near the focus of expansion
     far particles stay points. Every particle the bands leave to the per-pixel draw spans < 1 px along its
-    streak's major axis (up to the split's grid) (exact exposure end points plus footprint), their number is the field's expected count,
-    and without v_z there are no bands (the image-wide split of the calm case)."""
+    streak's major axis (exact exposure end points plus footprint; up to the split's grid), their number is the
+    field's expected count, and without v_z there are no bands (the image-wide split of the calm case)."""
     field, split, every, explicit = _band_split(LUCID, conditions, 0)
     u0, v0, _, u1, v1, _ = P.streak_endpoints(LUCID, every, conditions, 0.005)
     extent = np.maximum(np.abs(u1 - u0), np.abs(v1 - v0)) + np.hypot(
