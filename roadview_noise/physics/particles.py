@@ -42,7 +42,10 @@ Unresolved particles. Of the visible ones, those whose streak (motion + footprin
 by one but per pixel: their summed opacity in a pixel is a compound-Poisson sum whose mean (the same optical depth
 as the veil's) and variance follow in closed form from the size classes, the depth slabs and the splat's pixel
 shares (:func:`unresolved_field`); each pixel draws a Poisson count with both moments matched. Snow at 3.03 mm/h
-on the Lucid frame: 0.26 M particles drawn one by one instead of 1.2 M, 0.97 M unresolved.
+on the Lucid frame: 0.26 M particles drawn one by one instead of 1.2 M, 0.97 M unresolved. Under ego motion (or
+head wind) the streak length depends on the image position — far particles near the focus of expansion stay
+points — so the split is made per band of image motion (:mod:`.streak_motion`, :func:`band_tables`) where that
+costs less than the image-wide split (``COST_*``): at 5 m/s 0.41 M of the 1.23 M visible flakes are unresolved.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
 from .photometry import blend_operands, estimation_depth, frame_depth_m
 from .sensor_noise import uniform_bits
+from .streak_motion import MotionBands, band_volume, motion_bands, pixel_band
 
 IMAGING_Q_EXT = 1.0           # geometric shadow (see module docstring)
 CLASS_WIDTH_MM = 0.1
@@ -276,23 +280,27 @@ def explicit_depth_limits(profile: CameraProfile, exposure_s: float, classes: Si
 
 def resolved_depth_limits(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                           conditions: Conditions, d_min_m: float, d_max_m: float, limits_m: np.ndarray,
-                          min_extent_px: float) -> np.ndarray:
+                          min_extent_px: float, motion_px_m: np.ndarray | None = None) -> np.ndarray:
     """Per class, the planar depth up to which particles are drawn one by one (at most ``limits_m``, the
     :func:`explicit_depth_limits`): the farthest Z on the same grid where the streak still spans ``min_extent_px``
     pixels (motion during the exposure plus footprint). Beyond it a particle is an unresolved point whose only
     trace is the opacity it adds to one or two pixels: :func:`unresolved_field` draws those per pixel. The motion
     is bounded from above (lateral speed at the longer focal length plus the radial part of v_rel at the image
-    corner), so the test errs towards explicit particles."""
+    corner), so the test errs towards explicit particles; or ``motion_px_m`` ((bands, classes), px·m) gives the
+    bounds per band of the image (:func:`streak_motion.motion_bands`), and the limits are per band and class."""
     d = classes.rms_d_mm
-    v = relative_velocity_optical(conditions, fall_speed(d))
-    corner_px = math.hypot(max(profile.cx_px, profile.width_px - profile.cx_px),
-                           max(profile.cy_px, profile.height_px - profile.cy_px))
-    motion = exposure_s * (max(profile.fx_px, profile.fy_px) * np.hypot(v[:, 0], v[:, 1]) +
-                           np.abs(v[:, 2]) * corner_px)                                    # px·m
+    if motion_px_m is None:
+        v = relative_velocity_optical(conditions, fall_speed(d))
+        corner_px = math.hypot(max(profile.cx_px, profile.width_px - profile.cx_px),
+                               max(profile.cy_px, profile.height_px - profile.cy_px))
+        motion = exposure_s * (max(profile.fx_px, profile.fy_px) * np.hypot(v[:, 0], v[:, 1]) +
+                               np.abs(v[:, 2]) * corner_px)                                    # px·m
+    else:
+        motion = motion_px_m
     z = np.geomspace(d_min_m, d_max_m, 256)
     footprint = np.hypot(d[:, None] * 1e-3 * focal_px(profile) / z[None, :], defocus_px(profile, z)[None, :])
-    resolved = motion[:, None] / z[None, :] + footprint >= min_extent_px
-    last = np.where(resolved.any(axis=1), z.size - 1 - np.argmax(resolved[:, ::-1], axis=1), -1)
+    resolved = motion[..., :, None] / z + footprint >= min_extent_px
+    last = np.where(resolved.any(axis=-1), z.size - 1 - np.argmax(resolved[..., ::-1], axis=-1), -1)
     return np.minimum(np.where(last >= 0, z[np.maximum(last, 0)], d_min_m), limits_m)
 
 
@@ -314,20 +322,26 @@ class Particles:
 
 
 def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: SizeClasses,
-                     z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed) -> tuple[Particles, float]:
+                     z_limits_m: np.ndarray, d_min_m: float, d_max_m: float, fall_speed,
+                     split: BandSplit | None = None) -> tuple[Particles, float]:
     """Marked Poisson process in the above-ground frustum slabs ``[d_min, Z_i]`` of each class: per-class Poisson
     counts, Z by inverse CDF of the slab volume (∝ Z² until the ground enters the image), then a uniform image
-    position above the ground. Returns (particles, expected count)."""
+    position above the ground. Returns (particles, expected count). With a :class:`BandSplit` (made for these
+    ``z_limits_m``), only the particles up to the limit of the band of their mid-exposure pixel are kept (the same
+    process restricted to those slabs)."""
     z_grid, vol, z3_quantiles = above_ground_volume_table(profile, d_min_m, d_max_m)
     v_lim = np.interp(np.clip(z_limits_m, d_min_m, d_max_m), z_grid, vol)
     lam = classes.number * v_lim
     counts = rng.poisson(lam)
     cls = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
     u = rng.random((4, cls.size), dtype=np.float32)
-    d = classes.sample_diameters_mm(cls, u[0])
     q = (v_lim * (DEPTH_QUANTILES / vol[-1])).astype(np.float32)         # class slab in quantile units
     z = np.exp(np.log(lerp_table(z3_quantiles, np.zeros(q.size, np.int64), q, cls, u[1], DEPTH_QUANTILES))
                * np.float32(1 / 3))                                                   # ∛
+    if split is not None:
+        cls, u, z = _keep_in_bands(profile, split, cls, u, z)
+        lam = split.expected
+    d = classes.sample_diameters_mm(cls, u[0])
     # image column uniform, row uniform above the ground (bottom_row_px), back-projected at Z; float32 as NumPy
     # evaluates col = u·W − ½, row = u·(min(H − ½, c_y + h f_y / Z) + ½) − ½, x = (col − c_x) Z / f_x
     # (y alike)
@@ -337,6 +351,34 @@ def sample_particles(rng: np.random.Generator, profile: CameraProfile, classes: 
     x, y = np.empty_like(z), np.empty_like(z)
     _position_kernel(u[2], u[3], z, camera, x, y)
     return Particles(x, y, z, d, np.asarray(fall_speed(d), dtype=np.float32)), float(lam.sum())
+
+
+def _keep_in_bands(profile: CameraProfile, split: BandSplit, cls, u, z):
+    """:func:`sample_particles`' draws (classes, uniforms, Z) of the particles inside their band's limits, in place
+    (views of the first ones)."""
+    camera = np.array([profile.width_px, profile.height_px - 0.5, profile.cy_px,
+                       profile.height_above_ground_m * profile.fy_px], np.float32)
+    n = _band_keep_kernel(u, z, cls, camera, profile.width_px, profile.height_px, split.bands.pixel,
+                          split.threshold)
+    return cls[:n], u[:, :n], z[:n]
+
+
+@jit(error_model="numpy")
+def _band_keep_kernel(u, z, cls, camera, w, h, pixel, threshold):              # pragma: no cover - compiled
+    """Moves the particles whose Z is within the limit of their class in the band of their mid-exposure pixel
+    (:func:`_position_kernel`'s column and row) to the front, in order; returns their number."""
+    width, bottom, cy, ground = camera
+    half = np.float32(0.5)
+    u_d, u_col, u_row = u[0], u[2], u[3]
+    kept = 0
+    for i in range(z.size):                   # branch-free: every particle is written, the kept ones stay
+        zi, ci, col_u, row_u = z[i], cls[i], u_col[i], u_row[i]
+        lowest = cy + ground / zi
+        col = min(np.int32(col_u * width), np.int32(w - 1))
+        row = min(np.int32(row_u * ((bottom if bottom <= lowest else lowest) + half)), np.int32(h - 1))
+        cls[kept], z[kept], u_d[kept], u_col[kept], u_row[kept] = ci, zi, u_d[i], col_u, row_u
+        kept += np.int64(zi <= threshold[pixel_band(pixel, row, col), ci])
+    return kept
 
 
 @jit(error_model="numpy")
@@ -610,36 +652,45 @@ def splat_streaks(pyramid, offsets, depth_m, level, vertical, a0, lo, hi, first,
         scale = 1 << lv
         rows[lv], cols[lv] = (h + scale - 1) // scale, (w + scale - 1) // scale
         last_row[lv], last_col[lv] = (h - scale // 2 - 1) // scale, (w - scale // 2 - 1) // scale
+    flat = depth_m.ravel()
     for p in range(level.size):
-        lv = level[p]
+        n = count[p]
+        if n == 0:
+            continue
+        # per particle: its level's grid and the strides along the streak's major and minor axes, in the grid and
+        # (per grid cell, at its centre pixel) in the depth map
+        lv, vert = level[p], vertical[p]
         scale = 1 << lv
-        centre = scale // 2
         base, n_cols = offsets[lv], cols[lv]
-        n_minor = n_cols if vertical[p] else rows[lv]
-        for j in range(count[p]):
-            c = np.float32(first[p] + j)
-            seg_lo = max(lo[p], c - half_px)
-            seg_hi = min(hi[p], c + half_px)
-            weight = density[p] * max(seg_hi - seg_lo, np.float32(0))
-            b = b0[p] + (half_px * (seg_lo + seg_hi) - a0[p]) * slope[p]
+        n_minor = n_cols if vert else rows[lv]
+        s_major, s_minor = (n_cols, 1) if vert else (1, n_cols)
+        last_major, last_minor = (last_row[lv], last_col[lv]) if vert else (last_col[lv], last_row[lv])
+        d_major, d_minor = (w * scale, scale) if vert else (scale, w * scale)
+        d_centre = (scale // 2) * (w + 1)
+        f0, lo_p, hi_p, a0_p, b0_p, sl, dens, r = first[p], lo[p], hi[p], a0[p], b0[p], slope[p], density[p], \
+            range_m[p]
+        for j in range(n):
+            ci = f0 + j
+            c = np.float32(ci)
+            seg_lo = max(lo_p, c - half_px)
+            seg_hi = min(hi_p, c + half_px)
+            weight = dens * max(seg_hi - seg_lo, np.float32(0))
+            b = b0_p + (half_px * (seg_lo + seg_hi) - a0_p) * sl
             b_floor = np.floor(b)
             frac = b - b_floor
             bi = int(b_floor)
             nearest = bi + 1 if frac >= half_px else bi
-            ci = first[p] + j
-            row, col = (ci, nearest) if vertical[p] else (nearest, ci)
             in_front = (0 <= nearest < n_minor and
-                        depth_m[min(row, last_row[lv]) * scale + centre,
-                                min(col, last_col[lv]) * scale + centre] > range_m[p])
+                        flat[min(ci, last_major) * d_major + min(nearest, last_minor) * d_minor + d_centre] > r)
             if j == 0:
                 visible[p] = in_front
             if not in_front:
                 continue
-            cell = base + (ci * n_cols + bi if vertical[p] else bi * n_cols + ci)
+            cell = base + ci * s_major + bi * s_minor
             if bi >= 0:
                 pyramid[cell] += weight * (np.float32(1) - frac)
             if bi + 1 < n_minor:
-                pyramid[cell + (1 if vertical[p] else n_cols)] += weight * frac
+                pyramid[cell + s_minor] += weight * frac
 
 
 def render_coverage(profile: CameraProfile, particles: Particles, conditions: Conditions, exposure_s: float,
@@ -763,7 +814,8 @@ class UnresolvedField(NamedTuple):
     ray factor). ``mean``/``variance`` per unit k / k² are the moments matched; ``expected`` the number of
     particles in the image above the ground. ``buckets`` (flat, bin × the uniform's high byte, uint8): N for every
     uniform of the bucket, or +128 where a cut falls inside it (then N counts on from there; also where N could
-    exceed 127)."""
+    exceed 127). ``band`` (H, W) uint8 or None: with motion bands (:func:`streak_motion.motion_bands`) the tables
+    hold one veil table of bins per band, and a pixel of band β reads bin ``β·VEIL_LUT_SIZE + b``."""
 
     cuts: np.ndarray
     mark: np.ndarray
@@ -771,11 +823,12 @@ class UnresolvedField(NamedTuple):
     variance: np.ndarray
     expected: float
     buckets: np.ndarray
+    band: np.ndarray | None = None
 
 
 def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                      conditions: Conditions, d_min_m: float, near_m: np.ndarray, far_m: np.ndarray,
-                     d_max_m: float) -> UnresolvedField | None:
+                     d_max_m: float, bands: MotionBands | None = None) -> UnresolvedField | None:
     """The particles of class i between planar depths ``near_m[i]`` and ``far_m[i]`` (unresolved points, see
     :func:`resolved_depth_limits`) as one compound-Poisson opacity per pixel, or None if there are none.
 
@@ -789,19 +842,65 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
     Poisson count of rate mean²/variance, each adding variance/mean: both moments matched per pixel (quantised to
     16-bit uniforms; the mark is set so that the mean stays exact). What is not kept: the correlation between the
     one to three pixels a single particle touches, and the spread of the individual opacities. The streak length
-    is the lateral motion's (the image centre's under ego motion)."""
+    is the lateral motion's; with ``bands`` (:func:`streak_motion.motion_bands`: motion that depends on the image
+    position), ``near_m`` is (bands, classes), the streak length the band's mean, and the tables are per band (band
+    b's bins at ``b·VEIL_LUT_SIZE + bin``; ``band`` the per-pixel map)."""
+    if bands is None:
+        moments = [_unresolved_moments(profile, exposure_s, classes, fall_speed, conditions, near_m, far_m, d_max_m)]
+    else:
+        moments = [_unresolved_moments(profile, exposure_s, classes, fall_speed, conditions, near_m[b], far_m,
+                                       d_max_m, bands.major[b]) for b in range(near_m.shape[0])]
+    if all(m is None for m in moments):
+        return None
+    empty = np.zeros(VEIL_LUT_SIZE)
+    mean = np.concatenate([empty if m is None else m[0] for m in moments])
+    variance = np.concatenate([empty if m is None else m[1] for m in moments])
+    rate = np.divide(mean ** 2, variance, out=np.zeros_like(mean), where=variance > 0)
+    counts = np.arange(int(rate.max() + 12 * math.sqrt(rate.max())) + 32)
+    top = int(np.argmax(pdtrc(counts, rate.max()) < UNRESOLVED_TAIL)) + 1      # P(N ≥ top) < the tail
+    cdf = pdtr(counts[:top], rate[:, None])
+    cuts = np.empty((mean.size, top + 1), np.int32)
+    cuts[:, :top] = np.rint(cdf * UNIFORM_CODES)
+    cuts[:, 0] = np.where(mean > 0, np.minimum(cuts[:, 0], UNIFORM_CODES - 1), UNIFORM_CODES)   # never lose the mean
+    cuts[:, top] = UNIFORM_CODES                                                 # stops the count
+    counted = (UNIFORM_CODES - cuts[:, :top]).sum(axis=1) / UNIFORM_CODES        # E[N] of the quantised draw
+    mark = np.divide(mean, counted, out=np.zeros_like(mean), where=counted > 0).astype(np.float32)
+    field = (far_m > near_m) & (classes.number > 0)
+    if bands is None:
+        z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
+        near, far = near_m[field], far_m[field]
+        expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
+    else:
+        z_grid = np.geomspace(d_min_m, d_max_m, 1024)
+        volume = band_volume(profile, bands.rows, z_grid)
+        expected = float(sum(classes.number @ np.where(field[b], np.interp(far_m, z_grid, volume[b]) -
+                                                       np.interp(near_m[b], z_grid, volume[b]), 0.0)
+                             for b in range(near_m.shape[0])))
+    return UnresolvedField(cuts, mark, mean, variance, expected, count_buckets(cuts),
+                           None if bands is None else bands.band)
+
+
+def _unresolved_moments(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
+                        conditions: Conditions, near_m: np.ndarray, far_m: np.ndarray, d_max_m: float,
+                        major_px_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`unresolved_field`'s mean and variance per unit ray factor at each veil-table bin, or None if no class
+    has particles between ``near_m`` and ``far_m``; the motion along the streak (px·m) is ``major_px_m`` per class
+    if given, else the lateral motion's."""
     field = (far_m > near_m) & (classes.number > 0)
     if not field.any():
         return None
     near, far = near_m[field], far_m[field]
     sigma = IMAGING_Q_EXT * classes.shadow_area_m2[field]
     d = classes.rms_d_mm[field]
-    v = relative_velocity_optical(conditions, fall_speed(d))
     # variance: midpoint rule on geometric cells, each class over the part of the cell inside [near_i, far_i]
     edges = np.geomspace(near.min(), far.max(), UNRESOLVED_CELLS + 1)
     mid = np.sqrt(edges[1:] * edges[:-1])
     inside = np.clip(np.minimum(edges[1:, None], far) - np.maximum(edges[:-1, None], near), 0.0, None)
-    motion = exposure_s * np.maximum(np.abs(v[:, 0]) * profile.fx_px, np.abs(v[:, 1]) * profile.fy_px)
+    if major_px_m is None:
+        v = relative_velocity_optical(conditions, fall_speed(d))
+        motion = exposure_s * np.maximum(np.abs(v[:, 0]) * profile.fx_px, np.abs(v[:, 1]) * profile.fy_px)
+    else:
+        motion = major_px_m[field]
     length = motion / mid[:, None] + np.hypot(d * 1e-3 * focal_px(profile) / mid[:, None],
                                               defocus_px(profile, mid)[:, None])
     share2 = np.where(length <= 1.0, 1.0 - length / 3.0, (length - 1.0 / 3.0) / length ** 2) * (2.0 / 3.0)
@@ -809,28 +908,20 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
     cumulative = np.concatenate([[0.0], np.cumsum((inside * sigma * mass * share2).sum(axis=1))])
     # per veil-table bin (the kernel's nearest bin of min(scene, ground, d_max))
     z = np.linspace(0.0, d_max_m, VEIL_LUT_SIZE)
-    mean = np.clip(z[:, None] - near, 0.0, far - near) @ sigma
-    variance = np.interp(z, edges, cumulative)
-    rate = np.divide(mean ** 2, variance, out=np.zeros_like(mean), where=variance > 0)
-    counts = np.arange(int(rate.max() + 12 * math.sqrt(rate.max())) + 32)
-    top = int(np.argmax(pdtrc(counts, rate.max()) < UNRESOLVED_TAIL)) + 1      # P(N ≥ top) < the tail
-    cdf = pdtr(counts[:top], rate[:, None])
-    cuts = np.empty((VEIL_LUT_SIZE, top + 1), np.int32)
-    cuts[:, :top] = np.rint(cdf * UNIFORM_CODES)
-    cuts[:, 0] = np.where(mean > 0, np.minimum(cuts[:, 0], UNIFORM_CODES - 1), UNIFORM_CODES)   # never lose the mean
-    cuts[:, top] = UNIFORM_CODES                                                 # stops the count
-    counted = (UNIFORM_CODES - cuts[:, :top]).sum(axis=1) / UNIFORM_CODES        # E[N] of the quantised draw
-    mark = np.divide(mean, counted, out=np.zeros_like(mean), where=counted > 0).astype(np.float32)
-    z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
-    expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
-    return UnresolvedField(cuts, mark, mean, variance, expected, count_buckets(cuts))
+    return np.clip(z[:, None] - near, 0.0, far - near) @ sigma, np.interp(z, edges, cumulative)
 
 
 def count_buckets(cuts: np.ndarray) -> np.ndarray:
     """:class:`UnresolvedField`'s ``buckets`` of the (bins, counts) ``cuts`` table."""
     start = np.arange(0, UNIFORM_CODES, 1 << BUCKET_SHIFT)
-    at_start = (cuts[:, None, :] <= start[None, :, None]).sum(axis=2)
-    at_end = (cuts[:, None, :] <= (start + (1 << BUCKET_SHIFT) - 1)[None, :, None]).sum(axis=2)
+    # the number of cuts ≤ u per row: one search in the rows laid end to end (each row's cuts are sorted)
+    offset = (np.arange(cuts.shape[0], dtype=np.int64) * 2 * UNIFORM_CODES)[:, None]
+    flat = (cuts + offset).ravel()
+
+    def at_most(u):
+        return np.searchsorted(flat, (u[None, :] + offset).ravel(), side="right").reshape(offset.size, -1) - \
+            np.arange(cuts.shape[0])[:, None] * cuts.shape[1]
+    at_start, at_end = at_most(start), at_most(start + (1 << BUCKET_SHIFT) - 1)
     walk = (at_end != at_start) | (at_start > 127)
     return (np.minimum(at_start, 127) + 128 * walk).astype(np.uint8).ravel()
 
@@ -844,8 +935,7 @@ def transmit_through_particles(t: np.ndarray, coverage: np.ndarray, profile: Cam
     ``coverage``). Returns the mean M over the image. ``bins``: the scene's veil-table bins from
     :func:`veil_transmission` (the nearer of those and the ground's is the bin: the same, as rounding is
     monotonic), else computed here."""
-    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, None)
-    return float(cv2.mean(coverage)[0])
+    return _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, None)
 
 
 def blend_through_particles(layout: SiteLayout, signal: np.ndarray, values, t: np.ndarray, coverage: np.ndarray,
@@ -857,43 +947,50 @@ def blend_through_particles(layout: SiteLayout, signal: np.ndarray, values, t: n
     and with the same float32 operations: the blended signal and the mean M."""
     rows_values, rows = blend_operands(layout, signal, values)
     out = np.empty_like(rows)
-    _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, (rows_values, rows, out))
-    return out.reshape(np.shape(signal)), float(cv2.mean(coverage)[0])
+    mean = _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, (rows_values, rows, out))
+    return out.reshape(np.shape(signal)), mean
 
 
-def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -> None:
-    """The pass of both: ``blend`` None or (S per value of a row, signal rows, output rows)."""
+def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -> float:
+    """The pass of both: ``blend`` None or (S per value of a row, signal rows, output rows); the mean M."""
     h, w = coverage.shape
     k = ray_factor(profile.width_px, profile.height_px, profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px)
     below = np.arange(h) - profile.cy_px
     with np.errstate(divide="ignore"):
         ground = np.where(below > 0, profile.height_above_ground_m * profile.fy_px / below, np.inf)
+    no_band = np.zeros((0, 0), np.uint8)
     if field is None:                                  # nothing drawn: no tables, no uniforms
-        cuts, buckets, mark, bits = (np.zeros((0, 0), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32),
-                                     np.zeros(0, np.uint16))
+        cuts, buckets, mark, bits, band = (np.zeros((0, 0), np.int32), np.zeros(0, np.uint8),
+                                           np.zeros(0, np.float32), np.zeros(0, np.uint16), no_band)
     else:
         cuts, buckets, mark, bits = field.cuts, field.buckets, field.mark, uniform_bits(rng, h * w)
+        band = no_band if field.band is None else field.band
     if blend is None:                                  # t·(1 − M) back into t
         blend = np.zeros((1, 1), np.float32), np.zeros((0, 0), np.float32), np.zeros((0, 0), np.float32)
-    _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
-                     np.empty((0, 0), np.uint8) if bins is None else bins,
-                     np.minimum(ground, d_max_m).astype(np.float32), np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts,
-                     buckets, mark, bits, field is not None, *blend)
+    total = _transmit_kernel(t, coverage, np.ascontiguousarray(depth_m, dtype=np.float32), k,
+                             np.empty((0, 0), np.uint8) if bins is None else bins,
+                             np.minimum(ground, d_max_m).astype(np.float32),
+                             np.float32((VEIL_LUT_SIZE - 1) / d_max_m), cuts, buckets, mark, bits, band,
+                             field is not None, *blend)
+    return total / coverage.size
 
 
 @jit(error_model="numpy")
-def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, draw,
-                     values, signal, out):                                    # pragma: no cover - compiled
-    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given), the counts (from
-    ``buckets``, vectorised; then counting on through ``cuts`` where a bucket says so, rare), then M back into
-    ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into
-    ``out`` (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic
-    sites)."""
+def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, band,
+                     draw, values, signal, out):                              # pragma: no cover - compiled
+    """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given; in the table of the
+    pixel's ``band`` unless it is empty), the counts (from ``buckets``, vectorised; then counting on through
+    ``cuts`` where a bucket says so, rare), then M back into ``coverage`` and either t·(1 − M) back into ``t``
+    (``signal`` empty) or the blend of ``composite`` into ``out``
+    (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic sites);
+    returns Σ M."""
     one, half = np.float32(1), np.float32(0.5)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
     bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
+    first_bin, banded = np.zeros(w, np.int32), band.size > 0          # of the pixel's band's table (0: no bands)
     tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
+    total = 0.0                                                                  # Σ M
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
         if draw:
@@ -905,14 +1002,23 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
             else:
                 for x in range(w):
                     bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
-            for x in range(w):
-                b = np.int32(bins[x])
-                c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
-                walk[x] = c
-                added[x] = np.float32(c & 127) * mark[b]
+            if banded:                         # (a loop of its own: the offset slows the one without bands)
+                band_row = band[y]
+                for x in range(w):
+                    first_bin[x] = np.int32(band_row[x]) * VEIL_LUT_SIZE
+                    b = np.int32(bins[x]) + first_bin[x]
+                    c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
+                    walk[x] = c
+                    added[x] = np.float32(c & 127) * mark[b]
+            else:
+                for x in range(w):
+                    b = np.int32(bins[x])
+                    c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
+                    walk[x] = c
+                    added[x] = np.float32(c & 127) * mark[b]
             for x in range(w):
                 if walk[x] >= 128:
-                    b, u, n = bins[x], np.int32(u_row[x]), np.int32(walk[x] & 127)
+                    b, u, n = np.int32(bins[x]) + first_bin[x], np.int32(u_row[x]), np.int32(walk[x] & 127)
                     while u >= cuts[b, n]:
                         n += 1
                     added[x] = np.float32(n) * mark[b]
@@ -936,6 +1042,17 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
                 cov[x] = m
                 tm3[x] = t_row[x] * (one - m)
             _lerp_row(values[y % values.shape[0]], tm3, signal[y], out[y])
+        total += _row_sum(cov)
+    return total
+
+
+@jit(error_model="numpy", fastmath=True)
+def _row_sum(a):                                                              # pragma: no cover - compiled
+    """Σ a (float64; in any order: vectorised)."""
+    total = 0.0
+    for i in range(a.size):
+        total += np.float64(a[i])
+    return total
 
 
 @jit(error_model="numpy")
@@ -951,29 +1068,95 @@ class ParticleTables(NamedTuple):
     """What :func:`render_precipitation` derives from the camera, the medium and the conditions alone: per class
     the depth limits of the visible (:func:`explicit_depth_limits`) and of the resolved particles
     (:func:`resolved_depth_limits`), the :func:`unresolved_field` between them, the
-    :func:`veil_optical_depth_table` of the rest (read-only arrays)."""
+    :func:`veil_optical_depth_table` of the rest (read-only arrays); ``split``, where the streak length depends on
+    the image position (:func:`streak_motion.motion_bands`: ego motion, head wind), the :class:`BandSplit` of the
+    resolved limits per band (``resolved`` is then their largest per class), else None."""
 
     limits: np.ndarray
     resolved: np.ndarray
     unresolved: UnresolvedField | None
     veil: tuple[np.ndarray, np.ndarray]
+    split: BandSplit | None = None
+
+
+class BandSplit(NamedTuple):
+    """The particles :func:`sample_particles` keeps in each band of :class:`MotionBands`: per band and class the
+    resolved depth ``limits`` (m), the float32 ``threshold`` the sampled Z is compared with (inf where the band
+    keeps the whole sampled slab: Z may pass its limit by float32 rounding), and per class the ``expected`` number
+    kept (volume of each band's slab above the ground)."""
+
+    bands: MotionBands
+    limits: np.ndarray
+    threshold: np.ndarray
+    expected: np.ndarray
+
+
+def band_split(profile: CameraProfile, classes: SizeClasses, bands: MotionBands, limits_m: np.ndarray,
+               z_limits_m: np.ndarray, d_min_m: float, d_max_m: float) -> BandSplit:
+    """:class:`BandSplit` of the (bands, classes) ``limits_m`` for particles sampled up to ``z_limits_m``."""
+    slab = np.clip(z_limits_m, d_min_m, d_max_m)
+    limits = np.minimum(np.clip(limits_m, d_min_m, d_max_m), slab)
+    threshold = np.where(limits >= slab, np.inf, limits).astype(np.float32)
+    z_grid = np.geomspace(d_min_m, d_max_m, 1024)
+    volume = band_volume(profile, bands.rows, z_grid)
+    expected = classes.number * sum(np.interp(limits[b], z_grid, volume[b]) for b in range(limits.shape[0]))
+    for a in (limits, threshold, expected):
+        a.flags.writeable = False
+    return BandSplit(bands, limits, threshold, expected)
+
+
+# thread CPU per frame (ns; issue 19 round 10, the 2-core VM): a particle drawn one by one (sampled, sorted,
+# splatted), a sampled particle's band test, a pixel's per-pixel draw (its uniform and count); motion bands are
+# used only where the particles they leave to the per-pixel draw save more than the bands cost
+COST_EXPLICIT_NS, COST_BAND_TEST_NS, COST_DRAW_NS = 48.0, 6.0, 2.0
 
 
 @lru_cache(maxsize=8)
 def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                     conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float,
                     min_extent_px: float) -> ParticleTables:
-    """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes)."""
+    """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes;
+    ≈ 0.1 s more with motion bands): the image-wide split, or the :func:`band_tables` where they are cheaper by
+    the ``COST_*`` figures."""
     limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
                                    min_opacity)
     resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
                                      limits, min_extent_px)
     field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, resolved, limits,
                              d_max_m)
-    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m))
-    for a in (limits, resolved, *out.veil, *(field[:4] + field[5:] if field is not None else ())):
+    split = None
+    banded = band_tables(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m, limits,
+                         min_extent_px)
+    if banded is not None:
+        z_grid, vol, _ = above_ground_volume_table(profile, d_min_m, d_max_m)
+        pixels = profile.width_px * profile.height_px
+        cost = COST_EXPLICIT_NS * float(classes.number @ np.interp(resolved, z_grid, vol)) + \
+            (0.0 if field is None else COST_DRAW_NS * pixels)
+        cost_banded = COST_EXPLICIT_NS * float(banded[2].expected.sum()) + COST_DRAW_NS * pixels + \
+            COST_BAND_TEST_NS * float(classes.number @ np.interp(banded[0], z_grid, vol))
+        if cost_banded < cost:
+            resolved, field, split = banded
+    out = ParticleTables(limits, resolved, field, veil_optical_depth_table(classes, limits, d_min_m, d_max_m), split)
+    for a in (limits, resolved, *out.veil, *(a for a in (field or ()) if isinstance(a, np.ndarray))):
         a.flags.writeable = False
     return out
+
+
+def band_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed, conditions: Conditions,
+                d_min_m: float, d_max_m: float, limits_m: np.ndarray, min_extent_px: float
+                ) -> tuple[np.ndarray, UnresolvedField | None, BandSplit] | None:
+    """With :func:`streak_motion.motion_bands` (None without): the resolved limits per class (the largest of the
+    bands'), the :func:`unresolved_field` per band and the :class:`BandSplit` of the particles to sample."""
+    bands = motion_bands(profile, exposure_s, relative_velocity_optical(conditions, fall_speed(classes.rms_d_mm)),
+                         classes.number, d_min_m, d_max_m, min_extent_px)
+    if bands is None:
+        return None
+    per_band = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
+                                     limits_m, min_extent_px, bands.bound)
+    resolved = per_band[bands.rows.sum(axis=1) > 0].max(axis=0)
+    field = unresolved_field(profile, exposure_s, classes, fall_speed, conditions, d_min_m, per_band, limits_m,
+                             d_max_m, bands)
+    return resolved, field, band_split(profile, classes, bands, per_band, resolved, d_min_m, d_max_m)
 
 
 def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_speed, radiance, exposure_s: float,
@@ -992,7 +1175,8 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
     s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
     tables = particle_tables(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
                              min_opacity, min_extent_px)
-    particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed)
+    particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed,
+                                           tables.split)
     coverage, n_visible = render_coverage(profile, particles, frame.conditions, exposure_s, depth, d_min_m)
     sigma = classes.extinction_per_m()
     bins = np.empty((h, w), np.uint8)
