@@ -678,6 +678,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             finally:
                 getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
                 ledger.discard_pending()
+                ledger.folders.close()
                 if sync is not None:
                     sync.close()
         if ledger.stopped:
