@@ -4,11 +4,17 @@ joblib/loky and ``concurrent.futures`` break the whole pool when one worker dies
 kernel's out-of-memory killer): every task in flight is lost and the run aborts. :class:`ProcessExecutor` gives each
 worker its own pipe and knows which task a dead worker was running: that
 task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
-is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds a second task, queued in its pipe, so it
-never waits for the parent between two small files (only a task of at most ``QUEUE_MAX_BYTES``: sending it never
-blocks on a worker that is itself blocked sending a large result); it runs them in order, so the first unanswered
-task is still the one a dead worker was running, and the queued one is re-sent without a death counted. Workers get
-the run context once at start and then only small task keys (never arrays).
+is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds further tasks, queued in its pipe (about
+``2 * BATCH_HOLD_S`` of them, at most ``QUEUE_MAX_TASKS`` and ``QUEUE_MAX_BYTES`` together: sending them never blocks
+on a worker that is itself blocked sending a large result), so it never waits for the parent between two small files,
+and answers them in **batches**: one message with the results it finished while more tasks were queued (at most
+``BATCH_MAX`` results, held at most ``BATCH_HOLD_S``; at once when nothing more is queued). The parent then wakes once
+per batch, not once per file, and handles the batch with warm caches (issue 19: a radar file's ≈ 0.3 ms of the main
+process was mostly a cold wake-up per file). A worker records the task it is running in shared memory, so a dead
+worker is blamed for that task only: the ones it finished but had not sent yet and the ones queued behind are re-sent
+without a death counted. Under a time bound (``timeout_s``) a worker answers each task at once (a held result would
+count against the next task's time). Workers get the run context once at start and then only small task keys (never
+arrays).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
@@ -31,9 +37,11 @@ caller reads) also makes ``map`` yield ``(NOT_NOW, None)`` when it becomes reada
 from __future__ import annotations
 
 import ctypes
+import math
 import multiprocessing as mp
 import multiprocessing.spawn as mp_spawn
 import os
+import select
 import signal
 import sys
 import threading
@@ -58,8 +66,11 @@ PRELOAD = ["cv2", "roadview_noise.runner", "roadview_noise.metrics"]   # + the r
 WARM_UP = "roadview_noise.warmup"
 SERVER_EXIT = "roadview_noise.server_exit"     # the server's fast exit (imported by the server only)
 PR_SET_PDEATHSIG = 1
-QUEUE_BELOW_S = 0.05               # tasks shorter than this get a second one queued behind them (see _depth)
-QUEUE_MAX_BYTES = 16 * 1024        # only a task this small is queued behind a running one: its send never blocks
+QUEUE_BELOW_S = 0.05               # tasks shorter than this get more queued behind them (see _depth)
+QUEUE_MAX_BYTES = 16 * 1024        # tasks queued behind a running one hold at most this much: their send never blocks
+QUEUE_MAX_TASKS = 16               # tasks a worker holds at most
+BATCH_MAX = 8                      # results a worker sends in one message at most
+BATCH_HOLD_S = 0.02                # a finished result waits at most this long for others to join its message
 
 
 class _NotNow:
@@ -153,12 +164,20 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple | None) -> None:
+def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple | None, running: Any = None,
+                 batch: int = 1) -> None:
+    """Run the tasks of ``conn`` in order; answer with lists of ``(task id, result)`` (up to ``batch``, see the
+    module docstring); ``running.value``: the id of the task started last (read by the parent when this dies)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)       # Ctrl-C is the parent's to handle
     worker_setup(parent_pid)
     if setup is not None:
         setup[0](*setup[1])
+    held: list = []
+    since = 0.0
     while True:
+        if held and (len(held) >= batch or not conn.poll() or time.monotonic() - since >= BATCH_HOLD_S):
+            conn.send(held)
+            held = []
         try:
             msg = conn.recv()
         except (EOFError, OSError):
@@ -166,14 +185,28 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
         if msg is None:
             return
         tid, task = msg
+        if running is not None:
+            running.value = tid
         try:
             result = fn(task, context)
         except Exception as exc:        # the function should not raise; keep the worker alive if it does
             result = TaskError(f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
-        conn.send((tid, result))
+        if not held:
+            since = time.monotonic()
+        held.append((tid, result))
 
 
 # --- in the parent ---------------------------------------------------------------------------------------------------
+
+
+def _in_order(answers: list, queue: deque) -> int:
+    """How many of a worker's ``(task id, result)`` answers are for the first tasks of its ``queue``, in order."""
+    n = 0
+    for (tid, _), (sent, _) in zip(answers, queue):
+        if tid != sent:
+            break
+        n += 1
+    return n
 
 
 @contextmanager
@@ -252,13 +285,43 @@ def _context(models: Sequence[str] | None = None):
     return mp.get_context("spawn")
 
 
+class _Poller:
+    """:func:`multiprocessing.connection.wait` with one ``poll`` object kept while the objects waited on stay the
+    same (``wait`` builds and fills a selector per call: ≈ 20–30 µs of the main process per result, issue 19);
+    ``wait`` itself where there is no ``poll``."""
+
+    def __init__(self):
+        self._objects: tuple = ()
+        self._poll = None
+        self._by_fd: dict[int, Any] = {}
+
+    def wait(self, objects: list, timeout: float | None) -> list:
+        if not hasattr(select, "poll"):                    # pragma: no cover - Windows
+            return wait(objects, timeout)
+        key = tuple(objects)
+        if key != self._objects or self._poll is None:
+            self._poll, self._objects = select.poll(), key
+            self._by_fd = {o if isinstance(o, int) else o.fileno(): o for o in objects}
+            for fd in self._by_fd:
+                self._poll.register(fd, select.POLLIN)
+        ms = None if timeout is None else max(0, int(timeout * 1000 + 0.999))
+        return [self._by_fd[fd] for fd, _ in self._poll.poll(ms)]
+
+
 @dataclass
 class _Worker:
     proc: Any
     conn: Any
-    queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered; the first one is running
+    running: Any = None                             # shared: the id of the task it started last
+    queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered, in order
+    sizes: deque = field(default_factory=deque)     # their pickled bytes
     started: float = 0.0                            # when the first of ``queue`` started
     stopping: bool = False                          # told to exit (ProcessExecutor.stop), not joined yet
+
+    def died_on(self) -> int:
+        """Where in ``queue`` the task it was running when it died is: those before it were done, not sent."""
+        tid = self.running.value if self.running is not None else -1
+        return next((k for k, (t, _) in enumerate(self.queue) if t == tid), 0)
 
 
 class ProcessExecutor(Generic[T, C]):
@@ -277,16 +340,19 @@ class ProcessExecutor(Generic[T, C]):
         self._ctx = _context(models)
         self._pool: list[_Worker] = []
         self._task_s = float("inf")                 # recent seconds per task (moving average)
+        self._poller = _Poller()
         self.deaths = 0
 
     def _start(self) -> _Worker:
         parent, child = self._ctx.Pipe(duplex=True)
+        running = self._ctx.RawValue("q", -1)
+        batch = BATCH_MAX if self.timeout_s is None else 1
         with _starting():
             proc = self._ctx.Process(target=_worker_main, name="rvnoise-worker", daemon=True,
-                                     args=(child, self.fn, self.context, os.getpid(), self.setup))
+                                     args=(child, self.fn, self.context, os.getpid(), self.setup, running, batch))
             proc.start()
         child.close()
-        return _Worker(proc, parent)
+        return _Worker(proc, parent, running)
 
     def start(self) -> None:
         """Start the missing workers now rather than at :meth:`map`: a run starts them before it writes its record,
@@ -298,8 +364,13 @@ class ProcessExecutor(Generic[T, C]):
             self._pool.append(self._start())
 
     def _depth(self) -> int:
-        """Tasks a worker holds: a second one queued behind short tasks, so it never waits for the parent."""
-        return 2 if self._task_s < QUEUE_BELOW_S else 1
+        """Tasks a worker holds: behind short tasks, enough for two batches (module docstring), so it never waits
+        for the parent; a second one under a time bound (no batches)."""
+        if self._task_s >= QUEUE_BELOW_S:
+            return 1
+        if self.timeout_s is not None:
+            return 2
+        return max(2, min(QUEUE_MAX_TASKS, math.ceil(2 * BATCH_HOLD_S / max(self._task_s, 1e-6))))
 
     def map(self, tasks: Iterable[T]) -> Iterator[tuple[T, Any]]:
         source = iter(tasks)
@@ -328,7 +399,7 @@ class ProcessExecutor(Generic[T, C]):
                         else:
                             break
                         payload = ForkingPickler.dumps((tid, task))
-                        if w.queue and len(payload) > QUEUE_MAX_BYTES:
+                        if w.queue and sum(w.sizes) - w.sizes[0] + len(payload) > QUEUE_MAX_BYTES:
                             # a busy worker may be blocked sending us its result: writing more than its pipe
                             # holds would block both; the task waits for an idle worker
                             retry.appendleft((tid, task))
@@ -336,6 +407,7 @@ class ProcessExecutor(Generic[T, C]):
                         if not w.queue:
                             w.started = time.monotonic()
                         w.queue.append((tid, task))
+                        w.sizes.append(len(payload))
                         try:
                             w.conn.send_bytes(payload)
                         except (BrokenPipeError, OSError):
@@ -350,7 +422,8 @@ class ProcessExecutor(Generic[T, C]):
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
                 wake = [] if self.wake is None or self._task_s < QUEUE_BELOW_S else [self.wake]   # short tasks:
                 # the next result comes soon enough, and a wake-up per file would cost the main process a loop
-                ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool] + wake, timeout))
+                ready = set(self._poller.wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool] + wake,
+                                              timeout))
                 if wake and self.wake in ready:
                     yield NOT_NOW, None
                 for i, w in enumerate(self._pool):
@@ -365,20 +438,22 @@ class ProcessExecutor(Generic[T, C]):
                         self._pool[i] = self._start()
                         yield task, WorkerDeath(f"took longer than {self.timeout_s:g} s; its worker was stopped", 1)
                         continue
-                    result, got = None, False
+                    answers: list = []
                     if w.queue and ready & {w.conn, w.proc.sentinel}:     # a dead worker's answers first
                         try:
-                            tid, result = w.conn.recv()
-                            got = tid == w.queue[0][0]
+                            answers = w.conn.recv()
                         except (EOFError, OSError):
-                            got = False
-                    if got:
+                            answers = []
+                    answers = answers[:_in_order(answers, w.queue)]
+                    if answers:
                         now = time.monotonic()
-                        took = now - w.started
+                        took = (now - w.started) / len(answers)
                         self._task_s = took if self._task_s == float("inf") else 0.75 * self._task_s + 0.25 * took
-                        _, task = w.queue.popleft()
                         w.started = now                    # the worker took the next queued task at once
-                        yield task, result
+                        for _, result in answers:
+                            _, task = w.queue.popleft()
+                            w.sizes.popleft()
+                            yield task, result
                         continue
                     if w.proc.sentinel not in ready:
                         continue        # alive, or died after wait(): its answers are read before its death
@@ -391,7 +466,8 @@ class ProcessExecutor(Generic[T, C]):
                         if startup_deaths > 3 * self.workers:
                             raise RuntimeError(f"workers keep dying before they get a task ({reason})")
                     else:
-                        (tid, task), *waiting = w.queue    # it died running the first; the others never started
+                        k = w.died_on()                    # before it: done, not sent; after it: never started
+                        (tid, task), waiting = w.queue[k], [t for i, t in enumerate(w.queue) if i != k]
                         retry.extend(waiting)
                         n = deaths[tid] = deaths.get(tid, 0) + 1
                         if n >= self.max_deaths:

@@ -20,7 +20,8 @@ from pathlib import Path
 from .walk import os_error_text
 
 SYNC_THREADS = 8            # fsyncs in flight at once (each thread waits on the storage, not on a core)
-MAX_WAITING = 256           # entries whose fsync is pending before the ledger waits for the oldest one
+MAX_WAITING = 64            # entries whose fsync is pending before the ledger waits for the oldest one (8 threads: a
+                            # deeper queue would not fsync faster, only hold more entries in memory)
 
 
 def fsync_files(paths: list[Path]) -> None:

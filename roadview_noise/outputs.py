@@ -26,8 +26,8 @@ from pathlib import Path, PurePosixPath
 from typing import Callable, Container, Iterable, Iterator, TextIO
 
 from .input_checks import escapes
-from .io.atomic import ensure_dir_inside
 from .manifest import entry_line, full_entry, iter_manifest, sha256_file
+from .output_folders import OutputFolders
 from .output_sync import MAX_WAITING, SyncPool, write_error
 
 
@@ -87,6 +87,7 @@ class Ledger:
                  fail_fast: bool = False, sync: SyncPool | None = None):
         self.out_root = out_root
         self.real_root = Path(os.path.realpath(out_root))
+        self.folders = OutputFolders(out_root, self.real_root)     # closed by the run (runner._execute)
         self.log = log
         self.on_log_error = on_log_error
         self.fail_fast = fail_fast
@@ -164,7 +165,7 @@ class Ledger:
                                    f"({exc.strerror or exc}); its output was not kept")
             return entry
         try:
-            commit(self.out_root, entry, self.real_root)
+            self.folders.commit(entry)
         except OSError as exc:
             discard(self.out_root, entry)
             entry = _failed(entry, f"{entry['input']}: could not move its output into place: {exc}")
@@ -197,14 +198,14 @@ def _failed(entry: dict, error: str) -> dict:
     return entry
 
 
-def commit(out_root: Path, entry: dict, real_root: Path | None = None) -> None:
-    """Rename an entry's staged temporaries onto their final names (their folders checked again); ``real_root``:
-    the real path of ``out_root`` when the caller knows it (the ledger: once per run, not once per file)."""
-    root = real_root or Path(os.path.realpath(out_root))
-    for tmp, final in entry.pop("staged", []):
-        target = out_root / final
-        ensure_dir_inside(target.parent, root)
-        os.replace(out_root / tmp, target)
+def commit(out_root: Path, entry: dict) -> None:
+    """Rename an entry's staged temporaries onto their final names (their folders checked again; a run's ledger keeps
+    its :class:`OutputFolders` for the whole run instead)."""
+    folders = OutputFolders(out_root, Path(os.path.realpath(out_root)))
+    try:
+        folders.commit(entry)
+    finally:
+        folders.close()
 
 
 def discard(out_root: Path, entry: dict) -> None:

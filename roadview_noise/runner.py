@@ -23,6 +23,7 @@ import traceback
 import warnings
 from collections import Counter
 from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
@@ -172,14 +173,22 @@ def count_plan(in_root: Path, recipe: Recipe, limit: int | None, stop_above: int
     return inputs * per_input, failures
 
 
+@lru_cache(maxsize=None)
+def _integer_params(cls: type) -> frozenset[str]:
+    """The parameters of a model class whose default is an int (their draws are integers)."""
+    return frozenset(p.name for p in cls.param_specs() if type(p.default) is int)
+
+
 def build_models(recipe: Recipe, task: Task) -> list:
-    """Instantiate the chain for one output: fixed values, sweep overrides, and per-file distribution draws."""
+    """Instantiate the chain for one output: fixed values, sweep overrides, and per-file distribution draws (their
+    generator derived only for a step that has one)."""
     overrides = recipe.variants[task.variant_index].overrides
     models = []
     for i, (model_id, params) in enumerate(zip(recipe.model_ids, recipe.step_params)):
         cls = get_model(model_id)
-        integer = {p.name for p in cls.param_specs() if type(p.default) is int}
-        rng = derive_rng(recipe.seed, task.out_relpath, "params", i, model_id)
+        integer = _integer_params(cls)
+        drawn = any(isinstance(v, dict) for v in params.values())
+        rng = derive_rng(recipe.seed, task.out_relpath, "params", i, model_id) if drawn else None
         values = {k: draw_value(v, rng, integer=k in integer) for k, v in sorted(params.items())}
         values.update({k: draw_value(v, None) for k, v in overrides.get(model_id, {}).items()})
         models.append(cls(**values))
@@ -189,11 +198,17 @@ def build_models(recipe: Recipe, task: Task) -> list:
 # --- one output (in a worker) ----------------------------------------------------------------------------------------
 
 
+@lru_cache(maxsize=8)
+def _real_root(in_root: Path) -> str:
+    return os.path.realpath(in_root)
+
+
 def input_path(in_root: Path, relpath: str) -> Path:
-    """``in_root / relpath``, refused when it resolves (through a symlink) outside the input folder."""
+    """``in_root / relpath``, refused when it resolves (through a symlink) outside the input folder (whose real path
+    is taken once per process)."""
     path = in_root / relpath
     real = os.path.realpath(path)
-    root = os.path.realpath(in_root)
+    root = _real_root(in_root)
     if not real.startswith(root + os.sep):
         raise InputError(f"resolves to {real!r}, outside the input folder; rvnoise reads only inside it",
                          file=str(path))
@@ -366,10 +381,10 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
 def _staged_files(stage, ctx: RunContext, task: Task, entry: dict[str, Any]) -> None:
     """The entry's ``files`` (path, sha256 of the staged bytes), ``staged`` (temporary → final) and
     ``output_sha256``."""
-    entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(), "sha256": sha256_file(tmp)}
-                      for tmp, final in stage.files]
-    entry["staged"] = [[tmp.relative_to(ctx.out_root).as_posix(), final.relative_to(ctx.out_root).as_posix()]
-                       for tmp, final in stage.files]
+    rel = [[tmp.relative_to(ctx.out_root).as_posix(), final.relative_to(ctx.out_root).as_posix()]
+           for tmp, final in stage.files]
+    entry["files"] = [{"path": final, "sha256": sha256_file(tmp)} for (tmp, _), (_, final) in zip(stage.files, rel)]
+    entry["staged"] = rel
     entry["output_sha256"] = next(f["sha256"] for f in entry["files"] if f["path"] == task.out_relpath)
 
 
@@ -678,6 +693,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             finally:
                 getattr(executor, "stop", executor.close)()   # run() waits for the workers after the run record
                 ledger.discard_pending()
+                ledger.folders.close()
                 if sync is not None:
                     sync.close()
         if ledger.stopped:

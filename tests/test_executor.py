@@ -153,14 +153,14 @@ def test_a_worker_that_answers_then_dies_is_blamed_for_the_task_it_died_on(monke
     """A loaded machine: the parent is descheduled between ``wait()`` and reading what it returned, and meanwhile a
     worker answers its task and dies on the one queued behind it. Its answer is kept and the death is blamed on the
     task it died on (once more on retry), never on the one it answered."""
-    real_wait = executor.wait
+    real_wait = executor._Poller.wait
 
-    def slow_wait(objects, timeout=None):
-        ready = real_wait(objects, timeout)
+    def slow_wait(self, objects, timeout=None):
+        ready = real_wait(self, objects, timeout)
         time.sleep(0.1)
         return ready
 
-    monkeypatch.setattr(executor, "wait", slow_wait)
+    monkeypatch.setattr(executor._Poller, "wait", slow_wait)
     ex = ProcessExecutor(work, {"exit": (3, 6), "pause_s": 0.03}, 2)
     results = dict(ex.map(range(10)))
     assert sorted(results) == list(range(10))
@@ -172,15 +172,15 @@ def test_a_worker_that_answers_then_dies_is_blamed_for_the_task_it_died_on(monke
 def test_an_answer_that_arrives_after_the_wait_is_kept_not_timed_out(monkeypatch):
     """The parent's wait() times out at the task's limit and the worker's answer arrives before the parent looks:
     the answer is kept, the worker not stopped."""
-    real_wait = executor.wait
+    real_wait = executor._Poller.wait
 
-    def slow_wait(objects, timeout=None):
-        ready = real_wait(objects, timeout)
+    def slow_wait(self, objects, timeout=None):
+        ready = real_wait(self, objects, timeout)
         if not ready:
             time.sleep(2.0)                     # the answer (due ≈ 0.1 s after the limit) arrives meanwhile
         return ready
 
-    monkeypatch.setattr(executor, "wait", slow_wait)
+    monkeypatch.setattr(executor._Poller, "wait", slow_wait)
     ex = ProcessExecutor(work, {"pause_s": 0.6}, 1, timeout_s=0.5)
     assert dict(ex.map([4])) == {4: (4, 16)} and ex.deaths == 0
 
@@ -221,3 +221,40 @@ def test_large_tasks_behind_large_results_never_deadlock(queue_below_s):
     assert not runner.is_alive(), "the executor deadlocked"
     assert len(done) == 24 and all(done[t] == t[1] * 8 for t in tasks)
     assert ex._task_s < queue_below_s                                 # short tasks: the queue would have been used
+
+
+def _count_waits(monkeypatch) -> list:
+    """A list that gets an item each time the parent waits for its workers."""
+    waits: list = []
+    real_wait = executor._Poller.wait
+
+    def counting_wait(self, objects, timeout=None):
+        waits.append(1)
+        return real_wait(self, objects, timeout)
+
+    monkeypatch.setattr(executor._Poller, "wait", counting_wait)
+    return waits
+
+
+def test_short_tasks_are_answered_in_batches_and_a_death_blames_the_running_task_only(tmp_path, monkeypatch,
+                                                                                      queue_below_s):
+    """Behind short tasks a worker holds many and answers several per message: the parent wakes far less often than
+    once per task. A worker that dies is blamed (shared memory) for the task it was running, never for the ones it
+    had finished but not yet sent, which run again without a death counted."""
+    waits = _count_waits(monkeypatch)
+    ex = ProcessExecutor(work, {}, 1)
+    assert dict(ex.map(range(300))) == {t: (t, t * t) for t in range(300)}
+    assert ex._depth() > 2 and len(waits) < 150
+    ex = ProcessExecutor(work, {"exit": (150,)}, 1)
+    results = dict(ex.map(range(300)))
+    assert isinstance(results[150], WorkerDeath) and results[150].deaths == 2 and ex.deaths == 2
+    assert all(results[t] == (t, t * t) for t in range(300) if t != 150)
+
+
+def test_a_time_bound_answers_each_task_at_once(monkeypatch, queue_below_s):
+    """Under ``timeout_s`` a held result would count against the next task's time: one task queued, no batches
+    (the parent wakes once per task)."""
+    waits = _count_waits(monkeypatch)
+    ex = ProcessExecutor(work, {}, 1, timeout_s=30)
+    assert dict(ex.map(range(40))) == {t: (t, t * t) for t in range(40)}
+    assert ex._depth() == 2 and len(waits) >= 40
