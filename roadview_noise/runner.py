@@ -366,8 +366,8 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
 def _staged_files(stage, ctx: RunContext, task: Task, entry: dict[str, Any]) -> None:
     """The entry's ``files`` (path, sha256 of the staged bytes), ``staged`` (temporary → final) and
     ``output_sha256``."""
-    entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(), "sha256": sha256_file(tmp)}
-                      for tmp, final in stage.files]
+    entry["files"] = [{"path": final.relative_to(ctx.out_root).as_posix(),
+                       "sha256": stage.sha256_of(tmp) or sha256_file(tmp)} for tmp, final in stage.files]
     entry["staged"] = [[tmp.relative_to(ctx.out_root).as_posix(), final.relative_to(ctx.out_root).as_posix()]
                        for tmp, final in stage.files]
     entry["output_sha256"] = next(f["sha256"] for f in entry["files"] if f["path"] == task.out_relpath)
