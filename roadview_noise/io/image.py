@@ -13,7 +13,7 @@ Written back like the input: bit depth, channels, alpha plane, JPEG quality (est
 quantisation tables unless the recipe states one), JPEG chroma subsampling and progressive mode, the embedded ICC
 colour profile (PNG ``iCCP`` chunk, JPEG ``APP2 ICC_PROFILE`` segments, TIFF tag 34675) and the EXIF data (JPEG
 ``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged. TIFF is written by tifffile (Deflate), PNG by
-:mod:`.png` (OpenCV's settings and file size), JPEG by OpenCV.
+:mod:`.png` (OpenCV's deflate settings, Sub or Up filter per image: OpenCV's file size or smaller), JPEG by OpenCV.
 
 OpenCV decodes some truncated files without an error (a JPEG cut short gets a grey bottom), so the structure is checked
 first: PNG needs its IEND chunk, JPEG its EOI marker, TIFF strips/tiles inside the file.

@@ -185,10 +185,12 @@ def _unfilter(filtered: np.ndarray, bpp: int, out: np.ndarray) -> int:
         above = out[y - 1] if y > 0 else zero
         if kind == 0:                               # None
             row[:] = src
-        elif kind == 1:                             # Sub
-            row[:bpp] = src[:bpp]
-            for i in range(bpp, n):
-                row[i] = src[i] + row[i - bpp]
+        elif kind == 1:                             # Sub: a running sum per byte of the pixel, kept in a register
+            for c in range(bpp):
+                acc = np.uint8(0)
+                for i in range(c, n, bpp):
+                    acc = np.uint8(acc + src[i])
+                    row[i] = acc
         elif kind == 2:                             # Up
             for i in range(n):
                 row[i] = src[i] + above[i]
