@@ -255,6 +255,9 @@ def test_colour_codes_reach_opencv_in_bgr_order_without_a_swap_copy(bits):
     rgb = np.ascontiguousarray(codes)                                                  # plain RGB: swapped copy
     assert not np.shares_memory(bgr_order(rgb), rgb)
     np.testing.assert_array_equal(bgr_order(rgb), codes[..., ::-1])
+    plain = codes_from_image(linear, ImageEncoding(bit_depth=bits), bgr=False)          # the PNG / TIFF writers'
+    assert plain.flags.c_contiguous
+    np.testing.assert_array_equal(plain, codes)
 
 
 def test_a_nan_anywhere_is_refused_by_the_writer(tmp_path):
