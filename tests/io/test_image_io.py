@@ -260,6 +260,25 @@ def test_colour_codes_reach_opencv_in_bgr_order_without_a_swap_copy(bits):
     np.testing.assert_array_equal(plain, codes)
 
 
+@pytest.mark.parametrize("where", [(100, 100, 1), (300, 5, 0), (10, 300, 2)])    # in a block, last row, last column
+def test_a_nan_is_refused_from_the_metrics_luminance_blocks_and_the_edges(tmp_path, where):
+    """With the metrics collecting, the writer finds NaN in the luminance blocks its encode kept (301 × 301: 2 × 2
+    blocks, one row and one column outside them) instead of reading the frame again."""
+    from roadview_noise import luminance
+
+    linear = np.full((301, 301, 3), 0.5, np.float32)
+    linear[where] = np.nan
+    luminance.collect(True)
+    try:
+        luminance.want(linear)
+        with pytest.raises(ValueError, match="1 NaN"):
+            write_image(tmp_path / "x.png", linear, ImageEncoding())
+        assert luminance.blocks_of(linear, 2) is not None                  # the check had the blocks to read
+    finally:
+        luminance.collect(False)
+    assert not (tmp_path / "x.png").exists()
+
+
 def test_a_nan_anywhere_is_refused_by_the_writer(tmp_path):
     linear = np.full((4, 5, 3), 0.5, np.float32)
     linear[3, 4, 2] = np.nan
