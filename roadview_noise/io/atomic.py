@@ -207,9 +207,10 @@ def _fsync(path: Path, span_name: str) -> None:
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` atomically, in pieces of ``WRITE_PIECE_BYTES``; staged ``bytes`` are kept for their sha256
     (:meth:`Staged.sha256_of`: no second read for the manifest). One large write() lets the page cache take 2 MB
-    folios: on the 2-core VM (Linux 6.18, virtio-balloon) a 4.5 MB PNG written so took 8–12 ms in about half of the
-    writes, 1.1 ms in the others — the time spent copying into the new folios, presumably free blocks the host had
-    taken back — and 1.1 ms in 1 MB pieces in every one of 28 (issue 19 round 10)."""
+    folios: on the 2-core VM (Linux 6.18, virtio-balloon) a 4.5 MB PNG written so took 8–25 ms in half or more of
+    the writes, 1.1–1.8 ms in the others — the time spent copying into the new folios, presumably free blocks the
+    host had taken back. Alternating in one worker: whole 20 of 24 slow (median 11.3 ms), 1 MB pieces 1 of 30
+    (median 1.8 ms; issue 19 round 10)."""
     view = memoryview(data)
     with atomic_path(path) as tmp, span("write"), open(tmp, "wb") as fh:
         for k in range(0, len(view), WRITE_PIECE_BYTES):
