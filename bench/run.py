@@ -10,7 +10,7 @@ copied. Then, per sensor, with 1 and 2 processes:
   (``bench/plain_copy.py``: worker start and hand-over alike on both sides); for the camera also **floor**: the
   copy plus decoding the depth sidecar the recipes read, i.e. the I/O every camera weather recipe must do. The
   camera copy and floor use OpenCV's PNG codec; a second copy uses rvnoise's (``io/png.py``, ≈ 2× faster, the same
-  pixels and file size), and the camera recipes are stated against both;
+  pixels, its files 0–5 % smaller on these frames), and the camera recipes are stated against both;
 - **augment**: ``runner.run`` of each weather recipe and one CNF (in-process, so the wall time includes the fork
   server, the workers' start and the manifest), ``--profile`` on: per-model ms in the workers at the D3.5 rates and
   each worker's peak RSS come from the manifest; what bounds 2 workers / 1 worker: the **worker CPU ms/file** with

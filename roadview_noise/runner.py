@@ -383,7 +383,8 @@ def _staged_files(stage, ctx: RunContext, task: Task, entry: dict[str, Any]) -> 
     ``output_sha256``."""
     rel = [[tmp.relative_to(ctx.out_root).as_posix(), final.relative_to(ctx.out_root).as_posix()]
            for tmp, final in stage.files]
-    entry["files"] = [{"path": final, "sha256": sha256_file(tmp)} for (tmp, _), (_, final) in zip(stage.files, rel)]
+    entry["files"] = [{"path": final, "sha256": stage.sha256_of(tmp) or sha256_file(tmp)}
+                      for (tmp, _), (_, final) in zip(stage.files, rel)]
     entry["staged"] = rel
     entry["output_sha256"] = next(f["sha256"] for f in entry["files"] if f["path"] == task.out_relpath)
 

@@ -11,6 +11,7 @@ from test_cli import CAMERA, _recipe, tree  # noqa: F401
 
 from roadview_noise.io import atomic
 from roadview_noise.io.atomic import is_temporary, staged_writes, write_bytes_atomic
+from roadview_noise.manifest import sha256_file
 from roadview_noise.recipe import load_recipe
 
 
@@ -42,6 +43,19 @@ def test_a_staged_file_is_fsynced_when_the_block_ends_not_when_written(tmp_path,
     assert not (tmp_path / "a.bin").exists() and not stage.unsynced
     stage.commit()
     assert (tmp_path / "a.bin").read_bytes() == big and len(synced) == 3
+
+
+def test_a_staged_write_in_pieces_is_whole_and_its_sha256_is_its_bytes(tmp_path):
+    """Bytes longer than several write() pieces land intact; the sha256 the stage keeps (for the manifest, instead
+    of reading the file again) is the file's."""
+    data = os.urandom(2 * atomic.WRITE_PIECE_BYTES + 12345)
+    with staged_writes() as stage:
+        write_bytes_atomic(tmp_path / "a.png", data)
+        write_bytes_atomic(tmp_path / "b.json", b"{}")
+        for tmp, _ in stage.files:
+            assert stage.sha256_of(tmp) == sha256_file(tmp)
+    stage.commit()
+    assert (tmp_path / "a.png").read_bytes() == data
 
 
 def test_a_plain_write_is_fsynced_before_its_rename(tmp_path, synced):

@@ -255,6 +255,28 @@ def test_colour_codes_reach_opencv_in_bgr_order_without_a_swap_copy(bits):
     rgb = np.ascontiguousarray(codes)                                                  # plain RGB: swapped copy
     assert not np.shares_memory(bgr_order(rgb), rgb)
     np.testing.assert_array_equal(bgr_order(rgb), codes[..., ::-1])
+    plain = codes_from_image(linear, ImageEncoding(bit_depth=bits), bgr=False)          # the PNG / TIFF writers'
+    assert plain.flags.c_contiguous
+    np.testing.assert_array_equal(plain, codes)
+
+
+@pytest.mark.parametrize("where", [(100, 100, 1), (300, 5, 0), (10, 300, 2)])    # in a block, last row, last column
+def test_a_nan_is_refused_from_the_metrics_luminance_blocks_and_the_edges(tmp_path, where):
+    """With the metrics collecting, the writer finds NaN in the luminance blocks its encode kept (301 × 301: 2 × 2
+    blocks, one row and one column outside them) instead of reading the frame again."""
+    from roadview_noise import luminance
+
+    linear = np.full((301, 301, 3), 0.5, np.float32)
+    linear[where] = np.nan
+    luminance.collect(True)
+    try:
+        luminance.want(linear)
+        with pytest.raises(ValueError, match="1 NaN"):
+            write_image(tmp_path / "x.png", linear, ImageEncoding())
+        assert luminance.blocks_of(linear, 2) is not None                  # the check had the blocks to read
+    finally:
+        luminance.collect(False)
+    assert not (tmp_path / "x.png").exists()
 
 
 def test_a_nan_anywhere_is_refused_by_the_writer(tmp_path):

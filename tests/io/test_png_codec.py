@@ -1,5 +1,5 @@
-"""PNG codec (io/png.py): OpenCV's pixels for every PNG kind we accept, OpenCV's settings and file size when writing,
-the kinds it leaves to OpenCV, and damaged files."""
+"""PNG codec (io/png.py): OpenCV's pixels for every PNG kind we accept, OpenCV's deflate settings and file size (or
+smaller, by the filter choice) when writing, the kinds it leaves to OpenCV, and damaged files."""
 
 from __future__ import annotations
 
@@ -94,6 +94,36 @@ def test_encode_has_opencvs_pixels_and_size(dtype, channels):
                                   _opencv_order(codes))
     assert abs(len(data) - ref.size) <= 0.01 * ref.size, (len(data), ref.size)
     assert data == encode_png(codes.copy())                                  # deterministic
+
+
+def _filter_types(data: bytes, row_bytes: int) -> set[int]:
+    """The filter types of a PNG's rows (its IDAT inflated)."""
+    chunks, pos = [], 8
+    while pos < len(data):
+        n = int.from_bytes(data[pos:pos + 4], "big")
+        if data[pos + 4:pos + 8] == b"IDAT":
+            chunks.append(data[pos + 8:pos + 8 + n])
+        pos += 12 + n
+    rows = np.frombuffer(zlib.decompress(b"".join(chunks)), np.uint8).reshape(-1, 1 + row_bytes)
+    return set(rows[:, 0].tolist())
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_encode_filters_by_up_where_rows_repeat_and_by_sub_where_rows_are_smooth(dtype):
+    """Rows that repeat the row above (8-row blocks, as a JPEG leaves them) get Up, rows smooth along themselves
+    get Sub; the Up file is smaller than OpenCV's Sub-only one, both decode to the codes."""
+    rng = np.random.default_rng(3)
+    top = np.iinfo(dtype).max
+    blocks = np.repeat(rng.integers(0, top, (8, 96, 3), dtype=dtype), 8, axis=0)       # 64 rows, 8 repeats each
+    smooth = np.broadcast_to(rng.integers(0, top, (64, 1, 3), dtype=dtype), (64, 96, 3)).copy()
+    for codes, kind in ((blocks, 2), (smooth, 1)):
+        data = encode_png(codes)
+        assert _filter_types(data, 96 * 3 * codes.itemsize) == {kind}
+        np.testing.assert_array_equal(decode_png(data), codes)
+        np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED),
+                                      _opencv_order(codes))
+    ok, sub_only = cv2.imencode(".png", _opencv_order(blocks))
+    assert len(encode_png(blocks)) < 0.5 * sub_only.size
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 3), (1, 40, 3), (40, 1, 3), (3, 2), (200, 150, 4)])
