@@ -12,7 +12,7 @@ from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...physics.cfa import SiteLayout
 from ...physics.fog_optics import FOG_TABLES, fog_extinction_per_m
-from ...physics.photometry import (SAMPLE_STEP_PX, absolute_radiance, airlight_radiance, composite, estimation_depth,
+from ...physics.photometry import (FrameSample, absolute_radiance, airlight_radiance, composite, estimation_depth,
                                       frame_depth_m, site_transmission)
 from ...registry import register
 
@@ -76,7 +76,7 @@ class FogCamera(Model):
             airlight = absolute_radiance(self.airlight, data.conditions.luminance_factor)
         t = site_transmission(layout, depth, sigma)
         mean_t = [float(s.mean()) if s.size else None
-                  for s in layout.channel_samples(t, step=SAMPLE_STEP_PX, mask=np.isfinite(depth))]
+                  for s in FrameSample(layout, t, depth).values(np.isfinite)]
         out = composite(layout, signal, t, airlight, out=t)
         return data.with_signal(out), {
             "extinction_per_m": [float(s) for s in sigma],
