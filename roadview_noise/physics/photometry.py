@@ -39,14 +39,21 @@ MIN_GREY_BLOCKS = 16                  # fewer grey blocks than this: keep the es
 
 
 class FrameSample:
-    """A frame's sites on the ``SAMPLE_STEP_PX`` lattice (:meth:`SiteLayout.lattice`, views) and the depth there,
-    with its sky mask: taken once per frame and read by every estimate of it. Masks are evaluated on the lattice
-    only (a full-frame mask of the depth costs more than the statistics)."""
+    """A frame's sites on the ``SAMPLE_STEP_PX`` lattice (:meth:`SiteLayout.lattice`, views) and the depth there
+    (NaN where not valid), with its sky mask: taken once per frame and read by every estimate of it. Masks are
+    evaluated on the lattice only (a full-frame mask of the depth costs more than the statistics).
 
-    def __init__(self, layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray):
-        self.layout, self.signal, self.depth_m = layout, signal, depth_m
+    ``depth_valid`` (H, W) bool (``frame.depth_valid``: False on filled holes, extrapolated regions) marks the
+    depth that is not valid as NaN in ``depth_m`` does: never sky, never among the brightest pixels."""
+
+    def __init__(self, layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray,
+                 depth_valid: np.ndarray | None = None):
+        self.layout, self.signal = layout, signal
         self.sites = layout.lattice(signal, SAMPLE_STEP_PX)
         self.depth = [d for _, d in layout.lattice(depth_m, SAMPLE_STEP_PX)]
+        if depth_valid is not None:
+            self.depth = [np.where(v, d, np.float32(np.nan))
+                          for d, (_, v) in zip(self.depth, layout.lattice(depth_valid, SAMPLE_STEP_PX))]
 
     @functools.cached_property
     def sky(self) -> list[np.ndarray]:
@@ -58,7 +65,8 @@ class FrameSample:
         return self.layout.lattice_channels(self.sites, [where(d) for d in self.depth])
 
 
-def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray,
+                      depth_valid: np.ndarray | None = None) -> np.ndarray:
     """Per-channel (R, G, B) radiance of the weather's own sky — fog's airlight at infinity, the overcast sky of
     rain and snow: level :func:`sky_luminance`, colour :func:`illuminant_chromaticity`.
 
@@ -66,16 +74,16 @@ def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarra
     light falling on the fog (sun + sky), not of the clear sky the fog hides (Rayleigh blue): Narasimhan & Nayar
     (2002, IJCV 48(3), dichromatic atmospheric scattering: airlight colour = the illuminant's in fog and haze;
     2003, PAMI 25(6)); Koschmieder (1924) sets its level to the horizon sky's luminance. The same holds for the
-    cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` marks pixels whose depth
-    is not valid (filled holes, :func:`estimation_depth`): never sky, never among the brightest pixels (their
-    colour still counts in a raw frame's illuminant estimate). On a raw mosaic each channel is capped at the white
+    cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` or False in
+    ``depth_valid`` marks pixels whose depth is not valid (filled holes, :class:`FrameSample`): never sky, never
+    among the brightest pixels (their colour still counts in a raw frame's illuminant estimate). On a raw mosaic each channel is capped at the white
     level (signal 1): a site records no more than saturation, and a clipped sky's level times a non-neutral white
     would otherwise exceed it (fog on a real 10-bit DNG wrote up to 1 034 DN over a white level of 1 023)."""
-    return _airlight(FrameSample(layout, signal, depth_m))
+    return _airlight(FrameSample(layout, signal, depth_m, depth_valid))
 
 
 def _airlight(sample: FrameSample) -> np.ndarray:
-    sky = _sky_luminance(sample) * illuminant_chromaticity(sample.layout, sample.signal, sample.depth_m)
+    sky = _sky_luminance(sample) * _illuminant(sample)
     return np.minimum(sky, 1.0) if sample.layout.mosaic else sky
 
 
@@ -108,12 +116,16 @@ def illuminant_chromaticity(layout: SiteLayout, signal: np.ndarray, depth_m: np.
     mean of the non-sky pixels (the sky is a light source, not a reflector) averaged in 4×4 blocks (so a dark
     frame's noise does not scatter their colours), unclipped; then twice keep the blocks within 15°, then 8°, of
     the estimate and take their sum. Too few blocks: the estimate so far."""
-    if not layout.mosaic:
+    return _illuminant(FrameSample(layout, signal, depth_m))
+
+
+def _illuminant(sample: FrameSample) -> np.ndarray:
+    if not sample.layout.mosaic:
         return np.ones(3)
-    planes = block_means(layout, signal)
+    planes = block_means(sample.layout, sample.signal)
     r, g, b = planes
-    step = BLOCK_STEP_PX
-    surfaces = ~np.isinf(depth_m[:r.shape[0] * step:step, :r.shape[1] * step:step])
+    k = BLOCK_STEP_PX // SAMPLE_STEP_PX                  # the block lattice: every k-th site of the sample's first
+    surfaces = ~np.isinf(sample.depth[0][::k, ::k][:r.shape[0], :r.shape[1]])     # (top-left) CFA phase
     p = planes[:, (surfaces if surfaces.any() else True) & (np.maximum(np.maximum(r, g), b) < CLIPPED_LEVEL) &
                (r + g + b > 0)]                       # (3, N) the unclipped blocks' R, G, B
     if p.shape[1] < MIN_GREY_BLOCKS:
@@ -194,15 +206,6 @@ def _environment(sample: FrameSample, sky: np.ndarray) -> np.ndarray:
     return np.array([(s.sum(dtype=np.float64) + n * a) / (s.size + n) for s, n, a in zip(seen, n_sky, sky)])
 
 
-def estimation_depth(frame, depth_m: np.ndarray) -> np.ndarray:
-    """``depth_m`` with NaN where the frame's depth is not valid (``frame.depth_valid`` false: filled holes,
-    extrapolated regions), for the radiance estimates above; ``depth_m`` itself when every pixel is valid."""
-    valid = getattr(frame, "depth_valid", None)
-    if valid is None:
-        return depth_m
-    return np.where(valid, depth_m, np.float32(np.nan)).astype(np.float32, copy=False)
-
-
 def _valid_or_none(depth_m: np.ndarray) -> np.ndarray | None:
     """Pixels with a valid depth (not NaN); None when that is every pixel or none (then all pixels are used)."""
     valid = ~np.isnan(depth_m)
@@ -235,11 +238,12 @@ def frame_depth_m(frame, model_id: str) -> np.ndarray:
 RAIN_REFRACTED_FRACTION = 0.94        # share of a drop's radiance refracted from the environment (models.md §2.2)
 
 
-def raindrop_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+def raindrop_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray,
+                      depth_valid: np.ndarray | None = None) -> np.ndarray:
     """``S_c = 0.94 E_env,c + 0.06 E_sky,c`` (models.md §2.2 [PROP], after Garg & Nayar 2007): a drop refracts a
     wide cone of the scene in front of the camera and reflects the sky — the rain's overcast sky,
     :func:`airlight_radiance`, in both terms."""
-    sample = FrameSample(layout, signal, depth_m)
+    sample = FrameSample(layout, signal, depth_m, depth_valid)
     sky = _airlight(sample)
     return (RAIN_REFRACTED_FRACTION * _environment(sample, sky) +
             (1.0 - RAIN_REFRACTED_FRACTION) * sky)
