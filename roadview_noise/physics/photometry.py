@@ -76,9 +76,10 @@ def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarra
     2003, PAMI 25(6)); Koschmieder (1924) sets its level to the horizon sky's luminance. The same holds for the
     cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` or False in
     ``depth_valid`` marks pixels whose depth is not valid (filled holes, :class:`FrameSample`): never sky, never
-    among the brightest pixels (their colour still counts in a raw frame's illuminant estimate). On a raw mosaic each channel is capped at the white
-    level (signal 1): a site records no more than saturation, and a clipped sky's level times a non-neutral white
-    would otherwise exceed it (fog on a real 10-bit DNG wrote up to 1 034 DN over a white level of 1 023)."""
+    among the brightest pixels (their colour still counts in a raw frame's illuminant estimate). On a raw mosaic
+    each channel is capped at the white level (signal 1): a site records no more than saturation, and a clipped
+    sky's level times a non-neutral white would otherwise exceed it (fog on a real 10-bit DNG wrote up to 1 034 DN
+    over a white level of 1 023)."""
     return _airlight(FrameSample(layout, signal, depth_m, depth_valid))
 
 
@@ -124,8 +125,8 @@ def _illuminant(sample: FrameSample) -> np.ndarray:
         return np.ones(3)
     planes = block_means(sample.layout, sample.signal)
     r, g, b = planes
-    k = BLOCK_STEP_PX // SAMPLE_STEP_PX                  # the block lattice: every k-th site of the sample's first
-    surfaces = ~np.isinf(sample.depth[0][::k, ::k][:r.shape[0], :r.shape[1]])     # (top-left) CFA phase
+    k = BLOCK_STEP_PX // SAMPLE_STEP_PX       # block corners: every k-th site of the sample's top-left CFA phase
+    surfaces = ~np.isinf(sample.depth[0][::k, ::k][:r.shape[0], :r.shape[1]])
     p = planes[:, (surfaces if surfaces.any() else True) & (np.maximum(np.maximum(r, g), b) < CLIPPED_LEVEL) &
                (r + g + b > 0)]                       # (3, N) the unclipped blocks' R, G, B
     if p.shape[1] < MIN_GREY_BLOCKS:
