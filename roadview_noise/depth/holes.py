@@ -9,7 +9,7 @@
 - ``error``: the frame fails with the count and fraction of holes.
 
 The validity mask returned with the depth is False on filled pixels: scene radiances (airlight, sky) are never
-estimated from them (:func:`roadview_noise.physics.photometry.estimation_depth`). Sky declared by ``sky`` counts
+estimated from them (:class:`roadview_noise.physics.photometry.FrameSample`). Sky declared by ``sky`` counts
 as sky there.
 
 Interpolation is pull–push (Gortler et al. 1996, "The Lumigraph", §3.3; :func:`pull_push`): smooth (no flat

@@ -31,20 +31,32 @@ class SiteLayout:
     def of(cls, frame) -> "SiteLayout":
         return cls(frame.channel_index())
 
-    def channel_samples(self, x: np.ndarray, *, step: int = 4, mask: np.ndarray | None = None,
-                        rows: int | None = None) -> list[np.ndarray]:
-        """Values of each channel's sites on a ``step``-pixel lattice (even, so a mosaic keeps its CFA phase),
-        in the first ``rows`` rows, optionally only where the (H, W) ``mask`` is true."""
+    def lattice(self, x: np.ndarray, step: int = 4) -> list[tuple[int | None, np.ndarray]]:
+        """Views of ``x``'s sites on a ``step``-pixel lattice (even, so a mosaic keeps its CFA phase), one per colour
+        phase: ``(channel, x[i::step, j::step])`` for each 2×2 CFA cell (i, j) of a mosaic, ``(None,
+        x[::step, ::step])`` for RGB (channels on the last axis). An (H, W) plane (depth, mask) gives the views of
+        the same pixels, in the same order."""
         if step < 2 or step % 2:
             raise ValueError("the sampling step must be even")
-        out: list[list[np.ndarray]] = [[], [], []]
         if self.mosaic:
-            for (i, j), c in self.cells:
-                xs = x[i:rows:step, j::step]
-                out[c].append(xs[mask[i:rows:step, j::step]] if mask is not None else xs.ravel())
-        else:
-            xs = x[:rows:step, ::step]
-            ms = mask[:rows:step, ::step] if mask is not None else None
-            for c in range(3):
-                out[c].append(xs[..., c][ms] if ms is not None else xs[..., c].ravel())
-        return [np.concatenate(parts) for parts in out]
+            return [(c, x[i::step, j::step]) for (i, j), c in self.cells]
+        return [(None, x[::step, ::step])]
+
+    @staticmethod
+    def lattice_channels(views: list[tuple[int | None, np.ndarray]], masks: list[np.ndarray] | None = None
+                         ) -> list[np.ndarray]:
+        """Values of each channel (R, G, B) in :meth:`lattice` views, where the matching views of an (H, W) mask
+        are true (all values without ``masks``)."""
+        out: list[list[np.ndarray]] = [[], [], []]
+        for k, (c, xs) in enumerate(views):
+            for ch in range(3) if c is None else (c,):
+                v = xs if c is not None else xs[..., ch]
+                out[ch].append(v[masks[k]] if masks is not None else v.ravel())
+        return [parts[0] if len(parts) == 1 else np.concatenate(parts) for parts in out]
+
+    def channel_samples(self, x: np.ndarray, *, step: int = 4, mask: np.ndarray | None = None,
+                        rows: int | None = None) -> list[np.ndarray]:
+        """Values of each channel's sites on a ``step``-pixel lattice (:meth:`lattice`), in the first ``rows`` rows,
+        optionally only where the (H, W) ``mask`` is true."""
+        masks = None if mask is None else [m for _, m in self.lattice(mask[:rows], step)]
+        return self.lattice_channels(self.lattice(x[:rows], step), masks)

@@ -66,7 +66,7 @@ from .cfa import SiteLayout
 from .dsd import BRANDES_SNOW_GAMMA, gamma_dsd, marshall_palmer, snowfall
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
-from .photometry import blend_operands, estimation_depth, frame_depth_m
+from .photometry import blend_operands, frame_depth_m
 from .sensor_noise import uniform_bits
 from .streak_motion import MotionBands, band_volume, motion_bands, pixel_band
 
@@ -1164,15 +1164,15 @@ def render_precipitation(frame, model_id: str, *, classes: SizeClasses, fall_spe
                          rng: np.random.Generator):
     """Rain or snow on a camera or raw frame: explicit streaks in front of the scene, veil behind them.
 
-    ``radiance(layout, signal, depth) -> (3,)`` gives the particles' radiance S (R, G, B) from the frame (depth NaN
-    where it is not valid, :func:`~roadview_noise.physics.photometry.estimation_depth`).
+    ``radiance(layout, signal, depth, depth_valid) -> (3,)`` gives the particles' radiance S (R, G, B) from the
+    frame (``depth_valid``: ``frame.depth_valid``, :class:`~roadview_noise.physics.photometry.FrameSample`).
     Per site: ``I' = S + (1 − M)·t·(I − S)`` with M the streak opacity and t the veil transmission."""
     depth = frame_depth_m(frame, model_id)
     h, w = depth.shape
     profile = fit_to_image(frame.profile, w, h)
     layout = SiteLayout.of(frame)
     signal = frame.signal()
-    s = np.asarray(radiance(layout, signal, estimation_depth(frame, depth)), dtype=float)
+    s = np.asarray(radiance(layout, signal, depth, frame.depth_valid), dtype=float)
     tables = particle_tables(profile, exposure_s, classes, fall_speed, frame.conditions, d_min_m, d_max_m,
                              min_opacity, min_extent_px)
     particles, expected = sample_particles(rng, profile, classes, tables.resolved, d_min_m, d_max_m, fall_speed,

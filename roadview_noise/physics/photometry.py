@@ -16,6 +16,7 @@ and one pass per operation, and is 2–3× slower.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -37,7 +38,35 @@ GREY_ANGLES_DEG = (15.0, 8.0)        # raw illuminant: grey blocks within this a
 MIN_GREY_BLOCKS = 16                  # fewer grey blocks than this: keep the estimate so far
 
 
-def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+class FrameSample:
+    """A frame's sites on the ``SAMPLE_STEP_PX`` lattice (:meth:`SiteLayout.lattice`, views) and the depth there
+    (NaN where not valid), with its sky mask: taken once per frame and read by every estimate of it. Masks are
+    evaluated on the lattice only (a full-frame mask of the depth costs more than the statistics).
+
+    ``depth_valid`` (H, W) bool (``frame.depth_valid``: False on filled holes, extrapolated regions) marks the
+    depth that is not valid as NaN in ``depth_m`` does: never sky, never among the brightest pixels."""
+
+    def __init__(self, layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray,
+                 depth_valid: np.ndarray | None = None):
+        self.layout, self.signal = layout, signal
+        self.sites = layout.lattice(signal, SAMPLE_STEP_PX)
+        self.depth = [d for _, d in layout.lattice(depth_m, SAMPLE_STEP_PX)]
+        if depth_valid is not None:
+            self.depth = [np.where(v, d, np.float32(np.nan))
+                          for d, (_, v) in zip(self.depth, layout.lattice(depth_valid, SAMPLE_STEP_PX))]
+
+    @functools.cached_property
+    def sky(self) -> list[np.ndarray]:
+        """Per lattice view: sites of depth ``inf``."""
+        return [np.isinf(d) for d in self.depth]
+
+    def values(self, where) -> list[np.ndarray]:
+        """Each channel's (R, G, B) sampled values where ``where(depth)`` is true (e.g. ``np.isfinite``)."""
+        return self.layout.lattice_channels(self.sites, [where(d) for d in self.depth])
+
+
+def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray,
+                      depth_valid: np.ndarray | None = None) -> np.ndarray:
     """Per-channel (R, G, B) radiance of the weather's own sky — fog's airlight at infinity, the overcast sky of
     rain and snow: level :func:`sky_luminance`, colour :func:`illuminant_chromaticity`.
 
@@ -45,23 +74,32 @@ def airlight_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarra
     light falling on the fog (sun + sky), not of the clear sky the fog hides (Rayleigh blue): Narasimhan & Nayar
     (2002, IJCV 48(3), dichromatic atmospheric scattering: airlight colour = the illuminant's in fog and haze;
     2003, PAMI 25(6)); Koschmieder (1924) sets its level to the horizon sky's luminance. The same holds for the
-    cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` marks pixels whose depth
-    is not valid (filled holes, :func:`estimation_depth`): never sky, never among the brightest pixels (their
-    colour still counts in a raw frame's illuminant estimate). On a raw mosaic each channel is capped at the white
-    level (signal 1): a site records no more than saturation, and a clipped sky's level times a non-neutral white
-    would otherwise exceed it (fog on a real 10-bit DNG wrote up to 1 034 DN over a white level of 1 023)."""
-    sky = sky_luminance(layout, signal, depth_m) * illuminant_chromaticity(layout, signal, depth_m)
-    return np.minimum(sky, 1.0) if layout.mosaic else sky
+    cloud cover of rain and snow (grey, lit by the same illuminant). NaN in ``depth_m`` or False in
+    ``depth_valid`` marks pixels whose depth is not valid (filled holes, :class:`FrameSample`): never sky, never
+    among the brightest pixels (their colour still counts in a raw frame's illuminant estimate). On a raw mosaic
+    each channel is capped at the white level (signal 1): a site records no more than saturation, and a clipped
+    sky's level times a non-neutral white would otherwise exceed it (fog on a real 10-bit DNG wrote up to 1 034 DN
+    over a white level of 1 023)."""
+    return _airlight(FrameSample(layout, signal, depth_m, depth_valid))
+
+
+def _airlight(sample: FrameSample) -> np.ndarray:
+    sky = _sky_luminance(sample) * _illuminant(sample)
+    return np.minimum(sky, 1.0) if sample.layout.mosaic else sky
 
 
 def sky_luminance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> float:
     """Luminance Y (BT.709 weights; on a raw mosaic the same weights on the camera's channels) of the mean sky
     radiance (sites of depth ``inf``), else — no sky in view — the mean Y of the brightest 0.1 % of the pixels with
     a valid depth (models.md §2.1 [PROP])."""
-    sky = layout.channel_samples(signal, step=SAMPLE_STEP_PX, mask=np.isinf(depth_m))
+    return _sky_luminance(FrameSample(layout, signal, depth_m))
+
+
+def _sky_luminance(sample: FrameSample) -> float:
+    sky = sample.layout.lattice_channels(sample.sites, sample.sky)
     if all(s.size >= MIN_SKY_SAMPLES for s in sky):
         return float(LUMINANCE_WEIGHTS @ np.array([s.mean(dtype=np.float64) for s in sky]))
-    y = pixel_samples(layout, signal, _valid_or_none(depth_m)) @ LUMINANCE_WEIGHTS
+    y = pixel_samples(sample.layout, sample.signal, _valid_or_none(sample.depth[0])) @ LUMINANCE_WEIGHTS
     k = max(1, math.ceil(BRIGHTEST_FRACTION * y.size))
     return float(np.partition(y, y.size - k)[y.size - k:].mean())
 
@@ -79,46 +117,60 @@ def illuminant_chromaticity(layout: SiteLayout, signal: np.ndarray, depth_m: np.
     mean of the non-sky pixels (the sky is a light source, not a reflector) averaged in 4×4 blocks (so a dark
     frame's noise does not scatter their colours), unclipped; then twice keep the blocks within 15°, then 8°, of
     the estimate and take their sum. Too few blocks: the estimate so far."""
-    if not layout.mosaic:
+    return _illuminant(FrameSample(layout, signal, depth_m))
+
+
+def _illuminant(sample: FrameSample) -> np.ndarray:
+    if not sample.layout.mosaic:
         return np.ones(3)
-    grid = block_means(layout, signal)
-    step = BLOCK_STEP_PX
-    surfaces = ~np.isinf(depth_m[:grid.shape[0] * step:step, :grid.shape[1] * step:step])
-    p = grid[surfaces] if surfaces.any() else grid.reshape(-1, 3)
-    p = p[(p.max(axis=1) < CLIPPED_LEVEL) & (p.sum(axis=1) > 0)]
-    estimate = p.sum(axis=0)
-    if p.shape[0] < MIN_GREY_BLOCKS or not np.all(estimate > 0):
+    planes = block_means(sample.layout, sample.signal)
+    r, g, b = planes
+    k = BLOCK_STEP_PX // SAMPLE_STEP_PX       # block corners: every k-th site of the sample's top-left CFA phase
+    surfaces = ~np.isinf(sample.depth[0][::k, ::k][:r.shape[0], :r.shape[1]])
+    p = planes[:, (surfaces if surfaces.any() else True) & (np.maximum(np.maximum(r, g), b) < CLIPPED_LEVEL) &
+               (r + g + b > 0)]                       # (3, N) the unclipped blocks' R, G, B
+    if p.shape[1] < MIN_GREY_BLOCKS:
         return np.ones(3)
-    direction = p / np.linalg.norm(p, axis=1, keepdims=True)
+    estimate = _block_sum(p)
+    if not np.all(estimate > 0):
+        return np.ones(3)
+    direction = np.ascontiguousarray((p / np.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])).T)     # (N, 3)
     for angle_deg in GREY_ANGLES_DEG:
         grey = direction @ (estimate / np.linalg.norm(estimate)) >= math.cos(math.radians(angle_deg))
         if grey.sum() < MIN_GREY_BLOCKS:
             break
-        estimate = p[grey].sum(axis=0)
+        estimate = _block_sum(p[:, grey])
     return estimate / float(LUMINANCE_WEIGHTS @ estimate)
 
 
+def _block_sum(p: np.ndarray) -> np.ndarray:
+    """R, G, B sums of (3, N) block colours, each added in block order (bit for bit the sum over the blocks of
+    their (N, 3) rows)."""
+    return np.cumsum(p, axis=1)[:, -1]
+
+
 def block_means(layout: SiteLayout, signal: np.ndarray) -> np.ndarray:
-    """(rows, cols, 3) float64 R, G, B means of a mosaic's ``BLOCK_PX``² blocks (whole CFA cells) whose top-left
-    sites are the ``BLOCK_STEP_PX`` lattice points."""
+    """(3, rows, cols) float64 R, G, B planes of the means of a mosaic's ``BLOCK_PX``² blocks (whole CFA cells)
+    whose top-left sites are the ``BLOCK_STEP_PX`` lattice points."""
     b, step = BLOCK_PX, BLOCK_STEP_PX
     h, w = (n // step * step for n in signal.shape)
     blocks = signal[:h, :w].reshape(h // step, step, w // step, step)
-    rgb = np.zeros((h // step, w // step, 3))
+    planes = np.zeros((3, h // step, w // step))
     count = np.zeros(3)
     for (i, j), c in layout.cells:                     # the block's sites of this CFA phase
         for y in range(i, b, 2):
             for x in range(j, b, 2):
-                rgb[..., c] += blocks[:, y, :, x]
+                planes[c] += blocks[:, y, :, x]
                 count[c] += 1
-    rgb /= count
-    return rgb
+    planes /= count[:, None, None]
+    return planes
 
 
 def pixel_samples(layout: SiteLayout, signal: np.ndarray, mask: np.ndarray | None = None,
                   step: int = SAMPLE_STEP_PX) -> np.ndarray:
-    """(N, 3) float64 R, G, B of the pixels on a ``step`` lattice where the (H, W) ``mask`` is true there; on a
-    mosaic a pixel is the 2×2 CFA cell at the lattice point (its two G sites averaged)."""
+    """(N, 3) float64 R, G, B of the pixels on a ``step`` lattice where ``mask`` — given on that lattice (an (H, W)
+    mask's ``[::step, ::step]``) — is true; on a mosaic a pixel is the 2×2 CFA cell at the lattice point (its two G
+    sites averaged)."""
     if layout.mosaic:
         h, w = signal.shape
         rgb = np.zeros((len(range(0, h - 1, step)), len(range(0, w - 1, step)), 3))
@@ -127,11 +179,10 @@ def pixel_samples(layout: SiteLayout, signal: np.ndarray, mask: np.ndarray | Non
             rgb[..., c] += signal[i:h - 1 + i:step, j:w - 1 + j:step]
             count[c] += 1
         rgb /= count
-        m = None if mask is None else mask[:h - 1:step, :w - 1:step]
+        mask = None if mask is None else mask[:rgb.shape[0], :rgb.shape[1]]
     else:
         rgb = signal[::step, ::step].astype(np.float64)
-        m = None if mask is None else mask[::step, ::step]
-    return rgb.reshape(-1, 3) if m is None else rgb[m]
+    return rgb.reshape(-1, 3) if mask is None else rgb[mask]
 
 
 def environment_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray, sky: np.ndarray
@@ -139,23 +190,21 @@ def environment_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.nda
     """Per-channel mean radiance of the upper 3/5 of the image (models.md §2.2 [PROP] ``E_env``) over the sites
     with a valid depth, sky sites (depth ``inf``) counting as ``sky`` (R, G, B): under rain the drop refracts the
     cloud cover, not the clear sky of the input frame."""
-    rows = max(1, round(ENVIRONMENT_ROWS_FRACTION * signal.shape[0]))
-    is_sky = np.isinf(depth_m)
-    seen = layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows, mask=np.isfinite(depth_m))
-    n_sky = [s.size for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows, mask=is_sky)]
+    return _environment(FrameSample(layout, signal, depth_m), sky)
+
+
+def _environment(sample: FrameSample, sky: np.ndarray) -> np.ndarray:
+    rows = max(1, round(ENVIRONMENT_ROWS_FRACTION * sample.signal.shape[0]))
+    upper = sample.layout.lattice(sample.signal[:rows], SAMPLE_STEP_PX)     # the sample's first lattice rows
+    n_rows = [v.shape[0] for _, v in upper]
+    seen = sample.layout.lattice_channels(upper, [np.isfinite(d[:n]) for d, n in zip(sample.depth, n_rows)])
+    n_sky = [0, 0, 0]
+    for (c, _), is_sky, n in zip(upper, sample.sky, n_rows):
+        for ch in range(3) if c is None else (c,):
+            n_sky[ch] += int(np.count_nonzero(is_sky[:n]))
     if any(s.size + n == 0 for s, n in zip(seen, n_sky)):
-        return np.array([s.mean(dtype=np.float64)
-                         for s in layout.channel_samples(signal, step=SAMPLE_STEP_PX, rows=rows)])
+        return np.array([s.mean(dtype=np.float64) for s in sample.layout.lattice_channels(upper)])
     return np.array([(s.sum(dtype=np.float64) + n * a) / (s.size + n) for s, n, a in zip(seen, n_sky, sky)])
-
-
-def estimation_depth(frame, depth_m: np.ndarray) -> np.ndarray:
-    """``depth_m`` with NaN where the frame's depth is not valid (``frame.depth_valid`` false: filled holes,
-    extrapolated regions), for the radiance estimates above; ``depth_m`` itself when every pixel is valid."""
-    valid = getattr(frame, "depth_valid", None)
-    if valid is None:
-        return depth_m
-    return np.where(valid, depth_m, np.float32(np.nan)).astype(np.float32, copy=False)
 
 
 def _valid_or_none(depth_m: np.ndarray) -> np.ndarray | None:
@@ -190,12 +239,14 @@ def frame_depth_m(frame, model_id: str) -> np.ndarray:
 RAIN_REFRACTED_FRACTION = 0.94        # share of a drop's radiance refracted from the environment (models.md §2.2)
 
 
-def raindrop_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+def raindrop_radiance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray,
+                      depth_valid: np.ndarray | None = None) -> np.ndarray:
     """``S_c = 0.94 E_env,c + 0.06 E_sky,c`` (models.md §2.2 [PROP], after Garg & Nayar 2007): a drop refracts a
     wide cone of the scene in front of the camera and reflects the sky — the rain's overcast sky,
     :func:`airlight_radiance`, in both terms."""
-    sky = airlight_radiance(layout, signal, depth_m)
-    return (RAIN_REFRACTED_FRACTION * environment_radiance(layout, signal, depth_m, sky) +
+    sample = FrameSample(layout, signal, depth_m, depth_valid)
+    sky = _airlight(sample)
+    return (RAIN_REFRACTED_FRACTION * _environment(sample, sky) +
             (1.0 - RAIN_REFRACTED_FRACTION) * sky)
 
 

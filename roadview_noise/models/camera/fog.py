@@ -12,8 +12,8 @@ from ...errors import ModelError
 from ...model import Model, Stage, param
 from ...physics.cfa import SiteLayout
 from ...physics.fog_optics import FOG_TABLES, fog_extinction_per_m
-from ...physics.photometry import (SAMPLE_STEP_PX, absolute_radiance, airlight_radiance, composite, estimation_depth,
-                                      frame_depth_m, site_transmission)
+from ...physics.photometry import (FrameSample, absolute_radiance, airlight_radiance, composite, frame_depth_m,
+                                      site_transmission)
 from ...registry import register
 
 
@@ -71,12 +71,12 @@ class FogCamera(Model):
         signal = data.signal()
         sigma = fog_extinction_per_m(self.visibility_m, self.fog_table)
         if self.airlight is None:
-            airlight = airlight_radiance(layout, signal, estimation_depth(data, depth))
+            airlight = airlight_radiance(layout, signal, depth, data.depth_valid)
         else:
             airlight = absolute_radiance(self.airlight, data.conditions.luminance_factor)
         t = site_transmission(layout, depth, sigma)
         mean_t = [float(s.mean()) if s.size else None
-                  for s in layout.channel_samples(t, step=SAMPLE_STEP_PX, mask=np.isfinite(depth))]
+                  for s in FrameSample(layout, t, depth).values(np.isfinite)]
         out = composite(layout, signal, t, airlight, out=t)
         return data.with_signal(out), {
             "extinction_per_m": [float(s) for s in sigma],

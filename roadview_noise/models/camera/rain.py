@@ -56,7 +56,7 @@ class PrecipitationCamera(Model):
         """Terminal fall speed (m/s) of particles of diameter ``d_mm``."""
 
     @abstractmethod
-    def radiance(self, layout, signal, depth_m):
+    def radiance(self, layout, signal, depth_m, depth_valid):
         """Particle radiance per colour channel in the frame's linear scale."""
 
     def apply(self, data, *, state, drawn, rng):
@@ -95,5 +95,5 @@ class RainCamera(PrecipitationCamera):
     def fall_speed(self, d_mm):
         return rain_fall_speed_m_per_s(d_mm)
 
-    def radiance(self, layout, signal, depth_m):
-        return raindrop_radiance(layout, signal, depth_m)
+    def radiance(self, layout, signal, depth_m, depth_valid):
+        return raindrop_radiance(layout, signal, depth_m, depth_valid)

@@ -58,5 +58,5 @@ class SnowCamera(PrecipitationCamera):
     def fall_speed(self, d_mm):
         return SNOW_HABITS[self.snow_habit].fall_speed_m_per_s(d_mm)
 
-    def radiance(self, layout, signal, depth_m):
-        return self.flake_reflectance * airlight_radiance(layout, signal, depth_m)
+    def radiance(self, layout, signal, depth_m, depth_valid):
+        return self.flake_reflectance * airlight_radiance(layout, signal, depth_m, depth_valid)
