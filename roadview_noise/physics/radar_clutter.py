@@ -219,11 +219,13 @@ def grid_edges(grid: ResolutionGrid) -> GridEdges:
                                  grid.azimuth_edges_rad(), el_e, np.sin(el_e)))
 
 
+@lru_cache(maxsize=64)
 def angular_edges_rad(fov_deg: float, resolution_deg: float) -> np.ndarray:
-    """Cell edges of a boresight-centred field of view: ``round(fov/res)`` equal cells (at least one)."""
+    """Cell edges of a boresight-centred field of view: ``round(fov/res)`` equal cells (at least one; cached,
+    read-only)."""
     n = max(1, int(round(fov_deg / resolution_deg)))
     half = math.radians(min(fov_deg, 180.0)) / 2
-    return np.linspace(-half, half, n + 1)
+    return _read_only(np.linspace(-half, half, n + 1))[0]
 
 
 def angular_cell_index(positions_m: np.ndarray, az_edges_rad: np.ndarray, el_edges_rad: np.ndarray) -> np.ndarray:
@@ -503,13 +505,13 @@ def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPo
     Doppler bin."""
     grid, detector = cells.grid, cells.detector
     hi = cells.tier_bounds
-    lo = np.concatenate([np.zeros((len(hi), 1), dtype=hi.dtype), hi[:, :-1]], axis=1)
-    size = hi - lo                                              # (range bin, tier)
     bound = detector.max_probability * 0.5 ** np.arange(PROBABILITY_TIERS)
-    totals = size.sum(axis=0)
+    totals = np.diff(hi.sum(axis=0), prepend=0)                 # cells per tier
     picks = np.where(bound >= 1.0, totals, rng.binomial(totals, np.minimum(bound, 1.0)))
     if not picks.any():        # the usual CA-CFAR frame (≈ 0.05 points expected): the rest would draw nothing
         return _NO_POINTS
+    lo = np.concatenate([np.zeros((len(hi), 1), dtype=hi.dtype), hi[:, :-1]], axis=1)
+    size = hi - lo                                              # (range bin, tier)
     ks, pairs, bounds = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)], [np.zeros(0)]
     for j in np.flatnonzero(picks):
         ends = np.cumsum(size[:, j])

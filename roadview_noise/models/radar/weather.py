@@ -114,8 +114,8 @@ def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: Cl
     summary = {"clutter_expected_points": cells.expected_count,
                "clutter_backscatter_per_m": backscatter_per_volume_per_m(cells.hydrometeors, cells.wavelength_m),
                "radar_constant_db": constant}
-    if not len(pts.v_r_m_per_s):       # most CA-CFAR frames: no point to give fields to
-        return cloud.concat(pts.positions_m, {}), {"clutter_points": 0, **summary}
+    if not len(pts.v_r_m_per_s) and cloud.grid_shape is None:    # most CA-CFAR frames: appending nothing would
+        return cloud, {"clutter_points": 0, **summary}             # only copy the cloud
     positions = to_plane(pts.positions_m) if planar else pts.positions_m
     r = np.linalg.norm(positions, axis=1)
     rcs = pts.detection_db - constant + 40 * np.log10(r)
