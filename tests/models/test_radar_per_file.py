@@ -28,8 +28,9 @@ WAVELENGTH_M = 299_792_458.0 / 77e9
 @settings(max_examples=200, deadline=None)
 @given(arrays(np.float64, st.integers(1, 80), elements=st.floats(-1e6, 1e6, allow_nan=False)))
 def test_sorted_median_is_numpys_median_bit_for_bit(values):
-    assert sorted_median(values) == np.median(values)
-    assert np.signbit(sorted_median(values)) == np.signbit(np.median(values))
+    # equal order statistics are the same bits, but for the sign of a zero (partition and sort may pick −0 or +0)
+    assert np.float64(sorted_median(values)).tobytes() == np.float64(np.median(values)).tobytes() or \
+        sorted_median(values) == 0.0 == np.median(values)
 
 
 @pytest.mark.parametrize("detector", [CaCfar(1e-4, 16), CaCfar(5e-2, 4), FixedThreshold()])
