@@ -179,19 +179,32 @@ def _integer_params(cls: type) -> frozenset[str]:
     return frozenset(p.name for p in cls.param_specs() if type(p.default) is int)
 
 
+_fixed_steps: dict[tuple[int, int], Any] = {}     # (variant, step) → model, for the recipe in _fixed_steps_of
+_fixed_steps_of: list[Recipe] = []
+
+
 def build_models(recipe: Recipe, task: Task) -> list:
     """Instantiate the chain for one output: fixed values, sweep overrides, and per-file distribution draws (their
-    generator derived only for a step that has one)."""
+    generator derived only for a step that has one). A step without draws is the same (frozen) model for every
+    file of a variant: built once per process and recipe."""
+    if not _fixed_steps_of or _fixed_steps_of[0] is not recipe:
+        _fixed_steps.clear()
+        _fixed_steps_of[:] = [recipe]
     overrides = recipe.variants[task.variant_index].overrides
     models = []
     for i, (model_id, params) in enumerate(zip(recipe.model_ids, recipe.step_params)):
+        drawn = any(isinstance(v, dict) for v in params.values())
+        if not drawn and (task.variant_index, i) in _fixed_steps:
+            models.append(_fixed_steps[task.variant_index, i])
+            continue
         cls = get_model(model_id)
         integer = _integer_params(cls)
-        drawn = any(isinstance(v, dict) for v in params.values())
         rng = derive_rng(recipe.seed, task.out_relpath, "params", i, model_id) if drawn else None
         values = {k: draw_value(v, rng, integer=k in integer) for k, v in sorted(params.items())}
         values.update({k: draw_value(v, None) for k, v in overrides.get(model_id, {}).items()})
         models.append(cls(**values))
+        if not drawn:
+            _fixed_steps[task.variant_index, i] = models[-1]
     return models
 
 

@@ -44,6 +44,7 @@ def _p838_fit(name: str, log_f: float) -> float:
     return sum(a * math.exp(-(((log_f - b) / cw) ** 2)) for a, b, cw in rows) + m * log_f + c
 
 
+@lru_cache(maxsize=32)
 def p838_coefficients(frequency_hz: float, polarisation: str = "horizontal",
                       path_elevation_deg: float = 0.0) -> tuple[float, float]:
     """ITU-R P.838-3 ``(k, α)`` at ``frequency_hz`` (1–1000 GHz) for a polarisation tilt τ (horizontal 0°,

@@ -96,7 +96,15 @@ def radar_constant_db(cloud: PointCloud, det: Detection, ranges_m: np.ndarray) -
         return None
     c = det.values_db - np.asarray(cloud.fields["rcs_dbsm"], dtype=float) + _log_r4(ranges_m)
     c = c[np.isfinite(c)]
-    return float(np.median(c)) if len(c) else None
+    return sorted_median(c) if len(c) else None
+
+
+def sorted_median(values: np.ndarray) -> float:
+    """``np.median`` of a finite 1-D array, bit for bit but for the sign of a zero median (the middle value, or the
+    two middle ones' sum over 2), without its ≈ 40 µs of Python on a radar frame's few dozen values."""
+    s = np.sort(values)
+    n = len(s)
+    return float(s[n // 2]) if n % 2 else float((s[n // 2 - 1] + s[n // 2]) / 2)
 
 
 def power_minus_snr_db(cloud: PointCloud) -> float | None:

@@ -4,6 +4,7 @@ radar variant, Eq. 3: after the weather, so clutter points are blocked too)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
@@ -56,9 +57,18 @@ class OcclusionRadar(Model):
         return (angular_edges_rad(p.fov_azimuth_deg, p.azimuth_resolution_deg),
                 angular_edges_rad(p.fov_elevation_deg, p.elevation_resolution_deg))
 
-    def _pattern(self, rng: np.random.Generator, data: PointCloud) -> dict:
+    def _pattern(self, rng: np.random.Generator, data: PointCloud, sequence: bool = False) -> dict:
+        """The pattern drawn from ``rng``; a sequence's (``sequence``: its generator is used for nothing else) is
+        drawn once per worker."""
         az_e, el_e = self._edges(data)
         n_az, n_el = len(az_e) - 1, len(el_e) - 1
+        state = rng.bit_generator.state
+        seeds, blocked = (_drawn_pattern(self, _pcg64_key(state), n_az, n_el)
+                          if sequence and state["bit_generator"] == "PCG64" else self._draw_pattern(rng, n_az, n_el))
+        return {"grid_cells": [n_az, n_el], "seeds": seeds, "blocked_cells": list(blocked)}
+
+    def _draw_pattern(self, rng: np.random.Generator, n_az: int, n_el: int) -> tuple[int, tuple[int, ...]]:
+        """(seeds, blocked flat cells) of one draw."""
         seeds = np.flatnonzero(rng.random(n_az * n_el) < self.seed_probability)
         side = rng.integers(self.patch_min_cells, self.patch_max_cells + 1, len(seeds))
         offsets = np.arange(self.patch_max_cells)
@@ -70,10 +80,10 @@ class OcclusionRadar(Model):
         e = start_el[:, None, None] + de[None]
         inside &= (a >= 0) & (a < n_az) & (e >= 0) & (e < n_el)
         blocked = np.unique((a * n_el + e)[inside])
-        return {"grid_cells": [n_az, n_el], "seeds": len(seeds), "blocked_cells": blocked.tolist()}
+        return len(seeds), tuple(blocked.tolist())
 
     def draw_sequence(self, rng, data):
-        return self._pattern(rng, data) if self.static else {}
+        return self._pattern(rng, data, sequence=True) if self.static else {}
 
     def draw(self, rng, data):
         return {} if self.static else self._pattern(rng, data)
@@ -101,3 +111,19 @@ class OcclusionRadar(Model):
             diagnostics.update(det.diagnostics())
         diagnostics["points_removed"] = int(remove.sum())
         return out.drop(remove), diagnostics
+
+
+def _pcg64_key(state: dict) -> tuple:
+    """A PCG64 generator's complete state (``bit_generator.state``) as a hashable key."""
+    return state["state"]["state"], state["state"]["inc"], state["has_uint32"], state["uinteger"]
+
+
+@lru_cache(maxsize=64)
+def _drawn_pattern(model: "OcclusionRadar", pcg64_key: tuple, n_az: int, n_el: int) -> tuple[int, tuple[int, ...]]:
+    """A pattern is a function of the model's parameters, the generator's state and the grid: a sequence's pattern
+    (a static one is drawn again for every frame from the same sequence generator) is drawn once per worker."""
+    state, inc, has_uint32, uinteger = pcg64_key
+    bit_generator = np.random.PCG64()
+    bit_generator.state = {"bit_generator": "PCG64", "state": {"state": state, "inc": inc},
+                           "has_uint32": has_uint32, "uinteger": uinteger}
+    return model._draw_pattern(np.random.Generator(bit_generator), n_az, n_el)

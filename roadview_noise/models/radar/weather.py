@@ -111,6 +111,11 @@ def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: Cl
     profile = profile_of(cloud)
     constant, gamma = cells.radar_constant_db, cells.gamma_db_per_km
     pts = generate_clutter(rng, cells)
+    summary = {"clutter_expected_points": cells.expected_count,
+               "clutter_backscatter_per_m": backscatter_per_volume_per_m(cells.hydrometeors, cells.wavelength_m),
+               "radar_constant_db": constant}
+    if not len(pts.v_r_m_per_s) and cloud.grid_shape is None:    # most CA-CFAR frames: appending nothing would
+        return cloud, {"clutter_points": 0, **summary}             # only copy the cloud
     positions = to_plane(pts.positions_m) if planar else pts.positions_m
     r = np.linalg.norm(positions, axis=1)
     rcs = pts.detection_db - constant + 40 * np.log10(r)
@@ -125,9 +130,7 @@ def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: Cl
             new["power_db"] = pts.detection_db + offset
     new = {k: v for k, v in new.items() if k in cloud.fields}
     out = cloud.concat(positions, new)
-    return out, {"clutter_points": len(r), "clutter_expected_points": cells.expected_count,
-                 "clutter_backscatter_per_m": backscatter_per_volume_per_m(cells.hydrometeors, cells.wavelength_m),
-                 "radar_constant_db": constant}
+    return out, {"clutter_points": len(r), **summary}
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,92 @@
+"""Per-file shortcuts of the radar weather models (issue 19): each must give what the general path gives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from roadview_noise.io.pointcloud import read_pointcloud
+from roadview_noise.models.radar.detection import sorted_median
+from roadview_noise.physics.radar_cfar import PROBABILITY_TIERS, CaCfar, FixedThreshold, tier_ratios
+from roadview_noise.physics.radar_clutter import (ResolutionGrid, clutter_cells, generate_clutter, rain_drops,
+                                                  snow_flakes)
+from roadview_noise.profiles.radar import load_radar_profile
+from roadview_noise.recipe import parse_recipe
+from roadview_noise.registry import get_model
+from roadview_noise.runner import build_models, plan
+from roadview_noise.seeding import derive_rng
+
+ROOT = Path(__file__).resolve().parents[2]
+WAVELENGTH_M = 299_792_458.0 / 77e9
+
+
+@settings(max_examples=200, deadline=None)
+@given(arrays(np.float64, st.integers(1, 80), elements=st.floats(-1e6, 1e6, allow_nan=False)))
+def test_sorted_median_is_numpys_median_bit_for_bit(values):
+    # equal order statistics are the same bits, but for the sign of a zero (partition and sort may pick −0 or +0)
+    assert np.float64(sorted_median(values)).tobytes() == np.float64(np.median(values)).tobytes() or \
+        sorted_median(values) == 0.0 == np.median(values)
+
+
+@pytest.mark.parametrize("detector", [CaCfar(1e-4, 16), CaCfar(5e-2, 4), FixedThreshold()])
+@pytest.mark.parametrize("margin_db", [40.0, 68.0, 76.0, 95.0])
+def test_tier_bounds_equal_a_search_of_every_range_bin(detector, margin_db):
+    """Range bins whose lowest tier bound is above every pair are not searched: the bounds equal a search of
+    them all, far and near, in rain and snow."""
+    grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1, 1.0, 20.0)
+    for h in (rain_drops(20.0), snow_flakes(2.5)):
+        cells = clutter_cells(h, grid, WAVELENGTH_M, (0.3, -1.0, 0.0), 12.0 + margin_db, 12.0, 9.7, detector)
+        g, ratio = cells.pair_rcs_per_m3, cells.range_ratio_per_rcs
+        every = np.searchsorted(-g, -(tier_ratios(detector)[None, :] / ratio[:, None]).ravel(), side="left")
+        assert cells.tier_bounds.dtype == every.dtype
+        np.testing.assert_array_equal(cells.tier_bounds, every.reshape(len(ratio), PROBABILITY_TIERS))
+
+
+def test_a_frame_without_tier_picks_draws_no_points_and_points_otherwise():
+    grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1, 1.0, 20.0)
+    quiet = clutter_cells(rain_drops(20.0), grid, WAVELENGTH_M, (0.0, -10.0, 0.0), 80.0, 12.0, 9.7, CaCfar(1e-4, 16))
+    assert quiet.expected_count < 1
+    counts = [len(generate_clutter(np.random.default_rng(s), quiet).v_r_m_per_s) for s in range(200)]
+    assert 0 in counts
+    empty = next(generate_clutter(np.random.default_rng(s), quiet) for s, n in enumerate(counts) if n == 0)
+    assert empty.positions_m.shape == (0, 3) and empty.positions_m.dtype == np.float64
+    busy = clutter_cells(rain_drops(20.0), grid, WAVELENGTH_M, (0.0, -10.0, 0.0), 95.0, 12.0, 9.7, FixedThreshold())
+    pts = generate_clutter(np.random.default_rng(0), busy)
+    assert len(pts.v_r_m_per_s) > 10 and pts.positions_m.shape == (len(pts.v_r_m_per_s), 3)
+
+
+def test_a_static_occlusion_pattern_is_the_sequence_generators_draw_and_a_fresh_copy():
+    src = ROOT / "sample_data" / "radar" / "seq0"
+    model = get_model("occlusion.radar")(seed_probability=0.05)
+    cloud = read_pointcloud(src / "000000.pcd", sensor="radar", profile=load_radar_profile(src / "radar.yaml"))
+    n_az, n_el = (len(e) - 1 for e in model._edges(cloud))
+    first = model.draw_sequence(derive_rng(3, "sequence", "s0", model.id), cloud)
+    direct_n, direct_cells = model._draw_pattern(derive_rng(3, "sequence", "s0", model.id), n_az, n_el)
+    assert first["seeds"] == direct_n and first["blocked_cells"] == list(direct_cells) and direct_n > 0
+    first["blocked_cells"].clear()
+    again = model.draw_sequence(derive_rng(3, "sequence", "s0", model.id), cloud)
+    assert again["blocked_cells"] == list(direct_cells)
+    other = model.draw_sequence(derive_rng(3, "sequence", "s1", model.id), cloud)
+    assert other["blocked_cells"] != again["blocked_cells"]
+
+
+def test_steps_without_draws_are_built_once_and_drawn_steps_per_file(tmp_path):
+    src = ROOT / "sample_data" / "radar" / "seq0"
+    tree = tmp_path / "in" / "radar" / "seq0"
+    tree.mkdir(parents=True)
+    for p in src.iterdir():
+        (tree / p.name).write_bytes(p.read_bytes())
+    recipe = parse_recipe({
+        "schema": "rvnoise.recipe/1", "seed": 1, "inputs": {"radar": ["radar/**/*.pcd"]},
+        "chain": [{"model": "rain.radar", "params": {"rain_rate_mm_per_h": {"uniform": [5, 30]}}},
+                  {"model": "occlusion.radar"}]}, base_dir=tmp_path)
+    tasks = plan(tmp_path / "in", recipe)
+    a, b = build_models(recipe, tasks[0]), build_models(recipe, tasks[1])
+    assert a[1] is b[1]
+    assert a[0].rain_rate_mm_per_h != b[0].rain_rate_mm_per_h
+    assert build_models(recipe, tasks[0]) == a
