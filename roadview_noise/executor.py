@@ -8,7 +8,8 @@ is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds further 
 ``2 * BATCH_HOLD_S`` of them, at most ``QUEUE_MAX_TASKS`` and ``QUEUE_MAX_BYTES`` together: sending them never blocks
 on a worker that is itself blocked sending a large result), so it never waits for the parent between two small files,
 and answers them in **batches**: one message with the results it finished while more tasks were queued (at most
-``BATCH_MAX`` results, held at most ``BATCH_HOLD_S``; at once when nothing more is queued). The parent then wakes once
+``BATCH_MAX`` results, held only while the next task, as long as the last, would end within ``BATCH_HOLD_S`` of
+the first held one; at once when nothing more is queued). The parent then wakes once
 per batch, not once per file, and handles the batch with warm caches (issue 19: a radar file's ≈ 0.3 ms of the main
 process was mostly a cold wake-up per file). A worker records the task it is running in shared memory, so a dead
 worker is blamed for that task only: the ones it finished but had not sent yet and the ones queued behind are re-sent
@@ -173,9 +174,12 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
     if setup is not None:
         setup[0](*setup[1])
     held: list = []
-    since = 0.0
+    since = took = 0.0              # when the first held result was done; how long the last task took
     while True:
-        if held and (len(held) >= batch or not conn.poll() or time.monotonic() - since >= BATCH_HOLD_S):
+        # send unless more results can join within the hold: the next task, if it takes as long as the last,
+        # would keep the held ones past BATCH_HOLD_S (so a worker of ≈ 50 ms LiDAR tasks answers each at once and
+        # never waits for new tasks with finished ones unsent)
+        if held and (len(held) >= batch or not conn.poll() or time.monotonic() - since + took >= BATCH_HOLD_S):
             conn.send(held)
             held = []
         try:
@@ -187,12 +191,15 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
         tid, task = msg
         if running is not None:
             running.value = tid
+        start = time.monotonic()
         try:
             result = fn(task, context)
         except Exception as exc:        # the function should not raise; keep the worker alive if it does
             result = TaskError(f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
+        now = time.monotonic()
+        took = now - start
         if not held:
-            since = time.monotonic()
+            since = now
         held.append((tid, result))
 
 

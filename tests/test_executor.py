@@ -258,3 +258,13 @@ def test_a_time_bound_answers_each_task_at_once(monkeypatch, queue_below_s):
     ex = ProcessExecutor(work, {}, 1, timeout_s=30)
     assert dict(ex.map(range(40))) == {t: (t, t * t) for t in range(40)}
     assert ex._depth() == 2 and len(waits) >= 40
+
+
+def test_tasks_longer_than_the_hold_are_answered_each_at_once(monkeypatch, queue_below_s):
+    """A short task (queued behind the running one) that takes longer than ``BATCH_HOLD_S`` is answered as soon as
+    it ends: holding it for the next one would delay it by a whole task and leave the worker waiting for new tasks
+    with finished ones unsent (≈ 50 ms LiDAR files)."""
+    waits = _count_waits(monkeypatch)
+    ex = ProcessExecutor(work, {"pause_s": 2 * executor.BATCH_HOLD_S}, 1)
+    assert dict(ex.map(range(20))) == {t: (t, t * t) for t in range(20)}
+    assert ex._depth() >= 2 and len(waits) >= 20
