@@ -871,8 +871,7 @@ def unresolved_field(profile: CameraProfile, exposure_s: float, classes: SizeCla
         near, far = near_m[field], far_m[field]
         expected = float(classes.number[field] @ (np.interp(far, z_grid, vol) - np.interp(near, z_grid, vol)))
     else:
-        z_grid = np.geomspace(d_min_m, d_max_m, 1024)
-        volume = band_volume(profile, bands.rows, z_grid)
+        z_grid, volume = _band_volume_table(profile, bands, d_min_m, d_max_m)
         expected = float(sum(classes.number @ np.where(field[b], np.interp(far_m, z_grid, volume[b]) -
                                                        np.interp(near_m[b], z_grid, volume[b]), 0.0)
                              for b in range(near_m.shape[0])))
@@ -1097,12 +1096,19 @@ def band_split(profile: CameraProfile, classes: SizeClasses, bands: MotionBands,
     slab = np.clip(z_limits_m, d_min_m, d_max_m)
     limits = np.minimum(np.clip(limits_m, d_min_m, d_max_m), slab)
     threshold = np.where(limits >= slab, np.inf, limits).astype(np.float32)
-    z_grid = np.geomspace(d_min_m, d_max_m, 1024)
-    volume = band_volume(profile, bands.rows, z_grid)
+    z_grid, volume = _band_volume_table(profile, bands, d_min_m, d_max_m)
     expected = classes.number * sum(np.interp(limits[b], z_grid, volume[b]) for b in range(limits.shape[0]))
     for a in (limits, threshold, expected):
         a.flags.writeable = False
     return BandSplit(bands, limits, threshold, expected)
+
+
+def _band_volume_table(profile: CameraProfile, bands: MotionBands, d_min_m: float, d_max_m: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """``(Z grid, V)``: 1024 planar depths from d_min to d_max and each band's frustum volume above the ground up to
+    them (:func:`streak_motion.band_volume`)."""
+    z_grid = np.geomspace(d_min_m, d_max_m, 1024)
+    return z_grid, band_volume(profile, bands.rows, z_grid, bottom_row_px(profile, z_grid))
 
 
 # thread CPU per frame (ns; issue 19 round 10, the 2-core VM): a particle drawn one by one (sampled, sorted,

@@ -106,11 +106,11 @@ def _band_map_kernel(pixel, band):                                           # p
             band[row, col] = pixel_band(pixel, row, col)
 
 
-def band_volume(profile: CameraProfile, rows: np.ndarray, z_m: np.ndarray) -> np.ndarray:
+def band_volume(profile: CameraProfile, rows: np.ndarray, z_m: np.ndarray, bottom: np.ndarray) -> np.ndarray:
     """(bands, Z) volume (m³) of each band's part of the image frustum between the first and each planar depth of
-    ``z_m`` (increasing), above the ground plane at the camera height (as
-    :func:`particles.above_ground_volume_table`: the rows whose centre is above the ground's row at Z; trapezoids)."""
-    bottom = np.minimum(profile.height_px - 0.5, profile.cy_px + profile.height_above_ground_m * profile.fy_px / z_m)
+    ``z_m`` (increasing), above the ground plane at the camera height: the rows whose centre is above ``bottom``, the
+    ground's row at each Z (:func:`particles.bottom_row_px`, as :func:`particles.above_ground_volume_table`;
+    trapezoids)."""
     cumulative = np.concatenate([np.zeros((rows.shape[0], 1)), np.cumsum(rows, axis=1)], axis=1)   # rows < r
     edge = np.arange(rows.shape[1] + 1, dtype=float)
     pixels = np.stack([np.interp(bottom + 0.5, edge, c) for c in cumulative])                      # (bands, Z)
