@@ -91,8 +91,9 @@ VANISH: dict[str, dict] = {
     "fog.camera": {"visibility_m": 1e15},
     "fog.lidar": {"visibility_m": 1e15},
     "fog.radar": {"visibility_m": 1e15},
+    # low light's identity (its docstring): RGB frames through the finest ADC; a raw mosaic keeps its own ADC
     "low_light.camera": {"illuminance_lux": 10000.0, "read_noise_e": 0.0, "dark_current_e_per_s": 0.0,
-                         "shot_noise": "off", "adc_bits": 16},   # the default 12-bit ADC re-digitises raw DN
+                         "shot_noise": "off", "adc_bits": 16},
     "motion_blur.camera": {"blur": 0.0},
     "occlusion.lidar": {"seed_probability": 0.0},
     "occlusion.radar": {"seed_probability": 0.0},

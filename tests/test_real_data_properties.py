@@ -141,3 +141,22 @@ def test_vanishing_weather_keeps_fractional_intensities(model_id, params):
     assert len(out.positions_m) == len(cloud.positions_m)
     np.testing.assert_allclose(out.fields["intensity"], cloud.fields["intensity"], rtol=1e-6)
 
+
+
+@pytest.mark.parametrize("black, white", [(0.0, 65535.0), (2056.0, 15000.0)])
+def test_low_light_identity_gives_a_dngs_codes_back(black, white, tmp_path):
+    """Illuminance = reference, no noise: the written DNG holds the input's DN exactly. Before: a 16-bit mosaic was
+    re-digitised by a second ADC (65 471 levels for 65 536 codes: 0.51 % of a real DNG's sites ±1 DN) and codes
+    below black (its read noise) were raised to black (0.59 % of a real DNG, up to 98 DN)."""
+    from roadview_noise.io.raw import read_raw, write_dng
+
+    rng = np.random.default_rng(0)
+    dn = np.rint(rng.uniform(black, white, (64, 96)))
+    dn[:8] = np.rint(np.clip(rng.normal(black, 30.0, (8, 96)), 0, None))      # dark rows around black
+    path = tmp_path / "in" / "mosaic.dng"
+    path.parent.mkdir()
+    write_dng(path, dn.astype(np.uint16), "RGGB", black, white)
+    item = Input("synthetic", path, "raw")
+    recipe, _, out = run(item, "low_light.camera", VANISH["low_light.camera"])
+    (tmp_path / "out").mkdir()
+    np.testing.assert_array_equal(read_raw(written(item, recipe, out, tmp_path / "out"))[0], read_raw(path)[0])

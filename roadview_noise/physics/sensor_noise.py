@@ -4,11 +4,11 @@ model): linear signal → electrons → shot, dark and read noise → gain → A
 Per site, with x the linear signal (1 = full scale of the input, taken to be the full well at the reference
 exposure), k the illuminance ratio, g the gain, FW the full well:
 
-    λ = k · max(x / wb, 0) · FW                       mean photo-electrons (wb: white balance undone, RGB only)
-    e = λ + n,  Var(n) = λ + D·T + σ_r²               shot (Poisson), dark current D over T (mean clamped by the
+    λ = k · x / wb · FW                               mean photo-electrons (wb: white balance undone, RGB only)
+    e = λ + n,  Var(n) = max(λ, 0) + D·T + σ_r²       shot (Poisson), dark current D over T (mean clamped by the
                                                       optical black, variance kept), read noise σ_r
-    code = clip(round(b + g e / FW · (2^bits − 1 − b)), 0, 2^bits − 1)       ADC with black offset b
-    x' = (code − b) / (2^bits − 1 − b) · wb
+    code = clip(round(b + g e / FW · (M − b)), 0, M)  ADC with black offset b and top code M (2^bits − 1)
+    x' = (code − b) / (M − b) · wb
 
 so the mean output is ``k·g·x`` (the luminance factor) and the variance grows linearly with the signal
 (shot-noise regime) above the read-noise floor. The black offset keeps negative noise excursions, so the mean stays
@@ -16,6 +16,10 @@ unbiased. The fast default draws n as a Gaussian of exactly that variance — th
 skewness λ/(λ + σ_r²)^1.5 ≤ 0.13 for σ_r = 3 e⁻ — by inversion: a 16-bit uniform from the generator's raw output
 indexes a table of scipy's inverse normal CDF (:func:`normal_table`; variance 1.0003, tails beyond ±4.3σ,
 probability 2·10⁻⁵, clipped); ``poisson`` draws the shot and dark electrons exactly (≈ 10× slower).
+
+A recorded value below black (x < 0: a raw mosaic's own read noise around its black level) is a measurement like
+any other: it is scaled by k as it stands, only the shot-noise variance of a negative mean is 0 — so at k = g = 1
+without noise the output is the input (issue 14: continuous at zero strength).
 """
 
 from __future__ import annotations
@@ -56,7 +60,7 @@ class SensorSettings:
     full_well_e: float
     read_noise_e: float
     dark_e: float                   # dark-current electrons over the exposure, D·T
-    adc_bits: int
+    adc_max_dn: float               # M, the ADC's top code (2^bits − 1; a raw mosaic's white level)
     adc_black_dn: float
 
     @property
@@ -65,7 +69,7 @@ class SensorSettings:
 
     @property
     def adc_levels(self) -> float:
-        return float((1 << self.adc_bits) - 1) - self.adc_black_dn
+        return float(self.adc_max_dn) - self.adc_black_dn
 
 
 @jit(fastmath=True)
@@ -82,9 +86,9 @@ def _sensor(values, given_electrons, inv_wb, wb, k_fw, floor_e2, shot, bits, tab
             if given_electrons:
                 e = values[i, c]
             else:
-                e = max(values[i, c] * inv_wb[c], zero) * k_fw
+                e = values[i, c] * inv_wb[c] * k_fw
                 if noisy:
-                    var = floor_e2 + e if shot else floor_e2
+                    var = floor_e2 + max(e, zero) if shot else floor_e2
                     e += np.sqrt(var) * table[bits[i * nc + c]]
             code = min(max(np.floor(black + e * scale + np.float32(0.5)), zero), top)
             out[i, c] = (code - black) * inv_levels * wb[c]
@@ -105,8 +109,8 @@ def expose(signal: np.ndarray, settings: SensorSettings, rng: np.random.Generato
     given = False
     bits = np.empty(0, np.uint16)
     if noise and shot_noise == "poisson":
-        mean_e = np.maximum(values / wb, 0.0).astype(np.float64) * float(k_fw)
-        shot = rng.poisson(mean_e + s.dark_e) - s.dark_e
+        mean_e = (values / wb).astype(np.float64) * float(k_fw)
+        shot = rng.poisson(np.maximum(mean_e, 0.0) + s.dark_e) - s.dark_e + np.minimum(mean_e, 0.0)
         values = (shot + rng.normal(0.0, s.read_noise_e, values.shape)).astype(np.float32)
         given = True
     elif noise:
@@ -114,5 +118,5 @@ def expose(signal: np.ndarray, settings: SensorSettings, rng: np.random.Generato
     out = np.empty(values.shape, np.float32)
     _sensor(values, given, (1 / wb).astype(np.float32), wb, k_fw, np.float32(s.read_noise_e ** 2 + s.dark_e),
             shot_noise == "gaussian", bits, normal_table(), np.float32(s.gain / s.full_well_e * s.adc_levels),
-            np.float32(s.adc_black_dn), np.float32(1 / s.adc_levels), np.float32((1 << s.adc_bits) - 1), out)
+            np.float32(s.adc_black_dn), np.float32(1 / s.adc_levels), np.float32(s.adc_max_dn), out)
     return out.reshape(sig.shape)

@@ -11,7 +11,7 @@ from roadview_noise.physics.sensor_noise import SensorSettings, expose, normal_t
 
 
 def settings(k=1e-3, g=8.0, fw=10000.0, read=3.0, dark=0.0, bits=12, black=64.0):
-    return SensorSettings(k, g, fw, read, dark, bits, black)
+    return SensorSettings(k, g, fw, read, dark, float((1 << bits) - 1), black)
 
 
 def test_normal_table_is_a_standard_normal():
@@ -32,6 +32,20 @@ def test_ratio_one_without_noise_is_identity_within_quantisation():
     assert np.abs(expose(mosaic, settings(k=1.0, g=1.0), rng, shot_noise="off", noise=False) - mosaic).max() <= \
         0.5 * step + 1e-6
 
+
+
+@pytest.mark.parametrize("shot_noise", ["off", "gaussian", "poisson"])
+def test_values_below_black_are_scaled_not_clipped(shot_noise):
+    """A raw mosaic's codes below black (its recorded read noise, x < 0) are a measurement: at k = g = 1 without
+    noise they come back, at k = ½ halved (before: raised to black)."""
+    rng = np.random.default_rng(4)
+    x = np.linspace(-0.02, 0.02, 81, dtype=np.float32)[None, :]
+    step = 1.0 / ((1 << 16) - 1 - 2048)
+    same = expose(x, settings(k=1.0, g=1.0, bits=16, black=2048.0), rng, shot_noise=shot_noise, noise=False)
+    assert np.abs(same - x).max() <= 0.5 * step + 1e-7
+    half = expose(np.repeat(x, 20_000, axis=0), settings(k=0.5, g=1.0, read=0.0, bits=16, black=2048.0), rng,
+                  shot_noise=shot_noise)
+    np.testing.assert_allclose(half.mean(axis=0), 0.5 * x[0], atol=2e-5)
 
 @pytest.mark.parametrize("shot_noise", ["gaussian", "poisson"])
 def test_mean_scales_by_k_g_and_variance_grows_linearly(shot_noise):

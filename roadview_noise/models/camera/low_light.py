@@ -32,7 +32,11 @@ class LowLightCamera(Model):
     ``g = min(max_gain, 1/k)`` (longer exposure × analogue gain, capped); the sensor collects ``k·x·full_well_e``
     electrons, adds shot, dark-current and read noise, amplifies by g and digitises with an ``adc_bits`` ADC; the
     result is re-processed (white balance redone; the writer re-applies the sRGB curve). Mean output = k·g × input.
-    Raw Bayer mosaics run natively: every site through the same sensor model, no demosaic.
+    Raw Bayer mosaics run natively: every site through the same sensor model, no demosaic, digitised by the ADC
+    whose codes the file holds (its black and white level; ``adc_bits`` and ``adc_black_level_dn`` describe the
+    notional ADC of an RGB frame), not by a second one. Identity: ``illuminance_lux = reference_illuminance_lux``,
+    ``read_noise_e = dark_current_e_per_s = 0``, ``shot_noise: off`` give a raw mosaic's DN back exactly (codes below
+    black included) and an RGB frame within the ADC's step (``adc_bits: 16``: the 8-bit codes exactly).
 
     ``onnx``: a user-supplied image-to-image generator (e.g. a CycleGAN day→night generator exported to ONNX,
     :mod:`roadview_noise.io.onnx_image`) at full resolution (padded to ``onnx_input_multiple_px``, never cropped to
@@ -61,8 +65,9 @@ class LowLightCamera(Model):
     dark_current_e_per_s: float = param(5.0, unit="e⁻/s", ge=0, doc="dark current (over the profile's exposure)")
     shot_noise: str = param("gaussian", choices=SHOT_NOISE, doc="gaussian of exact variance (fast), poisson "
                                                                 "(exact, slower) or off")
-    adc_bits: int = param(12, unit="bit", ge=8, le=16, doc="ADC resolution")
-    adc_black_level_dn: float = param(64.0, unit="DN", ge=0, doc="ADC black offset (keeps negative noise)")
+    adc_bits: int = param(12, unit="bit", ge=8, le=16, doc="ADC resolution (RGB frames; a raw mosaic keeps its own)")
+    adc_black_level_dn: float = param(64.0, unit="DN", ge=0, doc="ADC black offset (keeps negative noise; RGB frames, "
+                                                                 "a raw mosaic keeps its own black level)")
     white_balance_gains: Any = param((1.0, 1.0, 1.0), unit="1", doc="[R, G, B] white balance of the input's ISP "
                                                                    "(undone before the sensor, RGB only)")
     onnx_model: Any = param(None, unit="path", doc="onnx: the generator's .onnx file")
@@ -80,11 +85,14 @@ class LowLightCamera(Model):
             raise ModelError("the onnx back-end needs onnx_model: the path of an .onnx file", model=self.id,
                              field="onnx_model")
 
-    def settings(self, exposure_time_s: float) -> SensorSettings:
+    def settings(self, exposure_time_s: float, raw: RawFrame | None = None) -> SensorSettings:
+        """The sensor of one frame; a raw mosaic's ADC is the one its DN came from (black to white level)."""
         k = self.illuminance_lux / self.reference_illuminance_lux
+        top, black = ((raw.white_level_dn, raw.black_level_dn) if raw is not None else
+                      ((1 << self.adc_bits) - 1, self.adc_black_level_dn))
         return SensorSettings(illuminance_ratio=k, gain=min(self.max_gain, 1.0 / k), full_well_e=self.full_well_e,
                               read_noise_e=self.read_noise_e, dark_e=self.dark_current_e_per_s * exposure_time_s,
-                              adc_bits=self.adc_bits, adc_black_dn=self.adc_black_level_dn)
+                              adc_max_dn=float(top), adc_black_dn=float(black))
 
     def apply(self, data, *, state, drawn, rng):
         signal = data.signal()
@@ -102,7 +110,7 @@ class LowLightCamera(Model):
             factor = float(mean_out.sum() / mean_in.sum()) if mean_in.sum() > 0 else 1.0
             diagnostics = {"luminance_factor": factor}
         else:
-            s = self.settings(data.profile.exposure_time_s)
+            s = self.settings(data.profile.exposure_time_s, data if isinstance(data, RawFrame) else None)
             out = expose(signal, s, rng, shot_noise=self.shot_noise, white_balance=self.white_balance_gains)
             factor = s.luminance_factor
             electrons = s.illuminance_ratio * s.full_well_e * float(mean_in.mean())
