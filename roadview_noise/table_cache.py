@@ -1,7 +1,8 @@
 """Deterministic physics tables kept on disk between runs (issue 19: every worker's first file).
 
 A LiDAR worker's first file builds its strongest-return tables (``lidar_strongest.brightest_tables``: 40–65 ms), a
-radar worker's its Mie and Doppler tables (``radar_clutter``: ≈ 60 ms, mostly miepython's pure-Python Mie series);
+radar worker's its Mie and Doppler tables (``radar_clutter``: ≈ 60 ms, mostly miepython's pure-Python Mie series), a
+camera rain or snow worker's its particle tables (``particles.particle_tables``: ≈ 6 ms, ≈ 0.1 s with motion bands);
 with two workers both pay them side by side, and every run pays them again. :func:`disk_cached` is ``lru_cache``
 whose misses look on disk first: a table is built once per machine, code and parameters, and every later worker
 (other runs, the other worker of this run when it comes second) reads it back in a few milliseconds.
