@@ -4,7 +4,8 @@ with 12 files on 2 workers each worker pays it once, side by side, so it weighs 
 A child process per side imports what the fork server imports (``executor.PRELOAD``, the recipe's worker modules,
 the warm-up), then forks fresh workers one after the other, as the fork server does; each runs the first ``--files``
 files of ``bench/run.py``'s camera tree (rendered 1936×1464 frames made photo-like, range EXR) through
-``runner.process`` with ``--profile`` and reports per file its thread CPU ms, minor page faults and the profile split.
+``runner.process`` with ``--profile`` and reports per file its thread CPU ms, minor page faults and the profile split
+(the profile's wall ms: noisy on a loaded machine).
 Sides alternate (this checkout's code, then ``--against``'s, its package first on ``PYTHONPATH`` and as the working
 directory); figures are medians over workers and rounds, with their range. The physics tables are read from the
 table cache as a repeated run finds them (each side's first worker of the first round fills it). Output sha256
