@@ -228,11 +228,21 @@ def input_path(in_root: Path, relpath: str) -> Path:
     return path
 
 
-def sha256_input(path: Path) -> str:
-    """sha256 of an input file (its reading and hashing are profiled apart); InputError names an unreadable one."""
+def sha256_input(path: Path, *, keep: bool = False) -> str:
+    """sha256 of an input file (its reading and hashing are profiled apart); InputError names an unreadable one.
+    ``keep``: a camera image, read whole and handed to its decoder (``io.image.hand_over``: read once)."""
     h = hashlib.sha256()
     try:
         with open(path, "rb") as fh:
+            if keep:
+                from .io.image import hand_over
+
+                with span("read"):
+                    data = fh.read()
+                with span("hash"):
+                    h.update(data)
+                hand_over(path, data, os.fstat(fh.fileno()))
+                return h.hexdigest()
             while True:
                 with span("read"):
                     chunk = fh.read(1 << 20)
@@ -330,7 +340,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         luminance.collect(recipe.spec.output.metrics)   # the frames' sRGB passes keep their luminance for the metrics
         deferred = metrics.Deferred()                   # filled after the writer's encode (metrics.Deferred)
         source = input_path(ctx.in_root, s.relpath)
-        entry["input_sha256"] = sha256_input(source)
+        entry["input_sha256"] = sha256_input(source, keep=s.modality == "camera")
         depth = None
         if s.depth_relpath is not None:
             depth = input_path(ctx.in_root, s.depth_relpath)

@@ -1,7 +1,8 @@
 """Deterministic physics tables kept on disk between runs (issue 19: every worker's first file).
 
 A LiDAR worker's first file builds its strongest-return tables (``lidar_strongest.brightest_tables``: 40–65 ms), a
-radar worker's its Mie and Doppler tables (``radar_clutter``: ≈ 60 ms, mostly miepython's pure-Python Mie series);
+radar worker's its Mie and Doppler tables (``radar_clutter``: ≈ 60 ms, mostly miepython's pure-Python Mie series), a
+camera rain or snow worker's its particle tables (``particles.particle_tables``: ≈ 6 ms, ≈ 0.1 s with motion bands);
 with two workers both pay them side by side, and every run pays them again. :func:`disk_cached` is ``lru_cache``
 whose misses look on disk first: a table is built once per machine, code and parameters, and every later worker
 (other runs, the other worker of this run when it comes second) reads it back in a few milliseconds.
@@ -68,8 +69,6 @@ def code_version() -> str:
     """SHA-256 of every module of the package (path and bytes), Python's version, the machine and
     :data:`VERSIONED` libraries' versions: what a table's values may depend on besides its arguments. Computed once
     per process (the fork server's warm-up computes it for its workers)."""
-    from importlib import metadata
-
     root = Path(__file__).resolve().parent
     modules = []
     for folder, subfolders, names in os.walk(root):
@@ -79,13 +78,24 @@ def code_version() -> str:
     for path in sorted(modules):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
     for name in VERSIONED:
-        try:
-            version = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            version = "-"
-        digest.update(f"{name}={version}\0".encode())
+        digest.update(f"{name}={library_version(name)}\0".encode())
     digest.update(f"{sys.version}\0{platform.machine()}\0{sys.byteorder}".encode())
     return digest.hexdigest()
+
+
+def library_version(name: str) -> str:
+    """A library's version: its ``__version__`` when it is imported already (NumPy, SciPy, numba and llvmlite in
+    every process that builds tables: no look-up), else its distribution's (``importlib.metadata``: 2–4 ms a
+    library, scanning ``sys.path``); "-" when it is not installed."""
+    version = getattr(sys.modules.get(name), "__version__", None)
+    if isinstance(version, str):
+        return version
+    from importlib import metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "-"
 
 
 def key(fn: Callable, args: tuple, kwargs: dict) -> str:

@@ -8,6 +8,7 @@ import hashlib
 import math
 import multiprocessing as mp
 import pickle
+import sys
 import time
 from pathlib import Path
 
@@ -241,3 +242,15 @@ def test_outputs_do_not_depend_on_the_cache(tmp_path, monkeypatch, name, prefix)
         if i == 1:
             assert _files(tmp_path / "tables")                # the run stored its tables
     assert outputs[0] == outputs[1] == outputs[2]
+
+
+def test_library_version_is_the_distributions(monkeypatch):
+    """An imported library's ``__version__`` stands for its distribution's version (no metadata scan); a library
+    not imported is looked up; one not installed is "-"."""
+    from importlib import metadata
+
+    for name in ("numpy", "scipy", "numba", "llvmlite"):
+        assert table_cache.library_version(name) == metadata.version(name)
+    monkeypatch.delitem(sys.modules, "llvmlite")
+    assert table_cache.library_version("llvmlite") == metadata.version("llvmlite")
+    assert table_cache.library_version("rvnoise-no-such-library") == "-"

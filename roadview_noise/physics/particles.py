@@ -60,6 +60,7 @@ import numpy as np
 from scipy.special import pdtr, pdtrc
 
 from ..profiles.camera import fit_to_image
+from ..table_cache import disk_cached
 from ..types import CameraProfile, Conditions
 from ..units import ray_factor
 from .cfa import SiteLayout
@@ -1117,13 +1118,13 @@ def _band_volume_table(profile: CameraProfile, bands: MotionBands, d_min_m: floa
 COST_EXPLICIT_NS, COST_BAND_TEST_NS, COST_DRAW_NS = 48.0, 6.0, 2.0
 
 
-@lru_cache(maxsize=8)
+@disk_cached(maxsize=8)                # a worker's first frame reads them (the table cache) instead of building them
 def particle_tables(profile: CameraProfile, exposure_s: float, classes: SizeClasses, fall_speed,
                     conditions: Conditions, d_min_m: float, d_max_m: float, min_opacity: float,
                     min_extent_px: float) -> ParticleTables:
     """:class:`ParticleTables`, built once per camera, medium and conditions (≈ 5 ms for snow's 199 classes;
-    ≈ 0.1 s more with motion bands): the image-wide split, or the :func:`band_tables` where they are cheaper by
-    the ``COST_*`` figures."""
+    ≈ 0.1 s more with motion bands), kept on disk (:mod:`roadview_noise.table_cache`): the image-wide split, or
+    the :func:`band_tables` where they are cheaper by the ``COST_*`` figures."""
     limits = explicit_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
                                    min_opacity)
     resolved = resolved_depth_limits(profile, exposure_s, classes, fall_speed, conditions, d_min_m, d_max_m,
