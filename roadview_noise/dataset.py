@@ -242,10 +242,10 @@ def _hashable(spec):
 # --- reading and writing -------------------------------------------------------------------------------------------
 
 
-def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
-    """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions;
-    InputError names the file."""
-    return with_conditions(_read(sample, in_root, recipe), recipe)
+def load(sample: Sample, in_root: Path, recipe: Recipe, cloud_bytes: bytes | None = None) -> SensorData:
+    """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions
+    (``cloud_bytes``: a point cloud's file content, already read); InputError names the file."""
+    return with_conditions(_read(sample, in_root, recipe, cloud_bytes), recipe)
 
 
 def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
@@ -256,7 +256,7 @@ def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
     return data
 
 
-def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
+def _read(sample: Sample, in_root: Path, recipe: Recipe, cloud_bytes: bytes | None) -> SensorData:
     from .camera_inputs import load_camera_sample
     from .io import pointcloud as cloud_io
 
@@ -267,7 +267,8 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
         return load_camera_sample(sample, in_root, recipe)
     return cloud_io.read_pointcloud(path, sensor=sample.modality,
                                     profile=cloud_profile_for(sample.modality, inputs, file_dir, recipe),
-                                    field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields)
+                                    field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields,
+                                    data=cloud_bytes)
 
 
 def cloud_profile_for(sensor: str, inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):

@@ -228,16 +228,27 @@ def input_path(in_root: Path, relpath: str) -> Path:
     return path
 
 
-def sha256_input(path: Path) -> str:
-    """sha256 of an input file (its reading and hashing are profiled apart); InputError names an unreadable one."""
+READ_ONCE_MAX_BYTES = 64 << 20      # a point cloud up to this size is read once, for its sha256 and its reader
+
+
+def sha256_input(path: Path, *, whole: bool = False) -> tuple[str, bytes | None]:
+    """sha256 of an input file (its reading and hashing are profiled apart) and, with ``whole``, its bytes when it
+    holds at most ``READ_ONCE_MAX_BYTES`` (a point cloud's reader takes them: one read); InputError names an
+    unreadable one."""
     h = hashlib.sha256()
     try:
         with open(path, "rb") as fh:
+            if whole and os.fstat(fh.fileno()).st_size <= READ_ONCE_MAX_BYTES:
+                with span("read"):
+                    data = fh.read()
+                with span("hash"):
+                    h.update(data)
+                return h.hexdigest(), data
             while True:
                 with span("read"):
                     chunk = fh.read(1 << 20)
                 if not chunk:
-                    return h.hexdigest()
+                    return h.hexdigest(), None
                 with span("hash"):
                     h.update(chunk)
     except OSError as exc:
@@ -330,17 +341,17 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         luminance.collect(recipe.spec.output.metrics)   # the frames' sRGB passes keep their luminance for the metrics
         deferred = metrics.Deferred()                   # filled after the writer's encode (metrics.Deferred)
         source = input_path(ctx.in_root, s.relpath)
-        entry["input_sha256"] = sha256_input(source)
+        entry["input_sha256"], raw = sha256_input(source, whole=s.modality in ("lidar", "radar"))
         depth = None
         if s.depth_relpath is not None:
             depth = input_path(ctx.in_root, s.depth_relpath)
-            entry["depth_sha256"] = sha256_input(depth)
+            entry["depth_sha256"] = sha256_input(depth)[0]
         _check_sizes(s, source, depth, ctx)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             with profiling.phase("load", "convert"):
                 try:
-                    data = load(s, ctx.in_root, recipe)
+                    data, raw = load(s, ctx.in_root, recipe, raw), None
                 except EmptyCloudError as e:
                     return _copy_unchanged(task, ctx, source, entry, str(e))
             if getattr(data, "input_notes", None):
