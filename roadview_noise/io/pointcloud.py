@@ -543,8 +543,9 @@ def _records(header: bytes, columns: list[Column], order: str) -> memoryview:
 def _frozen(arr: np.ndarray) -> memoryview:
     """The bytes of a C-contiguous array nobody else holds, read-only: written as they are, and hashed from memory
     for the manifest (io/atomic.write_bytes_atomic)."""
-    arr.flags.writeable = False
-    return memoryview(arr).cast("B")
+    flat = arr.reshape(-1).view(np.uint8)
+    flat.flags.writeable = False
+    return memoryview(flat)
 
 
 # --- PLY ----------------------------------------------------------------------------------------------------------

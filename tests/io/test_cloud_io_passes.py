@@ -87,6 +87,19 @@ def test_a_written_cloud_is_its_packed_records_and_is_hashed_from_memory(tmp_pat
     assert np.array_equal(back.fields["intensity"], cloud.fields["intensity"])
 
 
+@pytest.mark.parametrize("name,fmt,mode", [("a.pcd", "pcd", "binary"), ("a.ply", "ply", "binary_little_endian"),
+                                           ("a.bin", "kitti_bin", "binary")])
+def test_a_cloud_without_points_is_written_as_its_header_alone(tmp_path, name, fmt, mode):
+    """(A chain may remove every point of a list.)"""
+    with staged_writes() as stage:
+        pc.write_pointcloud(tmp_path / name, _cloud(fmt, mode, n=0), effect="none")
+        (tmp, _), = stage.files
+        assert stage.sha256_of(tmp) == sha256_file(tmp)
+    stage.commit()
+    data = (tmp_path / name).read_bytes()
+    assert data == b"" if fmt == "kitti_bin" else data.endswith(b"binary\n" if fmt == "pcd" else b"end_header\n")
+
+
 def test_writable_bytes_are_not_kept_for_their_hash(tmp_path):
     """A buffer its owner may still change is hashed from the file, not from memory."""
     with staged_writes() as stage:
