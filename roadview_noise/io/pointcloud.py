@@ -642,9 +642,11 @@ def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
                          f"({', '.join(names)} as float32)" + (_other_columns(data, names) if lidar else ""),
                          file=str(path))
     table = np.frombuffer(data, "<f4").reshape(-1, len(names))
-    if lidar and _farthest_m(table[:, :3]) > MAX_COORDINATE_M:  # (non-finite ones: refused by cloud_from_columns)
-        raise InputError(f"not N×{len(names)} float32 ({', '.join(names)}): coordinates reach "
-                         f"{_farthest_m(table[:, :3]):.3g} m" + _other_columns(data, names), file=str(path))
+    # (every column first: one contiguous pass, 10× faster than x/y/z's strided one, which only a larger value needs;
+    # non-finite coordinates: refused by cloud_from_columns)
+    if lidar and _farthest_m(table) > MAX_COORDINATE_M and (top := _farthest_m(table[:, :3])) > MAX_COORDINATE_M:
+        raise InputError(f"not N×{len(names)} float32 ({', '.join(names)}): coordinates reach {top:.3g} m"
+                         + _other_columns(data, names), file=str(path))
     return [(name, "<f4", table[:, i]) for i, name in enumerate(names)]      # views: see _read_pcd
 
 

@@ -12,6 +12,7 @@ import pytest
 
 from roadview_noise import runner
 from roadview_noise.io import pointcloud as pc
+from roadview_noise.errors import InputError
 from roadview_noise.io.atomic import staged_writes, write_bytes_atomic
 from roadview_noise.manifest import sha256_file
 from roadview_noise.types import CloudLayout, PointCloud
@@ -130,3 +131,16 @@ def test_the_runner_reads_a_cloud_once_for_its_sha256_and_its_reader(tmp_path, m
     assert runner.sha256_input(path) == (digest, None)                       # streamed: an image, a depth map
     monkeypatch.setattr(runner, "READ_ONCE_MAX_BYTES", 1000)
     assert runner.sha256_input(path, whole=True) == (digest, None)           # too large to hold: streamed
+
+
+def test_a_bin_range_check_looks_at_the_coordinates_only(tmp_path):
+    """A large value in another column (a timestamp in µs) passes; coordinates beyond any LiDAR's range do not."""
+    rng = np.random.default_rng(3)
+    table = np.column_stack([rng.normal(0, 30, (500, 3)), rng.random(500)]).astype("<f4")
+    table[7, 3] = 1.7e15
+    (tmp_path / "a.bin").write_bytes(table.tobytes())
+    assert pc.read_pointcloud(tmp_path / "a.bin").fields["intensity"][7] == np.float32(1.7e15)
+    table[9, 1] = -3.0e5
+    (tmp_path / "b.bin").write_bytes(table.tobytes())
+    with pytest.raises(InputError, match="coordinates reach 3e[+]05 m"):
+        pc.read_pointcloud(tmp_path / "b.bin")
