@@ -51,15 +51,17 @@ def needs_camera_geometry(recipe: Recipe) -> bool:
     return any(get_model(m).uses_camera_geometry for m in recipe.model_ids)
 
 
-def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe) -> CameraFrame | RawFrame:
-    """Read one camera or raw sample with the depth and geometry its chain needs; InputError names the file."""
+def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe,
+                       content: bytes | None = None) -> CameraFrame | RawFrame:
+    """Read one camera or raw sample with the depth and geometry its chain needs (``content``: a PNG/JPEG/TIFF
+    image's bytes, already read); InputError names the file."""
     from .io import image as image_io
     from .io import raw as raw_io
 
     path = in_root / sample.relpath
     notes: dict[str, Any] = {}
     if sample.modality == "camera":
-        linear, encoding, alpha = image_io.read_image(path)
+        linear, encoding, alpha = image_io.read_image(path, content)
         frame = CameraFrame(linear, nominal_profile(linear.shape[1], linear.shape[0]), encoding=encoding,
                             alpha=alpha)
     else:

@@ -242,10 +242,11 @@ def _hashable(spec):
 # --- reading and writing -------------------------------------------------------------------------------------------
 
 
-def load(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
-    """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions;
-    InputError names the file."""
-    return with_conditions(_read(sample, in_root, recipe), recipe)
+def load(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None = None) -> SensorData:
+    """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions
+    (``content``: the bytes of a point cloud or PNG/JPEG/TIFF image file, already read); InputError names the
+    file."""
+    return with_conditions(_read(sample, in_root, recipe, content), recipe)
 
 
 def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
@@ -256,7 +257,7 @@ def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
     return data
 
 
-def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
+def _read(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None) -> SensorData:
     from .camera_inputs import load_camera_sample
     from .io import pointcloud as cloud_io
 
@@ -264,10 +265,11 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe) -> SensorData:
     path = in_root / sample.relpath
     file_dir = path.parent
     if sample.modality in ("camera", "raw"):
-        return load_camera_sample(sample, in_root, recipe)
+        return load_camera_sample(sample, in_root, recipe, content)
     return cloud_io.read_pointcloud(path, sensor=sample.modality,
                                     profile=cloud_profile_for(sample.modality, inputs, file_dir, recipe),
-                                    field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields)
+                                    field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields,
+                                    data=content)
 
 
 def cloud_profile_for(sensor: str, inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):

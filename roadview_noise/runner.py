@@ -228,30 +228,39 @@ def input_path(in_root: Path, relpath: str) -> Path:
     return path
 
 
-def sha256_input(path: Path, *, keep: bool = False) -> str:
-    """sha256 of an input file (its reading and hashing are profiled apart); InputError names an unreadable one.
-    ``keep``: a camera image, read whole and handed to its decoder (``io.image.hand_over``: read once)."""
+READ_ONCE_MAX_BYTES = 64 << 20      # an input up to this size is read once, for its sha256 and its reader
+
+
+def sha256_input(path: Path, *, whole: bool = False) -> tuple[str, bytes | None]:
+    """sha256 of an input file (its reading and hashing are profiled apart) and, with ``whole``, its bytes when it
+    holds at most ``READ_ONCE_MAX_BYTES`` (its reader takes them: one read, and the decoded bytes are the hashed
+    ones); InputError names an unreadable one."""
     h = hashlib.sha256()
     try:
         with open(path, "rb") as fh:
-            if keep:
-                from .io.image import hand_over
-
+            if whole and os.fstat(fh.fileno()).st_size <= READ_ONCE_MAX_BYTES:
                 with span("read"):
                     data = fh.read()
                 with span("hash"):
                     h.update(data)
-                hand_over(path, data, os.fstat(fh.fileno()))
-                return h.hexdigest()
+                return h.hexdigest(), data
             while True:
                 with span("read"):
                     chunk = fh.read(1 << 20)
                 if not chunk:
-                    return h.hexdigest()
+                    return h.hexdigest(), None
                 with span("hash"):
                     h.update(chunk)
     except OSError as exc:
         raise InputError(f"cannot read the file: {os_error_text(exc)}", file=str(path)) from None
+
+
+def _read_whole(sample: Sample, path: Path) -> bool:
+    """True when the sample's reader takes the file's bytes (a point cloud, a PNG/JPEG/TIFF image; OpenEXR and the
+    raw readers open the path themselves)."""
+    from .io.image import image_format
+
+    return sample.modality in ("lidar", "radar") or (sample.modality == "camera" and image_format(path) != "exr")
 
 
 def _check_sizes(sample: Sample, path: Path, depth: Path | None, ctx: RunContext) -> None:
@@ -340,17 +349,17 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         luminance.collect(recipe.spec.output.metrics)   # the frames' sRGB passes keep their luminance for the metrics
         deferred = metrics.Deferred()                   # filled after the writer's encode (metrics.Deferred)
         source = input_path(ctx.in_root, s.relpath)
-        entry["input_sha256"] = sha256_input(source, keep=s.modality == "camera")
+        entry["input_sha256"], content = sha256_input(source, whole=_read_whole(s, source))
         depth = None
         if s.depth_relpath is not None:
             depth = input_path(ctx.in_root, s.depth_relpath)
-            entry["depth_sha256"] = sha256_input(depth)
+            entry["depth_sha256"] = sha256_input(depth)[0]
         _check_sizes(s, source, depth, ctx)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             with profiling.phase("load", "convert"):
                 try:
-                    data = load(s, ctx.in_root, recipe)
+                    data, content = load(s, ctx.in_root, recipe, content), None
                 except EmptyCloudError as e:
                     return _copy_unchanged(task, ctx, source, entry, str(e))
             if getattr(data, "input_notes", None):

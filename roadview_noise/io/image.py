@@ -66,40 +66,19 @@ def image_format(path: str | os.PathLike) -> str:
     return fmt
 
 
-def read_image(path: str | os.PathLike) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
-    """Read an image as (H, W, 3) float32 linear RGB, its encoding, and the alpha plane as stored (or None)."""
+def read_image(path: str | os.PathLike, data: bytes | None = None) -> tuple[np.ndarray, ImageEncoding,
+                                                                          np.ndarray | None]:
+    """Read an image as (H, W, 3) float32 linear RGB, its encoding, and the alpha plane as stored (or None);
+    ``data``: the file's bytes when the caller has already read them (the runner, to hash them; an EXR image is read
+    by OpenEXR from its path)."""
     fmt = image_format(path)
     if fmt == "exr":
         return _read_exr_image(Path(path))
     try:
-        data = _handed_over(path) or Path(path).read_bytes()
+        data = Path(path).read_bytes() if data is None else data
     except OSError as exc:
         raise InputError(f"cannot read image: {exc.strerror or exc}", file=str(path)) from exc
     return decode_image(data, fmt, source=path)
-
-
-_handed: tuple[str, tuple[int, int, int], bytes] | None = None     # hand_over's slot: path, file identity, bytes
-
-
-def hand_over(path: str | os.PathLike, data: bytes, stat: os.stat_result) -> None:
-    """Keep the bytes of image ``path`` that the caller has just read whole (the runner, to hash them) for the
-    next :func:`read_image` of that file, which then does not read it again (≈ 0.5 ms for a 4 MB PNG) and decodes
-    the very bytes that were hashed. One slot; ``stat`` is the open file's: a file replaced or changed since (inode,
-    size, modification time) is read anew. EXR images are read by OpenEXR from the path: not kept."""
-    global _handed
-    _handed = None if image_format(path) == "exr" else \
-        (os.fspath(path), (stat.st_ino, stat.st_size, stat.st_mtime_ns), data)
-
-
-def _handed_over(path: str | os.PathLike) -> bytes | None:
-    """The bytes :func:`hand_over` kept for ``path`` if the file is still the one they were read from (the slot
-    is emptied)."""
-    global _handed
-    kept, _handed = _handed, None
-    if kept is None or kept[0] != os.fspath(path):
-        return None
-    st = os.stat(path)
-    return kept[2] if (st.st_ino, st.st_size, st.st_mtime_ns) == kept[1] else None
 
 
 def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:

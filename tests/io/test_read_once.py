@@ -1,16 +1,17 @@
-"""Camera inputs are read once: the runner hashes the bytes and hands them to the decoder (io.image.hand_over)."""
+"""An input is read once: the runner hashes its bytes and hands them to the sample's reader (runner.sha256_input
+with ``whole``, dataset.load's ``content``)."""
 
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from roadview_noise.dataset import Sample
 from roadview_noise.io import image as image_io
-from roadview_noise.runner import sha256_input
+from roadview_noise.runner import _read_whole, sha256_input
 
 
 def _png(path: Path, seed: int) -> Path:
@@ -19,38 +20,29 @@ def _png(path: Path, seed: int) -> Path:
     return path
 
 
-def test_decoder_takes_the_hashed_bytes_without_reading_again(tmp_path, monkeypatch):
+def test_the_reader_decodes_the_hashed_bytes_without_reading_again(tmp_path, monkeypatch):
     path = _png(tmp_path / "a.png", 0)
     expected = image_io.read_image(path)[0]
-    digest = sha256_input(path, keep=True)
-    assert digest == hashlib.sha256(path.read_bytes()).hexdigest()
-    reads = []
-    real = Path.read_bytes
-    monkeypatch.setattr(Path, "read_bytes", lambda self: reads.append(self) or real(self))
-    np.testing.assert_array_equal(image_io.read_image(path)[0], expected)
-    assert reads == []                              # decoded from the kept bytes
-    image_io.read_image(path)                       # one use: the next read reads the file
-    assert reads == [path]
+    digest, content = sha256_input(path, whole=True)
+    assert digest == hashlib.sha256(path.read_bytes()).hexdigest() == hashlib.sha256(content).hexdigest()
+    _png(tmp_path / "b.png", 1).replace(path)       # changed after the hash: the reader decodes what was hashed
+    monkeypatch.setattr(Path, "read_bytes", lambda self: (_ for _ in ()).throw(AssertionError("read again")))
+    np.testing.assert_array_equal(image_io.read_image(path, content)[0], expected)
 
 
-def test_a_file_changed_after_the_hash_is_read_anew(tmp_path):
+def test_streamed_hash_keeps_no_bytes(tmp_path):
     path = _png(tmp_path / "a.png", 0)
-    sha256_input(path, keep=True)
-    _png(tmp_path / "b.png", 1).replace(path)       # another file (inode) under the same name
-    np.testing.assert_array_equal(image_io.read_image(path)[0], image_io.read_image(_png(tmp_path / "c.png", 1))[0])
+    digest, content = sha256_input(path)
+    assert content is None and digest == hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_another_file_read_in_between_empties_the_slot(tmp_path):
-    a, b = _png(tmp_path / "a.png", 0), _png(tmp_path / "b.png", 1)
-    sha256_input(a, keep=True)
-    image_io.read_image(b)
-    assert image_io._handed is None
-    os.utime(a)                                     # (still read correctly from the file)
-    assert image_io.read_image(a)[0].shape == (12, 16, 3)
+def test_which_inputs_are_read_whole(tmp_path):
+    def sample(relpath, modality):
+        return Sample(relpath=relpath, modality=modality, sequence_id="s")
 
-
-def test_exr_images_are_not_kept(tmp_path):
-    path = tmp_path / "x.exr"
-    image_io.write_exr_channels(path, {c: np.full((4, 5), 0.5, np.float32) for c in "RGB"})
-    assert sha256_input(path, keep=True) == hashlib.sha256(path.read_bytes()).hexdigest()
-    assert image_io._handed is None
+    assert _read_whole(sample("a.png", "camera"), tmp_path / "a.png")
+    assert _read_whole(sample("a.JPG", "camera"), tmp_path / "a.JPG")
+    assert not _read_whole(sample("a.exr", "camera"), tmp_path / "a.exr")     # OpenEXR reads the path
+    assert _read_whole(sample("a.pcd", "lidar"), tmp_path / "a.pcd")
+    assert _read_whole(sample("a.pcd", "radar"), tmp_path / "a.pcd")
+    assert not _read_whole(sample("a.dng", "raw"), tmp_path / "a.dng")
