@@ -15,6 +15,7 @@ documentation). It implements:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
@@ -126,16 +127,10 @@ class Model(ABC):
 
     @classmethod
     def param_specs(cls) -> list[ParamSpec]:
-        specs = []
-        for f in dataclasses.fields(cls):
-            meta = f.metadata.get("rvnoise")
-            if meta is None:
-                continue
-            specs.append(ParamSpec(name=f.name, default=f.default, **meta))
-        return specs
+        return list(_param_specs(cls))
 
     def params(self) -> dict[str, Any]:
-        return {s.name: getattr(self, s.name) for s in self.param_specs()}
+        return {name: getattr(self, name) for name in _param_names(type(self))}
 
     def draw_sequence(self, rng: np.random.Generator, data: Any) -> dict:
         return {}
@@ -151,3 +146,16 @@ class Model(ABC):
     @abstractmethod
     def apply(self, data: Any, *, state: dict, drawn: dict, rng: np.random.Generator) -> tuple[Any, dict]:
         """The model's effect on one frame or cloud: ``(new data, diagnostics)``."""
+
+
+@functools.cache
+def _param_specs(cls: type) -> tuple[ParamSpec, ...]:
+    """A model class's parameters (its fields with rvnoise metadata), in field order; once per class (a step's
+    ``params()`` is recorded per file)."""
+    return tuple(ParamSpec(name=f.name, default=f.default, **f.metadata["rvnoise"]) for f in dataclasses.fields(cls)
+                 if "rvnoise" in f.metadata)
+
+
+@functools.cache
+def _param_names(cls: type) -> tuple[str, ...]:
+    return tuple(s.name for s in _param_specs(cls))
