@@ -13,14 +13,12 @@ and range over the rounds of each run's best pass.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import shutil
 import statistics
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
+
+from bench_radar_chain import run_script
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = "weather-fog-radar,weather-rain-radar,weather-snow-radar,cnf25-radar"
@@ -67,12 +65,7 @@ def build_tree(root: Path, files: int) -> Path:
 
 def one_run(code: Path, tree: Path, out: Path, names: list[str], passes: int) -> dict[str, float]:
     out.mkdir(parents=True, exist_ok=True)
-    script = ONE_RUN.format(tree=str(tree), out=str(out.resolve()), names=names, passes=passes)
-    env = {**os.environ, "PYTHONPATH": str(code)}
-    done = subprocess.run([sys.executable, "-c", script], env=env, cwd=code, capture_output=True, text=True)
-    if done.returncode:
-        raise SystemExit(done.stderr)
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return run_script(code, ONE_RUN.format(tree=str(tree), out=str(out.resolve()), names=names, passes=passes))
 
 
 def main() -> None:
