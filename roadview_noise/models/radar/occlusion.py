@@ -82,6 +82,10 @@ class OcclusionRadar(Model):
         blocked = np.unique((a * n_el + e)[inside])
         return len(seeds), tuple(blocked.tolist())
 
+    @property
+    def uses_frame_rng(self) -> bool:
+        return not self.static      # a static pattern is the sequence's
+
     def draw_sequence(self, rng, data):
         return self._pattern(rng, data, sequence=True) if self.static else {}
 
