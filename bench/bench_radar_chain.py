@@ -50,6 +50,11 @@ print(json.dumps(out))
 def one_run(code: Path, chains: list[str], frames: int, batches: int) -> dict[str, float]:
     script = ONE_RUN.format(src=str(ROOT / "sample_data" / "radar" / "seq0"), chains=chains, frames=frames,
                             batches=batches)
+    return run_script(code, script)
+
+
+def run_script(code: Path, script: str) -> dict:
+    """The JSON last printed by ``script`` run in a fresh process with ``code`` on PYTHONPATH and as its folder."""
     env = {**os.environ, "PYTHONPATH": str(code)}
     done = subprocess.run([sys.executable, "-c", script], env=env, cwd=code, capture_output=True, text=True)
     if done.returncode:

@@ -185,7 +185,7 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
         state = {}
         if model.scope == Scope.SEQUENCE:
             state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
-        rng = derive_rng(seed, key, i, model.id)
+        rng = derive_rng(seed, key, i, model.id) if model.uses_frame_rng else None
         drawn = model.draw(rng, data)
         given = step_input(data)
         if recorded is not None and given is not recorded and given.recorded is None:

@@ -44,6 +44,7 @@ from .native_output import captured_output
 from .output_sync import SyncPool, write_error
 from .outputs import Ledger, PreviousRun, commit, discard, files_intact, remove_listed
 from .profiling import span
+from .real_folders import real_file
 from .recipe import Recipe, draw_value
 from .registry import adopt, get_model, model_modules, plugin_models
 from .resources import choose_workers
@@ -218,9 +219,9 @@ def _real_root(in_root: Path) -> str:
 
 def input_path(in_root: Path, relpath: str) -> Path:
     """``in_root / relpath``, refused when it resolves (through a symlink) outside the input folder (whose real path
-    is taken once per process)."""
+    is taken once per process, its folders' too: :mod:`roadview_noise.real_folders`)."""
     path = in_root / relpath
-    real = os.path.realpath(path)
+    real = real_file(str(path))
     root = _real_root(in_root)
     if not real.startswith(root + os.sep):
         raise InputError(f"resolves to {real!r}, outside the input folder; rvnoise reads only inside it",

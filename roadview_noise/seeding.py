@@ -8,6 +8,7 @@ of workers, the processing order, or resuming.
 from __future__ import annotations
 
 import hashlib
+import struct
 
 import numpy as np
 
@@ -23,5 +24,5 @@ def stable_hash(*keys: object) -> bytes:
 
 def derive_rng(seed: int, *keys: object) -> np.random.Generator:
     """A PCG64 generator that depends only on ``seed`` and ``keys``."""
-    words = np.frombuffer(stable_hash(int(seed), *keys), dtype="<u4")
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(w) for w in words])))
+    words = struct.unpack("<8I", stable_hash(int(seed), *keys))     # the digest's 8 little-endian uint32 words
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(words))))

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Iterator
 
 from ..profiling import span
+from ..real_folders import real_folder
 from .writeback import start_writeback
 
 TMP_SUFFIX = ".rvnoise-tmp"
@@ -84,7 +85,11 @@ class Staged:
 def confined_to(root: str | os.PathLike) -> Iterator[Path]:
     """Refuse (``OutsideRootError``) every write whose real folder is not inside ``root`` while the block runs."""
     global _root
-    previous, _root = _root, Path(os.path.realpath(root))
+    try:
+        real = real_folder(os.fspath(root))
+    except OSError:
+        real = os.path.realpath(root)
+    previous, _root = _root, Path(real)
     try:
         yield _root
     finally:
@@ -124,10 +129,14 @@ def recorded_writes() -> Iterator[list[Path]]:
 def ensure_dir_inside(folder: Path, root: Path) -> Path:
     """Create ``folder`` (and missing parents) below the real ``root`` one component at a time; refuse any existing
     component that is not a folder or whose real path leaves ``root``. Returns the folder's real path. A folder that
-    is there and resolves inside ``root`` costs one ``realpath`` (every output of a run lands in a few folders)."""
+    is there and resolves inside ``root`` costs one ``stat`` after the first time (:mod:`roadview_noise.real_folders`;
+    every output of a run lands in a few folders)."""
     folder = Path(os.path.abspath(folder))
-    real = os.path.realpath(folder)
-    if (real == str(root) or real.startswith(str(root).rstrip(os.sep) + os.sep)) and os.path.isdir(real):
+    try:
+        real = real_folder(str(folder))
+    except OSError:                 # missing, or not a folder: created or refused below
+        real = None
+    if real is not None and (real == str(root) or real.startswith(str(root).rstrip(os.sep) + os.sep)):
         return Path(real)
     try:
         rel = folder.relative_to(root)

@@ -452,10 +452,9 @@ class ClutterCells:
             backscatter_per_volume_per_m(self.hydrometeors, self.wavelength_m)
         r = np.linalg.norm(positions_m, axis=1)
         dr = grid.range_resolution_m
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = g * (r * r * dr + dr ** 3 / 12) / _threshold_rcs_m2(self.radar_constant_db, self.threshold_db,
-                                                                      self.gamma_db_per_km, r)
-        return np.where(r > 0, ratio, 0.0)
+        return np.divide(g * (r * r * dr + dr ** 3 / 12),
+                         _threshold_rcs_m2(self.radar_constant_db, self.threshold_db, self.gamma_db_per_km, r),
+                         out=np.zeros(len(r)), where=r > 0)             # (np.errstate costs ≈ 2 µs a call)
 
 
 def _threshold_rcs_m2(radar_constant_db: float, threshold_db: float, gamma_db_per_km: float, r_m) -> np.ndarray:
@@ -497,6 +496,12 @@ class ClutterPoints:
 _NO_POINTS = ClutterPoints(*_read_only(np.zeros((0, 3)), np.zeros(0), np.zeros(0)))
 
 
+@lru_cache(maxsize=8)
+def _tier_probabilities(max_probability: float) -> np.ndarray:
+    """The probability bound ``2^{−j} P_max`` of each tier j (read-only)."""
+    return _read_only(max_probability * 0.5 ** np.arange(PROBABILITY_TIERS))[0]
+
+
 def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPoints:
     """Draw the detected cells — each cell independently with its probability P(y), by thinning: in probability tier
     j a Bernoulli(2^{−j} P_max) subset of the tier's cells, each kept with ``P(y)/(2^{−j} P_max)`` (work ∝ the
@@ -505,8 +510,9 @@ def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPo
     Doppler bin."""
     grid, detector = cells.grid, cells.detector
     hi = cells.tier_bounds
-    bound = detector.max_probability * 0.5 ** np.arange(PROBABILITY_TIERS)
-    totals = np.diff(hi.sum(axis=0), prepend=0)                 # cells per tier
+    bound = _tier_probabilities(detector.max_probability)
+    totals = hi.sum(axis=0)
+    totals[1:] -= totals[:-1].copy()                            # cells per tier (np.diff: ≈ 10 µs of Python)
     picks = np.where(bound >= 1.0, totals, rng.binomial(totals, np.minimum(bound, 1.0)))
     if not picks.any():        # the usual CA-CFAR frame (≈ 0.05 points expected): the rest would draw nothing
         return _NO_POINTS

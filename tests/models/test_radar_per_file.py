@@ -90,3 +90,27 @@ def test_steps_without_draws_are_built_once_and_drawn_steps_per_file(tmp_path):
     assert a[1] is b[1]
     assert a[0].rain_rate_mm_per_h != b[0].rain_rate_mm_per_h
     assert build_models(recipe, tasks[0]) == a
+
+
+@pytest.mark.parametrize("chain, derived", [(["fog.radar"], []), (["occlusion.radar"], []),
+                                            (["rain.radar", "occlusion.radar"], [(0, "rain.radar")])])
+def test_steps_that_draw_nothing_per_frame_get_no_frame_generator(chain, derived, monkeypatch):
+    """fog.radar and a static occlusion.radar draw nothing per frame: the chain derives no frame generator for them
+    (≈ 20 µs per step and file) and their output is the one they give with a generator."""
+    import roadview_noise.compound as compound
+
+    src = ROOT / "sample_data" / "radar" / "seq0"
+    cloud = read_pointcloud(src / "000001.pcd", sensor="radar", profile=load_radar_profile(src / "radar.yaml"))
+    models = [get_model(m)(**({"seed_probability": 0.05} if m == "occlusion.radar" else {})) for m in chain]
+    keys = []
+    real = compound.derive_rng
+    monkeypatch.setattr(compound, "derive_rng", lambda seed, *k: keys.append(k) or real(seed, *k))
+    out, records = compound.apply_models(models, cloud, seed=5, key="f", sequence_id="s")
+    assert [k[1:] for k in keys if k[0] == "f"] == derived
+    data = cloud
+    for i, m in enumerate(models):
+        state = m.draw_sequence(real(5, "sequence", "s", m.id), data) if m.scope.value == "sequence" else {}
+        data, _ = m.apply(data, state=state, drawn={}, rng=real(5, "f", i, m.id))
+    assert np.array_equal(out.positions_m, data.positions_m)
+    assert all(np.array_equal(out.fields[k], data.fields[k]) for k in data.fields)
+    assert records[-1].diagnostics["points_removed"] > 0 or chain == ["fog.radar"]

@@ -29,5 +29,9 @@ class FogRadar(RadarWeather):
     visibility_m: float = param(30.0, unit="m", doc="meteorological optical range (D3.5: 30)", gt=0)
     temperature_c: float = param(10.0, unit="degC", doc="fog temperature (water permittivity)", ge=-10, le=40)
 
+    @property
+    def uses_frame_rng(self) -> bool:
+        return False                # no clutter: nothing random per frame
+
     def gamma_db_per_km(self, profile: RadarProfile) -> float:
         return fog_attenuation_db_per_km(self.visibility_m, profile.frequency_hz, self.temperature_c)

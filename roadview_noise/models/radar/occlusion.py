@@ -82,6 +82,10 @@ class OcclusionRadar(Model):
         blocked = np.unique((a * n_el + e)[inside])
         return len(seeds), tuple(blocked.tolist())
 
+    @property
+    def uses_frame_rng(self) -> bool:
+        return not self.static      # a static pattern is the sequence's
+
     def draw_sequence(self, rng, data):
         return self._pattern(rng, data, sequence=True) if self.static else {}
 
@@ -95,8 +99,10 @@ class OcclusionRadar(Model):
             raise ModelError(f"pattern drawn for a {pattern['grid_cells']} grid, the profile has "
                              f"{[len(az_e) - 1, len(el_e) - 1]}", model=self.id, field="state")
         blocked_cells = np.asarray(pattern["blocked_cells"], dtype=np.int64)
-        blocked = np.isin(angular_cell_index(data.positions_m, az_e, el_e), blocked_cells)
         n_cells = (len(az_e) - 1) * (len(el_e) - 1)
+        is_blocked = np.zeros(n_cells, dtype=bool)     # a look-up per cell: np.isin sorts (≈ 30 µs per frame)
+        is_blocked[blocked_cells] = True
+        blocked = is_blocked[angular_cell_index(data.positions_m, az_e, el_e)]
         diagnostics = {"seeds": int(pattern["seeds"]), "expected_seeds": self.seed_probability * n_cells,
                        "blocked_cells": len(blocked_cells), "blocked_fraction": len(blocked_cells) / n_cells,
                        "points_blocked": int(blocked.sum())}
@@ -110,7 +116,7 @@ class OcclusionRadar(Model):
             out = mark(with_loss(data, loss), blocked & (self.two_way_loss_db > 0), Effect.ATTENUATED)
             diagnostics.update(det.diagnostics())
         diagnostics["points_removed"] = int(remove.sum())
-        return out.drop(remove), diagnostics
+        return (out.drop(remove) if diagnostics["points_removed"] else out), diagnostics   # (the usual frame: none)
 
 
 def _pcg64_key(state: dict) -> tuple:
