@@ -552,23 +552,18 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     array is found once (:mod:`~roadview_noise.physics.return_ranges`): an array a step hands on unchanged
     (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
     counted. SAME_LINK takes the mean change over the cells that are returns in both when ``cells`` (grids), else
-    over every point; of a step that kept the values array it is 0 without a pass over the values."""
+    over every point."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
     else:
         valid_b = before["valid"] if link != SAME_LINK or cells else _NO_MASK
-        unchanged = link == SAME_LINK and before["values"] is values            # the step kept the values array
-        linked = (before["positions"], valid_b, values[:0] if unchanged else before["values"], step)
+        linked = (before["positions"], valid_b, before["values"], step)
     geometry = return_ranges.noted(positions, n_bins)
     if geometry is None:
-        got = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
-        return_ranges.note(positions, n_bins, got[0])
-    else:
-        got = (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
-    if before is not None and unchanged:        # each change is v − v = +0.0: their mean is 0.0 if one is finite
-        finite = np.isfinite(values[got[0][3] & valid_b] if len(valid_b) else values)
-        got = (*got[:-1], (*got[-1][:2], 0.0 if finite.any() else np.nan))
-    return got
+        full = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
+        return_ranges.note(positions, n_bins, full[0])
+        return full
+    return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
 
 
 def _link_mode(b: dict, a: dict, by_step: bool = False) -> int:
@@ -583,11 +578,12 @@ def _cell_by_cell(b: dict, a: dict) -> bool:
 
 
 def _same_points(link: int, b: dict, a: dict, step_origin: np.ndarray) -> int:
-    """SAME_LINK when ``link`` would find point i of ``b`` as point i of ``a``, unmoved: the same number of points,
-    no effect codes after the step (so no point MOVED or ADDED) and no step origin — a step that changed values
-    or positions only (laser power, alignment); else ``link``. Its correspondence is then not written but made
-    when read (:func:`_link`)."""
-    if link == NO_LINK or len(a["effect"]) or len(a["positions"]) != len(b["positions"]):
+    """SAME_LINK when ``link`` would find point i of ``b`` as point i of ``a``, unmoved: the step handed the positions
+    array on, wrote no effect codes (no point MOVED or ADDED) and no origin — a step that changed values only (laser
+    power); else ``link``. Its correspondence is then not written but made when read (:func:`_link`). (A step that
+    moves points without saying so, the alignment, keeps its STEP_LINK: with positions to count, the pass without
+    the writes measured slower in a run, 2.3 against 1.8 ms on the 128×2048 list.)"""
+    if link == NO_LINK or len(a["effect"]) or a["positions"] is not b["positions"]:
         return link
     return SAME_LINK if link != STEP_LINK or len(step_origin) == 0 else link
 

@@ -150,10 +150,10 @@ def test_the_provenance_links_what_the_position_walk_cannot(case):
 @pytest.mark.parametrize("grid", [False, True])
 @pytest.mark.parametrize("first", ["gain", "alignment"])
 def test_a_step_that_keeps_every_point_links_as_the_explicit_correspondence(first, grid):
-    """A step that keeps every point where it is in the list (laser power, alignment: no origin, no effect codes)
-    is linked without writing its correspondence (metrics.SAME_LINK): per step, through the next step and in
-    ``correspondence`` the same as the walk it replaces (forced here by all-KEPT effect codes), bit for bit; a
-    grid's no-return cells are linked to nothing, as cell by cell."""
+    """A step that hands the positions array on and writes no origin or effect codes (laser power) is linked
+    without writing its correspondence (metrics.SAME_LINK): per step, through the next step and in
+    ``correspondence`` the same as the link it replaces (forced here by all-KEPT effect codes), bit for bit; a
+    grid's no-return cells are linked to nothing, as cell by cell. An alignment (positions moved) keeps its link."""
     rng = np.random.default_rng(7 if grid else 8)
     c = random_list(rng, 512, "lidar", ring=False)
     if grid:
