@@ -19,7 +19,11 @@ steps' outputs (``positional``: clouds linked by matching positions, as before t
 made once beforehand and handed in as new objects each time (nothing cached, no noted geometry: the chain runs
 with metrics off, so the models count none), median and quartiles of ``--repeat``
 × 3 runs. Steadier than the on/off difference on a shared machine; run it in two worktrees to compare versions.
-The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run).
+The calls read every frame's luminance themselves (no sRGB pass to share, as outside a run). With ``--baseline DIR``
+(``--compare-only --baseline DIR``): the same calls with DIR's ``metrics.py`` (loaded as for ``--baseline`` below) and
+with this tree's, alternating, each after reading 64 MB so that the clouds come from memory as in a run, thread CPU
+time, median and quartiles of ``--repeat`` × 3 each: a paired A/B of the metrics' own work, much steadier than the
+per-file or whole-run increase on a shared machine (the models noting no geometry: for a CNF chain as in a run).
 
 ``--fusion``: per case, the per-file CPU time with metrics off, on, and on with the sRGB passes left plain (each
 frame's luminance read by the metrics themselves, ``luminance.collect`` kept off), interleaved in this process,
@@ -53,6 +57,7 @@ radar rain and CNF25.
 
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --compare-only [--repeat N] [--recipes cnf11,cnf05]
+    .venv/bin/python bench/bench_metrics.py --compare-only --baseline DIR [--repeat N] [--recipes cnf22,cnf20]
     .venv/bin/python bench/bench_metrics.py --fusion [--repeat N] [--recipes cnf11,cnf05]
     .venv/bin/python bench/bench_metrics.py --baseline DIR [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
@@ -79,6 +84,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numba  # noqa: E402
+import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
 import roadview_noise  # noqa: E402
@@ -275,8 +281,9 @@ def fusion_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repea
             f"({(plain / off - 1) * 100:+5.1f} %)")
 
 
-def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
-    """CPU ms of the ``compare`` calls of one file's chain (``--compare-only``)."""
+def _chain_of(name: str, folder: str, roots: dict[str, Path], tmp: Path) -> tuple | None:
+    """(each step's result, starting with the input; each step's own output, None first; label) of one file's chain
+    run with metrics off, or None when the case has no input."""
     real = folder == "real"
     in_root = roots["real" if real else "gen"]
     recipe = load_recipe(recipe_file(name, True, real, tmp))
@@ -300,15 +307,30 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
                      sequence_id=task.sample.sequence_id, metrics=False)
     finally:
         compound.follow = follow
+    return chain, steps, "real OS1-128 scan0.bin" if real else task.sample.relpath
+
+
+def _chain_compares(chain: list, steps: list, by_step: bool = True, compare_fn=compare) -> list[dict]:
+    """The ``compare`` calls a run makes for this chain, on new objects (no cached summaries, no geometry kept for
+    their arrays): each step's input against its output (with the step's own output when ``by_step``, as
+    ``apply_models`` hands it in), then, for a chain of several steps, its input against its output."""
+    items = [dataclasses.replace(d) for d in chain]
+    return_ranges.collect(False)
+    got = [compare_fn(before, after, step if by_step else None)
+           for before, after, step in zip(items, items[1:], steps[1:])]
+    return got + ([compare_fn(items[0], items[-1])] if len(items) > 2 else [])
+
+
+def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int) -> str | None:
+    """CPU ms of the ``compare`` calls of one file's chain (``--compare-only``)."""
+    got = _chain_of(name, folder, roots, tmp)
+    if got is None:
+        return None
+    chain, steps, label = got
 
     def once(by_step: bool) -> float:
-        items = [dataclasses.replace(d) for d in chain]             # new objects: no cached summaries
-        return_ranges.collect(False)                                # ... nor geometry kept for their arrays
         t0 = time.process_time()
-        for before, after, step in zip(items, items[1:], steps[1:]):
-            compare(before, after, step if by_step else None)       # by_step: as apply_models does
-        if len(items) > 2:
-            compare(items[0], items[-1])
+        _chain_compares(chain, steps, by_step)
         return (time.process_time() - t0) * 1e3
 
     times: dict[bool, list[float]] = {True: [], False: []}
@@ -319,8 +341,32 @@ def compare_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repe
                 times[by_step].append(t)
     (q1, med, q3), (_, positional, _) = (statistics.quantiles(times[k], n=4) if len(times[k]) > 1 else times[k] * 3
                                          for k in (True, False))
-    label = "real OS1-128 scan0.bin" if real else task.sample.relpath
     return f"  {name:<18} {label:<38} {med:7.2f} ms  [{q1:.2f}–{q3:.2f}]   positional {positional:7.2f} ms"
+
+
+def compare_paired_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, repeat: int,
+                        baseline: Path) -> str | None:
+    """``--compare-only --baseline DIR``: the chain's ``compare`` calls with DIR's metrics and with this tree's,
+    alternating, each after reading 64 MB (the frame's data out of the caches, as in a run); thread CPU ms."""
+    got = _chain_of(name, folder, roots, tmp)
+    if got is None:
+        return None
+    chain, steps, label = got
+    modules = {"base": _baseline_version(baseline)[0], "this": this_metrics}
+    if _chain_compares(chain, steps, compare_fn=modules["base"].compare) != _chain_compares(chain, steps):
+        raise RuntimeError(f"{name} {folder}: the two versions' metrics differ")
+    flush = np.ones(8 << 20)
+    times: dict[str, list[float]] = {k: [] for k in modules}
+    for r in range(3 * repeat + 1):
+        for kind in (("base", "this") if r % 2 else ("this", "base")):
+            flush.sum()
+            t0 = time.thread_time()
+            _chain_compares(chain, steps, compare_fn=modules[kind].compare)
+            if r:
+                times[kind].append((time.thread_time() - t0) * 1e3)
+    q = {k: statistics.quantiles(v, n=4) for k, v in times.items()}
+    return f"  {name:<18} {label:<38} " + "   ".join(f"{k} {q[k][1]:6.2f} ms [{q[k][0]:.2f}–{q[k][2]:.2f}]"
+                                                     for k in modules)
 
 
 def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool, cpu: bool = False) -> tuple:
@@ -439,7 +485,10 @@ def main() -> None:
             shutil.copy(SHARED_OS1 / "scan0.bin", roots["real"] / REAL_SCAN)
         else:
             print("(real OS1-128 scan absent: ../shared/data/os1-128/scan0.bin)")
-        if args.baseline:
+        if args.baseline and args.compare_only:
+            print(f"metrics.compare calls of one file's chain, thread CPU ms, median [quartiles] of {3 * args.repeat}, "
+                  f"{args.baseline}'s metrics and this tree's alternating, caches flushed before each:")
+        elif args.baseline:
             print(f"per file in the worker, CPU ms, medians of {args.repeat} interleaved runs: metrics off, on with "
                   f"{args.baseline}'s metrics, on with this tree's:")
         elif args.fusion:
@@ -453,7 +502,9 @@ def main() -> None:
             for folder in CASES[name]:
                 if folder == "real" and not (roots["real"] / REAL_SCAN).is_file():
                     continue
-                if args.baseline:
+                if args.baseline and args.compare_only:
+                    line = compare_paired_case(name, folder, roots, tmp, args.repeat, args.baseline.resolve())
+                elif args.baseline:
                     line = baseline_case(name, folder, roots, tmp, args.repeat, args.baseline.resolve())
                 else:
                     case = fusion_case if args.fusion else compare_case if args.compare_only else bench_case

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from roadview_noise.metrics import compare, correspondence
+from roadview_noise.physics.lidar_geometry import has_return
 from roadview_noise.profiles.lidar import os1_128
 from roadview_noise.provenance import Effect, follow_points, mark, step_input
 from roadview_noise.types import PointCloud, RadarProfile
@@ -144,3 +145,33 @@ def test_the_provenance_links_what_the_position_walk_cannot(case):
     assert np.array_equal(index, np.where(keep, np.cumsum(keep) - 1, -1)) and not moved.any()
     walked, _ = correspondence(fresh(c0), fresh(c1))
     assert not np.array_equal(walked, index)
+
+
+@pytest.mark.parametrize("grid", [False, True])
+@pytest.mark.parametrize("first", ["gain", "alignment"])
+def test_a_step_that_keeps_every_point_links_as_the_explicit_correspondence(first, grid):
+    """A step that hands the positions array on and writes no origin or effect codes (laser power) is linked
+    without writing its correspondence (metrics.SAME_LINK): per step, through the next step and in
+    ``correspondence`` the same as the link it replaces (forced here by all-KEPT effect codes), bit for bit; a
+    grid's no-return cells are linked to nothing, as cell by cell. An alignment (positions moved) keeps its link."""
+    rng = np.random.default_rng(7 if grid else 8)
+    c = random_list(rng, 512, "lidar", ring=False)
+    if grid:
+        empty = rng.random(len(c)) < 0.15
+        c = dataclasses.replace(c, positions_m=np.where(empty[:, None], 0.0, c.positions_m), grid_shape=(8, 64))
+    first_out = STEPS[first](step_input(c), rng)
+    second_out = weather(step_input(first_out), rng, drop=0.0 if grid else 0.2, move=0.1, add=0)
+    kept = dataclasses.replace(first_out, effect=np.zeros(len(first_out), np.uint8))     # not the same points
+    chains = []
+    for one in (first_out, kept):
+        b = follow_points(c, one, 0)
+        chains.append((dataclasses.replace(c), b, follow_points(b, second_out, 1), one))
+    (a0, b0, c0, s0), (a1, b1, c1, s1) = chains
+    assert compare(a0, b0, s0) == compare(a1, b1, s1)
+    assert compare(b0, c0, second_out) == compare(b1, c1, second_out)
+    assert compare(a0, c0) == compare(a1, c1)
+    for x0, y0, x1, y1 in ((a0, b0, a1, b1), (a0, c0, a1, c1)):
+        got, want = correspondence(x0, y0), correspondence(x1, y1)
+        assert all(np.array_equal(g, w) for g, w in zip(got, want))
+    if grid:
+        assert np.array_equal(correspondence(a0, b0)[0] < 0, ~has_return(c.positions_m) | ~has_return(b0.positions_m))
