@@ -25,8 +25,9 @@ _done = False
 _IMAGE = {"roadview_noise.physics.srgb": None, "roadview_noise.luminance": None, "roadview_noise.io.png": None,
           "roadview_noise.metrics": ("_grey_statistics", "_depth_bin_index", "_ssim_map")}
 _POINTS = {"roadview_noise.io.pointcloud": None,
-           "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_same_position",
-                                      "_is_return", "_compose", "_same_ray", "_change", "_mean_change_through")}
+           "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_step_pass", "_same_pass",
+                                      "_same_position", "_is_return", "_compose", "_same_ray", "_change",
+                                      "_mean_change_through")}
 KIND_KERNELS = {"camera": _IMAGE, "lidar": _POINTS, "radar": _POINTS}
 
 
