@@ -7,9 +7,10 @@ documentation). It implements:
   ``derive_rng(seed, "sequence", sequence_id, model_id)``; JSON-able (lists, floats), recorded in the manifest.
 - ``draw(rng, data) -> dict``: per-frame scalar random choices, recorded in the manifest.
 - ``apply(data, *, state, drawn, rng) -> (data, diagnostics)``: deterministic given ``state`` and ``drawn`` except
-  for high-dimensional noise taken from ``rng`` (None for a model whose ``uses_frame_rng`` is False); never mutates ``data``; diagnostics is a JSON-able dict. A cloud
-  model that removes, adds or reorders points does it with ``select``/``drop``/``concat`` (or sets ``origin`` and
-  ``effect`` itself), so annotations follow (:mod:`roadview_noise.provenance`); it never touches label fields.
+  for high-dimensional noise taken from ``rng`` (None for a model whose ``uses_frame_rng`` is False); never mutates
+  ``data``; diagnostics is a JSON-able dict. A cloud model that removes, adds or reorders points does it with
+  ``select``/``drop``/``concat`` (or sets ``origin`` and ``effect`` itself), so annotations follow
+  (:mod:`roadview_noise.provenance`); it never touches label fields.
 """
 
 from __future__ import annotations

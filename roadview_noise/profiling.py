@@ -1,11 +1,12 @@
 """Where one file's time goes (``rvnoise augment --profile``): named spans, summed per task, off by default.
 
-:func:`span` and :func:`phase` cost one global lookup when profiling is off (they return a shared no-op context). The runner turns it on per task (:func:`collect`) and
-derives the split the manifest records as ``profile`` (seconds): ``read`` (input bytes from storage), ``hash``
-(sha256 of inputs and outputs), ``decode`` (image/depth/cloud decoding and the reader's own work, sRGB conversion
-excluded), ``convert`` (sRGB ↔ linear), ``models`` (per model id), ``metrics``, ``encode`` (the writers' work, sRGB
-conversion and the writes excluded), ``write`` (bytes to storage; the fsync too where the worker does it: not in a
-local run, ``output_sync``), ``other`` (the rest: sidecars, annotations, the manifest entry) and ``total``.
+:func:`span` and :func:`phase` cost one global lookup when profiling is off (they return a shared no-op context). The
+runner turns it on per task (:func:`collect`) and derives the split the manifest records as ``profile`` (seconds):
+``read`` (input bytes from storage), ``hash`` (sha256 of inputs and outputs), ``decode`` (image/depth/cloud decoding
+and the reader's own work, sRGB conversion excluded), ``convert`` (sRGB ↔ linear), ``models`` (per model id),
+``metrics``, ``encode`` (the writers' work, sRGB conversion and the writes excluded), ``write`` (bytes to storage;
+the fsync too where the worker does it: not in a local run, ``output_sync``), ``other`` (the rest: sidecars,
+annotations, the manifest entry) and ``total``.
 """
 
 from __future__ import annotations
