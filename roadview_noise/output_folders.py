@@ -17,9 +17,9 @@ from collections import OrderedDict
 from pathlib import Path
 
 from .io.atomic import ensure_dir_inside
+from .real_folders import FOLDER_FLAGS
 
 OPEN_FOLDERS = 32           # descriptors kept at once (least recently used closed first)
-FOLDER_FLAGS = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_CLOEXEC", 0)
 
 
 class OutputFolders:

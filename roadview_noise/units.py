@@ -30,6 +30,7 @@ def _ray_factor_kernel(u2, v2, out):                                          # 
         for x in range(out.shape[1]):
             out[y, x] = np.float32(np.sqrt((1.0 + u2[x]) + v2[y]))
 
+
 def planar_depth_to_range(z_m: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """Euclidean range along each pixel ray from planar depth z (models.md §0.2):
     ``d = z·sqrt(1 + ((u−c_x)/f_x)² + ((v−c_y)/f_y)²)``."""
