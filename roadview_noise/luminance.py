@@ -25,7 +25,8 @@ import numpy as np
 
 from .physics import srgb
 from .physics.compiled import jit
-from .physics.srgb import _code8, decode_table, encode8_table, reversed_rgb
+from .physics.srgb import (_decode_kernel, _decode_reversed_kernel, _encode8_kernel, _encode8_reversed_kernel,
+                           decode_table, encode8_table, reversed_rgb)
 
 MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
@@ -128,7 +129,8 @@ class SidePass:
             return False
         f = metric_scale(*code.shape[:2])
         blocks = np.empty((code.shape[0] // f, code.shape[1] // f), np.float32)
-        _decode8_blocks(code, reverse, decode_table(8), f, _weights(), out, blocks)
+        _decode8_blocks(code.reshape(1, 1, -1), code.reshape(-1, 3), reverse, decode_table(8), f, _weights(),
+                        out.reshape(out.shape[0], -1), out.reshape(1, 1, -1), out.reshape(-1, 3), blocks)
         _keep(out, f, blocks)
         return True
 
@@ -141,25 +143,29 @@ class SidePass:
             return False
         f = metric_scale(*linear.shape[:2])
         blocks = np.empty((linear.shape[0] // f, linear.shape[1] // f), np.float32)
-        _encode8_blocks(linear, bgr, *encode8_table(), f, _weights(), out, blocks)
+        _encode8_blocks(linear.reshape(linear.shape[0], -1), linear.reshape(-1).view(np.uint32), bgr,
+                        *encode8_table(), f, _weights(), out.reshape(-1), blocks)
         _keep(linear, f, blocks)
         return True
 
 
-@jit(inline="always")
-def _add_row(row, i, f, acc, channel, weights, blocks):       # pragma: no cover - compiled
-    """Add row ``i`` of a float32 RGB frame (W·3 values) to the column sums ``acc`` of its block row; its last
-    row finishes the blocks' luminance."""
-    b = i // f
-    if b >= blocks.shape[0]:
-        return
-    k = i - b * f
-    if k == 0:
-        acc[:] = row[:acc.shape[0]]
+@jit
+def _strip_luminance(rows, i, f, acc, channel, weights, out_row):       # pragma: no cover - compiled
+    """A row of blocks ``out_row`` from rows i … i + f − 1 of a float32 frame (H, W·3): the column sums ``acc`` of
+    the f rows in order, then the blocks' luminance."""
+    last = i + f - 1
+    if f >= 4:                              # three rows per pass over acc: a third of its loads and stores
+        _sum4(acc, rows[i], rows[i + 1], rows[i + 2], rows[i + 3])
+        i += 3
     else:
-        _add_to(acc, row)
-    if k == f - 1:
-        _block_luminance(acc, f, channel, weights, blocks[b])
+        acc[:] = rows[i, :acc.shape[0]]
+    while i + 3 <= last:
+        _add3_to(acc, rows[i + 1], rows[i + 2], rows[i + 3])
+        i += 3
+    while i < last:
+        i += 1
+        _add_to(acc, rows[i])
+    _block_luminance(acc, f, channel, weights, out_row)
 
 
 @jit
@@ -170,52 +176,61 @@ def _add_to(acc, row):       # pragma: no cover - compiled
 
 
 @jit
+def _sum4(acc, a, b, c, d):       # pragma: no cover - compiled
+    """acc = ((a + b) + c) + d over acc's length (float32, in this order)."""
+    for j in range(acc.shape[0]):
+        acc[j] = ((a[j] + b[j]) + c[j]) + d[j]
+
+
+@jit
+def _add3_to(acc, a, b, c):       # pragma: no cover - compiled
+    """acc = ((acc + a) + b) + c over acc's length (float32, in this order: three :func:`_add_to` in one pass)."""
+    for j in range(acc.shape[0]):
+        acc[j] = ((acc[j] + a[j]) + b[j]) + c[j]
+
+
+@jit
 def _luminance_area(rows, f, weights, out):                   # pragma: no cover - compiled
     acc = np.empty(out.shape[1] * f * 3, np.float32)
     channel = np.arange(3)
-    for i in range(out.shape[0] * f):
-        _add_row(rows[i], i, f, acc, channel, weights, out)
+    for b in range(out.shape[0]):
+        _strip_luminance(rows, b * f, f, acc, channel, weights, out[b])
 
 
 @jit
-def _decode8_blocks(codes, reverse, table, f, weights, out, blocks):     # pragma: no cover - compiled
-    """``out`` (H, W, 3 RGB) = ``table`` of ``codes`` (H, W, 3; BGR if ``reverse``), and its luminance blocks; row
-    by row, each added to the block sums while in cache."""
+def _decode8_blocks(flat, pixels, reverse, table, f, weights, out, out_flat, out_pixels, blocks):   # pragma: no cover
+    """``out`` (H, W·3 RGB; ``out_flat``, ``out_pixels`` its (1, 1, H·W·3) and (H·W, 3) views) = ``table`` of the
+    codes, ``flat`` (1, 1, H·W·3) or, if ``reverse``, ``pixels`` ((H·W, 3) BGR), and its luminance blocks; f rows at
+    a time, summed while in cache."""
     acc = np.empty(blocks.shape[1] * f * 3, np.float32)
     rgb = np.arange(3)
-    w = codes.shape[1]
-    for i in range(codes.shape[0]):
-        src, dst = codes[i], out[i]
+    w = out.shape[1] // 3
+    for b in range(blocks.shape[0] + 1):
+        start, stop = b * f * w, (out.shape[0] if b == blocks.shape[0] else (b + 1) * f) * w
         if reverse:
-            for p in range(w):
-                for k in range(3):
-                    dst[p, k] = table[src[p, 2 - k]]
+            _decode_reversed_kernel(pixels[start:stop], table, out_pixels[start:stop])
         else:
-            for p in range(w):
-                for k in range(3):
-                    dst[p, k] = table[src[p, k]]
-        _add_row(dst.reshape(w * 3), i, f, acc, rgb, weights, blocks)
+            _decode_kernel(flat[:, :, 3 * start:3 * stop], table, out_flat[:, :, 3 * start:3 * stop])
+        if b < blocks.shape[0]:
+            _strip_luminance(out, b * f, f, acc, rgb, weights, blocks[b])
 
 
 @jit
-def _encode8_blocks(linear, reverse, table, levels, f, weights, out, blocks):   # pragma: no cover - compiled
-    """``out`` (H, W, 3) = the 8-bit codes of float32 ``linear`` (H, W, 3 RGB), BGR if ``reverse``, and its
-    luminance blocks."""
+def _encode8_blocks(rows, xbits, reverse, table, levels, f, weights, out, blocks):   # pragma: no cover
+    """``out`` (flat) = the 8-bit codes of the float32 frame ``rows`` (H, W·3 RGB; ``xbits`` its flat bit
+    patterns), BGR if ``reverse``, and its luminance blocks; f rows at a time, summed while in cache."""
     acc = np.empty(blocks.shape[1] * f * 3, np.float32)
     rgb = np.arange(3)
-    w = linear.shape[1]
-    for i in range(linear.shape[0]):
-        src, dst = linear[i], out[i]
-        bits = src.view(np.uint32)
-        if reverse:
-            for p in range(w):
-                for k in range(3):
-                    dst[p, 2 - k] = _code8(bits[p, k], table, levels)
+    n = rows.shape[1]
+    for b in range(blocks.shape[0] + 1):
+        start, stop = b * f * n, (rows.shape[0] if b == blocks.shape[0] else (b + 1) * f) * n
+        if reverse:                             # the rows' values two at a time, as srgb.linear_to_code reads them
+            part = xbits[start:stop]
+            _encode8_reversed_kernel(part, part[:part.size // 2 * 2].view(np.uint64), out[start:stop], table, levels)
         else:
-            for p in range(w):
-                for k in range(3):
-                    dst[p, k] = _code8(bits[p, k], table, levels)
-        _add_row(src.reshape(w * 3), i, f, acc, rgb, weights, blocks)
+            _encode8_kernel(xbits[start:stop], out[start:stop], table, levels)
+        if b < blocks.shape[0]:
+            _strip_luminance(rows, b * f, f, acc, rgb, weights, blocks[b])
 
 
 @jit
