@@ -33,9 +33,10 @@ runs on a loaded machine.
 ``--baseline DIR``: per case, the per-file CPU time with metrics off, on with the metrics of another version of the
 code and on with this tree's, interleaved in this process (the order rotates every run), medians and quartiles of
 ``--repeat``: a paired A/B of two versions on a shared machine. DIR is a worktree or an export of a commit (``git
-archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py`` is loaded beside this tree's (its relative
-imports resolve to this tree's modules, so use it for versions that differ in ``metrics.py``) and its step records
-are turned into manifest dicts as its ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
+archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py`` and ``luminance.py`` are loaded beside this
+tree's (its metrics bound to its luminance, their other relative imports resolving to this tree's modules, so use it
+for versions that differ in those two files) and its step records are turned into manifest dicts as its
+``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
 While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
 unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
 The first runs of each check that both versions write the same metrics.
@@ -184,13 +185,14 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     tasks = [t for t in plan(in_root, ctxs[True].recipe) if real or t.sample.relpath.startswith(folder)]
     if not tasks:
         return None
-    versions = {"base": _baseline_version(baseline), "this": (this_metrics, compound.StepRecord.as_entry)}
+    versions = {"base": _baseline_version(baseline), "this": (this_metrics, compound.StepRecord.as_entry, luminance)}
     collect = return_ranges.collect
 
     def once(kind: str) -> tuple[float, dict]:
         if kind != "off":
-            module, compound.StepRecord.as_entry = versions[kind]
+            module, compound.StepRecord.as_entry, lum = versions[kind]
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
+            sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = lum
         if kind == "base" and not hasattr(module, "return_ranges"):     # models note no geometry for it
             return_ranges.collect = lambda on: collect(False)
         try:
@@ -199,6 +201,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
             cpu = time.process_time() - t0
         finally:
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = this_metrics
+            sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
             compound.StepRecord.as_entry = versions["this"][1]
             return_ranges.collect = collect
         if "error" in entry:
@@ -228,19 +231,31 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
 
 
 def _baseline_version(tree: Path) -> tuple:
-    """(metrics module, ``StepRecord.as_entry``) of another version of the code (``--baseline``)."""
-    spec = importlib.util.spec_from_file_location("roadview_noise.metrics_baseline",
-                                                  tree / "roadview_noise" / "metrics.py")
+    """(metrics module, ``StepRecord.as_entry``, luminance module) of another version of the code (``--baseline``):
+    its ``luminance.py`` and its ``metrics.py`` bound to it."""
+    luminance_base = _load_beside(tree, "luminance")
+    try:
+        sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance_base
+        module = _load_beside(tree, "metrics")
+    finally:
+        sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
+    has_entry = "def as_entry(" in (tree / "roadview_noise" / "compound.py").read_text()
+    return module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict), luminance_base
+
+
+def _load_beside(tree: Path, name: str):
+    """``tree``'s ``roadview_noise/<name>.py`` as a module of its own (its relative imports: this tree's modules)."""
+    spec = importlib.util.spec_from_file_location(f"roadview_noise.{name}_baseline",
+                                                  tree / "roadview_noise" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
-    module.__package__ = "roadview_noise"                   # its relative imports: this tree's modules
+    module.__package__ = "roadview_noise"
     jit = compiled.jit
     compiled.jit = _uncached_jit                            # numba's cache would mix the module's two names
     try:
         spec.loader.exec_module(module)
     finally:
         compiled.jit = jit
-    has_entry = "def as_entry(" in (tree / "roadview_noise" / "compound.py").read_text()
-    return module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict)
+    return module
 
 
 def _uncached_jit(fn=None, **options):

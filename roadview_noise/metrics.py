@@ -56,7 +56,7 @@ from .physics.compiled import jit
 from .physics import return_ranges
 from .physics.lidar_geometry import has_return
 from .physics.return_ranges import RANGE_BIN_M
-from .physics.srgb import linear_to_code
+from .physics.srgb import _code16, encode16_table
 from .provenance import Effect
 from .types import CameraFrame, LidarProfile, PointCloud, RawFrame, SensorData
 
@@ -191,12 +191,23 @@ def _grey(frame: CameraFrame | RawFrame) -> tuple[np.ndarray, np.ndarray | None,
             y = blocks_of(frame.linear_rgb, f)
             y = luminance_area(frame.linear_rgb, f) if y is None else y
         block = f
-    grey = linear_to_code(y, 16).astype(np.float32) * np.float32(1 / 65535)
+    grey = np.empty(y.shape, np.float32)
+    _grey_codes(np.ascontiguousarray(y, dtype=np.float32).reshape(-1).view(np.uint32), *encode16_table(),
+                grey.reshape(-1))
     depth = None
     if frame.depth_m is not None:
         c = block // 2
         depth = frame.depth_m[c::block, c::block][: grey.shape[0], : grey.shape[1]]
     return grey, depth, f
+
+
+@jit
+def _grey_codes(ybits, first, code, nxt_bits, out):                     # pragma: no cover - compiled
+    """``out`` = the 16-bit sRGB codes of the luminance values whose float32 bit patterns are ``ybits``, scaled to
+    0–1 (``srgb.linear_to_code(y, 16)`` as float32 × (1 / 65535), in one pass)."""
+    scale = np.float32(1 / 65535)
+    for i in range(ybits.size):
+        out[i] = np.float32(_code16(ybits[i], first, code, nxt_bits)) * scale
 
 
 def _frame_summary(frame: CameraFrame | RawFrame) -> dict:

@@ -30,7 +30,7 @@ def random_codes(h: int, w: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
 
 
-@pytest.mark.parametrize("shape", [(1464, 1936), (301, 517), (5, 7)])
+@pytest.mark.parametrize("shape", [(1464, 1936), (301, 517), (600, 601), (5, 7)])
 @pytest.mark.parametrize("bgr", [False, True])
 def test_decode_keeps_the_blocks_of_its_frame_bit_for_bit(collecting, shape, bgr):
     stored = random_codes(*shape)
@@ -47,13 +47,40 @@ def test_decode_keeps_the_blocks_of_its_frame_bit_for_bit(collecting, shape, bgr
     assert srgb.attached_codes(linear, 8) is codes                  # still an unchanged decoded frame
 
 
+def reference_luminance_area(rgb: np.ndarray, f: int) -> np.ndarray:
+    """luminance.py's order of float32 operations in NumPy: per block row, each column summed over its f rows in
+    order, then the f columns of a block in order, scaled and weighted."""
+    h, w = rgb.shape[0] // f, rgb.shape[1] // f
+    weights = np.asarray(luminance.LUMINANCE_WEIGHTS, np.float32)
+    out = np.empty((h, w), np.float32)
+    for i in range(h):
+        acc = rgb[i * f, : w * f].astype(np.float32)
+        for k in range(1, f):
+            acc = acc + rgb[i * f + k, : w * f]
+        acc = acc.reshape(w, f, 3)
+        total = acc[:, 0]
+        for k in range(1, f):
+            total = total + acc[:, k]
+        scaled = total * (np.float32(1) / np.float32(f * f))
+        out[i] = (scaled[:, 0] * weights[0] + scaled[:, 1] * weights[1]) + scaled[:, 2] * weights[2]
+    return out
+
+
+@pytest.mark.parametrize("shape", [(9, 11), (301, 517), (600, 601), (1465, 1937)])    # f = 1, 2, 3, 7
+def test_luminance_area_sums_in_the_documented_order(shape):
+    linear = np.random.default_rng(3).uniform(0, 1, (*shape, 3)).astype(np.float32)
+    f = metric_scale(*shape)
+    np.testing.assert_array_equal(luminance_area(linear, f), reference_luminance_area(linear, f))
+
+
+@pytest.mark.parametrize("shape", [(301, 517), (1465, 1937)])        # odd widths: rows start at odd pixels
 @pytest.mark.parametrize("bgr", [False, True])
-def test_encode_keeps_the_blocks_of_a_wanted_frame_only(collecting, bgr):
+def test_encode_keeps_the_blocks_of_a_wanted_frame_only(collecting, shape, bgr):
     rng = np.random.default_rng(1)
-    linear = rng.uniform(-0.1, 1.1, (301, 517, 3)).astype(np.float32)
+    linear = rng.uniform(-0.1, 1.1, (*shape, 3)).astype(np.float32)
     linear[0, :4, 0] = [np.nan, np.inf, 0.0031308, 1.0]               # the encode's edge cases stay as they were
     other = linear.copy()
-    f = metric_scale(301, 517)
+    f = metric_scale(*shape)
     plain = srgb.linear_to_code(other, 8, bgr=bgr)
     assert blocks_of(other, f) is None and other.flags.writeable      # not wanted: the plain pass
     luminance.want(linear)
