@@ -26,8 +26,7 @@ import numpy as np
 
 from .physics import srgb
 from .physics.compiled import jit
-from .physics.srgb import (_decode_kernel, _decode_reversed_kernel, _encode8_kernel, _encode8_reversed_kernel,
-                           decode_table, encode8_table, reversed_rgb)
+from .physics.srgb import _encode8_kernel, _encode8_reversed_kernel, decode_table, encode8_table, reversed_rgb
 
 MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
@@ -131,8 +130,8 @@ class SidePass:
             return False
         f = metric_scale(*code.shape[:2])
         blocks = np.empty((code.shape[0] // f, code.shape[1] // f), np.float32)
-        _decode8_blocks(code.reshape(1, 1, -1), code.reshape(-1, 3), reverse, decode_table(8), f, _weights(),
-                        out.reshape(out.shape[0], -1), out.reshape(1, 1, -1), out.reshape(-1, 3), blocks)
+        _decode8_blocks(code.reshape(code.shape[0], -1), reverse, decode_table(8), f, _weights(),
+                        out.reshape(out.shape[0], -1), blocks)
         _keep(out, f, blocks)
         return True
 
@@ -200,19 +199,17 @@ def _luminance_area(rows, f, weights, out):                   # pragma: no cover
 
 
 @jit
-def _decode8_blocks(flat, pixels, reverse, table, f, weights, out, out_flat, out_pixels, blocks):   # pragma: no cover
-    """``out`` (H, W·3 RGB; ``out_flat``, ``out_pixels`` its (1, 1, H·W·3) and (H·W, 3) views) = ``table`` of the
-    codes, ``flat`` (1, 1, H·W·3) or, if ``reverse``, ``pixels`` ((H·W, 3) BGR), and its luminance blocks; f rows at
-    a time, summed while in cache."""
+def _decode8_blocks(codes, reverse, table, f, weights, out, blocks):   # pragma: no cover - compiled
+    """``out`` (H, W·3 RGB) = ``table`` of the 8-bit ``codes`` (H, W·3 in memory order; BGR if ``reverse``), and
+    its luminance blocks; f rows at a time, summed while in cache."""
     acc = np.empty(blocks.shape[1] * f * 3, np.float32)
     rgb = np.arange(3)
-    w = out.shape[1] // 3
     for b in range(blocks.shape[0] + 1):
-        start, stop = b * f * w, (out.shape[0] if b == blocks.shape[0] else (b + 1) * f) * w
-        if reverse:
-            _decode_reversed_kernel(pixels[start:stop], table, out_pixels[start:stop])
-        else:
-            _decode_kernel(flat[:, :, 3 * start:3 * stop], table, out_flat[:, :, 3 * start:3 * stop])
+        for i in range(b * f, out.shape[0] if b == blocks.shape[0] else (b + 1) * f):
+            if reverse:
+                _look_up_reversed(codes[i], table, out[i])
+            else:
+                _look_up(codes[i], table, out[i])
         if b < blocks.shape[0]:
             _strip_luminance(out, b * f, f, acc, rgb, weights, blocks[b])
 
@@ -262,6 +259,24 @@ def _look_up(row, table, out):       # pragma: no cover - compiled
         out[4 * j + 3] = table[(v >> s3) & 255]
     for j in range(4 * m, out.shape[0]):
         out[j] = table[row[j]]
+
+
+@jit
+def _look_up_reversed(row, table, out):       # pragma: no cover - compiled
+    """out = table of the pixels of ``row`` (BGR codes, 3 per pixel) in RGB order, four pixels per three 32-bit
+    loads."""
+    m = out.shape[0] // 12
+    words = row[:12 * m].view(np.uint32)
+    s0, s1, s2, s3 = _BYTE_SHIFTS
+    for q in range(m):                      # bytes B0 G0 R0 B1 | G1 R1 B2 G2 | R2 B3 G3 R3
+        a, b, c = words[3 * q], words[3 * q + 1], words[3 * q + 2]
+        i = 12 * q
+        out[i], out[i + 1], out[i + 2] = table[(a >> s2) & 255], table[(a >> s1) & 255], table[(a >> s0) & 255]
+        out[i + 3], out[i + 4], out[i + 5] = table[(b >> s1) & 255], table[(b >> s0) & 255], table[(a >> s3) & 255]
+        out[i + 6], out[i + 7], out[i + 8] = table[(c >> s0) & 255], table[(b >> s3) & 255], table[(b >> s2) & 255]
+        out[i + 9], out[i + 10], out[i + 11] = table[(c >> s3) & 255], table[(c >> s2) & 255], table[(c >> s1) & 255]
+    for j in range(12 * m, out.shape[0]):
+        out[j] = table[row[j + 2 - 2 * (j % 3)]]
 
 
 @jit
