@@ -2,9 +2,10 @@
 change a single value.)
 
 Runs ``rvnoise augment`` with this worktree's code and with a baseline worktree's (``--baseline``, e.g. ../main;
-each in a subprocess with its own tree first on ``PYTHONPATH``) on the LiDAR and radar recipes, on ``sample_data``
-on the real OS1-128 scan (``../shared/data/os1-128/scan0.bin`` with its own beam table, when present) and with
-``--generated`` on the full-resolution generated tree of ``bench/bench_metrics.py`` (128×2048 grid and list), and
+each in a subprocess with its own tree first on ``PYTHONPATH``) on the LiDAR and radar recipes (or any shipped
+recipes, camera ones too: ``--recipes``), on ``sample_data``, for LiDAR recipes on the real OS1-128 scan
+(``../shared/data/os1-128/scan0.bin`` with its own beam table, when present) and with ``--generated`` on the
+full-resolution generated tree of ``bench/bench_metrics.py`` (128×2048 grid and list, 1936×1464 camera), and
 compares per output: the manifest's ``metrics``, every step's ``metrics`` (parsed JSON: equal floats are equal
 bits) and the output files' sha256. Prints one line per recipe and input tree, exits 1 on any difference.
 
@@ -21,6 +22,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from roadview_noise.recipe import load_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_OS1 = ROOT.parent / "shared" / "data" / "os1-128"
@@ -84,7 +87,7 @@ def main() -> int:
             trees["generated"] = (tmp / "generated", "")
         for recipe in recipes:
             for label, (tree, lidar_profile) in trees.items():
-                if label == "real OS1-128" and "radar" in recipe:
+                if label == "real OS1-128" and load_recipe(ROOT / "recipes" / f"{recipe}.yaml").sensor != "lidar":
                     continue
                 runs = [augment(code, recipe, tree, tmp / "out", args.workers, lidar_profile)
                         for code in (args.baseline.resolve(), ROOT)]
