@@ -153,12 +153,12 @@ def _cells(firing, valid, ring, offsets, shift, step, columns, channels):       
     for i in range(len(ring)):
         if not valid[i]:
             continue
-        b = ring[i]
-        c = _wrap(int(math.floor(-firing[i] * inv_step - shift[b] + 0.5)), columns)
+        b = np.uintp(ring[i])                          # (unsigned indices: no negative-index wraparound compiled)
+        c = np.uintp(_wrap(int(math.floor(-firing[i] * inv_step - shift[b] + 0.5)), columns))
         occupied[b, c] = True
         if like[c] < 0:
             like[c] = i
-        seen[_wrap(int(math.floor((firing[i] - offsets[b]) * inv_step)), columns)] = True
+        seen[np.uintp(_wrap(int(math.floor((firing[i] - offsets[b]) * inv_step)), columns))] = True
     return occupied, like, seen
 
 
@@ -311,8 +311,8 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
                 ring[p] = b
             else:
                 b = carried[p]
-            firing[p] += offsets[b]
-            counts[b] += 1
+            firing[p] += offsets[np.uintp(b)]              # (unsigned: no negative-index wraparound compiled)
+            counts[np.uintp(b)] += 1
     return ring, firing, counts
 
 

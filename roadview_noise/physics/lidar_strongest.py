@@ -41,7 +41,7 @@ from .lidar_echo import NO_RETURN, TARGET, WEATHER, BackgroundLevels, RayReturns
     crest_background, ray_return
 from .lidar_medium import pulse_length_m
 from .lidar_particles import BACKGROUND_STEP_M, TABLE_MAX_RANGE_M, Beam, ParticleMedium, faint_background, \
-    faint_backscatter_per_m, faint_cross_section_per_m, scratch_buffer, table_lerp, visibility_diameter_mm
+    faint_backscatter_per_m, faint_cross_section_per_m, lerp_at, scratch_buffer, table_lerp, visibility_diameter_mm
 from .lidar_rays import Rays
 from ..table_cache import disk_cached
 
@@ -209,8 +209,8 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
             c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
         else:
             c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
-                                               length, weakest, False, bg_cum, level, bg_inv_step, bg_peak[level], cr,
-                                               ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+                                               length, weakest, False, bg_cum, level, bg_inv_step,
+                                               bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
         out_range[i], out_signal[i] = at, value
         if c == WEATHER:
             t = t_value if tgt else 0.0
@@ -269,8 +269,10 @@ def draw_particles(rng: np.random.Generator, ray_range_m: np.ndarray, signal: np
 
 @jit(inline="always")
 def _row_lerp(table, k, t, g):       # pragma: no cover - compiled
-    """``table[k, g]`` and ``table[k + 1, g]`` interpolated at fraction t."""
-    return table[k, g] + (table[k + 1, g] - table[k, g]) * t
+    """``table[k, g]`` and ``table[k + 1, g]`` interpolated at fraction t (unsigned indices, as
+    :func:`lidar_particles.lerp_at`)."""
+    a, b, col = np.uintp(k), np.uintp(k + 1), np.uintp(g)
+    return table[a, col] + (table[b, col] - table[a, col]) * t
 
 
 @jit(error_model="numpy", _nrt=False)
@@ -333,13 +335,14 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
         while True:
             la = _row_lerp(lam, k, t, g)
             lb = _row_lerp(lam, k, t, g + 1)
-            r = min(table_lerp(inv, g, rng.random() * (la - lb) * band_scale[g]), big_r)
+            band, s_lo, s_hi = np.uintp(g), s_level[np.uintp(g)], s_level[np.uintp(g + 1)]    # (unsigned: lerp_at)
+            r = min(table_lerp(inv, band, rng.random() * (la - lb) * band_scale[band]), big_r)
             xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
             kr = int(xr)
             tr = xr - kr
-            top = min(s_level[g + 1], full[1, kr] + (full[1, kr + 1] - full[1, kr]) * tr)
-            s = min(s_level[g] + (top - s_level[g]) * (la - u) / (la - lb), top)
-            f = s / (full[0, kr] + (full[0, kr + 1] - full[0, kr]) * tr)
+            top = min(s_hi, lerp_at(full, 1, kr, tr))
+            s = min(s_lo + (top - s_lo) * (la - u) / (la - lb), top)
+            f = s / lerp_at(full, 0, kr, tr)
             p_range[m], p_signal[m], p_fraction[m] = r, s, f
             if m == first:
                 level = max(_octave_near(s * inv_base, g // LEVELS_PER_OCTAVE) - CUT_OCTAVES, 0)
@@ -354,7 +357,7 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
                 break
         _sort_by_range(p_range, p_signal, p_fraction, first, m)
     level = min(level, octaves - 1)
-    return e, m, level, cover[level, k] + (cover[level, k + 1] - cover[level, k]) * t
+    return e, m, level, lerp_at(cover, level, k, t)
 
 
 @jit(inline="always")

@@ -157,6 +157,30 @@ def test_octaves_by_comparison_equal_frexp(octave):
             assert lidar_strongest._octave_near(v, octave) == max(exponent, 0), v
 
 
+def test_table_reads_with_unsigned_indices_interpolate_the_right_entries():
+    """The kernel's table reads (unsigned indices: no negative-index wraparound) against NumPy: a row of a 2-D table
+    at fractional positions, clamped at both ends (:func:`lidar_particles.table_lerp`), a column between two rows
+    (:func:`lidar_strongest._row_lerp`), the three background integrals of a level (:func:`lidar_echo._cumulative`)
+    and a target's crest background, in the table and beyond it (:func:`lidar_echo.crest_background`)."""
+    rng = np.random.default_rng(3)
+    table = rng.uniform(size=(5, 40))
+    x = np.concatenate([rng.uniform(-2.0, 42.0, 200), [0.0, 38.999, 39.0, 40.0]])
+    for j in range(5):
+        want = np.interp(np.clip(x, 0.0, 38.999999), np.arange(40), table[j])
+        assert np.allclose([lidar_particles.table_lerp(table, j, v) for v in x], want, rtol=0, atol=1e-12)
+    for k, t, g in ((0, 0.25, 3), (38, 0.9, 0), (17, 0.0, 4)):
+        assert lidar_strongest._row_lerp(table.T, k, t, g) == pytest.approx(table[g, k] + (table[g, k + 1]
+                                                                                           - table[g, k]) * t)
+    cum = rng.uniform(size=(3, 20, 3))
+    for j, v in ((0, 0.0), (2, 7.5), (1, 18.25), (1, 19.0), (2, 30.0)):
+        want = [np.interp(min(v, 19.0), np.arange(20), cum[j, :, c]) for c in range(3)]
+        assert np.allclose(lidar_echo._cumulative(cum, j, v), want, rtol=0, atol=1e-12)
+    at_target, far = rng.uniform(size=(3, 10)), rng.uniform(size=25)
+    assert lidar_echo.crest_background(2.2, 2, at_target, far, 2.0) == at_target[2, 4]
+    assert lidar_echo.crest_background(7.0, 1, at_target, far, 2.0) == far[14]
+    assert lidar_echo.crest_background(70.0, 1, at_target, far, 2.0) == far[24]
+
+
 def _scan_rays(n: int = 6000):
     """A 1 × n OS1-128 range image in photons: Lambertian 2–90 % targets at 2–60 m on three rays in four, sky on the
     rest (empty rays the weather fills)."""
