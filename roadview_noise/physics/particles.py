@@ -989,7 +989,8 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
     bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
     first_bin, banded = np.zeros(w, np.int32), band.size > 0          # of the pixel's band's table (0: no bands)
-    tm3, shift = np.empty(3 * w if rgb else w, np.float32), BUCKET_SHIFT          # t·(1 − M) per value
+    shift = BUCKET_SHIFT
+    a0, a1, a2 = (values[0, 0], values[0, 1], values[0, 2]) if rgb else (one, one, one)   # S (R, G, B) on RGB rows
     total = 0.0                                                                  # Σ M
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
@@ -1027,21 +1028,22 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
                 m = min(cov[x] + added[x] * k_row[x], one)
                 cov[x] = m
                 t_row[x] *= one - m
-        elif rgb:                                  # t·(1 − M) per value, then one contiguous (vectorised) loop
+        elif rgb:                                  # the three values of a pixel with its t·(1 − M)
+            s_row, o_row = signal[y], out[y]
             for x in range(w):
                 m = min(cov[x] + added[x] * k_row[x], one)
                 cov[x] = m
                 tm = t_row[x] * (one - m)
-                tm3[3 * x] = tm
-                tm3[3 * x + 1] = tm
-                tm3[3 * x + 2] = tm
-            _lerp_row(values[0], tm3, signal[y], out[y])
+                o_row[3 * x] = a0 + tm * (s_row[3 * x] - a0)
+                o_row[3 * x + 1] = a1 + tm * (s_row[3 * x + 1] - a1)
+                o_row[3 * x + 2] = a2 + tm * (s_row[3 * x + 2] - a2)
         else:
+            a_row, s_row, o_row = values[y % values.shape[0]], signal[y], out[y]
             for x in range(w):
                 m = min(cov[x] + added[x] * k_row[x], one)
                 cov[x] = m
-                tm3[x] = t_row[x] * (one - m)
-            _lerp_row(values[y % values.shape[0]], tm3, signal[y], out[y])
+                tm = t_row[x] * (one - m)
+                o_row[x] = a_row[x] + tm * (s_row[x] - a_row[x])
         total += _row_sum(cov)
     return total
 
@@ -1053,13 +1055,6 @@ def _row_sum(a):                                                              # 
     for i in range(a.size):
         total += np.float64(a[i])
     return total
-
-
-@jit(error_model="numpy")
-def _lerp_row(a, t, s, out):                                                  # pragma: no cover - compiled
-    """``out = a + t·(s − a)`` elementwise over one row."""
-    for i in range(out.size):
-        out[i] = a[i] + t[i] * (s[i] - a[i])
 
 
 # --- one frame -------------------------------------------------------------------------------------------------
