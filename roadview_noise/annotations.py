@@ -322,11 +322,13 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
         label_fmt = next((s.fmt for s in sidecars if s.role == "point_labels"), None)
+        roles = {k: field_role(k, spec.field_roles) for k in data_in.fields}
+        wanted = "class" in roles.values() or any(s.role == "point_labels" for s in sidecars)   # else none given
         classes = new_classes(data_out, weather_classes(spec, label_fmt), model_ids) \
-            if data_out.effect is not None else 0
+            if wanted and data_out.effect is not None else 0
         fields = {}
         for k, v in data_in.fields.items():
-            role = field_role(k, spec.field_roles)
+            role = roles[k]
             if role != "sensor" and k in data_out.fields:
                 fields[k] = carry_values(v, data_out, classes if role == "class" else 0).astype(v.dtype, copy=False)
         if fields:

@@ -189,7 +189,7 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
         drawn = model.draw(rng, data)
         given = step_input(data)
         if recorded is not None and given is not recorded and given.recorded is None:
-            given = dataclasses.replace(given, recorded=recorded)
+            given = given.replace(recorded=recorded)
         out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
         before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,

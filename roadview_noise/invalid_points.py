@@ -29,7 +29,10 @@ def drop_invalid_points(data: SensorData, *, file: str | None = None) -> tuple[S
         values = data.fields.get(name)
         if values is None or values.dtype.kind != "f":
             continue
-        invalid = ~np.isfinite(values.reshape(len(values), -1)).all(axis=1)
+        finite = np.isfinite(values)
+        if finite.all():                                 # the usual field: no row reduction, no count
+            continue
+        invalid = ~finite.reshape(len(values), -1).all(axis=1)
         n = int(np.count_nonzero(invalid))
         if n:
             counts[f"dropped_nonfinite_{name}"] = n

@@ -68,10 +68,12 @@ def combine(before: np.ndarray, step: np.ndarray) -> np.ndarray:
 
 def mark(cloud: PointCloud, mask: np.ndarray, effect: Effect) -> PointCloud:
     """The cloud with ``effect`` combined into the masked points' codes (other points keep theirs)."""
-    out = np.zeros(len(cloud), np.uint8) if cloud.effect is None else cloud.effect.copy()
+    if cloud.effect is None:                            # every code KEPT, and combine(KEPT, e) = e
+        return cloud.replace(effect=np.where(mask, np.uint8(effect), KEPT))
+    out = cloud.effect.copy()
     idx = np.flatnonzero(mask)                          # unmasked points keep theirs: combine(c, KEPT) = c
     out[idx] = combine(out[idx], np.full(len(idx), np.uint8(effect)))
-    return dataclasses.replace(cloud, effect=out)
+    return cloud.replace(effect=out)
 
 
 def gather(values: np.ndarray, origin: np.ndarray, fill=0) -> np.ndarray:
@@ -94,7 +96,7 @@ def step_input(cloud: PointCloud) -> PointCloud:
                                              and MADE_BY_STEP not in cloud.attributes):
         return cloud
     attributes = {k: v for k, v in cloud.attributes.items() if k != MADE_BY_STEP}
-    return dataclasses.replace(cloud, origin=None, effect=None, attributes=attributes)
+    return cloud.replace(origin=None, effect=None, attributes=attributes)
 
 
 def follow(before, after, model, *, state: dict, drawn: dict, step: int):
@@ -142,4 +144,4 @@ def follow_points(before: PointCloud, after: PointCloud, step: int, model_id: st
     attributes = dict(after.attributes)
     if made is not None:
         attributes[MADE_BY_STEP] = made
-    return dataclasses.replace(after, origin=origin, effect=effect, attributes=attributes)
+    return after.replace(origin=origin, effect=effect, attributes=attributes)

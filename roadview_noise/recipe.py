@@ -195,6 +195,7 @@ class Variants(Sequence):
     def __init__(self, axes: list[list[tuple[str, str, Any]]]):
         self.axes = axes
         self._len = math.prod(len(a) for a in axes)
+        self._last: tuple[int, Variant] | None = None    # a file's steps ask for its variant several times
 
     def __len__(self) -> int:
         return self._len
@@ -206,15 +207,20 @@ class Variants(Sequence):
             i += self._len
         if not 0 <= i < self._len:
             raise IndexError(f"variant {i} of {self._len}")
-        combo = []
+        last = self._last                               # (one read: runs may share the recipe between threads)
+        if last is not None and last[0] == i:
+            return last[1]
+        combo, rest = [], i
         for axis in reversed(self.axes):
-            i, k = divmod(i, len(axis))
+            rest, k = divmod(rest, len(axis))
             combo.append(axis[k])
         combo.reverse()
         overrides: dict[str, dict[str, Any]] = {}
         for model_id, name, v in combo:
             overrides.setdefault(model_id, {})[name] = v
-        return Variant("".join(f"__{name}-{_suffix_text(v)}" for _, name, v in combo), overrides)
+        variant = Variant("".join(f"__{name}-{_suffix_text(v)}" for _, name, v in combo), overrides)
+        self._last = (i, variant)
+        return variant
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Variants) and self.axes == other.axes

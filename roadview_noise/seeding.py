@@ -8,7 +8,6 @@ of workers, the processing order, or resuming.
 from __future__ import annotations
 
 import hashlib
-import struct
 
 import numpy as np
 
@@ -23,6 +22,8 @@ def stable_hash(*keys: object) -> bytes:
 
 
 def derive_rng(seed: int, *keys: object) -> np.random.Generator:
-    """A PCG64 generator that depends only on ``seed`` and ``keys``."""
-    words = struct.unpack("<8I", stable_hash(int(seed), *keys))     # the digest's 8 little-endian uint32 words
-    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(list(words))))
+    """A PCG64 generator that depends only on ``seed`` and ``keys``: seeded with the digest's 8 little-endian uint32
+    words, given as a uint32 array (the same entropy as the list of ints, without SeedSequence's conversion of each
+    int in Python: ≈ 25 → 13 µs a generator, one per step and file; issue 19)."""
+    words = np.frombuffer(stable_hash(int(seed), *keys), dtype="<u4")
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence(words)))

@@ -17,7 +17,7 @@ from roadview_noise.model import Model, Stage
 from roadview_noise.models.lidar.fog import FogLidar
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.profiles.lidar import os1_128
-from roadview_noise.provenance import MADE_BY_STEP, NEW, Effect, combine, follow_points, gather, is_new
+from roadview_noise.provenance import MADE_BY_STEP, NEW, Effect, combine, follow_points, gather, is_new, mark
 from roadview_noise.types import PointCloud
 
 E = Effect
@@ -122,3 +122,26 @@ def test_provenance_through_two_weather_models_and_the_step_that_made_each_point
     assert set(np.unique(made[new])) == {0, 1}
     assert np.count_nonzero(made[new] == 1) >= recs[1].diagnostics["moved"]
     assert np.all(out.positions_m[src & ~new] == cloud.positions_m[out.origin[src & ~new]])
+
+
+def test_replace_is_dataclasses_replace_and_checks_lengths():
+    c = _cloud(4, effect=np.array([0, 1, 3, 4], np.uint8), attributes={"a": np.arange(4)})
+    pos, v = c.positions_m * 2, np.zeros(4, np.int32)
+    new = c.replace(positions_m=pos, fields={"v": v})
+    assert type(new) is PointCloud and new.positions_m is pos and new.fields["v"] is v and list(new.fields) == ["v"]
+    assert all(getattr(new, f.name) is getattr(c, f.name) for f in dataclasses.fields(PointCloud)
+               if f.name not in ("positions_m", "fields"))
+    assert c.positions_m is not pos and c.fields["v"][1] == 10                      # the original unchanged
+    with pytest.raises(ValueError, match="field 'v' has 3 values for 4 points"):
+        c.replace(fields={"v": np.zeros(3)})
+    with pytest.raises(TypeError, match="no field 'colour'"):
+        c.replace(colour=1)
+
+
+def test_mark_on_a_cloud_without_codes_is_combine_with_kept():
+    mask = np.array([True, False, True, False, True])
+    for e in E:
+        fresh = mark(_cloud(5), mask, e).effect
+        coded = mark(_cloud(5, effect=np.zeros(5, np.uint8)), mask, e).effect
+        assert fresh.dtype == np.uint8 and np.array_equal(fresh, coded)
+        assert np.array_equal(fresh, np.where(mask, combine(np.zeros(5, np.uint8), np.full(5, np.uint8(e))), 0))

@@ -81,6 +81,16 @@ def test_sweep_gives_one_variant_per_value():
     assert e.key == "sweep.compression.camera.quality"
 
 
+def test_a_variant_asked_for_again_is_that_variant():
+    """Variants remembers the last variant asked for (a file asks for its own several times): asking in any order
+    gives each index its own suffix and values."""
+    r = parse_recipe({**CHAIN, "sweep": {"compression.camera.quality": [10, 50, 90]}})
+    for i in (2, 2, 1, 0, 0, 2, -1, 1):
+        v = r.variants[i]
+        assert v.suffix == f"__quality-{(10, 50, 90)[i]}" and v.overrides == {"compression.camera": {"quality":
+                                                                                                   (10, 50, 90)[i]}}
+
+
 def test_params_for_model_not_in_cnf_refused():
     e = err({"cnf": "CNF22", "params": {"fog.lidar": {"visibility_m": 10}}})
     assert e.key == "params.fog.lidar"

@@ -132,15 +132,16 @@ def _npy(path: Path) -> tuple[int, int] | None:
     return (n, 1)
 
 
-def cloud_points(path: str | os.PathLike, fmt: str) -> int | None:
+def cloud_points(path: str | os.PathLike, fmt: str, data: bytes | None = None) -> int | None:
     """Points a cloud declares: PCD ``POINTS`` (or WIDTH×HEIGHT), PLY ``element vertex``, ``.bin`` size / point
-    size; None when the header is too damaged to tell (the reader reports it)."""
-    path = Path(path)
+    size; None when the header is too damaged to tell (the reader reports it). ``data``: the file's bytes when the
+    caller has read them (the runner: no second open of a small file), else its header is read here."""
     if fmt in BIN_POINT_BYTES:
-        return path.stat().st_size // BIN_POINT_BYTES[fmt]
-    head = _head(path)
-    end = head.find(b"DATA" if fmt == "pcd" else b"end_header")
-    lines = head[: end if end >= 0 else len(head)].decode("ascii", errors="replace").splitlines()
+        return (len(data) if data is not None else Path(path).stat().st_size) // BIN_POINT_BYTES[fmt]
+    head = _head(Path(path)) if data is None else data
+    limit = min(len(head), HEADER_BYTES)
+    end = head.find(b"DATA" if fmt == "pcd" else b"end_header", 0, limit)
+    lines = head[: end if end >= 0 else limit].decode("ascii", errors="replace").splitlines()
     values: dict[str, list[str]] = {}
     for line in lines:
         words = line.split()
@@ -157,8 +158,9 @@ def cloud_points(path: str | os.PathLike, fmt: str) -> int | None:
 
 
 def check_size(path: str | os.PathLike, *, max_pixels: int | None = None, max_points: int | None = None,
-               cloud_fmt: str | None = None) -> None:
-    """Raise :class:`InputError` when the header declares more pixels or points than allowed."""
+               cloud_fmt: str | None = None, data: bytes | None = None) -> None:
+    """Raise :class:`InputError` when the header declares more pixels or points than allowed (a cloud's header
+    taken from ``data``, its bytes, when given)."""
     try:
         if cloud_fmt is None and max_pixels is not None:
             size = image_pixels(path)
@@ -168,7 +170,7 @@ def check_size(path: str | os.PathLike, *, max_pixels: int | None = None, max_po
                                  f"{max_pixels / 1e6:g} MP (--max-pixels; a decompression bomb or an unusually "
                                  "large frame: raise the limit to process it)", file=str(path))
         elif cloud_fmt is not None and max_points is not None:
-            n = cloud_points(path, cloud_fmt)
+            n = cloud_points(path, cloud_fmt, data)
             if n is not None and n > max_points:
                 raise InputError(f"declares {n:,} points, above the limit of {max_points:,} (--max-points; raise "
                                  "the limit to process it)", file=str(path))

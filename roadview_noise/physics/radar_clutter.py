@@ -79,6 +79,7 @@ class Hydrometeors:
         return snow_power_law_m_per_s(d_mm)
 
 
+@lru_cache(maxsize=16)          # the same particles for every frame of a run (and one hash for the tables' caches)
 def rain_drops(rain_rate_mm_per_h: float, frequency_hz: float = 77e9, temperature_c: float = 20.0,
                scattering: str = "mie") -> Hydrometeors:
     """Marshall–Palmer rain with the double-Debye water permittivity of ITU-R P.840 (77 GHz, 20 °C:
@@ -87,6 +88,7 @@ def rain_drops(rain_rate_mm_per_h: float, frequency_hz: float = 77e9, temperatur
     return Hydrometeors("rain", n0, lam, RAIN_D_MAX_MM, water_permittivity(frequency_hz, temperature_c), scattering)
 
 
+@lru_cache(maxsize=16)
 def snow_flakes(snowfall_rate_mm_per_h: float, law: str = "gunn_marshall", scattering: str = "mie") -> Hydrometeors:
     """Exponential snow DSD (liquid-equivalent rate) as solid ice spheres of the DSD diameter, ε_ice = 3.15 − 0.005i;
     below the law's fitted range the same crystals, fewer (:func:`~roadview_noise.physics.dsd.capped_snow_law`)."""
@@ -439,9 +441,11 @@ class ClutterCells:
     tier_bounds: np.ndarray          # (range bins, 30): end of each probability tier among the sorted pairs
     expected_count: float            # Σ P(y) over all cells
 
-    def ratio_at(self, positions_m: np.ndarray, v_r_m_per_s: np.ndarray) -> np.ndarray:
-        """``y = μ/σ_t`` of the resolution cell of each point (any range): its angular cell (nearest edge cell
-        outside the field of view), its Doppler bin, and a range bin centred on it."""
+    def ratio_at(self, positions_m: np.ndarray, v_r_m_per_s: np.ndarray,
+                 ranges_m: np.ndarray | None = None) -> np.ndarray:
+        """``y = μ/σ_t`` of the resolution cell of each point (any range; ``ranges_m`` their norms, when known):
+        its angular cell (nearest edge cell outside the field of view), its Doppler bin, and a range bin centred
+        on it."""
         m_min, table = _weight_table(self.hydrometeors, self.grid, self.wavelength_m, self.relative_velocity_m_per_s)
         grid, edges = self.grid, grid_edges(self.grid)
         cell = angular_cell_index(positions_m, edges.azimuth_rad, edges.elevation_rad)
@@ -450,7 +454,7 @@ class ClutterCells:
         inside = (m >= 0) & (m < table.shape[1])
         g = np.where(inside, table[cell, np.minimum(np.maximum(m, 0), table.shape[1] - 1)], 0.0) * \
             backscatter_per_volume_per_m(self.hydrometeors, self.wavelength_m)
-        r = np.linalg.norm(positions_m, axis=1)
+        r = np.linalg.norm(positions_m, axis=1) if ranges_m is None else ranges_m
         dr = grid.range_resolution_m
         return np.divide(g * (r * r * dr + dr ** 3 / 12),
                          _threshold_rcs_m2(self.radar_constant_db, self.threshold_db, self.gamma_db_per_km, r),
@@ -474,12 +478,13 @@ def clutter_cells(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, re
     edges = grid_edges(grid)
     ratio = edges.shell_volume_per_sr_m3 / _threshold_rcs_m2(radar_constant_db, threshold_db, gamma_db_per_km,
                                                             edges.range_centre_m)
-    bounds = tier_ratios(detector)[None, :] / ratio[:, None]
+    tiers = tier_ratios(detector)
     # a range bin whose lowest tier bound is at or above the largest g holds no pair in any tier (most bins beyond a
-    # few metres): only the others are searched
-    live = ~(bounds[:, -1] >= (g[0] if len(g) else math.inf))
-    tier_bounds = np.zeros(bounds.shape, dtype=np.intp)
-    tier_bounds[live] = np.searchsorted(minus_g, -bounds[live].ravel(), side="left").reshape(-1, PROBABILITY_TIERS)
+    # few metres): only the others' bounds are computed and searched
+    live = ~(tiers[-1] / ratio >= (g[0] if len(g) else math.inf))
+    tier_bounds = np.zeros((len(ratio), PROBABILITY_TIERS), dtype=np.intp)
+    bounds = tiers[None, :] / ratio[live, None]
+    tier_bounds[live] = np.searchsorted(minus_g, -bounds.ravel(), side="left").reshape(-1, PROBABILITY_TIERS)
     w, table, saturated = _count_table(h, grid, wavelength_m, rel, detector)
     expected = float(np.interp(np.log(ratio), w, table, left=0.0, right=saturated).sum())
     return ClutterCells(h, grid, wavelength_m, rel, detector, radar_constant_db, threshold_db, gamma_db_per_km, cell,

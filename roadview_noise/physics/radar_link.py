@@ -159,6 +159,7 @@ def noise_floor_dbm(if_bandwidth_hz: float, noise_figure_db: float) -> float:
     return THERMAL_NOISE_DBM_PER_HZ + 10 * math.log10(if_bandwidth_hz) + noise_figure_db
 
 
+@lru_cache(maxsize=64)                  # a frame's diagnostic: scipy's lambertw ≈ 5 µs a call
 def detection_range_in_weather_m(clear_range_m: float, gamma_db_per_km: float) -> float:
     """Range at which a target detected just at ``clear_range_m`` in clear air is detected in weather: solves
     ``40 log10(R0/R) = 2 γ R / 1000`` (radar equation R⁻⁴ plus two-way loss). With ``k = γ ln 10 / 20000`` per m

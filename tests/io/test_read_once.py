@@ -46,3 +46,28 @@ def test_which_inputs_are_read_whole(tmp_path):
     assert _read_whole(sample("a.pcd", "lidar"), tmp_path / "a.pcd")
     assert _read_whole(sample("a.pcd", "radar"), tmp_path / "a.pcd")
     assert not _read_whole(sample("a.dng", "raw"), tmp_path / "a.dng")
+
+
+def test_a_cloud_header_is_checked_in_the_bytes_already_read(tmp_path):
+    """The point limit reads a cloud's declared size from its bytes when the runner has them (no second open): the
+    same count as from the file, for PCD (POINTS, or WIDTH × HEIGHT), PLY and a fixed-layout .bin."""
+    import pytest
+
+    from roadview_noise.errors import InputError
+    from roadview_noise.io.headers import check_size, cloud_points
+
+    pcd = Path(__file__).resolve().parents[2] / "sample_data/radar/seq0/000000.pcd"
+    ply = tmp_path / "a.ply"
+    ply.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 7\nproperty float x\nend_header\n"
+                    + bytes(28))
+    organised = tmp_path / "o.pcd"
+    organised.write_bytes(b"VERSION 0.7\nFIELDS x\nSIZE 4\nTYPE F\nCOUNT 1\nWIDTH 4\nHEIGHT 3\nDATA binary\n"
+                          + bytes(48))
+    kitti = tmp_path / "k.bin"
+    kitti.write_bytes(bytes(16 * 5))
+    for path, fmt, n in ((pcd, "pcd", None), (ply, "ply", 7), (organised, "pcd", 12), (kitti, "kitti_bin", 5)):
+        data = path.read_bytes()
+        assert cloud_points(path, fmt, data) == cloud_points(path, fmt) == (n or cloud_points(path, fmt))
+        assert cloud_points(tmp_path / "missing", fmt, data) == cloud_points(path, fmt)   # the bytes only
+    with pytest.raises(InputError, match="declares 12 points"):
+        check_size(tmp_path / "missing.pcd", max_points=11, cloud_fmt="pcd", data=organised.read_bytes())

@@ -65,13 +65,14 @@ class RadarWeather(Model):
         planar = is_planar(data, profile)
         ego, ego_source = ego_velocity_m_per_s(data, planar)
         cells, clutter_diag = self.frame_clutter(data, r, det, gamma, ego, planar)
-        rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data, ego)
+        rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data, ego, r)
         margin = det.values_db - loss - det.threshold_db
         keep = margin >= rise
         out = mark(with_loss(data, loss), loss > 0, Effect.ATTENUATED).drop(~keep)
+        kept = int(np.count_nonzero(keep))                 # (a boolean sum: ≈ 3 µs each)
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
-            "points_in": len(data), "points_removed": int((~keep).sum()), "points_kept": int(keep.sum()),
+            "points_in": len(data), "points_removed": len(keep) - kept, "points_kept": kept,
             "mean_loss_db": float(loss.mean()) if len(loss) else 0.0,
             "max_range_clear_m": float(r.max()) if len(r) else 0.0,
             "max_range_m": float(r[keep].max()) if keep.any() else 0.0,
@@ -85,23 +86,22 @@ class RadarWeather(Model):
             diagnostics.update(added)
             if isinstance(cells.detector, CaCfar):
                 diagnostics.update({
-                    "cfar_points_lost": int(((margin >= 0) & ~keep).sum()),
+                    "cfar_points_lost": int(np.count_nonzero((margin >= 0) & ~keep)),
                     "cfar_max_threshold_rise_db": float(rise.max()) if len(rise) else 0.0,
                     "cfar_mean_threshold_rise_db": float(rise.mean()) if len(rise) else 0.0})
         return out, diagnostics
 
 
-def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud, ego: np.ndarray) -> np.ndarray:
-    """Per point, the rise of its detection threshold caused by the clutter of its own resolution cell (CA-CFAR:
-    ``10 log10(1 + α μ/σ_t)``; fixed threshold: 0). Doppler: the raw radial velocity (``v_r_m_per_s``, or ``v·r̂``
-    of Cartesian ``vx, vy``), or a static world ``−v_ego·r̂``."""
+def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud, ego: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
+    """Per point (at ``ranges_m``), the rise of its detection threshold caused by the clutter of its own resolution
+    cell (CA-CFAR: ``10 log10(1 + α μ/σ_t)``; fixed threshold: 0). Doppler: the raw radial velocity
+    (``v_r_m_per_s``, or ``v·r̂`` of Cartesian ``vx, vy``), or a static world ``−v_ego·r̂``."""
     if isinstance(cells.detector, FixedThreshold) or not len(cloud):
         return np.zeros(len(cloud))
     v_r = radial_velocity_m_per_s(cloud)
     if v_r is None:
-        r = np.maximum(cloud.ranges_m, 1e-12)
-        v_r = -(cloud.positions_m @ ego) / r
-    return cells.detector.threshold_rise_db(cells.ratio_at(cloud.positions_m, v_r))
+        v_r = -(cloud.positions_m @ ego) / np.maximum(ranges_m, 1e-12)
+    return cells.detector.threshold_rise_db(cells.ratio_at(cloud.positions_m, v_r, ranges_m))
 
 
 def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: ClutterCells,
