@@ -143,3 +143,16 @@ def test_kept_codes_come_back_in_bgr_order_without_a_copy():
     np.testing.assert_array_equal(linear, srgb.code_to_linear(np.ascontiguousarray(bgr[..., ::-1])))
     assert np.shares_memory(srgb.linear_to_code(linear, bgr=True), bgr)
     np.testing.assert_array_equal(srgb.linear_to_code(linear, bgr=True), bgr)
+
+
+@pytest.mark.parametrize("width", [1, 3, 5, 7, 333])
+def test_8bit_decode_four_codes_per_load_matches_the_table_in_both_channel_orders(width):
+    # odd widths: rows start at odd bytes and the frame's length is no multiple of 4 or 12 (the tails); the table
+    # indexed by NumPy is the reference, RGB codes and OpenCV's BGR seen as RGB
+    codes = np.random.default_rng(width).integers(0, 256, (9, width, 3), dtype=np.uint8)
+    expected = srgb.decode_table(8)[codes]
+    np.testing.assert_array_equal(srgb.code_to_linear(codes), expected)
+    np.testing.assert_array_equal(srgb.code_to_linear(np.ascontiguousarray(codes[..., ::-1])[..., ::-1]), expected)
+    np.testing.assert_array_equal(srgb.code_to_linear(codes[:, ::2]), expected[:, ::2])     # strided: plain kernel
+    row = codes[4].reshape(-1)[1:]                                                           # starts at an odd byte
+    np.testing.assert_array_equal(srgb.code_to_linear(row), srgb.decode_table(8)[row])
