@@ -5,7 +5,9 @@ A child process per side imports what the fork server imports (``executor.PRELOA
 the warm-up), then forks fresh workers one after the other, as the fork server does; each runs the first ``--files``
 files of ``bench/run.py``'s camera tree (rendered 1936×1464 frames made photo-like, range EXR) through
 ``runner.process`` with ``--profile`` and reports per file its thread CPU ms, minor page faults and the profile split
-(the profile's wall ms: noisy on a loaded machine).
+(the profile's wall ms: noisy on a loaded machine). The first file's extra page faults are also given in ms at
+this machine's cost of a fresh-page fault (:func:`fault_us`: a first touch of anonymous memory, ≈ 3 µs on the
+2-core VM): the share of the first file's extra that is its heap growing to the frame's high-water mark.
 Sides alternate (this checkout's code, then ``--against``'s, its package first on ``PYTHONPATH`` and as the working
 directory); figures are medians over workers and rounds, with their range. The physics tables are read from the
 table cache as a repeated run finds them (each side's first worker of the first round fills it). Output sha256
@@ -73,6 +75,25 @@ def child(recipe_name: str, tree: Path, out_root: Path, workers: int, files: int
     return result
 
 
+def fault_us(rounds: int = 3, size: int = 32 << 20) -> float:
+    """Thread CPU µs of one minor page fault here: the median over ``rounds`` first touches of ``size`` bytes of
+    fresh anonymous memory, a byte per page."""
+    import mmap
+
+    import numpy as np
+
+    costs = []
+    for _ in range(rounds):
+        with mmap.mmap(-1, size) as m:
+            pages = np.frombuffer(m, np.uint8)[::mmap.PAGESIZE]
+            faults, cpu = resource.getrusage(resource.RUSAGE_SELF).ru_minflt, time.thread_time()
+            pages[:] = 1
+            costs.append(1e6 * (time.thread_time() - cpu) /
+                         max(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults, 1))
+            del pages
+    return statistics.median(costs)
+
+
 def _med(values: list[float]) -> str:
     return f"{statistics.median(values):.1f} ({min(values):.1f}–{max(values):.1f})"
 
@@ -97,9 +118,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="rvnoise-first-file-") as tmp:
         root = Path(tmp)
         tree = build_trees(root, 4, {"camera": max(args.files, 1)})["camera"]
+        per_fault_us = fault_us()
         print(f"# camera first file vs later ones, {args.workers} fresh workers × {args.rounds} rounds per side, "
-              f"{args.files} files each; load average {os.getloadavg()[0]:.1f} at the start\n")
-        print("| recipe | side | first file CPU ms | later files CPU ms | first − later | first-file faults | "
+              f"{args.files} files each; load average {os.getloadavg()[0]:.1f} at the start; a page fault "
+              f"{per_fault_us:.1f} µs\n")
+        print("| recipe | side | first file CPU ms | later files CPU ms | first − later | first − later faults (≈ ms) | "
               "first − later by phase (ms, medians) |\n|---|---|---|---|---|---|---|")
         for name in args.recipes.split(","):
             got: dict[str, list[list[dict]]] = {s: [] for s in sides}
@@ -127,9 +150,11 @@ def main() -> None:
                                                                                           for f in w[1:])
                                                     for w in workers if len(w) > 1)
                                for m in workers[0][0]["models"]})
+                faults = statistics.median([w[0]["faults"] - statistics.median(f["faults"] for f in w[1:])
+                                            for w in workers if len(w) > 1] or [w[0]["faults"] for w in workers])
                 split = ", ".join(f"{k} {v:+.1f}" for k, v in phases.items() if abs(v) >= 0.5)
                 print(f"| {name} | {side} | {_med(first)} | {_med(later) if later else '—'} | "
-                      f"{_med(extra) if extra else '—'} | {statistics.median(w[0]['faults'] for w in workers):.0f} | "
+                      f"{_med(extra) if extra else '—'} | {faults:.0f} (≈ {faults * per_fault_us / 1e3:.0f}) | "
                       f"{split} |", flush=True)
     print(f"\nload average at the end: {os.getloadavg()[0]:.1f}")
 
