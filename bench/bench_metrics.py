@@ -122,7 +122,8 @@ CASES = {
 REAL_SCAN = "lidar/os1-128-real/seq/000000.bin"
 #: whole runs: recipe → the sensor tree of bench/run.py it runs on
 WHOLE_RUN = {"weather-rain-lidar": "lidar", "weather-fog-lidar": "lidar", "weather-snow-lidar": "lidar",
-             "cnf20": "lidar", "cnf22": "lidar", "cnf11": "camera", "cnf05": "camera", "cnf25-radar": "radar"}
+             "cnf20": "lidar", "cnf22": "lidar", "cnf10": "camera", "cnf11": "camera", "cnf12": "camera",
+             "cnf05": "camera", "cnf25-radar": "radar"}
 
 
 def recipe_file(name: str, metrics: bool, real: bool, tmp: Path) -> Path:
