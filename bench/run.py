@@ -20,7 +20,7 @@ copied. Then, per sensor, with 1 and 2 processes:
   time **beyond the files** (wall − in-worker seconds / workers: worker start, run record, lock, manifest, close);
 - **start-up**: ``rvnoise augment --limit 1`` in a fresh process, minus the file's own time, and in all (the augment
   rows exclude it: the fork server is started for each recipe before its timed runs); and the worker start-up of
-  that run (run.json ``worker_start_seconds``: from starting the workers to the first file's start in a worker);
+  that run (run.json ``worker_start_seconds``: from starting the workers to the first one ready for tasks);
 - **small files**: fog.radar on 10× the radar tree's files, 1 and 2 workers: what each file costs beyond its own time
   (task hand-over, the main process's manifest line and rename), the main process's CPU and the workers' busy share;
 - ``compression.camera`` against OpenCV's JPEG codec alone and albumentations' ``ImageCompression`` on one frame
@@ -191,8 +191,8 @@ def small_files(tree: Path, root: Path, copies: int, n: int) -> dict:
 
 def startup(name: str, sensor: str, tree: Path, out: Path) -> tuple[float, float, float]:
     """Seconds of a one-file CLI run: beyond the file's own time (process start, imports, workers, manifest), in
-    all, and the worker start-up (run.json ``worker_start_seconds``: from starting the workers to the first file's
-    start in a worker)."""
+    all, and the worker start-up (run.json ``worker_start_seconds``: from starting the workers to the first one
+    ready for tasks)."""
     from roadview_noise.manifest import read_manifest
 
     recipe = out.parent / f"{name}-startup.yaml"

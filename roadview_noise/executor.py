@@ -166,13 +166,16 @@ def _alive(pid: int) -> bool:
 
 
 def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple | None, running: Any = None,
-                 batch: int = 1) -> None:
+                 batch: int = 1, ready: Any = None) -> None:
     """Run the tasks of ``conn`` in order; answer with lists of ``(task id, result)`` (up to ``batch``, see the
-    module docstring); ``running.value``: the id of the task started last (read by the parent when this dies)."""
+    module docstring); ``running.value``: the id of the task started last (read by the parent when this dies);
+    ``ready.value``: when (``time.monotonic``) this was set up and ready for its first task."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)       # Ctrl-C is the parent's to handle
     worker_setup(parent_pid)
     if setup is not None:
         setup[0](*setup[1])
+    if ready is not None:
+        ready.value = time.monotonic()
     held: list = []
     since = took = 0.0              # when the first held result was done; how long the last task took
     while True:
@@ -320,6 +323,7 @@ class _Worker:
     proc: Any
     conn: Any
     running: Any = None                             # shared: the id of the task it started last
+    ready: Any = None                               # shared: when it was ready for tasks (monotonic; 0: not yet)
     queue: deque = field(default_factory=deque)     # (tid, task) sent and not answered, in order
     sizes: deque = field(default_factory=deque)     # their pickled bytes
     started: float = 0.0                            # when the first of ``queue`` started
@@ -352,14 +356,15 @@ class ProcessExecutor(Generic[T, C]):
 
     def _start(self) -> _Worker:
         parent, child = self._ctx.Pipe(duplex=True)
-        running = self._ctx.RawValue("q", -1)
+        running, ready = self._ctx.RawValue("q", -1), self._ctx.RawValue("d", 0.0)
         batch = BATCH_MAX if self.timeout_s is None else 1
         with _starting():
             proc = self._ctx.Process(target=_worker_main, name="rvnoise-worker", daemon=True,
-                                     args=(child, self.fn, self.context, os.getpid(), self.setup, running, batch))
+                                     args=(child, self.fn, self.context, os.getpid(), self.setup, running, batch,
+                                           ready))
             proc.start()
         child.close()
-        return _Worker(proc, parent, running)
+        return _Worker(proc, parent, running, ready)
 
     def start(self) -> None:
         """Start the missing workers now rather than at :meth:`map`: a run starts them before it writes its record,
@@ -369,6 +374,11 @@ class ProcessExecutor(Generic[T, C]):
         self._pool = [w for w in self._pool if not w.stopping]
         while len(self._pool) < self.workers:
             self._pool.append(self._start())
+
+    def first_ready(self) -> float | None:
+        """When (``time.monotonic``) the first of the workers was set up and ready for tasks; None before."""
+        times = [w.ready.value for w in self._pool if w.ready is not None and w.ready.value > 0]
+        return min(times, default=None)
 
     def _depth(self) -> int:
         """Tasks a worker holds: behind short tasks, enough for two batches (module docstring), so it never waits

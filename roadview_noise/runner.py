@@ -105,7 +105,7 @@ class RunSummary:
     notes: list[str] = field(default_factory=list)   # what the user must know (disk full, stopped early, …)
     warnings: list[str] = field(default_factory=list)  # about the inputs as a whole (camera_inputs.InputWarnings)
     state: str = "complete"
-    worker_start_s: float | None = None  # from starting the workers to the first file's start (see _execute)
+    worker_start_s: float | None = None  # from starting the workers to the first one ready (see _execute)
 
 
 # --- planning --------------------------------------------------------------------------------------------------------
@@ -675,8 +675,10 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
              coco_run: coco.CocoRun | None = None) -> tuple[_Tally, _Log]:
     """Run the plan, appending each entry to the manifest as it is released in plan order (``outputs.Ledger``);
     a COCO file's output is released after the plan. ``summary.worker_start_s``: from ``workers_started``
-    (monotonic; the executor's creation) to the first file's start in a worker (its result's arrival minus its
-    in-worker seconds)."""
+    (monotonic; the executor's creation) to the first worker set up and ready for tasks (the fork server's imports
+    and warm-up it waited for, the fork, the set-up; not the main process's own work meanwhile: the run record,
+    the walk to the first task); without that time from the executor (Dask), to the first file's start in a worker
+    (its result's arrival minus its in-worker seconds)."""
     from tqdm import tqdm
 
     tally, where = _Tally(summary), _Log()
@@ -725,8 +727,9 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
                             break
                         continue
                     if summary.worker_start_s is None and isinstance(result, dict):
-                        summary.worker_start_s = round(time.monotonic() - result.get("seconds", 0.0)
-                                                       - workers_started, 4)
+                        ready = getattr(executor, "first_ready", lambda: None)() or \
+                            time.monotonic() - result.get("seconds", 0.0)
+                        summary.worker_start_s = round(ready - workers_started, 4)
                     record(ledger.put(task.index, _result_entry(task, result)))
                     if ledger.stopped:
                         break

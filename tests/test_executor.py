@@ -90,6 +90,25 @@ def test_workers_started_before_map_take_its_tasks():
     assert not ex._pool and all(not p.is_alive() for p in started)
 
 
+def test_first_ready_is_when_a_worker_was_set_up_not_when_it_got_a_task():
+    """``first_ready`` (a run's ``worker_start_seconds``): when the first worker was ready for tasks, set before any
+    task is sent and kept after."""
+    ex = ProcessExecutor(work, {}, 2)
+    try:
+        before = time.monotonic()
+        assert ex.first_ready() is None
+        ex.start()
+        deadline = before + 60
+        while ex.first_ready() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        ready = ex.first_ready()
+        sent = time.monotonic()
+        assert ready is not None and before < ready < sent
+        assert dict(ex.map([3])) == {3: (3, 9)} and ex.first_ready() == ready
+    finally:
+        ex.close()
+
+
 def test_a_source_that_waits_gets_control_back():
     """A source that yields NOT_NOW is handed back ``(NOT_NOW, None)`` at once and asked again later (also when no
     task is running); every real task still runs once. Here: a wait before every task (the first while nothing runs),

@@ -61,8 +61,8 @@ def test_the_fork_server_leaves_without_tearing_down(tmp_path):
 
 
 def test_run_json_records_the_worker_start(tmp_path, tree):
-    """run.json's ``worker_start_seconds``: from starting the workers to the first file's start in a worker, a part
-    of the run's wall time."""
+    """run.json's ``worker_start_seconds``: from starting the workers to the first one ready for tasks, a part of
+    the run's wall time."""
     from test_cli import CAMERA, _recipe
 
     from roadview_noise.recipe import load_recipe
