@@ -69,7 +69,7 @@ def codes_luminance_area(codes: np.ndarray, f: int) -> np.ndarray:
         codes, channel = codes[..., ::-1], BGR
     else:
         codes, channel = np.ascontiguousarray(codes), RGB
-    rows = codes.reshape(codes.shape[0], -1)
+    rows = codes.reshape(codes.shape[0], codes.shape[1] * 3)
     words = np.ndarray((rows.shape[0], rows.shape[1] // 4), np.uint32, rows, 0, (rows.strides[0], 4))
     _codes_luminance_area(rows, words, f, decode_table(8), channel, _weights(), out)
     return out
