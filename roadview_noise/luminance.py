@@ -25,8 +25,8 @@ import numpy as np
 
 from .physics import srgb
 from .physics.compiled import jit
-from .physics.srgb import (_encode8_kernel, _encode8_reversed_kernel, _look_up, _look_up_reversed, decode_table,
-                           encode8_table, reversed_rgb)
+from .physics.srgb import (_BYTE_SHIFTS, _encode8_kernel, _encode8_reversed_kernel, _look_up, _look_up_reversed,
+                           decode_table, encode8_table, reversed_rgb)
 
 MAX_METRIC_PIXELS = 1 << 16                 # ≈ 256 × 256, Wang et al.'s SSIM scale
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)  # sRGB / Rec. 709 primaries
@@ -69,7 +69,9 @@ def codes_luminance_area(codes: np.ndarray, f: int) -> np.ndarray:
         codes, channel = codes[..., ::-1], BGR
     else:
         codes, channel = np.ascontiguousarray(codes), RGB
-    _codes_luminance_area(codes, f, decode_table(8), channel, _weights(), out)
+    rows = codes.reshape(codes.shape[0], codes.shape[1] * 3)
+    words = np.ndarray((rows.shape[0], rows.shape[1] // 4), np.uint32, rows, 0, (rows.strides[0], 4))
+    _codes_luminance_area(rows, words, f, decode_table(8), channel, _weights(), out)
     return out
 
 
@@ -232,27 +234,62 @@ def _encode8_blocks(rows, xbits, reverse, table, levels, f, weights, out, blocks
 
 
 @jit
-def _codes_luminance_area(codes, f, table, channel, weights, out):   # pragma: no cover - compiled
+def _codes_luminance_area(rows, words, f, table, channel, weights, out):   # pragma: no cover - compiled
+    """:func:`codes_luminance_area` of the codes ``rows`` (H, W·3 in memory order), ``words`` the same rows read
+    four codes at a time (uint32, possibly unaligned)."""
     n = out.shape[1] * f * 3
-    rows = codes.reshape(codes.shape[0], codes.shape[1] * 3)
-    acc, decoded = np.empty(n, np.float32), np.empty(n, np.float32)
+    acc = np.empty(n, np.float32)
     for i in range(out.shape[0]):
-        _look_up(rows[i * f], table, acc)
-        for k in range(1, f):                               # the same float32 sums as _luminance_area's
-            _look_up(rows[i * f + k], table, decoded)       # look-ups first, then a vectorised sum
-            _add_to(acc, decoded)
+        _column_sums(words, i * f, f, table, acc)
+        for x in range(n // 8 * 8, n):                      # the last columns, one code at a time
+            s = table[rows[i * f, x]]
+            for k in range(1, f):
+                s += table[rows[i * f + k, x]]
+            acc[x] = s
         _block_luminance(acc, f, channel, weights, out[i])
+
+
+@jit(inline="always")
+def _four(v, table):
+    """The table values of the four 8-bit codes of the 32-bit word ``v``, in memory order."""
+    s0, s1, s2, s3 = _BYTE_SHIFTS
+    return table[(v >> s0) & 255], table[(v >> s1) & 255], table[(v >> s2) & 255], table[(v >> s3) & 255]
+
+
+@jit
+def _column_sums(words, first, f, table, acc):     # pragma: no cover - compiled
+    """acc[x] (x < len(acc) // 8 * 8) = the sum of ``table`` over the codes of column x in rows first … first + f − 1,
+    in row order (float32: :func:`_strip_luminance`'s sums): eight columns (two words) at a time, summed in
+    registers, so each code costs a load and a look-up (≈ 40 % faster than looking each row up into a buffer)."""
+    r = np.uint64(first)                    # unsigned indices: no negative-index wrap-around per load
+    for p in range(acc.shape[0] // 8):
+        q = np.uint64(2 * p)
+        a0, a1, a2, a3 = _four(words[r, q], table)
+        b0, b1, b2, b3 = _four(words[r, q + np.uint64(1)], table)
+        for k in range(1, f):
+            row = r + np.uint64(k)
+            x0, x1, x2, x3 = _four(words[row, q], table)
+            y0, y1, y2, y3 = _four(words[row, q + np.uint64(1)], table)
+            a0, a1, a2, a3 = a0 + x0, a1 + x1, a2 + x2, a3 + x3
+            b0, b1, b2, b3 = b0 + y0, b1 + y1, b2 + y2, b3 + y3
+        x = 8 * p
+        acc[x], acc[x + 1], acc[x + 2], acc[x + 3] = a0, a1, a2, a3
+        acc[x + 4], acc[x + 5], acc[x + 6], acc[x + 7] = b0, b1, b2, b3
 
 
 @jit
 def _block_luminance(acc, f, channel, weights, out_row):        # pragma: no cover - compiled
-    """One row of blocks from the column sums ``acc`` of its f rows (memory channel ``channel[c]`` of RGB c)."""
+    """One row of blocks from the column sums ``acc`` of its f rows (memory channel ``channel[c]`` of RGB c).
+    Unsigned indices: numba then adds no negative-index wrap-around to each load (2.5× faster)."""
     scale = np.float32(1.0) / np.float32(f * f)
+    c0, c1, c2 = np.uint64(channel[0]), np.uint64(channel[1]), np.uint64(channel[2])
+    step = np.uint64(3 * f)
     for j in range(out_row.shape[0]):
-        base = j * f * 3
-        r, g, b = acc[base + channel[0]], acc[base + channel[1]], acc[base + channel[2]]
+        base = np.uint64(j) * step
+        r, g, b = acc[base + c0], acc[base + c1], acc[base + c2]
         for k in range(1, f):
-            r += acc[base + k * 3 + channel[0]]
-            g += acc[base + k * 3 + channel[1]]
-            b += acc[base + k * 3 + channel[2]]
+            o = base + np.uint64(3 * k)
+            r += acc[o + c0]
+            g += acc[o + c1]
+            b += acc[o + c2]
         out_row[j] = (r * scale) * weights[0] + (g * scale) * weights[1] + (b * scale) * weights[2]
