@@ -7,6 +7,7 @@ Workers receive :class:`Sample` keys, never arrays; all reading and writing happ
 from __future__ import annotations
 
 import dataclasses
+import os
 import posixpath
 from dataclasses import dataclass
 from functools import lru_cache
@@ -184,8 +185,10 @@ def _profile_spec(spec, file_dir: Path, recipe: Recipe):
 def _sidecar_default(spec, file_dir: Path, name: str):
     """Without a profile in the recipe, a profile sidecar (``camera.yaml``, ``lidar.yaml``, ``radar.yaml``) in the
     input file's folder is used; else the built-in default."""
-    if spec is None and (file_dir / name).is_file():
-        return str(file_dir / name)
+    if spec is None:
+        path = os.path.join(file_dir, name)             # str(file_dir / name), without pathlib (once per file)
+        if os.path.isfile(path):
+            return path
     return spec
 
 
