@@ -15,7 +15,9 @@ process was mostly a cold wake-up per file). A worker records the task it is run
 worker is blamed for that task only: the ones it finished but had not sent yet and the ones queued behind are re-sent
 without a death counted. Under a time bound (``timeout_s``) a worker answers each task at once (a held result would
 count against the next task's time). Workers get the run context once at start and then only small task keys (never
-arrays).
+arrays); the tasks the parent hands a worker at once (its refill after a batch) go in one message, each pickled on
+its own (one write for the parent and one read for the worker per refill, not per task: issue 19's chunked
+dispatch; the worker runs them one by one, recording each as it starts).
 
 A worker exits when its parent dies: ``prctl(PR_SET_PDEATHSIG, SIGKILL)`` on Linux, and on every platform a watchdog
 thread that polls ``getppid()``. Workers are forked from a ``forkserver`` (Linux; ``spawn`` elsewhere) that imported
@@ -38,10 +40,12 @@ caller reads) also makes ``map`` yield ``(NOT_NOW, None)`` when it becomes reada
 from __future__ import annotations
 
 import ctypes
+import io
 import math
 import multiprocessing as mp
 import multiprocessing.spawn as mp_spawn
 import os
+import pickle
 import select
 import signal
 import sys
@@ -53,7 +57,6 @@ from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
-from multiprocessing.reduction import ForkingPickler
 from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, Sequence, TypeVar
 
 T = TypeVar("T")
@@ -177,18 +180,22 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
     if ready is not None:
         ready.value = time.monotonic()
     held: list = []
+    inbox: deque = deque()          # tasks received and not started (a message holds one or more: _messages)
     since = took = 0.0              # when the first held result was done; how long the last task took
     while True:
         # send unless more results can join within the hold: the next task, if it takes as long as the last,
         # would keep the held ones past BATCH_HOLD_S (so a worker of ≈ 50 ms LiDAR tasks answers each at once and
         # never waits for new tasks with finished ones unsent)
-        if held and (len(held) >= batch or not conn.poll() or time.monotonic() - since + took >= BATCH_HOLD_S):
+        if held and (len(held) >= batch or not (inbox or conn.poll())
+                     or time.monotonic() - since + took >= BATCH_HOLD_S):
             conn.send(held)
             held = []
-        try:
-            msg = conn.recv()
-        except (EOFError, OSError):
-            return
+        if not inbox:
+            try:
+                inbox.extend(_messages(conn.recv_bytes()))
+            except (EOFError, OSError):
+                return
+        msg = inbox.popleft()
         if msg is None:
             return
         tid, task = msg
@@ -204,6 +211,16 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
         if not held:
             since = now
         held.append((tid, result))
+
+
+def _messages(data: bytes) -> list:
+    """The objects of one message from the parent: its pickles one after the other (:meth:`ProcessExecutor.map`
+    sends a worker's new tasks, each pickled on its own, in one message)."""
+    buf = io.BytesIO(data)
+    out = []
+    while buf.tell() < len(data):
+        out.append(pickle.load(buf))
+    return out
 
 
 # --- in the parent ---------------------------------------------------------------------------------------------------
@@ -400,7 +417,8 @@ class ProcessExecutor(Generic[T, C]):
             self.start()
             while True:
                 for w in self._pool:
-                    while len(w.queue) < self._depth():
+                    depth, chunk, not_now = self._depth(), [], False
+                    while len(w.queue) < depth:
                         if retry:
                             tid, task = retry.popleft()
                         elif not exhausted:
@@ -410,12 +428,12 @@ class ProcessExecutor(Generic[T, C]):
                                 exhausted = True
                                 break
                             if task is NOT_NOW:            # the source waits for its caller: hand control back
-                                yield NOT_NOW, None
+                                not_now = True
                                 break
                             tid, next_tid = next_tid, next_tid + 1
                         else:
                             break
-                        payload = ForkingPickler.dumps((tid, task))
+                        payload = pickle.dumps((tid, task), pickle.HIGHEST_PROTOCOL)
                         if w.queue and sum(w.sizes) - w.sizes[0] + len(payload) > QUEUE_MAX_BYTES:
                             # a busy worker may be blocked sending us its result: writing more than its pipe
                             # holds would block both; the task waits for an idle worker
@@ -425,10 +443,14 @@ class ProcessExecutor(Generic[T, C]):
                             w.started = time.monotonic()
                         w.queue.append((tid, task))
                         w.sizes.append(len(payload))
+                        chunk.append(payload)
+                    if chunk:                              # the worker's new tasks in one message (one write)
                         try:
-                            w.conn.send_bytes(payload)
+                            w.conn.send_bytes(b"".join(chunk))
                         except (BrokenPipeError, OSError):
-                            break                          # its death is seen below and its tasks re-sent
+                            pass                           # its death is seen below and its tasks re-sent
+                    if not_now:
+                        yield NOT_NOW, None
                 busy = [w for w in self._pool if w.queue]
                 if not busy:
                     if exhausted:

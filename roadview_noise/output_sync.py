@@ -24,7 +24,7 @@ MAX_WAITING = 64            # entries whose fsync is pending before the ledger w
                             # deeper queue would not fsync faster, only hold more entries in memory)
 
 
-def fsync_files(paths: list[Path]) -> None:
+def fsync_files(paths: list[str | Path]) -> None:
     """fsync each file (opened read-only: fsync needs no write access on Linux)."""
     for p in paths:
         fd = os.open(p, os.O_RDONLY)
@@ -41,6 +41,7 @@ class SyncPool:
 
     def __init__(self, out_root: Path, threads: int = SYNC_THREADS):
         self.out_root = out_root
+        self._root = os.fspath(out_root)
         self.pending = 0                                   # submitted, not yet collected by :meth:`done`
         self._todo: queue.SimpleQueue = queue.SimpleQueue()
         self._finished = threading.Condition()
@@ -77,7 +78,8 @@ class SyncPool:
 
     def submit(self, index: int, staged: list[list[str]]) -> None:
         self.pending += 1
-        self._todo.put((index, [self.out_root / tmp for tmp, _ in staged]))
+        root = self._root
+        self._todo.put((index, [f"{root}/{tmp}" for tmp, _ in staged]))   # no pathlib per file (issue 19)
 
     def woken(self) -> None:
         """Empty the :attr:`wake` pipe (the caller is about to collect what finished)."""

@@ -210,7 +210,11 @@ def _walk_dir(path: str, rel: str, root: str, matcher: Matcher) -> Iterator:
         if is_dir:
             yield from _walk_dir(entry.path, child, root, matcher)
             continue
-        if not os.path.isfile(entry.path):
+        try:
+            regular = entry.is_file()                # from the listing, no stat (a symlink's target is stat'ed)
+        except OSError:
+            regular = False
+        if not regular:
             yield WalkFailure(child, "is not a regular file (device, pipe or socket)")
             continue
         yield child, modality, names

@@ -270,6 +270,24 @@ def test_short_tasks_are_answered_in_batches_and_a_death_blames_the_running_task
     assert all(results[t] == (t, t * t) for t in range(300) if t != 150)
 
 
+def test_a_refill_of_short_tasks_goes_to_its_worker_in_one_message(monkeypatch, queue_below_s):
+    """Behind short tasks the parent hands a worker the tasks of a refill in one message (one write, not one per
+    task: chunked dispatch); the worker still runs and answers each, in order."""
+    from multiprocessing.connection import Connection
+
+    sends: list = []
+    real_send = Connection.send_bytes
+
+    def counting_send(self, buf, *args):
+        sends.append(1)
+        return real_send(self, buf, *args)
+
+    monkeypatch.setattr(Connection, "send_bytes", counting_send)
+    ex = ProcessExecutor(work, {}, 1)
+    assert list(ex.map(range(300))) == [(t, (t, t * t)) for t in range(300)]
+    assert ex._depth() > 2 and len(sends) < 100
+
+
 def test_a_time_bound_answers_each_task_at_once(monkeypatch, queue_below_s):
     """Under ``timeout_s`` a held result would count against the next task's time: one task queued, no batches
     (the parent wakes once per task)."""

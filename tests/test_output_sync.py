@@ -125,7 +125,7 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
     real = output_sync.fsync_files
 
     def held(paths):                          # the first file's fsync waits until the test lets it go
-        if paths[0].name == ".a.tmp":
+        if Path(paths[0]).name == ".a.tmp":
             gate.wait(5)
         real(paths)
 

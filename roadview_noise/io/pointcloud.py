@@ -78,8 +78,8 @@ Column = tuple[str, str, np.ndarray]          # (file name, file dtype string, v
 def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
     """Format id from the file name: ``.pcd``, ``.ply``, ``.pcd.bin`` (nuScenes), ``.bin`` (KITTI, or View-of-Delft
     for radar), ``.txt`` (radar: a text table such as Astyx's)."""
-    name = Path(path).name.lower()
-    if name.endswith(".pcd.bin"):
+    name = os.path.basename(os.fspath(path).rstrip("/" + os.sep)).lower()   # Path(path).name, without pathlib's
+    if name.endswith(".pcd.bin"):                                             # parse (≈ 3 µs; 3 calls per file)
         return "nuscenes_bin"
     if name.endswith(".bin"):
         return "vod_bin" if sensor == "radar" else "kitti_bin"
@@ -200,9 +200,10 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
         raise ValueError(f"effect must be 'auto' or 'none', got {effect!r}")
     layout = cloud.layout or default_layout(path, cloud)
     family = _family(layout.fmt)
+    name = os.path.basename(os.fspath(path))
     if _family(cloud_format(path, cloud.sensor)) != family:
-        raise ValueError(f"{Path(path).name}: suffix does not match the cloud's layout format {layout.fmt!r}")
-    columns, added = output_columns(cloud, layout, effect=effect, name=Path(path).name)
+        raise ValueError(f"{name}: suffix does not match the cloud's layout format {layout.fmt!r}")
+    columns, added = output_columns(cloud, layout, effect=effect, name=name)
     sidecar = family == "bin" or fixed_field_layout(layout)
     if added is not None and not sidecar:
         columns.append(added)
