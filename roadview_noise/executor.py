@@ -155,6 +155,17 @@ def worker_setup(parent_pid: int | None = None) -> None:
         os._exit(1)
 
 
+def leave_at_once(code: int = 0) -> None:
+    """End this process now with ``code``, its stdout and stderr flushed, without tearing its interpreter down (its
+    exit handlers, multiprocessing's finalizers: a worker told to stop, the fork server, a local run's process)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+    os._exit(code)
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -189,8 +200,8 @@ def _worker_main(conn, fn: Callable, context: Any, parent_pid: int, setup: tuple
             msg = conn.recv()
         except (EOFError, OSError):
             return
-        if msg is None:
-            return
+        if msg is None:                 # told to stop (ProcessExecutor.stop): the run waits for this exit
+            leave_at_once()
         tid, task = msg
         if running is not None:
             running.value = tid
