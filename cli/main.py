@@ -7,7 +7,6 @@ on stderr, never a traceback); 130 interrupted.
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 from typing import Any, Optional
@@ -31,9 +30,9 @@ class _App(typer.Typer):
             return super().__call__(*args, **kwargs)
         except SystemExit as done:
             if isinstance(done.code, (int, type(None))) and local_run_recipe(sys.argv):
-                sys.stdout.flush()
-                sys.stderr.flush()
-                os._exit(done.code or 0)
+                from roadview_noise.executor import leave_at_once
+
+                leave_at_once(done.code or 0)
             raise
 
 

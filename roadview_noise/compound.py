@@ -169,13 +169,14 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     and firing columns from that order (:func:`~roadview_noise.physics.laser_order.with_laser_order`)."""
     from .metrics import Deferred          # numba: only where a chain runs, not where recipes are checked
     from .physics import return_ranges
-    from .physics.laser_order import with_laser_order
 
     pending = deferred if deferred is not None else Deferred()
     return_ranges.collect(metrics)         # models note the return geometry of the clouds they write
 
     records = []
-    if isinstance(data, PointCloud):
+    if isinstance(data, PointCloud) and data.sensor == "lidar":     # imported by LiDAR workers only (≈ 7 ms)
+        from .physics.laser_order import with_laser_order
+
         data = with_laser_order(data)
     recorded = data if isinstance(data, PointCloud) and data.recorded is None else None
     for i, model in enumerate(models):

@@ -259,9 +259,11 @@ def sha256_input(path: Path, *, whole: bool = False) -> tuple[str, bytes | None]
 def _read_whole(sample: Sample, path: Path) -> bool:
     """True when the sample's reader takes the file's bytes (a point cloud, a PNG/JPEG/TIFF image; OpenEXR and the
     raw readers open the path themselves)."""
+    if sample.modality != "camera":        # a LiDAR or radar worker never imports the image codecs
+        return sample.modality in ("lidar", "radar")
     from .io.image import image_format
 
-    return sample.modality in ("lidar", "radar") or (sample.modality == "camera" and image_format(path) != "exr")
+    return image_format(path) != "exr"
 
 
 def _check_sizes(sample: Sample, path: Path, depth: Path | None, ctx: RunContext, content: bytes | None) -> None:

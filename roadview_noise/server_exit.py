@@ -7,17 +7,7 @@ Workers forked from the server never run its ``atexit`` handlers (multiprocessin
 from __future__ import annotations
 
 import atexit
-import os
-import sys
 
+from .executor import leave_at_once
 
-def _leave() -> None:
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (AttributeError, OSError, ValueError):
-            pass
-    os._exit(0)
-
-
-atexit.register(_leave)
+atexit.register(leave_at_once)

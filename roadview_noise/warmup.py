@@ -6,9 +6,9 @@ warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the ca
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
 Kernels that only one kind of data calls (:data:`KIND_KERNELS`: the sRGB edges and the frame metrics for camera
-and raw frames, the point-cloud metrics and codec for LiDAR and radar clouds) are loaded only when a model of that
-kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a camera run the
-point-cloud ones. With no model loaded, every kernel is.
+and raw frames, the point-cloud metrics, codec and return geometry for LiDAR and radar clouds) are loaded only when a
+model of that kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a camera
+run the point-cloud ones. With no model loaded, every kernel is.
 
 When a camera model is loaded, physics/srgb.py's encode tables are built here too, so that the workers inherit
 them instead of each building them on its first file (≈ 40 ms).
@@ -24,7 +24,7 @@ _done = False
 # The kernels only one kind of data calls, by module (None: all of the module's); a model's kind is its package
 _IMAGE = {"roadview_noise.physics.srgb": None, "roadview_noise.luminance": None, "roadview_noise.io.png": None,
           "roadview_noise.metrics": ("_grey_statistics", "_grey_codes", "_depth_bin_index", "_ssim_map")}
-_POINTS = {"roadview_noise.io.pointcloud": None,
+_POINTS = {"roadview_noise.io.pointcloud": None, "roadview_noise.physics.return_ranges": None,
            "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_step_pass", "_same_pass",
                                       "_same_position", "_is_return", "_compose", "_same_ray", "_change",
                                       "_mean_change_through")}

@@ -137,8 +137,9 @@ def test_warm_up_loads_only_the_kernels_of_the_loaded_kinds():
 
 
 def test_a_cloud_run_needs_no_image_writers(tmp_path):
-    """A LiDAR/radar run's server does not preload the image and raw readers/writers, and saving a cloud does not
-    import them (nor tifffile) either: the worker never needs them."""
+    """A LiDAR/radar run's server does not preload the image and raw readers/writers, and a radar worker's file
+    (reading it whole, its chain, saving the cloud) imports neither them (nor tifffile) nor the LiDAR laser order:
+    the worker never needs them."""
     from roadview_noise.prestart import worker_modules
 
     assert "roadview_noise.io.image" in worker_modules("camera", [])
@@ -153,8 +154,14 @@ def test_a_cloud_run_needs_no_image_writers(tmp_path):
         from roadview_noise.types import PointCloud
         cloud = PointCloud(np.ones((4, 3), np.float32), {{"intensity": np.ones(4, np.float32)}}, "radar")
         recipe = SimpleNamespace(spec=SimpleNamespace(output=SimpleNamespace(effect="none")))
+        from roadview_noise.compound import apply_models
+        from roadview_noise.dataset import Sample
+        from roadview_noise.runner import _read_whole
+        assert _read_whole(Sample("a.pcd", "radar", "s"), __import__("pathlib").Path("a.pcd"))
+        cloud, _ = apply_models([], cloud, seed=0, key="a.pcd", sequence_id="s")
         save(cloud, __import__("pathlib").Path({str(tmp_path / "a.pcd")!r}), recipe)
-        print(sorted(m for m in ("tifffile", "roadview_noise.io.image", "roadview_noise.io.raw") if m in sys.modules))
+        print(sorted(m for m in ("tifffile", "roadview_noise.io.image", "roadview_noise.io.raw",
+                                 "roadview_noise.physics.laser_order") if m in sys.modules))
     """)
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
