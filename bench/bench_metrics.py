@@ -1,23 +1,23 @@
 """Cost of the manifest metrics per file in the workers (issue 18 target: the metrics add ≤ 10 % to `augment` time).
 
-**Which figure is "augment time"** (round 13): what a user's run pays is its workers' CPU time per file, summed
-over the files (a worker never waits for storage: per file, wall = thread CPU + the wait for a core, measured from
-``/proc/…/schedstat``: the blocked rest was −0.2…+0.1 ms), plus the main process's (+0.1 ms per file with
-metrics). ``--whole-run`` measures that sum (its CPU column, paired within a round) and is the acceptance figure;
-its wall columns are not: on a shared machine they add a wait for a core that differed between the paired runs of
-a round by −60…+150 ms per file (the metrics cost 4–13). The per-file mode below is its steady state (no first
-file), on the same kind of data: photo-like camera frames (σ = 2 codes of noise, as ``bench/run.py``: the smooth
-rendered frames PNG-decode ≈ 11 ms faster, so their increase in % was 1–3 points too high) and distinct files
-cycled through (the same file repeated found its data in the caches).
+**Which figure is "augment time"** (round 13, docs/metrics-cost.md): what a user's run pays is its workers' CPU
+time per file, summed over the files (a worker does not wait for storage: per file, wall = thread CPU + the wait for
+a core, measured from ``/proc/…/schedstat``; the rest was 0 within the method's resolution), plus the main
+process's (unchanged by the metrics: 1.4 ms per file). ``--whole-run`` measures that sum (its CPU column, paired
+within a round): the acceptance figure. Its wall columns are not: on a shared machine they add a wait for a core
+that differed between the paired runs of a round by −60…+150 ms per file (the metrics cost 4–13). The per-file
+mode below is its steady state (no first file), on the same kind of data: photo-like camera frames (σ = 2 codes of
+noise, as ``bench/run.py``: the smooth rendered frames PNG-decode ≈ 11 ms faster, so their increase in % was 1–3
+points too high) and distinct files cycled through (the same file repeated finds its data in the caches).
 
 Each case runs ``FRAMES`` full-resolution input files of a folder, in turn, through ``runner.process`` — what a
 worker does per file: read, hash, the chain, the metrics, encode, write (staged temporaries, removed after each
 run) — in this process, set up like a worker (one thread per numeric library, the workers' allocator setting),
 with ``output.metrics`` off and on alternately (the order flipping every run), ``--repeat`` times each after one
 untimed run of each. Figures per case: the median per-file thread CPU time and wall time, off → on, and the
-increase in %; and the growth of the ``metrics`` phase of the
-``--profile`` split (the manifest's per-file ``profile``; on minus off, as it also holds the chain's own
-bookkeeping), in ms and as a share of the per-file time with metrics on. The increase also holds what the
+increase in %; and the growth of the ``metrics`` phase of the ``--profile`` split (the manifest's per-file
+``profile``, wall time; on minus off, as it also holds the chain's own bookkeeping), in ms and as a share of the
+per-file time with metrics on. The increase also holds what the
 metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches),
 and the work they add to the 8-bit sRGB decode and encode passes that take a frame's luminance on the way
 (``roadview_noise.luminance``; that work is counted in the ``convert``/``encode`` phases, not in ``metrics``).
