@@ -59,15 +59,17 @@ wall time, the sum of the workers' per-file times (manifest ``seconds``) and the
 thread CPU, ``profile.cpu``, summed, plus the main process's), off → on as medians and the median [range] of the
 increase paired within a round; the growth of the ``metrics`` phase per file, and the manifest's bytes per line.
 A run's first file (a fresh worker: ≈ 230 ms CPU for a camera file, ≈ 430 ms for a LiDAR one) is in the sums, with
-what the metrics add to it (≈ +35–50 ms once). With ``--baseline DIR``: paired whole runs of DIR's code and this
+what the metrics add to it (≈ +35–50 ms once); the last CPU column leaves it out (files 2–n: the steady part, and
+the steadier figure — the first file's CPU moved by up to ≈ 100 ms between the paired runs of a round). With ``--baseline DIR``: paired whole runs of DIR's code and this
 tree's, each run in a fresh interpreter with its tree first on ``PYTHONPATH`` (so its workers run that code),
 metrics off and on, the order rotating every round; the sums of the per-file wall seconds and the run's CPU
 seconds.
 
 Inputs: ``FRAMES`` frames of the sample drive generated at full resolution (camera 1936×1464 PNG made photo-like,
 with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list —
-what ``--whole-run`` and ``bench/run.py`` run on —, radar PCD), and the real OS1-128 scan ``../shared/data/os1-128/scan0.bin`` (107 647 points, its own beam
-table) when present. Recipes: camera weather (fog, rain, snow), CNF05 (fog →
+what ``--whole-run`` and ``bench/run.py`` run on —, radar PCD), and the real OS1-128 scan
+``../shared/data/os1-128/scan0.bin`` (107 647 points, its own beam table) when present. Recipes: camera weather
+(fog, rain, snow), CNF05 (fog →
 windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR weather (fog, rain, snow), CNF20, CNF22;
 radar rain and CNF25.
 
@@ -409,7 +411,8 @@ def compare_paired_case(name: str, folder: str, roots: dict[str, Path], tmp: Pat
 
 def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool, cpu: bool = False) -> tuple:
     """(wall s, sum of the per-file seconds, metrics phase s per file, manifest bytes per line[, with ``cpu``: the
-    run's CPU seconds — the worker's per-file thread CPU summed, plus this (the main) process's CPU]) of one run."""
+    run's CPU seconds — the worker's per-file thread CPU summed, plus this (the main) process's CPU —, and the
+    CPU seconds of its files but the first]) of one run."""
     from run import INPUTS      # bench/run.py: the trees' input globs (bench/ is first on sys.path)
 
     body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
@@ -425,7 +428,8 @@ def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool,
     shutil.rmtree(out)
     files_cpu = sum(e["profile"]["cpu"] for e in entries)
     return (wall, sum(e["seconds"] for e in entries), statistics.mean(e["profile"]["metrics"] for e in entries),
-            sum(map(len, lines)) // len(lines)) + ((files_cpu + main_cpu,) if cpu else ())
+            sum(map(len, lines)) // len(lines)) + ((files_cpu + main_cpu, files_cpu - entries[0]["profile"]["cpu"])
+                                                   if cpu else ())
 
 
 def whole_runs(names: list[str], repeat: int, frames: int) -> None:
@@ -439,7 +443,7 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
               f"per-file CPU summed, plus the main process's) is the acceptance figure: the wall sums add the wait "
               f"for a core")
         print(f"  {'recipe':<20} {'wall s':^33}   {'sum of per-file s':^33}   {'CPU s (files + main process)':^33}   "
-              f"metrics ms/file   bytes/line")
+              f"{'CPU s, files 2–n':^33}   metrics ms/file   bytes/line")
         for name in names:
             sensor = WHOLE_RUN[name]
             samples = {False: [], True: []}
@@ -449,7 +453,7 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
                     if r:
                         samples[on].append(got)
             cols = []
-            for i in (0, 1, 4):
+            for i in (0, 1, 4, 5):
                 off, on = ([s[i] for s in samples[k]] for k in (False, True))
                 ratios = sorted((b / a - 1) * 100 for a, b in zip(off, on))
                 cols.append(f"{statistics.median(off):6.3f} → {statistics.median(on):6.3f} "
@@ -496,7 +500,7 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
                         samples[(code, on)].append(json.loads(got))
             for code in ("base", "this"):
                 cols = []
-                for i, label in ((1, "wall"), (4, "CPU")):
+                for i, label in ((1, "wall"), (4, "CPU"), (5, "CPU files 2–n")):
                     off, on = ([s[i] for s in samples[(code, k)]] for k in ("off", "on"))
                     ratios = sorted((b / a - 1) * 100 for a, b in zip(off, on))      # paired within a round
                     cols.append(f"{label} {statistics.median(off):5.3f} → {statistics.median(on):5.3f} s "
