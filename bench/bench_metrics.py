@@ -59,8 +59,8 @@ wall time, the sum of the workers' per-file times (manifest ``seconds``) and the
 thread CPU, ``profile.cpu``, summed, plus the main process's), off → on as medians and the median [range] of the
 increase paired within a round; the growth of the ``metrics`` phase per file, and the manifest's bytes per line.
 A run's first file (a fresh worker: ≈ 230 ms CPU for a camera file, ≈ 430 ms for a LiDAR one) is in the sums, with
-what the metrics add to it (≈ +35–50 ms once); the last CPU column leaves it out (files 2–n: the steady part, and
-the steadier figure — the first file's CPU moved by up to ≈ 100 ms between the paired runs of a round). With ``--baseline DIR``: paired whole runs of DIR's code and this
+what the metrics add to it (≈ +35–50 ms once); the last CPU column leaves it out (files 2–n: what each further file
+of a long run costs; the first file's CPU moved by up to ≈ 100 ms between the paired runs of a round). With ``--baseline DIR``: paired whole runs of DIR's code and this
 tree's, each run in a fresh interpreter with its tree first on ``PYTHONPATH`` (so its workers run that code),
 metrics off and on, the order rotating every round; the sums of the per-file wall seconds and the run's CPU
 seconds.
