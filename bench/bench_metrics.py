@@ -17,9 +17,8 @@ with ``output.metrics`` off and on alternately (the order flipping every run), `
 untimed run of each. Figures per case: the median per-file thread CPU time and wall time, off → on, and the
 increase in %; and the growth of the ``metrics`` phase of the ``--profile`` split (the manifest's per-file
 ``profile``, wall time; on minus off, as it also holds the chain's own bookkeeping), in ms and as a share of the
-per-file time with metrics on. The increase also holds what the
-metrics cost the steps after them (their reads of whole frames push the next model's tables out of the caches),
-and the work they add to the 8-bit sRGB decode and encode passes that take a frame's luminance on the way
+per-file time with metrics on. The increase also holds what the metrics cost the steps after them (their reads of
+whole frames push the next model's tables out of the caches), and the work they add to the 8-bit sRGB decode and encode passes that take a frame's luminance on the way
 (``roadview_noise.luminance``; that work is counted in the ``convert``/``encode`` phases, not in ``metrics``).
 CPU time is the steadier figure on a shared machine.
 
@@ -60,10 +59,10 @@ thread CPU, ``profile.cpu``, summed, plus the main process's), off → on as med
 increase paired within a round; the growth of the ``metrics`` phase per file, and the manifest's bytes per line.
 A run's first file (a fresh worker: ≈ 230 ms CPU for a camera file, ≈ 430 ms for a LiDAR one) is in the sums, with
 what the metrics add to it (≈ +35–50 ms once); the last CPU column leaves it out (files 2–n: what each further file
-of a long run costs; the first file's CPU moved by up to ≈ 100 ms between the paired runs of a round). With ``--baseline DIR``: paired whole runs of DIR's code and this
-tree's, each run in a fresh interpreter with its tree first on ``PYTHONPATH`` (so its workers run that code),
-metrics off and on, the order rotating every round; the sums of the per-file wall seconds and the run's CPU
-seconds.
+of a long run costs; the first file's CPU moved by up to ≈ 100 ms between the paired runs of a round). With
+``--baseline DIR``: paired whole runs of DIR's code and this tree's, each run in a fresh interpreter with its tree
+first on ``PYTHONPATH`` (so its workers run that code), metrics off and on, the order rotating every round; the sums
+of the per-file wall seconds and the run's CPU seconds (all files, and files 2–n).
 
 Inputs: ``FRAMES`` frames of the sample drive generated at full resolution (camera 1936×1464 PNG made photo-like,
 with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list —
