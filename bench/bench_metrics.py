@@ -18,8 +18,9 @@ untimed run of each. Figures per case: the median per-file thread CPU time and w
 increase in %; and the growth of the ``metrics`` phase of the ``--profile`` split (the manifest's per-file
 ``profile``, wall time; on minus off, as it also holds the chain's own bookkeeping), in ms and as a share of the
 per-file time with metrics on. The increase also holds what the metrics cost the steps after them (their reads of
-whole frames push the next model's tables out of the caches), and the work they add to the 8-bit sRGB decode and encode passes that take a frame's luminance on the way
-(``roadview_noise.luminance``; that work is counted in the ``convert``/``encode`` phases, not in ``metrics``).
+whole frames push the next model's tables out of the caches), and the work they add to the 8-bit sRGB decode and
+encode passes that take a frame's luminance on the way (``roadview_noise.luminance``; that work is counted in the
+``convert``/``encode`` phases, not in ``metrics``).
 CPU time is the steadier figure on a shared machine.
 
 ``--compare-only``: the metrics work alone — per case, the CPU time of the ``metrics.compare`` calls a chain makes
