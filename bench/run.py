@@ -100,9 +100,7 @@ def build_trees(root: Path, frames: int, files: dict[str, int]) -> dict[str, Pat
         shutil.copy(src / "camera" / "seq0" / "camera.yaml", cam)
         for k in range(files["camera"]):
             i = k % frames
-            img = cv2.imread(str(src / "camera" / "seq0" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
-            noisy = np.clip(np.rint(img + rng.normal(0, PHOTO_NOISE_CODES, img.shape)), 0, 255).astype(np.uint8)
-            cv2.imwrite(str(cam / f"{k:06d}.png"), noisy)
+            photo_like(src / "camera" / "seq0" / f"{i:06d}.png", cam / f"{k:06d}.png", rng)
             shutil.copy(src / "camera" / "seq0" / f"{i:06d}_depth.exr", cam / f"{k:06d}_depth.exr")
     for sensor, folder in (("lidar", src / "lidar" / "os1-128" / "seq0"), ("radar", src / "radar" / "seq0")):
         if sensor not in trees:
@@ -115,6 +113,14 @@ def build_trees(root: Path, frames: int, files: dict[str, int]) -> dict[str, Pat
             shutil.copy(folder / f"{k % frames:06d}.pcd", dst / f"{k:06d}.pcd")
     shutil.rmtree(src)
     return trees
+
+
+def photo_like(src: Path, dst: Path, rng: np.random.Generator) -> None:
+    """The rendered 8-bit frame ``src`` with σ = ``PHOTO_NOISE_CODES`` of noise, written to ``dst`` (PNG): a frame
+    that PNG-codes like a photograph (the smooth rendered frames code ≈ 10× faster)."""
+    img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED).astype(np.float32)
+    noisy = np.clip(np.rint(img + rng.normal(0, PHOTO_NOISE_CODES, img.shape)), 0, 255).astype(np.uint8)
+    cv2.imwrite(str(dst), noisy)
 
 
 def recipe_for(name: str, sensor: str):
