@@ -1,0 +1,95 @@
+"""The strongest-return sampler (physics/lidar_strongest.py) against main's before round 13
+(tests/physics/reference_strongest.py, with main's float64 tables): the package draws each ray's head a ray ahead
+(its random draws in another order) and reads its Λ, range-quantile and cover tables as float32; the law of the
+returns must not change.
+
+Rain at 20 and 100 mm/h, snow at 0.5, 2.5 and 10 mm/h, on a 1 × 8000 OS1-128 range image (targets of 2–90 %
+reflectance at 2–60 m on three rays in four, sky on the rest), 16 frames per sampler (seeds 0–15, the same for
+both; the samplers' draws differ):
+- per outcome (no return / target / weather return) and ray group (sky; targets below and above 20 m, faint and
+  bright), a χ² test of homogeneity of the two tables of counts, p > 0.001;
+- ranges and signals of the weather returns, signals of the targets kept: two-sample Kolmogorov–Smirnov, p > 0.001;
+- the particles drawn: the same mean within 4 Poisson SDs.
+The first return does not use this sampler (it draws every particle, :func:`lidar_particles.sample_particles`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from roadview_noise.models.lidar.rain import RainLidar
+from roadview_noise.models.lidar.snow import SnowLidar
+from roadview_noise.physics import lidar_echo, lidar_particles, lidar_strongest
+from roadview_noise.physics.lidar_medium import pulse_length_m
+from roadview_noise.physics.lidar_particles import Beam
+from roadview_noise.physics.lidar_rays import cloud_rays
+from roadview_noise.profiles.lidar import os1_128
+from roadview_noise.types import PointCloud
+from tests.physics import reference_strongest
+
+FRAMES = 16
+P_MIN = 1e-3
+
+
+def _rays(n: int = 8000):
+    rng = np.random.default_rng(0)
+    r = rng.uniform(2.0, 60.0, n)
+    az, el = rng.uniform(-np.pi, np.pi, n), rng.uniform(-0.3, 0.3, n)
+    pos = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], axis=1)
+    sky = np.arange(n) % 4 == 0
+    intensity = np.where(sky, 0.0, 65535 * rng.uniform(0.02, 0.9, n) / r ** 2)
+    cloud = PointCloud(np.where(sky[:, None], 0.0, pos), {"intensity": intensity}, "lidar",
+                       dataclasses.replace(os1_128(), detection_threshold=2.42), grid_shape=(1, n))
+    return cloud_rays(cloud, "snow.lidar")
+
+
+def _table_arguments(rays, model):
+    """(medium, beam, base level, pulse length) of the strongest return's tables."""
+    medium, beam = model.medium(), Beam.of(rays.profile)
+    length = float(pulse_length_m(rays.profile.pulse_half_power_width_s))
+    level, _ = lidar_particles.draw_level(medium, beam, rays.threshold, model.draw_fraction_of_threshold, length)
+    return medium, beam, float(level), length
+
+
+def _frames(rays, model, group):
+    """Counts per (outcome, group), weather ranges and signals, target signals, particles drawn over FRAMES."""
+    medium, beam, level, _ = _table_arguments(rays, model)
+    counts, weather_range, weather_signal, target_signal, drawn = np.zeros((3, 5)), [], [], [], 0
+    for seed in range(FRAMES):
+        returns, m = lidar_strongest.strongest_returns(np.random.default_rng(seed), rays, medium, beam, level)
+        np.add.at(counts, (returns.kind, group), 1)
+        weather = returns.kind == lidar_echo.WEATHER
+        weather_range.append(returns.range_m[weather])
+        weather_signal.append(returns.signal[weather])
+        target_signal.append(returns.signal[returns.kind == lidar_echo.TARGET])
+        drawn += m
+    return counts, *map(np.concatenate, (weather_range, weather_signal, target_signal)), drawn
+
+
+@pytest.mark.parametrize("model", [RainLidar(rain_rate_mm_per_h=20.0), RainLidar(rain_rate_mm_per_h=100.0),
+                                   SnowLidar(snowfall_rate_mm_per_h=0.5), SnowLidar(snowfall_rate_mm_per_h=2.5),
+                                   SnowLidar(snowfall_rate_mm_per_h=10.0)],
+                         ids=["rain20", "rain100", "snow0.5", "snow2.5", "snow10"])
+def test_sampler_has_the_law_of_mains(model, monkeypatch):
+    """Module doc: the package's sampler and main's give the same law of outcomes, ranges and intensities."""
+    rays = _rays()
+    medium = model.medium()
+    strong = rays.has_target & (rays.signal * np.exp(-2 * medium.alpha_per_m * rays.range_m) > 8 * rays.threshold)
+    group = np.where(~rays.has_target, 0, 1 + (rays.range_m > 20.0) + 2 * strong)
+    c_a, r_a, s_a, t_a, n_a = _frames(rays, model, group)
+    monkeypatch.setattr(lidar_strongest, "TABLE_DTYPE", np.float64)         # main's tables
+    tables = lidar_strongest.brightest_tables.uncached(*_table_arguments(rays, model))
+    monkeypatch.setattr(lidar_strongest, "brightest_tables", lambda *args: tables)
+    monkeypatch.setattr(lidar_strongest, "_strongest", reference_strongest._strongest)
+    c_b, r_b, s_b, t_b, n_b = _frames(rays, model, group)
+    assert len(r_a) > 500 and len(t_a) > 2000
+    table = np.stack([c_a.ravel(), c_b.ravel()])
+    table = table[:, table.sum(axis=0) > 0]
+    assert stats.chi2_contingency(table).pvalue > P_MIN
+    for a, b in ((r_a, r_b), (s_a, s_b), (t_a, t_b)):
+        assert stats.ks_2samp(a, b).pvalue > P_MIN
+    assert abs(n_a - n_b) < 4 * math.sqrt(n_a + n_b)
