@@ -37,8 +37,8 @@ def prefetch(typingctx, table, row, col):
                                             cgutils.unpack_tuple(builder, array.strides), array_type.layout, index)
         i32 = ir.IntType(32)
         address = builder.bitcast(pointer, ir.PointerType(ir.IntType(8)))
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32]),
-                                            "llvm.prefetch.p0")
+        function_type = ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, function_type, "llvm.prefetch.p0")
         builder.call(fn, [address, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
         return context.get_dummy_value()
 
