@@ -16,22 +16,18 @@ The first return does not use this sampler (it draws every particle, :func:`lida
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
-from scipy import stats
 
 from roadview_noise.models.lidar.rain import RainLidar
 from roadview_noise.models.lidar.snow import SnowLidar
-from roadview_noise.physics import lidar_echo, lidar_particles, lidar_strongest
+from roadview_noise.physics import lidar_particles, lidar_strongest
 from roadview_noise.physics.lidar_medium import pulse_length_m
 from roadview_noise.physics.lidar_particles import Beam
 from tests.physics import reference_strongest
-from tests.physics.test_lidar_strongest import _scan_rays
+from tests.physics.test_lidar_strongest import _scan_rays, assert_same_law, ray_groups, tally
 
 FRAMES = 16
-P_MIN = 1e-3
 
 
 def _table_arguments(rays, model):
@@ -43,18 +39,10 @@ def _table_arguments(rays, model):
 
 
 def _frames(rays, model, group):
-    """Counts per (outcome, group), weather ranges and signals, target signals, particles drawn over FRAMES."""
+    """:func:`tally` of FRAMES frames of the package's sampler (seeds 0 … FRAMES − 1)."""
     medium, beam, level, _ = _table_arguments(rays, model)
-    counts, weather_range, weather_signal, target_signal, drawn = np.zeros((3, 5)), [], [], [], 0
-    for seed in range(FRAMES):
-        returns, m = lidar_strongest.strongest_returns(np.random.default_rng(seed), rays, medium, beam, level)
-        np.add.at(counts, (returns.kind, group), 1)
-        weather = returns.kind == lidar_echo.WEATHER
-        weather_range.append(returns.range_m[weather])
-        weather_signal.append(returns.signal[weather])
-        target_signal.append(returns.signal[returns.kind == lidar_echo.TARGET])
-        drawn += m
-    return counts, *map(np.concatenate, (weather_range, weather_signal, target_signal)), drawn
+    return tally([lidar_strongest.strongest_returns(np.random.default_rng(seed), rays, medium, beam, level)
+                  for seed in range(FRAMES)], group)
 
 
 @pytest.mark.parametrize("model", [RainLidar(rain_rate_mm_per_h=20.0), RainLidar(rain_rate_mm_per_h=100.0),
@@ -64,19 +52,10 @@ def _frames(rays, model, group):
 def test_sampler_has_the_law_of_mains(model, monkeypatch):
     """Module doc: the package's sampler and main's give the same law of outcomes, ranges and intensities."""
     rays = _scan_rays(8000)
-    medium = model.medium()
-    strong = rays.has_target & (rays.signal * np.exp(-2 * medium.alpha_per_m * rays.range_m) > 8 * rays.threshold)
-    group = np.where(~rays.has_target, 0, 1 + (rays.range_m > 20.0) + 2 * strong)
-    c_a, r_a, s_a, t_a, n_a = _frames(rays, model, group)
+    group = ray_groups(rays, model.medium())
+    package = _frames(rays, model, group)
     monkeypatch.setattr(lidar_strongest, "TABLE_DTYPE", np.float64)         # main's tables
     tables = lidar_strongest.brightest_tables.uncached(*_table_arguments(rays, model))
     monkeypatch.setattr(lidar_strongest, "brightest_tables", lambda *args: tables)
     monkeypatch.setattr(lidar_strongest, "_strongest", reference_strongest._strongest)
-    c_b, r_b, s_b, t_b, n_b = _frames(rays, model, group)
-    assert len(r_a) > 500 and len(t_a) > 2000
-    table = np.stack([c_a.ravel(), c_b.ravel()])
-    table = table[:, table.sum(axis=0) > 0]
-    assert stats.chi2_contingency(table).pvalue > P_MIN
-    for a, b in ((r_a, r_b), (s_a, s_b), (t_a, t_b)):
-        assert stats.ks_2samp(a, b).pvalue > P_MIN
-    assert abs(n_a - n_b) < 4 * math.sqrt(n_a + n_b)
+    assert_same_law(package, _frames(rays, model, group))
