@@ -213,38 +213,56 @@ def test_fused_pass_has_the_law_of_the_staged_pipeline(rate):
     level, _ = lidar_particles.draw_level(medium, beam, rays.threshold, model.draw_fraction_of_threshold,
                                           pulse_length_m(tau_h))
     tables = lidar_strongest.brightest_tables(medium, beam, float(level), float(pulse_length_m(tau_h)))
-    strong = rays.has_target & (rays.signal * np.exp(-2 * medium.alpha_per_m * rays.range_m) > 8 * rays.threshold)
-    group = np.where(~rays.has_target, 0, 1 + (rays.range_m > 20.0) + 2 * strong)
-    frames = 24
+    group = ray_groups(rays, medium)
     results = []
     for fused in (True, False):
-        counts, weather_range, weather_signal, target_signal, drawn = np.zeros((3, 5)), [], [], [], 0
-        for seed in range(frames):
+        frames = []
+        for seed in range(24):
             rng = np.random.default_rng(seed)
             if fused:
-                returns, m = lidar_strongest.strongest_returns(rng, rays, medium, beam, level)
-            else:
-                d = lidar_strongest.draw_particles(rng, rays.range_m, rays.signal, rays.has_target,
-                                                   medium.alpha_per_m, tables, rays.threshold)
-                candidates = lidar_echo.select_returns(d.ray, d.range_m, d.signal, rays.range_m, d.target,
-                                                       rays.has_target, tau_h, rays.receiver.weakest_return,
-                                                       "strongest", d.beam_fraction, tables.background, d.shadow,
-                                                       d.level)
-                n_weather = int(np.count_nonzero(candidates.kind == lidar_echo.WEATHER))
-                returns = detect(rays, candidates, "strongest", rng.random((n_weather, 3)), per_ray=False)
-                m = len(d.ray)
-            np.add.at(counts, (returns.kind, group), 1)
-            weather = returns.kind == lidar_echo.WEATHER
-            weather_range.append(returns.range_m[weather])
-            weather_signal.append(returns.signal[weather])
-            target_signal.append(returns.signal[returns.kind == lidar_echo.TARGET])
-            drawn += m
-        results.append((counts, *map(np.concatenate, (weather_range, weather_signal, target_signal)), drawn))
-    (c_a, r_a, s_a, t_a, n_a), (c_b, r_b, s_b, t_b, n_b) = results
+                frames.append(lidar_strongest.strongest_returns(rng, rays, medium, beam, level))
+                continue
+            d = lidar_strongest.draw_particles(rng, rays.range_m, rays.signal, rays.has_target, medium.alpha_per_m,
+                                               tables, rays.threshold)
+            candidates = lidar_echo.select_returns(d.ray, d.range_m, d.signal, rays.range_m, d.target,
+                                                   rays.has_target, tau_h, rays.receiver.weakest_return, "strongest",
+                                                   d.beam_fraction, tables.background, d.shadow, d.level)
+            n_weather = int(np.count_nonzero(candidates.kind == lidar_echo.WEATHER))
+            frames.append((detect(rays, candidates, "strongest", rng.random((n_weather, 3)), per_ray=False),
+                           len(d.ray)))
+        results.append(tally(frames, group))
+    assert_same_law(*results)
+
+
+def ray_groups(rays, medium) -> np.ndarray:
+    """Per ray of :func:`_scan_rays` its group: sky 0; targets below / above 20 m 1 / 2, +2 when their attenuated
+    signal is more than 8 thresholds."""
+    strong = rays.has_target & (rays.signal * np.exp(-2 * medium.alpha_per_m * rays.range_m) > 8 * rays.threshold)
+    return np.where(~rays.has_target, 0, 1 + (rays.range_m > 20.0) + 2 * strong)
+
+
+def tally(frames, group) -> tuple:
+    """Of frames (returns, particles drawn) of the same rays: the counts per (outcome, ray group), the weather
+    returns' ranges and signals, the kept targets' signals, the particles drawn."""
+    counts, weather_range, weather_signal, target_signal, drawn = np.zeros((3, 5)), [], [], [], 0
+    for returns, m in frames:
+        np.add.at(counts, (returns.kind, group), 1)
+        weather = returns.kind == lidar_echo.WEATHER
+        weather_range.append(returns.range_m[weather])
+        weather_signal.append(returns.signal[weather])
+        target_signal.append(returns.signal[returns.kind == lidar_echo.TARGET])
+        drawn += m
+    return counts, *map(np.concatenate, (weather_range, weather_signal, target_signal)), drawn
+
+
+def assert_same_law(a, b, p_min: float = 1e-3) -> None:
+    """Two :func:`tally` s of the same rays have one law: χ² homogeneity of the counts and two-sample KS of the
+    weather ranges and signals and the target signals, p > ``p_min``; particles drawn within 4 Poisson SDs."""
+    (c_a, r_a, s_a, t_a, n_a), (c_b, r_b, s_b, t_b, n_b) = a, b
     assert len(r_a) > 2000 and len(t_a) > 2000
     table = np.stack([c_a.ravel(), c_b.ravel()])
     table = table[:, table.sum(axis=0) > 0]
-    assert stats.chi2_contingency(table).pvalue > 1e-3
-    for a, b in ((r_a, r_b), (s_a, s_b), (t_a, t_b)):
-        assert stats.ks_2samp(a, b).pvalue > 1e-3
+    assert stats.chi2_contingency(table).pvalue > p_min
+    for x, y in ((r_a, r_b), (s_a, s_b), (t_a, t_b)):
+        assert stats.ks_2samp(x, y).pvalue > p_min
     assert abs(n_a - n_b) < 4 * math.sqrt(n_a + n_b)
