@@ -38,7 +38,7 @@ def prefetch(typingctx, table, row, col):
         i32 = ir.IntType(32)
         address = builder.bitcast(pointer, ir.PointerType(ir.IntType(8)))
         function_type = ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32])
-        fn = cgutils.get_or_insert_function(builder.module, function_type, "llvm.prefetch.p0")
+        fn = builder.module.declare_intrinsic("llvm.prefetch", [address.type], function_type)   # p0 / p0i8
         builder.call(fn, [address, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
         return context.get_dummy_value()
 
