@@ -193,17 +193,20 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
                spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
                out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
                c_max):       # pragma: no cover - compiled
-    """:func:`strongest_returns` ray by ray: the particles (:func:`ray_head` a ray ahead, :func:`draw_ray`), the
-    candidate (:func:`lidar_echo.ray_return`, rays without particles: the target shadowed by the undrawn ones, plus
-    the background at its crest) and the receiver's decision (:func:`lidar_detection.outshone`,
-    :func:`lidar_detection.weather_decision`; three uniforms per measured candidate), written to ``kind``,
-    ``out_range``, ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the number of particles drawn.
+    """:func:`strongest_returns` ray by ray: the particles (:func:`ray_head` a ray ahead, :func:`draw_ray`), then
+    the ray's candidate and the receiver's decision (:func:`ray_outcome`), written to ``kind``, ``out_range``,
+    ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the number of particles drawn.
     Compiled without reference counting (it allocates nothing): the inlined per-ray functions cost no atomic
     operations on their array arguments. Not compiled with contracted multiply-adds: 3–4 % faster, but a realization
     would then depend on whether the CPU has FMA."""
     n = len(ray_range)
     inv_step = 1.0 / step
     drawn = 0
+    bg, rx, out, drawn_p, scratch = _outcome_arguments(bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step,
+                                                       min_range, rise_m, spad, gain, floor, excess, rx_threshold,
+                                                       background, detect_count, background_cdf, below_k, kind,
+                                                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca,
+                                                       cos_buf, sin_buf, c_lo, c_sum, c_max)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     t_next = _attenuated(signal, has_target, ray_range, alpha, 0)
     head = ray_head(rng, e, ray_range[0] if n else 0.0, t_next, threshold, r1, inv_step, lam, inv, band_scale, cover)
@@ -221,30 +224,60 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
                                     cover, p_range, p_signal, p_fraction, 0)
         head = ahead
         drawn += m
-        t_bg = crest_background(big_r, level, bg_at_target, bg_far, bg_inv_step) if tgt else 0.0
-        if m == 0:
-            value = t_att * (1.0 - min(shadow, 1.0)) + t_bg if tgt else 0.0
-            c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
-        else:
-            c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
-                                               length, weakest, False, bg_cum, level, bg_inv_step,
-                                               bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
-        out_range[i], out_signal[i] = at, value
-        if c == WEATHER:
-            t = t_value if tgt else 0.0
-            target_ok = tgt and t >= rx_threshold
-            if target_ok and outshone(value, t, gain, floor, excess):
-                kind[i], out_range[i], out_signal[i] = TARGET, big_r, t
-            else:
-                u0, u1, u2 = rng.random(), rng.random(), rng.random()
-                k, r, v = weather_decision(value, at, t, target_ok, big_r, u0, u1, u2, True, min_range, rise_m, spad,
-                                           gain, floor, excess, rx_threshold, background, detect_count,
-                                           background_cdf, below_k)
-                if k != NO_RETURN:
-                    kind[i], out_range[i], out_signal[i] = k, r, v
-        elif c == TARGET and value >= rx_threshold:
-            kind[i] = TARGET
+        ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch)
     return drawn
+
+
+@jit(inline="always")
+def _outcome_arguments(bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor,
+                       excess, rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range,
+                       out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
+                       c_max):       # pragma: no cover - compiled
+    """:func:`_strongest`'s arguments grouped for :func:`ray_outcome` (a compiled call inlines at most 30 arguments):
+    the background tables, the receiver's parameters, the outputs, the drawn particles, the pulse-sum scratch."""
+    return ((bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step),
+            (min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf,
+             below_k), (kind, out_range, out_signal), (p_range, p_signal, p_fraction),
+            (cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max))
+
+
+@jit(inline="always")
+def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p,
+                scratch):       # pragma: no cover - compiled
+    """Ray i's return from its ``m`` drawn particles (draw level ``level``, mean cover ``shadow`` of the undrawn ones)
+    and its attenuated target ``t_att`` (when ``tgt``), written to the outputs: the candidate
+    (:func:`lidar_echo.ray_return`; without particles the target shadowed by the undrawn ones plus the background at
+    its crest) and the receiver's decision (:func:`lidar_detection.outshone`, :func:`lidar_detection.weather_decision`;
+    three uniforms per measured candidate). ``bg``, ``rx``, ``out``, ``drawn_p``, ``scratch``: as
+    :func:`_outcome_arguments` groups :func:`_strongest`'s arguments."""
+    bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step = bg
+    min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k = rx
+    kind, out_range, out_signal = out
+    p_range, p_signal, p_fraction = drawn_p
+    cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max = scratch
+    t_bg = crest_background(big_r, level, bg_at_target, bg_far, bg_inv_step) if tgt else 0.0
+    if m == 0:
+        value = t_att * (1.0 - min(shadow, 1.0)) + t_bg if tgt else 0.0
+        c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
+    else:
+        c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
+                                           length, weakest, False, bg_cum, level, bg_inv_step,
+                                           bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+    out_range[i], out_signal[i] = at, value
+    if c == WEATHER:
+        t = t_value if tgt else 0.0
+        target_ok = tgt and t >= rx_threshold
+        if target_ok and outshone(value, t, gain, floor, excess):
+            kind[i], out_range[i], out_signal[i] = TARGET, big_r, t
+        else:
+            u0, u1, u2 = rng.random(), rng.random(), rng.random()
+            k, r, v = weather_decision(value, at, t, target_ok, big_r, u0, u1, u2, True, min_range, rise_m, spad,
+                                       gain, floor, excess, rx_threshold, background, detect_count, background_cdf,
+                                       below_k)
+            if k != NO_RETURN:
+                kind[i], out_range[i], out_signal[i] = k, r, v
+    elif c == TARGET and value >= rx_threshold:
+        kind[i] = TARGET
 
 
 @dataclass(frozen=True, eq=False)

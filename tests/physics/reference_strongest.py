@@ -1,7 +1,8 @@
 """The strongest-return sampler of main before round 13 (``physics/lidar_strongest.py`` at d7fc0af), kept as the
 reference that tests/physics/test_strongest_sampler.py checks the package's sampler against (in place of
 :func:`lidar_strongest._strongest`, whose arguments it takes): each ray drawn after the previous one (no
-look-ahead), its table reads where it needs them. Test code only; the kernels are main's verbatim."""
+look-ahead), its table reads where it needs them. Test code only: main's draw verbatim; the ray's outcome, which
+round 13 left as it was, is the package's."""
 
 from __future__ import annotations
 
@@ -10,11 +11,9 @@ import math
 import numpy as np
 
 from roadview_noise.physics.compiled import jit
-from roadview_noise.physics.lidar_detection import outshone, weather_decision
-from roadview_noise.physics.lidar_echo import NO_RETURN, TARGET, WEATHER, crest_background, ray_return
 from roadview_noise.physics.lidar_particles import lerp_at, table_lerp
 from roadview_noise.physics.lidar_strongest import CUT_OCTAVES, LEVELS_PER_OCTAVE, MAX_DRAWN, _octave_near, \
-    _own_level, _row_lerp, _sort_by_range
+    _outcome_arguments, _own_level, _row_lerp, _sort_by_range, ray_outcome
 
 
 @jit(error_model="numpy", _nrt=False)
@@ -23,16 +22,18 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
                spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
                out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
                c_max):       # pragma: no cover - compiled
-    """:func:`strongest_returns` ray by ray: the particles (:func:`draw_ray`), the candidate (:func:`lidar_echo
-    .ray_return`, rays without particles: the target shadowed by the undrawn ones, plus the background at its crest)
-    and the receiver's decision (:func:`lidar_detection.outshone`, :func:`lidar_detection.weather_decision`; three
-    uniforms per measured candidate), written to ``kind``, ``out_range``, ``out_signal`` (``kind`` zeroed); the rest
-    scratch space. Returns the number of particles drawn. Compiled without reference counting (it allocates
-    nothing): the inlined per-ray functions cost no atomic operations on their array arguments. Not compiled with
-    contracted multiply-adds: 3–4 % faster, but a realization would then depend on whether the CPU has FMA."""
+    """:func:`strongest_returns` ray by ray: the particles (:func:`draw_ray`, each ray after the previous one), then
+    the package's :func:`lidar_strongest.ray_outcome` (the candidate and the receiver's decision, unchanged in round
+    13), written to ``kind``, ``out_range``, ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the
+    number of particles drawn. Compiled as the package's (no reference counting, no contracted multiply-adds)."""
     n = len(ray_range)
     inv_step = 1.0 / step
     drawn = 0
+    bg, rx, out, drawn_p, scratch = _outcome_arguments(bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step,
+                                                       min_range, rise_m, spad, gain, floor, excess, rx_threshold,
+                                                       background, detect_count, background_cdf, below_k, kind,
+                                                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca,
+                                                       cos_buf, sin_buf, c_lo, c_sum, c_max)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     for i in range(n):
         big_r = ray_range[i]
@@ -41,29 +42,7 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
         e, m, level, shadow = draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, 1.0 / base, lam, inv,
                                        band_scale, s_level, full, cover, p_range, p_signal, p_fraction, 0)
         drawn += m
-        t_bg = crest_background(big_r, level, bg_at_target, bg_far, bg_inv_step) if tgt else 0.0
-        if m == 0:
-            value = t_att * (1.0 - min(shadow, 1.0)) + t_bg if tgt else 0.0
-            c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
-        else:
-            c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
-                                               length, weakest, False, bg_cum, level, bg_inv_step,
-                                               bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
-        out_range[i], out_signal[i] = at, value
-        if c == WEATHER:
-            t = t_value if tgt else 0.0
-            target_ok = tgt and t >= rx_threshold
-            if target_ok and outshone(value, t, gain, floor, excess):
-                kind[i], out_range[i], out_signal[i] = TARGET, big_r, t
-            else:
-                u0, u1, u2 = rng.random(), rng.random(), rng.random()
-                k, r, v = weather_decision(value, at, t, target_ok, big_r, u0, u1, u2, True, min_range, rise_m, spad,
-                                           gain, floor, excess, rx_threshold, background, detect_count,
-                                           background_cdf, below_k)
-                if k != NO_RETURN:
-                    kind[i], out_range[i], out_signal[i] = k, r, v
-        elif c == TARGET and value >= rx_threshold:
-            kind[i] = TARGET
+        ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch)
     return drawn
 
 
