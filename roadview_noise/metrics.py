@@ -229,59 +229,37 @@ def _frame_summary(frame: CameraFrame | RawFrame) -> dict:
 
 @jit
 def _grey_statistics(grey, limit, bins, n_bins):               # pragma: no cover - compiled
-    """The statistics of a grey image (float32, ≥ 1×1): the sum and the sum of squares of its values (float64, in
-    order), the number of pixels whose squared 3×3 Sobel gradient is ≥ ``limit`` (:func:`_edge_count`), and with
-    ``bins`` (the pixels' depth bin, −1 none; empty: no bins) the count, sum and sum of squares per bin (pixels of
-    bin −1 are left out)."""
+    """One pass over a grey image (float32, ≥ 1×1): the sum and the sum of squares of its values (float64), the
+    number of pixels whose squared 3×3 Sobel gradient is ≥ ``limit`` (:func:`edge_density`: replicated borders,
+    OpenCV's separable-filter order of float32 operations; a gradient within float32 rounding of the threshold
+    may be counted differently), and with ``bins`` (the pixels' depth bin, −1 none; empty: no bins) the count,
+    sum and sum of squares per bin (pixels of bin −1 are left out)."""
     h, w = grey.shape
+    with_bins = bins.shape[0] == h and bins.shape[1] == w
     n, bin_total, bin_squares = np.zeros(n_bins, np.int64), np.zeros(n_bins), np.zeros(n_bins)
-    total, squares = 0.0, 0.0
-    if bins.shape[0] == h and bins.shape[1] == w:
-        for i in range(h):
-            for j in range(w):
-                g = np.float64(grey[i, j])
-                total += g
-                squares += g * g
+    total, squares, edges = 0.0, 0.0, 0
+    two = np.float32(2.0)
+    for i in range(h):
+        up, down = grey[max(i - 1, 0)], grey[min(i + 1, h - 1)]
+        row = grey[i]
+        for j in range(w):
+            left, right = max(j - 1, 0), min(j + 1, w - 1)
+            gx = two * (row[right] - row[left]) + ((up[right] - up[left]) + (down[right] - down[left]))
+            above = two * up[j] + (up[left] + up[right])
+            below = two * down[j] + (down[left] + down[right])
+            gy = below - above
+            if gx * gx + gy * gy >= limit:
+                edges += 1
+            g = np.float64(row[j])
+            total += g
+            squares += g * g
+            if with_bins:
                 b = bins[i, j]
                 if b >= 0:
                     n[b] += 1
                     bin_total[b] += g
                     bin_squares[b] += g * g
-    else:
-        for i in range(h):
-            for j in range(w):
-                g = np.float64(grey[i, j])
-                total += g
-                squares += g * g
-    return total, squares, _edge_count(grey, limit), (n, bin_total, bin_squares)
-
-
-@jit(inline="always")
-def _is_edge(up, row, down, left, j, right, limit):        # pragma: no cover - compiled
-    """Whether the squared 3×3 Sobel gradient at column j (neighbour columns ``left``, ``right``) is ≥ ``limit``."""
-    two = np.float32(2.0)
-    gx = two * (row[right] - row[left]) + ((up[right] - up[left]) + (down[right] - down[left]))
-    above = two * up[j] + (up[left] + up[right])
-    below = two * down[j] + (down[left] + down[right])
-    gy = below - above
-    return gx * gx + gy * gy >= limit
-
-
-@jit
-def _edge_count(grey, limit):                              # pragma: no cover - compiled
-    """The pixels whose squared 3×3 Sobel gradient is ≥ ``limit`` (:func:`edge_density`: replicated borders,
-    OpenCV's separable-filter order of float32 operations; a gradient within float32 rounding of the threshold
-    may be counted differently); the inner columns in a loop of their own, vectorised."""
-    h, w = grey.shape
-    edges = 0
-    for i in range(h):
-        up, row, down = grey[max(i - 1, 0)], grey[i], grey[min(i + 1, h - 1)]
-        edges += _is_edge(up, row, down, 0, 0, min(1, w - 1), limit)
-        for j in range(1, w - 1):
-            edges += _is_edge(up, row, down, j - 1, j, j + 1, limit)
-        if w > 1:
-            edges += _is_edge(up, row, down, w - 2, w - 1, w - 1, limit)
-    return edges
+    return total, squares, edges, (n, bin_total, bin_squares)
 
 
 _last_depth: list = [None, None, None]      # weakref to a depth map, the key of its view (_per_array), bin index
