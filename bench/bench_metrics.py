@@ -50,7 +50,8 @@ for versions that differ in those two files) and its step records are turned int
 ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
 While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
 unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
-The first runs of each check that both versions write the same metrics.
+The first runs of each check that both versions write the same metrics (but those named by ``--changed``, e.g.
+``ssim`` for a change of method).
 
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
