@@ -50,7 +50,8 @@ for versions that differ in those two files) and its step records are turned int
 ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
 While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
 unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
-The first runs of each check that both versions write the same metrics.
+The first runs of each check that both versions write the same metrics (but those named by ``--changed``, e.g.
+``ssim`` for a change of method).
 
 ``--whole-run``: whole ``augment`` runs instead (``runner.run``, 1 worker, in this process, the full-resolution trees
 of ``bench/run.py``: ``--frames × 3`` files per sensor, LiDAR as the OS1-128 128×2048 *point list*), metrics off and
@@ -236,7 +237,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
         return cpu * 1e3, entry
 
     def metrics_of(entry: dict) -> tuple:
-        return entry["metrics"], [step["metrics"] for step in entry["steps"]]
+        return _comparable([entry["metrics"]] + [step["metrics"] for step in entry["steps"]])
 
     first = {kind: once(kind)[1] for kind in ("off", "base", "this")}          # warm-up; the values must agree
     if metrics_of(first["base"]) != metrics_of(first["this"]):
@@ -253,6 +254,14 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     return (f"  {name:<18} {label:<38} off {med['off']:6.2f}   base {med['base']:6.2f} "
             f"({(med['base'] / med['off'] - 1) * 100:+5.1f} %)   this {med['this']:6.2f} "
             f"({(med['this'] / med['off'] - 1) * 100:+5.1f} %)   [quartiles: {spread}]")
+
+
+CHANGED: tuple[str, ...] = ()     # --changed: metrics the two versions of --baseline may compute differently
+
+
+def _comparable(results: list) -> list:
+    """Metrics dicts without the :data:`CHANGED` ones (what two versions must agree on)."""
+    return [{k: v for k, v in r.items() if k not in CHANGED} if isinstance(r, dict) else r for r in results]
 
 
 def _baseline_version(tree: Path) -> tuple:
@@ -393,7 +402,8 @@ def compare_paired_case(name: str, folder: str, roots: dict[str, Path], tmp: Pat
         return None
     chain, steps, label = got
     modules = {"base": _baseline_version(baseline)[0], "this": this_metrics}
-    if _chain_compares(chain, steps, compare_fn=modules["base"].compare) != _chain_compares(chain, steps):
+    if _comparable(_chain_compares(chain, steps, compare_fn=modules["base"].compare)) != \
+            _comparable(_chain_compares(chain, steps)):
         raise RuntimeError(f"{name} {folder}: the two versions' metrics differ")
     flush = np.ones(8 << 20)
     times: dict[str, list[float]] = {k: [] for k in modules}
@@ -518,8 +528,12 @@ def main() -> None:
     ap.add_argument("--baseline", type=Path,
                     help="per file: metrics off / on with DIR's metrics.py / on with this tree's; with "
                          "--whole-run: whole runs off/on with DIR's code and with this tree's, paired")
+    ap.add_argument("--changed", default="", help="--baseline: comma-separated metrics the two versions may compute "
+                                                  "differently (a change of method, e.g. ssim)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
+    global CHANGED
+    CHANGED = tuple(filter(None, args.changed.split(",")))
     if args.whole_run and args.baseline:
         whole_runs_paired(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames,
                           args.baseline.resolve())

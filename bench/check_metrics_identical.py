@@ -8,8 +8,11 @@ recipes, camera ones too: ``--recipes``), on ``sample_data``, for LiDAR recipes 
 full-resolution generated tree of ``bench/bench_metrics.py`` (128×2048 grid and list, 1936×1464 camera), and
 compares per output: the manifest's ``metrics``, every step's ``metrics`` (parsed JSON: equal floats are equal
 bits) and the output files' sha256. Prints one line per recipe and input tree, exits 1 on any difference.
+``--changed ssim``: metrics allowed to change (a change of method); the others must stay identical, and the largest
+absolute change of each allowed one (over outputs and steps) is printed.
 
     .venv/bin/python bench/check_metrics_identical.py --baseline ../main [--recipes cnf25,cnf22] [--generated]
+                                                      [--changed ssim]
 """
 
 from __future__ import annotations
@@ -55,11 +58,23 @@ def augment(code: Path, recipe: str, tree: Path, out: Path, workers: int, lidar_
     return {e["output"]: e for e in entries if "output" in e}
 
 
-def essentials(entry: dict) -> dict:
-    """What must not change: the metrics of the output and of every step, the files' hashes, the status."""
-    return {"status": entry.get("status"), "error": entry.get("error"), "metrics": entry.get("metrics"),
-            "steps": [s.get("metrics") for s in entry.get("steps", [])],
+def essentials(entry: dict, changed: tuple[str, ...] = ()) -> dict:
+    """What must not change: the metrics of the output and of every step (but ``changed``), the files' hashes, the
+    status."""
+    def kept(metrics):
+        return metrics if metrics is None else {k: v for k, v in metrics.items() if k not in changed}
+
+    return {"status": entry.get("status"), "error": entry.get("error"), "metrics": kept(entry.get("metrics")),
+            "steps": [kept(s.get("metrics")) for s in entry.get("steps", [])],
             "files": [f.get("sha256") for f in entry.get("files", [])]}
+
+
+def largest_changes(a: dict, b: dict, changed: tuple[str, ...]) -> dict[str, float]:
+    """The largest absolute change of each metric of ``changed`` between two entries (output and steps)."""
+    pairs = [(a.get("metrics") or {}, b.get("metrics") or {})]
+    pairs += [(x.get("metrics") or {}, y.get("metrics") or {}) for x, y in zip(a.get("steps", []), b.get("steps", []))]
+    return {k: max((abs(x[k] - y[k]) for x, y in pairs if isinstance(x.get(k), float) and isinstance(y.get(k), float)),
+                   default=0.0) for k in changed}
 
 
 def main() -> int:
@@ -69,7 +84,10 @@ def main() -> int:
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(RECIPES)}")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--generated", action="store_true", help="also the full-resolution generated sample tree")
+    ap.add_argument("--changed", default="", help="comma-separated metrics allowed to change (their largest change "
+                                                  "is printed)")
     args = ap.parse_args()
+    changed = tuple(filter(None, args.changed.split(",")))
     recipes = args.recipes.split(",") if args.recipes else RECIPES
     different = 0
     with tempfile.TemporaryDirectory() as tmp:
@@ -93,11 +111,14 @@ def main() -> int:
                         for code in (args.baseline.resolve(), ROOT)]
                 bad = sorted(k for k in set(runs[0]) | set(runs[1])
                              if k not in runs[0] or k not in runs[1]
-                             or essentials(runs[0][k]) != essentials(runs[1][k]))
+                             or essentials(runs[0][k], changed) != essentials(runs[1][k], changed))
                 different += len(bad)
                 steps = sum(len(e.get("steps", [])) for e in runs[1].values())
+                largest = {m: max((largest_changes(runs[0][k], runs[1][k], changed)[m] for k in runs[1] if k in runs[0]),
+                                  default=0.0) for m in changed}
                 print(f"  {recipe:<20} {label:<12} {len(runs[1]):3d} outputs, {steps:3d} steps: "
-                      + (f"DIFFERENT {bad[:3]}" if bad else "identical"), flush=True)
+                      + (f"DIFFERENT {bad[:3]}" if bad else "identical")
+                      + "".join(f"; {m} changed by ≤ {v:.1e}" for m, v in largest.items()), flush=True)
     return 1 if different else 0
 
 

@@ -17,7 +17,8 @@ the encodes of the JPEG step and the writer take it in their pass (:class:`Defer
 
 - ``psnr_db``: 10·log10(1 / MSE) of the grey images (0–1); ``inf`` when identical.
 - ``ssim``: mean SSIM of the grey images (Wang et al. 2004, IEEE TIP 13(4), Eq. 13: 11×11 Gaussian window σ = 1.5,
-  K1 = 0.01, K2 = 0.03, L = 1), averaged over the pixels whose window lies inside the image.
+  K1 = 0.01, K2 = 0.03, L = 1), averaged over the pixels whose window lies inside the image (float32 local means,
+  one compiled separable pass per image and one per comparison).
 - ``rms_contrast_in/out``: RMS contrast, the standard deviation of the grey values (Peli 1990, JOSA A 7(10)).
 - ``edge_density_in/out``: fraction of pixels whose grey gradient (3×3 Sobel / 8, per pixel) is ≥ 0.025, so a step
   of the 5 % visibility contrast (CIE; Hautière et al. 2006) marks the two pixels beside it.
@@ -339,16 +340,13 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 1.0) -> float | None:
 def _ssim_moments(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """Local mean μ and local mean of the square of a grey image over the SSIM window (window inside the image);
     a frame's are computed once (its summary) for all comparisons it is part of."""
-    r = SSIM_RADIUS_PX
-    if min(x.shape) <= 2 * r:
+    if min(x.shape) <= 2 * SSIM_RADIUS_PX:
         return None
-    x = np.asarray(x, np.float32)
-    return _ssim_blur(x), _ssim_blur(x * x)
-
-
-def _ssim_blur(x: np.ndarray) -> np.ndarray:
-    r = SSIM_RADIUS_PX
-    return cv2.GaussianBlur(x, (2 * r + 1, 2 * r + 1), SSIM_SIGMA_PX)[r:-r, r:-r]
+    x = np.ascontiguousarray(x, np.float32)
+    shape = (x.shape[0] - 2 * SSIM_RADIUS_PX, x.shape[1] - 2 * SSIM_RADIUS_PX)
+    mu, mean_square = np.empty(shape, np.float32), np.empty(shape, np.float32)
+    _ssim_local_means(x, _SSIM_WINDOW, mu, mean_square)
+    return mu, mean_square
 
 
 def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float = 1.0) -> float | None:
@@ -356,24 +354,90 @@ def _ssim(a: np.ndarray, b: np.ndarray, moments_a, moments_b, data_range: float 
     if moments_a is None or moments_b is None:
         return None
     c1, c2 = np.float32((SSIM_K1 * data_range) ** 2), np.float32((SSIM_K2 * data_range) ** 2)
-    blur_ab = _ssim_blur(np.asarray(a, np.float32) * np.asarray(b, np.float32))
-    return float(np.mean(_ssim_map(*moments_a, *moments_b, blur_ab, c1, c2), dtype=np.float64))
+    return float(_ssim_map(np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32),
+                           _SSIM_WINDOW, *moments_a, *moments_b, c1, c2))
+
+
+def _ssim_window() -> np.ndarray:
+    """The normalised 1-D Gaussian of the SSIM window (float32; 2 r + 1 taps, σ = ``SSIM_SIGMA_PX``; the 2-D window
+    is its outer product, as OpenCV's ``getGaussianKernel``)."""
+    x = np.arange(-SSIM_RADIUS_PX, SSIM_RADIUS_PX + 1, dtype=np.float64)
+    w = np.exp(-x * x / (2 * SSIM_SIGMA_PX ** 2))
+    return (w / w.sum()).astype(np.float32)
+
+
+_SSIM_WINDOW = _ssim_window()
+
+
+@jit(inline="always")
+def _window_sum(w, x0, x1, x2, x3, x4, x5, x6, x7, x8, x9, x10):       # pragma: no cover - compiled
+    """Σ_k w[k] x_k for the symmetric 11-tap window ``w`` (``SSIM_RADIUS_PX`` = 5; float32, the pairs of equal
+    weight added first)."""
+    return (((((w[0] * (x0 + x10) + w[1] * (x1 + x9)) + w[2] * (x2 + x8)) + w[3] * (x3 + x7))
+             + w[4] * (x4 + x6)) + w[5] * x5)
 
 
 @jit
-def _ssim_map(mu_a, blur_aa, mu_b, blur_bb, blur_ab, c1, c2):       # pragma: no cover - compiled
-    """Wang et al.'s Eq. 13 per pixel (float32) from the local means of a, b, a², b² and ab (variances and
-    covariance: local mean of the product − product of the means)."""
-    out = np.empty(mu_a.shape, np.float32)
+def _filter_row(src, window, out):                  # pragma: no cover - compiled
+    """out[j] = :func:`_window_sum` of src[j … j + 10] (the taps in registers: vectorised over j)."""
+    for j in range(out.shape[0]):
+        out[j] = _window_sum(window, src[j], src[j + 1], src[j + 2], src[j + 3], src[j + 4], src[j + 5],
+                             src[j + 6], src[j + 7], src[j + 8], src[j + 9], src[j + 10])
+
+
+@jit
+def _filter_column(rows, i, window, out):           # pragma: no cover - compiled
+    """out[j] = :func:`_window_sum` of rows[i … i + 10, j]."""
+    r0, r1, r2, r3, r4, r5 = rows[i], rows[i + 1], rows[i + 2], rows[i + 3], rows[i + 4], rows[i + 5]
+    r6, r7, r8, r9, r10 = rows[i + 6], rows[i + 7], rows[i + 8], rows[i + 9], rows[i + 10]
+    for j in range(out.shape[0]):
+        out[j] = _window_sum(window, r0[j], r1[j], r2[j], r3[j], r4[j], r5[j], r6[j], r7[j], r8[j], r9[j], r10[j])
+
+
+@jit
+def _ssim_local_means(x, window, mu, mean_square):       # pragma: no cover - compiled
+    """``mu``, ``mean_square`` = the Gaussian-window means of x and x² over the windows inside x (separable:
+    :func:`_filter_row` then :func:`_filter_column`, float32)."""
+    n = x.shape[1]
+    rows, rows_sq = np.empty((x.shape[0], mu.shape[1]), np.float32), np.empty((x.shape[0], mu.shape[1]), np.float32)
+    square = np.empty(n, np.float32)
+    for i in range(x.shape[0]):
+        row = x[i]
+        for j in range(n):
+            square[j] = row[j] * row[j]
+        _filter_row(row, window, rows[i])
+        _filter_row(square, window, rows_sq[i])
+    for i in range(mu.shape[0]):
+        _filter_column(rows, i, window, mu[i])
+        _filter_column(rows_sq, i, window, mean_square[i])
+
+
+@jit(error_model="numpy")
+def _ssim_map(a, b, window, mu_a, mean_aa, mu_b, mean_bb, c1, c2):       # pragma: no cover - compiled
+    """The mean of Wang et al.'s Eq. 13 over the windows inside the images (float32 per pixel, summed in float64)
+    from the local means of a, a², b, b² (:func:`_ssim_local_means`) and of ab, filtered here the same way (so
+    ab = a² when a is b: SSIM 1 exactly); variances and covariance: local mean of the product − product of the
+    means."""
+    n = a.shape[1]
+    width = mu_a.shape[1]
+    rows, product = np.empty((a.shape[0], width), np.float32), np.empty(n, np.float32)
+    for i in range(a.shape[0]):
+        for j in range(n):
+            product[j] = a[i, j] * b[i, j]
+        _filter_row(product, window, rows[i])
+    mean_ab, value, total = np.empty(width, np.float32), np.empty(width, np.float32), np.zeros(width)
     two = np.float32(2.0)
     for i in range(mu_a.shape[0]):
-        for j in range(mu_a.shape[1]):
-            ma, mb = mu_a[i, j], mu_b[i, j]
-            mu_aa, mu_bb, mu_ab = ma * ma, mb * mb, ma * mb
-            num = (two * mu_ab + c1) * (two * (blur_ab[i, j] - mu_ab) + c2)
-            den = (mu_aa + mu_bb + c1) * ((blur_aa[i, j] - mu_aa) + (blur_bb[i, j] - mu_bb) + c2)
-            out[i, j] = num / den
-    return out
+        _filter_column(rows, i, window, mean_ab)
+        ma, mb, aa, bb = mu_a[i], mu_b[i], mean_aa[i], mean_bb[i]
+        for j in range(width):
+            mu_aa, mu_bb, mu_ab = ma[j] * ma[j], mb[j] * mb[j], ma[j] * mb[j]
+            num = (two * mu_ab + c1) * (two * (mean_ab[j] - mu_ab) + c2)
+            den = (mu_aa + mu_bb + c1) * ((aa[j] - mu_aa) + (bb[j] - mu_bb) + c2)
+            value[j] = num / den
+        for j in range(width):
+            total[j] += value[j]
+    return total.sum() / mu_a.size
 
 
 def _compare_frames(b: dict, a: dict) -> dict[str, Any]:

@@ -23,7 +23,8 @@ import sys
 _done = False
 # The kernels only one kind of data calls, by module (None: all of the module's); a model's kind is its package
 _IMAGE = {"roadview_noise.physics.srgb": None, "roadview_noise.luminance": None, "roadview_noise.io.png": None,
-          "roadview_noise.metrics": ("_grey_statistics", "_grey_codes", "_depth_bin_index", "_ssim_map")}
+          "roadview_noise.metrics": ("_grey_statistics", "_grey_codes", "_depth_bin_index", "_ssim_map",
+                                     "_ssim_local_means", "_filter_row", "_filter_column", "_window_sum")}
 _POINTS = {"roadview_noise.io.pointcloud": None, "roadview_noise.physics.return_ranges": None,
            "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_step_pass", "_same_pass",
                                       "_same_position", "_is_return", "_compose", "_same_ray", "_change",
