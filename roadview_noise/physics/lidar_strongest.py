@@ -8,7 +8,7 @@ mean Λ(s; R), the visible count of :mod:`lidar_particles` at level s. Ordered f
 particle directly, by inverse transform, and none of the fainter ones it would otherwise have to search through.
 
 - Tables (:func:`brightest_tables`, cached per medium, beam, base level ℓ and pulse length): Λ(s_g; r) on the levels
-  ``s_g = ℓ 2^(g/4)`` (quarter octaves) and ranges ``r_k = R1 + k·8 cm``, range-major (one ray's levels side by
+  ``s_g = ℓ 2^(g/4)`` (quarter octaves) and ranges ``r_k = R1 + k·2 cm``, range-major (one ray's levels side by
   side). A particle of level band g takes its range from the band's range density (inverse-CDF tables, truncated
   at R) and its return within the band from its rank (Λ linear in s between the levels), at most what the largest
   particle returns at that range; its beam fraction is ``f = s / F(r)`` (F: a beam-filling particle's return).
@@ -30,13 +30,12 @@ loses is the fluctuation of the faint particles in front of it (their mean backs
 Speed (:func:`_strongest`): each ray's head — own level, rank, brightest band, the uniform of its range — is drawn
 a ray ahead (:func:`ray_head`), and the table entries it will read are prefetched (:func:`compiled.prefetch`: the
 range quantile, the cover), so that those cache misses overlap the previous ray's work; its brightest band is
-counted, not walked to; the tables are float32 (:data:`TABLE_DTYPE`) on an 8 cm range grid (a quarter of the
-cache footprint of 2 cm: Λ within 3e-4 of the 2 cm table's largest count, range quantiles within 1 cm for 99 %);
-the fainter particles stop at one comparison of Λ at the cut; a cluster peak's background is read from the uncut
-windows (:func:`lidar_echo.peak_background`) and the receiver's three uniforms come from one
+counted, not walked to; the tables are float32 (:data:`TABLE_DTYPE`); the fainter particles stop at one
+comparison of Λ at the cut; a cluster peak's background is read from the uncut windows
+(:func:`lidar_echo.peak_background`) and the receiver's three uniforms come from one
 (:func:`lidar_detection.three_uniforms`). The realization differs from drawing each ray after the previous one
-with main's tables (the draws come in another order), the law does not (``tests/physics/test_strongest_sampler.py``
-against main's sampler).
+(the draws come in another order), the law does not (``tests/physics/test_strongest_sampler.py`` against main's
+sampler).
 """
 
 from __future__ import annotations
@@ -57,8 +56,8 @@ from .lidar_rays import Rays
 from ..table_cache import disk_cached
 
 LEVELS_PER_OCTAVE = 4           # Λ tables: levels ℓ 2^(g/4)
-RANGE_STEP_M = 0.08             # Λ tables: range step
-SUBSTEPS = 16                   # … integrated on a 16× finer grid (5 mm)
+RANGE_STEP_M = 0.02             # Λ tables: range step
+SUBSTEPS = 4                    # … integrated on a 4× finer grid
 QUANTILES = 1024                # range quantiles per level band
 OWN_LEVELS = 12                 # a target's own level ℓ 2^j, j < 12
 CUT_OCTAVES = 1                 # a ray draws down to ℓ 2^(⌊log2(s1/ℓ)⌋ − 1)
@@ -101,7 +100,7 @@ class BrightestTables:
 @disk_cached(maxsize=4)
 def brightest_tables(medium: ParticleMedium, beam: Beam, base_level: float, length_m: float) -> BrightestTables:
     """The tables of :class:`BrightestTables` for particles returning at least ``base_level`` (units of K) and pulses
-    of length ``length_m`` = c τ_H (trapezoid integrals on 5 mm, tabulated every 8 cm; backgrounds:
+    of length ``length_m`` = c τ_H (trapezoid integrals on 5 mm, tabulated every 2 cm; backgrounds:
     :func:`lidar_particles.faint_background`)."""
     m = LEVELS_PER_OCTAVE
     r_end = min(TABLE_MAX_RANGE_M, math.sqrt(medium.reflectance / base_level) + 1.0)   # bound with ξ = f = 1, α = 0

@@ -41,7 +41,7 @@ def lam_at(table, r):
 
 @pytest.mark.parametrize("medium", [rain(), snow()], ids=["rain", "snow"])
 def test_tables_count_what_the_visible_tables_count(medium):
-    """Λ(s_g; r) of the quarter-octave tables (8 cm grid) equals the visible count of lidar_particles (1 cm grid) at
+    """Λ(s_g; r) of the quarter-octave tables (2 cm grid) equals the visible count of lidar_particles (1 cm grid) at
     the octave levels, and decreases with the level."""
     base = 2e-7
     t = lidar_strongest.brightest_tables(medium, OS1_BEAM, base, LENGTH_M)

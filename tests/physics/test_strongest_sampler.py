@@ -1,9 +1,8 @@
 """The strongest-return sampler (physics/lidar_strongest.py) against main's before round 13
-(tests/physics/reference_strongest.py, with main's float64 tables on a 2 cm range grid, main's exactly evaluated
-backgrounds and three uniforms per receiver decision): the package draws each ray's head a ray ahead (its random
-draws in another order), reads its Λ, range-quantile and cover tables as float32 on an 8 cm grid (Λ within 3e-4
-of the 2 cm table's mean counts, range quantiles within 1 cm for 99 %), a cluster peak's background from the uncut
-windows (within 3e-4 of the largest background) and splits one uniform into the receiver's three
+(tests/physics/reference_strongest.py, with main's float64 tables, exactly evaluated backgrounds and three uniforms
+per receiver decision): the package draws each ray's head a ray ahead (its random draws in another order), reads
+its Λ, range-quantile and cover tables as float32, a cluster peak's background from the uncut windows (within 3e-4
+of the level's largest background) and splits one uniform into the receiver's three
 (:func:`lidar_detection.three_uniforms`); the law of the returns must not change.
 
 Rain at 20 and 100 mm/h, snow at 0.5, 2.5 and 10 mm/h, on a 1 × 8000 OS1-128 range image (targets of 2–90 %
@@ -60,8 +59,7 @@ def test_sampler_has_the_law_of_mains(model, monkeypatch):
     rays = _scan_rays(8000)
     group = ray_groups(rays, model.medium())
     package = _frames(rays, model, group)
-    for name, value in (("TABLE_DTYPE", np.float64), ("RANGE_STEP_M", 0.02), ("SUBSTEPS", 4)):     # main's tables
-        monkeypatch.setattr(lidar_strongest, name, value)
+    monkeypatch.setattr(lidar_strongest, "TABLE_DTYPE", np.float64)         # main's tables
     tables = lidar_strongest.brightest_tables.uncached(*_table_arguments(rays, model))
     monkeypatch.setattr(lidar_strongest, "brightest_tables", lambda *args: tables)
     monkeypatch.setattr(lidar_strongest, "_strongest", reference_strongest._strongest)
