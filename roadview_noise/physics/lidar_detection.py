@@ -86,6 +86,23 @@ def _detect(cand_kind, cand_range, cand_signal, target_signal, has_target, ray_r
     return kind, out_range, out_signal
 
 
+UNIFORM_BITS = (18, 18, 17)      # a uniform double's 53 random bits, split by :func:`three_uniforms`
+
+
+@jit(inline="always")
+def three_uniforms(u):       # pragma: no cover - compiled
+    """Three independent uniforms on (0, 1) from one uniform ``u`` of 53 random bits (``Generator.random``): its top
+    18, next 18 and last 17 bits, each at the midpoint of its cell (exact: scaling by powers of 2). One draw for the
+    three of :func:`weather_decision` (a third of the generator calls); their resolution 2⁻¹⁸, 2⁻¹⁷ bounds the normal
+    deviates drawn from them to ±4.4 SD (a tail of 1e-5)."""
+    a = u * 262144.0
+    i0 = math.floor(a)
+    b = (a - i0) * 262144.0
+    i1 = math.floor(b)
+    i2 = math.floor((b - i1) * 131072.0)
+    return (i0 + 0.5) * (1.0 / 262144.0), (i1 + 0.5) * (1.0 / 262144.0), (i2 + 0.5) * (1.0 / 131072.0)
+
+
 @jit(inline="always")
 def outshone(s, t, gain, floor, excess):       # pragma: no cover - compiled
     """Whether a weather candidate of expected signal s lies :data:`SURE_MARGIN_SD` of its noise SDs below a

@@ -41,7 +41,8 @@ class SoftBackground:
     of b, b cos ωr and b sin ωr (``cum[k, 0–2]`` at ``r_k = k·step``, side by side for one cache line per lookup;
     constant beyond the table, where b = 0).
     ``peak``: the largest B of an uncut window; ``at_target[k]``: B at the crest of a target at ``r_k``
-    (``x = r_k + L/2``). Evaluated by :func:`background_at` (stacked, :class:`BackgroundLevels`); an empty ``cum``
+    (``x = r_k + L/2``); ``uncut[k]``: B(r_k; ∞), the window no target cuts. Evaluated by :func:`background_at`
+    (stacked, :class:`BackgroundLevels`; or :func:`peak_background`, from ``uncut`` where it can); an empty ``cum``
     means no background."""
 
     step_m: float
@@ -49,10 +50,11 @@ class SoftBackground:
     cum: np.ndarray
     peak: float
     at_target: np.ndarray
+    uncut: np.ndarray
 
     @classmethod
     def none(cls, length_m: float) -> SoftBackground:
-        return cls(1.0, length_m, np.zeros((0, 3)), 0.0, np.zeros(0))
+        return cls(1.0, length_m, np.zeros((0, 3)), 0.0, np.zeros(0), np.zeros(0))
 
     @classmethod
     def of_density(cls, b_per_m: np.ndarray, step_m: float, length_m: float) -> SoftBackground:
@@ -71,15 +73,15 @@ class SoftBackground:
 
         uncut = window(r, r)
         return cls(step_m, length_m, np.ascontiguousarray(cum.T), float(uncut.max(initial=0.0)),
-                   np.maximum(window(r + length_m / 2, r), 0.0))
+                   np.maximum(window(r + length_m / 2, r), 0.0), np.maximum(uncut, 0.0))
 
 
 @dataclass(frozen=True, eq=False)
 class BackgroundLevels:
     """:class:`SoftBackground` s of the same grid stacked, one per draw level (the mean backscatter of the particles
     below each level), for rays that each draw down to their own level: ``cum`` (levels, K, 3), ``peak`` (levels,),
-    ``at_target`` (levels, K). The levels may stop at a range beyond which they all equal one background (no
-    particle there returns as much as the lowest level): targets farther than K steps take their crest value from
+    ``at_target`` and ``uncut`` (levels, K). The levels may stop at a range beyond which they all equal one background
+    (no particle there returns as much as the lowest level): targets farther than K steps take their crest value from
     ``far_at_target``; cluster peaks must lie within the tables."""
 
     step_m: float
@@ -88,6 +90,7 @@ class BackgroundLevels:
     peak: np.ndarray
     at_target: np.ndarray
     far_at_target: np.ndarray
+    uncut: np.ndarray
 
     @classmethod
     def of(cls, backgrounds: list[SoftBackground], far: SoftBackground | None = None) -> BackgroundLevels:
@@ -96,7 +99,8 @@ class BackgroundLevels:
         far = far or first
         return cls(first.step_m, first.length_m, np.ascontiguousarray([b.cum for b in backgrounds]),
                    np.maximum(np.array([b.peak for b in backgrounds]), far.peak),
-                   np.ascontiguousarray([b.at_target for b in backgrounds]), far.at_target)
+                   np.ascontiguousarray([b.at_target for b in backgrounds]), far.at_target,
+                   np.ascontiguousarray([b.uncut for b in backgrounds]))
 
 
 @jit(inline="always")
@@ -129,6 +133,18 @@ def background_at(x, r0, cum, j, inv_step, length):       # pragma: no cover - c
     c, s = phasor(x * (2.0 * math.pi / length))
     return max(0.5 * ((u0 - l0) - c * (uc - lc) - s * (us - ls)), 0.0)
 
+
+@jit(inline="always")
+def peak_background(x, r0, cum, uncut, j, inv_step, length):       # pragma: no cover - compiled
+    """:func:`background_at`, read from the uncut windows ``uncut`` (:attr:`BackgroundLevels.uncut`, linear between
+    its entries: within 2e-3 of B's range of variation over a step, B < the threshold) where no target cuts the window
+    (x ≤ R0) inside the table; elsewhere, or with an empty ``uncut``, evaluated exactly."""
+    xg = x * inv_step
+    if x <= r0 and 0.0 <= xg < uncut.shape[1] - 1:
+        k = int(xg)
+        a, b, level = np.uintp(k), np.uintp(k + 1), np.uintp(j)
+        return uncut[level, a] + (uncut[level, b] - uncut[level, a]) * (xg - k)
+    return background_at(x, r0, cum, j, inv_step, length)
 
 
 def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, particle_signal_: np.ndarray,
@@ -170,8 +186,8 @@ def select_returns(particle_ray: np.ndarray, particle_range_m: np.ndarray, parti
                        np.ascontiguousarray(particle_range_m, dtype=np.float64),
                        np.ascontiguousarray(particle_signal_, dtype=np.float64), fraction, out_range, target_signal,
                        shadow, tgt_bg, np.ascontiguousarray(has_target), length, float(threshold), mode == "first",
-                       background.cum, level, 1.0 / background.step_m, background.peak, kind, out_range,
-                       out_signal, target_value, *cluster_scratch(len(particle_ray)))
+                       background.cum, np.zeros((0, 0)), level, 1.0 / background.step_m, background.peak, kind,
+                       out_range, out_signal, target_value, *cluster_scratch(len(particle_ray)))
     return RayReturns(kind, out_range, out_signal, target_value)
 
 
@@ -358,18 +374,18 @@ def _cluster_value(r, a, cos_buf, sin_buf, lo, hi, length):      # pragma: no co
 
 
 @jit(inline="always")
-def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg, level,
+def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, first_mode, bg, uncut, level,
                   inv_step):       # pragma: no cover - compiled
     """(value, apparent range, is the target) of a ray with one particle in front of its target (if any; ``t_raw``
-    its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``, ``level``: :attr:`BackgroundLevels.cum`
-    and the ray's level). A pair
+    its pulse, ``t_sig`` with ``t_bg``, the background at its crest; ``bg``, ``uncut``, ``level``:
+    :attr:`BackgroundLevels.cum` and ``uncut`` (:func:`peak_background`) and the ray's level). A pair
     that keeps the target takes the background at the target's crest (its peak is within 0.2 m of it)."""
     if tgt and t_range - r < length:                   # one cluster: the pair
         val, at, own = pair_peak(r, a, t_range, t_raw, length, SAME_TARGET_TOLERANCE_M)
         if own:
             return val + t_bg, t_range, True
-        return val + background_at(at + length / 2, t_range, bg, level, inv_step, length), at, False
-    a += background_at(r + length / 2, t_range, bg, level, inv_step, length)
+        return val + peak_background(at + length / 2, t_range, bg, uncut, level, inv_step, length), at, False
+    a += peak_background(r + length / 2, t_range, bg, uncut, level, inv_step, length)
     if not tgt or (a >= threshold if first_mode else a >= t_sig):
         return a, r, False
     return t_sig, t_range, True
@@ -377,13 +393,14 @@ def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, fir
 
 @jit(error_model="numpy", _nrt=False)
 def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_shadow, t_background, has_target, length,
-                   threshold, first_mode, bg_levels, ray_level, inv_step, bg_peaks, kind, out_range, out_signal,
-                   t_value, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max):  # pragma: no cover
+                   threshold, first_mode, bg_levels, exact_background, ray_level, inv_step, bg_peaks, kind, out_range,
+                   out_signal, t_value, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max):  # pragma: no cover
     """:func:`select_returns` on the rays with particles (:func:`ray_return` per ray), written in place into
     ``kind``, ``out_range``, ``out_signal`` and ``t_value`` (``t_range`` may be ``out_range``: each ray reads its
     target first). ``t_signal``: the targets' pulses before shadowing, ``t_shadow`` a mean beam cover per ray (or
     empty), ``t_background`` the background at their crests; ``bg_levels``, ``inv_step``, ``bg_peaks``: the
-    :class:`BackgroundLevels`, ``ray_level`` each ray's (empty: 0); the rest scratch space
+    :class:`BackgroundLevels` (``exact_background``: an empty table, the peaks' backgrounds evaluated exactly,
+    :func:`peak_background`), ``ray_level`` each ray's (empty: 0); the rest scratch space
     (:func:`cluster_scratch`). Compiled without reference counting (``_nrt=False``: it allocates nothing), so that
     the inlined per-ray functions cost no atomic operations on their array arguments."""
     n = len(p_ray)
@@ -398,8 +415,8 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
         level = ray_level[ray] if levels else 0
         kind[ray], out_range[ray], out_signal[ray], t_value[ray] = ray_return(
             p_range, p_signal, p_fraction, i, j, has_target[ray], t_range[ray], t_signal[ray],
-            t_shadow[ray] if mean_shadow else 0.0, t_background[ray], length, threshold, first_mode, bg_levels, level,
-            inv_step, bg_peaks[level], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+            t_shadow[ray] if mean_shadow else 0.0, t_background[ray], length, threshold, first_mode, bg_levels,
+            exact_background, level, inv_step, bg_peaks[level], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
         i = j
 
 
@@ -413,14 +430,15 @@ def cluster_scratch(particles: int) -> tuple[np.ndarray, ...]:
 
 @jit(inline="always")
 def ray_return(p_range, p_signal, p_fraction, lo, hi, tgt, r0, t_pulse, shadow, t_bg, length, threshold, first_mode,
-               bg_levels, level, inv_step, bg_peak, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max
+               bg_levels, bg_uncut, level, inv_step, bg_peak, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max
                ):       # pragma: no cover - compiled
     """:func:`select_returns` on one ray: (kind, range, value, the target's value) from its particles ``lo … hi−1``
     (sorted by range; beam fractions ``p_fraction``, or none when empty) in front of its target (``tgt``: whether it
     has one, at ``r0`` with pulse ``t_pulse``, mean beam cover ``shadow`` of undrawn particles, background ``t_bg`` at
-    its crest); ``bg_levels``, ``level``, ``bg_peak``: the ray's :class:`BackgroundLevels` entry; the rest scratch
-    space (:func:`cluster_scratch`). The target's value is its shadowed pulse plus background, or the summed peak when
-    its cluster keeps it in place.
+    its crest); ``bg_levels``, ``bg_uncut``, ``level``, ``bg_peak``: the ray's :class:`BackgroundLevels` entry
+    (``bg_uncut`` empty: the background evaluated exactly, :func:`peak_background`); the rest scratch space
+    (:func:`cluster_scratch`). The target's value is its shadowed pulse plus background, or the summed peak when its
+    cluster keeps it in place.
 
     A cluster's peak lies between its strongest member and the sum of its members plus the background's peak: a ray
     whose particles sum below what they must beat (the target or the threshold) and do not overlap the target's pulse
@@ -441,7 +459,7 @@ def ray_return(p_range, p_signal, p_fraction, lo, hi, tgt, r0, t_pulse, shadow, 
     m = hi - lo
     if m == 1:                                         # one particle (the most common case)
         best_val, best_at, best_tgt = _one_particle(p_range[lo], p_signal[lo], r0, t_raw, t_sig, t_bg, tgt, length,
-                                                    threshold, first_mode, bg_levels, level, inv_step)
+                                                    threshold, first_mode, bg_levels, bg_uncut, level, inv_step)
     else:
         for k in range(m):
             cr[k] = p_range[lo + k]
@@ -471,7 +489,7 @@ def ray_return(p_range, p_signal, p_fraction, lo, hi, tgt, r0, t_pulse, shadow, 
             if c_sum[c] + bg_peak < need:
                 continue                               # can neither be detected first nor win a detection
             val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
-            val += background_at(at + length / 2, r0, bg_levels, level, inv_step, length)
+            val += peak_background(at + length / 2, r0, bg_levels, bg_uncut, level, inv_step, length)
             own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
             if own:
                 at = cr[m - 1]

@@ -30,9 +30,12 @@ loses is the fluctuation of the faint particles in front of it (their mean backs
 Speed (:func:`_strongest`): each ray's head — own level, rank, brightest band, the uniform of its range — is drawn
 a ray ahead (:func:`ray_head`), and the table entries it will read are prefetched (:func:`compiled.prefetch`: the
 range quantile, the cover), so that those cache misses overlap the previous ray's work; its brightest band is
-counted, not walked to; the tables are float32 (:data:`TABLE_DTYPE`). The realization differs from drawing each ray
-after the previous one (the draws come in another order), the law does not
-(``tests/physics/test_strongest_sampler.py`` against main's sampler).
+counted, not walked to; the tables are float32 (:data:`TABLE_DTYPE`); the fainter particles stop at one
+comparison of Λ at the cut; a cluster peak's background is read from the uncut windows
+(:func:`lidar_echo.peak_background`) and the receiver's three uniforms come from one
+(:func:`lidar_detection.three_uniforms`). The realization differs from drawing each ray after the previous one
+(the draws come in another order), the law does not (``tests/physics/test_strongest_sampler.py`` against main's
+sampler).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .compiled import jit, prefetch
-from .lidar_detection import outshone, stored_returns, weather_decision
+from .lidar_detection import outshone, stored_returns, three_uniforms, weather_decision
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, BackgroundLevels, RayReturns, SoftBackground, cluster_scratch, \
     crest_background, ray_return
 from .lidar_medium import pulse_length_m
@@ -180,7 +183,7 @@ def strongest_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedi
         np.ascontiguousarray(rays.decision_signal, dtype=np.float64),
         np.ascontiguousarray(rays.has_target, dtype=bool), medium.alpha_per_m, float(rx.threshold),
         float(rx.weakest_return), tables.base_level, tables.start_m, tables.step_m, tables.lam, tables.inv,
-        tables.band_scale, tables.level_signal, tables.full, tables.cover, bg.cum, bg.peak, bg.at_target,
+        tables.band_scale, tables.level_signal, tables.full, tables.cover, bg.cum, bg.uncut, bg.peak, bg.at_target,
         bg.far_at_target, 1.0 / bg.step_m, length, float(rays.profile.overlap_start_m), rx.pulse_rise_m,
         *rx.kernel_params, kind, out_range, out_signal, np.empty(MAX_DRAWN), np.empty(MAX_DRAWN), np.empty(MAX_DRAWN),
         *cluster_scratch(MAX_DRAWN))
@@ -189,9 +192,9 @@ def strongest_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedi
 
 @jit(error_model="numpy", _nrt=False)
 def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, base, r1, step, lam, inv, band_scale,
-               s_level, full, cover, bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range, rise_m,
-               spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
-               out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
+               s_level, full, cover, bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range,
+               rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k,
+               kind, out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
                c_max):       # pragma: no cover - compiled
     """:func:`strongest_returns` ray by ray: the particles (:func:`ray_head` a ray ahead, :func:`draw_ray`), then
     the ray's candidate and the receiver's decision (:func:`ray_outcome`), written to ``kind``, ``out_range``,
@@ -202,11 +205,10 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
     n = len(ray_range)
     inv_step = 1.0 / step
     drawn = 0
-    bg, rx, out, drawn_p, scratch = _outcome_arguments(bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step,
-                                                       min_range, rise_m, spad, gain, floor, excess, rx_threshold,
-                                                       background, detect_count, background_cdf, below_k, kind,
-                                                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca,
-                                                       cos_buf, sin_buf, c_lo, c_sum, c_max)
+    bg, rx, out, drawn_p, scratch = _outcome_arguments(
+        bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor, excess,
+        rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range, out_signal, p_range,
+        p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     t_next = _attenuated(signal, has_target, ray_range, alpha, 0)
     head = ray_head(rng, e, ray_range[0] if n else 0.0, t_next, threshold, r1, inv_step, lam, inv, band_scale, cover)
@@ -224,33 +226,35 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
                                     cover, p_range, p_signal, p_fraction, 0)
         head = ahead
         drawn += m
-        ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch)
+        ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch,
+                    split_uniforms)
     return drawn
 
 
 @jit(inline="always")
-def _outcome_arguments(bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor,
-                       excess, rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range,
-                       out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
+def _outcome_arguments(bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad,
+                       gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
+                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
                        c_max):       # pragma: no cover - compiled
     """:func:`_strongest`'s arguments grouped for :func:`ray_outcome` (a compiled call inlines at most 30 arguments):
     the background tables, the receiver's parameters, the outputs, the drawn particles, the pulse-sum scratch."""
-    return ((bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step),
+    return ((bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step),
             (min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf,
              below_k), (kind, out_range, out_signal), (p_range, p_signal, p_fraction),
             (cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max))
 
 
 @jit(inline="always")
-def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p,
-                scratch):       # pragma: no cover - compiled
+def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch,
+                uniforms):       # pragma: no cover - compiled
     """Ray i's return from its ``m`` drawn particles (draw level ``level``, mean cover ``shadow`` of the undrawn ones)
     and its attenuated target ``t_att`` (when ``tgt``), written to the outputs: the candidate
     (:func:`lidar_echo.ray_return`; without particles the target shadowed by the undrawn ones plus the background at
     its crest) and the receiver's decision (:func:`lidar_detection.outshone`, :func:`lidar_detection.weather_decision`;
-    three uniforms per measured candidate). ``bg``, ``rx``, ``out``, ``drawn_p``, ``scratch``: as
-    :func:`_outcome_arguments` groups :func:`_strongest`'s arguments."""
-    bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step = bg
+    three uniforms per measured candidate, drawn by the compiled function ``uniforms(rng)``: :func:`split_uniforms`).
+    ``bg``, ``rx``, ``out``, ``drawn_p``, ``scratch``: as :func:`_outcome_arguments` groups :func:`_strongest`'s
+    arguments (an empty ``bg_uncut``: the peaks' backgrounds evaluated exactly, :func:`lidar_echo.peak_background`)."""
+    bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step = bg
     min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k = rx
     kind, out_range, out_signal = out
     p_range, p_signal, p_fraction = drawn_p
@@ -261,7 +265,7 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
         c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
     else:
         c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
-                                           length, weakest, False, bg_cum, level, bg_inv_step,
+                                           length, weakest, False, bg_cum, bg_uncut, level, bg_inv_step,
                                            bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
     out_range[i], out_signal[i] = at, value
     if c == WEATHER:
@@ -270,7 +274,7 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
         if target_ok and outshone(value, t, gain, floor, excess):
             kind[i], out_range[i], out_signal[i] = TARGET, big_r, t
         else:
-            u0, u1, u2 = rng.random(), rng.random(), rng.random()
+            u0, u1, u2 = uniforms(rng)
             k, r, v = weather_decision(value, at, t, target_ok, big_r, u0, u1, u2, True, min_range, rise_m, spad,
                                        gain, floor, excess, rx_threshold, background, detect_count, background_cdf,
                                        below_k)
@@ -278,6 +282,12 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
                 kind[i], out_range[i], out_signal[i] = k, r, v
     elif c == TARGET and value >= rx_threshold:
         kind[i] = TARGET
+
+
+@jit(inline="always")
+def split_uniforms(rng):       # pragma: no cover - compiled
+    """The receiver's three uniforms of a weather candidate from one draw (:func:`lidar_detection.three_uniforms`)."""
+    return three_uniforms(rng.random())
 
 
 @dataclass(frozen=True, eq=False)
@@ -432,10 +442,10 @@ def draw_ray(rng, head, big_r, r1, inv_step, inv_base, lam, inv, band_scale, s_l
             if m - first == MAX_DRAWN:
                 break
             u += rng.standard_exponential()
-            while g >= g_cut and _row_lerp(lam, k, t, g) <= u:
-                g -= 1
-            if g < g_cut:
+            if _row_lerp(lam, k, t, g_cut) <= u:       # none left above the cut (Λ decreases with the level)
                 break
+            while _row_lerp(lam, k, t, g) <= u:
+                g -= 1
             la = _row_lerp(lam, k, t, g)
             lb = _row_lerp(lam, k, t, g + 1)
             band = np.uintp(g)

@@ -1,8 +1,9 @@
 """The strongest-return sampler of main before round 13 (``physics/lidar_strongest.py`` at d7fc0af), kept as the
 reference that tests/physics/test_strongest_sampler.py checks the package's sampler against (in place of
 :func:`lidar_strongest._strongest`, whose arguments it takes): each ray drawn after the previous one (no
-look-ahead), its table reads where it needs them. Test code only: main's draw verbatim; the ray's outcome, which
-round 13 left as it was, is the package's."""
+look-ahead), its table reads where it needs them. Test code only: main's draw verbatim; the package's
+:func:`lidar_strongest.ray_outcome` as main's before round 14 (the peaks' backgrounds evaluated exactly, three
+uniforms drawn per decision)."""
 
 from __future__ import annotations
 
@@ -18,22 +19,21 @@ from roadview_noise.physics.lidar_strongest import CUT_OCTAVES, LEVELS_PER_OCTAV
 
 @jit(error_model="numpy", _nrt=False)
 def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, base, r1, step, lam, inv, band_scale,
-               s_level, full, cover, bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range, rise_m,
-               spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
-               out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
+               s_level, full, cover, bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range,
+               rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k,
+               kind, out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
                c_max):       # pragma: no cover - compiled
     """:func:`strongest_returns` ray by ray: the particles (:func:`draw_ray`, each ray after the previous one), then
-    the package's :func:`lidar_strongest.ray_outcome` (the candidate and the receiver's decision, unchanged in round
-    13), written to ``kind``, ``out_range``, ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the
-    number of particles drawn. Compiled as the package's (no reference counting, no contracted multiply-adds)."""
+    :func:`lidar_strongest.ray_outcome` as main's (the candidate and the receiver's decision), written to ``kind``,
+    ``out_range``, ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the number of particles drawn.
+    Compiled as the package's (no reference counting, no contracted multiply-adds)."""
     n = len(ray_range)
     inv_step = 1.0 / step
     drawn = 0
-    bg, rx, out, drawn_p, scratch = _outcome_arguments(bg_cum, bg_peak, bg_at_target, bg_far, bg_inv_step,
-                                                       min_range, rise_m, spad, gain, floor, excess, rx_threshold,
-                                                       background, detect_count, background_cdf, below_k, kind,
-                                                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca,
-                                                       cos_buf, sin_buf, c_lo, c_sum, c_max)
+    bg, rx, out, drawn_p, scratch = _outcome_arguments(
+        bg_cum, bg_uncut[:0, :0], bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor, excess,
+        rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range, out_signal, p_range,
+        p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     for i in range(n):
         big_r = ray_range[i]
@@ -42,7 +42,8 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
         e, m, level, shadow = draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, 1.0 / base, lam, inv,
                                        band_scale, s_level, full, cover, p_range, p_signal, p_fraction, 0)
         drawn += m
-        ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch)
+        ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg, rx, out, drawn_p, scratch,
+                    three_draws)
     return drawn
 
 
@@ -105,3 +106,10 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
         _sort_by_range(p_range, p_signal, p_fraction, first, m)
     level = min(level, octaves - 1)
     return e, m, level, lerp_at(cover, level, k, t)
+
+
+
+@jit(inline="always")
+def three_draws(rng):       # pragma: no cover - compiled
+    """Main's three uniforms of a weather candidate: three draws."""
+    return rng.random(), rng.random(), rng.random()

@@ -615,6 +615,13 @@ def test_soft_background_against_direct_pulse_integral():
         assert bg.at_target[round(r0 / step)] == pytest.approx(direct(r0 + length / 2, r0), rel=5e-3, abs=1e-7)
     xs = np.arange(0.0, 20.0, 0.01)
     assert bg.peak == pytest.approx(max(direct(x, np.inf) for x in xs), rel=2e-3)
+    peak = lidar_echo.peak_background.py_func if hasattr(lidar_echo.peak_background, "py_func") \
+        else lidar_echo.peak_background
+    for x, r0 in ((2.0, 50.0), (3.71, 50.0), (10.02, 50.0), (10.0, 8.5), (9.0, 9.2), (0.5, 50.0), (250.0, 300.0)):
+        exact = at(x, r0, bg.cum[None], 0, 1 / step, length)          # the uncut table where no target cuts it
+        assert peak(x, r0, bg.cum[None], bg.uncut[None], 0, 1 / step, length) == pytest.approx(exact, rel=2e-3,
+                                                                                               abs=1e-6)
+        assert peak(x, r0, bg.cum[None], bg.uncut[None, :0], 0, 1 / step, length) == exact
 
 
 def test_background_adds_to_clusters_and_targets():
