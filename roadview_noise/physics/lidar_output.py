@@ -5,7 +5,6 @@ stored as the input's sensor stores them (:func:`lidar_intensity.stored_intensit
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -218,8 +217,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             if len(cells) and FIRING_COLUMN in attributes:  # ... and its firing column its cell's (laser order)
                 attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
         origin[n_out:] = NEW
-    out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
-                              effect=effect[:total], attributes=attributes)
+    out = cloud.replace(positions_m=positions[:total], fields=fields, origin=origin, effect=effect[:total],
+                        attributes=attributes)
     if n_bins and (grid or not filled):                # (a list's rows past a removal are not its rays')
         _note_returns(cloud.positions_m, positions_in, out.positions_m, n_bins, geometry, returns_of[0], returns_out)
     faint = rays.faint
@@ -286,4 +285,4 @@ def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
     n = int(rays.has_target.sum())
     counts = {"points_in": n, "kept": n, "attenuated": 0, "moved": 0, "removed": 0, "added": 0,
               "below_threshold_in": rays.below_threshold, "removed_below_threshold_in": 0, **empty_ray_counts(rays)}
-    return dataclasses.replace(cloud, effect=np.zeros(len(cloud), np.uint8)), counts
+    return cloud.replace(effect=np.zeros(len(cloud), np.uint8)), counts
