@@ -110,22 +110,17 @@ def _directions(cells, ring, column, scale, ca, sa, cb, sb, ce, se):       # pra
     return out
 
 
-def measured_step_rad(firing_rad: np.ndarray, ring: np.ndarray) -> tuple[float, str]:
-    """Column step (rad) of a scan from the firing-azimuth gaps between neighbouring returns of one beam (the caller
-    passes the returns of its most populated beams); (nan, reason) when the gaps are too few or not whole multiples
-    of one step.
+def measured_step_rad(gap: np.ndarray, returns: int) -> tuple[float, str]:
+    """Column step (rad) of a scan from the firing-azimuth gaps between neighbouring returns of one beam (``gap``:
+    :func:`beam_gaps` of the ``returns`` of its most populated beams); (nan, reason) when the gaps are too few or not
+    whole multiples of one step.
 
     The smallest typical gap (10th percentile) seeds the step: on a grid with fill fraction p, a gap of k steps
     occurs with probability ∝ (1 − p)^(k−1), so one step is always the most common gap. The step is then refitted by
     least squares (gaps g rounded to whole steps k: step = Σgk / Σk²) on gaps of up to 2, 4, then 8 steps; the grid is
     regular when 80 % of those gaps lie within 0.15 step of a whole number."""
-    if len(ring) < MIN_GAPS:
-        return math.nan, f"only {len(ring)} returns in the sampled beams"
-    f = np.mod(firing_rad, TWO_PI)
-    order = np.lexsort((f, ring))
-    f, r = f[order], ring[order]
-    gap = np.diff(f)[r[1:] == r[:-1]]
-    gap = gap[gap > 1e-7]                              # several echoes of one ray are not a gap
+    if returns < MIN_GAPS:
+        return math.nan, f"only {returns} returns in the sampled beams"
     if len(gap) < MIN_GAPS:
         return math.nan, f"only {len(gap)} azimuth gaps between returns of one beam"
     step = float(np.partition(gap, len(gap) // 10)[len(gap) // 10])
@@ -194,6 +189,52 @@ def _empty_cells(occupied, fires, in_view, shift, offsets, step):       # pragma
     return ring[:m], col[:m]
 
 
+@jit
+def beam_gaps(firing, ring, valid, sampled):       # pragma: no cover - compiled
+    """(the gaps between neighbouring firing azimuths, wrapped to [0, 2π), of the returns of each beam where
+    ``sampled``, beam by beam — those of one ray's several echoes, ≤ 1e-7 rad, left out —, the number of those
+    returns): one pass gathers them beam by beam, each beam's sorted on its own."""
+    channels = len(sampled)
+    start = np.zeros(channels + 1, np.int64)
+    for i in range(len(ring)):
+        if valid[i] and sampled[ring[i]]:
+            start[ring[i] + 1] += 1
+    for b in range(channels):
+        start[b + 1] += start[b]
+    f = np.empty(start[channels])
+    at = start[:channels].copy()
+    for i in range(len(ring)):
+        b = ring[i]
+        if valid[i] and sampled[b]:
+            f[at[b]] = np.mod(firing[i], TWO_PI)
+            at[b] += 1
+    gap = np.empty(len(f))
+    m = 0
+    for b in range(channels):
+        beam = np.sort(f[start[b]:start[b + 1]])
+        for j in range(1, len(beam)):
+            g = beam[j] - beam[j - 1]
+            if g > 1e-7:                               # several echoes of one ray are not a gap
+                gap[m] = g
+                m += 1
+    return gap[:m], len(f)
+
+
+@jit
+def _beam_phase(firing, ring, range_m, valid, stride, per_rad, channels):       # pragma: no cover - compiled
+    """Per beam, the sums of ``R cos(per_rad · firing)`` and ``R sin(…)`` over every ``stride``-th point that is a
+    return: the phase of its columns, weighted by range ``R`` (near returns carry the mm-scale beam-origin
+    parallax)."""
+    cos_sum = np.zeros(channels)
+    sin_sum = np.zeros(channels)
+    for i in range(0, len(ring), stride):
+        if valid[i]:
+            angle = firing[i] * per_rad
+            cos_sum[ring[i]] += range_m[i] * math.cos(angle)
+            sin_sum[ring[i]] += range_m[i] * math.sin(angle)
+    return cos_sum, sin_sum
+
+
 @dataclass(frozen=True, eq=False)
 class FiringColumns:
     """The firing grid measured from a point list, before its empty cells are looked for: every point's ``ring`` and
@@ -252,17 +293,14 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
         return "no returns"
     sampled = np.zeros(profile.channels, dtype=bool)                 # counts hold zero points too: only to pick beams
     sampled[np.argsort(counts, kind="stable")[-STEP_SAMPLE_BEAMS:]] = True
-    sel = np.flatnonzero(sampled[ring] & valid)
-    step, reason = measured_step_rad(firing[sel], ring[sel])
+    step, reason = measured_step_rad(*beam_gaps(firing, ring, valid, sampled))
     if reason:
         return reason
     columns = int(round(TWO_PI / step))
     step = TWO_PI / columns                             # the grid closes on itself
-    sample = np.flatnonzero(valid[::PHASE_SAMPLE_STRIDE]) * PHASE_SAMPLE_STRIDE
-    # weighted by range: near returns carry the mm-scale beam-origin parallax
-    weight, angle = range_m[sample], firing[sample] * (TWO_PI / step)
-    phase = (np.bincount(ring[sample], weight * np.cos(angle), profile.channels)      # (real cos and sin: SIMD,
-             - 1j * np.bincount(ring[sample], weight * np.sin(angle), profile.channels))  # unlike a complex exp)
+    cos_sum, sin_sum = _beam_phase(firing, ring, range_m, valid, PHASE_SAMPLE_STRIDE, TWO_PI / step,
+                                   profile.channels)
+    phase = cos_sum - 1j * sin_sum
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
     return FiringColumns(ring, firing, columns, shift, valid)

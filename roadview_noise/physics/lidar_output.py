@@ -5,7 +5,6 @@ stored as the input's sensor stores them (:func:`lidar_intensity.stored_intensit
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -203,28 +202,28 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     if not (n_removed or len(cells)) or grid:
         origin = None                                  # point i is input point i
     else:
-        index = origin                                 # the ray each output takes its other fields from
         if len(cells):
             _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
                           integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
             _add_returns(positions, np.arange(n_out, total), geometry, returns_out)
-            origin[n_out:] = NEW
-            index = np.concatenate([index[:n_out], rays.listed.like[cells]])
             added += len(cells)
-        fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
-        attributes = {k: np.asarray(v).take(index, axis=0) for k, v in attributes.items()}
-        for carried in (fields, attributes):           # an added point's ring is its cell's, not its column's
-            if len(cells) and RING in carried:
-                carried[RING][n_out:] = rays.listed.ring[cells]
-        if len(cells) and FIRING_COLUMN in attributes:  # ... and its firing column its cell's (laser order)
-            attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
-    out = dataclasses.replace(cloud, positions_m=positions[:total], fields=fields, origin=origin,
-                              effect=effect[:total], attributes=attributes)
+        if len(fields) > 1 or attributes:              # the ray each output takes its other fields from
+            index = np.concatenate([origin[:n_out], rays.listed.like[cells]]) if len(cells) else origin
+            fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
+            attributes = {k: np.asarray(v).take(index, axis=0) for k, v in attributes.items()}
+            for carried in (fields, attributes):       # an added point's ring is its cell's, not its column's
+                if len(cells) and RING in carried:
+                    carried[RING][n_out:] = rays.listed.ring[cells]
+            if len(cells) and FIRING_COLUMN in attributes:  # ... and its firing column its cell's (laser order)
+                attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
+        origin[n_out:] = NEW
+    out = cloud.replace(positions_m=positions[:total], fields=fields, origin=origin, effect=effect[:total],
+                        attributes=attributes)
     if n_bins and (grid or not filled):                # (a list's rows past a removal are not its rays')
         _note_returns(cloud.positions_m, positions_in, out.positions_m, n_bins, geometry, returns_of[0], returns_out)
-    faint = rays.faint[:n]
+    faint = rays.faint
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
-              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": rays.below_threshold,
+              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": int(np.count_nonzero(faint)),
               "removed_below_threshold_in": int(np.count_nonzero(removed & faint)), **empty_ray_counts(rays)}
     return out, counts
 
@@ -286,4 +285,4 @@ def unchanged(cloud: PointCloud, rays: Rays) -> tuple[PointCloud, dict]:
     n = int(rays.has_target.sum())
     counts = {"points_in": n, "kept": n, "attenuated": 0, "moved": 0, "removed": 0, "added": 0,
               "below_threshold_in": rays.below_threshold, "removed_below_threshold_in": 0, **empty_ray_counts(rays)}
-    return dataclasses.replace(cloud, effect=np.zeros(len(cloud), np.uint8)), counts
+    return cloud.replace(effect=np.zeros(len(cloud), np.uint8)), counts

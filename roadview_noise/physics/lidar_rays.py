@@ -92,9 +92,11 @@ class Rays:
 
     @property
     def faint(self) -> np.ndarray:
-        """Input returns whose signal lies below the profile's datasheet threshold: the sensor was more sensitive than
-        the datasheet (the threshold is then calibrated from them)."""
-        return self.has_target & (self.signal < self.datasheet_threshold)
+        """Per point of the input (the first :attr:`n_points` rays; the others have no target): whether it is a return
+        whose signal lies below the profile's datasheet threshold — the sensor was more sensitive than the datasheet
+        (the threshold is then calibrated from them)."""
+        n = self.n_points
+        return self.has_target[:n] & (self.signal[:n] < self.datasheet_threshold)
 
     @property
     def below_threshold(self) -> int:

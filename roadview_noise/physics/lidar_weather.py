@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from ..types import PointCloud
+from .compiled import jit
 from .lidar_detection import detect
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, RayReturns, select_returns
 from .lidar_intensity import reported_intensity, rounded_intensity, sensor_constant
@@ -49,13 +50,28 @@ def fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per_m_sr: 
     g, fog_range = table.lookup(rays.range_m)
     fog_signal = soft_target_signal(g, beta_per_m_sr)
     hard = hard_target_signal(rays.decision_signal, alpha_per_m, rays.range_m)
-    weather = (fog_signal > rays.receiver.weakest_return) & (rays.range_m > 0)
-    kind = np.where(weather, WEATHER, np.where(rays.has_target, TARGET, NO_RETURN)).astype(np.uint8)
-    candidates = RayReturns(kind, np.where(weather, fog_range, rays.range_m), np.where(weather, fog_signal, hard), hard)
+    candidates = RayReturns(*_fog_candidates(fog_signal, fog_range, hard, rays.range_m, rays.has_target,
+                                             rays.receiver.weakest_return), hard)
     returns = detect(rays, candidates, mode, rng.random((len(rays.range_m), 3)), per_ray=True, rise_m=table.rise_m)
     out, counts = assemble(cloud, rays, returns)
     return out, diagnostics(counts, rays, alpha_per_m=alpha_per_m, beta_per_m_sr=beta_per_m_sr,
                             pulse_half_power_width_s=tau_h_s)
+
+
+@jit
+def _fog_candidates(fog_signal, fog_range_m, hard, range_m, has_target, weakest):       # pragma: no cover - compiled
+    """Per ray, in one pass: the fog's return as the candidate (WEATHER) where it can be detected (above ``weakest``,
+    on a ray with a direction), else the attenuated target (TARGET) or nothing (NO_RETURN); (kind, range, signal)."""
+    n = len(range_m)
+    kind = np.empty(n, np.uint8)
+    candidate_range_m = np.empty(n)
+    signal = np.empty(n)
+    for i in range(n):
+        weather = fog_signal[i] > weakest and range_m[i] > 0
+        kind[i] = WEATHER if weather else (TARGET if has_target[i] else NO_RETURN)
+        candidate_range_m[i] = fog_range_m[i] if weather else range_m[i]
+        signal[i] = fog_signal[i] if weather else hard[i]
+    return kind, candidate_range_m, signal
 
 
 def hahner_fog(cloud: PointCloud, model_id: str, *, alpha_per_m: float, beta_per_m_sr: float,

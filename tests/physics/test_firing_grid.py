@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from roadview_noise.physics.firing_grid import firing_grid
+from roadview_noise.physics.firing_grid import beam_gaps, firing_grid
 from roadview_noise.profiles.lidar import os1_128, vls_128
 from roadview_noise.types import PointCloud
 
@@ -178,3 +178,26 @@ def test_real_os1_list_measures_its_grid_and_beam_azimuths(shared_data):
 
     measured, nominal = azimuth_error_sd(grid.shift[ring[far]]), azimuth_error_sd(0.0)
     assert measured < 0.001 and measured < 0.6 * nominal, (measured, nominal)
+
+
+def test_beam_gaps_are_the_sorted_gaps_of_each_sampled_beam():
+    """The compiled gather of the step's gaps against NumPy: sampled beams' returns sorted by (beam, azimuth mod 2π),
+    neighbour differences within a beam, echoes (≤ 1e-7 rad) left out; other beams and non-returns ignored."""
+    rng = np.random.default_rng(4)
+    n = 5000
+    ring = rng.integers(0, 16, n)
+    firing = rng.uniform(-7.0, 7.0, n)
+    firing[1::50] = firing[::50][:len(firing[1::50])]          # second echoes of a ray
+    ring[1::50] = ring[::50][:len(ring[1::50])]
+    valid = rng.random(n) > 0.2
+    sampled = np.zeros(16, bool)
+    sampled[[2, 5, 11]] = True
+    sel = np.flatnonzero(sampled[ring] & valid)
+    f = np.mod(firing[sel], 2 * np.pi)
+    order = np.lexsort((f, ring[sel]))
+    f, r = f[order], ring[sel][order]
+    expected = np.diff(f)[r[1:] == r[:-1]]
+    gaps, returns = beam_gaps(firing, ring, valid, sampled)
+    assert returns == len(sel)
+    np.testing.assert_array_equal(gaps, expected[expected > 1e-7])
+    assert len(gaps) < len(expected)                            # the echoes were there and left out
