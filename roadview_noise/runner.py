@@ -643,10 +643,11 @@ class _Tally:
                 s.failures.append(e["error"])
 
     def warnings(self) -> list[str]:
-        """Input warnings, then one line per distinct warning a model issued (so a warning such as a LiDAR
-        intensity unit read from the data reaches stderr once, not once per file)."""
+        """Input warnings, then one line per distinct warning a model issued, in the order of their texts (so a
+        warning such as a LiDAR intensity unit read from the data reaches stderr once, not once per file, and run.json
+        does not depend on the order files finished in or on Python's string hashing)."""
         return self.inputs.lines() + [f"{text} ({n} file{'s' if n > 1 else ''}; in the manifest)"
-                                      for text, n in self.model_warnings.items()]
+                                      for text, n in sorted(self.model_warnings.items())]
 
 
 def _recount(manifest: Path, start: int, tally: _Tally) -> None:
