@@ -6,9 +6,11 @@ warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the ca
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
 Kernels that only one kind of data calls (:data:`KIND_KERNELS`: the sRGB edges and the frame metrics for camera
-and raw frames, the point-cloud metrics, codec and return geometry for LiDAR and radar clouds) are loaded only when a
-model of that kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a camera
-run the point-cloud ones. With no model loaded, every kernel is.
+and raw frames, the point-cloud metrics, codec, return and beam geometry for LiDAR and radar clouds) are loaded only
+when a model of that kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a
+camera run the point-cloud ones. With no model loaded, every kernel is. Kernels that only other kernels call
+(:func:`inner_only`: the PNG filter's rows, the luminance sums, the sRGB code steps) are not loaded on their own:
+their code is in their callers' cached code, and nothing calls them from Python.
 
 When a camera model is loaded, physics/srgb.py's encode tables are built here too, so that the workers inherit
 them instead of each building them on its first file (≈ 40 ms).
