@@ -6,10 +6,14 @@ worker its own pipe and knows which task a dead worker was running: that
 task is retried once on a fresh worker and reported as a :class:`WorkerDeath` if it kills a second one; no other task
 is affected. Behind tasks shorter than ``QUEUE_BELOW_S`` a worker holds further tasks, queued in its pipe (about
 ``2 * BATCH_HOLD_S`` of them, at most ``QUEUE_MAX_TASKS`` and ``QUEUE_MAX_BYTES`` together: sending them never blocks
-on a worker that is itself blocked sending a large result), so it never waits for the parent between two small files,
-and answers them in **batches**: one message with the results it finished while more tasks were queued (at most
-``BATCH_MAX`` results, held only while the next task, as long as the last, would end within ``BATCH_HOLD_S`` of
-the first held one; at once when nothing more is queued). The parent then wakes once
+on a worker that is itself blocked sending a large result), so it never waits for the parent between two small files;
+behind longer tasks (and before the first answer) it holds a second one while the source has at least ``2 * workers``
+left (its ``operator.length_hint``, e.g. :class:`Counted`; without one, a single task), so it does not wait for the
+parent between two files either (issue 19: 40–80 ms over a 12-file 2-worker camera run), at the cost of at most
+about half a task of imbalance at the end of the run. Behind short tasks a worker answers in **batches**: one
+message with the results it finished while more tasks were queued (at most ``BATCH_MAX`` results, held only while
+the next task, as long as the last, would end within ``BATCH_HOLD_S`` of the first held one; at once when nothing
+more is queued). The parent then wakes once
 per batch, not once per file, and handles the batch with warm caches (issue 19: a radar file's ≈ 0.3 ms of the main
 process was mostly a cold wake-up per file). A worker records the task it is running in shared memory, so a dead
 worker is blamed for that task only: the ones it finished but had not sent yet and the ones queued behind are re-sent
@@ -44,6 +48,7 @@ import io
 import math
 import multiprocessing as mp
 import multiprocessing.spawn as mp_spawn
+import operator
 import os
 import pickle
 import select
@@ -415,11 +420,12 @@ class ProcessExecutor(Generic[T, C]):
         times = [w.ready.value for w in self._pool if w.ready is not None and w.ready.value > 0]
         return min(times, default=None)
 
-    def _depth(self) -> int:
+    def _depth(self, left: int) -> int:
         """Tasks a worker holds: behind short tasks, enough for two batches (module docstring), so it never waits
-        for the parent; a second one under a time bound (no batches)."""
+        for the parent; a second one under a time bound (no batches), or behind longer tasks (or before the first
+        answer) while the source has ``left`` ≥ 2 × workers tasks."""
         if self._task_s >= QUEUE_BELOW_S:
-            return 1
+            return 2 if left >= 2 * self.workers else 1
         if self.timeout_s is not None:
             return 2
         return max(2, min(QUEUE_MAX_TASKS, math.ceil(2 * BATCH_HOLD_S / max(self._task_s, 1e-6))))
@@ -435,8 +441,8 @@ class ProcessExecutor(Generic[T, C]):
             self.start()
             while True:
                 for w in self._pool:
-                    depth, chunk, not_now = self._depth(), [], False
-                    while len(w.queue) < depth:
+                    chunk, not_now = [], False
+                    while len(w.queue) < self._depth(len(retry) + operator.length_hint(source)):
                         if retry:
                             tid, task = retry.popleft()
                         elif not exhausted:
@@ -572,6 +578,23 @@ class ProcessExecutor(Generic[T, C]):
                 w.proc.kill()
                 w.proc.join()
             w.conn.close()
+
+
+class Counted(Generic[T]):
+    """The iterator ``items`` with ``left()`` as its length hint (``operator.length_hint``): how many items it may
+    still yield, for :class:`ProcessExecutor`'s queue behind long tasks."""
+
+    def __init__(self, items: Iterator[T], left: Callable[[], int]):
+        self._items, self._left = items, left
+
+    def __iter__(self) -> "Counted[T]":
+        return self
+
+    def __next__(self) -> T:
+        return next(self._items)
+
+    def __length_hint__(self) -> int:
+        return max(0, self._left())
 
 
 class InlineExecutor(Generic[T, C]):

@@ -33,7 +33,7 @@ from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
-from .executor import NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
+from .executor import NOT_NOW, Counted, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
 from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
@@ -696,6 +696,8 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             if coco_run is not None:
                 coco_run.collect(e)
 
+    left = [summary.planned - (len(ctx.recipe.variants) if coco_run is not None else 0)]   # outputs not walked yet
+
     def to_run(ledger: Ledger) -> Iterator[Task]:
         """The tasks for the workers; walk failures and outputs ``--resume`` keeps go to the ledger directly."""
         resuming = bool(previous)                      # a fresh run asks nothing per file of the previous run's index
@@ -705,6 +707,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             if isinstance(item, Unreadable):
                 record(ledger.put(item.index, _walk_entry(item.failure)))
                 continue
+            left[0] -= 1
             item = coco_run.attach(item) if coco_run is not None else item
             kept = previous.get(item.out_relpath) if resuming else None
             if kept is not None and _still_valid(ctx, item, kept) and \
@@ -723,7 +726,7 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             if sync is not None:
                 executor.wake = sync.wake                  # an fsync finished: its entry is released at once
             try:
-                for task, result in executor.map(to_run(ledger)):
+                for task, result in executor.map(Counted(to_run(ledger), lambda: left[0])):
                     if task is NOT_NOW:
                         record(ledger.synced())
                         if ledger.stopped:

@@ -6,9 +6,11 @@ warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the ca
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
 Kernels that only one kind of data calls (:data:`KIND_KERNELS`: the sRGB edges and the frame metrics for camera
-and raw frames, the point-cloud metrics, codec and return geometry for LiDAR and radar clouds) are loaded only when a
-model of that kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a camera
-run the point-cloud ones. With no model loaded, every kernel is.
+and raw frames, the point-cloud metrics, codec, return and beam geometry for LiDAR and radar clouds) are loaded only
+when a model of that kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a
+camera run the point-cloud ones. With no model loaded, every kernel is. Kernels that only other kernels call
+(:func:`inner_only`: the PNG filter's rows, the luminance sums, the sRGB code steps) are not loaded on their own:
+their code is in their callers' cached code, and nothing calls them from Python.
 
 When a camera model is loaded, physics/srgb.py's encode tables are built here too, so that the workers inherit
 them instead of each building them on its first file (≈ 40 ms).
@@ -19,6 +21,8 @@ version is computed here once (≈ 25 ms that each worker would pay on its first
 from __future__ import annotations
 
 import sys
+from types import CodeType, FunctionType, ModuleType
+from typing import Any
 
 _done = False
 # The kernels only one kind of data calls, by module (None: all of the module's); a model's kind is its package
@@ -26,6 +30,7 @@ _IMAGE = {"roadview_noise.physics.srgb": None, "roadview_noise.luminance": None,
           "roadview_noise.metrics": ("_grey_statistics", "_grey_codes", "_depth_bin_index", "_ssim_map",
                                      "_ssim_local_means", "_filter_row", "_filter_column", "_window_sum")}
 _POINTS = {"roadview_noise.io.pointcloud": None, "roadview_noise.physics.return_ranges": None,
+           "roadview_noise.physics.lidar_geometry": None,
            "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_step_pass", "_same_pass",
                                       "_same_position", "_is_return", "_compose", "_same_ray", "_change",
                                       "_mean_change_through")}
@@ -47,11 +52,43 @@ def needed(module: str, name: str, kinds: set[str]) -> bool:
     return not listed or bool(kinds.intersection(listed))
 
 
+def _names(code: CodeType) -> set[str]:
+    """The names a code object and the functions nested in it refer to (globals and attributes)."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, CodeType):
+            names |= _names(const)
+    return names
+
+
+def inner_only(kernels: dict[int, Any], modules: list[ModuleType]) -> set[int]:
+    """The ids of ``kernels`` that only other kernels call: named in a kernel's code, and in no Python function or
+    method, nor held in a module-level container, of ``modules``. Their machine code is in their callers' cached
+    code, so loading it on its own is wasted (≈ 3–10 ms each); one that Python calls after all (through a name this
+    scan cannot see) loads on its first call."""
+    from_kernels: set[str] = set()
+    from_python: set[str] = set()
+    held: set[int] = set()
+    for module in modules:
+        values = list(vars(module).values())
+        for value in list(values):
+            if isinstance(value, type) and value.__module__ == module.__name__:
+                values += [getattr(v, "__func__", getattr(v, "fget", v)) for v in vars(value).values()]
+            elif isinstance(value, (dict, list, tuple)):
+                held.update(map(id, value.values() if isinstance(value, dict) else value))
+        for value in values:
+            if id(value) in kernels:
+                from_kernels |= _names(value.py_func.__code__)
+            elif isinstance(value, FunctionType):
+                from_python |= _names(value.__code__)
+    return {i for i, k in kernels.items() if i not in held and k.py_func.__name__ in from_kernels - from_python}
+
+
 def warm_up() -> int:
     """Load the cached compiled versions of every numba kernel of the package's loaded modules that the loaded
     models' kinds of data may call (:func:`needed`; module-level kernels: ``@jit`` decorates module functions; a scan
-    of the module dicts, not of every object); returns how many. Uses numba's cache index (``Dispatcher._cache``),
-    so an unknown numba version costs only the warm-up."""
+    of the module dicts, not of every object) from Python (:func:`inner_only`); returns how many. Uses numba's cache
+    index (``Dispatcher._cache``), so an unknown numba version costs only the warm-up."""
     global _done
     if _done:
         return 0
@@ -61,11 +98,12 @@ def warm_up() -> int:
     except ImportError:                              # pragma: no cover - numba is a dependency
         return 0
     loaded, kinds = 0, loaded_kinds()
-    kernels = {id(o): o for name, module in list(sys.modules.items()) if name.startswith("roadview_noise.")
-               for o in list(vars(module).values()) if isinstance(o, CPUDispatcher)
+    modules = [module for name, module in list(sys.modules.items()) if name.startswith("roadview_noise.")]
+    kernels = {id(o): o for module in modules for o in list(vars(module).values()) if isinstance(o, CPUDispatcher)
                and getattr(o.py_func, "__module__", "").startswith("roadview_noise.")
-               and needed(o.py_func.__module__, o.py_func.__name__, kinds)}.values()
-    for kernel in kernels:
+               and needed(o.py_func.__module__, o.py_func.__name__, kinds)}
+    inner = inner_only(kernels, modules)
+    for kernel in [k for i, k in kernels.items() if i not in inner]:
         try:
             cache = kernel._cache
             codegen = kernel.targetctx.codegen()

@@ -10,8 +10,8 @@ import time
 import pytest
 
 from roadview_noise import executor
-from roadview_noise.executor import (NOT_NOW, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, death_reason,
-                                     start_server)
+from roadview_noise.executor import (NOT_NOW, Counted, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath,
+                                     death_reason, start_server)
 
 
 def work(task: int, context: dict) -> tuple[int, int]:
@@ -263,7 +263,7 @@ def test_short_tasks_are_answered_in_batches_and_a_death_blames_the_running_task
     waits = _count_waits(monkeypatch)
     ex = ProcessExecutor(work, {}, 1)
     assert dict(ex.map(range(300))) == {t: (t, t * t) for t in range(300)}
-    assert ex._depth() > 2 and len(waits) < 150
+    assert ex._depth(0) > 2 and len(waits) < 150
     ex = ProcessExecutor(work, {"exit": (150,)}, 1)
     results = dict(ex.map(range(300)))
     assert isinstance(results[150], WorkerDeath) and results[150].deaths == 2 and ex.deaths == 2
@@ -285,7 +285,7 @@ def test_a_refill_of_short_tasks_goes_to_its_worker_in_one_message(monkeypatch, 
     monkeypatch.setattr(Connection, "send_bytes", counting_send)
     ex = ProcessExecutor(work, {}, 1)
     assert list(ex.map(range(300))) == [(t, (t, t * t)) for t in range(300)]
-    assert ex._depth() > 2 and len(sends) < 100
+    assert ex._depth(0) > 2 and len(sends) < 100
 
 
 def test_a_time_bound_answers_each_task_at_once(monkeypatch, queue_below_s):
@@ -294,7 +294,7 @@ def test_a_time_bound_answers_each_task_at_once(monkeypatch, queue_below_s):
     waits = _count_waits(monkeypatch)
     ex = ProcessExecutor(work, {}, 1, timeout_s=30)
     assert dict(ex.map(range(40))) == {t: (t, t * t) for t in range(40)}
-    assert ex._depth() == 2 and len(waits) >= 40
+    assert ex._depth(0) == 2 and len(waits) >= 40
 
 
 def test_tasks_longer_than_the_hold_are_answered_each_at_once(monkeypatch, queue_below_s):
@@ -304,4 +304,36 @@ def test_tasks_longer_than_the_hold_are_answered_each_at_once(monkeypatch, queue
     waits = _count_waits(monkeypatch)
     ex = ProcessExecutor(work, {"pause_s": 2 * executor.BATCH_HOLD_S}, 1)
     assert dict(ex.map(range(20))) == {t: (t, t * t) for t in range(20)}
-    assert ex._depth() >= 2 and len(waits) >= 20
+    assert ex._depth(0) >= 2 and len(waits) >= 20
+
+
+def test_long_tasks_get_a_second_queued_while_enough_are_left_and_a_death_blames_the_running_one(tmp_path,
+                                                                                                 monkeypatch):
+    """Behind tasks of at least ``QUEUE_BELOW_S`` a worker holds a second task while the source has ≥ 2 × workers
+    left (its length hint), one near the end. A worker that dies with two tasks is blamed for the one it was
+    running only: the one queued behind runs on a fresh worker with no death counted."""
+    held: list = []                                 # (the task blamed, the tasks its worker held) per death
+    died_on = executor._Worker.died_on
+
+    def recording(self):
+        k = died_on(self)
+        held.append((self.queue[k][1], len(self.queue)))
+        return k
+
+    monkeypatch.setattr(executor._Worker, "died_on", recording)
+    ctx = {"exit": (2,), "kill_once": (6,), "dir": str(tmp_path), "pause_s": 2 * executor.QUEUE_BELOW_S}
+    pulled: list = []
+
+    def tasks():
+        for t in range(12):
+            pulled.append(t)
+            yield t
+
+    ex = ProcessExecutor(work, ctx, 2)
+    results = dict(ex.map(Counted(tasks(), lambda: 12 - len(pulled))))
+    assert held[0] == (2, 2)                        # it died on task 2 holding task 3 behind it
+    assert sorted(results) == list(range(12))
+    assert isinstance(results[2], WorkerDeath) and results[2].deaths == 2
+    assert all(results[t] == (t, t * t) for t in range(12) if t != 2)
+    assert ex.deaths == 3 and ex._task_s >= executor.QUEUE_BELOW_S
+    assert ex._depth(4) == 2 and ex._depth(3) == 1 and ex._depth(0) == 1

@@ -136,6 +136,55 @@ def test_warm_up_loads_only_the_kernels_of_the_loaded_kinds():
     assert done.stdout.strip() == str(sorted(KIND_KERNELS)), done.stderr
 
 
+def test_warm_up_skips_kernels_only_other_kernels_call():
+    """A kernel that only other kernels call is compiled into its callers' cached code: the warm-up does not load it
+    on its own. One that Python calls (a function, a method, a module-level table) is loaded, and so is a camera
+    run's every kernel that it calls, but not the LiDAR geometry's."""
+    import types
+
+    from numba.core.registry import CPUDispatcher
+
+    from roadview_noise.warmup import inner_only, needed
+
+    module = types.ModuleType("kernels_of_a_test")
+    exec(textwrap.dedent("""
+        import numba
+
+        @numba.njit
+        def helper(x):
+            return x + 1
+
+        @numba.njit
+        def shared(x):
+            return x - 1
+
+        @numba.njit
+        def tabled(x):
+            return x
+
+        @numba.njit
+        def kernel(x):
+            return helper(x) + shared(x) + tabled(x)
+
+        TABLE = {"t": tabled}
+
+        def entry(x):
+            return kernel(x)
+
+        class User:
+            def method(self, x):
+                return shared(x)
+        """), module.__dict__)
+    kernels = {id(o): o for o in vars(module).values() if isinstance(o, CPUDispatcher)}
+    assert {kernels[i].py_func.__name__ for i in inner_only(kernels, [module])} == {"helper"}
+    from roadview_noise.io import png
+
+    real = {id(o): o for o in (png._unfilter, png._paeth_row)}
+    assert inner_only(real, [png]) == {id(png._paeth_row)}
+    assert not needed("roadview_noise.physics.lidar_geometry", "_azimuths", {"camera"})
+    assert needed("roadview_noise.physics.lidar_geometry", "_azimuths", {"lidar"})
+
+
 def test_a_cloud_run_needs_no_image_writers(tmp_path):
     """A LiDAR/radar run's server does not preload the image and raw readers/writers, and a radar worker's file
     (reading it whole, its chain, saving the cloud) imports neither them (nor tifffile) nor the LiDAR laser order:
