@@ -86,9 +86,6 @@ def _detect(cand_kind, cand_range, cand_signal, target_signal, has_target, ray_r
     return kind, out_range, out_signal
 
 
-UNIFORM_BITS = (18, 18, 17)      # a uniform double's 53 random bits, split by :func:`three_uniforms`
-
-
 @jit(inline="always")
 def three_uniforms(u):       # pragma: no cover - compiled
     """Three independent uniforms on (0, 1) from one uniform ``u`` of 53 random bits (``Generator.random``): its top

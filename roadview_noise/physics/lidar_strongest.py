@@ -428,13 +428,8 @@ def draw_ray(rng, head, big_r, r1, inv_step, inv_base, lam, inv, band_scale, s_l
         r = min(lerp_at(inv, g, kq, tq), big_r)
         g_cut = 0
         while True:
-            xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
-            kr = int(xr)
-            tr = xr - kr
-            top = min(s_level[np.uintp(g + 1)], lerp_at(full, 1, kr, tr))
-            s_lo = s_level[np.uintp(g)]
-            s = min(s_lo + (top - s_lo) * (la - u) / (la - lb), top)
-            p_range[m], p_signal[m], p_fraction[m] = r, s, s / lerp_at(full, 0, kr, tr)
+            s, f = particle_at(r, g, u, la, lb, r1, inv_step, rows, s_level, full)
+            p_range[m], p_signal[m], p_fraction[m] = r, s, f
             if m == first:
                 level = max(_octave_near(s * inv_base, g // LEVELS_PER_OCTAVE) - CUT_OCTAVES, 0)
                 g_cut = level * LEVELS_PER_OCTAVE
@@ -453,6 +448,21 @@ def draw_ray(rng, head, big_r, r1, inv_step, inv_base, lam, inv, band_scale, s_l
         _sort_by_range(p_range, p_signal, p_fraction, first, m)
     level = min(level, octaves - 1)
     return m, level, lerp_at(cover, level, k, t)
+
+
+@jit(inline="always")
+def particle_at(r, g, u, la, lb, r1, inv_step, rows, s_level, full):       # pragma: no cover - compiled
+    """A particle of level band g at range ``r`` with rank ``u`` (Λ ``la``, ``lb`` at the band's ends at its ray's
+    range): its return s (units of K; Λ linear in s between the levels ``s_level``, at most the largest particle's
+    return at r) and its beam fraction s / F(r) (``full``: :attr:`BrightestTables.full`, ``rows`` entries from
+    ``r1`` every 1 / ``inv_step`` m)."""
+    xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
+    kr = int(xr)
+    tr = xr - kr
+    top = min(s_level[np.uintp(g + 1)], lerp_at(full, 1, kr, tr))
+    s_lo = s_level[np.uintp(g)]
+    s = min(s_lo + (top - s_lo) * (la - u) / (la - lb), top)
+    return s, s / lerp_at(full, 0, kr, tr)
 
 
 @jit(inline="always")

@@ -14,7 +14,7 @@ import numpy as np
 from roadview_noise.physics.compiled import jit
 from roadview_noise.physics.lidar_particles import lerp_at, table_lerp
 from roadview_noise.physics.lidar_strongest import CUT_OCTAVES, LEVELS_PER_OCTAVE, MAX_DRAWN, _octave_near, \
-    _outcome_arguments, _own_level, _row_lerp, _sort_by_range, ray_outcome
+    _outcome_arguments, _own_level, _row_lerp, _sort_by_range, particle_at, ray_outcome
 
 
 @jit(error_model="numpy", _nrt=False)
@@ -83,14 +83,9 @@ def draw_ray(rng, e, big_r, t_att, threshold, r1, inv_step, inv_base, lam, inv, 
         while True:
             la = _row_lerp(lam, k, t, g)
             lb = _row_lerp(lam, k, t, g + 1)
-            band, s_lo, s_hi = np.uintp(g), s_level[np.uintp(g)], s_level[np.uintp(g + 1)]    # (unsigned: lerp_at)
+            band = np.uintp(g)
             r = min(table_lerp(inv, band, rng.random() * (la - lb) * band_scale[band]), big_r)
-            xr = min(max((r - r1) * inv_step, 0.0), rows - 1.000001)
-            kr = int(xr)
-            tr = xr - kr
-            top = min(s_hi, lerp_at(full, 1, kr, tr))
-            s = min(s_lo + (top - s_lo) * (la - u) / (la - lb), top)
-            f = s / lerp_at(full, 0, kr, tr)
+            s, f = particle_at(r, g, u, la, lb, r1, inv_step, rows, s_level, full)
             p_range[m], p_signal[m], p_fraction[m] = r, s, f
             if m == first:
                 level = max(_octave_near(s * inv_base, g // LEVELS_PER_OCTAVE) - CUT_OCTAVES, 0)

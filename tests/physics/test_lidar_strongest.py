@@ -12,7 +12,7 @@ from scipy import stats
 
 from roadview_noise.models.lidar.snow import SnowLidar
 from roadview_noise.physics import dsd, lidar_echo, lidar_particles, lidar_strongest
-from roadview_noise.physics.lidar_detection import detect
+from roadview_noise.physics.lidar_detection import detect, three_uniforms
 from roadview_noise.physics.lidar_medium import pulse_length_m
 from roadview_noise.physics.lidar_particles import Beam, ParticleMedium
 from roadview_noise.physics.lidar_rays import cloud_rays
@@ -266,3 +266,20 @@ def assert_same_law(a, b, p_min: float = 1e-3) -> None:
     for x, y in ((r_a, r_b), (s_a, s_b), (t_a, t_b)):
         assert stats.ks_2samp(x, y).pvalue > p_min
     assert abs(n_a - n_b) < 4 * math.sqrt(n_a + n_b)
+
+
+def test_three_uniforms_are_the_bit_fields_of_one_draw():
+    """:func:`lidar_detection.three_uniforms`: a uniform of 53 random bits ``(a·2³⁵ + b·2¹⁷ + c) / 2⁵³`` gives the
+    cell midpoints ``(a + ½) / 2¹⁸, (b + ½) / 2¹⁸, (c + ½) / 2¹⁷`` exactly, and over many draws three uncorrelated
+    uniforms."""
+    split = three_uniforms.py_func if hasattr(three_uniforms, "py_func") else three_uniforms
+    rng = np.random.default_rng(7)
+    a, b, c = rng.integers(0, 2 ** 18, 200), rng.integers(0, 2 ** 18, 200), rng.integers(0, 2 ** 17, 200)
+    a[:2], b[:2], c[:2] = (0, 2 ** 18 - 1), (0, 2 ** 18 - 1), (0, 2 ** 17 - 1)       # the extreme cells
+    for ai, bi, ci in zip(a.tolist(), b.tolist(), c.tolist()):
+        u = (ai * 2 ** 35 + bi * 2 ** 17 + ci) / 2 ** 53
+        assert split(u) == ((ai + 0.5) / 2 ** 18, (bi + 0.5) / 2 ** 18, (ci + 0.5) / 2 ** 17)
+    draws = np.array([split(u) for u in rng.random(20000)])
+    assert np.all((draws > 0) & (draws < 1))
+    assert np.allclose(draws.mean(axis=0), 0.5, atol=4 * np.sqrt(1 / 12 / len(draws)))
+    assert np.abs(np.corrcoef(draws.T)[np.triu_indices(3, 1)]).max() < 4 / np.sqrt(len(draws))
