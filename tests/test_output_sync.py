@@ -1,7 +1,8 @@
-"""A local run's outputs are fsynced by its main process (``output_sync``, issue 19), never after their manifest line:
+"""A local run's outputs are synced by its main process (``output_sync``, issue 19), never after their manifest line:
 when a line is written every file it lists is on storage as a temporary and none is under its final name yet, so a
-crash at any moment leaves no line whose file could be partial and no file without its line; an fsync that fails
-fails its entry and leaves nothing of it."""
+crash at any moment leaves no line whose file could be partial and no file without its line; a sync that fails
+fails its entry and leaves nothing of it. Both ways are checked: a ``syncfs`` per batch (group commit, Linux) and an
+fsync per file (elsewhere, and for the batches ``syncfs`` may not cover)."""
 
 from __future__ import annotations
 
@@ -36,12 +37,36 @@ def _radar_tree(tmp_path: Path, files: int) -> Path:
     return tmp_path / "in"
 
 
-@pytest.fixture
-def fsynced(monkeypatch):
-    """The files this process fsyncs (by name; ``os.fsync`` of every module here), each fsync delayed so that lines
-    would overtake it if they could."""
+needs_syncfs = pytest.mark.skipif(output_sync.SYNCFS is None, reason="syncfs with error reports: Linux ≥ 5.8")
+
+
+def _temporaries(root: Path) -> set[str]:
+    return {p.name for p in root.rglob("*") if is_temporary(p.name)}
+
+
+@pytest.fixture(params=["syncfs", "fsync"])
+def fsynced(request, monkeypatch, tmp_path):
+    """The files this process has made durable (by name), each sync delayed so that lines would overtake it if they
+    could: with ``syncfs`` (param "syncfs") every temporary of the output tree there when a ``syncfs`` began, counted
+    once it returned; with fsyncs only (param "fsync": ``syncfs`` absent) each file fsynced (``os.fsync`` of every
+    module here)."""
     names: set[str] = set()
     lock = threading.Lock()
+    if request.param == "syncfs":
+        if output_sync.SYNCFS is None:
+            pytest.skip("syncfs with error reports: Linux ≥ 5.8")
+        real_syncfs = output_sync.syncfs
+
+        def slow_syncfs(fd):
+            there = _temporaries(tmp_path / "out")
+            time.sleep(0.002)
+            real_syncfs(fd)
+            with lock:
+                names.update(there)
+
+        monkeypatch.setattr(output_sync, "syncfs", slow_syncfs)
+        monkeypatch.setattr(output_sync, "dirty_bytes", lambda: 0)      # the machine's other writers aside
+        return names
     real = os.fsync
 
     def slow_fsync(fd):
@@ -50,6 +75,7 @@ def fsynced(monkeypatch):
         with lock:
             names.add(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))
 
+    monkeypatch.setattr(output_sync, "SYNCFS", None)
     monkeypatch.setattr(output_sync.os, "fsync", slow_fsync)
     return names
 
@@ -97,7 +123,20 @@ def test_a_worker_fsyncs_its_files_only_when_the_main_process_will_not(tmp_path,
     assert e["status"] == "ok" and len(e["staged"]) == 1 and len(calls) == (1 if in_worker else 0)
 
 
-def test_a_failed_fsync_fails_its_entry_and_leaves_nothing_of_it(tmp_path, monkeypatch):
+@pytest.mark.parametrize("syncfs", ["absent", "failing"])
+def test_a_failed_fsync_fails_its_entry_and_leaves_nothing_of_it(tmp_path, monkeypatch, syncfs):
+    # without syncfs, or when a syncfs reports a writeback error (whose? the batch is then fsynced file by file)
+    if syncfs == "absent":
+        monkeypatch.setattr(output_sync, "SYNCFS", None)
+    elif output_sync.SYNCFS is None:
+        pytest.skip("syncfs with error reports: Linux ≥ 5.8")
+    else:
+        monkeypatch.setattr(output_sync, "dirty_bytes", lambda: 0)
+
+        def eio(fd):
+            raise OSError(errno.EIO, "Input/output error")
+
+        monkeypatch.setattr(output_sync, "syncfs", eio)
     real = os.fsync
 
     def full_on_the_third(fd):
@@ -130,6 +169,7 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
         real(paths)
 
     monkeypatch.setattr(output_sync, "fsync_files", held)
+    monkeypatch.setattr(output_sync, "SYNCFS", None)                   # a file by file pool: fsyncs end in any order
     log = io.StringIO()
     sync = output_sync.SyncPool(out)
     ledger = Ledger(out, log, lambda e: None, sync=sync)
@@ -150,6 +190,57 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
     assert [e["output"] for e in released] == ["a.pcd", "b.pcd", "c.pcd"]
     assert [line.split('"output": "')[1][0] for line in log.getvalue().splitlines()] == ["a", "b", "c"]
     assert {p.name for p in out.iterdir()} == {"a.pcd", "b.pcd", "c.pcd"}
+
+
+def _job(out: Path, name: str) -> list[list[str]]:
+    (out / f".{name}.tmp").write_text(name)
+    return [[f".{name}.tmp", f"{name}.pcd"]]
+
+
+@needs_syncfs
+def test_what_comes_while_a_syncfs_runs_joins_the_next_one(tmp_path, monkeypatch):
+    calls, gate = [], threading.Event()
+    real = output_sync.syncfs
+
+    def held(fd):                             # the first syncfs waits until the test lets it go
+        calls.append(fd)
+        if len(calls) == 1:
+            gate.wait(5)
+        real(fd)
+
+    monkeypatch.setattr(output_sync, "syncfs", held)
+    monkeypatch.setattr(output_sync, "dirty_bytes", lambda: 0)
+    monkeypatch.setattr(output_sync.os, "fsync", lambda fd: pytest.fail("an fsync of its own"))
+    sync = output_sync.SyncPool(tmp_path)
+    sync.submit(0, _job(tmp_path, "a"))
+    while not calls:
+        time.sleep(0.001)
+    for i, name in enumerate("bcdef", start=1):
+        sync.submit(i, _job(tmp_path, name))
+    assert not any(sync.done(i)[0] for i in range(6))
+    gate.set()
+    sync.wait(5)
+    assert [sync.done(i) for i in range(6)] == [(True, None)] * 6 and len(calls) == 2
+    sync.close()
+
+
+@needs_syncfs
+@pytest.mark.parametrize("why", ["another file system", "much unwritten data"])
+def test_a_batch_goes_file_by_file_where_syncfs_may_not_cover_it_or_may_wait_long(tmp_path, monkeypatch, why):
+    fsynced, real = [], os.fsync
+    monkeypatch.setattr(output_sync, "syncfs", lambda fd: pytest.fail("a syncfs"))
+    monkeypatch.setattr(output_sync.os, "fsync", lambda fd: (fsynced.append(fd), real(fd)))
+    dirty = output_sync.SYNCFS_MAX_DIRTY_BYTES + (1 if why == "much unwritten data" else -1)
+    monkeypatch.setattr(output_sync, "dirty_bytes", lambda: dirty)
+    sync = output_sync.SyncPool(tmp_path)
+    if why == "another file system":
+        sync._root_dev = -1                   # as if every folder were a mount point inside OUT
+    for i, name in enumerate("abc"):
+        sync.submit(i, _job(tmp_path, name))
+    for i in range(3):
+        sync.wait(i)
+    assert [sync.done(i) for i in range(3)] == [(True, None)] * 3 and len(fsynced) == 3
+    sync.close()
 
 
 def test_a_dask_or_replay_context_still_fsyncs_in_the_worker():
