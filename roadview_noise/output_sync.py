@@ -8,7 +8,8 @@ be lost, and a file never appears under its final name before its line.
 makes them durable together with one ``syncfs(2)`` of the output root's file system: the kernel writes back its dirty
 files and commits its journal once, for all of them (≈ 100 µs of the main process's CPU per small file went into one
 ``open``/``fsync``/``close`` each, its threads and their wake-ups). The batch is whatever came while the last commit
-ran, so it grows with the rate of results and needs no timer. ``syncfs`` is used only where it is as safe as an
+ran, so it grows with the rate of results and needs no timer (a pause of 10 ms between commits to gather more made
+the workers' files slower on the loaded VM, round 15). ``syncfs`` is used only where it is as safe as an
 fsync per file and bounded in cost:
 
 - Linux ≥ 5.8, where ``syncfs`` reports writeback errors (through a descriptor opened before the run's files are
@@ -45,7 +46,6 @@ MAX_WAITING = 64            # entries whose sync is pending before the ledger wa
                             # queue would not sync faster, only hold more entries in memory)
 SYNCFS_MAX_DIRTY_BYTES = 64 << 20   # page cache awaiting writeback above which a batch is fsynced file by file
 DIRTY_CHECK_S = 0.1         # how often the committer reads that amount (≈ 0.1 ms of CPU a read)
-SYNC_PERIOD_S = 0.01        # a commit starts at least this long after the previous one (what comes meanwhile joins it)
 SYNCFS_KERNEL = (5, 8)      # the first Linux whose syncfs reports writeback errors
 
 
@@ -123,12 +123,8 @@ class SyncPool:
         self._todo.put((index, [f"{root}/{tmp}" for tmp, _ in staged]))   # no pathlib per file (issue 19)
 
     def _commit(self) -> None:
-        last = 0.0
         while True:
             jobs = [self._todo.get()]
-            if self._root_fd is not None:                  # a syncfs per batch: let one gather
-                time.sleep(max(0.0, last + SYNC_PERIOD_S - time.monotonic()))
-                last = time.monotonic()
             while True:                                    # what came meanwhile joins this commit
                 try:
                     jobs.append(self._todo.get_nowait())
