@@ -4,12 +4,13 @@ run their next files, and :class:`outputs.Ledger` writes an entry's manifest lin
 is on storage, then renames them. So, as when a worker fsyncs: a manifest line never names a file whose bytes could
 be lost, and a file never appears under its final name before its line.
 
-**Group commit** (issue 19 round 15). The pool's committer thread takes every entry queued since it last looked and
-makes them durable together with one ``syncfs(2)`` of the output root's file system: the kernel writes back its dirty
-files and commits its journal once, for all of them (≈ 100 µs of the main process's CPU per small file went into one
-``open``/``fsync``/``close`` each, its threads and their wake-ups). The batch is whatever came while the last commit
-ran, so it grows with the rate of results and needs no timer (a pause of 10 ms between commits to gather more made
-the workers' files slower on the loaded VM, round 15). ``syncfs`` is used only where it is as safe as an
+**Group commit** (issue 19 round 15). The run's main loop gathers the entries it handles between two waits for
+results (:meth:`SyncPool.kick`, called by ``ProcessExecutor`` before it waits: a worker's batch of answers) and the
+pool's committer thread makes all it was handed since its last commit durable together, with one ``syncfs(2)`` of the
+output root's file system: the kernel writes back its dirty files and commits its journal once for all of them
+(≈ 100 µs of the main process's CPU per small file went into one ``open``/``fsync``/``close`` each, its threads and
+their wake-ups). The batch grows with the rate of results and needs no timer (a pause of 10 ms between commits to
+gather more made the workers' files slower on the loaded VM, round 15). ``syncfs`` is used only where it is as safe as an
 fsync per file and bounded in cost:
 
 - Linux ≥ 5.8, where ``syncfs`` reports writeback errors (through a descriptor opened before the run's files are
@@ -92,14 +93,16 @@ def fsync_files(paths: list[str | Path]) -> None:
 
 class SyncPool:
     """Sync of entries' staged temporaries (``entry["staged"]``: temporary → final, relative to ``out_root``), keyed
-    by the entry's plan index: :meth:`submit`, then :meth:`done` (no wait) after :meth:`wait` or on its own. Per file
-    the main thread pays a queue put and a set look-up; the committer thread syncs batches (module docstring)."""
+    by the entry's plan index: :meth:`submit` (gathered until :meth:`kick`), then :meth:`done` (no wait) after
+    :meth:`wait` or on its own. Per file the main thread pays a list append and a set look-up; the committer thread
+    syncs what it was handed in batches (module docstring)."""
 
     def __init__(self, out_root: Path, threads: int = SYNC_THREADS):
         self.out_root = out_root
         self._root = os.fspath(out_root)
         self.pending = 0                                   # submitted, not yet collected by :meth:`done`
-        self._todo: queue.SimpleQueue = queue.SimpleQueue()          # jobs for the committer
+        self._gathered: list = []                          # submitted, not handed to the committer yet
+        self._todo: queue.SimpleQueue = queue.SimpleQueue()          # lists of jobs for the committer
         self._by_file: queue.SimpleQueue = queue.SimpleQueue()       # jobs for the fsync threads
         self._finished = threading.Condition()
         self._done: set[int] = set()
@@ -120,18 +123,24 @@ class SyncPool:
     def submit(self, index: int, staged: list[list[str]]) -> None:
         self.pending += 1
         root = self._root
-        self._todo.put((index, [f"{root}/{tmp}" for tmp, _ in staged]))   # no pathlib per file (issue 19)
+        self._gathered.append((index, [f"{root}/{tmp}" for tmp, _ in staged]))   # no pathlib per file (issue 19)
+
+    def kick(self) -> None:
+        """Hand the entries submitted since to the committer (the main loop, before it waits for results)."""
+        if self._gathered:
+            self._todo.put(self._gathered)
+            self._gathered = []
 
     def _commit(self) -> None:
         while True:
-            jobs = [self._todo.get()]
+            handed = [self._todo.get()]
             while True:                                    # what came meanwhile joins this commit
                 try:
-                    jobs.append(self._todo.get_nowait())
+                    handed.append(self._todo.get_nowait())
                 except queue.Empty:
                     break
-            stop = jobs[-1] is None                        # close() puts it last
-            jobs = [j for j in jobs if j is not None]
+            stop = handed[-1] is None                      # close() puts it last
+            jobs = [job for jobs in handed if jobs is not None for job in jobs]
             together, alone = self._split(jobs)
             if together:
                 try:
@@ -221,12 +230,14 @@ class SyncPool:
 
     def wait(self, index: int) -> None:
         """Until entry ``index``'s sync (submitted) has finished."""
+        self.kick()
         with self._finished:
             self._finished.wait_for(lambda: index in self._done)
 
     def close(self) -> None:
         """Stop the threads after the syncs queued (a stopped run's temporaries may be gone: their errors are not
         collected) and wait for them."""
+        self.kick()
         self._todo.put(None)
         self._committer.join()
         for _ in self._fsyncers:

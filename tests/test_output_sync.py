@@ -179,6 +179,7 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
         released += ledger.put(i, {"output": f"{name}.pcd", "input": f"{name}.pcd", "status": "ok",
                                    "files": [{"path": f"{name}.pcd", "sha256": "-"}],
                                    "staged": [[f".{name}.tmp", f"{name}.pcd"]]})
+    sync.kick()                               # as the run's main loop does before it waits for results
     time.sleep(0.05)                          # b's and c's fsyncs are done meanwhile
     assert released == [] and log.getvalue() == "" and not list(out.glob("*.pcd"))   # a is still on its way
     gate.set()
@@ -198,7 +199,7 @@ def _job(out: Path, name: str) -> list[list[str]]:
 
 
 @needs_syncfs
-def test_what_comes_while_a_syncfs_runs_joins_the_next_one(tmp_path, monkeypatch):
+def test_what_the_main_loop_hands_over_while_a_syncfs_runs_joins_the_next_one(tmp_path, monkeypatch):
     calls, gate = [], threading.Event()
     real = output_sync.syncfs
 
@@ -213,10 +214,13 @@ def test_what_comes_while_a_syncfs_runs_joins_the_next_one(tmp_path, monkeypatch
     monkeypatch.setattr(output_sync.os, "fsync", lambda fd: pytest.fail("an fsync of its own"))
     sync = output_sync.SyncPool(tmp_path)
     sync.submit(0, _job(tmp_path, "a"))
+    sync.kick()
     while not calls:
         time.sleep(0.001)
     for i, name in enumerate("bcdef", start=1):
         sync.submit(i, _job(tmp_path, name))
+        if i % 2:
+            sync.kick()                       # three hand-overs: b, c + d, e + f
     assert not any(sync.done(i)[0] for i in range(6))
     gate.set()
     sync.wait(5)
