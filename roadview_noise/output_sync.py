@@ -17,10 +17,12 @@ fsync per file and bounded in cost:
   written, so an error another process saw first is still reported); an error fails no entry by itself: that batch
   is fsynced file by file, which names the files it hit;
 - files whose folder is on the output root's file system (a mount point inside OUT: file by file);
-- while the machine's page cache holds at most :data:`SYNCFS_MAX_DIRTY_BYTES` waiting for writeback
-  (``/proc/meminfo`` Dirty + Writeback, read per batch): ``syncfs`` writes back everything of its file system,
-  other programs' data too, so on a busy shared disk it could wait for far more than this run's files; above the
-  bound a batch is fsynced file by file.
+- while the file system is quiet: ``syncfs`` writes back everything of its file system, other programs' data too,
+  and queues behind the kernel's flusher, so on a busy shared disk it could wait for far more than this run's
+  files. Batches are fsynced file by file while the machine's page cache holds more than
+  :data:`SYNCFS_MAX_DIRTY_BYTES` waiting for writeback (``/proc/meminfo`` Dirty + Writeback, read at most every
+  :data:`DIRTY_CHECK_S`), and for :data:`SYNCFS_PAUSE_S` after a ``syncfs`` that took longer than
+  :data:`SYNCFS_SLOW_S`.
 
 Elsewhere (and for those batches) :data:`SYNC_THREADS` threads fsync each file: concurrent fsyncs of one file system
 share its journal commits (ext4, XFS). The workers of a local run share this machine's page cache, so a sync by the
@@ -47,6 +49,8 @@ MAX_WAITING = 64            # entries whose sync is pending before the ledger wa
                             # queue would not sync faster, only hold more entries in memory)
 SYNCFS_MAX_DIRTY_BYTES = 64 << 20   # page cache awaiting writeback above which a batch is fsynced file by file
 DIRTY_CHECK_S = 0.1         # how often the committer reads that amount (≈ 0.1 ms of CPU a read)
+SYNCFS_SLOW_S = 0.02        # a syncfs slower than this (idle: a few ms) means others keep the disk busy: ...
+SYNCFS_PAUSE_S = 1.0        # ... the batches of the next second are fsynced file by file
 SYNCFS_KERNEL = (5, 8)      # the first Linux whose syncfs reports writeback errors
 
 
@@ -115,6 +119,7 @@ class SyncPool:
             self._root_fd = os.open(self._root, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
             self._root_dev = os.fstat(self._root_fd).st_dev
         self._checked, self._below = -DIRTY_CHECK_S, False  # when dirty_bytes() was read, and whether it was low
+        self._pause_until = 0.0                            # no syncfs before then (a slow one was seen)
         self._threads = threads
         self._fsyncers: list[threading.Thread] = []        # started on the first file synced on its own
         self._committer = threading.Thread(target=self._commit, name="rvnoise-sync", daemon=True)
@@ -144,7 +149,10 @@ class SyncPool:
             together, alone = self._split(jobs)
             if together:
                 try:
+                    start = time.monotonic()
                     syncfs(self._root_fd)
+                    if time.monotonic() - start > SYNCFS_SLOW_S:
+                        self._pause_until = time.monotonic() + SYNCFS_PAUSE_S
                     self._finish([(index, None) for index, _ in together])
                 except OSError:                            # someone's writeback failed: find whose, file by file
                     alone += together
@@ -155,7 +163,7 @@ class SyncPool:
 
     def _split(self, jobs: list) -> tuple[list, list]:
         """The jobs one ``syncfs`` may cover, and those to fsync file by file (module docstring)."""
-        if not jobs or self._root_fd is None or not self._calm():
+        if not jobs or self._root_fd is None or time.monotonic() < self._pause_until or not self._calm():
             return [], jobs
         devices: dict[str, int | None] = {}
         together, alone = [], []

@@ -47,11 +47,19 @@ def _temporaries(root: Path) -> set[str]:
 @pytest.fixture(params=["syncfs", "fsync"])
 def fsynced(request, monkeypatch, tmp_path):
     """The files this process has made durable (by name), each sync delayed so that lines would overtake it if they
-    could: with ``syncfs`` (param "syncfs") every temporary of the output tree there when a ``syncfs`` began, counted
-    once it returned; with fsyncs only (param "fsync": ``syncfs`` absent) each file fsynced (``os.fsync`` of every
-    module here)."""
+    could: each file fsynced (``os.fsync`` of every module here), and with ``syncfs`` (param "syncfs"; "fsync":
+    ``syncfs`` absent) every temporary of the output tree there when a ``syncfs`` began, counted once it returned."""
     names: set[str] = set()
     lock = threading.Lock()
+    real = os.fsync
+
+    def slow_fsync(fd):
+        time.sleep(0.002)
+        real(fd)
+        with lock:
+            names.add(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))
+
+    monkeypatch.setattr(output_sync.os, "fsync", slow_fsync)
     if request.param == "syncfs":
         if output_sync.SYNCFS is None:
             pytest.skip("syncfs with error reports: Linux ≥ 5.8")
@@ -66,17 +74,8 @@ def fsynced(request, monkeypatch, tmp_path):
 
         monkeypatch.setattr(output_sync, "syncfs", slow_syncfs)
         monkeypatch.setattr(output_sync, "dirty_bytes", lambda: 0)      # the machine's other writers aside
-        return names
-    real = os.fsync
-
-    def slow_fsync(fd):
-        time.sleep(0.002)
-        real(fd)
-        with lock:
-            names.add(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))
-
-    monkeypatch.setattr(output_sync, "SYNCFS", None)
-    monkeypatch.setattr(output_sync.os, "fsync", slow_fsync)
+    else:
+        monkeypatch.setattr(output_sync, "SYNCFS", None)
     return names
 
 
@@ -180,7 +179,8 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
                                    "files": [{"path": f"{name}.pcd", "sha256": "-"}],
                                    "staged": [[f".{name}.tmp", f"{name}.pcd"]]})
     sync.kick()                               # as the run's main loop does before it waits for results
-    time.sleep(0.05)                          # b's and c's fsyncs are done meanwhile
+    sync.wait(1)
+    sync.wait(2)                              # b's and c's fsyncs end first
     assert released == [] and log.getvalue() == "" and not list(out.glob("*.pcd"))   # a is still on its way
     gate.set()
     assert select.select([sync.wake], [], [], 5)[0]        # the fsync's end wakes the run's main loop (executor.wake)
@@ -211,7 +211,9 @@ def test_what_the_main_loop_hands_over_while_a_syncfs_runs_joins_the_next_one(tm
 
     monkeypatch.setattr(output_sync, "syncfs", held)
     monkeypatch.setattr(output_sync, "dirty_bytes", lambda: 0)
-    monkeypatch.setattr(output_sync.os, "fsync", lambda fd: pytest.fail("an fsync of its own"))
+    monkeypatch.setattr(output_sync, "SYNCFS_SLOW_S", 60.0)            # the held one is not "slow"
+    fsynced = []
+    monkeypatch.setattr(output_sync.os, "fsync", fsynced.append)
     sync = output_sync.SyncPool(tmp_path)
     sync.submit(0, _job(tmp_path, "a"))
     sync.kick()
@@ -224,26 +226,36 @@ def test_what_the_main_loop_hands_over_while_a_syncfs_runs_joins_the_next_one(tm
     assert not any(sync.done(i)[0] for i in range(6))
     gate.set()
     sync.wait(5)
-    assert [sync.done(i) for i in range(6)] == [(True, None)] * 6 and len(calls) == 2
+    assert [sync.done(i) for i in range(6)] == [(True, None)] * 6 and len(calls) == 2 and not fsynced
     sync.close()
 
 
 @needs_syncfs
-@pytest.mark.parametrize("why", ["another file system", "much unwritten data"])
+@pytest.mark.parametrize("why", ["another file system", "much unwritten data", "a slow syncfs just before"])
 def test_a_batch_goes_file_by_file_where_syncfs_may_not_cover_it_or_may_wait_long(tmp_path, monkeypatch, why):
-    fsynced, real = [], os.fsync
-    monkeypatch.setattr(output_sync, "syncfs", lambda fd: pytest.fail("a syncfs"))
+    fsynced, syncfs_calls, real = [], [], os.fsync
+
+    def slow_syncfs(fd):                      # slow (only one is expected: syncfs_calls is checked)
+        syncfs_calls.append(fd)
+        time.sleep(output_sync.SYNCFS_SLOW_S * 1.5)
+
+    monkeypatch.setattr(output_sync, "syncfs", slow_syncfs)
     monkeypatch.setattr(output_sync.os, "fsync", lambda fd: (fsynced.append(fd), real(fd)))
     dirty = output_sync.SYNCFS_MAX_DIRTY_BYTES + (1 if why == "much unwritten data" else -1)
     monkeypatch.setattr(output_sync, "dirty_bytes", lambda: dirty)
     sync = output_sync.SyncPool(tmp_path)
     if why == "another file system":
         sync._root_dev = -1                   # as if every folder were a mount point inside OUT
+    if why == "a slow syncfs just before":
+        sync.submit(9, _job(tmp_path, "z"))
+        sync.wait(9)
+        assert sync.done(9) == (True, None) and len(syncfs_calls) == 1 and not fsynced
     for i, name in enumerate("abc"):
         sync.submit(i, _job(tmp_path, name))
     for i in range(3):
         sync.wait(i)
     assert [sync.done(i) for i in range(3)] == [(True, None)] * 3 and len(fsynced) == 3
+    assert len(syncfs_calls) == (1 if why == "a slow syncfs just before" else 0)
     sync.close()
 
 
