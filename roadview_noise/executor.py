@@ -38,9 +38,7 @@ A source that must wait for its caller (an ordered consumer bounding what it hol
 so only while a task is running or when its caller can make progress without one. ``wake`` (a file descriptor the
 caller reads) also makes ``map`` yield ``(NOT_NOW, None)`` when it becomes readable while tasks of at least
 ``QUEUE_BELOW_S`` run: the caller has work of its own to do then (the runner: entries whose fsync just finished,
-``output_sync``); behind shorter tasks the next result comes soon enough. ``before_wait`` (a function) is called each
-time ``map`` is about to wait for results: the runner hands the outputs of the results it just handled to
-``output_sync``'s group commit then.
+``output_sync``); behind shorter tasks the next result comes soon enough.
 """
 
 from __future__ import annotations
@@ -390,7 +388,6 @@ class ProcessExecutor(Generic[T, C]):
         self.max_deaths = max_deaths
         self.timeout_s = timeout_s
         self.wake: int | None = None                # see the module docstring
-        self.before_wait: Callable[[], None] | None = None      # idem
         self._ctx = _context(models)
         self._pool: list[_Worker] = []
         self._task_s = float("inf")                 # recent seconds per task (moving average)
@@ -488,8 +485,6 @@ class ProcessExecutor(Generic[T, C]):
                     timeout = max(0.0, min(w.started for w in busy) + self.timeout_s - time.monotonic())
                 wake = [] if self.wake is None or self._task_s < QUEUE_BELOW_S else [self.wake]   # short tasks:
                 # the next result comes soon enough, and a wake-up per file would cost the main process a loop
-                if self.before_wait is not None:
-                    self.before_wait()
                 ready = set(self._poller.wait([w.conn for w in busy] + [w.proc.sentinel for w in self._pool] + wake,
                                               timeout))
                 if wake and self.wake in ready:

@@ -725,7 +725,6 @@ def _execute(ctx: RunContext, previous: PreviousRun, summary: RunSummary, execut
             ledger = Ledger(ctx.out_root, log, log_errors.append, fail_fast=fail_fast, sync=sync)
             if sync is not None:
                 executor.wake = sync.wake                  # an fsync finished: its entry is released at once
-                executor.before_wait = sync.kick           # what the loop handled since its last wait: one commit
             try:
                 for task, result in executor.map(Counted(to_run(ledger), lambda: left[0])):
                     if task is NOT_NOW:

@@ -337,15 +337,3 @@ def test_long_tasks_get_a_second_queued_while_enough_are_left_and_a_death_blames
     assert all(results[t] == (t, t * t) for t in range(12) if t != 2)
     assert ex.deaths == 3 and ex._task_s >= executor.QUEUE_BELOW_S
     assert ex._depth(4) == 2 and ex._depth(3) == 1 and ex._depth(0) == 1
-
-
-def test_before_wait_is_called_each_time_map_waits_for_results(monkeypatch):
-    # the runner hands the outputs of the results it just handled to output_sync's group commit there
-    waits, calls = _count_waits(monkeypatch), []
-    ex = ProcessExecutor(work, {"pause_s": 0.01}, 2)
-    ex.before_wait = lambda: calls.append(len(waits))
-    try:
-        assert dict(ex.map(range(6))) == {t: (t, t * t) for t in range(6)}
-    finally:
-        ex.close()
-    assert calls == list(range(len(waits))) and len(calls) >= 3
