@@ -139,7 +139,8 @@ def test_the_ledger_keeps_plan_order_while_fsyncs_finish_out_of_order(tmp_path, 
         released += ledger.put(i, {"output": f"{name}.pcd", "input": f"{name}.pcd", "status": "ok",
                                    "files": [{"path": f"{name}.pcd", "sha256": "-"}],
                                    "staged": [[f".{name}.tmp", f"{name}.pcd"]]})
-    time.sleep(0.05)                          # b's and c's fsyncs are done meanwhile
+    sync.wait(1)
+    sync.wait(2)                              # b's and c's fsyncs end first (a sleep was too short at load 12)
     assert released == [] and log.getvalue() == "" and not list(out.glob("*.pcd"))   # a is still on its way
     gate.set()
     assert select.select([sync.wake], [], [], 5)[0]        # the fsync's end wakes the run's main loop (executor.wake)
