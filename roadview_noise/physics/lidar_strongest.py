@@ -33,7 +33,10 @@ range quantile, the cover), so that those cache misses overlap the previous ray'
 counted, not walked to; the tables are float32 (:data:`TABLE_DTYPE`); the fainter particles stop at one
 comparison of Λ at the cut; a cluster peak's background is read from the uncut windows
 (:func:`lidar_echo.peak_background`) and the receiver's three uniforms come from one
-(:func:`lidar_detection.three_uniforms`). The realization differs from drawing each ray after the previous one
+(:func:`lidar_detection.three_uniforms`); a ray without a target decides with its uniforms, before its particles'
+pulses are summed, whether even their total plus the largest background could be detected
+(:func:`lidar_detection.undetectable`: half the empty rays of the real scan in rain cannot) — exact, the same draws in
+the same order. The realization differs from drawing each ray after the previous one
 (the draws come in another order), the law does not (``tests/physics/test_strongest_sampler.py`` against main's
 sampler).
 """
@@ -46,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .compiled import jit, prefetch
-from .lidar_detection import outshone, stored_returns, three_uniforms, weather_decision
+from .lidar_detection import outshone, stored_returns, three_uniforms, undetectable, weather_decision
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, BackgroundLevels, RayReturns, SoftBackground, cluster_scratch, \
     crest_background, ray_return
 from .lidar_medium import pulse_length_m
@@ -63,6 +66,7 @@ OWN_LEVELS = 12                 # a target's own level ℓ 2^j, j < 12
 CUT_OCTAVES = 1                 # a ray draws down to ℓ 2^(⌊log2(s1/ℓ)⌋ − 1)
 MAX_DRAWN = 256                 # particles drawn on one ray at most (a safety bound; a ray draws a few)
 TABLE_DTYPE = np.float32        # Λ, range quantiles, cover: half the cache footprint of float64 (relative error 6e-8)
+SURE_UPPER = 1.0 + 1e-9         # a margin against rounding on the bounds of a candidate (ray_outcome)
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,13 +257,25 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
     its crest) and the receiver's decision (:func:`lidar_detection.outshone`, :func:`lidar_detection.weather_decision`;
     three uniforms per measured candidate, drawn by the compiled function ``uniforms(rng)``: :func:`split_uniforms`).
     ``bg``, ``rx``, ``out``, ``drawn_p``, ``scratch``: as :func:`_outcome_arguments` groups :func:`_strongest`'s
-    arguments (an empty ``bg_uncut``: the peaks' backgrounds evaluated exactly, :func:`lidar_echo.peak_background`)."""
+    arguments (an empty ``bg_uncut``: the peaks' backgrounds evaluated exactly, :func:`lidar_echo.peak_background`).
+    A ray without a target whose brightest particle is a candidate draws its uniforms first (it draws them anyway, at
+    the same point of the stream) and, when :func:`lidar_detection.undetectable` says that its particles' total plus
+    the level's largest background cannot be detected with them, returns nothing (range and signal of a NO_RETURN
+    are not read) without summing their pulses."""
     bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step = bg
     min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k = rx
     kind, out_range, out_signal = out
     p_range, p_signal, p_fraction = drawn_p
     cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max = scratch
     t_bg = crest_background(big_r, level, bg_at_target, bg_far, bg_inv_step) if tgt else 0.0
+    early = not tgt and m > 0 and _sure_candidate(p_signal, m, weakest)
+    u0 = u1 = u2 = 0.5
+    if early:                                          # its candidate is measured: the uniforms it draws anyway
+        u0, u1, u2 = uniforms(rng)
+        if undetectable((_total(p_signal, m) + bg_peak[np.uintp(level)]) * SURE_UPPER, u0, u1, spad, gain,
+                        detect_count, background_cdf):
+            out_range[i], out_signal[i] = big_r, 0.0
+            return
     if m == 0:
         value = t_att * (1.0 - min(shadow, 1.0)) + t_bg if tgt else 0.0
         c, at, t_value = (TARGET if tgt and value >= weakest else NO_RETURN), big_r, value
@@ -274,7 +290,8 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
         if target_ok and outshone(value, t, gain, floor, excess):
             kind[i], out_range[i], out_signal[i] = TARGET, big_r, t
         else:
-            u0, u1, u2 = uniforms(rng)
+            if not early:
+                u0, u1, u2 = uniforms(rng)
             k, r, v = weather_decision(value, at, t, target_ok, big_r, u0, u1, u2, True, min_range, rise_m, spad,
                                        gain, floor, excess, rx_threshold, background, detect_count, background_cdf,
                                        below_k)
@@ -282,6 +299,26 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
                 kind[i], out_range[i], out_signal[i] = k, r, v
     elif c == TARGET and value >= rx_threshold:
         kind[i] = TARGET
+
+
+@jit(inline="always")
+def _sure_candidate(p_signal, m, weakest):       # pragma: no cover - compiled
+    """Whether a ray without a target whose ``m`` ≥ 1 drawn particles have the returns ``p_signal`` surely has a
+    weather candidate: its summed peak is at least its brightest particle's return, kept when it reaches
+    ``weakest`` (with a margin against rounding)."""
+    top = 0.0
+    for k in range(m):
+        top = max(top, p_signal[k])
+    return top >= weakest * SURE_UPPER
+
+
+@jit(inline="always")
+def _total(p_signal, m):       # pragma: no cover - compiled
+    """The sum of the first ``m`` drawn returns."""
+    total = 0.0
+    for k in range(m):
+        total += p_signal[k]
+    return total
 
 
 @jit(inline="always")

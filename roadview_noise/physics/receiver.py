@@ -294,6 +294,17 @@ def poisson_quantile(mean, u):       # pragma: no cover - compiled
 
 
 @jit(inline="always")
+def background_count(u0, background_cdf):       # pragma: no cover - compiled
+    """The background photon count that the uniform u0 draws (table ``background_cdf``: its CDF conditioned on no
+    detection; :func:`measure_one`)."""
+    nb = 0
+    nb_max = len(background_cdf) - 1
+    while nb < nb_max and u0 >= background_cdf[nb]:
+        nb += 1
+    return nb
+
+
+@jit(inline="always")
 def measure_one(s, u0, u1, spad, gain, floor, excess, threshold, background, detect_count, background_cdf,
                 below_k):       # pragma: no cover - compiled
     """(measured signal, detected) of one new return of expected signal s from two uniforms (background, shot
@@ -301,11 +312,7 @@ def measure_one(s, u0, u1, spad, gain, floor, excess, threshold, background, det
     on no detection (table ``background_cdf``, or the normal below k = T/σ0 with Φ(k) = ``below_k``)."""
     s = max(s, 0.0)
     if spad:
-        nb = 0
-        nb_max = len(background_cdf) - 1
-        while nb < nb_max and u0 >= background_cdf[nb]:
-            nb += 1
-        counts = poisson_quantile(gain * s, u1) + nb
+        counts = poisson_quantile(gain * s, u1) + background_count(u0, background_cdf)
         return (counts - background) / gain, counts >= detect_count
     noise = floor * normal_quantile(u0 * below_k) + math.sqrt(excess * s / gain) * normal_quantile(u1)
     return s + noise, s + noise >= threshold

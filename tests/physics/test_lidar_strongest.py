@@ -12,7 +12,8 @@ from scipy import stats
 
 from roadview_noise.models.lidar.snow import SnowLidar
 from roadview_noise.physics import dsd, lidar_echo, lidar_particles, lidar_strongest
-from roadview_noise.physics.lidar_detection import detect, three_uniforms
+from roadview_noise.physics.lidar_detection import detect, three_uniforms, undetectable
+from roadview_noise.physics.receiver import measure_one
 from roadview_noise.physics.lidar_medium import pulse_length_m
 from roadview_noise.physics.lidar_particles import Beam, ParticleMedium
 from roadview_noise.physics.lidar_rays import cloud_rays
@@ -283,3 +284,29 @@ def test_three_uniforms_are_the_bit_fields_of_one_draw():
     assert np.all((draws > 0) & (draws < 1))
     assert np.allclose(draws.mean(axis=0), 0.5, atol=4 * np.sqrt(1 / 12 / len(draws)))
     assert np.abs(np.corrcoef(draws.T)[np.triu_indices(3, 1)]).max() < 4 / np.sqrt(len(draws))
+
+
+def test_undetectable_never_hides_a_detection():
+    """:func:`lidar_detection.undetectable` (the sampler's early decision on a ray without a target, before its
+    candidate is summed): whenever it says a return of at most ``s_max`` is surely not detected, the receiver's
+    :func:`receiver.measure_one` with the same uniforms detects no return of any s ≤ s_max (the photon counting
+    receiver of the OS1 profile: 5 counts to detect, with background); it decides most of the undetected returns
+    near the threshold; a Gaussian receiver is never decided early."""
+    rx = _scan_rays(200).receiver
+    params = rx.kernel_params
+    spad, gain, detect_count, background_cdf = params[0], params[1], params[6], params[7]
+    assert spad
+    early, measure = (f.py_func if hasattr(f, "py_func") else f for f in (undetectable, measure_one))
+    rng = np.random.default_rng(11)
+    decided = undecided = 0
+    for s_max in rx.threshold * np.concatenate([rng.uniform(0.0, 4.0, 3000), [1e-9, 1.0, 2.0]]):
+        u0, u1 = rng.random(2)
+        sure = early(s_max, u0, u1, spad, gain, detect_count, background_cdf)
+        for s in (s_max, s_max * rng.random(), s_max * (1 - 1e-12)):
+            if sure:
+                assert not measure(s, u0, u1, *params)[1]
+        if not measure(s_max, u0, u1, *params)[1]:
+            decided += sure
+            undecided += not sure
+        assert not early(s_max, u0, u1, False, gain, detect_count, background_cdf)
+    assert decided > 0.95 * (decided + undecided)
