@@ -212,6 +212,20 @@ def test_warm_up_loads_cached_kernels_without_setting_up_the_compiler():
     assert facts == "True 0 False False"
 
 
+def test_the_warmed_ssim_kernel_needs_no_blas_check():
+    """SSIM's cached kernel does not use numba's NumPy reductions (``numba.np.arraymath``), whose import runs
+    numba's BLAS check and so imports scipy.linalg (≈ 0.1 s of every camera run's warm-up); the value is SSIM's."""
+    call = ("import numpy as np; from roadview_noise import metrics; r = np.random.default_rng(0); "
+            "a = r.random((40, 50)); b = np.clip(a + 0.1 * r.random((40, 50)), 0, 1); print(repr(metrics.ssim(a, b)))")
+    usual = subprocess.run([sys.executable, "-c", call], capture_output=True, text=True, timeout=300)
+    assert usual.returncode == 0, usual.stderr             # compiled (and cached) or loaded with the set-up
+    warm = call.replace("; r =", "; import sys, roadview_noise.warmup; r =") + \
+        "; print(bool(metrics._ssim_map.overloads), 'numba.np.arraymath' in sys.modules, 'scipy.linalg' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", warm], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split("\n")[:2] == [usual.stdout.strip(), "True False False"]
+
+
 def test_a_cloud_run_needs_no_image_writers(tmp_path):
     """A LiDAR/radar run's server does not preload the image and raw readers/writers, and a radar worker's file
     (reading it whole, its chain, saving the cloud) imports neither them (nor tifffile) nor the LiDAR laser order:
