@@ -437,7 +437,10 @@ def _ssim_map(a, b, window, mu_a, mean_aa, mu_b, mean_bb, c1, c2):       # pragm
             value[j] = num / den
         for j in range(width):
             total[j] += value[j]
-    return total.sum() / mu_a.size
+    mean = 0.0                      # total.sum() in its order, without numba.np.arraymath's import (see warmup)
+    for j in range(width):
+        mean += total[j]
+    return mean / mu_a.size
 
 
 def _compare_frames(b: dict, a: dict) -> dict[str, Any]:

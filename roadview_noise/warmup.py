@@ -1,14 +1,16 @@
 """Warm a worker process once, before it forks or takes tasks: every compiled kernel loaded from numba's on-disk
-cache, and numba's compiler initialised (≈ 0.3 s that each worker would otherwise pay on its first file).
+cache (:func:`load_cached`: ≈ 0.3 s that each worker would otherwise pay on its first file), without setting up
+numba's compiler, which cached code does not need (≈ 0.2 s of every run's start-up until round 15).
 
 The fork server imports this module (``executor.PRELOAD``) after the models, so every worker forked from it starts
 warm; a Dask worker calls :func:`warm_up` from its plugin. Kernels not in the cache yet (a first run after an
 install or an edit) are compiled where they are first called, as before, and cached for the next run.
 
-Kernels that only one kind of data calls (:data:`KIND_KERNELS`: the sRGB edges and the frame metrics for camera
-and raw frames, the point-cloud metrics, codec, return and beam geometry for LiDAR and radar clouds) are loaded only
-when a model of that kind is loaded: a radar run does not load the frame metrics' kernels (≈ 3–15 ms each), nor a
-camera run the point-cloud ones. With no model loaded, every kernel is. Kernels that only other kernels call
+Kernels that only one kind of data calls (:data:`KIND_KERNELS`: the sRGB edges, the frame metrics and the lens and
+windscreen warps for camera and raw frames, the point-cloud metrics, codec, return and beam geometry for LiDAR and
+radar clouds) are loaded only when a model of that kind is loaded: a radar run does not load the frame metrics'
+kernels (≈ 3–15 ms each) nor the warps' (≈ 50 ms once a camera run has cached them), nor a camera run the
+point-cloud ones. With no model loaded, every kernel is. Kernels that only other kernels call
 (:func:`inner_only`: the PNG filter's rows, the luminance sums, the sRGB code steps) are not loaded on their own:
 their code is in their callers' cached code, and nothing calls them from Python.
 
@@ -27,6 +29,7 @@ from typing import Any
 _done = False
 # The kernels only one kind of data calls, by module (None: all of the module's); a model's kind is its package
 _IMAGE = {"roadview_noise.physics.srgb": None, "roadview_noise.luminance": None, "roadview_noise.io.png": None,
+          "roadview_noise.physics.bilinear_table": None, "roadview_noise.physics.brown_conrady": None,
           "roadview_noise.metrics": ("_grey_statistics", "_grey_codes", "_depth_bin_index", "_ssim_map",
                                      "_ssim_local_means", "_filter_row", "_filter_column", "_window_sum")}
 _POINTS = {"roadview_noise.io.pointcloud": None, "roadview_noise.physics.return_ranges": None,
@@ -84,6 +87,32 @@ def inner_only(kernels: dict[int, Any], modules: list[ModuleType]) -> set[int]:
     return {i for i, k in kernels.items() if i not in held and k.py_func.__name__ in from_kernels - from_python}
 
 
+def load_cached(kernel: Any) -> int:
+    """Load ``kernel``'s cached machine code for this CPU and source, every signature in its cache index; returns
+    how many. Unlike ``kernel.compile(signature)``, which first sets numba's compiler up (``BaseContext.refresh``:
+    every typing and lowering registry, numba's NumPy support, ``scipy.linalg`` for its BLAS check — ≈ 0.2 s once
+    per process), this only initialises numba's runtime (NRT), which the cached code links against: calling a
+    loaded kernel needs nothing else. A signature that is not cached compiles where it is first called, and sets
+    the compiler up then, as before."""
+    from numba.core.compiler_lock import global_compiler_lock
+    from numba.core.runtime import rtsys
+
+    cache, context = kernel._cache, kernel.targetctx
+    codegen, loaded = context.codegen(), 0
+    with global_compiler_lock:
+        rtsys.initialize(context)
+        for key in cache._cache_file._load_index():
+            # another CPU's or an edited source's code is compiled where it is first called
+            if cache._index_key(key[0], codegen) != key or key[0] in kernel.overloads:
+                continue
+            result = cache._load_overload(key[0], context)
+            if result is not None and not result.objectmode:
+                context.insert_user_function(result.entry_point, result.fndesc, [result.library])
+                kernel.add_overload(result)
+                loaded += 1
+    return loaded
+
+
 def warm_up() -> int:
     """Load the cached compiled versions of every numba kernel of the package's loaded modules that the loaded
     models' kinds of data may call (:func:`needed`; module-level kernels: ``@jit`` decorates module functions; a scan
@@ -105,12 +134,7 @@ def warm_up() -> int:
     inner = inner_only(kernels, modules)
     for kernel in [k for i, k in kernels.items() if i not in inner]:
         try:
-            cache = kernel._cache
-            codegen = kernel.targetctx.codegen()
-            for key in cache._cache_file._load_index():
-                if cache._index_key(key[0], codegen) == key:      # this CPU and this source: a load, not a compile
-                    kernel.compile(key[0])
-                    loaded += 1
+            loaded += load_cached(kernel)
         except Exception:                            # a numba internal changed: that kernel loads on first use
             continue
     if any(name.startswith("roadview_noise.models.camera.") for name in sys.modules):

@@ -185,6 +185,47 @@ def test_warm_up_skips_kernels_only_other_kernels_call():
     assert needed("roadview_noise.physics.lidar_geometry", "_azimuths", {"lidar"})
 
 
+def test_warm_up_loads_cached_kernels_without_setting_up_the_compiler():
+    """The warm-up loads a kernel's cached code without numba's compiler set-up (its typing and lowering
+    registries, numba's NumPy support, scipy.linalg: ≈ 0.2 s of every run's start-up); the loaded kernel then runs
+    without it and gives what a process that compiled or loaded it the usual way gives."""
+    call = ("import numpy as np; from roadview_noise.physics import srgb; "
+            "x = np.linspace(-0.1, 1.1, 30001, dtype=np.float32); "
+            "print((srgb.linear_to_code(x, 8).tobytes() + srgb.linear_to_code(x, 16).tobytes()).hex())")
+    usual = subprocess.run([sys.executable, "-c", call], capture_output=True, text=True, timeout=300)
+    assert usual.returncode == 0, usual.stderr             # compiled (and cached) or loaded with the set-up
+    warm = textwrap.dedent("""
+        import sys
+        from numba.core.cpu import CPUContext
+        set_up = []
+        CPUContext.refresh = lambda self: set_up.append(self)
+        from roadview_noise.physics import srgb
+        import roadview_noise.warmup
+        loaded = bool(srgb._encode8_kernel.overloads) and bool(srgb._encode16_kernel.overloads)
+        """) + call.replace("; ", "\n") + textwrap.dedent("""
+        print(loaded, len(set_up), "numba.np.arraymath" in sys.modules, "scipy.linalg" in sys.modules)
+        """)
+    done = subprocess.run([sys.executable, "-c", warm], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    codes, facts = done.stdout.split("\n")[:2]
+    assert codes == usual.stdout.strip()
+    assert facts == "True 0 False False"
+
+
+def test_the_warmed_ssim_kernel_needs_no_blas_check():
+    """SSIM's cached kernel does not use numba's NumPy reductions (``numba.np.arraymath``), whose import runs
+    numba's BLAS check and so imports scipy.linalg (≈ 0.1 s of every camera run's warm-up); the value is SSIM's."""
+    call = ("import numpy as np; from roadview_noise import metrics; r = np.random.default_rng(0); "
+            "a = r.random((40, 50)); b = np.clip(a + 0.1 * r.random((40, 50)), 0, 1); print(repr(metrics.ssim(a, b)))")
+    usual = subprocess.run([sys.executable, "-c", call], capture_output=True, text=True, timeout=300)
+    assert usual.returncode == 0, usual.stderr             # compiled (and cached) or loaded with the set-up
+    warm = call.replace("; r =", "; import sys, roadview_noise.warmup; r =") + \
+        "; print(bool(metrics._ssim_map.overloads), 'numba.np.arraymath' in sys.modules, 'scipy.linalg' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", warm], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split("\n")[:2] == [usual.stdout.strip(), "True False False"]
+
+
 def test_a_cloud_run_needs_no_image_writers(tmp_path):
     """A LiDAR/radar run's server does not preload the image and raw readers/writers, and a radar worker's file
     (reading it whole, its chain, saving the cloud) imports neither them (nor tifffile) nor the LiDAR laser order:

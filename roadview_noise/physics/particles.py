@@ -589,7 +589,9 @@ def _render_streaks(x, y, z, d_mm, fall_speed, key, camera, finite_focus, w, h, 
         low_byte[j] = key[p] & 255
         banded[j, 0], banded[j, 1], banded[j, 2], banded[j, 3], banded[j, 4] = \
             x[p], y[p], z[p], d_mm[p], fall_speed[p]
-    size = np.max(start[1:] - start[:256])
+    size = 0                        # the largest band; not np.max, which imports numba.np.arraymath (see warmup)
+    for b in range(256):
+        size = max(size, start[b + 1] - start[b])
     cols = np.empty((5, size), np.float32)
     level, vertical = np.empty(size, np.int8), np.empty(size, np.bool_)
     first, count = np.empty(size, np.int32), np.empty(size, np.int32)
