@@ -358,7 +358,7 @@ def _pairs_by_weight(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     return _read_only(cell[order], m[order], weight[order])
 
 
-@lru_cache(maxsize=8)
+@disk_cached(maxsize=8)
 def _pair_rcs_per_m3(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                      relative_velocity_m_per_s: tuple[float, float, float]):
     """The sorted pairs' ``(cell, m, g, −g)`` with ``g = η ΔΩ P`` (decreasing; −g for ``searchsorted``)."""
@@ -367,7 +367,7 @@ def _pair_rcs_per_m3(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     return (cell, m) + _read_only(g, -g)
 
 
-@lru_cache(maxsize=4)
+@disk_cached(maxsize=4)
 def _rcs_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                relative_velocity_m_per_s: tuple[float, float, float]) -> tuple[int, np.ndarray]:
     """``(m_min, T)``: ``T[cell, m − m_min + 1] = (ΔΩ P) η``, a dense lookup table of the pairs' g with a zero
@@ -392,7 +392,7 @@ def _fft_convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return sp_fft.irfft(sp_fft.rfft(a, size) * sp_fft.rfft(b, size), size)[:n]
 
 
-@lru_cache(maxsize=8)
+@disk_cached(maxsize=8)
 def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                  relative_velocity_m_per_s: tuple[float, float, float], detector: Detector):
     """``(w, E)``: ``E(w) = Σ_pairs P(g_p e^w)``, the expected detections of a range bin whose cells have
