@@ -178,6 +178,10 @@ PHYSICS_TABLES = [
     (lidar_medium.soft_target_table, (0.03, 10e-9, 0.5, 5.0)),
     (radar_clutter._mie_backscatter_table, (complex(12, -25), 3.9e-3, 6.0)),
     (radar_cfar.tier_ratios, (radar_cfar.CaCfar(1e-6, 16),)),
+    *((fn, (radar_clutter.rain_drops(20.0), radar_clutter.ResolutionGrid(120, 30, 1, 2, 0.2, 0.1035, 1.0, 20.0),
+            3.9e-3, (-10.0, 0.0, 0.0)) + extra)
+      for fn, extra in ((radar_clutter._pair_rcs_per_m3, ()), (radar_clutter._rcs_table, ()),
+                        (radar_clutter._count_table, (radar_cfar.CaCfar(1e-4, 16),)))),
 ]
 
 

@@ -358,7 +358,7 @@ def _pairs_by_weight(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     return _read_only(cell[order], m[order], weight[order])
 
 
-@lru_cache(maxsize=8)
+@disk_cached(maxsize=8)
 def _pair_rcs_per_m3(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                      relative_velocity_m_per_s: tuple[float, float, float]):
     """The sorted pairs' ``(cell, m, g, −g)`` with ``g = η ΔΩ P`` (decreasing; −g for ``searchsorted``)."""
@@ -367,15 +367,16 @@ def _pair_rcs_per_m3(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     return (cell, m) + _read_only(g, -g)
 
 
-@lru_cache(maxsize=4)
-def _weight_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
-                  relative_velocity_m_per_s: tuple[float, float, float]) -> tuple[int, np.ndarray]:
-    """``(m_min, W)``: ``W[cell, m − m_min] = ΔΩ P`` (0 outside the clutter spectrum), a dense lookup table."""
+@disk_cached(maxsize=4)
+def _rcs_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
+               relative_velocity_m_per_s: tuple[float, float, float]) -> tuple[int, np.ndarray]:
+    """``(m_min, T)``: ``T[cell, m − m_min + 1] = (ΔΩ P) η``, a dense lookup table of the pairs' g with a zero
+    column either side, where every Doppler bin outside the clutter spectrum is read (clipped)."""
     cell, m, p = cell_doppler_probabilities(h, grid, wavelength_m, relative_velocity_m_per_s)
     m_min = int(m.min())
-    table = np.zeros((len(_solid_angles(grid)), int(m.max()) - m_min + 1))
-    table[cell, m - m_min] = _solid_angles(grid)[cell] * p
-    return m_min, _read_only(table)[0]
+    table = np.zeros((len(_solid_angles(grid)), int(m.max()) - m_min + 3))
+    table[cell, m - m_min + 1] = _solid_angles(grid)[cell] * p
+    return m_min, _read_only(table * backscatter_per_volume_per_m(h, wavelength_m))[0]
 
 
 _LN10_OVER_10 = math.log(10) / 10
@@ -391,7 +392,7 @@ def _fft_convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return sp_fft.irfft(sp_fft.rfft(a, size) * sp_fft.rfft(b, size), size)[:n]
 
 
-@lru_cache(maxsize=8)
+@disk_cached(maxsize=8)
 def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
                  relative_velocity_m_per_s: tuple[float, float, float], detector: Detector):
     """``(w, E)``: ``E(w) = Σ_pairs P(g_p e^w)``, the expected detections of a range bin whose cells have
@@ -446,14 +447,12 @@ class ClutterCells:
         """``y = μ/σ_t`` of the resolution cell of each point (any range; ``ranges_m`` their norms, when known):
         its angular cell (nearest edge cell outside the field of view), its Doppler bin, and a range bin centred
         on it."""
-        m_min, table = _weight_table(self.hydrometeors, self.grid, self.wavelength_m, self.relative_velocity_m_per_s)
+        m_min, table = _rcs_table(self.hydrometeors, self.grid, self.wavelength_m, self.relative_velocity_m_per_s)
         grid, edges = self.grid, grid_edges(self.grid)
         cell = angular_cell_index(positions_m, edges.azimuth_rad, edges.elevation_rad)
         m = np.floor(np.asarray(v_r_m_per_s, dtype=float) / grid.doppler_resolution_m_per_s + 0.5).astype(np.int64)
-        m -= m_min
-        inside = (m >= 0) & (m < table.shape[1])
-        g = np.where(inside, table[cell, np.minimum(np.maximum(m, 0), table.shape[1] - 1)], 0.0) * \
-            backscatter_per_volume_per_m(self.hydrometeors, self.wavelength_m)
+        m -= m_min - 1
+        g = table[cell, np.minimum(np.maximum(m, 0, out=m), table.shape[1] - 1, out=m)]   # outside: a zero column
         r = np.linalg.norm(positions_m, axis=1) if ranges_m is None else ranges_m
         dr = grid.range_resolution_m
         return np.divide(g * (r * r * dr + dr ** 3 / 12),
@@ -502,9 +501,11 @@ _NO_POINTS = ClutterPoints(*_read_only(np.zeros((0, 3)), np.zeros(0), np.zeros(0
 
 
 @lru_cache(maxsize=8)
-def _tier_probabilities(max_probability: float) -> np.ndarray:
-    """The probability bound ``2^{−j} P_max`` of each tier j (read-only)."""
-    return _read_only(max_probability * 0.5 ** np.arange(PROBABILITY_TIERS))[0]
+def _tier_probabilities(max_probability: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The probability bound ``2^{−j} P_max`` of each tier j, the same capped at 1 (read-only), and whether any
+    reaches 1."""
+    bound = max_probability * 0.5 ** np.arange(PROBABILITY_TIERS)
+    return (*_read_only(bound, np.minimum(bound, 1.0)), bool((bound >= 1.0).any()))
 
 
 def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPoints:
@@ -515,10 +516,12 @@ def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPo
     Doppler bin."""
     grid, detector = cells.grid, cells.detector
     hi = cells.tier_bounds
-    bound = _tier_probabilities(detector.max_probability)
+    bound, capped, certain = _tier_probabilities(detector.max_probability)
     totals = hi.sum(axis=0)
     totals[1:] -= totals[:-1].copy()                            # cells per tier (np.diff: ≈ 10 µs of Python)
-    picks = np.where(bound >= 1.0, totals, rng.binomial(totals, np.minimum(bound, 1.0)))
+    picks = rng.binomial(totals, capped)
+    if certain:
+        picks = np.where(bound >= 1.0, totals, picks)
     if not picks.any():        # the usual CA-CFAR frame (≈ 0.05 points expected): the rest would draw nothing
         return _NO_POINTS
     lo = np.concatenate([np.zeros((len(hi), 1), dtype=hi.dtype), hi[:, :-1]], axis=1)

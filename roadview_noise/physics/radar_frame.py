@@ -37,7 +37,7 @@ def is_planar(cloud: PointCloud, profile: RadarProfile) -> bool:
     """True for a 2-D radar: ``profile.elevation_measured`` is False, or None and every z of ``cloud`` is 0."""
     if profile.elevation_measured is not None:
         return not profile.elevation_measured
-    return len(cloud) > 0 and not np.any(cloud.positions_m[:, 2])
+    return len(cloud) > 0 and not cloud.positions_m[:, 2].any()
 
 
 def grid_profile(profile: RadarProfile, planar: bool) -> RadarProfile:
@@ -98,7 +98,7 @@ def ego_velocity_m_per_s(cloud: PointCloud, planar: bool) -> tuple[np.ndarray, s
     """The sensor velocity the models use and where it comes from: the recipe's (``conditions``) when it is not
     zero, else the data's (:func:`ego_velocity_from_data`) when its fit holds, else zero."""
     given = np.asarray(cloud.conditions.ego_velocity_m_per_s, dtype=float)
-    if np.any(given):
+    if given.any():
         return given, "recipe"
     fitted, rms = ego_velocity_from_data(cloud, planar)
     if fitted is None:

@@ -459,3 +459,12 @@ def test_clutter_skipped_without_rcs_or_points():
     empty = radar_cloud().select(np.zeros(3000, dtype=bool)[: len(radar_cloud())])
     out, rec = run(get_model("rain.radar")(), empty)
     assert len(out) == 0 and rec.diagnostics["clutter_points"] == 0 and rec.diagnostics["points_in"] == 0
+
+
+def test_log_r4_is_nan_at_the_origin_and_40_log10_r_elsewhere():
+    from roadview_noise.models.radar.detection import _log_r4
+
+    r = np.array([0.0, 1.0, 10.0, 2.5])
+    out = _log_r4(r)
+    assert np.isnan(out[0]) and np.array_equal(out[1:], 40 * np.log10(r[1:]))
+    assert np.array_equal(_log_r4(r[1:]), out[1:]) and len(_log_r4(np.zeros(0))) == 0

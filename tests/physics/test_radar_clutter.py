@@ -213,7 +213,28 @@ def test_target_cell_ratio():
     sigma_t = 10 ** ((t_db - c_db + 2 * gamma * r / 1000) / 10) * r ** 4
     v = np.full(2, m[i] * 0.1035)
     np.testing.assert_allclose(cells.ratio_at(pos, v), mu / sigma_t, rtol=1e-9)
-    assert np.all(cells.ratio_at(pos, v + 40.0) == 0.0)
+    assert np.all(cells.ratio_at(pos, v + 40.0) == 0.0) and np.all(cells.ratio_at(pos, v - 40.0) == 0.0)
+
+
+def test_target_cell_ratio_reads_every_doppler_bin_of_the_spectrum_and_none_beyond():
+    """At a cell's centre, ``ratio_at`` reads η ΔΩ P of its pair in each Doppler bin, from the lowest to the highest
+    bin of the spectrum, and 0 one bin below and one above (the lookup table's edges)."""
+    grid = ResolutionGrid(120, 30, 1, 2, 0.2, 0.1035, 1.0, 20.0)
+    h, rel, c_db, t_db = rain_drops(20.0), (-10.0, 0.0, 0.0), 88.0, 12.0
+    cells = clutter_cells(h, grid, RISE_LAMBDA_M, rel, c_db, t_db, 0.0, CaCfar(1e-4, 16))
+    cell_ids, m, p = cell_doppler_probabilities(h, grid, RISE_LAMBDA_M, rel)
+    i_az, i_el = divmod(int(cell_ids[np.argmax(p)]), 15)
+    az, el = math.radians(-60 + i_az + 0.5), math.radians(-15 + 2 * i_el + 1)
+    pos = 5.0 * np.array([[math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]])
+    omega = math.radians(1.0) * (math.sin(math.radians(-15 + 2 * i_el + 2)) - math.sin(math.radians(-15 + 2 * i_el)))
+    mine = cell_ids == i_az * 15 + i_el
+    want = dict(zip(m[mine].tolist(), p[mine].tolist()))
+    sigma_t = 10 ** ((t_db - c_db) / 10) * 5.0 ** 4
+    volume = (5.1 ** 3 - 4.9 ** 3) / 3
+    eta = backscatter_per_volume_per_m(h, RISE_LAMBDA_M)
+    for b in range(int(m.min()) - 1, int(m.max()) + 2):
+        got = cells.ratio_at(pos, np.array([b * 0.1035]))[0]
+        assert got == pytest.approx(eta * omega * want.get(b, 0.0) * volume / sigma_t, rel=1e-9, abs=0.0), b
 
 
 @pytest.mark.parametrize("detector", [FixedThreshold(), CaCfar(1e-2, 16)])

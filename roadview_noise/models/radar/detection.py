@@ -86,6 +86,9 @@ def detection(cloud: PointCloud, quantile: float, model_id: str, ranges_m: np.nd
 
 
 def _log_r4(r: np.ndarray) -> np.ndarray:
+    """``40 log10 r`` (NaN where r = 0)."""
+    if len(r) and r.min() > 0:           # every point at a range (the usual frame): no mask, no np.errstate (≈ 4 µs)
+        return 40 * np.log10(r)
     with np.errstate(divide="ignore"):
         return 40 * np.log10(np.where(r > 0, r, np.nan))
 

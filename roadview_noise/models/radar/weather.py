@@ -73,7 +73,7 @@ class RadarWeather(Model):
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
             "points_in": len(data), "points_removed": len(keep) - kept, "points_kept": kept,
-            "mean_loss_db": float(loss.mean()) if len(loss) else 0.0,
+            "mean_loss_db": float(loss.sum() / len(loss)) if len(loss) else 0.0,     # np.mean's value, less Python
             "max_range_clear_m": float(r.max()) if len(r) else 0.0,
             "max_range_m": float(r[keep].max()) if keep.any() else 0.0,
             "profile_max_range_in_weather_m": detection_range_in_weather_m(profile.max_range_m, gamma),
@@ -88,7 +88,7 @@ class RadarWeather(Model):
                 diagnostics.update({
                     "cfar_points_lost": int(np.count_nonzero((margin >= 0) & ~keep)),
                     "cfar_max_threshold_rise_db": float(rise.max()) if len(rise) else 0.0,
-                    "cfar_mean_threshold_rise_db": float(rise.mean()) if len(rise) else 0.0})
+                    "cfar_mean_threshold_rise_db": float(rise.sum() / len(rise)) if len(rise) else 0.0})
         return out, diagnostics
 
 
