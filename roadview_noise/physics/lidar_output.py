@@ -23,6 +23,10 @@ from . import return_ranges
 from .return_ranges import add_point, range_bin, squared_range
 
 
+_MOST_LEAVING = 0.2      # the largest share of moved or removed points for which the output's geometry is derived
+_SAMPLE_STRIDE = 16      # ... estimated on every 16th ray
+
+
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
     """(φ0, sign, offsets): azimuth of grid column c is ``φ0 + sign·2πc/W − [beam azimuth offset of the ring]``.
 
@@ -189,7 +193,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     grid = cloud.grid_shape is not None
     integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
     positions_in = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    geometry = _geometry_to_count(cloud, positions_in, n, size)
+    geometry = _geometry_to_count(cloud, positions_in, n, size, returns.kind[:n], rays.has_target[:n])
     n_bins = len(geometry[1])
     removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = _place_returns(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
@@ -235,16 +239,23 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     return out, counts
 
 
-def _geometry_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int, size: int) -> tuple:
+def _geometry_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int, size: int, kind: np.ndarray,
+                       has: np.ndarray) -> tuple:
     """What :func:`_place_returns` counts the return geometry (:mod:`return_ranges`) in while the chain records
     metrics: (inverse bin width, range histograms of the input and the output, return masks of the input and the
-    output, the input's returns or −1); empty histograms: none (not recorded). An input whose geometry is known (an
-    earlier step's output, counted by the metrics or by the model that wrote it) gives its histogram, mask and
-    returns: then only the points the step removes or moves are binned."""
+    output, the input's returns or −1); empty histograms: none. An input whose geometry is known (an earlier step's
+    output, counted by the metrics or by the model that wrote it) gives its histogram, mask and returns, and the
+    output's is derived from them when at most a fifth of the points leave their place (rain, snow: each costs two
+    bins, the input's and the output's, where the metrics' own pass bins every output point once); else (fog)
+    none is counted here, as when the chain records no metrics."""
     n_bins = return_ranges.bin_count(cloud.profile) if return_ranges.wanted() and n == len(positions_in) else 0
     known = return_ranges.noted(positions_in, n_bins) if n_bins else None
-    hist_in, valid_in, returns_in = np.zeros(n_bins, np.int64), np.empty(n if n_bins else 0, np.bool_), -1
     if known is not None:
+        sample = slice(None, None, _SAMPLE_STRIDE)
+        leaving = np.count_nonzero((kind[sample] == WEATHER) | ((kind[sample] == NO_RETURN) & has[sample]))
+        n_bins = n_bins if leaving <= _MOST_LEAVING * len(kind[sample]) else 0
+    hist_in, valid_in, returns_in = np.zeros(n_bins, np.int64), np.empty(n if n_bins else 0, np.bool_), -1
+    if known is not None and n_bins:
         returns_in, hist, _, valid_in = known
         hist_in[:len(hist)] = hist
     return (1.0 / return_ranges.RANGE_BIN_M, hist_in, np.zeros(n_bins, np.int64), valid_in,
