@@ -44,10 +44,11 @@ runs on a loaded machine.
 ``--baseline DIR``: per case, the per-file CPU time with metrics off, on with the metrics of another version of the
 code and on with this tree's, interleaved in this process (the order rotates every run), medians and quartiles of
 ``--repeat``: a paired A/B of two versions on a shared machine. DIR is a worktree or an export of a commit (``git
-archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py`` and ``luminance.py`` are loaded beside this
-tree's (its metrics bound to its luminance, their other relative imports resolving to this tree's modules, so use it
-for versions that differ in those two files) and its step records are turned into manifest dicts as its
-``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
+archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py``, ``luminance.py`` and
+``physics/lidar_output.py`` (the LiDAR weather models' output cloud, which counts return geometry for the metrics)
+are loaded beside this tree's (its metrics bound to its luminance, their other relative imports resolving to this
+tree's modules, so use it for versions that differ in those three files) and its step records are turned into
+manifest dicts as its ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
 While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
 unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
 The first runs of each check that both versions write the same metrics (but those named by ``--changed``, e.g.
@@ -112,7 +113,7 @@ from roadview_noise import metrics as this_metrics  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
-from roadview_noise.physics import compiled, return_ranges  # noqa: E402
+from roadview_noise.physics import compiled, lidar_weather, return_ranges  # noqa: E402
 from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
 from roadview_noise.runner import RunContext, build_models, load, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
@@ -211,12 +212,13 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     tasks = _case_tasks(in_root, ctxs[True].recipe, folder)
     if not tasks:
         return None
-    versions = {"base": _baseline_version(baseline), "this": (this_metrics, compound.StepRecord.as_entry, luminance)}
+    versions = {"base": _baseline_version(baseline),
+                "this": (this_metrics, compound.StepRecord.as_entry, luminance, lidar_weather.assemble)}
     collect = return_ranges.collect
 
     def once(kind: str, task=tasks[0]) -> tuple[float, dict]:
         if kind != "off":
-            module, compound.StepRecord.as_entry, lum = versions[kind]
+            module, compound.StepRecord.as_entry, lum, lidar_weather.assemble = versions[kind]
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
             sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = lum
         if kind == "base" and not hasattr(module, "return_ranges"):     # models note no geometry for it
@@ -228,7 +230,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
         finally:
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = this_metrics
             sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
-            compound.StepRecord.as_entry = versions["this"][1]
+            compound.StepRecord.as_entry, lidar_weather.assemble = versions["this"][1], versions["this"][3]
             return_ranges.collect = collect
         if "error" in entry:
             raise RuntimeError(f"{task.sample.relpath}: {entry['error']}")
@@ -265,8 +267,9 @@ def _comparable(results: list) -> list:
 
 
 def _baseline_version(tree: Path) -> tuple:
-    """(metrics module, ``StepRecord.as_entry``, luminance module) of another version of the code (``--baseline``):
-    its ``luminance.py`` and its ``metrics.py`` bound to it."""
+    """(metrics module, ``StepRecord.as_entry``, luminance module, LiDAR ``assemble``) of another version of the code
+    (``--baseline``): its ``luminance.py``, its ``metrics.py`` bound to it and its ``physics/lidar_output.py`` (the
+    weather models' output cloud, which counts return geometry for the metrics)."""
     luminance_base = _load_beside(tree, "luminance")
     try:
         sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance_base
@@ -274,15 +277,17 @@ def _baseline_version(tree: Path) -> tuple:
     finally:
         sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
     has_entry = "def as_entry(" in (tree / "roadview_noise" / "compound.py").read_text()
-    return module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict), luminance_base
+    return (module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict), luminance_base,
+            _load_beside(tree, "physics.lidar_output").assemble)
 
 
 def _load_beside(tree: Path, name: str):
-    """``tree``'s ``roadview_noise/<name>.py`` as a module of its own (its relative imports: this tree's modules)."""
+    """``tree``'s ``roadview_noise/<name>.py`` (``name`` dotted) as a module of its own (its relative imports: this
+    tree's modules)."""
     spec = importlib.util.spec_from_file_location(f"roadview_noise.{name}_baseline",
-                                                  tree / "roadview_noise" / f"{name}.py")
+                                                  tree / "roadview_noise" / f"{name.replace('.', '/')}.py")
     module = importlib.util.module_from_spec(spec)
-    module.__package__ = "roadview_noise"
+    module.__package__ = f"roadview_noise.{name}".rpartition(".")[0]
     jit = compiled.jit
     compiled.jit = _uncached_jit                            # numba's cache would mix the module's two names
     try:

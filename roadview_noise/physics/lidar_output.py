@@ -20,7 +20,11 @@ from .lidar_geometry import RING
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
-from .return_ranges import add_point, range_bin
+from .return_ranges import add_point, range_bin, squared_range
+
+
+_MOST_LEAVING = 0.2      # the largest share of moved or removed points for which the output's geometry is derived
+_SAMPLE_STRIDE = 16      # ... estimated on every 16th ray
 
 
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
@@ -79,12 +83,15 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
     removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added).
 
-    ``geometry`` (inverse bin width, range histograms, return masks of the input and the output; empty histograms:
-    none): the points' :mod:`return_ranges` counted on the way (an output point at its input's position is its
-    input's return, in its bin); returns (returns, largest x² + y² + z²) of the input and of the output too."""
-    inv_bin, hist_in, hist_out, valid_in, valid_out = geometry
+    ``geometry`` (inverse bin width, range histograms, return masks of the input and the output, the input's returns
+    when known; empty histograms: none): the points' :mod:`return_ranges` counted on the way (an output point at its
+    input's position is its input's return, in its bin); returns (returns, largest x² + y² + z²) of the input and of
+    the output too. With the input's known (returns ≥ 0: ``hist_in`` and ``valid_in`` given, an earlier step's
+    output), the output's is derived from it: only the points the step removed or moved are binned."""
+    inv_bin, hist_in, hist_out, valid_in, valid_out, known_returns = geometry
     geo, top = hist_in.shape[0] > 0, hist_in.shape[0] - 1
-    returns_in = returns_out = 0
+    known = known_returns >= 0
+    returns_in, returns_out = max(known_returns, 0), 0
     max_in = max_out = 0.0
     n = len(kind)
     removed = np.zeros(n, np.bool_)
@@ -92,12 +99,17 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
     o = 0                                              # output index
     for i in range(n):
         b_in, r2_in = -1, 0.0
-        if geo:
+        if geo and not known:
             b_in, r2_in, returns_in, max_in = add_point(positions, i, inv_bin, top, hist_in, valid_in, returns_in,
                                                         max_in)
-            if b_in >= 0 and kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
-                hist_out[b_in] -= 1
-                returns_out -= 1
+        elif geo and valid_in[i]:                      # a known return: binned only if it leaves its place
+            if kind[i] == WEATHER or (kind[i] == NO_RETURN and has[i]):
+                b_in, r2_in = range_bin(positions[i, 0], positions[i, 1], positions[i, 2], inv_bin, top)
+            else:
+                b_in, r2_in = top + 1, squared_range(positions, i)     # stays: a return, in a bin never read
+        if geo and b_in >= 0 and kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
+            hist_out[b_in] -= 1
+            returns_out -= 1
         scale = 1.0                                    # of the position
         effect = 0                                     # KEPT
         if kind[i] == NO_RETURN:
@@ -181,9 +193,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     grid = cloud.grid_shape is not None
     integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
     positions_in = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    n_bins = _bins_to_count(cloud, positions_in, n)
-    geometry = (1.0 / return_ranges.RANGE_BIN_M, np.zeros(n_bins, np.int64), np.zeros(n_bins, np.int64),
-                np.empty(n if n_bins else 0, np.bool_), np.zeros(size if n_bins else 0, np.bool_))
+    geometry = _geometry_to_count(cloud, positions_in, n, size, returns.kind[:n], rays.has_target[:n])
+    n_bins = len(geometry[1])
     removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = _place_returns(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
         float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
@@ -228,20 +239,33 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     return out, counts
 
 
-def _bins_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int) -> int:
-    """The range bins of the return geometry :func:`_place_returns` counts while the chain records metrics
-    (:mod:`return_ranges`); 0: none — not recorded, or the input's already known (an earlier step's output: then
-    counting the output's on the way saves the metrics no more than it costs here)."""
-    if not return_ranges.wanted() or n != len(positions_in):
-        return 0
-    n_bins = return_ranges.bin_count(cloud.profile)
-    return 0 if return_ranges.noted(positions_in, n_bins) is not None else n_bins
+def _geometry_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int, size: int, kind: np.ndarray,
+                       has: np.ndarray) -> tuple:
+    """What :func:`_place_returns` counts the return geometry (:mod:`return_ranges`) in while the chain records
+    metrics: (inverse bin width, range histograms of the input and the output, return masks of the input and the
+    output, the input's returns or −1); empty histograms: none. An input whose geometry is known (an earlier step's
+    output, counted by the metrics or by the model that wrote it) gives its histogram, mask and returns, and the
+    output's is derived from them when at most a fifth of the points leave their place (rain, snow: each costs two
+    bins, the input's and the output's, where the metrics' own pass bins every output point once); else (fog)
+    none is counted here, as when the chain records no metrics."""
+    n_bins = return_ranges.bin_count(cloud.profile) if return_ranges.wanted() and n == len(positions_in) else 0
+    known = return_ranges.noted(positions_in, n_bins) if n_bins else None
+    if known is not None:
+        sample = slice(None, None, _SAMPLE_STRIDE)
+        leaving = np.count_nonzero((kind[sample] == WEATHER) | ((kind[sample] == NO_RETURN) & has[sample]))
+        n_bins = n_bins if leaving <= _MOST_LEAVING * len(kind[sample]) else 0
+    hist_in, valid_in, returns_in = np.zeros(n_bins, np.int64), np.empty(n if n_bins else 0, np.bool_), -1
+    if known is not None and n_bins:
+        returns_in, hist, _, valid_in = known
+        hist_in[:len(hist)] = hist
+    return (1.0 / return_ranges.RANGE_BIN_M, hist_in, np.zeros(n_bins, np.int64), valid_in,
+            np.zeros(size if n_bins else 0, np.bool_), returns_in)
 
 
 def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, returns_out: list) -> None:
     """Count the output rows written after :func:`_place_returns` (weather returns on empty rays) into the output's
     geometry (``returns_out``: [returns, largest x² + y² + z²])."""
-    inv_bin, _, hist_out, _, valid_out = geometry
+    inv_bin, _, hist_out, _, valid_out, _ = geometry
     if len(hist_out):
         got, max_r2 = return_ranges.add_rows(positions, rows, inv_bin, hist_out, valid_out)
         returns_out[0] += got
@@ -251,9 +275,9 @@ def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, retur
 def _note_returns(given: np.ndarray, positions_in: np.ndarray, positions_out: np.ndarray, n_bins: int,
                   geometry: tuple, returns_in: tuple, returns_out: list) -> None:
     """Hand the geometry :func:`_place_returns` counted to the metrics (:func:`return_ranges.note`): the input's
-    (unless it is a converted copy) and the output's."""
-    _, hist_in, hist_out, valid_in, valid_out = geometry
-    if positions_in is given:
+    (unless it is a converted copy, or was known) and the output's."""
+    _, hist_in, hist_out, valid_in, valid_out, known_returns = geometry
+    if positions_in is given and known_returns < 0:
         return_ranges.note(given, n_bins, return_ranges.geometry_of(returns_in[0], hist_in, returns_in[1], valid_in))
     return_ranges.note(positions_out, n_bins, return_ranges.geometry_of(
         returns_out[0], hist_out, returns_out[1], valid_out[:len(positions_out)]))

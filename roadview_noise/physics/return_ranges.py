@@ -47,6 +47,13 @@ def range_bin(x, y, z, inv_bin, top):       # pragma: no cover - compiled
 
 
 @jit(inline="always")
+def squared_range(positions, j):       # pragma: no cover - compiled
+    """x² + y² + z² of point ``j`` of ``positions``, as :func:`range_bin` computes it."""
+    x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
+    return x * x + y * y + z * z
+
+
+@jit(inline="always")
 def add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2):       # pragma: no cover - compiled
     """Count point ``j`` of ``positions`` into ``hist`` and ``valid`` (:func:`range_bin`): (its bin, its
     x² + y² + z², ``returns`` and ``max_r2`` with it counted)."""
