@@ -645,7 +645,7 @@ def test_workers_exit_when_the_main_process_is_killed(tmp_path, tree):
 
 def test_interrupted_run_is_recorded(tmp_path, tree):
     trace = tmp_path / "calls"
-    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 0.5, "trace_path": str(trace)}}],
+    body = {"chain": [{"model": "test_sleep.camera", "params": {"sleep_s": 1.0, "trace_path": str(trace)}}],
             "seed": 1, "inputs": {"camera": "cam/**/*.png"}}
     code = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import injected_models; from roadview_noise.registry import register; "
             "[register(c) for c in injected_models.INJECTED]; "
@@ -653,8 +653,8 @@ def test_interrupted_run_is_recorded(tmp_path, tree):
             f"run(load_recipe({str(_recipe(tmp_path, body))!r}), {str(tree)!r}, {str(tmp_path / 'o')!r}, "
             "workers=1, progress=False)")
     main = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    # interrupted once the first file is recorded (its manifest line) and the second one started (0.5 s tasks are
-    # not queued: one worker gets the second file only after the main process has recorded the first)
+    # interrupted once the first file is recorded (its manifest line) and the second one started; 1 s tasks leave
+    # ≥ 3 s of the run after that (a loaded machine may be slow to see it: with 0.5 s tasks the run once ended first)
     manifest = tmp_path / "o" / "manifest.jsonl"
     deadline = time.time() + 60
     while time.time() < deadline and not (manifest.is_file() and manifest.read_text().endswith("\n")
