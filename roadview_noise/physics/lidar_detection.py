@@ -20,7 +20,7 @@ from .compiled import jit
 from .lidar_echo import NO_RETURN, TARGET, WEATHER, RayReturns
 from .lidar_intensity import reported_intensity, sensor_constant, too_faint
 from .lidar_rays import Rays
-from .receiver import LARGE_COUNT, background_count, measure_one, normal_quantile, range_sd_one
+from .receiver import LARGE_COUNT, background_count, measure_one, normal_quantile, poisson_quantile, range_sd_one
 
 SURE_MARGIN_SD = 8.0       # a weather candidate this many of its noise SDs below the target cannot win (strongest)
 SURE_MARGIN_P = 1e-12      # a Poisson probability this far above its uniform decides against rounding (undetectable)
@@ -113,22 +113,13 @@ def undetectable(s_max, u0, u1, spad, gain, detect_count, background_cdf):      
     """Whether a new return of expected signal at most ``s_max`` is surely not detected with the uniforms u0, u1 of
     :func:`receiver.measure_one` — decided without its signal: a photon-counting receiver counts at most as many
     photons at s ≤ ``s_max`` as at ``s_max`` with the same uniforms, and none reaches ``detect_count`` when
-    ``P(Poisson(gain s_max) < detect_count − background) > u1`` (with a margin against rounding). False when unsure
-    (Gaussian receivers, large counts)."""
-    if not spad:
-        return False
-    need = detect_count - background_count(u0, background_cdf)
+    ``P(Poisson(gain s_max) < detect_count − background) > u1`` (with a margin against rounding), i.e. when
+    :func:`receiver.poisson_quantile` at ``u1`` plus that margin stays below it. False when unsure (Gaussian
+    receivers, large counts, whose quantile is the normal approximation)."""
     mean = gain * s_max
-    if need <= 0.0 or mean >= LARGE_COUNT:
+    if not spad or mean >= LARGE_COUNT:
         return False
-    p = math.exp(-mean)
-    c = p                                              # P(N ≤ k), as receiver.poisson_quantile sums it
-    k = 0
-    while k + 1 < need:
-        k += 1
-        p *= mean / k
-        c += p
-    return c > u1 + SURE_MARGIN_P
+    return poisson_quantile(mean, u1 + SURE_MARGIN_P) + background_count(u0, background_cdf) < detect_count
 
 
 @jit(inline="always")
