@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
+from .lidar_geometry import atan2, beam_slot, has_return, ring_index, ring_search_table, ring_source
 from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
@@ -123,16 +123,31 @@ def measured_step_rad(gap: np.ndarray, returns: int) -> tuple[float, str]:
         return math.nan, f"only {returns} returns in the sampled beams"
     if len(gap) < MIN_GAPS:
         return math.nan, f"only {len(gap)} azimuth gaps between returns of one beam"
-    step = float(np.partition(gap, len(gap) // 10)[len(gap) // 10])
-    for most_steps in (2, 4, MAX_GAP_STEPS, MAX_GAP_STEPS):
-        near = gap[gap < (most_steps + 0.5) * step]
-        k = np.rint(near / step)
-        step = float(np.dot(near, k) / np.dot(k, k))
-    regular = np.abs(near / step - k) < 0.15
-    if regular.mean() < MIN_REGULAR_FRACTION:
-        return math.nan, (f"azimuths are not on a regular firing grid ({100 * regular.mean():.0f} % of the gaps are "
-                          f"whole steps)")
+    step, regular = _refit_step(gap, float(np.partition(gap, len(gap) // 10)[len(gap) // 10]))
+    if regular < MIN_REGULAR_FRACTION:
+        return math.nan, f"azimuths are not on a regular firing grid ({100 * regular:.0f} % of the gaps are whole steps)"
     return step, ""
+
+
+@jit
+def _refit_step(gap, step):       # pragma: no cover - compiled
+    """:func:`measured_step_rad`'s least-squares refits from the seed ``step``: (the step, the fraction of the last
+    refit's gaps within 0.15 step of a whole number)."""
+    near = 0.0
+    for most_steps in (2, 4, MAX_GAP_STEPS, MAX_GAP_STEPS):
+        last, gk, kk, near = step, 0.0, 0.0, 0.0
+        for g in gap:
+            if g < (most_steps + 0.5) * last:
+                k = np.rint(g / last)
+                gk += g * k
+                kk += k * k
+                near += 1.0
+        step = gk / kk
+    regular = 0.0
+    for g in gap:
+        if g < (MAX_GAP_STEPS + 0.5) * last and abs(g / step - np.rint(g / last)) < 0.15:
+            regular += 1.0
+    return step, regular / near
 
 
 @jit
@@ -211,13 +226,44 @@ def beam_gaps(firing, ring, valid, sampled):       # pragma: no cover - compiled
     gap = np.empty(len(f))
     m = 0
     for b in range(channels):
-        beam = np.sort(f[start[b]:start[b + 1]])
+        beam = _sorted_turn(f[start[b]:start[b + 1]])
         for j in range(1, len(beam)):
             g = beam[j] - beam[j - 1]
             if g > 1e-7:                               # several echoes of one ray are not a gap
                 gap[m] = g
                 m += 1
     return gap[:m], len(f)
+
+
+@jit
+def _sorted_turn(f):       # pragma: no cover - compiled
+    """``np.sort(f)``, without sorting when ``f`` is a turn in firing order — ascending or descending with one wrap,
+    as a beam's returns are listed — by reading it from the wrap on (the sorted array of the same values either
+    way)."""
+    n = len(f)
+    up = down = 0
+    at_up = at_down = 0
+    for i in range(1, n):
+        if f[i] > f[i - 1]:
+            up += 1
+            at_up = i
+        elif f[i] < f[i - 1]:
+            down += 1
+            at_down = i
+    if n < 2 or (down == 0) or (up == 0):
+        return np.sort(f) if down and up else (f.copy() if down == 0 else f[::-1].copy())
+    out = np.empty(n)
+    if up == 1 and f[0] <= f[n - 1]:                    # descending, one wrap: each part reversed, the later on top
+        for i in range(at_up):
+            out[i] = f[at_up - 1 - i]
+        for i in range(n - at_up):
+            out[at_up + i] = f[n - 1 - i]
+        return out
+    if down == 1 and f[n - 1] <= f[0]:                  # ascending, one wrap: from the wrap on
+        out[:n - at_down] = f[at_down:]
+        out[n - at_down:] = f[:at_down]
+        return out
+    return np.sort(f)
 
 
 @jit
@@ -248,10 +294,12 @@ class FiringColumns:
     valid: np.ndarray
 
 
-def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringGrid | str:
+def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
+                points: ListPoints | None = None) -> FiringGrid | str:
     """The empty rays of a point-list scan (see the module doc), or the reason it has no firing grid. ``range_m``:
-    the points' ranges if known, 0 where a point is no return."""
-    measured = firing_columns(cloud, profile, range_m)
+    the points' ranges if known, 0 where a point is no return; ``points``: the list read already
+    (:func:`list_points`)."""
+    measured = firing_columns(cloud, profile, range_m, points)
     return measured if isinstance(measured, str) else empty_rays(measured, profile)
 
 
@@ -269,25 +317,23 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
                       int(np.count_nonzero(~in_view)))
 
 
-def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> FiringColumns | str:
+def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
+                   points: ListPoints | None = None) -> FiringColumns | str:
     """The rings, firing azimuths, column count and per-beam shifts of a point list's firing grid (module doc), or
     the reason it has none; :func:`firing_grid` then finds the empty cells. A list stored laser by laser (KITTI)
-    takes its rings and columns from the attributes :func:`laser_order.with_laser_order` gave the chain's input."""
-    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    if range_m is None:
-        range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
-    if profile.storage_order == LASER_ORDER and (FIRING_COLUMN in cloud.attributes
-                                                 or ring_source(cloud) == "elevation"):
+    takes its rings and columns from the attributes :func:`laser_order.with_laser_order` gave the chain's input.
+    ``points``: the list's :func:`list_points`, if read already (its ranges then stand for ``range_m``)."""
+    if points is None:
+        if range_m is None:
+            positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+            range_m = np.where(has_return(positions), np.linalg.norm(positions, axis=1), 0.0)
+        points = list_points(cloud, profile, range_m)
+    range_m = points.range_m
+    if points.reason:
+        return points.reason
+    if points.ring is None:
         return _laser_order_columns(cloud, profile, range_m)
-    try:
-        carried = ring_index(cloud, profile) if ring_source(cloud) != "elevation" else np.zeros(0, np.int64)
-    except InputError as e:
-        return str(e)
-    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
-    tan_mid, order = ring_search_table(tuple(profile.beam_elevation_deg))
-    ring, firing, counts = _rings_and_azimuths(positions, carried, float(profile.sensor_z_offset_m),
-                                               float(profile.beam_origin_offset_m), tan_mid, order, offsets,
-                                               profile.channels)
+    ring, firing, counts = points.ring, points.firing_rad, points.counts
     valid = range_m > 0
     if not valid.any():
         return "no returns"
@@ -304,6 +350,45 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
     return FiringColumns(ring, firing, columns, shift, valid)
+
+
+@dataclass(frozen=True, eq=False)
+class ListPoints:
+    """A point list read once for its firing grid (:func:`list_points`): each point's range ``range_m`` (0: no
+    return) and its ``ring``, firing azimuth ``firing_rad`` and the points per ring ``counts`` — None when a list
+    stored laser by laser takes them from its attributes, or with the ``reason`` it has no firing grid."""
+
+    range_m: np.ndarray
+    ring: np.ndarray | None = None
+    firing_rad: np.ndarray | None = None
+    counts: np.ndarray | None = None
+    reason: str = ""
+
+
+def list_points(cloud, profile: LidarProfile, range_m: np.ndarray | None = None) -> ListPoints:
+    """One pass over a point list's points (module doc): rings (carried, else recovered), firing azimuths, points per
+    ring and, unless ``range_m`` is given, each point's range ``|p|`` (0 where it is zero, not finite or closer than
+    the profile's ``min_range_m``: the rays' ranges of :mod:`lidar_rays`)."""
+    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+    laser = profile.storage_order == LASER_ORDER and (FIRING_COLUMN in cloud.attributes
+                                                      or ring_source(cloud) == "elevation")
+    reason = ""
+    try:
+        carried = (np.zeros(0, np.int64) if laser or ring_source(cloud) == "elevation"
+                   else ring_index(cloud, profile))
+    except InputError as e:
+        reason, carried = str(e), np.zeros(0, np.int64)
+    rings = not (laser or reason)
+    if not rings and range_m is not None:
+        return ListPoints(range_m, reason=reason)
+    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
+    tan_mid, order = ring_search_table(tuple(profile.beam_elevation_deg))
+    ring, firing, counts, ranges = _rings_and_azimuths(
+        positions, carried, float(profile.sensor_z_offset_m), float(profile.beam_origin_offset_m), tan_mid, order,
+        offsets, profile.channels, rings, range_m is None, float(profile.min_range_m))
+    if range_m is None:
+        range_m = ranges
+    return ListPoints(range_m, ring, firing, counts) if rings else ListPoints(range_m, reason=reason)
 
 
 def _laser_order_columns(cloud, profile: LidarProfile, range_m: np.ndarray) -> FiringColumns | str:
@@ -324,34 +409,43 @@ def _laser_order_columns(cloud, profile: LidarProfile, range_m: np.ndarray) -> F
 
 
 @jit
-def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order, offsets,
-                        channels):       # pragma: no cover - compiled
-    """One pass over the points: ring (``carried``, or when it is empty the beam of nearest elevation,
-    :func:`lidar_geometry.beam_of`), firing azimuth ``atan2(y, x) + offset[ring]``
-    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring, in blocks of points."""
+def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order, offsets, channels, rings, ranges,
+                        min_range_m):       # pragma: no cover - compiled
+    """One pass over the points, in blocks: if ``rings``, ring (``carried``, or when it is empty the beam of nearest
+    elevation, :func:`lidar_geometry.beam_slot`), firing azimuth ``atan2(y, x) + offset[ring]``
+    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring; if ``ranges``, the range ``|p|`` (0 where it
+    is not > 0 and ≥ ``min_range_m``)."""
     n = len(positions)
     recover = len(carried) == 0
-    ring = np.empty(n, np.int64) if recover else carried        # (a carried ring is not copied)
-    firing = np.empty(n)
+    ring = np.empty(n if rings and recover else 0, np.int64) if recover else carried   # (a carried ring: no copy)
+    firing = np.empty(n if rings else 0)
+    range_m = np.empty(n if ranges else 0)
     counts = np.zeros(channels, np.int64)
     block = 1024                                        # points whose coordinates stay in the L1 cache
-    x, y = np.empty(block), np.empty(block)
+    x, y, z = np.empty(block), np.empty(block), np.empty(block)
+    slot, step = 0, 0                                   # the last point's beam position, its step from the one before
     for b0 in range(0, n, block):
         m = min(n, b0 + block) - b0
         for i in range(m):
-            x[i], y[i] = positions[b0 + i, 0], positions[b0 + i, 1]
+            x[i], y[i], z[i] = positions[b0 + i, 0], positions[b0 + i, 1], positions[b0 + i, 2]
+        if ranges:
+            for i in range(m):                          # (the expression of lidar_rays' ranges: the same bits)
+                ri = math.sqrt(x[i] ** 2 + y[i] ** 2 + z[i] ** 2)
+                range_m[b0 + i] = ri if (ri > 0) & (ri >= min_range_m) else 0.0
+        if not rings:
+            continue
         for i in range(m):                              # one vectorised loop over contiguous coordinates
             firing[b0 + i] = atan2(y[i], x[i])
-        for i in range(m):
-            p = b0 + i
-            if recover:
-                b = beam_of(x[i], y[i], positions[p, 2], z_offset, rho_offset, tan_mid, order)
-                ring[p] = b
-            else:
-                b = carried[p]
-            firing[p] += offsets[np.uintp(b)]              # (unsigned: no negative-index wraparound compiled)
-            counts[np.uintp(b)] += 1
-    return ring, firing, counts
+        if recover:
+            for i in range(m):                          # the guess: the next beam along the list's order
+                k = beam_slot(x[i], y[i], z[i], z_offset, rho_offset, tan_mid, slot + step)
+                step, slot = k - slot, k
+                ring[b0 + i] = order[k]
+        for p in range(b0, b0 + m):
+            b = np.uintp(ring[p])                       # (unsigned: no negative-index wraparound compiled)
+            firing[p] += offsets[b]
+            counts[b] += 1
+    return ring, firing, counts, range_m
 
 
 def _firing_beams(has_returns: np.ndarray, profile: LidarProfile) -> np.ndarray:

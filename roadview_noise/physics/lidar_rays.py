@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import ModelError
 from ..types import LidarProfile, PointCloud
 from .compiled import jit
-from .firing_grid import FiringGrid, firing_grid
+from .firing_grid import FiringGrid, firing_grid, list_points
 from .lidar_geometry import ring_index, ring_source
 from .lidar_intensity import REFLECTIVITY, IntensityWarning, intensity_step, resolve_profile, sensor_constant, \
     white_reading
@@ -146,22 +146,32 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     fill = empty_rays != "ignore"
     grid = cloud.grid_shape is not None
     per_reading = 1.0 / white_reading(profile) if compensated else 1.0 / k
+    listed = points = None
+    if fill and not grid:                               # a list's firing grid first: its empty rays come with the
+        points = list_points(cloud, profile)            # points' arrays, its pass over the points gives their ranges
+        listed = firing_grid(cloud, profile, points=points)
+        if not isinstance(listed, str) and empty_rays == "sky_only":
+            listed = listed.subset(np.asarray(profile.beam_elevation_deg)[listed.ring] > 0)
+    m = 0 if listed is None or isinstance(listed, str) else len(listed.ring)
+    n = len(intensity)
     if at is None:
         r, signal, has_target, weakest = _ray_signals(positions, intensity, compensated, per_reading,
                                                       profile.max_range_m if grid and fill else 0.0,
-                                                      intensity_step(profile), profile.min_range_m)
+                                                      intensity_step(profile), profile.min_range_m,
+                                                      _NO_RANGES if points is None else points.range_m, m,
+                                                      profile.max_range_m)
     else:
-        r, signal, has_target, _ = _ray_signals(positions[at], intensity[at], compensated, per_reading, 0.0,
-                                                intensity_step(profile), profile.min_range_m)
+        r, signal, has_target, _ = _point_signals(positions[at], intensity[at], compensated, per_reading,
+                                                  intensity_step(profile), profile.min_range_m)
     recorded = cloud.recorded
     datasheet = profile.threshold_calibration == "datasheet"
     if not calibrate or datasheet:
         weakest = math.inf
     elif (recorded is not None and "intensity" in recorded.fields      # (the chain's first step: the same arrays)
           and not (recorded.positions_m is cloud.positions_m and recorded.fields["intensity"] is intensity)):
-        weakest = _ray_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
-                               np.asarray(recorded.fields["intensity"]), compensated, per_reading, 0.0,
-                               intensity_step(profile), profile.min_range_m)[3]
+        weakest = _point_signals(np.ascontiguousarray(recorded.positions_m, dtype=np.float64),
+                                 np.asarray(recorded.fields["intensity"]), compensated, per_reading,
+                                 intensity_step(profile), profile.min_range_m)[3]
     elif at is not None:
         weakest = _weakest_signal(positions, intensity, compensated, per_reading, intensity_step(profile),
                                   profile.min_range_m)
@@ -174,8 +184,8 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
     floor = receiver.recorded_floor if datasheet else 0.0
     unread = None
     if datasheet:
-        all_r, all_signal, all_has = (r, signal, has_target) if at is None else _ray_signals(
-            positions, intensity, compensated, per_reading, 0.0, intensity_step(profile), profile.min_range_m)[:3]
+        all_r, all_signal, all_has = (r[:n], signal[:n], has_target[:n]) if at is None else _point_signals(
+            positions, intensity, compensated, per_reading, intensity_step(profile), profile.min_range_m)[:3]
         unknown = uninformative(all_signal, all_has, intensity, floor)          # (the population: the whole cloud)
         unread = population_signal(all_signal, all_r, all_has, unknown, floor)
         if at is not None:
@@ -187,27 +197,20 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
             f"range, at least that, in the weather's and ray drop's decisions")
     if scale.warning:
         notes["intensity_warning"] = scale.warning
-    rays = Rays(r, signal, has_target, receiver, profile.detection_threshold / k, profile,
-                empty_source="none (empty_rays: ignore)" if not fill else "no-return cells of the grid", notes=notes,
-                floor=floor, unread=unread)
     if grid and empty_rays == "sky_only":
-        below = ~has_target & ~_above_horizon(cloud, profile)
-        r[below] = 0.0
-        return dataclasses.replace(rays, empty_source="no-return cells of the grid above the horizon")
-    if fill and not grid:
-        listed = firing_grid(cloud, profile, r)
-        if isinstance(listed, str):
-            return dataclasses.replace(rays, empty_source=f"none: {listed}")
-        if empty_rays == "sky_only":
-            listed = listed.subset(np.asarray(profile.beam_elevation_deg)[listed.ring] > 0)
-        m = len(listed.ring)
+        r[~has_target & ~_above_horizon(cloud, profile)] = 0.0
+    if unread is not None and m:
+        unread = np.concatenate([unread, np.zeros(m)])
+    if isinstance(listed, str):
+        source = f"none: {listed}"
+    elif listed is not None:
         source = listed.describe() + ("; above the horizon" if empty_rays == "sky_only" else "")
-        rays = dataclasses.replace(rays, range_m=np.concatenate([r, np.full(m, profile.max_range_m)]),
-                                   signal=np.concatenate([signal, np.zeros(m)]),
-                                   has_target=np.concatenate([has_target, np.zeros(m, dtype=bool)]), listed=listed,
-                                   empty_source=source,
-                                   unread=None if unread is None else np.concatenate([unread, np.zeros(m)]))
-    return rays
+    else:
+        source = ("none (empty_rays: ignore)" if not fill else "no-return cells of the grid" +
+                  (" above the horizon" if empty_rays == "sky_only" else ""))
+    return Rays(r, signal, has_target, receiver, profile.detection_threshold / k, profile,
+                listed=None if isinstance(listed, str) else listed, empty_source=source, notes=notes, floor=floor,
+                unread=unread)
 
 
 def _above_horizon(cloud: PointCloud, profile: LidarProfile) -> np.ndarray:
@@ -225,19 +228,30 @@ def _above_horizon(cloud: PointCloud, profile: LidarProfile) -> np.ndarray:
     return elevation[ring] > 0
 
 
-@jit
-def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step, min_range_m):  # pragma: no cover
+_NO_RANGES = np.zeros(0)
+
+
+def _point_signals(positions, intensity, compensated, scale, step, min_range_m):
+    """:func:`_ray_signals` of points alone (0 range where a point is no return)."""
+    return _ray_signals(positions, intensity, compensated, scale, 0.0, step, min_range_m, _NO_RANGES, 0, 0.0)
+
+
+@jit(error_model="numpy")
+def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step, min_range_m, ranges, empty,
+                 listed_range_m):  # pragma: no cover
     """Per point: range (``empty_range_m`` where the point is zero or a no-return placeholder closer than the
     profile's ``min_range_m``), received signal in units of K that the stored value stands for
     (:func:`_point_signal`; 0 without a return) and whether it is a return; and the weakest signal any return can
-    have."""
+    have. ``ranges``: the points' ranges if known (0: no return), else empty; then ``empty`` rays without a target
+    at ``listed_range_m`` (a list's empty cells)."""
     n = len(intensity)
-    r = np.empty(n)
-    signal = np.empty(n)
-    has = np.empty(n, np.bool_)
+    r = np.empty(n + empty)
+    signal = np.empty(n + empty)
+    has = np.empty(n + empty, np.bool_)
     weakest = math.inf
+    known = len(ranges) > 0
     for i in range(n):
-        ri = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
+        ri = ranges[i] if known else math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
         has[i] = ri > 0 and ri >= min_range_m
         if has[i]:
             r[i] = ri
@@ -247,6 +261,9 @@ def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step, 
         else:
             r[i] = empty_range_m
             signal[i] = 0.0
+    r[n:] = listed_range_m
+    signal[n:] = 0.0
+    has[n:] = False
     return r, signal, has, weakest
 
 

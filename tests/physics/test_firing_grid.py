@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from roadview_noise.physics.firing_grid import beam_gaps, firing_grid
+from roadview_noise.physics.firing_grid import _sorted_turn, beam_gaps, firing_grid, measured_step_rad
 from roadview_noise.profiles.lidar import os1_128, vls_128
 from roadview_noise.types import PointCloud
 
@@ -201,3 +201,37 @@ def test_beam_gaps_are_the_sorted_gaps_of_each_sampled_beam():
     assert returns == len(sel)
     np.testing.assert_array_equal(gaps, expected[expected > 1e-7])
     assert len(gaps) < len(expected)                            # the echoes were there and left out
+
+
+def test_a_turn_in_firing_order_is_read_sorted():
+    """``_sorted_turn`` is ``np.sort``: turns listed ascending or descending from any start (ties included), and
+    anything else."""
+    rng = np.random.default_rng(5)
+    for t in range(400):
+        n = int(rng.integers(0, 12))
+        values = np.sort(rng.integers(0, 4, n).astype(float) if t % 2 else rng.random(n))
+        start = int(rng.integers(0, n + 1))
+        turn = np.concatenate([values[start:], values[:start]])
+        for f in (turn, turn[::-1].copy(), rng.random(n)):
+            np.testing.assert_array_equal(_sorted_turn(f), np.sort(f))
+
+
+def test_measured_step_is_the_numpy_least_squares_refit():
+    """The compiled refit against NumPy's (the 10th-percentile seed, then least squares on gaps of up to 2, 4, 8, 8
+    steps): the same step to rounding, the same column count, regular fraction and verdict."""
+    rng = np.random.default_rng(6)
+    for _ in range(300):
+        columns = int(rng.choice([512, 1024, 1800, 2048]))
+        step0 = 2 * np.pi / columns
+        k = rng.geometric(rng.uniform(0.05, 0.95), int(rng.integers(200, 4000)))
+        gap = np.abs(k * step0 + rng.normal(0, rng.choice([0.0, 0.02, 0.1, 0.3]) * step0, len(k))) + 1e-9
+        step = float(np.partition(gap, len(gap) // 10)[len(gap) // 10])
+        for most in (2, 4, 8, 8):
+            near = gap[gap < (most + 0.5) * step]
+            whole = np.rint(near / step)
+            step = float(np.dot(near, whole) / np.dot(whole, whole))
+        regular = np.mean(np.abs(near / step - whole) < 0.15)
+        got, reason = measured_step_rad(gap, len(gap))
+        assert bool(reason) == (regular < 0.8)
+        assert (f"({100 * regular:.0f} % of the gaps" in reason) if reason else (
+            abs(got - step) < 1e-12 * step and round(2 * np.pi / got) == round(2 * np.pi / step))
