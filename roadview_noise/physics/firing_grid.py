@@ -123,16 +123,17 @@ def measured_step_rad(gap: np.ndarray, returns: int) -> tuple[float, str]:
         return math.nan, f"only {returns} returns in the sampled beams"
     if len(gap) < MIN_GAPS:
         return math.nan, f"only {len(gap)} azimuth gaps between returns of one beam"
-    step, regular = _refit_step(gap, float(np.partition(gap, len(gap) // 10)[len(gap) // 10]))
+    step, regular = _refit_step(gap)
     if regular < MIN_REGULAR_FRACTION:
         return math.nan, f"azimuths are not on a regular firing grid ({100 * regular:.0f} % of the gaps are whole steps)"
     return step, ""
 
 
 @jit
-def _refit_step(gap, step):       # pragma: no cover - compiled
-    """:func:`measured_step_rad`'s least-squares refits from the seed ``step``: (the step, the fraction of the last
-    refit's gaps within 0.15 step of a whole number)."""
+def _refit_step(gap):       # pragma: no cover - compiled
+    """:func:`measured_step_rad`'s seed (the 10th percentile) and least-squares refits: (the step, the fraction of
+    the last refit's gaps within 0.15 step of a whole number)."""
+    step = np.partition(gap, len(gap) // 10)[len(gap) // 10]
     near = 0.0
     for most_steps in (2, 4, MAX_GAP_STEPS, MAX_GAP_STEPS):
         last, gk, kk, near = step, 0.0, 0.0, 0.0
@@ -183,39 +184,44 @@ def _wrap(k, n):       # pragma: no cover - compiled
 
 
 @jit
-def _empty_cells(occupied, fires, in_view, shift, offsets, step):       # pragma: no cover - compiled
+def _empty_cells(occupied, words, fires, in_view, shift, offsets, step):       # pragma: no cover - compiled
     """(ring, column) of the cells without a return on firing beams whose own azimuth
-    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view."""
+    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view. ``words``: ``occupied`` read 8 cells at a
+    time (empty unless a row is whole words): 8 occupied cells are skipped at once."""
     channels, columns = occupied.shape
     ring = np.empty(channels * columns, np.int64)
     col = np.empty(channels * columns, np.int64)
+    per_row = len(words) // channels
+    full = np.uint64(0x0101010101010101)
     m = 0
     for b in range(channels):
         if not fires[b]:
             continue
-        for c in range(columns):
-            if occupied[b, c]:
+        c = 0
+        while c < columns:
+            if c % 8 == 0 and c < 8 * per_row and words[b * per_row + c // 8] == full:
+                c += 8
                 continue
-            k = _wrap(int(math.floor(-(c + shift[b]) - offsets[b] / step)), columns)
-            if in_view[k]:
-                ring[m] = b
-                col[m] = c
-                m += 1
+            if not occupied[b, c]:
+                k = _wrap(int(math.floor(-(c + shift[b]) - offsets[b] / step)), columns)
+                if in_view[k]:
+                    ring[m] = b
+                    col[m] = c
+                    m += 1
+            c += 1
     return ring[:m], col[:m]
 
 
 @jit
-def beam_gaps(firing, ring, valid, sampled):       # pragma: no cover - compiled
+def beam_gaps(firing, ring, valid, sampled, counts):       # pragma: no cover - compiled
     """(the gaps between neighbouring firing azimuths, wrapped to [0, 2π), of the returns of each beam where
     ``sampled``, beam by beam — those of one ray's several echoes, ≤ 1e-7 rad, left out —, the number of those
-    returns): one pass gathers them beam by beam, each beam's sorted on its own."""
+    returns): one pass gathers them beam by beam (``counts``: at least each sampled beam's returns, the points per
+    ring), each beam's sorted on its own."""
     channels = len(sampled)
     start = np.zeros(channels + 1, np.int64)
-    for i in range(len(ring)):
-        if valid[i] and sampled[ring[i]]:
-            start[ring[i] + 1] += 1
     for b in range(channels):
-        start[b + 1] += start[b]
+        start[b + 1] = start[b] + (counts[b] if sampled[b] else 0)
     f = np.empty(start[channels])
     at = start[:channels].copy()
     for i in range(len(ring)):
@@ -224,15 +230,16 @@ def beam_gaps(firing, ring, valid, sampled):       # pragma: no cover - compiled
             f[at[b]] = np.mod(firing[i], TWO_PI)
             at[b] += 1
     gap = np.empty(len(f))
-    m = 0
+    m = returns = 0
     for b in range(channels):
-        beam = _sorted_turn(f[start[b]:start[b + 1]])
+        beam = _sorted_turn(f[start[b]:at[b]])
+        returns += len(beam)
         for j in range(1, len(beam)):
             g = beam[j] - beam[j - 1]
             if g > 1e-7:                               # several echoes of one ray are not a gap
                 gap[m] = g
                 m += 1
-    return gap[:m], len(f)
+    return gap[:m], returns
 
 
 @jit
@@ -312,7 +319,9 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     occupied, like, seen = _cells(firing, valid, ring, offsets, shift, step, columns, profile.channels)
     m = VIEW_MARGIN_STEPS
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
-    er, ec = _empty_cells(occupied, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets, step)
+    words = occupied.reshape(-1).view(np.uint64) if columns % 8 == 0 else np.zeros(0, np.uint64)
+    er, ec = _empty_cells(occupied, words, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets,
+                          step)
     return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
                       int(np.count_nonzero(~in_view)))
 
@@ -339,7 +348,7 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
         return "no returns"
     sampled = np.zeros(profile.channels, dtype=bool)                 # counts hold zero points too: only to pick beams
     sampled[np.argsort(counts, kind="stable")[-STEP_SAMPLE_BEAMS:]] = True
-    step, reason = measured_step_rad(*beam_gaps(firing, ring, valid, sampled))
+    step, reason = measured_step_rad(*beam_gaps(firing, ring, valid, sampled, counts))
     if reason:
         return reason
     columns = int(round(TWO_PI / step))

@@ -197,7 +197,7 @@ def test_beam_gaps_are_the_sorted_gaps_of_each_sampled_beam():
     order = np.lexsort((f, ring[sel]))
     f, r = f[order], ring[sel][order]
     expected = np.diff(f)[r[1:] == r[:-1]]
-    gaps, returns = beam_gaps(firing, ring, valid, sampled)
+    gaps, returns = beam_gaps(firing, ring, valid, sampled, np.bincount(ring, minlength=16))
     assert returns == len(sel)
     np.testing.assert_array_equal(gaps, expected[expected > 1e-7])
     assert len(gaps) < len(expected)                            # the echoes were there and left out
