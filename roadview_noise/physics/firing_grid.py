@@ -35,7 +35,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import atan2, beam_slot, has_return, ring_index, ring_search_table, ring_source
+from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
 from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
@@ -421,9 +421,9 @@ def _laser_order_columns(cloud, profile: LidarProfile, range_m: np.ndarray) -> F
 def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order, offsets, channels, rings, ranges,
                         min_range_m):       # pragma: no cover - compiled
     """One pass over the points, in blocks: if ``rings``, ring (``carried``, or when it is empty the beam of nearest
-    elevation, :func:`lidar_geometry.beam_slot`), firing azimuth ``atan2(y, x) + offset[ring]``
-    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring; if ``ranges``, the range ``|p|`` (0 where it
-    is not > 0 and ≥ ``min_range_m``)."""
+    elevation, :func:`lidar_geometry.beam_of`), firing azimuth ``atan2(y, x) + offset[ring]``
+    (:func:`lidar_geometry.firing_azimuth_rad`) and the points per ring; if ``ranges``, the range ``|p|`` (0 where
+    it is not > 0 and ≥ ``min_range_m``)."""
     n = len(positions)
     recover = len(carried) == 0
     ring = np.empty(n if rings and recover else 0, np.int64) if recover else carried   # (a carried ring: no copy)
@@ -432,7 +432,6 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
     counts = np.zeros(channels, np.int64)
     block = 1024                                        # points whose coordinates stay in the L1 cache
     x, y, z = np.empty(block), np.empty(block), np.empty(block)
-    slot, step = 0, 0                                   # the last point's beam position, its step from the one before
     for b0 in range(0, n, block):
         m = min(n, b0 + block) - b0
         for i in range(m):
@@ -446,10 +445,8 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
         for i in range(m):                              # one vectorised loop over contiguous coordinates
             firing[b0 + i] = atan2(y[i], x[i])
         if recover:
-            for i in range(m):                          # the guess: the next beam along the list's order
-                k = beam_slot(x[i], y[i], z[i], z_offset, rho_offset, tan_mid, slot + step)
-                step, slot = k - slot, k
-                ring[b0 + i] = order[k]
+            for i in range(m):
+                ring[b0 + i] = beam_of(x[i], y[i], z[i], z_offset, rho_offset, tan_mid, order)
         for p in range(b0, b0 + m):
             b = np.uintp(ring[p])                       # (unsigned: no negative-index wraparound compiled)
             firing[p] += offsets[b]

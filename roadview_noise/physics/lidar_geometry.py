@@ -80,26 +80,15 @@ def ring_search_table(elevations_deg: tuple[float, ...]) -> tuple[np.ndarray, np
 
 @jit(inline="always")
 def beam_of(x, y, z, z_offset, rho_offset, tan_mid, order):       # pragma: no cover - compiled
-    """The beam of nearest elevation of the point (x, y, z) seen from the beam origin: ``order[beam_slot(…)]``
-    (:func:`beam_slot`, no guess; ``tan_mid``, ``order``: :func:`ring_search_table`)."""
-    return order[beam_slot(x, y, z, z_offset, rho_offset, tan_mid, -1)]
-
-
-@jit(inline="always")
-def beam_slot(x, y, z, z_offset, rho_offset, tan_mid, guess):       # pragma: no cover - compiled
-    """The position among the elevation-sorted beams of the beam of nearest elevation of the point (x, y, z) seen
-    from the beam origin: the count of midpoints between neighbouring beams whose tangent is ≤ ``z/ρ`` (nearest in
-    angle, ties to the higher beam, without an arctangent). ``guess`` (a position, or −1) is tried first with two
-    comparisons — a list's next point is mostly on the beam of the last or the next one along — else a binary search:
-    the same position either way."""
+    """The beam of nearest elevation of the point (x, y, z) seen from the beam origin: binary search of ``z/ρ`` among
+    the tangents of the midpoints between neighbouring beams (nearest in angle, ties to the higher beam, without an
+    arctangent; ``tan_mid``, ``order``: :func:`ring_search_table`)."""
     z = z - z_offset
     rho = math.sqrt(x * x + y * y) - rho_offset
     top = len(tan_mid)
     if rho < 0 or (rho == 0 and z != 0):             # behind the beam origin: beyond ±90° (atan2 semantics)
-        return 0 if z < 0 else top
+        return order[0 if z < 0 else top]
     t = z / rho if rho > 0 else 0.0
-    if 0 <= guess <= top and (guess == 0 or tan_mid[guess - 1] <= t) and (guess == top or t < tan_mid[guess]):
-        return guess
     lo, hi = 0, top                                  # count of midpoints <= t
     while lo < hi:
         mid = (lo + hi) // 2
@@ -107,7 +96,7 @@ def beam_slot(x, y, z, z_offset, rho_offset, tan_mid, guess):       # pragma: no
             lo = mid + 1
         else:
             hi = mid
-    return lo
+    return order[lo]
 
 
 @jit

@@ -147,26 +147,3 @@ def test_fast_atan2_matches_numpy():
     want = np.arctan2(xy[:, 1], xy[:, 0])
     err = np.abs(np.angle(np.exp(1j * (got - want))))
     assert err.max() < 2.5e-8 and got[-10] == 0.0
-
-
-def test_beam_slot_guess_never_changes_the_beam():
-    """The ring search tried first at a guessed position gives the binary search's beam for every guess (right,
-    wrong, out of range) and point (on a midpoint, behind the beam origin, at the origin, not finite)."""
-    from roadview_noise.physics.firing_grid import list_points
-    from roadview_noise.types import PointCloud
-
-    profile = vls_128()
-    tan_mid, order = lg.ring_search_table(tuple(profile.beam_elevation_deg))
-    rng = np.random.default_rng(3)
-    p = rng.uniform(-60, 60, (3000, 3))
-    rho = np.hypot(p[:2000:2, 0], p[:2000:2, 1])
-    p[:2000:2, 2] = rho * tan_mid[rng.integers(0, len(tan_mid), len(rho))]           # exactly on midpoints
-    p[-4:] = [[0, 0, 0], [0, 0, 5], [np.nan, 1, 1], [1e-3, 0, -3]]
-    expected = lg.recover_ring(p, profile)
-    z0, r0 = profile.sensor_z_offset_m, profile.beam_origin_offset_m
-    for guess in (-1, 0, 5, len(tan_mid), len(tan_mid) + 3):
-        got = [order[lg.beam_slot.py_func(*q, z0, r0, tan_mid, guess)] for q in p]
-        np.testing.assert_array_equal(got, expected)
-    for layout in (p, p[np.argsort(expected, kind="stable")], p[::-1]):         # the compiled pass, guessing
-        cloud = PointCloud(layout, {"intensity": np.ones(len(layout), np.float32)}, "lidar", profile)
-        np.testing.assert_array_equal(list_points(cloud, profile).ring, lg.recover_ring(layout, profile))
