@@ -257,8 +257,10 @@ def _sorted_turn(f):       # pragma: no cover - compiled
         elif f[i] < f[i - 1]:
             down += 1
             at_down = i
-    if n < 2 or (down == 0) or (up == 0):
-        return np.sort(f) if down and up else (f.copy() if down == 0 else f[::-1].copy())
+    if down == 0:                                       # ascending already (or fewer than two)
+        return f.copy()
+    if up == 0:
+        return f[::-1].copy()
     out = np.empty(n)
     if up == 1 and f[0] <= f[n - 1]:                    # descending, one wrap: each part reversed, the later on top
         for i in range(at_up):
