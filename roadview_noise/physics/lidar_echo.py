@@ -275,6 +275,8 @@ def cluster_peak(r, a, cs, sn, lo, hi, length):       # pragma: no cover - compi
     e = 0
     best = -1.0
     best_x = r[lo]
+    at_crest = False                                   # the best is a crest: its arc tangent taken once, at the end
+    crest_re = crest_im = 0.0
     while e < m:
         if s < m and r[lo + s] <= r[lo + e] + length:     # next event: a pulse start (first on ties) ...
             x = r[lo + s]
@@ -316,17 +318,20 @@ def cluster_peak(r, a, cs, sn, lo, hi, length):       # pragma: no cover - compi
             val = (amp + math.sqrt(z_re * z_re + z_im * z_im)) / 2.0
             if val > best:
                 best = val
-                best_x = x + (math.pi - math.atan2(q_im, q_re)) / omega      # phase to the crest, in [0, 2π]
+                best_x, crest_re, crest_im, at_crest = x, q_re, q_im, True
         else:
             val_u = (amp - q_re) / 2.0
             val_v = (amp - p_re) / 2.0
             if val_u > best or val_v > best:
+                at_crest = False
                 if val_v > val_u:
                     best = val_v
                     best_x = x_next
                 else:
                     best = val_u
                     best_x = x
+    if at_crest:                                       # phase to the crest, in [0, 2π]
+        best_x = best_x + (math.pi - math.atan2(crest_im, crest_re)) / omega
     return best, best_x - length / 2.0
 
 

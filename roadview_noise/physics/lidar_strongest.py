@@ -30,9 +30,10 @@ loses is the fluctuation of the faint particles in front of it (their mean backs
 Speed (:func:`_strongest`): each ray's head — own level, rank, brightest band, the uniform of its range — is drawn
 a ray ahead (:func:`ray_head`), and the table entries it will read are prefetched (:func:`compiled.prefetch`: the
 range quantile, the cover), so that those cache misses overlap the previous ray's work; its brightest band is
-counted, not walked to; the tables are float32 (:data:`TABLE_DTYPE`); the fainter particles stop at one
-comparison of Λ at the cut; a cluster peak's background is read from the uncut windows
-(:func:`lidar_echo.peak_background`) and the receiver's three uniforms come from one
+counted, not walked to; the targets' attenuation is a pass of its own (no libm call in the per-ray loop); the
+tables are float32 (:data:`TABLE_DTYPE`); the fainter particles stop at one comparison of Λ at the cut (read once
+per ray) and read a band's ends only when they walk down to a new band; a cluster peak's background is read from
+the uncut windows (:func:`lidar_echo.peak_background`) and the receiver's three uniforms come from one
 (:func:`lidar_detection.three_uniforms`); a ray without a target decides with its uniforms, before its particles'
 pulses are summed, whether even their total plus the largest background could be detected
 (:func:`lidar_detection.undetectable`: half the empty rays of the real scan in rain cannot) — exact, the same draws in
@@ -203,9 +204,11 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
     """:func:`strongest_returns` ray by ray: the particles (:func:`ray_head` a ray ahead, :func:`draw_ray`), then
     the ray's candidate and the receiver's decision (:func:`ray_outcome`), written to ``kind``, ``out_range``,
     ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the number of particles drawn.
-    Compiled without reference counting (it allocates nothing): the inlined per-ray functions cost no atomic
-    operations on their array arguments. Not compiled with contracted multiply-adds: 3–4 % faster, but a realization
-    would then depend on whether the CPU has FMA."""
+    The targets' ``exp(−2αR)`` are taken in a pass of their own before the rays' (``out_signal`` holds them until each
+    ray's outcome is written): a call to libm inside the per-ray loop spills the loop's live registers (−3 to −10 %
+    of the kernel, the same values). Compiled without reference counting (it allocates nothing): the inlined per-ray
+    functions cost no atomic operations on their array arguments. Not compiled with contracted multiply-adds: 3–4 %
+    faster, but a realization would then depend on whether the CPU has FMA."""
     n = len(ray_range)
     inv_step = 1.0 / step
     drawn = 0
@@ -213,15 +216,17 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
         bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor, excess,
         rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range, out_signal, p_range,
         p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+    for i in range(n):                                 # the attenuated targets first, in out_signal (read before ray
+        out_signal[i] = _attenuated(signal, has_target, ray_range, alpha, i)    # i's outcome overwrites it)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
-    t_next = _attenuated(signal, has_target, ray_range, alpha, 0)
+    t_next = out_signal[0] if n else 0.0
     head = ray_head(rng, e, ray_range[0] if n else 0.0, t_next, threshold, r1, inv_step, lam, inv, band_scale, cover)
     for i in range(n):
         big_r = ray_range[i]
         tgt = has_target[i]
         t_att = t_next
         if i + 1 < n:                                  # the next ray's head: its table reads overlap this ray's work
-            t_next = _attenuated(signal, has_target, ray_range, alpha, i + 1)
+            t_next = out_signal[i + 1]
             ahead = ray_head(rng, head[0], ray_range[i + 1], t_next, threshold, r1, inv_step, lam, inv, band_scale,
                              cover)
         else:
@@ -463,23 +468,23 @@ def draw_ray(rng, head, big_r, r1, inv_step, inv_base, lam, inv, band_scale, s_l
         return m, min(level, octaves - 1), 0.0
     if g >= 0:
         r = min(lerp_at(inv, g, kq, tq), big_r)
-        g_cut = 0
+        lam_cut = 0.0
         while True:
             s, f = particle_at(r, g, u, la, lb, r1, inv_step, rows, s_level, full)
             p_range[m], p_signal[m], p_fraction[m] = r, s, f
             if m == first:
                 level = max(_octave_near(s * inv_base, g // LEVELS_PER_OCTAVE) - CUT_OCTAVES, 0)
-                g_cut = level * LEVELS_PER_OCTAVE
+                lam_cut = _row_lerp(lam, k, t, level * LEVELS_PER_OCTAVE)
             m += 1
             if m - first == MAX_DRAWN:
                 break
             u += rng.standard_exponential()
-            if _row_lerp(lam, k, t, g_cut) <= u:       # none left above the cut (Λ decreases with the level)
+            if lam_cut <= u:                           # none left above the cut (Λ decreases with the level)
                 break
-            while _row_lerp(lam, k, t, g) <= u:
+            while la <= u:                             # the band down (its ends read once per band)
                 g -= 1
-            la = _row_lerp(lam, k, t, g)
-            lb = _row_lerp(lam, k, t, g + 1)
+                lb = la
+                la = _row_lerp(lam, k, t, g)
             band = np.uintp(g)
             r = min(table_lerp(inv, band, rng.random() * (la - lb) * band_scale[band]), big_r)
         _sort_by_range(p_range, p_signal, p_fraction, first, m)
