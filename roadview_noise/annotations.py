@@ -202,6 +202,14 @@ def field_role(name: str, overrides: dict[str, str] | None = None) -> str:
     return "class" if low in CLASS_FIELDS else "instance" if low in INSTANCE_FIELDS else "sensor"
 
 
+@lru_cache(maxsize=64)
+def _roles(names: tuple[str, ...], overrides: tuple[tuple[str, str], ...]) -> dict[str, str]:
+    """:func:`field_role` of each field of a cloud, once per field list (every file of a run has the same fields);
+    the dict is shared: read it, do not change it."""
+    given = dict(overrides)
+    return {k: field_role(k, given) for k in names}
+
+
 def weather_classes(spec: AnnotationsSpec, fmt: str | None = None) -> dict[str, int]:
     """Class id of new points per weather: the recipe's, else the default for the label format."""
     default = NUSCENES_NOISE if fmt == "nuscenes_lidarseg" else SEMANTICSTF_INVALID
@@ -322,7 +330,7 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
         label_fmt = next((s.fmt for s in sidecars if s.role == "point_labels"), None)
-        roles = {k: field_role(k, spec.field_roles) for k in data_in.fields}
+        roles = _roles(tuple(data_in.fields), tuple(spec.field_roles.items()))
         wanted = "class" in roles.values() or any(s.role == "point_labels" for s in sidecars)   # else none given
         classes = new_classes(data_out, weather_classes(spec, label_fmt), model_ids) \
             if wanted and data_out.effect is not None else 0

@@ -134,14 +134,15 @@ class StepRecord:
 
 
 _LEAVES = (str, int, float, bool, type(None))
+_LEAF_TYPES = frozenset(_LEAVES)
 
 
 def _plain(value: Any) -> Any:
     """``value`` as ``dataclasses.asdict`` would convert it, its leaves not copied."""
     if isinstance(value, _LEAVES):
         return value
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, dict):            # a leaf is taken as it is without a call (most of a step's values are)
+        return {k: v if type(v) in _LEAF_TYPES else _plain(v) for k, v in value.items()}
     if isinstance(value, list):
         return [_plain(v) for v in value]
     if isinstance(value, tuple):

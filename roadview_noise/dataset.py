@@ -253,11 +253,13 @@ def _hashable(spec):
 # --- reading and writing -------------------------------------------------------------------------------------------
 
 
-def load(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None = None) -> SensorData:
+def load(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None = None,
+         profiles: dict | None = None) -> SensorData:
     """Read one sample (and the sidecars the chain needs) into a frame or cloud with the recipe's conditions
     (``content``: the bytes of a point cloud or PNG/JPEG/TIFF image file, already read); InputError names the
-    file."""
-    return with_conditions(_read(sample, in_root, recipe, content), recipe)
+    file. ``profiles``: a run's cloud profiles by (sensor, folder), filled here (a run's profile sidecars are
+    looked up once per folder, not per file)."""
+    return with_conditions(_read(sample, in_root, recipe, content, profiles), recipe)
 
 
 def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
@@ -268,7 +270,7 @@ def with_conditions(data: SensorData, recipe: Recipe) -> SensorData:
     return data
 
 
-def _read(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None) -> SensorData:
+def _read(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None, profiles: dict | None) -> SensorData:
     from .camera_inputs import load_camera_sample
     from .io import pointcloud as cloud_io
 
@@ -277,8 +279,13 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None) 
     file_dir = path.parent
     if sample.modality in ("camera", "raw"):
         return load_camera_sample(sample, in_root, recipe, content)
-    return cloud_io.read_pointcloud(path, sensor=sample.modality,
-                                    profile=cloud_profile_for(sample.modality, inputs, file_dir, recipe),
+    key = (sample.modality, os.path.dirname(sample.relpath))
+    profile = profiles.get(key) if profiles is not None else None
+    if profile is None:
+        profile = cloud_profile_for(sample.modality, inputs, file_dir, recipe)
+        if profiles is not None:
+            profiles[key] = profile
+    return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
                                     field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields,
                                     data=content)
 

@@ -212,6 +212,17 @@ def build_models(recipe: Recipe, task: Task) -> list:
 # --- one output (in a worker) ----------------------------------------------------------------------------------------
 
 
+_run_state: list = [None, {}]        # [the run's context, what its files look up once (per_run)]
+
+
+def per_run(ctx: RunContext, name: str) -> dict:
+    """A dict named ``name`` kept while ``ctx`` is the run's context (a worker receives it once per run): what every
+    file of a run would look up the same, looked up once (a folder's cloud profile, …)."""
+    if _run_state[0] is not ctx:
+        _run_state[:] = [ctx, {}]
+    return _run_state[1].setdefault(name, {})
+
+
 @lru_cache(maxsize=8)
 def _real_root(in_root: Path) -> str:
     return os.path.realpath(in_root)
@@ -238,10 +249,10 @@ def sha256_input(path: Path, *, whole: bool = False) -> tuple[str, bytes | None]
     ones); InputError names an unreadable one."""
     h = hashlib.sha256()
     try:
-        with open(path, "rb") as fh:
-            if whole and os.fstat(fh.fileno()).st_size <= READ_ONCE_MAX_BYTES:
+        with open(path, "rb", buffering=0) as fh:       # unbuffered: no isatty/fstat of a buffered reader
+            if whole and (size := os.fstat(fh.fileno()).st_size) <= READ_ONCE_MAX_BYTES:
                 with span("read"):
-                    data = fh.read()
+                    data = _read_to_end(fh, size)
                 with span("hash"):
                     h.update(data)
                 return h.hexdigest(), data
@@ -254,6 +265,18 @@ def sha256_input(path: Path, *, whole: bool = False) -> tuple[str, bytes | None]
                     h.update(chunk)
     except OSError as exc:
         raise InputError(f"cannot read the file: {os_error_text(exc)}", file=str(path)) from None
+
+
+def _read_to_end(fh, size: int) -> bytes:
+    """The bytes of an unbuffered file from its position to its end, ``size`` expected: one ``read`` when the file
+    holds them (``fh.read()`` asks again until it gets nothing, after an ``lseek`` and an ``fstat``)."""
+    data = fh.read(size + 1)
+    if len(data) == size:
+        return data
+    parts = [data]                           # shorter (a short read) or longer (the file grew): read to its end
+    while parts[-1]:
+        parts.append(fh.read(1 << 20))
+    return b"".join(parts)
 
 
 def _read_whole(sample: Sample, path: Path) -> bool:
@@ -289,7 +312,7 @@ def process(task: Task, ctx: RunContext) -> dict[str, Any]:
     The files stay temporaries listed under ``staged`` (fsynced, unless ``ctx.fsync_outputs`` leaves that to the
     run's main process) until the runner has recorded them."""
     keep_freed_memory()
-    t0, cpu0 = time.perf_counter(), time.thread_time()
+    t0, cpu0 = time.perf_counter(), time.thread_time() if ctx.profile else 0.0   # (a system call: profiled only)
     s, recipe = task.sample, ctx.recipe
     entry: dict[str, Any] = {
         "output": task.out_relpath, "input": s.relpath, "modality": s.modality, "sequence": s.sequence_id,
@@ -363,7 +386,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             warnings.simplefilter("always")
             with profiling.phase("load", "convert"):
                 try:
-                    data, content = load(s, ctx.in_root, recipe, content), None
+                    data, content = load(s, ctx.in_root, recipe, content, per_run(ctx, "profiles")), None
                 except EmptyCloudError as e:
                     return _copy_unchanged(task, ctx, source, entry, str(e))
             if getattr(data, "input_notes", None):

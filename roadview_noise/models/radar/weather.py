@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from abc import abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
@@ -58,7 +58,7 @@ class RadarWeather(Model):
 
     def apply(self, data: PointCloud, *, state, drawn, rng):
         profile = profile_of(data)
-        gamma = self.gamma_db_per_km(profile)
+        gamma, range_in_weather_m = per_profile(self, profile, False, _attenuation)
         r = data.ranges_m
         det = detection(data, self.snr_threshold_quantile, self.id, r)
         loss = two_way_loss_db(gamma, r)
@@ -76,7 +76,7 @@ class RadarWeather(Model):
             "mean_loss_db": float(loss.sum() / len(loss)) if len(loss) else 0.0,     # np.mean's value, less Python
             "max_range_clear_m": float(r.max()) if len(r) else 0.0,
             "max_range_m": float(r[keep].max()) if keep.any() else 0.0,
-            "profile_max_range_in_weather_m": detection_range_in_weather_m(profile.max_range_m, gamma),
+            "profile_max_range_in_weather_m": range_in_weather_m,
             **det.diagnostics(), **clutter_diag,
         }
         if cells is not None:
@@ -90,6 +90,12 @@ class RadarWeather(Model):
                     "cfar_max_threshold_rise_db": float(rise.max()) if len(rise) else 0.0,
                     "cfar_mean_threshold_rise_db": float(rise.sum() / len(rise)) if len(rise) else 0.0})
         return out, diagnostics
+
+
+def _attenuation(model: RadarWeather, profile: RadarProfile, planar: bool) -> tuple[float, float]:
+    """γ (dB/km) of the model's weather at the profile's frequency, and the profile's largest range in it."""
+    gamma = model.gamma_db_per_km(profile)
+    return gamma, detection_range_in_weather_m(profile.max_range_m, gamma)
 
 
 def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud, ego: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
@@ -186,27 +192,65 @@ class PrecipitationRadar(RadarWeather):
         """The falling particles, None when there are none (zero rate)."""
 
     def frame_clutter(self, data, ranges_m, det, gamma, ego_m_per_s, planar):
-        profile = grid_profile(profile_of(data), planar)
-        h = self.hydrometeors(profile)
-        if not self.clutter or h is None:
+        setup = per_profile(self, profile_of(data), planar, _ClutterSetup.of)
+        if setup is None:
             return None, {"clutter_points": 0}
         constant = radar_constant_db(data, det, ranges_m)
-        max_range_m = min(self.clutter_max_range_m, profile.max_range_m)
         skipped = ("no rcs_dbsm to calibrate the radar constant" if constant is None else
                    "no points to estimate the threshold" if not np.isfinite(det.threshold_db) else
-                   "clutter_min_range_m beyond the profile's max_range_m"
-                   if max_range_m < self.clutter_min_range_m + profile.range_resolution_m else None)
+                   "clutter_min_range_m beyond the profile's max_range_m" if setup.grid is None else None)
         if skipped:
             return None, {"clutter_points": 0, "clutter_skipped": skipped}
-        grid = ResolutionGrid(profile.fov_azimuth_deg, profile.fov_elevation_deg, profile.azimuth_resolution_deg,
-                              profile.elevation_resolution_deg, profile.range_resolution_m,
-                              profile.velocity_resolution_m_per_s, self.clutter_min_range_m, max_range_m)
-        detector = (CaCfar(self.cfar_pfa, self.cfar_reference_cells) if self.detector == "cfar"
-                    else FixedThreshold())
         wind = np.asarray(data.conditions.wind_velocity_m_per_s, dtype=float)
-        cells = clutter_cells(h, grid, radar_wavelength_m(profile.frequency_hz), wind - ego_m_per_s, constant,
-                              det.threshold_db, gamma, detector)
-        diag = {"detector": self.detector}
+        cells = clutter_cells(setup.hydrometeors, setup.grid, setup.wavelength_m, wind - ego_m_per_s, constant,
+                              det.threshold_db, gamma, setup.detector)
+        return cells, dict(setup.diagnostics)
+
+
+@dataclass(frozen=True)
+class _ClutterSetup:
+    """What a precipitation model's clutter takes from its parameters and the radar profile alone, the same for
+    every frame of a run (:func:`per_profile`): the particles, the resolution grid (None: the clutter's ranges lie
+    beyond the profile's), the detector and the wavelength. Made once, they are also the same objects for the
+    clutter's table caches (found by identity, not compared field by field)."""
+
+    hydrometeors: Hydrometeors
+    grid: ResolutionGrid | None
+    detector: CaCfar | FixedThreshold
+    wavelength_m: float
+    diagnostics: dict
+
+    @staticmethod
+    def of(model: PrecipitationRadar, profile: RadarProfile, planar: bool) -> _ClutterSetup | None:
+        """None when the model makes no clutter (``clutter: false`` or no particles)."""
+        profile = grid_profile(profile, planar)
+        h = model.hydrometeors(profile)
+        if not model.clutter or h is None:
+            return None
+        max_range_m = min(model.clutter_max_range_m, profile.max_range_m)
+        grid = None if max_range_m < model.clutter_min_range_m + profile.range_resolution_m else ResolutionGrid(
+            profile.fov_azimuth_deg, profile.fov_elevation_deg, profile.azimuth_resolution_deg,
+            profile.elevation_resolution_deg, profile.range_resolution_m, profile.velocity_resolution_m_per_s,
+            model.clutter_min_range_m, max_range_m)
+        detector = CaCfar(model.cfar_pfa, model.cfar_reference_cells) if model.detector == "cfar" else FixedThreshold()
+        diagnostics = {"detector": model.detector}
         if isinstance(detector, CaCfar):
-            diag["cfar_multiplier_db"] = float(10 * np.log10(detector.multiplier))
-        return cells, diag
+            diagnostics["cfar_multiplier_db"] = float(10 * np.log10(detector.multiplier))
+        return _ClutterSetup(h, grid, detector, radar_wavelength_m(profile.frequency_hz), diagnostics)
+
+
+MAX_PER_PROFILE = 32
+_per_profile: dict[tuple, tuple] = {}        # (build, model id, profile id, planar) → (model, profile, value)
+
+
+def per_profile(model: Model, profile: RadarProfile, planar: bool, build: Callable) -> Any:
+    """``build(model, profile, planar)``, made once per model, profile and geometry instead of per frame (a run's
+    frames share one profile object and, without drawn parameters, one model object); they are held with it, so
+    that their ids identify them."""
+    key = (build, id(model), id(profile), planar)
+    held = _per_profile.get(key)
+    if held is None:
+        if len(_per_profile) >= MAX_PER_PROFILE:       # models with drawn parameters: one per frame
+            _per_profile.clear()
+        held = _per_profile[key] = (model, profile, build(model, profile, planar))
+    return held[2]
