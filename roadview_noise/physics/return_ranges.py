@@ -76,6 +76,34 @@ def add_rows(positions, rows, inv_bin, hist, valid):       # pragma: no cover - 
 
 
 @jit
+def _write_rows(out, mask, rows, inv_bin, hist, valid):       # pragma: no cover - compiled
+    """``out[mask] = rows`` (in order) with every point of ``out`` counted into ``hist`` and ``valid``
+    (:func:`add_point`) on the way: (returns, their largest x² + y² + z²)."""
+    returns, max_r2, top, k = 0, 0.0, hist.shape[0] - 1, 0
+    for j in range(out.shape[0]):
+        if mask[j]:
+            for c in range(3):
+                out[j, c] = rows[k, c]
+            k += 1
+        returns, max_r2 = add_point(out, j, inv_bin, top, hist, valid, returns, max_r2)[2:]
+    return returns, max_r2
+
+
+def write_rows(positions: np.ndarray, mask: np.ndarray, rows: np.ndarray, profile) -> None:
+    """``positions[mask] = rows`` for a model that moves points (``positions``: its output, not yet handed on);
+    while a chain records metrics (:func:`wanted`) the output's geometry is counted in the same pass and noted
+    (float64 C-contiguous arrays; the metrics would read a converted copy of any other)."""
+    if not (wanted() and positions.dtype == np.float64 and positions.flags.c_contiguous):
+        positions[mask] = rows
+        return
+    n_bins = bin_count(profile)
+    hist, valid = np.zeros(n_bins, np.int64), np.empty(len(positions), np.bool_)
+    returns, max_r2 = _write_rows(positions, mask, np.ascontiguousarray(rows, dtype=np.float64), 1.0 / RANGE_BIN_M,
+                                  hist, valid)
+    note(positions, n_bins, geometry_of(returns, hist, max_r2, valid))
+
+
+@jit
 def geometry_of(returns, hist, max_r2, valid):       # pragma: no cover - compiled
     """The geometry as :func:`noted` gives it: (returns, the bins up to the farthest return's, its range m, the
     per-point return mask)."""
