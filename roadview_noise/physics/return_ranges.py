@@ -4,8 +4,9 @@ geometry half of a cloud's metrics summary (:mod:`roadview_noise.metrics`, issue
 A return is a point with 0 < x² + y² + z² < ∞ (a grid's no-return cells are all-zero); its range bin is
 ⌊√(x² + y² + z²) / 10 m⌋, the last bin catching anything farther (:func:`range_bin`; the metrics' own pass computes
 the same expression inline, where a call compiled 15–25 % slower). A model's loop that reads and writes every
-position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`) counts it on the way
-while the chain records metrics (:func:`collect`) and notes the geometry of its input and output arrays
+position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`, the alignment's
+:func:`write_rows`) counts it on the way while the chain records metrics (:func:`collect`) and notes the geometry of
+its input and output arrays
 (:func:`note`), so the metrics read neither array's positions again (:func:`noted`); the metrics note what they
 count themselves, so an array a step hands on unchanged is counted once. Same operations on the same values: the
 same geometry either way.
