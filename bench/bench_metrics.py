@@ -47,8 +47,9 @@ code and on with this tree's, interleaved in this process (the order rotates eve
 archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py``, ``luminance.py`` and
 ``physics/lidar_output.py`` (the LiDAR weather models' output cloud, which counts return geometry for the metrics)
 are loaded beside this tree's (its metrics bound to its luminance, their other relative imports resolving to this
-tree's modules, so use it for versions that differ in those three files) and its step records are turned into
-manifest dicts as its ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
+tree's modules, so use it for versions that differ in those three files; the alignment's ``return_ranges.write_rows``
+is swapped too, for a plain scatter where DIR has none) and its step records are turned into manifest dicts as its
+``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
 While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
 unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
 The first runs of each check that both versions write the same metrics (but those named by ``--changed``, e.g.
@@ -72,7 +73,8 @@ with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD,
 what ``--whole-run`` and ``bench/run.py`` run on —, radar PCD), and the real OS1-128 scan
 ``../shared/data/os1-128/scan0.bin`` (107 647 points, its own beam table) when present. Recipes: camera weather
 (fog, rain, snow), CNF05 (fog →
-windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR weather (fog, rain, snow), CNF20, CNF22;
+windscreen), CNF10–12 (weather → JPEG), CNF13 (low light → rain); LiDAR weather (fog, rain, snow), CNF20, CNF22,
+CNF23;
 radar rain and CNF25.
 
     .venv/bin/python bench/bench_metrics.py [--repeat N] [--recipes cnf20,cnf22]
@@ -135,6 +137,7 @@ CASES = {
     "weather-snow-lidar": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
     "cnf20": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
     "cnf22": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
+    "cnf23": ("lidar/os1-128-grid/", "lidar/os1-128/", "real"),
     "weather-rain-radar": ("radar/",),
     "cnf25-radar": ("radar/",),
 }
@@ -142,8 +145,8 @@ REAL_SCAN = "lidar/os1-128-real/seq/000000.bin"
 FRAMES = 3          # per-file modes: distinct frames of the sample drive, cycled through
 #: whole runs: recipe → the sensor tree of bench/run.py it runs on
 WHOLE_RUN = {"weather-rain-lidar": "lidar", "weather-fog-lidar": "lidar", "weather-snow-lidar": "lidar",
-             "cnf20": "lidar", "cnf22": "lidar", "cnf10": "camera", "cnf11": "camera", "cnf12": "camera",
-             "cnf05": "camera", "cnf25-radar": "radar"}
+             "cnf20": "lidar", "cnf22": "lidar", "cnf23": "lidar", "cnf10": "camera", "cnf11": "camera",
+             "cnf12": "camera", "cnf05": "camera", "cnf25-radar": "radar"}
 
 
 def recipe_file(name: str, metrics: bool, real: bool, tmp: Path) -> Path:
@@ -213,12 +216,14 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
     if not tasks:
         return None
     versions = {"base": _baseline_version(baseline),
-                "this": (this_metrics, compound.StepRecord.as_entry, luminance, lidar_weather.assemble)}
+                "this": (this_metrics, compound.StepRecord.as_entry, luminance, lidar_weather.assemble,
+                         return_ranges.write_rows)}
     collect = return_ranges.collect
 
     def once(kind: str, task=tasks[0]) -> tuple[float, dict]:
         if kind != "off":
-            module, compound.StepRecord.as_entry, lum, lidar_weather.assemble = versions[kind]
+            module, compound.StepRecord.as_entry, lum, lidar_weather.assemble, return_ranges.write_rows = \
+                versions[kind]
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
             sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = lum
         if kind == "base" and not hasattr(module, "return_ranges"):     # models note no geometry for it
@@ -231,6 +236,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = this_metrics
             sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
             compound.StepRecord.as_entry, lidar_weather.assemble = versions["this"][1], versions["this"][3]
+            return_ranges.write_rows = versions["this"][4]
             return_ranges.collect = collect
         if "error" in entry:
             raise RuntimeError(f"{task.sample.relpath}: {entry['error']}")
@@ -267,9 +273,10 @@ def _comparable(results: list) -> list:
 
 
 def _baseline_version(tree: Path) -> tuple:
-    """(metrics module, ``StepRecord.as_entry``, luminance module, LiDAR ``assemble``) of another version of the code
-    (``--baseline``): its ``luminance.py``, its ``metrics.py`` bound to it and its ``physics/lidar_output.py`` (the
-    weather models' output cloud, which counts return geometry for the metrics)."""
+    """(metrics module, ``StepRecord.as_entry``, luminance module, LiDAR ``assemble``, ``return_ranges.write_rows``)
+    of another version of the code (``--baseline``): its ``luminance.py``, its ``metrics.py`` bound to it, its
+    ``physics/lidar_output.py`` (the weather models' output cloud, which counts return geometry for the metrics) and,
+    for the alignment's writes, this tree's ``write_rows`` if it has one, else a plain scatter (no geometry noted)."""
     luminance_base = _load_beside(tree, "luminance")
     try:
         sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance_base
@@ -277,8 +284,14 @@ def _baseline_version(tree: Path) -> tuple:
     finally:
         sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
     has_entry = "def as_entry(" in (tree / "roadview_noise" / "compound.py").read_text()
+    has_rows = "def write_rows(" in (tree / "roadview_noise" / "physics" / "return_ranges.py").read_text()
     return (module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict), luminance_base,
-            _load_beside(tree, "physics.lidar_output").assemble)
+            _load_beside(tree, "physics.lidar_output").assemble, return_ranges.write_rows if has_rows else _scatter)
+
+
+def _scatter(positions: np.ndarray, mask: np.ndarray, rows: np.ndarray, profile) -> None:
+    """``return_ranges.write_rows`` of a version without it: the alignment's plain ``positions[mask] = rows``."""
+    positions[mask] = rows
 
 
 def _load_beside(tree: Path, name: str):

@@ -4,8 +4,9 @@ geometry half of a cloud's metrics summary (:mod:`roadview_noise.metrics`, issue
 A return is a point with 0 < x² + y² + z² < ∞ (a grid's no-return cells are all-zero); its range bin is
 ⌊√(x² + y² + z²) / 10 m⌋, the last bin catching anything farther (:func:`range_bin`; the metrics' own pass computes
 the same expression inline, where a call compiled 15–25 % slower). A model's loop that reads and writes every
-position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`) counts it on the way
-while the chain records metrics (:func:`collect`) and notes the geometry of its input and output arrays
+position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`, the alignment's
+:func:`write_rows`) counts it on the way while the chain records metrics (:func:`collect`) and notes the geometry of
+its input and output arrays
 (:func:`note`), so the metrics read neither array's positions again (:func:`noted`); the metrics note what they
 count themselves, so an array a step hands on unchanged is counted once. Same operations on the same values: the
 same geometry either way.
@@ -73,6 +74,34 @@ def add_rows(positions, rows, inv_bin, hist, valid):       # pragma: no cover - 
     for j in rows:
         returns, max_r2 = add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2)[2:]
     return returns, max_r2
+
+
+@jit
+def _write_rows(out, mask, rows, inv_bin, hist, valid):       # pragma: no cover - compiled
+    """``out[mask] = rows`` (in order) with every point of ``out`` counted into ``hist`` and ``valid``
+    (:func:`add_point`) on the way: (returns, their largest x² + y² + z²)."""
+    returns, max_r2, top, k = 0, 0.0, hist.shape[0] - 1, 0
+    for j in range(out.shape[0]):
+        if mask[j]:
+            for c in range(3):
+                out[j, c] = rows[k, c]
+            k += 1
+        returns, max_r2 = add_point(out, j, inv_bin, top, hist, valid, returns, max_r2)[2:]
+    return returns, max_r2
+
+
+def write_rows(positions: np.ndarray, mask: np.ndarray, rows: np.ndarray, profile) -> None:
+    """``positions[mask] = rows`` for a model that moves points (``positions``: its output, not yet handed on);
+    while a chain records metrics (:func:`wanted`) the output's geometry is counted in the same pass and noted
+    (float64 C-contiguous arrays; the metrics would read a converted copy of any other)."""
+    if not (wanted() and positions.dtype == np.float64 and positions.flags.c_contiguous):
+        positions[mask] = rows
+        return
+    n_bins = bin_count(profile)
+    hist, valid = np.zeros(n_bins, np.int64), np.empty(len(positions), np.bool_)
+    returns, max_r2 = _write_rows(positions, mask, np.ascontiguousarray(rows, dtype=np.float64), 1.0 / RANGE_BIN_M,
+                                  hist, valid)
+    note(positions, n_bins, geometry_of(returns, hist, max_r2, valid))
 
 
 @jit

@@ -10,6 +10,7 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
+from ...physics import return_ranges
 from ...physics.lidar_geometry import has_return, ring_source, velodyne_to_xyz, with_ring, xyz_to_velodyne
 from ...registry import register
 
@@ -79,12 +80,11 @@ class AlignmentLidar(Model):
         before = data.positions_m[hit]
         r, alpha, omega = xyz_to_velodyne(before)
         after = velodyne_to_xyz(r, alpha + d_alpha, omega + d_omega)
-        positions = data.positions_m.copy()
-        positions[hit] = after
-
         if self.mode == "per_beam":                    # the misaligned sensor's beam table, for later steps
             data = dataclasses.replace(data, profile=tilted_beams(data.profile, state["azimuth_offset_deg"],
                                                                   state["elevation_offset_deg"]))
+        positions = data.positions_m.copy()
+        return_ranges.write_rows(positions, hit, after, data.profile)     # with its geometry for the metrics
         shift = after - before
         squared_shift = shift[:, 0] ** 2 + shift[:, 1] ** 2 + shift[:, 2] ** 2
         diagnostics.update(
