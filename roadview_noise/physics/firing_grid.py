@@ -129,10 +129,11 @@ def measured_step_rad(gap: np.ndarray, returns: int) -> tuple[float, str]:
     return step, ""
 
 
-@jit
+@jit(error_model="numpy")
 def _refit_step(gap):       # pragma: no cover - compiled
     """:func:`measured_step_rad`'s seed (the 10th percentile) and least-squares refits: (the step, the fraction of
-    the last refit's gaps within 0.15 step of a whole number)."""
+    the last refit's gaps within 0.15 step of a whole number). A refit without gaps gives NaN, as NumPy's did (the
+    NumPy error model: no ZeroDivisionError from compiled code)."""
     step = np.partition(gap, len(gap) // 10)[len(gap) // 10]
     near = 0.0
     for most_steps in (2, 4, MAX_GAP_STEPS, MAX_GAP_STEPS):
