@@ -235,3 +235,32 @@ def test_measured_step_is_the_numpy_least_squares_refit():
         assert bool(reason) == (regular < 0.8)
         assert (f"({100 * regular:.0f} % of the gaps" in reason) if reason else (
             abs(got - step) < 1e-12 * step and round(2 * np.pi / got) == round(2 * np.pi / step))
+
+
+def test_list_rings_are_each_points_nearest_beam_in_any_order():
+    """:func:`list_points` checks a point against the last recovered beam's interval of z/ρ before searching: its
+    rings equal :func:`lidar_geometry.recover_ring`'s per-point search whether a list holds each beam's points
+    together or in any order, for points on a midpoint between beams, behind the beam origin, at the origin or not
+    finite."""
+    from roadview_noise.physics.firing_grid import list_points
+    from roadview_noise.physics.lidar_geometry import recover_ring, ring_search_table
+
+    profile = os1_128()
+    cloud, _, _ = scan(profile, 256, seed=3)
+    ring_major = np.argsort(cloud.fields["ring"], kind="stable")
+    pos = cloud.positions_m[ring_major] * (1 + 0.02 * np.random.default_rng(4).standard_normal((len(ring_major), 1)))
+    tan_mid = ring_search_table(tuple(profile.beam_elevation_deg))[0]
+    rho_offset = profile.beam_origin_offset_m
+    elevation = np.sort(np.deg2rad(profile.beam_elevation_deg))
+
+    def at(tan):                                        # a point whose z/ρ from the beam origin is ``tan``
+        return [10 + rho_offset, 0, tan * 10 + profile.sensor_z_offset_m]
+
+    edge = [[0, 0, 0], [0, 0, 1], [0, 0, -1], [1e-3, 0, 1], [np.nan, 1, 1], [np.inf, 0, 1],
+            at(np.tan(elevation[40])), at(tan_mid[40]), at(np.tan(elevation[40])),      # on a midpoint after either
+            at(np.tan(elevation[41])), at(tan_mid[40]), [rho_offset, 0, profile.sensor_z_offset_m]]   # beam: higher
+    for positions in (np.concatenate([pos, edge, pos[:50]]), np.concatenate([edge, pos])[::-1]):
+        listed = PointCloud(positions, {"intensity": np.ones(len(positions))}, "lidar", profile)
+        points = list_points(listed, profile)
+        np.testing.assert_array_equal(points.ring, recover_ring(positions, profile))
+        np.testing.assert_array_equal(points.counts, np.bincount(points.ring, minlength=profile.channels))
