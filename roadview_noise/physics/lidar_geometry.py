@@ -95,8 +95,13 @@ def sorted_beam(x, y, z, z_offset, rho_offset, tan_mid):       # pragma: no cove
     top = len(tan_mid)
     if rho < 0 or (rho == 0 and z != 0):             # behind the beam origin: beyond ±90° (atan2 semantics)
         return 0 if z < 0 else top
-    t = z / rho if rho > 0 else 0.0
-    lo, hi = 0, top                                  # count of midpoints <= t
+    return tangent_position(z / rho if rho > 0 else 0.0, tan_mid)
+
+
+@jit(inline="always")
+def tangent_position(t, tan_mid):       # pragma: no cover - compiled
+    """The count of midpoints whose tangent is at most ``t`` (binary search; NaN: 0)."""
+    lo, hi = 0, len(tan_mid)
     while lo < hi:
         mid = (lo + hi) // 2
         if tan_mid[mid] <= t:
