@@ -35,7 +35,8 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import atan2, beam_of, has_return, ring_index, ring_search_table, ring_source
+from .lidar_geometry import atan2, has_return, ring_index, ring_search_table, ring_source, sorted_beam, \
+    tangent_position
 from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
@@ -434,7 +435,9 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
     range_m = np.empty(n if ranges else 0)
     counts = np.zeros(channels, np.int64)
     block = 1024                                        # points whose coordinates stay in the L1 cache
-    x, y, z = np.empty(block), np.empty(block), np.empty(block)
+    x, y, z, t = np.empty(block), np.empty(block), np.empty(block), np.empty(block)
+    low, high, beam = math.inf, -math.inf, 0           # the last recovered beam and its interval of z/ρ
+    s, change, top = 0, 0, len(tan_mid)                 # its sorted position, the change that led to it
     for b0 in range(0, n, block):
         m = min(n, b0 + block) - b0
         for i in range(m):
@@ -448,8 +451,20 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
         for i in range(m):                              # one vectorised loop over contiguous coordinates
             firing[b0 + i] = atan2(y[i], x[i])
         if recover:
-            for i in range(m):
-                ring[b0 + i] = beam_of(x[i], y[i], z[i], z_offset, rho_offset, tan_mid, order)
+            for i in range(m):                          # z/ρ from the beam origin, vectorised (NaN: sorted_beam's)
+                rho = math.sqrt(x[i] * x[i] + y[i] * y[i]) - rho_offset
+                t[i] = (z[i] - z_offset) / rho if rho > 0 else math.nan
+            for i in range(m):                          # the last beam's interval first, then the next beam's in
+                if not (low <= t[i] < high):            # the list's order (the last change repeated), else a search
+                    q = min(max(s + change, 0), top)
+                    if not (q == 0 or tan_mid[q - 1] <= t[i]) or not (q == top or t[i] < tan_mid[q]):
+                        q = (tangent_position(t[i], tan_mid) if t[i] == t[i]
+                             else sorted_beam(x[i], y[i], z[i], z_offset, rho_offset, tan_mid))
+                    change, s = q - s, q
+                    low = tan_mid[s - 1] if s > 0 else -math.inf
+                    high = tan_mid[s] if s < top else math.inf
+                    beam = order[s]
+                ring[b0 + i] = beam
         for p in range(b0, b0 + m):
             b = np.uintp(ring[p])                       # (unsigned: no negative-index wraparound compiled)
             firing[p] += offsets[b]

@@ -83,20 +83,32 @@ def beam_of(x, y, z, z_offset, rho_offset, tan_mid, order):       # pragma: no c
     """The beam of nearest elevation of the point (x, y, z) seen from the beam origin: binary search of ``z/ρ`` among
     the tangents of the midpoints between neighbouring beams (nearest in angle, ties to the higher beam, without an
     arctangent; ``tan_mid``, ``order``: :func:`ring_search_table`)."""
+    return order[sorted_beam(x, y, z, z_offset, rho_offset, tan_mid)]
+
+
+@jit(inline="always")
+def sorted_beam(x, y, z, z_offset, rho_offset, tan_mid):       # pragma: no cover - compiled
+    """:func:`beam_of`'s position among the elevation-sorted beams: the count of midpoints whose tangent is at most
+    ``z/ρ`` (seen from the beam origin)."""
     z = z - z_offset
     rho = math.sqrt(x * x + y * y) - rho_offset
     top = len(tan_mid)
     if rho < 0 or (rho == 0 and z != 0):             # behind the beam origin: beyond ±90° (atan2 semantics)
-        return order[0 if z < 0 else top]
-    t = z / rho if rho > 0 else 0.0
-    lo, hi = 0, top                                  # count of midpoints <= t
+        return 0 if z < 0 else top
+    return tangent_position(z / rho if rho > 0 else 0.0, tan_mid)
+
+
+@jit(inline="always")
+def tangent_position(t, tan_mid):       # pragma: no cover - compiled
+    """The count of midpoints whose tangent is at most ``t`` (binary search; NaN: 0)."""
+    lo, hi = 0, len(tan_mid)
     while lo < hi:
         mid = (lo + hi) // 2
         if tan_mid[mid] <= t:
             lo = mid + 1
         else:
             hi = mid
-    return order[lo]
+    return lo
 
 
 @jit

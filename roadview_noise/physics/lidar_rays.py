@@ -249,18 +249,31 @@ def _ray_signals(positions, intensity, compensated, scale, empty_range_m, step, 
     signal = np.empty(n + empty)
     has = np.empty(n + empty, np.bool_)
     weakest = math.inf
-    known = len(ranges) > 0
-    for i in range(n):
-        ri = ranges[i] if known else math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
-        has[i] = ri > 0 and ri >= min_range_m
-        if has[i]:
-            r[i] = ri
-            signal[i], low = _point_signal(ri, intensity[i], compensated, scale, step)
+    if len(ranges) == 0:                               # one pass over the positions
+        for i in range(n):
+            ri = math.sqrt(positions[i, 0] ** 2 + positions[i, 1] ** 2 + positions[i, 2] ** 2)
+            has[i] = ri > 0 and ri >= min_range_m
+            if has[i]:
+                r[i] = ri
+                signal[i], low = _point_signal(ri, intensity[i], compensated, scale, step)
+                if low < weakest:
+                    weakest = low
+            else:
+                r[i] = empty_range_m
+                signal[i] = 0.0
+    else:                                              # the ranges known: without branches (vectorised), the
+        lows = np.empty(n)                             # weakest apart
+        for i in range(n):
+            ri = ranges[i]
+            h = ri > 0 and ri >= min_range_m
+            value, low = _point_signal(ri, intensity[i], compensated, scale, step)
+            has[i] = h
+            r[i] = ri if h else empty_range_m
+            signal[i] = value if h else 0.0
+            lows[i] = low if h else math.inf
+        for low in lows:
             if low < weakest:
                 weakest = low
-        else:
-            r[i] = empty_range_m
-            signal[i] = 0.0
     r[n:] = listed_range_m
     signal[n:] = 0.0
     has[n:] = False

@@ -4,6 +4,7 @@ cells of its beams × columns grid without a return, with the column count measu
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -235,3 +236,43 @@ def test_measured_step_is_the_numpy_least_squares_refit():
         assert bool(reason) == (regular < 0.8)
         assert (f"({100 * regular:.0f} % of the gaps" in reason) if reason else (
             abs(got - step) < 1e-12 * step and round(2 * np.pi / got) == round(2 * np.pi / step))
+
+
+def test_list_rings_are_each_points_nearest_beam_in_any_order():
+    """:func:`list_points` checks a point against the last recovered beam's interval of z/ρ, then the next beam's in
+    the list's order, before searching: its rings equal :func:`lidar_geometry.recover_ring`'s per-point search
+    whether a list holds each beam's points together, goes column by column (either way) or has any order, for
+    points on a midpoint between beams, behind the beam origin, at the origin or not finite."""
+    from roadview_noise.physics.firing_grid import list_points
+    from roadview_noise.physics.lidar_geometry import recover_ring, ring_search_table
+
+    profile = os1_128()
+    cloud, _, _ = scan(profile, 256, seed=3)
+    rng = np.random.default_rng(4)
+    pos = cloud.positions_m * (1 + 0.02 * rng.standard_normal((len(cloud), 1)))
+    beam_by_beam = np.argsort(cloud.fields["ring"], kind="stable")
+    column_by_column = np.lexsort((cloud.fields["ring"], cloud.fields["time"]))
+    tan_mid = ring_search_table(tuple(profile.beam_elevation_deg))[0]
+    rho_offset = profile.beam_origin_offset_m
+    elevation = np.sort(np.deg2rad(profile.beam_elevation_deg))
+
+    def at(tan):                                        # a point whose z/ρ from the beam origin is ``tan`` (to the bit)
+        x, z0 = 10 + rho_offset, profile.sensor_z_offset_m
+        rho = math.sqrt(x * x) - rho_offset
+        z = tan * rho + z0
+        for _ in range(8):
+            if (z - z0) / rho != tan:
+                z = np.nextafter(z, np.inf if (z - z0) / rho < tan else -np.inf)
+        return [x, 0, z]
+
+    beam = [at(t) for t in np.tan(elevation)]
+    edge = [[0, 0, 0], [0, 0, 1], [0, 0, -1], [1e-3, 0, 1], [np.nan, 1, 1], [np.inf, 0, 1],
+            beam[40], at(tan_mid[40]), beam[40], beam[41], at(tan_mid[40]),   # on a midpoint (the higher beam) after
+            beam[38], beam[39], at(tan_mid[40]),                               # either beam, and where the list's
+            [rho_offset, 0, profile.sensor_z_offset_m]]                        # order predicts the lower one
+    for positions in (np.concatenate([pos[beam_by_beam], edge, pos[:50]]), np.concatenate([edge, pos])[::-1],
+                      np.concatenate([pos[column_by_column], edge]), pos[column_by_column][::-1]):
+        listed = PointCloud(positions, {"intensity": np.ones(len(positions))}, "lidar", profile)
+        points = list_points(listed, profile)
+        np.testing.assert_array_equal(points.ring, recover_ring(positions, profile))
+        np.testing.assert_array_equal(points.counts, np.bincount(points.ring, minlength=profile.channels))
