@@ -608,8 +608,7 @@ def frame_cells(tables: ClutterTables, radar_constant_db: float, threshold_db: f
     g = tables.pair_rcs_per_m3
     _tier_bound_kernel(e, r_bins, edges.shell_volume_per_sr_m3, tables.tier_ratios, tables.minus_pair_rcs_per_m3,
                        g[0] if len(g) else math.inf, ratio, bounds, cells_per_tier)
-    w, table, saturated = tables.count_table
-    expected = float(np.interp(np.log(ratio), w, table, left=0.0, right=saturated).sum())
+    expected = _expected_count(np.log(ratio), *tables.count_table)
     cells = ClutterCells(tables, radar_constant_db, threshold_db, gamma_db_per_km, ratio, bounds, cells_per_tier,
                          expected)
     return cells, None if positions_m is None else _point_ratios(tables, e[nb:], positions_m, v_r_m_per_s, ranges_m)
@@ -626,9 +625,10 @@ def _tier_bound_kernel(e, r_centre, shell, tiers, minus_g, g_max, ratio, bounds,
         ratio[k] = shell[k] / (e[k] * r2 * r2)
         if tiers[nt - 1] / ratio[k] >= g_max:
             continue
-        for j in range(nt):
+        lo = 0
+        for j in range(nt):                  # the bounds rise with j (−tiers[j]/ratio does)
             key = -(tiers[j] / ratio[k])
-            lo, hi = 0, len(minus_g)
+            hi = len(minus_g)
             if key == key:                   # (NaN: after every value, as NumPy sorts it)
                 while lo < hi:
                     mid = (lo + hi) >> 1
@@ -640,6 +640,97 @@ def _tier_bound_kernel(e, r_centre, shell, tiers, minus_g, g_max, ratio, bounds,
             cells_per_tier[j] += lo
     for j in range(nt - 1, 0, -1):
         cells_per_tier[j] -= cells_per_tier[j - 1]
+
+
+@jit
+def _expected_count(log_ratio, w, table, saturated):
+    """``np.interp(log_ratio, w, table, left=0, right=saturated).sum()`` bit for bit: NumPy's interpolation (the
+    interval ``w[j] ≤ x < w[j+1]``, the table's value at a node, its slope formula and NaN fallbacks) and its
+    pairwise sum (:func:`_pairwise_sum`)."""
+    values = np.empty(len(log_ratio))
+    last = len(w) - 1
+    for i in range(len(log_ratio)):
+        x = log_ratio[i]
+        if x != x or x < w[0] or x >= w[last]:
+            values[i] = x if x != x else 0.0 if x < w[0] else saturated if x > w[last] else table[last]
+            continue
+        lo, hi = 0, last                     # w[lo] ≤ x < w[hi]
+        while hi - lo > 1:
+            mid = (lo + hi) >> 1
+            if w[mid] <= x:
+                lo = mid
+            else:
+                hi = mid
+        if w[lo] == x:
+            values[i] = table[lo]
+            continue
+        slope = (table[lo + 1] - table[lo]) / (w[lo + 1] - w[lo])
+        v = slope * (x - w[lo]) + table[lo]
+        if v != v:
+            v = slope * (x - w[lo + 1]) + table[lo + 1]
+            if v != v and table[lo] == table[lo + 1]:
+                v = table[lo]
+        values[i] = v
+    return 0.0 + _pairwise_sum(values)
+
+
+@jit
+def _pairwise_sum(a):
+    """NumPy's float64 sum of ``a`` (its ``pairwise_sum``, which a reduction adds to its identity 0): blocks of
+    ≤ 128 values (:func:`_block_sum`), larger ones halved (at a multiple of 8), left half + right half. The
+    halving is walked with a stack (numba's cache does not load recursive functions)."""
+    starts, sizes = np.empty(64, np.int64), np.empty(64, np.int64)
+    lefts, on_right = np.empty(64), np.zeros(64, np.bool_)
+    starts[0], sizes[0], top, value, descending = 0, len(a), 1, 0.0, True
+    while True:
+        i = top - 1
+        if descending:
+            if sizes[i] <= 128:
+                value = _block_sum(a, starts[i], sizes[i])
+                top -= 1
+                descending = False
+            else:                                            # the left half first
+                starts[top], sizes[top], on_right[i] = starts[i], _left_size(sizes[i]), False
+                top += 1
+            continue
+        if top == 0:
+            return value
+        if on_right[i]:
+            value = lefts[i] + value
+            top -= 1
+        else:                                                # then the right half
+            half = _left_size(sizes[i])
+            lefts[i], on_right[i] = value, True
+            starts[top], sizes[top] = starts[i] + half, sizes[i] - half
+            top += 1
+            descending = True
+
+
+@jit
+def _left_size(n):
+    half = n // 2
+    return half - half % 8
+
+
+@jit
+def _block_sum(a, start, n):
+    """NumPy's pairwise sum of ``n ≤ 128`` values: in order below 8, else 8 accumulators, combined pairwise, then
+    the rest in order."""
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res += a[start + i]
+        return res
+    r = a[start:start + 8].copy()
+    i = 8
+    while i < n - n % 8:
+        for j in range(8):
+            r[j] += a[start + i + j]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    for k in range(i, n):
+        res += a[start + k]
+    return res
 
 
 @dataclass(frozen=True)
