@@ -41,6 +41,7 @@ from .dsd import capped_snow_law, exponential_moment, marshall_palmer
 from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
 from .compiled import jit
+from .numpy_sums import numpy_sum
 from .radar_cfar import PROBABILITY_TIERS, Detector, FixedThreshold, tier_ratios
 from .radar_link import SPEED_OF_LIGHT_M_PER_S, water_permittivity
 from ..table_cache import disk_cached
@@ -646,7 +647,7 @@ def _tier_bound_kernel(e, r_centre, shell, tiers, minus_g, g_max, ratio, bounds,
 def _expected_count(log_ratio, w, table, saturated):
     """``np.interp(log_ratio, w, table, left=0, right=saturated).sum()`` bit for bit: NumPy's interpolation (the
     interval ``w[j] ≤ x < w[j+1]``, the table's value at a node, its slope formula and NaN fallbacks) and its
-    pairwise sum (:func:`_pairwise_sum`)."""
+    sum (:func:`~roadview_noise.physics.numpy_sums.numpy_sum`)."""
     values = np.empty(len(log_ratio))
     last = len(w) - 1
     for i in range(len(log_ratio)):
@@ -671,66 +672,7 @@ def _expected_count(log_ratio, w, table, saturated):
             if v != v and table[lo] == table[lo + 1]:
                 v = table[lo]
         values[i] = v
-    return 0.0 + _pairwise_sum(values)
-
-
-@jit
-def _pairwise_sum(a):
-    """NumPy's float64 sum of ``a`` (its ``pairwise_sum``, which a reduction adds to its identity 0): blocks of
-    ≤ 128 values (:func:`_block_sum`), larger ones halved (at a multiple of 8), left half + right half. The
-    halving is walked with a stack (numba's cache does not load recursive functions)."""
-    starts, sizes = np.empty(64, np.int64), np.empty(64, np.int64)
-    lefts, on_right = np.empty(64), np.zeros(64, np.bool_)
-    starts[0], sizes[0], top, value, descending = 0, len(a), 1, 0.0, True
-    while True:
-        i = top - 1
-        if descending:
-            if sizes[i] <= 128:
-                value = _block_sum(a, starts[i], sizes[i])
-                top -= 1
-                descending = False
-            else:                                            # the left half first
-                starts[top], sizes[top], on_right[i] = starts[i], _left_size(sizes[i]), False
-                top += 1
-            continue
-        if top == 0:
-            return value
-        if on_right[i]:
-            value = lefts[i] + value
-            top -= 1
-        else:                                                # then the right half
-            half = _left_size(sizes[i])
-            lefts[i], on_right[i] = value, True
-            starts[top], sizes[top] = starts[i] + half, sizes[i] - half
-            top += 1
-            descending = True
-
-
-@jit
-def _left_size(n):
-    half = n // 2
-    return half - half % 8
-
-
-@jit
-def _block_sum(a, start, n):
-    """NumPy's pairwise sum of ``n ≤ 128`` values: in order below 8, else 8 accumulators, combined pairwise, then
-    the rest in order."""
-    if n < 8:
-        res = -0.0
-        for i in range(n):
-            res += a[start + i]
-        return res
-    r = a[start:start + 8].copy()
-    i = 8
-    while i < n - n % 8:
-        for j in range(8):
-            r[j] += a[start + i + j]
-        i += 8
-    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
-    for k in range(i, n):
-        res += a[start + k]
-    return res
+    return numpy_sum(values)
 
 
 @dataclass(frozen=True)

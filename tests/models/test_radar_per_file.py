@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from roadview_noise.io.pointcloud import read_pointcloud
-from roadview_noise.models.radar.detection import sorted_median
+from roadview_noise.models.radar.detection import _median_of_finite
 from roadview_noise.physics.radar_cfar import PROBABILITY_TIERS, CaCfar, FixedThreshold, tier_ratios
 from roadview_noise.physics.radar_clutter import (ResolutionGrid, clutter_cells, generate_clutter, rain_drops,
                                                   snow_flakes)
@@ -26,11 +26,16 @@ WAVELENGTH_M = 299_792_458.0 / 77e9
 
 
 @settings(max_examples=200, deadline=None)
-@given(arrays(np.float64, st.integers(1, 80), elements=st.floats(-1e6, 1e6, allow_nan=False)))
-def test_sorted_median_is_numpys_median_bit_for_bit(values):
-    # equal order statistics are the same bits, but for the sign of a zero (partition and sort may pick −0 or +0)
-    assert np.float64(sorted_median(values)).tobytes() == np.float64(np.median(values)).tobytes() or \
-        sorted_median(values) == 0.0 == np.median(values)
+@given(arrays(np.float64, st.integers(1, 80), elements=st.floats(-1e6, 1e6, allow_nan=False)),
+       st.sampled_from([np.nan, np.inf, -np.inf]))
+def test_radar_constant_median_is_numpys_median_bit_for_bit(values, bad):
+    # the finite values' median: equal order statistics are the same bits, but for the sign of a zero (partition and
+    # sort may pick −0 or +0)
+    with_bad = np.insert(values, len(values) // 2, bad)
+    rcs = np.zeros(len(with_bad), dtype=np.float32)
+    got = _median_of_finite(with_bad, rcs, np.zeros(len(with_bad)))
+    assert np.float64(got).tobytes() == np.float64(np.median(values)).tobytes() or got == 0.0 == np.median(values)
+    assert np.isnan(_median_of_finite(np.full(3, bad), rcs[:3], np.zeros(3)))
 
 
 @pytest.mark.parametrize("detector", [CaCfar(1e-4, 16), CaCfar(5e-2, 4), FixedThreshold()])

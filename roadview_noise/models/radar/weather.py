@@ -4,6 +4,7 @@ from their parameters."""
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
@@ -12,12 +13,14 @@ import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
+from ...physics.compiled import jit
+from ...physics.numpy_sums import numpy_sum
 from ...physics.radar_cfar import CaCfar, FixedThreshold
 from ...physics.radar_clutter import (SCATTERING, ClutterCells, ClutterTables, Hydrometeors, ResolutionGrid,
                                       clutter_tables, frame_cells, generate_clutter, radar_wavelength_m)
 from ...io.radar_formats import added_detection_fields
 from ...physics.radar_frame import (ego_velocity_m_per_s, grid_profile, is_planar, new_point_velocity_fields,
-                                    radial_velocity_m_per_s, to_plane)
+                                    point_ranges_m, radial_velocity_m_per_s, to_plane)
 from ...physics.radar_link import detection_range_in_weather_m, two_way_loss_db
 from ...provenance import Effect, mark
 from ...types import PointCloud, RadarProfile
@@ -58,36 +61,60 @@ class RadarWeather(Model):
     def apply(self, data: PointCloud, *, state, drawn, rng):
         profile = profile_of(data)
         gamma, range_in_weather_m = per_profile(self, profile, False, _attenuation)
-        r = data.ranges_m
+        r = point_ranges_m(data)
+        n = len(r)
         det = detection(data, self.snr_threshold_quantile, self.id, r)
         loss = two_way_loss_db(gamma, r)
         planar = is_planar(data, profile)
         ego, ego_source = ego_velocity_m_per_s(data, planar)
         cells, rise, clutter_diag = self.frame_clutter(data, r, det, gamma, ego, planar)
-        margin = det.values_db - loss - det.threshold_db
-        keep = margin >= rise
-        out = mark(with_loss(data, loss), loss > 0, Effect.ATTENUATED).drop(~keep)
-        kept = int(np.count_nonzero(keep))                 # (a boolean sum: ≈ 3 µs each)
+        removed, attenuated = np.empty(n, dtype=bool), np.empty(n, dtype=bool)
+        kept, loss_sum, r_max, r_kept_max, cfar_lost, rise_max, rise_sum = _detection_summary(
+            det.values_db, loss, det.threshold_db, rise, r, removed, attenuated)
+        out = mark(with_loss(data, loss), attenuated, Effect.ATTENUATED).drop(removed)
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
-            "points_in": len(data), "points_removed": len(keep) - kept, "points_kept": kept,
-            "mean_loss_db": float(loss.sum() / len(loss)) if len(loss) else 0.0,     # np.mean's value, less Python
-            "max_range_clear_m": float(r.max()) if len(r) else 0.0,
-            "max_range_m": float(r[keep].max()) if keep.any() else 0.0,
+            "points_in": n, "points_removed": n - kept, "points_kept": kept,
+            "mean_loss_db": loss_sum / n if n else 0.0,     # np.mean's value, less Python
+            "max_range_clear_m": r_max, "max_range_m": r_kept_max,
             "profile_max_range_in_weather_m": range_in_weather_m,
             **det.diagnostics(), **clutter_diag,
         }
         if cells is not None:
-            diagnostics.update({"ego_velocity_m_per_s": [float(v) for v in ego], "ego_velocity_source": ego_source,
+            diagnostics.update({"ego_velocity_m_per_s": ego.tolist(), "ego_velocity_source": ego_source,
                                 "elevation_measured": not planar})
             out, added = _add_clutter(out, data, det, cells, rng, ego, planar)
             diagnostics.update(added)
             if isinstance(cells.detector, CaCfar):
-                diagnostics.update({
-                    "cfar_points_lost": int(np.count_nonzero((margin >= 0) & ~keep)),
-                    "cfar_max_threshold_rise_db": float(rise.max()) if len(rise) else 0.0,
-                    "cfar_mean_threshold_rise_db": float(rise.sum() / len(rise)) if len(rise) else 0.0})
+                diagnostics.update({"cfar_points_lost": cfar_lost, "cfar_max_threshold_rise_db": rise_max,
+                                    "cfar_mean_threshold_rise_db": rise_sum / n if n else 0.0})
         return out, diagnostics
+
+
+@jit
+def _detection_summary(values_db, loss_db, threshold_db, rise_db, ranges_m, removed, attenuated):
+    """Per point: removed unless ``D − L − t ≥ rise``, attenuated where L > 0; and the frame's kept count, ΣL,
+    largest range, largest kept range, CFAR points lost (``D − L ≥ t`` but removed), largest rise and Σ rise — NumPy's
+    sums and maxima (NaN kept) bit for bit, 0 for a maximum over no points."""
+    kept = lost = 0
+    r_max = r_kept_max = rise_max = 0.0
+    for i in range(len(values_db)):
+        margin = values_db[i] - loss_db[i] - threshold_db
+        keep = margin >= rise_db[i]
+        removed[i], attenuated[i] = not keep, loss_db[i] > 0
+        r_max = ranges_m[i] if i == 0 else _nan_max(r_max, ranges_m[i])
+        rise_max = rise_db[i] if i == 0 else _nan_max(rise_max, rise_db[i])
+        if keep:
+            r_kept_max = ranges_m[i] if kept == 0 else _nan_max(r_kept_max, ranges_m[i])
+            kept += 1
+        elif margin >= 0:
+            lost += 1
+    return kept, numpy_sum(loss_db), r_max, r_kept_max, lost, rise_max, numpy_sum(rise_db)
+
+
+@jit
+def _nan_max(a, b):
+    return a if a != a else b if (b != b or b > a) else a
 
 
 def _attenuation(model: RadarWeather, profile: RadarProfile, planar: bool) -> tuple[float, float]:
@@ -191,7 +218,7 @@ class PrecipitationRadar(RadarWeather):
             return None, rise, {"clutter_points": 0}
         constant = radar_constant_db(data, det, ranges_m)
         skipped = ("no rcs_dbsm to calibrate the radar constant" if constant is None else
-                   "no points to estimate the threshold" if not np.isfinite(det.threshold_db) else
+                   "no points to estimate the threshold" if not math.isfinite(det.threshold_db) else
                    "clutter_min_range_m beyond the profile's max_range_m" if setup.grid is None else None)
         if skipped:
             return None, rise, {"clutter_points": 0, "clutter_skipped": skipped}
