@@ -128,12 +128,15 @@ def power_minus_snr_db(cloud: PointCloud) -> float | None:
 
 def with_loss(cloud: PointCloud, loss_db: np.ndarray) -> PointCloud:
     """Lower SNR and power by ``loss_db`` per point, and RCS unless the radar compensates weather losses."""
-    out = {}
-    names = ["snr_db", "power_db"]
-    if not profile_of(cloud).rcs_compensates_weather:
-        names.append("rcs_dbsm")
-    for name in names:
-        if name in cloud.fields:
-            v = cloud.fields[name]
-            out[name] = (v - loss_db).astype(v.dtype, copy=False)
+    out = {name: lowered(cloud.fields[name], loss_db) for name in lossy_fields(cloud)}
     return cloud.with_fields(**out) if out else cloud
+
+
+def lossy_fields(cloud: PointCloud) -> list[str]:
+    """The fields of ``cloud`` that a loss lowers (:func:`with_loss`)."""
+    names = ["snr_db", "power_db"] if profile_of(cloud).rcs_compensates_weather else ["snr_db", "power_db", "rcs_dbsm"]
+    return [name for name in names if name in cloud.fields]
+
+
+def lowered(values: np.ndarray, loss_db: np.ndarray) -> np.ndarray:
+    return (values - loss_db).astype(values.dtype, copy=False)

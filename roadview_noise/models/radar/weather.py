@@ -22,10 +22,10 @@ from ...io.radar_formats import added_detection_fields
 from ...physics.radar_frame import (ego_velocity_m_per_s, grid_profile, is_planar, new_point_velocity_fields,
                                     point_ranges_m, radial_velocity_m_per_s, to_plane)
 from ...physics.radar_link import detection_range_in_weather_m, two_way_loss_db
-from ...provenance import Effect, mark
+from ...provenance import ATTENUATED, KEPT, Effect, mark
 from ...types import PointCloud, RadarProfile
-from .detection import (RCS_STATISTIC, Detection, detection, power_minus_snr_db, profile_of, radar_constant_db,
-                        with_loss)
+from .detection import (RCS_STATISTIC, Detection, detection, lossy_fields, lowered, power_minus_snr_db, profile_of,
+                        radar_constant_db, with_loss)
 
 
 # Below this rate there is no measurable precipitation (and the exponential DSD laws, fitted from ~1 mm/h, lose
@@ -71,7 +71,7 @@ class RadarWeather(Model):
         removed, attenuated = np.empty(n, dtype=bool), np.empty(n, dtype=bool)
         kept, loss_sum, r_max, r_kept_max, cfar_lost, rise_max, rise_sum = _detection_summary(
             det.values_db, loss, det.threshold_db, rise, r, removed, attenuated)
-        out = mark(with_loss(data, loss), attenuated, Effect.ATTENUATED).drop(removed)
+        out = _attenuate_and_drop(data, loss, attenuated, removed)
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
             "points_in": n, "points_removed": n - kept, "points_kept": kept,
@@ -89,6 +89,20 @@ class RadarWeather(Model):
                 diagnostics.update({"cfar_points_lost": cfar_lost, "cfar_max_threshold_rise_db": rise_max,
                                     "cfar_mean_threshold_rise_db": rise_sum / n if n else 0.0})
         return out, diagnostics
+
+
+def _attenuate_and_drop(cloud: PointCloud, loss_db: np.ndarray, attenuated: np.ndarray,
+                        removed: np.ndarray) -> PointCloud:
+    """``mark(with_loss(cloud, loss_db), attenuated, Effect.ATTENUATED).drop(removed)``, for a point list without
+    provenance or attributes yet (a radar file's cloud) in one copy of the kept points instead of three clouds."""
+    if cloud.grid_shape is not None or cloud.origin is not None or cloud.effect is not None or cloud.attributes:
+        return mark(with_loss(cloud, loss_db), attenuated, Effect.ATTENUATED).drop(removed)
+    kept = np.flatnonzero(~removed)
+    fields = {name: np.take(v, kept) for name, v in cloud.fields.items()}
+    loss_kept = np.take(loss_db, kept)
+    fields.update({name: lowered(fields[name], loss_kept) for name in lossy_fields(cloud)})
+    return cloud.replace(positions_m=np.take(cloud.positions_m, kept, axis=0), fields=fields, origin=kept,
+                         effect=np.where(np.take(attenuated, kept), ATTENUATED, KEPT))
 
 
 @jit
