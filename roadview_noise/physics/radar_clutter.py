@@ -479,15 +479,18 @@ class ClutterTables:
     tier_ratios: np.ndarray
     tier_probabilities: tuple[np.ndarray, np.ndarray, bool]
     edges: GridEdges
+    angular_axes: tuple                   # :func:`_angular_axes` of the edges
     backscatter_per_m: float
 
 
 def clutter_tables(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, relative_velocity_m_per_s,
                    detector: Detector = FixedThreshold()) -> ClutterTables:
     rel = tuple(float(v) for v in relative_velocity_m_per_s)
+    edges = grid_edges(grid)
     return ClutterTables(h, grid, wavelength_m, rel, detector, *_pair_rcs_per_m3(h, grid, wavelength_m, rel),
                          *_rcs_table(h, grid, wavelength_m, rel), _count_table(h, grid, wavelength_m, rel, detector),
-                         tier_ratios(detector), _tier_probabilities(detector.max_probability), grid_edges(grid),
+                         tier_ratios(detector), _tier_probabilities(detector.max_probability), edges,
+                         _angular_axes(edges.azimuth_rad, edges.elevation_rad),
                          backscatter_per_volume_per_m(h, wavelength_m))
 
 
@@ -553,13 +556,12 @@ def _point_ratios(tables: ClutterTables, exp_points: np.ndarray, positions_m: np
                   ranges_m: np.ndarray) -> np.ndarray:
     """:meth:`ClutterCells.ratio_at` from ``exp_points``, the exponentials of the points' :func:`_exponents`."""
     p = np.asarray(positions_m, dtype=float)
-    edges, grid = tables.edges, tables.grid
+    grid = tables.grid
     out = np.empty(len(p))
     dr = grid.range_resolution_m
-    _point_ratio_kernel(point_angles(p), *_angular_axes(edges.azimuth_rad, edges.elevation_rad),
-                        np.asarray(v_r_m_per_s, dtype=float), grid.doppler_resolution_m_per_s,
-                        tables.rcs_table, tables.doppler_bin_min - 1, np.asarray(ranges_m, dtype=float), dr,
-                        dr ** 3 / 12, exp_points, out)
+    _point_ratio_kernel(point_angles(p), *tables.angular_axes, np.asarray(v_r_m_per_s),
+                        grid.doppler_resolution_m_per_s, tables.rcs_table, tables.doppler_bin_min - 1,
+                        np.asarray(ranges_m, dtype=float), dr, dr ** 3 / 12, exp_points, out)
     return out
 
 
@@ -626,11 +628,17 @@ def _tier_bound_kernel(e, r_centre, shell, tiers, minus_g, g_max, ratio, bounds,
         ratio[k] = shell[k] / (e[k] * r2 * r2)
         if tiers[nt - 1] / ratio[k] >= g_max:
             continue
-        lo = 0
-        for j in range(nt):                  # the bounds rise with j (−tiers[j]/ratio does)
+        lo, n = 0, len(minus_g)
+        for j in range(nt):                  # the bounds rise with j (−tiers[j]/ratio does): gallop from the last
             key = -(tiers[j] / ratio[k])
-            hi = len(minus_g)
-            if key == key:                   # (NaN: after every value, as NumPy sorts it)
+            if key != key:                   # NaN: after every value, as NumPy sorts it
+                lo = n
+            elif lo < n and minus_g[lo] < key:
+                last, step, hi = lo, 1, lo + 1       # minus_g[last] < key; the bound lies in (last, hi]
+                while hi < n and minus_g[hi] < key:
+                    last, step = hi, 2 * step
+                    hi = last + step
+                lo, hi = last + 1, min(hi, n)
                 while lo < hi:
                     mid = (lo + hi) >> 1
                     if minus_g[mid] < key:

@@ -112,7 +112,8 @@ def test_detection_summary_and_attenuate_and_drop_equal_the_numpy_steps():
     """The compiled masks and diagnostics of a radar weather step, and its one-copy attenuate-and-drop, equal the
     NumPy expressions and ``mark(with_loss(…)).drop(…)``, also for a cloud that has provenance already."""
     src = ROOT / "sample_data" / "radar" / "seq0"
-    cloud = read_pointcloud(sorted(src.glob("*.pcd"))[0], sensor="radar", profile=load_radar_profile(src / "radar.yaml"))
+    profile = load_radar_profile(src / "radar.yaml")
+    cloud = read_pointcloud(sorted(src.glob("*.pcd"))[0], sensor="radar", profile=profile)
     rng = np.random.default_rng(1)
     n = len(cloud)
     r = np.linalg.norm(cloud.positions_m, axis=1)
