@@ -95,7 +95,8 @@ def radial_velocity_m_per_s(cloud: PointCloud, compensated: bool = False) -> np.
 def ego_velocity_from_data(cloud: PointCloud, planar: bool) -> tuple[np.ndarray | None, float]:
     """Least-squares sensor velocity (m/s, sensor frame) from ``v_r,comp − v_r = v_ego · r̂`` and the fit's RMS
     residual (m/s); (None, nan) without both radial velocities or with too few points to fit."""
-    raw, comp = radial_velocity_m_per_s(cloud), radial_velocity_m_per_s(cloud, compensated=True)
+    comp = radial_velocity_m_per_s(cloud, compensated=True)      # (most clouds have none: the raw one not read)
+    raw = None if comp is None else radial_velocity_m_per_s(cloud)
     if raw is None or comp is None:
         return None, np.nan
     p = cloud.positions_m
