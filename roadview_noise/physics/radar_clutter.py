@@ -37,10 +37,10 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft as sp_fft
 
+from .compiled import jit
 from .dsd import capped_snow_law, exponential_moment, marshall_palmer
 from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
-from .compiled import jit
 from .numpy_sums import numpy_sum
 from .radar_cfar import PROBABILITY_TIERS, Detector, FixedThreshold, tier_ratios
 from .radar_link import SPEED_OF_LIGHT_M_PER_S, water_permittivity
@@ -267,7 +267,8 @@ def _atan2_arguments(positions_m, ys, xs):
 
 @jit
 def _edge_cell(angle, first, scale, n):
-    """``min(max(int((angle − first) scale), 0), n − 1)`` (truncation toward zero, as NumPy's ``astype``)."""
+    """``min(max(int((angle − first) scale), 0), n − 1)`` (truncation toward zero, as NumPy's ``astype``; angles
+    are bounded, so no cast overflows)."""
     f = (angle - first) * scale
     if not f > 0.0:                        # (also NaN, which NumPy's cast sends below 0)
         return 0
@@ -485,6 +486,7 @@ class ClutterTables:
 
 def clutter_tables(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, relative_velocity_m_per_s,
                    detector: Detector = FixedThreshold()) -> ClutterTables:
+    """The tables at ``relative_velocity = wind − ego`` (sensor frame), from the caches that build them."""
     rel = tuple(float(v) for v in relative_velocity_m_per_s)
     edges = grid_edges(grid)
     return ClutterTables(h, grid, wavelength_m, rel, detector, *_pair_rcs_per_m3(h, grid, wavelength_m, rel),
