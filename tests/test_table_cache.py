@@ -17,6 +17,7 @@ import pytest
 
 from roadview_noise import table_cache
 from roadview_noise.executor import ProcessExecutor
+from roadview_noise.models.radar import weather as radar_weather
 from roadview_noise.physics import lidar_medium, lidar_strongest, radar_clutter, radar_cfar
 from roadview_noise.physics.lidar_particles import Beam, ParticleMedium, faint_background
 
@@ -238,6 +239,7 @@ def test_outputs_do_not_depend_on_the_cache(tmp_path, monkeypatch, name, prefix)
         for fn, _ in PHYSICS_TABLES + [(radar_clutter._doppler_shape_tables, ()),
                                        (radar_clutter.cell_doppler_probabilities, ())]:
             fn.cache_clear()                                # a new worker
+        radar_weather._per_profile.clear()                  # (which holds its models' clutter tables)
         out = tmp_path / f"out{i}"
         out.mkdir()
         entry = process(task, RunContext(root / "sample_data", out.resolve(), recipe))

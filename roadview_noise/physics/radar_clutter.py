@@ -37,9 +37,11 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft as sp_fft
 
+from .compiled import jit
 from .dsd import capped_snow_law, exponential_moment, marshall_palmer
 from .fall_speed import atlas_srivastava_sekhon_m_per_s, snow_power_law_m_per_s
 from .mie import efficiency_table
+from .numpy_sums import numpy_sum
 from .radar_cfar import PROBABILITY_TIERS, Detector, FixedThreshold, tier_ratios
 from .radar_link import SPEED_OF_LIGHT_M_PER_S, water_permittivity
 from ..table_cache import disk_cached
@@ -234,14 +236,50 @@ def angular_cell_index(positions_m: np.ndarray, az_edges_rad: np.ndarray, el_edg
     """Flat index ``i_az · n_el + i_el`` of each point's cell on uniform edges (:func:`angular_edges_rad`),
     az = atan2(y, x), el = atan2(z, √(x² + y²)); points outside the field of view fall in the nearest edge cell."""
     p = np.asarray(positions_m, dtype=float)
-    az = np.arctan2(p[:, 1], p[:, 0])
-    el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+    out = np.empty(len(p), dtype=np.int64)
+    _cells_of_angles(point_angles(p), *_angular_axes(az_edges_rad, el_edges_rad), out)
+    return out
+
+
+def point_angles(positions_m: np.ndarray) -> np.ndarray:
+    """Azimuths then elevations of (N, 3) float64 positions, (2N,): NumPy's ``arctan2`` of y, x and of z, √(x² + y²)
+    in one call (its SIMD values, which compiled code would not reproduce bit for bit)."""
+    ys, xs = np.empty(2 * len(positions_m)), np.empty(2 * len(positions_m))
+    _atan2_arguments(positions_m, ys, xs)
+    return np.arctan2(ys, xs)
+
+
+def _angular_axes(az_edges_rad: np.ndarray, el_edges_rad: np.ndarray) -> tuple:
+    """``(az0, az scale, n_az, el0, el scale, n_el)`` of uniform edges for :func:`_cells_of_angles`."""
     n_az, n_el = len(az_edges_rad) - 1, len(el_edges_rad) - 1
-    i_az = np.minimum(np.maximum(((az - az_edges_rad[0]) * (n_az / (az_edges_rad[-1] - az_edges_rad[0])))
-                                 .astype(np.int64), 0), n_az - 1)      # not np.clip: 10 µs of Python per call
-    i_el = np.minimum(np.maximum(((el - el_edges_rad[0]) * (n_el / (el_edges_rad[-1] - el_edges_rad[0])))
-                                 .astype(np.int64), 0), n_el - 1)
-    return i_az * n_el + i_el
+    return (float(az_edges_rad[0]), float(n_az / (az_edges_rad[-1] - az_edges_rad[0])), n_az,
+            float(el_edges_rad[0]), float(n_el / (el_edges_rad[-1] - el_edges_rad[0])), n_el)
+
+
+@jit
+def _atan2_arguments(positions_m, ys, xs):
+    n = len(positions_m)
+    for i in range(n):
+        x, y = positions_m[i, 0], positions_m[i, 1]
+        ys[i], xs[i] = y, x
+        ys[n + i], xs[n + i] = positions_m[i, 2], math.hypot(x, y)
+
+
+@jit
+def _edge_cell(angle, first, scale, n):
+    """``min(max(int((angle − first) scale), 0), n − 1)`` (truncation toward zero, as NumPy's ``astype``; angles
+    are bounded, so no cast overflows)."""
+    f = (angle - first) * scale
+    if not f > 0.0:                        # (also NaN, which NumPy's cast sends below 0)
+        return 0
+    return min(int(f), n - 1) if f < n else n - 1
+
+
+@jit
+def _cells_of_angles(angles, az0, az_scale, n_az, el0, el_scale, n_el, out):
+    n = len(out)
+    for i in range(n):
+        out[i] = _edge_cell(angles[i], az0, az_scale, n_az) * n_el + _edge_cell(angles[n + i], el0, el_scale, n_el)
 
 
 @disk_cached(maxsize=16)
@@ -419,51 +457,134 @@ def _count_table(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float,
     return _read_only(w, np.maximum(expected, 0.0)) + (p_max * len(lg),)
 
 
-@dataclass(frozen=True)
-class ClutterCells:
-    """The resolution cells of one frame that a detector may declare: (angular cell, Doppler bin) pairs sorted by
-    decreasing mean clutter RCS, crossed with the range bins, ``y = μ/σ_t = pair_rcs_per_m3 × range_ratio_per_rcs``.
-    In range bin k, probability tier j (0 … 29) holds the pairs from ``tier_bounds[k, j − 1]`` (0 for j = 0) to
-    ``tier_bounds[k, j] − 1``, whose cells have ``P ≤ 2^{−j} P_max`` (physics/radar_cfar.py ``tier_ratios``); the
-    pairs past ``tier_bounds[k, 29]`` are negligible."""
+@dataclass(frozen=True, eq=False)
+class ClutterTables:
+    """What the clutter of a frame takes from the particles, grid, wavelength, relative velocity (wind − ego) and
+    detector alone (:func:`clutter_tables`; a model holds them for its frames): the (angular cell, Doppler bin)
+    pairs sorted by decreasing ``g = η ΔΩ P`` (and −g, for the searches), the dense look-up of g by cell and bin
+    (``rcs_table``, bin ``m`` in column ``m − doppler_bin_min + 1``), the expected-count table, the detector's
+    tiers and the grid's edges."""
 
     hydrometeors: Hydrometeors
     grid: ResolutionGrid
     wavelength_m: float
     relative_velocity_m_per_s: tuple[float, float, float]
     detector: Detector
+    pair_cell: np.ndarray
+    pair_doppler_bin: np.ndarray
+    pair_rcs_per_m3: np.ndarray
+    minus_pair_rcs_per_m3: np.ndarray
+    doppler_bin_min: int
+    rcs_table: np.ndarray
+    count_table: tuple[np.ndarray, np.ndarray, float]
+    tier_ratios: np.ndarray
+    tier_probabilities: tuple[np.ndarray, np.ndarray, bool]
+    edges: GridEdges
+    angular_axes: tuple                   # :func:`_angular_axes` of the edges
+    backscatter_per_m: float
+
+
+def clutter_tables(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, relative_velocity_m_per_s,
+                   detector: Detector = FixedThreshold()) -> ClutterTables:
+    """The tables at ``relative_velocity = wind − ego`` (sensor frame), from the caches that build them."""
+    rel = tuple(float(v) for v in relative_velocity_m_per_s)
+    edges = grid_edges(grid)
+    return ClutterTables(h, grid, wavelength_m, rel, detector, *_pair_rcs_per_m3(h, grid, wavelength_m, rel),
+                         *_rcs_table(h, grid, wavelength_m, rel), _count_table(h, grid, wavelength_m, rel, detector),
+                         tier_ratios(detector), _tier_probabilities(detector.max_probability), edges,
+                         _angular_axes(edges.azimuth_rad, edges.elevation_rad),
+                         backscatter_per_volume_per_m(h, wavelength_m))
+
+
+@dataclass(frozen=True, eq=False)
+class ClutterCells:
+    """The resolution cells of one frame that a detector may declare: the pairs of its :class:`ClutterTables`
+    crossed with the range bins, ``y = μ/σ_t = pair_rcs_per_m3 × range_ratio_per_rcs``. In range bin k, probability
+    tier j (0 … 29) holds the pairs from ``tier_bounds[k, j − 1]`` (0 for j = 0) to ``tier_bounds[k, j] − 1``,
+    whose cells have ``P ≤ 2^{−j} P_max`` (physics/radar_cfar.py ``tier_ratios``); the pairs past
+    ``tier_bounds[k, 29]`` are negligible. ``tier_cells``: the cells of each tier over all range bins."""
+
+    tables: ClutterTables
     radar_constant_db: float
     threshold_db: float
     gamma_db_per_km: float
-    pair_cell: np.ndarray            # per pair: flat azimuth–elevation cell index
-    pair_doppler_bin: np.ndarray     # per pair: Doppler bin m
-    pair_rcs_per_m3: np.ndarray      # per pair: η ΔΩ P(v_m), μ per unit of (r_hi³ − r_lo³)/3 (decreasing)
     range_ratio_per_rcs: np.ndarray  # per range bin: (r_hi³ − r_lo³)/(3 σ_t) (m³/m²)
     tier_bounds: np.ndarray          # (range bins, 30): end of each probability tier among the sorted pairs
+    tier_cells: np.ndarray
     expected_count: float            # Σ P(y) over all cells
+
+    hydrometeors = property(lambda self: self.tables.hydrometeors)
+    grid = property(lambda self: self.tables.grid)
+    wavelength_m = property(lambda self: self.tables.wavelength_m)
+    detector = property(lambda self: self.tables.detector)
+    pair_cell = property(lambda self: self.tables.pair_cell)
+    pair_doppler_bin = property(lambda self: self.tables.pair_doppler_bin)
+    pair_rcs_per_m3 = property(lambda self: self.tables.pair_rcs_per_m3)
 
     def ratio_at(self, positions_m: np.ndarray, v_r_m_per_s: np.ndarray,
                  ranges_m: np.ndarray | None = None) -> np.ndarray:
         """``y = μ/σ_t`` of the resolution cell of each point (any range; ``ranges_m`` their norms, when known):
         its angular cell (nearest edge cell outside the field of view), its Doppler bin, and a range bin centred
         on it."""
-        m_min, table = _rcs_table(self.hydrometeors, self.grid, self.wavelength_m, self.relative_velocity_m_per_s)
-        grid, edges = self.grid, grid_edges(self.grid)
-        cell = angular_cell_index(positions_m, edges.azimuth_rad, edges.elevation_rad)
-        m = np.floor(np.asarray(v_r_m_per_s, dtype=float) / grid.doppler_resolution_m_per_s + 0.5).astype(np.int64)
-        m -= m_min - 1
-        g = table[cell, np.minimum(np.maximum(m, 0, out=m), table.shape[1] - 1, out=m)]   # outside: a zero column
         r = np.linalg.norm(positions_m, axis=1) if ranges_m is None else ranges_m
-        dr = grid.range_resolution_m
-        return np.divide(g * (r * r * dr + dr ** 3 / 12),
-                         _threshold_rcs_m2(self.radar_constant_db, self.threshold_db, self.gamma_db_per_km, r),
-                         out=np.zeros(len(r)), where=r > 0)             # (np.errstate costs ≈ 2 µs a call)
+        return _point_ratios(self.tables, np.exp(_exponents(self.threshold_db - self.radar_constant_db,
+                                                           self.gamma_db_per_km, _NO_RANGES, r)),
+                             positions_m, v_r_m_per_s, r)
 
 
-def _threshold_rcs_m2(radar_constant_db: float, threshold_db: float, gamma_db_per_km: float, r_m) -> np.ndarray:
-    """σ_t: the RCS whose statistic ``C + 10 log10 σ − 40 log10 r − 2 γ r/1000`` equals the threshold t."""
-    r2 = r_m * r_m
-    return np.exp(_LN10_OVER_10 * (threshold_db - radar_constant_db + 2e-3 * gamma_db_per_km * r_m)) * r2 * r2
+_NO_RANGES = np.zeros(0)
+
+
+def _exponents(t_minus_c_db: float, gamma_db_per_km: float, r_first_m: np.ndarray, r_second_m: np.ndarray
+               ) -> np.ndarray:
+    """``ln10/10 (t − C + 2 γ r/1000)`` at two arrays of ranges, concatenated, whose NumPy ``exp`` (its SIMD
+    values, which compiled code would not reproduce bit for bit) times ``r⁴`` is σ_t, the RCS whose statistic
+    ``C + 10 log10 σ − 40 log10 r − 2 γ r/1000`` equals the threshold t."""
+    out = np.empty(len(r_first_m) + len(r_second_m))
+    _exponent_arguments(t_minus_c_db, 2e-3 * gamma_db_per_km, r_first_m, r_second_m, out)
+    return out
+
+
+@jit
+def _exponent_arguments(a, b, r_first, r_second, out):
+    n = len(r_first)
+    for k in range(n):
+        out[k] = _LN10_OVER_10 * (a + b * r_first[k])
+    for i in range(len(r_second)):
+        out[n + i] = _LN10_OVER_10 * (a + b * r_second[i])
+
+
+def _point_ratios(tables: ClutterTables, exp_points: np.ndarray, positions_m: np.ndarray, v_r_m_per_s: np.ndarray,
+                  ranges_m: np.ndarray) -> np.ndarray:
+    """:meth:`ClutterCells.ratio_at` from ``exp_points``, the exponentials of the points' :func:`_exponents`."""
+    p = np.asarray(positions_m, dtype=float)
+    grid = tables.grid
+    out = np.empty(len(p))
+    dr = grid.range_resolution_m
+    _point_ratio_kernel(point_angles(p), *tables.angular_axes, np.asarray(v_r_m_per_s),
+                        grid.doppler_resolution_m_per_s, tables.rcs_table, tables.doppler_bin_min - 1,
+                        np.asarray(ranges_m, dtype=float), dr, dr ** 3 / 12, exp_points, out)
+    return out
+
+
+@jit
+def _point_ratio_kernel(angles, az0, az_scale, n_az, el0, el_scale, n_el, v_r, dv, table, column_offset, ranges, dr,
+                        dr3_over_12, exp_points, out):
+    """``y = g (r² Δr + Δr³/12)/σ_t`` (0 at r = 0) with g the table's value at the point's angular cell and Doppler
+    bin ``floor(v/Δv + 1/2)`` (clipped onto the zero columns at either side) and ``σ_t = e r² r²``."""
+    n, last = len(out), table.shape[1] - 1
+    for i in range(n):
+        cell = _edge_cell(angles[i], az0, az_scale, n_az) * n_el + _edge_cell(angles[n + i], el0, el_scale, n_el)
+        f = math.floor(v_r[i] / dv + 0.5)
+        g = 0.0                                                     # outside the table: its zero columns
+        if abs(f) < 2.0 ** 62:
+            g = table[cell, min(max(int(f) - column_offset, 0), last)]
+        r = ranges[i]
+        if r > 0:
+            r2 = r * r
+            out[i] = g * (r * r * dr + dr3_over_12) / (exp_points[i] * r2 * r2)
+        else:
+            out[i] = 0.0
 
 
 def clutter_cells(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, relative_velocity_m_per_s,
@@ -472,22 +593,96 @@ def clutter_cells(h: Hydrometeors, grid: ResolutionGrid, wavelength_m: float, re
     """The cells of a frame with radar constant C (dB), clear-air threshold t (dB, same statistic) and specific
     attenuation γ; ``relative_velocity = wind − ego`` in the sensor frame. The detection statistic of an echo of RCS
     σ at range r is ``D = C + 10 log10 σ − 40 log10 r − 2 γ r/1000`` (dB)."""
-    rel = tuple(float(v) for v in relative_velocity_m_per_s)
-    cell, m, g, minus_g = _pair_rcs_per_m3(h, grid, wavelength_m, rel)
-    edges = grid_edges(grid)
-    ratio = edges.shell_volume_per_sr_m3 / _threshold_rcs_m2(radar_constant_db, threshold_db, gamma_db_per_km,
-                                                            edges.range_centre_m)
-    tiers = tier_ratios(detector)
-    # a range bin whose lowest tier bound is at or above the largest g holds no pair in any tier (most bins beyond a
-    # few metres): only the others' bounds are computed and searched
-    live = ~(tiers[-1] / ratio >= (g[0] if len(g) else math.inf))
-    tier_bounds = np.zeros((len(ratio), PROBABILITY_TIERS), dtype=np.intp)
-    bounds = tiers[None, :] / ratio[live, None]
-    tier_bounds[live] = np.searchsorted(minus_g, -bounds.ravel(), side="left").reshape(-1, PROBABILITY_TIERS)
-    w, table, saturated = _count_table(h, grid, wavelength_m, rel, detector)
-    expected = float(np.interp(np.log(ratio), w, table, left=0.0, right=saturated).sum())
-    return ClutterCells(h, grid, wavelength_m, rel, detector, radar_constant_db, threshold_db, gamma_db_per_km, cell,
-                        m, g, ratio, tier_bounds, expected)
+    tables = clutter_tables(h, grid, wavelength_m, relative_velocity_m_per_s, detector)
+    return frame_cells(tables, radar_constant_db, threshold_db, gamma_db_per_km)[0]
+
+
+def frame_cells(tables: ClutterTables, radar_constant_db: float, threshold_db: float, gamma_db_per_km: float,
+                positions_m: np.ndarray | None = None, v_r_m_per_s: np.ndarray | None = None,
+                ranges_m: np.ndarray | None = None) -> tuple[ClutterCells, np.ndarray | None]:
+    """The frame's cells (:func:`clutter_cells`) and, for points given (their radial velocities and ranges),
+    :meth:`ClutterCells.ratio_at` of each: one ``exp`` for both, the rest in compiled passes."""
+    edges = tables.edges
+    r_bins = edges.range_centre_m
+    nb = len(r_bins)
+    e = np.exp(_exponents(threshold_db - radar_constant_db, gamma_db_per_km, r_bins,
+                          _NO_RANGES if positions_m is None else ranges_m))
+    ratio = np.empty(nb)
+    bounds = np.zeros((nb, PROBABILITY_TIERS), dtype=np.intp)
+    cells_per_tier = np.zeros(PROBABILITY_TIERS, dtype=np.intp)
+    g = tables.pair_rcs_per_m3
+    _tier_bound_kernel(e, r_bins, edges.shell_volume_per_sr_m3, tables.tier_ratios, tables.minus_pair_rcs_per_m3,
+                       g[0] if len(g) else math.inf, ratio, bounds, cells_per_tier)
+    expected = _expected_count(np.log(ratio), *tables.count_table)
+    cells = ClutterCells(tables, radar_constant_db, threshold_db, gamma_db_per_km, ratio, bounds, cells_per_tier,
+                         expected)
+    return cells, None if positions_m is None else _point_ratios(tables, e[nb:], positions_m, v_r_m_per_s, ranges_m)
+
+
+@jit
+def _tier_bound_kernel(e, r_centre, shell, tiers, minus_g, g_max, ratio, bounds, cells_per_tier):
+    """Per range bin k: ``ratio = shell/σ_t`` (σ_t = e r² r²) and, unless its lowest tier bound is at or above the
+    largest g (no pair in any tier: most bins beyond a few metres), the end of each tier j among the pairs
+    (``searchsorted(−g, −tiers[j]/ratio, "left")``); the cells per tier over all bins."""
+    nt = len(tiers)
+    for k in range(len(r_centre)):
+        r2 = r_centre[k] * r_centre[k]
+        ratio[k] = shell[k] / (e[k] * r2 * r2)
+        if tiers[nt - 1] / ratio[k] >= g_max:
+            continue
+        lo, n = 0, len(minus_g)
+        for j in range(nt):                  # the bounds rise with j (−tiers[j]/ratio does): gallop from the last
+            key = -(tiers[j] / ratio[k])
+            if key != key:                   # NaN: after every value, as NumPy sorts it
+                lo = n
+            elif lo < n and minus_g[lo] < key:
+                last, step, hi = lo, 1, lo + 1       # minus_g[last] < key; the bound lies in (last, hi]
+                while hi < n and minus_g[hi] < key:
+                    last, step = hi, 2 * step
+                    hi = last + step
+                lo, hi = last + 1, min(hi, n)
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if minus_g[mid] < key:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+            bounds[k, j] = lo
+            cells_per_tier[j] += lo
+    for j in range(nt - 1, 0, -1):
+        cells_per_tier[j] -= cells_per_tier[j - 1]
+
+
+@jit
+def _expected_count(log_ratio, w, table, saturated):
+    """``np.interp(log_ratio, w, table, left=0, right=saturated).sum()`` bit for bit: NumPy's interpolation (the
+    interval ``w[j] ≤ x < w[j+1]``, the table's value at a node, its slope formula and NaN fallbacks) and its
+    sum (:func:`~roadview_noise.physics.numpy_sums.numpy_sum`)."""
+    values = np.empty(len(log_ratio))
+    last = len(w) - 1
+    for i in range(len(log_ratio)):
+        x = log_ratio[i]
+        if x != x or x < w[0] or x >= w[last]:
+            values[i] = x if x != x else 0.0 if x < w[0] else saturated if x > w[last] else table[last]
+            continue
+        lo, hi = 0, last                     # w[lo] ≤ x < w[hi]
+        while hi - lo > 1:
+            mid = (lo + hi) >> 1
+            if w[mid] <= x:
+                lo = mid
+            else:
+                hi = mid
+        if w[lo] == x:
+            values[i] = table[lo]
+            continue
+        slope = (table[lo + 1] - table[lo]) / (w[lo + 1] - w[lo])
+        v = slope * (x - w[lo]) + table[lo]
+        if v != v:
+            v = slope * (x - w[lo + 1]) + table[lo + 1]
+            if v != v and table[lo] == table[lo + 1]:
+                v = table[lo]
+        values[i] = v
+    return numpy_sum(values)
 
 
 @dataclass(frozen=True)
@@ -514,11 +709,10 @@ def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPo
     expected count, not the number of cells) —, their RCS given the detection, and one point per detected cell: range
     uniform in the bin, direction uniform in solid angle within the angular cell, radial velocity uniform within the
     Doppler bin."""
-    grid, detector = cells.grid, cells.detector
-    hi = cells.tier_bounds
-    bound, capped, certain = _tier_probabilities(detector.max_probability)
-    totals = hi.sum(axis=0)
-    totals[1:] -= totals[:-1].copy()                            # cells per tier (np.diff: ≈ 10 µs of Python)
+    tables = cells.tables
+    grid, detector = tables.grid, tables.detector
+    hi, totals = cells.tier_bounds, cells.tier_cells
+    bound, capped, certain = tables.tier_probabilities
     picks = rng.binomial(totals, capped)
     if certain:
         picks = np.where(bound >= 1.0, totals, picks)
@@ -535,18 +729,18 @@ def generate_clutter(rng: np.random.Generator, cells: ClutterCells) -> ClutterPo
         pairs.append(lo[k, j] + idx - (ends[k] - size[k, j]))
         bounds.append(np.full(len(idx), bound[j]))
     k, pair, q = np.concatenate(ks), np.concatenate(pairs), np.concatenate(bounds)
-    y = cells.pair_rcs_per_m3[pair] * cells.range_ratio_per_rcs[k]
+    y = tables.pair_rcs_per_m3[pair] * cells.range_ratio_per_rcs[k]
     hit = rng.random(len(y)) * q < detector.probability(y)
     pair, k, y = pair[hit], k[hit], y[hit]
     over = detector.rcs_over_threshold(rng, y)                     # σ/σ_t ≥ 1
-    edges = grid_edges(grid)
+    edges = tables.edges
     r_e, az_e, z_e = edges.range_m, edges.azimuth_rad, edges.elevation_sine
-    i_az, i_el = np.divmod(cells.pair_cell[pair], len(z_e) - 1)
+    i_az, i_el = np.divmod(tables.pair_cell[pair], len(z_e) - 1)
     u = rng.random((4, len(pair)))
     r = r_e[k] + u[0] * (r_e[k + 1] - r_e[k])
     az = az_e[i_az] + u[1] * (az_e[i_az + 1] - az_e[i_az])
     z = z_e[i_el] + u[2] * (z_e[i_el + 1] - z_e[i_el])
     c = np.sqrt(1 - z * z)
     positions = r[:, None] * np.stack([c * np.cos(az), c * np.sin(az), z], axis=1)
-    v_r = (cells.pair_doppler_bin[pair] + u[3] - 0.5) * grid.doppler_resolution_m_per_s
+    v_r = (tables.pair_doppler_bin[pair] + u[3] - 0.5) * grid.doppler_resolution_m_per_s
     return ClutterPoints(positions, v_r, cells.threshold_db + 10 * np.log10(over))

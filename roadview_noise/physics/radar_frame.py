@@ -27,10 +27,28 @@ import dataclasses
 import numpy as np
 
 from ..types import PointCloud, RadarProfile
+from .compiled import jit
 
 RAW_VECTOR = ("vx", "vy", "vz")                  # sensor-relative Cartesian velocity (nuScenes: vx, vy)
 COMPENSATED_VECTOR = ("vx_comp", "vy_comp", "vz_comp")
 EGO_FIT_MAX_RMS_M_PER_S = 0.5      # ARS 408 velocity codes step 0.25 m/s; a consistent frame fits far better
+
+
+def point_ranges_m(cloud: PointCloud) -> np.ndarray:
+    """``cloud.ranges_m`` (``np.linalg.norm`` of the rows: ``√((x² + y²) + z²)``) bit for bit, without the ≈ 4 µs
+    of norm's Python on a radar frame."""
+    p = cloud.positions_m
+    if p.dtype != np.float64 or p.ndim != 2 or p.shape[1] != 3:
+        return cloud.ranges_m
+    out = np.empty(len(p))
+    _row_norms(p, out)
+    return out
+
+
+@jit
+def _row_norms(p, out):
+    for i in range(len(p)):
+        out[i] = np.sqrt((p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1]) + p[i, 2] * p[i, 2])
 
 
 def is_planar(cloud: PointCloud, profile: RadarProfile) -> bool:
@@ -77,7 +95,8 @@ def radial_velocity_m_per_s(cloud: PointCloud, compensated: bool = False) -> np.
 def ego_velocity_from_data(cloud: PointCloud, planar: bool) -> tuple[np.ndarray | None, float]:
     """Least-squares sensor velocity (m/s, sensor frame) from ``v_r,comp − v_r = v_ego · r̂`` and the fit's RMS
     residual (m/s); (None, nan) without both radial velocities or with too few points to fit."""
-    raw, comp = radial_velocity_m_per_s(cloud), radial_velocity_m_per_s(cloud, compensated=True)
+    comp = radial_velocity_m_per_s(cloud, compensated=True)      # (most clouds have none: the raw one not read)
+    raw = None if comp is None else radial_velocity_m_per_s(cloud)
     if raw is None or comp is None:
         return None, np.nan
     p = cloud.positions_m

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import ModelError
+from ...physics.compiled import jit
 from ...physics.radar_link import noise_floor_dbm
 from ...profiles.radar import default_radar_profile
 from ...types import PointCloud, RadarProfile
@@ -97,17 +98,25 @@ def radar_constant_db(cloud: PointCloud, det: Detection, ranges_m: np.ndarray) -
     """``C = median(D − rcs_dbsm + 40 log10 r)`` over the points with RCS (None without an RCS field)."""
     if "rcs_dbsm" not in cloud.fields:
         return None
-    c = det.values_db - np.asarray(cloud.fields["rcs_dbsm"], dtype=float) + _log_r4(ranges_m)
-    c = c[np.isfinite(c)]
-    return sorted_median(c) if len(c) else None
+    c = _median_of_finite(det.values_db, cloud.fields["rcs_dbsm"], _log_r4(ranges_m))
+    return None if c != c else c
 
 
-def sorted_median(values: np.ndarray) -> float:
-    """``np.median`` of a finite 1-D array, bit for bit but for the sign of a zero median (the middle value, or the
-    two middle ones' sum over 2), without its ≈ 40 µs of Python on a radar frame's few dozen values."""
-    s = np.sort(values)
-    n = len(s)
-    return float(s[n // 2]) if n % 2 else float((s[n // 2 - 1] + s[n // 2]) / 2)
+@jit
+def _median_of_finite(values_db, rcs_dbsm, log_r4):
+    """``np.median`` of the finite ``D − σ + 40 log10 r``, bit for bit but for the sign of a zero median (the
+    middle value, or the two middle ones' sum over 2); NaN when none is finite."""
+    c = np.empty(len(values_db))
+    n = 0
+    for i in range(len(values_db)):
+        v = values_db[i] - np.float64(rcs_dbsm[i]) + log_r4[i]
+        if np.isfinite(v):
+            c[n] = v
+            n += 1
+    if n == 0:
+        return np.nan
+    s = np.sort(c[:n])
+    return s[n // 2] if n % 2 else (s[n // 2 - 1] + s[n // 2]) / 2
 
 
 def power_minus_snr_db(cloud: PointCloud) -> float | None:
@@ -119,12 +128,15 @@ def power_minus_snr_db(cloud: PointCloud) -> float | None:
 
 def with_loss(cloud: PointCloud, loss_db: np.ndarray) -> PointCloud:
     """Lower SNR and power by ``loss_db`` per point, and RCS unless the radar compensates weather losses."""
-    out = {}
-    names = ["snr_db", "power_db"]
-    if not profile_of(cloud).rcs_compensates_weather:
-        names.append("rcs_dbsm")
-    for name in names:
-        if name in cloud.fields:
-            v = cloud.fields[name]
-            out[name] = (v - loss_db).astype(v.dtype, copy=False)
+    out = {name: lowered(cloud.fields[name], loss_db) for name in lossy_fields(cloud)}
     return cloud.with_fields(**out) if out else cloud
+
+
+def lossy_fields(cloud: PointCloud) -> list[str]:
+    """The fields of ``cloud`` that a loss lowers (:func:`with_loss`)."""
+    names = ["snr_db", "power_db"] if profile_of(cloud).rcs_compensates_weather else ["snr_db", "power_db", "rcs_dbsm"]
+    return [name for name in names if name in cloud.fields]
+
+
+def lowered(values: np.ndarray, loss_db: np.ndarray) -> np.ndarray:
+    return (values - loss_db).astype(values.dtype, copy=False)

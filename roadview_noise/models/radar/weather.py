@@ -4,26 +4,28 @@ from their parameters."""
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar
 
 import numpy as np
 
 from ...errors import ModelError
 from ...model import Model, Stage, param
+from ...physics.compiled import jit
+from ...physics.numpy_sums import numpy_sum
 from ...physics.radar_cfar import CaCfar, FixedThreshold
-from ...physics.radar_clutter import (SCATTERING, ClutterCells, Hydrometeors, ResolutionGrid,
-                                      backscatter_per_volume_per_m, clutter_cells, generate_clutter,
-                                      radar_wavelength_m)
+from ...physics.radar_clutter import (SCATTERING, ClutterCells, ClutterTables, Hydrometeors, ResolutionGrid,
+                                      clutter_tables, frame_cells, generate_clutter, radar_wavelength_m)
 from ...io.radar_formats import added_detection_fields
 from ...physics.radar_frame import (ego_velocity_m_per_s, grid_profile, is_planar, new_point_velocity_fields,
-                                    radial_velocity_m_per_s, to_plane)
+                                    point_ranges_m, radial_velocity_m_per_s, to_plane)
 from ...physics.radar_link import detection_range_in_weather_m, two_way_loss_db
-from ...provenance import Effect, mark
+from ...provenance import ATTENUATED, KEPT, Effect, mark
 from ...types import PointCloud, RadarProfile
-from .detection import (RCS_STATISTIC, Detection, detection, power_minus_snr_db, profile_of, radar_constant_db,
-                        with_loss)
+from .detection import (RCS_STATISTIC, Detection, detection, lossy_fields, lowered, power_minus_snr_db, profile_of,
+                        radar_constant_db, with_loss)
 
 
 # Below this rate there is no measurable precipitation (and the exponential DSD laws, fitted from ~1 mm/h, lose
@@ -51,45 +53,82 @@ class RadarWeather(Model):
         """Specific attenuation at the radar frequency."""
 
     def frame_clutter(self, data: PointCloud, ranges_m: np.ndarray, det: Detection, gamma: float,
-                      ego_m_per_s: np.ndarray, planar: bool) -> tuple[ClutterCells | None, dict]:
-        """The precipitation clutter of the frame and its diagnostics; fog has none (backscatter ∝ D⁶ of 10 µm
-        droplets is negligible)."""
-        return None, {}
+                      ego_m_per_s: np.ndarray, planar: bool) -> tuple[ClutterCells | None, np.ndarray, dict]:
+        """The precipitation clutter of the frame, the rise of each point's detection threshold in it (dB) and its
+        diagnostics; fog has none (backscatter ∝ D⁶ of 10 µm droplets is negligible)."""
+        return None, np.zeros(len(ranges_m)), {}
 
     def apply(self, data: PointCloud, *, state, drawn, rng):
         profile = profile_of(data)
         gamma, range_in_weather_m = per_profile(self, profile, False, _attenuation)
-        r = data.ranges_m
+        r = point_ranges_m(data)
+        n = len(r)
         det = detection(data, self.snr_threshold_quantile, self.id, r)
         loss = two_way_loss_db(gamma, r)
         planar = is_planar(data, profile)
         ego, ego_source = ego_velocity_m_per_s(data, planar)
-        cells, clutter_diag = self.frame_clutter(data, r, det, gamma, ego, planar)
-        rise = np.zeros(len(r)) if cells is None else _threshold_rise_db(cells, data, ego, r)
-        margin = det.values_db - loss - det.threshold_db
-        keep = margin >= rise
-        out = mark(with_loss(data, loss), loss > 0, Effect.ATTENUATED).drop(~keep)
-        kept = int(np.count_nonzero(keep))                 # (a boolean sum: ≈ 3 µs each)
+        cells, rise, clutter_diag = self.frame_clutter(data, r, det, gamma, ego, planar)
+        removed, attenuated = np.empty(n, dtype=bool), np.empty(n, dtype=bool)
+        kept, loss_sum, r_max, r_kept_max, cfar_lost, rise_max, rise_sum = _detection_summary(
+            det.values_db, loss, det.threshold_db, rise, r, removed, attenuated)
+        out = _attenuate_and_drop(data, loss, attenuated, removed)
         diagnostics = {
             "specific_attenuation_db_per_km": float(gamma),
-            "points_in": len(data), "points_removed": len(keep) - kept, "points_kept": kept,
-            "mean_loss_db": float(loss.sum() / len(loss)) if len(loss) else 0.0,     # np.mean's value, less Python
-            "max_range_clear_m": float(r.max()) if len(r) else 0.0,
-            "max_range_m": float(r[keep].max()) if keep.any() else 0.0,
+            "points_in": n, "points_removed": n - kept, "points_kept": kept,
+            "mean_loss_db": loss_sum / n if n else 0.0,     # np.mean's value, less Python
+            "max_range_clear_m": r_max, "max_range_m": r_kept_max,
             "profile_max_range_in_weather_m": range_in_weather_m,
             **det.diagnostics(), **clutter_diag,
         }
         if cells is not None:
-            diagnostics.update({"ego_velocity_m_per_s": [float(v) for v in ego], "ego_velocity_source": ego_source,
+            diagnostics.update({"ego_velocity_m_per_s": ego.tolist(), "ego_velocity_source": ego_source,
                                 "elevation_measured": not planar})
             out, added = _add_clutter(out, data, det, cells, rng, ego, planar)
             diagnostics.update(added)
             if isinstance(cells.detector, CaCfar):
-                diagnostics.update({
-                    "cfar_points_lost": int(np.count_nonzero((margin >= 0) & ~keep)),
-                    "cfar_max_threshold_rise_db": float(rise.max()) if len(rise) else 0.0,
-                    "cfar_mean_threshold_rise_db": float(rise.sum() / len(rise)) if len(rise) else 0.0})
+                diagnostics.update({"cfar_points_lost": cfar_lost, "cfar_max_threshold_rise_db": rise_max,
+                                    "cfar_mean_threshold_rise_db": rise_sum / n if n else 0.0})
         return out, diagnostics
+
+
+def _attenuate_and_drop(cloud: PointCloud, loss_db: np.ndarray, attenuated: np.ndarray,
+                        removed: np.ndarray) -> PointCloud:
+    """``mark(with_loss(cloud, loss_db), attenuated, Effect.ATTENUATED).drop(removed)``, for a point list without
+    provenance or attributes yet (a radar file's cloud) in one copy of the kept points instead of three clouds."""
+    if cloud.grid_shape is not None or cloud.origin is not None or cloud.effect is not None or cloud.attributes:
+        return mark(with_loss(cloud, loss_db), attenuated, Effect.ATTENUATED).drop(removed)
+    kept = np.flatnonzero(~removed)
+    fields = {name: np.take(v, kept) for name, v in cloud.fields.items()}
+    loss_kept = np.take(loss_db, kept)
+    fields.update({name: lowered(fields[name], loss_kept) for name in lossy_fields(cloud)})
+    return cloud.replace(positions_m=np.take(cloud.positions_m, kept, axis=0), fields=fields, origin=kept,
+                         effect=np.where(np.take(attenuated, kept), ATTENUATED, KEPT))
+
+
+@jit
+def _detection_summary(values_db, loss_db, threshold_db, rise_db, ranges_m, removed, attenuated):
+    """Per point: removed unless ``D − L − t ≥ rise``, attenuated where L > 0; and the frame's kept count, ΣL,
+    largest range, largest kept range, CFAR points lost (``D − L ≥ t`` but removed), largest rise and Σ rise — NumPy's
+    sums and maxima (NaN kept) bit for bit, 0 for a maximum over no points."""
+    kept = lost = 0
+    r_max = r_kept_max = rise_max = 0.0
+    for i in range(len(values_db)):
+        margin = values_db[i] - loss_db[i] - threshold_db
+        keep = margin >= rise_db[i]
+        removed[i], attenuated[i] = not keep, loss_db[i] > 0
+        r_max = ranges_m[i] if i == 0 else _nan_max(r_max, ranges_m[i])
+        rise_max = rise_db[i] if i == 0 else _nan_max(rise_max, rise_db[i])
+        if keep:
+            r_kept_max = ranges_m[i] if kept == 0 else _nan_max(r_kept_max, ranges_m[i])
+            kept += 1
+        elif margin >= 0:
+            lost += 1
+    return kept, numpy_sum(loss_db), r_max, r_kept_max, lost, rise_max, numpy_sum(rise_db)
+
+
+@jit
+def _nan_max(a, b):
+    return a if a != a else b if (b != b or b > a) else a
 
 
 def _attenuation(model: RadarWeather, profile: RadarProfile, planar: bool) -> tuple[float, float]:
@@ -98,16 +137,11 @@ def _attenuation(model: RadarWeather, profile: RadarProfile, planar: bool) -> tu
     return gamma, detection_range_in_weather_m(profile.max_range_m, gamma)
 
 
-def _threshold_rise_db(cells: ClutterCells, cloud: PointCloud, ego: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
-    """Per point (at ``ranges_m``), the rise of its detection threshold caused by the clutter of its own resolution
-    cell (CA-CFAR: ``10 log10(1 + α μ/σ_t)``; fixed threshold: 0). Doppler: the raw radial velocity
+def _cell_doppler_m_per_s(cloud: PointCloud, ego: np.ndarray, ranges_m: np.ndarray) -> np.ndarray:
+    """The Doppler of each point's own resolution cell, for its CA-CFAR threshold rise: the raw radial velocity
     (``v_r_m_per_s``, or ``v·r̂`` of Cartesian ``vx, vy``), or a static world ``−v_ego·r̂``."""
-    if isinstance(cells.detector, FixedThreshold) or not len(cloud):
-        return np.zeros(len(cloud))
     v_r = radial_velocity_m_per_s(cloud)
-    if v_r is None:
-        v_r = -(cloud.positions_m @ ego) / np.maximum(ranges_m, 1e-12)
-    return cells.detector.threshold_rise_db(cells.ratio_at(cloud.positions_m, v_r, ranges_m))
+    return -(cloud.positions_m @ ego) / np.maximum(ranges_m, 1e-12) if v_r is None else v_r
 
 
 def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: ClutterCells,
@@ -118,7 +152,7 @@ def _add_clutter(cloud: PointCloud, clear: PointCloud, det: Detection, cells: Cl
     constant, gamma = cells.radar_constant_db, cells.gamma_db_per_km
     pts = generate_clutter(rng, cells)
     summary = {"clutter_expected_points": cells.expected_count,
-               "clutter_backscatter_per_m": backscatter_per_volume_per_m(cells.hydrometeors, cells.wavelength_m),
+               "clutter_backscatter_per_m": cells.tables.backscatter_per_m,
                "radar_constant_db": constant}
     if not len(pts.v_r_m_per_s) and cloud.grid_shape is None:    # most CA-CFAR frames: appending nothing would
         return cloud, {"clutter_points": 0, **summary}             # only copy the cloud
@@ -193,18 +227,22 @@ class PrecipitationRadar(RadarWeather):
 
     def frame_clutter(self, data, ranges_m, det, gamma, ego_m_per_s, planar):
         setup = per_profile(self, profile_of(data), planar, _ClutterSetup.of)
+        rise = np.zeros(len(ranges_m))
         if setup is None:
-            return None, {"clutter_points": 0}
+            return None, rise, {"clutter_points": 0}
         constant = radar_constant_db(data, det, ranges_m)
         skipped = ("no rcs_dbsm to calibrate the radar constant" if constant is None else
-                   "no points to estimate the threshold" if not np.isfinite(det.threshold_db) else
+                   "no points to estimate the threshold" if not math.isfinite(det.threshold_db) else
                    "clutter_min_range_m beyond the profile's max_range_m" if setup.grid is None else None)
         if skipped:
-            return None, {"clutter_points": 0, "clutter_skipped": skipped}
+            return None, rise, {"clutter_points": 0, "clutter_skipped": skipped}
         wind = np.asarray(data.conditions.wind_velocity_m_per_s, dtype=float)
-        cells = clutter_cells(setup.hydrometeors, setup.grid, setup.wavelength_m, wind - ego_m_per_s, constant,
-                              det.threshold_db, gamma, setup.detector)
-        return cells, dict(setup.diagnostics)
+        tables = setup.tables(wind - ego_m_per_s)
+        if isinstance(setup.detector, FixedThreshold) or not len(data):    # no sensitivity loss
+            return frame_cells(tables, constant, det.threshold_db, gamma)[0], rise, dict(setup.diagnostics)
+        cells, ratio = frame_cells(tables, constant, det.threshold_db, gamma, data.positions_m,
+                                   _cell_doppler_m_per_s(data, ego_m_per_s, ranges_m), ranges_m)
+        return cells, setup.detector.threshold_rise_db(ratio), dict(setup.diagnostics)
 
 
 @dataclass(frozen=True)
@@ -219,6 +257,19 @@ class _ClutterSetup:
     detector: CaCfar | FixedThreshold
     wavelength_m: float
     diagnostics: dict
+    by_velocity: dict = field(default_factory=dict, compare=False)
+
+    def tables(self, relative_velocity_m_per_s: np.ndarray) -> ClutterTables:
+        """The clutter's tables at ``relative_velocity = wind − ego`` (one for every frame unless the ego velocity
+        is fitted per frame), found by the velocity's value instead of hashing the particles and grid."""
+        key = tuple(relative_velocity_m_per_s.tolist())
+        held = self.by_velocity.get(key)
+        if held is None:
+            if len(self.by_velocity) >= MAX_PER_PROFILE:
+                self.by_velocity.clear()
+            held = self.by_velocity[key] = clutter_tables(self.hydrometeors, self.grid, self.wavelength_m, key,
+                                                          self.detector)
+        return held
 
     @staticmethod
     def of(model: PrecipitationRadar, profile: RadarProfile, planar: bool) -> _ClutterSetup | None:
