@@ -405,8 +405,7 @@ def _read_pcd(data: bytes, path) -> tuple[list[Column], str, tuple[int, int] | N
 def _check_trailing(body, used: int, itemsize: int, n: int, kind: str, path, *, sized: bool = False) -> None:
     """Refuse data after the declared points (the header's point count is smaller than the data): a whole point
     more, or anything but whitespace. ``sized``: the data state their own size (binary_compressed), so NUL or
-    whitespace padding of any length is no point (PCL 1.x left
-    several KiB of NULs after the data: its own test clouds)."""
+    whitespace padding of any length is no point (PCL 1.x left some KiB of NULs after its own test clouds' data)."""
     extra = len(body) - used
     if (extra >= itemsize and not sized) or (extra > 0 and bytes(body[used:]).strip(b" \t\r\n\0")):
         raise InputError(f"{kind} header declares {n} points ({used} bytes of data) but the file holds {extra} "
