@@ -8,6 +8,7 @@ on stderr, never a traceback); 130 interrupted.
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 from typing import Any, Optional
 
@@ -26,14 +27,28 @@ class _App(typer.Typer):
     wrote and released its lock. Other commands, and the app under a test runner, end as usual."""
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        try:
-            return super().__call__(*args, **kwargs)
-        except SystemExit as done:
-            if isinstance(done.code, (int, type(None))) and local_run_recipe(sys.argv):
-                from roadview_noise.executor import leave_at_once
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            try:
+                return super().__call__(*args, **kwargs)
+            except SystemExit as done:
+                if isinstance(done.code, (int, type(None))) and local_run_recipe(sys.argv):
+                    from roadview_noise.executor import leave_at_once
 
-                leave_at_once(done.code or 0)
-            raise
+                    leave_at_once(done.code or 0)
+                raise
+
+
+_SHOWN: set[str] = set()
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning outside a run's own bookkeeping (preview, report, replay) once, as one line like augment's, not as
+    Python's source file, line and code."""
+    text = f"rvnoise: warning: {category.__name__}: {message}"
+    if text not in _SHOWN:
+        _SHOWN.add(text)
+        print(text, file=file or sys.stderr)
 
 
 app = _App(name="rvnoise", no_args_is_help=True, add_completion=False, rich_markup_mode="markdown",

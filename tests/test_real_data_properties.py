@@ -212,3 +212,28 @@ def test_seed_noise_is_no_fall():
 
     assert falls([100.0, 96.0, 120.0], [1.0, 1.0, 1.0]) == []          # −4 within 3 SE of the difference (4.2)
     assert falls([100.0, 95.0, 120.0], [1.0, 1.0, 1.0]) == [0]
+
+
+def reflectivity_scan(n: int = 20000, seed: int = 3) -> PointCloud:
+    """A cloud like nuScenes' LIDAR_TOP read without a profile: whole 8-bit range-compensated values (100 ρ) on
+    returns 2–100 m away, which the data-decided unit reads as 8-bit reflectivity."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) * 0.1
+    pos = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(2, 100, (n, 1))
+    fields = {"intensity": np.maximum(np.round(100 * rng.uniform(0.02, 1.0, n)), 1).astype(np.float32)}
+    return PointCloud(pos, fields, "lidar", default_profile())
+
+
+@pytest.mark.xfail(strict=True, reason="lidar_rays.cloud_rays reads the unit from the step's input, not the chain's "
+                                       "(cloud.recorded): reported to lr33, owner of lidar_rays.py")
+def test_the_unit_the_data_decide_is_the_chains_input_s():
+    """CNF22 (laser power variance, then rain) on nuScenes scans: power.lidar's gains give the intensities fractions,
+    so rain.lidar read the same file as photons (full scale 65535), not as the 8-bit reflectivity CNF19 reads, and
+    wrote intensities up to 3197–6099 into a 0–255 channel."""
+    cloud = reflectivity_scan()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out, _ = apply_models([get_model("power.lidar")(), get_model("rain.lidar")(rain_rate_mm_per_h=20)], cloud,
+                              seed=1, key="k", sequence_id="s", metrics=False)
+    assert float(out.fields["intensity"].max()) <= 255

@@ -402,11 +402,12 @@ def _read_pcd(data: bytes, path) -> tuple[list[Column], str, tuple[int, int] | N
     return columns, mode, ((height, width) if height > 1 else None)
 
 
-def _check_trailing(body, used: int, itemsize: int, n: int, kind: str, path) -> None:
+def _check_trailing(body, used: int, itemsize: int, n: int, kind: str, path, *, sized: bool = False) -> None:
     """Refuse data after the declared points (the header's point count is smaller than the data): a whole point
-    more, or anything but whitespace."""
+    more, or anything but whitespace. ``sized``: the data state their own size (binary_compressed), so NUL or
+    whitespace padding of any length is no point (PCL 1.x left some KiB of NULs after its own test clouds' data)."""
     extra = len(body) - used
-    if extra >= itemsize or (extra > 0 and bytes(body[used:]).strip(b" \t\r\n\0")):
+    if (extra >= itemsize and not sized) or (extra > 0 and bytes(body[used:]).strip(b" \t\r\n\0")):
         raise InputError(f"{kind} header declares {n} points ({used} bytes of data) but the file holds {extra} "
                          "bytes more; the point count does not match the data (the rest would be dropped "
                          "silently)", file=str(path))
@@ -444,7 +445,7 @@ def _pcd_decompress(body: memoryview, n: int, dtypes: list[np.dtype], itemsize: 
         raise InputError(f"PCD binary_compressed raw size {usize} ≠ POINTS {n} × {itemsize} bytes", file=str(path))
     if len(body) < 8 + csize:
         raise InputError(f"truncated PCD: {csize} compressed bytes announced, {len(body) - 8} present", file=str(path))
-    _check_trailing(body, 8 + csize, itemsize, n, "PCD", path)
+    _check_trailing(body, 8 + csize, itemsize, n, "PCD", path, sized=True)
     raw, produced = _lzf_decompress(np.frombuffer(body[8:8 + csize], np.uint8), usize)
     if produced != usize:
         raise InputError("corrupt PCD: the LZF-compressed data do not decode to the announced size", file=str(path))

@@ -224,9 +224,13 @@ def check_intensity_scale(intensity: np.ndarray, profile: LidarProfile, model_id
                          field="intensity")
     if (profile.intensity_unit != IntensityUnit.UNIT and np.issubdtype(intensity.dtype, np.floating)
             and len(intensity) >= 100 and 0 < top <= 1.0):
-        raise ModelError(f"all intensities are within [0, 1] but profile {profile.name!r} expects "
-                         f"{profile.intensity_unit} up to {fs:g}; use a profile with intensity_unit 'unit' "
-                         f"(e.g. kitti-hdl64, carla-64)", model=model_id, field="intensity")
+        raise _unit_scale_error(profile, model_id)
+
+
+def _unit_scale_error(profile: LidarProfile, model_id: str) -> ModelError:
+    return ModelError(f"all intensities are within [0, 1] but profile {profile.name!r} expects "
+                      f"{profile.intensity_unit} up to {profile.intensity_full_scale:g}; use a profile with "
+                      f"intensity_unit 'unit' (e.g. kitti-hdl64, carla-64)", model=model_id, field="intensity")
 
 
 def reflectivity_variant(profile: LidarProfile) -> LidarProfile:
@@ -258,8 +262,9 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
     are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
     channels), the data decide (:func:`read_intensity`) — 8-bit range-compensated values are read as the sensor's
-    calibrated reflectivity (:func:`reflectivity_variant`) — and the warning says what was assumed, what the data
-    showed and how to state it. Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
+    calibrated reflectivity (:func:`reflectivity_variant`), fractions within [0, 1] against a count unit are refused
+    however few points there are — and the warning says what was assumed, what the data showed and how to state it.
+    Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
     power variance) may have changed what the intensities look like. ``ring``: the cloud's ring field, if any; when
     it counts at most half the profile's beams, the warning says so (a nuScenes HDL-32E scan read with the default
     OS1-128, :func:`beam_count_hint`)."""
@@ -270,6 +275,8 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     if profile.intensity_source:
         return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
     reading = read_intensity(intensity, positions_m)
+    if reading.values == "[0, 1]" and profile.intensity_unit != IntensityUnit.UNIT:
+        raise _unit_scale_error(profile, model_id)          # however few points: nothing says they are photons
     profile = stored_as_read(profile, reading)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
            "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe") + beam_count_hint(profile, ring)

@@ -373,6 +373,23 @@ def test_corrupt_compressed_pcd(tmp_path):
     _expect(tmp_path / "z.pcd", "LZF")
 
 
+def test_compressed_pcd_with_nul_padding_reads_as_without(tmp_path):
+    """PCL 1.x left some KiB of NULs after binary_compressed data (its test clouds car6.pcd, milk_color.pcd, the
+    grabber frames): the data state their size, so the padding is no point; anything else after them is refused."""
+    spec = OUSTER[:3] + [("intensity", "<f4")]
+    _write_pcd(tmp_path / "c.pcd", spec, _records(spec, 40, seed=17))
+    cloud = read_pointcloud(tmp_path / "c.pcd")
+    write_pointcloud(tmp_path / "z.pcd", dataclasses.replace(
+        cloud, layout=dataclasses.replace(cloud.layout, pcd_data="binary_compressed")))
+    data = (tmp_path / "z.pcd").read_bytes()
+    (tmp_path / "pad.pcd").write_bytes(data + b"\0" * 3913)
+    padded = read_pointcloud(tmp_path / "pad.pcd")
+    np.testing.assert_array_equal(padded.positions_m, cloud.positions_m)
+    np.testing.assert_array_equal(padded.fields["intensity"], cloud.fields["intensity"])
+    (tmp_path / "junk.pcd").write_bytes(data + b"\0" * 100 + b"\x01")
+    _expect(tmp_path / "junk.pcd", "the point count does not match the data")
+
+
 def test_bad_bin_size_nan_empty_and_suffix(tmp_path):
     np.zeros(4 * 7 + 3, np.uint8).tofile(tmp_path / "odd.bin")
     _expect(tmp_path / "odd.bin", "not a multiple of the 16-byte point")

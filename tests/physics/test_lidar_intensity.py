@@ -73,6 +73,14 @@ def test_impossible_values_are_refused():
         resolve_profile(os1_128(), (intensity / 255).astype(np.float32), pos, "fog.lidar")
 
 
+def test_fractions_in_0_1_are_refused_however_few_when_nothing_states_the_unit():
+    """A KITTI-style frame of 50 points (mmdetection3d's test a.bin: intensities 0–0.39) was read as photons and
+    written back brighter (19–740 counts); with nothing stating the unit, fractions are refused at any count."""
+    intensity, pos = scene("reflectivity", n=50)
+    with pytest.raises(ModelError, match="intensity_unit 'unit'"):
+        resolve_profile(default_profile(), (intensity / 255).astype(np.float32), pos, "fog.lidar")
+
+
 def _metadata(tmp_path, udp_profile):
     path = tmp_path / f"{udp_profile or 'none'}.json"
     meta = {"beam_altitude_angles": list(os1_128().beam_elevation_deg),
