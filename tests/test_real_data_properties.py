@@ -225,8 +225,6 @@ def reflectivity_scan(n: int = 20000, seed: int = 3) -> PointCloud:
     return PointCloud(pos, fields, "lidar", default_profile())
 
 
-@pytest.mark.xfail(strict=True, reason="lidar_rays.cloud_rays reads the unit from the step's input, not the chain's "
-                                       "(cloud.recorded): reported to lr33, owner of lidar_rays.py")
 def test_the_unit_the_data_decide_is_the_chains_input_s():
     """CNF22 (laser power variance, then rain) on nuScenes scans: power.lidar's gains give the intensities fractions,
     so rain.lidar read the same file as photons (full scale 65535), not as the 8-bit reflectivity CNF19 reads, and
@@ -237,3 +235,16 @@ def test_the_unit_the_data_decide_is_the_chains_input_s():
         out, _ = apply_models([get_model("power.lidar")(), get_model("rain.lidar")(rain_rate_mm_per_h=20)], cloud,
                               seed=1, key="k", sequence_id="s", metrics=False)
     assert float(out.fields["intensity"].max()) <= 255
+
+
+def test_laser_power_reads_the_unit_the_data_decide():
+    """power.lidar on the same scan without a profile: the 8-bit reflectivity the weather models read is the model's
+    count domain (x = I, D3.5's y = g·x + b), so the mean becomes ≈ 1.17·mean + 4.67 in whole counts ≤ 255 — not the
+    default profile's photons (x = I·255/65535, which wrote ≈ 1 200 for every return)."""
+    cloud = reflectivity_scan()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out, _ = apply_models([get_model("power.lidar")()], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    before, after = cloud.fields["intensity"].astype(float), out.fields["intensity"].astype(float)
+    assert after.max() <= 255 and np.array_equal(after, np.rint(after))
+    assert abs(after.mean() - (1.17 * before.mean() + 4.67)) < 0.05 * before.mean()

@@ -257,6 +257,19 @@ class IntensityWarning(UserWarning):
     message; the manifest records it per file)."""
 
 
+def chain_intensity_scale(cloud, model_id: str) -> IntensityScale:
+    """:func:`resolve_profile` of the sensor's own data: the chain's input (``cloud.recorded``) when an earlier step
+    ran, else ``cloud`` — a unit is a property of the sensor, and an earlier step (laser power variance's gains)
+    changes what the intensities look like. The intensities as they are now are then checked against the scale
+    decided (:func:`check_intensity_scale`)."""
+    source = cloud.recorded if cloud.recorded is not None and "intensity" in cloud.recorded.fields else cloud
+    scale = resolve_profile(cloud.profile, np.asarray(source.fields["intensity"]), source.positions_m, model_id,
+                            source.fields.get("ring"))
+    if source is not cloud:
+        check_intensity_scale(np.asarray(cloud.fields["intensity"]), scale.profile, model_id)
+    return scale
+
+
 def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: np.ndarray,
                     model_id: str, ring: np.ndarray | None = None) -> IntensityScale:
     """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold

@@ -33,7 +33,7 @@ from ..types import LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import FiringGrid, firing_grid, list_points
 from .lidar_geometry import ring_index, ring_source
-from .lidar_intensity import REFLECTIVITY, IntensityWarning, intensity_step, resolve_profile, sensor_constant, \
+from .lidar_intensity import REFLECTIVITY, IntensityWarning, chain_intensity_scale, intensity_step, sensor_constant, \
     white_reading
 from .reading_population import population_signal, uninformative
 from .receiver import THRESHOLD_CALIBRATIONS, Receiver
@@ -108,16 +108,16 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
                at: np.ndarray | None = None) -> Rays:
     """Validate a LiDAR cloud for a weather model and return its rays (signals in units of K).
 
-    Intensities are read with :func:`lidar_intensity.resolve_profile` (a warning is printed once per process and
-    kept in ``notes``); rays without a return get the profile's max range as ``empty_rays`` says (module doc), a
-    point list's empty rays appended after its points (a list without a regular firing grid keeps only its points,
-    and ``empty_source`` says why); the receiver's threshold is calibrated below the weakest return of the cloud as
-    recorded (``cloud.recorded``: earlier steps' intensity noise does not make the sensor more sensitive), or with the
-    profile's ``threshold_calibration: datasheet`` kept, the returns then counting at least the receiver's
-    :attr:`~receiver.Receiver.recorded_floor` (``Rays.floor``); ``calibrate=False`` keeps the datasheet receiver (ray
-    drop) and does not read the recorded cloud. ``at`` (indices; only with ``empty_rays="ignore"``): the rays of those
-    points only, the receiver still calibrated on the whole cloud (a step that changes a few points does not write
-    every point's signal)."""
+    Intensities are read with :func:`lidar_intensity.chain_intensity_scale` (the chain's input decides the unit; a
+    warning is printed once per process and kept in ``notes``); rays without a return get the profile's max range as
+    ``empty_rays`` says (module doc), a point list's empty rays appended after its points (a list without a regular
+    firing grid keeps only its points, and ``empty_source`` says why); the receiver's threshold is calibrated below
+    the weakest return of the cloud as recorded (``cloud.recorded``: earlier steps' intensity noise does not make the
+    sensor more sensitive), or with the profile's ``threshold_calibration: datasheet`` kept, the returns then
+    counting at least the receiver's :attr:`~receiver.Receiver.recorded_floor` (``Rays.floor``); ``calibrate=False``
+    keeps the datasheet receiver (ray drop) and does not read the recorded cloud. ``at`` (indices; only with
+    ``empty_rays="ignore"``): the rays of those points only, the receiver still calibrated on the whole cloud (a step
+    that changes a few points does not write every point's signal)."""
     profile = cloud.profile
     if cloud.sensor != "lidar" or not isinstance(profile, LidarProfile):
         raise ModelError("needs a LiDAR point cloud with a LidarProfile (intensity unit, kind, sensor constant, "
@@ -134,7 +134,7 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         raise ValueError("the rays of some points only (at) have no empty rays: use empty_rays='ignore'")
     intensity = np.asarray(cloud.fields["intensity"])
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    scale = resolve_profile(profile, intensity, positions, model_id, cloud.fields.get("ring"))
+    scale = chain_intensity_scale(cloud, model_id)
     if scale.warning:
         warnings.warn(scale.warning, IntensityWarning, stacklevel=3)
     profile = scale.profile

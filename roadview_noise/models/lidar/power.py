@@ -6,12 +6,16 @@ The D3.5 model maps a target reflectance x (%) to the 8-bit intensity y (counts)
 retro-reflectors up to 255. Input intensities are brought to this domain by matching full scales — x = I·255/F
 with F = ``profile.intensity_full_scale`` (uint8: 1 count per unit, unit [0, 1]: 255, photons: 255/65535) — and
 converted back with the same factor, clipped to [0, F] and rounded when the profile's unit is uint8 (8-bit sensor).
-For photon counts this is a full-scale convention, not a calibration: give the profile whose intensity unit matches
-the recorded field (Ouster *reflectivity* is uint8). No-return points (zero position) keep intensity 0.
+The profile is the one the weather models read the intensities with: when nothing states the unit, the chain's
+input decides it (8-bit reflectivity read from the data; a [0, 1] cloud refused), with a warning
+(:func:`~roadview_noise.physics.lidar_intensity.chain_intensity_scale`). For photon counts this is a full-scale
+convention, not a calibration: give the profile whose intensity unit matches the recorded field (Ouster
+*reflectivity* is uint8). No-return points (zero position) keep intensity 0.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -20,8 +24,9 @@ import numpy as np
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
 from ...physics.lidar_geometry import has_return, with_ring
+from ...physics.lidar_intensity import IntensityWarning, chain_intensity_scale
 from ...registry import register
-from ...types import IntensityUnit, PointCloud
+from ...types import IntensityUnit, LidarProfile, PointCloud
 
 COUNT_FULL_SCALE = 255.0  # full scale of the model's domain: the VLS-128 8-bit intensity
 
@@ -32,23 +37,37 @@ def _channels(model_id: str, cloud: PointCloud) -> int:
     return cloud.profile.channels
 
 
-def _intensity_counts(model_id: str, cloud: PointCloud) -> tuple[np.ndarray, np.ndarray, float]:
-    """Intensity of the returns in model counts, the return mask and the counts per input unit."""
+@dataclass(frozen=True)
+class _Counts:
+    """The returns' intensities in model counts, their mask, the counts per stored unit and the profile read with."""
+
+    counts: np.ndarray
+    hit: np.ndarray
+    scale: float
+    profile: LidarProfile
+
+
+def _intensity_counts(model_id: str, cloud: PointCloud) -> _Counts:
+    """The returns' intensities in model counts, read in the unit the chain's input decides
+    (:func:`lidar_intensity.chain_intensity_scale`, as the weather models read it; its warning printed)."""
     _channels(model_id, cloud)
     if "intensity" not in cloud.fields:
         raise ModelError(f"needs an intensity field (cloud has {sorted(cloud.fields)})", model=model_id)
+    read = chain_intensity_scale(cloud, model_id)
+    if read.warning:
+        warnings.warn(read.warning, IntensityWarning, stacklevel=3)
     hit = has_return(cloud.positions_m)
-    scale = COUNT_FULL_SCALE / cloud.profile.intensity_full_scale
-    return cloud.fields["intensity"][hit].astype(np.float64) * scale, hit, scale
+    scale = COUNT_FULL_SCALE / read.profile.intensity_full_scale
+    return _Counts(cloud.fields["intensity"][hit].astype(np.float64) * scale, hit, scale, read.profile)
 
 
-def _with_intensity_counts(cloud: PointCloud, counts: np.ndarray, hit: np.ndarray,
-                           scale: float) -> tuple[PointCloud, dict]:
+def _with_intensity_counts(cloud: PointCloud, counts: np.ndarray, read: _Counts) -> tuple[PointCloud, dict]:
     """The cloud with the returns' intensity set from model counts (clipped, converted, rounded for uint8)."""
+    hit, scale = read.hit, read.scale
     clipped = np.clip(counts, 0.0, COUNT_FULL_SCALE)
     values = clipped / scale
     field = cloud.fields["intensity"]
-    if cloud.profile.intensity_unit == IntensityUnit.UINT8 or np.issubdtype(field.dtype, np.integer):
+    if read.profile.intensity_unit == IntensityUnit.UINT8 or np.issubdtype(field.dtype, np.integer):
         values = np.rint(values)
     out = field.copy()
     out[hit] = values.astype(field.dtype)
@@ -122,15 +141,16 @@ class PowerLidar(_ElectronicsParams):
         return state
 
     def apply(self, data, *, state, drawn, rng):
-        x, hit, scale = _intensity_counts(self.id, data)
+        read = _intensity_counts(self.id, data)
+        x = read.counts
         if self.mode == "additive":
-            return _with_intensity_counts(data, x + rng.normal(0.0, self.additive_sd_counts, len(x)), hit, scale)
-        data, ring = _beam_of_returns(self.id, data, hit, len(state["gain"]))
+            return _with_intensity_counts(data, x + rng.normal(0.0, self.additive_sd_counts, len(x)), read)
+        data, ring = _beam_of_returns(self.id, data, read.hit, len(state["gain"]))
         gain = np.asarray(state["gain"])[ring]
         y = gain * x
         if not self.split_electronics:
             y = _electronics(y, np.asarray(state["bias_counts"])[ring], self.noise_sd_factor, rng)
-        out, diagnostics = _with_intensity_counts(data, y, hit, scale)
+        out, diagnostics = _with_intensity_counts(data, y, read)
         diagnostics["mean_gain"] = float(gain.mean()) if len(gain) else 0.0
         return out, diagnostics
 
@@ -156,10 +176,10 @@ class PowerElectronicsLidar(_ElectronicsParams):
         return {"bias_counts": rng.normal(self.bias_mean_counts, self.bias_sd_counts, n).tolist()}
 
     def apply(self, data, *, state, drawn, rng):
-        x, hit, scale = _intensity_counts(self.id, data)
-        data, ring = _beam_of_returns(self.id, data, hit, len(state["bias_counts"]))
-        y = _electronics(x, np.asarray(state["bias_counts"])[ring], self.noise_sd_factor, rng)
-        return _with_intensity_counts(data, y, hit, scale)
+        read = _intensity_counts(self.id, data)
+        data, ring = _beam_of_returns(self.id, data, read.hit, len(state["bias_counts"]))
+        y = _electronics(read.counts, np.asarray(state["bias_counts"])[ring], self.noise_sd_factor, rng)
+        return _with_intensity_counts(data, y, read)
 
 
 def _beam_of_returns(model_id: str, cloud: PointCloud, hit: np.ndarray,
