@@ -37,7 +37,7 @@ def _intensity_counts(model_id: str, cloud: PointCloud) -> tuple[np.ndarray, np.
     _channels(model_id, cloud)
     if "intensity" not in cloud.fields:
         raise ModelError(f"needs an intensity field (cloud has {sorted(cloud.fields)})", model=model_id)
-    hit = has_return(cloud.positions_m)
+    hit = has_return(cloud.positions_m, cloud)      # noting its geometry for the metrics
     scale = COUNT_FULL_SCALE / cloud.profile.intensity_full_scale
     return cloud.fields["intensity"][hit].astype(np.float64) * scale, hit, scale
 
