@@ -79,6 +79,25 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
 def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
                    intensity_in, positions_out, intensity_out, effect_out, origin_out,
                    geometry):   # pragma: no cover - compiled
+    """:func:`_place` with the input's geometry counted or derived (returns :data:`_UNKNOWN` or ≥ 0)."""
+    return _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
+                  intensity_in, positions_out, intensity_out, effect_out, origin_out, geometry, False)
+
+
+@jit
+def _place_output_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid,
+                          positions, intensity_in, positions_out, intensity_out, effect_out, origin_out,
+                          geometry):   # pragma: no cover - compiled
+    """:func:`_place` binning only the output's points (returns :data:`_OUTPUT_ONLY`): compiled apart, so that the
+    other variant's loop holds none of its branches."""
+    return _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
+                  intensity_in, positions_out, intensity_out, effect_out, origin_out, geometry, True)
+
+
+@jit(inline="always")
+def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
+           intensity_in, positions_out, intensity_out, effect_out, origin_out, geometry,
+           out_only):   # pragma: no cover - compiled
     """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
     integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
@@ -88,12 +107,11 @@ def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale,
     when known; empty histograms: none): the points' :mod:`return_ranges` counted on the way (an output point at its
     input's position is its input's return, in its bin); returns (returns, largest x² + y² + z²) of the input and of
     the output too. With the input's known (returns ≥ 0: ``hist_in`` and ``valid_in`` given, an earlier step's
-    output), the output's is derived from it: only the points the step removed or moved are binned; with returns
-    :data:`_OUTPUT_ONLY` (known, but most points leave) every output point is binned where it is written, from the
-    values written."""
+    output), the output's is derived from it: only the points the step removed or moved are binned; with ``out_only``
+    (returns :data:`_OUTPUT_ONLY`: known, but most points leave; a constant of each compiled variant) every output
+    point is binned where it is written, from the values written."""
     inv_bin, hist_in, hist_out, valid_in, valid_out, known_returns = geometry
     geo, top = hist_in.shape[0] > 0, hist_in.shape[0] - 1
-    out_only = known_returns == _OUTPUT_ONLY
     known = known_returns >= 0 or out_only
     returns_in, returns_out = max(known_returns, 0), 0
     max_in = max_out = 0.0
@@ -206,7 +224,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     positions_in = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     geometry = _geometry_to_count(cloud, positions_in, n, size, returns.kind[:n], rays.has_target[:n])
     n_bins = len(geometry[1])
-    removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = _place_returns(
+    place = _place_output_returns if geometry[5] == _OUTPUT_ONLY else _place_returns
+    removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = place(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
         float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
         positions_in, intensity_in, positions, intensity, effect, origin, geometry)
