@@ -48,7 +48,8 @@ archive COMMIT | tar -x -C DIR``); its ``roadview_noise/metrics.py``, ``luminanc
 ``physics/lidar_output.py`` (the LiDAR weather models' output cloud, which counts return geometry for the metrics)
 are loaded beside this tree's (its metrics bound to its luminance, their other relative imports resolving to this
 tree's modules, so use it for versions that differ in those three files; the alignment's ``return_ranges.write_rows``
-is swapped too, for a plain scatter where DIR has none) and its step records are turned into manifest dicts as its
+is swapped too, for a plain scatter where DIR has none, and the laser power's and the alignment's ``has_return``, for
+one that notes no geometry where DIR's takes no profile) and its step records are turned into manifest dicts as its
 ``compound.py`` does (``StepRecord.as_entry`` or ``dataclasses.asdict``).
 While DIR's metrics run the models count no return geometry for them (``physics.return_ranges.collect`` kept off,
 unless DIR's metrics read it), so the other version does not pay for work only this tree's metrics use.
@@ -115,7 +116,9 @@ from roadview_noise import metrics as this_metrics  # noqa: E402
 from roadview_noise.compound import apply_models  # noqa: E402
 from roadview_noise.manifest import MANIFEST_NAME  # noqa: E402
 from roadview_noise.metrics import compare  # noqa: E402
+from roadview_noise.models.lidar import alignment as alignment_model, power as power_model  # noqa: E402
 from roadview_noise.physics import compiled, lidar_weather, return_ranges  # noqa: E402
+from roadview_noise.physics.lidar_geometry import has_return  # noqa: E402
 from roadview_noise.recipe import load_recipe, parse_recipe  # noqa: E402
 from roadview_noise.runner import RunContext, build_models, load, plan, process, run  # noqa: E402
 from roadview_noise.sampledata.generate import generate  # noqa: E402
@@ -217,13 +220,14 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
         return None
     versions = {"base": _baseline_version(baseline),
                 "this": (this_metrics, compound.StepRecord.as_entry, luminance, lidar_weather.assemble,
-                         return_ranges.write_rows)}
+                         return_ranges.write_rows, has_return)}
     collect = return_ranges.collect
 
     def once(kind: str, task=tasks[0]) -> tuple[float, dict]:
         if kind != "off":
-            module, compound.StepRecord.as_entry, lum, lidar_weather.assemble, return_ranges.write_rows = \
-                versions[kind]
+            module, compound.StepRecord.as_entry, lum, lidar_weather.assemble, return_ranges.write_rows, \
+                power_model.has_return = versions[kind]
+            alignment_model.has_return = power_model.has_return
             sys.modules["roadview_noise.metrics"] = roadview_noise.metrics = module
             sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = lum
         if kind == "base" and not hasattr(module, "return_ranges"):     # models note no geometry for it
@@ -237,6 +241,7 @@ def baseline_case(name: str, folder: str, roots: dict[str, Path], tmp: Path, rep
             sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
             compound.StepRecord.as_entry, lidar_weather.assemble = versions["this"][1], versions["this"][3]
             return_ranges.write_rows = versions["this"][4]
+            power_model.has_return = alignment_model.has_return = has_return
             return_ranges.collect = collect
         if "error" in entry:
             raise RuntimeError(f"{task.sample.relpath}: {entry['error']}")
@@ -273,10 +278,12 @@ def _comparable(results: list) -> list:
 
 
 def _baseline_version(tree: Path) -> tuple:
-    """(metrics module, ``StepRecord.as_entry``, luminance module, LiDAR ``assemble``, ``return_ranges.write_rows``)
-    of another version of the code (``--baseline``): its ``luminance.py``, its ``metrics.py`` bound to it, its
-    ``physics/lidar_output.py`` (the weather models' output cloud, which counts return geometry for the metrics) and,
-    for the alignment's writes, this tree's ``write_rows`` if it has one, else a plain scatter (no geometry noted)."""
+    """(metrics module, ``StepRecord.as_entry``, luminance module, LiDAR ``assemble``, ``return_ranges.write_rows``,
+    the laser power's and the alignment's ``has_return``) of another version of the code (``--baseline``): its
+    ``luminance.py``, its ``metrics.py`` bound to it, its ``physics/lidar_output.py`` (the weather models' output cloud,
+    which counts return geometry for the metrics), for the alignment's writes this tree's ``write_rows`` if it has one,
+    else a plain scatter (no geometry noted), and this tree's ``has_return`` if its own takes the cloud (to note the
+    input's geometry), else one that notes none."""
     luminance_base = _load_beside(tree, "luminance")
     try:
         sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance_base
@@ -285,8 +292,16 @@ def _baseline_version(tree: Path) -> tuple:
         sys.modules["roadview_noise.luminance"] = roadview_noise.luminance = luminance
     has_entry = "def as_entry(" in (tree / "roadview_noise" / "compound.py").read_text()
     has_rows = "def write_rows(" in (tree / "roadview_noise" / "physics" / "return_ranges.py").read_text()
+    geometry_code = (tree / "roadview_noise" / "physics" / "lidar_geometry.py").read_text()
+    notes_input = "def has_return(positions_m: np.ndarray, cloud" in geometry_code
     return (module, (compound.StepRecord.as_entry if has_entry else dataclasses.asdict), luminance_base,
-            _load_beside(tree, "physics.lidar_output").assemble, return_ranges.write_rows if has_rows else _scatter)
+            _load_beside(tree, "physics.lidar_output").assemble, return_ranges.write_rows if has_rows else _scatter,
+            has_return if notes_input else _returns_only)
+
+
+def _returns_only(positions: np.ndarray, cloud=None) -> np.ndarray:
+    """``has_return`` of a version whose laser power and alignment note no geometry of their input."""
+    return has_return(positions)
 
 
 def _scatter(positions: np.ndarray, mask: np.ndarray, rows: np.ndarray, profile) -> None:

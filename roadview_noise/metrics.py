@@ -469,6 +469,7 @@ NO_LINK, GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK = 0, 1, 2, 3, 4   # _cloud_p
 _NO_STEP = (np.zeros(0, np.int64), np.zeros(0, np.uint8))
 _NO_CODES, _NO_VALUES = np.zeros(0, np.uint8), np.zeros(0)     # a cloud without effect codes, without values
 _NO_INDEX, _NO_MASK = np.zeros(0, np.int32), np.zeros(0, np.bool_)
+_NOT_LINKED = (_NO_INDEX, _NO_MASK, math.nan)                   # a NO_LINK pass's correspondence
 
 
 def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
@@ -629,14 +630,18 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. The geometry of a positions
     array is found once (:mod:`~roadview_noise.physics.return_ranges`): an array a step hands on unchanged
     (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
-    counted. SAME_LINK takes the mean change over the cells that are returns in both when ``cells`` (grids), else
-    over every point."""
+    counted — not even those for a chain input without codes whose intensity sum the model that read it noted too
+    (:func:`return_ranges.noted_sum`: the laser power, the alignment). SAME_LINK takes the mean change over the cells
+    that are returns in both when ``cells`` (grids), else over every point."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
     else:
         valid_b = before["valid"] if link != SAME_LINK or cells else _NO_MASK
         linked = (before["positions"], valid_b, before["values"], step)
     geometry = return_ranges.noted(positions, n_bins)
+    sums = None if geometry is None or link != NO_LINK or len(codes) else return_ranges.noted_sum(positions, values)
+    if sums is not None:                # the pass's result, noted by the model that read the array (chain input)
+        return geometry, np.array([geometry[0], 0, 0, 0], np.int64), *sums, _NOT_LINKED
     if geometry is None:
         full = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
         return_ranges.note(positions, n_bins, full[0])

@@ -1,8 +1,8 @@
-"""The return geometry a LiDAR model notes while it writes its output (``physics.return_ranges``: the weather models'
-placement, the alignment's turned points) equals the metrics' own pass over the same arrays, value for value, and
-changes nothing the model writes; a step whose input's geometry is already known (a CNF's second step) derives its
-output's from it and notes only that when it moves or removes few points (rain), none when it moves most of them (fog
-at 30 m) (issue 18)."""
+"""The return geometry a LiDAR model notes while it reads its input or writes its output (``physics.return_ranges``:
+the weather models' placement, the alignment's turned points, the laser power's and the alignment's return mask of
+their input) equals the metrics' own pass over the same arrays, value for value, and changes nothing the model
+writes; a step whose input's geometry is already known (a CNF's second step) derives its output's from it and notes
+only that when it moves or removes few points (rain), none when it moves most of them (fog at 30 m) (issue 18)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import pytest
 from roadview_noise import metrics
 from roadview_noise.compound import apply_models
 from roadview_noise.physics import return_ranges
+from roadview_noise.physics.lidar_geometry import has_return
 from roadview_noise.recipe import load_recipe
 from roadview_noise.runner import build_models, load, plan
 
@@ -34,9 +35,10 @@ def run_chain(recipe, task, data, metrics_on: bool):
                         sequence_id=task.sample.sequence_id, metrics=metrics_on)
 
 
-#: recipe → the arrays its models note: a first weather step's input and output, the alignment's output, a later
-#: rain step's output (not a later fog step's, nor the laser power's, which hands the positions on)
-NOTED = {"weather-fog-lidar": 2, "weather-rain-lidar": 2, "weather-snow-lidar": 2, "cnf20": 1, "cnf22": 1, "cnf23": 0}
+#: recipe → the arrays its models note: the chain input (a first weather step's, the laser power's or the alignment's
+#: return mask), a first weather step's output, the alignment's output, a later rain step's output (not a later fog
+#: step's, nor the laser power's, which hands the positions on)
+NOTED = {"weather-fog-lidar": 2, "weather-rain-lidar": 2, "weather-snow-lidar": 2, "cnf20": 3, "cnf22": 2, "cnf23": 2}
 
 
 @pytest.mark.parametrize("name", sorted(NOTED))
@@ -57,8 +59,8 @@ def test_noted_geometry_is_the_metrics_own(monkeypatch, name, tree):
     monkeypatch.setattr(return_ranges, "note", noting)
     out, records = run_chain(recipe, task, data, True)
     first_step = name.startswith("weather-")                       # a CNF's weather step gets a known input
-    assert any(p is out.positions_m for p, _, _ in by_model) == (first_step or name == "cnf22")
-    assert any(p is data.positions_m for p, _, _ in by_model) == first_step
+    assert any(p is out.positions_m for p, _, _ in by_model)
+    assert any(p is data.positions_m for p, _, _ in by_model)
     assert len({id(p) for p, _, _ in by_model}) == NOTED[name]
     for positions, n_bins, (returns, hist, max_range_m, valid) in by_model:
         r, h, m, v = own_pass(positions, n_bins)
@@ -82,3 +84,34 @@ def test_geometry_is_noted_only_while_a_chain_records_metrics():
     assert return_ranges.noted(positions, 5) is None and return_ranges.noted(positions.copy(), 4) is None
     return_ranges.collect(False)                                    # a chain without metrics forgets them
     assert return_ranges.noted(positions, 4) is None
+
+
+def test_return_mask_counted_for_the_metrics_is_has_return():
+    """The laser power's and the alignment's return mask with the geometry and the intensity sum counted (a compiled
+    pass) is NumPy's, and what it notes is the metrics' own pass, on the edge cases: the origin, NaN, ±inf, a sum that
+    overflows, coordinates whose squares underflow or overflow, a NaN intensity."""
+    positions = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 0.0], [np.nan, 1.0, 1.0], [np.inf, 0.0, 0.0],
+                          [1e308, 1e308, 0.0], [1e-200, 0.0, 0.0], [-0.0, 0.0, 0.0], [0.0, -2.0, 1e300],
+                          [1.0, -np.inf, np.inf], [0.0, 0.0, 295.0], [0.5, 7.0, -1.0]])
+    intensity = np.array([1.5, 2, 3, 4, 5, 6, 7, 8, 9, 10.25, np.nan], np.float32)
+    recipe = load_recipe(ROOT / "recipes" / "cnf23.yaml")
+    cloud = load(plan(ROOT / "sample_data", recipe)[0].sample, ROOT / "sample_data", recipe)
+    cloud = cloud.replace(positions_m=positions, fields={"intensity": intensity}, attributes={})
+    n_bins = return_ranges.bin_count(cloud.profile)
+    return_ranges.collect(True)
+    try:
+        hit = has_return(positions, cloud)
+        noted, sums = return_ranges.noted(positions, n_bins), return_ranges.noted_sum(positions, intensity)
+        assert return_ranges.noted_sum(positions, intensity.copy()) is None
+    finally:
+        return_ranges.collect(False)
+    with np.errstate(over="ignore", invalid="ignore"):
+        assert np.array_equal(hit, has_return(positions))
+    assert hit.tolist() == [True, False, False, False, False, True, False, True, False, True, True]
+    none = np.zeros(0, np.bool_)
+    own = metrics._cloud_pass(positions, none, metrics._NO_CODES, intensity, metrics.RANGE_BIN_M, n_bins,
+                              metrics.NO_LINK, positions[:0], none, metrics._NO_VALUES)
+    r, h, m, v = own[0]
+    returns, hist, max_range_m, valid = noted
+    assert (returns, hist.tolist(), max_range_m) == (r, h.tolist(), m) and np.array_equal(valid, v)
+    assert sums == (own[2], own[3]) == (11.75, 2)

@@ -21,7 +21,8 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import InputError
-from ..types import LidarProfile
+from ..types import LidarProfile, PointCloud
+from . import return_ranges
 from .compiled import jit
 
 RING = "ring"          # the field, else the attribute, that carries each point's beam (index into the beam table)
@@ -60,8 +61,15 @@ def velodyne_to_xyz(r: np.ndarray, alpha: np.ndarray, omega: np.ndarray) -> np.n
     return np.stack([c * np.sin(alpha), c * np.cos(alpha), r * np.sin(omega)], axis=1)
 
 
-def has_return(positions_m: np.ndarray) -> np.ndarray:
-    """(N,) bool: the point is a return — finite and not at the origin (full grids mark no-return cells with 0)."""
+def has_return(positions_m: np.ndarray, cloud: PointCloud | None = None) -> np.ndarray:
+    """(N,) bool: the point is a return — finite and not at the origin (full grids mark no-return cells with 0).
+
+    ``cloud``: the cloud whose positions these are, from a model that reads every position of its input anyway (the
+    laser power, the alignment): while a chain records metrics the return geometry and the intensity sum are counted
+    in the same compiled pass and noted for them (:func:`return_ranges.returns_noted`); the same mask either way."""
+    hit = None if cloud is None else return_ranges.returns_noted(cloud)
+    if hit is not None:
+        return hit
     x, y, z = _xyz(positions_m)
     return np.isfinite(x + y + z) & ((x != 0) | (y != 0) | (z != 0))
 

@@ -5,8 +5,8 @@ A return is a point with 0 < x² + y² + z² < ∞ (a grid's no-return cells are
 ⌊√(x² + y² + z²) / 10 m⌋, the last bin catching anything farther (:func:`range_bin`; the metrics' own pass computes
 the same expression inline, where a call compiled 15–25 % slower). A model's loop that reads and writes every
 position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`, the alignment's
-:func:`write_rows`) counts it on the way while the chain records metrics (:func:`collect`) and notes the geometry of
-its input and output arrays
+:func:`write_rows`, the laser power's and the alignment's return mask of their input, :func:`returns_noted`, with
+its intensity sum) counts it on the way while the chain records metrics (:func:`collect`) and notes the geometry of its input and output arrays
 (:func:`note`), so the metrics read neither array's positions again (:func:`noted`); the metrics note what they
 count themselves, so an array a step hands on unchanged is counted once. Same operations on the same values: the
 same geometry either way.
@@ -27,6 +27,8 @@ _KEPT = 4                            # arrays whose geometry is kept (a chain's 
 
 _collecting = [False]
 _noted: dict[int, tuple] = {}        # id(array) → (weakref to it, key, geometry)
+_sums: dict[int, tuple] = {}         # id(values) → (weakref to them, weakref to the positions, (sum, number))
+_NO_VALUES = np.zeros(0)
 
 
 def bin_count(profile) -> int:
@@ -105,6 +107,60 @@ def write_rows(positions: np.ndarray, mask: np.ndarray, rows: np.ndarray, profil
 
 
 @jit
+def _returns_counted(positions, values, inv_bin, hist, valid, hit):       # pragma: no cover - compiled
+    """``hit`` = :func:`lidar_geometry.has_return <roadview_noise.physics.lidar_geometry.has_return>` of
+    ``positions`` (finite x + y + z, not the origin) with every point counted into ``hist`` and ``valid``
+    (:func:`add_point`) in the same pass: (returns, their largest x² + y² + z², the sum and the number of the finite
+    ``values`` of the returns in order, as the metrics' pass sums them; ``values`` empty: 0.0, 0)."""
+    returns, max_r2, top, total, finite = 0, 0.0, hist.shape[0] - 1, 0.0, 0
+    has_values = values.shape[0] > 0
+    for j in range(positions.shape[0]):
+        x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
+        hit[j] = np.isfinite(x + y + z) and (x != 0.0 or y != 0.0 or z != 0.0)
+        returns, max_r2 = add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2)[2:]
+        if has_values and valid[j]:
+            v = float(values[j])
+            if np.isfinite(v):
+                total += v
+                finite += 1
+    return returns, max_r2, total, finite
+
+
+def returns_noted(cloud) -> np.ndarray | None:
+    """The return mask of :func:`lidar_geometry.has_return <roadview_noise.physics.lidar_geometry.has_return>` of a
+    cloud's positions for a model that reads its input's returns (the laser power, the alignment), with the array's
+    geometry and the sum of its intensities over the returns counted in the same pass and noted while a chain records
+    metrics (:func:`wanted`; :func:`noted`, :func:`noted_sum`) — so the metrics' summary of the chain input reads
+    neither —; None when none is wanted, the geometry is noted already, or the positions are not float64 C-contiguous
+    (the metrics would read a converted copy)."""
+    positions = cloud.positions_m
+    if not (wanted() and cloud.profile is not None and positions.ndim == 2 and positions.shape[1] == 3
+            and positions.dtype == np.float64 and positions.flags.c_contiguous):
+        return None
+    n_bins = bin_count(cloud.profile)
+    if noted(positions, n_bins) is not None:
+        return None
+    values = cloud.fields.get("intensity")
+    values = values if isinstance(values, np.ndarray) and values.shape == (len(positions),) else None
+    hist, valid, hit = np.zeros(n_bins, np.int64), np.empty(len(positions), np.bool_), np.empty(len(positions), bool)
+    returns, max_r2, total, finite = _returns_counted(positions, _NO_VALUES if values is None else values,
+                                                      1.0 / RANGE_BIN_M, hist, valid, hit)
+    note(positions, n_bins, geometry_of(returns, hist, max_r2, valid))
+    if values is not None:
+        _sums[id(values)] = (weakref.ref(values), weakref.ref(positions), (total, finite))
+    return hit
+
+
+def noted_sum(positions: np.ndarray, values: np.ndarray) -> tuple | None:
+    """(sum, number) of the finite ``values`` of the returns of ``positions`` (:func:`returns_noted`) when a model
+    noted them for these very arrays, else None."""
+    got = _sums.get(id(values))
+    if got is None or got[0]() is not values or got[1]() is not positions:
+        return None
+    return got[2]
+
+
+@jit
 def geometry_of(returns, hist, max_r2, valid):       # pragma: no cover - compiled
     """The geometry as :func:`noted` gives it: (returns, the bins up to the farthest return's, its range m, the
     per-point return mask)."""
@@ -120,6 +176,7 @@ def collect(on: bool) -> None:
     _collecting[0] = on
     if not on:
         _noted.clear()
+        _sums.clear()
 
 
 def wanted() -> bool:
@@ -137,6 +194,7 @@ def note(positions: np.ndarray, n_bins: int, geometry: tuple) -> None:
     if len(_noted) >= _KEPT:
         for k in [k for k, (ref, _, _) in _noted.items() if ref() is None] or list(_noted)[:1]:
             del _noted[k]
+        _sums.clear()
     _noted[id(positions)] = (weakref.ref(positions), _key(positions, n_bins), geometry)
 
 

@@ -62,7 +62,7 @@ class AlignmentLidar(Model):
 
     def apply(self, data, *, state, drawn, rng):
         n_beams = self._channels(data)
-        hit = has_return(data.positions_m)
+        hit = has_return(data.positions_m, data)      # noting its geometry for the metrics
         diagnostics = {"ring_source": ring_source(data)}
         data, ring = with_ring(data)                   # before the points move: later steps read it
         if self.mode == "per_beam":

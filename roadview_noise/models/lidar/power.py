@@ -56,7 +56,7 @@ def _intensity_counts(model_id: str, cloud: PointCloud) -> _Counts:
     read = chain_intensity_scale(cloud, model_id)
     if read.warning:
         warnings.warn(read.warning, IntensityWarning, stacklevel=3)
-    hit = has_return(cloud.positions_m)
+    hit = has_return(cloud.positions_m, cloud)      # noting its geometry for the metrics
     scale = COUNT_FULL_SCALE / read.profile.intensity_full_scale
     return _Counts(cloud.fields["intensity"][hit].astype(np.float64) * scale, hit, scale, read.profile)
 
