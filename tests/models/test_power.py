@@ -182,7 +182,8 @@ def test_no_returns_keep_zero_and_clipping():
     assert np.all(out.fields["intensity"][::3] == 0.0)
     assert out.fields["intensity"].max() == 255.0                     # 1.17·250 saturates the 8-bit sensor
     assert diag["clipped_fraction"] > 0.5 and diag["points"] == int(np.any(pos != 0, axis=1).sum())
-    low, diag_low = apply(PowerLidar(bias_mean_counts=-20.0, **NOISELESS), cloud_of(profile, 2.0))  # (all ≤ 1: refused)
+    low_cloud = cloud_of(profile, 2.0)                                # (a uint8 cloud all ≤ 1 is refused)
+    low, diag_low = apply(PowerLidar(bias_mean_counts=-20.0, **NOISELESS), low_cloud)
     assert np.all(low.fields["intensity"] == 0.0) and diag_low["clipped_fraction"] == 1.0
 
 
