@@ -7,9 +7,9 @@ the same expression inline, where a call compiled 15–25 % slower). A model's l
 position anyway (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`, the alignment's
 :func:`write_rows`, the laser power's and the alignment's return mask of their input, :func:`returns_noted`, with
 its intensity sum) counts it on the way while the chain records metrics (:func:`collect`) and notes the geometry of
-its input and output arrays (:func:`note`), so the metrics read neither array's positions again (:func:`noted`); the metrics note what they
-count themselves, so an array a step hands on unchanged is counted once. Same operations on the same values: the
-same geometry either way.
+its input and output arrays (:func:`note`), so the metrics read neither array's positions again (:func:`noted`);
+the metrics note what they count themselves, so an array a step hands on unchanged is counted once. Same operations
+on the same values: the same geometry either way.
 """
 
 from __future__ import annotations
