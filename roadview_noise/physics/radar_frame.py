@@ -23,11 +23,13 @@ the ego velocity they imply, and the fields a sensor gives a detection it adds (
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 
 from ..types import PointCloud, RadarProfile
 from .compiled import jit
+from .return_ranges import squared_range
 
 RAW_VECTOR = ("vx", "vy", "vz")                  # sensor-relative Cartesian velocity (nuScenes: vx, vy)
 COMPENSATED_VECTOR = ("vx_comp", "vy_comp", "vz_comp")
@@ -48,7 +50,7 @@ def point_ranges_m(cloud: PointCloud) -> np.ndarray:
 @jit
 def _row_norms(p, out):
     for i in range(len(p)):
-        out[i] = np.sqrt((p[i, 0] * p[i, 0] + p[i, 1] * p[i, 1]) + p[i, 2] * p[i, 2])
+        out[i] = math.sqrt(squared_range(p, i))
 
 
 def is_planar(cloud: PointCloud, profile: RadarProfile) -> bool:

@@ -16,6 +16,7 @@ from roadview_noise.models.radar.detection import _median_of_finite, with_loss
 from roadview_noise.models.radar.weather import _attenuate_and_drop, _detection_summary
 from roadview_noise.physics.radar_cfar import PROBABILITY_TIERS, CaCfar, FixedThreshold, tier_ratios
 from roadview_noise.physics.numpy_sums import numpy_sum
+from roadview_noise.physics.radar_frame import point_ranges_m
 from roadview_noise.physics.radar_clutter import (ResolutionGrid, clutter_cells, clutter_tables, frame_cells,
                                                   generate_clutter, rain_drops, snow_flakes)
 from roadview_noise.provenance import ATTENUATED, Effect, mark
@@ -106,6 +107,16 @@ def test_numpy_sum_is_numpys_sum_bit_for_bit():
     for n in (0, 1, 7, 8, 9, 95, 128, 129, 300, 1000, 4099):
         a = rng.exponential(1.0, n) * 10.0 ** rng.uniform(-6, 6, n) * rng.choice([-1.0, 1.0], n)
         assert np.float64(numpy_sum(a)).tobytes() == a.sum().tobytes()
+
+
+def test_point_ranges_are_the_clouds_norms_bit_for_bit():
+    src = ROOT / "sample_data" / "radar" / "seq0"
+    cloud = read_pointcloud(sorted(src.glob("*.pcd"))[0], sensor="radar",
+                            profile=load_radar_profile(src / "radar.yaml"))
+    rng = np.random.default_rng(1)
+    for positions in (cloud.positions_m, rng.normal(0, 50, (999, 3)) * 10.0 ** rng.uniform(-3, 3, (999, 1))):
+        c = cloud.replace(positions_m=positions, fields={}) if positions is not cloud.positions_m else cloud
+        assert point_ranges_m(c).tobytes() == c.ranges_m.tobytes()
 
 
 def test_detection_summary_and_attenuate_and_drop_equal_the_numpy_steps():
