@@ -149,3 +149,70 @@ def test_camera_fov_crop_is_reported_and_not_filled():
     assert len(grid.ring) > 0 and np.all(direction[:, 0] > 0)           # nothing behind the sensor
     out = int(grid.describe().split("; ")[-1].split(" of ")[0])
     assert 0.5 * 1085 < out < 0.8 * 1085 and "out of view (a crop" in grid.describe()
+
+
+def nebula_pcd(path, n: int = 400, seed: int = 0) -> np.ndarray:
+    """A PCD as nebula (TIER IV's Hesai/Velodyne/Robosense driver, Autoware's ``PointXYZIRCAEDT``) writes it, e.g.
+    its VLP-16 test scan: x y z float32, intensity uint8, return_type uint8, channel uint16, azimuth, elevation
+    (rad; azimuth clockwise from +x in [0, 2π)), distance (m) float32, time_stamp uint32. Returns its records."""
+    rng = np.random.default_rng(seed)
+    az, el = rng.uniform(0, 2 * np.pi, n), np.deg2rad(rng.integers(-15, 16, n) // 2 * 2.0)
+    r = rng.uniform(2, 80, n)
+    rec = np.zeros(n, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("return_type", "u1"),
+                       ("channel", "<u2"), ("azimuth", "<f4"), ("elevation", "<f4"), ("distance", "<f4"),
+                       ("time_stamp", "<u4")])
+    rec["x"], rec["y"], rec["z"] = r * np.cos(el) * np.cos(az), -r * np.cos(el) * np.sin(az), r * np.sin(el)
+    rec["intensity"], rec["return_type"] = rng.integers(0, 120, n), 6
+    rec["channel"], rec["azimuth"], rec["elevation"], rec["distance"] = (el / np.deg2rad(2) + 7.5) // 1, az, el, r
+    rec["time_stamp"] = rng.integers(0, 100_000, n)
+    names = rec.dtype.names
+    head = ("VERSION 0.7\nFIELDS " + " ".join(names) + "\nSIZE 4 4 4 1 1 2 4 4 4 4\nTYPE F F F U U U F F F U\n"
+            f"COUNT {' '.join('1' * len(names))}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
+            "DATA binary\n")
+    path.write_bytes(head.encode() + rec.tobytes())
+    return rec
+
+
+def test_nebula_distance_and_angles_follow_moved_and_added_points(tmp_path):
+    """A point moved along its ray to a particle gets ``distance`` = |p| (its azimuth and elevation stay: same ray);
+    a point added elsewhere gets the distance and the azimuth/elevation of its position in the file's own
+    convention (clockwise azimuth in [0, 2π)). Before: both kept the values of the point their other fields came
+    from (a real nebula VLP-16 scan under fog 30 m: distance up to 13 m off, elevation up to 32°)."""
+    from roadview_noise.io.pointcloud import write_pointcloud
+    from roadview_noise.provenance import Effect
+
+    rec = nebula_pcd(tmp_path / "in.pcd")
+    cloud = read_pointcloud(tmp_path / "in.pcd")
+    pos = cloud.positions_m.copy()
+    pos[:10] *= 0.25                                                        # moved along the ray
+    effect = np.where(np.arange(len(pos)) < 10, Effect.MOVED, Effect.ATTENUATED).astype(np.uint8)
+    added = np.array([[3.0, 4.0, 0.5], [-6.0, -2.0, -1.0]])
+    out = cloud.replace(positions_m=pos, effect=effect).concat(
+        added, {k: v[:2] for k, v in cloud.fields.items()})                   # fields copied from other points
+    write_pointcloud(tmp_path / "out.pcd", out)
+    stored = np.dtype(rec.dtype.descr + [("rv_effect", "u1")])
+    got = np.frombuffer((tmp_path / "out.pcd").read_bytes()[-(len(rec) + 2) * stored.itemsize:], stored)
+    r = np.linalg.norm(np.concatenate([pos, added]), axis=1)
+    np.testing.assert_allclose(got["distance"][:10], r[:10], rtol=1e-6)
+    np.testing.assert_array_equal(got["distance"][10:-2], rec["distance"][10:])       # recorded points kept
+    for name in ("azimuth", "elevation", "channel", "time_stamp"):
+        np.testing.assert_array_equal(got[name][:-2], rec[name], err_msg=name)
+    np.testing.assert_allclose(got["distance"][-2:], r[-2:], rtol=1e-6)
+    np.testing.assert_allclose(got["azimuth"][-2:], np.mod(-np.arctan2(added[:, 1], added[:, 0]), 2 * np.pi),
+                               atol=1e-6)
+    np.testing.assert_allclose(got["elevation"][-2:], np.arcsin(added[:, 2] / r[-2:]), atol=1e-6)
+
+
+def test_angles_without_a_convention_are_kept(tmp_path):
+    """Azimuths that are not a function of the position (here shuffled) are copied as before, not invented."""
+    from roadview_noise.io.derived_fields import with_derived
+    from roadview_noise.provenance import Effect
+
+    rec = nebula_pcd(tmp_path / "in.pcd")
+    cloud = read_pointcloud(tmp_path / "in.pcd")
+    out = cloud.replace(effect=np.full(len(rec), Effect.KEPT, np.uint8)).concat(np.ones((1, 3)), {})
+    shuffled = np.append(np.random.default_rng(1).permutation(rec["azimuth"]), 0.5)
+    np.testing.assert_array_equal(with_derived(shuffled, "azimuth", "<f4", out), shuffled)
+    assert with_derived(shuffled, "azimuth", "<f4", out)[-1] == 0.5
+    aligned = np.append(rec["azimuth"].astype(np.float64), 0.0)
+    assert with_derived(aligned, "azimuth", "<f4", out)[-1] == pytest.approx(7 * np.pi / 4)
