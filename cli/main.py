@@ -286,7 +286,8 @@ def preview(
     recipe: Optional[str] = typer.Option(None, "--recipe", "-r", help="Recipe YAML, or a CNF id (CNF01–CNF30)."),
     all_cnfs: bool = typer.Option(False, "--all-cnfs", help="A contact sheet per file: every CNF of its sensor."),
     sensor: Optional[str] = typer.Option(None, "--sensor", help="camera, lidar or radar when the file or the CNF "
-                                         "leaves it open (a View-of-Delft .bin is radar) [default: guessed]."),
+                                         "leaves it open [default: guessed; a .bin under a radar* folder, as "
+                                         "View-of-Delft's, is radar]."),
     input_root: Optional[Path] = typer.Option(None, "--input-root", help="The input tree of `augment`: the random "
                                               "draws follow the path relative to it [default: the file's folder]."),
     seed: int = typer.Option(0, "--seed", help="Seed of a CNF given by its id, and of --all-cnfs."),

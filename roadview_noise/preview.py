@@ -66,14 +66,17 @@ class ChainRun:
 
 def guess_sensor(path: Path) -> str:
     """camera for images and raw files; for clouds radar when the file has radar fields (RCS, Doppler, SNR), else
-    lidar (a View-of-Delft ``.bin`` needs ``--sensor radar``); a ``.txt`` table is radar (Astyx)."""
+    lidar; a ``.txt`` table is radar (Astyx); a ``.bin`` is radar when the nearest folder named for a sensor
+    (``radar*`` or ``lidar*``) is a radar's (View-of-Delft's ``radar/training/velodyne/``, as the recipes'
+    ``radar/**/*.bin`` globs read it), else lidar."""
     name = path.name.lower()
     if name.endswith(CAMERA_SUFFIXES + RAW_SUFFIXES):
         return "camera"
     if name.endswith(".txt"):
         return "radar"
     if name.endswith(".bin"):
-        return "lidar"
+        named = [p.lower()[:5] for p in reversed(path.resolve().parent.parts) if p.lower()[:5] in ("radar", "lidar")]
+        return named[0] if named else "lidar"
     from .io.pointcloud import read_pointcloud
 
     fields = read_pointcloud(path, sensor="lidar").fields

@@ -109,6 +109,29 @@ def test_cli_preview_recipe_cnf_id_and_contact_sheets(tmp_path):
     assert r.exit_code == 2 and "missing.png" in r.output
 
 
+def test_cli_preview_guesses_a_view_of_delft_radar_bin_from_its_folder(tmp_path):
+    """View-of-Delft keeps its radar as ``radar/training/velodyne/NNNNN.bin`` (N×7 float32): ``preview -r CNF25``
+    (a CNF of LiDAR and radar) reads it as radar, as augment's ``radar/**/*.bin`` globs do. Before: read as a LiDAR
+    .bin and refused ("not a multiple of the 16-byte point … name its columns with inputs.bin_fields")."""
+    from roadview_noise.preview import guess_sensor
+
+    rng = np.random.default_rng(3)
+    n = 161
+    r, az = rng.uniform(2, 60, n), rng.uniform(-1, 1, n)
+    vr = rng.uniform(-5, 5, n)
+    table = np.stack([r * np.cos(az), r * np.sin(az), rng.uniform(-1, 1, n), rng.uniform(-20, 20, n), vr,
+                      vr + 3 * np.cos(az), np.zeros(n)], 1).astype("<f4")
+    path = tmp_path / "view_of_delft" / "radar" / "training" / "velodyne" / "00549.bin"
+    path.parent.mkdir(parents=True)
+    table.tofile(path)
+    assert guess_sensor(path) == "radar"
+    assert guess_sensor(tmp_path / "radar_scans" / "lidar" / "x.bin") == "lidar"    # the nearest sensor folder
+    assert guess_sensor(tmp_path / "x.bin") == "lidar"
+    r = CliRunner().invoke(app, ["preview", "--recipe", "CNF25", str(path), "-o", str(tmp_path / "p.png"),
+                                 "--panel-px", "160"])
+    assert r.exit_code == 0, r.output
+
+
 def test_cli_preview_prints_a_model_warning_once_as_one_line(tmp_path, capsys):
     """A cloud whose intensity unit nothing states warns (IntensityWarning): preview prints it like augment does,
     once, not as Python's file:line plus source line."""
