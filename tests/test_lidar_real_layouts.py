@@ -81,6 +81,21 @@ def test_ring_field_of_a_smaller_sensor_is_pointed_out():
         cloud_rays(dataclasses.replace(cloud, profile=default_profile()), "fog.lidar")
 
 
+def test_elevations_of_a_smaller_sensor_without_ring_are_pointed_out():
+    """An HDL-32E point list without a ring field (hdl_graph_slam's test scans: 32 beams −30.67° … +10.67°, 8-bit
+    intensities) read with the default OS1-128 (±22°): the warning says its returns lie below the profile's beams and
+    names hdl-32e (before: nothing, and fog filled a 128 × 2157 grid, 214 872 points added to 64 056 returns; with
+    hdl-32e 32 × 2159 and 6 072). A cloud within the profile's beams, or a stated profile, adds nothing."""
+    cloud, empty = nuscenes_like()
+    pos, intensity = cloud.positions_m[~empty], cloud.fields["intensity"][~empty]
+    warning = resolve_profile(default_profile(), intensity, pos, "fog.lidar").warning
+    assert "returns span elevations -30.7° … +10.7° but profile 'os1-128''s beams" in warning
+    assert warning.endswith("give lidar_profile hdl-32e")
+    inside = pos * np.array([1.0, 1.0, 0.5])                            # within ±22°
+    assert "elevations" not in resolve_profile(default_profile(), intensity, inside, "fog.lidar").warning
+    assert resolve_profile(hdl_32e(), intensity, pos, "fog.lidar").warning is None
+
+
 def test_bin_with_another_column_count_is_refused(tmp_path):
     """Waymo's KITTI-format velodyne .bin has 6 float32 columns (x y z intensity elongation timestamp): with an even
     point count its size is a multiple of KITTI's 16-byte point, and it used to be read as garbage (timestamps as

@@ -280,7 +280,8 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
     power variance) may have changed what the intensities look like. ``ring``: the cloud's ring field, if any; when
     it counts at most half the profile's beams, the warning says so (a nuScenes HDL-32E scan read with the default
-    OS1-128, :func:`beam_count_hint`)."""
+    OS1-128, :func:`beam_count_hint`); without one, when its returns lie above or below the profile's beams
+    (:func:`elevation_span_hint`)."""
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
         raise _unknown_kind(profile)
@@ -292,7 +293,8 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
         raise _unit_scale_error(profile, model_id)          # however few points: nothing says they are photons
     profile = stored_as_read(profile, reading)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
-           "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe") + beam_count_hint(profile, ring)
+           "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe")
+    how += beam_count_hint(profile, ring) or elevation_span_hint(profile, positions_m)
     if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:
         adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
         return IntensityScale(adopted, f"8-bit reflectivity read from the data ({reading.describe()}); nothing "
@@ -333,3 +335,33 @@ def beam_count_hint(profile: LidarProfile, ring: np.ndarray | None) -> str:
     return (f"; the cloud's ring field counts {beams} beams (0…{beams - 1}) but profile {profile.name!r} has "
             f"{profile.channels}, so its rings index other beams" + (f": give lidar_profile {fit}" if fit else ""))
 
+
+
+SPAN_MARGIN_DEG = 1.0          # returns this far beyond a profile's outermost beams are not its beams'
+SPAN_MIN_RANGE_M = 2.0         # nearer returns' elevations carry the beam-origin offset (15 mm: 0.4° at 2 m)
+
+
+def elevation_span_hint(profile: LidarProfile, positions_m: np.ndarray) -> str:
+    """'' or a note for the warning when a cloud's returns (beyond 2 m; 0.1 … 99.9 percentile) reach elevations
+    more than 1° above or below the profile's outermost beams — another sensor's scan (a Velodyne HDL-32E's
+    −30.7° … +10.7° read with the default OS1-128's ±22.5°: its weather fills 128 beams the sensor does not have) —
+    naming the built-in profiles whose beams span them. An odd stride samples every beam of a beam-interleaved
+    list (an even one would see only every other ring of a 32-beam scan stored column by column)."""
+    p = np.asarray(positions_m)[::max(1, len(positions_m) // READING_SAMPLE) | 1]
+    r = np.linalg.norm(p, axis=1)
+    far = r > SPAN_MIN_RANGE_M
+    if np.count_nonzero(far) < MIN_PER_BIN or not profile.beam_elevation_deg:
+        return ""
+    low, high = np.percentile(np.degrees(np.arcsin(p[far, 2] / r[far])), [0.1, 99.9])
+
+    def spans(beams) -> bool:
+        return min(beams) - SPAN_MARGIN_DEG <= low and high <= max(beams) + SPAN_MARGIN_DEG
+
+    if spans(profile.beam_elevation_deg):
+        return ""
+    from ..profiles.lidar import BUILTIN
+
+    fit = [name for name, make in BUILTIN.items() if spans(make().beam_elevation_deg)]
+    return (f"; the cloud's returns span elevations {low:+.1f}° … {high:+.1f}° but profile {profile.name!r}'s beams "
+            f"{min(profile.beam_elevation_deg):+.1f}° … {max(profile.beam_elevation_deg):+.1f}°, so they are "
+            f"another sensor's (or a tilted mount's)" + (f": give lidar_profile {' or '.join(fit)}" if fit else ""))
