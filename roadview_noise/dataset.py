@@ -7,6 +7,7 @@ Workers receive :class:`Sample` keys, never arrays; all reading and writing happ
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import posixpath
 from dataclasses import dataclass
@@ -212,7 +213,7 @@ def _camera_profile_cached(spec: str | None):
 def _lidar_profile(spec_key, unit, full_scale) -> LidarProfile:
     from .profiles.lidar import load_lidar_profile
 
-    profile = load_lidar_profile(spec_key if not isinstance(spec_key, tuple) else dict(spec_key))
+    profile = load_lidar_profile(_thawed(spec_key))
     return with_intensity_scale(profile, unit, full_scale) if unit or full_scale else profile
 
 
@@ -243,11 +244,17 @@ def with_intensity_scale(profile: LidarProfile, unit: str | None, full_scale: fl
 def _radar_profile(spec_key):
     from .profiles.radar import load_radar_profile
 
-    return load_radar_profile(spec_key if not isinstance(spec_key, tuple) else dict(spec_key))
+    return load_radar_profile(_thawed(spec_key))
 
 
 def _hashable(spec):
-    return tuple(sorted(spec.items())) if isinstance(spec, dict) else spec
+    """The cache key of a profile spec: a name or path as is, an inline mapping (with lists, e.g. a beam table's
+    ``beam_elevation_deg``, which a tuple of its items could not hash) as its JSON text."""
+    return ("mapping", json.dumps(spec, sort_keys=True)) if isinstance(spec, dict) else spec
+
+
+def _thawed(spec_key):
+    return json.loads(spec_key[1]) if isinstance(spec_key, tuple) else spec_key
 
 
 # --- reading and writing -------------------------------------------------------------------------------------------

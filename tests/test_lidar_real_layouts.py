@@ -231,3 +231,29 @@ def test_angles_without_a_convention_are_kept(tmp_path):
     assert with_derived(shuffled, "azimuth", "<f4", out)[-1] == 0.5
     aligned = np.append(rec["azimuth"].astype(np.float64), 0.0)
     assert with_derived(aligned, "azimuth", "<f4", out)[-1] == pytest.approx(7 * np.pi / 4)
+
+
+@pytest.mark.parametrize("sensor", ["lidar", "radar"])
+def test_inline_profile_with_lists_is_read(tmp_path, sensor):
+    """A recipe's inline profile may hold lists (a VLP-16's 16 beam elevations, no built-in profile has them):
+    before, every file failed with "internal error TypeError: unhashable type: 'list'" (the profile cache key)."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from roadview_noise.cli.main import app
+    from roadview_noise.manifest import read_manifest
+
+    (tmp_path / "in" / sensor).mkdir(parents=True)
+    nebula_pcd(tmp_path / "in" / sensor / "000000.pcd")
+    beams = [-15.0 + 2 * k for k in range(16)]
+    profile = ({"lidar_profile": {"base": "hdl-32e", "beam_elevation_deg": beams, "beam_azimuth_offset_deg":
+                                  [0.0] * 16, "columns": 1800}} if sensor == "lidar" else
+               {"radar_profile": {"base": "vod", "fov_azimuth_deg": 100.0}, "field_map": {"intensity": "snr_db"}})
+    chain = [{"model": f"fog.{sensor}", "params": {"visibility_m": 30}}]
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(yaml.safe_dump({"schema": "rvnoise.recipe/1", "chain": chain, "seed": 1,
+                                      "inputs": {sensor: f"{sensor}/*.pcd", **profile}}))
+    r = CliRunner().invoke(app, ["augment", str(tmp_path / "in"), str(tmp_path / "out"), "--recipe", str(recipe),
+                                 "--quiet"])
+    entry, = read_manifest(tmp_path / "out" / "manifest.jsonl")
+    assert r.exit_code == 0 and entry["status"] == "ok", r.output + str(entry.get("error"))
