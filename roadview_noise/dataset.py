@@ -292,9 +292,30 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None, 
         profile = cloud_profile_for(sample.modality, inputs, file_dir, recipe)
         if profiles is not None:
             profiles[key] = profile
-    return cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
-                                    field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields,
-                                    data=content)
+    cloud = cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
+                                     field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields,
+                                     data=content)
+    if sample.modality == "radar" and inputs.radar_profile is None:
+        _radar_profile_hint(cloud, file_dir)
+    return cloud
+
+
+def _radar_profile_hint(cloud, file_dir: Path) -> None:
+    """Warn when nothing states the radar profile (no recipe profile, no ``radar.yaml`` next to the file) and the
+    file is in a dataset's layout whose sensor has a built-in profile: the default generic-77ghz (200 m, 1° × 2°
+    cells) is not that sensor (nuScenes' ARS 408: 2-D, 3.2° cells, a quarter of the generic clutter)."""
+    import warnings
+
+    from .io.radar_formats import RadarProfileWarning, dataset_profile
+
+    known = dataset_profile(cloud)
+    if known is None or os.path.isfile(os.path.join(file_dir, "radar.yaml")):
+        return
+    dataset, name = known
+    warnings.warn(RadarProfileWarning(
+        f"no radar profile is stated and the file is in {dataset}'s layout: read with the default "
+        f"{cloud.profile.name!r}; give radar_profile {name} (the recipe's inputs.radar_profile, --radar-profile "
+        f"{name}, or a radar.yaml next to the files)"), stacklevel=2)
 
 
 def cloud_profile_for(sensor: str, inputs: InputsSpec, file_dir: Path, recipe: Recipe, *, sidecar: bool = True):

@@ -68,6 +68,24 @@ RADARSCENES_FIELDS = ("timestamp", "sensor_id", "range_sc", "azimuth_sc", "rcs",
                       "y_cc", "x_seq", "y_seq", "uuid", "track_id", "label_id")
 
 
+class RadarProfileWarning(UserWarning):
+    """A radar file in a known dataset's layout read with the default profile (printed once; in the manifest)."""
+
+
+def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
+    """(dataset, built-in profile) whose file layout ``cloud`` was read in — a View-of-Delft ``.bin``: vod, a
+    nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455 — or None."""
+    layout = cloud.layout
+    names = tuple(name for _, name, _ in layout.fields) if layout is not None else ()
+    if layout is not None and layout.fmt == "vod_bin":
+        return "View-of-Delft", "vod"
+    if is_nuscenes_radar(cloud):
+        return "nuScenes (Continental ARS 408-21)", "ars408"
+    if layout is not None and layout.fmt == "txt" and names == ASTYX_COLUMNS:
+        return "Astyx HiRes2019", "astyx-6455"
+    return None
+
+
 def is_nuscenes_radar(cloud: PointCloud) -> bool:
     """The cloud has every field of a nuScenes radar PCD (canonical names: ``rcs`` → ``rcs_dbsm``)."""
     return all(f in cloud.fields for f in NUSCENES_RADAR_FIELDS)
