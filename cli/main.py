@@ -316,8 +316,9 @@ def preview(
         _fail("give either --recipe (a recipe file or a CNF id) or --all-cnfs")
     if out is None:
         out = Path("preview.png") if len(files) == 1 else Path("preview")
-    try:
-        for f in files:
+    failed = []
+    for f in files:                        # a file that fails is named, and the others are still previewed
+        try:
             kind = sensor or pv.guess_sensor(f)
             target = out if len(files) == 1 else out / f"{pv.file_label(f, input_root)}-{kind}.png"
             if all_cnfs:
@@ -331,8 +332,12 @@ def preview(
                                 panel_px or 480, colour)
             pv.write_image_file(target, img)
             typer.echo(f"rvnoise: preview of {f} → {target} ({img.shape[1]}×{img.shape[0]})")
-    except RvNoiseError as e:
-        _fail(str(e))
+        except RvNoiseError as e:
+            failed.append(f)
+            typer.secho(f"rvnoise: {e}" if str(f) in str(e) or f.name in str(e) else f"rvnoise: {f}: {e}",
+                        fg=typer.colors.RED, err=True)
+    if failed:
+        raise typer.Exit(2)
 
 
 @app.command(epilog="Example: `rvnoise report out/demo` (a run folder, or a folder of runs)")

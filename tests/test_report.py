@@ -132,6 +132,27 @@ def test_cli_preview_guesses_a_view_of_delft_radar_bin_from_its_folder(tmp_path)
     assert r.exit_code == 0, r.output
 
 
+def test_cli_preview_names_a_failing_file_and_previews_the_others(tmp_path):
+    """A ti_mmwave_rospkg radar cloud (x y z intensity velocity: no SNR field until the recipe's field_map says so)
+    among several files: the error names that file, the other files are still previewed, the exit status is 2.
+    Before: ``rvnoise: rain.radar: a radar cloud needs snr_db …`` without the file, and the run stopped there."""
+    from roadview_noise.io.pointcloud import write_pointcloud
+
+    rng = np.random.default_rng(6)
+    n = 40
+    bad = tmp_path / "ti" / "000000.pcd"
+    bad.parent.mkdir()
+    write_pointcloud(bad, PointCloud(rng.uniform(1, 20, (n, 3)), {"intensity": rng.uniform(6, 40, n).astype("<f4"),
+                                                                  "velocity": rng.normal(0, 1, n).astype("<f4")},
+                                     "radar", None))
+    good = SAMPLE / "radar" / "seq0" / "000001.pcd"
+    r = CliRunner().invoke(app, ["preview", "--recipe", "CNF25", "--sensor", "radar", str(bad), str(good),
+                                 "-o", str(tmp_path / "p"), "--panel-px", "160"])
+    assert r.exit_code == 2
+    assert f"rvnoise: {bad}: rain.radar: a radar cloud needs snr_db" in r.output.replace("\n", "")
+    assert [p.name for p in (tmp_path / "p").iterdir()] == ["seq0_000001-radar.png"]
+
+
 def test_cli_preview_prints_a_model_warning_once_as_one_line(tmp_path, capsys):
     """A cloud whose intensity unit nothing states warns (IntensityWarning): preview prints it like augment does,
     once, not as Python's file:line plus source line."""
