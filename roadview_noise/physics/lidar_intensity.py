@@ -294,7 +294,7 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     profile = stored_as_read(profile, reading)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
            "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe")
-    how += beam_count_hint(profile, ring) or elevation_span_hint(profile, positions_m)
+    how += beam_count_hint(profile, ring) if ring is not None else elevation_span_hint(profile, positions_m)
     if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:
         adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
         return IntensityScale(adopted, f"8-bit reflectivity read from the data ({reading.describe()}); nothing "
