@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import posixpath
+import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
@@ -30,6 +31,8 @@ DEFAULT_GLOBS = {
 }
 MODALITIES = {"camera": ("camera", "raw"), "lidar": ("lidar",), "radar": ("radar",)}
 COMPOUND_SUFFIXES = (".pcd.bin",)
+# nuScenes' file names: <log>__<channel>__<µs timestamp>, every log of a channel in one folder (samples/CAM_FRONT)
+NUSCENES_NAME = re.compile(r"(n\d{3}-\d{4}(?:-\d\d){5}[+-]\d{4}__[A-Z0-9_]+)__\d+\.")
 
 
 @dataclass(frozen=True)
@@ -56,6 +59,18 @@ def split_suffix(relpath: str) -> tuple[str, str]:
         return relpath[:cut], relpath[cut:]
     p = PurePosixPath(relpath)
     return str(p.with_suffix("")), p.suffix
+
+
+def sequence_id(relpath: str, mode: str) -> str:
+    """The sensor instance (sequence) of an input (``inputs.sequence``): the file itself for ``file``; for
+    ``folder`` its folder, and within it, for nuScenes' names, its log and channel (nuScenes keeps every recording
+    of a channel in one folder, so the folder alone would give all its logs one lens soiling and one set of beam
+    offsets, and every channel of a flattened folder the same)."""
+    if mode == "file":
+        return relpath
+    folder, _, name = relpath.rpartition("/")
+    nuscenes = NUSCENES_NAME.match(name)
+    return f"{folder}/{nuscenes.group(1)}" if nuscenes and folder else nuscenes.group(1) if nuscenes else folder or "."
 
 
 def output_relpath(relpath: str, suffix: str) -> str:
@@ -148,7 +163,7 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
         rel, modality, siblings = item
         if sidecar is not None and sidecar(rel, siblings):
             continue
-        seq = (rel.rpartition("/")[0] or ".") if inputs.sequence == "folder" else rel   # the walk's rel: normalised
+        seq = sequence_id(rel, inputs.sequence)                      # the walk's rel: normalised
         depth = None
         if modality in ("camera", "raw") and inputs.depth_source == "file":
             candidate = depth_relpath_for(rel, inputs.depth)
