@@ -80,6 +80,10 @@ class NuscenesRule(_Strict):
 
 
 PathRule = Union[str, ReplaceRule, NuscenesRule]
+BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
+    ".xml": "Pascal VOC XML is not read (convert it to YOLO .txt, or to one COCO JSON for annotations.coco)",
+    ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
+}
 
 
 class AnnotationsSpec(_Strict):
@@ -116,6 +120,12 @@ class AnnotationsSpec(_Strict):
                                   f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
         if self.calib is not None and self.boxes_3d is None:
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
+        ends = ([self.boxes_2d] if isinstance(self.boxes_2d, str) else
+                list(self.boxes_2d.replace.values()) if isinstance(self.boxes_2d, ReplaceRule) else [])
+        for suffix, why in BOX_FILES_NOT_READ.items():
+            if any(e.lower().endswith(suffix) for e in ends):
+                raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
+                                  key="inputs.annotations.boxes_2d")
         if self.coco_image_root is not None and self.coco is None:
             raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
         for name in ("coco", "coco_image_root"):

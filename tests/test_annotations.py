@@ -241,6 +241,11 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
         _recipe({"cnf": "CNF10", "inputs": {"annotations": {"point_labels": "{stem}.label"}}}, tmp_path)
     with pytest.raises(RecipeError, match="weather_class"):
         _recipe({"cnf": "CNF19", "inputs": {"annotations": {"weather_class": {"hail": 3}}}}, tmp_path)
+    # box files a user has that boxes_2d cannot read: at validate, not "line 1: 1 values, KITTI label_2 has 15" per file
+    with pytest.raises(RecipeError, match="boxes_2d: .*Pascal VOC XML is not read"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="boxes_2d: .*goes under annotations.coco"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": {"replace": {".jpg": ".JSON"}}}}}, tmp_path)
 
 
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
