@@ -79,9 +79,15 @@ def output_relpath(relpath: str, suffix: str) -> str:
     return f"{stem}{suffix}{ext}"
 
 
-def depth_relpath_for(relpath: str, pattern: str) -> str:
-    """The sidecar of an input file for a pattern relative to its folder (``recipe.InputsSpec`` fields), as a
-    normalised POSIX path relative to the input root (``..`` allowed)."""
+def depth_relpath_for(relpath: str, pattern) -> str:
+    """The sidecar of an input file for a pattern relative to its folder (``recipe.InputsSpec`` fields), or for a
+    ``{replace: {old: new}}`` rule on its path under the input root (KITTI's depth_selection names the depth of
+    ``image/…_sync_image_0000000005_image_02.png`` ``velodyne_raw/…_sync_velodyne_raw_0000000005_image_02.png``),
+    as a normalised POSIX path relative to the input root (``..`` allowed)."""
+    if not isinstance(pattern, str):
+        for old, new in pattern.replace.items():
+            relpath = relpath.replace(old, new)
+        return posixpath.normpath(relpath)
     p = PurePosixPath(relpath)
     stem, _ = split_suffix(p.name)
     base = stem.rpartition("_")[0] or stem
@@ -155,7 +161,8 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
 
     sidecar = None
     if camera or rules:                            # masks, lidarseg files, depth maps … are no inputs
-        sidecar = _Sidecars(sidecars_of, "/" not in inputs.depth and not rules, match, in_root)
+        local = isinstance(inputs.depth, str) and "/" not in inputs.depth and not rules
+        sidecar = _Sidecars(sidecars_of, local, match, in_root)
     for item in walk(in_root, match):
         if isinstance(item, WalkFailure):
             yield item
