@@ -265,14 +265,18 @@ def new_classes(cloud: PointCloud, classes: dict[str, int], model_ids) -> Any:
 # --- reading, carrying, writing ------------------------------------------------------------------------------------
 
 
+NO_YOLO_FILE = "no YOLO label file: an image without objects"
+
+
 @dataclass
 class Sidecar:
-    """One annotation file: its role, path relative to the input root, sha256, format and content."""
+    """One annotation file: its role, path relative to the input root, sha256 (None: a YOLO label file that does
+    not exist, which YOLO reads as an image without objects), format and content."""
 
     role: str
     relpath: str
     path: Path
-    sha256: str
+    sha256: str | None
     fmt: str = ""
     data: Any = None
 
@@ -300,6 +304,9 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
         if Path(in_root).resolve() not in path.resolve().parents:
             raise InputError(f"annotation path {rel!r} leaves the input root through a link", file=relpath)
         if not path.is_file():
+            if role == "boxes_2d" and spec.boxes_2d_format == "yolo" and not path.exists():
+                out.append(Sidecar(role, rel, path, None, "yolo"))     # YOLO's image without objects: no file
+                continue
             raise InputError(f"annotation {role} {rel!r} declared in the recipe's inputs does not exist", file=relpath)
         sc = Sidecar(role, rel, path, sha256_file(path))
         if role == "point_labels":
@@ -333,7 +340,9 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     calib copied (they describe the scene, which the chain does not move)."""
     from .dataset import output_relpath
 
-    result = Annotated(read=[{"role": s.role, "path": s.relpath, "sha256": s.sha256} for s in sidecars])
+    result = Annotated(read=[{"role": s.role, "path": s.relpath, "sha256": s.sha256} if s.sha256 is not None else
+                             {"role": s.role, "path": s.relpath, "absent": NO_YOLO_FILE} for s in sidecars])
+    sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
     for s in sidecars:
         if s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):

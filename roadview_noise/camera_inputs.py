@@ -451,6 +451,8 @@ class InputWarnings:
         self.doubts: dict[str, str] = {}                  # reason → the first file's text
 
     def add(self, entry: dict) -> None:
+        if any("absent" in r for r in entry.get("annotations_read", ())):
+            self.files["yolo_file_absent"] = self.files.get("yolo_file_absent", 0) + 1
         inputs = entry.get("inputs") or {}
         for kind in inputs.get("warnings", ()):
             self.files[kind] = self.files.get(kind, 0) + 1
@@ -475,6 +477,10 @@ class InputWarnings:
                          f"{'; '.join(self.doubts.values())}): fog, rain and snow would be far too strong or weak; "
                          "depth files are metres (EXR/NPY: range, or depth_kind: planar), not millimetres, inverse "
                          "depth or disparity (inputs.depth.doubt in the manifest)")
+        if "yolo_file_absent" in n:
+            lines.append(f"{n['yolo_file_absent']} image(s) have no YOLO label file: augmented as images without "
+                         "objects (YOLO's background images) and written without one; if they should have labels, "
+                         "check inputs.annotations.boxes_2d (annotations_read in the manifest)")
         if "intrinsics_from_fov" in n:
             lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
                          f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "
