@@ -80,6 +80,10 @@ class NuscenesRule(_Strict):
 
 
 PathRule = Union[str, ReplaceRule, NuscenesRule]
+BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
+    ".xml": "Pascal VOC XML is not read (convert it to YOLO .txt, or to one COCO JSON for annotations.coco)",
+    ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
+}
 
 
 class AnnotationsSpec(_Strict):
@@ -116,6 +120,12 @@ class AnnotationsSpec(_Strict):
                                   f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
         if self.calib is not None and self.boxes_3d is None:
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
+        ends = ([self.boxes_2d] if isinstance(self.boxes_2d, str) else
+                list(self.boxes_2d.replace.values()) if isinstance(self.boxes_2d, ReplaceRule) else [])
+        for suffix, why in BOX_FILES_NOT_READ.items():
+            if any(e.lower().endswith(suffix) for e in ends):
+                raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
+                                  key="inputs.annotations.boxes_2d")
         if self.coco_image_root is not None and self.coco is None:
             raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
         for name in ("coco", "coco_image_root"):
@@ -255,14 +265,18 @@ def new_classes(cloud: PointCloud, classes: dict[str, int], model_ids) -> Any:
 # --- reading, carrying, writing ------------------------------------------------------------------------------------
 
 
+NO_YOLO_FILE = "no YOLO label file: an image without objects"
+
+
 @dataclass
 class Sidecar:
-    """One annotation file: its role, path relative to the input root, sha256, format and content."""
+    """One annotation file: its role, path relative to the input root, sha256 (None: a YOLO label file that does
+    not exist, which YOLO reads as an image without objects), format and content."""
 
     role: str
     relpath: str
     path: Path
-    sha256: str
+    sha256: str | None
     fmt: str = ""
     data: Any = None
 
@@ -290,6 +304,9 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
         if Path(in_root).resolve() not in path.resolve().parents:
             raise InputError(f"annotation path {rel!r} leaves the input root through a link", file=relpath)
         if not path.is_file():
+            if role == "boxes_2d" and spec.boxes_2d_format == "yolo" and not path.exists():
+                out.append(Sidecar(role, rel, path, None, "yolo"))     # YOLO's image without objects: no file
+                continue
             raise InputError(f"annotation {role} {rel!r} declared in the recipe's inputs does not exist", file=relpath)
         sc = Sidecar(role, rel, path, sha256_file(path))
         if role == "point_labels":
@@ -323,7 +340,9 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     calib copied (they describe the scene, which the chain does not move)."""
     from .dataset import output_relpath
 
-    result = Annotated(read=[{"role": s.role, "path": s.relpath, "sha256": s.sha256} for s in sidecars])
+    result = Annotated(read=[{"role": s.role, "path": s.relpath, "sha256": s.sha256} if s.sha256 is not None else
+                             {"role": s.role, "path": s.relpath, "absent": NO_YOLO_FILE} for s in sidecars])
+    sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
     for s in sidecars:
         if s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):

@@ -303,6 +303,7 @@ def _depth(origin: Any, recipe: Recipe, geometry: _Geometry, signal: Callable[[]
            ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """``(range_m, valid, notes)`` from the recipe's depth source (module docstring); ``signal()`` gives the
     frame's linear signal for the sources that look at the image."""
+    from .depth.doubts import depth_doubt
     from .depth.holes import resolve_holes
 
     inputs = recipe.spec.inputs
@@ -315,6 +316,9 @@ def _depth(origin: Any, recipe: Recipe, geometry: _Geometry, signal: Callable[[]
         depth, notes, where = _depth_onnx(recipe, geometry, signal)
     else:
         return _depth_ground_plane(recipe, geometry, signal)
+    doubt = depth_doubt(depth)
+    if doubt is not None:
+        notes["doubt"] = doubt
     depth, valid, holes = resolve_holes(depth, inputs.depth_holes, source=where)
     notes.update(holes)
     return depth, valid, notes
@@ -423,6 +427,8 @@ def _depth_warnings(notes: dict | None) -> list[str]:
     out = []
     if notes.get("filled"):
         out.append("depth_holes_filled")
+    if "doubt" in notes:
+        out.append("depth_doubtful")
     if notes.get("source") == "ground_plane":
         out.append("depth_ground_plane")
         if "camera_height_from" in notes:
@@ -442,8 +448,11 @@ class InputWarnings:
         self.worst_hole_fraction = 0.0
         self.fovs: set[float] = set()
         self.heights: set[float] = set()
+        self.doubts: dict[str, str] = {}                  # reason → the first file's text
 
     def add(self, entry: dict) -> None:
+        if any("absent" in r for r in entry.get("annotations_read", ())):
+            self.files["yolo_file_absent"] = self.files.get("yolo_file_absent", 0) + 1
         inputs = entry.get("inputs") or {}
         for kind in inputs.get("warnings", ()):
             self.files[kind] = self.files.get(kind, 0) + 1
@@ -453,6 +462,9 @@ class InputWarnings:
                 self.fovs.add(inputs["camera"]["fov_h_deg"])
             elif kind == "ground_plane_profile_height":
                 self.heights.add(inputs["depth"]["camera_height_m"])
+            elif kind == "depth_doubtful":
+                doubt = inputs["depth"]["doubt"]
+                self.doubts.setdefault(doubt["reason"], f"{entry['input']}: {doubt['text']}")
 
     def lines(self) -> list[str]:
         n, lines = self.files, []
@@ -460,6 +472,15 @@ class InputWarnings:
             lines.append(f"depth holes filled from their neighbours in {n['depth_holes_filled']} file(s), up to "
                          f"{100 * self.worst_hole_fraction:.1f} % of a frame (inputs.depth_holes: fill; counts in "
                          "the manifest, inputs.depth)")
+        if "depth_doubtful" in n:
+            lines.append(f"depth of {n['depth_doubtful']} file(s) does not look like metres along the ray ("
+                         f"{'; '.join(self.doubts.values())}): fog, rain and snow would be far too strong or weak; "
+                         "depth files are metres (EXR/NPY: range, or depth_kind: planar), not millimetres, inverse "
+                         "depth or disparity (inputs.depth.doubt in the manifest)")
+        if "yolo_file_absent" in n:
+            lines.append(f"{n['yolo_file_absent']} image(s) have no YOLO label file: augmented as images without "
+                         "objects (YOLO's background images) and written without one; if they should have labels, "
+                         "check inputs.annotations.boxes_2d (annotations_read in the manifest)")
         if "intrinsics_from_fov" in n:
             lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
                          f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "

@@ -10,6 +10,7 @@ import dataclasses
 import json
 import os
 import posixpath
+import re
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path, PurePosixPath
@@ -31,6 +32,8 @@ DEFAULT_GLOBS = {
 }
 MODALITIES = {"camera": ("camera", "raw"), "lidar": ("lidar",), "radar": ("radar",)}
 COMPOUND_SUFFIXES = (".pcd.bin",)
+# nuScenes' file names: <log>__<channel>__<µs timestamp>, every log of a channel in one folder (samples/CAM_FRONT)
+NUSCENES_NAME = re.compile(r"(n\d{3}-\d{4}(?:-\d\d){5}[+-]\d{4}__[A-Z0-9_]+)__\d+\.")
 
 
 @dataclass(frozen=True)
@@ -59,15 +62,33 @@ def split_suffix(relpath: str) -> tuple[str, str]:
     return str(p.with_suffix("")), p.suffix
 
 
+def sequence_id(relpath: str, mode: str) -> str:
+    """The sensor instance (sequence) of an input (``inputs.sequence``): the file itself for ``file``; for
+    ``folder`` its folder, and within it, for nuScenes' names, its log and channel (nuScenes keeps every recording
+    of a channel in one folder, so the folder alone would give all its logs one lens soiling and one set of beam
+    offsets, and every channel of a flattened folder the same)."""
+    if mode == "file":
+        return relpath
+    folder, _, name = relpath.rpartition("/")
+    nuscenes = NUSCENES_NAME.match(name)
+    return f"{folder}/{nuscenes.group(1)}" if nuscenes and folder else nuscenes.group(1) if nuscenes else folder or "."
+
+
 def output_relpath(relpath: str, suffix: str) -> str:
     """The output path of an input for a sweep variant: ``000001.png`` → ``000001__visibility_m-30.png``."""
     stem, ext = split_suffix(relpath)
     return f"{stem}{suffix}{ext}"
 
 
-def depth_relpath_for(relpath: str, pattern: str) -> str:
-    """The sidecar of an input file for a pattern relative to its folder (``recipe.InputsSpec`` fields), as a
-    normalised POSIX path relative to the input root (``..`` allowed)."""
+def depth_relpath_for(relpath: str, pattern) -> str:
+    """The sidecar of an input file for a pattern relative to its folder (``recipe.InputsSpec`` fields), or for a
+    ``{replace: {old: new}}`` rule on its path under the input root (KITTI's depth_selection names the depth of
+    ``image/…_sync_image_0000000005_image_02.png`` ``velodyne_raw/…_sync_velodyne_raw_0000000005_image_02.png``),
+    as a normalised POSIX path relative to the input root (``..`` allowed)."""
+    if not isinstance(pattern, str):
+        for old, new in pattern.replace.items():
+            relpath = relpath.replace(old, new)
+        return posixpath.normpath(relpath)
     p = PurePosixPath(relpath)
     stem, _ = split_suffix(p.name)
     base = stem.rpartition("_")[0] or stem
@@ -141,7 +162,8 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
 
     sidecar = None
     if camera or rules:                            # masks, lidarseg files, depth maps … are no inputs
-        sidecar = _Sidecars(sidecars_of, "/" not in inputs.depth and not rules, match, in_root)
+        local = isinstance(inputs.depth, str) and "/" not in inputs.depth and not rules
+        sidecar = _Sidecars(sidecars_of, local, match, in_root)
     for item in walk(in_root, match):
         if isinstance(item, WalkFailure):
             yield item
@@ -149,7 +171,7 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
         rel, modality, siblings = item
         if sidecar is not None and sidecar(rel, siblings):
             continue
-        seq = (rel.rpartition("/")[0] or ".") if inputs.sequence == "folder" else rel   # the walk's rel: normalised
+        seq = sequence_id(rel, inputs.sequence)                      # the walk's rel: normalised
         depth = None
         if modality in ("camera", "raw") and inputs.depth_source == "file":
             candidate = depth_relpath_for(rel, inputs.depth)

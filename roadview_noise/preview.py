@@ -16,14 +16,14 @@ Rendering (OpenCV, BGR uint8; labels are ASCII because OpenCV's fonts are):
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Any, Sequence
 
 import cv2
 import numpy as np
 
 from .compound import CNFS, apply_models
-from .dataset import DEFAULT_GLOBS, Sample, depth_relpath_for, load, output_relpath
+from .dataset import DEFAULT_GLOBS, Sample, depth_relpath_for, load, output_relpath, sequence_id
 from .errors import InputError, RecipeError, RvNoiseError
 from .io.atomic import write_bytes_atomic
 from .metrics import Effect, compare, correspondence, effect_codes
@@ -128,7 +128,7 @@ def sample_for(path: Path, recipe: Recipe, in_root: Path | None = None) -> tuple
     modality = recipe.sensor
     if modality == "camera" and path.name.lower().endswith(RAW_SUFFIXES):
         modality = "raw"
-    sequence = str(PurePosixPath(rel).parent) if inputs.sequence == "folder" else rel
+    sequence = sequence_id(rel, inputs.sequence)
     depth = None
     if recipe.sensor == "camera":
         candidate = depth_relpath_for(rel, inputs.depth)

@@ -25,7 +25,7 @@ from typing import Annotated, Any, Literal, Union
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from .annotations import AnnotationsSpec, NuscenesRule
+from .annotations import AnnotationsSpec, NuscenesRule, ReplaceRule
 from .compound import cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .input_checks import check_inputs
@@ -89,7 +89,7 @@ class InputsSpec(_Strict):
     lidar: Globs | None = None
     radar: Globs | None = None
     exclude: list[str] = Field(default_factory=list)
-    depth: str = "{stem}_depth.exr"            # sidecar pattern (fields: see the docstring)
+    depth: str | ReplaceRule = "{stem}_depth.exr"   # sidecar pattern (fields: the docstring) or {replace: {a: b}}
     depth_kind: Literal["range", "planar"] = "range"
     depth_format: Literal["auto", "exr", "npy", "carla", "kitti", "cityscapes"] = "auto"
     depth_holes: Literal["fill", "sky", "error"] = "fill"
@@ -125,7 +125,8 @@ class InputsSpec(_Strict):
         for source, key in (("lidar", "lidar_depth"), ("onnx", "onnx_depth")):
             if self.depth_source == source and getattr(self, key) is None:
                 raise ValueError(f"depth_source {source} needs `{key}:` (see the README, 'Which depth do I have?')")
-        check_pattern(self.depth)
+        if isinstance(self.depth, str):
+            check_pattern(self.depth)
         if isinstance(self.calibration, str):
             check_pattern(self.calibration)
         if self.lidar_depth is not None:

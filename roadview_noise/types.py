@@ -287,6 +287,7 @@ def cfa_index_map(pattern: str, height: int, width: int) -> np.ndarray:
 class RawEncoding:
     fmt: str = "dng"           # dng | raw (plain uint16 + YAML sidecar)
     bits_per_sample: int = 16
+    sidecar: tuple = ()        # a plain raw's input sidecar as (key, value) pairs, in order: written back with it
 
 
 @dataclass(frozen=True, eq=False)

@@ -241,6 +241,11 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
         _recipe({"cnf": "CNF10", "inputs": {"annotations": {"point_labels": "{stem}.label"}}}, tmp_path)
     with pytest.raises(RecipeError, match="weather_class"):
         _recipe({"cnf": "CNF19", "inputs": {"annotations": {"weather_class": {"hail": 3}}}}, tmp_path)
+    # box files a user has that boxes_2d cannot read: at validate, not "line 1: 1 values, KITTI label_2 has 15" per file
+    with pytest.raises(RecipeError, match="boxes_2d: .*Pascal VOC XML is not read"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml"}}}, tmp_path)
+    with pytest.raises(RecipeError, match="boxes_2d: .*goes under annotations.coco"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": {"replace": {".jpg": ".JSON"}}}}}, tmp_path)
 
 
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
@@ -449,6 +454,27 @@ def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     got = np.array(poly[1:], float).reshape(-1, 2)
     assert len(got) == 3
     np.testing.assert_allclose(got[np.lexsort(got.T[::-1])], np.array(sorted(map(tuple, [*cut, c]))), atol=1e-5)
+
+
+def test_a_yolo_image_without_a_label_file_is_an_image_without_objects(cityscapes, tmp_path):
+    """YOLO writes no label file for an image without objects (a background image); such an image failed ("does
+    not exist"). It is augmented, no label file is written for it, its entry says so and one warning counts them;
+    a KITTI label_2 file that does not exist still fails its image."""
+    write_image(cityscapes / "leftImg8bit/val/lindau/lindau_000002_000019_leftImg8bit.png",
+                np.full((60, 80, 3), 0.4, np.float32), ImageEncoding())
+    lines = []
+    for fmt, suffix in (("yolo", "yolo.txt"), ("kitti", "label_2.txt")):
+        recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+            "camera": "leftImg8bit/**/*.png", "annotations": {"boxes_2d": _gt(suffix), "boxes_2d_format": fmt}}},
+            tmp_path)
+        out = tmp_path / f"out_{fmt}"
+        summary = run(recipe, cityscapes, out, workers=1, progress=False, echo=lines.append)
+        assert summary.failed == (fmt == "kitti") and summary.done == 1 + (fmt == "yolo")
+    entry = read_manifest(tmp_path / "out_yolo" / "manifest.jsonl")[1]
+    assert entry["status"] == "ok" and entry["annotations_read"][0]["absent"].startswith("no YOLO label file")
+    assert not (tmp_path / "out_yolo/gtFine/val/lindau/lindau_000002_000019_yolo.txt").exists()
+    assert (tmp_path / "out_yolo/gtFine/val/lindau/lindau_000001_000019_yolo.txt").is_file()
+    assert sum("1 image(s) have no YOLO label file" in ln for ln in lines) == 1
 
 
 def test_yolo_polygon_follows_a_bending_map():

@@ -11,7 +11,8 @@ Camera frame: OpenCV (x right, y down, z forward); a pixel (u, v) looks along ``
   Waymo in mmdetection3d's KITTI format: ``P0``–``P4``, ``R0_rect`` and one ``Tr_velo_to_cam_N`` per camera): the
   rectified camera N (default 2, the left colour camera) has ``K = P_N[:, :3]`` and sits at ``t_N = K⁻¹ P_N[:, 3]``
   in the rectified frame, so a Velodyne point maps to ``[I | t_N] · R_rect · Tr_velo_to_cam · X``; ``S_rect_0N``
-  (if present) is the image size K refers to. A file without the Velodyne transform gives the intrinsics only.
+  (if present) is the image size K refers to. A file without the Velodyne transform gives the intrinsics only, as
+  does the depth-completion benchmark's ``depth_selection/*/intrinsics/*.txt`` (K alone: 9 numbers).
 - rvnoise YAML (every key optional; see ``recipes/examples/calibration/sample-drive.yaml``)::
 
       K: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]   # px, for an image of width_px × height_px (scaled to the image)
@@ -110,6 +111,12 @@ def _kitti(text: str, path: str, camera: int) -> Calibration:
                 rows[key.strip()] = np.array(values.split(), dtype=float)
             except ValueError:
                 continue                                    # e.g. calib_time: 09-Jan-2012 13:57:47
+    if not rows and len(text.split()) == 9:                # KITTI depth_selection's intrinsics/*.txt: K, 9 numbers
+        k = np.array(text.split(), dtype=float).reshape(3, 3)
+        if not np.allclose(k[2], (0, 0, 1)):
+            raise InputError(f"9 numbers but not a camera matrix K (last row {k[2].tolist()}, expected 0 0 1)",
+                             file=path)
+        return Calibration(path, intrinsics_px=(k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
     p = _first(rows, (f"P{camera}", f"P_rect_{camera:02d}"), path).reshape(3, 4)
     k = p[:, :3]
     intrinsics = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])

@@ -6,8 +6,11 @@ valid measurement — are returned as NaN and handled by the recipe's ``depth_ho
 (:mod:`roadview_noise.depth.holes`); a reader never guesses them. Per format:
 
 - ``exr``, ``npy``: float depth in metres, range unless ``planar=True``; NaN, 0 and negative values are holes.
+  An EXR's depth is its channel named ``Z``, ``Y``, ``R`` or ``depth`` (in that order), also as the last part of a
+  layered name (Blender's multilayer ``ViewLayer.Depth.Z``), else its first channel.
 - ``carla``: 8-bit BGR(A) PNG, planar ``z = 1000 m · (R + 256 G + 65536 B) / (2²⁴ − 1)``; the far plane (1000 m)
-  is the sky marker and becomes ``inf``.
+  is the sky marker and becomes ``inf``. A grey PNG (R = G = B on every pixel) is one of CARLA's depth
+  visualisations (``ColorConverter.Depth``, ``LogarithmicDepth``: 8 bits, not metres) and is refused.
 - ``kitti``: KITTI depth-completion PNG, uint16 planar ``z = p / 256`` m, ``p = 0`` invalid (KITTI devkit).
 - ``cityscapes``: Cityscapes disparity PNG, uint16, disparity ``d = (p − 1) / 256`` px for ``p > 0``, ``p = 0``
   invalid (cityscapesScripts README); planar ``z = B f_x / d`` with the stereo baseline B and f_x of the image's
@@ -179,7 +182,12 @@ def _read_png(path: Path) -> np.ndarray:
 def _carla_planar(img: np.ndarray, path: Path) -> np.ndarray:
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4):
         raise InputError(f"a CARLA depth PNG is 8-bit colour; got {img.dtype} with shape {img.shape}", file=str(path))
-    r, g, b = (img[..., k].astype(np.uint32) for k in range(3))
+    r, g, b = (img[..., k] for k in range(3))
+    if np.array_equal(r, g) and np.array_equal(g, b) and ((r > 0) & (r < 255)).any():
+        raise InputError("this CARLA depth PNG is grey (R = G = B on every pixel): a depth visualisation saved with "
+                         "carla.ColorConverter.Depth or LogarithmicDepth, whose 8 bits are not metres; save the "
+                         "depth camera's images with carla.ColorConverter.Raw (24-bit depth)", file=str(path))
+    r, g, b = (c.astype(np.uint32) for c in (r, g, b))
     code = r + (g << 8) + (b << 16)
     z = (code * (CARLA_FAR_M / CARLA_MAX_CODE)).astype(np.float32)
     z[z >= CARLA_FAR_M] = np.inf
@@ -189,7 +197,8 @@ def _carla_planar(img: np.ndarray, path: Path) -> np.ndarray:
 
 def _read_exr(path: Path) -> np.ndarray:
     channels, order = read_exr_channels(path)
-    name = next((c for c in EXR_CHANNELS if c in channels), order[0] if order else None)
+    layered = [(c.rpartition(".")[2], c) for c in order]             # "ViewLayer.Depth.Z" → "Z"
+    name = next((c for want in EXR_CHANNELS for last, c in layered if last == want), order[0] if order else None)
     if name is None:
         raise InputError("EXR file has no channels", file=str(path))
     pixels = channels[name]

@@ -51,10 +51,11 @@ def read_raw(path: str | os.PathLike, black_level_dn: BlackOverride = None
     if suffix == ".dng":
         return (*read_dng(path, black_level_dn), RawEncoding(fmt="dng"))
     if suffix == ".raw":
-        dn, pattern, black, white = read_plain_raw(path)
+        meta = _read_sidecar(Path(path))
+        dn, pattern, black, white = read_plain_raw(path, meta)
         if black_level_dn is not None:
             black = black_override(black_level_dn, white, path)
-        return dn, pattern, black, white, RawEncoding(fmt="raw")
+        return dn, pattern, black, white, RawEncoding(fmt="raw", sidecar=tuple(meta.items()))
     raise InputError(f"unknown raw suffix {Path(path).suffix!r}; expected .dng or .raw", file=str(path))
 
 
@@ -81,7 +82,7 @@ def write_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_l
     if encoding.fmt == "dng":
         write_dng(path, dn, cfa_pattern, black_level_dn, white_level_dn, template=template)
     elif encoding.fmt == "raw":
-        write_plain_raw(path, dn, cfa_pattern, black_level_dn, white_level_dn)
+        write_plain_raw(path, dn, cfa_pattern, black_level_dn, white_level_dn, dict(encoding.sidecar))
     else:
         raise ValueError(f"unknown raw format {encoding.fmt!r}")
 
@@ -230,10 +231,11 @@ def _black_tag(black_level_dn: float) -> tuple:
     return 50714, "2I", 1, (q.numerator, q.denominator), True
 
 
-def read_plain_raw(path: str | os.PathLike) -> RawParts:
-    """``.raw`` samples described by the sidecar ``<stem>.yaml`` (see module docstring)."""
+def read_plain_raw(path: str | os.PathLike, meta: dict | None = None) -> RawParts:
+    """``.raw`` samples described by the sidecar ``<stem>.yaml`` (see module docstring; ``meta``: it, already
+    read)."""
     path = Path(path)
-    meta = _read_sidecar(path)
+    meta = _read_sidecar(path) if meta is None else meta
     dtype = np.dtype(meta["dtype"]).newbyteorder(_BYTE_ORDERS[meta["byte_order"]])
     h, w = meta["height"], meta["width"]
     size = path.stat().st_size if path.is_file() else None
@@ -247,15 +249,19 @@ def read_plain_raw(path: str | os.PathLike) -> RawParts:
 
 
 def write_plain_raw(path: str | os.PathLike, dn: np.ndarray, cfa_pattern: str, black_level_dn: float,
-                    white_level_dn: float) -> None:
-    """Little-endian uint16 ``.raw`` plus its YAML sidecar, each written atomically (sidecar last)."""
+                    white_level_dn: float, like: dict | None = None) -> None:
+    """uint16 ``.raw`` plus its YAML sidecar, each written atomically (sidecar last): little-endian, or like the
+    input's sidecar ``like`` — its byte order, key order, other keys (a user's time stamps, exposure) and the form
+    of unchanged numbers (``64`` stays ``64``, not ``64.0``)."""
     dn16 = _to_uint16(dn)
     _check_pattern(cfa_pattern)
     path = Path(path)
-    meta = {"width": int(dn16.shape[1]), "height": int(dn16.shape[0]), "dtype": "uint16", "byte_order": "little",
-            "cfa_pattern": cfa_pattern, "black_level_dn": float(black_level_dn),
-            "white_level_dn": float(white_level_dn)}
-    write_bytes_atomic(path, dn16.astype("<u2").tobytes())
+    like = like or {}
+    meta = {**like, "width": int(dn16.shape[1]), "height": int(dn16.shape[0]), "dtype": "uint16",
+            "byte_order": like.get("byte_order", "little"), "cfa_pattern": cfa_pattern}
+    for key, value in (("black_level_dn", black_level_dn), ("white_level_dn", white_level_dn)):
+        meta[key] = like[key] if key in like and like[key] == value else float(value)
+    write_bytes_atomic(path, dn16.astype(_BYTE_ORDERS[meta["byte_order"]] + "u2").tobytes())
     write_bytes_atomic(sidecar_path(path), yaml.safe_dump(meta, sort_keys=False).encode())
 
 

@@ -67,7 +67,7 @@ from .cfa import SiteLayout
 from .dsd import BRANDES_SNOW_GAMMA, gamma_dsd, marshall_palmer, snowfall
 from .fall_speed import atlas_ulbrich_m_per_s
 from .compiled import jit
-from .photometry import blend_operands, frame_depth_m
+from .photometry import blend_operands, capped, frame_depth_m
 from .sensor_noise import uniform_bits
 from .streak_motion import MotionBands, band_volume, motion_bands, pixel_band
 
@@ -720,7 +720,7 @@ def render_coverage(profile: CameraProfile, particles: Particles, conditions: Co
              for lv in range(top + 1)]
     for lv in range(top - 1, -1, -1):
         add_upsampled(grids[lv], grids[lv + 1], lv == 0)
-    return grids[0] if top else cv2.min(grids[0], 1.0, dst=grids[0]), int(n_visible)
+    return grids[0] if top else capped(grids[0], 1.0, out=grids[0]), int(n_visible)
 
 
 @jit(error_model="numpy")

@@ -308,6 +308,14 @@ def blend_operands(layout: SiteLayout, signal: np.ndarray, values) -> tuple[np.n
     return rows, signal.reshape(signal.shape[0], -1)
 
 
+def capped(values: np.ndarray, cap: float, out: np.ndarray | None = None) -> np.ndarray:
+    """``min(values, cap)`` of a float32 array by OpenCV, except for a single value: OpenCV takes a 1×1 array for
+    a Scalar and answers 4×1 (a 1×1 photo came out of fog 4×1)."""
+    if values.size == 1:
+        return np.minimum(values, np.float32(cap), out=out)
+    return cv2.min(values, cap, dst=out)
+
+
 def site_transmission(layout: SiteLayout, distance_m: np.ndarray, sigma_per_m) -> np.ndarray:
     """Per-site Beer–Lambert transmission ``exp(−σ_c d)`` of an (H, W) distance map (inf → 0), float32, with σ
     per channel (R, G, B). Distances are capped where the optical depth reaches 80 (t < 2·10⁻³⁵ leaves no trace
@@ -316,7 +324,7 @@ def site_transmission(layout: SiteLayout, distance_m: np.ndarray, sigma_per_m) -
     if np.any(sigma < 0):
         raise ValueError("extinction coefficients must be ≥ 0")
     positive = sigma[sigma > 0]
-    d = cv2.min(np.asarray(distance_m, dtype=np.float32), 80.0 / float(positive.min()) if positive.size else 0.0)
+    d = capped(np.asarray(distance_m, dtype=np.float32), 80.0 / float(positive.min()) if positive.size else 0.0)
     neg_sigma = -sigma
     # −σ_c·d per site: the blend kernels with a = 0
     if layout.mosaic:

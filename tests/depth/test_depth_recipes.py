@@ -135,6 +135,35 @@ def test_kitti_depth_png(tmp_path, sample):
     np.testing.assert_allclose(got[keep], rng[keep], rtol=2e-3)        # measured pixels: z/256 quantisation
 
 
+def test_kitti_depth_selection_layout(tmp_path, sample):
+    """KITTI's depth_selection/val_selection_cropped: image/…_sync_image_N_image_02.png, its depth
+    velodyne_raw/…_sync_velodyne_raw_N_image_02.png (a name no {stem} pattern gives: inputs.depth takes a
+    {replace: …} rule) and intrinsics/…_sync_image_N_image_02.txt (K alone, 9 numbers: was refused as a KITTI
+    calibration without P2)."""
+    from roadview_noise.recipe import parse_recipe
+
+    profile, rng, z = sample
+    root = tmp_path / "in" / "val_selection_cropped"
+    for d in ("image", "velodyne_raw", "intrinsics"):
+        (root / d).mkdir(parents=True)
+    name = "2011_09_26_drive_0002_sync_{}_0000000005_image_02"
+    shutil.copy(CAM / "000000.png", root / "image" / f"{name.format('image')}.png")
+    keep = (np.random.default_rng(1).random(z.shape) < 0.15) & (z < 255)
+    cv2.imwrite(str(root / "velodyne_raw" / f"{name.format('velodyne_raw')}.png"),
+                np.where(keep, np.rint(np.nan_to_num(z, posinf=0) * 256), 0).astype(np.uint16))
+    (root / "intrinsics" / f"{name.format('image')}.txt").write_text(
+        f"{profile.fx_px} 0.0 {profile.cx_px} 0.0 {profile.fy_px} {profile.cy_px} 0.0 0.0 1.0\n")
+    recipe = parse_recipe({"schema": "rvnoise.recipe/1", "chain": [{"model": "fog.camera"}], "inputs": {
+        "camera": "val_selection_cropped/image/*.png", "depth_format": "kitti",
+        "depth": {"replace": {"/image/": "/velodyne_raw/", "_sync_image_": "_sync_velodyne_raw_"}},
+        "calibration": "../intrinsics/{stem}.txt"}})
+    entries, _ = _run(recipe, tmp_path / "in", tmp_path, 1)
+    depth_file = f"val_selection_cropped/velodyne_raw/{name.format('velodyne_raw')}.png"
+    assert entries[0]["inputs"]["depth"]["file"] == depth_file
+    got = _loaded_depth(recipe, tmp_path / "in").depth_m
+    np.testing.assert_allclose(got[keep], rng[keep], rtol=2e-3)        # z/256 with the intrinsics of the K file
+
+
 def test_cityscapes_disparity(tmp_path, sample):
     """Cityscapes layout from the sample drive: disparity p = 1 + 256·B·fx/z, sky and a 'hood' strip invalid (0)."""
     profile, rng, z = sample

@@ -40,7 +40,11 @@ def test_exr_is_zip_single_z(tmp_path):
 
 
 @pytest.mark.parametrize("channels,expected", [({"B": 1, "G": 2, "R": 3}, 3), ({"depth": 4, "A": 5}, 4),
-                                               ({"Z": 6, "Y": 7}, 6), ({"b": 8, "a": 9}, 9)])
+                                               ({"Z": 6, "Y": 7}, 6), ({"b": 8, "a": 9}, 9),
+                                               # Blender's multilayer EXR: the depth pass is a layer's Z, and the
+                                               # layer's alpha sorts first (it was read as 1 m everywhere)
+                                               ({"ViewLayer.Combined.A": 1, "ViewLayer.Combined.R": 0.5,
+                                                 "ViewLayer.Depth.Z": 26.5}, 26.5)])
 def test_exr_channel_choice(tmp_path, channels, expected):
     arrays = {k: np.full((4, 5), v, np.float32) for k, v in channels.items()}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
@@ -61,6 +65,20 @@ def test_carla_png_decoding_oracle(tmp_path):
     assert d[v, u] == pytest.approx(z * factor, rel=1e-6)
     assert d[15, 20] == pytest.approx(z, rel=1e-6)                 # principal point: range = z
     assert np.isinf(d[5, 7]) and np.isfinite(d).sum() == d.size - 1
+
+
+@pytest.mark.parametrize("grey", [np.array([[0, 60], [93, 255]]), np.array([[140, 141], [255, 255]])])
+def test_carla_grey_visualisation_refused(tmp_path, grey):
+    """CARLA's Depth / LogarithmicDepth converters save R = G = B (BGRA): read as the 24-bit code, a log-grey 93
+    (≈ 26 m) became 365 m and fog turned the frame white; such a file is refused, naming the converter to use."""
+    g = np.kron(grey, np.ones((15, 20), np.int64)).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "log.png"), np.dstack([g, g, g, np.full_like(g, 255)]))
+    with pytest.raises(InputError, match="grey.*ColorConverter.Raw") as err:
+        read_depth(tmp_path / "log.png", profile=PROFILE)
+    assert "log.png" in str(err.value)
+    sky = np.full((30, 40, 4), 255, np.uint8)                      # raw depth that is all far plane: sky, not refused
+    cv2.imwrite(str(tmp_path / "sky.png"), sky)
+    assert np.isinf(read_depth(tmp_path / "sky.png", profile=PROFILE)).all()
 
 
 def test_carla_png_roundtrip(tmp_path):

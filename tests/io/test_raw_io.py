@@ -96,6 +96,22 @@ def test_plain_raw_big_endian(tmp_path):
     np.testing.assert_array_equal(read_plain_raw(tmp_path / "be.raw")[0], dn)
 
 
+def test_plain_raw_written_back_like_its_sidecar(tmp_path):
+    """A big-endian frame with a user's keys: written back big-endian with the same sidecar (it was written
+    little-endian, the extra keys dropped and 64 turned into 64.0); a changed level is written as a float."""
+    dn = _dn(shape=(4, 6))
+    (tmp_path / "be.raw").write_bytes(dn.astype(">u2").tobytes())
+    sidecar = ("exposure_s: 0.01\nwidth: 6\nheight: 4\ndtype: uint16\nbyte_order: big\ncfa_pattern: RGGB\n"
+               "black_level_dn: 64\nwhite_level_dn: 4095\ntimestamp_ns: 1532402927612460000\n")
+    (tmp_path / "be.yaml").write_text(sidecar)
+    back, pattern, black, white, encoding = read_raw(tmp_path / "be.raw")
+    write_raw(tmp_path / "out.raw", back, pattern, black, white, encoding)
+    assert (tmp_path / "out.raw").read_bytes() == (tmp_path / "be.raw").read_bytes()
+    assert (tmp_path / "out.yaml").read_text() == sidecar
+    write_raw(tmp_path / "new.raw", back, pattern, 60.5, white, encoding)
+    assert "black_level_dn: 60.5\nwhite_level_dn: 4095\n" in (tmp_path / "new.yaml").read_text()
+
+
 @pytest.mark.parametrize("fmt,name", [("dng", "r.dng"), ("raw", "r.raw")])
 def test_read_raw_write_raw_dispatch(tmp_path, fmt, name):
     dn = _dn(shape=(24, 30))

@@ -259,6 +259,17 @@ def test_depth_is_required(model):
         run(model, dataclasses.replace(scene(), depth_m=np.full((H, W), np.nan, np.float32)))
 
 
+
+@pytest.mark.parametrize("model", [Fog(visibility_m=30.0), Rain(rain_rate_mm_per_h=100.0), Snow()], ids=lambda m: m.id)
+@pytest.mark.parametrize("h,w", [(1, 1), (1, 2), (2, 1), (1, 7)])
+def test_tiny_photos_keep_their_size(model, h, w):
+    """A 1×1 photo came out of fog 4×1 (OpenCV read the 1×1 depth map as a Scalar in ``cv2.min``)."""
+    frame = CameraFrame(np.full((h, w, 3), 0.3, np.float32), lucid_triton_028s().resized(w, h),
+                        np.full((h, w), 40.0, np.float32))
+    for seed in range(3):
+        out, _ = run(model, frame, seed)
+        assert out.linear_rgb.shape == (h, w, 3) and np.isfinite(out.linear_rgb).all()
+
 # --- wind -----------------------------------------------------------------------------------------------------------
 
 def test_wind_sets_the_conditions_and_leaves_pixels():
