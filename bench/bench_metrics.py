@@ -761,7 +761,7 @@ def main() -> None:
     ap.add_argument("--changed", default="", help="--baseline: comma-separated metrics the two versions may compute "
                                                   "differently (a change of method, e.g. ssim)")
     ap.add_argument("--valgrind", action="store_true",
-                    help="with --whole-run: instruction and cache-miss counts of whole runs under cachegrind "
+                    help="with --whole-run: instruction and cache-miss counts of whole runs under callgrind "
                          "(--repeat: runs of each; 2 checks their determinism)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
