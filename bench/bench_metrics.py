@@ -71,7 +71,8 @@ of the per-file wall seconds and the run's CPU seconds (all files, and files 2�
 
 ``--whole-run --valgrind``: the same whole runs (the ``--whole-run`` trees, 1 worker, ``--profile``), metrics off and
 on, each in a fresh interpreter under callgrind: counts that the machine's load does not move (runs of the same code
-agree within 0.03 %), where the CPU seconds of whole runs swing by ± 15 points on this shared VM. Callgrind rather than
+agree within 0.08 %; across invocations the instructions within 0.01 %, the simulated last-level misses move with the
+address layout: ≈ ± 0.4 point on an increase in cycles), where the CPU seconds of whole runs swing by ± 15 points on this shared VM. Callgrind rather than
 cachegrind: the interpreters' start-up (imports: ≈ 3 G instructions in the main process, ≈ 4 G in the fork server with
 its warm-up, the same with metrics off and on) runs uninstrumented (``--instr-atstart=no``, ≈ 5× faster), and client
 requests (a 3-line C library built with ``gcc`` against ``valgrind/callgrind.h``, loaded with ctypes) switch the
