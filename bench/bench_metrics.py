@@ -69,6 +69,22 @@ of a long run costs; the first file's CPU moved by up to ≈ 100 ms between the 
 first on ``PYTHONPATH`` (so its workers run that code), metrics off and on, the order rotating every round; the sums
 of the per-file wall seconds and the run's CPU seconds (all files, and files 2–n).
 
+``--whole-run --valgrind``: the same whole runs (the ``--whole-run`` trees, 1 worker, ``--profile``), metrics off and
+on, each in a fresh interpreter under callgrind: counts that the machine's load does not move (runs of the same code
+agree within 0.08 %; across invocations the instructions within 0.01 %, the simulated last-level misses move with the
+address layout: ≈ ± 0.4 point on an increase in cycles), where the CPU seconds of whole runs swing by ± 15 points on this shared VM. Callgrind rather than
+cachegrind: the interpreters' start-up (imports: ≈ 3 G instructions in the main process, ≈ 4 G in the fork server with
+its warm-up, the same with metrics off and on) runs uninstrumented (``--instr-atstart=no``, ≈ 5× faster), and client
+requests (a 3-line C library built with ``gcc`` against ``valgrind/callgrind.h``, loaded with ctypes) switch the
+instrumentation on in the main process around ``run`` and in the worker from its first file, and dump the worker's
+counts after each file: the first file and files 2–n from one run. Figures per recipe, off → on and the increase: Ir,
+D1 misses, last-level misses (simulated Zen 4 L1s and a 32 MiB L3) and an estimated cycle count, Ir + 10 (I1mr + D1mr +
+D1mw) + 100 (ILmr + DLmr + DLmw); for the whole run, what it pays once (the main process, the first file, the worker's
+exit) and files 2–n per file. Numba compiles its kernels for an AVX2 target here (``NUMBA_CPU_NAME=haswell``: valgrind
+runs no AVX-512) and a warm run of each configuration without valgrind caches them first; the bench fails if a
+measured run writes a kernel or a physics table (their files' mtimes, the runs' own table cache). ``--repeat 2``
+checks the determinism. A 3-file run takes ≈ 2–3 min.
+
 Inputs: ``FRAMES`` frames of the sample drive generated at full resolution (camera 1936×1464 PNG made photo-like,
 with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list —
 what ``--whole-run`` and ``bench/run.py`` run on —, radar PCD), and the real OS1-128 scan
@@ -85,6 +101,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py --baseline DIR [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --baseline DIR [--repeat N] [--frames N] [--recipes cnf22]
+    .venv/bin/python bench/bench_metrics.py --whole-run --valgrind [--repeat N] [--frames N] [--recipes cnf10,cnf22]
 """
 
 from __future__ import annotations
@@ -98,6 +115,7 @@ import dataclasses  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
+import re  # noqa: E402
 import shutil  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
@@ -551,9 +569,189 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
                 print(f"  {name:<12} {code:<5} " + "   ".join(cols), flush=True)
 
 
+#: --whole-run --valgrind: the client requests a run makes under callgrind (instrumentation on, counts dumped), built
+#: with the system's valgrind/callgrind.h
+VG_LIB = """#include <valgrind/callgrind.h>
+void vg_start(void) { CALLGRIND_START_INSTRUMENTATION; }
+void vg_dump(const char *label) { CALLGRIND_DUMP_STATS_AT(label); }
+"""
+#: imported by the run's fork server (PRELOAD): a worker switches the instrumentation on as its first file starts,
+#: dumps the counts after each file ("file") and as it leaves ("exit")
+VG_HOOK = """import ctypes, os
+from roadview_noise import executor, runner
+
+lib = ctypes.CDLL(os.environ["RVNOISE_VG_LIB"])
+process, leave, started = runner.process_encoded, executor.leave_at_once, []
+
+
+def process_encoded(task, ctx):
+    lib.vg_start()
+    started.append(True)
+    try:
+        return process(task, ctx)
+    finally:
+        lib.vg_dump(b"file")
+
+
+def leave_at_once(code=0):
+    if started:
+        lib.vg_dump(b"exit")
+    leave(code)
+
+
+runner.process_encoded, executor.leave_at_once = process_encoded, leave_at_once
+"""
+#: one whole run in a fresh interpreter (arguments: the recipe as JSON, the tree, the output folder, the recipes'
+#: folder); under callgrind (RVNOISE_VG_LIB set) the main process is counted from ``run``'s call to its return
+VG_RUN = """import ctypes, json, os, sys
+from pathlib import Path
+from roadview_noise import executor
+from roadview_noise.recipe import parse_recipe
+from roadview_noise.runner import run
+
+body, tree, out = json.loads(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
+recipe = parse_recipe(body, source="bench", base_dir=Path(sys.argv[4]))
+lib = ctypes.CDLL(os.environ["RVNOISE_VG_LIB"]) if "RVNOISE_VG_LIB" in os.environ else None
+if lib:
+    executor.PRELOAD.append("vg_hook")
+    lib.vg_start()
+run(recipe, tree, out, workers=1, progress=False, echo=lambda m: None, warn=lambda m: None, profile=True)
+if lib:
+    lib.vg_dump(b"main")
+"""
+#: the simulated caches (Zen 4: 32 KiB 8-way L1s, a CCD's 32 MiB 16-way L3 as the last level; callgrind would take
+#: this VM's reported 320 MB L3 otherwise), and the code numba compiles under valgrind and for the warm runs: AVX2,
+#: as valgrind emulates no AVX-512 (its kernels cached for this target, so no compile lands in a measured run)
+VG_CACHES = ["--I1=32768,8,64", "--D1=32768,8,64", "--LL=33554432,16,64"]
+VG_TARGET = {"NUMBA_CPU_NAME": "haswell", "NUMBA_CPU_FEATURES": ""}
+VG_EVENTS = ("Ir", "I1mr", "ILmr", "Dr", "D1mr", "DLmr", "Dw", "D1mw", "DLmw")
+
+
+def est_cycles(c: dict) -> float:
+    """Cachegrind's classic cycle estimate: Ir + 10 × L1 misses + 100 × last-level misses (instructions and data)."""
+    return c["Ir"] + 10 * (c["I1mr"] + c["D1mr"] + c["D1mw"]) + 100 * (c["ILmr"] + c["DLmr"] + c["DLmw"])
+
+
+def _compiled_files(tables: Path) -> dict[str, float]:
+    """The mtime of every numba cache file of this tree and every physics table in ``tables`` (the runs' own table
+    cache): a measured run must write none (a compile or a table build would land in its counts)."""
+    files = list((ROOT / "roadview_noise").rglob("*.nb[ic]")) + list(tables.rglob("*"))
+    return {str(f): f.stat().st_mtime for f in files if f.is_file()}
+
+
+def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False) -> dict[str, list[dict]]:
+    """One whole run under callgrind: the counts of ``main`` (the main process within ``run``), ``file`` (the
+    worker, per file: the file and the worker's loop before it) and ``exit`` (the worker after its last file);
+    ``native``: the same run without valgrind (the warm run: kernels and tables on disk), {}."""
+    from run import TABLE_CACHE_ENV
+
+    out, cg = tmp / "out", tmp / "cg"
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(cg, ignore_errors=True)
+    cg.mkdir(parents=True)
+    env = {**os.environ, **VG_TARGET, "PYTHONPATH": f"{ROOT}:{tmp}", TABLE_CACHE_ENV: str(tmp / "tables")}
+    vg = []
+    if not native:
+        env["RVNOISE_VG_LIB"] = str(tmp / "libvg.so")
+        vg = ["valgrind", "--tool=callgrind", "--instr-atstart=no", "--cache-sim=yes", *VG_CACHES,
+              "--trace-children=yes", f"--callgrind-out-file={cg}/cg.%p"]
+    proc = subprocess.run(vg + [sys.executable, "-c", VG_RUN, json.dumps(body), str(tree), str(out),
+                                str(ROOT / "recipes")], capture_output=True, text=True, env=env)
+    shutil.rmtree(out, ignore_errors=True)
+    if proc.returncode:
+        raise RuntimeError(f"run failed: {proc.stderr[-3000:]}")
+    parts: dict[str, list] = {}
+    for f in sorted(cg.iterdir(), key=lambda f: tuple(int(x) for x in f.name.split(".")[1:])):
+        text = f.read_text(errors="replace")
+        label = re.search(r"^desc: Trigger: (?:Client Request: )?(.*)$", text, re.M).group(1)
+        if label in ("main", "file", "exit"):
+            events = re.search(r"^events: (.*)$", text, re.M).group(1).split()
+            totals = map(int, re.search(r"^summary: (.*)$", text, re.M).group(1).split())
+            parts.setdefault(label, []).append(dict(zip(events, totals)))
+    return parts
+
+
+def _sum(counts: list[dict]) -> dict:
+    return {e: sum(c[e] for c in counts) for e in VG_EVENTS}
+
+
+def whole_runs_valgrind(names: list[str], frames: int, repeat: int) -> None:
+    """``--whole-run --valgrind``: per recipe, whole runs under callgrind (1 worker), metrics off and on, each after
+    a warm run without valgrind; ``repeat`` runs of each (more than one: their largest relative difference)."""
+    from run import INPUTS, build_trees
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        (tmp / "vg.c").write_text(VG_LIB)
+        subprocess.run(["gcc", "-shared", "-fPIC", "-O1", "-o", str(tmp / "libvg.so"), str(tmp / "vg.c")], check=True)
+        (tmp / "vg_hook.py").write_text(VG_HOOK)
+        n = 3 * frames
+        trees = build_trees(tmp / "trees", frames, {s: n for s in sorted({WHOLE_RUN[x] for x in names})})
+        print(f"whole augment runs under callgrind, 1 worker, {n} files, metrics off → on: counts in millions "
+              f"(the main process within run(), the worker from its first file; start-up imports and the fork "
+              f"server's warm-up not counted); D1 = D1mr + D1mw, LL = DLmr + DLmw; cycles ≈ Ir + 10 (I1mr + D1mr + "
+              f"D1mw) + 100 (ILmr + DLmr + DLmw); whole run = main + every file + the worker's exit; first = main + "
+              f"the first file + exit (what a run pays once); files 2–n: per file", flush=True)
+        for name in names:
+            sensor = WHOLE_RUN[name]
+            bodies = {on: yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text()) for on in (False, True)}
+            for on, body in bodies.items():
+                body["inputs"] = dict(INPUTS[sensor])
+                body.setdefault("output", {})["metrics"] = on
+            before = None
+            for _ in range(4):      # warm runs until they write nothing (a process stores a few tables at most)
+                if before == (before := _compiled_files(tmp / "tables")):
+                    break
+                for body in bodies.values():
+                    valgrind_run(body, trees[sensor], tmp, native=True)
+            runs: dict[bool, list] = {False: [], True: []}
+            for _ in range(repeat):
+                for on in (False, True):
+                    runs[on].append(valgrind_run(bodies[on], trees[sensor], tmp))
+                # a table whose key holds floats that NumPy computes otherwise under valgrind (no AVX-512): it is
+                # built in the first run that needs it; that pair was a warm run, measure it again
+                if before != (before := _compiled_files(tmp / "tables")):
+                    print(f"  {name}: a kernel or table was written during a measured run: runs again", flush=True)
+                    runs = {on: runs[on][:-1] + [valgrind_run(bodies[on], trees[sensor], tmp)] for on in runs}
+                    if before != _compiled_files(tmp / "tables"):
+                        raise RuntimeError(f"{name}: the measured runs write kernels or tables")
+            print(_vg_rows(name, runs, n), flush=True)
+            print("    " + json.dumps({"recipe": name, "runs": {str(k): v for k, v in runs.items()}}), flush=True)
+
+
+def _vg_figures(parts: dict, n: int) -> dict[str, dict]:
+    """A run's counts: the whole run, what it pays once, files 2–n per file, and a 24-file run made of these."""
+    if len(parts.get("file", ())) != n or len(parts.get("main", ())) != 1:
+        raise RuntimeError(f"expected {n} file dumps and the main process's: {[(k, len(v)) for k, v in parts.items()]}")
+    once = _sum(parts["main"] + parts["file"][:1] + parts.get("exit", []))
+    rest = {e: v / (n - 1) for e, v in _sum(parts["file"][1:]).items()}
+    return {"whole": _sum(parts["main"] + parts["file"] + parts.get("exit", [])), "first": once, "rest": rest,
+            "24": {e: once[e] + 23 * rest[e] for e in VG_EVENTS}}
+
+
+def _vg_rows(name: str, runs: dict, n: int) -> str:
+    """A recipe's rows: whole run, what it pays once, files 2–n per file, a 24-file run made of these (the main
+    process's per-file share left out); the first run's figures, and with several the largest relative difference
+    of Ir and cycles between runs of the same code."""
+    figs = {on: [_vg_figures(r, n) for r in runs[on]] for on in runs}
+    rows = []
+    for kind, label in (("whole", f"whole run ({n} files)"), ("first", "main + first file + exit"),
+                        ("rest", "files 2–n, per file"), ("24", "24 files: once + 23 × 2–n")):
+        cells = []
+        for get, what in ((lambda c: c["Ir"], "Ir"), (lambda c: c["D1mr"] + c["D1mw"], "D1"),
+                          (lambda c: c["DLmr"] + c["DLmw"], "LL"), (est_cycles, "cycles")):
+            off, on = (get(figs[k][0][kind]) for k in (False, True))
+            cells.append(f"{what} {off / 1e6:8.2f} → {on / 1e6:8.2f} ({(on / off - 1) * 100:+5.2f} %)")
+        spread = max(abs(f(r[kind]) / f(figs[k][0][kind]) - 1) for k in figs for r in figs[k]
+                     for f in (lambda c: c["Ir"], est_cycles))
+        rows.append(f"  {name:<18} {label:<24} " + "   ".join(cells)
+                    + (f"   runs differ ≤ {spread * 100:.3f} %" if len(figs[False]) > 1 else ""))
+    return "\n".join(rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=7, help="runs per case with metrics off and on (default 7)")
+    ap.add_argument("--repeat", type=int, help="runs per case with metrics off and on (default 7; --valgrind: 1)")
     ap.add_argument("--recipes", help=f"comma-separated subset of {', '.join(CASES)}")
     ap.add_argument("--whole-run", action="store_true", help="whole augment runs instead of single files")
     ap.add_argument("--compare-only", action="store_true", help="CPU time of the chain's metrics calls alone")
@@ -563,10 +761,17 @@ def main() -> None:
                          "--whole-run: whole runs off/on with DIR's code and with this tree's, paired")
     ap.add_argument("--changed", default="", help="--baseline: comma-separated metrics the two versions may compute "
                                                   "differently (a change of method, e.g. ssim)")
+    ap.add_argument("--valgrind", action="store_true",
+                    help="with --whole-run: instruction and cache-miss counts of whole runs under callgrind "
+                         "(--repeat: runs of each; 2 checks their determinism)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
+    args.repeat = args.repeat or (1 if args.valgrind else 7)
     global CHANGED
     CHANGED = tuple(filter(None, args.changed.split(",")))
+    if args.whole_run and args.valgrind:
+        whole_runs_valgrind(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.frames, args.repeat)
+        return
     if args.whole_run and args.baseline:
         whole_runs_paired(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames,
                           args.baseline.resolve())
