@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +46,9 @@ PHASE_SAMPLE_STRIDE = 16        # every 16th return measures the per-beam column
 MIN_GAPS = 200                  # fewer neighbour gaps: no reliable step
 MIN_REGULAR_FRACTION = 0.8      # gaps within ±15 % of a whole number of steps, for a regular grid
 MAX_GAP_STEPS = 8               # gaps up to this many steps measure the step (longer ones: open sky)
+WHOLE_STEPS = 0.15              # a gap within this of a whole number of steps is on the grid
+FIT_STEPS = 0.25                # gaps within this of a whole number of steps refit the step
+UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it to win over twice its columns
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
 
 
@@ -132,25 +136,71 @@ def measured_step_rad(gap: np.ndarray, returns: int) -> tuple[float, str]:
 
 @jit(error_model="numpy")
 def _refit_step(gap):       # pragma: no cover - compiled
-    """:func:`measured_step_rad`'s seed (the 10th percentile) and least-squares refits: (the step, the fraction of
-    the last refit's gaps within 0.15 step of a whole number). A refit without gaps gives NaN, as NumPy's did (the
-    NumPy error model: no ZeroDivisionError from compiled code)."""
-    step = np.partition(gap, len(gap) // 10)[len(gap) // 10]
-    near = 0.0
+    """:func:`measured_step_rad`'s seed (:func:`_most_common_gap`) and least-squares refits on the gaps within
+    ``FIT_STEPS`` of a whole number (≥ 1) of steps: (the step, the fraction of the last refit's gaps that are whole steps,
+    alone or with a neighbour, :func:`_whole_or_pair`). A refit without gaps gives NaN, as NumPy's did (the NumPy
+    error model: no ZeroDivisionError from compiled code)."""
+    step = _most_common_gap(gap)
+    last = step
     for most_steps in (2, 4, MAX_GAP_STEPS, MAX_GAP_STEPS):
-        last, gk, kk, near = step, 0.0, 0.0, 0.0
+        last, gs, ks = step, 0.0, 0.0
         for g in gap:
-            if g < (most_steps + 0.5) * last:
-                k = np.rint(g / last)
-                gk += g * k
-                kk += k * k
-                near += 1.0
-        step = gk / kk
-    regular = 0.0
-    for g in gap:
-        if g < (MAX_GAP_STEPS + 0.5) * last and abs(g / step - np.rint(g / last)) < 0.15:
-            regular += 1.0
+            k = np.rint(g / last)
+            if k >= 1 and g < (most_steps + 0.5) * last and abs(g / last - k) < FIT_STEPS:
+                gs += g
+                ks += k
+        step = gs / ks
+    near = regular = 0.0
+    for j in range(len(gap)):
+        if gap[j] < (MAX_GAP_STEPS + 0.5) * last:
+            near += 1.0
+            regular += _whole_or_pair(gap, j, step, last)
     return step, regular / near
+
+
+@jit(inline="always")
+def _whole(g, step, last):       # pragma: no cover - compiled
+    """Whether the gap ``g`` lies within ``WHOLE_STEPS`` of the whole number (≥ 1) of ``last`` steps it rounds to."""
+    k = np.rint(g / last)
+    return k >= 1 and abs(g / step - k) < WHOLE_STEPS
+
+
+@jit(inline="always")
+def _whole_or_pair(gap, j, step, last):       # pragma: no cover - compiled
+    """1.0 if gap ``j`` is whole (:func:`_whole`) or, not shorter than ``WHOLE_STEPS`` and with the gap before or
+    after it (not shorter either), adds up to a whole number of steps (one return off its beam's phase between two
+    on it: a Velodyne decoder's last block of a packet, its azimuth not interpolated), else 0.0. Two returns of one
+    beam closer than that are not on one grid (another beam's return, a resampled point)."""
+    g = gap[j]
+    if _whole(g, step, last):
+        return 1.0
+    short = WHOLE_STEPS * step
+    if g < short:
+        return 0.0
+    if j > 0 and gap[j - 1] >= short and _whole(gap[j - 1] + g, step, last):
+        return 1.0
+    if j + 1 < len(gap) and gap[j + 1] >= short and _whole(g + gap[j + 1], step, last):
+        return 1.0
+    return 0.0
+
+
+@jit
+def _most_common_gap(gap):       # pragma: no cover - compiled
+    """The seed of the step: of the gaps' 10th, 25th and 50th percentiles, the one with the most gaps within
+    ``WHOLE_STEPS`` of it (the earlier on a tie or within that of it). One step is the most common gap, but off-phase
+    returns (a Velodyne decoder's) can make a tenth of the gaps a fraction of a step."""
+    n = len(gap)
+    best, best_count = math.nan, -1
+    for q in (n // 10, n // 4, n // 2):
+        c = np.partition(gap, q)[q]
+        if best_count >= 0 and abs(c / best - 1.0) < WHOLE_STEPS:
+            continue
+        count = 0
+        for g in gap:
+            count += abs(g / c - 1.0) < WHOLE_STEPS
+        if count > best_count:
+            best, best_count = c, count
+    return best
 
 
 @jit
@@ -305,6 +355,36 @@ class FiringColumns:
     valid: np.ndarray
 
 
+class FiringGridWarning(UserWarning):
+    """The firing grid's column count is the profile's, not the one measured from the list."""
+
+
+def undecided_columns(gap: np.ndarray, columns: int, profile: LidarProfile) -> int:
+    """The profile's column count instead of the ``columns`` measured from the gaps ``gap`` when they are twice the
+    profile's (±3 %) and 70 % of the gaps are whole steps of the profile's grid too: the data do not tell a sensor's
+    grid from one of half its step (which would fill twice the empty rays), so the profile wins, warned. A grid
+    really recorded at twice the profile's columns (Ouster 2048 against 1024) has gaps of an odd number of its steps
+    — half of the profile's — on over half its gaps (a fraction 1/(2 − fill))."""
+    if abs(columns - 2 * profile.columns) > 0.06 * profile.columns or _whole_fraction(
+            gap, TWO_PI / profile.columns) < UNDECIDED_WHOLE_FRACTION:
+        return columns
+    warnings.warn(f"the firing grid measured from the list has {columns} columns, twice the {profile.columns} of "
+                  f"profile {profile.name!r}, whose step fits the data too: the profile's are used (give the "
+                  f"sensor's column count in the profile if it is {columns})", FiringGridWarning, stacklevel=4)
+    return profile.columns
+
+
+@jit
+def _whole_fraction(gap, step):       # pragma: no cover - compiled
+    """The fraction of the gaps up to ``MAX_GAP_STEPS`` steps of ``step`` that are whole steps (:func:`_whole`)."""
+    near = whole = 0
+    for g in gap:
+        if g < (MAX_GAP_STEPS + 0.5) * step:
+            near += 1
+            whole += _whole(g, step, step)
+    return whole / max(near, 1)
+
+
 def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
                 points: ListPoints | None = None) -> FiringGrid | str:
     """The empty rays of a point-list scan (see the module doc), or the reason it has no firing grid. ``range_m``:
@@ -352,10 +432,11 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
         return "no returns"
     sampled = np.zeros(profile.channels, dtype=bool)                 # counts hold zero points too: only to pick beams
     sampled[np.argsort(counts, kind="stable")[-STEP_SAMPLE_BEAMS:]] = True
-    step, reason = measured_step_rad(*beam_gaps(firing, ring, valid, sampled, counts))
+    gap, returns = beam_gaps(firing, ring, valid, sampled, counts)
+    step, reason = measured_step_rad(gap, returns)
     if reason:
         return reason
-    columns = int(round(TWO_PI / step))
+    columns = undecided_columns(gap, int(round(TWO_PI / step)), profile)
     step = TWO_PI / columns                             # the grid closes on itself
     cos_sum, sin_sum = _beam_phase(firing, ring, range_m, valid, PHASE_SAMPLE_STRIDE, TWO_PI / step,
                                    profile.channels)
