@@ -22,12 +22,14 @@ VLP16 = {"base": "hdl-32e", "beam_elevation_deg": sorted(LASER_ELEVATION_DEG.tol
 
 
 def vlp16_list(rate_hz: float = 10.0, fill: float = 0.5, dual: bool = True, seed: int = 0):
-    """A VLP-16 turn decoded as nebula's decoder does (models its timing, not its code): a block's azimuth is the
-    encoder's (0.01°) at its first firing; each laser's azimuth is interpolated by its firing time (to 0.01°) from the azimuth
-    difference to the next distinct block — except the packet's last one, which gets none (its second sequence and
-    every laser sit at the block's azimuth). ``dual``: each firing's blocks come in pairs (last and strongest
-    return): one point where both echoes agree, two at the same azimuth on 10 % of the rays. Returns (the list with
-    its ``ring`` field, the number of its firing sequences per turn, its empty cells)."""
+    """A VLP-16 turn decoded as nebula's decoder does (its timing, not its code): a block's azimuth is the encoder's
+    (0.01°) at its first firing; each laser's azimuth is interpolated by its firing time (to 0.01°) from the azimuth
+    difference to the next distinct block — except in the packet's last one, which gets none (its second sequence
+    and every laser sit at the block's azimuth, as in the real list). ``dual``: each firing's blocks come in pairs
+    (last and strongest return): one point where both echoes agree, two at the same azimuth on 10 % of the rays. The
+    upward beams (a ceiling) return on 77 % (+1°) … 100 % (+15°) of their firings, the others on ``fill``. Returns
+    (the list with its ``ring`` field, its firing sequences per turn, its empty cells, its returns in the packets'
+    last blocks)."""
     rng = np.random.default_rng(seed)
     per_packet = BLOCKS // (2 if dual else 1)                 # distinct firings (blocks) per packet
     block_s = SEQUENCES * SEQUENCE_S
@@ -38,7 +40,7 @@ def vlp16_list(rate_hz: float = 10.0, fill: float = 0.5, dual: bool = True, seed
     diff[per_packet - 1::per_packet] = 0                      # the decoder's last block of a packet
     laser = np.arange(16)
     fraction = (laser[None, :] * FIRING_S + np.arange(SEQUENCES)[:, None] * SEQUENCE_S) / block_s   # (seq, laser)
-    az_deg = np.round(azimuth_cdeg[:, None, None] + diff[:, None, None] * fraction[None]) / 100     # (block, seq, laser)
+    az_deg = np.round(azimuth_cdeg[:, None, None] + diff[:, None, None] * fraction[None]) / 100     # block, seq, laser
     az_deg, el_deg = az_deg.reshape(-1, 16), np.broadcast_to(LASER_ELEVATION_DEG, (az_deg.size // 16, 16))
     hit = rng.random(az_deg.shape) < np.where(LASER_ELEVATION_DEG > 0, 0.75 + LASER_ELEVATION_DEG / 60, fill)
     echoes = np.where(hit & (rng.random(az_deg.shape) < (0.1 if dual else 0.0)), 2, hit.astype(int))
