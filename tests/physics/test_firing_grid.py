@@ -220,8 +220,8 @@ def test_a_turn_in_firing_order_is_read_sorted():
 def numpy_step(gap):
     """:func:`measured_step_rad`'s fit in NumPy: the seed (of the 10th, 25th and 50th percentiles, the one with the
     most gaps within 15 % of it, the first with half the gaps), then step = Σg / Σk over the gaps within 0.25 of a
-    whole number k ≥ 1 of steps of up to 2, 4, 8, 8 steps; (the step, the fraction of gaps within 0.15 of k ≥ 1 whole steps alone or, both at least 0.15
-    step, with a neighbour)."""
+    whole number k ≥ 1 of steps of up to 2, 4, 8, 8 steps; (the step, the fraction of gaps within 0.15 of k ≥ 1 whole
+    steps alone or, both at least 0.15 step, with a neighbour)."""
     best, best_count = math.nan, -1
     for q in (len(gap) // 10, len(gap) // 4, len(gap) // 2):
         if 2 * best_count > len(gap):
