@@ -70,6 +70,7 @@ class FiringGrid:
     profile: LidarProfile
     firing_rad: np.ndarray
     out_of_view: int = 0        # azimuth bins (of ``columns``) farther than the view margin from every return
+    gaps_columns: int | None = None     # the count the gaps gave when the profile's won (:func:`undecided_columns`)
 
     def directions(self, cells: np.ndarray, range_m: np.ndarray | None = None) -> np.ndarray:
         """(len(cells), 3) unit vectors of the empty cells ``cells`` (indices into ``ring``/``column``), times
@@ -92,13 +93,17 @@ class FiringGrid:
     def describe(self) -> str:
         crop = (f"; {self.out_of_view} of {self.columns} columns out of view (a crop, an azimuth window or lost "
                 f"packets): not filled" if self.out_of_view else "")
-        return describe_grid(self.profile, self.columns) + crop
+        return describe_grid(self.profile, self.columns, self.gaps_columns) + crop
 
 
-def describe_grid(profile: LidarProfile, columns: int) -> str:
-    """What a firing grid of ``columns`` measured from a list is, for the manifest."""
+def describe_grid(profile: LidarProfile, columns: int, gaps_columns: int | None = None) -> str:
+    """What a firing grid of ``columns`` measured from a list is, for the manifest; ``gaps_columns``: the count
+    the list's gaps gave when the profile's ``columns`` won over it (:func:`undecided_columns`)."""
     if profile.storage_order == LASER_ORDER:
         return f"{profile.channels}x{columns} firing grid from the list's laser-by-laser storage order"
+    if gaps_columns is not None:
+        return (f"{profile.channels}x{columns} firing grid of profile {profile.name!r}: the list's gaps fit its step "
+                f"and {gaps_columns} columns alike")
     note = "" if columns == profile.columns else f"; profile {profile.name!r} says {profile.columns}"
     return f"{profile.channels}x{columns} firing grid measured from the list{note}"
 
@@ -356,13 +361,14 @@ def _beam_phase(firing, ring, range_m, valid, stride, per_rad, channels):       
 class FiringColumns:
     """The firing grid measured from a point list, before its empty cells are looked for: every point's ``ring`` and
     firing azimuth ``firing_rad``, the measured column count ``columns`` and per-beam ``shift`` (in steps), which
-    points are returns (``valid``)."""
+    points are returns (``valid``), and ``gaps_columns``: the count the gaps gave when the profile's won."""
 
     ring: np.ndarray
     firing_rad: np.ndarray
     columns: int
     shift: np.ndarray
     valid: np.ndarray
+    gaps_columns: int | None = None
 
 
 class FiringGridWarning(UserWarning):
@@ -417,7 +423,7 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     er, ec = _empty_cells(occupied, words, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets,
                           step)
     return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
-                      int(np.count_nonzero(~in_view)))
+                      int(np.count_nonzero(~in_view)), measured.gaps_columns)
 
 
 def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
@@ -446,14 +452,15 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
     step, reason = measured_step_rad(gap, returns)
     if reason:
         return reason
-    columns = undecided_columns(gap, int(round(TWO_PI / step)), profile)
+    gaps_columns = int(round(TWO_PI / step))
+    columns = undecided_columns(gap, gaps_columns, profile)
     step = TWO_PI / columns                             # the grid closes on itself
     cos_sum, sin_sum = _beam_phase(firing, ring, range_m, valid, PHASE_SAMPLE_STRIDE, TWO_PI / step,
                                    profile.channels)
     phase = cos_sum - 1j * sin_sum
     phase = np.where(phase != 0, phase, phase.sum())   # beams without samples: the scan's common phase
     shift = np.angle(phase) / TWO_PI                    # per beam, in steps
-    return FiringColumns(ring, firing, columns, shift, valid)
+    return FiringColumns(ring, firing, columns, shift, valid, None if columns == gaps_columns else gaps_columns)
 
 
 @dataclass(frozen=True, eq=False)

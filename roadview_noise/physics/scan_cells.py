@@ -86,7 +86,7 @@ def scan_cells(cloud: PointCloud, profile: LidarProfile, range_m: np.ndarray | N
         if isinstance(measured, str):
             return f"no firing grid: {measured}"
         ring, columns, firing = measured.ring, measured.columns, measured.firing_rad
-        source = describe_grid(profile, columns)
+        source = describe_grid(profile, columns, measured.gaps_columns)
         if empty:
             grid = empty_rays(measured, profile)
             empty_ring, empty_column = grid.ring, grid.column

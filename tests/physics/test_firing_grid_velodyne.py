@@ -87,3 +87,18 @@ def test_twice_the_profiles_columns_yields_to_it_when_its_step_fits_too():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert undecided_columns(gap, 2048, ouster) == 2048
+
+
+def test_the_manifest_says_when_the_profiles_columns_won(monkeypatch):
+    """When the profile's column count wins over the gaps' (:func:`undecided_columns`), the grid's description — the
+    manifest's ``empty_rays_source`` — says so instead of "measured from the list"; otherwise it is unchanged."""
+    from roadview_noise.physics import firing_grid as module
+
+    cloud, _, _, _ = vlp16_list()
+    measured = firing_grid(cloud, cloud.profile)
+    assert "measured from the list" in measured.describe() and measured.gaps_columns is None
+    monkeypatch.setattr(module, "undecided_columns", lambda gap, columns, profile: profile.columns)
+    won = firing_grid(cloud, cloud.profile)
+    assert won.columns == 1800 and won.gaps_columns == measured.columns
+    assert won.describe().startswith(f"16x1800 firing grid of profile {cloud.profile.name!r}: the list's gaps fit "
+                                     f"its step and {measured.columns} columns alike"), won.describe()
