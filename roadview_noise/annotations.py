@@ -72,6 +72,12 @@ class ReplaceRule(_Strict):
 
     replace: dict[str, str]
 
+    def applied(self, relpath: str) -> str:
+        """``relpath`` with each ``old`` replaced by its ``new``, in the rule's order."""
+        for old, new in self.replace.items():
+            relpath = relpath.replace(old, new)
+        return relpath
+
 
 class NuscenesRule(_Strict):
     """``{nuscenes: v1.0-trainval}``: the lidarseg file of the cloud's sample_data record (nuScenes tables)."""
@@ -153,9 +159,7 @@ def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
         stem = split_suffix(p.name)[0]
         rel = posixpath.join(str(p.parent), rule.format(stem=stem, name=p.name))
     elif isinstance(rule, ReplaceRule):
-        rel = relpath
-        for old, new in rule.replace.items():
-            rel = rel.replace(old, new)
+        rel = rule.applied(relpath)
     else:
         rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes)).get(relpath)
         if rel is None:

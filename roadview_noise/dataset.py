@@ -86,9 +86,7 @@ def depth_relpath_for(relpath: str, pattern) -> str:
     ``image/…_sync_image_0000000005_image_02.png`` ``velodyne_raw/…_sync_velodyne_raw_0000000005_image_02.png``),
     as a normalised POSIX path relative to the input root (``..`` allowed)."""
     if not isinstance(pattern, str):
-        for old, new in pattern.replace.items():
-            relpath = relpath.replace(old, new)
-        return posixpath.normpath(relpath)
+        return posixpath.normpath(pattern.applied(relpath))
     p = PurePosixPath(relpath)
     stem, _ = split_suffix(p.name)
     base = stem.rpartition("_")[0] or stem

@@ -336,7 +336,6 @@ def beam_count_hint(profile: LidarProfile, ring: np.ndarray | None) -> str:
             f"{profile.channels}, so its rings index other beams" + (f": give lidar_profile {fit}" if fit else ""))
 
 
-
 SPAN_MARGIN_DEG = 1.0          # returns this far beyond a profile's outermost beams are not its beams'
 SPAN_MIN_RANGE_M = 2.0         # nearer returns' elevations carry the beam-origin offset (15 mm: 0.4° at 2 m)
 
