@@ -231,33 +231,10 @@ def _camera_profile_cached(spec: str | None):
 
 @lru_cache(maxsize=64)
 def _lidar_profile(spec_key, unit, full_scale) -> LidarProfile:
-    from .profiles.lidar import load_lidar_profile
+    from .profiles.lidar import load_lidar_profile, with_intensity_scale
 
     profile = load_lidar_profile(_thawed(spec_key))
     return with_intensity_scale(profile, unit, full_scale) if unit or full_scale else profile
-
-
-DEFAULT_FULL_SCALE = {"photons": 65535.0, "uint8": 255.0, "unit": 1.0}
-
-
-def with_intensity_scale(profile: LidarProfile, unit: str | None, full_scale: float | None) -> LidarProfile:
-    """The same sensor with intensities stored in another unit/full scale (the recipe's ``intensity_unit``,
-    ``intensity_full_scale``): everything tied to the stored scale follows, so the physics is unchanged — for a
-    ``signal`` profile the sensor constant and the threshold (signal = stored intensity), for a ``reflectivity``
-    profile the white reading."""
-    unit = unit or profile.intensity_unit
-    new_fs = float(full_scale or DEFAULT_FULL_SCALE.get(unit, profile.intensity_full_scale))
-    ratio = new_fs / profile.intensity_full_scale
-    changes: dict = {"intensity_unit": unit, "intensity_full_scale": new_fs,
-                     "intensity_source": "the recipe's intensity_unit / intensity_full_scale",
-                     "intensity_step": profile.intensity_step if unit == profile.intensity_unit else None}
-    if profile.intensity_kind == "signal":
-        if profile.sensor_constant is not None:
-            changes["sensor_constant"] = profile.sensor_constant * ratio
-        changes["detection_threshold"] = profile.detection_threshold * ratio
-    elif profile.reflectivity_white_reading is not None:
-        changes["reflectivity_white_reading"] = profile.reflectivity_white_reading * ratio
-    return dataclasses.replace(profile, **changes)
 
 
 @lru_cache(maxsize=64)

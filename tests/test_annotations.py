@@ -542,7 +542,7 @@ def _object_scene() -> tuple[PointCloud, list[dict]]:
             best[hit] = r
     keep = np.isfinite(best) & (best < 80)
     pos = d[keep] * best[keep, None]
-    intensity = (2000.0 / best[keep] ** 2 * 40).astype(np.float32)
+    intensity = np.rint(2000.0 / best[keep] ** 2 * 40).astype(np.float32)     # whole photons (fractions: refused)
     layout = CloudLayout("pcd", (("x", "x", "<f4"), ("y", "y", "<f4"), ("z", "z", "<f4"),
                                  ("intensity", "intensity", "<f4"), ("ring", "ring", "<u2")))
     cloud = PointCloud(pos.astype(np.float32).astype(np.float64), {"intensity": intensity, "ring": ring[keep]},

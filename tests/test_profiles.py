@@ -75,7 +75,7 @@ def test_ring_field_outside_the_table_is_refused():
 
 def test_recipe_intensity_scale_keeps_the_physics():
     """Re-expressing stored intensities in another unit rescales what is tied to them, nothing else."""
-    from roadview_noise.dataset import with_intensity_scale
+    from roadview_noise.profiles.lidar import with_intensity_scale
 
     p = os1_128()
     q = with_intensity_scale(p, "uint8", None)

@@ -14,6 +14,8 @@ import pytest
 from bench.audit_real_data import (MONOTONE, VANISH, Input, changed_fraction, digest, lost_returns,
                                    luminance_contrast, range_problems, real_inputs, run, written)
 from roadview_noise.compound import apply_models
+from roadview_noise.profiles.lidar import with_intensity_scale
+from roadview_noise.errors import ModelError
 from roadview_noise.physics.lidar_intensity import intensity_step, read_intensity, resolve_profile
 from roadview_noise.profiles.lidar import default_profile
 from roadview_noise.registry import get_model, load_all
@@ -35,7 +37,7 @@ RAW_IDENTITY = ("fog.camera", "motion_blur.camera", "rain.camera", "snow.camera"
 
 
 @pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "ouster-scan0.bin",
-                                  "waymo-0000000.bin"])
+                                  "waymo-unit30-0000000.bin"])
 @pytest.mark.parametrize("model_id", LIDAR_MODELS)
 def test_lidar_zero_strength_is_the_identity(model_id, name):
     """Rate 0, visibility 10¹⁵ m, probability 0, σ 0: at most 0.1 % of the points change (all four: none)."""
@@ -43,8 +45,7 @@ def test_lidar_zero_strength_is_the_identity(model_id, name):
     assert changed_fraction(data, out) <= 1e-3
 
 
-@pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "waymo-0000000.bin",
-                                  "waymo-unit30-0000000.bin"])
+@pytest.mark.parametrize("name", ["kitti-000008.bin", "nuscenes-LIDAR_TOP", "waymo-unit30-0000000.bin"])
 @pytest.mark.parametrize("model_id", ["rain.lidar", "snow.lidar", "fog.lidar", "ray_drop.lidar"])
 def test_lidar_weather_stays_in_the_sensor_and_repeats(model_id, name, tmp_path):
     """At the default strength: finite, intensity within the profile's full scale (whole counts for 8-bit units), no
@@ -102,29 +103,32 @@ def test_camera_weather_writes_the_input_dtype_and_repeats(model_id, tmp_path):
 # --- synthetic versions of the faults found (CI has no real data) -------------------------------------------
 
 
-def fractional_scan(n: int = 2000, seed: int = 0) -> PointCloud:
-    """A cloud like Waymo's KITTI-format export read without a profile: float intensities 0.01–1.5 (not whole
-    counts, not within [0, 1]) on returns 2–60 m away."""
+def fractional_scan(n: int = 2000, seed: int = 0, profile=None) -> PointCloud:
+    """A cloud like Waymo's KITTI-format export: float intensities 0.01–1.5 (not whole counts, not within [0, 1]) on
+    returns 2–60 m away, read with ``profile`` (default: the default profile, nothing stated)."""
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
     d[:, 2] = np.abs(d[:, 2]) * 0.1
     pos = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(2, 60, (n, 1))
     fields = {"intensity": rng.uniform(0.01, 1.5, n).astype(np.float32)}
-    return PointCloud(pos, fields, "lidar", default_profile())
+    return PointCloud(pos, fields, "lidar", profile or default_profile())
 
 
-def test_an_assumed_unit_keeps_fractional_intensities_continuous():
-    """Nothing states the unit and the values have fractions: the default profile's unit is assumed (warned) but
-    not its step of one photon; whole counts keep it."""
+def test_fractional_intensities_need_a_stated_unit_which_keeps_them_continuous():
+    """Nothing states the unit and the values have fractions: refused (since 2026-11-27; before, the default
+    profile's photons were assumed, warned, at the file's continuous resolution). A stated float unit keeps them
+    continuous; whole counts keep the photon step."""
     cloud = fractional_scan()
-    reading = read_intensity(cloud.fields["intensity"], cloud.positions_m)
-    assert reading.values == "floats"
+    assert read_intensity(cloud.fields["intensity"], cloud.positions_m).values == "floats"
+    with pytest.raises(ModelError, match="have fractions and nothing states their unit"):
+        resolve_profile(default_profile(), cloud.fields["intensity"], cloud.positions_m, "fog.lidar")
+    stated = resolve_profile(with_intensity_scale(default_profile(), "unit", 1.5), cloud.fields["intensity"],
+                             cloud.positions_m, "fog.lidar")
+    assert intensity_step(stated.profile) == 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        scale = resolve_profile(default_profile(), cloud.fields["intensity"], cloud.positions_m, "fog.lidar")
-        counts = np.rint(cloud.fields["intensity"] * 100)
+        counts = np.rint(cloud.fields["intensity"] * 1000)
         kept = resolve_profile(default_profile(), counts, cloud.positions_m, "fog.lidar")
-    assert intensity_step(scale.profile) == 0.0
     assert intensity_step(kept.profile) == 1.0
 
 
@@ -132,15 +136,11 @@ def test_an_assumed_unit_keeps_fractional_intensities_continuous():
                                               ("rain.lidar", {"rain_rate_mm_per_h": 0.0})])
 def test_vanishing_weather_keeps_fractional_intensities(model_id, params):
     """Before: every intensity of a real Waymo scan (0.04–1.04) was rounded to whole photons, i.e. written as 0,
-    by fog at 10⁹ m visibility: 100 % of the points changed."""
-    cloud = fractional_scan()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out, _ = apply_models([get_model(model_id)(**params)], cloud, seed=1, key="k", sequence_id="s",
-                              metrics=False)
+    by fog at 10⁹ m visibility: 100 % of the points changed. Now with its unit stated (unstated: refused)."""
+    cloud = fractional_scan(profile=with_intensity_scale(default_profile(), "unit", 30.0))
+    out, _ = apply_models([get_model(model_id)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
     assert len(out.positions_m) == len(cloud.positions_m)
     np.testing.assert_allclose(out.fields["intensity"], cloud.fields["intensity"], rtol=1e-6)
-
 
 
 @pytest.mark.parametrize("black, white", [(0.0, 65535.0), (2056.0, 15000.0)])
@@ -162,18 +162,22 @@ def test_low_light_identity_gives_a_dngs_codes_back(black, white, tmp_path):
     np.testing.assert_array_equal(read_raw(written(item, recipe, out, tmp_path / "out"))[0], read_raw(path)[0])
 
 
-def test_snow_on_waymo_read_without_its_unit_is_monotone_as_physics_says():
-    """Lost returns 772 → 743 from 0.5 to 2.5 mm/h (27× their standard error): no seed noise; the closed-form
-    count of targets a flake outshines falls too (781 → 752), so the audit reports physics, not a violation."""
-    from bench.audit_real_data import monotone
+def test_waymo_read_without_its_unit_is_refused():
+    """Waymo's KITTI-format scan with only its columns named (0.005–1.04): before 2026-11-27 read as photons, warned
+    (fog at 30 m moved all 800 returns to 1.4 m; snow 2.5 mm/h wrote up to 5 750). Now ``augment`` fails the file,
+    naming it, the values and the lines that state the unit; with them stated it runs."""
+    from bench.audit_real_data import WAYMO_FIELDS
 
-    text = monotone(real("waymo-0000000.bin"), "snow.lidar")
-    assert text.startswith("ok") and "physics" in text, text
+    item = real("waymo-unit30-0000000.bin")
+    with pytest.raises(ModelError, match="intensities 0.00476074 … 1.03906 have fractions"):
+        run(Input("waymo", item.path, "lidar", {"bin_fields": WAYMO_FIELDS}), "fog.lidar", {"visibility_m": 30.0})
+    _, data, out = run(item, "fog.lidar", {"visibility_m": 30.0})
+    assert 0 < lost_returns(data, out) < len(data.positions_m) / 2
 
 
 def faint_scan(folder: Path, n: int = 800, seed: int = 0) -> Input:
-    """A KITTI-style .bin like Waymo's scans read without their unit: targets 5–15 m away, intensities 0.01–0.3
-    (one in a hundred 1.04) taken as the default profile's photons — so faint that sub-mm flakes outshine them."""
+    """A KITTI-style .bin like Waymo's scans read as photons (stated: unstated fractions are refused): targets 5–15 m
+    away, intensities 0.01–0.3 (one in a hundred 1.04) — so faint that sub-mm flakes outshine them."""
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
     d[:, 2] = np.abs(d[:, 2]) * 0.1
@@ -181,7 +185,7 @@ def faint_scan(folder: Path, n: int = 800, seed: int = 0) -> Input:
     intensity = np.where(np.arange(n) % 100 == 0, 1.04, rng.uniform(0.01, 0.3, n))
     path = folder / "faint.bin"
     np.column_stack([pos, intensity]).astype(np.float32).tofile(path)
-    return Input("faint", path, "lidar")
+    return Input("faint", path, "lidar", {"intensity_unit": "photons"})
 
 
 def test_fewer_faint_returns_lost_in_heavier_snow_is_physics(tmp_path):

@@ -158,7 +158,7 @@ def test_cli_preview_prints_a_model_warning_once_as_one_line(tmp_path, capsys):
     once, not as Python's file:line plus source line."""
     rng = np.random.default_rng(5)
     r, az = rng.uniform(3, 40, 3000), rng.uniform(-np.pi, np.pi, 3000)
-    table = np.stack([r * np.cos(az), r * np.sin(az), rng.uniform(-1.5, 1, 3000), rng.uniform(1, 200, 3000)], 1)
+    table = np.stack([r * np.cos(az), r * np.sin(az), rng.uniform(-1.5, 1, 3000), rng.integers(1, 200, 3000)], 1)
     table.astype("<f4").tofile(tmp_path / "000000.bin")
     app(["preview", "--recipe", "CNF19", str(tmp_path / "000000.bin"), "-o", str(tmp_path / "p.png"),
          "--panel-px", "160"], standalone_mode=False)         # as the console script calls it (CliRunner does not)

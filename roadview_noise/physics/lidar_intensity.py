@@ -15,8 +15,21 @@ the data say about their unit (the cloud → signal conversion of the weather pi
   return (``faint_reading``, per profile).
 - The unit is stated by the profile (a built-in, a file, an Ouster metadata JSON whose ``udp_profile_lidar`` names
   the channel, the recipe's ``intensity_unit``), and values it cannot hold are refused; when nothing states it (the
-  default profile), :func:`read_intensity` looks at the data (integer-valued ≤ 255, larger counts, [0, 1];
-  range-compensated or ∝ 1/R²) and :func:`resolve_profile` follows them or the default, always with a warning.
+  default profile), :func:`read_intensity` looks at the data (integer-valued ≤ 255, larger counts, [0, 1],
+  fractional floats; range-compensated or ∝ 1/R²) and :func:`resolve_profile` follows them, always with a warning,
+  or refuses what no reading can place:
+
+  - fractions — [0, 1] or beyond (Luminar's 0–2 reflectance, View-of-Delft's 0–255 floats, Waymo's 0.005–27) —
+    are no photon counts (whole numbers), and a float channel's full scale is not in the data: refused, naming the
+    values seen and the recipe line that states them. Read as the default photons (the policy before 2026-11-27,
+    warned) they were garbage a batch user scrolls past: fog at 30 m moved every Luminar and Waymo return to < 2.4 m
+    and wrote 8–55 into a 0–2 channel, snow wrote up to 9 213 into VoD's 0–255;
+  - 8-bit whole counts are read as the sensor's 8-bit calibrated reflectivity (:func:`reflectivity_variant`) unless
+    their bright end falls as 1/R² (signal photons, which stay): most 8-bit channels are reflectivity (Velodyne,
+    Livox, Hesai, Ouster RFL8), and read as photons a reflectivity channel's returns all look too faint to survive
+    any weather, while read as reflectivity a weak photon channel stays within 0–255;
+  - a cloud whose returns all read 0 carries no return strength (a map or converter that did not fill the channel:
+    hku-mars/mlcc's Livox maps), stated or not: every return would be lost to the faintest fog — refused.
 """
 
 from __future__ import annotations
@@ -274,10 +287,11 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
                     model_id: str, ring: np.ndarray | None = None) -> IntensityScale:
     """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
     are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
-    channels), the data decide (:func:`read_intensity`) — 8-bit range-compensated values are read as the sensor's
-    calibrated reflectivity (:func:`reflectivity_variant`), fractions within [0, 1] against a count unit are refused
-    however few points there are — and the warning says what was assumed, what the data showed and how to state it.
-    Never silent. A stated unit is not second-guessed: an earlier step of a chain (laser
+    channels), the data decide (:func:`read_intensity`) — 8-bit whole counts are read as the sensor's calibrated
+    reflectivity (:func:`reflectivity_variant`) unless they fall as 1/R² (signal), fractions ([0, 1] against a
+    count unit, or beyond: :func:`fraction_error`) are refused however few points there are — and the warning says
+    what was assumed, what the data showed and how to state it. Never silent. Returns that all read 0 are refused,
+    stated or not (:func:`no_strength_error`). A stated unit is not second-guessed: an earlier step of a chain (laser
     power variance) may have changed what the intensities look like. ``ring``: the cloud's ring field, if any; when
     it counts at most half the profile's beams, the warning says so (a nuScenes HDL-32E scan read with the default
     OS1-128, :func:`beam_count_hint`); without one, when its returns lie above or below the profile's beams
@@ -285,23 +299,28 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
         raise _unknown_kind(profile)
+    if not np.any(intensity) and np.any(positions_m):
+        raise no_strength_error(model_id)
     said = f"{profile.intensity_kind} in {profile.intensity_unit} (full scale {profile.intensity_full_scale:g})"
     if profile.intensity_source:
         return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
     reading = read_intensity(intensity, positions_m)
     if reading.values == "[0, 1]" and profile.intensity_unit != IntensityUnit.UNIT:
         raise _unit_scale_error(profile, model_id)          # however few points: nothing says they are photons
-    profile = stored_as_read(profile, reading)
+    if reading.values == "floats":
+        raise fraction_error(intensity, model_id)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
            "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe")
     how += beam_count_hint(profile, ring) if ring is not None else elevation_span_hint(profile, positions_m)
-    if reading.kind == REFLECTIVITY and reading.values == "8-bit counts" and profile.intensity_kind == SIGNAL:
+    if reading.values == "8-bit counts" and reading.kind != SIGNAL and profile.intensity_kind == SIGNAL:
         adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
+        seen = ("look like 8-bit range-compensated reflectivity" if reading.kind == REFLECTIVITY else
+                "are 8-bit whole counts whose range slope cannot tell signal from reflectivity")
         return IntensityScale(adopted, f"8-bit reflectivity read from the data ({reading.describe()}); nothing "
                                        f"stated the unit",
-                              f"{model_id}: no profile states the intensity unit and the data look like 8-bit "
-                              f"range-compensated reflectivity ({reading.describe()}): read as such with profile "
-                              f"{profile.name!r}'s sensor; {how}")
+                              f"{model_id}: no profile states the intensity unit and the data {seen} "
+                              f"({reading.describe()}): read as 8-bit reflectivity with profile {profile.name!r}'s "
+                              f"sensor; {how}")
     if reading.kind == profile.intensity_kind:
         return IntensityScale(profile, f"{said}: nothing stated it, the data agree ({reading.describe()})")
     seen = "do not tell" if reading.kind is None else f"look like {reading.kind} but not like an 8-bit channel"
@@ -310,13 +329,25 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
                           f"({reading.describe()}): read as {said}; {how}")
 
 
-def stored_as_read(profile: LidarProfile, reading: IntensityReading) -> LidarProfile:
-    """An assumed unit keeps the file's own resolution: intensities stored with fractions (Waymo's KITTI-format
-    export: 0.19, 0.036, … read with the default photon profile) are not whole counts, and rounding them to the
-    profile's step of 1 would store 0 for every one of them."""
-    if reading.values in ("[0, 1]", "floats") and intensity_step(profile) > 0:
-        return dataclasses.replace(profile, intensity_step=0.0)
-    return profile
+def fraction_error(intensity: np.ndarray, model_id: str) -> ModelError:
+    """Fractional intensities beyond [0, 1] whose unit nothing states: no photon counts (whole numbers), and the full
+    scale of a float channel is not in the data (Luminar 0–2, View-of-Delft 0–255, Waymo 0.005–27). The error names
+    the values seen and the lines that state them; the runner and preview prefix the file."""
+    v = np.asarray(intensity)
+    return ModelError(f"intensities {float(v.min()):g} … {float(v.max()):g} have fractions and nothing states their "
+                      f"unit: they are no photon counts (whole numbers), and a float channel's full scale is not in "
+                      f"the data. State it: in the recipe's inputs 'intensity_unit: unit' and "
+                      f"'intensity_full_scale: F' (F: the channel's full scale, at least {float(v.max()):g}), the "
+                      f"same two lines in a lidar.yaml next to the files, or 'lidar_profile: NAME' of a profile "
+                      f"whose unit holds them", model=model_id, field="intensity")
+
+
+def no_strength_error(model_id: str) -> ModelError:
+    """Every return reads 0: the cloud carries no return strength (hku-mars/mlcc's Livox maps), and a weather model
+    would lose every return to the faintest particle."""
+    return ModelError("every return's intensity is 0: the cloud carries no return strength (a map, or a converter "
+                      "that did not fill the channel), and the LiDAR weather and power models need it; give the "
+                      "sensor's own scans", model=model_id, field="intensity")
 
 
 #: built-in profiles to suggest for a ring field counting this many beams

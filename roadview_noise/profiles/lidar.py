@@ -246,6 +246,30 @@ def default_profile() -> LidarProfile:
     return dataclasses.replace(os1_128(), intensity_source="")
 
 
+DEFAULT_FULL_SCALE = {"photons": 65535.0, "uint8": 255.0, "unit": 1.0}
+RECIPE_SCALE = "the recipe's intensity_unit / intensity_full_scale"
+
+
+def with_intensity_scale(profile: LidarProfile, unit: str | None, full_scale: float | None,
+                         source: str = RECIPE_SCALE) -> LidarProfile:
+    """The same sensor with intensities stored in another unit/full scale (the recipe's ``intensity_unit``,
+    ``intensity_full_scale``, or a profile mapping's: ``source`` states it): everything tied to the stored scale
+    follows, so the physics is unchanged — for a ``signal`` profile the sensor constant and the threshold (signal =
+    stored intensity), for a ``reflectivity`` profile the white reading."""
+    unit = unit or profile.intensity_unit
+    new_fs = float(full_scale or DEFAULT_FULL_SCALE.get(unit, profile.intensity_full_scale))
+    ratio = new_fs / profile.intensity_full_scale
+    changes: dict = {"intensity_unit": unit, "intensity_full_scale": new_fs, "intensity_source": source,
+                     "intensity_step": profile.intensity_step if unit == profile.intensity_unit else None}
+    if profile.intensity_kind == "signal":
+        if profile.sensor_constant is not None:
+            changes["sensor_constant"] = profile.sensor_constant * ratio
+        changes["detection_threshold"] = profile.detection_threshold * ratio
+    elif profile.reflectivity_white_reading is not None:
+        changes["reflectivity_white_reading"] = profile.reflectivity_white_reading * ratio
+    return dataclasses.replace(profile, **changes)
+
+
 def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
     check_keys(fields, {f.name for f in dataclasses.fields(LidarProfile)}, "LiDAR", source)
     for k in ("beam_elevation_deg", "beam_azimuth_offset_deg", "beam_z_offset_m"):
@@ -257,6 +281,9 @@ def _override(base: LidarProfile, fields: dict, source: str) -> LidarProfile:
         fields["beam_z_offset_m"] = ()                 # the base's offsets belong to the base's beams
     if {"intensity_unit", "intensity_kind", "intensity_full_scale"} & set(fields):
         fields.setdefault("intensity_source", source)
+    if {"intensity_unit", "intensity_full_scale"} & set(fields):      # the base's sensor, stored in another scale
+        kind = dataclasses.replace(base, intensity_kind=fields.get("intensity_kind", base.intensity_kind))
+        base = with_intensity_scale(kind, fields.get("intensity_unit"), fields.get("intensity_full_scale"), source)
     if len(fields.get("beam_elevation_deg", base.beam_elevation_deg)) != len(
             fields.get("beam_azimuth_offset_deg", base.beam_azimuth_offset_deg)):
         raise InputError("beam_elevation_deg and beam_azimuth_offset_deg differ in length", file=source)

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from roadview_noise.dataset import with_intensity_scale
+from roadview_noise.profiles.lidar import with_intensity_scale
 from roadview_noise.errors import ModelError
 from roadview_noise.physics.lidar_intensity import read_intensity, resolve_profile
 from roadview_noise.profiles.lidar import default_profile, load_lidar_profile, os1_128, os1_128_reflectivity
@@ -60,9 +60,68 @@ def test_nothing_stated_follows_the_data_loudly():
     kept = resolve_profile(default_profile(), signal, pos, "snow.lidar")
     assert kept.profile == default_profile() and kept.warning is None and "the data agree" in kept.note
     rng = np.random.default_rng(2)
-    unclear = resolve_profile(default_profile(), rng.uniform(1, 200, 500).astype(np.float32),
+    unclear = resolve_profile(default_profile(), rng.uniform(1, 1000, 500).round().astype(np.float32),
                               rng.normal(size=(500, 3)) * 0.1 + 3.0, "rain.lidar")
     assert "do not tell" in unclear.warning and "lidar_profile" in unclear.warning
+    assert unclear.profile == default_profile()                 # whole counts beyond 8 bits: photons, warned
+
+
+def slope_scene(slope: float, n=20000, seed=3):
+    """8-bit whole counts on targets at 2–100 m whose bright end falls as R^slope (0: range-compensated, −2:
+    received signal, −1: in between, neither): I = 200 u (R / 2 m)^slope, u uniform in (0.02, 1]."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(2.0, 100.0, n)
+    u = rng.normal(size=(n, 3))
+    pos = u / np.linalg.norm(u, axis=1, keepdims=True) * r[:, None]
+    return np.maximum(np.round(200 * rng.uniform(0.02, 1.0, n) * (r / 2.0) ** slope), 1).astype(np.float32), pos
+
+
+@pytest.mark.parametrize("slope, kind, read_as", [(0.0, "reflectivity", "reflectivity"),
+                                                  (-2.0, "signal", "signal"), (-1.0, None, "reflectivity")])
+def test_8_bit_counts_are_reflectivity_unless_they_fall_as_signal(slope, kind, read_as):
+    """8-bit whole counts, nothing stated: range-compensated (flat) and undecidable slopes are read as the sensor's
+    8-bit calibrated reflectivity (most 8-bit channels are), warned; 1/R² stays the default photons (no warning).
+    Before: the undecidable slope was read as photons (a Livox-like 8-bit channel then lost every return to fog)."""
+    intensity, pos = slope_scene(slope)
+    reading = read_intensity(intensity, pos)
+    assert reading.values == "8-bit counts" and reading.kind == kind, reading
+    scale = resolve_profile(default_profile(), intensity, pos, "fog.lidar")
+    assert scale.profile.intensity_kind == read_as
+    if read_as == "reflectivity":
+        assert scale.profile == dataclasses.replace(os1_128_reflectivity(), name="os1-128",
+                                                    intensity_source="the data")
+        assert "read as 8-bit reflectivity" in scale.warning
+        assert ("cannot tell signal from reflectivity" in scale.warning) == (kind is None)
+    else:
+        assert scale.warning is None and scale.profile == default_profile()
+
+
+@pytest.mark.parametrize("low, high", [(0.0, 2.0), (0.0, 255.0), (0.005, 27.0)])
+def test_fractional_floats_beyond_0_1_are_refused_when_nothing_states_the_unit(low, high):
+    """Luminar 0–2 reflectance, View-of-Delft 0–255 floats, Waymo 0.005–27: no photon counts and no full scale in the
+    data. Before: read as the default photons, warned (fog 30 m moved every Luminar and Waymo return to < 2.4 m).
+    The error names the values seen and the lines that state the unit; a stated unit takes them."""
+    _, pos = scene("reflectivity", n=3000)
+    intensity = np.random.default_rng(4).uniform(low, high, len(pos)).astype(np.float32)
+    with pytest.raises(ModelError, match=r"fog\.lidar\.intensity: intensities .* have fractions") as e:
+        resolve_profile(default_profile(), intensity, pos, "fog.lidar")
+    text = str(e.value)
+    assert f"… {float(intensity.max()):g} have" in text and f"at least {float(intensity.max()):g}" in text
+    assert "'intensity_unit: unit'" in text and "'intensity_full_scale: F'" in text and "lidar_profile" in text
+    stated = with_intensity_scale(default_profile(), "unit", float(np.ceil(high)))
+    assert resolve_profile(stated, intensity, pos, "fog.lidar").profile == stated
+
+
+@pytest.mark.parametrize("profile", [default_profile(), os1_128_reflectivity()])
+def test_returns_that_all_read_0_are_refused_stated_or_not(profile):
+    """hku-mars/mlcc's Livox maps store intensity 0 for every point: no return strength, so every return was lost to
+    fog 30 m. Refused; no-return cells (at the origin) reading 0 next to real returns are fine."""
+    _, pos = scene("reflectivity", n=500)
+    with pytest.raises(ModelError, match="every return's intensity is 0"):
+        resolve_profile(profile, np.zeros(len(pos), np.float32), pos, "rain.lidar")
+    grid = np.vstack([pos, np.zeros((10, 3))])
+    intensity = np.concatenate([np.full(len(pos), 7.0, np.float32), np.zeros(10, np.float32)])
+    assert resolve_profile(profile, intensity, grid, "rain.lidar").profile.intensity_kind == "reflectivity"
 
 
 def test_impossible_values_are_refused():
@@ -113,3 +172,72 @@ def test_what_states_the_unit():
     assert load_lidar_profile({"intensity_unit": "uint8", "intensity_full_scale": 255.0}).intensity_source
     recipe = with_intensity_scale(default_profile(), "uint8", None)
     assert "recipe" in recipe.intensity_source and recipe.intensity_step is None
+
+
+def test_a_profile_mapping_restates_the_scale_as_the_recipe_does():
+    """``intensity_unit``/``intensity_full_scale`` in a lidar.yaml or an inline mapping store the base sensor's
+    intensities in another scale: its sensor constant and threshold (signal) or white reading (reflectivity) follow,
+    as with the recipe's inputs; fields given with them are taken as given. Before: replaced alone, a 0–2 channel
+    over the default OS1's photon constant and threshold read every return as too faint, and fog at 30 m moved all
+    4 000 returns of the test below to 1.5 m, each written 2.0 (the full scale)."""
+    mapped = load_lidar_profile({"intensity_unit": "unit", "intensity_full_scale": 2.0})
+    recipe = with_intensity_scale(default_profile(), "unit", 2.0)
+    assert mapped == dataclasses.replace(recipe, intensity_source=mapped.intensity_source)
+    assert mapped.detection_threshold == pytest.approx(default_profile().detection_threshold * 2.0 / 65535.0)
+    assert load_lidar_profile({"intensity_full_scale": 2.0, "detection_threshold": 0.5}).detection_threshold == 0.5
+    hdl = load_lidar_profile({"base": "hdl-32e", "intensity_unit": "unit", "intensity_full_scale": 2.0})
+    assert hdl.reflectivity_white_reading == pytest.approx(100.0 * 2.0 / 255.0) and hdl.intensity_step is None
+    refl = load_lidar_profile({"intensity_kind": "reflectivity", "intensity_unit": "unit", "intensity_full_scale": 2.0})
+    assert (refl.sensor_constant, refl.detection_threshold) == (os1_128().sensor_constant,
+                                                                os1_128().detection_threshold)
+
+
+def reflectance_bin(folder, n=4000, seed=5, full_scale=2.0):
+    """A Luminar-like KITTI-layout .bin: range-compensated float reflectance 0.05–2 (fractions) on returns 2–60 m
+    away around the sensor, elevations within ±10°."""
+    rng = np.random.default_rng(seed)
+    r, az, el = rng.uniform(2, 60, n), rng.uniform(-np.pi, np.pi, n), np.radians(rng.uniform(-10, 10, n))
+    table = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el),
+                      rng.uniform(0.05, full_scale, n)], 1)
+    path = folder / "lidar" / "seq0" / "000000.bin"
+    path.parent.mkdir(parents=True)
+    table.astype("<f4").tofile(path)
+    return path, table
+
+
+def test_unstated_fractions_fail_their_file_in_augment_and_preview_and_a_stated_unit_runs(tmp_path):
+    """The refusal reaches the user with the file's name: augment's manifest entry (status failed), preview's
+    ``rvnoise: FILE: …`` line (exit 2). The two lines in a lidar.yaml next to the file state the unit: fog at 30 m
+    then writes no intensity above the stated full scale and keeps most returns nearer than 10 m (before, unstated:
+    every return moved to < 2.4 m, intensities up to 55 in a 0–2 channel)."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from roadview_noise.cli.main import app
+    from roadview_noise.io.pointcloud import read_pointcloud
+    from roadview_noise.manifest import read_manifest
+
+    path, table = reflectance_bin(tmp_path / "in")
+    recipe = tmp_path / "fog.yaml"
+    recipe.write_text(yaml.safe_dump({"chain": [{"model": "fog.lidar", "params": {"visibility_m": 30}}], "seed": 1,
+                                      "inputs": {"lidar": "lidar/**/*.bin"}}))
+    cli = CliRunner()
+    r = cli.invoke(app, ["augment", str(tmp_path / "in"), str(tmp_path / "o1"), "--recipe", str(recipe), "--quiet"])
+    assert r.exit_code == 1
+    [entry] = read_manifest(tmp_path / "o1" / "manifest.jsonl")
+    assert entry["status"] == "failed" and entry["error"].startswith("lidar/seq0/000000.bin: fog.lidar.intensity: ")
+    assert "have fractions and nothing states their unit" in entry["error"] and "intensity_full_scale" in entry["error"]
+    r = cli.invoke(app, ["preview", "--recipe", str(recipe), str(path), "-o", str(tmp_path / "p.png"),
+                         "--panel-px", "160"])
+    assert r.exit_code == 2 and f"rvnoise: {path}: fog.lidar.intensity: intensities" in r.output.replace("\n", "")
+    (path.parent / "lidar.yaml").write_text("intensity_unit: unit\nintensity_full_scale: 2.0\n")
+    r = cli.invoke(app, ["augment", str(tmp_path / "in"), str(tmp_path / "o2"), "--recipe", str(recipe), "--quiet"])
+    assert r.exit_code == 0, r.output
+    written = tmp_path / "o2" / "lidar" / "seq0" / "000000.bin"
+    out = read_pointcloud(written)
+    effect = np.fromfile(f"{written}.rv_effect", np.uint8)                  # the .bin's effect sidecar
+    assert len(effect) == len(out.positions_m) and np.count_nonzero(effect == 2) > 0       # some moved to fog
+    assert out.fields["intensity"].max() <= 2.0
+    near_in = np.count_nonzero(np.linalg.norm(table[:, :3], axis=1) < 10)
+    kept = out.positions_m[effect <= 1]                                         # KEPT, ATTENUATED
+    assert np.count_nonzero(np.linalg.norm(kept, axis=1) < 10) > 0.5 * near_in
