@@ -299,7 +299,7 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
         raise _unknown_kind(profile)
-    if not np.any(intensity) and np.any(positions_m):
+    if no_strength(intensity, positions_m):
         raise no_strength_error(model_id)
     said = f"{profile.intensity_kind} in {profile.intensity_unit} (full scale {profile.intensity_full_scale:g})"
     if profile.intensity_source:
@@ -314,13 +314,14 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     how += beam_count_hint(profile, ring) if ring is not None else elevation_span_hint(profile, positions_m)
     if reading.values == "8-bit counts" and reading.kind != SIGNAL and profile.intensity_kind == SIGNAL:
         adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
-        seen = ("look like 8-bit range-compensated reflectivity" if reading.kind == REFLECTIVITY else
-                "are 8-bit whole counts whose range slope cannot tell signal from reflectivity")
+        seen, read_as = (("look like 8-bit range-compensated reflectivity", "such") if reading.kind == REFLECTIVITY
+                         else ("are 8-bit whole counts whose range slope cannot tell signal from reflectivity",
+                               "8-bit reflectivity, as most 8-bit channels are,"))
         return IntensityScale(adopted, f"8-bit reflectivity read from the data ({reading.describe()}); nothing "
                                        f"stated the unit",
                               f"{model_id}: no profile states the intensity unit and the data {seen} "
-                              f"({reading.describe()}): read as 8-bit reflectivity with profile {profile.name!r}'s "
-                              f"sensor; {how}")
+                              f"({reading.describe()}): read as {read_as} with profile {profile.name!r}'s sensor; "
+                              f"{how}")
     if reading.kind == profile.intensity_kind:
         return IntensityScale(profile, f"{said}: nothing stated it, the data agree ({reading.describe()})")
     seen = "do not tell" if reading.kind is None else f"look like {reading.kind} but not like an 8-bit channel"
@@ -336,10 +337,17 @@ def fraction_error(intensity: np.ndarray, model_id: str) -> ModelError:
     v = np.asarray(intensity)
     return ModelError(f"intensities {float(v.min()):g} … {float(v.max()):g} have fractions and nothing states their "
                       f"unit: they are no photon counts (whole numbers), and a float channel's full scale is not in "
-                      f"the data. State it: in the recipe's inputs 'intensity_unit: unit' and "
-                      f"'intensity_full_scale: F' (F: the channel's full scale, at least {float(v.max()):g}), the "
-                      f"same two lines in a lidar.yaml next to the files, or 'lidar_profile: NAME' of a profile "
-                      f"whose unit holds them", model=model_id, field="intensity")
+                      f"the data. State it: 'intensity_unit: unit' and 'intensity_full_scale: F' (F: the "
+                      f"channel's full scale, at least {float(v.max()):g}) in the recipe's inputs (a bag recipe: "
+                      f"the topic's entry) or in a lidar.yaml next to the files, or 'lidar_profile: NAME' of a "
+                      f"profile whose unit holds them", model=model_id, field="intensity")
+
+
+def no_strength(intensity: np.ndarray, positions_m: np.ndarray) -> bool:
+    """Whether a cloud has returns and all of them read 0 (an evenly strided sample first: a real scan's first
+    non-zero value ends it there, in microseconds)."""
+    v = np.asarray(intensity)
+    return not np.any(v[::max(1, len(v) // READING_SAMPLE)]) and not np.any(v) and bool(np.any(positions_m))
 
 
 def no_strength_error(model_id: str) -> ModelError:

@@ -90,7 +90,7 @@ def test_8_bit_counts_are_reflectivity_unless_they_fall_as_signal(slope, kind, r
     if read_as == "reflectivity":
         assert scale.profile == dataclasses.replace(os1_128_reflectivity(), name="os1-128",
                                                     intensity_source="the data")
-        assert "read as 8-bit reflectivity" in scale.warning
+        assert ("read as such" if kind else "read as 8-bit reflectivity, as most 8-bit channels are,") in scale.warning
         assert ("cannot tell signal from reflectivity" in scale.warning) == (kind is None)
     else:
         assert scale.warning is None and scale.profile == default_profile()
@@ -241,3 +241,20 @@ def test_unstated_fractions_fail_their_file_in_augment_and_preview_and_a_stated_
     near_in = np.count_nonzero(np.linalg.norm(table[:, :3], axis=1) < 10)
     kept = out.positions_m[effect <= 1]                                         # KEPT, ATTENUATED
     assert np.count_nonzero(np.linalg.norm(kept, axis=1) < 10) > 0.5 * near_in
+
+
+@pytest.mark.parametrize("model_id", ["fog.lidar", "rain.lidar", "snow.lidar", "ray_drop.lidar", "power.lidar",
+                                      "power_electronics.lidar"])
+def test_every_model_that_reads_intensities_refuses_unstated_fractions(model_id):
+    """Weather, ray drop and laser power read the unit through the same decision (the chain's input:
+    ``chain_intensity_scale``), so none of them reads fractions as photons (occlusion reads intensities only behind
+    partial patches, through the weather's ``cloud_rays``)."""
+    from roadview_noise.compound import apply_models
+    from roadview_noise.registry import get_model
+    from roadview_noise.types import PointCloud
+
+    _, pos = scene("reflectivity", n=3000)
+    intensity = np.random.default_rng(6).uniform(0.0, 2.0, len(pos)).astype(np.float32)
+    cloud = PointCloud(pos, {"intensity": intensity}, "lidar", default_profile())
+    with pytest.raises(ModelError, match=f"{model_id}.intensity: intensities .* have fractions"):
+        apply_models([get_model(model_id)()], cloud, seed=1, key="k", sequence_id="s", metrics=False)
