@@ -23,7 +23,7 @@ the data say about their unit (the cloud → signal conversion of the weather pi
     are no photon counts (whole numbers), and a float channel's full scale is not in the data: refused, naming the
     values seen and the recipe line that states them. Read as the default photons (the policy before 2026-11-27,
     warned) they were garbage a batch user scrolls past: fog at 30 m moved every Luminar and Waymo return to < 2.4 m
-    and wrote 8–55 into a 0–2 channel, snow wrote up to 9 213 into VoD's 0–255;
+    and wrote 8–55 into a 0–2 channel, snow wrote up to 7 548 into VoD's 0–255;
   - 8-bit whole counts are read as the sensor's 8-bit calibrated reflectivity (:func:`reflectivity_variant`) unless
     their bright end falls as 1/R² (signal photons, which stay): most 8-bit channels are reflectivity (Velodyne,
     Livox, Hesai, Ouster RFL8), and read as photons a reflectivity channel's returns all look too faint to survive
