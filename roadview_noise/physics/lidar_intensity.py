@@ -339,8 +339,9 @@ def fraction_error(intensity: np.ndarray, model_id: str) -> ModelError:
                       f"unit: they are no photon counts (whole numbers), and a float channel's full scale is not in "
                       f"the data. State it: 'intensity_unit: unit' and 'intensity_full_scale: F' (F: the "
                       f"channel's full scale, at least {float(v.max()):g}) in the recipe's inputs (a bag recipe: "
-                      f"the topic's entry) or in a lidar.yaml next to the files, or 'lidar_profile: NAME' of a "
-                      f"profile whose unit holds them", model=model_id, field="intensity")
+                      f"the topic's entry), in a lidar.yaml next to the files or given as --lidar-profile FILE.yaml, "
+                      f"or 'lidar_profile: NAME' of a profile whose unit holds them", model=model_id,
+                      field="intensity")
 
 
 def no_strength(intensity: np.ndarray, positions_m: np.ndarray) -> bool:
