@@ -37,6 +37,7 @@ from ..errors import InputError
 from ..physics import srgb
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
+from . import image_metadata
 from .atomic import atomic_path, write_bytes_atomic
 from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png
 
@@ -90,7 +91,18 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
     linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality,
                                                icc=icc_profile(data, fmt))
     layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
-    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), **layout), alpha
+    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=_metadata(data, fmt),
+                                       **layout), alpha
+
+
+def _metadata(data: bytes, fmt: str) -> tuple:
+    """:attr:`ImageEncoding.metadata` of a PNG or TIFF file's bytes (:mod:`.image_metadata`)."""
+    if fmt == "png":
+        return image_metadata.png_chunks(data)
+    if fmt == "tiff":
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            return image_metadata.tiff_tags(tif.pages[0])
+    return ()
 
 
 def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
@@ -130,7 +142,7 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
     if channels == 1:
         linear = np.repeat(linear[..., None], 3, axis=2)
     encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels,
-                             jpeg_quality=jpeg_quality, icc_profile=icc)
+                             jpeg_quality=jpeg_quality, icc_profile=image_metadata.fitting_icc(icc, channels))
     return np.ascontiguousarray(linear, dtype=np.float32), encoding, alpha
 
 
@@ -202,11 +214,12 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     """PNG, JPEG (``encoding.jpeg_quality``) or TIFF bytes of grey or RGB(A) code values, with
     ``encoding.icc_profile`` embedded."""
     if encoding.fmt == "tiff":
-        return _encode_tiff(codes, encoding.icc_profile)
+        return _encode_tiff(codes, encoding.icc_profile, encoding.metadata)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
-        return embed_exif(embed_icc_profile(encode_png(codes), "png", encoding.icc_profile), "png", encoding.exif)
+        png = embed_exif(embed_icc_profile(encode_png(codes), "png", encoding.icc_profile), "png", encoding.exif)
+        return image_metadata.embed_png_chunks(png, encoding.metadata)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality),
               cv2.IMWRITE_JPEG_PROGRESSIVE, int(encoding.jpeg_progressive)]
     if codes.ndim == 3:
@@ -253,13 +266,15 @@ def _refuse_nan(linear: np.ndarray, name: str) -> None:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
 
 
-def _encode_tiff(codes: np.ndarray, icc: bytes | None) -> bytes:
-    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha and the ICC profile."""
+def _encode_tiff(codes: np.ndarray, icc: bytes | None, metadata: tuple = ()) -> bytes:
+    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha, the ICC profile and the
+    input's kept tags (:func:`.image_metadata.tiff_tags`)."""
     buf = io.BytesIO()
     colour = codes.ndim == 3
     tifffile.imwrite(buf, codes, photometric="rgb" if colour else "minisblack",
                      extrasamples=("unassalpha",) if colour and codes.shape[2] == 4 else None,
-                     compression="zlib", metadata=None, iccprofile=icc)
+                     compression="zlib", metadata=None, iccprofile=icc,
+                     **image_metadata.tiff_write_args(metadata))
     return buf.getvalue()
 
 
@@ -476,7 +491,7 @@ def check_structure(data: bytes, fmt: str, path) -> None:
     elif fmt == "jpeg":
         if not data.startswith(_JPEG_SOI):
             raise InputError("not a JPEG file (no SOI marker FF D8)", file=str(path))
-        if not data.rstrip(b"\x00\r\n").endswith(_JPEG_EOI):
+        if data.find(_JPEG_EOI, _first_scan(data)) < 0:        # (phones append data after it: Samsung, Motion Photos)
             raise InputError("truncated JPEG: the end-of-image marker FF D9 is missing", file=str(path))
     else:
         if not data.startswith(_TIFF_SIGNATURES):
@@ -486,11 +501,25 @@ def check_structure(data: bytes, fmt: str, path) -> None:
                 page = tif.pages[0]
                 end = max((o + c for o, c in zip(page.dataoffsets, page.databytecounts)), default=0)
                 expected = len(page.dataoffsets)
+                pages = image_metadata.full_resolution_pages(tif)
         except Exception as exc:                      # tifffile raises several types for a damaged directory
             raise InputError(f"corrupt or truncated TIFF: {exc}", file=str(path)) from exc
         if expected == 0 or end > len(data):
             raise InputError(f"truncated TIFF: image data ends at byte {end}, the file has {len(data)} bytes",
                              file=str(path))
+        if pages > 1:
+            raise InputError(f"a TIFF with {pages} pages: rvnoise augments one image per file and would drop the "
+                             f"other pages; split it into single-page files first (tiffsplit, tifffile)",
+                             file=str(path))
+
+
+def _first_scan(data: bytes) -> int:
+    """Offset of the first start-of-scan marker of a JPEG (the end of :func:`_jpeg_segments`); the entropy-coded
+    data after it cannot hold FF D9 (T.81 B.1.1.5: an FF there is followed by 00 or a restart marker)."""
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] != 0xDA:
+        pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
+    return pos
 
 
 # --- JPEG quality estimate -----------------------------------------------------------------------------------------
