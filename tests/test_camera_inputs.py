@@ -150,3 +150,29 @@ def test_cli_input_overrides_are_recorded_and_replayed(tmp_path):
     r = cli.invoke(app, ["augment", "-r", str(recipe), str(tmp_path / "in"), str(tmp_path / "out3"), "--depth",
                          "{stm}.npy"])
     assert r.exit_code == 2 and "{stm}" in r.output and not (tmp_path / "out3").exists()
+
+
+def test_a_photo_turned_by_its_exif_orientation_is_named_where_the_chain_has_a_direction(tmp_path):
+    """A phone photo stored sideways (EXIF orientation 6) is processed as stored: rain fell along the stored columns,
+    horizontal once displayed, without a word. Now the manifest says so and one line per run warns; an upright
+    photo (orientation 1) and a chain without a direction (fog on the photo's own depth file) say nothing."""
+    from PIL import Image
+
+    for name, turn in (("side.jpg", 6), ("upright.jpg", 1)):
+        exif = Image.Exif()
+        exif[0x0112] = turn
+        Image.open(_photo(tmp_path / "in" / name)).save(tmp_path / "in" / name, exif=exif.tobytes(), quality=90)
+    rain = parse_recipe({"chain": [{"model": "rain.camera"}], "seed": 1,
+                         "inputs": {"camera": "*.jpg", "depth_source": "ground_plane"}})
+    summary, entries, lines = _run(rain, tmp_path / "in", tmp_path / "out")
+    assert summary.failed == 0
+    notes = {Path(e["input"]).name: e["inputs"] for e in entries}
+    assert notes["side.jpg"]["orientation"] == {"exif": 6, "processed": "as stored, not turned upright"}
+    assert "turned_photo" in notes["side.jpg"]["warnings"] and "orientation" not in notes["upright.jpg"]
+    assert sum("1 photo(s) are stored turned" in line for line in lines) == 1
+    np.save(tmp_path / "in" / "side_depth.npy", np.full((97, 301), 20.0, np.float32))
+    fog = parse_recipe({"chain": [{"model": "fog.camera"}], "seed": 1,
+                        "inputs": {"camera": "side.jpg", "depth": "{stem}_depth.npy"}})
+    summary, entries, lines = _run(fog, tmp_path / "in", tmp_path / "out_fog")
+    assert summary.failed == 0 and "orientation" not in entries[0]["inputs"]
+    assert not any("turned" in line for line in lines)

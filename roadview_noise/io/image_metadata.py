@@ -86,3 +86,23 @@ def full_resolution_pages(tif: tifffile.TiffFile) -> int:
     """How many full-resolution images a TIFF holds (a multi-page file, a stack: refused, as rvnoise reads one image
     per file and would drop the others); reduced-resolution pages (thumbnails, NewSubfileType bit 0) do not count."""
     return sum(1 for page in tif.pages if not int(getattr(page, "subfiletype", 0)) & 1)
+
+
+def orientation(encoding) -> int:
+    """The EXIF/TIFF orientation (274) of a file as read (:class:`..types.ImageEncoding`): 1 = stored upright, 2–8 a
+    viewer turns or mirrors the stored pixels to show them (CIPA DC-008 §4.6.4); 1 when the file states none."""
+    for tag in encoding.metadata if encoding.fmt == "tiff" else ():
+        if tag[0] == 274:
+            return int(tag[3])
+    exif = encoding.exif or b""
+    if exif[:4] not in (b"II*\x00", b"MM\x00*"):
+        return 1
+    order = "little" if exif[:2] == b"II" else "big"
+    ifd = int.from_bytes(exif[4:8], order)
+    count = int.from_bytes(exif[ifd:ifd + 2], order)
+    for k in range(count):
+        entry = exif[ifd + 2 + 12 * k:ifd + 14 + 12 * k]
+        if len(entry) == 12 and int.from_bytes(entry[:2], order) == 274:
+            value = int.from_bytes(entry[8:10], order)
+            return value if 1 <= value <= 8 else 1
+    return 1
