@@ -117,9 +117,20 @@ def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
             return codes
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise InputError(f"OpenCV cannot decode this {fmt.upper()} file (corrupt or unsupported variant)",
+        raise InputError(f"OpenCV cannot decode this {fmt.upper()} file ({_undecoded_variant(data, fmt)})",
                          file=str(source))
     return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
+
+
+def _undecoded_variant(data: bytes, fmt: str) -> str:
+    """Why OpenCV may have refused a file: a JPEG's sample precision or lossless process (T.81 B.2.2), which its
+    decoder (8-bit) does not read, else "corrupt or unsupported variant"."""
+    marker, seg = _start_of_frame(data) if fmt == "jpeg" else (None, b"")
+    if marker in (0xC3, 0xC7, 0xCB, 0xCF):
+        return "a lossless JPEG (SOF3): convert it to a 16-bit PNG or TIFF"
+    if seg and seg[0] != 8:
+        return f"a {seg[0]}-bit JPEG: OpenCV reads 8-bit ones; convert it to a 16-bit PNG or TIFF"
+    return "corrupt or unsupported variant"
 
 
 def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int = ImageEncoding.jpeg_quality,
@@ -430,15 +441,23 @@ def embed_exif(data: bytes, fmt: str, exif: bytes | None) -> bytes:
 def _jpeg_frame_layout(data: bytes) -> dict:
     """``jpeg_sampling`` (OpenCV's code of the luma sampling factors, chroma at 1 × 1) and ``jpeg_progressive``
     from the JPEG's start-of-frame segment (T.81 B.2.2); no sampling code for grey, CMYK or unusual factors."""
+    marker, seg = _start_of_frame(data)
+    if marker is None:
+        return {}
+    comps = [seg[6 + 3 * i:9 + 3 * i] for i in range(seg[5])] if len(seg) > 5 else []
+    factors = [c[1] for c in comps if len(c) == 3]
+    sampling = None
+    if len(factors) == 3 and factors[1] == factors[2] == 0x11 and factors[0] in _OPENCV_SAMPLING:
+        sampling = _OPENCV_SAMPLING[factors[0]]
+    return {"jpeg_sampling": sampling, "jpeg_progressive": marker in (0xC2, 0xC6, 0xCA, 0xCE)}
+
+
+def _start_of_frame(data: bytes) -> tuple[int | None, bytes]:
+    """``(marker, payload)`` of a JPEG's start-of-frame segment (SOF0–SOF15 but DHT, JPG, DAC), (None, b"") without."""
     for marker, seg in _jpeg_segments(data):
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            comps = [seg[6 + 3 * i:9 + 3 * i] for i in range(seg[5])] if len(seg) > 5 else []
-            factors = [c[1] for c in comps if len(c) == 3]
-            sampling = None
-            if len(factors) == 3 and factors[1] == factors[2] == 0x11 and factors[0] in _OPENCV_SAMPLING:
-                sampling = _OPENCV_SAMPLING[factors[0]]
-            return {"jpeg_sampling": sampling, "jpeg_progressive": marker in (0xC2, 0xC6, 0xCA, 0xCE)}
-    return {}
+            return marker, seg
+    return None, b""
 
 
 def _jpeg_segments(data: bytes):

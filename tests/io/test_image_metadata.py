@@ -156,3 +156,17 @@ def test_icc_profile_of_another_colour_space_than_the_output_is_dropped(tmp_path
     _, enc = _roundtrip(src, dst)
     assert (enc.icc_profile == bytes(icc)) == kept
     assert (Image.open(dst).info.get("icc_profile") == bytes(icc)) == kept
+
+
+def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
+    """OpenCV decodes 8-bit JPEGs only: a 12-bit one (libjpeg-turbo's monkey12.jpg; medical and some industrial
+    cameras) failed as "corrupt or unsupported variant"."""
+    from roadview_noise.errors import InputError
+    src = tmp_path / "in.jpg"
+    _photo().save(src, quality=90)
+    data = bytearray(src.read_bytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 4] = 12                                  # sample precision of the start-of-frame segment
+    (tmp_path / "p12.jpg").write_bytes(bytes(data))
+    with pytest.raises(InputError, match="p12.jpg.*a 12-bit JPEG"):
+        read_image(tmp_path / "p12.jpg")
