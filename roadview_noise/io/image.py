@@ -115,11 +115,34 @@ def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
             raise InputError(f"corrupt PNG: {exc}", file=str(source)) from None
         if codes is not None:
             return codes
+    photometric = _tiff_photometric(data) if fmt == "tiff" else None
+    if photometric == tifffile.PHOTOMETRIC.PALETTE:
+        return _palette_tiff_rgb(data)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError(f"OpenCV cannot decode this {fmt.upper()} file ({_undecoded_variant(data, fmt)})",
                          file=str(source))
+    if photometric == tifffile.PHOTOMETRIC.SEPARATED and img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]                          # CMYK → OpenCV's BGR + an opaque alpha it adds: RGB, as a JPEG's
     return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
+
+
+def _tiff_photometric(data: bytes):
+    """The photometric interpretation of a TIFF's first page (None if unreadable: OpenCV's error then names it)."""
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            return tif.pages[0].photometric
+    except Exception:                                 # a damaged directory was reported by check_structure already
+        return None
+
+
+def _palette_tiff_rgb(data: bytes) -> np.ndarray:
+    """8-bit RGB codes of a palette TIFF (its 16-bit colour map's high bytes, TIFF 6.0 §5); OpenCV reads the
+    palette's grey levels instead of its colours."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        index, colormap = page.asarray(), page.colormap
+    return np.ascontiguousarray((colormap[:, index] >> 8).astype(np.uint8).transpose(1, 2, 0))
 
 
 def _undecoded_variant(data: bytes, fmt: str) -> str:

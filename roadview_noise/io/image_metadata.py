@@ -21,7 +21,7 @@ from .png import PNG_SIGNATURE
 _PNG_KEPT = (b"tEXt", b"zTXt", b"iTXt", b"pHYs", b"gAMA", b"cHRM", b"sRGB", b"cICP")
 _TIFF_KEPT = (270, 271, 272, 274, 306, 315, 700, 33432)  # description … orientation, datetime, artist, XMP, copyright
 _TIFF_RESOLUTION = (282, 283, 296)                       # XResolution, YResolution, ResolutionUnit
-_ICC_SPACE = {1: (b"GRAY", b"RGB "), 3: (b"RGB ",), 4: (b"RGB ",)}  # written channels → colour spaces kept
+_ICC_NEVER_WRITTEN = (b"CMYK", b"CMY ")                     # ICC data colour spaces rvnoise never writes
 
 
 def png_chunks(data: bytes) -> tuple[bytes, ...]:
@@ -76,10 +76,12 @@ def tiff_write_args(metadata: tuple) -> dict:
 
 
 def fitting_icc(icc: bytes | None, channels: int) -> bytes | None:
-    """``icc`` when its data colour space (header bytes 16–19) fits an image of ``channels`` written channels."""
-    if not icc or len(icc) < 20:
-        return icc
-    return icc if icc[16:20] in _ICC_SPACE.get(channels, ()) else None
+    """``icc`` unless its data colour space (header bytes 16–19) is one an image of ``channels`` written channels
+    cannot have: CMYK, or grey on colour (other profiles are copied as they came)."""
+    space = (icc or b"")[16:20]
+    if space in _ICC_NEVER_WRITTEN or (space == b"GRAY" and channels != 1):
+        return None
+    return icc
 
 
 def full_resolution_pages(tif: tifffile.TiffFile) -> int:

@@ -170,3 +170,23 @@ def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
     (tmp_path / "p12.jpg").write_bytes(bytes(data))
     with pytest.raises(InputError, match="p12.jpg.*a 12-bit JPEG"):
         read_image(tmp_path / "p12.jpg")
+
+
+def test_palette_and_cmyk_tiff_are_read_in_colour_as_rgb(tmp_path):
+    """OpenCV reads a palette TIFF as the grey levels of its colours (green (0, 128, 0) came out as grey 75) and a
+    CMYK TIFF with an opaque alpha plane it adds (written back as RGBA); both are RGB now, as palette PNGs and CMYK
+    JPEGs are."""
+    import tifffile
+    index = (np.arange(12 * 10) % 4).astype(np.uint8).reshape(12, 10)
+    colormap = np.zeros((3, 256), np.uint16)
+    colormap[:, :4] = np.array([[0, 255, 0, 10], [128, 0, 0, 20], [0, 0, 255, 30]]) * 257
+    tifffile.imwrite(tmp_path / "pal.tif", index, photometric="palette", colormap=colormap)
+    linear, enc, alpha = read_image(tmp_path / "pal.tif")
+    assert enc.channels == 3 and alpha is None
+    from roadview_noise.physics import srgb
+    np.testing.assert_array_equal(srgb.linear_to_code(linear, 8),
+                                  np.asarray(Image.open(tmp_path / "pal.tif").convert("RGB")))
+    cmyk = np.asarray(_photo().convert("CMYK"))
+    tifffile.imwrite(tmp_path / "cmyk.tif", cmyk, photometric="separated")
+    _, enc = _roundtrip(tmp_path / "cmyk.tif", tmp_path / "cmyk_out.tif")
+    assert enc.channels == 3 and Image.open(tmp_path / "cmyk_out.tif").mode == "RGB"
