@@ -176,3 +176,27 @@ def test_a_photo_turned_by_its_exif_orientation_is_named_where_the_chain_has_a_d
     summary, entries, lines = _run(fog, tmp_path / "in", tmp_path / "out_fog")
     assert summary.failed == 0 and "orientation" not in entries[0]["inputs"]
     assert not any("turned" in line for line in lines)
+
+
+def test_the_alpha_plane_follows_a_geometric_model(tmp_path):
+    """An RGBA photo (a cut-out: alpha 0 over a patch) through windscreen distortion: the pixels moved, the alpha
+    plane stayed where it was (here the cut-out no longer overlapped the patch). It is resampled through the same
+    map now; a uniform alpha (CARLA's 255) stays uniform, corners included."""
+    h, w = 120, 200
+    bgra = np.zeros((h, w, 4), np.uint8)
+    bgra[..., 3] = 255
+    bgra[8:40, 10:50, :3] = 255                        # a white patch near the corner, where the map moves most
+    bgra[8:40, 10:50, 3] = 0                           # … cut out
+    (tmp_path / "in").mkdir()
+    cv2.imwrite(str(tmp_path / "in" / "cut.png"), bgra)
+    cv2.imwrite(str(tmp_path / "in" / "opaque.png"), np.dstack([bgra[..., :3], np.full((h, w), 255, np.uint8)]))
+    recipe = parse_recipe({"chain": [{"model": "windscreen.camera", "params": {"k1": 2e-5}}], "seed": 1,
+                           "inputs": {"camera": "*.png"}})
+    summary, _, _ = _run(recipe, tmp_path / "in", tmp_path / "out")
+    assert summary.failed == 0
+    out = cv2.imread(str(tmp_path / "out" / "cut.png"), cv2.IMREAD_UNCHANGED)
+    white, cut = out[..., 1] > 127, out[..., 3] < 128
+    assert (white & cut).sum() / (white | cut).sum() > 0.95          # the patch and its cut-out still coincide
+    assert (white != (bgra[..., 1] > 127)).sum() > 100                  # (the patch did move)
+    opaque = cv2.imread(str(tmp_path / "out" / "opaque.png"), cv2.IMREAD_UNCHANGED)
+    assert (opaque[..., 3] == 255).all()
