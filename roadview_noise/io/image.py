@@ -124,6 +124,10 @@ def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
                          file=str(source))
     if photometric == tifffile.PHOTOMETRIC.SEPARATED and img.ndim == 3 and img.shape[2] == 4:
         img = img[..., :3]                          # CMYK → OpenCV's BGR + an opaque alpha it adds: RGB, as a JPEG's
+    key = image_metadata.png_grey_key(data, img.dtype) if fmt == "png" and img.ndim == 2 else None
+    if key is not None:                             # grey + tRNS: grey + alpha, RGBA as OpenCV gives LA PNGs
+        alpha = np.where(img == key, 0, np.iinfo(img.dtype).max).astype(img.dtype)
+        return np.dstack([img, img, img, alpha])
     return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
 
 

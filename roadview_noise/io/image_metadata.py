@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import tifffile
 
 from .png import PNG_SIGNATURE
@@ -24,17 +25,36 @@ _TIFF_RESOLUTION = (282, 283, 296)                       # XResolution, YResolut
 _ICC_NEVER_WRITTEN = (b"CMYK", b"CMY ")                     # ICC data colour spaces rvnoise never writes
 
 
-def png_chunks(data: bytes) -> tuple[bytes, ...]:
-    """The kept ancillary chunks of a PNG file (module docstring), whole (length, type, body, CRC), in file order."""
-    kept, pos = [], len(PNG_SIGNATURE)
+def _png_chunk_spans(data: bytes):
+    """``(type, offset of the chunk, length of its body)`` of a PNG's chunks before IEND, in file order."""
+    pos = len(PNG_SIGNATURE)
     while pos + 8 <= len(data):
         length, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
         if kind == b"IEND":
-            break
-        if kind in _PNG_KEPT:
-            kept.append(data[pos:pos + 12 + length])
+            return
+        yield kind, pos, length
         pos += 12 + length
-    return tuple(kept)
+
+
+def png_chunks(data: bytes) -> tuple[bytes, ...]:
+    """The kept ancillary chunks of a PNG file (module docstring), whole (length, type, body, CRC), in file order."""
+    return tuple(data[pos:pos + 12 + length] for kind, pos, length in _png_chunk_spans(data) if kind in _PNG_KEPT)
+
+
+def png_grey_key(data: bytes, dtype) -> int | None:
+    """The grey level a grey PNG's ``tRNS`` chunk makes transparent (PNG 3rd ed. §11.3.1.5), scaled as OpenCV
+    decodes grey of 1–4 bits (to 0–255); None for another colour type or without ``tRNS``. OpenCV ignores it, so a
+    transparent background came out opaque (an RGB PNG's ``tRNS`` it turns into an alpha plane)."""
+    bit_depth, colour_type = data[24], data[25]
+    if colour_type != 0:
+        return None
+    for kind, pos, length in _png_chunk_spans(data):
+        if kind == b"tRNS" and length == 2:
+            key = int.from_bytes(data[pos + 8:pos + 10], "big")
+            return key * 255 // (2 ** bit_depth - 1) if bit_depth < 8 and np.dtype(dtype) == np.uint8 else key
+        if kind == b"IDAT":
+            return None
+    return None
 
 
 def embed_png_chunks(data: bytes, chunks: tuple[bytes, ...]) -> bytes:

@@ -190,3 +190,16 @@ def test_palette_and_cmyk_tiff_are_read_in_colour_as_rgb(tmp_path):
     tifffile.imwrite(tmp_path / "cmyk.tif", cmyk, photometric="separated")
     _, enc = _roundtrip(tmp_path / "cmyk.tif", tmp_path / "cmyk_out.tif")
     assert enc.channels == 3 and Image.open(tmp_path / "cmyk_out.tif").mode == "RGB"
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_grey_png_transparency_becomes_an_alpha_plane(tmp_path, bits):
+    """A grey PNG whose tRNS chunk makes one level transparent (PngSuite's ftbbn0g*, Pillow's l_trns.png) was read
+    opaque by OpenCV and written without it; its transparency is now an alpha plane (RGBA out, as grey + alpha)."""
+    grey = (np.arange(20 * 30) % 7 * 30).astype(np.uint8 if bits == 8 else np.uint16).reshape(20, 30)
+    src, dst = tmp_path / "in.png", tmp_path / "out.png"
+    Image.fromarray(grey).save(src, transparency=60)
+    _, enc = _roundtrip(src, dst)
+    assert enc.channels == 4
+    alpha = np.asarray(Image.open(dst))[..., 3]
+    np.testing.assert_array_equal(alpha == 0, grey == 60)
