@@ -86,28 +86,25 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
     """:func:`read_image` of the bytes of a PNG, JPEG or TIFF file (also a ROS CompressedImage's data); ``source``
     names it in errors."""
     check_structure(data, fmt, source)
-    codes = decode_codes(data, fmt, source=source)
-    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality,
-                                               icc=icc_profile(data, fmt))
-    layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
-    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=_metadata(data, fmt),
-                                       **layout), alpha
-
-
-def _metadata(data: bytes, fmt: str) -> tuple:
-    """:attr:`ImageEncoding.metadata` of a PNG or TIFF file's bytes (:mod:`.image_metadata`)."""
-    if fmt == "png":
-        return image_metadata.png_chunks(data)
-    if fmt == "tiff":
+    if fmt == "tiff":                               # the first page's directory, parsed once
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
-            return image_metadata.tiff_tags(tif.pages[0])
-    return ()
+            page = tif.pages[0]
+            photometric, metadata = page.photometric, image_metadata.tiff_tags(page)
+            icc = _tiff_icc(page)
+    else:
+        photometric, icc = None, icc_profile(data, fmt)
+        metadata = image_metadata.png_chunks(data) if fmt == "png" else ()
+    codes = decode_codes(data, fmt, source=source, photometric=photometric)
+    quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
+    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc)
+    layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
+    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=metadata, **layout), alpha
 
 
-def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
+def decode_codes(data: bytes, fmt: str, *, source, photometric=None) -> np.ndarray:
     """Code values of a PNG, JPEG or TIFF file's bytes, grey (H, W) or RGB(A) (H, W, C) as stored: the common PNG
-    kinds by :mod:`.png`, the rest by OpenCV."""
+    kinds by :mod:`.png`, the rest by OpenCV; ``photometric``: a TIFF's photometric interpretation (palette and
+    CMYK are read otherwise)."""
     if fmt == "png":
         try:
             codes = decode_png(data)
@@ -115,7 +112,6 @@ def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
             raise InputError(f"corrupt PNG: {exc}", file=str(source)) from None
         if codes is not None:
             return codes
-    photometric = _tiff_photometric(data) if fmt == "tiff" else None
     if photometric == tifffile.PHOTOMETRIC.PALETTE:
         return _palette_tiff_rgb(data)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -129,15 +125,6 @@ def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
         alpha = np.where(img == key, 0, np.iinfo(img.dtype).max).astype(img.dtype)
         return np.dstack([img, img, img, alpha])
     return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
-
-
-def _tiff_photometric(data: bytes):
-    """The photometric interpretation of a TIFF's first page (None if unreadable: OpenCV's error then names it)."""
-    try:
-        with tifffile.TiffFile(io.BytesIO(data)) as tif:
-            return tif.pages[0].photometric
-    except Exception:                                 # a damaged directory was reported by check_structure already
-        return None
 
 
 def _palette_tiff_rgb(data: bytes) -> np.ndarray:
@@ -391,10 +378,15 @@ def icc_profile(data: bytes, fmt: str) -> bytes | None:
         return b"".join(chunks[k] for k in sorted(chunks)) or None
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
-            tag = tif.pages[0].tags.get(_ICC_TIFF_TAG)
-            return bytes(tag.value) if tag is not None else None
+            return _tiff_icc(tif.pages[0])
     except Exception:                                 # a damaged directory was reported by check_structure already
         return None
+
+
+def _tiff_icc(page) -> bytes | None:
+    """The ICC profile of a TIFF page (tag 34675)."""
+    tag = page.tags.get(_ICC_TIFF_TAG)
+    return bytes(tag.value) if tag is not None else None
 
 
 def embed_icc_profile(data: bytes, fmt: str, icc: bytes | None) -> bytes:
@@ -537,7 +529,7 @@ def check_structure(data: bytes, fmt: str, path) -> None:
     elif fmt == "jpeg":
         if not data.startswith(_JPEG_SOI):
             raise InputError("not a JPEG file (no SOI marker FF D8)", file=str(path))
-        if data.find(_JPEG_EOI, _first_scan(data)) < 0:        # (phones append data after it: Samsung, Motion Photos)
+        if not data.rstrip(b"\x00\r\n").endswith(_JPEG_EOI) and data.find(_JPEG_EOI, _first_scan(data)) < 0:
             raise InputError("truncated JPEG: the end-of-image marker FF D9 is missing", file=str(path))
     else:
         if not data.startswith(_TIFF_SIGNATURES):
@@ -561,7 +553,8 @@ def check_structure(data: bytes, fmt: str, path) -> None:
 
 def _first_scan(data: bytes) -> int:
     """Offset of the first start-of-scan marker of a JPEG (the end of :func:`_jpeg_segments`); the entropy-coded
-    data after it cannot hold FF D9 (T.81 B.1.1.5: an FF there is followed by 00 or a restart marker)."""
+    data after it cannot hold FF D9 (T.81 B.1.1.5: an FF there is followed by 00 or a restart marker), so an FF D9
+    after it ends the image even when a phone appended data (Samsung's trailer, a Motion Photo's MP4)."""
     pos = 2
     while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] != 0xDA:
         pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
