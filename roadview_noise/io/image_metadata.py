@@ -67,14 +67,19 @@ def embed_png_chunks(data: bytes, chunks: tuple[bytes, ...]) -> bytes:
 
 def tiff_tags(page) -> tuple:
     """The kept tags of a TIFF page as tifffile ``extratags`` ``(code, dtype, count, value, True)``, and the
-    resolution ``((x, y), unit)`` last when the file states one."""
+    resolution ``((x, y), unit)`` last when the file states a valid one (rationals with non-zero denominators)."""
     kept = tuple((t.code, t.dtype, None if t.dtype == 2 else t.count, _tag_value(t), True) for t in page.tags
                  if t.code in _TIFF_KEPT)
     tags = page.tags
-    if all(code in tags for code in _TIFF_RESOLUTION[:2]):
+    if all(code in tags and _rational(tags[code].value) for code in _TIFF_RESOLUTION[:2]):
         unit = tags[296].value if 296 in tags else 2
         kept += (("resolution", (tags[282].value, tags[283].value), int(unit)),)
     return kept
+
+
+def _rational(value) -> bool:
+    """True for a TIFF RATIONAL tifffile can write back: (numerator, denominator > 0)."""
+    return isinstance(value, tuple) and len(value) == 2 and value[1] > 0 and value[0] >= 0
 
 
 def _tag_value(tag):

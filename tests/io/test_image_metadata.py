@@ -124,6 +124,11 @@ def test_tiff_orientation_resolution_and_description_are_kept(tmp_path):
         assert tags[274].value == 6 and tags[271].value == "RoadCam"
         assert tags[282].value == (300, 1) and tags[296].value == 2
         assert "caf" in tags[270].value
+    with tifffile.TiffFile(src, mode="r+") as tif:      # a resolution of 0/0 (tifffile cannot write it): left out
+        tif.pages[0].tags[282].overwrite((0, 0))
+    _roundtrip(src, dst)
+    with tifffile.TiffFile(dst) as tif:
+        assert tif.pages[0].tags[274].value == 6 and tif.pages[0].tags[282].value == (1, 1)
 
 
 def test_multi_page_tiff_is_refused_naming_its_pages(tmp_path):
