@@ -12,11 +12,15 @@ channels).
 Written back like the input: bit depth, channels, alpha plane, JPEG quality (estimated from the input's
 quantisation tables unless the recipe states one), JPEG chroma subsampling and progressive mode, the embedded ICC
 colour profile (PNG ``iCCP`` chunk, JPEG ``APP2 ICC_PROFILE`` segments, TIFF tag 34675) and the EXIF data (JPEG
-``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged. TIFF is written by tifffile (Deflate), PNG by
+``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged, with a PNG's
+text, ``pHYs`` and colour chunks and a TIFF's orientation, resolution and descriptive tags (:mod:`.image_metadata`).
+A palette TIFF is read as RGB, a CMYK one as RGB (OpenCV's conversion), a grey PNG's ``tRNS`` level as an alpha
+plane. TIFF is written by tifffile (Deflate), PNG by
 :mod:`.png` (OpenCV's deflate settings, Sub or Up filter per image: OpenCV's file size or smaller), JPEG by OpenCV.
 
 OpenCV decodes some truncated files without an error (a JPEG cut short gets a grey bottom), so the structure is checked
-first: PNG needs its IEND chunk, JPEG its EOI marker, TIFF strips/tiles inside the file.
+first: PNG needs its IEND chunk, JPEG its EOI marker after its first scan (data may follow it), TIFF strips/tiles
+inside the file and one full-resolution page.
 """
 
 from __future__ import annotations
