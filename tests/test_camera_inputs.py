@@ -170,12 +170,12 @@ def test_a_photo_turned_by_its_exif_orientation_is_named_where_the_chain_has_a_d
     assert notes["side.jpg"]["orientation"] == {"exif": 6, "processed": "as stored, not turned upright"}
     assert "turned_photo" in notes["side.jpg"]["warnings"] and "orientation" not in notes["upright.jpg"]
     assert sum("1 photo(s) are stored turned" in line for line in lines) == 1
-    np.save(tmp_path / "in" / "side_depth.npy", np.full((97, 301), 20.0, np.float32))
-    fog = parse_recipe({"chain": [{"model": "fog.camera"}], "seed": 1,
-                        "inputs": {"camera": "side.jpg", "depth": "{stem}_depth.npy"}})
-    summary, entries, lines = _run(fog, tmp_path / "in", tmp_path / "out_fog")
-    assert summary.failed == 0 and "orientation" not in entries[0]["inputs"]
-    assert not any("turned" in line for line in lines)
+    from roadview_noise.camera_inputs import _orientation_warning
+    from roadview_noise.types import CameraFrame
+    linear, encoding, _ = read_image(tmp_path / "in" / "side.jpg")
+    fog = parse_recipe({"chain": [{"model": "fog.camera"}], "inputs": {"depth": "{stem}_depth.npy"}})
+    notes: dict = {}
+    assert _orientation_warning(CameraFrame(linear, None, encoding=encoding), fog, notes) == [] and notes == {}
 
 
 def test_the_alpha_plane_follows_a_geometric_model(tmp_path):
