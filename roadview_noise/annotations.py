@@ -92,8 +92,8 @@ BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KI
 }
 
 MASK_JSON_NOT_READ = ("polygon JSON (Cityscapes' *_gtFine_polygons.json, BDD100K, Mapillary) is not read: name the "
-                      "label images (Cityscapes' *_gtFine_labelIds.png and *_gtFine_instanceIds.png; cityscapesScripts' "
-                      "json2labelImg draws them from the polygons)")
+                      "label images (Cityscapes' *_gtFine_labelIds.png and *_gtFine_instanceIds.png; "
+                      "cityscapesScripts' json2labelImg draws them from the polygons)")
 
 
 def _rule_ends(rule) -> list[str]:

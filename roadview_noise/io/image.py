@@ -476,7 +476,8 @@ def _jpeg_frame_layout(data: bytes) -> dict:
 
 
 def _start_of_frame(data: bytes) -> tuple[int | None, bytes]:
-    """``(marker, payload)`` of a JPEG's start-of-frame segment (SOF0–SOF15 but DHT, JPG, DAC), (None, b"") without."""
+    """``(marker, payload)`` of a JPEG's start-of-frame segment (SOF0–SOF15 but DHT, JPG, DAC); (None, b"")
+    without one."""
     for marker, seg in _jpeg_segments(data):
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
             return marker, seg
