@@ -91,6 +91,15 @@ BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KI
     ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
 }
 
+MASK_JSON_NOT_READ = ("polygon JSON (Cityscapes' *_gtFine_polygons.json, BDD100K, Mapillary) is not read: name the "
+                      "label images (Cityscapes' *_gtFine_labelIds.png and *_gtFine_instanceIds.png; "
+                      "cityscapesScripts' json2labelImg draws them from the polygons)")
+
+
+def _rule_ends(rule) -> list[str]:
+    """The texts a path rule ends a sidecar's name with: the pattern, or the ``new`` parts of a replace rule."""
+    return [rule] if isinstance(rule, str) else list(rule.replace.values()) if isinstance(rule, ReplaceRule) else []
+
 
 class AnnotationsSpec(_Strict):
     """``inputs.annotations`` of a recipe (module docstring)."""
@@ -126,12 +135,15 @@ class AnnotationsSpec(_Strict):
                                   f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
         if self.calib is not None and self.boxes_3d is None:
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
-        ends = ([self.boxes_2d] if isinstance(self.boxes_2d, str) else
-                list(self.boxes_2d.replace.values()) if isinstance(self.boxes_2d, ReplaceRule) else [])
+        ends = _rule_ends(self.boxes_2d)
         for suffix, why in BOX_FILES_NOT_READ.items():
             if any(e.lower().endswith(suffix) for e in ends):
                 raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
                                   key="inputs.annotations.boxes_2d")
+        for k, rule in enumerate(self.masks):
+            if any(e.lower().endswith(".json") for e in _rule_ends(rule)):
+                raise RecipeError(f"masks are PNG/TIFF label images; {MASK_JSON_NOT_READ}",
+                                  key=f"inputs.annotations.masks[{k}]")
         if self.coco_image_root is not None and self.coco is None:
             raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
         for name in ("coco", "coco_image_root"):

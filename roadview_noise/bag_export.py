@@ -18,7 +18,8 @@ tree and augmenting the bag with the same chains and seed give the same pixels a
 
 With a recipe, its mapped topics are exported with their profiles (its chains are not run); without one, every
 image topic with a camera encoding and every PointCloud2 (radar when it has a velocity/Doppler, SNR or RCS field,
-else LiDAR), with default profiles.
+else LiDAR), with default profiles; the image topics left out (depth images: ``32FC1``, ``16UC1``,
+``compressedDepth``; encodings not read) are named in a warning.
 """
 
 from __future__ import annotations
@@ -63,7 +64,9 @@ def export_bag(bag: Path, out_dir: Path, *, recipe: BagRecipe | None = None, ove
     with ExitStack() as stack:
         reader = stack.enter_context(open_bag(bag))
         is2 = bag_kind(bag) == "ros2"
-        recipe = recipe or sensor_topics(reader, is2)
+        if recipe is None:
+            recipe, skipped = sensor_topics(reader)
+            summary["warnings"] += [f"not exported: {topic} ({why})" for topic, why in skipped.items()]
         plan = plan_bag(recipe, reader, bag, every_camera=True)
         ctx = BagContext(str(bag), is2, dict(reader.typestore.fielddefs), recipe, bag.resolve().parent)
         _, typestore = _context(pickle.dumps(ctx))
@@ -102,15 +105,26 @@ def export_bag(bag: Path, out_dir: Path, *, recipe: BagRecipe | None = None, ove
     return summary
 
 
-def sensor_topics(reader: Any, is2: bool) -> BagRecipe:
+def sensor_topics(reader: Any) -> tuple[BagRecipe, dict[str, str]]:
     """A topics-only recipe of every camera image and PointCloud2 topic (sensor of a cloud from its first message's
-    fields)."""
+    fields), and the image topics left out with the reason: depth images — ``32FC1``, ``16UC1`` (REP 118's
+    encodings: RealSense, Azure Kinect and OAK depth topics; a 16-bit grey picture is ``mono16``),
+    ``compressedDepth`` — and encodings rvnoise does not read."""
     topics: dict[str, dict] = {}
+    skipped: dict[str, str] = {}
     for conn in reader.connections:
-        if conn.msgtype == rm.IMAGE and _first(reader, conn).encoding not in rm.CAMERA_ENCODINGS:
-            continue
+        if conn.msgtype == rm.IMAGE:
+            encoding = _first(reader, conn).encoding
+            if encoding in rm.DEPTH_ENCODINGS and encoding != "mono16":
+                skipped[conn.topic] = f"{encoding}: a depth image (REP 118); give it as a camera topic's depth_topic"
+                continue
+            if encoding not in rm.CAMERA_ENCODINGS:
+                skipped[conn.topic] = f"Image encoding {encoding!r} is not read (supported: " \
+                                      f"{', '.join(rm.CAMERA_ENCODINGS)})"
+                continue
         if conn.msgtype == rm.COMPRESSED_IMAGE and "compresseddepth" in _first(reader, conn).format.lower():
-            continue                                    # a depth image, not a picture
+            skipped[conn.topic] = "a compressedDepth image; give it as a camera topic's depth_topic"
+            continue
         if conn.msgtype in rm.SENSOR_TYPES["camera"]:
             topics.setdefault(conn.topic, {"sensor": "camera"})
         elif conn.msgtype == rm.POINTCLOUD2:
@@ -118,7 +132,7 @@ def sensor_topics(reader: Any, is2: bool) -> BagRecipe:
             topics.setdefault(conn.topic, {"sensor": "radar" if names & RADAR_FIELDS else "lidar"})
     if not topics:
         raise InputError("the bag has no camera Image, CompressedImage or PointCloud2 topic to export")
-    return parse_bag_recipe({"topics": topics}, source="<export>", chains_required=False)
+    return parse_bag_recipe({"topics": topics}, source="<export>", chains_required=False), skipped
 
 
 def _first(reader: Any, conn: Any) -> Any:

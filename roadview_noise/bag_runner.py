@@ -68,7 +68,7 @@ def export_suffix(msg: Any, msgtype: str, source: str = "") -> str:
     """The file type a message is exported as: its own JPEG/PNG, ``.png`` for an Image, ``.raw`` for Bayer,
     ``.pcd`` for a cloud."""
     if msgtype == rm.COMPRESSED_IMAGE:
-        return ".jpg" if rm.compressed_format(msg.format, source=source) == "jpeg" else ".png"
+        return ".jpg" if rm.compressed_format(msg, source=source) == "jpeg" else ".png"
     if msgtype == rm.IMAGE:
         return ".raw" if rm.PIXEL_LAYOUTS.get(msg.encoding, rm.PIXEL_LAYOUTS["mono8"]).order == "bayer" else ".png"
     return ".pcd"

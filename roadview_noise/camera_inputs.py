@@ -97,7 +97,7 @@ def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: An
     if recipe.needs_depth():
         depth, valid, notes["depth"] = _depth(origin, recipe, geometry, lambda: _signal(frame))
     notes.update(geometry.notes)
-    warnings = geometry.warnings + _depth_warnings(notes.get("depth"))
+    warnings = geometry.warnings + _depth_warnings(notes.get("depth")) + _orientation_warning(frame, recipe, notes)
     if warnings:
         notes["warnings"] = warnings
     return dataclasses.replace(frame, profile=geometry.resolved or frame.profile, depth_m=depth, depth_valid=valid,
@@ -421,6 +421,22 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry, signal):
     return depth, None, notes
 
 
+def _orientation_warning(frame: CameraFrame | RawFrame, recipe: Recipe, notes: dict) -> list[str]:
+    """``turned_photo`` (and ``notes["orientation"]``) for a photo whose EXIF/TIFF orientation turns or mirrors it for
+    display, when the chain has a direction: steps that use camera geometry (rain and snow fall down the stored
+    columns), the ground-plane prior (road at the stored bottom) or a depth network (trained on upright photos).
+    Pixels are processed as stored (the output keeps the tag, labels stay aligned), so those directions are the
+    stored ones: a photo turned 90° gets horizontal streaks as displayed."""
+    from .io.image_metadata import orientation
+
+    turn = orientation(frame.encoding) if isinstance(frame, CameraFrame) else 1
+    if turn == 1 or not (needs_camera_geometry(recipe) or
+                         recipe.spec.inputs.depth_source in ("ground_plane", "onnx")):
+        return []
+    notes["orientation"] = {"exif": turn, "processed": "as stored, not turned upright"}
+    return ["turned_photo"]
+
+
 def _depth_warnings(notes: dict | None) -> list[str]:
     if not notes:
         return []
@@ -481,6 +497,12 @@ class InputWarnings:
             lines.append(f"{n['yolo_file_absent']} image(s) have no YOLO label file: augmented as images without "
                          "objects (YOLO's background images) and written without one; if they should have labels, "
                          "check inputs.annotations.boxes_2d (annotations_read in the manifest)")
+        if "turned_photo" in n:
+            lines.append(f"{n['turned_photo']} photo(s) are stored turned or mirrored (EXIF orientation 2–8, "
+                         "inputs.orientation in the manifest): the chain sees the stored pixels, so rain and snow fall "
+                         "and the ground-plane road lies along the stored image, not the displayed one; turn them "
+                         "upright first (exiftran -ai, mogrify -auto-orient; labels with them) if the photos were "
+                         "taken sideways")
         if "intrinsics_from_fov" in n:
             lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
                          f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 from enum import IntEnum
 
+import cv2
 import numpy as np
 
 from .types import CameraFrame, PointCloud, RawFrame
@@ -102,10 +103,15 @@ def step_input(cloud: PointCloud) -> PointCloud:
 def follow(before, after, model, *, state: dict, drawn: dict, step: int):
     """What the chain adds to a step's output: for clouds the composed point provenance (:func:`follow_points`),
     for camera frames the step's :class:`~roadview_noise.physics.warp.Warp` (``Model.warp``) appended to
-    ``warps``, so masks and boxes move with the image."""
+    ``warps``, so masks and boxes move with the image, and the file's alpha plane resampled through it (beyond the
+    input's border it takes the nearest edge's alpha: a uniform plane, CARLA's, stays as it was)."""
     if isinstance(after, (CameraFrame, RawFrame)):
         warp = model.warp(before, state=state, drawn=drawn)
-        return after if warp is None else dataclasses.replace(after, warps=(*after.warps, warp))
+        if warp is None:
+            return after
+        alpha = getattr(after, "alpha", None)
+        moved = {} if alpha is None else {"alpha": warp.apply(alpha, border=cv2.BORDER_REPLICATE)}
+        return dataclasses.replace(after, warps=(*after.warps, warp), **moved)
     return follow_points(before, after, step, model.id)
 
 

@@ -76,6 +76,9 @@ class GroundPlaneSpec(_Strict):
     objects: bool = True              # vertical objects standing on the ground (depth/stixels.py); false: flat only
 
 
+PHOTO_SUFFIXES_NOT_READ = ("webp", "heic", "heif", "avif", "jxl", "jp2", "bmp", "gif", "mpo")
+
+
 class InputsSpec(_Strict):
     """Which files to read and how (globs relative to the input root). Sidecar patterns (``depth``,
     ``calibration``, ``lidar_depth.scan``) are relative to the image's folder: ``{stem}``, ``{name}``, ``{base}``
@@ -118,6 +121,16 @@ class InputsSpec(_Strict):
         if isinstance(self.raw_black_level_dn, tuple) and len(self.raw_black_level_dn) not in (1, 4):
             raise ValueError(f"raw_black_level_dn has {len(self.raw_black_level_dn)} values: give one, or four (the "
                              "2×2 CFA sites row by row from the frame's top-left site)")
+        return self
+
+    @model_validator(mode="after")
+    def _camera_suffixes(self) -> "InputsSpec":
+        globs = [self.camera] if isinstance(self.camera, str) else self.camera or []
+        for glob in globs:
+            suffix = glob.rsplit(".", 1)[-1].lower() if "." in glob.rsplit("/", 1)[-1] else ""
+            if suffix in PHOTO_SUFFIXES_NOT_READ:
+                raise ValueError(f"camera: {glob!r} names .{suffix} files, which rvnoise does not read (camera "
+                                 "images: .png .jpg .jpeg .tif .tiff .exr); convert them to PNG or JPEG first")
         return self
 
     @model_validator(mode="after")

@@ -246,6 +246,11 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml"}}}, tmp_path)
     with pytest.raises(RecipeError, match="boxes_2d: .*goes under annotations.coco"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": {"replace": {".jpg": ".JSON"}}}}}, tmp_path)
+    # Cityscapes' polygons next to its label images (round 19): validate passed, then every image failed with "not
+    # an image OpenCV can decode"
+    polygons = {"replace": {"leftImg8bit/": "gtFine/", "_leftImg8bit.png": "_gtFine_polygons.json"}}
+    with pytest.raises(RecipeError, match=r"masks\[1\]: .*_gtFine_polygons.json.*is not read.*_gtFine_labelIds.png"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"masks": ["{stem}_labelIds.png", polygons]}}}, tmp_path)
 
 
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------

@@ -150,3 +150,53 @@ def test_cli_input_overrides_are_recorded_and_replayed(tmp_path):
     r = cli.invoke(app, ["augment", "-r", str(recipe), str(tmp_path / "in"), str(tmp_path / "out3"), "--depth",
                          "{stm}.npy"])
     assert r.exit_code == 2 and "{stm}" in r.output and not (tmp_path / "out3").exists()
+
+
+def test_a_photo_turned_by_its_exif_orientation_is_named_where_the_chain_has_a_direction(tmp_path):
+    """A phone photo stored sideways (EXIF orientation 6) is processed as stored: rain fell along the stored columns,
+    horizontal once displayed, without a word. Now the manifest says so and one line per run warns; an upright
+    photo (orientation 1) and a chain without a direction (fog on the photo's own depth file) say nothing."""
+    from PIL import Image
+
+    for name, turn in (("side.jpg", 6), ("upright.jpg", 1)):
+        exif = Image.Exif()
+        exif[0x0112] = turn
+        Image.open(_photo(tmp_path / "in" / name)).save(tmp_path / "in" / name, exif=exif.tobytes(), quality=90)
+    rain = parse_recipe({"chain": [{"model": "rain.camera"}], "seed": 1,
+                         "inputs": {"camera": "*.jpg", "depth_source": "ground_plane"}})
+    summary, entries, lines = _run(rain, tmp_path / "in", tmp_path / "out")
+    assert summary.failed == 0
+    notes = {Path(e["input"]).name: e["inputs"] for e in entries}
+    assert notes["side.jpg"]["orientation"] == {"exif": 6, "processed": "as stored, not turned upright"}
+    assert "turned_photo" in notes["side.jpg"]["warnings"] and "orientation" not in notes["upright.jpg"]
+    assert sum("1 photo(s) are stored turned" in line for line in lines) == 1
+    from roadview_noise.camera_inputs import _orientation_warning
+    from roadview_noise.types import CameraFrame
+    linear, encoding, _ = read_image(tmp_path / "in" / "side.jpg")
+    fog = parse_recipe({"chain": [{"model": "fog.camera"}], "inputs": {"depth": "{stem}_depth.npy"}})
+    notes: dict = {}
+    assert _orientation_warning(CameraFrame(linear, None, encoding=encoding), fog, notes) == [] and notes == {}
+
+
+def test_the_alpha_plane_follows_a_geometric_model(tmp_path):
+    """An RGBA photo (a cut-out: alpha 0 over a patch) through windscreen distortion: the pixels moved, the alpha
+    plane stayed where it was (here the cut-out no longer overlapped the patch). It is resampled through the same
+    map now; a uniform alpha (CARLA's 255) stays uniform, corners included."""
+    h, w = 120, 200
+    bgra = np.zeros((h, w, 4), np.uint8)
+    bgra[..., 3] = 255
+    bgra[8:40, 10:50, :3] = 255                        # a white patch near the corner, where the map moves most
+    bgra[8:40, 10:50, 3] = 0                           # … cut out
+    (tmp_path / "in").mkdir()
+    cv2.imwrite(str(tmp_path / "in" / "cut.png"), bgra)
+    cv2.imwrite(str(tmp_path / "in" / "opaque.png"), np.dstack([bgra[..., :3], np.full((h, w), 255, np.uint8)]))
+    recipe = parse_recipe({"chain": [{"model": "windscreen.camera", "params": {"k1": 2e-5}}], "seed": 1,
+                           "inputs": {"camera": "*.png"}})
+    summary, _, _ = _run(recipe, tmp_path / "in", tmp_path / "out")
+    assert summary.failed == 0
+    out = cv2.imread(str(tmp_path / "out" / "cut.png"), cv2.IMREAD_UNCHANGED)
+    white, cut = out[..., 1] > 127, out[..., 3] < 128
+    assert (white & cut).sum() / (white | cut).sum() > 0.95          # the patch and its cut-out still coincide
+    assert (white != (bgra[..., 1] > 127)).sum() > 100                  # (the patch did move)
+    opaque = cv2.imread(str(tmp_path / "out" / "opaque.png"), cv2.IMREAD_UNCHANGED)
+    assert (opaque[..., 3] == 255).all()

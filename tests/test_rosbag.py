@@ -427,3 +427,32 @@ def test_writeback_starts_every_so_many_bytes(tmp_path, monkeypatch):
     none = writeback.Writeback(None)
     none.wrote(1 << 30)
     assert none.fd is None and len(calls) == 2
+
+
+def test_export_without_recipe_leaves_depth_topics_out_and_says_which(tmp_path):
+    """A RealSense-style bag: its 16UC1 depth topic (REP 118's depth encoding, as realsense2_camera, Azure Kinect and
+    OAK drivers publish it) was exported as a 16-bit grey picture, so augmenting the tree put fog on depth maps; a
+    usb_cam ``yuv422`` topic was left out without a word. Both are now left out and named; mono16 stays a picture."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    bag = tmp_path / "rs.bag"
+    topics = {"/camera/color/image_raw": ("rgb8", np.uint8, 3), "/camera/depth/image_rect_raw": ("16UC1", np.uint16, 1),
+              "/ir/image_raw": ("mono16", np.uint16, 1), "/usb_cam/image_raw": ("yuv422", np.uint8, 2)}
+    with Writer(bag) as writer:
+        for topic, (encoding, dtype, channels) in topics.items():
+            conn = writer.add_connection(topic, rm.IMAGE, typestore=store)
+            pixels = np.full((8, 12, channels), 100, dtype)
+            header = store.types["std_msgs/msg/Header"](seq=0, stamp=store.types["builtin_interfaces/msg/Time"](
+                sec=1, nanosec=0), frame_id="cam")
+            msg = store.types["sensor_msgs/msg/Image"](header=header, height=8, width=12, encoding=encoding,
+                                                       is_bigendian=0, step=pixels.strides[0],
+                                                       data=pixels.view(np.uint8).ravel())
+            writer.write(conn, 10**9 + 1, store.serialize_ros1(msg, rm.IMAGE))
+    summary = export_bag(bag, tmp_path / "tree")
+    assert set(summary["topics"]) == {"/camera/color/image_raw", "/ir/image_raw"}
+    assert not (tmp_path / "tree" / "camera" / "depth").exists()
+    assert any(w.startswith("not exported: /camera/depth/image_rect_raw (16UC1: a depth image") and "depth_topic" in w
+               for w in summary["warnings"])
+    assert any(w.startswith("not exported: /usb_cam/image_raw (Image encoding 'yuv422'") for w in summary["warnings"])

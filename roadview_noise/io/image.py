@@ -12,11 +12,15 @@ channels).
 Written back like the input: bit depth, channels, alpha plane, JPEG quality (estimated from the input's
 quantisation tables unless the recipe states one), JPEG chroma subsampling and progressive mode, the embedded ICC
 colour profile (PNG ``iCCP`` chunk, JPEG ``APP2 ICC_PROFILE`` segments, TIFF tag 34675) and the EXIF data (JPEG
-``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged. TIFF is written by tifffile (Deflate), PNG by
+``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged, with a PNG's
+text, ``pHYs`` and colour chunks and a TIFF's orientation, resolution and descriptive tags (:mod:`.image_metadata`).
+A palette TIFF is read as RGB, a CMYK one as RGB (OpenCV's conversion), a grey PNG's ``tRNS`` level as an alpha
+plane. TIFF is written by tifffile (Deflate), PNG by
 :mod:`.png` (OpenCV's deflate settings, Sub or Up filter per image: OpenCV's file size or smaller), JPEG by OpenCV.
 
 OpenCV decodes some truncated files without an error (a JPEG cut short gets a grey bottom), so the structure is checked
-first: PNG needs its IEND chunk, JPEG its EOI marker, TIFF strips/tiles inside the file.
+first: PNG needs its IEND chunk, JPEG its EOI marker after its first scan (data may follow it), TIFF strips/tiles
+inside the file and one full-resolution page.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ from ..errors import InputError
 from ..physics import srgb
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
+from . import image_metadata
 from .atomic import atomic_path, write_bytes_atomic
 from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png
 
@@ -85,17 +90,25 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
     """:func:`read_image` of the bytes of a PNG, JPEG or TIFF file (also a ROS CompressedImage's data); ``source``
     names it in errors."""
     check_structure(data, fmt, source)
-    codes = decode_codes(data, fmt, source=source)
+    if fmt == "tiff":                               # the first page's directory, parsed once
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            page = tif.pages[0]
+            photometric, metadata = page.photometric, image_metadata.tiff_tags(page)
+            icc = _tiff_icc(page)
+    else:
+        photometric, icc = None, icc_profile(data, fmt)
+        metadata = image_metadata.png_chunks(data) if fmt == "png" else ()
+    codes = decode_codes(data, fmt, source=source, photometric=photometric)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality,
-                                               icc=icc_profile(data, fmt))
+    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc)
     layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
-    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), **layout), alpha
+    return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=metadata, **layout), alpha
 
 
-def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
+def decode_codes(data: bytes, fmt: str, *, source, photometric=None) -> np.ndarray:
     """Code values of a PNG, JPEG or TIFF file's bytes, grey (H, W) or RGB(A) (H, W, C) as stored: the common PNG
-    kinds by :mod:`.png`, the rest by OpenCV."""
+    kinds by :mod:`.png`, the rest by OpenCV; ``photometric``: a TIFF's photometric interpretation (palette and
+    CMYK are read otherwise)."""
     if fmt == "png":
         try:
             codes = decode_png(data)
@@ -103,11 +116,39 @@ def decode_codes(data: bytes, fmt: str, *, source) -> np.ndarray:
             raise InputError(f"corrupt PNG: {exc}", file=str(source)) from None
         if codes is not None:
             return codes
+    if photometric == tifffile.PHOTOMETRIC.PALETTE:
+        return _palette_tiff_rgb(data)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise InputError(f"OpenCV cannot decode this {fmt.upper()} file (corrupt or unsupported variant)",
+        raise InputError(f"OpenCV cannot decode this {fmt.upper()} file ({_undecoded_variant(data, fmt)})",
                          file=str(source))
+    if photometric == tifffile.PHOTOMETRIC.SEPARATED and img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]                          # CMYK → OpenCV's BGR + an opaque alpha it adds: RGB, as a JPEG's
+    key = image_metadata.png_grey_key(data, img.dtype) if fmt == "png" and img.ndim == 2 else None
+    if key is not None:                             # grey + tRNS: grey + alpha, RGBA as OpenCV gives LA PNGs
+        alpha = np.where(img == key, 0, np.iinfo(img.dtype).max).astype(img.dtype)
+        return np.dstack([img, img, img, alpha])
     return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
+
+
+def _palette_tiff_rgb(data: bytes) -> np.ndarray:
+    """8-bit RGB codes of a palette TIFF (its 16-bit colour map's high bytes, TIFF 6.0 §5); OpenCV reads the
+    palette's grey levels instead of its colours."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        index, colormap = page.asarray(), page.colormap
+    return np.ascontiguousarray((colormap[:, index] >> 8).astype(np.uint8).transpose(1, 2, 0))
+
+
+def _undecoded_variant(data: bytes, fmt: str) -> str:
+    """Why OpenCV may have refused a file: a JPEG's sample precision or lossless process (T.81 B.2.2), which its
+    decoder (8-bit) does not read, else "corrupt or unsupported variant"."""
+    marker, seg = _start_of_frame(data) if fmt == "jpeg" else (None, b"")
+    if marker in (0xC3, 0xC7, 0xCB, 0xCF):
+        return "a lossless JPEG (SOF3): convert it to a 16-bit PNG or TIFF"
+    if seg and seg[0] != 8:
+        return f"a {seg[0]}-bit JPEG: OpenCV reads 8-bit ones; convert it to a 16-bit PNG or TIFF"
+    return "corrupt or unsupported variant"
 
 
 def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int = ImageEncoding.jpeg_quality,
@@ -130,7 +171,7 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
     if channels == 1:
         linear = np.repeat(linear[..., None], 3, axis=2)
     encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels,
-                             jpeg_quality=jpeg_quality, icc_profile=icc)
+                             jpeg_quality=jpeg_quality, icc_profile=image_metadata.fitting_icc(icc, channels))
     return np.ascontiguousarray(linear, dtype=np.float32), encoding, alpha
 
 
@@ -202,11 +243,12 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     """PNG, JPEG (``encoding.jpeg_quality``) or TIFF bytes of grey or RGB(A) code values, with
     ``encoding.icc_profile`` embedded."""
     if encoding.fmt == "tiff":
-        return _encode_tiff(codes, encoding.icc_profile)
+        return _encode_tiff(codes, encoding.icc_profile, encoding.metadata)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
-        return embed_exif(embed_icc_profile(encode_png(codes), "png", encoding.icc_profile), "png", encoding.exif)
+        png = embed_exif(embed_icc_profile(encode_png(codes), "png", encoding.icc_profile), "png", encoding.exif)
+        return image_metadata.embed_png_chunks(png, encoding.metadata)
     params = [cv2.IMWRITE_JPEG_QUALITY, int(encoding.jpeg_quality),
               cv2.IMWRITE_JPEG_PROGRESSIVE, int(encoding.jpeg_progressive)]
     if codes.ndim == 3:
@@ -253,13 +295,15 @@ def _refuse_nan(linear: np.ndarray, name: str) -> None:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
 
 
-def _encode_tiff(codes: np.ndarray, icc: bytes | None) -> bytes:
-    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha and the ICC profile."""
+def _encode_tiff(codes: np.ndarray, icc: bytes | None, metadata: tuple = ()) -> bytes:
+    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha, the ICC profile and the
+    input's kept tags (:func:`.image_metadata.tiff_tags`)."""
     buf = io.BytesIO()
     colour = codes.ndim == 3
     tifffile.imwrite(buf, codes, photometric="rgb" if colour else "minisblack",
                      extrasamples=("unassalpha",) if colour and codes.shape[2] == 4 else None,
-                     compression="zlib", metadata=None, iccprofile=icc)
+                     compression="zlib", metadata=None, iccprofile=icc,
+                     **image_metadata.tiff_write_args(metadata))
     return buf.getvalue()
 
 
@@ -338,10 +382,15 @@ def icc_profile(data: bytes, fmt: str) -> bytes | None:
         return b"".join(chunks[k] for k in sorted(chunks)) or None
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
-            tag = tif.pages[0].tags.get(_ICC_TIFF_TAG)
-            return bytes(tag.value) if tag is not None else None
+            return _tiff_icc(tif.pages[0])
     except Exception:                                 # a damaged directory was reported by check_structure already
         return None
+
+
+def _tiff_icc(page) -> bytes | None:
+    """The ICC profile of a TIFF page (tag 34675)."""
+    tag = page.tags.get(_ICC_TIFF_TAG)
+    return bytes(tag.value) if tag is not None else None
 
 
 def embed_icc_profile(data: bytes, fmt: str, icc: bytes | None) -> bytes:
@@ -415,15 +464,24 @@ def embed_exif(data: bytes, fmt: str, exif: bytes | None) -> bytes:
 def _jpeg_frame_layout(data: bytes) -> dict:
     """``jpeg_sampling`` (OpenCV's code of the luma sampling factors, chroma at 1 × 1) and ``jpeg_progressive``
     from the JPEG's start-of-frame segment (T.81 B.2.2); no sampling code for grey, CMYK or unusual factors."""
+    marker, seg = _start_of_frame(data)
+    if marker is None:
+        return {}
+    comps = [seg[6 + 3 * i:9 + 3 * i] for i in range(seg[5])] if len(seg) > 5 else []
+    factors = [c[1] for c in comps if len(c) == 3]
+    sampling = None
+    if len(factors) == 3 and factors[1] == factors[2] == 0x11 and factors[0] in _OPENCV_SAMPLING:
+        sampling = _OPENCV_SAMPLING[factors[0]]
+    return {"jpeg_sampling": sampling, "jpeg_progressive": marker in (0xC2, 0xC6, 0xCA, 0xCE)}
+
+
+def _start_of_frame(data: bytes) -> tuple[int | None, bytes]:
+    """``(marker, payload)`` of a JPEG's start-of-frame segment (SOF0–SOF15 but DHT, JPG, DAC); (None, b"")
+    without one."""
     for marker, seg in _jpeg_segments(data):
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            comps = [seg[6 + 3 * i:9 + 3 * i] for i in range(seg[5])] if len(seg) > 5 else []
-            factors = [c[1] for c in comps if len(c) == 3]
-            sampling = None
-            if len(factors) == 3 and factors[1] == factors[2] == 0x11 and factors[0] in _OPENCV_SAMPLING:
-                sampling = _OPENCV_SAMPLING[factors[0]]
-            return {"jpeg_sampling": sampling, "jpeg_progressive": marker in (0xC2, 0xC6, 0xCA, 0xCE)}
-    return {}
+            return marker, seg
+    return None, b""
 
 
 def _jpeg_segments(data: bytes):
@@ -476,7 +534,7 @@ def check_structure(data: bytes, fmt: str, path) -> None:
     elif fmt == "jpeg":
         if not data.startswith(_JPEG_SOI):
             raise InputError("not a JPEG file (no SOI marker FF D8)", file=str(path))
-        if not data.rstrip(b"\x00\r\n").endswith(_JPEG_EOI):
+        if not data.rstrip(b"\x00\r\n").endswith(_JPEG_EOI) and data.find(_JPEG_EOI, _first_scan(data)) < 0:
             raise InputError("truncated JPEG: the end-of-image marker FF D9 is missing", file=str(path))
     else:
         if not data.startswith(_TIFF_SIGNATURES):
@@ -486,11 +544,26 @@ def check_structure(data: bytes, fmt: str, path) -> None:
                 page = tif.pages[0]
                 end = max((o + c for o, c in zip(page.dataoffsets, page.databytecounts)), default=0)
                 expected = len(page.dataoffsets)
+                pages = image_metadata.full_resolution_pages(tif)
         except Exception as exc:                      # tifffile raises several types for a damaged directory
             raise InputError(f"corrupt or truncated TIFF: {exc}", file=str(path)) from exc
         if expected == 0 or end > len(data):
             raise InputError(f"truncated TIFF: image data ends at byte {end}, the file has {len(data)} bytes",
                              file=str(path))
+        if pages > 1:
+            raise InputError(f"a TIFF with {pages} pages: rvnoise augments one image per file and would drop the "
+                             f"other pages; split it into single-page files first (tiffsplit, tifffile)",
+                             file=str(path))
+
+
+def _first_scan(data: bytes) -> int:
+    """Offset of the first start-of-scan marker of a JPEG (the end of :func:`_jpeg_segments`); the entropy-coded
+    data after it cannot hold FF D9 (T.81 B.1.1.5: an FF there is followed by 00 or a restart marker), so an FF D9
+    after it ends the image even when a phone appended data (Samsung's trailer, a Motion Photo's MP4)."""
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF and data[pos + 1] != 0xDA:
+        pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
+    return pos
 
 
 # --- JPEG quality estimate -----------------------------------------------------------------------------------------

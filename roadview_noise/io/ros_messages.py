@@ -4,8 +4,8 @@ Messages are the deserialised objects of ``rosbags`` (ROS 1 and ROS 2 alike); ev
 (stamp, frame_id), ``format``, ``encoding``, ``is_bigendian``, ``is_dense``, the field layout — is carried over
 unchanged by the writers here, which return a new message of the same class.
 
-- CompressedImage: the ``data`` bytes are a JPEG or PNG file (``format`` names it, e.g. ``jpeg``,
-  ``bgr8; jpeg compressed bgr8``, ``png``), decoded and re-encoded exactly like image files
+- CompressedImage: the ``data`` bytes are a JPEG or PNG file (told by its signature, else by ``format``, e.g.
+  ``jpeg``, ``bgr8; jpeg compressed bgr8``, ``png``), decoded and re-encoded exactly like image files
   (:func:`..io.image.decode_image` / :func:`..io.image.encode_image`, JPEG quality estimated from the input).
 - Image: ``rgb8 bgr8 rgba8 bgra8 rgb16 bgr16 rgba16 bgra16 mono8 mono16 8UC1 8UC3 16UC1 16UC3`` are sRGB code values
   like an 8/16-bit PNG (``8UC3``/``16UC3`` in OpenCV's BGR order; ``16UC1`` is a 16-bit grey image on a camera
@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import InputError
 from ..types import CFA_PATTERNS, CameraFrame, CameraProfile, CloudLayout, PointCloud, RawEncoding, RawFrame
 from . import image as image_io
+from .png import PNG_SIGNATURE
 from .pointcloud import Column, _canonical_keys, cloud_from_columns, output_columns
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -87,12 +88,19 @@ def type_hint(msgtype: str) -> str:
     return ""
 
 
-def compressed_format(fmt: str, *, source: str) -> str:
-    """``jpeg`` | ``png`` from a CompressedImage ``format`` string (``compressedDepth`` is refused)."""
+def compressed_format(msg: Any, *, source: str) -> str:
+    """``jpeg`` | ``png`` of a CompressedImage: its data's signature, else its ``format`` string (publishers that
+    leave ``format`` empty or name another codec than they wrote); ``compressedDepth`` is refused."""
+    fmt = msg.format
     text = fmt.lower()
     if "compresseddepth" in text:
         raise InputError(f"CompressedImage format {fmt!r} is a compressed depth image, not a camera image",
                          file=source)
+    head = np.asarray(msg.data[:8], np.uint8).tobytes()
+    if head.startswith(b"\xff\xd8\xff"):
+        return "jpeg"
+    if head == PNG_SIGNATURE:
+        return "png"
     if "jpeg" in text or "jpg" in text:
         return "jpeg"
     if "png" in text:
@@ -138,7 +146,7 @@ def image_to_frame(msg: Any, msgtype: str, profile: CameraProfile | None, *, sou
     None until :func:`roadview_noise.camera_inputs.with_camera_inputs` resolves it). Levels of a Bayer mosaic
     default to 0 and the full scale of its sample type."""
     if msgtype == COMPRESSED_IMAGE:
-        fmt = compressed_format(msg.format, source=source)
+        fmt = compressed_format(msg, source=source)
         linear, encoding, alpha = image_io.decode_image(np.asarray(msg.data, np.uint8).tobytes(), fmt, source=source)
         return CameraFrame(linear, profile, encoding=encoding, alpha=alpha)
     layout = pixel_layout(msg.encoding, source=source)

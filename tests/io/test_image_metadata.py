@@ -70,3 +70,141 @@ def test_grey_and_cmyk_jpeg(tmp_path):
     ref = np.asarray(Image.open(tmp_path / "c.jpg").convert("RGB"), dtype=float)
     got = np.asarray(Image.open(tmp_path / "c_out.jpg").convert("RGB"), dtype=float) / 0.8 ** (1 / 2.2)
     assert np.abs(got - ref)[ref < 200].mean() < 6     # colours, not inverted CMYK
+
+
+# --- round 19 (rc35): what real camera files carry besides EXIF ------------------------------------------------------
+
+
+def test_jpeg_with_data_after_its_end_is_read(tmp_path):
+    """Phones append data after the end-of-image marker (Samsung's SEFH trailer, a Motion Photo's MP4): the image
+    is whole and was refused as truncated; a file cut inside its scan still is."""
+    src = tmp_path / "in.jpg"
+    _photo().save(src, quality=90)
+    data = src.read_bytes()
+    (tmp_path / "trailer.jpg").write_bytes(data + b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 4 + b"SEFT")
+    np.testing.assert_array_equal(read_image(tmp_path / "trailer.jpg")[0], read_image(src)[0])
+    (tmp_path / "cut.jpg").write_bytes(data[:len(data) // 2] + b"SEFT")
+    from roadview_noise.errors import InputError
+    with pytest.raises(InputError, match="cut.jpg.*FF D9"):
+        read_image(tmp_path / "cut.jpg")
+
+
+def test_png_text_colour_and_imagemagick_exif_chunks_are_kept(tmp_path):
+    """ImageMagick keeps a PNG's EXIF (orientation included) in a ``Raw profile type exif`` text chunk and Adobe
+    the XMP in iTXt; gAMA, cHRM, sRGB and pHYs say how to show it: all were dropped on write-back."""
+    from PIL import PngImagePlugin
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Raw profile type exif", "\nexif\n      26\n4578696600004d4d002a00000008000101120003000000010006")
+    info.add_itxt("XML:com.adobe.xmp", '<x:xmpmeta><tiff:Orientation>6</tiff:Orientation></x:xmpmeta>')
+    info.add(b"gAMA", (45455).to_bytes(4, "big"))
+    info.add(b"sRGB", b"\x00")
+    src, dst = tmp_path / "in.png", tmp_path / "out.png"
+    _photo().save(src, pnginfo=info, dpi=(300, 300))
+    _roundtrip(src, dst)
+    out = Image.open(dst)
+    assert out.text["Raw profile type exif"] == Image.open(src).text["Raw profile type exif"]
+    assert "Orientation>6" in out.text["XML:com.adobe.xmp"]
+    assert out.info["gamma"] == pytest.approx(0.45455) and round(out.info["dpi"][0]) == 300
+    assert "srgb" in out.info
+    out.load()                                          # every chunk well formed (CRCs checked)
+
+
+def test_tiff_orientation_resolution_and_description_are_kept(tmp_path):
+    """A TIFF's orientation tag was dropped on write-back (the output displays turned otherwise than the input),
+    with its resolution, make/model and description (non-ASCII text included, as Photoshop writes it)."""
+    import tifffile
+    src, dst = tmp_path / "in.tif", tmp_path / "out.tif"
+    codes = np.asarray(_photo())
+    tifffile.imwrite(src, codes, photometric="rgb", resolution=(300, 300), resolutionunit=2, metadata=None,
+                     extratags=[(274, "H", 1, 6, True), (271, "s", 0, "RoadCam", True),
+                                (270, 2, None, "caf\xc3\xa9 \xc2\xae".encode("latin-1"), True)])
+    _roundtrip(src, dst)
+    with tifffile.TiffFile(dst) as tif:
+        tags = tif.pages[0].tags
+        assert tags[274].value == 6 and tags[271].value == "RoadCam"
+        assert tags[282].value == (300, 1) and tags[296].value == 2
+        assert "caf" in tags[270].value
+    with tifffile.TiffFile(src, mode="r+") as tif:      # a resolution of 0/0 (tifffile cannot write it): left out
+        tif.pages[0].tags[282].overwrite((0, 0))
+    _roundtrip(src, dst)
+    with tifffile.TiffFile(dst) as tif:
+        assert tif.pages[0].tags[274].value == 6 and tif.pages[0].tags[282].value == (1, 1)
+
+
+def test_multi_page_tiff_is_refused_naming_its_pages(tmp_path):
+    """Only the first page was read and written: the others were lost without a word."""
+    import tifffile
+    from roadview_noise.errors import InputError
+    path = tmp_path / "stack.tif"
+    with tifffile.TiffWriter(path) as tif:
+        for k in range(3):
+            tif.write(np.full((8, 8), 40 * k, np.uint8), photometric="minisblack", metadata=None)
+    with pytest.raises(InputError, match="stack.tif.*3 pages"):
+        read_image(path)
+    one = tmp_path / "thumb.tif"                        # a full image and its reduced-resolution thumbnail: one image
+    with tifffile.TiffWriter(one) as tif:
+        tif.write(np.zeros((8, 8), np.uint8), photometric="minisblack", metadata=None)
+        tif.write(np.zeros((2, 2), np.uint8), photometric="minisblack", metadata=None, subfiletype=1)
+    assert read_image(one)[0].shape == (8, 8, 3)
+
+
+@pytest.mark.parametrize("space,mode,kept", [(b"GRAY", "LA", False), (b"GRAY", "L", True), (b"RGB ", "L", True),
+                                             (b"RGB ", "RGB", True), (b"CMYK", "RGB", False)])
+def test_icc_profile_of_another_colour_space_than_the_output_is_dropped(tmp_path, space, mode, kept):
+    """A grey + alpha PNG is written as RGBA: its grey profile does not describe RGB and was copied onto it; a CMYK
+    profile (a CMYK JPEG decoded to RGB) likewise. A profile the input could have is kept."""
+    ImageCms = pytest.importorskip("PIL.ImageCms")
+    icc = bytearray(ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes())
+    icc[16:20] = space
+    src, dst = tmp_path / "in.png", tmp_path / "out.png"
+    _photo().convert(mode).save(src, icc_profile=bytes(icc))
+    _, enc = _roundtrip(src, dst)
+    assert (enc.icc_profile == bytes(icc)) == kept
+    assert (Image.open(dst).info.get("icc_profile") == bytes(icc)) == kept
+
+
+def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
+    """OpenCV decodes 8-bit JPEGs only: a 12-bit one (libjpeg-turbo's monkey12.jpg; medical and some industrial
+    cameras) failed as "corrupt or unsupported variant"."""
+    from roadview_noise.errors import InputError
+    src = tmp_path / "in.jpg"
+    _photo().save(src, quality=90)
+    data = bytearray(src.read_bytes())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 4] = 12                                  # sample precision of the start-of-frame segment
+    (tmp_path / "p12.jpg").write_bytes(bytes(data))
+    with pytest.raises(InputError, match="p12.jpg.*a 12-bit JPEG"):
+        read_image(tmp_path / "p12.jpg")
+
+
+def test_palette_and_cmyk_tiff_are_read_in_colour_as_rgb(tmp_path):
+    """OpenCV reads a palette TIFF as the grey levels of its colours (green (0, 128, 0) came out as grey 75) and a
+    CMYK TIFF with an opaque alpha plane it adds (written back as RGBA); both are RGB now, as palette PNGs and CMYK
+    JPEGs are."""
+    import tifffile
+    index = (np.arange(12 * 10) % 4).astype(np.uint8).reshape(12, 10)
+    colormap = np.zeros((3, 256), np.uint16)
+    colormap[:, :4] = np.array([[0, 255, 0, 10], [128, 0, 0, 20], [0, 0, 255, 30]]) * 257
+    tifffile.imwrite(tmp_path / "pal.tif", index, photometric="palette", colormap=colormap)
+    linear, enc, alpha = read_image(tmp_path / "pal.tif")
+    assert enc.channels == 3 and alpha is None
+    from roadview_noise.physics import srgb
+    np.testing.assert_array_equal(srgb.linear_to_code(linear, 8),
+                                  np.asarray(Image.open(tmp_path / "pal.tif").convert("RGB")))
+    cmyk = np.asarray(_photo().convert("CMYK"))
+    tifffile.imwrite(tmp_path / "cmyk.tif", cmyk, photometric="separated")
+    _, enc = _roundtrip(tmp_path / "cmyk.tif", tmp_path / "cmyk_out.tif")
+    assert enc.channels == 3 and Image.open(tmp_path / "cmyk_out.tif").mode == "RGB"
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_grey_png_transparency_becomes_an_alpha_plane(tmp_path, bits):
+    """A grey PNG whose tRNS chunk makes one level transparent (PngSuite's ftbbn0g*, Pillow's l_trns.png) was read
+    opaque by OpenCV and written without it; its transparency is now an alpha plane (RGBA out, as grey + alpha)."""
+    grey = (np.arange(20 * 30) % 7 * 30).astype(np.uint8 if bits == 8 else np.uint16).reshape(20, 30)
+    src, dst = tmp_path / "in.png", tmp_path / "out.png"
+    Image.fromarray(grey).save(src, transparency=60)
+    _, enc = _roundtrip(src, dst)
+    assert enc.channels == 4
+    alpha = np.asarray(Image.open(dst))[..., 3]
+    np.testing.assert_array_equal(alpha == 0, grey == 60)

@@ -226,3 +226,16 @@ def test_bad_pointclouds_name_the_message():
     beyond = dataclasses.replace(msg, fields=[*msg.fields, pf(name="w", offset=46, datatype=7, count=1)])
     with pytest.raises(InputError, match="beyond point_step 48"):
         rm.cloud_columns(beyond, source="t")
+
+
+@pytest.mark.parametrize("ext,fmt", [(".jpg", ""), (".png", "jpeg"), (".jpg", "rgb8; png compressed rgb8")])
+def test_compressed_image_codec_from_its_bytes(ext, fmt):
+    """A publisher that leaves ``format`` empty or names another codec than it wrote (a PNG labelled ``jpeg``):
+    the message failed ("neither JPEG nor PNG", "not a JPEG file"); the data's signature decides now, and the
+    image is written back in the codec it came in, ``format`` unchanged."""
+    ok, buf = cv2.imencode(ext, RGB8[..., ::-1])
+    msg = T["sensor_msgs/msg/CompressedImage"](header=header(), format=fmt, data=buf.ravel())
+    frame = rm.image_to_frame(msg, rm.COMPRESSED_IMAGE, PROFILE, source="t")
+    assert frame.encoding.fmt == ("jpeg" if ext == ".jpg" else "png")
+    back = rm.frame_to_image(msg, rm.COMPRESSED_IMAGE, frame, source="t")
+    assert back.format == fmt and bytes(back.data[:2]) == buf.tobytes()[:2]

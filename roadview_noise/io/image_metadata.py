@@ -1,0 +1,135 @@
+"""Image metadata beyond the ICC profile and EXIF that a camera file carries and rvnoise writes back unchanged
+(:attr:`..types.ImageEncoding.metadata`), and the checks of what the pixels mean that OpenCV does not make.
+
+- PNG: the ancillary chunks that describe the image, not its encoding (PNG 3rd ed. §11.3): text (``tEXt``, ``zTXt``,
+  ``iTXt`` — where ImageMagick keeps the EXIF, ``Raw profile type exif``, and Adobe the XMP, both with the
+  orientation), ``pHYs`` (pixel size) and the colour chunks ``gAMA``, ``cHRM``, ``sRGB``, ``cICP`` (the same colour
+  encoding is written back). Left out: what depends on the colour type or palette (``tRNS`` is the alpha plane,
+  ``bKGD``, ``sBIT``, ``hIST``, ``sPLT``), ``tIME`` (the last modification) and animation chunks.
+- TIFF: orientation (274), description, make, model, date, artist, copyright, XMP (700) and the resolution.
+- An ICC profile whose colour space the written image cannot have (a grey profile on the RGBA file a grey + alpha
+  PNG becomes, a CMYK profile on the RGB file OpenCV decodes a CMYK JPEG to) is dropped: ICC.1 §7.2.6, a viewer
+  would reject or misread it (an RGB profile on a grey file is kept, as the input had it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import tifffile
+
+from .png import PNG_SIGNATURE
+
+_PNG_KEPT = (b"tEXt", b"zTXt", b"iTXt", b"pHYs", b"gAMA", b"cHRM", b"sRGB", b"cICP")
+_TIFF_KEPT = (270, 271, 272, 274, 306, 315, 700, 33432)  # description … orientation, datetime, artist, XMP, copyright
+_TIFF_RESOLUTION = (282, 283, 296)                       # XResolution, YResolution, ResolutionUnit
+_ICC_NEVER_WRITTEN = (b"CMYK", b"CMY ")                     # ICC data colour spaces rvnoise never writes
+
+
+def _png_chunk_spans(data: bytes):
+    """``(type, offset of the chunk, length of its body)`` of a PNG's chunks before IEND, in file order."""
+    pos = len(PNG_SIGNATURE)
+    while pos + 8 <= len(data):
+        length, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
+        if kind == b"IEND":
+            return
+        yield kind, pos, length
+        pos += 12 + length
+
+
+def png_chunks(data: bytes) -> tuple[bytes, ...]:
+    """The kept ancillary chunks of a PNG file (module docstring), whole (length, type, body, CRC), in file order."""
+    return tuple(data[pos:pos + 12 + length] for kind, pos, length in _png_chunk_spans(data) if kind in _PNG_KEPT)
+
+
+def png_grey_key(data: bytes, dtype) -> int | None:
+    """The grey level a grey PNG's ``tRNS`` chunk makes transparent (PNG 3rd ed. §11.3.1.5), scaled as OpenCV
+    decodes grey of 1–4 bits (to 0–255); None for another colour type or without ``tRNS``. OpenCV ignores it, so a
+    transparent background came out opaque (an RGB PNG's ``tRNS`` it turns into an alpha plane)."""
+    bit_depth, colour_type = data[24], data[25]
+    if colour_type != 0:
+        return None
+    for kind, pos, length in _png_chunk_spans(data):
+        if kind == b"tRNS" and length == 2:
+            key = int.from_bytes(data[pos + 8:pos + 10], "big")
+            return key * 255 // (2 ** bit_depth - 1) if bit_depth < 8 and np.dtype(dtype) == np.uint8 else key
+        if kind == b"IDAT":
+            return None
+    return None
+
+
+def embed_png_chunks(data: bytes, chunks: tuple[bytes, ...]) -> bytes:
+    """PNG bytes with ``chunks`` right after IHDR (every kept chunk may precede PLTE and IDAT)."""
+    if not chunks:
+        return data
+    ihdr_end = len(PNG_SIGNATURE) + 12 + int.from_bytes(data[8:12], "big")
+    return data[:ihdr_end] + b"".join(chunks) + data[ihdr_end:]
+
+
+def tiff_tags(page) -> tuple:
+    """The kept tags of a TIFF page as tifffile ``extratags`` ``(code, dtype, count, value, True)``, and the
+    resolution ``((x, y), unit)`` last when the file states a valid one (rationals with non-zero denominators)."""
+    kept = tuple((t.code, t.dtype, None if t.dtype == 2 else t.count, _tag_value(t), True) for t in page.tags
+                 if t.code in _TIFF_KEPT)
+    tags = page.tags
+    if all(code in tags and _rational(tags[code].value) for code in _TIFF_RESOLUTION[:2]):
+        unit = tags[296].value if 296 in tags else 2
+        kept += (("resolution", (tags[282].value, tags[283].value), int(unit)),)
+    return kept
+
+
+def _rational(value) -> bool:
+    """True for a TIFF RATIONAL tifffile can write back: (numerator, denominator > 0)."""
+    return isinstance(value, tuple) and len(value) == 2 and value[1] > 0 and value[0] >= 0
+
+
+def _tag_value(tag):
+    """A tag's value as tifffile writes it back: an ASCII tag's text as bytes (tifffile refuses a ``str`` beyond
+    7-bit ASCII, as Photoshop's ``®`` in its ImageDescription), the orientation as a plain int."""
+    if tag.dtype == 2:
+        return tag.value.encode("utf-8", "surrogateescape") if isinstance(tag.value, str) else bytes(tag.value)
+    return int(tag.value) if tag.code == 274 else tag.value
+
+
+def tiff_write_args(metadata: tuple) -> dict:
+    """tifffile ``write`` arguments that put :func:`tiff_tags` back."""
+    extratags = [t for t in metadata if t[0] != "resolution"]
+    args = {"extratags": extratags} if extratags else {}
+    for t in metadata:
+        if t[0] == "resolution":
+            args.update(resolution=t[1], resolutionunit=t[2])
+    return args
+
+
+def fitting_icc(icc: bytes | None, channels: int) -> bytes | None:
+    """``icc`` unless its data colour space (header bytes 16–19) is one an image of ``channels`` written channels
+    cannot have: CMYK, or grey on colour (other profiles are copied as they came)."""
+    space = (icc or b"")[16:20]
+    if space in _ICC_NEVER_WRITTEN or (space == b"GRAY" and channels != 1):
+        return None
+    return icc
+
+
+def full_resolution_pages(tif: tifffile.TiffFile) -> int:
+    """How many full-resolution images a TIFF holds (a multi-page file, a stack: refused, as rvnoise reads one image
+    per file and would drop the others); reduced-resolution pages (thumbnails, NewSubfileType bit 0) do not count."""
+    return sum(1 for page in tif.pages if not int(getattr(page, "subfiletype", 0)) & 1)
+
+
+def orientation(encoding) -> int:
+    """The EXIF/TIFF orientation (274) of a file as read (:class:`..types.ImageEncoding`): 1 = stored upright, 2–8 a
+    viewer turns or mirrors the stored pixels to show them (CIPA DC-008 §4.6.4); 1 when the file states none."""
+    for tag in encoding.metadata if encoding.fmt == "tiff" else ():
+        if tag[0] == 274:
+            return int(tag[3])
+    exif = encoding.exif or b""
+    if exif[:4] not in (b"II*\x00", b"MM\x00*"):
+        return 1
+    order = "little" if exif[:2] == b"II" else "big"
+    ifd = int.from_bytes(exif[4:8], order)
+    count = int.from_bytes(exif[ifd:ifd + 2], order)
+    for k in range(count):
+        entry = exif[ifd + 2 + 12 * k:ifd + 14 + 12 * k]
+        if len(entry) == 12 and int.from_bytes(entry[:2], order) == 274:
+            value = int.from_bytes(entry[8:10], order)
+            return value if 1 <= value <= 8 else 1
+    return 1
