@@ -238,8 +238,9 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     fields = {**cloud.fields, "intensity": intensity[:total]}
     origin, attributes = origin[:total], cloud.attributes
     if n_removed and grid:
-        fields = {k: (v if k in ("ring", "intensity") else np.where(removed, np.zeros((), v.dtype), v))
-                  for k, v in fields.items()}
+        fields = {k: (v if k in ("ring", "intensity") else
+                      np.where(removed.reshape(-1, *(1,) * (v.ndim - 1)), np.zeros((), v.dtype), v))
+                  for k, v in fields.items()}                # (a field of COUNT > 1, PCL's `_` padding: N × count)
     if not (n_removed or len(cells)) or grid:
         origin = None                                  # point i is input point i
     else:
