@@ -53,3 +53,26 @@ def test_organised_cloud_with_pcl_padding_fields_loses_returns_to_rain(tmp_path)
     back = read_pointcloud(tmp_path / "out.pcd")
     assert back.grid_shape == rec.shape
     np.testing.assert_array_equal(back.fields["ring"], rec["ring"].ravel())
+
+
+def test_empty_cells_of_another_sensors_grid_take_its_beams_directions(tmp_path):
+    """A 16-beam organised cloud (±16.6°) read with the default OS1-128 profile (128 beams, warned): fog's returns
+    on its no-return cells lie on the cloud's own beams, measured from its returns (elevation and column azimuth
+    within 0.01°). Before: on the profile's first 16 beams (+22° … +17°, up to 33° off; a real OS-0-32 ouster-ros
+    cloud's fog points up to 56° off)."""
+    rec = ouster_ros_pcd(tmp_path / "in.pcd")
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, records = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k",
+                                sequence_id="s", metrics=False)
+    empty = np.isnan(rec["x"]).ravel()
+    filled = empty & out.positions_m.any(axis=1)
+    assert filled.sum() > 0.5 * empty.sum()
+    p = out.positions_m[filled]
+    beams, columns = rec.shape
+    el = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
+    az = np.degrees(np.arctan2(p[:, 1], p[:, 0]))
+    cell = np.flatnonzero(filled)
+    want_el = np.linspace(16.6, -16.6, beams)[cell // columns]
+    want_az = -360.0 * (cell % columns) / columns
+    np.testing.assert_allclose(el, want_el, atol=0.01)
+    np.testing.assert_allclose((az - want_az + 180) % 360 - 180, 0, atol=0.01)

@@ -52,6 +52,42 @@ def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[fl
     return best[1], best[2], best[3]
 
 
+_MEASURED_MIN_RANGE_M = 2.0    # nearer returns' directions carry the beam-origin offset (15 mm: 0.4° at 2 m)
+
+
+def _measured_beam_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Unit vectors of no-return cells ``idx`` from the grid's own returns beyond 2 m: the mean elevation of the
+    cell's beam (ring field or row) and the azimuth of its column, ``φ0 + sign·2πc/W`` fitted on every return, plus
+    the beam's mean residual (its azimuth offset, staggered grids); a beam without returns takes the nearest beam's
+    values (linear in the beam index)."""
+    rows, cols = cloud.grid_shape
+    ring = (np.asarray(cloud.fields["ring"]).astype(np.intp) if "ring" in cloud.fields
+            else np.arange(rows * cols) // cols)
+    p = cloud.positions_m
+    valid = np.flatnonzero(has_return & (np.einsum("ij,ij->i", p, p) > _MEASURED_MIN_RANGE_M ** 2))
+    if len(valid) == 0:
+        raise ModelError(f"the {rows}×{cols} grid does not fit the {cloud.profile.channels} beams of profile "
+                         f"{cloud.profile.name!r} and has no return to measure its beams' directions from")
+    q = p[valid]
+    phi = np.arctan2(q[:, 1], q[:, 0])
+    el = np.arctan2(q[:, 2], np.hypot(q[:, 0], q[:, 1]))
+    col_phase = 2 * np.pi * (valid % cols) / cols
+    fits = [np.exp(1j * (phi - sign * col_phase)).mean() for sign in (-1.0, 1.0)]
+    sign = -1.0 if abs(fits[0]) >= abs(fits[1]) else 1.0
+    residual = np.exp(1j * (phi - sign * col_phase))                   # φ0 + the beam's own offset
+    beams = max(int(ring.max()) + 1, rows)
+    r = ring[valid]
+    counts = np.bincount(r, minlength=beams)
+    seen = np.flatnonzero(counts)
+    mean_el = np.bincount(r, el, beams)[seen] / counts[seen]
+    mean_offset = np.angle(np.bincount(r, residual.real, beams) + 1j * np.bincount(r, residual.imag, beams))[seen]
+    target = ring[idx]
+    beam_el = np.interp(target, seen, mean_el)
+    beam_offset = np.interp(target, seen, np.unwrap(mean_offset))
+    az = beam_offset + sign * 2 * np.pi * (idx % cols) / cols
+    return np.stack([np.cos(beam_el) * np.cos(az), np.cos(beam_el) * np.sin(az), np.sin(beam_el)], axis=1)
+
+
 def _rings(cloud: PointCloud, idx: np.ndarray, profile: LidarProfile) -> np.ndarray:
     rows, cols = cloud.grid_shape
     ring = np.asarray(cloud.fields["ring"])[idx].astype(np.intp) if "ring" in cloud.fields else idx // cols
@@ -63,8 +99,12 @@ def _rings(cloud: PointCloud, idx: np.ndarray, profile: LidarProfile) -> np.ndar
 
 def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Unit vectors of no-return cells ``idx`` of a full grid: elevation of the cell's beam (ring field or row),
-    azimuth of its column (:func:`_column_azimuth_model`). The mm-scale beam-origin offsets are neglected."""
+    azimuth of its column (:func:`_column_azimuth_model`). The mm-scale beam-origin offsets are neglected. A grid
+    whose row count is not the profile's beam count (another sensor's: an OS-0-32 read with the default OS1-128)
+    gets each beam's direction from its own returns (:func:`_measured_beam_directions`)."""
     profile = cloud.profile
+    if cloud.grid_shape[0] != profile.channels:
+        return _measured_beam_directions(cloud, has_return, idx)
     phi0, sign, staggered = _column_azimuth_model(cloud, has_return)
     ring = _rings(cloud, idx, profile)
     cols = cloud.grid_shape[1]
