@@ -1,15 +1,20 @@
 """LiDAR clouds as ROS drivers lay them out, built synthetically: ouster-ros' organised ``ouster_ros::Point``
 clouds (``x y z intensity t reflectivity ring ambient range``, NaN or zero x/y/z for no-return cells) saved by
-PCL with its ``_`` padding fields (COUNT > 1)."""
+PCL with its ``_`` padding fields (COUNT > 1); a VLP-16's ``x y z intensity`` list read with the default profile."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
+import pytest
 
 from roadview_noise.compound import apply_models
 from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
 from roadview_noise.profiles.lidar import load_lidar_profile
+from roadview_noise.physics.firing_grid import FiringGridWarning, firing_grid
 from roadview_noise.registry import get_model
+from roadview_noise.types import PointCloud
 
 OUSTER_POINT = np.dtype({"names": ["x", "y", "z", "intensity", "t", "reflectivity", "ring", "ambient", "range"],
                          "formats": ["<f4", "<f4", "<f4", "<f4", "<u4", "<u2", "<u2", "<u2", "<u4"],
@@ -76,3 +81,82 @@ def test_empty_cells_of_another_sensors_grid_take_its_beams_directions(tmp_path)
     want_az = -360.0 * (cell % columns) / columns
     np.testing.assert_allclose(el, want_el, atol=0.01)
     np.testing.assert_allclose((az - want_az + 180) % 360 - 180, 0, atol=0.01)
+
+
+def velodyne_list(beams: int, low_deg: float, high_deg: float, columns: int = 1800, seed: int = 0) -> PointCloud:
+    """A spinning LiDAR's ``x y z intensity`` point list (pcl::PointXYZI, no ring field): ``beams`` evenly spread
+    from ``low_deg`` to ``high_deg``, a return on 90 % of the firings, 1.5–50 m away (log-uniform: near returns,
+    whose elevations the profile's beam-origin offsets turn, spread over the profile's finer beams as a real list's do)."""
+    rng = np.random.default_rng(seed)
+    el = np.deg2rad(np.linspace(low_deg, high_deg, beams))
+    ring, col = np.divmod(np.arange(beams * columns), columns)
+    az = -2 * np.pi * col / columns
+    r = np.exp(rng.uniform(np.log(1.5), np.log(50), len(ring)))
+    pos = r[:, None] * np.stack([np.cos(el[ring]) * np.cos(az), np.cos(el[ring]) * np.sin(az), np.sin(el[ring])], 1)
+    keep = rng.random(len(ring)) < 0.9
+    return PointCloud(pos[keep], {"intensity": rng.integers(1, 100, keep.sum()).astype(np.float32)}, "lidar",
+                      load_lidar_profile("os1-128"))
+
+
+def test_list_of_a_sensor_with_fewer_beams_is_warned():
+    """A 16-beam list (±15°, a VLP-16's ``x y z intensity`` as PCL tools save it) read with the OS1-128 profile fills
+    a few % of its 128-beam firing grid: a FiringGridWarning says the sensor has fewer beams (a real VLP-16 list:
+    8 % filled, fog 30 m turned its 14 868 points into 188 122 without a word). A 128-beam list is not warned."""
+    with pytest.warns(FiringGridWarning, match=r"fill \d+% of the 128x1800 firing grid .*fewer beams"):
+        grid = firing_grid(velodyne_list(16, -15, 15), load_lidar_profile("os1-128"))
+    assert grid.columns == 1800
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FiringGridWarning)
+        firing_grid(velodyne_list(128, -21, 21, columns=1024), load_lidar_profile("os1-128"))
+
+
+XYZIRT = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
+                   "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"], "offsets": [0, 4, 8, 12, 16, 18],
+                   "itemsize": 22})
+
+
+def velodyne_organised_pcd(path, firings: int = 600, seed: int = 0) -> np.ndarray:
+    """velodyne_pointcloud's organised PointXYZIRT cloud as pcl_ros saves it: a row per firing, a column per laser
+    (in the VLP-16's firing order, ring = elevation rank), NaN x/y/z for no return, ``time`` s since the scan."""
+    rng = np.random.default_rng(seed)
+    ring_of_laser = np.array([0, 8, 1, 9, 2, 10, 3, 11, 4, 12, 5, 13, 6, 14, 7, 15])
+    el = np.deg2rad(-15 + 2 * ring_of_laser)[None, :]
+    az = (-2 * np.pi * np.arange(firings) / firings)[:, None]
+    r = rng.uniform(3, 60, (firings, 16))
+    hit = rng.random((firings, 16)) > 0.4
+    rec = np.zeros((firings, 16), XYZIRT)
+    for name, v in zip("xyz", (np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0 * az)):
+        rec[name] = np.where(hit, r * v, np.nan)
+    rec["intensity"] = np.where(hit, rng.integers(1, 100, hit.shape), 0)
+    rec["ring"] = ring_of_laser[None, :]
+    rec["time"] = (np.arange(firings) * 0.1 / firings)[:, None]
+    path.write_bytes(f"VERSION 0.7\nFIELDS x y z intensity ring time\nSIZE 4 4 4 4 2 4\nTYPE F F F F U F\n"
+                     f"COUNT 1 1 1 1 1 1\nWIDTH 16\nHEIGHT {firings}\nVIEWPOINT 0 0 0 1 0 0 0\n"
+                     f"POINTS {rec.size}\nDATA binary\n".encode() + rec.tobytes())
+    return rec
+
+
+def test_velodyne_organised_pcd_is_read_as_beams_by_firings(tmp_path):
+    """A PCD stored a row per firing (ring constant down each column) is read as the 16 × firings grid, rows in ring
+    order, and written back a row per firing; fog's returns on its no-return cells lie on their firing's azimuth.
+    Before: read as a 600 × 16 grid of 600 "beams", fog points were put at random azimuths (real VLP-16 scan: median
+    103° off their firing's)."""
+    rec = velodyne_organised_pcd(tmp_path / "in.pcd")
+    cloud = read_pointcloud(tmp_path / "in.pcd")
+    assert cloud.grid_shape == (16, 600)
+    assert (np.asarray(cloud.fields["ring"]).reshape(16, 600) == np.arange(16)[:, None]).all()
+    write_pointcloud(tmp_path / "back.pcd", cloud, effect="none")
+    back = (tmp_path / "back.pcd").read_bytes()
+    assert b"WIDTH 16\nHEIGHT 600\n" in back and back.endswith(rec.tobytes())
+    out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud.replace(profile=load_lidar_profile(
+        {"base": "hdl-32e", "beam_elevation_deg": list(range(-15, 16, 2)), "beam_azimuth_offset_deg": [0] * 16,
+         "columns": 600})), seed=1, key="k", sequence_id="s", metrics=False)
+    write_pointcloud(tmp_path / "out.pcd", out)
+    got = read_pointcloud(tmp_path / "out.pcd")
+    stored = np.frombuffer((tmp_path / "out.pcd").read_bytes()[-rec.size * 23:],
+                           np.dtype(XYZIRT.descr + [("rv_effect", "u1")])).reshape(rec.shape)
+    filled = np.isnan(rec["x"]) & np.isfinite(stored["x"])
+    assert filled.sum() > 0.5 * np.isnan(rec["x"]).sum() and got.grid_shape == (16, 600)
+    az = np.arctan2(stored["y"], stored["x"])[filled]
+    firing = (-2 * np.pi * np.arange(600) / 600)[np.nonzero(filled)[0]]
+    assert np.abs(np.angle(np.exp(1j * (az - firing)))).max() < np.deg2rad(0.5)
