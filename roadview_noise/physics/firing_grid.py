@@ -37,8 +37,8 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import atan2, has_return, ring_index, ring_search_table, ring_source, sorted_beam, \
-    tangent_position
+from .lidar_geometry import atan2, beam_means, elevation_rad, far_returns, has_return, ring_index, \
+    ring_search_table, ring_source, sorted_beam, tangent_position
 from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
@@ -72,6 +72,13 @@ class FiringGrid:
     firing_rad: np.ndarray
     out_of_view: int = 0        # azimuth bins (of ``columns``) farther than the view margin from every return
     gaps_columns: int | None = None     # the count the gaps gave when the profile's won (:func:`undecided_columns`)
+    measured_elevation_rad: np.ndarray | None = None    # per beam, from the list (:func:`measured_elevations`)
+
+    def elevation_rad(self) -> np.ndarray:
+        """Each beam's elevation: the profile's, or the list's own when its ring field counts other beams."""
+        if self.measured_elevation_rad is not None:
+            return self.measured_elevation_rad
+        return np.deg2rad(np.asarray(self.profile.beam_elevation_deg, dtype=np.float64))
 
     def directions(self, cells: np.ndarray, range_m: np.ndarray | None = None) -> np.ndarray:
         """(len(cells), 3) unit vectors of the empty cells ``cells`` (indices into ``ring``/``column``), times
@@ -81,7 +88,7 @@ class FiringGrid:
         step = TWO_PI / self.columns
         col_angle = -np.arange(self.columns) * step
         beam_angle = -self.shift * step - np.deg2rad(np.asarray(self.profile.beam_azimuth_offset_deg))
-        elevation = np.deg2rad(np.asarray(self.profile.beam_elevation_deg))
+        elevation = self.elevation_rad()
         scale = np.ones(len(cells)) if range_m is None else np.asarray(range_m, dtype=np.float64)
         return _directions(np.asarray(cells, dtype=np.int64), self.ring, self.column, scale, np.cos(col_angle),
                            np.sin(col_angle), np.cos(beam_angle), np.sin(beam_angle), np.cos(elevation),
@@ -409,7 +416,24 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
     the points' ranges if known, 0 where a point is no return; ``points``: the list read already
     (:func:`list_points`)."""
     measured = firing_columns(cloud, profile, range_m, points)
-    return measured if isinstance(measured, str) else empty_rays(measured, profile)
+    if isinstance(measured, str):
+        return measured
+    grid = empty_rays(measured, profile)
+    if ring_source(cloud) == "field" and int(measured.ring.max()) + 1 != profile.channels:
+        grid = dataclasses.replace(grid, measured_elevation_rad=measured_elevations(cloud, measured, profile))
+    return grid
+
+
+def measured_elevations(cloud, measured: FiringColumns, profile: LidarProfile) -> np.ndarray:
+    """Per beam of ``profile``, the mean elevation of the list's returns beyond 2 m on that ring (rings without: the
+    nearest rings'). For a list whose ring field counts other beams than the profile's (a VLP-16's 16 rings read with
+    the default OS1-128): its empty rays lie on its own beams, not on the profile's first ones (real VLP-16 list under
+    fog: 26.7° off, median)."""
+    p = np.asarray(cloud.positions_m, dtype=np.float64)
+    far = far_returns(p, measured.valid)
+    if len(far) == 0:
+        return np.deg2rad(np.asarray(profile.beam_elevation_deg, dtype=np.float64))
+    return beam_means(measured.ring[far], elevation_rad(p[far]), profile.channels)
 
 
 def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:

@@ -16,7 +16,7 @@ from .compiled import jit
 from .firing_grid import FiringGrid
 from .laser_order import FIRING_COLUMN
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
-from .lidar_geometry import RING
+from .lidar_geometry import RING, beam_means, elevation_rad, far_returns
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
@@ -52,38 +52,26 @@ def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[fl
     return best[1], best[2], best[3]
 
 
-_MEASURED_MIN_RANGE_M = 2.0    # nearer returns' directions carry the beam-origin offset (15 mm: 0.4° at 2 m)
-
-
 def _measured_beam_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Unit vectors of no-return cells ``idx`` from the grid's own returns beyond 2 m: the mean elevation of the
     cell's beam (ring field or row) and the azimuth of its column, ``φ0 + sign·2πc/W`` fitted on every return, plus
-    the beam's mean residual (its azimuth offset, staggered grids); a beam without returns takes the nearest beam's
-    values (linear in the beam index)."""
+    the beam's mean residual (its azimuth offset, staggered grids); a beam without returns takes the nearest beams'
+    values (:func:`lidar_geometry.beam_means`)."""
     rows, cols = cloud.grid_shape
     ring = (np.asarray(cloud.fields["ring"]).astype(np.intp) if "ring" in cloud.fields
             else np.arange(rows * cols) // cols)
     p = cloud.positions_m
-    valid = np.flatnonzero(has_return & (np.einsum("ij,ij->i", p, p) > _MEASURED_MIN_RANGE_M ** 2))
+    valid = far_returns(p, has_return)
     if len(valid) == 0:
         raise ModelError(f"the {rows}×{cols} grid does not fit the {cloud.profile.channels} beams of profile "
                          f"{cloud.profile.name!r} and has no return to measure its beams' directions from")
-    q = p[valid]
-    phi = np.arctan2(q[:, 1], q[:, 0])
-    el = np.arctan2(q[:, 2], np.hypot(q[:, 0], q[:, 1]))
+    phi = np.arctan2(p[valid, 1], p[valid, 0])
     col_phase = 2 * np.pi * (valid % cols) / cols
     fits = [np.exp(1j * (phi - sign * col_phase)).mean() for sign in (-1.0, 1.0)]
     sign = -1.0 if abs(fits[0]) >= abs(fits[1]) else 1.0
-    residual = np.exp(1j * (phi - sign * col_phase))                   # φ0 + the beam's own offset
     beams = max(int(ring.max()) + 1, rows)
-    r = ring[valid]
-    counts = np.bincount(r, minlength=beams)
-    seen = np.flatnonzero(counts)
-    mean_el = np.bincount(r, el, beams)[seen] / counts[seen]
-    mean_offset = np.angle(np.bincount(r, residual.real, beams) + 1j * np.bincount(r, residual.imag, beams))[seen]
-    target = ring[idx]
-    beam_el = np.interp(target, seen, mean_el)
-    beam_offset = np.interp(target, seen, np.unwrap(mean_offset))
+    beam_el = beam_means(ring[valid], elevation_rad(p[valid]), beams)[ring[idx]]
+    beam_offset = beam_means(ring[valid], np.exp(1j * (phi - sign * col_phase)), beams)[ring[idx]]   # φ0 + offset
     az = beam_offset + sign * 2 * np.pi * (idx % cols) / cols
     return np.stack([np.cos(beam_el) * np.cos(az), np.cos(beam_el) * np.sin(az), np.sin(beam_el)], axis=1)
 
