@@ -1,6 +1,8 @@
-"""LiDAR clouds as ROS drivers lay them out, built synthetically: ouster-ros' organised ``ouster_ros::Point``
-clouds (``x y z intensity t reflectivity ring ambient range``, NaN or zero x/y/z for no-return cells) saved by
-PCL with its ``_`` padding fields (COUNT > 1); a VLP-16's ``x y z intensity`` list read with the default profile."""
+"""Clouds as ROS drivers and their users lay them out, built synthetically: ouster-ros' organised
+``ouster_ros::Point`` clouds (``x y z intensity t reflectivity ring ambient range``, NaN or zero x/y/z for no-return
+cells) saved by PCL with its ``_`` padding fields (COUNT > 1); velodyne_pointcloud's organised clouds (a row per
+firing); VLP-16 lists with and without ``ring`` read with the default profile; radar PCDs with RadarScenes' velocity
+names."""
 
 from __future__ import annotations
 
@@ -180,3 +182,26 @@ def test_empty_rays_of_a_list_with_another_sensors_rings_lie_on_its_beams():
     p = out.positions_m[added]
     el = np.degrees(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])))
     np.testing.assert_allclose(el, np.linspace(-15, 15, 16)[np.asarray(out.fields["ring"])[added]], atol=0.05)
+
+
+def test_radar_cloud_with_radarscenes_velocity_names_is_read_with_its_doppler(tmp_path):
+    """A radar PCD naming its radial velocities as RadarScenes does (``vr``, ``vr_compensated``: the ``radar_data``
+    columns, kept by many ARS 408 exports) is read with its Doppler and the ego velocity fitted from it; before, both
+    were ignored in silence (every cell at Doppler 0, ego velocity 0, clutter given another detection's ``vr``)."""
+    from roadview_noise.physics.radar_frame import ego_velocity_from_data
+
+    rng = np.random.default_rng(0)
+    n, az = 80, rng.uniform(-0.8, 0.8, 80)
+    r = rng.uniform(2, 80, n)
+    rec = np.zeros(n, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rcs", "<f4"), ("vr", "<f4"),
+                       ("vr_compensated", "<f4")])
+    rec["x"], rec["y"], rec["rcs"] = r * np.cos(az), r * np.sin(az), rng.uniform(-10, 30, n)
+    rec["vr"] = rng.uniform(-12, 2, n)
+    rec["vr_compensated"] = rec["vr"] + 8 * rec["x"] / r                      # ego 8 m/s along x
+    (tmp_path / "r.pcd").write_bytes(b"VERSION 0.7\nFIELDS x y z rcs vr vr_compensated\nSIZE 4 4 4 4 4 4\n"
+                                     b"TYPE F F F F F F\nCOUNT 1 1 1 1 1 1\nWIDTH 80\nHEIGHT 1\nPOINTS 80\n"
+                                     b"DATA binary\n" + rec.tobytes())
+    cloud = read_pointcloud(tmp_path / "r.pcd", sensor="radar")
+    np.testing.assert_array_equal(cloud.fields["v_r_m_per_s"], rec["vr"])
+    ego, rms = ego_velocity_from_data(cloud, planar=True)
+    np.testing.assert_allclose(ego[:2], [8, 0], atol=1e-3)

@@ -47,8 +47,8 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "ring": ("ring", "channel", "laser_id"),
     "time_s": ("time_s", "time"),          # seconds (Velodyne ROS convention); Ouster `t` (ns) keeps its name
     "rcs_dbsm": ("rcs_dbsm", "rcs", "RCS"),
-    "v_r_m_per_s": ("v_r_m_per_s", "v_r", "velocity", "doppler"),
-    "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated"),
+    "v_r_m_per_s": ("v_r_m_per_s", "v_r", "vr", "velocity", "doppler"),
+    "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated", "vr_compensated"),   # vr…: RadarScenes' names
     "snr_db": ("snr_db", "snr"),
     "power_db": ("power_db", "power"),
 }
