@@ -456,7 +456,7 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
 def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:
     """A :class:`FiringGridWarning` when returns fill under :data:`MIN_FILLED_FRACTION` of the grid's cells in view
     on its fired beams: a list of a sensor with fewer beams than the profile (a VLP-16's ``x y z intensity`` list read
-    with the default OS1-128: 6 % filled, fog added 12× its points on the beams between its own)."""
+    with the default OS1-128: 8 % filled, fog added 12× its points on the beams between its own)."""
     if cells and empty > (1 - MIN_FILLED_FRACTION) * cells:
         warnings.warn(f"the list's returns fill {1 - empty / cells:.0%} of the {profile.channels}x{columns} firing "
                       f"grid of profile {profile.name!r}: its sensor has fewer beams than the profile? Weather then "

@@ -185,6 +185,7 @@ def beam_means(ring: np.ndarray, values: np.ndarray, beams: int) -> np.ndarray:
 
 
 def elevation_rad(positions_m: np.ndarray) -> np.ndarray:
+    """Elevation (rad) of each point (N, 3) seen from the origin."""
     p = positions_m
     return np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
 
