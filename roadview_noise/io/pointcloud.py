@@ -138,7 +138,9 @@ def firing_row_columns(ring: np.ndarray) -> tuple[int, ...] | None:
     when the cloud stores a row per firing and a column per laser (Velodyne's organised clouds, rslidar_sdk's unless
     ``send_by_rows``: a ring constant down each column, not along each row); else None (rows are beams)."""
     h, w = ring.shape
-    if w < 2 or not (ring == ring[:1]).all() or (ring == ring[:, :1]).all():
+    if w < 2 or (ring[:, 0] != ring[0, 0]).any():             # (rows are beams: told from one column, O(h))
+        return None
+    if not (ring == ring[:1]).all() or (ring == ring[:, :1]).all():
         return None
     return tuple(int(c) for c in np.argsort(ring[0], kind="stable"))
 
@@ -152,8 +154,10 @@ def beam_row_order(height: int, width: int, lasers_by_ring: tuple[int, ...]) -> 
 def _as_beam_rows(columns: list[Column], grid_shape, field_map, path):
     """``columns`` in beams × firings order when an organised PCD stores a row per firing (a Velodyne organised cloud
     saved by pcl_ros), with the grid's shape and the layout's ``lasers_by_ring``; else as read."""
+    if grid_shape is None:
+        return columns, grid_shape, None
     keys = _canonical_keys([c[0] for c in columns], field_map, path)
-    if grid_shape is None or "ring" not in keys or columns[keys.index("ring")][2].ndim != 1:
+    if "ring" not in keys or columns[keys.index("ring")][2].ndim != 1:
         return columns, grid_shape, None
     lasers = firing_row_columns(columns[keys.index("ring")][2].reshape(grid_shape))
     if lasers is None:
