@@ -51,7 +51,7 @@ WHOLE_STEPS = 0.15              # a gap within this of a whole number of steps i
 FIT_STEPS = 0.25                # gaps within this of a whole number of steps refit the step
 UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it to win over twice its columns
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
-MIN_FILLED_FRACTION = 0.2       # fewer returns per fired cell in view: a sensor with fewer beams (warned)
+MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returning beams: fewer beams (warned)
 
 
 @dataclass(frozen=True, eq=False)
@@ -446,17 +446,19 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     m = VIEW_MARGIN_STEPS
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     words = occupied.reshape(-1).view(np.uint64) if columns % 8 == 0 else np.zeros(0, np.uint64)
-    fires = _firing_beams(occupied.any(axis=1), profile)
-    er, ec = _empty_cells(occupied, words, fires, in_view, shift, offsets, step)
-    _warn_sparse(len(er), int(np.count_nonzero(fires)) * int(np.count_nonzero(in_view)), columns, profile)
+    returned = occupied.any(axis=1)
+    er, ec = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets, step)
+    _warn_sparse(int(np.count_nonzero(returned[er])), int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
+                 columns, profile)
     return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
                       int(np.count_nonzero(~in_view)), measured.gaps_columns)
 
 
 def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:
     """A :class:`FiringGridWarning` when returns fill under :data:`MIN_FILLED_FRACTION` of the grid's cells in view
-    on its fired beams: a list of a sensor with fewer beams than the profile (a VLP-16's ``x y z intensity`` list read
-    with the default OS1-128: 8 % filled, fog added 12× its points on the beams between its own)."""
+    on the beams that returned (``empty`` of ``cells``; the sky above them aside): a list of a sensor with fewer beams
+    than the profile (a VLP-16's ``x y z intensity`` list read with the default OS1-128 returns on 84 of its 128
+    beams, filling 10 % of them: fog added 12× its points on the beams between its own)."""
     if cells and empty > (1 - MIN_FILLED_FRACTION) * cells:
         warnings.warn(f"the list's returns fill {1 - empty / cells:.0%} of the {profile.channels}x{columns} firing "
                       f"grid of profile {profile.name!r}: its sensor has fewer beams than the profile? Weather then "
