@@ -109,13 +109,17 @@ def test_list_of_a_sensor_with_fewer_beams_is_warned():
     """A 16-beam list (±15°, a VLP-16's ``x y z intensity`` as PCL tools save it) read with the OS1-128 profile fills
     a few % of its 128-beam firing grid: a FiringGridWarning says the sensor has fewer beams (a real VLP-16 list:
     10 % of its 84 returning beams filled, fog 30 m turned its 14 868 points into 188 122 without a word). A
-    128-beam list is not warned."""
+    128-beam list is not warned, nor one under open sky whose lowest beam alone returns."""
     with pytest.warns(FiringGridWarning, match=r"fill \d+% of the 128x1800 firing grid .*fewer beams"):
         grid = firing_grid(velodyne_list(16, -15, 15), load_lidar_profile("os1-128"))
     assert grid.columns == 1800
     with warnings.catch_warnings():
         warnings.simplefilter("error", FiringGridWarning)
-        firing_grid(velodyne_list(128, -21, 21, columns=1024), load_lidar_profile("os1-128"))
+        full = velodyne_list(128, -21, 21, columns=1024)
+        firing_grid(full, load_lidar_profile("os1-128"))
+        p = full.positions_m
+        ground = full.select(np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1])) < np.deg2rad(-20.9))
+        assert len(firing_grid(ground, load_lidar_profile("os1-128")).ring) > 100 * len(ground)
 
 
 XYZIRT = np.dtype({"names": ["x", "y", "z", "intensity", "ring", "time"],
