@@ -346,6 +346,8 @@ class CloudLayout:
     pcd_data: str = "binary"       # PCD: ascii | binary | binary_compressed; PLY: ascii | binary_little_endian | ...
     no_return: str = "zero"        # a grid's no-return cells as stored: "zero" x/y/z, or "nan" (PCL's organised clouds)
     text: object = None            # txt: header, rows and number formats to write back (io/text_table.TextTable)
+    lasers_by_ring: tuple[int, ...] | None = None   # an organised PCD stored a row per firing (Velodyne's): the stored
+    #                                column of each grid row (io/pointcloud.firing_row_columns); None: stored as the grid
 
 
 @dataclass(frozen=True, eq=False)

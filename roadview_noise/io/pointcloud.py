@@ -47,8 +47,8 @@ ALIASES: dict[str, tuple[str, ...]] = {
     "ring": ("ring", "channel", "laser_id"),
     "time_s": ("time_s", "time"),          # seconds (Velodyne ROS convention); Ouster `t` (ns) keeps its name
     "rcs_dbsm": ("rcs_dbsm", "rcs", "RCS"),
-    "v_r_m_per_s": ("v_r_m_per_s", "v_r", "velocity", "doppler"),
-    "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated"),
+    "v_r_m_per_s": ("v_r_m_per_s", "v_r", "vr", "velocity", "doppler"),
+    "v_r_comp_m_per_s": ("v_r_comp_m_per_s", "v_r_compensated", "vr_compensated"),   # vr…: RadarScenes' names
     "snr_db": ("snr_db", "snr"),
     "power_db": ("power_db", "power"),
 }
@@ -119,9 +119,10 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
         raise InputError(f"cannot read point cloud: {exc.strerror or exc}", file=str(path)) from exc
     if not data:                       # no header either: a failed copy, not a frame without points
         raise InputError("the file is empty (0 bytes)", file=str(path))
-    grid_shape, table = None, None
+    grid_shape, table, lasers = None, None, None
     if fmt == "pcd":
         columns, mode, grid_shape = _read_pcd(data, path)
+        columns, grid_shape, lasers = _as_beam_rows(columns, grid_shape, field_map, path)
     elif fmt == "ply":
         columns, mode = _read_ply(data, path)
     elif fmt == "txt":
@@ -129,12 +130,46 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
     else:
         columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path), "binary"
     return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
-                              field_map=field_map, source=path, text=table)
+                              field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
+
+
+def firing_row_columns(ring: np.ndarray) -> tuple[int, ...] | None:
+    """For an organised cloud's (height, width) ``ring`` field: the stored column of each beam, lowest ring first,
+    when the cloud stores a row per firing and a column per laser (Velodyne's organised clouds, rslidar_sdk's unless
+    ``send_by_rows``: a ring constant down each column, not along each row); else None (rows are beams)."""
+    h, w = ring.shape
+    if w < 2 or (ring[:, 0] != ring[0, 0]).any():             # (rows are beams: told from one column, O(h))
+        return None
+    if not (ring == ring[:1]).all() or (ring == ring[:, :1]).all():
+        return None
+    return tuple(int(c) for c in np.argsort(ring[0], kind="stable"))
+
+
+def beam_row_order(height: int, width: int, lasers_by_ring: tuple[int, ...]) -> np.ndarray:
+    """The stored index of each cell of the beams × firings grid of a cloud stored a row per firing
+    (:func:`firing_row_columns`)."""
+    return np.arange(height * width).reshape(height, width)[:, list(lasers_by_ring)].T.ravel()
+
+
+def _as_beam_rows(columns: list[Column], grid_shape, field_map, path):
+    """``columns`` in beams × firings order when an organised PCD stores a row per firing (a Velodyne organised cloud
+    saved by pcl_ros), with the grid's shape and the layout's ``lasers_by_ring``; else as read."""
+    if grid_shape is None:
+        return columns, grid_shape, None
+    keys = _canonical_keys([c[0] for c in columns], field_map, path)
+    if "ring" not in keys or columns[keys.index("ring")][2].ndim != 1:
+        return columns, grid_shape, None
+    lasers = firing_row_columns(columns[keys.index("ring")][2].reshape(grid_shape))
+    if lasers is None:
+        return columns, grid_shape, None
+    order = beam_row_order(*grid_shape, lasers)
+    return [(name, dt, values[order]) for name, dt, values in columns], grid_shape[::-1], lasers
 
 
 def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape: tuple[int, int] | None,
                        sensor: str, profile: LidarProfile | RadarProfile | None,
-                       field_map: Mapping[str, str] | None, source, text=None) -> PointCloud:
+                       field_map: Mapping[str, str] | None, source, text=None,
+                       lasers_by_ring: tuple[int, ...] | None = None) -> PointCloud:
     """A cloud from stored columns (file name, dtype string, values) in storage order: canonical names, float64
     positions, the layout to store it back with (``text``: a text table's, io/text_table.py); :class:`InputError`
     (naming ``source``) for an empty cloud, missing or non-scalar x/y/z and non-finite coordinates."""
@@ -161,7 +196,8 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
         columns = [(name, dt, _cleared(values, empty)) for name, dt, values in columns]
     fields = {k: _native(col) for k, (_, _, col) in zip(keys, columns) if k not in ("x", "y", "z")}
     layout = CloudLayout(fmt=fmt, fields=tuple((k, name, dt) for k, (name, dt, _) in zip(keys, columns)),
-                         pcd_data=mode, no_return="nan" if empty.any() else "zero", text=text)
+                         pcd_data=mode, no_return="nan" if empty.any() else "zero", text=text,
+                         lasers_by_ring=lasers_by_ring)
     return PointCloud(positions_m=positions, fields=fields, sensor=sensor, profile=profile, layout=layout,
                       grid_shape=grid_shape)
 
@@ -208,7 +244,11 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
     if added is not None and not sidecar:
         columns.append(added)
     if layout.fmt == "pcd":
-        data = _pcd_bytes(columns, layout.pcd_data, cloud.grid_shape)
+        grid = cloud.grid_shape
+        if layout.lasers_by_ring is not None and grid is not None and len(layout.lasers_by_ring) == grid[0]:
+            order, grid = beam_row_order(grid[1], grid[0], layout.lasers_by_ring), grid[::-1]   # back a row per firing
+            columns = [(name, dt, _stored_at(values, order)) for name, dt, values in columns]
+        data = _pcd_bytes(columns, layout.pcd_data, grid)
     elif layout.fmt == "ply":
         data = _ply_bytes(columns, layout.pcd_data)
     elif layout.fmt == "txt":
@@ -225,6 +265,12 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
         written.append(effect_sidecar_path(path))
         write_bytes_atomic(written[-1], added[2].tobytes())
     return written
+
+
+def _stored_at(values: np.ndarray, order: np.ndarray) -> np.ndarray:
+    stored = np.empty_like(values)
+    stored[order] = values
+    return stored
 
 
 def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "auto",

@@ -37,7 +37,8 @@ from ..errors import InputError
 from ..types import CFA_PATTERNS, CameraFrame, CameraProfile, CloudLayout, PointCloud, RawEncoding, RawFrame
 from . import image as image_io
 from .png import PNG_SIGNATURE
-from .pointcloud import Column, _canonical_keys, cloud_from_columns, output_columns
+from .pointcloud import Column, _canonical_keys, beam_row_order, cloud_from_columns, firing_row_columns, \
+    output_columns
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE = "sensor_msgs/msg/Image"
@@ -295,11 +296,9 @@ def grid_cells(msg: Any, columns: list[Column], keys: list[str]) -> GridCells:
         return GridCells(None, None, np.zeros(h * w, bool))
     shape, order = (h, w), None
     ring = columns[where["ring"]][2] if "ring" in where and columns[where["ring"]][2].ndim == 1 else None
-    if ring is not None and w > 1:
-        ring = ring.reshape(h, w)
-        if (ring == ring[:1]).all() and not (ring == ring[:, :1]).all():         # one ring per column
-            by_ring = np.argsort(ring[0], kind="stable")                         # grid rows in ring order
-            shape, order = (w, h), np.arange(h * w).reshape(h, w)[:, by_ring].T.ravel()
+    lasers = None if ring is None else firing_row_columns(ring.reshape(h, w))
+    if lasers is not None:                                                       # one ring per column
+        shape, order = (w, h), beam_row_order(h, w, lasers)                      # grid rows in ring order
     empty = np.zeros(h * w, bool)
     for axis in "xyz":
         if axis in where and columns[where[axis]][2].ndim == 1 and columns[where[axis]][2].dtype.kind == "f":

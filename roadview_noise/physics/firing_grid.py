@@ -37,8 +37,8 @@ import numpy as np
 from ..errors import InputError
 from ..types import LidarProfile
 from .compiled import jit
-from .lidar_geometry import atan2, has_return, ring_index, ring_search_table, ring_source, sorted_beam, \
-    tangent_position
+from .lidar_geometry import atan2, beam_means, elevation_rad, far_returns, has_return, ring_index, \
+    ring_search_table, ring_source, sorted_beam, tangent_position
 from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
@@ -51,6 +51,7 @@ WHOLE_STEPS = 0.15              # a gap within this of a whole number of steps i
 FIT_STEPS = 0.25                # gaps within this of a whole number of steps refit the step
 UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it to win over twice its columns
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
+MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returning beams: fewer beams (warned)
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,6 +72,13 @@ class FiringGrid:
     firing_rad: np.ndarray
     out_of_view: int = 0        # azimuth bins (of ``columns``) farther than the view margin from every return
     gaps_columns: int | None = None     # the count the gaps gave when the profile's won (:func:`undecided_columns`)
+    measured_elevation_rad: np.ndarray | None = None    # per beam, from the list (:func:`measured_elevations`)
+
+    def elevation_rad(self) -> np.ndarray:
+        """Each beam's elevation: the profile's, or the list's own when its ring field counts other beams."""
+        if self.measured_elevation_rad is not None:
+            return self.measured_elevation_rad
+        return np.deg2rad(np.asarray(self.profile.beam_elevation_deg, dtype=np.float64))
 
     def directions(self, cells: np.ndarray, range_m: np.ndarray | None = None) -> np.ndarray:
         """(len(cells), 3) unit vectors of the empty cells ``cells`` (indices into ``ring``/``column``), times
@@ -80,7 +88,7 @@ class FiringGrid:
         step = TWO_PI / self.columns
         col_angle = -np.arange(self.columns) * step
         beam_angle = -self.shift * step - np.deg2rad(np.asarray(self.profile.beam_azimuth_offset_deg))
-        elevation = np.deg2rad(np.asarray(self.profile.beam_elevation_deg))
+        elevation = self.elevation_rad()
         scale = np.ones(len(cells)) if range_m is None else np.asarray(range_m, dtype=np.float64)
         return _directions(np.asarray(cells, dtype=np.int64), self.ring, self.column, scale, np.cos(col_angle),
                            np.sin(col_angle), np.cos(beam_angle), np.sin(beam_angle), np.cos(elevation),
@@ -372,7 +380,8 @@ class FiringColumns:
 
 
 class FiringGridWarning(UserWarning):
-    """The firing grid's column count is the profile's, not the one measured from the list."""
+    """The firing grid's column count is the profile's, not the one measured from the list; or the list fills too
+    few of its cells for the profile's beams."""
 
 
 def undecided_columns(gap: np.ndarray, columns: int, profile: LidarProfile) -> int:
@@ -407,7 +416,24 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
     the points' ranges if known, 0 where a point is no return; ``points``: the list read already
     (:func:`list_points`)."""
     measured = firing_columns(cloud, profile, range_m, points)
-    return measured if isinstance(measured, str) else empty_rays(measured, profile)
+    if isinstance(measured, str):
+        return measured
+    grid = empty_rays(measured, profile)
+    if ring_source(cloud) == "field" and int(measured.ring.max()) + 1 != profile.channels:
+        grid = dataclasses.replace(grid, measured_elevation_rad=measured_elevations(cloud, measured, profile))
+    return grid
+
+
+def measured_elevations(cloud, measured: FiringColumns, profile: LidarProfile) -> np.ndarray:
+    """Per beam of ``profile``, the mean elevation of the list's returns beyond 2 m on that ring (rings without: the
+    nearest rings'). For a list whose ring field counts other beams than the profile's (a VLP-16's 16 rings read with
+    the default OS1-128): its empty rays lie on its own beams, not on the profile's first ones (real VLP-16 list under
+    fog: 26.7° off, median)."""
+    p = np.asarray(cloud.positions_m, dtype=np.float64)
+    far = far_returns(p, measured.valid)
+    if len(far) == 0:
+        return np.deg2rad(np.asarray(profile.beam_elevation_deg, dtype=np.float64))
+    return beam_means(measured.ring[far], elevation_rad(p[far]), profile.channels)
 
 
 def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
@@ -420,10 +446,24 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     m = VIEW_MARGIN_STEPS
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     words = occupied.reshape(-1).view(np.uint64) if columns % 8 == 0 else np.zeros(0, np.uint64)
-    er, ec = _empty_cells(occupied, words, _firing_beams(occupied.any(axis=1), profile), in_view, shift, offsets,
-                          step)
+    returned = occupied.any(axis=1)
+    er, ec = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets, step)
+    _warn_sparse(int(np.count_nonzero(returned[er])), int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
+                 columns, profile)
     return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
                       int(np.count_nonzero(~in_view)), measured.gaps_columns)
+
+
+def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:
+    """A :class:`FiringGridWarning` when returns fill under :data:`MIN_FILLED_FRACTION` of the grid's cells in view
+    on the beams that returned (``empty`` of ``cells``; the sky above them aside): a list of a sensor with fewer beams
+    than the profile (a VLP-16's ``x y z intensity`` list read with the default OS1-128 returns on 84 of its 128
+    beams, filling 10 % of them: fog added 12× its points on the beams between its own)."""
+    if cells and empty > (1 - MIN_FILLED_FRACTION) * cells:
+        warnings.warn(f"the list's returns fill {1 - empty / cells:.0%} of the {profile.channels}x{columns} firing "
+                      f"grid of profile {profile.name!r}: its sensor has fewer beams than the profile? Weather then "
+                      f"returns on rays it never fired: give its lidar_profile (e.g. an inline beam table)",
+                      FiringGridWarning, stacklevel=4)
 
 
 def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,

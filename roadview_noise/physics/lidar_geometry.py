@@ -163,6 +163,33 @@ def ring_index(cloud, profile: LidarProfile | None = None) -> np.ndarray:
     return ring
 
 
+MEASURED_MIN_RANGE_M = 2.0      # nearer returns' elevations carry the beam-origin offset (15 mm: 0.4° at 2 m)
+
+
+def far_returns(positions_m: np.ndarray, returns: np.ndarray) -> np.ndarray:
+    """Indices of the ``returns`` (mask) farther than :data:`MEASURED_MIN_RANGE_M`: those whose direction is their
+    beam's."""
+    p = positions_m
+    return np.flatnonzero(returns & (np.einsum("ij,ij->i", p, p) > MEASURED_MIN_RANGE_M ** 2))
+
+
+def beam_means(ring: np.ndarray, values: np.ndarray, beams: int) -> np.ndarray:
+    """Per beam 0 … ``beams`` − 1, the mean of ``values`` over the points of that ``ring``; a beam without points
+    takes its nearest beams' (linear in the beam index). ``values`` may be complex (unit vectors of angles)."""
+    counts = np.bincount(ring, minlength=beams)
+    seen = np.flatnonzero(counts)
+    mean = lambda v: np.bincount(ring, v, beams)[seen] / counts[seen]
+    if np.iscomplexobj(values):
+        return np.interp(np.arange(beams), seen, np.unwrap(np.angle(mean(values.real) + 1j * mean(values.imag))))
+    return np.interp(np.arange(beams), seen, mean(values))
+
+
+def elevation_rad(positions_m: np.ndarray) -> np.ndarray:
+    """Elevation (rad) of each point (N, 3) seen from the origin."""
+    p = positions_m
+    return np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+
+
 def ring_source(cloud) -> str:
     """Where :func:`ring_index` takes the cloud's rings from: ``field``, ``attribute`` or ``elevation``."""
     return "field" if RING in cloud.fields else "attribute" if RING in cloud.attributes else "elevation"

@@ -16,7 +16,7 @@ from .compiled import jit
 from .firing_grid import FiringGrid
 from .laser_order import FIRING_COLUMN
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
-from .lidar_geometry import RING
+from .lidar_geometry import RING, beam_means, elevation_rad, far_returns
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
@@ -52,6 +52,30 @@ def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[fl
     return best[1], best[2], best[3]
 
 
+def _measured_beam_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Unit vectors of no-return cells ``idx`` from the grid's own returns beyond 2 m: the mean elevation of the
+    cell's beam (ring field or row) and the azimuth of its column, ``φ0 + sign·2πc/W`` fitted on every return, plus
+    the beam's mean residual (its azimuth offset, staggered grids); a beam without returns takes the nearest beams'
+    values (:func:`lidar_geometry.beam_means`)."""
+    rows, cols = cloud.grid_shape
+    ring = (np.asarray(cloud.fields["ring"]).astype(np.intp) if "ring" in cloud.fields
+            else np.arange(rows * cols) // cols)
+    p = cloud.positions_m
+    valid = far_returns(p, has_return)
+    if len(valid) == 0:
+        raise ModelError(f"the {rows}×{cols} grid does not fit the {cloud.profile.channels} beams of profile "
+                         f"{cloud.profile.name!r} and has no return to measure its beams' directions from")
+    phi = np.arctan2(p[valid, 1], p[valid, 0])
+    col_phase = 2 * np.pi * (valid % cols) / cols
+    fits = [np.exp(1j * (phi - sign * col_phase)).mean() for sign in (-1.0, 1.0)]
+    sign = -1.0 if abs(fits[0]) >= abs(fits[1]) else 1.0
+    beams = max(int(ring.max()) + 1, rows)
+    beam_el = beam_means(ring[valid], elevation_rad(p[valid]), beams)[ring[idx]]
+    beam_offset = beam_means(ring[valid], np.exp(1j * (phi - sign * col_phase)), beams)[ring[idx]]   # φ0 + offset
+    az = beam_offset + sign * 2 * np.pi * (idx % cols) / cols
+    return np.stack([np.cos(beam_el) * np.cos(az), np.cos(beam_el) * np.sin(az), np.sin(beam_el)], axis=1)
+
+
 def _rings(cloud: PointCloud, idx: np.ndarray, profile: LidarProfile) -> np.ndarray:
     rows, cols = cloud.grid_shape
     ring = np.asarray(cloud.fields["ring"])[idx].astype(np.intp) if "ring" in cloud.fields else idx // cols
@@ -63,8 +87,12 @@ def _rings(cloud: PointCloud, idx: np.ndarray, profile: LidarProfile) -> np.ndar
 
 def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """Unit vectors of no-return cells ``idx`` of a full grid: elevation of the cell's beam (ring field or row),
-    azimuth of its column (:func:`_column_azimuth_model`). The mm-scale beam-origin offsets are neglected."""
+    azimuth of its column (:func:`_column_azimuth_model`). The mm-scale beam-origin offsets are neglected. A grid
+    whose row count is not the profile's beam count (another sensor's: an OS-0-32 read with the default OS1-128)
+    gets each beam's direction from its own returns (:func:`_measured_beam_directions`)."""
     profile = cloud.profile
+    if cloud.grid_shape[0] != profile.channels:
+        return _measured_beam_directions(cloud, has_return, idx)
     phi0, sign, staggered = _column_azimuth_model(cloud, has_return)
     ring = _rings(cloud, idx, profile)
     cols = cloud.grid_shape[1]
@@ -238,8 +266,9 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     fields = {**cloud.fields, "intensity": intensity[:total]}
     origin, attributes = origin[:total], cloud.attributes
     if n_removed and grid:
-        fields = {k: (v if k in ("ring", "intensity") else np.where(removed, np.zeros((), v.dtype), v))
-                  for k, v in fields.items()}
+        fields = {k: (v if k in ("ring", "intensity") else
+                      np.where(removed.reshape(-1, *(1,) * (v.ndim - 1)), np.zeros((), v.dtype), v))
+                  for k, v in fields.items()}                # (a field of COUNT > 1, PCL's `_` padding: N × count)
     if not (n_removed or len(cells)) or grid:
         origin = None                                  # point i is input point i
     else:

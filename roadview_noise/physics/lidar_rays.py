@@ -151,7 +151,7 @@ def cloud_rays(cloud: PointCloud, model_id: str, empty_rays: str = "fill", calib
         points = list_points(cloud, profile)            # points' arrays, its pass over the points gives their ranges
         listed = firing_grid(cloud, profile, points=points)
         if not isinstance(listed, str) and empty_rays == "sky_only":
-            listed = listed.subset(np.asarray(profile.beam_elevation_deg)[listed.ring] > 0)
+            listed = listed.subset(listed.elevation_rad()[listed.ring] > 0)
     m = 0 if listed is None or isinstance(listed, str) else len(listed.ring)
     n = len(intensity)
     if at is None:
