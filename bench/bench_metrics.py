@@ -778,15 +778,18 @@ def whole_runs_valgrind(names: list[str], frames: int, repeat: int, split: str =
                 for body in bodies.values():
                     valgrind_run(body, trees[sensor], tmp, native=True)
             runs: dict[bool, list] = {False: [], True: []}
+
+            def measured(on: bool, run: str) -> dict:
+                return valgrind_run(bodies[on], trees[sensor], tmp, split=split,
+                                    keep=keep and keep / f"{name}-{'on' if on else 'off'}-{run}")
             for i in range(repeat):
                 for on in (False, True):
-                    runs[on].append(valgrind_run(bodies[on], trees[sensor], tmp, split=split,
-                                                 keep=keep and keep / f"{name}-{'on' if on else 'off'}-{i}"))
+                    runs[on].append(measured(on, f"{i}"))
                 # a table whose key holds floats that NumPy computes otherwise under valgrind (no AVX-512): it is
                 # built in the first run that needs it; that pair was a warm run, measure it again
                 if before != (before := _compiled_files(tmp / "tables")):
                     print(f"  {name}: a kernel or table was written during a measured run: runs again", flush=True)
-                    runs = {on: runs[on][:-1] + [valgrind_run(bodies[on], trees[sensor], tmp)] for on in runs}
+                    runs = {on: runs[on][:-1] + [measured(on, f"{i}-again")] for on in runs}
                     if before != _compiled_files(tmp / "tables"):
                         raise RuntimeError(f"{name}: the measured runs write kernels or tables")
             print(_vg_rows(name, runs, n), flush=True)
@@ -808,6 +811,8 @@ def _vg_figures(parts: dict, n: int) -> dict[str, dict]:
 def _vg_split_rows(runs: dict) -> str:
     """``--split``: per function counted apart, files 2–n per file (the first run's), off → on: Ir, D1 misses, LL
     misses, estimated cycles and the same with a D1 miss at 40 cycles; by the growth of the cycles."""
+    if any("split" not in runs[on][0] for on in runs):
+        return "    files 2–n by function: no function of --split ran"
     figs = {}
     for on in runs:
         files = runs[on][0]["split"][1:]
@@ -864,11 +869,15 @@ def main() -> None:
     ap.add_argument("--split", nargs="?", const="camera", help="--valgrind: count these functions apart "
                     "(comma-separated module.attr; without a value: the camera metrics' passes)")
     ap.add_argument("--keep", type=Path, help="--valgrind: copy the callgrind files to DIR/RECIPE-off|on-i")
+    ap.add_argument("--last-level", help="--valgrind: the simulated last-level cache as SIZE,ASSOC,LINE (default "
+                                         "33554432,16,64; 1048576,8,64: a Zen 4 L2, whose misses then count as LL)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     args.repeat = args.repeat or (1 if args.valgrind else 7)
     global CHANGED
     CHANGED = tuple(filter(None, args.changed.split(",")))
+    if args.last_level:
+        VG_CACHES[-1] = f"--LL={args.last_level}"
     if args.whole_run and args.valgrind:
         whole_runs_valgrind(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.frames, args.repeat,
                             VG_SPLIT_DEFAULT if args.split == "camera" else args.split or "", args.keep)
