@@ -83,7 +83,10 @@ D1mw) + 100 (ILmr + DLmr + DLmw); for the whole run, what it pays once (the main
 exit) and files 2–n per file. Numba compiles its kernels for an AVX2 target here (``NUMBA_CPU_NAME=haswell``: valgrind
 runs no AVX-512) and a warm run of each configuration without valgrind caches them first; the bench fails if a
 measured run writes a kernel or a physics table (their files' mtimes, the runs' own table cache). ``--repeat 2``
-checks the determinism. A 3-file run takes ≈ 2–3 min.
+checks the determinism. A 3-file run takes ≈ 2–3 min. ``--split [module.attr,…]``: the worker also dumps its
+counts as it enters and leaves each function named (default: the camera metrics' passes, the sRGB passes they ride
+on and the file's phases), and the bench prints files 2–n per function, off → on (Ir, D1 and LL misses, cycles,
+and cycles with a D1 miss at 40); ``--keep DIR``: the callgrind files of every measured run go to DIR.
 
 Inputs: ``FRAMES`` frames of the sample drive generated at full resolution (camera 1936×1464 PNG made photo-like,
 with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list —
@@ -102,6 +105,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --baseline DIR [--repeat N] [--frames N] [--recipes cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --valgrind [--repeat N] [--frames N] [--recipes cnf10,cnf22]
+        [--split [MODULE.ATTR,…]] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -600,7 +604,51 @@ def leave_at_once(code=0):
 
 
 runner.process_encoded, executor.leave_at_once = process_encoded, leave_at_once
+if os.environ.get("RVNOISE_VG_SPLIT"):
+    import vg_split
+    runner.process_encoded = vg_split.wrapping(lib, os.environ["RVNOISE_VG_SPLIT"].split(","), process_encoded)
 """
+#: --split: the worker also dumps its counts as it enters and leaves each function named (module.attr), labelled
+#: "seg NAME" by the innermost one running (or "rest"); every module attribute that is the function is replaced
+#: (from the first file on, when the run's modules are imported)
+VG_SPLIT = """import importlib, sys
+
+
+def wrapping(lib, names, process):
+    stack, done = [], []
+
+    def wrap(name, fn):
+        def call(*args, **kwargs):
+            lib.vg_dump(("seg " + (stack[-1] if stack else "rest")).encode())
+            stack.append(name)
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                lib.vg_dump(("seg " + name).encode())
+                stack.pop()
+        return call
+
+    def first(task, ctx):
+        if not done:
+            done.append(True)
+            for name in names:
+                module, attr = name.rsplit(".", 1)
+                fn = getattr(importlib.import_module(module), attr)
+                for m in [m for k, m in list(sys.modules.items()) if k.startswith("roadview_noise")]:
+                    for k, v in list(vars(m).items()):
+                        if v is fn:
+                            setattr(m, k, wrap(name.removeprefix("roadview_noise."), fn))
+        return process(task, ctx)
+    return first
+"""
+#: the functions --split dumps around by default: the camera metrics' passes, the sRGB passes they ride on, the
+#: file's phases
+VG_SPLIT_DEFAULT = ",".join(f"roadview_noise.{n}" for n in (
+    "runner.load", "runner.apply_models", "runner.save", "runner._staged_files", "manifest.encoded",
+    "physics.srgb.code_to_linear", "physics.srgb.linear_to_code", "luminance._decode8_blocks",
+    "luminance._encode8_blocks", "luminance._codes_luminance_area", "luminance._luminance_area", "metrics.compare",
+    "metrics._grey_codes", "metrics._grey_statistics", "metrics._depth_bin_index", "metrics._ssim_local_means",
+    "metrics._ssim_map", "metrics.psnr_db"))
 #: one whole run in a fresh interpreter (arguments: the recipe as JSON, the tree, the output folder, the recipes'
 #: folder); under callgrind (RVNOISE_VG_LIB set) the main process is counted from ``run``'s call to its return
 VG_RUN = """import ctypes, json, os, sys
@@ -639,10 +687,13 @@ def _compiled_files(tables: Path) -> dict[str, float]:
     return {str(f): f.stat().st_mtime for f in files if f.is_file()}
 
 
-def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False) -> dict[str, list[dict]]:
+def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False, split: str = "",
+                 keep: Path | None = None) -> dict[str, list[dict]]:
     """One whole run under callgrind: the counts of ``main`` (the main process within ``run``), ``file`` (the
     worker, per file: the file and the worker's loop before it) and ``exit`` (the worker after its last file);
-    ``native``: the same run without valgrind (the warm run: kernels and tables on disk), {}."""
+    ``native``: the same run without valgrind (the warm run: kernels and tables on disk), {}. ``split``: the
+    functions to count apart (:data:`VG_SPLIT`), per file in ``split`` ({function: counts}); ``keep``: a folder
+    the callgrind files are copied to."""
     from run import TABLE_CACHE_ENV
 
     out, cg = tmp / "out", tmp / "cg"
@@ -653,6 +704,8 @@ def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False) -> dic
     vg = []
     if not native:
         env["RVNOISE_VG_LIB"] = str(tmp / "libvg.so")
+        if split:
+            env["RVNOISE_VG_SPLIT"] = split
         vg = ["valgrind", "--tool=callgrind", "--instr-atstart=no", "--cache-sim=yes", *VG_CACHES,
               "--trace-children=yes", f"--callgrind-out-file={cg}/cg.%p"]
     proc = subprocess.run(vg + [sys.executable, "-c", VG_RUN, json.dumps(body), str(tree), str(out),
@@ -660,14 +713,32 @@ def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False) -> dic
     shutil.rmtree(out, ignore_errors=True)
     if proc.returncode:
         raise RuntimeError(f"run failed: {proc.stderr[-3000:]}")
+    if keep:
+        shutil.copytree(cg, keep)
+    return _vg_parts(cg)
+
+
+def _vg_parts(cg: Path) -> dict[str, list[dict]]:
+    """The counts of a run's callgrind dumps by label (:func:`valgrind_run`); with ``--split``, a file's "seg NAME"
+    dumps (and its "file" dump as "rest") also per file in ``split``, and its "file" counts their sum."""
     parts: dict[str, list] = {}
+    segments: dict[str, dict] = {}
     for f in sorted(cg.iterdir(), key=lambda f: tuple(int(x) for x in f.name.split(".")[1:])):
         text = f.read_text(errors="replace")
         label = re.search(r"^desc: Trigger: (?:Client Request: )?(.*)$", text, re.M).group(1)
-        if label in ("main", "file", "exit"):
-            events = re.search(r"^events: (.*)$", text, re.M).group(1).split()
-            totals = map(int, re.search(r"^summary: (.*)$", text, re.M).group(1).split())
-            parts.setdefault(label, []).append(dict(zip(events, totals)))
+        if label not in ("main", "file", "exit") and not label.startswith("seg "):
+            continue
+        events = re.search(r"^events: (.*)$", text, re.M).group(1).split()
+        counts = dict.fromkeys(events, 0)                   # a summary leaves out trailing zeros
+        counts.update(zip(events, map(int, re.search(r"^summary: (.*)$", text, re.M).group(1).split())))
+        if label.startswith("seg ") or (label == "file" and segments):
+            name = "rest" if label == "file" else label[4:]
+            segments[name] = _sum([segments[name], counts]) if name in segments else counts
+            if label == "file":
+                parts.setdefault("split", []).append(segments)
+                counts, segments = _sum(list(segments.values())), {}
+        if not label.startswith("seg "):
+            parts.setdefault(label, []).append(counts)
     return parts
 
 
@@ -675,9 +746,10 @@ def _sum(counts: list[dict]) -> dict:
     return {e: sum(c[e] for c in counts) for e in VG_EVENTS}
 
 
-def whole_runs_valgrind(names: list[str], frames: int, repeat: int) -> None:
+def whole_runs_valgrind(names: list[str], frames: int, repeat: int, split: str = "", keep: Path | None = None) -> None:
     """``--whole-run --valgrind``: per recipe, whole runs under callgrind (1 worker), metrics off and on, each after
-    a warm run without valgrind; ``repeat`` runs of each (more than one: their largest relative difference)."""
+    a warm run without valgrind; ``repeat`` runs of each (more than one: their largest relative difference).
+    ``split``: the functions counted apart (``--split``), ``keep``: where the callgrind files go (``--keep``)."""
     from run import INPUTS, build_trees
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -685,6 +757,7 @@ def whole_runs_valgrind(names: list[str], frames: int, repeat: int) -> None:
         (tmp / "vg.c").write_text(VG_LIB)
         subprocess.run(["gcc", "-shared", "-fPIC", "-O1", "-o", str(tmp / "libvg.so"), str(tmp / "vg.c")], check=True)
         (tmp / "vg_hook.py").write_text(VG_HOOK)
+        (tmp / "vg_split.py").write_text(VG_SPLIT)
         n = 3 * frames
         trees = build_trees(tmp / "trees", frames, {s: n for s in sorted({WHOLE_RUN[x] for x in names})})
         print(f"whole augment runs under callgrind, 1 worker, {n} files, metrics off → on: counts in millions "
@@ -705,17 +778,23 @@ def whole_runs_valgrind(names: list[str], frames: int, repeat: int) -> None:
                 for body in bodies.values():
                     valgrind_run(body, trees[sensor], tmp, native=True)
             runs: dict[bool, list] = {False: [], True: []}
-            for _ in range(repeat):
+
+            def measured(on: bool, run: str) -> dict:
+                return valgrind_run(bodies[on], trees[sensor], tmp, split=split,
+                                    keep=keep and keep / f"{name}-{'on' if on else 'off'}-{run}")
+            for i in range(repeat):
                 for on in (False, True):
-                    runs[on].append(valgrind_run(bodies[on], trees[sensor], tmp))
+                    runs[on].append(measured(on, f"{i}"))
                 # a table whose key holds floats that NumPy computes otherwise under valgrind (no AVX-512): it is
                 # built in the first run that needs it; that pair was a warm run, measure it again
                 if before != (before := _compiled_files(tmp / "tables")):
                     print(f"  {name}: a kernel or table was written during a measured run: runs again", flush=True)
-                    runs = {on: runs[on][:-1] + [valgrind_run(bodies[on], trees[sensor], tmp)] for on in runs}
+                    runs = {on: runs[on][:-1] + [measured(on, f"{i}-again")] for on in runs}
                     if before != _compiled_files(tmp / "tables"):
                         raise RuntimeError(f"{name}: the measured runs write kernels or tables")
             print(_vg_rows(name, runs, n), flush=True)
+            if split:
+                print(_vg_split_rows(runs), flush=True)
             print("    " + json.dumps({"recipe": name, "runs": {str(k): v for k, v in runs.items()}}), flush=True)
 
 
@@ -727,6 +806,29 @@ def _vg_figures(parts: dict, n: int) -> dict[str, dict]:
     rest = {e: v / (n - 1) for e, v in _sum(parts["file"][1:]).items()}
     return {"whole": _sum(parts["main"] + parts["file"] + parts.get("exit", [])), "first": once, "rest": rest,
             "24": {e: once[e] + 23 * rest[e] for e in VG_EVENTS}}
+
+
+def _vg_split_rows(runs: dict) -> str:
+    """``--split``: per function counted apart, files 2–n per file (the first run's), off → on: Ir, D1 misses, LL
+    misses, estimated cycles and the same with a D1 miss at 40 cycles; by the growth of the cycles."""
+    if any("split" not in runs[on][0] for on in runs):
+        return "    files 2–n by function: no function of --split ran"
+    figs = {}
+    for on in runs:
+        files = runs[on][0]["split"][1:]
+        figs[on] = {k: {e: sum(f.get(k, {}).get(e, 0) for f in files) / len(files) for e in VG_EVENTS}
+                    for k in {k for f in files for k in f}}
+    zero = dict.fromkeys(VG_EVENTS, 0)
+    rows = []
+    for k in sorted(set(figs[False]) | set(figs[True]), key=lambda k: est_cycles(figs[False].get(k, zero))
+                    - est_cycles(figs[True].get(k, zero))):
+        off, on = figs[False].get(k, zero), figs[True].get(k, zero)
+        cells = [f"{what} {get(off) / 1e6:7.2f} → {get(on) / 1e6:7.2f}" for get, what in (
+            (lambda c: c["Ir"], "Ir"), (lambda c: c["D1mr"] + c["D1mw"], "D1"),
+            (lambda c: c["DLmr"] + c["DLmw"], "LL"), (est_cycles, "cycles"),
+            (lambda c: est_cycles(c) + 30 * (c["D1mr"] + c["D1mw"]), "cycles@40"))]
+        rows.append(f"    {k:<32} " + "   ".join(cells))
+    return "\n".join(["    files 2–n, per file, by function (M):"] + rows)
 
 
 def _vg_rows(name: str, runs: dict, n: int) -> str:
@@ -764,13 +866,21 @@ def main() -> None:
     ap.add_argument("--valgrind", action="store_true",
                     help="with --whole-run: instruction and cache-miss counts of whole runs under callgrind "
                          "(--repeat: runs of each; 2 checks their determinism)")
+    ap.add_argument("--split", nargs="?", const="camera", help="--valgrind: count these functions apart "
+                    "(comma-separated module.attr; without a value: the camera metrics' passes)")
+    ap.add_argument("--keep", type=Path, help="--valgrind: copy the callgrind files to DIR/RECIPE-off|on-i")
+    ap.add_argument("--last-level", help="--valgrind: the simulated last-level cache as SIZE,ASSOC,LINE (default "
+                                         "33554432,16,64; 1048576,8,64: a Zen 4 L2, whose misses then count as LL)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     args.repeat = args.repeat or (1 if args.valgrind else 7)
     global CHANGED
     CHANGED = tuple(filter(None, args.changed.split(",")))
+    if args.last_level:
+        VG_CACHES[-1] = f"--LL={args.last_level}"
     if args.whole_run and args.valgrind:
-        whole_runs_valgrind(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.frames, args.repeat)
+        whole_runs_valgrind(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.frames, args.repeat,
+                            VG_SPLIT_DEFAULT if args.split == "camera" else args.split or "", args.keep)
         return
     if args.whole_run and args.baseline:
         whole_runs_paired(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames,
