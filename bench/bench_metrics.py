@@ -83,7 +83,14 @@ D1mw) + 100 (ILmr + DLmr + DLmw); for the whole run, what it pays once (the main
 exit) and files 2–n per file. Numba compiles its kernels for an AVX2 target here (``NUMBA_CPU_NAME=haswell``: valgrind
 runs no AVX-512) and a warm run of each configuration without valgrind caches them first; the bench fails if a
 measured run writes a kernel or a physics table (their files' mtimes, the runs' own table cache). ``--repeat 2``
-checks the determinism. A 3-file run takes ≈ 2–3 min.
+checks the determinism. A 3-file run takes ≈ 2–3 min. ``--keep DIR``: the first off and on runs' callgrind files
+are kept (``DIR/RECIPE/off|on``) and split — where the added counts go, in the worker's files 2–n per file: per
+segment (the worker also dumps at the boundaries of its profiled spans, of the metrics' ``compare`` calls, of their
+compiled cloud passes, of the LiDAR models' calls that count return geometry for them and of the manifest line's
+encoding: ``VG_SEGMENTS``) and per function (exclusive counts; numba's kernels have no symbol for valgrind, hence
+the segments), and per function in the main process. The segment dumps' Python wrappers are counted too (≈ 0.1 M
+instructions a LiDAR file, ≈ 0.25 M of a ≈ 5 M radar file, more with metrics on): take the acceptance figures from
+runs without ``--keep``.
 
 Inputs: ``FRAMES`` frames of the sample drive generated at full resolution (camera 1936×1464 PNG made photo-like,
 with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list —
@@ -102,6 +109,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --baseline DIR [--repeat N] [--frames N] [--recipes cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --valgrind [--repeat N] [--frames N] [--recipes cnf10,cnf22]
+                                            [--keep DIR]
 """
 
 from __future__ import annotations
