@@ -674,8 +674,9 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. The geometry of a positions
     array is found once (:mod:`~roadview_noise.physics.return_ranges`): an array a step hands on unchanged
     (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
-    counted — not even those for a chain input without codes whose intensity sum the model that read it noted too
-    (:func:`return_ranges.noted_sum`: the laser power, the alignment). SAME_LINK takes the mean change over the cells
+    counted — of a chain input without codes only its values' sum (:func:`_return_value_sum`), and not even that
+    when the model that read it noted the sum too (:func:`return_ranges.noted_sum`: the laser power, the
+    alignment). SAME_LINK takes the mean change over the cells
     that are returns in both when ``cells`` (grids), else over every point."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
