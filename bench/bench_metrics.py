@@ -83,10 +83,16 @@ D1mw) + 100 (ILmr + DLmr + DLmw); for the whole run, what it pays once (the main
 exit) and files 2–n per file. Numba compiles its kernels for an AVX2 target here (``NUMBA_CPU_NAME=haswell``: valgrind
 runs no AVX-512) and a warm run of each configuration without valgrind caches them first; the bench fails if a
 measured run writes a kernel or a physics table (their files' mtimes, the runs' own table cache). ``--repeat 2``
-checks the determinism. A 3-file run takes ≈ 2–3 min. ``--split [module.attr,…]``: the worker also dumps its
-counts as it enters and leaves each function named (default: the camera metrics' passes, the sRGB passes they ride
-on and the file's phases), and the bench prints files 2–n per function, off → on (Ir, D1 and LL misses, cycles,
-and cycles with a D1 miss at 40); ``--keep DIR``: the callgrind files of every measured run go to DIR.
+checks the determinism. A 3-file run takes ≈ 2–3 min. ``--keep DIR``: the first off and on runs' callgrind files
+are kept (``DIR/RECIPE/off|on``) and split — where the added counts go, in the worker's files 2–n per file: per
+segment (the worker also dumps at the boundaries of its profiled spans, of the metrics' ``compare`` calls, of their
+compiled cloud passes, of the LiDAR models' calls that count return geometry for them and of the manifest line's
+encoding: ``VG_SEGMENTS``) and per function (exclusive counts; numba's kernels have no symbol for valgrind, hence
+the segments), and per function in the main process. The segment dumps' Python wrappers are counted too (≈ 0.1 M
+instructions a LiDAR file, ≈ 0.25 M of a ≈ 5 M radar file, more with metrics on): take the acceptance figures from
+runs without ``--keep``. ``--split [module.attr,…]``: the worker also dumps its counts as it enters and leaves each
+function named (default: the camera metrics' passes, the sRGB passes they ride on and the file's phases), and the
+bench prints files 2–n per function, off → on (Ir, D1 and LL misses, cycles, and cycles with a D1 miss at 40).
 
 Inputs: ``FRAMES`` frames of the sample drive generated at full resolution (camera 1936×1464 PNG made photo-like,
 with its depth EXR, the same frame as a raw DNG, the OS1-128 128×2048 grid PCD, the same scan as a point list —
@@ -105,7 +111,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --baseline DIR [--repeat N] [--frames N] [--recipes cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --valgrind [--repeat N] [--frames N] [--recipes cnf10,cnf22]
-        [--split [MODULE.ATTR,…]] [--keep DIR]
+        [--split [MODULE.ATTR,…]] [--keep DIR] [--last-level SIZE,ASSOC,LINE]
 """
 
 from __future__ import annotations
@@ -649,6 +655,65 @@ VG_SPLIT_DEFAULT = ",".join(f"roadview_noise.{n}" for n in (
     "luminance._encode8_blocks", "luminance._codes_luminance_area", "luminance._luminance_area", "metrics.compare",
     "metrics._grey_codes", "metrics._grey_statistics", "metrics._depth_bin_index", "metrics._ssim_local_means",
     "metrics._ssim_map", "metrics.psnr_db"))
+#: also imported by the fork server with ``--keep``: the counts dumped at every boundary of the worker's profiled
+#: spans (``profiling``), of the metrics' ``compare`` calls inside the chain and of the manifest line's encoding, each
+#: labelled ``seg:`` and the spans open before the boundary (``seg:`` alone: outside every span)
+VG_SEGMENTS = """import ctypes, importlib, os
+from contextlib import contextmanager
+from roadview_noise import metrics, profiling, runner
+
+lib, stack = ctypes.CDLL(os.environ["RVNOISE_VG_LIB"]), []
+
+
+def _boundary():
+    lib.vg_dump(("seg:" + "/".join(stack)).encode())
+
+
+@contextmanager
+def segment(name):
+    _boundary()
+    stack.append(name)
+    try:
+        yield
+    finally:
+        _boundary()
+        stack.pop()
+
+
+def _wrap(fn, name):
+    def wrapped(*args, **kwargs):
+        with segment(name):
+            return fn(*args, **kwargs)
+    return wrapped
+
+
+span = profiling._span
+
+
+def counted_span(name, totals):
+    return _chained(span(name, totals), segment(name))
+
+
+@contextmanager
+def _chained(a, b):
+    with a, b:
+        yield
+
+
+profiling._span = counted_span
+metrics.Deferred.compare = _wrap(metrics.Deferred.compare, "compare")
+runner.encoded = _wrap(runner.encoded, "manifest-line")
+# the cloud metrics' compiled passes and the models' calls that count return geometry for them, as segments of
+# their own (module globals their callers look up at each call)
+metrics._PASSES.update({k: _wrap(f, f.__name__) for k, f in metrics._PASSES.items()})
+for module, names in (("metrics", ("_mean_change", "_summarise_points")),
+                      ("physics.lidar_output", ("_place_returns", "_place_output_returns", "_add_returns",
+                                                "_note_returns", "_geometry_to_count")),
+                      ("models.lidar.power", ("has_return",)), ("models.lidar.alignment", ("has_return",))):
+    mod = importlib.import_module("roadview_noise." + module)
+    for name in names:
+        setattr(mod, name, _wrap(getattr(mod, name), name))
+"""
 #: one whole run in a fresh interpreter (arguments: the recipe as JSON, the tree, the output folder, the recipes'
 #: folder); under callgrind (RVNOISE_VG_LIB set) the main process is counted from ``run``'s call to its return
 VG_RUN = """import ctypes, json, os, sys
@@ -661,7 +726,7 @@ body, tree, out = json.loads(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
 recipe = parse_recipe(body, source="bench", base_dir=Path(sys.argv[4]))
 lib = ctypes.CDLL(os.environ["RVNOISE_VG_LIB"]) if "RVNOISE_VG_LIB" in os.environ else None
 if lib:
-    executor.PRELOAD.append("vg_hook")
+    executor.PRELOAD.extend(["vg_hook"] + (["vg_segments"] if os.environ.get("RVNOISE_VG_SEGMENTS") else []))
     lib.vg_start()
 run(recipe, tree, out, workers=1, progress=False, echo=lambda m: None, warn=lambda m: None, profile=True)
 if lib:
@@ -692,8 +757,9 @@ def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False, split:
     """One whole run under callgrind: the counts of ``main`` (the main process within ``run``), ``file`` (the
     worker, per file: the file and the worker's loop before it) and ``exit`` (the worker after its last file);
     ``native``: the same run without valgrind (the warm run: kernels and tables on disk), {}. ``split``: the
-    functions to count apart (:data:`VG_SPLIT`), per file in ``split`` ({function: counts}); ``keep``: a folder
-    the callgrind files are copied to."""
+    functions to count apart (:data:`VG_SPLIT`), per file in ``split`` ({function: counts}); ``keep``: the worker
+    also dumps at its spans' boundaries (``VG_SEGMENTS``; their counts are added to the file's) and callgrind's
+    files are copied to that folder."""
     from run import TABLE_CACHE_ENV
 
     out, cg = tmp / "out", tmp / "cg"
@@ -708,12 +774,15 @@ def valgrind_run(body: dict, tree: Path, tmp: Path, native: bool = False, split:
             env["RVNOISE_VG_SPLIT"] = split
         vg = ["valgrind", "--tool=callgrind", "--instr-atstart=no", "--cache-sim=yes", *VG_CACHES,
               "--trace-children=yes", f"--callgrind-out-file={cg}/cg.%p"]
+    if keep is not None:
+        env["RVNOISE_VG_SEGMENTS"] = "1"
     proc = subprocess.run(vg + [sys.executable, "-c", VG_RUN, json.dumps(body), str(tree), str(out),
                                 str(ROOT / "recipes")], capture_output=True, text=True, env=env)
     shutil.rmtree(out, ignore_errors=True)
     if proc.returncode:
         raise RuntimeError(f"run failed: {proc.stderr[-3000:]}")
-    if keep:
+    if keep is not None:
+        shutil.rmtree(keep, ignore_errors=True)
         shutil.copytree(cg, keep)
     return _vg_parts(cg)
 
@@ -722,24 +791,145 @@ def _vg_parts(cg: Path) -> dict[str, list[dict]]:
     """The counts of a run's callgrind dumps by label (:func:`valgrind_run`); with ``--split``, a file's "seg NAME"
     dumps (and its "file" dump as "rest") also per file in ``split``, and its "file" counts their sum."""
     parts: dict[str, list] = {}
-    segments: dict[str, dict] = {}
-    for f in sorted(cg.iterdir(), key=lambda f: tuple(int(x) for x in f.name.split(".")[1:])):
+    pending: dict[int, dict] = {}               # counts of a pid's segments since its last main/file/exit dump
+    named: dict[int, dict] = {}                 # --split: a pid's "seg NAME" counts since its last file dump
+    zero = dict.fromkeys(VG_EVENTS, 0)
+    for f in _dumps(cg):
         text = f.read_text(errors="replace")
         label = re.search(r"^desc: Trigger: (?:Client Request: )?(.*)$", text, re.M).group(1)
-        if label not in ("main", "file", "exit") and not label.startswith("seg "):
+        if label not in ("main", "file", "exit") and not label.startswith(("seg:", "seg ")):
             continue
         events = re.search(r"^events: (.*)$", text, re.M).group(1).split()
         counts = dict.fromkeys(events, 0)                   # a summary leaves out trailing zeros
         counts.update(zip(events, map(int, re.search(r"^summary: (.*)$", text, re.M).group(1).split())))
-        if label.startswith("seg ") or (label == "file" and segments):
-            name = "rest" if label == "file" else label[4:]
-            segments[name] = _sum([segments[name], counts]) if name in segments else counts
-            if label == "file":
-                parts.setdefault("split", []).append(segments)
-                counts, segments = _sum(list(segments.values())), {}
-        if not label.startswith("seg "):
-            parts.setdefault(label, []).append(counts)
+        pid = int(f.name.split(".")[1])
+        if label.startswith(("seg:", "seg ")):
+            pending[pid] = _sum([pending.get(pid, zero), counts])
+            if label.startswith("seg "):
+                by = named.setdefault(pid, {})
+                by[label[4:]] = _sum([by.get(label[4:], zero), counts])
+            continue
+        by = named.pop(pid, None)
+        if by is not None and label == "file":
+            by["rest"] = _sum([by.get("rest", zero), counts])
+            parts.setdefault("split", []).append(by)
+        parts.setdefault(label, []).append(_sum([counts, pending.pop(pid, zero)]))
     return parts
+
+
+def _dumps(cg: Path) -> list[Path]:
+    """Callgrind's files of a run in order: by process, then by dump (``cg.PID.N``; ``cg.PID``: its exit)."""
+    return sorted(cg.iterdir(), key=lambda f: tuple(int(x) for x in f.name.split(".")[1:]) + (1 << 30,) * (
+        f.name.count(".") == 1))
+
+
+def cg_functions(path: Path) -> dict[str, list[int]]:
+    """A callgrind file's exclusive counts per function (``object:function``, ``VG_EVENTS`` order); code without a
+    symbol (numba's kernels, loaded by llvmlite) summed per object as ``object:(no symbol)``."""
+    names: dict[str, dict[str, str]] = {"ob": {}, "fn": {}}
+    totals: dict[str, list[int]] = {}
+    order, ob, fn, skip, current = None, "", "", False, None
+    with open(path, errors="replace") as fh:
+        for line in fh:
+            head = line[:1]
+            if head.isdigit() or head in "+-*":
+                if skip:
+                    skip = False
+                    continue
+                values = line.split()[1:]
+                for i, v in enumerate(values):
+                    current[order[i]] += int(v)
+                continue
+            key, _, value = line.rstrip("\n").partition("=")
+            kind = {"ob": "ob", "cob": "ob", "fn": "fn", "cfn": "fn"}.get(key)
+            if kind:
+                ref, _, name = value.partition(" ") if value.startswith("(") else ("", "", value)
+                if name:
+                    names[kind][ref] = name
+                name = names[kind].get(ref, name) if ref else name
+                if key == "ob":
+                    ob = name
+                elif key == "fn":
+                    fn = name
+                    label = f"{Path(ob).name}:{'(no symbol)' if fn.startswith('0x') else fn}"
+                    current = totals.setdefault(label, [0] * len(VG_EVENTS))
+            elif key == "calls":
+                skip = True
+            elif line.startswith("events:"):
+                order = [VG_EVENTS.index(e) for e in line.split()[1:]]
+    return totals
+
+
+def _file_groups(cg: Path) -> tuple[list[list[Path]], list[Path]]:
+    """A kept run's dumps: the worker's per file (its segments, then the file's own dump) and the main process's."""
+    files, main, pending = [], [], []
+    for f in _dumps(cg):
+        label = re.search(r"^desc: Trigger: (?:Client Request: )?(.*)$", f.read_text(errors="replace"), re.M).group(1)
+        if label.startswith("seg:"):
+            pending.append(f)
+        elif label == "file":
+            files.append(pending + [f])
+            pending = []
+        elif label == "main":
+            main.append(f)
+    return files, main
+
+
+def _split_rows(off: dict[str, list], on: dict[str, list], top: int) -> list[str]:
+    """The entries of two count tables (name → ``VG_EVENTS``), largest difference in estimated cycles first."""
+    def figures(c):
+        d = dict(zip(VG_EVENTS, c))
+        return d["Ir"], d["D1mr"] + d["D1mw"], d["DLmr"] + d["DLmw"], est_cycles(d)
+    zero = [0] * len(VG_EVENTS)
+    rows = []
+    for name in set(off) | set(on):
+        a, b = figures(off.get(name, zero)), figures(on.get(name, zero))
+        rows.append((b[3] - a[3], name, a, b))
+    rows.sort(key=lambda r: -abs(r[0]))
+    return [f"      {d / 1e6:+8.3f} M cycles  Ir {(b[0] - a[0]) / 1e6:+8.3f} M  D1 {(b[1] - a[1]) / 1e3:+8.1f} k  "
+            f"LL {(b[2] - a[2]) / 1e3:+7.1f} k   ({a[3] / 1e6:7.2f} → {b[3] / 1e6:7.2f} M)  {name}"
+            for d, name, a, b in rows[:top]]
+
+
+def vg_split(name: str, kept: Path, top: int = 25) -> str:
+    """``--keep``: where switching the metrics on adds counts, from the kept off and on runs: per segment (the
+    worker's profiled spans, ``VG_SEGMENTS``) and per function, in the worker's files 2–n (per file) and in the main
+    process (within ``run``)."""
+    groups = {on: _file_groups(kept / on) for on in ("off", "on")}
+
+    def per_file(tables: list[dict], n: int) -> dict:
+        total: dict[str, list] = {}
+        for t in tables:
+            for k, c in t.items():
+                acc = total.setdefault(k, [0] * len(VG_EVENTS))
+                for i, v in enumerate(c):
+                    acc[i] += v
+        return {k: [v / n for v in c] for k, c in total.items()}
+
+    def segments(files: list[list[Path]]) -> dict:
+        tables = []
+        for group in files[1:]:
+            table = {}
+            for f in group:
+                text = f.read_text(errors="replace")
+                label = re.search(r"^desc: Trigger: (?:Client Request: )?(.*)$", text, re.M).group(1)
+                events = re.search(r"^events: (.*)$", text, re.M).group(1).split()
+                counts = dict(zip(events, map(int, re.search(r"^summary: (.*)$", text, re.M).group(1).split())))
+                seg = label[4:] if label.startswith("seg:") else ""
+                acc = table.setdefault(seg or "(outside the spans)", [0] * len(VG_EVENTS))
+                for i, e in enumerate(VG_EVENTS):
+                    acc[i] += counts.get(e, 0)
+            tables.append(table)
+        return per_file(tables, len(files) - 1)
+
+    lines = [f"  {name}: where the metrics add counts (off → on), worker files 2–n per file, by span:"]
+    lines += _split_rows(*(segments(groups[on][0]) for on in ("off", "on")), top)
+    lines.append(f"  {name}: by function (exclusive), worker files 2–n per file:")
+    lines += _split_rows(*(per_file([cg_functions(f) for g in groups[on][0][1:] for f in g],
+                                    len(groups[on][0]) - 1) for on in ("off", "on")), top)
+    lines.append(f"  {name}: by function (exclusive), main process within run():")
+    lines += _split_rows(*(per_file([cg_functions(f) for f in groups[on][1]], 1) for on in ("off", "on")), top // 2)
+    return "\n".join(lines)
 
 
 def _sum(counts: list[dict]) -> dict:
@@ -749,7 +939,8 @@ def _sum(counts: list[dict]) -> dict:
 def whole_runs_valgrind(names: list[str], frames: int, repeat: int, split: str = "", keep: Path | None = None) -> None:
     """``--whole-run --valgrind``: per recipe, whole runs under callgrind (1 worker), metrics off and on, each after
     a warm run without valgrind; ``repeat`` runs of each (more than one: their largest relative difference).
-    ``split``: the functions counted apart (``--split``), ``keep``: where the callgrind files go (``--keep``)."""
+    ``split``: the functions counted apart (``--split``); ``keep``: the first off and on runs' callgrind files kept in
+    ``keep/RECIPE/off|on`` and split (:func:`vg_split`)."""
     from run import INPUTS, build_trees
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -758,6 +949,7 @@ def whole_runs_valgrind(names: list[str], frames: int, repeat: int, split: str =
         subprocess.run(["gcc", "-shared", "-fPIC", "-O1", "-o", str(tmp / "libvg.so"), str(tmp / "vg.c")], check=True)
         (tmp / "vg_hook.py").write_text(VG_HOOK)
         (tmp / "vg_split.py").write_text(VG_SPLIT)
+        (tmp / "vg_segments.py").write_text(VG_SEGMENTS)
         n = 3 * frames
         trees = build_trees(tmp / "trees", frames, {s: n for s in sorted({WHOLE_RUN[x] for x in names})})
         print(f"whole augment runs under callgrind, 1 worker, {n} files, metrics off → on: counts in millions "
@@ -779,23 +971,25 @@ def whole_runs_valgrind(names: list[str], frames: int, repeat: int, split: str =
                     valgrind_run(body, trees[sensor], tmp, native=True)
             runs: dict[bool, list] = {False: [], True: []}
 
-            def measured(on: bool, run: str) -> dict:
-                return valgrind_run(bodies[on], trees[sensor], tmp, split=split,
-                                    keep=keep and keep / f"{name}-{'on' if on else 'off'}-{run}")
+            def measured(on: bool, first: bool) -> dict:
+                kept = keep / name / ("on" if on else "off") if keep is not None and first else None
+                return valgrind_run(bodies[on], trees[sensor], tmp, split=split, keep=kept)
             for i in range(repeat):
                 for on in (False, True):
-                    runs[on].append(measured(on, f"{i}"))
+                    runs[on].append(measured(on, not runs[on]))
                 # a table whose key holds floats that NumPy computes otherwise under valgrind (no AVX-512): it is
                 # built in the first run that needs it; that pair was a warm run, measure it again
                 if before != (before := _compiled_files(tmp / "tables")):
                     print(f"  {name}: a kernel or table was written during a measured run: runs again", flush=True)
-                    runs = {on: runs[on][:-1] + [measured(on, f"{i}-again")] for on in runs}
+                    runs = {on: runs[on][:-1] + [measured(on, len(runs[on]) == 1)] for on in runs}
                     if before != _compiled_files(tmp / "tables"):
                         raise RuntimeError(f"{name}: the measured runs write kernels or tables")
             print(_vg_rows(name, runs, n), flush=True)
             if split:
                 print(_vg_split_rows(runs), flush=True)
             print("    " + json.dumps({"recipe": name, "runs": {str(k): v for k, v in runs.items()}}), flush=True)
+            if keep is not None:
+                print(vg_split(name, keep / name), flush=True)
 
 
 def _vg_figures(parts: dict, n: int) -> dict[str, dict]:
@@ -868,7 +1062,9 @@ def main() -> None:
                          "(--repeat: runs of each; 2 checks their determinism)")
     ap.add_argument("--split", nargs="?", const="camera", help="--valgrind: count these functions apart "
                     "(comma-separated module.attr; without a value: the camera metrics' passes)")
-    ap.add_argument("--keep", type=Path, help="--valgrind: copy the callgrind files to DIR/RECIPE-off|on-i")
+    ap.add_argument("--keep", type=Path, help="with --whole-run --valgrind: keep the off and on runs' callgrind "
+                                              "files in KEEP/RECIPE/ and print where the metrics add counts (per "
+                                              "profiled span and per function)")
     ap.add_argument("--last-level", help="--valgrind: the simulated last-level cache as SIZE,ASSOC,LINE (default "
                                          "33554432,16,64; 1048576,8,64: a Zen 4 L2, whose misses then count as LL)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
@@ -880,7 +1076,8 @@ def main() -> None:
         VG_CACHES[-1] = f"--LL={args.last_level}"
     if args.whole_run and args.valgrind:
         whole_runs_valgrind(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.frames, args.repeat,
-                            VG_SPLIT_DEFAULT if args.split == "camera" else args.split or "", args.keep)
+                            VG_SPLIT_DEFAULT if args.split == "camera" else args.split or "",
+                            args.keep.resolve() if args.keep else None)
         return
     if args.whole_run and args.baseline:
         whole_runs_paired(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames,

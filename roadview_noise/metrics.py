@@ -473,16 +473,19 @@ _NOT_LINKED = (_NO_INDEX, _NO_MASK, math.nan)                   # a NO_LINK pass
 
 
 def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
-    """:func:`_pass` compiled for this ``link`` (a constant there, so each variant's loop holds only its own
-    branches)."""
-    return _PASSES[link](positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step)
+    """:func:`_pass` compiled for this ``link`` and for the returns known or not (constants there, so each variant's
+    loop holds only its own branches: one with the returns known keeps none of the geometry's live values, and
+    spills fewer of its own)."""
+    counted = len(known_valid) == len(positions) and len(positions) > 0
+    return _PASSES[link, counted](positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step)
 
 
 @jit(inline="always")
-def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step):  # pragma: no cover
+def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb, valid_b, values_b,
+          step):  # pragma: no cover
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
-    returns per range bin — or, when ``known_valid`` (which points are returns) is given (non-empty), none of
-    these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
+    returns per range bin — or, when ``known`` (``known_valid``, as many as the points, says which are returns),
+    none of these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
     KEPT) and the sum and count of the finite ``values`` (NaN values are skipped).
 
     With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK), in the same pass: :func:`correspondence` of the
@@ -497,7 +500,6 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
     written (``index`` and ``moved`` come back empty): only the mean change is taken, over every point, or with
     ``valid_b`` (a grid) over the cells that are returns in both."""
     n = positions.shape[0]
-    known = known_valid.shape[0] == n and n > 0
     valid = known_valid if known else np.empty(n, np.bool_)
     hist = np.zeros(n_bins, np.int64)
     counts = np.zeros(4, np.int64)
@@ -514,9 +516,13 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
     in_order = True                         # a list without removals: its i-th survivor is before's i-th point
     if link == LIST_LINK or link == STEP_LINK:
         survivors = n
-        for j in range(n if has_codes else 0):
-            if codes[j] == 3 and (valid[j] if known else _is_return(positions, j)):
-                survivors -= 1
+        if known:
+            for j in range(n if has_codes else 0):      # branch-free: vectorised
+                survivors -= (codes[j] == 3) & valid[j]
+        else:
+            for j in range(n if has_codes else 0):
+                if codes[j] == 3 and _is_return(positions, j):
+                    survivors -= 1
         in_order = survivors == nb
     change, changed, i = 0.0, 0, 0
     for j in range(n):
@@ -544,8 +550,8 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
             if in_order:
                 away = c == 2
             else:                           # moved by the step, unless to where it was
-                away = has_step_codes and step_codes[j] == 2 and not (_same_position(pb, i, positions, j)
-                                                                      and valid_b[i])
+                away = found and has_step_codes and step_codes[j] == 2 and not (
+                    _same_position(pb, np.uint64(i), positions, j) and valid_b[np.uint64(i)])
         if known:
             ok = valid[j]
         else:
@@ -568,11 +574,12 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
                     finite += 1
         if not found or ((link == GRID_LINK or masked) and not (ok and valid_b[j])):
             continue
+        k = np.uint64(i)                    # ≥ 0 here: indexed without the wrap-around test
         if link != SAME_LINK:
-            index[i] = j
-            moved[i] = away
+            index[k] = j
+            moved[k] = away
         if changes and not away:
-            d = _change(values_b, i, values, j)
+            d = _change(values_b, k, values, j)
             if np.isfinite(d):
                 change += d
                 changed += 1
@@ -585,32 +592,69 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_
 
 
 @jit
-def _plain_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, NO_LINK, pb, valid_b, values_b, step)
+def _plain_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, NO_LINK, False, pb, valid_b, values_b, step)
 
 
 @jit
-def _grid_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, GRID_LINK, pb, valid_b, values_b, step)
+def _counted_plain_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                        step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, NO_LINK, True, pb, valid_b, values_b, step)
 
 
 @jit
-def _list_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, LIST_LINK, pb, valid_b, values_b, step)
+def _grid_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+               step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, GRID_LINK, False, pb, valid_b, values_b, step)
 
 
 @jit
-def _step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, STEP_LINK, pb, valid_b, values_b, step)
+def _counted_grid_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                       step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, GRID_LINK, True, pb, valid_b, values_b, step)
 
 
 @jit
-def _same_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, SAME_LINK, pb, valid_b, values_b, step)
+def _list_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+               step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, LIST_LINK, False, pb, valid_b, values_b, step)
 
 
-_PASSES = {NO_LINK: _plain_pass, GRID_LINK: _grid_pass, LIST_LINK: _list_pass, STEP_LINK: _step_pass,
-           SAME_LINK: _same_pass}
+@jit
+def _counted_list_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                       step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, LIST_LINK, True, pb, valid_b, values_b, step)
+
+
+@jit
+def _step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+               step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, STEP_LINK, False, pb, valid_b, values_b, step)
+
+
+@jit
+def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                       step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, STEP_LINK, True, pb, valid_b, values_b, step)
+
+
+@jit
+def _same_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+               step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, SAME_LINK, False, pb, valid_b, values_b, step)
+
+
+@jit
+def _counted_same_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                       step):  # pragma: no cover
+    return _pass(positions, known_valid, codes, values, bin_m, n_bins, SAME_LINK, True, pb, valid_b, values_b, step)
+
+
+_PASSES = {(NO_LINK, False): _plain_pass, (GRID_LINK, False): _grid_pass, (LIST_LINK, False): _list_pass,
+           (STEP_LINK, False): _step_pass, (SAME_LINK, False): _same_pass, (NO_LINK, True): _counted_plain_pass,
+           (GRID_LINK, True): _counted_grid_pass, (LIST_LINK, True): _counted_list_pass,
+           (STEP_LINK, True): _counted_step_pass, (SAME_LINK, True): _counted_same_pass}
 
 
 @jit(inline="always")
@@ -630,8 +674,9 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. The geometry of a positions
     array is found once (:mod:`~roadview_noise.physics.return_ranges`): an array a step hands on unchanged
     (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
-    counted — not even those for a chain input without codes whose intensity sum the model that read it noted too
-    (:func:`return_ranges.noted_sum`: the laser power, the alignment). SAME_LINK takes the mean change over the cells
+    counted — of a chain input without codes only its values' sum (:func:`_return_value_sum`), and not even that
+    when the model that read it noted the sum too (:func:`return_ranges.noted_sum`: the laser power, the
+    alignment). SAME_LINK takes the mean change over the cells
     that are returns in both when ``cells`` (grids), else over every point."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
@@ -639,14 +684,28 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
         valid_b = before["valid"] if link != SAME_LINK or cells else _NO_MASK
         linked = (before["positions"], valid_b, before["values"], step)
     geometry = return_ranges.noted(positions, n_bins)
-    sums = None if geometry is None or link != NO_LINK or len(codes) else return_ranges.noted_sum(positions, values)
-    if sums is not None:                # the pass's result, noted by the model that read the array (chain input)
+    if geometry is not None and link == NO_LINK and not len(codes):   # all KEPT: only the values' sum is wanted
+        sums = return_ranges.noted_sum(positions, values) or _return_value_sum(geometry[3], values)
         return geometry, np.array([geometry[0], 0, 0, 0], np.int64), *sums, _NOT_LINKED
     if geometry is None:
         full = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
         return_ranges.note(positions, n_bins, full[0])
         return full
     return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
+
+
+@jit
+def _return_value_sum(valid, values):       # pragma: no cover - compiled
+    """(sum, number) of the finite ``values`` of the returns ``valid``, in order: :func:`_pass`'s sums of a cloud
+    without effect codes whose returns are known (a chain input the weather step counted)."""
+    total, finite = 0.0, 0
+    for j in range(values.shape[0]):
+        if valid[j]:
+            v = float(values[j])
+            if np.isfinite(v):
+                total += v
+                finite += 1
+    return total, finite
 
 
 def _link_mode(b: dict, a: dict, by_step: bool = False) -> int:

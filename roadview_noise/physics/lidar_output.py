@@ -158,7 +158,7 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
             else:
                 b_in, r2_in = top + 1, squared_range(positions, i)     # stays: a return, in a bin never read
         if geo and b_in >= 0 and kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
-            hist_out[b_in] -= 1
+            hist_out[np.uint64(b_in)] -= 1             # (bins ≥ 0, outputs o ≥ 0: no wrap-around test)
             returns_out -= 1
         scale = 1.0                                    # of the position
         effect = 0                                     # KEPT
@@ -199,24 +199,24 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
         if out_only:
             b, r2 = range_bin(positions_out[o, 0], positions_out[o, 1], positions_out[o, 2], inv_bin, top)
             if b >= 0:
-                hist_out[b] += 1
+                hist_out[np.uint64(b)] += 1
                 returns_out += 1
                 max_out = max(max_out, r2)
-            valid_out[o] = b >= 0
+            valid_out[np.uint64(o)] = b >= 0
         elif geo:                                      # hist_out: the change from hist_in
             b = b_in                                   # scale 1: the input's position, bit for bit
             if scale != 1.0:
                 b, r2 = range_bin(positions_out[o, 0], positions_out[o, 1], positions_out[o, 2], inv_bin, top)
                 if b_in >= 0:
-                    hist_out[b_in] -= 1
+                    hist_out[np.uint64(b_in)] -= 1
                     returns_out -= 1
                 if b >= 0:
-                    hist_out[b] += 1
+                    hist_out[np.uint64(b)] += 1
                     returns_out += 1
                     max_out = max(max_out, r2)
             elif b >= 0:
                 max_out = max(max_out, r2_in)
-            valid_out[o] = b >= 0
+            valid_out[np.uint64(o)] = b >= 0
         o += 1
     if geo:
         hist_out += hist_in
@@ -322,7 +322,7 @@ def _geometry_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int, size
         returns_in, hist, _, valid_in = known
         hist_in[:len(hist)] = hist
     return (1.0 / return_ranges.RANGE_BIN_M, hist_in, np.zeros(n_bins, np.int64), valid_in,
-            np.zeros(size if n_bins else 0, np.bool_), returns_in)
+            np.empty(size if n_bins else 0, np.bool_), returns_in)     # (every output row's entry is written)
 
 
 def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, returns_out: list) -> None:

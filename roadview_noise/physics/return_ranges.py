@@ -64,7 +64,7 @@ def add_point(positions, j, inv_bin, top, hist, valid, returns, max_r2):       #
     valid[j] = b >= 0
     if b < 0:
         return b, r2, returns, max_r2
-    hist[b] += 1
+    hist[np.uint64(b)] += 1                            # ≥ 0: no wrap-around test
     return b, r2, returns + 1, max(max_r2, r2)
 
 
