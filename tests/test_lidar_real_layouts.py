@@ -12,7 +12,7 @@ import pytest
 from roadview_noise.errors import InputError
 from roadview_noise.io.pointcloud import read_pointcloud
 from roadview_noise.physics.firing_grid import firing_grid
-from roadview_noise.physics.lidar_intensity import IntensityWarning, resolve_profile
+from roadview_noise.physics.lidar_intensity import IntensityWarning, chain_intensity_scale, resolve_profile
 from roadview_noise.physics.lidar_rays import cloud_rays
 from roadview_noise.profiles.lidar import default_profile, hdl_32e, load_lidar_profile
 from roadview_noise.types import PointCloud
@@ -79,6 +79,20 @@ def test_ring_field_of_a_smaller_sensor_is_pointed_out():
     assert "ring field" not in resolve_profile(default_profile(), intensity, pos, "fog.lidar", full).warning
     with pytest.warns(IntensityWarning, match="hdl-32e"):
         cloud_rays(dataclasses.replace(cloud, profile=default_profile()), "fog.lidar")
+
+
+def test_ring_field_of_an_ouster_cloud_points_to_its_metadata():
+    """An OS-2-32 cloud as ouster-ros writes it (ring 0–31 and an ``ambient`` field) read with the default OS1-128:
+    the hint names the unit's metadata JSON, not hdl-32e (a Velodyne of as many beams); without Ouster's fields it
+    still names hdl-32e."""
+    cloud, _ = nuscenes_like()
+    ambient = np.zeros(len(cloud.positions_m), np.uint16)
+    ouster = dataclasses.replace(cloud, profile=default_profile(), fields={**cloud.fields, "ambient": ambient})
+    scale = chain_intensity_scale(ouster, "fog.lidar")
+    assert "ring field counts 32 beams" in scale.warning and "Ouster metadata" in scale.warning
+    assert "give lidar_profile hdl-32e" not in scale.warning and "lidar_profile FILE.json" in scale.warning
+    plain = chain_intensity_scale(dataclasses.replace(cloud, profile=default_profile()), "fog.lidar")
+    assert "lidar_profile hdl-32e" in plain.warning and "Ouster metadata" not in plain.warning
 
 
 def test_elevations_of_a_smaller_sensor_without_ring_are_pointed_out():

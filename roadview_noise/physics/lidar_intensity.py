@@ -277,14 +277,14 @@ def chain_intensity_scale(cloud, model_id: str) -> IntensityScale:
     decided (:func:`check_intensity_scale`)."""
     source = cloud.recorded if cloud.recorded is not None and "intensity" in cloud.recorded.fields else cloud
     scale = resolve_profile(cloud.profile, np.asarray(source.fields["intensity"]), source.positions_m, model_id,
-                            source.fields.get("ring"))
+                            source.fields.get("ring"), ouster=not OUSTER_FIELDS.isdisjoint(source.fields))
     if source is not cloud:
         check_intensity_scale(np.asarray(cloud.fields["intensity"]), scale.profile, model_id)
     return scale
 
 
 def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: np.ndarray,
-                    model_id: str, ring: np.ndarray | None = None) -> IntensityScale:
+                    model_id: str, ring: np.ndarray | None = None, ouster: bool = False) -> IntensityScale:
     """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
     are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
     channels), the data decide (:func:`read_intensity`) — 8-bit whole counts are read as the sensor's calibrated
@@ -294,7 +294,7 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     stated or not (:func:`no_strength_error`). A stated unit is not second-guessed: an earlier step of a chain (laser
     power variance) may have changed what the intensities look like. ``ring``: the cloud's ring field, if any; when
     it counts at most half the profile's beams, the warning says so (a nuScenes HDL-32E scan read with the default
-    OS1-128, :func:`beam_count_hint`); without one, when its returns lie above or below the profile's beams
+    OS1-128, :func:`beam_count_hint`; ``ouster``: the cloud has the fields only an Ouster driver writes); without one, when its returns lie above or below the profile's beams
     (:func:`elevation_span_hint`)."""
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
@@ -311,7 +311,7 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
         raise fraction_error(intensity, model_id)
     how = ("give lidar_profile (e.g. os1-128 for Ouster signal photons, os1-128-reflectivity for its 8-bit "
            "reflectivity, hdl-32e for nuScenes) or intensity_unit in the recipe")
-    how += beam_count_hint(profile, ring) if ring is not None else elevation_span_hint(profile, positions_m)
+    how += beam_count_hint(profile, ring, ouster) if ring is not None else elevation_span_hint(profile, positions_m)
     if reading.values == "8-bit counts" and reading.kind != SIGNAL and profile.intensity_kind == SIGNAL:
         adopted = dataclasses.replace(reflectivity_variant(profile), intensity_source="the data")
         seen, read_as = (("look like 8-bit range-compensated reflectivity", "such") if reading.kind == REFLECTIVITY
@@ -361,17 +361,23 @@ def no_strength_error(model_id: str) -> ModelError:
 
 #: built-in profiles to suggest for a ring field counting this many beams
 PROFILE_FOR_BEAMS = {32: "hdl-32e for a Velodyne HDL-32E (nuScenes)", 64: "kitti-hdl64 for KITTI, carla-64 for CARLA"}
+#: fields only Ouster's drivers write (ouster-ros: ambient; ouster-sdk and newer ouster-ros: near_ir); Livox writes
+#: ``reflectivity`` too, so that one says nothing
+OUSTER_FIELDS = frozenset({"ambient", "near_ir"})
+OUSTER_FIT = "FILE.json, the unit's Ouster metadata (its beam angles and packet profile)"
 
 
-def beam_count_hint(profile: LidarProfile, ring: np.ndarray | None) -> str:
+def beam_count_hint(profile: LidarProfile, ring: np.ndarray | None, ouster: bool = False) -> str:
     """'' or a note for the warning when a cloud's ring field counts at most half the profile's beams: its rings
-    then index the profile's first beams, which are other beams of another sensor."""
+    then index the profile's first beams, which are other beams of another sensor. ``ouster``: the cloud has
+    Ouster's fields (:data:`OUSTER_FIELDS`: an OS-0/1/2-32 or -64 from ouster-ros), so the fitting profile is its
+    metadata JSON, not a Velodyne's of as many beams."""
     if ring is None or len(ring) == 0 or not np.issubdtype(np.asarray(ring).dtype, np.number):
         return ""
     beams = int(np.max(ring)) + 1
     if beams > profile.channels // 2:
         return ""
-    fit = PROFILE_FOR_BEAMS.get(beams)
+    fit = OUSTER_FIT if ouster else PROFILE_FOR_BEAMS.get(beams)
     return (f"; the cloud's ring field counts {beams} beams (0…{beams - 1}) but profile {profile.name!r} has "
             f"{profile.channels}, so its rings index other beams" + (f": give lidar_profile {fit}" if fit else ""))
 
