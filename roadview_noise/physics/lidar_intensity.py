@@ -243,7 +243,9 @@ def check_intensity_scale(intensity: np.ndarray, profile: LidarProfile, model_id
 def _unit_scale_error(profile: LidarProfile, model_id: str) -> ModelError:
     return ModelError(f"all intensities are within [0, 1] but profile {profile.name!r} expects "
                       f"{profile.intensity_unit} up to {profile.intensity_full_scale:g}; use a profile with "
-                      f"intensity_unit 'unit' (e.g. kitti-hdl64, carla-64)", model=model_id, field="intensity")
+                      f"intensity_unit 'unit' (e.g. kitti-hdl64, carla-64), or state the unit: 'intensity_unit: "
+                      f"unit' in the recipe's inputs (a bag recipe: the topic's entry), in a lidar.yaml next to the "
+                      f"files or given as --lidar-profile FILE.yaml", model=model_id, field="intensity")
 
 
 def reflectivity_variant(profile: LidarProfile) -> LidarProfile:
