@@ -190,6 +190,12 @@ def elevation_rad(positions_m: np.ndarray) -> np.ndarray:
     return np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
 
 
+def unit_vectors(el: np.ndarray, az: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vectors of elevations ``el`` and azimuths ``az`` (rad; x forward, y left, z up): the inverse of
+    :func:`elevation_rad` and the azimuth ``atan2(y, x)``."""
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+
+
 def ring_source(cloud) -> str:
     """Where :func:`ring_index` takes the cloud's rings from: ``field``, ``attribute`` or ``elevation``."""
     return "field" if RING in cloud.fields else "attribute" if RING in cloud.attributes else "elevation"

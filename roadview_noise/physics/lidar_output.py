@@ -16,7 +16,7 @@ from .compiled import jit
 from .firing_grid import FiringGrid
 from .laser_order import FIRING_COLUMN
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
-from .lidar_geometry import RING, beam_means, elevation_rad, far_returns
+from .lidar_geometry import RING, beam_means, elevation_rad, far_returns, unit_vectors
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
@@ -73,7 +73,7 @@ def _measured_beam_directions(cloud: PointCloud, has_return: np.ndarray, idx: np
     beam_el = beam_means(ring[valid], elevation_rad(p[valid]), beams)[ring[idx]]
     beam_offset = beam_means(ring[valid], np.exp(1j * (phi - sign * col_phase)), beams)[ring[idx]]   # φ0 + offset
     az = beam_offset + sign * 2 * np.pi * (idx % cols) / cols
-    return np.stack([np.cos(beam_el) * np.cos(az), np.cos(beam_el) * np.sin(az), np.sin(beam_el)], axis=1)
+    return unit_vectors(beam_el, az)
 
 
 def _rings(cloud: PointCloud, idx: np.ndarray, profile: LidarProfile) -> np.ndarray:
@@ -100,7 +100,7 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
     if staggered:
         az = az - np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg))[ring]
     el = np.deg2rad(np.asarray(profile.beam_elevation_deg))[ring]
-    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+    return unit_vectors(el, az)
 
 
 @jit
