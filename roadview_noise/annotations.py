@@ -310,8 +310,10 @@ class Annotated:
 
 
 def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidecar]:
-    """Read the sidecars of one input (InputError names the file and the problem)."""
+    """Read the sidecars of one input (InputError names the file and the problem); an image's are in its stored
+    pixel coordinates, also when it is processed upright (:mod:`.orientation`)."""
     from .manifest import sha256_file
+    from .orientation import stored_shape
 
     out = []
     for role, rule in spec.rules():
@@ -333,12 +335,14 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
                                  file=str(in_root / relpath))
         elif role == "mask":
             sc.data = ann_io.read_mask(path)
-            if sc.data.shape[:2] != data.shape:
+            h, w = stored_shape(data)
+            if sc.data.shape[:2] != (h, w):
                 raise InputError(f"mask {rel} is {sc.data.shape[1]}×{sc.data.shape[0]} px, the image {relpath} "
-                                 f"{data.shape[1]}×{data.shape[0]}", file=str(in_root / relpath))
+                                 f"{w}×{h}", file=str(in_root / relpath))
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
-            sc.data = ann_io.read_boxes_2d(path, sc.fmt, data.shape[1], data.shape[0])
+            h, w = stored_shape(data)
+            sc.data = ann_io.read_boxes_2d(path, sc.fmt, w, h)
         out.append(sc)
     boxes = next((s for s in out if s.role == "boxes_3d"), None)
     if boxes is not None:

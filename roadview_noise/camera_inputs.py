@@ -82,22 +82,30 @@ def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: An
     ``name`` (in errors), ``folder`` (relative profile paths), ``sidecars`` (look for ``camera.yaml`` there),
     ``key(setting)`` (where the recipe states a setting) and ``depth(recipe, geometry)`` (the ``file`` depth
     source: ``(range_m with NaN holes, notes, source name)``)."""
+    from .orientation import upright_frame
+
     notes: dict[str, Any] = {}
+    h, w = frame.shape                                  # as stored: the calibration, profile and depth files' size
+    exif, turn = _orientation(frame, recipe, origin)
+    if turn != 1:
+        frame = upright_frame(frame, turn)
     if isinstance(frame, CameraFrame) and frame.encoding.fmt == "jpeg":
         stated = recipe.spec.output.jpeg_quality
         if stated is not None:
             frame = dataclasses.replace(frame, encoding=dataclasses.replace(frame.encoding, jpeg_quality=stated))
         notes["jpeg_quality"] = {"value": frame.encoding.jpeg_quality, "from": "recipe output.jpeg_quality"
                                  if stated is not None else "input (estimated from its quantisation tables)"}
-    h, w = frame.shape
-    geometry = _Geometry(origin, recipe, w, h)
+    geometry = _Geometry(origin, recipe, w, h, turn)
     if needs_camera_geometry(recipe):
         geometry.profile                                    # resolved now: a step of the chain uses it
     depth = valid = None
     if recipe.needs_depth():
         depth, valid, notes["depth"] = _depth(origin, recipe, geometry, lambda: _signal(frame))
+    if turn != 1 and "camera" in geometry.notes:
+        geometry.profile                                    # a depth source read the stored intrinsics: turn them
     notes.update(geometry.notes)
-    warnings = geometry.warnings + _depth_warnings(notes.get("depth")) + _orientation_warning(frame, recipe, notes)
+    warnings = geometry.warnings + _depth_warnings(notes.get("depth")) + _orientation_note(exif, turn, recipe,
+                                                                                           notes)
     if warnings:
         notes["warnings"] = warnings
     return dataclasses.replace(frame, profile=geometry.resolved or frame.profile, depth_m=depth, depth_valid=valid,
@@ -123,9 +131,10 @@ def _signal(frame: CameraFrame | RawFrame) -> np.ndarray:
 
 
 class FileImage:
-    """An image file of the input tree as the origin of a frame (see :func:`with_camera_inputs`)."""
+    """An image file of the input tree as the origin of a frame (see :func:`with_camera_inputs`): a photo stored
+    turned is processed upright (the runner turns the result back, :mod:`roadview_noise.orientation`)."""
 
-    sidecars = True
+    sidecars = upright = True
 
     def __init__(self, sample: Sample, in_root: Path):
         self.sample, self.in_root = sample, in_root
@@ -164,7 +173,7 @@ class FileImage:
         planar = inputs.depth_kind == "planar" or fmt in depth_io.PLANAR_FORMATS
         cal = geometry.calibration
         w, h = geometry.size
-        depth = depth_io.read_depth(depth_path, fmt=fmt, profile=geometry.profile if planar else None,
+        depth = depth_io.read_depth(depth_path, fmt=fmt, profile=geometry.stored_profile if planar else None,
                                     expected_shape=(h, w), planar=planar,
                                     baseline_m=cal.baseline_m if cal is not None else None)
         notes = {"source": "file", "file": self.sample.depth_relpath, "format": fmt,
@@ -176,10 +185,12 @@ class FileImage:
 
 
 class _Geometry:
-    """The camera geometry of one image, resolved on first use (module docstring)."""
+    """The camera geometry of one image, resolved on first use (module docstring): ``size`` and
+    :attr:`stored_profile` are the stored pixels', :attr:`profile` the image's as the chain sees it (turned upright
+    from the stored pixels by the EXIF orientation ``turn``, :mod:`roadview_noise.orientation`)."""
 
-    def __init__(self, origin: Any, recipe: Recipe, width_px: int, height_px: int):
-        self.origin, self.recipe = origin, recipe
+    def __init__(self, origin: Any, recipe: Recipe, width_px: int, height_px: int, turn: int = 1):
+        self.origin, self.recipe, self.turn = origin, recipe, turn
         self.size = (width_px, height_px)
         self.resolved: CameraProfile | None = None
         self.notes: dict[str, Any] = {}
@@ -220,6 +231,16 @@ class _Geometry:
 
     @cached_property
     def profile(self) -> CameraProfile:
+        from .orientation import upright_profile
+
+        profile = upright_profile(self.stored_profile, self.turn)
+        if self.turn != 1:
+            self.notes["camera"].update(_intrinsics_notes(profile))
+        self.resolved = profile
+        return profile
+
+    @cached_property
+    def stored_profile(self) -> CameraProfile:
         inputs = self.recipe.spec.inputs
         w, h = self.size
         folder = self.origin.folder
@@ -257,13 +278,15 @@ class _Geometry:
                     profile = dataclasses.replace(profile, name="calibration", **_intrinsics_fields(intrinsics))
         if intrinsics is not None:
             source = f"calibration intrinsics over {source}"
-        self.notes["camera"] = {"profile": profile.name, "from": source, "fx_px": round(profile.fx_px, 4),
-                                "fy_px": round(profile.fy_px, 4), "cx_px": round(profile.cx_px, 4),
-                                "cy_px": round(profile.cy_px, 4), "fov_h_deg": round(profile.fov_h_deg, 4)}
+        self.notes["camera"] = {"profile": profile.name, "from": source, **_intrinsics_notes(profile)}
         if stated is not None:
             self.notes["camera"].update(stated.notes)
-        self.resolved = profile
         return profile
+
+
+def _intrinsics_notes(profile: CameraProfile) -> dict[str, float]:
+    return {"fx_px": round(profile.fx_px, 4), "fy_px": round(profile.fy_px, 4), "cx_px": round(profile.cx_px, 4),
+            "cy_px": round(profile.cy_px, 4), "fov_h_deg": round(profile.fov_h_deg, 4)}
 
 
 def assumed_profile(width_px: int, height_px: int, fov_h_deg: float) -> CameraProfile:
@@ -309,7 +332,10 @@ def _depth(origin: Any, recipe: Recipe, geometry: _Geometry, signal: Callable[[]
     inputs = recipe.spec.inputs
     source = inputs.depth_source
     if source == "file":
+        from .orientation import upright
+
         depth, notes, where = origin.depth(recipe, geometry)
+        depth = upright(depth, geometry.turn)           # the sidecar is aligned with the stored pixels
     elif source == "lidar":
         return _depth_lidar(origin, recipe, geometry, signal)
     elif source == "onnx":
@@ -328,6 +354,7 @@ def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal)
     from .depth.lidar import lidar_depth
     from .io import pointcloud as cloud_io
     from .io.image import display_srgb
+    from .orientation import stored, upright
 
     spec = recipe.spec.inputs.lidar_depth
     cal = geometry.calibration
@@ -345,13 +372,13 @@ def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal)
     if cal is None or cal.lidar_to_camera is None:
         raise InputError("depth_source lidar needs the LiDAR → camera transform: inputs.calibration (a KITTI "
                          "calib .txt, a .yaml with lidar_to_camera, or {nuscenes: VERSION})", file=origin.name)
-    profile = geometry.profile
+    profile = geometry.stored_profile                   # the calibration's camera: the stored pixels
     cloud = cloud_io.read_pointcloud(scan_path, sensor="lidar")
     ground = None
     if spec.ground_plane:
         height = cal.height_above_ground_m or profile.height_above_ground_m
         ground = (height, cal.pitch_rad or 0.0)
-    guide = display_srgb(signal()) if spec.densify == "bilateral" else None
+    guide = display_srgb(stored(signal(), geometry.turn)) if spec.densify == "bilateral" else None
     try:
         depth, valid, notes = lidar_depth(cloud.positions_m, cal.lidar_to_camera,
                                           (profile.fx_px, profile.fy_px, profile.cx_px, profile.cy_px),
@@ -359,6 +386,7 @@ def _depth_lidar(origin: FileImage, recipe: Recipe, geometry: _Geometry, signal)
                                           guide_srgb=guide, ground=ground)
     except ValueError as exc:
         raise InputError(f"{exc} (scan {scan_rel})", file=origin.name) from None
+    depth, valid = upright(depth, geometry.turn), None if valid is None else upright(valid, geometry.turn)
     notes = {"source": "lidar", "scan": scan_rel, **notes}
     if ground is not None:
         notes["ground_plane"] = {"camera_height_m": ground[0], "pitch_deg": round(math.degrees(ground[1]), 6)}
@@ -421,20 +449,30 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry, signal):
     return depth, None, notes
 
 
-def _orientation_warning(frame: CameraFrame | RawFrame, recipe: Recipe, notes: dict) -> list[str]:
-    """``turned_photo`` (and ``notes["orientation"]``) for a photo whose EXIF/TIFF orientation turns or mirrors it for
-    display, when the chain has a direction: steps that use camera geometry (rain and snow fall down the stored
-    columns), the ground-plane prior (road at the stored bottom) or a depth network (trained on upright photos).
-    Pixels are processed as stored (the output keeps the tag, labels stay aligned), so those directions are the
-    stored ones: a photo turned 90° gets horizontal streaks as displayed."""
+def _orientation(frame: CameraFrame | RawFrame, recipe: Recipe, origin: Any) -> tuple[int, int]:
+    """``(EXIF/TIFF orientation of the file, the one its pixels are turned upright from)``: a photo file is
+    processed upright unless ``inputs.orientation: stored``; raw Bayer frames (their CFA would turn) and bag
+    messages are processed as stored."""
     from .io.image_metadata import orientation
 
-    turn = orientation(frame.encoding) if isinstance(frame, CameraFrame) else 1
-    if turn == 1 or not (needs_camera_geometry(recipe) or
-                         recipe.spec.inputs.depth_source in ("ground_plane", "onnx")):
+    exif = orientation(frame.encoding) if isinstance(frame, CameraFrame) else 1
+    upright = exif != 1 and getattr(origin, "upright", False) and recipe.spec.inputs.orientation == "upright"
+    return exif, exif if upright else 1
+
+
+def _orientation_note(exif: int, turn: int, recipe: Recipe, notes: dict) -> list[str]:
+    """``notes["orientation"]`` for a photo whose EXIF/TIFF orientation turns or mirrors it for display, and
+    ``turned_photo`` when it was processed as stored while the chain has a direction: steps that use camera geometry
+    (rain and snow fall down the stored columns), the ground-plane prior (road at the stored bottom) or a depth
+    network (trained on upright photos)."""
+    if exif == 1:
         return []
-    notes["orientation"] = {"exif": turn, "processed": "as stored, not turned upright"}
-    return ["turned_photo"]
+    if turn != 1:
+        notes["orientation"] = {"exif": exif, "processed": "upright"}
+        return []
+    notes["orientation"] = {"exif": exif, "processed": "as stored"}
+    directed = needs_camera_geometry(recipe) or recipe.spec.inputs.depth_source in ("ground_plane", "onnx")
+    return ["turned_photo"] if directed else []
 
 
 def _depth_warnings(notes: dict | None) -> list[str]:
@@ -498,11 +536,10 @@ class InputWarnings:
                          "objects (YOLO's background images) and written without one; if they should have labels, "
                          "check inputs.annotations.boxes_2d (annotations_read in the manifest)")
         if "turned_photo" in n:
-            lines.append(f"{n['turned_photo']} photo(s) are stored turned or mirrored (EXIF orientation 2–8, "
-                         "inputs.orientation in the manifest): the chain sees the stored pixels, so rain and snow fall "
-                         "and the ground-plane road lies along the stored image, not the displayed one; turn them "
-                         "upright first (exiftran -ai, mogrify -auto-orient; labels with them) if the photos were "
-                         "taken sideways")
+            lines.append(f"{n['turned_photo']} photo(s) stored turned or mirrored (EXIF orientation 2–8) were "
+                         "processed as stored (recipe inputs.orientation: stored, or an image in a bag; "
+                         "inputs.orientation in the manifest): rain and snow fall and the ground-plane road lies "
+                         "along the stored image, not the displayed one")
         if "intrinsics_from_fov" in n:
             lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
                          f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "

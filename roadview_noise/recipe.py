@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer, model_validator
 
 from .annotations import AnnotationsSpec, NuscenesRule, ReplaceRule
 from .compound import cnf_chain, order_chain
@@ -115,6 +115,18 @@ class InputsSpec(_Strict):
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
     annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes
+    # a photo stored turned or mirrored (EXIF/TIFF orientation 2–8): processed upright, as displayed, and written
+    # back as stored (roadview_noise/orientation.py); stored: the stored pixels as they are (the earlier behaviour)
+    orientation: Literal["upright", "stored"] = "upright"
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler) -> dict[str, Any]:
+        """The default ``orientation`` is left out, so run.json and the recipe's sha256 (resume) stay those of a
+        recipe written before the key existed."""
+        d = handler(self)
+        if self.orientation == "upright":
+            d.pop("orientation", None)
+        return d
 
     @model_validator(mode="after")
     def _raw_black_level(self) -> "InputsSpec":

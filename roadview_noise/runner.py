@@ -371,7 +371,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
     """The body of :func:`process`: fills ``entry``."""
     s, recipe = task.sample, ctx.recipe
     try:
-        from . import luminance, metrics      # numba: imported where files are processed only
+        from . import luminance, metrics, orientation      # numba, OpenCV: imported where files are processed only
 
         luminance.collect(recipe.spec.output.metrics)   # the frames' sRGB passes keep their luminance for the metrics
         deferred = metrics.Deferred()                   # filled after the writer's encode (metrics.Deferred)
@@ -407,12 +407,13 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                     entry["metrics"] = records[0].metrics
                 else:
                     entry["metrics"] = deferred.compare(data, out)
+            out = orientation.as_stored(out)             # a photo processed upright is written and labelled as stored
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
                           if v})
             if task.coco is not None:
-                entry["coco"] = coco_warp.move_image(task.coco, data.shape, out.warps)
+                entry["coco"] = coco_warp.move_image(task.coco, orientation.stored_shape(data), out.warps)
             with confined_to(ctx.out_root), staged_writes(sync=ctx.fsync_outputs) as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)

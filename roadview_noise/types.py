@@ -217,6 +217,7 @@ class CameraFrame:
     depth_valid: np.ndarray | None = None
     input_notes: Mapping[str, Any] = field(default_factory=dict)
     warps: tuple = ()                        # physics.warp.Warp of each geometric step so far (masks, boxes follow)
+    orientation: int = 1                     # EXIF orientation the pixels were turned upright from (orientation.py)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -152,30 +152,44 @@ def test_cli_input_overrides_are_recorded_and_replayed(tmp_path):
     assert r.exit_code == 2 and "{stm}" in r.output and not (tmp_path / "out3").exists()
 
 
-def test_a_photo_turned_by_its_exif_orientation_is_named_where_the_chain_has_a_direction(tmp_path):
-    """A phone photo stored sideways (EXIF orientation 6) is processed as stored: rain fell along the stored columns,
-    horizontal once displayed, without a word. Now the manifest says so and one line per run warns; an upright
-    photo (orientation 1) and a chain without a direction (fog on the photo's own depth file) say nothing."""
-    from PIL import Image
+def test_a_photo_turned_by_its_exif_orientation_is_processed_upright_unless_stored_is_asked(tmp_path):
+    """A phone photo stored sideways (EXIF orientation 6) is processed upright: rain falls down the displayed image
+    (its streaks vertical as displayed), the manifest says so, no warning. ``inputs.orientation: stored`` keeps the
+    stored processing (streaks horizontal as displayed): the manifest says so and one line per run warns; an
+    upright photo (orientation 1) and a chain without a direction (fog on the photo's own depth file) say nothing."""
+    from PIL import Image, ImageOps
 
     for name, turn in (("side.jpg", 6), ("upright.jpg", 1)):
         exif = Image.Exif()
         exif[0x0112] = turn
         Image.open(_photo(tmp_path / "in" / name)).save(tmp_path / "in" / name, exif=exif.tobytes(), quality=90)
-    rain = parse_recipe({"chain": [{"model": "rain.camera"}], "seed": 1,
-                         "inputs": {"camera": "*.jpg", "depth_source": "ground_plane"}})
-    summary, entries, lines = _run(rain, tmp_path / "in", tmp_path / "out")
-    assert summary.failed == 0
+
+    def streaks_across(out: Path) -> float:
+        """Mean |∂/∂x| over mean |∂/∂y| of what rain added, as displayed (> 1: vertical streaks)."""
+        shown = [np.asarray(ImageOps.exif_transpose(Image.open(p / "side.jpg")).convert("L"), np.float32)
+                 for p in (tmp_path / "in", out)]
+        added = shown[1] - shown[0]
+        return float(np.abs(np.diff(added, axis=1)).mean() / np.abs(np.diff(added, axis=0)).mean())
+
+    rain = {"chain": [{"model": "rain.camera", "params": {"rain_rate_mm_per_h": 50}}], "seed": 1,
+            "inputs": {"camera": "*.jpg", "depth_source": "ground_plane"}}
+    summary, entries, lines = _run(parse_recipe(rain), tmp_path / "in", tmp_path / "out")
     notes = {Path(e["input"]).name: e["inputs"] for e in entries}
-    assert notes["side.jpg"]["orientation"] == {"exif": 6, "processed": "as stored, not turned upright"}
+    assert summary.failed == 0 and notes["side.jpg"]["orientation"] == {"exif": 6, "processed": "upright"}
+    assert "turned_photo" not in notes["side.jpg"]["warnings"] and "orientation" not in notes["upright.jpg"]
+    assert not any("turned" in line for line in lines) and streaks_across(tmp_path / "out") > 1.1
+
+    rain["inputs"]["orientation"] = "stored"
+    summary, entries, lines = _run(parse_recipe(rain), tmp_path / "in", tmp_path / "out_stored")
+    notes = {Path(e["input"]).name: e["inputs"] for e in entries}
+    assert notes["side.jpg"]["orientation"] == {"exif": 6, "processed": "as stored"}
     assert "turned_photo" in notes["side.jpg"]["warnings"] and "orientation" not in notes["upright.jpg"]
-    assert sum("1 photo(s) are stored turned" in line for line in lines) == 1
-    from roadview_noise.camera_inputs import _orientation_warning
-    from roadview_noise.types import CameraFrame
-    linear, encoding, _ = read_image(tmp_path / "in" / "side.jpg")
+    assert sum("1 photo(s) stored turned" in line for line in lines) == 1
+    assert streaks_across(tmp_path / "out_stored") < 1
+    from roadview_noise.camera_inputs import _orientation_note
     fog = parse_recipe({"chain": [{"model": "fog.camera"}], "inputs": {"depth": "{stem}_depth.npy"}})
     notes: dict = {}
-    assert _orientation_warning(CameraFrame(linear, None, encoding=encoding), fog, notes) == [] and notes == {}
+    assert _orientation_note(6, 1, fog, notes) == [] and notes["orientation"]["processed"] == "as stored"
 
 
 def test_the_alpha_plane_follows_a_geometric_model(tmp_path):
