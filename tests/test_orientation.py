@@ -201,3 +201,27 @@ def test_ground_plane_depth_lies_at_the_displayed_bottom(tmp_path, turn):
     up = read_image(tmp_path / "out_up" / "f.png")[0]
     assert not np.array_equal(up[:4], up[-4:])                        # fogged: the far sky and the near road differ
     assert np.array_equal(read_image(tmp_path / "out_turned" / "f.png")[0], stored(up, turn))
+
+
+@pytest.mark.parametrize("turn", range(1, 9))
+def test_a_tiff_is_read_as_stored_whatever_its_orientation(turn, tmp_path):
+    """OpenCV turns a TIFF's pixels by its orientation tag (a PNG's or JPEG's it does not): they are read as stored,
+    so the chain turns them upright once and the output is written as stored (before, an oriented TIFF came out
+    turned twice as displayed). A tiled one, which OpenCV decodes scrambled, is refused."""
+    import tifffile
+
+    from roadview_noise.errors import InputError
+    from roadview_noise.physics.srgb import linear_to_code
+
+    codes = (np.arange(5 * 7 * 3) % 251).astype(np.uint8).reshape(5, 7, 3)
+    tifffile.imwrite(tmp_path / "f.tif", codes, photometric="rgb", extratags=[(274, 3, 1, turn, True)])
+    linear, encoding, _ = read_image(tmp_path / "f.tif")
+    assert np.array_equal(linear_to_code(linear, 8), codes)
+    big = np.random.default_rng(1).integers(0, 255, (32, 48, 3), dtype=np.uint8)
+    tifffile.imwrite(tmp_path / "t.tif", big, photometric="rgb", tile=(16, 16), compression="deflate",
+                     extratags=[(274, 3, 1, turn, True)])
+    if turn == 1:
+        assert np.array_equal(linear_to_code(read_image(tmp_path / "t.tif")[0], 8), big)
+    else:
+        with pytest.raises(InputError, match="tiled TIFF with orientation"):
+            read_image(tmp_path / "t.tif")

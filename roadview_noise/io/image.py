@@ -94,11 +94,13 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
             page = tif.pages[0]
             photometric, metadata = page.photometric, image_metadata.tiff_tags(page)
-            icc = _tiff_icc(page)
+            icc, tiled = _tiff_icc(page), page.is_tiled
     else:
         photometric, icc = None, icc_profile(data, fmt)
         metadata = image_metadata.png_chunks(data) if fmt == "png" else ()
     codes = decode_codes(data, fmt, source=source, photometric=photometric)
+    if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
+        codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
     linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc)
     layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
@@ -129,6 +131,21 @@ def decode_codes(data: bytes, fmt: str, *, source, photometric=None) -> np.ndarr
         alpha = np.where(img == key, 0, np.iinfo(img.dtype).max).astype(img.dtype)
         return np.dstack([img, img, img, alpha])
     return img if img.ndim == 2 else img[..., _RGB_ORDER.get(img.shape[2], slice(None))]
+
+
+def _tiff_as_stored(codes: np.ndarray, turn: int, tiled: bool, source) -> np.ndarray:
+    """A TIFF's codes as stored: OpenCV turns a TIFF's pixels as displayed by its orientation tag (libtiff's oriented
+    read; a PNG's and JPEG's it leaves as stored with ``IMREAD_UNCHANGED``), rvnoise reads every file's pixels as
+    stored (:mod:`roadview_noise.orientation` turns them for the chain and back). A tiled TIFF with an orientation
+    it decodes scrambled (whole tiles flipped in place, OpenCV 5.0): refused."""
+    if turn == 1:
+        return codes
+    if tiled:
+        raise InputError(f"a tiled TIFF with orientation {turn} (OpenCV decodes its tiles misplaced): write it in "
+                         "strips (tiffcp -s) or store it upright", file=str(source))
+    from ..orientation import stored
+
+    return stored(codes, turn)
 
 
 def _palette_tiff_rgb(data: bytes) -> np.ndarray:

@@ -118,9 +118,8 @@ def full_resolution_pages(tif: tifffile.TiffFile) -> int:
 def orientation(encoding) -> int:
     """The EXIF/TIFF orientation (274) of a file as read (:class:`..types.ImageEncoding`): 1 = stored upright, 2–8 a
     viewer turns or mirrors the stored pixels to show them (CIPA DC-008 §4.6.4); 1 when the file states none."""
-    for tag in encoding.metadata if encoding.fmt == "tiff" else ():
-        if tag[0] == 274:
-            return int(tag[3])
+    if encoding.fmt == "tiff":
+        return tiff_orientation(encoding.metadata)
     exif = encoding.exif or b""
     if exif[:4] not in (b"II*\x00", b"MM\x00*"):
         return 1
@@ -132,4 +131,12 @@ def orientation(encoding) -> int:
         if len(entry) == 12 and int.from_bytes(entry[:2], order) == 274:
             value = int.from_bytes(entry[8:10], order)
             return value if 1 <= value <= 8 else 1
+    return 1
+
+
+def tiff_orientation(metadata: tuple) -> int:
+    """The orientation (274) among a TIFF's kept tags (:func:`tiff_tags`); 1 when it states none or a bad value."""
+    for tag in metadata:
+        if tag[0] == 274:
+            return int(tag[3]) if 1 <= int(tag[3]) <= 8 else 1
     return 1
