@@ -12,8 +12,9 @@ channels).
 Written back like the input: bit depth, channels, alpha plane, JPEG quality (estimated from the input's
 quantisation tables unless the recipe states one), JPEG chroma subsampling and progressive mode, the embedded ICC
 colour profile (PNG ``iCCP`` chunk, JPEG ``APP2 ICC_PROFILE`` segments, TIFF tag 34675) and the EXIF data (JPEG
-``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are never rotated), copied unchanged, with a PNG's
-text, ``pHYs`` and colour chunks and a TIFF's orientation, resolution and descriptive tags (:mod:`.image_metadata`).
+``APP1 Exif``, PNG ``eXIf``; with the orientation tag, as pixels are read and written as stored), copied unchanged,
+with a PNG's text, ``pHYs`` and colour chunks and a TIFF's orientation, resolution and descriptive tags
+(:mod:`.image_metadata`).
 A palette TIFF is read as RGB, a CMYK one as RGB (OpenCV's conversion), a grey PNG's ``tRNS`` level as an alpha
 plane. TIFF is written by tifffile (Deflate), PNG by
 :mod:`.png` (OpenCV's deflate settings, Sub or Up filter per image: OpenCV's file size or smaller), JPEG by OpenCV.
