@@ -625,6 +625,9 @@ def _still_valid(ctx: RunContext, task: Task, entry: dict) -> bool:
     """A previous entry ``--resume`` can keep: same variant, same input (and depth) bytes, files intact."""
     if entry.get("variant_index") != task.variant_index or entry.get("input") != task.sample.relpath:
         return False
+    turned = (entry.get("inputs") or {}).get("orientation")
+    if turned and turned["processed"] != "upright" and ctx.recipe.spec.inputs.orientation == "upright":
+        return False                  # a photo stored turned, processed as stored before round 20: redone upright
     try:
         if sha256_file(ctx.in_root / task.sample.relpath) != entry.get("input_sha256"):
             return False

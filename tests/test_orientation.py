@@ -225,3 +225,21 @@ def test_a_tiff_is_read_as_stored_whatever_its_orientation(turn, tmp_path):
     else:
         with pytest.raises(InputError, match="tiled TIFF with orientation"):
             read_image(tmp_path / "t.tif")
+
+
+def test_resume_redoes_a_turned_photo_an_earlier_run_processed_as_stored(tmp_path):
+    """``--resume`` keeps an output processed upright, and redoes one whose entry says it was processed as stored
+    (rvnoise before round 20, whose recipe's sha256 is the same)."""
+    (tmp_path / "in").mkdir()
+    image = np.random.default_rng(4).integers(0, 255, (20, 30, 3), dtype=np.uint8)
+    (tmp_path / "in" / "f.png").write_bytes(_tagged(image, 6))
+    recipe = parse_recipe({"schema": "rvnoise.recipe/1", "seed": 1, "chain": [{"model": "rain.camera"}],
+                           "inputs": {"camera": "*.png", "depth_source": "ground_plane"}})
+    kw = {"workers": 1, "progress": False, "echo": lambda *_: None}
+    assert run(recipe, tmp_path / "in", tmp_path / "out", **kw).done == 1
+    assert run(recipe, tmp_path / "in", tmp_path / "out", resume=True, **kw).skipped == 1
+    manifest = tmp_path / "out" / "manifest.jsonl"
+    manifest.write_text(manifest.read_text().replace('"processed": "upright"', '"processed": "as stored, not '
+                                                                                 'turned upright"'))
+    summary = run(recipe, tmp_path / "in", tmp_path / "out", resume=True, **kw)
+    assert summary.skipped == 0 and summary.done == 1
