@@ -243,3 +243,17 @@ def test_resume_redoes_a_turned_photo_an_earlier_run_processed_as_stored(tmp_pat
                                                                                  'turned upright"'))
     summary = run(recipe, tmp_path / "in", tmp_path / "out", resume=True, **kw)
     assert summary.skipped == 0 and summary.done == 1
+
+
+def test_the_alpha_plane_of_a_turned_photo_is_written_back_where_it_was(tmp_path):
+    """An RGBA photo stored sideways (orientation 8) through soiling: its alpha plane turns with the pixels and back."""
+    rng = np.random.default_rng(6)
+    rgba = rng.integers(0, 255, (24, 40, 4), dtype=np.uint8)
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "f.png").write_bytes(_tagged(rgba, 8))
+    recipe = parse_recipe({"schema": "rvnoise.recipe/1", "seed": 2, "chain": [{"model": "soiling.camera"}],
+                           "inputs": {"camera": "*.png"}})
+    assert run(recipe, tmp_path / "in", tmp_path / "out", workers=1, progress=False,
+               echo=lambda *_: None).failed == 0
+    _, _, alpha = read_image(tmp_path / "out" / "f.png")
+    assert np.array_equal(alpha, rgba[..., 3])
