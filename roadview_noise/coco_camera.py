@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .physics.brown_conrady import COEFFICIENTS, LensWarp
+from .physics.brown_conrady import COEFFICIENTS
 
 KEY = "rv_distortion"
 
@@ -34,9 +34,9 @@ def steps(warps) -> list[dict]:
 
 
 def _step(warp) -> dict[str, Any]:
-    if not isinstance(warp, LensWarp) or warp.distortion is None:
+    bc = getattr(warp, "distortion", None)      # a LensWarp's, or one turned to a photo's stored pixels (StoredWarp)
+    if bc is None:
         return {"model": "pixel_map"}
-    bc = warp.distortion
     (cx, cy), (fx, fy) = bc.centre_px, bc.unit_px
     return {"model": "brown_conrady", **{k: float(v) for k, v in zip(COEFFICIENTS, bc.coefficients)},
             "centre_px": [float(cx) + 0.5, float(cy) + 0.5], "unit_px": [float(fx), float(fy)]}

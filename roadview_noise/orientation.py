@@ -132,6 +132,27 @@ class StoredWarp(Warp):
         return cls(stored(mx.astype(np.float32, copy=False), turn), stored(my.astype(np.float32, copy=False), turn),
                    upright_warp=warp, turn=turn)
 
+    @property
+    def distortion(self):
+        """The upright warp's Brown–Conrady distortion in stored coordinates (or None): flips change the signs of
+        the tangential and prism terms along the flipped axis, a transpose swaps p1 ↔ p2, (s1, s2) ↔ (s3, s4), the
+        units and the centre's axes (the centre moves as a pixel does)."""
+        from .physics.brown_conrady import BrownConrady
+
+        bc = getattr(self.upright_warp, "distortion", None)
+        if bc is None:
+            return None
+        swap, flip_x, flip_y = _STEPS[self.turn]
+        sx, sy = (-1.0 if flip_x else 1.0), (-1.0 if flip_y else 1.0)
+        k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 = bc.coefficients
+        p1, p2, s1, s2, s3, s4 = sy * p1, sx * p2, sx * s1, sx * s2, sy * s3, sy * s4
+        unit = bc.unit_px
+        if swap:
+            p1, p2, s1, s2, s3, s4, unit = p2, p1, s3, s4, s1, s2, unit[::-1]
+        centre = stored_xy([bc.centre_px], self.turn, self.upright_warp.shape)[0]
+        return BrownConrady((k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4), (float(centre[0]), float(centre[1])),
+                            (float(unit[0]), float(unit[1])))
+
     def forward(self, points_xy: np.ndarray, iterations: int = 20) -> np.ndarray:
         size = self.upright_warp.shape
         q = upright_xy(points_xy, self.turn, self.shape)

@@ -55,6 +55,19 @@ def test_intrinsics_turn_with_the_pixels(turn):
     assert upright_profile(up, INVERSE.get(turn, turn)) == p
 
 
+@pytest.mark.parametrize("turn", range(1, 9))
+def test_a_lens_map_turned_to_stored_pixels_is_the_lens_it_states(turn):
+    """A Brown–Conrady step's map in stored coordinates (StoredWarp) is the pull map of the distortion it states
+    for COCO's ``rv_distortion`` (tangential and prism terms swapped and signed by the orientation)."""
+    from roadview_noise.orientation import StoredWarp
+    from roadview_noise.physics.brown_conrady import BrownConrady
+
+    lens = BrownConrady((2e-6, 1e-10, 0, 0, 0, 0, 3e-4, -4e-4, 2e-4, 1e-7, -3e-4, 2e-7), (31.0, 17.5), (1.1, 0.9))
+    warp = StoredWarp.of(lens.pull_map(40, 64), turn)
+    stated = warp.distortion.pull_map(*warp.shape)
+    assert np.abs(stated.map_x - warp.map_x).max() < 1e-3 and np.abs(stated.map_y - warp.map_y).max() < 1e-3
+
+
 def _kitti(box) -> str:
     return "Car 0.00 0 0.00 " + " ".join(f"{v:.3f}" for v in box) + " 1.5 1.6 3.9 1.0 1.5 20.0 0.0\n"
 
@@ -84,10 +97,22 @@ def _moved(root: Path, out: Path, tmp_path: Path):
                            base_dir=tmp_path)
     assert run(recipe, root, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
     box = [float(v) for v in (out / "img" / "f.txt").read_text().split()[4:8]]
-    polygon = json.loads((out / "img" / "coco.json").read_text())["annotations"][0]["segmentation"][0]
+    coco = json.loads((out / "img" / "coco.json").read_text())
+    polygon = coco["annotations"][0]["segmentation"][0]
     entry = json.loads((out / "manifest.jsonl").read_text().splitlines()[0])
+    entry["distortion"] = coco["images"][0]["rv_distortion"]
     mask = np.asarray(Image.open(out / "img" / "f_mask.png"))
     return box, np.reshape(polygon, (-1, 2)), mask, entry, read_image(out / "img" / "f.png")
+
+
+def _pulled(step: dict, xy: np.ndarray) -> np.ndarray:
+    """Where a COCO ``rv_distortion`` Brown–Conrady step pulls points (COCO coordinates) from."""
+    from roadview_noise.physics.brown_conrady import COEFFICIENTS, BrownConrady
+
+    c, f = np.subtract(step["centre_px"], 0.5), np.asarray(step["unit_px"])
+    bc = BrownConrady(tuple(step[k] for k in COEFFICIENTS), tuple(c), tuple(f))
+    q = (np.asarray(xy, np.float64) - 0.5 - c) / f
+    return np.stack(bc.distort(q[:, 0], q[:, 1]), axis=1) * f + c + 0.5
 
 
 @pytest.mark.parametrize("turn", [6, 2])
@@ -108,7 +133,7 @@ def test_labels_of_a_turned_photo_move_as_those_of_the_upright_photo_turned(tmp_
     ring = stored_xy(np.reshape(polygon, (-1, 2)) - 0.5, turn, (h, w)) + 0.5
     _tree(tmp_path / "turned", upright(image, inverse), turn, upright_profile(profile, inverse),
           [*corners.min(axis=0), *corners.max(axis=0)], ring.ravel().tolist(), stored(mask, turn))
-    up_box, up_ring, up_mask, _, up_out = _moved(tmp_path / "up", tmp_path / "out_up", tmp_path)
+    up_box, up_ring, up_mask, up_entry, up_out = _moved(tmp_path / "up", tmp_path / "out_up", tmp_path)
     box, ring, moved_mask, entry, out = _moved(tmp_path / "turned", tmp_path / "out_turned", tmp_path)
 
     assert entry["inputs"]["orientation"] == {"exif": turn, "processed": "upright"}
@@ -118,6 +143,12 @@ def test_labels_of_a_turned_photo_move_as_those_of_the_upright_photo_turned(tmp_
     expected = stored_xy(up_ring - 0.5, turn, (h, w)) + 0.5
     assert ring.shape == expected.shape and np.abs(ring - expected).max() <= 0.5
     assert not np.array_equal(up_mask, mask) and np.array_equal(moved_mask, stored(up_mask, turn))
+    (up_step,), (step,) = up_entry["distortion"], entry["distortion"]            # COCO's camera: pulls alike
+    assert step["model"] == up_step["model"] == "brown_conrady"
+    sh, sw = stored_size = moved_mask.shape
+    grid = np.stack(np.meshgrid(np.arange(0, sw, 7.0), np.arange(0, sh, 5.0)), -1).reshape(-1, 2)  # stored, COCO
+    from_up = stored_xy(_pulled(up_step, upright_xy(grid - 0.5, turn, stored_size) + 0.5) - 0.5, turn, (h, w)) + 0.5
+    assert np.abs(_pulled(step, grid) - from_up).max() < 1e-6
     linear, encoding, _ = out
     assert encoding.exif is not None and np.array_equal(linear, stored(up_out[0], turn))
 
