@@ -12,9 +12,10 @@ the input with one gather (:func:`carry_values`):
 - a full grid's cell whose return was lost (REMOVED) gets 0 (SemanticKITTI "unlabeled"), as ``PointCloud.drop``
   zeroes its fields.
 
-Which fields are annotations (:func:`field_role`): ``class`` — label, semantic, semantic_label, sem_label, class,
-class_id, category, category_id, ObjTag, semantic_tag; ``instance`` — instance, instance_id, inst_label, ObjIdx,
-object_id, track_id (case-insensitive); every other field is a sensor field. ``inputs.annotations.field_roles``
+Which fields are annotations (:func:`field_role`): ``class`` — label, label_id (RadarScenes), semantic,
+semantic_label, sem_label, class, class_id, classification (LAS, PDAL exports), category, category_id, ObjTag,
+semantic_tag; ``instance`` — instance, instance_id, inst_label, ObjIdx, object_id, track_id (case-insensitive, after
+CloudCompare's ``scalar_`` prefix); every other field is a sensor field. ``inputs.annotations.field_roles``
 ({name: class | instance | sensor}) overrides the rule for any field name. A packed ``label`` (class | instance
 << 16, PCL ``PointXYZL``, SemanticKITTI ``.label``) is a class field: new points get class | 0 << 16.
 
@@ -52,9 +53,10 @@ from .provenance import MADE_BY_STEP, REMOVED, gather, is_new
 from .types import CameraFrame, PointCloud, RawFrame
 
 ROLES = ("class", "instance", "sensor")
-CLASS_FIELDS = frozenset({"label", "semantic", "semantic_label", "sem_label", "class", "class_id", "category",
-                          "category_id", "objtag", "semantic_tag"})
+CLASS_FIELDS = frozenset({"label", "label_id", "semantic", "semantic_label", "sem_label", "class", "class_id",
+                          "classification", "category", "category_id", "objtag", "semantic_tag"})
 INSTANCE_FIELDS = frozenset({"instance", "instance_id", "inst_label", "objidx", "object_id", "track_id"})
+SCALAR_PREFIX = "scalar_"                 # CloudCompare's PLY export names scalar fields so (Toronto-3D: scalar_Label)
 WEATHERS = ("rain", "snow", "fog", "clutter")
 SEMANTICSTF_INVALID = 20                 # SemanticSTF's adverse-weather ("invalid") class id
 NUSCENES_NOISE = 0                       # nuScenes-lidarseg "noise": dust, fog, rain drops, spray, reflections
@@ -224,7 +226,7 @@ def field_role(name: str, overrides: dict[str, str] | None = None) -> str:
     """``class``, ``instance`` or ``sensor`` (module docstring)."""
     if overrides and name in overrides:
         return overrides[name]
-    low = name.lower()
+    low = name.lower().removeprefix(SCALAR_PREFIX)
     return "class" if low in CLASS_FIELDS else "instance" if low in INSTANCE_FIELDS else "sensor"
 
 

@@ -319,6 +319,10 @@ def test_field_roles_class_instance_sensor_and_override(tmp_path):
         np.testing.assert_array_equal(carried.fields[k][own], extra[k][carried.origin[own]])
     assert annotations.field_role("Label") == "class" and annotations.field_role("label", {"label": "sensor"}) == \
         "sensor" and annotations.field_role("ambient") == "sensor"
+    # RadarScenes' label_id, LAS classification, CloudCompare's scalar_ prefix (Toronto-3D's scalar_Label)
+    assert [annotations.field_role(k) for k in ("label_id", "Classification", "scalar_Label", "scalar_Intensity",
+                                                "scalar_track_id")] == ["class", "class", "class", "sensor",
+                                                                        "instance"]
 
 
 def test_removed_grid_cells_lose_their_annotation(tmp_path):

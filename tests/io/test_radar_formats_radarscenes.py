@@ -80,3 +80,21 @@ def test_rain_on_a_converted_scan_adds_static_clutter_in_the_sensor_plane(tmp_pa
     assert (out.fields["label_id"][added] == STATIC).all() and not out.fields["row"][added].any()
     kept = ~added
     assert len(np.unique(out.fields["row"][kept])) == kept.sum()            # input detections keep their row
+
+
+def test_label_id_is_a_class_field_without_being_declared(tmp_path):
+    """RadarScenes' ``label_id`` is a class annotation by its name: clutter added by rain gets the default weather
+    class (20, out of RadarScenes' 0–11, so a training script sees it), its ``track_id`` nothing; before, it got 0 —
+    CAR — in silence unless the recipe declared ``field_roles``."""
+    (tmp_path / "in" / "radar").mkdir(parents=True)
+    write_pointcloud(tmp_path / "in" / "radar" / "1.pcd", radarscenes_scan(scan_rows(400, seed=4)), effect="none")
+    (tmp_path / "r.yaml").write_text(
+        "schema: rvnoise.recipe/1\nchain: [{model: rain.radar, params: {rain_rate_mm_per_h: 50}}]\nseed: 3\n"
+        "inputs: {radar: 'radar/*.pcd'}\n")
+    result = CliRunner().invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(tmp_path / "in"),
+                                      str(tmp_path / "out"), "--yes", "--quiet"])
+    assert result.exit_code == 0, result.output
+    out = read_pointcloud(tmp_path / "out" / "radar" / "1.pcd", sensor="radar")
+    added = out.fields["rv_effect"] == Effect.ADDED
+    assert added.any() and (out.fields["label_id"][added] == 20).all()
+    assert set(np.unique(out.fields["label_id"][~added])) <= {0, STATIC}
