@@ -18,6 +18,7 @@ import pytest
 from roadview_noise import annotations
 from roadview_noise.compound import apply_models
 from roadview_noise.dataset import Sample, discover, load
+from roadview_noise.errors import InputError
 from roadview_noise.io import annotations as ann_io
 from roadview_noise.io.image import read_image, write_image
 from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
@@ -559,6 +560,32 @@ def _object_scene() -> tuple[PointCloud, list[dict]]:
     return cloud, boxes
 
 
+def test_kitti_boxes_read_the_calibration_files_datasets_ship(tmp_path):
+    """KITTI 3-D boxes are in the rectified reference camera (camera 0): Waymo in mmdetection3d's KITTI format names
+    its transform ``Tr_velo_to_cam_0`` (… ``_4``, one per camera; no plain ``Tr_velo_to_cam``), View-of-Delft leaves
+    ``Tr_imu_to_velo:`` empty, the raw recordings write ``calib_time: 09-Jan-2012 13:57:47``: each gives the same
+    LiDAR → box-frame transform as KITTI's object calib (before: the Waymo file was refused, the time line failed
+    with a ValueError)."""
+    tr = "0 -1 0 0.1 0 0 -1 -0.2 1 0 0 -0.3"
+    rect = "R0_rect: 1 0 0 0 1 0 0 0 1\n"
+    label = tmp_path / "000000.txt"
+    label.write_text("Car 0 0 0 0 0 10 10 1.5 1.6 3.9 1 1.2 10 0.3\n")
+    files = {"kitti": f"P2: {' '.join(['0'] * 12)}\n{rect}Tr_velo_to_cam: {tr}\n",
+             "waymo": "".join(f"P{i}: {' '.join(['0'] * 12)}\n" for i in range(5)) + rect
+             + "".join(f"Tr_velo_to_cam_{i}: {tr if i == 0 else ' '.join(['1'] * 12)}\n" for i in range(5)),
+             "vod": f"P2: {' '.join(['0'] * 12)}\n{rect}Tr_velo_to_cam: {tr}\nTr_imu_to_velo: \n",
+             "raw": f"calib_time: 09-Jan-2012 13:57:47\n{rect}Tr_velo_to_cam: {tr}\n"}
+    transforms = {}
+    for name, text in files.items():
+        (tmp_path / f"{name}.txt").write_text(text)
+        transforms[name] = ann_io.read_boxes_3d(label, "kitti", tmp_path / f"{name}.txt").to_box_frame
+    for name in files:
+        np.testing.assert_array_equal(transforms[name], transforms["kitti"])
+    (tmp_path / "none.txt").write_text(rect + "Tr_velo_to_cam_1: " + tr + "\n")
+    with pytest.raises(InputError, match="Tr_velo_to_cam"):
+        ann_io.read_boxes_3d(label, "kitti", tmp_path / "none.txt")
+
+
 def test_objects_count_their_points_before_and_after(tmp_path):
     """JSON boxes in the sensor frame and the same boxes as KITTI label_2 + calib give the same counts; in dense fog
     the far car keeps none of its points: the manifest marks it lost."""
@@ -594,3 +621,16 @@ def test_objects_count_their_points_before_and_after(tmp_path):
     assert far["points_after"] == 0 and far["lost"]
     assert [(o["points_before"], o["points_after"]) for o in counts["kitti"]] == \
         [(o["points_before"], o["points_after"]) for o in counts["json"]]
+
+
+def test_a_box_json_of_another_layout_is_refused_naming_the_expected_one(tmp_path):
+    """View-of-Delft's radar ``label_2/*.json`` (segments.ai: className, geometry.center/size/quaternion) is not
+    rvnoise's box JSON: the refusal names the missing key and the layout expected, not ``KeyError('center_m')``."""
+    (tmp_path / "00549.json").write_text(json.dumps([{"id": "d3b9", "className": "bicycle", "geometry": {
+        "size": {"height": 1.2, "width": 0.77, "length": 2.08}, "center": {"x": 11.5, "y": 2.9, "z": -0.4},
+        "quaternion": {"x": 0, "y": 0, "z": 0.04, "w": 0.999}}}]))
+    with pytest.raises(InputError, match=r"no 'center_m'\); expected \[\{.*KITTI label_2"):
+        ann_io.read_boxes_3d(tmp_path / "00549.json", "json")
+    (tmp_path / "b.csv").write_text("id,class,x,y,z\n1,car,1,2,3\n")
+    with pytest.raises(InputError, match="no 'x_m'.*header id,class,x_m"):
+        ann_io.read_boxes_3d(tmp_path / "b.csv", "csv")

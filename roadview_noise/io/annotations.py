@@ -38,6 +38,12 @@ from .atomic import write_bytes_atomic
 POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "npy": None}
 BOX_2D_FORMATS = ("kitti", "yolo")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
+BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
+    "kitti": "KITTI label_2 lines: type truncated occluded alpha left top right bottom h w l x y z rotation_y [score]",
+    "json": '[{"id", "class", "center_m": [x, y, z], "size_m": [length, width, height], "yaw_rad"}] (or that list '
+            'under "boxes") in the sensor frame; a segments.ai / View-of-Delft label JSON or nuScenes\' '
+            'sample_annotation.json is another layout: give KITTI label_2 + calib files',
+    "csv": "a header id,class,x_m,y_m,z_m,length_m,width_m,height_m,yaw_rad (sensor frame)"}
 
 
 def _read(path: Path) -> bytes:
@@ -187,12 +193,15 @@ def read_boxes_3d(path: str | os.PathLike, fmt: str, calib_path: str | os.PathLi
         if fmt == "kitti":
             return _kitti_boxes(raw, calib_path, path)
         rows = _json_rows(raw) if fmt == "json" else _csv_rows(raw)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"bad {fmt} 3-D box file: {exc!r}", file=str(path)) from None
-    center = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
-    size = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
-    return Boxes3D([str(r[0]) for r in rows], [str(r[1]) for r in rows], center, size,
-                   np.array([float(r[4]) for r in rows]), np.eye(4))
+        center = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
+        size = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
+        yaw = np.array([float(r[4]) for r in rows])
+    except InputError:
+        raise
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        what = f"no {exc.args[0]!r}" if isinstance(exc, KeyError) else repr(exc)
+        raise InputError(f"bad {fmt} 3-D box file ({what}); expected {BOX_3D_LAYOUTS[fmt]}", file=str(path)) from None
+    return Boxes3D([str(r[0]) for r in rows], [str(r[1]) for r in rows], center, size, yaw, np.eye(4))
 
 
 def _json_rows(raw: str) -> list:
@@ -233,17 +242,17 @@ def _kitti_boxes(raw: str, calib_path, path) -> Boxes3D:
 
 
 def _kitti_calib(text: str, path) -> np.ndarray:
-    values = {}
-    for line in text.splitlines():
-        key, _, rest = line.partition(":")
-        if rest.strip():
-            values[key.strip()] = np.array(rest.split(), dtype=float)
+    """``R0_rect · Tr_velo_to_cam``: LiDAR → the rectified reference camera (camera 0) the labels are given in
+    (:func:`~roadview_noise.depth.calibration.kitti_lidar_to_rectified`: also Waymo's KITTI-format
+    ``Tr_velo_to_cam_0``)."""
+    from ..depth.calibration import kitti_lidar_to_rectified, kitti_rows
+
     try:
-        r0 = np.eye(4)
-        r0[:3, :3] = values["R0_rect"].reshape(3, 3)
-        tr = np.eye(4)
-        tr[:3, :4] = values.get("Tr_velo_to_cam", values.get("Tr_velo_cam")).reshape(3, 4)
-    except (KeyError, AttributeError, ValueError):
-        raise InputError("KITTI calib needs R0_rect (9 values) and Tr_velo_to_cam (12 values)",
-                         file=str(path)) from None
+        transforms = kitti_lidar_to_rectified(kitti_rows(text), 0, str(path))
+    except (InputError, ValueError):
+        transforms = None
+    if transforms is None:
+        raise InputError("KITTI calib needs R0_rect (9 values) and Tr_velo_to_cam (12 values; Tr_velo_to_cam_0 in "
+                         "Waymo's KITTI format)", file=str(path))
+    r0, tr = transforms
     return r0 @ tr
