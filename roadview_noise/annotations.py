@@ -21,13 +21,15 @@ CloudCompare's ``scalar_`` prefix); every other field is a sensor field. ``input
 
 Weather class of new points (``weather_class``, keys rain, snow, fog, clutter; radar weather adds clutter): by
 default SemanticSTF's "invalid" id 20 (SemanticSTF marks adverse-weather noise with it), and for nuScenes-lidarseg
-sidecars class 0 "noise" (nuScenes puts fog, rain drops and spray there). Raw SemanticKITTI ids (0–259) use 20 for
+and -panoptic sidecars class 0 "noise" (nuScenes puts fog, rain drops and spray there; panoptic: class · 1000 with
+instance 0). Raw SemanticKITTI ids (0–259) use 20 for
 other-vehicle: give ``weather_class`` (e.g. 1, "outlier") for such data.
 
 Sidecar paths (``point_labels``, ``masks``, ``boxes_2d``, ``boxes_3d``, ``calib``) are a pattern relative to the
 input file's folder (``{stem}``, ``{name}``; ``..`` allowed), ``{replace: {old: new, …}}`` applied in order to the
 input's path relative to the input root, or for nuScenes-lidarseg ``{nuscenes: v1.0-trainval}`` (the tables
-``sample_data.json`` and ``lidarseg.json`` under that folder of the input root). Every path must resolve inside
+``sample_data.json`` and ``lidarseg.json`` under that folder of the input root; nuScenes-panoptic: ``{nuscenes:
+v1.0-trainval, table: panoptic}``, ``panoptic.json``). Every path must resolve inside
 the input root. Outputs go to the same relative path under the output root (a sweep variant's suffix before the
 file suffix, as for the data), in the same format, atomically.
 """
@@ -82,9 +84,11 @@ class ReplaceRule(_Strict):
 
 
 class NuscenesRule(_Strict):
-    """``{nuscenes: v1.0-trainval}``: the lidarseg file of the cloud's sample_data record (nuScenes tables)."""
+    """``{nuscenes: v1.0-trainval}``: the lidarseg file of the cloud's sample_data record (nuScenes tables);
+    ``table: panoptic``: its nuScenes-panoptic file (``panoptic.json``)."""
 
     nuscenes: str
+    table: Literal["lidarseg", "panoptic"] = "lidarseg"
 
 
 PathRule = Union[str, ReplaceRule, NuscenesRule]
@@ -107,7 +111,8 @@ class AnnotationsSpec(_Strict):
     """``inputs.annotations`` of a recipe (module docstring)."""
 
     point_labels: PathRule | None = None
-    point_labels_format: Literal["semantickitti", "nuscenes_lidarseg", "npy"] | None = None   # None: by the name
+    point_labels_format: Literal["semantickitti", "nuscenes_lidarseg", "nuscenes_panoptic", "npy"] | None = None
+    #                      None: by the name
     weather_class: dict[Literal["rain", "snow", "fog", "clutter"], int] = Field(default_factory=dict)
     field_roles: dict[str, Literal["class", "instance", "sensor"]] = Field(default_factory=dict)
     masks: list[PathRule] = Field(default_factory=list)
@@ -175,9 +180,9 @@ def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
     elif isinstance(rule, ReplaceRule):
         rel = rule.applied(relpath)
     else:
-        rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes)).get(relpath)
+        rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes), rule.table).get(relpath)
         if rel is None:
-            raise InputError(f"no lidarseg record for this sample_data file in {rule.nuscenes}/lidarseg.json",
+            raise InputError(f"no {rule.table} record for this sample_data file in {rule.nuscenes}/{rule.table}.json",
                              file=relpath)
     rel = posixpath.normpath(rel)
     if rel.startswith("../") or rel == ".." or posixpath.isabs(rel):
@@ -201,14 +206,15 @@ def sidecar_files(in_root: Path, spec: AnnotationsSpec, relpaths) -> set[str]:
 
 
 @lru_cache(maxsize=4)
-def _nuscenes_index(tables: str) -> dict[str, str]:
-    """sample_data filename → lidarseg filename, from ``lidarseg.json`` and the LiDAR records of
-    ``sample_data.json`` (scanned, not parsed: the trainval table holds millions of camera records)."""
+def _nuscenes_index(tables: str, table: str = "lidarseg") -> dict[str, str]:
+    """sample_data filename → lidarseg (or panoptic) filename, from ``lidarseg.json`` (``panoptic.json``) and the
+    LiDAR records of ``sample_data.json`` (scanned, not parsed: the trainval table holds millions of camera
+    records)."""
     import json
 
     tables_dir = Path(tables)
     try:
-        lidarseg = json.loads((tables_dir / "lidarseg.json").read_text())
+        lidarseg = json.loads((tables_dir / f"{table}.json").read_text())
         by_token = {r["sample_data_token"]: r["filename"] for r in lidarseg}
         with open(tables_dir / "sample_data.json", "rb") as fh, \
                 mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
@@ -240,7 +246,7 @@ def _roles(names: tuple[str, ...], overrides: tuple[tuple[str, str], ...]) -> di
 
 def weather_classes(spec: AnnotationsSpec, fmt: str | None = None) -> dict[str, int]:
     """Class id of new points per weather: the recipe's, else the default for the label format."""
-    default = NUSCENES_NOISE if fmt == "nuscenes_lidarseg" else SEMANTICSTF_INVALID
+    default = NUSCENES_NOISE if fmt in ("nuscenes_lidarseg", "nuscenes_panoptic") else SEMANTICSTF_INVALID
     return {w: int(spec.weather_class.get(w, default)) for w in WEATHERS}
 
 
@@ -380,7 +386,8 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
             data_out = data_out.with_fields(**fields)
         for s in sidecars:
             if s.role == "point_labels":
-                values = carry_values(s.data, data_out, classes).astype(s.data.dtype, copy=False)
+                new = classes * ann_io.PANOPTIC_CLASS_SCALE if s.fmt == "nuscenes_panoptic" else classes
+                values = carry_values(s.data, data_out, new).astype(s.data.dtype, copy=False)
                 result.writes.append((out_root / output_relpath(s.relpath, variant_suffix),
                                       lambda p, v=values, f=s.fmt: ann_io.write_point_labels(p, v, f)))
             elif s.role == "boxes_3d":

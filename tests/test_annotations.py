@@ -257,38 +257,56 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
 
 
-def test_nuscenes_lidarseg_through_the_tables(tmp_path):
+@pytest.mark.parametrize("table", ["lidarseg", "panoptic"])
+def test_nuscenes_lidarseg_through_the_tables(tmp_path, table):
     """``{nuscenes: v1.0-mini}``: the cloud's sample_data record gives its lidarseg file; uint8 classes; new points
-    get nuScenes' class 0 "noise"; the lidarseg files are not taken for clouds."""
+    get nuScenes' class 0 "noise"; the lidarseg files are not taken for clouds. nuScenes-panoptic (``table:
+    panoptic``): ``panoptic.json`` gives its ``.npz`` of uint16 ``class · 1000 + instance`` under ``data``, written
+    back so (instances kept, new points 0 · 1000 + 0; the same bytes on a second run); before, not read."""
     root = tmp_path / "in"
     src = SAMPLE / "lidar" / "os1-128" / "seq0" / "000000.pcd"
     cloud = read_pointcloud(src)
-    table = np.column_stack([cloud.positions_m, cloud.fields["intensity"], cloud.fields["ring"]]).astype("<f4")
+    data = np.column_stack([cloud.positions_m, cloud.fields["intensity"], cloud.fields["ring"]]).astype("<f4")
     name = "samples/LIDAR_TOP/n008-2018-08-01-15-16-36-0400__LIDAR_TOP__1533151603547590.pcd.bin"
     (root / name).parent.mkdir(parents=True)
-    table.tofile(root / name)
+    data.tofile(root / name)
     shutil.copy(src.parent / "lidar.yaml", (root / name).parent)
     token = "9d9bf11fb0e144c8b446d54a8a00184f"
-    (root / "lidarseg/v1.0-mini").mkdir(parents=True)
-    classes = np.random.default_rng(1).integers(1, 32, len(cloud)).astype(np.uint8)
-    classes.tofile(root / f"lidarseg/v1.0-mini/{token}_lidarseg.bin")
+    (root / f"{table}/v1.0-mini").mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    classes = rng.integers(1, 32, len(cloud)).astype(np.uint8)
+    labels_name = f"{table}/v1.0-mini/{token}_{table}" + (".bin" if table == "lidarseg" else ".npz")
+    if table == "lidarseg":
+        classes.tofile(root / labels_name)
+    else:
+        np.savez_compressed(root / labels_name, data=classes.astype("u2") * 1000 + rng.integers(0, 9, len(cloud), "u2"))
     (root / "v1.0-mini").mkdir()
-    (root / "v1.0-mini/lidarseg.json").write_text(json.dumps(
-        [{"token": "aa" * 16, "sample_data_token": token, "filename": f"lidarseg/v1.0-mini/{token}_lidarseg.bin"}]))
+    (root / f"v1.0-mini/{table}.json").write_text(json.dumps(
+        [{"token": "aa" * 16, "sample_data_token": token, "filename": labels_name}]))
     (root / "v1.0-mini/sample_data.json").write_text(json.dumps([
         {"token": "bb" * 16, "sample_token": "s", "filename": "samples/CAM_FRONT/x.jpg", "prev": ""},
         {"token": token, "sample_token": "s", "ego_pose_token": "e", "is_key_frame": True, "filename": name,
          "prev": "", "next": ""}], indent=2))
+    rule = {"nuscenes": "v1.0-mini"} if table == "lidarseg" else {"nuscenes": "v1.0-mini", "table": "panoptic"}
     recipe = _recipe({"chain": [{"model": "rain.lidar", "params": {"rain_rate_mm_per_h": 100}}],
-                      "inputs": {"annotations": {"point_labels": {"nuscenes": "v1.0-mini"}}}}, tmp_path)
+                      "inputs": {"annotations": {"point_labels": rule}}}, tmp_path)
     assert [s.relpath for s in discover(root, recipe)] == [name]
-    out = tmp_path / "out"
-    assert run(recipe, root, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
-    labels = np.fromfile(out / f"lidarseg/v1.0-mini/{token}_lidarseg.bin", np.uint8)
-    effect = np.fromfile(out / (name + ".rv_effect"), np.uint8)
-    assert len(labels) == len(read_pointcloud(out / name)) == len(effect)
+    for out in (tmp_path / "out", tmp_path / "again"):
+        assert run(recipe, root, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    if table == "lidarseg":
+        labels = np.fromfile(tmp_path / "out" / labels_name, np.uint8)
+    else:
+        labels = np.load(tmp_path / "out" / labels_name)["data"]
+        assert labels.dtype == np.uint16
+        assert (tmp_path / "out" / labels_name).read_bytes() == (tmp_path / "again" / labels_name).read_bytes()
+    effect = np.fromfile(tmp_path / "out" / (name + ".rv_effect"), np.uint8)
+    assert len(labels) == len(read_pointcloud(tmp_path / "out" / name)) == len(effect)
     assert is_new(effect).any() and np.all(labels[is_new(effect)] == 0)
     assert np.all(labels[~is_new(effect)] > 0)
+    if table == "panoptic":
+        source = np.load(root / labels_name)["data"]
+        assert set(np.unique(labels[~is_new(effect)])) <= set(np.unique(source))
+        assert len(np.unique(labels[~is_new(effect)] % 1000)) > 1             # instances carried
 
 
 # --- field roles -----------------------------------------------------------------------------------------------------

@@ -5,6 +5,8 @@ Point-label sidecars (one value per point of the cloud, in point order):
 - ``semantickitti``: ``.label``, uint32 little-endian, semantic class in the lower 16 bits, instance in the upper 16
   (SemanticKITTI, SemanticSTF, SemanticPOSS).
 - ``nuscenes_lidarseg``: ``<sample_data token>_lidarseg.bin``, uint8 class index (nuScenes-lidarseg).
+- ``nuscenes_panoptic``: ``<sample_data token>_panoptic.npz``, uint16 ``class · 1000 + instance`` under the key
+  ``data`` (nuScenes-panoptic); written back the same way, deterministically (fixed zip time stamp).
 - ``npy``: any 1-D (or N × k) NumPy array, dtype kept.
 
 Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
@@ -26,6 +28,7 @@ import csv
 import io
 import json
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,7 +38,9 @@ import numpy as np
 from ..errors import InputError
 from .atomic import write_bytes_atomic
 
-POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "npy": None}
+POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "nuscenes_panoptic": None, "npy": None}
+PANOPTIC_CLASS_SCALE = 1000            # nuScenes-panoptic: class · 1000 + instance
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)      # the time stamp written into an .npz: the bytes do not depend on the run
 BOX_2D_FORMATS = ("kitti", "yolo")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
 BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
@@ -63,7 +68,8 @@ def point_label_format(path: str | os.PathLike, fmt: str | None) -> str:
     if fmt is not None:
         return fmt
     name = Path(path).name.lower()
-    for suffix, f in ((".label", "semantickitti"), ("_lidarseg.bin", "nuscenes_lidarseg"), (".npy", "npy")):
+    for suffix, f in ((".label", "semantickitti"), ("_lidarseg.bin", "nuscenes_lidarseg"),
+                      ("_panoptic.npz", "nuscenes_panoptic"), (".npy", "npy")):
         if name.endswith(suffix):
             return f
     raise InputError("cannot tell the point-label format from the name; give point_labels_format "
@@ -77,6 +83,12 @@ def read_point_labels(path: str | os.PathLike, fmt: str) -> np.ndarray:
             return np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as exc:
             raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
+    if fmt == "nuscenes_panoptic":
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                return npz["data"]
+        except (ValueError, KeyError, OSError, zipfile.BadZipFile) as exc:
+            raise InputError(f"not a nuScenes-panoptic .npz with a 'data' array ({exc})", file=str(path)) from None
     dtype = np.dtype(POINT_LABEL_FORMATS[fmt])
     if len(data) % dtype.itemsize:
         raise InputError(f"{len(data)} bytes is not a whole number of {dtype.itemsize}-byte {fmt} labels",
@@ -88,6 +100,12 @@ def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) ->
     if fmt == "npy":
         buf = io.BytesIO()
         np.save(buf, labels, allow_pickle=False)
+        write_bytes_atomic(path, buf.getvalue())
+    elif fmt == "nuscenes_panoptic":                # np.savez_compressed, with a fixed time stamp
+        array, buf = io.BytesIO(), io.BytesIO()
+        np.save(array, labels, allow_pickle=False)
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr(zipfile.ZipInfo("data.npy", _ZIP_TIME), array.getvalue(), zipfile.ZIP_DEFLATED)
         write_bytes_atomic(path, buf.getvalue())
     else:
         write_bytes_atomic(path, np.ascontiguousarray(labels, dtype=POINT_LABEL_FORMATS[fmt]).tobytes())
