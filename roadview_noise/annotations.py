@@ -214,8 +214,8 @@ def _nuscenes_index(tables: str, table: str = "lidarseg") -> dict[str, str]:
 
     tables_dir = Path(tables)
     try:
-        lidarseg = json.loads((tables_dir / f"{table}.json").read_text())
-        by_token = {r["sample_data_token"]: r["filename"] for r in lidarseg}
+        records = json.loads((tables_dir / f"{table}.json").read_text())
+        by_token = {r["sample_data_token"]: r["filename"] for r in records}
         with open(tables_dir / "sample_data.json", "rb") as fh, \
                 mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
             pairs = re.finditer(rb'"token":\s*"(\w+)"[^{}]*?"filename":\s*"([^"]+)"', mm)
