@@ -162,6 +162,9 @@ class InputsSpec(_Strict):
             check_pattern(self.depth)
         if isinstance(self.calibration, str):
             check_pattern(self.calibration)
+        elif isinstance(self.calibration, NuscenesRule) and self.calibration.table != "lidarseg":
+            raise ValueError("calibration: {nuscenes: …} reads the calibration tables; `table:` chooses the label "
+                             "table of annotations.point_labels")
         if self.lidar_depth is not None:
             if self.lidar_depth.scan is not None:
                 check_pattern(self.lidar_depth.scan)

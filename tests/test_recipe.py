@@ -113,6 +113,13 @@ def test_camera_globs_of_photo_formats_not_read_are_refused_at_validate(glob):
     parse_recipe({"chain": [{"model": "compression.camera"}], "inputs": {"camera": ["**/*.JPG", "**/*.tif", "**/*"]}})
 
 
+def test_calibration_from_the_nuscenes_tables_takes_no_label_table():
+    """``table: panoptic`` chooses point labels' table; on ``calibration`` it would be ignored in silence."""
+    with pytest.raises(RecipeError, match="`table:` chooses the label table"):
+        parse_recipe({"chain": [{"model": "fog.camera"}],
+                      "inputs": {"camera": "**/*.jpg", "calibration": {"nuscenes": "v1.0-mini", "table": "panoptic"}}})
+
+
 @pytest.mark.parametrize("sensor, glob, why", [
     ("lidar", "lidar_frontcenter/*.npz", "unknown point-cloud suffix '.npz'"),        # A2D2
     ("lidar", "sensors/lidar/*.feather", "unknown point-cloud suffix '.feather'"),    # Argoverse 2
