@@ -12,21 +12,24 @@ the input with one gather (:func:`carry_values`):
 - a full grid's cell whose return was lost (REMOVED) gets 0 (SemanticKITTI "unlabeled"), as ``PointCloud.drop``
   zeroes its fields.
 
-Which fields are annotations (:func:`field_role`): ``class`` — label, semantic, semantic_label, sem_label, class,
-class_id, category, category_id, ObjTag, semantic_tag; ``instance`` — instance, instance_id, inst_label, ObjIdx,
-object_id, track_id (case-insensitive); every other field is a sensor field. ``inputs.annotations.field_roles``
+Which fields are annotations (:func:`field_role`): ``class`` — label, label_id (RadarScenes), semantic,
+semantic_label, sem_label, class, class_id, classification (LAS, PDAL exports), category, category_id, ObjTag,
+semantic_tag; ``instance`` — instance, instance_id, inst_label, ObjIdx, object_id, track_id (case-insensitive, after
+CloudCompare's ``scalar_`` prefix); every other field is a sensor field. ``inputs.annotations.field_roles``
 ({name: class | instance | sensor}) overrides the rule for any field name. A packed ``label`` (class | instance
 << 16, PCL ``PointXYZL``, SemanticKITTI ``.label``) is a class field: new points get class | 0 << 16.
 
 Weather class of new points (``weather_class``, keys rain, snow, fog, clutter; radar weather adds clutter): by
 default SemanticSTF's "invalid" id 20 (SemanticSTF marks adverse-weather noise with it), and for nuScenes-lidarseg
-sidecars class 0 "noise" (nuScenes puts fog, rain drops and spray there). Raw SemanticKITTI ids (0–259) use 20 for
+and -panoptic sidecars class 0 "noise" (nuScenes puts fog, rain drops and spray there; panoptic: class · 1000 with
+instance 0). Raw SemanticKITTI ids (0–259) use 20 for
 other-vehicle: give ``weather_class`` (e.g. 1, "outlier") for such data.
 
 Sidecar paths (``point_labels``, ``masks``, ``boxes_2d``, ``boxes_3d``, ``calib``) are a pattern relative to the
 input file's folder (``{stem}``, ``{name}``; ``..`` allowed), ``{replace: {old: new, …}}`` applied in order to the
 input's path relative to the input root, or for nuScenes-lidarseg ``{nuscenes: v1.0-trainval}`` (the tables
-``sample_data.json`` and ``lidarseg.json`` under that folder of the input root). Every path must resolve inside
+``sample_data.json`` and ``lidarseg.json`` under that folder of the input root; nuScenes-panoptic: ``{nuscenes:
+v1.0-trainval, table: panoptic}``, ``panoptic.json``). Every path must resolve inside
 the input root. Outputs go to the same relative path under the output root (a sweep variant's suffix before the
 file suffix, as for the data), in the same format, atomically.
 """
@@ -52,9 +55,10 @@ from .provenance import MADE_BY_STEP, REMOVED, gather, is_new
 from .types import CameraFrame, PointCloud, RawFrame
 
 ROLES = ("class", "instance", "sensor")
-CLASS_FIELDS = frozenset({"label", "semantic", "semantic_label", "sem_label", "class", "class_id", "category",
-                          "category_id", "objtag", "semantic_tag"})
+CLASS_FIELDS = frozenset({"label", "label_id", "semantic", "semantic_label", "sem_label", "class", "class_id",
+                          "classification", "category", "category_id", "objtag", "semantic_tag"})
 INSTANCE_FIELDS = frozenset({"instance", "instance_id", "inst_label", "objidx", "object_id", "track_id"})
+SCALAR_PREFIX = "scalar_"                 # CloudCompare's PLY export names scalar fields so (Toronto-3D: scalar_Label)
 WEATHERS = ("rain", "snow", "fog", "clutter")
 SEMANTICSTF_INVALID = 20                 # SemanticSTF's adverse-weather ("invalid") class id
 NUSCENES_NOISE = 0                       # nuScenes-lidarseg "noise": dust, fog, rain drops, spray, reflections
@@ -80,9 +84,11 @@ class ReplaceRule(_Strict):
 
 
 class NuscenesRule(_Strict):
-    """``{nuscenes: v1.0-trainval}``: the lidarseg file of the cloud's sample_data record (nuScenes tables)."""
+    """``{nuscenes: v1.0-trainval}``: the lidarseg file of the cloud's sample_data record (nuScenes tables);
+    ``table: panoptic``: its nuScenes-panoptic file (``panoptic.json``)."""
 
     nuscenes: str
+    table: Literal["lidarseg", "panoptic"] = "lidarseg"
 
 
 PathRule = Union[str, ReplaceRule, NuscenesRule]
@@ -105,7 +111,8 @@ class AnnotationsSpec(_Strict):
     """``inputs.annotations`` of a recipe (module docstring)."""
 
     point_labels: PathRule | None = None
-    point_labels_format: Literal["semantickitti", "nuscenes_lidarseg", "npy"] | None = None   # None: by the name
+    point_labels_format: Literal["semantickitti", "nuscenes_lidarseg", "nuscenes_panoptic", "npy"] | None = None
+    #                      None: by the name
     weather_class: dict[Literal["rain", "snow", "fog", "clutter"], int] = Field(default_factory=dict)
     field_roles: dict[str, Literal["class", "instance", "sensor"]] = Field(default_factory=dict)
     masks: list[PathRule] = Field(default_factory=list)
@@ -173,9 +180,9 @@ def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
     elif isinstance(rule, ReplaceRule):
         rel = rule.applied(relpath)
     else:
-        rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes)).get(relpath)
+        rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes), rule.table).get(relpath)
         if rel is None:
-            raise InputError(f"no lidarseg record for this sample_data file in {rule.nuscenes}/lidarseg.json",
+            raise InputError(f"no {rule.table} record for this sample_data file in {rule.nuscenes}/{rule.table}.json",
                              file=relpath)
     rel = posixpath.normpath(rel)
     if rel.startswith("../") or rel == ".." or posixpath.isabs(rel):
@@ -199,15 +206,16 @@ def sidecar_files(in_root: Path, spec: AnnotationsSpec, relpaths) -> set[str]:
 
 
 @lru_cache(maxsize=4)
-def _nuscenes_index(tables: str) -> dict[str, str]:
-    """sample_data filename → lidarseg filename, from ``lidarseg.json`` and the LiDAR records of
-    ``sample_data.json`` (scanned, not parsed: the trainval table holds millions of camera records)."""
+def _nuscenes_index(tables: str, table: str = "lidarseg") -> dict[str, str]:
+    """sample_data filename → lidarseg (or panoptic) filename, from ``lidarseg.json`` (``panoptic.json``) and the
+    LiDAR records of ``sample_data.json`` (scanned, not parsed: the trainval table holds millions of camera
+    records)."""
     import json
 
     tables_dir = Path(tables)
     try:
-        lidarseg = json.loads((tables_dir / "lidarseg.json").read_text())
-        by_token = {r["sample_data_token"]: r["filename"] for r in lidarseg}
+        records = json.loads((tables_dir / f"{table}.json").read_text())
+        by_token = {r["sample_data_token"]: r["filename"] for r in records}
         with open(tables_dir / "sample_data.json", "rb") as fh, \
                 mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
             pairs = re.finditer(rb'"token":\s*"(\w+)"[^{}]*?"filename":\s*"([^"]+)"', mm)
@@ -224,7 +232,7 @@ def field_role(name: str, overrides: dict[str, str] | None = None) -> str:
     """``class``, ``instance`` or ``sensor`` (module docstring)."""
     if overrides and name in overrides:
         return overrides[name]
-    low = name.lower()
+    low = name.lower().removeprefix(SCALAR_PREFIX)
     return "class" if low in CLASS_FIELDS else "instance" if low in INSTANCE_FIELDS else "sensor"
 
 
@@ -238,7 +246,7 @@ def _roles(names: tuple[str, ...], overrides: tuple[tuple[str, str], ...]) -> di
 
 def weather_classes(spec: AnnotationsSpec, fmt: str | None = None) -> dict[str, int]:
     """Class id of new points per weather: the recipe's, else the default for the label format."""
-    default = NUSCENES_NOISE if fmt == "nuscenes_lidarseg" else SEMANTICSTF_INVALID
+    default = NUSCENES_NOISE if fmt in ("nuscenes_lidarseg", "nuscenes_panoptic") else SEMANTICSTF_INVALID
     return {w: int(spec.weather_class.get(w, default)) for w in WEATHERS}
 
 
@@ -382,7 +390,8 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
             data_out = data_out.with_fields(**fields)
         for s in sidecars:
             if s.role == "point_labels":
-                values = carry_values(s.data, data_out, classes).astype(s.data.dtype, copy=False)
+                new = classes * ann_io.PANOPTIC_CLASS_SCALE if s.fmt == "nuscenes_panoptic" else classes
+                values = carry_values(s.data, data_out, new).astype(s.data.dtype, copy=False)
                 result.writes.append((out_root / output_relpath(s.relpath, variant_suffix),
                                       lambda p, v=values, f=s.fmt: ann_io.write_point_labels(p, v, f)))
             elif s.role == "boxes_3d":

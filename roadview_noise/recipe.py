@@ -146,6 +146,26 @@ class InputsSpec(_Strict):
         return self
 
     @model_validator(mode="after")
+    def _cloud_suffixes(self) -> "InputsSpec":
+        """A LiDAR/radar glob whose file suffix is spelled out (``*.npz``, ``*.feather``, ``*.h5``) and that the
+        cloud reader would refuse on every file (:func:`io.pointcloud.cloud_format`) is refused here."""
+        from .errors import InputError
+        from .io.pointcloud import cloud_format
+
+        for sensor in ("lidar", "radar"):
+            globs = getattr(self, sensor)
+            for glob in [globs] if isinstance(globs, str) else globs or []:
+                name = glob.rsplit("/", 1)[-1]
+                if "." not in name or any(c in name.rsplit(".", 1)[-1] for c in "*?["):
+                    continue
+                try:
+                    cloud_format(name, sensor)
+                except InputError as exc:
+                    raise ValueError(f"{sensor}: {glob!r} names files rvnoise does not read: "
+                                     f"{str(exc).removeprefix(f'{exc.file}: ')}") from None
+        return self
+
+    @model_validator(mode="after")
     def _depth_source_settings(self) -> "InputsSpec":
         for source, key in (("lidar", "lidar_depth"), ("onnx", "onnx_depth")):
             if self.depth_source == source and getattr(self, key) is None:
@@ -154,6 +174,9 @@ class InputsSpec(_Strict):
             check_pattern(self.depth)
         if isinstance(self.calibration, str):
             check_pattern(self.calibration)
+        elif isinstance(self.calibration, NuscenesRule) and self.calibration.table != "lidarseg":
+            raise ValueError("calibration: {nuscenes: …} reads the calibration tables; `table:` chooses the label "
+                             "table of annotations.point_labels")
         if self.lidar_depth is not None:
             if self.lidar_depth.scan is not None:
                 check_pattern(self.lidar_depth.scan)

@@ -18,6 +18,7 @@ import pytest
 from roadview_noise import annotations
 from roadview_noise.compound import apply_models
 from roadview_noise.dataset import Sample, discover, load
+from roadview_noise.errors import InputError
 from roadview_noise.io import annotations as ann_io
 from roadview_noise.io.image import read_image, write_image
 from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
@@ -256,38 +257,56 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
 
 
-def test_nuscenes_lidarseg_through_the_tables(tmp_path):
+@pytest.mark.parametrize("table", ["lidarseg", "panoptic"])
+def test_nuscenes_lidarseg_through_the_tables(tmp_path, table):
     """``{nuscenes: v1.0-mini}``: the cloud's sample_data record gives its lidarseg file; uint8 classes; new points
-    get nuScenes' class 0 "noise"; the lidarseg files are not taken for clouds."""
+    get nuScenes' class 0 "noise"; the lidarseg files are not taken for clouds. nuScenes-panoptic (``table:
+    panoptic``): ``panoptic.json`` gives its ``.npz`` of uint16 ``class · 1000 + instance`` under ``data``, written
+    back so (instances kept, new points 0 · 1000 + 0; the same bytes on a second run); before, not read."""
     root = tmp_path / "in"
     src = SAMPLE / "lidar" / "os1-128" / "seq0" / "000000.pcd"
     cloud = read_pointcloud(src)
-    table = np.column_stack([cloud.positions_m, cloud.fields["intensity"], cloud.fields["ring"]]).astype("<f4")
+    data = np.column_stack([cloud.positions_m, cloud.fields["intensity"], cloud.fields["ring"]]).astype("<f4")
     name = "samples/LIDAR_TOP/n008-2018-08-01-15-16-36-0400__LIDAR_TOP__1533151603547590.pcd.bin"
     (root / name).parent.mkdir(parents=True)
-    table.tofile(root / name)
+    data.tofile(root / name)
     shutil.copy(src.parent / "lidar.yaml", (root / name).parent)
     token = "9d9bf11fb0e144c8b446d54a8a00184f"
-    (root / "lidarseg/v1.0-mini").mkdir(parents=True)
-    classes = np.random.default_rng(1).integers(1, 32, len(cloud)).astype(np.uint8)
-    classes.tofile(root / f"lidarseg/v1.0-mini/{token}_lidarseg.bin")
+    (root / f"{table}/v1.0-mini").mkdir(parents=True)
+    rng = np.random.default_rng(1)
+    classes = rng.integers(1, 32, len(cloud)).astype(np.uint8)
+    labels_name = f"{table}/v1.0-mini/{token}_{table}" + (".bin" if table == "lidarseg" else ".npz")
+    if table == "lidarseg":
+        classes.tofile(root / labels_name)
+    else:
+        np.savez_compressed(root / labels_name, data=classes.astype("u2") * 1000 + rng.integers(0, 9, len(cloud), "u2"))
     (root / "v1.0-mini").mkdir()
-    (root / "v1.0-mini/lidarseg.json").write_text(json.dumps(
-        [{"token": "aa" * 16, "sample_data_token": token, "filename": f"lidarseg/v1.0-mini/{token}_lidarseg.bin"}]))
+    (root / f"v1.0-mini/{table}.json").write_text(json.dumps(
+        [{"token": "aa" * 16, "sample_data_token": token, "filename": labels_name}]))
     (root / "v1.0-mini/sample_data.json").write_text(json.dumps([
         {"token": "bb" * 16, "sample_token": "s", "filename": "samples/CAM_FRONT/x.jpg", "prev": ""},
         {"token": token, "sample_token": "s", "ego_pose_token": "e", "is_key_frame": True, "filename": name,
          "prev": "", "next": ""}], indent=2))
+    rule = {"nuscenes": "v1.0-mini"} if table == "lidarseg" else {"nuscenes": "v1.0-mini", "table": "panoptic"}
     recipe = _recipe({"chain": [{"model": "rain.lidar", "params": {"rain_rate_mm_per_h": 100}}],
-                      "inputs": {"annotations": {"point_labels": {"nuscenes": "v1.0-mini"}}}}, tmp_path)
+                      "inputs": {"annotations": {"point_labels": rule}}}, tmp_path)
     assert [s.relpath for s in discover(root, recipe)] == [name]
-    out = tmp_path / "out"
-    assert run(recipe, root, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
-    labels = np.fromfile(out / f"lidarseg/v1.0-mini/{token}_lidarseg.bin", np.uint8)
-    effect = np.fromfile(out / (name + ".rv_effect"), np.uint8)
-    assert len(labels) == len(read_pointcloud(out / name)) == len(effect)
+    for out in (tmp_path / "out", tmp_path / "again"):
+        assert run(recipe, root, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    if table == "lidarseg":
+        labels = np.fromfile(tmp_path / "out" / labels_name, np.uint8)
+    else:
+        labels = np.load(tmp_path / "out" / labels_name)["data"]
+        assert labels.dtype == np.uint16
+        assert (tmp_path / "out" / labels_name).read_bytes() == (tmp_path / "again" / labels_name).read_bytes()
+    effect = np.fromfile(tmp_path / "out" / (name + ".rv_effect"), np.uint8)
+    assert len(labels) == len(read_pointcloud(tmp_path / "out" / name)) == len(effect)
     assert is_new(effect).any() and np.all(labels[is_new(effect)] == 0)
     assert np.all(labels[~is_new(effect)] > 0)
+    if table == "panoptic":
+        source = np.load(root / labels_name)["data"]
+        assert set(np.unique(labels[~is_new(effect)])) <= set(np.unique(source))
+        assert len(np.unique(labels[~is_new(effect)] % 1000)) > 1             # instances carried
 
 
 # --- field roles -----------------------------------------------------------------------------------------------------
@@ -319,6 +338,10 @@ def test_field_roles_class_instance_sensor_and_override(tmp_path):
         np.testing.assert_array_equal(carried.fields[k][own], extra[k][carried.origin[own]])
     assert annotations.field_role("Label") == "class" and annotations.field_role("label", {"label": "sensor"}) == \
         "sensor" and annotations.field_role("ambient") == "sensor"
+    # RadarScenes' label_id, LAS classification, CloudCompare's scalar_ prefix (Toronto-3D's scalar_Label)
+    assert [annotations.field_role(k) for k in ("label_id", "Classification", "scalar_Label", "scalar_Intensity",
+                                                "scalar_track_id")] == ["class", "class", "class", "sensor",
+                                                                        "instance"]
 
 
 def test_removed_grid_cells_lose_their_annotation(tmp_path):
@@ -555,6 +578,32 @@ def _object_scene() -> tuple[PointCloud, list[dict]]:
     return cloud, boxes
 
 
+def test_kitti_boxes_read_the_calibration_files_datasets_ship(tmp_path):
+    """KITTI 3-D boxes are in the rectified reference camera (camera 0): Waymo in mmdetection3d's KITTI format names
+    its transform ``Tr_velo_to_cam_0`` (… ``_4``, one per camera; no plain ``Tr_velo_to_cam``), View-of-Delft leaves
+    ``Tr_imu_to_velo:`` empty, the raw recordings write ``calib_time: 09-Jan-2012 13:57:47``: each gives the same
+    LiDAR → box-frame transform as KITTI's object calib (before: the Waymo file was refused, the time line failed
+    with a ValueError)."""
+    tr = "0 -1 0 0.1 0 0 -1 -0.2 1 0 0 -0.3"
+    rect = "R0_rect: 1 0 0 0 1 0 0 0 1\n"
+    label = tmp_path / "000000.txt"
+    label.write_text("Car 0 0 0 0 0 10 10 1.5 1.6 3.9 1 1.2 10 0.3\n")
+    files = {"kitti": f"P2: {' '.join(['0'] * 12)}\n{rect}Tr_velo_to_cam: {tr}\n",
+             "waymo": "".join(f"P{i}: {' '.join(['0'] * 12)}\n" for i in range(5)) + rect
+             + "".join(f"Tr_velo_to_cam_{i}: {tr if i == 0 else ' '.join(['1'] * 12)}\n" for i in range(5)),
+             "vod": f"P2: {' '.join(['0'] * 12)}\n{rect}Tr_velo_to_cam: {tr}\nTr_imu_to_velo: \n",
+             "raw": f"calib_time: 09-Jan-2012 13:57:47\n{rect}Tr_velo_to_cam: {tr}\n"}
+    transforms = {}
+    for name, text in files.items():
+        (tmp_path / f"{name}.txt").write_text(text)
+        transforms[name] = ann_io.read_boxes_3d(label, "kitti", tmp_path / f"{name}.txt").to_box_frame
+    for name in files:
+        np.testing.assert_array_equal(transforms[name], transforms["kitti"])
+    (tmp_path / "none.txt").write_text(rect + "Tr_velo_to_cam_1: " + tr + "\n")
+    with pytest.raises(InputError, match="Tr_velo_to_cam"):
+        ann_io.read_boxes_3d(label, "kitti", tmp_path / "none.txt")
+
+
 def test_objects_count_their_points_before_and_after(tmp_path):
     """JSON boxes in the sensor frame and the same boxes as KITTI label_2 + calib give the same counts; in dense fog
     the far car keeps none of its points: the manifest marks it lost."""
@@ -590,3 +639,16 @@ def test_objects_count_their_points_before_and_after(tmp_path):
     assert far["points_after"] == 0 and far["lost"]
     assert [(o["points_before"], o["points_after"]) for o in counts["kitti"]] == \
         [(o["points_before"], o["points_after"]) for o in counts["json"]]
+
+
+def test_a_box_json_of_another_layout_is_refused_naming_the_expected_one(tmp_path):
+    """View-of-Delft's radar ``label_2/*.json`` (segments.ai: className, geometry.center/size/quaternion) is not
+    rvnoise's box JSON: the refusal names the missing key and the layout expected, not ``KeyError('center_m')``."""
+    (tmp_path / "00549.json").write_text(json.dumps([{"id": "d3b9", "className": "bicycle", "geometry": {
+        "size": {"height": 1.2, "width": 0.77, "length": 2.08}, "center": {"x": 11.5, "y": 2.9, "z": -0.4},
+        "quaternion": {"x": 0, "y": 0, "z": 0.04, "w": 0.999}}}]))
+    with pytest.raises(InputError, match=r"no 'center_m'\); expected \[\{.*KITTI label_2"):
+        ann_io.read_boxes_3d(tmp_path / "00549.json", "json")
+    (tmp_path / "b.csv").write_text("id,class,x,y,z\n1,car,1,2,3\n")
+    with pytest.raises(InputError, match="no 'x_m'.*header id,class,x_m"):
+        ann_io.read_boxes_3d(tmp_path / "b.csv", "csv")

@@ -210,3 +210,45 @@ def test_radar_cloud_with_radarscenes_velocity_names_is_read_with_its_doppler(tm
     np.testing.assert_array_equal(cloud.fields["v_r_m_per_s"], rec["vr"])
     ego, rms = ego_velocity_from_data(cloud, planar=True)
     np.testing.assert_allclose(ego[:2], [8, 0], atol=1e-3)
+
+
+def test_ouster_ros_intensity_is_stated_signal_by_its_fields(tmp_path):
+    """ouster-ros' cloud (``intensity`` next to ``reflectivity`` and ``ambient``) carries the signal photons in its
+    intensity: with an Ouster signal profile whose packet profile leaves the channel open (the default, a metadata
+    JSON of a LEGACY or RNG19 unit) the unit is stated by the fields — no "unit not stated" warning; before, the data
+    decided (here: fractional photons, refused). A cloud with Ouster's ``ambient`` but no second strength field is
+    still read from the data."""
+    from roadview_noise.physics.lidar_intensity import chain_intensity_scale
+    from roadview_noise.profiles.lidar import default_profile
+
+    ouster_ros_pcd(tmp_path / "in.pcd")
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=default_profile())
+    scale = chain_intensity_scale(cloud, "fog.lidar")
+    assert scale.warning is None and "stated by the cloud's fields (ouster-ros" in scale.note
+    assert scale.profile.intensity_kind == "signal" and scale.profile.intensity_unit == "photons"
+    fields = {k: v for k, v in cloud.fields.items() if k != "reflectivity"}
+    with pytest.raises(Exception, match="fractions"):
+        chain_intensity_scale(cloud.replace(fields=fields), "fog.lidar")
+
+
+def test_weather_returns_get_their_own_reflectivity(tmp_path):
+    """ouster-ros' ``reflectivity`` of a fog return (a point moved to a droplet or added on an empty ray) is the
+    reading its own return gives in the 8-bit reflectivity channel (W·S·R²/K of its signal S at its range R, W =
+    100, K the profile's; a faint one reads 1), not the reflectivity of the object behind the fog, which it kept
+    before. Returns that are the input's keep theirs."""
+    rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k", sequence_id="s",
+                          metrics=False)
+    write_pointcloud(tmp_path / "out.pcd", out)
+    back = read_pointcloud(tmp_path / "out.pcd")
+    effect = np.asarray(back.fields["rv_effect"])
+    new = (effect == 2) | (effect == 3)                                       # MOVED, ADDED
+    assert np.count_nonzero(effect == 2) > 100 and np.count_nonzero(effect == 3) > 100
+    r = np.linalg.norm(back.positions_m[new], axis=1)
+    want = np.maximum(np.rint(100.0 * back.fields["intensity"][new] * r ** 2 / 65535.0), 1)
+    np.testing.assert_array_equal(back.fields["reflectivity"][new], np.minimum(want, 255))
+    assert back.fields["reflectivity"].dtype == np.uint16
+    kept = (effect == 0) | (effect == 1)
+    np.testing.assert_array_equal(back.fields["reflectivity"][kept], rec["reflectivity"][kept])
+    assert not np.array_equal(back.fields["reflectivity"][effect == 2], rec["reflectivity"][effect == 2])

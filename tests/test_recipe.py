@@ -111,3 +111,24 @@ def test_camera_globs_of_photo_formats_not_read_are_refused_at_validate(glob):
     with pytest.raises(RecipeError, match=r"camera: .* names \.(webp|heic|avif) files, which rvnoise does not read"):
         parse_recipe({"chain": [{"model": "compression.camera"}], "inputs": {"camera": ["**/*.jpg", glob]}})
     parse_recipe({"chain": [{"model": "compression.camera"}], "inputs": {"camera": ["**/*.JPG", "**/*.tif", "**/*"]}})
+
+
+def test_calibration_from_the_nuscenes_tables_takes_no_label_table():
+    """``table: panoptic`` chooses point labels' table; on ``calibration`` it would be ignored in silence."""
+    with pytest.raises(RecipeError, match="`table:` chooses the label table"):
+        parse_recipe({"chain": [{"model": "fog.camera"}],
+                      "inputs": {"camera": "**/*.jpg", "calibration": {"nuscenes": "v1.0-mini", "table": "panoptic"}}})
+
+
+@pytest.mark.parametrize("sensor, glob, why", [
+    ("lidar", "lidar_frontcenter/*.npz", "unknown point-cloud suffix '.npz'"),        # A2D2
+    ("lidar", "sensors/lidar/*.feather", "unknown point-cloud suffix '.feather'"),    # Argoverse 2
+    ("lidar", "velodyne/*.txt", r".*\(\.txt: radar only\)"),
+    ("radar", "sequence_1/radar_data.h5", "HDF5 is not read: a RadarScenes")])
+def test_cloud_globs_of_formats_not_read_are_refused_at_validate(sensor, glob, why):
+    """A2D2's .npz, Argoverse 2's .feather, RadarScenes' .h5 passed validate, then every file failed with the
+    reader's refusal; validate now gives it, naming the glob. Globs whose suffix is a wildcard are left to the walk."""
+    model = {"lidar": "fog.lidar", "radar": "rain.radar"}[sensor]
+    with pytest.raises(RecipeError, match=rf"{sensor}: .* names files rvnoise does not read: {why}"):
+        parse_recipe({"chain": [{"model": model}], "inputs": {sensor: ["**/*.pcd", glob]}})
+    parse_recipe({"chain": [{"model": model}], "inputs": {sensor: ["**/*.PCD", "**/*.pcd.bin", "**/*", "a/*.p*"]}})

@@ -102,7 +102,9 @@ def _cityscapes(data: dict, path: str) -> Calibration:
                        pitch_rad=float(extr["pitch"]))
 
 
-def _kitti(text: str, path: str, camera: int) -> Calibration:
+def kitti_rows(text: str) -> dict[str, np.ndarray]:
+    """The numeric ``KEY: values`` lines of a KITTI calibration text (others, e.g. ``calib_time: 09-Jan-2012
+    13:57:47`` or an empty ``Tr_imu_to_velo:`` as View-of-Delft writes it, skipped)."""
     rows = {}
     for line in text.splitlines():
         key, sep, values = line.partition(":")
@@ -110,7 +112,31 @@ def _kitti(text: str, path: str, camera: int) -> Calibration:
             try:
                 rows[key.strip()] = np.array(values.split(), dtype=float)
             except ValueError:
-                continue                                    # e.g. calib_time: 09-Jan-2012 13:57:47
+                continue
+    return rows
+
+
+def kitti_lidar_to_rectified(rows: dict[str, np.ndarray], camera: int,
+                             path: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(R_rect, Tr_velo_to_cam)`` (4 × 4 each; their product maps a Velodyne point into the rectified camera
+    frame): camera N's ``Tr_velo_to_cam_N`` (Waymo in mmdetection3d's KITTI format), else ``Tr_velo_to_cam`` (or
+    ``Tr_velo_cam``), else the raw recordings' ``R``/``T``; ``R0_rect`` or ``R_rect_00``. None without a Velodyne
+    transform."""
+    velo_key = next((k for k in (f"Tr_velo_to_cam_{camera}", "Tr_velo_to_cam", "Tr_velo_cam") if k in rows), None)
+    if velo_key is not None:
+        velo = np.vstack([rows[velo_key].reshape(3, 4), [0, 0, 0, 1]])
+    elif "R" in rows and "T" in rows:
+        velo = np.eye(4)
+        velo[:3, :3], velo[:3, 3] = rows["R"].reshape(3, 3), rows["T"]
+    else:
+        return None
+    r_rect = np.eye(4)
+    r_rect[:3, :3] = _first(rows, ("R0_rect", "R_rect_00"), path).reshape(3, 3)
+    return r_rect, velo
+
+
+def _kitti(text: str, path: str, camera: int) -> Calibration:
+    rows = kitti_rows(text)
     if not rows and len(text.split()) == 9:                # KITTI depth_selection's intrinsics/*.txt: K, 9 numbers
         k = np.array(text.split(), dtype=float).reshape(3, 3)
         if not np.allclose(k[2], (0, 0, 1)):
@@ -122,16 +148,10 @@ def _kitti(text: str, path: str, camera: int) -> Calibration:
     intrinsics = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
     size = rows.get(f"S_rect_{camera:02d}")
     size = (int(size[0]), int(size[1])) if size is not None else None
-    velo_key = next((k for k in (f"Tr_velo_to_cam_{camera}", "Tr_velo_to_cam") if k in rows), None)
-    if velo_key is not None:
-        velo = np.vstack([rows[velo_key].reshape(3, 4), [0, 0, 0, 1]])
-    elif "R" in rows and "T" in rows:
-        velo = np.eye(4)
-        velo[:3, :3], velo[:3, 3] = rows["R"].reshape(3, 3), rows["T"]
-    else:
+    transforms = kitti_lidar_to_rectified(rows, camera, path)
+    if transforms is None:
         return Calibration(path, intrinsics_px=intrinsics, size_px=size)   # camera only (calib_cam_to_cam.txt)
-    r_rect = np.eye(4)
-    r_rect[:3, :3] = _first(rows, ("R0_rect", "R_rect_00"), path).reshape(3, 3)
+    r_rect, velo = transforms
     shift = np.eye(4)
     shift[:3, 3] = np.linalg.solve(k, p[:, 3])
     return Calibration(path, intrinsics_px=intrinsics, size_px=size, lidar_to_camera=shift @ r_rect @ velo)

@@ -5,6 +5,8 @@ Point-label sidecars (one value per point of the cloud, in point order):
 - ``semantickitti``: ``.label``, uint32 little-endian, semantic class in the lower 16 bits, instance in the upper 16
   (SemanticKITTI, SemanticSTF, SemanticPOSS).
 - ``nuscenes_lidarseg``: ``<sample_data token>_lidarseg.bin``, uint8 class index (nuScenes-lidarseg).
+- ``nuscenes_panoptic``: ``<sample_data token>_panoptic.npz``, uint16 ``class · 1000 + instance`` under the key
+  ``data`` (nuScenes-panoptic); written back the same way, deterministically (fixed zip time stamp).
 - ``npy``: any 1-D (or N × k) NumPy array, dtype kept.
 
 Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
@@ -26,6 +28,7 @@ import csv
 import io
 import json
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,9 +38,17 @@ import numpy as np
 from ..errors import InputError
 from .atomic import write_bytes_atomic
 
-POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "npy": None}
+POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "nuscenes_panoptic": None, "npy": None}
+PANOPTIC_CLASS_SCALE = 1000            # nuScenes-panoptic: class · 1000 + instance
+_ZIP_TIME = (1980, 1, 1, 0, 0, 0)      # the time stamp written into an .npz: the bytes do not depend on the run
 BOX_2D_FORMATS = ("kitti", "yolo")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
+BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
+    "kitti": "KITTI label_2 lines: type truncated occluded alpha left top right bottom h w l x y z rotation_y [score]",
+    "json": '[{"id", "class", "center_m": [x, y, z], "size_m": [length, width, height], "yaw_rad"}] (or that list '
+            'under "boxes") in the sensor frame; a segments.ai / View-of-Delft label JSON or nuScenes\' '
+            'sample_annotation.json is another layout: give KITTI label_2 + calib files',
+    "csv": "a header id,class,x_m,y_m,z_m,length_m,width_m,height_m,yaw_rad (sensor frame)"}
 
 
 def _read(path: Path) -> bytes:
@@ -57,7 +68,8 @@ def point_label_format(path: str | os.PathLike, fmt: str | None) -> str:
     if fmt is not None:
         return fmt
     name = Path(path).name.lower()
-    for suffix, f in ((".label", "semantickitti"), ("_lidarseg.bin", "nuscenes_lidarseg"), (".npy", "npy")):
+    for suffix, f in ((".label", "semantickitti"), ("_lidarseg.bin", "nuscenes_lidarseg"),
+                      ("_panoptic.npz", "nuscenes_panoptic"), (".npy", "npy")):
         if name.endswith(suffix):
             return f
     raise InputError("cannot tell the point-label format from the name; give point_labels_format "
@@ -71,6 +83,12 @@ def read_point_labels(path: str | os.PathLike, fmt: str) -> np.ndarray:
             return np.load(io.BytesIO(data), allow_pickle=False)
         except ValueError as exc:
             raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
+    if fmt == "nuscenes_panoptic":
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                return npz["data"]
+        except (ValueError, KeyError, OSError, zipfile.BadZipFile) as exc:
+            raise InputError(f"not a nuScenes-panoptic .npz with a 'data' array ({exc})", file=str(path)) from None
     dtype = np.dtype(POINT_LABEL_FORMATS[fmt])
     if len(data) % dtype.itemsize:
         raise InputError(f"{len(data)} bytes is not a whole number of {dtype.itemsize}-byte {fmt} labels",
@@ -82,6 +100,12 @@ def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) ->
     if fmt == "npy":
         buf = io.BytesIO()
         np.save(buf, labels, allow_pickle=False)
+        write_bytes_atomic(path, buf.getvalue())
+    elif fmt == "nuscenes_panoptic":                # np.savez_compressed, with a fixed time stamp
+        array, buf = io.BytesIO(), io.BytesIO()
+        np.save(array, labels, allow_pickle=False)
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr(zipfile.ZipInfo("data.npy", _ZIP_TIME), array.getvalue(), zipfile.ZIP_DEFLATED)
         write_bytes_atomic(path, buf.getvalue())
     else:
         write_bytes_atomic(path, np.ascontiguousarray(labels, dtype=POINT_LABEL_FORMATS[fmt]).tobytes())
@@ -187,12 +211,15 @@ def read_boxes_3d(path: str | os.PathLike, fmt: str, calib_path: str | os.PathLi
         if fmt == "kitti":
             return _kitti_boxes(raw, calib_path, path)
         rows = _json_rows(raw) if fmt == "json" else _csv_rows(raw)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"bad {fmt} 3-D box file: {exc!r}", file=str(path)) from None
-    center = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
-    size = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
-    return Boxes3D([str(r[0]) for r in rows], [str(r[1]) for r in rows], center, size,
-                   np.array([float(r[4]) for r in rows]), np.eye(4))
+        center = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
+        size = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
+        yaw = np.array([float(r[4]) for r in rows])
+    except InputError:
+        raise
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        what = f"no {exc.args[0]!r}" if isinstance(exc, KeyError) else repr(exc)
+        raise InputError(f"bad {fmt} 3-D box file ({what}); expected {BOX_3D_LAYOUTS[fmt]}", file=str(path)) from None
+    return Boxes3D([str(r[0]) for r in rows], [str(r[1]) for r in rows], center, size, yaw, np.eye(4))
 
 
 def _json_rows(raw: str) -> list:
@@ -233,17 +260,17 @@ def _kitti_boxes(raw: str, calib_path, path) -> Boxes3D:
 
 
 def _kitti_calib(text: str, path) -> np.ndarray:
-    values = {}
-    for line in text.splitlines():
-        key, _, rest = line.partition(":")
-        if rest.strip():
-            values[key.strip()] = np.array(rest.split(), dtype=float)
+    """``R0_rect · Tr_velo_to_cam``: LiDAR → the rectified reference camera (camera 0) the labels are given in
+    (:func:`~roadview_noise.depth.calibration.kitti_lidar_to_rectified`: also Waymo's KITTI-format
+    ``Tr_velo_to_cam_0``)."""
+    from ..depth.calibration import kitti_lidar_to_rectified, kitti_rows
+
     try:
-        r0 = np.eye(4)
-        r0[:3, :3] = values["R0_rect"].reshape(3, 3)
-        tr = np.eye(4)
-        tr[:3, :4] = values.get("Tr_velo_to_cam", values.get("Tr_velo_cam")).reshape(3, 4)
-    except (KeyError, AttributeError, ValueError):
-        raise InputError("KITTI calib needs R0_rect (9 values) and Tr_velo_to_cam (12 values)",
-                         file=str(path)) from None
+        transforms = kitti_lidar_to_rectified(kitti_rows(text), 0, str(path))
+    except (InputError, ValueError):
+        transforms = None
+    if transforms is None:
+        raise InputError("KITTI calib needs R0_rect (9 values) and Tr_velo_to_cam (12 values; Tr_velo_to_cam_0 in "
+                         "Waymo's KITTI format)", file=str(path))
+    r0, tr = transforms
     return r0 @ tr

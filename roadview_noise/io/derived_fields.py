@@ -12,6 +12,11 @@
   c)``, k rad/deg/centideg, s ±1; azimuth wrapped as the recorded values are); before, it kept the angles of the
   point its other fields were copied from (up to 32° off on a real VLP-16 scan). A MOVED point stays on its ray.
   Angles that follow no such convention (fewer than 99 % of the recorded points within 0.01 rad) are not touched.
+- ouster-ros' ``reflectivity`` next to its signal ``intensity`` (:func:`lidar_intensity.ouster_signal_layout`) is
+  the sensor's calibrated reflectivity of the return: a MOVED or ADDED point (a weather return) gets the reading
+  its own return gives, ``W·S·R²/K`` of its written signal S at its range R in the 8-bit reflectivity channel of the
+  cloud's profile (:func:`lidar_intensity.reflectivity_variant`: W = 100, rounded, a faint return reads 1); before,
+  a fog return kept the reflectivity of the object behind it (or of the point its fields were copied from).
 
 Every other point keeps the value it was recorded with. Fields of other names or types are not touched.
 """
@@ -31,6 +36,8 @@ ANGLE_SAMPLE = 4096                            # recorded points the convention 
 
 def with_derived(values: np.ndarray, file_name: str, dt: str, cloud: PointCloud) -> np.ndarray:
     """``values`` of the stored field ``file_name`` with the points the chain moved or added brought up to date."""
+    if file_name == "reflectivity":
+        return _weather_reflectivity(values, cloud)
     kind = np.dtype(dt).kind
     stored = f"u{np.dtype(dt).itemsize}" if kind == "u" else kind
     if cloud.effect is None or not (RANGE_UNITS.get(file_name, ("",))[0] == stored
@@ -54,6 +61,25 @@ def with_derived(values: np.ndarray, file_name: str, dt: str, cloud: PointCloud)
     convention = _convention(out[recorded], angle(cloud.positions_m[recorded]), file_name == "azimuth")
     if convention is not None:
         out[new] = convention(angle(p))
+    return out
+
+
+def _weather_reflectivity(values: np.ndarray, cloud: PointCloud) -> np.ndarray:
+    """ouster-ros' ``reflectivity`` of the points the chain moved or added: the 8-bit calibrated reading of their
+    own return (module docstring); every other cloud's field as it is."""
+    from ..physics import lidar_intensity as li
+    from ..provenance import Effect
+
+    if cloud.effect is None or cloud.profile is None or not li.ouster_signal_layout(cloud.fields):
+        return values
+    new = (cloud.effect == Effect.MOVED) | (cloud.effect == Effect.ADDED)
+    if not new.any():
+        return values
+    r = np.linalg.norm(cloud.positions_m[new], axis=1)
+    signal = li.received_signal(np.asarray(cloud.fields["intensity"])[new], r, cloud.profile)
+    channel = li.reflectivity_variant(cloud.profile)
+    out = np.array(values, dtype=np.float64)
+    out[new] = li.stored_intensity(li.reported_intensity(signal, r, channel), channel)
     return out
 
 

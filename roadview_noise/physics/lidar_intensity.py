@@ -14,10 +14,11 @@ the data say about their unit (the cloud → signal conversion of the weather pi
   8-bit and photon units even in a float file), a return below the lowest reading is 0, the lowest reading, or no
   return (``faint_reading``, per profile).
 - The unit is stated by the profile (a built-in, a file, an Ouster metadata JSON whose ``udp_profile_lidar`` names
-  the channel, the recipe's ``intensity_unit``), and values it cannot hold are refused; when nothing states it (the
-  default profile), :func:`read_intensity` looks at the data (integer-valued ≤ 255, larger counts, [0, 1],
-  fractional floats; range-compensated or ∝ 1/R²) and :func:`resolve_profile` follows them, always with a warning,
-  or refuses what no reading can place:
+  the channel, the recipe's ``intensity_unit``; for an Ouster signal profile also ouster-ros' fields, whose
+  ``intensity`` is the signal channel next to a ``reflectivity`` field), and values it cannot hold are refused;
+  when nothing states it (the default profile), :func:`read_intensity` looks at the data (integer-valued ≤ 255,
+  larger counts, [0, 1], fractional floats; range-compensated or ∝ 1/R²) and :func:`resolve_profile` follows them,
+  always with a warning, or refuses what no reading can place:
 
   - fractions — [0, 1] or beyond (Luminar's 0–2 reflectance, View-of-Delft's 0–255 floats, Waymo's 0.005–27) —
     are no photon counts (whole numbers), and a float channel's full scale is not in the data: refused, naming the
@@ -279,14 +280,16 @@ def chain_intensity_scale(cloud, model_id: str) -> IntensityScale:
     decided (:func:`check_intensity_scale`)."""
     source = cloud.recorded if cloud.recorded is not None and "intensity" in cloud.recorded.fields else cloud
     scale = resolve_profile(cloud.profile, np.asarray(source.fields["intensity"]), source.positions_m, model_id,
-                            source.fields.get("ring"), ouster=not OUSTER_FIELDS.isdisjoint(source.fields))
+                            source.fields.get("ring"), ouster=not OUSTER_FIELDS.isdisjoint(source.fields),
+                            ouster_signal=ouster_signal_layout(source.fields))
     if source is not cloud:
         check_intensity_scale(np.asarray(cloud.fields["intensity"]), scale.profile, model_id)
     return scale
 
 
 def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: np.ndarray,
-                    model_id: str, ring: np.ndarray | None = None, ouster: bool = False) -> IntensityScale:
+                    model_id: str, ring: np.ndarray | None = None, ouster: bool = False,
+                    ouster_signal: bool = False) -> IntensityScale:
     """The intensity scale of a cloud: the profile's when it states it (``intensity_source``; values it cannot hold
     are refused); when nothing states it (the default profile, an Ouster JSON whose packet profile carries both
     channels), the data decide (:func:`read_intensity`) — 8-bit whole counts are read as the sensor's calibrated
@@ -297,7 +300,9 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     power variance) may have changed what the intensities look like. ``ring``: the cloud's ring field, if any; when
     it counts at most half the profile's beams, the warning says so (a nuScenes HDL-32E scan read with the default
     OS1-128, :func:`beam_count_hint`; ``ouster``: the cloud has the fields only an Ouster driver writes); without one, when its returns lie above or below the profile's beams
-    (:func:`elevation_span_hint`)."""
+    (:func:`elevation_span_hint`). ``ouster_signal``: the cloud's fields are ouster-ros' (:func:`ouster_signal_layout`),
+    whose intensity is the signal channel: an Ouster signal profile (the default, a metadata JSON whose packet
+    profile carries signal) is then stated by them."""
     check_intensity_scale(intensity, profile, model_id)
     if profile.intensity_kind not in (SIGNAL, REFLECTIVITY):
         raise _unknown_kind(profile)
@@ -306,6 +311,9 @@ def resolve_profile(profile: LidarProfile, intensity: np.ndarray, positions_m: n
     said = f"{profile.intensity_kind} in {profile.intensity_unit} (full scale {profile.intensity_full_scale:g})"
     if profile.intensity_source:
         return IntensityScale(profile, f"{said}, stated by {profile.intensity_source}")
+    if ouster_signal and profile.intensity_kind == SIGNAL and profile.intensity_unit == IntensityUnit.PHOTONS:
+        return IntensityScale(profile, f"{said}, stated by the cloud's fields (ouster-ros: the intensity is the "
+                                       f"signal channel, reflectivity a field of its own)")
     reading = read_intensity(intensity, positions_m)
     if reading.values == "[0, 1]" and profile.intensity_unit != IntensityUnit.UNIT:
         raise _unit_scale_error(profile, model_id)          # however few points: nothing says they are photons
@@ -366,6 +374,14 @@ PROFILE_FOR_BEAMS = {32: "hdl-32e for a Velodyne HDL-32E (nuScenes)", 64: "kitti
 #: fields only Ouster's drivers write (ouster-ros: ambient; ouster-sdk and newer ouster-ros: near_ir); Livox writes
 #: ``reflectivity`` too, so that one says nothing
 OUSTER_FIELDS = frozenset({"ambient", "near_ir"})
+
+
+def ouster_signal_layout(fields) -> bool:
+    """Whether a cloud's fields (canonical names) are ouster-ros' with the signal channel as its intensity: an Ouster
+    field (:data:`OUSTER_FIELDS`) and a ``reflectivity`` field besides the intensity (ouster-ros' default point:
+    ``intensity`` is the signal photons; its native point: ``signal``). A cloud whose only strength field is
+    ``reflectivity`` reads that one as its intensity and has no such second field."""
+    return "intensity" in fields and "reflectivity" in fields and not OUSTER_FIELDS.isdisjoint(fields)
 OUSTER_FIT = "FILE.json, the unit's Ouster metadata (its beam angles and packet profile)"
 
 

@@ -60,18 +60,23 @@ def test_a_scan_becomes_a_2d_cloud_in_its_sensor_frame_that_round_trips_as_pcd(t
         radarscenes_scan(np.zeros(3, [("x", "<f4")]))
 
 
-def test_rain_on_a_converted_scan_adds_static_clutter_in_the_sensor_plane(tmp_path):
+def rain_on_a_converted_scan(tmp_path, annotations: str = ""):
+    """``augment`` with rain 50 mm/h on a 400-detection scan written as README's conversion writes it; the output
+    cloud. ``annotations``: the recipe's ``inputs.annotations`` (YAML flow mapping), if any."""
     (tmp_path / "in" / "radar").mkdir(parents=True)
     write_pointcloud(tmp_path / "in" / "radar" / "156859092752.pcd", radarscenes_scan(scan_rows(400, seed=4)),
                      effect="none")
     (tmp_path / "r.yaml").write_text(
         "schema: rvnoise.recipe/1\nchain: [{model: rain.radar, params: {rain_rate_mm_per_h: 50}}]\nseed: 3\n"
-        "inputs:\n  radar: 'radar/*.pcd'\n"
-        "  annotations: {field_roles: {label_id: class}, weather_class: {clutter: 11}}\n")
+        "inputs:\n  radar: 'radar/*.pcd'\n" + (f"  annotations: {annotations}\n" if annotations else ""))
     result = CliRunner().invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(tmp_path / "in"),
                                       str(tmp_path / "out"), "--yes", "--quiet"])
     assert result.exit_code == 0, result.output
-    out = read_pointcloud(tmp_path / "out" / "radar" / "156859092752.pcd", sensor="radar")
+    return read_pointcloud(tmp_path / "out" / "radar" / "156859092752.pcd", sensor="radar")
+
+
+def test_rain_on_a_converted_scan_adds_static_clutter_in_the_sensor_plane(tmp_path):
+    out = rain_on_a_converted_scan(tmp_path, "{weather_class: {clutter: 11}}")
     added = out.fields["rv_effect"] == Effect.ADDED
     (entry,) = [e for e in read_manifest(tmp_path / "out" / "manifest.jsonl") if e.get("status") == "ok"]
     diagnostics = entry["steps"][0]["diagnostics"]
@@ -80,3 +85,13 @@ def test_rain_on_a_converted_scan_adds_static_clutter_in_the_sensor_plane(tmp_pa
     assert (out.fields["label_id"][added] == STATIC).all() and not out.fields["row"][added].any()
     kept = ~added
     assert len(np.unique(out.fields["row"][kept])) == kept.sum()            # input detections keep their row
+
+
+def test_label_id_is_a_class_field_without_being_declared(tmp_path):
+    """RadarScenes' ``label_id`` is a class annotation by its name: clutter added by rain gets the default weather
+    class (20, out of RadarScenes' 0–11, so a training script sees it); before, it got 0 — CAR — in silence unless
+    the recipe declared ``field_roles``."""
+    out = rain_on_a_converted_scan(tmp_path)
+    added = out.fields["rv_effect"] == Effect.ADDED
+    assert added.any() and (out.fields["label_id"][added] == 20).all()
+    assert set(np.unique(out.fields["label_id"][~added])) <= {0, STATIC}
