@@ -33,6 +33,7 @@ file suffix, as for the data), in the same format, atomically.
 
 from __future__ import annotations
 
+import dataclasses
 import mmap
 import posixpath
 import re
@@ -388,9 +389,10 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
         for s in sidecars:
             dest = out_root / output_relpath(s.relpath, variant_suffix)
             if s.role == "mask":
-                mask = s.data
+                values = s.data.values
                 for warp in data_out.warps:
-                    mask = warp.apply_labels(mask, spec.ignore_index)
+                    values = warp.apply_labels(values, spec.ignore_index)
+                mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
             elif s.role == "boxes_2d":
                 boxes = warp_boxes(s.data, data_out.warps, w, h)

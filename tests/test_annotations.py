@@ -436,6 +436,42 @@ def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_pat
     assert replay(out / "manifest.jsonl", image_rel)["match"]
 
 
+def test_palette_and_rgba_masks_keep_their_kind_through_a_warp(cityscapes, tmp_path):
+    """A palette PNG (Pascal VOC SegmentationClass: 21 colours) stays a palette PNG of class indices with its
+    palette, extended to the fill index; an RGBA bitmask (BDD100K: category, attributes, instance) gets the fill
+    value in every channel. OpenCV decoded the palette to colours, written back as an RGB image, and filled the
+    first channel only."""
+    from PIL import Image
+
+    gt = cityscapes / "gtFine/val/lindau"
+    rng = np.random.default_rng(5)
+    classes = rng.integers(0, 21, (60, 80)).astype(np.uint8)
+    voc = Image.fromarray(classes, "P")
+    palette = rng.integers(0, 256, 3 * 21).astype(np.uint8).tolist()
+    voc.putpalette(palette)
+    voc.save(gt / "lindau_000001_000019_voc.png", transparency=0)
+    bitmask = rng.integers(0, 200, (60, 80, 4)).astype(np.uint8)
+    cv2.imwrite(str(gt / "lindau_000001_000019_bitmask.png"), bitmask)
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [_gt("voc.png"), _gt("bitmask.png")]}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    frame = load(Sample("leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png", "camera",
+                        "leftImg8bit/val/lindau"), cityscapes, recipe)
+    warp = WarpTestCamera().warp(frame, state={}, drawn={})
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    inside = (xs >= 0) & (xs < 80) & (ys >= 0) & (ys < 60)
+    assert np.any(~inside)
+    with Image.open(out / "gtFine/val/lindau/lindau_000001_000019_voc.png") as written:
+        assert written.mode == "P" and written.info.get("transparency") == 0
+        assert written.getpalette()[:3 * 21] == palette and len(written.getpalette()) == 3 * 256
+        np.testing.assert_array_equal(np.asarray(written), np.where(inside, classes[np.clip(ys, 0, 59),
+                                                                                     np.clip(xs, 0, 79)], 255))
+    moved = cv2.imread(str(out / "gtFine/val/lindau/lindau_000001_000019_bitmask.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(moved, np.where(inside[..., None], bitmask[np.clip(ys, 0, 59), np.clip(xs, 0, 79)],
+                                                  255))
+
+
 def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
         "camera": "leftImg8bit/**/*.png", "annotations": {

@@ -8,7 +8,8 @@ Point-label sidecars (one value per point of the cloud, in point order):
 - ``npy``: any 1-D (or N × k) NumPy array, dtype kept.
 
 Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
-``*_instanceIds.png`` 16-bit), read and written without any colour conversion.
+``*_instanceIds.png`` 16-bit, BDD100K's RGBA bitmasks), read and written without any colour conversion; a palette
+PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`).
 
 2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
 pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
@@ -26,6 +27,7 @@ import csv
 import io
 import json
 import os
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,10 +36,13 @@ import numpy as np
 
 from ..errors import InputError
 from .atomic import write_bytes_atomic
+from .image_metadata import _png_chunk_spans
+from .png import PNG_SIGNATURE
 
 POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "npy": None}
 BOX_2D_FORMATS = ("kitti", "yolo")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
+_PNG_PALETTE = 3                         # PNG colour type of palette images
 
 
 def _read(path: Path) -> bytes:
@@ -90,18 +95,67 @@ def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) ->
 # --- masks ---------------------------------------------------------------------------------------------------------
 
 
-def read_mask(path: str | os.PathLike) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(_read(Path(path)), np.uint8), cv2.IMREAD_UNCHANGED)
+@dataclass
+class Mask:
+    """A label image: its values (H × W or H × W × C, any integer dtype) and, for a palette PNG (Pascal VOC's
+    ``SegmentationClass``, Mapillary Vistas' labels), the file's ``PLTE`` and ``tRNS`` chunks: the values are then
+    the palette indices, the class ids those datasets' loaders read, and are written back with the same palette."""
+
+    values: np.ndarray
+    palette_chunks: tuple[bytes, ...] = ()
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.values.shape
+
+
+def read_mask(path: str | os.PathLike) -> Mask:
+    data = _read(Path(path))
+    if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_PALETTE:
+        return _palette_mask(data, path)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError("not an image OpenCV can decode (masks are PNG/TIFF label images)", file=str(path))
-    return img
+    return Mask(img)
 
 
-def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
-    ok, buf = cv2.imencode(Path(path).suffix or ".png", mask)
+def _palette_mask(data: bytes, path) -> Mask:
+    """A palette PNG's indices (PIL; OpenCV would give the palette's colours) and its PLTE/tRNS chunks, whole."""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            indices = np.asarray(im if im.mode == "P" else im.convert("P"), dtype=np.uint8)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot decode this palette PNG ({exc})", file=str(path)) from None
+    chunks = tuple(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data) if kind in (b"PLTE", b"tRNS"))
+    return Mask(indices, chunks)
+
+
+def write_mask(path: str | os.PathLike, mask: Mask) -> None:
+    suffix = Path(path).suffix or ".png"
+    ok, buf = cv2.imencode(suffix, mask.values)
     if not ok:
-        raise InputError(f"cannot encode a {mask.dtype} mask as {Path(path).suffix}", file=str(path))
-    write_bytes_atomic(path, buf.tobytes())
+        raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
+    data = buf.tobytes()
+    if mask.palette_chunks:
+        data = _as_palette_png(data, mask)
+    write_bytes_atomic(path, data)
+
+
+def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
+    """An 8-bit grey PNG of the indices made a palette PNG (the same pixel layout, PNG spec §11.2.2: colour type 3)
+    with the input's palette, extended with black entries up to the highest index (a warp's fill value)."""
+    ihdr = bytearray(grey[8:33])                            # length, "IHDR", 13-byte body, CRC
+    ihdr[17] = _PNG_PALETTE
+    ihdr[21:25] = zlib.crc32(bytes(ihdr[4:21])).to_bytes(4, "big")
+    chunks = list(mask.palette_chunks)
+    entries = int.from_bytes(chunks[0][:4], "big") // 3 if chunks and chunks[0][4:8] == b"PLTE" else 0
+    needed = int(mask.values.max(initial=0)) + 1
+    if chunks and entries < needed:
+        body = chunks[0][8:-4] + bytes(3 * (needed - entries))
+        chunks[0] = len(body).to_bytes(4, "big") + b"PLTE" + body + zlib.crc32(b"PLTE" + body).to_bytes(4, "big")
+    return grey[:8] + bytes(ihdr) + b"".join(chunks) + grey[33:]
 
 
 # --- 2-D boxes -----------------------------------------------------------------------------------------------------

@@ -37,9 +37,9 @@ class Warp:
 
     def apply_labels(self, labels: np.ndarray, ignore_index: int = 255) -> np.ndarray:
         """Nearest-neighbour resampling of a label image; output pixels whose source lies outside the input get
-        ``ignore_index``."""
+        ``ignore_index`` in every channel (an RGBA bitmask's too: OpenCV's scalar fills the first channel only)."""
         return cv2.remap(labels, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=ignore_index)
+                         borderValue=(ignore_index,) * 4)
 
     def forward(self, points_xy: np.ndarray, iterations: int = 20) -> np.ndarray:
         """Output positions of input points (N, 2) x, y: solves ``map(q) = p`` by fixed-point iteration
