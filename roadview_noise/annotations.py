@@ -97,6 +97,32 @@ MASK_JSON_NOT_READ = ("polygon JSON (Cityscapes' *_gtFine_polygons.json, BDD100K
                       "cityscapesScripts' json2labelImg draws them from the polygons)")
 
 
+# Label images a camera glob may sweep up with the photos: folders and name endings of the datasets' label trees
+# (Cityscapes gtFine/gtCoarse *_labelIds, *_instanceIds, *_labelTrainIds, *_color; Pascal VOC SegmentationClass/
+# SegmentationObject; BDD100K, Mapillary Vistas, KITTI-STEP, mmsegmentation and CamVid label folders).
+LABEL_FOLDERS = frozenset({"gtfine", "gtcoarse", "segmentationclass", "segmentationclassaug", "segmentationobject",
+                           "labels", "label", "masks", "mask", "instances", "panoptic", "panoptic_maps", "bitmasks",
+                           "semantic", "gt", "gts", "ann_dir", "annotations", "trainannot", "valannot", "testannot"})
+LABEL_NAME_ENDINGS = ("_labelids", "_instanceids", "_labeltrainids", "_gtfine_color", "_gtcoarse_color")
+
+
+def label_image_reason(relpath: str, globs: list[str]) -> str | None:
+    """Why a camera input looks like a label image (a folder or name ending of LABEL_FOLDERS /
+    LABEL_NAME_ENDINGS), None when it does not or when a glob names that folder or ending literally (the user
+    asked for those files as photos)."""
+    named = {seg.lower() for g in globs for seg in g.split("/") if not any(c in seg for c in "*?[")}
+    ends = " ".join(g.lower() for g in globs)
+    path = PurePosixPath(relpath)
+    folders = [f for f in path.parts[:-1] if f.lower() in LABEL_FOLDERS]
+    if any(f.lower() in named for f in folders):
+        return None
+    if folders:
+        return f"in a label folder, {folders[0]}/"
+    stem = path.stem.lower()
+    ending = next((e for e in LABEL_NAME_ENDINGS if stem.endswith(e) and e not in ends), None)
+    return None if ending is None else f"named like a label image, *{path.stem[-len(ending):]}{path.suffix}"
+
+
 def _rule_ends(rule) -> list[str]:
     """The texts a path rule ends a sidecar's name with: the pattern, or the ``new`` parts of a replace rule."""
     return [rule] if isinstance(rule, str) else list(rule.replace.values()) if isinstance(rule, ReplaceRule) else []

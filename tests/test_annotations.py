@@ -546,6 +546,28 @@ def test_photometric_chain_copies_masks_byte_for_byte(cityscapes, tmp_path):
     assert (out / rel).read_bytes() == (cityscapes / rel).read_bytes()
 
 
+def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscapes, tmp_path):
+    """`camera: "**/*.png"` on a Cityscapes root fogged gtFine's label images as photos, without a word. Each one
+    now fails alone, saying why and what to do; a mask declared under annotations is a sidecar, not an input; a glob
+    that names the label folder reads its files as photos (the user asked for them)."""
+    recipe = _recipe({"chain": [{"model": "compression.camera"}], "inputs": {
+        "camera": "**/*.png", "annotations": {"masks": _gt("gtFine_labelIds.png")}}}, tmp_path)
+    summary = run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None)
+    assert summary.done == 1 and summary.failed == 1
+    assert "gtFine_instanceIds.png: looks like a label image, not a photo (in a label folder, gtFine/)" in \
+        summary.failures[0] and "inputs.annotations.masks" in summary.failures[0]
+    assert not (tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_gtFine_instanceIds.png").exists()
+    asked = _recipe({"chain": [{"model": "compression.camera"}], "inputs": {"camera": "gtFine/**/*.png"}}, tmp_path)
+    assert len(discover(cityscapes, asked)) == 2
+    for rel, why in (("VOC2012/SegmentationClass/2007_000032.png", "in a label folder, SegmentationClass/"),
+                     ("bdd100k/labels/lane/masks/val/a.png", "in a label folder, labels/"),
+                     ("x/aachen_000000_000019_gtFine_labelTrainIds.png", "named like a label image, "
+                                                                         "*_labelTrainIds.png"),
+                     ("VOC2012/JPEGImages/2007_000032.jpg", None), ("kitti/training/image_2/000001.png", None)):
+        assert annotations.label_image_reason(rel, ["**/*.png", "**/*.jpg"]) == why
+    assert annotations.label_image_reason("x/a_gtFine_labelIds.png", ["**/*_labelIds.png"]) is None
+
+
 def test_mask_of_another_size_fails_that_image(cityscapes, tmp_path):
     rel = "gtFine/val/lindau/lindau_000001_000019_gtFine_labelIds.png"
     cv2.imwrite(str(cityscapes / rel), np.zeros((30, 40), np.uint8))
