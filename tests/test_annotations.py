@@ -249,8 +249,11 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
     # Cityscapes' polygons next to its label images (round 19): validate passed, then every image failed with "not
     # an image OpenCV can decode"
     polygons = {"replace": {"leftImg8bit/": "gtFine/", "_leftImg8bit.png": "_gtFine_polygons.json"}}
-    with pytest.raises(RecipeError, match=r"masks\[1\]: .*_gtFine_polygons.json.*is not read.*_gtFine_labelIds.png"):
+    with pytest.raises(RecipeError, match=r"masks\[1\]: .*_gtFine_polygons.json.*goes under annotations.polygons"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"masks": ["{stem}_labelIds.png", polygons]}}}, tmp_path)
+    assert _recipe({"cnf": "CNF05", "inputs": {"annotations": {"polygons": polygons}}}, tmp_path)
+    with pytest.raises(RecipeError, match="polygons annotate images"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"polygons": polygons}}}, tmp_path)
 
 
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
@@ -544,6 +547,34 @@ def test_photometric_chain_copies_masks_byte_for_byte(cityscapes, tmp_path):
     out = tmp_path / "out"
     assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
     assert (out / rel).read_bytes() == (cityscapes / rel).read_bytes()
+
+
+def test_cityscapes_polygons_follow_the_map_and_are_copied_by_photometric_chains(cityscapes, tmp_path):
+    """A per-image polygon JSON (Cityscapes *_gtFine_polygons.json) was refused; its polygons now move through the
+    image's own map (vertices by the forward map, clipped to the image), an object pushed off the image is dropped,
+    every other key is kept; a photometric chain copies the file byte for byte."""
+    rel = "gtFine/val/lindau/lindau_000001_000019_gtFine_polygons.json"
+    data = {"imgHeight": 60, "imgWidth": 80, "objects": [
+        {"label": "car", "polygon": [[10, 12], [40, 12], [40, 30], [10, 30]], "deleted": 0},
+        {"label": "sky", "polygon": [[0, 0], [79, 0], [79, 59], [0, 59]]},
+        {"label": "pole", "polygon": [[0, 0], [1, 0], [1, 1]]}]}
+    (cityscapes / rel).write_text(json.dumps(data))
+    spec = {"camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("gtFine_polygons.json")}}
+    out = tmp_path / "out"
+    assert run(_recipe({"chain": [{"model": "warp_test.camera"}], "inputs": spec}, tmp_path), cityscapes, out,
+               workers=1, progress=False, echo=lambda *_: None).failed == 0
+    moved = json.loads((out / rel).read_text())
+    assert moved["imgHeight"] == 60 and [o["label"] for o in moved["objects"]] == ["car", "sky"]
+    model = WarpTestCamera()
+    car = np.array([model.forward(x, y, 80, 60) for x, y in data["objects"][0]["polygon"]])
+    np.testing.assert_allclose(moved["objects"][0]["polygon"], car, atol=2e-3)
+    assert moved["objects"][0]["deleted"] == 0
+    sky = np.array(moved["objects"][1]["polygon"])
+    assert sky.min() >= -0.5 and sky[:, 0].max() <= 79.5 and sky[:, 1].max() <= 59.5
+    out2 = tmp_path / "out2"
+    assert run(_recipe({"chain": [{"model": "compression.camera"}], "inputs": spec}, tmp_path), cityscapes, out2,
+               workers=1, progress=False, echo=lambda *_: None).failed == 0
+    assert (out2 / rel).read_bytes() == (cityscapes / rel).read_bytes()
 
 
 def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscapes, tmp_path):

@@ -7,6 +7,9 @@ Point-label sidecars (one value per point of the cloud, in point order):
 - ``nuscenes_lidarseg``: ``<sample_data token>_lidarseg.bin``, uint8 class index (nuScenes-lidarseg).
 - ``npy``: any 1-D (or N × k) NumPy array, dtype kept.
 
+Polygon files: a JSON per image with ``objects`` and their ``polygon`` (Cityscapes ``*_gtFine_polygons.json``,
+Mapillary Vistas v2 ``polygons/*.json``), every key kept.
+
 Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
 ``*_instanceIds.png`` 16-bit, BDD100K's RGBA bitmasks), read and written without any colour conversion; a palette
 PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`).
@@ -156,6 +159,27 @@ def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
         body = chunks[0][8:-4] + bytes(3 * (needed - entries))
         chunks[0] = len(body).to_bytes(4, "big") + b"PLTE" + body + zlib.crc32(b"PLTE" + body).to_bytes(4, "big")
     return grey[:8] + bytes(ihdr) + b"".join(chunks) + grey[33:]
+
+
+# --- polygon files ---------------------------------------------------------------------------------------------
+
+
+def read_polygons(path: str | os.PathLike) -> dict:
+    """A per-image polygon JSON as Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 write it:
+    ``objects``, each with a ``polygon`` of [x, y] pixel positions (pixel centres on integers); every key kept."""
+    try:
+        data = json.loads(_read(Path(path)))
+        for k, obj in enumerate(data["objects"]):
+            if np.asarray(obj["polygon"], dtype=float).reshape(-1, 2).shape[0] != len(obj["polygon"]):
+                raise ValueError(f"objects[{k}].polygon is not a list of [x, y] pairs")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"not a Cityscapes-style polygon file (objects with [x, y] polygons): {exc}",
+                         file=str(path)) from None
+    return data
+
+
+def write_polygons(path: str | os.PathLike, data: dict) -> None:
+    write_bytes_atomic(path, json.dumps(data, ensure_ascii=False).encode("utf-8"))
 
 
 # --- 2-D boxes -----------------------------------------------------------------------------------------------------
