@@ -92,9 +92,14 @@ BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KI
     ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
 }
 
-MASK_JSON_NOT_READ = ("a per-image polygon JSON (Cityscapes' *_gtFine_polygons.json, Mapillary Vistas v2) goes under "
-                      "annotations.polygons; here name the label images (Cityscapes' *_gtFine_labelIds.png and "
-                      "*_gtFine_instanceIds.png)")
+MASK_FILES_NOT_READ = {      # label files a user may name as masks that are no label images: refused at validate
+    ".json": "a per-image polygon JSON (Cityscapes' *_gtFine_polygons.json, Mapillary Vistas v2) goes under "
+             "annotations.polygons; here name the label images (Cityscapes' *_gtFine_labelIds.png and "
+             "*_gtFine_instanceIds.png)",
+    ".txt": "KITTI-MOTS / KITTI-STEP run-length text (one file per sequence) is not read; name the PNG instance maps "
+            "(instances/<sequence>/<frame>.png)",
+    ".mat": "MATLAB masks (SBD's cls/ and inst/) are not read; convert them to PNG",
+}
 
 
 # Label images a camera glob may sweep up with the photos: folders and name endings of the datasets' label trees
@@ -170,9 +175,10 @@ class AnnotationsSpec(_Strict):
                 raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
                                   key="inputs.annotations.boxes_2d")
         for k, rule in enumerate(self.masks):
-            if any(e.lower().endswith(".json") for e in _rule_ends(rule)):
-                raise RecipeError(f"masks are PNG/TIFF label images; {MASK_JSON_NOT_READ}",
-                                  key=f"inputs.annotations.masks[{k}]")
+            for suffix, why in MASK_FILES_NOT_READ.items():
+                if any(e.lower().endswith(suffix) for e in _rule_ends(rule)):
+                    raise RecipeError(f"masks are PNG/TIFF label images or .npy arrays; {why}",
+                                      key=f"inputs.annotations.masks[{k}]")
         if self.coco_image_root is not None and self.coco is None:
             raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
         for name in ("coco", "coco_image_root"):

@@ -549,6 +549,30 @@ def test_photometric_chain_copies_masks_byte_for_byte(cityscapes, tmp_path):
     assert (out / rel).read_bytes() == (cityscapes / rel).read_bytes()
 
 
+def test_npy_and_wide_integer_masks_keep_their_dtype_through_a_warp(cityscapes, tmp_path):
+    """A .npy mask (labelme's SegmentationClassNpy, int32) and uint32 / int64 ids: nearest-neighbour like PNG masks,
+    dtype kept (OpenCV refused uint32 and returned int64 as int32); the same pixels as the PNG mask of the ids."""
+    gt = cityscapes / "gtFine/val/lindau"
+    ids = np.random.default_rng(9).integers(0, 2**40, (60, 80)).astype(np.int64)
+    np.save(gt / "lindau_000001_000019_wide.npy", ids)
+    np.save(gt / "lindau_000001_000019_u32.npy", (ids % 2**32).astype(np.uint32))
+    cv2.imwrite(str(gt / "lindau_000001_000019_small.png"), (ids % 60000 + 256).astype(np.uint16))   # never 255
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {"camera": "leftImg8bit/**/*.png",
+                      "annotations": {"masks": [_gt("wide.npy"), _gt("u32.npy"), _gt("small.png")]}}}, tmp_path)
+    out = tmp_path / "out" / "gtFine/val/lindau"
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    wide, u32 = np.load(out / "lindau_000001_000019_wide.npy"), np.load(out / "lindau_000001_000019_u32.npy")
+    small = cv2.imread(str(out / "lindau_000001_000019_small.png"), cv2.IMREAD_UNCHANGED)
+    assert wide.dtype == np.int64 and u32.dtype == np.uint32
+    moved = small != 255
+    np.testing.assert_array_equal((wide % 60000 + 256)[moved], small[moved])
+    np.testing.assert_array_equal(wide[~moved], 255)
+    np.testing.assert_array_equal(u32, np.where(moved, wide % 2**32, 255))
+    from roadview_noise.errors import RecipeError
+    with pytest.raises(RecipeError, match=r"masks\[0\]: .*KITTI-MOTS"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"masks": "../instances_txt/{parent}.txt"}}}, tmp_path)
+
+
 def test_cityscapes_polygons_follow_the_map_and_are_copied_by_photometric_chains(cityscapes, tmp_path):
     """A per-image polygon JSON (Cityscapes *_gtFine_polygons.json) was refused; its polygons now move through the
     image's own map (vertices by the forward map, clipped to the image), an object pushed off the image is dropped,

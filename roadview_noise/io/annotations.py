@@ -12,7 +12,8 @@ Mapillary Vistas v2 ``polygons/*.json``), every key kept.
 
 Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
 ``*_instanceIds.png`` 16-bit, BDD100K's RGBA bitmasks), read and written without any colour conversion; a palette
-PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`).
+PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`); a ``.npy`` array
+(labelme's ``SegmentationClassNpy``) as it is.
 
 2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
 pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
@@ -114,6 +115,11 @@ class Mask:
 
 def read_mask(path: str | os.PathLike) -> Mask:
     data = _read(Path(path))
+    if Path(path).suffix.lower() == ".npy":                # labelme's SegmentationClassNpy/, any integer dtype
+        try:
+            return Mask(np.load(io.BytesIO(data), allow_pickle=False))
+        except ValueError as exc:
+            raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
     if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_PALETTE:
         return _palette_mask(data, path)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -137,6 +143,11 @@ def _palette_mask(data: bytes, path) -> Mask:
 
 def write_mask(path: str | os.PathLike, mask: Mask) -> None:
     suffix = Path(path).suffix or ".png"
+    if suffix.lower() == ".npy":
+        buf = io.BytesIO()
+        np.save(buf, mask.values, allow_pickle=False)
+        write_bytes_atomic(path, buf.getvalue())
+        return
     ok, buf = cv2.imencode(suffix, mask.values)
     if not ok:
         raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
