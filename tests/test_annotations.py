@@ -470,6 +470,11 @@ def test_palette_and_rgba_masks_keep_their_kind_through_a_warp(cityscapes, tmp_p
         assert written.getpalette()[:3 * 21] == palette and len(written.getpalette()) == 3 * 256
         np.testing.assert_array_equal(np.asarray(written), np.where(inside, classes[np.clip(ys, 0, 59),
                                                                                      np.clip(xs, 0, 79)], 255))
+    small = Image.fromarray(classes % 11, "P")                    # 11 colours: PIL writes a 4-bit palette PNG
+    small.putpalette(palette[:33])
+    small.save(tmp_path / "4bit.png", bits=4)
+    assert (tmp_path / "4bit.png").read_bytes()[24] == 4
+    np.testing.assert_array_equal(ann_io.read_mask(tmp_path / "4bit.png").values, classes % 11)
     moved = cv2.imread(str(out / "gtFine/val/lindau/lindau_000001_000019_bitmask.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(moved, np.where(inside[..., None], bitmask[np.clip(ys, 0, 59), np.clip(xs, 0, 79)],
                                                   255))

@@ -40,13 +40,13 @@ import numpy as np
 
 from ..errors import InputError
 from .atomic import write_bytes_atomic
-from .image_metadata import _png_chunk_spans
-from .png import PNG_SIGNATURE
 
 POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "npy": None}
 BOX_2D_FORMATS = ("kitti", "yolo")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
-_PNG_PALETTE = 3                         # PNG colour type of palette images
+_PNG_GREY, _PNG_PALETTE = 0, 3                   # PNG colour types
+_PALETTE_CHUNKS = (b"PLTE", b"tRNS", b"bKGD", b"hIST", b"sPLT")   # chunks whose content is palette indices/colours
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
 def _read(path: Path) -> bytes:
@@ -114,6 +114,8 @@ class Mask:
 
 
 def read_mask(path: str | os.PathLike) -> Mask:
+    from .png import PNG_SIGNATURE                          # here: a LiDAR or radar worker never imports the codecs
+
     data = _read(Path(path))
     if Path(path).suffix.lower() == ".npy":                # labelme's SegmentationClassNpy/, any integer dtype
         try:
@@ -129,16 +131,16 @@ def read_mask(path: str | os.PathLike) -> Mask:
 
 
 def _palette_mask(data: bytes, path) -> Mask:
-    """A palette PNG's indices (PIL; OpenCV would give the palette's colours) and its PLTE/tRNS chunks, whole."""
-    from PIL import Image
+    """A palette PNG's indices and its PLTE/tRNS chunks, whole: decoded as the grey PNG of the same samples (OpenCV
+    would give the palette's colours), its 1/2/4-bit levels (OpenCV scales them to 0–255) divided back."""
+    from .image_metadata import _png_chunk_spans
 
-    try:
-        with Image.open(io.BytesIO(data)) as im:
-            indices = np.asarray(im if im.mode == "P" else im.convert("P"), dtype=np.uint8)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot decode this palette PNG ({exc})", file=str(path)) from None
     chunks = tuple(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data) if kind in (b"PLTE", b"tRNS"))
-    return Mask(indices, chunks)
+    grey = cv2.imdecode(np.frombuffer(_retyped_png(data, _PNG_GREY), np.uint8), cv2.IMREAD_UNCHANGED)
+    if grey is None:
+        raise InputError("cannot decode this palette PNG", file=str(path))
+    bit_depth = data[24]
+    return Mask(grey // (255 // (2 ** bit_depth - 1)) if bit_depth < 8 else grey, chunks)
 
 
 def write_mask(path: str | os.PathLike, mask: Mask) -> None:
@@ -158,18 +160,28 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
 
 
 def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
-    """An 8-bit grey PNG of the indices made a palette PNG (the same pixel layout, PNG spec §11.2.2: colour type 3)
-    with the input's palette, extended with black entries up to the highest index (a warp's fill value)."""
-    ihdr = bytearray(grey[8:33])                            # length, "IHDR", 13-byte body, CRC
-    ihdr[17] = _PNG_PALETTE
-    ihdr[21:25] = zlib.crc32(bytes(ihdr[4:21])).to_bytes(4, "big")
+    """An 8-bit grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up
+    to the highest index (a warp's fill value)."""
     chunks = list(mask.palette_chunks)
     entries = int.from_bytes(chunks[0][:4], "big") // 3 if chunks and chunks[0][4:8] == b"PLTE" else 0
     needed = int(mask.values.max(initial=0)) + 1
     if chunks and entries < needed:
         body = chunks[0][8:-4] + bytes(3 * (needed - entries))
         chunks[0] = len(body).to_bytes(4, "big") + b"PLTE" + body + zlib.crc32(b"PLTE" + body).to_bytes(4, "big")
-    return grey[:8] + bytes(ihdr) + b"".join(chunks) + grey[33:]
+    return _retyped_png(grey, _PNG_PALETTE, tuple(chunks))
+
+
+def _retyped_png(data: bytes, colour_type: int, chunks: tuple[bytes, ...] = ()) -> bytes:
+    """PNG bytes with another colour type of the same pixel layout — grey and palette samples are both one value
+    per pixel (PNG spec §11.2.2) —, the palette chunks dropped and ``chunks`` inserted after IHDR."""
+    from .image_metadata import _png_chunk_spans
+
+    ihdr = bytearray(data[8:33])                            # length, "IHDR", 13-byte body, CRC
+    ihdr[17] = colour_type
+    ihdr[21:25] = zlib.crc32(bytes(ihdr[4:21])).to_bytes(4, "big")
+    rest = b"".join(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data)
+                    if kind != b"IHDR" and kind not in _PALETTE_CHUNKS)
+    return data[:8] + bytes(ihdr) + b"".join(chunks) + rest + _PNG_END
 
 
 # --- polygon files ---------------------------------------------------------------------------------------------
