@@ -104,10 +104,11 @@ MASK_FILES_NOT_READ = {      # label files a user may name as masks that are no 
 
 # Label images a camera glob may sweep up with the photos: folders and name endings of the datasets' label trees
 # (Cityscapes gtFine/gtCoarse *_labelIds, *_instanceIds, *_labelTrainIds, *_color; Pascal VOC SegmentationClass/
-# SegmentationObject; BDD100K, Mapillary Vistas, KITTI-STEP, mmsegmentation and CamVid label folders).
+# SegmentationObject; BDD100K, Mapillary Vistas, KITTI-STEP, mmsegmentation and CamVid label folders). Not "gt":
+# dehazing sets (RESIDE, O-HAZE) keep their clear photos in GT/.
 LABEL_FOLDERS = frozenset({"gtfine", "gtcoarse", "segmentationclass", "segmentationclassaug", "segmentationobject",
                            "labels", "label", "masks", "mask", "instances", "panoptic", "panoptic_maps", "bitmasks",
-                           "semantic", "gt", "gts", "ann_dir", "annotations", "trainannot", "valannot", "testannot"})
+                           "semantic", "ann_dir", "annotations", "trainannot", "valannot", "testannot"})
 LABEL_NAME_ENDINGS = ("_labelids", "_instanceids", "_labeltrainids", "_gtfine_color", "_gtcoarse_color")
 
 
