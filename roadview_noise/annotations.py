@@ -36,6 +36,7 @@ file suffix, as for the data), in the same format, atomically.
 
 from __future__ import annotations
 
+import dataclasses
 import mmap
 import posixpath
 import re
@@ -97,9 +98,41 @@ BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KI
     ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
 }
 
-MASK_JSON_NOT_READ = ("polygon JSON (Cityscapes' *_gtFine_polygons.json, BDD100K, Mapillary) is not read: name the "
-                      "label images (Cityscapes' *_gtFine_labelIds.png and *_gtFine_instanceIds.png; "
-                      "cityscapesScripts' json2labelImg draws them from the polygons)")
+MASK_FILES_NOT_READ = {      # label files a user may name as masks that are no label images: refused at validate
+    ".json": "a per-image polygon JSON (Cityscapes' *_gtFine_polygons.json, Mapillary Vistas v2) goes under "
+             "annotations.polygons; here name the label images (Cityscapes' *_gtFine_labelIds.png and "
+             "*_gtFine_instanceIds.png)",
+    ".txt": "KITTI-MOTS / KITTI-STEP run-length text (one file per sequence) is not read; name the PNG instance maps "
+            "(instances/<sequence>/<frame>.png)",
+    ".mat": "MATLAB masks (SBD's cls/ and inst/) are not read; convert them to PNG",
+}
+
+
+# Label images a camera glob may sweep up with the photos: folders and name endings of the datasets' label trees
+# (Cityscapes gtFine/gtCoarse *_labelIds, *_instanceIds, *_labelTrainIds, *_color; Pascal VOC SegmentationClass/
+# SegmentationObject; BDD100K, Mapillary Vistas, KITTI-STEP, mmsegmentation and CamVid label folders). Not "gt":
+# dehazing sets (RESIDE, O-HAZE) keep their clear photos in GT/.
+LABEL_FOLDERS = frozenset({"gtfine", "gtcoarse", "segmentationclass", "segmentationclassaug", "segmentationobject",
+                           "labels", "label", "masks", "mask", "instances", "panoptic", "panoptic_maps", "bitmasks",
+                           "semantic", "ann_dir", "annotations", "trainannot", "valannot", "testannot"})
+LABEL_NAME_ENDINGS = ("_labelids", "_instanceids", "_labeltrainids", "_gtfine_color", "_gtcoarse_color")
+
+
+def label_image_reason(relpath: str, globs: list[str]) -> str | None:
+    """Why a camera input looks like a label image (a folder or name ending of LABEL_FOLDERS /
+    LABEL_NAME_ENDINGS), None when it does not or when a glob names that folder or ending literally (the user
+    asked for those files as photos)."""
+    named = {seg.lower() for g in globs for seg in g.split("/") if not any(c in seg for c in "*?[")}
+    ends = " ".join(g.lower() for g in globs)
+    path = PurePosixPath(relpath)
+    folders = [f for f in path.parts[:-1] if f.lower() in LABEL_FOLDERS]
+    if any(f.lower() in named for f in folders):
+        return None
+    if folders:
+        return f"in a label folder, {folders[0]}/"
+    stem = path.stem.lower()
+    ending = next((e for e in LABEL_NAME_ENDINGS if stem.endswith(e) and e not in ends), None)
+    return None if ending is None else f"named like a label image, *{path.stem[-len(ending):]}{path.suffix}"
 
 
 def _rule_ends(rule) -> list[str]:
@@ -116,6 +149,7 @@ class AnnotationsSpec(_Strict):
     weather_class: dict[Literal["rain", "snow", "fog", "clutter"], int] = Field(default_factory=dict)
     field_roles: dict[str, Literal["class", "instance", "sensor"]] = Field(default_factory=dict)
     masks: list[PathRule] = Field(default_factory=list)
+    polygons: list[PathRule] = Field(default_factory=list)   # per-image polygon JSON (Cityscapes, Mapillary v2)
     ignore_index: int = Field(255, ge=0)
     boxes_2d: PathRule | None = None
     boxes_2d_format: Literal["kitti", "yolo"] = "kitti"
@@ -125,7 +159,7 @@ class AnnotationsSpec(_Strict):
     coco: str | None = None                  # one COCO JSON for the dataset, relative to IN (roadview_noise.coco)
     coco_image_root: str | None = None       # folder under IN its file_name values are relative to (default: its own)
 
-    @field_validator("masks", mode="before")
+    @field_validator("masks", "polygons", mode="before")
     @classmethod
     def _one_or_many(cls, v):
         return [v] if isinstance(v, (str, dict)) else v
@@ -135,7 +169,8 @@ class AnnotationsSpec(_Strict):
         from .errors import RecipeError
         from .input_checks import escapes
 
-        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "boxes_2d", "coco")
+        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
+                                                                                   "coco")
         for name in wrong:
             if getattr(self, name):
                 raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
@@ -148,9 +183,10 @@ class AnnotationsSpec(_Strict):
                 raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
                                   key="inputs.annotations.boxes_2d")
         for k, rule in enumerate(self.masks):
-            if any(e.lower().endswith(".json") for e in _rule_ends(rule)):
-                raise RecipeError(f"masks are PNG/TIFF label images; {MASK_JSON_NOT_READ}",
-                                  key=f"inputs.annotations.masks[{k}]")
+            for suffix, why in MASK_FILES_NOT_READ.items():
+                if any(e.lower().endswith(suffix) for e in _rule_ends(rule)):
+                    raise RecipeError(f"masks are PNG/TIFF label images or .npy arrays; {why}",
+                                      key=f"inputs.annotations.masks[{k}]")
         if self.coco_image_root is not None and self.coco is None:
             raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
         for name in ("coco", "coco_image_root"):
@@ -161,7 +197,7 @@ class AnnotationsSpec(_Strict):
     def rules(self) -> list[tuple[str, PathRule]]:
         """(role, rule) of every sidecar declared."""
         out = [(r, getattr(self, r)) for r in ("point_labels", "boxes_2d", "boxes_3d", "calib")]
-        out += [("mask", m) for m in self.masks]
+        out += [("mask", m) for m in self.masks] + [("polygons", m) for m in self.polygons]
         return [(r, rule) for r, rule in out if rule is not None]
 
 
@@ -347,6 +383,8 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             if sc.data.shape[:2] != (h, w):
                 raise InputError(f"mask {rel} is {sc.data.shape[1]}×{sc.data.shape[0]} px, the image {relpath} "
                                  f"{w}×{h}", file=str(in_root / relpath))
+        elif role == "polygons":
+            sc.data = ann_io.read_polygons(path)
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
             h, w = stored_shape(data)
@@ -401,10 +439,14 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
         for s in sidecars:
             dest = out_root / output_relpath(s.relpath, variant_suffix)
             if s.role == "mask":
-                mask = s.data
+                values = s.data.values
                 for warp in data_out.warps:
-                    mask = warp.apply_labels(mask, spec.ignore_index)
+                    values = warp.apply_labels(values, spec.ignore_index)
+                mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
+            elif s.role == "polygons":
+                moved = warp_polygon_objects(s.data, data_out.warps, w, h)
+                result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
             elif s.role == "boxes_2d":
                 boxes = warp_boxes(s.data, data_out.warps, w, h)
                 result.writes.append((dest, lambda p, b=boxes: ann_io.write_boxes_2d(p, b, w, h)))
@@ -447,6 +489,26 @@ def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.
         points.append(pts)
         kinds.append(bool(box))
     return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds)
+
+
+def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:
+    """A per-image polygon file (:func:`~roadview_noise.io.annotations.read_polygons`) moved through the warps: each
+    object's polygon by the outline mover (edges split where the map bends them), clipped to the image (pixel
+    centres on integers: edges at −½ and W − ½), to 1/1000 px; an object left with no area is dropped, one without
+    a polygon (fewer than 3 points) kept as read; every other key as read."""
+    objects = data["objects"]
+    moving = [k for k, o in enumerate(objects) if len(o["polygon"]) >= 3]
+    rings = [np.asarray(objects[k]["polygon"], dtype=float).reshape(-1, 2) for k in moving]
+    moved = dict(zip(moving, moved_rings(rings, lambda xy: forward_through(warps, xy))))
+    kept = []
+    for k, obj in enumerate(objects):
+        if k in moved:
+            ring = clip_polygon(moved[k], width, height, origin_px=-0.5)
+            if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0):
+                continue
+            obj = {**obj, "polygon": np.round(ring, 3).tolist()}
+        kept.append(obj)
+    return {**data, "objects": kept}
 
 
 # --- objects -------------------------------------------------------------------------------------------------------

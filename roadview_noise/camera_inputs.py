@@ -61,9 +61,11 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe,
     path = in_root / sample.relpath
     notes: dict[str, Any] = {}
     if sample.modality == "camera":
-        linear, encoding, alpha = image_io.read_image(path, content)
+        untagged = recipe.spec.inputs.untagged_transfer
+        linear, encoding, alpha = image_io.read_image(path, content, untagged_transfer=untagged or "srgb")
         frame = CameraFrame(linear, nominal_profile(linear.shape[1], linear.shape[0]), encoding=encoding,
                             alpha=alpha)
+        notes.update(_transfer_note(encoding, untagged))
     else:
         stated = recipe.spec.inputs.raw_black_level_dn
         dn, pattern, black, white, raw_encoding = raw_io.read_raw(path, stated)
@@ -72,7 +74,30 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe,
         if stated is not None:
             notes["black_level"] = {"value_dn": float(black), "from": "recipe inputs.raw_black_level_dn"}
     frame = with_camera_inputs(frame, recipe, FileImage(sample, in_root))
-    return dataclasses.replace(frame, input_notes={**frame.input_notes, **notes}) if notes else frame
+    if not notes:
+        return frame
+    warnings = list(frame.input_notes.get("warnings", ())) + notes.pop("warnings", [])
+    return dataclasses.replace(frame, input_notes={**frame.input_notes, **notes,
+                                                   **({"warnings": warnings} if warnings else {})})
+
+
+def _transfer_note(encoding, untagged: str | None) -> dict:
+    """``transfer`` of an integer PNG/TIFF when it is not the plain sRGB of a file that says so: linear as the file
+    states it; for a file that states none, the recipe's ``untagged_transfer``, or sRGB by default for a 16-bit file
+    (then warned: ``untagged_16bit``). 8-bit files that state nothing are the web's sRGB and get no note."""
+    from .io.image_metadata import stated_transfer
+
+    if encoding.fmt not in ("png", "tiff") or encoding.bit_depth > 16:
+        return {}
+    stated = stated_transfer(encoding.fmt, encoding.metadata, encoding.icc_profile)
+    if stated is not None:
+        return {"transfer": {"value": "linear", "from": "the file (PNG gAMA 1.0 or cICP)"}} if stated == "linear" else {}
+    if untagged is not None:
+        return {"transfer": {"value": untagged, "from": "recipe inputs.untagged_transfer (the file states none)"}}
+    if encoding.bit_depth == 16:
+        return {"transfer": {"value": "srgb", "from": "default (the file states none)"},
+                "warnings": ["untagged_16bit"]}
+    return {}
 
 
 def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: Any) -> CameraFrame | RawFrame:
@@ -540,6 +565,11 @@ class InputWarnings:
                          "processed as stored (recipe inputs.orientation: stored, or an image in a bag; "
                          "inputs.orientation in the manifest): rain and snow fall and the ground-plane road lies "
                          "along the stored image, not the displayed one")
+        if "untagged_16bit" in n:
+            lines.append(f"{n['untagged_16bit']} 16-bit image(s) state no transfer function (no gAMA, sRGB, iCCP or "
+                         "cICP chunk, no ICC profile): read as sRGB; machine-vision and raw-converted 16-bit images "
+                         "usually hold linear counts — then state inputs.untagged_transfer: linear (inputs.transfer "
+                         "in the manifest)")
         if "intrinsics_from_fov" in n:
             lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
                          f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "

@@ -16,7 +16,7 @@ from functools import lru_cache
 from pathlib import Path, PurePosixPath
 from typing import Callable, Iterable, Iterator
 
-from .annotations import Annotated, sidecar_files
+from .annotations import Annotated, label_image_reason, sidecar_files
 from .annotations import write as write_annotations
 from .errors import InputError
 from .io.atomic import recorded_writes
@@ -158,6 +158,7 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
         found = sidecar_files(in_root, inputs.annotations, [rel]) if rules else set()
         return found | {_depth_sidecar(rel, inputs.depth)} if camera else found
 
+    camera_globs = _globs(inputs, "camera", False) if camera else []
     sidecar = None
     if camera or rules:                            # masks, lidarseg files, depth maps … are no inputs
         local = isinstance(inputs.depth, str) and "/" not in inputs.depth and not rules
@@ -168,6 +169,12 @@ def iter_inputs(in_root: Path, recipe: Recipe) -> Iterator[Sample | WalkFailure]
             continue
         rel, modality, siblings = item
         if sidecar is not None and sidecar(rel, siblings):
+            continue
+        why = label_image_reason(rel, camera_globs) if modality == "camera" else None
+        if why is not None:
+            yield WalkFailure(rel, f"looks like a label image, not a photo ({why}): declare it under "
+                                   "inputs.annotations.masks so that it follows its image, or leave it out "
+                                   "(inputs.exclude); a camera glob naming that folder reads it as a photo")
             continue
         seq = sequence_id(rel, inputs.sequence)                      # the walk's rel: normalised
         depth = None

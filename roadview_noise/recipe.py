@@ -105,6 +105,9 @@ class InputsSpec(_Strict):
     kitti_camera: int = Field(2, ge=0, le=4)   # the camera of a KITTI calibration the images are from (Waymo: 0–4)
     camera_fov_h_deg: float | None = Field(None, gt=0, lt=180)  # without a profile: square pixels, centred
     camera_profile: str | dict[str, Any] | None = None   # built-in, file ({dir} = the input file's folder), mapping
+    # transfer function of PNG/TIFF codes whose file states none (no gAMA/sRGB/iCCP/cICP, no ICC): None = sRGB, and
+    # 16-bit such files are counted in a warning (machine-vision cameras mostly write linear counts)
+    untagged_transfer: Literal["srgb", "linear"] | None = None
     lidar_profile: str | dict[str, Any] | None = None
     radar_profile: str | dict[str, Any] | None = None
     intensity_unit: Literal["photons", "uint8", "unit"] | None = None

@@ -447,7 +447,7 @@ def build(root: Path, *, echo: Callable[[str], None] = lambda m: None) -> tuple[
             if p["run"] == i:
                 parts.append(_preview_html(k, p))
         if run.failed:
-            rows = "".join(f'<tr><td class=l>{html.escape(e.get("output", "?"))}</td><td class="l bad">'
+            rows = "".join(f'<tr><td class=l>{html.escape(e.get("output") or e.get("input") or "?")}</td><td class="l bad">'
                            f'{html.escape(str(e.get("error", "")))}</td></tr>' for e in run.failed)
             parts.append(f"<h4>Failures</h4><table><tr><th class=l>output</th><th class=l>error</th></tr>{rows}"
                          "</table>")

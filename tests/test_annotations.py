@@ -250,8 +250,11 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
     # Cityscapes' polygons next to its label images (round 19): validate passed, then every image failed with "not
     # an image OpenCV can decode"
     polygons = {"replace": {"leftImg8bit/": "gtFine/", "_leftImg8bit.png": "_gtFine_polygons.json"}}
-    with pytest.raises(RecipeError, match=r"masks\[1\]: .*_gtFine_polygons.json.*is not read.*_gtFine_labelIds.png"):
+    with pytest.raises(RecipeError, match=r"masks\[1\]: .*_gtFine_polygons.json.*goes under annotations.polygons"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"masks": ["{stem}_labelIds.png", polygons]}}}, tmp_path)
+    assert _recipe({"cnf": "CNF05", "inputs": {"annotations": {"polygons": polygons}}}, tmp_path)
+    with pytest.raises(RecipeError, match="polygons annotate images"):
+        _recipe({"cnf": "CNF19", "inputs": {"annotations": {"polygons": polygons}}}, tmp_path)
 
 
 # --- nuScenes-lidarseg -----------------------------------------------------------------------------------------------
@@ -459,6 +462,47 @@ def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_pat
     assert replay(out / "manifest.jsonl", image_rel)["match"]
 
 
+def test_palette_and_rgba_masks_keep_their_kind_through_a_warp(cityscapes, tmp_path):
+    """A palette PNG (Pascal VOC SegmentationClass: 21 colours) stays a palette PNG of class indices with its
+    palette, extended to the fill index; an RGBA bitmask (BDD100K: category, attributes, instance) gets the fill
+    value in every channel. OpenCV decoded the palette to colours, written back as an RGB image, and filled the
+    first channel only."""
+    from PIL import Image
+
+    gt = cityscapes / "gtFine/val/lindau"
+    rng = np.random.default_rng(5)
+    classes = rng.integers(0, 21, (60, 80)).astype(np.uint8)
+    voc = Image.fromarray(classes, "P")
+    palette = rng.integers(0, 256, 3 * 21).astype(np.uint8).tolist()
+    voc.putpalette(palette)
+    voc.save(gt / "lindau_000001_000019_voc.png", transparency=0)
+    bitmask = rng.integers(0, 200, (60, 80, 4)).astype(np.uint8)
+    cv2.imwrite(str(gt / "lindau_000001_000019_bitmask.png"), bitmask)
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [_gt("voc.png"), _gt("bitmask.png")]}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    frame = load(Sample("leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png", "camera",
+                        "leftImg8bit/val/lindau"), cityscapes, recipe)
+    warp = WarpTestCamera().warp(frame, state={}, drawn={})
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    inside = (xs >= 0) & (xs < 80) & (ys >= 0) & (ys < 60)
+    assert np.any(~inside)
+    with Image.open(out / "gtFine/val/lindau/lindau_000001_000019_voc.png") as written:
+        assert written.mode == "P" and written.info.get("transparency") == 0
+        assert written.getpalette()[:3 * 21] == palette and len(written.getpalette()) == 3 * 256
+        np.testing.assert_array_equal(np.asarray(written), np.where(inside, classes[np.clip(ys, 0, 59),
+                                                                                     np.clip(xs, 0, 79)], 255))
+    small = Image.fromarray(classes % 11, "P")                    # 11 colours: PIL writes a 4-bit palette PNG
+    small.putpalette(palette[:33])
+    small.save(tmp_path / "4bit.png", bits=4)
+    assert (tmp_path / "4bit.png").read_bytes()[24] == 4
+    np.testing.assert_array_equal(ann_io.read_mask(tmp_path / "4bit.png").values, classes % 11)
+    moved = cv2.imread(str(out / "gtFine/val/lindau/lindau_000001_000019_bitmask.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(moved, np.where(inside[..., None], bitmask[np.clip(ys, 0, 59), np.clip(xs, 0, 79)],
+                                                  255))
+
+
 def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
         "camera": "leftImg8bit/**/*.png", "annotations": {
@@ -531,6 +575,80 @@ def test_photometric_chain_copies_masks_byte_for_byte(cityscapes, tmp_path):
     out = tmp_path / "out"
     assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
     assert (out / rel).read_bytes() == (cityscapes / rel).read_bytes()
+
+
+def test_npy_and_wide_integer_masks_keep_their_dtype_through_a_warp(cityscapes, tmp_path):
+    """A .npy mask (labelme's SegmentationClassNpy, int32) and uint32 / int64 ids: nearest-neighbour like PNG masks,
+    dtype kept (OpenCV refused uint32 and returned int64 as int32); the same pixels as the PNG mask of the ids."""
+    gt = cityscapes / "gtFine/val/lindau"
+    ids = np.random.default_rng(9).integers(0, 2**40, (60, 80)).astype(np.int64)
+    np.save(gt / "lindau_000001_000019_wide.npy", ids)
+    np.save(gt / "lindau_000001_000019_u32.npy", (ids % 2**32).astype(np.uint32))
+    cv2.imwrite(str(gt / "lindau_000001_000019_small.png"), (ids % 60000 + 256).astype(np.uint16))   # never 255
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {"camera": "leftImg8bit/**/*.png",
+                      "annotations": {"masks": [_gt("wide.npy"), _gt("u32.npy"), _gt("small.png")]}}}, tmp_path)
+    out = tmp_path / "out" / "gtFine/val/lindau"
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    wide, u32 = np.load(out / "lindau_000001_000019_wide.npy"), np.load(out / "lindau_000001_000019_u32.npy")
+    small = cv2.imread(str(out / "lindau_000001_000019_small.png"), cv2.IMREAD_UNCHANGED)
+    assert wide.dtype == np.int64 and u32.dtype == np.uint32
+    moved = small != 255
+    np.testing.assert_array_equal((wide % 60000 + 256)[moved], small[moved])
+    np.testing.assert_array_equal(wide[~moved], 255)
+    np.testing.assert_array_equal(u32, np.where(moved, wide % 2**32, 255))
+    from roadview_noise.errors import RecipeError
+    with pytest.raises(RecipeError, match=r"masks\[0\]: .*KITTI-MOTS"):
+        _recipe({"cnf": "CNF05", "inputs": {"annotations": {"masks": "../instances_txt/{parent}.txt"}}}, tmp_path)
+
+
+def test_cityscapes_polygons_follow_the_map_and_are_copied_by_photometric_chains(cityscapes, tmp_path):
+    """A per-image polygon JSON (Cityscapes *_gtFine_polygons.json) was refused; its polygons now move through the
+    image's own map (vertices by the forward map, clipped to the image), an object pushed off the image is dropped,
+    every other key is kept; a photometric chain copies the file byte for byte."""
+    rel = "gtFine/val/lindau/lindau_000001_000019_gtFine_polygons.json"
+    data = {"imgHeight": 60, "imgWidth": 80, "objects": [
+        {"label": "car", "polygon": [[10, 12], [40, 12], [40, 30], [10, 30]], "deleted": 0},
+        {"label": "sky", "polygon": [[0, 0], [79, 0], [79, 59], [0, 59]]},
+        {"label": "pole", "polygon": [[0, 0], [1, 0], [1, 1]]}]}
+    (cityscapes / rel).write_text(json.dumps(data))
+    spec = {"camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("gtFine_polygons.json")}}
+    out = tmp_path / "out"
+    assert run(_recipe({"chain": [{"model": "warp_test.camera"}], "inputs": spec}, tmp_path), cityscapes, out,
+               workers=1, progress=False, echo=lambda *_: None).failed == 0
+    moved = json.loads((out / rel).read_text())
+    assert moved["imgHeight"] == 60 and [o["label"] for o in moved["objects"]] == ["car", "sky"]
+    model = WarpTestCamera()
+    car = np.array([model.forward(x, y, 80, 60) for x, y in data["objects"][0]["polygon"]])
+    np.testing.assert_allclose(moved["objects"][0]["polygon"], car, atol=2e-3)
+    assert moved["objects"][0]["deleted"] == 0
+    sky = np.array(moved["objects"][1]["polygon"])
+    assert sky.min() >= -0.5 and sky[:, 0].max() <= 79.5 and sky[:, 1].max() <= 59.5
+    out2 = tmp_path / "out2"
+    assert run(_recipe({"chain": [{"model": "compression.camera"}], "inputs": spec}, tmp_path), cityscapes, out2,
+               workers=1, progress=False, echo=lambda *_: None).failed == 0
+    assert (out2 / rel).read_bytes() == (cityscapes / rel).read_bytes()
+
+
+def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscapes, tmp_path):
+    """`camera: "**/*.png"` on a Cityscapes root fogged gtFine's label images as photos, without a word. Each one
+    now fails alone, saying why and what to do; a mask declared under annotations is a sidecar, not an input; a glob
+    that names the label folder reads its files as photos (the user asked for them)."""
+    recipe = _recipe({"chain": [{"model": "compression.camera"}], "inputs": {
+        "camera": "**/*.png", "annotations": {"masks": _gt("gtFine_labelIds.png")}}}, tmp_path)
+    summary = run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None)
+    assert summary.done == 1 and summary.failed == 1
+    assert "gtFine_instanceIds.png: looks like a label image, not a photo (in a label folder, gtFine/)" in \
+        summary.failures[0] and "inputs.annotations.masks" in summary.failures[0]
+    assert not (tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_gtFine_instanceIds.png").exists()
+    asked = _recipe({"chain": [{"model": "compression.camera"}], "inputs": {"camera": "gtFine/**/*.png"}}, tmp_path)
+    assert len(discover(cityscapes, asked)) == 2
+    for rel, why in (("VOC2012/SegmentationClass/2007_000032.png", "in a label folder, SegmentationClass/"),
+                     ("bdd100k/labels/lane/masks/val/a.png", "in a label folder, labels/"),
+                     ("x/aachen_000000_000019_gtFine_labelTrainIds.png", "named like a label image, "
+                                                                         "*_labelTrainIds.png"),
+                     ("VOC2012/JPEGImages/2007_000032.jpg", None), ("kitti/training/image_2/000001.png", None)):
+        assert annotations.label_image_reason(rel, ["**/*.png", "**/*.jpg"]) == why
+    assert annotations.label_image_reason("x/a_gtFine_labelIds.png", ["**/*_labelIds.png"]) is None
 
 
 def test_mask_of_another_size_fails_that_image(cityscapes, tmp_path):

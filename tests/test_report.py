@@ -218,6 +218,21 @@ def test_report_on_a_partial_run_with_failures(runs, tmp_path):
     assert {r["name"]: r["partial"] for r in numbers["runs"]} == {"broken": False, "killed": True}
 
 
+def test_report_names_a_path_that_failed_before_it_had_an_output(tmp_path):
+    """A path the walk refuses (here a label image a camera glob swept up) has a failed entry with no output: the
+    report crashed on it (`'NoneType' object has no attribute 'replace'`); it now names the input."""
+    from roadview_noise.recipe import parse_recipe
+
+    src = tmp_path / "in"
+    (src / "masks").mkdir(parents=True)
+    cv2.imwrite(str(src / "a.png"), np.full((24, 32, 3), 90, np.uint8))
+    cv2.imwrite(str(src / "masks" / "a.png"), np.zeros((24, 32), np.uint8))
+    recipe = parse_recipe({"chain": [{"model": "compression.camera"}], "inputs": {"camera": "**/*.png"}})
+    assert run(recipe, src, tmp_path / "out" / "r", workers=1, progress=False, echo=lambda m: None).failed == 1
+    page, numbers = build(tmp_path / "out")
+    assert "masks/a.png" in page and "looks like a label image" in numbers["failures"][0]["error"]
+
+
 def test_cli_report_and_augment_report(runs, tmp_path):
     cli = CliRunner()
     r = cli.invoke(app, ["report", str(tmp_path)])

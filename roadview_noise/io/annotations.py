@@ -9,8 +9,13 @@ Point-label sidecars (one value per point of the cloud, in point order):
   ``data`` (nuScenes-panoptic); written back the same way, deterministically (fixed zip time stamp).
 - ``npy``: any 1-D (or N × k) NumPy array, dtype kept.
 
+Polygon files: a JSON per image with ``objects`` and their ``polygon`` (Cityscapes ``*_gtFine_polygons.json``,
+Mapillary Vistas v2 ``polygons/*.json``), every key kept.
+
 Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes ``*_labelIds.png`` 8-bit,
-``*_instanceIds.png`` 16-bit), read and written without any colour conversion.
+``*_instanceIds.png`` 16-bit, BDD100K's RGBA bitmasks), read and written without any colour conversion; a palette
+PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`); a ``.npy`` array
+(labelme's ``SegmentationClassNpy``) as it is.
 
 2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
 pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
@@ -29,6 +34,7 @@ import io
 import json
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,6 +55,9 @@ BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
             'under "boxes") in the sensor frame; a segments.ai / View-of-Delft label JSON or nuScenes\' '
             'sample_annotation.json is another layout: give KITTI label_2 + calib files',
     "csv": "a header id,class,x_m,y_m,z_m,length_m,width_m,height_m,yaw_rad (sensor frame)"}
+_PNG_GREY, _PNG_PALETTE = 0, 3                   # PNG colour types
+_PALETTE_CHUNKS = (b"PLTE", b"tRNS", b"bKGD", b"hIST", b"sPLT")   # chunks whose content is palette indices/colours
+_PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
 
 def _read(path: Path) -> bytes:
@@ -114,18 +123,110 @@ def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) ->
 # --- masks ---------------------------------------------------------------------------------------------------------
 
 
-def read_mask(path: str | os.PathLike) -> np.ndarray:
-    img = cv2.imdecode(np.frombuffer(_read(Path(path)), np.uint8), cv2.IMREAD_UNCHANGED)
+@dataclass
+class Mask:
+    """A label image: its values (H × W or H × W × C, any integer dtype) and, for a palette PNG (Pascal VOC's
+    ``SegmentationClass``, Mapillary Vistas' labels), the file's ``PLTE`` and ``tRNS`` chunks: the values are then
+    the palette indices, the class ids those datasets' loaders read, and are written back with the same palette."""
+
+    values: np.ndarray
+    palette_chunks: tuple[bytes, ...] = ()
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.values.shape
+
+
+def read_mask(path: str | os.PathLike) -> Mask:
+    from .png import PNG_SIGNATURE                          # here: a LiDAR or radar worker never imports the codecs
+
+    data = _read(Path(path))
+    if Path(path).suffix.lower() == ".npy":                # labelme's SegmentationClassNpy/, any integer dtype
+        try:
+            return Mask(np.load(io.BytesIO(data), allow_pickle=False))
+        except ValueError as exc:
+            raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
+    if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_PALETTE:
+        return _palette_mask(data, path)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError("not an image OpenCV can decode (masks are PNG/TIFF label images)", file=str(path))
-    return img
+    return Mask(img)
 
 
-def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
-    ok, buf = cv2.imencode(Path(path).suffix or ".png", mask)
+def _palette_mask(data: bytes, path) -> Mask:
+    """A palette PNG's indices and its PLTE/tRNS chunks, whole: decoded as the grey PNG of the same samples (OpenCV
+    would give the palette's colours), its 1/2/4-bit levels (OpenCV scales them to 0–255) divided back."""
+    from .image_metadata import _png_chunk_spans
+
+    chunks = tuple(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data) if kind in (b"PLTE", b"tRNS"))
+    grey = cv2.imdecode(np.frombuffer(_retyped_png(data, _PNG_GREY), np.uint8), cv2.IMREAD_UNCHANGED)
+    if grey is None:
+        raise InputError("cannot decode this palette PNG", file=str(path))
+    bit_depth = data[24]
+    return Mask(grey // (255 // (2 ** bit_depth - 1)) if bit_depth < 8 else grey, chunks)
+
+
+def write_mask(path: str | os.PathLike, mask: Mask) -> None:
+    suffix = Path(path).suffix or ".png"
+    if suffix.lower() == ".npy":
+        buf = io.BytesIO()
+        np.save(buf, mask.values, allow_pickle=False)
+        write_bytes_atomic(path, buf.getvalue())
+        return
+    ok, buf = cv2.imencode(suffix, mask.values)
     if not ok:
-        raise InputError(f"cannot encode a {mask.dtype} mask as {Path(path).suffix}", file=str(path))
-    write_bytes_atomic(path, buf.tobytes())
+        raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
+    data = buf.tobytes()
+    if mask.palette_chunks:
+        data = _as_palette_png(data, mask)
+    write_bytes_atomic(path, data)
+
+
+def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
+    """An 8-bit grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up
+    to the highest index (a warp's fill value)."""
+    chunks = list(mask.palette_chunks)
+    entries = int.from_bytes(chunks[0][:4], "big") // 3 if chunks and chunks[0][4:8] == b"PLTE" else 0
+    needed = int(mask.values.max(initial=0)) + 1
+    if chunks and entries < needed:
+        body = chunks[0][8:-4] + bytes(3 * (needed - entries))
+        chunks[0] = len(body).to_bytes(4, "big") + b"PLTE" + body + zlib.crc32(b"PLTE" + body).to_bytes(4, "big")
+    return _retyped_png(grey, _PNG_PALETTE, tuple(chunks))
+
+
+def _retyped_png(data: bytes, colour_type: int, chunks: tuple[bytes, ...] = ()) -> bytes:
+    """PNG bytes with another colour type of the same pixel layout — grey and palette samples are both one value
+    per pixel (PNG spec §11.2.2) —, the palette chunks dropped and ``chunks`` inserted after IHDR."""
+    from .image_metadata import _png_chunk_spans
+
+    ihdr = bytearray(data[8:33])                            # length, "IHDR", 13-byte body, CRC
+    ihdr[17] = colour_type
+    ihdr[21:25] = zlib.crc32(bytes(ihdr[4:21])).to_bytes(4, "big")
+    rest = b"".join(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data)
+                    if kind != b"IHDR" and kind not in _PALETTE_CHUNKS)
+    return data[:8] + bytes(ihdr) + b"".join(chunks) + rest + _PNG_END
+
+
+# --- polygon files ---------------------------------------------------------------------------------------------
+
+
+def read_polygons(path: str | os.PathLike) -> dict:
+    """A per-image polygon JSON as Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 write it:
+    ``objects``, each with a ``polygon`` of [x, y] pixel positions (pixel centres on integers); every key kept."""
+    try:
+        data = json.loads(_read(Path(path)))
+        for k, obj in enumerate(data["objects"]):
+            if np.asarray(obj["polygon"], dtype=float).reshape(-1, 2).shape[0] != len(obj["polygon"]):
+                raise ValueError(f"objects[{k}].polygon is not a list of [x, y] pairs")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"not a Cityscapes-style polygon file (objects with [x, y] polygons): {exc}",
+                         file=str(path)) from None
+    return data
+
+
+def write_polygons(path: str | os.PathLike, data: dict) -> None:
+    write_bytes_atomic(path, json.dumps(data, ensure_ascii=False).encode("utf-8"))
 
 
 # --- 2-D boxes -----------------------------------------------------------------------------------------------------

@@ -72,11 +72,11 @@ def image_format(path: str | os.PathLike) -> str:
     return fmt
 
 
-def read_image(path: str | os.PathLike, data: bytes | None = None) -> tuple[np.ndarray, ImageEncoding,
-                                                                          np.ndarray | None]:
+def read_image(path: str | os.PathLike, data: bytes | None = None, *, untagged_transfer: str = "srgb"
+               ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
     """Read an image as (H, W, 3) float32 linear RGB, its encoding, and the alpha plane as stored (or None);
     ``data``: the file's bytes when the caller has already read them (the runner, to hash them; an EXR image is read
-    by OpenEXR from its path)."""
+    by OpenEXR from its path); ``untagged_transfer``: the transfer of a PNG or TIFF that states none."""
     fmt = image_format(path)
     if fmt == "exr":
         return _read_exr_image(Path(path))
@@ -84,12 +84,14 @@ def read_image(path: str | os.PathLike, data: bytes | None = None) -> tuple[np.n
         data = Path(path).read_bytes() if data is None else data
     except OSError as exc:
         raise InputError(f"cannot read image: {exc.strerror or exc}", file=str(path)) from exc
-    return decode_image(data, fmt, source=path)
+    return decode_image(data, fmt, source=path, untagged_transfer=untagged_transfer)
 
 
-def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srgb"
+                 ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
     """:func:`read_image` of the bytes of a PNG, JPEG or TIFF file (also a ROS CompressedImage's data); ``source``
-    names it in errors."""
+    names it in errors. Integer codes are sRGB unless the file states linear (:func:`.image_metadata.stated_transfer`)
+    or, stating nothing, ``untagged_transfer`` says so (a JPEG is sRGB)."""
     check_structure(data, fmt, source)
     if fmt == "tiff":                               # the first page's directory, parsed once
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
@@ -103,7 +105,9 @@ def decode_image(data: bytes, fmt: str, *, source) -> tuple[np.ndarray, ImageEnc
     if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
         codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc)
+    transfer = "srgb" if fmt == "jpeg" else image_metadata.stated_transfer(fmt, metadata, icc) or untagged_transfer
+    linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc,
+                                               transfer=transfer)
     layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
     return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=metadata, **layout), alpha
 
@@ -170,11 +174,13 @@ def _undecoded_variant(data: bytes, fmt: str) -> str:
 
 
 def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int = ImageEncoding.jpeg_quality,
-                     icc: bytes | None = None) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
-    """Linear RGB, encoding and alpha of code values — grey (H, W) or RGB(A) (H, W, C); uint8/uint16 sRGB, or
-    float32 linear for TIFF — stored as ``fmt`` (also the pixels of a ROS Image)."""
+                     icc: bytes | None = None, transfer: str = "srgb"
+                     ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
+    """Linear RGB, encoding and alpha of code values — grey (H, W) or RGB(A) (H, W, C); uint8/uint16 with the
+    ``transfer`` function (``srgb`` or ``linear``: code / full scale), or float32 linear for TIFF — stored as
+    ``fmt`` (also the pixels of a ROS Image)."""
     if codes.dtype == np.uint8 or codes.dtype == np.uint16:
-        bit_depth, transfer = 8 * codes.dtype.itemsize, "srgb"
+        bit_depth = 8 * codes.dtype.itemsize
     elif codes.dtype == np.float32 and fmt == "tiff":
         bit_depth, transfer = 32, "linear"
     else:
@@ -185,7 +191,12 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
         raise InputError(f"unsupported channel count {channels} (expected 1, 3 or 4)", file=str(source))
     alpha = codes[..., 3].copy() if channels == 4 else None
     rgb = codes if channels == 1 else codes[..., :3]
-    linear = srgb.code_to_linear(rgb, bit_depth) if transfer == "srgb" else rgb.astype(np.float32)
+    if transfer == "srgb":
+        linear = srgb.code_to_linear(rgb, bit_depth)
+    elif bit_depth == 32:
+        linear = rgb.astype(np.float32)
+    else:
+        linear = rgb * np.float32(1 / (2 ** bit_depth - 1))
     if channels == 1:
         linear = np.repeat(linear[..., None], 3, axis=2)
     encoding = ImageEncoding(fmt=fmt, bit_depth=bit_depth, transfer=transfer, channels=channels,

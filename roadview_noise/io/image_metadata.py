@@ -140,3 +140,23 @@ def tiff_orientation(metadata: tuple) -> int:
         if tag[0] == 274:
             return int(tag[3]) if 1 <= int(tag[3]) <= 8 else 1
     return 1
+
+
+_PNG_GAMMA_LINEAR = 100000                  # gAMA of 1.0 (the chunk stores 100 000 × the encoding's exponent)
+_CICP_LINEAR = 8                            # cICP transfer characteristics 8: linear (ITU-T H.273 Table 3)
+
+
+def stated_transfer(fmt: str, metadata: tuple, icc: bytes | None) -> str | None:
+    """The transfer function of integer codes as the file states it: ``linear`` for a PNG ``cICP`` of transfer 8 or,
+    with no ``cICP``, ``iCCP`` or ``sRGB`` above it (PNG 3rd ed. §4.3's precedence), a ``gAMA`` of 1.0; ``srgb``
+    for any other statement (``sRGB``, ``gAMA``, ``cICP``, an ICC profile: read as sRGB, not colour-managed); None
+    when a PNG or TIFF states none — the PNG spec leaves that to the reader ("choose a likely default … but allow
+    the user to select a new one", PNG 1.2 §10.5): ``inputs.untagged_transfer``."""
+    chunks = {c[4:8]: c[8:-4] for c in metadata} if fmt == "png" else {}
+    if b"cICP" in chunks:
+        return "linear" if chunks[b"cICP"][1:2] == bytes([_CICP_LINEAR]) else "srgb"
+    if icc is not None or b"sRGB" in chunks:
+        return "srgb"
+    if b"gAMA" in chunks:
+        return "linear" if int.from_bytes(chunks[b"gAMA"], "big") == _PNG_GAMMA_LINEAR else "srgb"
+    return None

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+# label dtypes cv2.remap resamples as they are
+_REMAP_DTYPES = tuple(map(np.dtype, (np.uint8, np.int8, np.uint16, np.int16, np.int32, np.float32, np.float64)))
+
 
 @dataclass(frozen=True, eq=False)
 class Warp:
@@ -37,9 +40,17 @@ class Warp:
 
     def apply_labels(self, labels: np.ndarray, ignore_index: int = 255) -> np.ndarray:
         """Nearest-neighbour resampling of a label image; output pixels whose source lies outside the input get
-        ``ignore_index``."""
-        return cv2.remap(labels, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=ignore_index)
+        ``ignore_index`` in every channel (an RGBA bitmask's too: OpenCV's scalar fills the first channel only). A
+        dtype OpenCV does not resample as it is (uint32, int64 — which it returns as int32 —, bool) or more than 4
+        channels: the nearest source pixel by index."""
+        if labels.dtype in _REMAP_DTYPES and (labels.ndim == 2 or labels.shape[2] <= 4):
+            return cv2.remap(labels, self.map_x, self.map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=(ignore_index,) * 4)
+        h, w = labels.shape[:2]
+        xs, ys = np.rint(self.map_x).astype(np.intp), np.rint(self.map_y).astype(np.intp)
+        out = labels[np.clip(ys, 0, h - 1), np.clip(xs, 0, w - 1)]
+        out[(xs < 0) | (xs >= w) | (ys < 0) | (ys >= h)] = np.asarray(ignore_index).astype(labels.dtype)
+        return out
 
     def forward(self, points_xy: np.ndarray, iterations: int = 20) -> np.ndarray:
         """Output positions of input points (N, 2) x, y: solves ``map(q) = p`` by fixed-point iteration
