@@ -178,6 +178,9 @@ FRAMES = 3          # per-file modes: distinct frames of the sample drive, cycle
 WHOLE_RUN = {"weather-rain-lidar": "lidar", "weather-fog-lidar": "lidar", "weather-snow-lidar": "lidar",
              "cnf20": "lidar", "cnf22": "lidar", "cnf23": "lidar", "cnf10": "camera", "cnf11": "camera",
              "cnf12": "camera", "cnf05": "camera", "cnf25-radar": "radar"}
+#: whole runs that ``--recipes`` may name besides the default set: every other radar recipe
+WHOLE_RUN_TREE = {**WHOLE_RUN, **dict.fromkeys(("weather-fog-radar", "weather-rain-radar", "weather-snow-radar",
+                                                "cnf26-radar", "cnf27-radar"), "radar")}
 
 
 def recipe_file(name: str, metrics: bool, real: bool, tmp: Path) -> Path:
@@ -508,7 +511,7 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN[n] for n in names})})
+        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
         print(f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, {repeat} rounds (one untimed): "
               f"medians, and the median [range] of the increase paired within a round; the CPU s (the worker's "
               f"per-file CPU summed, plus the main process's) is the acceptance figure: the wall sums add the wait "
@@ -516,7 +519,7 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
         print(f"  {'recipe':<20} {'wall s':^33}   {'sum of per-file s':^33}   {'CPU s (files + main process)':^33}   "
               f"{'CPU s, files 2–n':^33}   metrics ms/file   bytes/line")
         for name in names:
-            sensor = WHOLE_RUN[name]
+            sensor = WHOLE_RUN_TREE[name]
             samples = {False: [], True: []}
             for r in range(repeat + 1):
                 for on in ((False, True) if r % 2 else (True, False)):
@@ -554,7 +557,7 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
     trees_code = {"base": baseline, "this": ROOT}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN[n] for n in names})})
+        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
         print(f"whole augment runs, 1 worker, {frames * 3} files, fresh interpreter each, {repeat} rounds (one "
               f"untimed): medians of the sums of the per-file wall s and CPU s, off → on, and of the increase paired "
               f"within a round [its range]")
@@ -564,8 +567,8 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
             for r in range(repeat + 1):
                 for code, on in kinds[r % 4:] + kinds[:r % 4]:
                     env = {**os.environ, "PYTHONPATH": str(trees_code[code])}
-                    got = subprocess.run([sys.executable, "-c", ONE_RUN, str(ROOT), name, WHOLE_RUN[name],
-                                          str(trees[WHOLE_RUN[name]]), str(tmp / "out"), on], env=env, check=True,
+                    got = subprocess.run([sys.executable, "-c", ONE_RUN, str(ROOT), name, WHOLE_RUN_TREE[name],
+                                          str(trees[WHOLE_RUN_TREE[name]]), str(tmp / "out"), on], env=env, check=True,
                                          capture_output=True, text=True).stdout.splitlines()[-1]
                     if r:
                         samples[(code, on)].append(json.loads(got))
@@ -951,14 +954,14 @@ def whole_runs_valgrind(names: list[str], frames: int, repeat: int, split: str =
         (tmp / "vg_split.py").write_text(VG_SPLIT)
         (tmp / "vg_segments.py").write_text(VG_SEGMENTS)
         n = 3 * frames
-        trees = build_trees(tmp / "trees", frames, {s: n for s in sorted({WHOLE_RUN[x] for x in names})})
+        trees = build_trees(tmp / "trees", frames, {s: n for s in sorted({WHOLE_RUN_TREE[x] for x in names})})
         print(f"whole augment runs under callgrind, 1 worker, {n} files, metrics off → on: counts in millions "
               f"(the main process within run(), the worker from its first file; start-up imports and the fork "
               f"server's warm-up not counted); D1 = D1mr + D1mw, LL = DLmr + DLmw; cycles ≈ Ir + 10 (I1mr + D1mr + "
               f"D1mw) + 100 (ILmr + DLmr + DLmw); whole run = main + every file + the worker's exit; first = main + "
               f"the first file + exit (what a run pays once); files 2–n: per file", flush=True)
         for name in names:
-            sensor = WHOLE_RUN[name]
+            sensor = WHOLE_RUN_TREE[name]
             bodies = {on: yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text()) for on in (False, True)}
             for on, body in bodies.items():
                 body["inputs"] = dict(INPUTS[sensor])

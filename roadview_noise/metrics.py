@@ -755,9 +755,11 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place), from
     ``step``'s provenance when given (:func:`compare`). Counts and range bins are Python lists, made once (the
     pass trims the bins, ``tolist`` converts them) for every comparison that reads them."""
+    if cloud.sensor == "radar":
+        return _radar_summary(cloud, before, step)
     codes = effect_codes(cloud)
     codes = _NO_CODES if codes is None else np.asarray(codes)
-    radar = cloud.sensor == "radar"
+    radar = False
     values = cloud.fields.get("snr_db" if radar else "intensity")
     values = _NO_VALUES if values is None or np.ndim(values) != 1 else np.asarray(values)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
@@ -931,3 +933,58 @@ def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
         largest = sorted(set(ob) | set(oa), key=lambda k: -ob.get(k, 0))[:MAX_OBJECTS]
         out["objects"] = {str(k): [ob.get(k, 0), oa.get(k, 0)] for k in sorted(largest)}
     return out
+
+
+# --- radar ---------------------------------------------------------------------------------------------------------
+# A radar cloud holds tens of points: its metrics cost Python and numba's call overhead, not arithmetic (≈ 14 % of a
+# ≈ 2.6 ms CNF25 file in round 19's count; docs/metrics-cost.md, round 20). Its summary is :func:`_cloud_summary`'s,
+# made with one compiled call (:func:`_radar_pass`) and no geometry notes: a full pass over tens of points costs less
+# than looking the geometry up, and gives the same values.
+
+
+def _radar_summary(cloud: PointCloud, before: dict | None, step: PointCloud | None) -> dict:
+    """:func:`_cloud_summary` of a radar cloud (values: the SNR, ``snr_db``)."""
+    codes = cloud.effect
+    codes = _NO_CODES if codes is None else np.asarray(codes)
+    values = cloud.fields.get("snr_db")
+    values = _NO_VALUES if values is None else np.asarray(values)
+    if values.ndim != 1:
+        values = _NO_VALUES
+    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
+    s = {"positions": positions, "values": values, "grid": cloud.grid_shape is not None, "effect": codes}
+    origin, step_codes = _step_provenance(step)
+    if before is None:
+        link, pb, valid_b, values_b = NO_LINK, positions[:0], _NO_MASK, values[:0]
+    else:
+        link = _same_points(_link_mode(before, s, step is not None), before, s, origin)
+        cells = _cell_by_cell(before, s)
+        pb, valid_b, values_b = before["positions"], before["valid"] if link != SAME_LINK or cells else _NO_MASK, \
+            before["values"]
+    ints, valid, index, moved, max_r, total, change = _radar_pass(
+        positions, codes, values, return_ranges.bin_count(cloud.profile), link, pb, valid_b, values_b, origin,
+        step_codes)
+    ints = ints.tolist()
+    s.update({"returns": ints[0], "codes": ints[1:5], "max_range_m": max_r, "hist": ints[6:], "radar": True,
+              "mean_value": total / ints[5] if ints[5] else None, "valid": valid})
+    if before is not None:
+        s["parent"] = (before, None, None, change) if link == SAME_LINK else (before, index, moved, change)
+    ids = object_ids(cloud)
+    if ids is not None:
+        s["objects"] = points_per_object(cloud, ids, codes)
+    return s
+
+
+@jit
+def _radar_pass(positions, codes, values, n_bins, link, pb, valid_b, values_b, origin,
+                step_codes):  # pragma: no cover - compiled
+    """:func:`_pass` (returns not known, ``link`` given at run time) with its counts in one array — returns, the
+    counts per effect code, the number of finite values, then the range bins — so that a call boxes four arrays."""
+    (returns, hist, max_r, valid), counts, total, finite, (index, moved, change) = _pass(
+        positions, _NO_MASK, codes, values, RANGE_BIN_M, n_bins, link, False, pb, valid_b, values_b,
+        (origin, step_codes))
+    ints = np.empty(6 + hist.shape[0], np.int64)
+    ints[0] = returns
+    ints[1:5] = counts
+    ints[5] = finite
+    ints[6:] = hist
+    return ints, valid, index, moved, max_r, total, change

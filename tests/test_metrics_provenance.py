@@ -175,3 +175,44 @@ def test_a_step_that_keeps_every_point_links_as_the_explicit_correspondence(firs
         assert all(np.array_equal(g, w) for g, w in zip(got, want))
     if grid:
         assert np.array_equal(correspondence(a0, b0)[0] < 0, ~has_return(c.positions_m) | ~has_return(b0.positions_m))
+
+
+def as_lidar(cloud: PointCloud | None) -> PointCloud | None:
+    """The same radar cloud (same arrays, provenance and profile) with its SNR as a LiDAR intensity."""
+    if cloud is None:
+        return None
+    fields = {("intensity" if k == "snr_db" else k): v for k, v in cloud.fields.items()}
+    return dataclasses.replace(cloud, sensor="lidar", fields=fields)
+
+
+RADAR_AS_LIDAR = {"mean_snr_in_db": "mean_intensity_in", "mean_snr_out_db": "mean_intensity_out",
+                  "mean_snr_change_db": "mean_intensity_change"}
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_the_radar_summary_gives_the_cloud_summarys_metrics(seed):
+    """A radar cloud's summary (metrics._radar_summary: one compiled call) gives, per step and over the chain, the
+    metrics of the generic cloud summary on the same points (the cloud as a LiDAR one), bit for bit."""
+    rng = np.random.default_rng(100 + seed)
+    clouds = [random_list(rng, int(rng.integers(5, 120)), "radar", ring=False)]
+    if seed % 3 == 0:
+        clouds[0].fields["snr_db"][rng.random(len(clouds[0])) < 0.2] = np.nan     # NaN values are skipped
+    if seed % 4 == 1:
+        clouds[0].positions_m[: len(clouds[0]) // 5] = 0.0                           # no-return points
+    outputs = [None]
+    chain = ["alignment"] * (seed % 5 == 2) + list(rng.choice(list(STEPS)[:-1], size=int(rng.integers(1, 4))))
+    for i, name in enumerate(chain):
+        outputs.append(STEPS[name](step_input(clouds[-1]), rng))
+        clouds.append(follow_points(clouds[-1], outputs[-1], i))
+    radar = [dataclasses.replace(c) for c in clouds]
+    lidar = [as_lidar(c) for c in clouds]
+
+    def renamed(m: dict) -> dict:
+        return {RADAR_AS_LIDAR.get(k, k): v for k, v in m.items()} | {"intensity_unit": None}
+    for i in range(1, len(clouds)):
+        got = compare(radar[i - 1], radar[i], outputs[i])
+        assert "mean_snr_change_db" in got
+        assert repr(renamed(got)) == repr(compare(lidar[i - 1], lidar[i], as_lidar(outputs[i])))
+    assert repr(renamed(compare(radar[0], radar[-1]))) == repr(compare(lidar[0], lidar[-1]))
+    assert all(np.array_equal(x, y) for x, y in zip(correspondence(radar[0], radar[-1]),
+                                                    correspondence(lidar[0], lidar[-1])))
