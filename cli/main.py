@@ -344,7 +344,7 @@ def preview(
 def report(
     output_dir: Path = typer.Argument(..., help="An augment output folder, or a folder of them (one per CNF)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Page to write [default: OUTPUT_DIR/report.html]; "
-                                       "report.json is written beside it."),
+                                       "its numbers beside it as the page's name with .json (report.json)."),
 ) -> None:
     """Write one self-contained HTML page with the runs' metrics per CNF, plots, previews, corner cases and
     failures (works on a partial run), and report.json with the numbers."""
@@ -352,13 +352,13 @@ def report(
 
 
 def _write_report(output_dir: Path, out: Optional[Path]) -> None:
-    from roadview_noise.report import write_report
+    from roadview_noise.report import numbers_path, write_report
 
     try:
         path = write_report(output_dir, out)
     except RvNoiseError as e:
         _fail(str(e))
-    typer.echo(f"rvnoise: report → {path} (numbers: {path.with_name('report.json')})")
+    typer.echo(f"rvnoise: report → {path} (numbers: {numbers_path(path)})")
 
 
 fit_app = typer.Typer(no_args_is_help=True, help="Fit noise models on your own real data.")

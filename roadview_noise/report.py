@@ -31,7 +31,6 @@ from .manifest import MANIFEST_NAME, RUN_NAME, read_manifest
 from .registry import load_all
 
 REPORT_NAME = "report.html"
-REPORT_JSON = "report.json"
 SENSORS = ("camera", "lidar", "radar")
 SENSOR_TITLES = {"camera": "Camera", "lidar": "LiDAR", "radar": "Radar"}
 CORNER_CASES_PER_SENSOR = 5
@@ -480,11 +479,18 @@ def _json_safe(v: Any) -> Any:
     return v
 
 
+def numbers_path(page: Path) -> Path:
+    """Where the numbers of the page ``page`` go: its name with ``.json`` (``report.html`` → ``report.json``)."""
+    return Path(page).with_suffix(".json")
+
+
 def write_report(root: Path, out: Path | None = None, *, echo: Callable[[str], None] = lambda m: None) -> Path:
-    """Write ``report.html`` (default ``root/report.html``) and ``report.json`` beside it; return the page's path."""
+    """Write the page (default ``root/report.html``) and its numbers beside it under the page's name with ``.json``
+    (``report.json``; ``-o DIR/x.html`` → ``DIR/x.json``, so two reports in one folder keep their own); return the
+    page's path."""
     page, numbers = build(root, echo=echo)
     out = Path(out) if out is not None else Path(root) / REPORT_NAME
     out.parent.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(out, page.encode("utf-8"))
-    write_bytes_atomic(out.with_name(REPORT_JSON), (json.dumps(numbers, indent=1) + "\n").encode("utf-8"))
+    write_bytes_atomic(numbers_path(out), (json.dumps(numbers, indent=1) + "\n").encode("utf-8"))
     return out

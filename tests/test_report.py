@@ -242,6 +242,9 @@ def test_cli_report_and_augment_report(runs, tmp_path):
     assert r.exit_code == 0, r.output
     assert (tmp_path / "a" / "report.html").is_file() and (tmp_path / "a" / "report.json").is_file()
     assert "CNF26" in (tmp_path / "a" / "report.html").read_text()
+    r = cli.invoke(app, ["report", str(tmp_path / "a"), "-o", str(tmp_path / "a" / "second.html")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "a" / "second.json").is_file() and "second.json" in r.output    # report.json not overwritten
 
 
 def test_metrics_off_leaves_them_out(tmp_path):
