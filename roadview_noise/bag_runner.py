@@ -216,7 +216,8 @@ def sensor_data(ctx: BagContext, topic: BagTopic, msg: Any, msgtype: str, source
         return rm.cloud_to_pointcloud(msg, sensor=topic.sensor, profile=profile,
                                       field_map=dict(inputs.field_map) or None, source=source)
     return rm.image_to_frame(msg, msgtype, None, source=source, black_level_dn=spec.black_level_dn,
-                             white_level_dn=spec.white_level_dn)
+                             white_level_dn=spec.white_level_dn,
+                             untagged_transfer=inputs.untagged_transfer or "srgb")
 
 
 class TopicImage:

@@ -141,14 +141,17 @@ def rgb_codes(pixels: np.ndarray, layout: PixelLayout) -> np.ndarray:
 
 
 def image_to_frame(msg: Any, msgtype: str, profile: CameraProfile | None, *, source: str,
-                   black_level_dn: float | None = None, white_level_dn: float | None = None
-                   ) -> CameraFrame | RawFrame:
+                   black_level_dn: float | None = None, white_level_dn: float | None = None,
+                   untagged_transfer: str = "srgb") -> CameraFrame | RawFrame:
     """A camera or raw frame from a CompressedImage or Image message with ``profile`` (fitted to the image size, or
     None until :func:`roadview_noise.camera_inputs.with_camera_inputs` resolves it). Levels of a Bayer mosaic
-    default to 0 and the full scale of its sample type."""
+    default to 0 and the full scale of its sample type. ``untagged_transfer`` (``srgb`` or ``linear``: the recipe's
+    ``inputs.untagged_transfer``) is the transfer function of codes that state none: every Image message (``mono16``
+    of a machine-vision camera: usually linear) and a compressed PNG without colour chunks."""
     if msgtype == COMPRESSED_IMAGE:
         fmt = compressed_format(msg, source=source)
-        linear, encoding, alpha = image_io.decode_image(np.asarray(msg.data, np.uint8).tobytes(), fmt, source=source)
+        linear, encoding, alpha = image_io.decode_image(np.asarray(msg.data, np.uint8).tobytes(), fmt, source=source,
+                                                        untagged_transfer=untagged_transfer)
         return CameraFrame(linear, profile, encoding=encoding, alpha=alpha)
     layout = pixel_layout(msg.encoding, source=source)
     pixels = image_pixels(msg, source=source)
@@ -157,7 +160,8 @@ def image_to_frame(msg: Any, msgtype: str, profile: CameraProfile | None, *, sou
         white = float(np.iinfo(pixels.dtype).max) if white_level_dn is None else float(white_level_dn)
         return RawFrame(pixels.astype(np.float32), layout.cfa_pattern, black, white, profile,
                         encoding=RawEncoding(fmt="raw", bits_per_sample=8 * pixels.dtype.itemsize))
-    linear, encoding, alpha = image_io.image_from_codes(rgb_codes(pixels, layout), "png", source=source)
+    linear, encoding, alpha = image_io.image_from_codes(rgb_codes(pixels, layout), "png", source=source,
+                                                        transfer=untagged_transfer)
     return CameraFrame(linear, profile, encoding=encoding, alpha=alpha)
 
 

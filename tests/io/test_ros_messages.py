@@ -70,6 +70,24 @@ def test_grey_encodings_are_like_a_grey_png(encoding, dtype):
                                                   source="t"), grey)
 
 
+def test_untagged_transfer_linear_reads_image_codes_as_linear():
+    """inputs.untagged_transfer reaches bag images: a mono16 machine-vision Image (or a PNG CompressedImage without
+    colour chunks) read as linear counts (code / 65 535), written back to the same codes."""
+    grey = RGB16[..., 1]
+    msg = image(grey, "mono16")
+    frame = rm.image_to_frame(msg, rm.IMAGE, PROFILE, source="t", untagged_transfer="linear")
+    np.testing.assert_allclose(frame.linear_rgb[..., 0], grey / 65535.0, rtol=1e-6)
+    assert frame.encoding.transfer == "linear"
+    srgb = rm.image_to_frame(msg, rm.IMAGE, PROFILE, source="t")
+    assert srgb.encoding.transfer == "srgb" and not np.allclose(srgb.linear_rgb, frame.linear_rgb)
+    np.testing.assert_array_equal(rm.image_pixels(rm.frame_to_image(msg, rm.IMAGE, frame, source="t"),
+                                                  source="t"), grey)
+    ok, png = cv2.imencode(".png", grey)
+    compressed = T["sensor_msgs/msg/CompressedImage"](header=header(), format="png", data=png.ravel())
+    packed = rm.image_to_frame(compressed, rm.COMPRESSED_IMAGE, PROFILE, source="t", untagged_transfer="linear")
+    np.testing.assert_array_equal(packed.linear_rgb, frame.linear_rgb)
+
+
 @pytest.mark.parametrize("bits", [8, 16])
 @pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
 def test_bayer_is_a_raw_frame(bits, pattern):
