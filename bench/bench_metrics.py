@@ -710,8 +710,7 @@ runner.encoded = _wrap(runner.encoded, "manifest-line")
 # their own (module globals their callers look up at each call)
 metrics._PASSES.update({k: _wrap(f, f.__name__) for k, f in metrics._PASSES.items()})
 for module, names in (("metrics", ("_mean_change", "_summarise_points")),
-                      ("physics.lidar_output", ("_place_returns", "_place_output_returns", "_add_returns",
-                                                "_note_returns", "_geometry_to_count")),
+                      ("physics.return_ranges", ("count",)),
                       ("models.lidar.power", ("has_return",)), ("models.lidar.alignment", ("has_return",))):
     mod = importlib.import_module("roadview_noise." + module)
     for name in names:

@@ -486,7 +486,7 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
     returns per range bin — or, when ``known`` (``known_valid``, as many as the points, says which are returns),
     none of these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
-    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped).
+    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_return_sums`, after).
 
     With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK), in the same pass: :func:`correspondence` of the
     points of ``before`` (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the
@@ -502,10 +502,9 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     n = positions.shape[0]
     valid = known_valid if known else np.empty(n, np.bool_)
     hist = np.zeros(n_bins, np.int64)
-    counts = np.zeros(4, np.int64)
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
     inv_bin, top = 1.0 / bin_m, n_bins - 1
-    returns, max_r2, total, finite = 0, 0.0, 0.0, 0
+    returns, max_r2 = 0, 0.0
     nb = pb.shape[0] if link != NO_LINK and link != SAME_LINK else 0
     masked = link == SAME_LINK and valid_b.shape[0] > 0
     index = np.full(nb, -1, np.int32)
@@ -564,14 +563,6 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
                 max_r2 = max(max_r2, r2)
                 b = math.sqrt(r2) * inv_bin
                 hist[np.int64(b) if b < top else top] += 1
-        if ok:
-            if c <= 3:
-                counts[c] += 1
-            if has_values:
-                v = float(values[j])
-                if np.isfinite(v):
-                    total += v
-                    finite += 1
         if not found or ((link == GRID_LINK or masked) and not (ok and valid_b[j])):
             continue
         k = np.uint64(i)                    # ≥ 0 here: indexed without the wrap-around test
@@ -587,6 +578,7 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     used = n_bins                           # the bins up to the farthest return's
     while used > 0 and hist[used - 1] == 0:
         used -= 1
+    counts, total, finite = _return_sums(valid, codes, values)  # in a loop of their own: the link's holds fewer values
     return ((returns, hist[:used], math.sqrt(max_r2), valid), counts, total, finite,
             (index, moved, change / changed if changed else np.nan))
 
@@ -692,6 +684,26 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
         return_ranges.note(positions, n_bins, full[0])
         return full
     return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
+
+
+@jit(inline="always")
+def _return_sums(valid, codes, values):       # pragma: no cover - compiled
+    """:func:`_pass`'s counts per effect code (none given: all KEPT) and (sum, number) of the finite ``values`` over
+    the returns ``valid``, in order."""
+    counts = np.zeros(4, np.int64)
+    total, finite = 0.0, 0
+    has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
+    for j in range(valid.shape[0]):
+        if valid[j]:
+            c = codes[j] if has_codes else 0
+            if c <= 3:
+                counts[c] += 1
+            if has_values:
+                v = float(values[j])
+                if np.isfinite(v):
+                    total += v
+                    finite += 1
+    return counts, total, finite
 
 
 @jit

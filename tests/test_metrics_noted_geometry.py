@@ -1,8 +1,7 @@
 """The return geometry a LiDAR model notes while it reads its input or writes its output (``physics.return_ranges``:
 the weather models' placement, the alignment's turned points, the laser power's and the alignment's return mask of
 their input) equals the metrics' own pass over the same arrays, value for value, and changes nothing the model
-writes; a step whose input's geometry is already known (a CNF's second step) derives its output's from it and notes
-only that when it moves or removes few points (rain), none when it moves most of them (fog at 30 m) (issue 18)."""
+writes; a step whose input's geometry is already known (a CNF's second step) counts only its output's (issue 18)."""
 
 from __future__ import annotations
 
@@ -33,6 +32,25 @@ def own_pass(positions: np.ndarray, n_bins: int) -> tuple:
 def run_chain(recipe, task, data, metrics_on: bool):
     return apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
                         sequence_id=task.sample.sequence_id, metrics=metrics_on)
+
+
+@pytest.mark.parametrize("n_bins", [3, 32, 300])
+def test_counted_geometry_is_the_metrics_own_pass(n_bins):
+    """The weather models' vectorised count (``return_ranges.count``: bins as bytes or, past 255 bins, 16-bit words;
+    the largest x² + y² + z² as its bits) on the edge cases of a return: the origin, NaN, ±inf, an overflowing and
+    an underflowing r², −0.0, and far points in the last bin."""
+    rng = np.random.default_rng(7)
+    positions = rng.normal(0.0, 1.5 * n_bins, (4099, 3))
+    positions[::5] = 0.0
+    positions[1], positions[2, 1], positions[3, 2] = np.nan, np.inf, -np.inf
+    positions[4], positions[6], positions[7] = [1e200, 0.0, 0.0], [1e-170, 0.0, 0.0], [-0.0, 0.0, 2.5]
+    positions[8], positions[9] = [0.0, 1e5, 0.0], [0.0, 0.0, 10.0 * (n_bins - 2)]
+    got = return_ranges.count(positions, n_bins)
+    want = own_pass(positions, n_bins)
+    assert (got[0], got[1].tolist(), got[2]) == (want[0], want[1].tolist(), want[2])
+    assert np.array_equal(got[3], want[3])
+    empty = return_ranges.count(positions[:0], n_bins)
+    assert (empty[0], len(empty[1]), empty[2]) == (0, 0, 0.0)
 
 
 #: recipe → the arrays its models note: the chain input (a first weather step's, the laser power's or the alignment's

@@ -20,12 +20,6 @@ from .lidar_geometry import RING, beam_means, elevation_rad, far_returns, unit_v
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
-from .return_ranges import add_point, range_bin, squared_range
-
-
-_MOST_LEAVING = 0.2      # the largest share of moved or removed points for which the output's geometry is derived
-_SAMPLE_STRIDE = 16      # ... estimated on every 16th ray
-_UNKNOWN, _OUTPUT_ONLY = -1, -2     # _place_returns: count the input's geometry and the output's; only the output's
 
 
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
@@ -104,62 +98,17 @@ def empty_ray_directions(cloud: PointCloud, has_return: np.ndarray, idx: np.ndar
 
 
 @jit
-def _place_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                   intensity_in, positions_out, intensity_out, effect_out, origin_out,
-                   geometry):   # pragma: no cover - compiled
-    """:func:`_place` with the input's geometry counted or derived (returns :data:`_UNKNOWN` or ≥ 0)."""
-    return _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                  intensity_in, positions_out, intensity_out, effect_out, origin_out, geometry, False)
-
-
-@jit
-def _place_output_returns(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid,
-                          positions, intensity_in, positions_out, intensity_out, effect_out, origin_out,
-                          geometry):   # pragma: no cover - compiled
-    """:func:`_place` binning only the output's points (returns :data:`_OUTPUT_ONLY`): compiled apart, so that the
-    other variant's loop holds none of its branches."""
-    return _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-                  intensity_in, positions_out, intensity_out, effect_out, origin_out, geometry, True)
-
-
-@jit(inline="always")
 def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
-           intensity_in, positions_out, intensity_out, effect_out, origin_out, geometry,
-           out_only):   # pragma: no cover - compiled
+           intensity_in, positions_out, intensity_out, effect_out, origin_out):   # pragma: no cover - compiled
     """Per point of :func:`assemble`: position, stored intensity (the reported one clipped to full scale, rounded for
     integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
-    removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added).
-
-    ``geometry`` (inverse bin width, range histograms, return masks of the input and the output, the input's returns
-    when known; empty histograms: none): the points' :mod:`return_ranges` counted on the way (an output point at its
-    input's position is its input's return, in its bin); returns (returns, largest x² + y² + z²) of the input and of
-    the output too. With the input's known (returns ≥ 0: ``hist_in`` and ``valid_in`` given, an earlier step's
-    output), the output's is derived from it: only the points the step removed or moved are binned; with ``out_only``
-    (returns :data:`_OUTPUT_ONLY`: known, but most points leave; a constant of each compiled variant) every output
-    point is binned where it is written, from the values written."""
-    inv_bin, hist_in, hist_out, valid_in, valid_out, known_returns = geometry
-    geo, top = hist_in.shape[0] > 0, hist_in.shape[0] - 1
-    known = known_returns >= 0 or out_only
-    returns_in, returns_out = max(known_returns, 0), 0
-    max_in = max_out = 0.0
+    removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
     n = len(kind)
     removed = np.zeros(n, np.bool_)
     kept = attenuated = moved = n_removed = added = 0
     o = 0                                              # output index
     for i in range(n):
-        b_in, r2_in = -1, 0.0
-        if geo and not known:
-            b_in, r2_in, returns_in, max_in = add_point(positions, i, inv_bin, top, hist_in, valid_in, returns_in,
-                                                        max_in)
-        elif geo and not out_only and valid_in[i]:     # a known return: binned only if it leaves its place
-            if kind[i] == WEATHER or (kind[i] == NO_RETURN and has[i]):
-                b_in, r2_in = range_bin(positions[i, 0], positions[i, 1], positions[i, 2], inv_bin, top)
-            else:
-                b_in, r2_in = top + 1, squared_range(positions, i)     # stays: a return, in a bin never read
-        if geo and b_in >= 0 and kind[i] == NO_RETURN and has[i] and not grid:    # a list's removed return
-            hist_out[np.uint64(b_in)] -= 1             # (bins ≥ 0, outputs o ≥ 0: no wrap-around test)
-            returns_out -= 1
         scale = 1.0                                    # of the position
         effect = 0                                     # KEPT
         if kind[i] == NO_RETURN:
@@ -196,32 +145,8 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
         origin_out[o] = i
         for c in range(3):
             positions_out[o, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
-        if out_only:
-            b, r2 = range_bin(positions_out[o, 0], positions_out[o, 1], positions_out[o, 2], inv_bin, top)
-            if b >= 0:
-                hist_out[np.uint64(b)] += 1
-                returns_out += 1
-                max_out = max(max_out, r2)
-            valid_out[np.uint64(o)] = b >= 0
-        elif geo:                                      # hist_out: the change from hist_in
-            b = b_in                                   # scale 1: the input's position, bit for bit
-            if scale != 1.0:
-                b, r2 = range_bin(positions_out[o, 0], positions_out[o, 1], positions_out[o, 2], inv_bin, top)
-                if b_in >= 0:
-                    hist_out[np.uint64(b_in)] -= 1
-                    returns_out -= 1
-                if b >= 0:
-                    hist_out[np.uint64(b)] += 1
-                    returns_out += 1
-                    max_out = max(max_out, r2)
-            elif b >= 0:
-                max_out = max(max_out, r2_in)
-            valid_out[np.uint64(o)] = b >= 0
         o += 1
-    if geo:
-        hist_out += hist_in
-    return (removed, o, kept, attenuated, moved, n_removed, added,
-            ((returns_in, max_in), (returns_in + returns_out, max_out)))
+    return removed, o, kept, attenuated, moved, n_removed, added
 
 
 def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
@@ -249,19 +174,13 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     intensity = np.empty(size, intensity_in.dtype)
     grid = cloud.grid_shape is not None
     integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
-    positions_in = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    geometry = _geometry_to_count(cloud, positions_in, n, size, returns.kind[:n], rays.has_target[:n])
-    n_bins = len(geometry[1])
-    place = _place_output_returns if geometry[5] == _OUTPUT_ONLY else _place_returns
-    removed, n_out, kept, attenuated, moved, n_removed, added, returns_of = place(
+    removed, n_out, kept, attenuated, moved, n_removed, added = _place(
         returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
         float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
-        positions_in, intensity_in, positions, intensity, effect, origin, geometry)
-    returns_out, filled = list(returns_of[1]), added
+        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect, origin)
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
-        _add_returns(positions, idx, geometry, returns_out)
     total = n_out + len(cells)
     fields = {**cloud.fields, "intensity": intensity[:total]}
     origin, attributes = origin[:total], cloud.attributes
@@ -275,7 +194,6 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
         if len(cells):
             _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
                           integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
-            _add_returns(positions, np.arange(n_out, total), geometry, returns_out)
             added += len(cells)
         if len(fields) > 1 or attributes:              # the ray each output takes its other fields from
             index = np.concatenate([origin[:n_out], rays.listed.like[cells]]) if len(cells) else origin
@@ -289,8 +207,9 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
         origin[n_out:] = NEW
     out = cloud.replace(positions_m=positions[:total], fields=fields, origin=origin, effect=effect[:total],
                         attributes=attributes)
-    if n_bins and (grid or not filled):                # (a list's rows past a removal are not its rays')
-        _note_returns(cloud.positions_m, positions_in, out.positions_m, n_bins, geometry, returns_of[0], returns_out)
+    if return_ranges.wanted():                         # for the metrics' summaries of the input and the output
+        for counted in (cloud.positions_m, out.positions_m):
+            return_ranges.note_counted(counted, return_ranges.bin_count(profile))
     faint = rays.faint
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
               "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": int(np.count_nonzero(faint)),
@@ -298,59 +217,11 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     return out, counts
 
 
-def _geometry_to_count(cloud: PointCloud, positions_in: np.ndarray, n: int, size: int, kind: np.ndarray,
-                       has: np.ndarray) -> tuple:
-    """What :func:`_place_returns` counts the return geometry (:mod:`return_ranges`) in while the chain records
-    metrics: (inverse bin width, range histograms of the input and the output, return masks of the input and the
-    output, the input's returns, :data:`_UNKNOWN` or :data:`_OUTPUT_ONLY`); empty histograms: none. An input whose
-    geometry is known (an earlier step's output, counted by the metrics or by the model that wrote it) gives its
-    histogram, mask and returns, and the output's is derived from them when at most a fifth of the points leave their
-    place (rain, snow: each costs two bins, the input's and the output's); else (fog at 30 m moves ≈ 80 %) every
-    output point is binned once where it is written (≈ 1 ms a 128×2048 cloud, against ≈ 0.7–1.3 ms less in the
-    metrics' pass over the output, which then reads no position)."""
-    n_bins = return_ranges.bin_count(cloud.profile) if return_ranges.wanted() and n == len(positions_in) else 0
-    known = return_ranges.noted(positions_in, n_bins) if n_bins else None
-    returns_in = _UNKNOWN
-    if known is not None:
-        sample = slice(None, None, _SAMPLE_STRIDE)
-        leaving = np.count_nonzero((kind[sample] == WEATHER) | ((kind[sample] == NO_RETURN) & has[sample]))
-        if leaving > _MOST_LEAVING * len(kind[sample]):
-            known = None
-            returns_in = _OUTPUT_ONLY
-    hist_in, valid_in = np.zeros(n_bins, np.int64), np.empty(n if n_bins and returns_in == _UNKNOWN else 0, np.bool_)
-    if known is not None:
-        returns_in, hist, _, valid_in = known
-        hist_in[:len(hist)] = hist
-    return (1.0 / return_ranges.RANGE_BIN_M, hist_in, np.zeros(n_bins, np.int64), valid_in,
-            np.empty(size if n_bins else 0, np.bool_), returns_in)     # (every output row's entry is written)
-
-
-def _add_returns(positions: np.ndarray, rows: np.ndarray, geometry: tuple, returns_out: list) -> None:
-    """Count the output rows written after :func:`_place_returns` (weather returns on empty rays) into the output's
-    geometry (``returns_out``: [returns, largest x² + y² + z²])."""
-    inv_bin, _, hist_out, _, valid_out, _ = geometry
-    if len(hist_out):
-        got, max_r2 = return_ranges.add_rows(positions, rows, inv_bin, hist_out, valid_out)
-        returns_out[0] += got
-        returns_out[1] = max(returns_out[1], max_r2)
-
-
-def _note_returns(given: np.ndarray, positions_in: np.ndarray, positions_out: np.ndarray, n_bins: int,
-                  geometry: tuple, returns_in: tuple, returns_out: list) -> None:
-    """Hand the geometry :func:`_place_returns` counted to the metrics (:func:`return_ranges.note`): the input's
-    (unless it is a converted copy, or was known) and the output's."""
-    _, hist_in, hist_out, valid_in, valid_out, known_returns = geometry
-    if positions_in is given and known_returns == _UNKNOWN:
-        return_ranges.note(given, n_bins, return_ranges.geometry_of(returns_in[0], hist_in, returns_in[1], valid_in))
-    return_ranges.note(positions_out, n_bins, return_ranges.geometry_of(
-        returns_out[0], hist_out, returns_out[1], valid_out[:len(positions_out)]))
-
-
 def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
                   full_scale: float, integer: bool, positions: np.ndarray, intensity: np.ndarray,
                   effect: np.ndarray) -> None:
     """The weather returns of a point list's empty rays ``cells`` as ADDED points, written to the given output
-    slices: along the cell's direction at the return's range, intensity as :func:`_place_returns` stores it (the
+    slices: along the cell's direction at the return's range, intensity as :func:`_place` stores it (the
     caller gives them the cell's ``ring`` and copies every other field from a return of the same firing column, same
     firing time)."""
     value = np.minimum(reported[cells], full_scale)
