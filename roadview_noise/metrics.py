@@ -771,8 +771,7 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
         return _radar_summary(cloud, before, step)
     codes = effect_codes(cloud)
     codes = _NO_CODES if codes is None else np.asarray(codes)
-    radar = False
-    values = cloud.fields.get("snr_db" if radar else "intensity")
+    values = cloud.fields.get("intensity")
     values = _NO_VALUES if values is None or np.ndim(values) != 1 else np.asarray(values)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     n_bins = return_ranges.bin_count(cloud.profile)
@@ -783,7 +782,7 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(
         positions, codes, values, n_bins, link, before, provenance, before is not None and _cell_by_cell(before, s))
     s.update({"returns": returns, "codes": counts.tolist(), "max_range_m": max_r, "hist": hist.tolist(),
-              "radar": radar, "mean_value": total / finite if finite else None, "valid": valid})
+              "radar": False, "mean_value": total / finite if finite else None, "valid": valid})
     if before is not None:
         s["parent"] = (before, None, None, matched[2]) if link == SAME_LINK else (before, *matched)
     if isinstance(cloud.profile, LidarProfile):
