@@ -21,7 +21,10 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sqlite3
+import threading
+from contextlib import contextmanager
 from pathlib import Path, PurePosixPath
 from typing import Callable, Container, Iterable, Iterator, TextIO
 
@@ -156,6 +159,10 @@ class Ledger:
             entry = _failed(entry, f"{entry['input']}: its output file {clash[0]!r} is also written for "
                                    f"{clash[1]!r}; two inputs must not write one file (rename one of them)")
             files = []
+        with ctrl_c_held():                             # a line and its files' renames: both or neither
+            return self._record(entry, files)
+
+    def _record(self, entry: dict, files: list[str]) -> dict:
         try:
             self._write(entry)
         except OSError as exc:
@@ -190,6 +197,24 @@ class Ledger:
 
     def close(self) -> None:
         self.claimed.close()
+
+
+@contextmanager
+def ctrl_c_held() -> Iterator[None]:
+    """Ctrl-C (SIGINT) in the block takes effect when the block ends (main thread; elsewhere the block runs as is):
+    an entry's manifest line and the renames of the files it lists happen both or neither — interrupted between
+    them, the line named files whose temporaries the run then removed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
+        if caught:
+            signal.raise_signal(signal.SIGINT)          # the run's own handling (KeyboardInterrupt), now
 
 
 def _failed(entry: dict, error: str) -> dict:

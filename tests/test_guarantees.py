@@ -588,6 +588,35 @@ def test_ledger_fails_the_later_of_two_entries_claiming_one_file(tmp_path):
     assert [json.loads(line)["status"] for line in log.getvalue().splitlines()] == ["ok", "failed"]
 
 
+def test_ctrl_c_between_a_line_and_its_renames_waits_for_the_renames(tmp_path, monkeypatch):
+    """Ctrl-C right after an entry's manifest line is written: the files it names are moved into place first, then
+    the run stops (KeyboardInterrupt) — the line never names a file whose temporary the run then removes."""
+    import io
+    import signal
+
+    from roadview_noise import outputs
+
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / ".a.tmp").write_text("a")
+    write = outputs.Ledger._write
+
+    def write_then_ctrl_c(self, entry):
+        write(self, entry)
+        signal.raise_signal(signal.SIGINT)                  # delivered here, between the line and the renames
+
+    monkeypatch.setattr(outputs.Ledger, "_write", write_then_ctrl_c)
+    log = io.StringIO()
+    ledger = outputs.Ledger(out, log, lambda e: None)
+    entry = {"input": "a.pcd", "output": "a.pcd", "status": "ok", "files": [{"path": "a.pcd", "sha256": "1"}],
+             "staged": [[".a.tmp", "a.pcd"]]}
+    with pytest.raises(KeyboardInterrupt):
+        ledger.put(0, entry)
+    assert sorted(p.name for p in out.iterdir()) == ["a.pcd"] and (out / "a.pcd").read_text() == "a"
+    assert json.loads(log.getvalue())["files"][0]["path"] == "a.pcd"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler      # the handler is back
+
+
 # --- 14. workers die with their parent; large plans are streamed and refused without --yes -------------------------
 
 
