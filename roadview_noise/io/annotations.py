@@ -157,9 +157,9 @@ def read_mask(path: str | os.PathLike) -> Mask:
 def _palette_mask(data: bytes, path) -> Mask:
     """A palette PNG's indices and its PLTE/tRNS chunks, whole: decoded as the grey PNG of the same samples (OpenCV
     would give the palette's colours), its 1/2/4-bit levels (OpenCV scales them to 0–255) divided back."""
-    from .image_metadata import _png_chunk_spans
+    from .image_metadata import png_chunk_spans
 
-    chunks = tuple(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data) if kind in (b"PLTE", b"tRNS"))
+    chunks = tuple(data[pos:pos + 12 + n] for kind, pos, n in png_chunk_spans(data) if kind in (b"PLTE", b"tRNS"))
     grey = cv2.imdecode(np.frombuffer(_retyped_png(data, _PNG_GREY), np.uint8), cv2.IMREAD_UNCHANGED)
     if grey is None:
         raise InputError("cannot decode this palette PNG", file=str(path))
@@ -198,12 +198,12 @@ def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
 def _retyped_png(data: bytes, colour_type: int, chunks: tuple[bytes, ...] = ()) -> bytes:
     """PNG bytes with another colour type of the same pixel layout — grey and palette samples are both one value
     per pixel (PNG spec §11.2.2) —, the palette chunks dropped and ``chunks`` inserted after IHDR."""
-    from .image_metadata import _png_chunk_spans
+    from .image_metadata import png_chunk_spans
 
     ihdr = bytearray(data[8:33])                            # length, "IHDR", 13-byte body, CRC
     ihdr[17] = colour_type
     ihdr[21:25] = zlib.crc32(bytes(ihdr[4:21])).to_bytes(4, "big")
-    rest = b"".join(data[pos:pos + 12 + n] for kind, pos, n in _png_chunk_spans(data)
+    rest = b"".join(data[pos:pos + 12 + n] for kind, pos, n in png_chunk_spans(data)
                     if kind != b"IHDR" and kind not in _PALETTE_CHUNKS)
     return data[:8] + bytes(ihdr) + b"".join(chunks) + rest + _PNG_END
 

@@ -25,7 +25,7 @@ _TIFF_RESOLUTION = (282, 283, 296)                       # XResolution, YResolut
 _ICC_NEVER_WRITTEN = (b"CMYK", b"CMY ")                     # ICC data colour spaces rvnoise never writes
 
 
-def _png_chunk_spans(data: bytes):
+def png_chunk_spans(data: bytes):
     """``(type, offset of the chunk, length of its body)`` of a PNG's chunks before IEND, in file order."""
     pos = len(PNG_SIGNATURE)
     while pos + 8 <= len(data):
@@ -38,7 +38,7 @@ def _png_chunk_spans(data: bytes):
 
 def png_chunks(data: bytes) -> tuple[bytes, ...]:
     """The kept ancillary chunks of a PNG file (module docstring), whole (length, type, body, CRC), in file order."""
-    return tuple(data[pos:pos + 12 + length] for kind, pos, length in _png_chunk_spans(data) if kind in _PNG_KEPT)
+    return tuple(data[pos:pos + 12 + length] for kind, pos, length in png_chunk_spans(data) if kind in _PNG_KEPT)
 
 
 def png_grey_key(data: bytes, dtype) -> int | None:
@@ -48,7 +48,7 @@ def png_grey_key(data: bytes, dtype) -> int | None:
     bit_depth, colour_type = data[24], data[25]
     if colour_type != 0:
         return None
-    for kind, pos, length in _png_chunk_spans(data):
+    for kind, pos, length in png_chunk_spans(data):
         if kind == b"tRNS" and length == 2:
             key = int.from_bytes(data[pos + 8:pos + 10], "big")
             return key * 255 // (2 ** bit_depth - 1) if bit_depth < 8 and np.dtype(dtype) == np.uint8 else key
