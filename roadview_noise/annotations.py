@@ -46,7 +46,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from .errors import InputError
 from .io import annotations as ann_io
@@ -93,6 +93,51 @@ class NuscenesRule(_Strict):
 
 
 PathRule = Union[str, ReplaceRule, NuscenesRule]
+
+
+class MaskRule(_Strict):
+    """A mask with its fill value: ``{pattern: "../inst/{stem}.png", fill: 0}`` or ``{replace: {…}, fill: 0}``."""
+
+    pattern: str | None = None
+    replace: dict[str, str] | None = None
+    fill: int = Field(ge=0)
+
+    @model_validator(mode="after")
+    def _one_path(self):
+        if (self.pattern is None) == (self.replace is None):
+            raise ValueError("a mask with its fill gives either pattern or replace")
+        return self
+
+    def path_rule(self) -> PathRule:
+        return self.pattern if self.pattern is not None else ReplaceRule(replace=self.replace)
+
+
+UNLABELED_FILL = 0        # Cityscapes' class 0 "unlabeled" / instance 0: the ids its devkit knows (255 is none)
+UNLABELED_MASK_ENDINGS = ("_labelids", "_instanceids")           # Cityscapes, KITTI-360 (label ids, not train ids)
+UNLABELED_MASK_FOLDERS = frozenset({"instance", "instances"})    # KITTI semantics' instance/, KITTI-MOTS instances/
+
+
+def mask_fill(rule, spec: "AnnotationsSpec", relpath: str, mask: ann_io.Mask) -> int:
+    """What a mask pixel with no source pixel in a warp gets: the rule's ``fill``; else 0 for Cityscapes-style
+    label-id and instance-id maps (named ``*_labelIds`` / ``*_instanceIds``, or in an ``instance(s)/`` folder:
+    Cityscapes' devkit maps every id through its label table, which has no 255) and for a mask whose bit depth cannot
+    hold ``ignore_index`` (a 1-bit binary mask); else ``ignore_index``. InputError when the fill does not fit."""
+    path = PurePosixPath(relpath)
+    if isinstance(rule, MaskRule):
+        fill = rule.fill
+    elif path.stem.lower().endswith(UNLABELED_MASK_ENDINGS) or \
+            any(f.lower() in UNLABELED_MASK_FOLDERS for f in path.parts[:-1]):
+        fill = UNLABELED_FILL
+    else:
+        top = mask.max_level
+        fill = spec.ignore_index if top is None or spec.ignore_index <= top else 0
+    kind = mask.values.dtype.kind
+    top = mask.max_level if mask.max_level is not None else \
+        np.iinfo(mask.values.dtype).max if kind in "iu" else 1 if kind == "b" else None
+    if top is not None and fill > top:
+        raise InputError(f"fill {fill} of mask {relpath} does not fit its values (0 … {top}); give the mask a fill "
+                         "it can hold", file=relpath)
+    return fill
 BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
     ".xml": "Pascal VOC XML is not read (convert it to YOLO .txt, or to one COCO JSON for annotations.coco)",
     ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
@@ -137,6 +182,7 @@ def label_image_reason(relpath: str, globs: list[str]) -> str | None:
 
 def _rule_ends(rule) -> list[str]:
     """The texts a path rule ends a sidecar's name with: the pattern, or the ``new`` parts of a replace rule."""
+    rule = rule.path_rule() if isinstance(rule, MaskRule) else rule
     return [rule] if isinstance(rule, str) else list(rule.replace.values()) if isinstance(rule, ReplaceRule) else []
 
 
@@ -148,7 +194,7 @@ class AnnotationsSpec(_Strict):
     #                      None: by the name
     weather_class: dict[Literal["rain", "snow", "fog", "clutter"], int] = Field(default_factory=dict)
     field_roles: dict[str, Literal["class", "instance", "sensor"]] = Field(default_factory=dict)
-    masks: list[PathRule] = Field(default_factory=list)
+    masks: list[Union[PathRule, MaskRule]] = Field(default_factory=list)   # MaskRule: with its fill
     polygons: list[PathRule] = Field(default_factory=list)   # per-image polygon JSON (Cityscapes, Mapillary v2)
     ignore_index: int = Field(255, ge=0)
     boxes_2d: PathRule | None = None
@@ -207,6 +253,7 @@ class AnnotationsSpec(_Strict):
 def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
     """Path (relative to the input root, POSIX) of the sidecar of input ``relpath``; InputError if it leaves the
     input root."""
+    rule = rule.path_rule() if isinstance(rule, MaskRule) else rule
     if isinstance(rule, str):
         p = PurePosixPath(relpath)
         from .dataset import split_suffix
@@ -339,6 +386,7 @@ class Sidecar:
     sha256: str | None
     fmt: str = ""
     data: Any = None
+    fill: int = 0                    # a mask's value where a warp maps from outside the image (mask_fill)
 
     def copy_to(self, dest: Path) -> None:
         write_bytes_atomic(dest, self.path.read_bytes())
@@ -383,6 +431,7 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             if sc.data.shape[:2] != (h, w):
                 raise InputError(f"mask {rel} is {sc.data.shape[1]}×{sc.data.shape[0]} px, the image {relpath} "
                                  f"{w}×{h}", file=str(in_root / relpath))
+            sc.fill = mask_fill(rule, spec, rel, sc.data)
         elif role == "polygons":
             sc.data = ann_io.read_polygons(path)
         elif role == "boxes_2d":
@@ -441,7 +490,7 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
             if s.role == "mask":
                 values = s.data.values
                 for warp in data_out.warps:
-                    values = warp.apply_labels(values, spec.ignore_index)
+                    values = warp.apply_labels(values, s.fill)
                 mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
             elif s.role == "polygons":

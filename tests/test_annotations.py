@@ -419,8 +419,9 @@ def _gt(suffix: str) -> dict:
 
 
 def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_path):
-    """The mask is resampled through the very map that moved the image (nearest neighbour, 255 where the map
-    leaves the image), pixel for pixel; the image is the map applied to the input; the masks are no inputs."""
+    """The mask is resampled through the very map that moved the image (nearest neighbour; where the map leaves
+    the image Cityscapes' label-id and instance-id maps get 0, "unlabeled", not 255, an id their devkit does not
+    know), pixel for pixel; the image is the map applied to the input; the masks are no inputs."""
     recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
         "camera": "**/*.png", "annotations": {"masks": [_gt("gtFine_labelIds.png"), _gt("gtFine_instanceIds.png")],
                                               "boxes_2d": _gt("label_2.txt")}}}, tmp_path)
@@ -443,7 +444,7 @@ def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_pat
         mask_out = cv2.imread(str(out / f"gtFine/val/lindau/lindau_000001_000019_gtFine_{name}.png"),
                               cv2.IMREAD_UNCHANGED)
         assert mask_out.dtype == mask_in.dtype and mask_out.shape == mask_in.shape
-        oracle = np.where(inside, mask_in[np.clip(ys, 0, 59), np.clip(xs, 0, 79)], 255)
+        oracle = np.where(inside, mask_in[np.clip(ys, 0, 59), np.clip(xs, 0, 79)], 0)      # class 0 "unlabeled"
         np.testing.assert_array_equal(mask_out, oracle)
         assert np.any(~inside)
     # KITTI boxes: corners through the closed-form forward map, clipped; other fields kept; a box pushed off the
@@ -501,6 +502,75 @@ def test_palette_and_rgba_masks_keep_their_kind_through_a_warp(cityscapes, tmp_p
     moved = cv2.imread(str(out / "gtFine/val/lindau/lindau_000001_000019_bitmask.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(moved, np.where(inside[..., None], bitmask[np.clip(ys, 0, 59), np.clip(xs, 0, 79)],
                                                   255))
+
+
+def _warp_test_inside(root: Path, recipe):
+    """The pull map of WarpTestCamera on the Cityscapes fixture's image, rounded, and where it lies in the image."""
+    frame = load(Sample("leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png", "camera",
+                        "leftImg8bit/val/lindau"), root, recipe)
+    warp = WarpTestCamera().warp(frame, state={}, drawn={})
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    return np.clip(xs, 0, 79), np.clip(ys, 0, 59), (xs >= 0) & (xs < 80) & (ys >= 0) & (ys < 60)
+
+
+def test_one_bit_and_four_bit_masks_keep_their_bit_depth_through_a_warp(cityscapes, tmp_path):
+    """A 1-bit grey PNG (a binary segmentation mask) and a 4-bit palette PNG come out with their bit depth (and
+    palette), their values the input's levels through the map; where nothing maps they get 0, since the default
+    ignore_index 255 does not fit. Before, both were written 8-bit, the binary mask as 0/255 with 255 fill."""
+    from PIL import Image
+
+    gt = cityscapes / "gtFine/val/lindau"
+    rng = np.random.default_rng(12)
+    binary = rng.integers(0, 2, (60, 80)).astype(bool)
+    Image.fromarray(binary).save(gt / "lindau_000001_000019_binary.png")            # mode "1": 1-bit grey
+    classes = rng.integers(0, 11, (60, 80)).astype(np.uint8)
+    small = Image.fromarray(classes, "P")
+    palette = rng.integers(0, 256, 33).astype(np.uint8).tolist()
+    small.putpalette(palette)
+    small.save(gt / "lindau_000001_000019_p4.png", bits=4)
+    head = {n: (gt / f"lindau_000001_000019_{n}.png").read_bytes()[24:26] for n in ("binary", "p4")}
+    assert head == {"binary": b"\x01\x00", "p4": b"\x04\x03"}                      # bit depth, colour type
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [_gt("binary.png"), _gt("p4.png")]}}}, tmp_path)
+    out = tmp_path / "out/gtFine/val/lindau"
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    for name, levels in (("binary", binary.astype(np.uint8)), ("p4", classes)):
+        data = (out / f"lindau_000001_000019_{name}.png").read_bytes()
+        assert data[24:26] == head[name]
+        with Image.open(out / f"lindau_000001_000019_{name}.png") as written:
+            values = np.asarray(written).astype(np.uint8)
+            if name == "p4":
+                assert written.mode == "P" and written.getpalette()[:33] == palette
+        np.testing.assert_array_equal(values, np.where(inside, levels[ys, xs], 0))
+        np.testing.assert_array_equal(ann_io.read_mask(out / f"lindau_000001_000019_{name}.png").values,
+                                      np.where(inside, levels[ys, xs], 0))
+
+
+def test_a_mask_fill_value_is_per_mask_and_must_fit(cityscapes, tmp_path):
+    """``{replace: …, fill: N}`` (or ``{pattern: …, fill: N}``) sets what an uncovered pixel of that mask gets;
+    a fill the mask's values cannot hold fails that image naming the mask."""
+    fill_7 = {**_gt("gtFine_labelIds.png"), "fill": 7}
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [fill_7, {**_gt("gtFine_instanceIds.png"),
+                                                                             "fill": 40000}]}}}, tmp_path)
+    out = tmp_path / "out/gtFine/val/lindau"
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    for name, fill in (("labelIds", 7), ("instanceIds", 40000)):
+        mask_in = cv2.imread(str(cityscapes / f"gtFine/val/lindau/lindau_000001_000019_gtFine_{name}.png"),
+                             cv2.IMREAD_UNCHANGED)
+        mask_out = cv2.imread(str(out / f"lindau_000001_000019_gtFine_{name}.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(mask_out, np.where(inside, mask_in[ys, xs], fill))
+    bad = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {"camera": "leftImg8bit/**/*.png",
+                   "annotations": {"masks": {"pattern": "../../../gtFine/val/lindau/{stem}.png", "fill": 300}}}},
+                  tmp_path)
+    cv2.imwrite(str(cityscapes / "gtFine/val/lindau/lindau_000001_000019_leftImg8bit.png"),
+                np.zeros((60, 80), np.uint8))
+    summary = run(bad, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None)
+    assert summary.failed == 1
+    error = read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
+    assert "fill 300" in error and "lindau_000001_000019_leftImg8bit.png" in error and "0 … 255" in error
 
 
 def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):

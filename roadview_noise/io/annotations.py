@@ -127,14 +127,22 @@ def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) ->
 class Mask:
     """A label image: its values (H × W or H × W × C, any integer dtype) and, for a palette PNG (Pascal VOC's
     ``SegmentationClass``, Mapillary Vistas' labels), the file's ``PLTE`` and ``tRNS`` chunks: the values are then
-    the palette indices, the class ids those datasets' loaders read, and are written back with the same palette."""
+    the palette indices, the class ids those datasets' loaders read, and are written back with the same palette.
+    ``bit_depth`` 1, 2 or 4: a PNG of that many bits per sample (a binary segmentation mask is 1-bit grey), whose
+    values are its levels (0 … 2^bit_depth − 1, not OpenCV's 0–255 scaling) and which is written back so."""
 
     values: np.ndarray
     palette_chunks: tuple[bytes, ...] = ()
+    bit_depth: int = 0                                       # 0: as OpenCV writes the dtype (8 or 16 bits)
 
     @property
     def shape(self) -> tuple[int, ...]:
         return self.values.shape
+
+    @property
+    def max_level(self) -> int | None:
+        """The highest value the file can hold (None: the dtype's)."""
+        return 2 ** self.bit_depth - 1 if self.bit_depth else None
 
 
 def read_mask(path: str | os.PathLike) -> Mask:
@@ -151,7 +159,14 @@ def read_mask(path: str | os.PathLike) -> Mask:
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError("not an image OpenCV can decode (masks are PNG/TIFF label images)", file=str(path))
+    if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_GREY and data[24] < 8:
+        return Mask(_levels(img, data[24]), bit_depth=data[24])
     return Mask(img)
+
+
+def _levels(decoded: np.ndarray, bit_depth: int) -> np.ndarray:
+    """The stored samples of a 1/2/4-bit PNG that OpenCV scaled to 0–255 (by 255, 85, 17)."""
+    return decoded // (255 // (2 ** bit_depth - 1)) if bit_depth < 8 else decoded
 
 
 def _palette_mask(data: bytes, path) -> Mask:
@@ -164,7 +179,7 @@ def _palette_mask(data: bytes, path) -> Mask:
     if grey is None:
         raise InputError("cannot decode this palette PNG", file=str(path))
     bit_depth = data[24]
-    return Mask(grey // (255 // (2 ** bit_depth - 1)) if bit_depth < 8 else grey, chunks)
+    return Mask(_levels(grey, bit_depth), chunks, bit_depth if bit_depth < 8 else 0)
 
 
 def write_mask(path: str | os.PathLike, mask: Mask) -> None:
@@ -174,24 +189,46 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
         np.save(buf, mask.values, allow_pickle=False)
         write_bytes_atomic(path, buf.getvalue())
         return
-    ok, buf = cv2.imencode(suffix, mask.values)
-    if not ok:
-        raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
-    data = buf.tobytes()
+    if mask.bit_depth:
+        data = _packed_png(mask.values, mask.bit_depth)
+    else:
+        ok, buf = cv2.imencode(suffix, mask.values)
+        if not ok:
+            raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
+        data = buf.tobytes()
     if mask.palette_chunks:
         data = _as_palette_png(data, mask)
     write_bytes_atomic(path, data)
 
 
+def _packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
+    """A grey PNG of ``bit_depth`` (1, 2, 4) bits per sample: each row's samples packed from the high bit (PNG spec
+    §7.2), filter type 0, one IDAT. ValueError names a level the depth cannot hold."""
+    from .png import PNG_SIGNATURE
+
+    top = int(levels.max(initial=0))
+    if top >= 2 ** bit_depth:
+        raise ValueError(f"value {top} does not fit a {bit_depth}-bit mask")
+    h, w = levels.shape
+    bits = (levels[..., None].astype(np.uint8) >> np.arange(bit_depth - 1, -1, -1, dtype=np.uint8)) & 1
+    rows = np.packbits(bits.reshape(h, w * bit_depth), axis=1)          # each row padded to whole bytes
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
+    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([bit_depth, _PNG_GREY, 0, 0, 0])
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(raw, 9)) + _PNG_END
+
+
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    return len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
+
+
 def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
-    """An 8-bit grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up
-    to the highest index (a warp's fill value)."""
+    """A grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up to the
+    highest index (a warp's fill value)."""
     chunks = list(mask.palette_chunks)
     entries = int.from_bytes(chunks[0][:4], "big") // 3 if chunks and chunks[0][4:8] == b"PLTE" else 0
     needed = int(mask.values.max(initial=0)) + 1
     if chunks and entries < needed:
-        body = chunks[0][8:-4] + bytes(3 * (needed - entries))
-        chunks[0] = len(body).to_bytes(4, "big") + b"PLTE" + body + zlib.crc32(b"PLTE" + body).to_bytes(4, "big")
+        chunks[0] = _png_chunk(b"PLTE", chunks[0][8:-4] + bytes(3 * (needed - entries)))
     return _retyped_png(grey, _PNG_PALETTE, tuple(chunks))
 
 
