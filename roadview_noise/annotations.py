@@ -140,7 +140,8 @@ def mask_fill(rule, spec: "AnnotationsSpec", relpath: str, mask: ann_io.Mask) ->
     return fill
 BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
     ".xml": "Pascal VOC XML is not read (convert it to YOLO .txt, or to one COCO JSON for annotations.coco)",
-    ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
+    ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco, a BDD100K / Scalabel JSON (one "
+             "file for the split) under annotations.scalabel; other JSON boxes are not read",
 }
 
 MASK_FILES_NOT_READ = {      # label files a user may name as masks that are no label images: refused at validate
@@ -204,6 +205,8 @@ class AnnotationsSpec(_Strict):
     calib: PathRule | None = None
     coco: str | None = None                  # one COCO JSON for the dataset, relative to IN (roadview_noise.coco)
     coco_image_root: str | None = None       # folder under IN its file_name values are relative to (default: its own)
+    scalabel: str | None = None              # one Scalabel / BDD100K JSON for the split (roadview_noise.scalabel)
+    scalabel_image_root: str | None = None   # folder under IN its frames' names are relative to (default: its own)
 
     @field_validator("masks", "polygons", mode="before")
     @classmethod
@@ -216,7 +219,7 @@ class AnnotationsSpec(_Strict):
         from .input_checks import escapes
 
         wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
-                                                                                   "coco")
+                                                                                   "coco", "scalabel")
         for name in wrong:
             if getattr(self, name):
                 raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
@@ -233,9 +236,12 @@ class AnnotationsSpec(_Strict):
                 if any(e.lower().endswith(suffix) for e in _rule_ends(rule)):
                     raise RecipeError(f"masks are PNG/TIFF label images or .npy arrays; {why}",
                                       key=f"inputs.annotations.masks[{k}]")
-        if self.coco_image_root is not None and self.coco is None:
-            raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
-        for name in ("coco", "coco_image_root"):
+        for name in ("coco", "scalabel"):
+            if getattr(self, f"{name}_image_root") is not None and getattr(self, name) is None:
+                raise RecipeError(f"{name}_image_root goes with {name}", key=f"inputs.annotations.{name}_image_root")
+        if self.coco is not None and self.scalabel is not None:
+            raise RecipeError("one dataset file per run: coco or scalabel", key="inputs.annotations.scalabel")
+        for name in ("coco", "coco_image_root", "scalabel", "scalabel_image_root"):
             why = escapes(getattr(self, name) or "")
             if why:
                 raise RecipeError(f"{getattr(self, name)!r} {why}", key=f"inputs.annotations.{name}")

@@ -55,6 +55,9 @@ class CocoImage:
     sha256: str                                    # of the COCO file (a resumed run redoes records of another one)
     annotations: list[tuple[int, dict]] = field(default_factory=list)
 
+    def move(self, shape: tuple[int, int], warps) -> dict:
+        return move_image(self, shape, warps)
+
 
 def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     """The manifest record of one image: ``moved`` [[position, changed fields], …], ``dropped`` [[position, id],
@@ -66,7 +69,7 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
         raise InputError(f"the COCO file gives {image.file_name!r} {image.width}×{image.height} px, the image is "
                          f"{w}×{h} px")
     record: dict[str, Any] = {"image_id": image.image_id, "sha256": image.sha256}
-    warps = [wp for wp in warps if not _is_identity(wp)]
+    warps = [wp for wp in warps if not is_identity(wp)]
     if not warps:
         return record
     record["distortion"] = coco_camera.steps(warps)          # the image is no longer pinhole (coco_camera)
@@ -97,7 +100,7 @@ def _guarded(ann: dict, name: str, fn, *args):
         raise InputError(f"annotation id {ann.get('id')!r} of {name!r}: {exc}") from None
 
 
-def _is_identity(warp) -> bool:
+def is_identity(warp) -> bool:
     h, w = warp.shape
     return bool(np.array_equal(warp.map_x, np.broadcast_to(np.arange(w, dtype=warp.map_x.dtype), (h, w))) and
                 np.array_equal(warp.map_y, np.broadcast_to(np.arange(h, dtype=warp.map_y.dtype)[:, None], (h, w))))

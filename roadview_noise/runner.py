@@ -27,7 +27,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from . import annotations, coco, coco_warp, prestart, profiling
+from . import annotations, coco, prestart, profiling
 from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
@@ -72,7 +72,7 @@ class Task:
     variant_index: int
     out_relpath: str
     index: int = 0                      # position in the plan (walk failures included)
-    coco: Any = field(default=None, compare=False)   # coco_warp.CocoImage of a COCO file's image (coco.CocoRun)
+    coco: Any = field(default=None, compare=False)   # an image of the run's dataset file (coco.CocoRun): .move()
 
 
 @dataclass(frozen=True)
@@ -413,7 +413,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
                           if v})
             if task.coco is not None:
-                entry["coco"] = coco_warp.move_image(task.coco, orientation.stored_shape(data), out.warps)
+                entry["coco"] = task.coco.move(orientation.stored_shape(data), out.warps)
             with confined_to(ctx.out_root), staged_writes(sync=ctx.fsync_outputs) as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
