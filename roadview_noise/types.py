@@ -290,6 +290,7 @@ class RawEncoding:
     fmt: str = "dng"           # dng | raw (plain uint16 + YAML sidecar)
     bits_per_sample: int = 16
     sidecar: tuple = ()        # a plain raw's input sidecar as (key, value) pairs, in order: written back with it
+    orientation: int = 1       # a DNG's Orientation tag (IFD0, 1–8): the mosaic is processed upright (orientation)
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,6 +309,7 @@ class RawFrame:
     depth_valid: np.ndarray | None = None
     input_notes: Mapping[str, Any] = field(default_factory=dict)
     warps: tuple = ()                        # physics.warp.Warp of each geometric step so far (masks, boxes follow)
+    orientation: int = 1                     # ≠ 1: the stored mosaic turned upright by it (orientation.upright_frame)
 
     @property
     def shape(self) -> tuple[int, int]:
