@@ -440,6 +440,11 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             sc.fill = mask_fill(rule, spec, rel, sc.data)
         elif role == "polygons":
             sc.data = ann_io.read_polygons(path)
+            h, w = stored_shape(data)
+            size = (sc.data.get("imageWidth"), sc.data.get("imageHeight")) if "shapes" in sc.data else (w, h)
+            if size not in ((w, h), (None, None)):
+                raise InputError(f"LabelMe file {rel} is for a {size[0]}×{size[1]} px image, {relpath} is {w}×{h}",
+                                 file=str(in_root / relpath))
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
             h, w = stored_shape(data)
@@ -550,7 +555,9 @@ def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:
     """A per-image polygon file (:func:`~roadview_noise.io.annotations.read_polygons`) moved through the warps: each
     object's polygon by the outline mover (edges split where the map bends them), clipped to the image (pixel
     centres on integers: edges at −½ and W − ½), to 1/1000 px; an object left with no area is dropped, one without
-    a polygon (fewer than 3 points) kept as read; every other key as read."""
+    a polygon (fewer than 3 points) kept as read; every other key as read. A LabelMe file: :func:`warp_labelme`."""
+    if "shapes" in data:
+        return warp_labelme(data, warps, width, height)
     objects = data["objects"]
     moving = [k for k, o in enumerate(objects) if len(o["polygon"]) >= 3]
     rings = [np.asarray(objects[k]["polygon"], dtype=float).reshape(-1, 2) for k in moving]
@@ -558,12 +565,55 @@ def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:
     kept = []
     for k, obj in enumerate(objects):
         if k in moved:
-            ring = clip_polygon(moved[k], width, height, origin_px=-0.5)
-            if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0):
+            ring = _clipped_ring(moved[k], width, height)
+            if ring is None:
                 continue
-            obj = {**obj, "polygon": np.round(ring, 3).tolist()}
+            obj = {**obj, "polygon": ring}
         kept.append(obj)
     return {**data, "objects": kept}
+
+
+def _clipped_ring(ring: np.ndarray, width: int, height: int) -> list | None:
+    """A moved polygon clipped to the image (pixel centres on integers), to 1/1000 px; None when no area is left."""
+    ring = clip_polygon(ring, width, height, origin_px=-0.5)
+    if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0):
+        return None
+    return np.round(ring, 3).tolist()
+
+
+def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
+    """A LabelMe file moved through the warps (pixel centres on integers, as labelme rasterises its shapes): a
+    polygon as Cityscapes polygons move; a rectangle (two corners) becomes the bounding box of its moved outline,
+    clipped to the image; lines, line strips, points and circles (centre, a point on the rim) move point by point,
+    not clipped. A polygon or rectangle left with no area is dropped. ``imageWidth``/``imageHeight`` become the
+    output's; ``imageData`` (the unaugmented image, base64) becomes null, so LabelMe opens the augmented image at
+    ``imagePath``. InputError for a ``mask`` shape (a bitmap of its box: not moved)."""
+    shapes = data["shapes"]
+    kinds = [s.get("shape_type") or "polygon" for s in shapes]
+    refused = sorted({k for k in kinds if k not in ann_io.LABELME_SHAPES})
+    if refused:
+        raise InputError(f"LabelMe shapes of type {', '.join(refused)} are not moved by a geometric step; convert "
+                         "them to polygons, or use a photometric chain")
+    pts = [np.asarray(s["points"], dtype=float).reshape(-1, 2) for s in shapes]
+    move = lambda xy: forward_through(warps, xy)                                        # noqa: E731
+    rings = iter(moved_rings([p for p, k in zip(pts, kinds) if k == "polygon"], move))
+    boxes = iter(moved_boxes(np.reshape([np.r_[p.min(axis=0), p.max(axis=0)] for p, k in zip(pts, kinds)
+                                         if k == "rectangle"], (-1, 4)), move))
+    loose = [p for p, k in zip(pts, kinds) if k not in ("polygon", "rectangle")]
+    moved = iter(np.split(move(np.concatenate(loose)), np.cumsum([len(p) for p in loose])[:-1]) if loose else ())
+    kept = []
+    for shape, kind in zip(shapes, kinds):
+        if kind == "polygon":
+            points = _clipped_ring(next(rings), width, height)
+        elif kind == "rectangle":
+            box = np.clip(next(boxes).reshape(2, 2), -0.5, [width - 0.5, height - 0.5])
+            points = None if np.any(box[1] - box[0] <= 0) else np.round(box, 3).tolist()
+        else:
+            points = np.round(next(moved), 3).tolist()
+        if points is not None:
+            kept.append({**shape, "points": points})
+    out = {**data, "shapes": kept, "imageWidth": width, "imageHeight": height}
+    return {**out, "imageData": None} if "imageData" in data else out
 
 
 # --- objects -------------------------------------------------------------------------------------------------------

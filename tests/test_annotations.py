@@ -699,6 +699,51 @@ def test_cityscapes_polygons_follow_the_map_and_are_copied_by_photometric_chains
     assert (out2 / rel).read_bytes() == (cityscapes / rel).read_bytes()
 
 
+def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
+    """A LabelMe JSON (shapes with points and shape_type) under ``polygons``: polygons move and are clipped, a
+    rectangle becomes the box of its moved outline, lines, points and circles move point by point (closed-form
+    oracle), a shape pushed off the image is dropped, imageData (the unaugmented image) becomes null, every other key
+    is kept; a mask shape fails the image naming it; a file for another image size fails naming both sizes."""
+    gt = cityscapes / "gtFine/val/lindau"
+    shapes = [{"label": "car", "points": [[10, 12], [40, 12.5], [38, 30], [11, 29]], "group_id": None,
+               "shape_type": "polygon", "flags": {}, "description": ""},
+              {"label": "sign", "points": [[50, 20], [60, 35]], "group_id": 3, "shape_type": "rectangle", "flags": {}},
+              {"label": "lane", "points": [[5, 55], [20, 40], [30, 33]], "shape_type": "linestrip", "flags": {}},
+              {"label": "light", "points": [[44, 7]], "shape_type": "point", "flags": {}},
+              {"label": "wheel", "points": [[25, 25], [28, 25]], "shape_type": "circle", "flags": {}},
+              {"label": "gone", "points": [[0, 0], [2, 0], [1, 2]], "shape_type": "polygon", "flags": {}}]
+    data = {"version": "5.4.1", "flags": {"night": False}, "shapes": shapes, "imagePath": "../x.png",
+            "imageData": "iVBORw0KGgo=", "imageHeight": 60, "imageWidth": 80}
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("labelme.json")}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    out = json.loads((tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_labelme.json").read_text())
+    assert out["imageData"] is None and {k: out[k] for k in ("version", "flags", "imagePath", "imageHeight",
+                                                             "imageWidth")} == {k: data[k] for k in
+                                                                                ("version", "flags", "imagePath",
+                                                                                 "imageHeight", "imageWidth")}
+    model = WarpTestCamera()
+    forward = lambda p: np.stack(model.forward(*np.asarray(p, float).T, 80, 60), axis=1)   # noqa: E731
+    moved = {sh["label"]: sh for sh in out["shapes"]}
+    assert list(moved) == ["car", "sign", "lane", "light", "wheel"]                  # "gone" left the image
+    assert {k: v for k, v in moved["sign"].items() if k != "points"} == \
+        {k: v for k, v in shapes[1].items() if k != "points"}
+    np.testing.assert_allclose(moved["car"]["points"], forward(shapes[0]["points"]), atol=2e-3)     # affine
+    np.testing.assert_allclose(moved["sign"]["points"], forward(shapes[1]["points"]), atol=2e-3)
+    for k in (2, 3, 4):
+        np.testing.assert_allclose(moved[shapes[k]["label"]]["points"], forward(shapes[k]["points"]), atol=2e-3)
+    data["shapes"].append({"label": "blob", "points": [[1, 1], [5, 5]], "shape_type": "mask", "mask": "iVBO"})
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
+    assert run(recipe, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None).failed == 1
+    assert "shapes of type mask" in read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
+    data["shapes"].pop()
+    data["imageWidth"] = 640
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
+    assert run(recipe, cityscapes, tmp_path / "out3", workers=1, progress=False, echo=lambda *_: None).failed == 1
+    assert "640×60 px image" in read_manifest(tmp_path / "out3/manifest.jsonl")[0]["error"]
+
+
 def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscapes, tmp_path):
     """`camera: "**/*.png"` on a Cityscapes root fogged gtFine's label images as photos, without a word. Each one
     now fails alone, saying why and what to do; a mask declared under annotations is a sidecar, not an input; a glob

@@ -248,17 +248,23 @@ def _retyped_png(data: bytes, colour_type: int, chunks: tuple[bytes, ...] = ()) 
 # --- polygon files ---------------------------------------------------------------------------------------------
 
 
+LABELME_SHAPES = ("polygon", "rectangle", "circle", "line", "linestrip", "point", "points")   # moved (not "mask")
+
+
 def read_polygons(path: str | os.PathLike) -> dict:
-    """A per-image polygon JSON as Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 write it:
-    ``objects``, each with a ``polygon`` of [x, y] pixel positions (pixel centres on integers); every key kept."""
+    """A per-image polygon JSON: Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 — ``objects``, each
+    with a ``polygon`` of [x, y] pixel positions (pixel centres on integers) — or LabelMe — ``shapes``, each with
+    ``points`` and a ``shape_type`` (polygon, rectangle, circle, line, linestrip, point; ``mask`` shapes are read
+    but not moved) —; every key kept."""
     try:
         data = json.loads(_read(Path(path)))
-        for k, obj in enumerate(data["objects"]):
-            if np.asarray(obj["polygon"], dtype=float).reshape(-1, 2).shape[0] != len(obj["polygon"]):
-                raise ValueError(f"objects[{k}].polygon is not a list of [x, y] pairs")
+        key, points = ("shapes", "points") if isinstance(data, dict) and "shapes" in data else ("objects", "polygon")
+        for k, obj in enumerate(data[key]):
+            if np.asarray(obj[points], dtype=float).reshape(-1, 2).shape[0] != len(obj[points]):
+                raise ValueError(f"{key}[{k}].{points} is not a list of [x, y] pairs")
     except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"not a Cityscapes-style polygon file (objects with [x, y] polygons): {exc}",
-                         file=str(path)) from None
+        raise InputError(f"not a Cityscapes-style polygon file (objects with [x, y] polygons) nor a LabelMe file "
+                         f"(shapes with [x, y] points): {exc}", file=str(path)) from None
     return data
 
 
