@@ -195,7 +195,7 @@ class ImageEncoding:
     exif: bytes | None = None          # EXIF (TIFF-structured, orientation included) of the file, written back unchanged
     jpeg_sampling: int | None = None   # JPEG chroma subsampling as OpenCV's IMWRITE_JPEG_SAMPLING_FACTOR code
     jpeg_progressive: bool = False     # JPEG: progressive (SOF2) rather than baseline
-    metadata: tuple = ()               # the file's PNG ancillary chunks or TIFF tags, written back (io/image_metadata)
+    metadata: tuple = ()               # the file's PNG ancillary chunks, TIFF tags or JPEG JFIF density (io/image_metadata)
 
 
 @dataclass(frozen=True, eq=False)

@@ -100,7 +100,7 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
             icc, tiled = _tiff_icc(page), page.is_tiled
     else:
         photometric, icc = None, icc_profile(data, fmt)
-        metadata = image_metadata.png_chunks(data) if fmt == "png" else ()
+        metadata = image_metadata.png_chunks(data) if fmt == "png" else image_metadata.jfif_density(data)
     codes = decode_codes(data, fmt, source=source, photometric=photometric)
     if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
         codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
@@ -287,7 +287,8 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(codes), params)
     if not ok:
         raise OSError(f"{name}: OpenCV could not encode {encoding}")
-    return embed_exif(embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
+    jpeg = image_metadata.with_jfif_density(buf.tobytes(), encoding.metadata)
+    return embed_exif(embed_icc_profile(jpeg, encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
 
 
 def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str, *, refuse_nan: bool = True

@@ -45,6 +45,21 @@ def test_no_exif_adds_none(tmp_path):
     assert enc.exif is None and dict(Image.open(dst).getexif()) == {}
 
 
+@pytest.mark.parametrize("dpi,mode", [((300, 300), "L"), ((72, 144), "RGB")])
+def test_jpeg_jfif_density_is_kept(tmp_path, dpi, mode):
+    """A JPEG's JFIF density (the dpi viewers show; hopper.jpg of Pillow's tests: 96 dpi) was written as OpenCV's
+    1:1 aspect ratio (no dpi); a file without JFIF gets none added."""
+    src, dst = tmp_path / "in.jpg", tmp_path / "out.jpg"
+    _photo().convert(mode).save(src, quality=90, dpi=dpi)
+    _roundtrip(src, dst)
+    assert tuple(round(v) for v in Image.open(dst).info["dpi"]) == dpi
+    stripped = tmp_path / "bare.jpg"                  # no APP0 at all: SOI, then the rest of the file
+    data = src.read_bytes()
+    stripped.write_bytes(data[:2] + data[4 + int.from_bytes(data[4:6], "big"):])
+    _roundtrip(stripped, dst)
+    assert "dpi" not in Image.open(dst).info or Image.open(dst).info["dpi"] == (1, 1)
+
+
 @pytest.mark.parametrize("subsampling,layer", [(0, (1, 1, 1)), (1, (2, 1, 1)), (2, (2, 2, 1))])
 @pytest.mark.parametrize("progressive", [False, True])
 def test_jpeg_chroma_subsampling_and_progressive_are_kept(tmp_path, subsampling, layer, progressive):
