@@ -170,6 +170,19 @@ def _undecoded_variant(data: bytes, fmt: str) -> str:
         return "a lossless JPEG (SOF3): convert it to a 16-bit PNG or TIFF"
     if seg and seg[0] != 8:
         return f"a {seg[0]}-bit JPEG: OpenCV reads 8-bit ones; convert it to a 16-bit PNG or TIFF"
+    if fmt == "tiff":
+        try:
+            with tifffile.TiffFile(io.BytesIO(data)) as tif:
+                page = tif.pages[0]
+                bits, kind, stated = page.bitspersample, page.sampleformat, 262 in page.tags
+        except Exception:                              # tifffile raises several types for a damaged directory
+            return "corrupt or unsupported variant"
+        if not stated:
+            return "no PhotometricInterpretation tag (262), which OpenCV needs: add it (tiffset -s 262 1)"
+        if (bits, int(kind)) not in ((8, 1), (16, 1), (32, 3)):
+            what = {1: "unsigned", 2: "signed", 3: "floating-point"}.get(int(kind), "")
+            return (f"{bits}-bit {what} samples: rvnoise reads 8- and 16-bit unsigned and 32-bit float TIFFs; "
+                    "convert it (e.g. to an 8-bit PNG)")
     return "corrupt or unsupported variant"
 
 

@@ -178,6 +178,21 @@ def test_icc_profile_of_another_colour_space_than_the_output_is_dropped(tmp_path
     assert (Image.open(dst).info.get("icc_profile") == bytes(icc)) == kept
 
 
+def test_a_tiff_opencv_cannot_decode_is_refused_naming_why(tmp_path):
+    """2/4-bit grey TIFFs (Pillow's hopper_gray_4bpp.tif) were refused as "corrupt or unsupported variant"; the
+    error now names the layout (and a missing PhotometricInterpretation tag, Pillow's 10ct_32bit_128.tiff)."""
+    import tifffile
+
+    from roadview_noise.errors import InputError
+
+    codes = (np.arange(48 * 64).reshape(48, 64) % 4).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "four.tif", codes, photometric="minisblack")
+    with tifffile.TiffFile(tmp_path / "four.tif", mode="r+b") as tif:
+        tif.pages[0].tags[258].overwrite(4)                      # BitsPerSample 4 (tifffile cannot pack them here)
+    with pytest.raises(InputError, match="4-bit unsigned samples: rvnoise reads 8- and 16-bit"):
+        read_image(tmp_path / "four.tif")
+
+
 def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
     """OpenCV decodes 8-bit JPEGs only: a 12-bit one (libjpeg-turbo's monkey12.jpg; medical and some industrial
     cameras) failed as "corrupt or unsupported variant"."""
