@@ -196,6 +196,7 @@ class ImageEncoding:
     jpeg_sampling: int | None = None   # JPEG chroma subsampling as OpenCV's IMWRITE_JPEG_SAMPLING_FACTOR code
     jpeg_progressive: bool = False     # JPEG: progressive (SOF2) rather than baseline
     metadata: tuple = ()               # the file's PNG ancillary chunks, TIFF tags or JPEG JFIF density (io/image_metadata)
+    tiff_associated_alpha: bool = False   # TIFF: its alpha is associated (colours premultiplied), written so
 
 
 @dataclass(frozen=True, eq=False)

@@ -97,18 +97,21 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
             page = tif.pages[0]
             photometric, metadata = page.photometric, image_metadata.tiff_tags(page)
-            icc, tiled = _tiff_icc(page), page.is_tiled
+            icc, tiled, extras = _tiff_icc(page), page.is_tiled, tuple(page.extrasamples)
     else:
-        photometric, icc = None, icc_profile(data, fmt)
+        photometric, icc, extras = None, icc_profile(data, fmt), ()
         metadata = image_metadata.png_chunks(data) if fmt == "png" else image_metadata.jfif_density(data)
-    codes = decode_codes(data, fmt, source=source, photometric=photometric)
-    if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
+    alpha_tiff = fmt == "tiff" and len(extras) == 1 and photometric in _TIFF_ALPHA_PHOTOMETRICS
+    codes = _tiff_with_alpha(data) if alpha_tiff else decode_codes(data, fmt, source=source, photometric=photometric)
+    if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE and not alpha_tiff:
         codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
     transfer = "srgb" if fmt == "jpeg" else image_metadata.stated_transfer(fmt, metadata, icc) or untagged_transfer
     linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc,
                                                transfer=transfer)
     layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
+    if alpha_tiff and extras[0] == tifffile.EXTRASAMPLE.ASSOCALPHA:
+        layout["tiff_associated_alpha"] = True
     return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=metadata, **layout), alpha
 
 
@@ -151,6 +154,23 @@ def _tiff_as_stored(codes: np.ndarray, turn: int, tiled: bool, source) -> np.nda
     from ..orientation import stored
 
     return stored(codes, turn)
+
+
+_TIFF_ALPHA_PHOTOMETRICS = (tifffile.PHOTOMETRIC.RGB, tifffile.PHOTOMETRIC.MINISBLACK)
+
+
+def _tiff_with_alpha(data: bytes) -> np.ndarray:
+    """RGBA codes of an RGB or grey TIFF with one alpha sample, as stored (tifffile): OpenCV (libtiff's RGBA read)
+    multiplies 8-bit colours by an unassociated alpha — a half-transparent pixel came out half as bright — and turns
+    the pixels by the orientation tag. Grey + alpha becomes RGBA, as a grey + alpha PNG does."""
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        codes = page.asarray()
+        if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
+            codes = np.moveaxis(codes, 0, -1)
+    if codes.shape[-1] == 2:
+        codes = codes[..., [0, 0, 0, 1]]
+    return np.ascontiguousarray(codes)
 
 
 def _palette_tiff_rgb(data: bytes) -> np.ndarray:
@@ -285,7 +305,7 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     """PNG, JPEG (``encoding.jpeg_quality``) or TIFF bytes of grey or RGB(A) code values, with
     ``encoding.icc_profile`` embedded."""
     if encoding.fmt == "tiff":
-        return _encode_tiff(codes, encoding.icc_profile, encoding.metadata)
+        return _encode_tiff(codes, encoding.icc_profile, encoding.metadata, encoding.tiff_associated_alpha)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
@@ -338,13 +358,14 @@ def _refuse_nan(linear: np.ndarray, name: str) -> None:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
 
 
-def _encode_tiff(codes: np.ndarray, icc: bytes | None, metadata: tuple = ()) -> bytes:
-    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha, the ICC profile and the
-    input's kept tags (:func:`.image_metadata.tiff_tags`)."""
+def _encode_tiff(codes: np.ndarray, icc: bytes | None, metadata: tuple = (), associated: bool = False) -> bytes:
+    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha (associated: premultiplied,
+    as the input stated), the ICC profile and the input's kept tags (:func:`.image_metadata.tiff_tags`)."""
     buf = io.BytesIO()
     colour = codes.ndim == 3
     tifffile.imwrite(buf, codes, photometric="rgb" if colour else "minisblack",
-                     extrasamples=("unassalpha",) if colour and codes.shape[2] == 4 else None,
+                     extrasamples=("assocalpha" if associated else "unassalpha",) if colour and codes.shape[2] == 4
+                     else None,
                      compression="zlib", metadata=None, iccprofile=icc,
                      **image_metadata.tiff_write_args(metadata))
     return buf.getvalue()

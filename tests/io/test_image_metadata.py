@@ -193,6 +193,29 @@ def test_a_tiff_opencv_cannot_decode_is_refused_naming_why(tmp_path):
         read_image(tmp_path / "four.tif")
 
 
+@pytest.mark.parametrize("extra,dtype", [("unassalpha", np.uint8), ("assocalpha", np.uint8),
+                                         ("unassalpha", np.uint16), ("assocalpha", np.uint16)])
+@pytest.mark.parametrize("turn", [1, 6])
+def test_a_tiff_alpha_keeps_its_colours_and_kind(tmp_path, extra, dtype, turn):
+    """An RGBA TIFF read and written back unchanged keeps its samples and its ExtraSamples kind. OpenCV multiplied
+    8-bit colours by an unassociated alpha (100 at alpha 128 came out 50) and an associated alpha was written as
+    unassociated; read as stored, also with an orientation tag."""
+    import tifffile
+
+    full = np.iinfo(dtype).max
+    rgba = np.zeros((30, 40, 4), dtype)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2] = full // 5 * 2, full // 5, full // 10
+    rgba[..., 3] = np.linspace(0, full, 40).astype(dtype)
+    rgba[5, 7] = [full, 0, 0, full]                               # a marker the orientation must not move
+    src, dst = tmp_path / "in.tif", tmp_path / "out.tif"
+    tifffile.imwrite(src, rgba, photometric="rgb", extrasamples=[extra], extratags=[(274, "H", 1, turn, True)])
+    linear, enc, alpha = read_image(src)
+    write_image(dst, linear, enc, alpha)
+    with tifffile.TiffFile(dst) as tif:
+        assert tif.pages[0].extrasamples[0].name.lower() == extra
+        np.testing.assert_array_equal(tif.pages[0].asarray(), rgba)
+
+
 def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
     """OpenCV decodes 8-bit JPEGs only: a 12-bit one (libjpeg-turbo's monkey12.jpg; medical and some industrial
     cameras) failed as "corrupt or unsupported variant"."""
