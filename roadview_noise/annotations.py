@@ -139,7 +139,7 @@ def mask_fill(rule, spec: "AnnotationsSpec", relpath: str, mask: ann_io.Mask) ->
                          "it can hold", file=relpath)
     return fill
 BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
-    ".xml": "Pascal VOC XML is not read (convert it to YOLO .txt, or to one COCO JSON for annotations.coco)",
+    ".xml": "Pascal VOC XML is read with boxes_2d_format: voc",
     ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco, a BDD100K / Scalabel JSON (one "
              "file for the split) under annotations.scalabel; other JSON boxes are not read",
 }
@@ -199,7 +199,7 @@ class AnnotationsSpec(_Strict):
     polygons: list[PathRule] = Field(default_factory=list)   # per-image polygon JSON (Cityscapes, Mapillary v2)
     ignore_index: int = Field(255, ge=0)
     boxes_2d: PathRule | None = None
-    boxes_2d_format: Literal["kitti", "yolo"] = "kitti"
+    boxes_2d_format: Literal["kitti", "yolo", "voc"] = "kitti"
     boxes_3d: PathRule | None = None
     boxes_3d_format: Literal["kitti", "json", "csv"] | None = None     # None: .json, .csv, else KITTI
     calib: PathRule | None = None
@@ -228,8 +228,9 @@ class AnnotationsSpec(_Strict):
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
         ends = _rule_ends(self.boxes_2d)
         for suffix, why in BOX_FILES_NOT_READ.items():
-            if any(e.lower().endswith(suffix) for e in ends):
-                raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
+            if any(e.lower().endswith(suffix) for e in ends) and not (suffix == ".xml" and self.boxes_2d_format ==
+                                                                       "voc"):
+                raise RecipeError(f"boxes_2d reads KITTI label_2, YOLO .txt or Pascal VOC .xml files; {why}",
                                   key="inputs.annotations.boxes_2d")
         for k, rule in enumerate(self.masks):
             for suffix, why in MASK_FILES_NOT_READ.items():
@@ -532,7 +533,8 @@ def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.
     no area are dropped."""
     if not warps:
         return boxes
-    lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt == "kitti" else (-0.5, [width - 0.5, height - 0.5])
+    lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt in ("kitti", "voc") else \
+        (-0.5, [width - 0.5, height - 0.5])
     is_box = np.asarray(boxes.is_box, dtype=bool)
     move = lambda xy: forward_through(warps, xy)                                        # noqa: E731
     moved_box = iter(moved_boxes(np.reshape([p for p, b in zip(boxes.points_px, is_box) if b], (-1, 4)), move))
@@ -548,7 +550,7 @@ def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.
         tokens.append(words)
         points.append(pts)
         kinds.append(bool(box))
-    return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds)
+    return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds, boxes.document)
 
 
 def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:

@@ -243,8 +243,10 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
     with pytest.raises(RecipeError, match="weather_class"):
         _recipe({"cnf": "CNF19", "inputs": {"annotations": {"weather_class": {"hail": 3}}}}, tmp_path)
     # box files a user has that boxes_2d cannot read: at validate, not "line 1: 1 values, KITTI label_2 has 15" per file
-    with pytest.raises(RecipeError, match="boxes_2d: .*Pascal VOC XML is not read"):
+    with pytest.raises(RecipeError, match="boxes_2d: .*Pascal VOC XML is read with boxes_2d_format: voc"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml"}}}, tmp_path)
+    assert _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml",
+                                                               "boxes_2d_format": "voc"}}}, tmp_path)
     with pytest.raises(RecipeError, match="boxes_2d: .*goes under annotations.coco"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": {"replace": {".jpg": ".JSON"}}}}}, tmp_path)
     # Cityscapes' polygons next to its label images (round 19): validate passed, then every image failed with "not
@@ -596,6 +598,55 @@ def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     got = np.array(poly[1:], float).reshape(-1, 2)
     assert len(got) == 3
     np.testing.assert_allclose(got[np.lexsort(got.T[::-1])], np.array(sorted(map(tuple, [*cut, c]))), atol=1e-5)
+
+
+VOC_XML = """<?xml version="1.0" encoding="utf-8"?>
+<annotation>
+  <folder>VOC2012</folder><filename>lindau_000001_000019_leftImg8bit.png</filename>
+  <source><database>The VOC2007 Database</database></source>
+  <size><width>80</width><height>60</height><depth>3</depth></size>
+  <segmented>0</segmented>
+  <object><name>person</name><pose>Left</pose><truncated>0</truncated><difficult>0</difficult>
+    <bndbox><xmin>11</xmin><ymin>13</ymin><xmax>41</xmax><ymax>31</ymax></bndbox>
+    <part><name>head</name><bndbox><xmin>20.5</xmin><ymin>14</ymin><xmax>26</xmax><ymax>19</ymax></bndbox></part>
+    <part><name>hand</name><bndbox><xmin>1</xmin><ymin>1</ymin><xmax>3</xmax><ymax>3</ymax></bndbox></part>
+  </object>
+  <object><name>car</name><truncated>1</truncated><bndbox><xmin>1</xmin><ymin>1</ymin><xmax>3</xmax><ymax>2</ymax>
+    </bndbox></object>
+</annotation>
+"""
+
+
+def test_pascal_voc_boxes_and_parts_follow_the_map(cityscapes, tmp_path):
+    """Pascal VOC XML (was refused): object and part boxes (1-based pixel indices) move as KITTI boxes do, integers
+    stay integers, a box pushed off the image drops its part or object, every other element is kept; a file for
+    another image size fails the image naming both sizes."""
+    from xml.etree import ElementTree
+
+    gt = cityscapes / "gtFine/val/lindau"
+    (gt / "lindau_000001_000019_voc.xml").write_text(VOC_XML)
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {"camera": "leftImg8bit/**/*.png",
+                      "annotations": {"boxes_2d": _gt("voc.xml"), "boxes_2d_format": "voc"}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    root = ElementTree.parse(tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_voc.xml").getroot()
+    objects = root.findall("object")
+    assert [o.findtext("name") for o in objects] == ["person"]                    # the car left the image
+    assert [p.findtext("name") for p in objects[0].findall("part")] == ["head"]
+    assert root.findtext("source/database") == "The VOC2007 Database" and root.findtext("size/width") == "80"
+    assert objects[0].findtext("pose") == "Left"
+    model = WarpTestCamera()
+    box = objects[0].find("bndbox")
+    x0, y0 = model.forward(10.0, 12.0, 80, 60)                                   # 1-based index − 1
+    x1, y1 = model.forward(40.0, 30.0, 80, 60)
+    assert [box.findtext(k) for k in ("xmin", "ymin", "xmax", "ymax")] == \
+        [str(int(round(v + 1))) for v in (x0, y0, x1, y1)]
+    head = objects[0].find("part/bndbox")
+    hx0, hy0 = model.forward(19.5, 13.0, 80, 60)
+    assert float(head.findtext("xmin")) == pytest.approx(hx0 + 1, abs=1e-3) and head.findtext("ymin") == \
+        str(int(round(hy0 + 1)))
+    (gt / "lindau_000001_000019_voc.xml").write_text(VOC_XML.replace("<width>80</width>", "<width>800</width>"))
+    assert run(recipe, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None).failed == 1
+    assert "its size is 800×60 px, the image 80×60" in read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
 
 
 def test_a_yolo_image_without_a_label_file_is_an_image_without_objects(cityscapes, tmp_path):

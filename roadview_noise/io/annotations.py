@@ -17,7 +17,8 @@ Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes 
 PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`); a ``.npy`` array
 (labelme's ``SegmentationClassNpy``) as it is.
 
-2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
+2-D boxes: Pascal VOC XML (``object/bndbox`` and ``part`` boxes, 1-based pixel indices, every other element kept),
+KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
 pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
 image size: 0 and 1 are the image edges, i.e. pixel positions −½ and W − ½ with pixel centres at integers).
 
@@ -47,7 +48,7 @@ from .atomic import write_bytes_atomic
 POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "nuscenes_panoptic": None, "npy": None}
 PANOPTIC_CLASS_SCALE = 1000            # nuScenes-panoptic: class · 1000 + instance
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)      # the time stamp written into an .npz: the bytes do not depend on the run
-BOX_2D_FORMATS = ("kitti", "yolo")
+BOX_2D_FORMATS = ("kitti", "yolo", "voc")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
 BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
     "kitti": "KITTI label_2 lines: type truncated occluded alpha left top right bottom h w l x y z rotation_y [score]",
@@ -281,12 +282,68 @@ class Boxes2D:
     KITTI and YOLO boxes as their 2 corners, YOLO polygons as their vertices."""
 
     fmt: str
-    tokens: list[list[str]]
+    tokens: list
     points_px: list[np.ndarray]
     is_box: list[bool]
+    document: bytes = b""          # Pascal VOC: the XML as read (tokens: (object, part or None) of each box)
+
+
+VOC_BOX = ("xmin", "ymin", "xmax", "ymax")
+
+
+def _voc_boxes(path, data: bytes, width: int, height: int) -> Boxes2D:
+    """Pascal VOC XML: each ``object``'s ``bndbox`` and its ``part`` boxes (person layout), 1-based pixel indices
+    (VOC devkit), as pixel positions (centres on integers: index − 1)."""
+    from xml.etree import ElementTree
+
+    try:
+        root = ElementTree.fromstring(data)
+        size = root.find("size")
+        stated = (int(float(size.findtext("width"))), int(float(size.findtext("height")))) if size is not None \
+            else (width, height)
+        tokens, points = [], []
+        for i, obj in enumerate(root.findall("object")):
+            for j, box in [(None, obj.find("bndbox"))] + list(enumerate(b.find("bndbox") for b in obj.findall("part"))):
+                if box is None:
+                    raise ValueError(f"object {i + 1} has a part without a bndbox" if j is not None else
+                                     f"object {i + 1} ({obj.findtext('name')}) has no bndbox")
+                tokens.append((i, j))
+                points.append(np.array([float(box.findtext(k)) for k in VOC_BOX]).reshape(2, 2) - 1.0)
+    except (ElementTree.ParseError, ValueError, TypeError) as exc:
+        raise InputError(f"not a Pascal VOC annotation (annotation/object/bndbox with xmin … ymax): {exc}",
+                         file=str(path)) from None
+    if stated != (width, height):
+        raise InputError(f"its size is {stated[0]}×{stated[1]} px, the image {width}×{height}", file=str(path))
+    return Boxes2D("voc", tokens, points, [True] * len(tokens), data)
+
+
+def _write_voc(path, boxes: Boxes2D) -> None:
+    """The VOC XML as read with each kept box's moved corners (integers when the input's were, else to 1/1000 px)
+    and the objects and parts whose box left the image removed."""
+    from xml.etree import ElementTree
+
+    root = ElementTree.fromstring(boxes.document)
+    objects = root.findall("object")
+    moved = dict(zip(boxes.tokens, boxes.points_px))
+    for i, obj in enumerate(objects):
+        if (i, None) not in moved:
+            root.remove(obj)
+            continue
+        for j, part in [(None, obj)] + list(enumerate(obj.findall("part"))):
+            if (i, j) not in moved:
+                obj.remove(part)
+                continue
+            box = part.find("bndbox")
+            for k, v in zip(VOC_BOX, moved[(i, j)].ravel() + 1.0):
+                whole = box.findtext(k).strip().lstrip("-").isdigit()
+                box.find(k).text = str(int(round(v))) if whole else f"{v:.3f}"
+    head = b'<?xml version="1.0" encoding="utf-8"?>\n' if boxes.document.lstrip().startswith(b"<?xml") else b""
+    write_bytes_atomic(path, head + ElementTree.tostring(root, encoding="utf-8", xml_declaration=False))
 
 
 def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) -> Boxes2D:
+    if fmt == "voc":
+        return _voc_boxes(path, _read(Path(path)), width, height)
     text = _read(Path(path)).decode("utf-8", errors="replace")
     tokens, points, is_box = [], [], []
     for i, line in enumerate(text.splitlines(), 1):
@@ -318,6 +375,8 @@ def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) ->
 
 
 def write_boxes_2d(path: str | os.PathLike, boxes: Boxes2D, width: int, height: int) -> None:
+    if boxes.fmt == "voc":
+        return _write_voc(path, boxes)
     lines = []
     for words, pts, box in zip(boxes.tokens, boxes.points_px, boxes.is_box):
         if boxes.fmt == "kitti":
