@@ -24,7 +24,6 @@ label moved), coordinates to 1/1000 px.
 from __future__ import annotations
 
 import dataclasses
-import json
 import posixpath
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from .coco import CocoRun
 from .coco_warp import DECIMALS, is_identity
 from .dataset import output_relpath
 from .errors import InputError
+from .io.coco import read_dataset_json
 from .physics.outline_warp import clip_polygon, forward_through, moved_boxes, moved_rings
 
 BOX_KEYS = ("x1", "y1", "x2", "y2")
@@ -43,14 +43,7 @@ BOX_KEYS = ("x1", "y1", "x2", "y2")
 
 def read_scalabel(path: Path):
     """The parsed file; InputError names the file and the first frame or label that is not Scalabel's."""
-    try:
-        data = json.loads(Path(path).read_bytes())
-    except FileNotFoundError:
-        raise InputError("the Scalabel file of inputs.annotations.scalabel does not exist", file=str(path)) from None
-    except OSError as exc:
-        raise InputError(f"cannot read the Scalabel file: {exc.strerror or exc}", file=str(path)) from None
-    except ValueError as exc:
-        raise InputError(f"not JSON ({exc})", file=str(path)) from None
+    data = read_dataset_json(path, "Scalabel", "scalabel")
     frames = data.get("frames") if isinstance(data, dict) else data
     if not isinstance(frames, list):
         raise InputError("not a Scalabel / BDD100K label file: neither a list of frames nor {\"frames\": [...]} "
