@@ -61,6 +61,7 @@ CLASS_FIELDS = frozenset({"label", "label_id", "semantic", "semantic_label", "se
 INSTANCE_FIELDS = frozenset({"instance", "instance_id", "inst_label", "objidx", "object_id", "track_id"})
 SCALAR_PREFIX = "scalar_"                 # CloudCompare's PLY export names scalar fields so (Toronto-3D: scalar_Label)
 WEATHERS = ("rain", "snow", "fog", "clutter")
+DATASET_FILES = ("coco", "scalabel", "cvat")   # one annotation file for the whole dataset or split (coco.open_run)
 SEMANTICSTF_INVALID = 20                 # SemanticSTF's adverse-weather ("invalid") class id
 NUSCENES_NOISE = 0                       # nuScenes-lidarseg "noise": dust, fog, rain drops, spray, reflections
 
@@ -207,6 +208,8 @@ class AnnotationsSpec(_Strict):
     coco_image_root: str | None = None       # folder under IN its file_name values are relative to (default: its own)
     scalabel: str | None = None              # one Scalabel / BDD100K JSON for the split (roadview_noise.scalabel)
     scalabel_image_root: str | None = None   # folder under IN its frames' names are relative to (default: its own)
+    cvat: str | None = None                  # one "CVAT for images 1.1" XML for the task (roadview_noise.cvat)
+    cvat_image_root: str | None = None       # folder under IN its images' names are relative to (default: its own)
 
     @field_validator("masks", "polygons", mode="before")
     @classmethod
@@ -219,7 +222,7 @@ class AnnotationsSpec(_Strict):
         from .input_checks import escapes
 
         wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
-                                                                                   "coco", "scalabel")
+                                                                                   *DATASET_FILES)
         for name in wrong:
             if getattr(self, name):
                 raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
@@ -237,12 +240,14 @@ class AnnotationsSpec(_Strict):
                 if any(e.lower().endswith(suffix) for e in _rule_ends(rule)):
                     raise RecipeError(f"masks are PNG/TIFF label images or .npy arrays; {why}",
                                       key=f"inputs.annotations.masks[{k}]")
-        for name in ("coco", "scalabel"):
+        for name in DATASET_FILES:
             if getattr(self, f"{name}_image_root") is not None and getattr(self, name) is None:
                 raise RecipeError(f"{name}_image_root goes with {name}", key=f"inputs.annotations.{name}_image_root")
-        if self.coco is not None and self.scalabel is not None:
-            raise RecipeError("one dataset file per run: coco or scalabel", key="inputs.annotations.scalabel")
-        for name in ("coco", "coco_image_root", "scalabel", "scalabel_image_root"):
+        given = [name for name in DATASET_FILES if getattr(self, name) is not None]
+        if len(given) > 1:
+            raise RecipeError(f"one dataset file per run: {' or '.join(DATASET_FILES)}",
+                              key=f"inputs.annotations.{given[1]}")
+        for name in [k for name in DATASET_FILES for k in (name, f"{name}_image_root")]:
             why = escapes(getattr(self, name) or "")
             if why:
                 raise RecipeError(f"{getattr(self, name)!r} {why}", key=f"inputs.annotations.{name}")

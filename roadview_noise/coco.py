@@ -90,6 +90,10 @@ class CocoRun:
     def read(self, path: Path):
         return coco_io.read_coco(path)
 
+    def write(self, path: Path, data) -> None:
+        """The output file of ``data`` (what :meth:`output` made), atomically."""
+        coco_io.write_coco(path, data)
+
     def images(self, in_root: Path) -> list[tuple[Any, str]]:
         """(id, file name relative to the image root) of each image record, in file order."""
         return [(img["id"], img["file_name"]) for img in self.data["images"]]
@@ -114,19 +118,22 @@ class CocoRun:
     # --- the plan and the results -------------------------------------------------------------------------------
 
     def attach(self, task):
-        """The task with its image's :class:`CocoImage` (unchanged when the file does not list the image)."""
+        """The task with its image's payload (:meth:`payload`; unchanged when the file does not list the image)."""
         pos = self.by_path.get(task.sample.relpath)
         if pos is None:
             if task.variant_index == 0:
                 self.unlisted += 1
                 self.unlisted_examples = (self.unlisted_examples + [task.sample.relpath])[:EXAMPLES]
             return task
+        return dataclasses.replace(task, coco=self.payload(pos))
+
+    def payload(self, pos: int) -> CocoImage:
+        """What the worker needs of the image at ``pos`` (its ``move(shape, warps)`` makes the record)."""
         img = self.data["images"][pos]
         anns = self.data.get("annotations", [])
-        payload = CocoImage(img["id"], str(img["file_name"]), img.get("width"), img.get("height"), self.sha256,
-                            [(i, {k: anns[i][k] for k in GEOMETRY_KEYS if k in anns[i]})
-                             for i in self.annotations_of.get(_key(img["id"]), ())])
-        return dataclasses.replace(task, coco=payload)
+        return CocoImage(img["id"], str(img["file_name"]), img.get("width"), img.get("height"), self.sha256,
+                         [(i, {k: anns[i][k] for k in GEOMETRY_KEYS if k in anns[i]})
+                          for i in self.annotations_of.get(_key(img["id"]), ())])
 
     def keeps(self, task, entry: dict) -> bool:
         """Whether ``--resume`` may keep an earlier entry: it has the record of this file for a listed image (with
@@ -135,9 +142,12 @@ class CocoRun:
         record = entry.get("coco")
         if not listed:
             return record is None
-        # a record of a moved image without its distortion is from a version that did not state it: redone
-        return record is not None and record.get("sha256") == self.sha256 and \
-            ("moved" not in record or "distortion" in record)
+        return record is not None and record.get("sha256") == self.sha256 and self.complete(record)
+
+    def complete(self, record: dict) -> bool:
+        """Whether a kept record is of this version: a COCO record of a moved image without its distortion is from
+        a version that did not state it (redone)."""
+        return "moved" not in record or "distortion" in record
 
     def collect(self, entry: dict) -> None:
         """Take the record of a released entry (fresh or kept), or its failure."""
@@ -203,7 +213,7 @@ class CocoRun:
                         write_bytes_atomic(out_root / out_rel, raw)          # byte for byte, as masks are
                         entry["copied_unchanged"] = True
                     else:
-                        coco_io.write_coco(out_root / out_rel, data or self.data)
+                        self.write(out_root / out_rel, data or self.data)
                 files = [(tmp.relative_to(out_root).as_posix(), final.relative_to(out_root).as_posix())
                          for tmp, final in stage.files]
                 entry.update(status="ok", files=[{"path": f, "sha256": sha256_file(out_root / t)} for t, f in files],
@@ -232,14 +242,18 @@ def _key(image_id: Any) -> Any:
 
 
 def open_run(in_root: Path, recipe) -> CocoRun | None:
-    """The run's dataset file — COCO, or Scalabel / BDD100K (:mod:`.scalabel`) — (RecipeError when it cannot be
-    used), or None when the recipe has none."""
+    """The run's dataset file — COCO, Scalabel / BDD100K (:mod:`.scalabel`) or CVAT for images (:mod:`.cvat`) —
+    (RecipeError when it cannot be used), or None when the recipe has none."""
     spec = recipe.spec.inputs.annotations
     suffixes = [v.suffix for v in recipe.variants]
     if spec.scalabel is not None:
         from .scalabel import ScalabelRun
 
         return ScalabelRun(in_root, spec.scalabel, spec.scalabel_image_root, suffixes)
+    if spec.cvat is not None:
+        from .cvat import CvatRun
+
+        return CvatRun(in_root, spec.cvat, spec.cvat_image_root, suffixes)
     if spec.coco is None:
         return None
     return CocoRun(in_root, spec.coco, spec.coco_image_root, suffixes)

@@ -23,7 +23,6 @@ label moved), coordinates to 1/1000 px.
 
 from __future__ import annotations
 
-import dataclasses
 import posixpath
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from .coco import CocoRun
-from .coco_warp import DECIMALS, is_identity
+from .coco_warp import DECIMALS, moving_warps
 from .dataset import output_relpath
 from .errors import InputError
 from .io.coco import read_dataset_json
@@ -101,21 +100,14 @@ class ScalabelRun(CocoRun):
     def index(self) -> None:
         return None
 
-    def attach(self, task):
-        pos = self.by_path.get(task.sample.relpath)
-        if pos is None:
-            return super().attach(task)                  # counts it as not listed
+    def payload(self, pos: int) -> "ScalabelImage":
         labels = self.frames[pos].get("labels") or []
-        return dataclasses.replace(task, coco=ScalabelImage(
-            pos, self.names[pos], self.sha256,
-            [(j, {k: lab[k] for k in ("id", "box2d", "poly2d") if lab.get(k) is not None})
-             for j, lab in enumerate(labels) if lab.get("box2d") is not None or lab.get("poly2d")]))
+        return ScalabelImage(pos, self.names[pos], self.sha256,
+                             [(j, {k: lab[k] for k in ("id", "box2d", "poly2d") if lab.get(k) is not None})
+                              for j, lab in enumerate(labels) if lab.get("box2d") is not None or lab.get("poly2d")])
 
-    def keeps(self, task, entry: dict) -> bool:
-        record = entry.get("coco")
-        if task.sample.relpath not in self.by_path:
-            return record is None
-        return record is not None and record.get("sha256") == self.sha256
+    def complete(self, record: dict) -> bool:
+        return True                                      # no distortion stated: every record of this file will do
 
     def output(self, variant: int) -> tuple[Any, dict]:
         suffix = self.suffixes[variant]
@@ -158,8 +150,8 @@ class ScalabelImage:
         """The manifest record: ``moved`` [[label position, changed fields], …], ``dropped`` [[position, id], …];
         none when no warp moves anything. InputError names the frame when a label is malformed."""
         h, w = shape
+        warps = moving_warps("Scalabel", self.file_name, (None, None), shape, warps)
         record: dict[str, Any] = {"image_id": self.image_id, "sha256": self.sha256}
-        warps = [wp for wp in warps if not is_identity(wp)]
         if not warps:
             return record
         try:

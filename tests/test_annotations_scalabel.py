@@ -44,15 +44,19 @@ def _frames() -> list:
     ]
 
 
+def two_images(root: Path, folder: str, monkeypatch) -> Path:
+    """IN/<folder>/{a,b}.png, W × H random photos, with the affine test model registered; returns IN."""
+    monkeypatch.setitem(MODELS, AffineCamera.id, AffineCamera)
+    rng = np.random.default_rng(4)
+    for name in ("a", "b"):
+        write_image(root / folder / f"{name}.png", rng.uniform(0, 1, (H, W, 3)).astype(np.float32), ImageEncoding())
+    return root
+
+
 @pytest.fixture
 def bdd_tree(tmp_path: Path, monkeypatch) -> Path:
     """IN/images/100k/val/{a,b}.png and IN/labels/det_20/det_val.json (BDD100K's layout)."""
-    monkeypatch.setitem(MODELS, AffineCamera.id, AffineCamera)
-    root = tmp_path / "in"
-    rng = np.random.default_rng(4)
-    for name in ("a", "b"):
-        write_image(root / "images/100k/val" / f"{name}.png", rng.uniform(0, 1, (H, W, 3)).astype(np.float32),
-                    ImageEncoding())
+    root = two_images(tmp_path / "in", "images/100k/val", monkeypatch)
     (root / "labels/det_20").mkdir(parents=True)
     (root / "labels/det_20/det_val.json").write_text(json.dumps(_frames(), indent=2))
     return root
