@@ -592,9 +592,10 @@ def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
     """A LabelMe file moved through the warps (pixel centres on integers, as labelme rasterises its shapes): a
     polygon as Cityscapes polygons move; a rectangle (two corners) becomes the bounding box of its moved outline,
     clipped to the image; lines, line strips, points and circles (centre, a point on the rim) move point by point,
-    not clipped. A polygon or rectangle left with no area is dropped. ``imageWidth``/``imageHeight`` become the
-    output's; ``imageData`` (the unaugmented image, base64) becomes null, so LabelMe opens the augmented image at
-    ``imagePath``. InputError for a ``mask`` shape (a bitmap of its box: not moved)."""
+    not clipped; a mask (a base64 PNG of its box, placed at the box's first point) is resampled as label images
+    are and cut to the box of what is left. A polygon, rectangle or mask left with nothing is dropped.
+    ``imageWidth``/``imageHeight`` become the output's; ``imageData`` (the unaugmented image, base64) becomes null,
+    so LabelMe opens the augmented image at ``imagePath``. InputError for a shape type not listed here."""
     shapes = data["shapes"]
     kinds = [s.get("shape_type") or "polygon" for s in shapes]
     refused = sorted({k for k in kinds if k not in ann_io.LABELME_SHAPES})
@@ -606,7 +607,7 @@ def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
     rings = iter(moved_rings([p for p, k in zip(pts, kinds) if k == "polygon"], move))
     boxes = iter(moved_boxes(np.reshape([np.r_[p.min(axis=0), p.max(axis=0)] for p, k in zip(pts, kinds)
                                          if k == "rectangle"], (-1, 4)), move))
-    loose = [p for p, k in zip(pts, kinds) if k not in ("polygon", "rectangle")]
+    loose = [p for p, k in zip(pts, kinds) if k not in ("polygon", "rectangle", "mask")]
     moved = iter(np.split(move(np.concatenate(loose)), np.cumsum([len(p) for p in loose])[:-1]) if loose else ())
     kept = []
     for shape, kind in zip(shapes, kinds):
@@ -615,12 +616,37 @@ def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
         elif kind == "rectangle":
             box = np.clip(next(boxes).reshape(2, 2), -0.5, [width - 0.5, height - 0.5])
             points = None if np.any(box[1] - box[0] <= 0) else np.round(box, 3).tolist()
+        elif kind == "mask":
+            shape = _moved_labelme_mask(shape, warps, width, height)
+            points = None if shape is None else shape["points"]
         else:
             points = np.round(next(moved), 3).tolist()
         if points is not None:
             kept.append({**shape, "points": points})
     out = {**data, "shapes": kept, "imageWidth": width, "imageHeight": height}
     return {**out, "imageData": None} if "imageData" in data else out
+
+
+def _moved_labelme_mask(shape: dict, warps, width: int, height: int) -> dict | None:
+    """A LabelMe ``mask`` shape through the warps (labelme places its bitmap at the integer part of the first
+    point): resampled in the whole frame (0 where nothing maps), cut to the box of what is left, written back as a
+    1-bit PNG; None when nothing is left."""
+    import base64
+
+    values = ann_io.read_mask_bytes(base64.b64decode(shape["mask"]), "LabelMe mask").values
+    bitmap = values.any(axis=2) if values.ndim == 3 else values != 0
+    x0, y0 = (int(v) for v in np.asarray(shape["points"][0], dtype=float))
+    frame = np.zeros((height, width), np.uint8)
+    h, w = bitmap.shape[:2]
+    frame[max(y0, 0):y0 + h, max(x0, 0):x0 + w] = bitmap[max(-y0, 0):height - y0, max(-x0, 0):width - x0]
+    for warp in warps:
+        frame = warp.apply_labels(frame, 0)
+    rows, cols = np.flatnonzero(frame.any(axis=1)), np.flatnonzero(frame.any(axis=0))
+    if not len(rows):
+        return None
+    cut = frame[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    return {**shape, "points": [[float(cols[0]), float(rows[0])], [float(cols[-1]), float(rows[-1])]],
+            "mask": base64.b64encode(ann_io.packed_png(cut, 1)).decode("ascii")}
 
 
 # --- objects -------------------------------------------------------------------------------------------------------

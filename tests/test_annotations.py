@@ -754,7 +754,8 @@ def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
     """A LabelMe JSON (shapes with points and shape_type) under ``polygons``: polygons move and are clipped, a
     rectangle becomes the box of its moved outline, lines, points and circles move point by point (closed-form
     oracle), a shape pushed off the image is dropped, imageData (the unaugmented image) becomes null, every other key
-    is kept; a mask shape fails the image naming it; a file for another image size fails naming both sizes."""
+    is kept; a shape type LabelMe does not have fails the image naming it; a file for another image size fails
+    naming both sizes."""
     gt = cityscapes / "gtFine/val/lindau"
     shapes = [{"label": "car", "points": [[10, 12], [40, 12.5], [38, 30], [11, 29]], "group_id": None,
                "shape_type": "polygon", "flags": {}, "description": ""},
@@ -784,15 +785,59 @@ def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
     np.testing.assert_allclose(moved["sign"]["points"], forward(shapes[1]["points"]), atol=2e-3)
     for k in (2, 3, 4):
         np.testing.assert_allclose(moved[shapes[k]["label"]]["points"], forward(shapes[k]["points"]), atol=2e-3)
-    data["shapes"].append({"label": "blob", "points": [[1, 1], [5, 5]], "shape_type": "mask", "mask": "iVBO"})
+    data["shapes"].append({"label": "blob", "points": [[1, 1], [5, 5]], "shape_type": "ellipse"})
     (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
     assert run(recipe, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None).failed == 1
-    assert "shapes of type mask" in read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
+    assert "shapes of type ellipse" in read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
     data["shapes"].pop()
     data["imageWidth"] = 640
     (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
     assert run(recipe, cityscapes, tmp_path / "out3", workers=1, progress=False, echo=lambda *_: None).failed == 1
     assert "640×60 px image" in read_manifest(tmp_path / "out3/manifest.jsonl")[0]["error"]
+
+
+def test_a_labelme_mask_shape_is_resampled_like_a_label_image(cityscapes, tmp_path):
+    """A LabelMe ``mask`` shape (labelme ≥ 5.3: a 1-bit PNG of its box in base64, placed at the box's first point,
+    as in labelme's examples/primitives) goes through the image's map as masks do (nearest neighbour, 0 where
+    nothing maps) and is cut to the box of what is left; one pushed off the image is dropped."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    blob = np.random.default_rng(3).integers(0, 2, (20, 30)).astype(bool)
+    shapes = [{"label": "blob", "points": [[30.6, 20.0], [59.6, 39.0]], "shape_type": "mask", "flags": {},
+               "mask": base64.b64encode(_png_of(blob)).decode()},
+              {"label": "gone", "points": [[0, 0], [1, 1]], "shape_type": "mask",
+               "mask": base64.b64encode(_png_of(np.ones((2, 2), bool))).decode()}]
+    (cityscapes / "gtFine/val/lindau/lindau_000001_000019_labelme.json").write_text(json.dumps(
+        {"version": "5.7.0", "flags": {}, "shapes": shapes, "imagePath": "x.png", "imageData": None,
+         "imageHeight": 60, "imageWidth": 80}))
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("labelme.json")}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    out = json.loads((tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_labelme.json").read_text())
+    assert [s["label"] for s in out["shapes"]] == ["blob"]
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    frame = np.zeros((60, 80), bool)
+    frame[20:40, 30:60] = blob
+    oracle = frame[ys, xs] & inside
+    rows, cols = np.flatnonzero(oracle.any(axis=1)), np.flatnonzero(oracle.any(axis=0))
+    moved = out["shapes"][0]
+    assert moved["points"] == [[cols[0], rows[0]], [cols[-1], rows[-1]]]
+    with Image.open(io.BytesIO(base64.b64decode(moved["mask"]))) as written:
+        assert written.mode == "1"
+        np.testing.assert_array_equal(np.asarray(written), oracle[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1])
+
+
+def _png_of(bitmap: np.ndarray) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(bitmap).save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscapes, tmp_path):

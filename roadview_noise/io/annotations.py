@@ -147,14 +147,19 @@ class Mask:
 
 
 def read_mask(path: str | os.PathLike) -> Mask:
-    from .png import PNG_SIGNATURE                          # here: a LiDAR or radar worker never imports the codecs
-
     data = _read(Path(path))
     if Path(path).suffix.lower() == ".npy":                # labelme's SegmentationClassNpy/, any integer dtype
         try:
             return Mask(np.load(io.BytesIO(data), allow_pickle=False))
         except ValueError as exc:
             raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
+    return read_mask_bytes(data, path)
+
+
+def read_mask_bytes(data: bytes, path) -> Mask:
+    """A PNG/TIFF label image's :class:`Mask` from its bytes (``path`` names it in errors)."""
+    from .png import PNG_SIGNATURE                          # here: a LiDAR or radar worker never imports the codecs
+
     if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_PALETTE:
         return _palette_mask(data, path)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -191,7 +196,7 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
         write_bytes_atomic(path, buf.getvalue())
         return
     if mask.bit_depth:
-        data = _packed_png(mask.values, mask.bit_depth)
+        data = packed_png(mask.values, mask.bit_depth)
     else:
         ok, buf = cv2.imencode(suffix, mask.values)
         if not ok:
@@ -202,7 +207,7 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
     write_bytes_atomic(path, data)
 
 
-def _packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
+def packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
     """A grey PNG of ``bit_depth`` (1, 2, 4) bits per sample: each row's samples packed from the high bit (PNG spec
     §7.2), filter type 0, one IDAT. ValueError names a level the depth cannot hold."""
     from .png import PNG_SIGNATURE
@@ -249,14 +254,13 @@ def _retyped_png(data: bytes, colour_type: int, chunks: tuple[bytes, ...] = ()) 
 # --- polygon files ---------------------------------------------------------------------------------------------
 
 
-LABELME_SHAPES = ("polygon", "rectangle", "circle", "line", "linestrip", "point", "points")   # moved (not "mask")
+LABELME_SHAPES = ("polygon", "rectangle", "circle", "line", "linestrip", "point", "points", "mask")   # moved
 
 
 def read_polygons(path: str | os.PathLike) -> dict:
     """A per-image polygon JSON: Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 — ``objects``, each
     with a ``polygon`` of [x, y] pixel positions (pixel centres on integers) — or LabelMe — ``shapes``, each with
-    ``points`` and a ``shape_type`` (polygon, rectangle, circle, line, linestrip, point; ``mask`` shapes are read
-    but not moved) —; every key kept."""
+    ``points`` and a ``shape_type`` (polygon, rectangle, circle, line, linestrip, point, mask) —; every key kept."""
     try:
         data = json.loads(_read(Path(path)))
         key, points = ("shapes", "points") if isinstance(data, dict) and "shapes" in data else ("objects", "polygon")
