@@ -621,13 +621,22 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
     return PreviousRun(manifest)
 
 
+def _turned_dng(path: Path) -> bool:
+    """A DNG whose Orientation turns it (an entry without ``inputs.orientation`` for it is from before round 21,
+    which processed it as stored)."""
+    from .io.raw import dng_orientation
+
+    return path.suffix.lower() == ".dng" and dng_orientation(path) != 1
+
+
 def _still_valid(ctx: RunContext, task: Task, entry: dict) -> bool:
     """A previous entry ``--resume`` can keep: same variant, same input (and depth) bytes, files intact."""
     if entry.get("variant_index") != task.variant_index or entry.get("input") != task.sample.relpath:
         return False
     turned = (entry.get("inputs") or {}).get("orientation")
-    if turned and turned["processed"] != "upright" and ctx.recipe.spec.inputs.orientation == "upright":
-        return False                  # a photo stored turned, processed as stored before round 20: redone upright
+    if ctx.recipe.spec.inputs.orientation == "upright" and (turned["processed"] != "upright" if turned else
+                                                            _turned_dng(ctx.in_root / task.sample.relpath)):
+        return False     # a photo stored turned, processed as stored before round 20 (a DNG: 21): redone upright
     try:
         if sha256_file(ctx.in_root / task.sample.relpath) != entry.get("input_sha256"):
             return False

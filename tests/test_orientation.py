@@ -311,7 +311,8 @@ def test_a_cfa_pattern_turns_with_its_mosaic(turn, shape):
 def test_a_dng_is_processed_upright_by_its_orientation_tag(tmp_path, monkeypatch, turn):
     """A DNG whose IFD0 Orientation turns it for display (a camera held sideways) is processed upright — the mosaic
     with its CFA pattern and depth — and written back as stored with its tag: the output is the upright DNG's
-    output turned back (CNF05: fog, then windscreen distortion). Before round 21 a DNG was processed as stored."""
+    output turned back (CNF05: fog, then windscreen distortion). Before round 21 a DNG was processed as stored:
+    ``--resume`` redoes such an output (its entry has no ``inputs.orientation``)."""
     import tifffile
 
     from roadview_noise.io.image import read_exr_channels, write_exr_channels
@@ -348,3 +349,12 @@ def test_a_dng_is_processed_upright_by_its_orientation_tag(tmp_path, monkeypatch
         assert tif.pages[0].tags[274].value == turn
     entry = read_manifest(tmp_path / "out_turned/manifest.jsonl")[0]
     assert entry["inputs"]["orientation"] == {"exif": turn, "processed": "upright"}
+    kw = {"workers": 1, "progress": False, "echo": lambda *_: None, "resume": True}
+    assert run(recipe, tmp_path / "turned", tmp_path / "out_turned", **kw).skipped == 1
+    manifest = tmp_path / "out_turned/manifest.jsonl"            # as an earlier version wrote it: no orientation
+    lines = [json.loads(line) for line in manifest.read_text().splitlines()]
+    for e in lines:
+        e.get("inputs", {}).pop("orientation", None)
+    manifest.write_text("".join(json.dumps(e) + "\n" for e in lines))
+    summary = run(recipe, tmp_path / "turned", tmp_path / "out_turned", **kw)
+    assert summary.skipped == 0 and summary.done == 1                 # redone upright

@@ -157,6 +157,16 @@ _LIBRAW_WORDS = {
 }
 
 
+def dng_orientation(path: str | os.PathLike) -> int:
+    """A DNG's IFD0 Orientation (1–8; 1 when absent, invalid or the file unreadable): IFD0 only, no pixels read."""
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tag = tif.pages[0].tags.get(274)
+            return int(tag.value) if tag is not None and 1 <= int(tag.value) <= 8 else 1
+    except Exception:                              # tifffile raises many types for a damaged directory
+        return 1
+
+
 def check_dng_structure(path: str | os.PathLike) -> dng_layout.DngLayout:
     """The raw image's layout (:func:`.dng_layout.inspect`); :class:`InputError` for a file that is not
     TIFF-structured, whose image data (of any IFD or sub-IFD) ends beyond the end of the file, or that rvnoise
