@@ -16,6 +16,11 @@ to ``scalabel_image_root/<videoName>``; BDD100K's tracking sets), ``labels`` (a 
   removed); an open polyline (a lane) or one with Bézier control points (``C``) moves vertex by vertex, not clipped
   (a Bézier's control points through the map: exact for an affine map, close for a mild distortion), its types kept.
 
+- ``rle`` ``{counts, size}`` (BDD100K's instance and panoptic segmentation, COCO's compressed RLE): decoded,
+  resampled through the map as label images are (0 where nothing maps), encoded again; removed when empty.
+- ``graph`` (BDD100K pose keypoints): not moved; a frame that has one fails under a geometric step, named.
+  ``box3d`` (camera coordinates, metres) is kept, as COCO's ``bbox_cam3d``.
+
 A label that had geometry and has none left is dropped (its id recorded in the manifest, as COCO's). Every other key
 of the file, the frames and the labels is kept as read; the output is compact UTF-8 JSON (the input's bytes when no
 label moved), coordinates to 1/1000 px.
@@ -34,15 +39,16 @@ from .coco import CocoRun
 from .coco_warp import DECIMALS, moving_warps
 from .dataset import output_relpath
 from .errors import InputError
-from .io.coco import read_dataset_json
+from .io import coco as coco_io
 from .physics.outline_warp import clip_polygon, forward_through, moved_boxes, moved_rings
 
 BOX_KEYS = ("x1", "y1", "x2", "y2")
+GEOMETRY = ("box2d", "poly2d", "rle", "graph")          # label keys in image coordinates (module docstring)
 
 
 def read_scalabel(path: Path):
     """The parsed file; InputError names the file and the first frame or label that is not Scalabel's."""
-    data = read_dataset_json(path, "Scalabel", "scalabel")
+    data = coco_io.read_dataset_json(path, "Scalabel", "scalabel")
     frames = data.get("frames") if isinstance(data, dict) else data
     if not isinstance(frames, list):
         raise InputError("not a Scalabel / BDD100K label file: neither a list of frames nor {\"frames\": [...]} "
@@ -103,8 +109,8 @@ class ScalabelRun(CocoRun):
     def payload(self, pos: int) -> "ScalabelImage":
         labels = self.frames[pos].get("labels") or []
         return ScalabelImage(pos, self.names[pos], self.sha256,
-                             [(j, {k: lab[k] for k in ("id", "box2d", "poly2d") if lab.get(k) is not None})
-                              for j, lab in enumerate(labels) if lab.get("box2d") is not None or lab.get("poly2d")])
+                             [(j, {k: lab[k] for k in ("id", *GEOMETRY) if lab.get(k) is not None})
+                              for j, lab in enumerate(labels) if any(lab.get(k) for k in GEOMETRY)])
 
     def complete(self, record: dict) -> bool:
         return True                                      # no distortion stated: every record of this file will do
@@ -154,6 +160,9 @@ class ScalabelImage:
         record: dict[str, Any] = {"image_id": self.image_id, "sha256": self.sha256}
         if not warps:
             return record
+        if any("graph" in lab for _, lab in self.labels):
+            raise InputError(f"frame {self.file_name!r} has pose graphs (graph), which a geometric step does not "
+                             "move; use a photometric chain for it")
         try:
             return {**record, **_moved_labels(self.labels, warps, w, h)}
         except (ValueError, TypeError, KeyError) as exc:
@@ -195,6 +204,15 @@ def _moved_labels(labels: list[tuple[int, dict]], warps, width: int, height: int
                     out.append({**poly, "vertices": _rounded(next(moved_line))})
             kept += len(out)
             fields["poly2d"] = out
+        if "rle" in lab:
+            mask = coco_io.rle_decode(lab["rle"])
+            if mask.shape != (height, width):
+                raise ValueError(f"rle size {lab['rle'].get('size')} is not the image's [{height}, {width}]")
+            for warp in warps:
+                mask = warp.apply_labels(mask, 0)
+            kept += bool(mask.any())
+            fields["rle"] = {**lab["rle"], **coco_io.rle_encode(mask, compressed=not isinstance(lab["rle"]["counts"],
+                                                                                                list))}
         if kept:
             moved.append([pos, fields])
         else:

@@ -13,6 +13,7 @@ import pytest
 from test_annotations import WarpTestCamera as AffineCamera
 
 from roadview_noise.errors import RecipeError
+from roadview_noise.io import coco as coco_io
 from roadview_noise.io.image import write_image
 from roadview_noise.manifest import read_manifest
 from roadview_noise.recipe import parse_recipe
@@ -23,6 +24,11 @@ from roadview_noise.types import ImageEncoding
 W, H = 80, 60
 DRIVABLE = [[20.0, 20.0], [34.5, 18.25], [40.0, 30.0], [22.0, 33.0]]
 LANE = [[78.0, 59.0], [30.0, 35.0], [33.0, 31.0], [35.0, 29.0]]
+
+
+MASK = np.zeros((H, W), np.uint8)
+MASK[30:50, 40:70] = 1
+RLE = coco_io.rle_encode(MASK, compressed=True)          # BDD100K ins_seg: COCO's compressed RLE under "rle"
 
 
 def _frames() -> list:
@@ -37,7 +43,8 @@ def _frames() -> list:
              {"id": "3", "category": "lane", "attributes": {"laneDirection": "parallel"},
               "poly2d": [{"vertices": LANE, "types": "LCCC", "closed": False}]},
              {"id": "4", "category": "pedestrian", "box2d": {"x1": 0.0, "y1": 0.0, "x2": 2.0, "y2": 2.0}},
-             {"id": "5", "category": "traffic sign"}]},
+             {"id": "5", "category": "traffic sign"},
+             {"id": "6", "category": "car", "rle": RLE}]},
         {"name": "b.png", "labels": None},
         {"name": "gone.png", "labels": [{"id": "9", "category": "car",
                                          "box2d": {"x1": 1.0, "y1": 1.0, "x2": 3.0, "y2": 3.0}}]},
@@ -88,7 +95,7 @@ def test_boxes_polygons_and_lanes_follow_the_map_and_every_other_key_is_kept(bdd
     a_in, a_out = frames[0], out[0]
     assert {k: v for k, v in a_out.items() if k != "labels"} == {k: v for k, v in a_in.items() if k != "labels"}
     labels = {lab["id"]: lab for lab in a_out["labels"]}
-    assert list(labels) == ["1", "2", "3", "5"]                  # the pedestrian box left the image: dropped
+    assert list(labels) == ["1", "2", "3", "5", "6"]             # the pedestrian box left the image: dropped
     car = labels["1"]
     assert {k: v for k, v in car.items() if k != "box2d"} == \
         {k: v for k, v in a_in["labels"][0].items() if k != "box2d"}
@@ -103,6 +110,12 @@ def test_boxes_polygons_and_lanes_follow_the_map_and_every_other_key_is_kept(bdd
     assert moved[0, 0] > W - 0.5                                   # a lane vertex leaves the image: not clipped
     np.testing.assert_allclose(lane["vertices"], moved, atol=2e-3)
     assert labels["5"] == a_in["labels"][4]                      # no geometry: as read
+    warp = AffineCamera().warp(type("Frame", (), {"shape": (H, W)})(), state={}, drawn={})
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    inside = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
+    np.testing.assert_array_equal(coco_io.rle_decode(labels["6"]["rle"]),
+                                  np.where(inside, MASK[np.clip(ys, 0, H - 1), np.clip(xs, 0, W - 1)], 0))
+    assert isinstance(labels["6"]["rle"]["counts"], str)
     entries = {e["output"]: e for e in read_manifest(tmp_path / "out/manifest.jsonl")}
     record = entries["images/100k/val/a.png"]["coco"]
     assert record["dropped"] == [[3, "4"]]
@@ -129,6 +142,8 @@ def test_a_photometric_chain_copies_the_file_and_frames_wrappers_are_read(bdd_tr
 
 
 def test_what_is_not_a_scalabel_file_is_refused_naming_it(bdd_tree, tmp_path):
+    """A COCO file, a box without its corners: refused before the run; a pose graph under a geometric step fails
+    its frame (a photometric chain copies it)."""
     src = bdd_tree / "labels/det_20/det_val.json"
     src.write_text(json.dumps({"images": [], "annotations": []}))
     with pytest.raises(RecipeError, match="not a Scalabel / BDD100K label file.*annotations.coco"):
@@ -138,5 +153,11 @@ def test_what_is_not_a_scalabel_file_is_refused_naming_it(bdd_tree, tmp_path):
     src.write_text(json.dumps(frames))
     with pytest.raises(RecipeError, match=r"frames\[0\] labels\[0\].box2d is not"):
         _run(_recipe("warp_test.camera", tmp_path), bdd_tree, tmp_path / "out")
+    frames = _frames()
+    frames[0]["labels"].append({"id": "7", "category": "pedestrian", "graph": {"nodes": [], "edges": []}})
+    src.write_text(json.dumps(frames))
+    assert _run(_recipe("warp_test.camera", tmp_path), bdd_tree, tmp_path / "out5").failed == 1
+    assert any("pose graphs (graph)" in e.get("error", "") for e in read_manifest(tmp_path / "out5/manifest.jsonl"))
+    assert _run(_recipe("compression.camera", tmp_path), bdd_tree, tmp_path / "out6").failed == 0
     with pytest.raises(RecipeError, match="one dataset file per run"):
         _recipe("warp_test.camera", tmp_path, coco="x.json")
