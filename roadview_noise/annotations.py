@@ -634,19 +634,30 @@ def _moved_labelme_mask(shape: dict, warps, width: int, height: int) -> dict | N
     import base64
 
     values = ann_io.read_mask_bytes(base64.b64decode(shape["mask"]), "LabelMe mask").values
-    bitmap = values.any(axis=2) if values.ndim == 3 else values != 0
     x0, y0 = (int(v) for v in np.asarray(shape["points"][0], dtype=float))
+    moved = moved_bitmap(values.any(axis=2) if values.ndim == 3 else values != 0, x0, y0, warps, width, height)
+    if moved is None:
+        return None
+    cut, left, top = moved
+    return {**shape, "points": [[float(left), float(top)], [float(left + cut.shape[1] - 1),
+                                                             float(top + cut.shape[0] - 1)]],
+            "mask": base64.b64encode(ann_io.packed_png(cut, 1)).decode("ascii")}
+
+
+def moved_bitmap(bitmap: np.ndarray, left: int, top: int, warps, width: int, height: int):
+    """A bitmap (h, w) of a box whose first pixel is (left, top), placed in the frame (cut at its edges), resampled
+    through the warps as label images are (0 where nothing maps) and cut to the box of what is left: ``(cut uint8,
+    left, top)``, or None when nothing is left (LabelMe and CVAT mask shapes)."""
     frame = np.zeros((height, width), np.uint8)
     h, w = bitmap.shape[:2]
-    frame[max(y0, 0):y0 + h, max(x0, 0):x0 + w] = bitmap[max(-y0, 0):height - y0, max(-x0, 0):width - x0]
+    frame[max(top, 0):top + h, max(left, 0):left + w] = \
+        bitmap[max(-top, 0):height - top, max(-left, 0):width - left]
     for warp in warps:
         frame = warp.apply_labels(frame, 0)
     rows, cols = np.flatnonzero(frame.any(axis=1)), np.flatnonzero(frame.any(axis=0))
     if not len(rows):
         return None
-    cut = frame[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
-    return {**shape, "points": [[float(cols[0]), float(rows[0])], [float(cols[-1]), float(rows[-1])]],
-            "mask": base64.b64encode(ann_io.packed_png(cut, 1)).decode("ascii")}
+    return frame[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1], int(cols[0]), int(rows[0])
 
 
 # --- objects -------------------------------------------------------------------------------------------------------

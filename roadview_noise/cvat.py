@@ -12,8 +12,10 @@ xbr − xtl, ybr − ytl`` as the box), written with two decimals:
 - ``polygon`` (``points="x,y;x,y;…"``): moved as COCO polygons (edges split where bent), clipped to the image;
   removed with no area left.
 - ``polyline`` and ``points``: point by point, not clipped.
-- ``tag``: kept. ``ellipse``, ``mask``, ``cuboid``, ``skeleton``: an image that has one fails under a geometric step
-  (named), since they are not moved; a photometric chain copies the file byte for byte.
+- ``mask`` (``rle`` run lengths over its box, row by row, starting with a run of 0; ``left top width height``):
+  placed in the frame, resampled as label images are (0 where nothing maps) and cut to the box of what is left.
+- ``tag``: kept. ``ellipse``, ``cuboid``, ``skeleton``: an image that has one fails under a geometric step (named),
+  since they are not moved; a photometric chain copies the file byte for byte.
 
 Every other element and attribute (``meta``, ``attribute`` children, ``occluded``, ``z_order``, ``source`` …) is kept.
 """
@@ -29,12 +31,13 @@ import numpy as np
 
 from .coco import CocoRun
 from .coco_warp import moving_warps
+from .annotations import moved_bitmap
 from .errors import InputError
 from .io.atomic import write_bytes_atomic
 from .physics.outline_warp import clip_polygon, forward_through, moved_boxes, moved_rings
 
 BOX = ("xtl", "ytl", "xbr", "ybr")
-MOVED = ("box", "polygon", "polyline", "points")
+MOVED = ("box", "polygon", "polyline", "points", "mask")
 KEPT = ("tag",)
 
 
@@ -153,6 +156,23 @@ def _text(points: np.ndarray) -> str:
     return ";".join(f"{x:.2f},{y:.2f}" for x, y in np.round(points, 2) + 0.0)
 
 
+def _moved_mask(attributes: dict, warps, width: int, height: int) -> dict | None:
+    """A CVAT mask's ``rle``, ``left``, ``top``, ``width``, ``height`` after the warps (None: nothing left)."""
+    x0, y0, w, h = (int(float(attributes[k])) for k in ("left", "top", "width", "height"))
+    runs = np.array([int(v) for v in attributes["rle"].split(",")], dtype=np.int64)
+    if runs.sum() != w * h:
+        raise ValueError(f"mask rle covers {runs.sum()} pixels, its box {w}×{h}")
+    moved = moved_bitmap(np.repeat(np.arange(len(runs), dtype=np.uint8) & 1, runs).reshape(h, w), x0, y0, warps,
+                         width, height)
+    if moved is None:
+        return None
+    cut, left, top = moved
+    flat = cut.ravel()
+    runs = np.diff(np.concatenate([[0], np.flatnonzero(np.diff(flat)) + 1, [flat.size]])).tolist()
+    return {"rle": ", ".join(map(str, [0] + runs if flat[0] else runs)), "left": str(left), "top": str(top),
+            "width": str(cut.shape[1]), "height": str(cut.shape[0])}
+
+
 def _moved_shapes(shapes: list[tuple[int, str, dict]], warps, width: int, height: int) -> dict:
     """Every box, polygon, polyline and point set of an image through the warps in one batch each."""
     move = lambda xy: forward_through(warps, xy, shift_px=0.5)                          # noqa: E731
@@ -162,11 +182,13 @@ def _moved_shapes(shapes: list[tuple[int, str, dict]], warps, width: int, height
     loose = [_points(a["points"]) for _, t, a in shapes if t in ("polyline", "points")]
     lines = iter(np.split(move(np.concatenate(loose)), np.cumsum([len(p) for p in loose])[:-1]) if loose else ())
     moved, dropped = [], []
-    for k, tag, _ in shapes:
+    for k, tag, attributes in shapes:
         if tag == "box":
             box = np.clip(next(boxes), 0, [width, height, width, height])
             attrs = None if box[2] <= box[0] or box[3] <= box[1] else \
                 {key: f"{v:.2f}" for key, v in zip(BOX, np.round(box, 2) + 0.0)}
+        elif tag == "mask":
+            attrs = _moved_mask(attributes, warps, width, height)
         elif tag == "polygon":
             ring = clip_polygon(next(rings), width, height)
             attrs = None if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0) else \

@@ -1,6 +1,6 @@
 """A "CVAT for images 1.1" XML (one file for a task) through camera chains: boxes and polygons follow the geometric
 step's map (closed-form oracle of the affine test model, COCO-like coordinates), polylines and points move point by
-point, every other element and attribute is kept; a photometric chain copies the file byte for byte; a shape that
+point, masks are resampled as label images, every other element and attribute is kept; a photometric chain copies the file byte for byte; a shape that
 is not moved (ellipse) fails its image naming it."""
 
 from __future__ import annotations
@@ -31,6 +31,8 @@ CVAT_XML = """<?xml version="1.0" encoding="utf-8"?>
     <polyline label="lane" source="manual" occluded="0" points="78.00,59.00;30.00,35.00;33.00,31.00" z_order="0"/>
     <points label="light" source="manual" occluded="0" points="44.00,7.00" z_order="0"/>
     <box label="sign" source="manual" occluded="1" xtl="0.00" ytl="0.00" xbr="2.00" ybr="2.00" z_order="0"/>
+    <mask label="puddle" source="semi-auto" occluded="0" rle="0, 3, 2, 1, 4, 2, 1, 3, 2" left="50" top="40" width="3"
+          height="6" z_order="1"/>
     <tag label="daytime" source="manual"/>
   </image>
   <image id="1" name="frames/b.png" width="80" height="60"/>
@@ -70,7 +72,7 @@ def test_boxes_polygons_lines_and_points_follow_the_map(cvat_tree, tmp_path):
     source = ElementTree.fromstring(CVAT_XML)
     assert ElementTree.tostring(root.find("meta")) == ElementTree.tostring(source.find("meta"))
     a, b, gone = root.findall("image")
-    assert [s.tag for s in a] == ["box", "polygon", "polyline", "points", "tag"]      # the sign left the image
+    assert [s.tag for s in a] == ["box", "polygon", "polyline", "points", "mask", "tag"]  # the sign left the image
     box = a.find("box")
     assert box.find("attribute").text == "red" and box.get("occluded") == "0" and box.get("label") == "car"
     np.testing.assert_allclose([float(box.get(k)) for k in ("xtl", "ytl", "xbr", "ybr")],
@@ -81,6 +83,22 @@ def test_boxes_polygons_lines_and_points_follow_the_map(cvat_tree, tmp_path):
     assert line[0, 0] > W                                                     # not clipped
     np.testing.assert_allclose(_pts(a.find("polyline").get("points")), line, atol=6e-3)
     np.testing.assert_allclose(_pts(a.find("points").get("points")), _forward([[44.0, 7.0]]), atol=6e-3)
+    runs = [0, 3, 2, 1, 4, 2, 1, 3, 2]                                           # the mask: row by row over 3 × 6
+    frame = np.zeros((H, W), np.uint8)
+    frame[40:46, 50:53] = np.repeat(np.arange(len(runs)) & 1, runs).reshape(6, 3)
+    warp = AffineCamera().warp(type("Frame", (), {"shape": (H, W)})(), state={}, drawn={})
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    inside = (xs >= 0) & (xs < W) & (ys >= 0) & (ys < H)
+    oracle = np.where(inside, frame[np.clip(ys, 0, H - 1), np.clip(xs, 0, W - 1)], 0)
+    mask = a.find("mask")
+    left, top, w, h = (int(mask.get(k)) for k in ("left", "top", "width", "height"))
+    got = np.zeros((H, W), np.uint8)
+    runs = [int(v) for v in mask.get("rle").split(",")]
+    got[top:top + h, left:left + w] = np.repeat(np.arange(len(runs)) & 1, runs).reshape(h, w)
+    np.testing.assert_array_equal(got, oracle)
+    rows, cols = np.flatnonzero(oracle.any(axis=1)), np.flatnonzero(oracle.any(axis=0))
+    assert (left, top, w, h) == (cols[0], rows[0], cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1)
+    assert mask.get("source") == "semi-auto" and mask.get("z_order") == "1"
     assert ElementTree.tostring(b) == ElementTree.tostring(source.findall("image")[1])
     assert ElementTree.tostring(gone) == ElementTree.tostring(source.findall("image")[2])   # not in the run
     entry = next(e for e in read_manifest(tmp_path / "out/manifest.jsonl") if e["output"] == "annotations.xml")
