@@ -102,9 +102,13 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
         photometric, icc, extras = None, icc_profile(data, fmt), ()
         metadata = image_metadata.png_chunks(data) if fmt == "png" else image_metadata.jfif_density(data)
     alpha_tiff = fmt == "tiff" and len(extras) == 1 and photometric in _TIFF_ALPHA_PHOTOMETRICS
-    codes = _tiff_with_alpha(data) if alpha_tiff else decode_codes(data, fmt, source=source, photometric=photometric)
-    if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE and not alpha_tiff:
-        codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
+    codes = _tiff_with_alpha(data) if alpha_tiff else None
+    if codes is None:
+        codes = decode_codes(data, fmt, source=source, photometric=photometric)
+        if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
+            codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
+        if alpha_tiff and extras[0] == tifffile.EXTRASAMPLE.UNASSALPHA:
+            codes = _unpremultiplied(codes)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
     transfer = "srgb" if fmt == "jpeg" else image_metadata.stated_transfer(fmt, metadata, icc) or untagged_transfer
     linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc,
@@ -159,18 +163,32 @@ def _tiff_as_stored(codes: np.ndarray, turn: int, tiled: bool, source) -> np.nda
 _TIFF_ALPHA_PHOTOMETRICS = (tifffile.PHOTOMETRIC.RGB, tifffile.PHOTOMETRIC.MINISBLACK)
 
 
-def _tiff_with_alpha(data: bytes) -> np.ndarray:
+def _tiff_with_alpha(data: bytes) -> np.ndarray | None:
     """RGBA codes of an RGB or grey TIFF with one alpha sample, as stored (tifffile): OpenCV (libtiff's RGBA read)
     multiplies 8-bit colours by an unassociated alpha — a half-transparent pixel came out half as bright — and turns
-    the pixels by the orientation tag. Grey + alpha becomes RGBA, as a grey + alpha PNG does."""
-    with tifffile.TiffFile(io.BytesIO(data)) as tif:
-        page = tif.pages[0]
-        codes = page.asarray()
-        if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
-            codes = np.moveaxis(codes, 0, -1)
+    the pixels by the orientation tag. Grey + alpha becomes RGBA, as a grey + alpha PNG does. None when tifffile
+    cannot decode it (LZW and JPEG need the ``imagecodecs`` package): OpenCV's then, :func:`_unpremultiplied`."""
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            page = tif.pages[0]
+            codes = page.asarray()
+            if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
+                codes = np.moveaxis(codes, 0, -1)
+    except Exception:                                  # a codec tifffile lacks; several exception types
+        return None
     if codes.shape[-1] == 2:
         codes = codes[..., [0, 0, 0, 1]]
     return np.ascontiguousarray(codes)
+
+
+def _unpremultiplied(codes: np.ndarray) -> np.ndarray:
+    """8-bit RGBA codes OpenCV multiplied by their unassociated alpha (libtiff: round(c · a / 255)) divided back,
+    to within 255 / (2a) codes (exact at full alpha; a colour under alpha 0 is lost); 16-bit ones it leaves."""
+    if codes.dtype != np.uint8 or codes.ndim != 3 or codes.shape[2] != 4:
+        return codes
+    alpha = codes[..., 3:].astype(np.float32)
+    colour = np.where(alpha > 0, np.rint(codes[..., :3] * (np.float32(255) / np.maximum(alpha, 1))), 0)
+    return np.concatenate([np.clip(colour, 0, 255).astype(np.uint8), codes[..., 3:]], axis=2)
 
 
 def _palette_tiff_rgb(data: bytes) -> np.ndarray:

@@ -216,6 +216,25 @@ def test_a_tiff_alpha_keeps_its_colours_and_kind(tmp_path, extra, dtype, turn):
         np.testing.assert_array_equal(tif.pages[0].asarray(), rgba)
 
 
+def test_an_lzw_rgba_tiff_tifffile_cannot_decode_is_unpremultiplied(tmp_path):
+    """Without imagecodecs tifffile decodes no LZW: such an RGBA TIFF (Pillow's tiff_16bit_RGBa.tiff; Pillow's own
+    RGBA files, ExtraSamples 2) is OpenCV's, whose 8-bit colours under alpha a are divided back to within
+    255 / (2a) codes (they came out multiplied by a / 255: 100 at alpha 128 written 50)."""
+    rgba = np.zeros((30, 40, 4), np.uint8)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2] = 100, 200, 30
+    rgba[..., 3] = np.linspace(8, 255, 40).astype(np.uint8)
+    src, dst = tmp_path / "in.tif", tmp_path / "out.tif"
+    Image.fromarray(rgba, "RGBA").save(src, compression="tiff_lzw")
+    linear, enc, alpha = read_image(src)
+    write_image(dst, linear, enc, alpha)
+    with Image.open(dst) as out:
+        written = np.asarray(out)
+    np.testing.assert_array_equal(written[..., 3], rgba[..., 3])
+    tolerance = np.ceil(255 / (2 * rgba[..., 3:].astype(float)))
+    assert np.all(np.abs(written[..., :3].astype(int) - rgba[..., :3]) <= tolerance)
+    assert np.array_equal(written[:, -1, :3], rgba[:, -1, :3])               # full alpha: exact
+
+
 def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
     """OpenCV decodes 8-bit JPEGs only: a 12-bit one (libjpeg-turbo's monkey12.jpg; medical and some industrial
     cameras) failed as "corrupt or unsupported variant"."""
