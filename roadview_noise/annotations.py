@@ -46,7 +46,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
 from .errors import InputError
 from .io import annotations as ann_io
@@ -62,6 +62,7 @@ INSTANCE_FIELDS = frozenset({"instance", "instance_id", "inst_label", "objidx", 
 SCALAR_PREFIX = "scalar_"                 # CloudCompare's PLY export names scalar fields so (Toronto-3D: scalar_Label)
 WEATHERS = ("rain", "snow", "fog", "clutter")
 DATASET_FILES = ("coco", "scalabel", "cvat")   # one annotation file for the whole dataset or split (coco.open_run)
+UNSET_LEFT_OUT = ("scalabel", "scalabel_image_root", "cvat", "cvat_image_root")   # round 21's keys (AnnotationsSpec)
 SEMANTICSTF_INVALID = 20                 # SemanticSTF's adverse-weather ("invalid") class id
 NUSCENES_NOISE = 0                       # nuScenes-lidarseg "noise": dust, fog, rain drops, spray, reflections
 
@@ -139,6 +140,8 @@ def mask_fill(rule, spec: "AnnotationsSpec", relpath: str, mask: ann_io.Mask) ->
         raise InputError(f"fill {fill} of mask {relpath} does not fit its values (0 … {top}); give the mask a fill "
                          "it can hold", file=relpath)
     return fill
+
+
 BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
     ".xml": "Pascal VOC XML is read with boxes_2d_format: voc",
     ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco, a BDD100K / Scalabel JSON (one "
@@ -210,6 +213,16 @@ class AnnotationsSpec(_Strict):
     scalabel_image_root: str | None = None   # folder under IN its frames' names are relative to (default: its own)
     cvat: str | None = None                  # one "CVAT for images 1.1" XML for the task (roadview_noise.cvat)
     cvat_image_root: str | None = None       # folder under IN its images' names are relative to (default: its own)
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler) -> dict[str, Any]:
+        """Keys added since round 21 are left out while unset, so run.json and the recipe's sha256 (``--resume``)
+        stay those of a recipe written before they existed."""
+        d = handler(self)
+        for key in UNSET_LEFT_OUT:
+            if d.get(key) is None:
+                d.pop(key, None)
+        return d
 
     @field_validator("masks", "polygons", mode="before")
     @classmethod

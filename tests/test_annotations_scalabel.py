@@ -161,3 +161,17 @@ def test_what_is_not_a_scalabel_file_is_refused_naming_it(bdd_tree, tmp_path):
     assert _run(_recipe("compression.camera", tmp_path), bdd_tree, tmp_path / "out6").failed == 0
     with pytest.raises(RecipeError, match="one dataset file per run"):
         _recipe("warp_test.camera", tmp_path, coco="x.json")
+
+
+def test_unset_dataset_file_keys_leave_the_recorded_recipe_as_it_was():
+    """``scalabel``, ``cvat`` and their image roots, unset, are left out of run.json and the recipe's sha256, so
+    ``--resume`` continues a run made before round 21 (CNF05's sha256 as round 20 recorded it)."""
+    from roadview_noise.recipe import load_recipe
+
+    recipe = load_recipe(Path(__file__).resolve().parents[1] / "recipes/cnf05.yaml")
+    annotations = recipe.resolved_dict()["inputs"]["annotations"]
+    assert not {"scalabel", "scalabel_image_root", "cvat", "cvat_image_root"} & set(annotations)
+    assert recipe.sha256() == "f2e709bc464ec5e5ad151d322a5277d73ab20057b91f4fbca77916265368f71b"
+    given = parse_recipe({"schema": "rvnoise.recipe/1", "chain": [{"model": "fog.camera"}],
+                          "inputs": {"camera": "*.png", "annotations": {"scalabel": "det.json"}}})
+    assert given.resolved_dict()["inputs"]["annotations"]["scalabel"] == "det.json"
