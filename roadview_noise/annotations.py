@@ -46,7 +46,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, Literal, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 
 from .errors import InputError
 from .io import annotations as ann_io
@@ -61,6 +61,8 @@ CLASS_FIELDS = frozenset({"label", "label_id", "semantic", "semantic_label", "se
 INSTANCE_FIELDS = frozenset({"instance", "instance_id", "inst_label", "objidx", "object_id", "track_id"})
 SCALAR_PREFIX = "scalar_"                 # CloudCompare's PLY export names scalar fields so (Toronto-3D: scalar_Label)
 WEATHERS = ("rain", "snow", "fog", "clutter")
+DATASET_FILES = ("coco", "scalabel", "cvat")   # one annotation file for the whole dataset or split (coco.open_run)
+UNSET_LEFT_OUT = ("scalabel", "scalabel_image_root", "cvat", "cvat_image_root")   # round 21's keys (AnnotationsSpec)
 SEMANTICSTF_INVALID = 20                 # SemanticSTF's adverse-weather ("invalid") class id
 NUSCENES_NOISE = 0                       # nuScenes-lidarseg "noise": dust, fog, rain drops, spray, reflections
 
@@ -93,9 +95,57 @@ class NuscenesRule(_Strict):
 
 
 PathRule = Union[str, ReplaceRule, NuscenesRule]
+
+
+class MaskRule(_Strict):
+    """A mask with its fill value: ``{pattern: "../inst/{stem}.png", fill: 0}`` or ``{replace: {…}, fill: 0}``."""
+
+    pattern: str | None = None
+    replace: dict[str, str] | None = None
+    fill: int = Field(ge=0)
+
+    @model_validator(mode="after")
+    def _one_path(self):
+        if (self.pattern is None) == (self.replace is None):
+            raise ValueError("a mask with its fill gives either pattern or replace")
+        return self
+
+    def path_rule(self) -> PathRule:
+        return self.pattern if self.pattern is not None else ReplaceRule(replace=self.replace)
+
+
+UNLABELED_FILL = 0        # Cityscapes' class 0 "unlabeled" / instance 0: the ids its devkit knows (255 is none)
+UNLABELED_MASK_ENDINGS = ("_labelids", "_instanceids")           # Cityscapes, KITTI-360 (label ids, not train ids)
+UNLABELED_MASK_FOLDERS = frozenset({"instance", "instances"})    # KITTI semantics' instance/, KITTI-MOTS instances/
+
+
+def mask_fill(rule, spec: "AnnotationsSpec", relpath: str, mask: ann_io.Mask) -> int:
+    """What a mask pixel with no source pixel in a warp gets: the rule's ``fill``; else 0 for Cityscapes-style
+    label-id and instance-id maps (named ``*_labelIds`` / ``*_instanceIds``, or in an ``instance(s)/`` folder:
+    Cityscapes' devkit maps every id through its label table, which has no 255) and for a mask whose bit depth cannot
+    hold ``ignore_index`` (a 1-bit binary mask); else ``ignore_index``. InputError when the fill does not fit."""
+    path = PurePosixPath(relpath)
+    if isinstance(rule, MaskRule):
+        fill = rule.fill
+    elif path.stem.lower().endswith(UNLABELED_MASK_ENDINGS) or \
+            any(f.lower() in UNLABELED_MASK_FOLDERS for f in path.parts[:-1]):
+        fill = UNLABELED_FILL
+    else:
+        top = mask.max_level
+        fill = spec.ignore_index if top is None or spec.ignore_index <= top else 0
+    kind = mask.values.dtype.kind
+    top = mask.max_level if mask.max_level is not None else \
+        np.iinfo(mask.values.dtype).max if kind in "iu" else 1 if kind == "b" else None
+    if top is not None and fill > top:
+        raise InputError(f"fill {fill} of mask {relpath} does not fit its values (0 … {top}); give the mask a fill "
+                         "it can hold", file=relpath)
+    return fill
+
+
 BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
-    ".xml": "Pascal VOC XML is not read (convert it to YOLO .txt, or to one COCO JSON for annotations.coco)",
-    ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco; other JSON boxes are not read",
+    ".xml": "Pascal VOC XML is read with boxes_2d_format: voc",
+    ".json": "a COCO JSON (one file for the dataset) goes under annotations.coco, a BDD100K / Scalabel JSON (one "
+             "file for the split) under annotations.scalabel; other JSON boxes are not read",
 }
 
 MASK_FILES_NOT_READ = {      # label files a user may name as masks that are no label images: refused at validate
@@ -137,6 +187,7 @@ def label_image_reason(relpath: str, globs: list[str]) -> str | None:
 
 def _rule_ends(rule) -> list[str]:
     """The texts a path rule ends a sidecar's name with: the pattern, or the ``new`` parts of a replace rule."""
+    rule = rule.path_rule() if isinstance(rule, MaskRule) else rule
     return [rule] if isinstance(rule, str) else list(rule.replace.values()) if isinstance(rule, ReplaceRule) else []
 
 
@@ -148,16 +199,30 @@ class AnnotationsSpec(_Strict):
     #                      None: by the name
     weather_class: dict[Literal["rain", "snow", "fog", "clutter"], int] = Field(default_factory=dict)
     field_roles: dict[str, Literal["class", "instance", "sensor"]] = Field(default_factory=dict)
-    masks: list[PathRule] = Field(default_factory=list)
+    masks: list[Union[PathRule, MaskRule]] = Field(default_factory=list)   # MaskRule: with its fill
     polygons: list[PathRule] = Field(default_factory=list)   # per-image polygon JSON (Cityscapes, Mapillary v2)
     ignore_index: int = Field(255, ge=0)
     boxes_2d: PathRule | None = None
-    boxes_2d_format: Literal["kitti", "yolo"] = "kitti"
+    boxes_2d_format: Literal["kitti", "yolo", "voc"] = "kitti"
     boxes_3d: PathRule | None = None
     boxes_3d_format: Literal["kitti", "json", "csv"] | None = None     # None: .json, .csv, else KITTI
     calib: PathRule | None = None
     coco: str | None = None                  # one COCO JSON for the dataset, relative to IN (roadview_noise.coco)
     coco_image_root: str | None = None       # folder under IN its file_name values are relative to (default: its own)
+    scalabel: str | None = None              # one Scalabel / BDD100K JSON for the split (roadview_noise.scalabel)
+    scalabel_image_root: str | None = None   # folder under IN its frames' names are relative to (default: its own)
+    cvat: str | None = None                  # one "CVAT for images 1.1" XML for the task (roadview_noise.cvat)
+    cvat_image_root: str | None = None       # folder under IN its images' names are relative to (default: its own)
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler) -> dict[str, Any]:
+        """Keys added since round 21 are left out while unset, so run.json and the recipe's sha256 (``--resume``)
+        stay those of a recipe written before they existed."""
+        d = handler(self)
+        for key in UNSET_LEFT_OUT:
+            if d.get(key) is None:
+                d.pop(key, None)
+        return d
 
     @field_validator("masks", "polygons", mode="before")
     @classmethod
@@ -170,7 +235,7 @@ class AnnotationsSpec(_Strict):
         from .input_checks import escapes
 
         wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
-                                                                                   "coco")
+                                                                                   *DATASET_FILES)
         for name in wrong:
             if getattr(self, name):
                 raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
@@ -179,17 +244,23 @@ class AnnotationsSpec(_Strict):
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
         ends = _rule_ends(self.boxes_2d)
         for suffix, why in BOX_FILES_NOT_READ.items():
-            if any(e.lower().endswith(suffix) for e in ends):
-                raise RecipeError(f"boxes_2d reads KITTI label_2 or YOLO .txt files; {why}",
+            if any(e.lower().endswith(suffix) for e in ends) and not (suffix == ".xml" and self.boxes_2d_format ==
+                                                                       "voc"):
+                raise RecipeError(f"boxes_2d reads KITTI label_2, YOLO .txt or Pascal VOC .xml files; {why}",
                                   key="inputs.annotations.boxes_2d")
         for k, rule in enumerate(self.masks):
             for suffix, why in MASK_FILES_NOT_READ.items():
                 if any(e.lower().endswith(suffix) for e in _rule_ends(rule)):
                     raise RecipeError(f"masks are PNG/TIFF label images or .npy arrays; {why}",
                                       key=f"inputs.annotations.masks[{k}]")
-        if self.coco_image_root is not None and self.coco is None:
-            raise RecipeError("coco_image_root goes with coco", key="inputs.annotations.coco_image_root")
-        for name in ("coco", "coco_image_root"):
+        for name in DATASET_FILES:
+            if getattr(self, f"{name}_image_root") is not None and getattr(self, name) is None:
+                raise RecipeError(f"{name}_image_root goes with {name}", key=f"inputs.annotations.{name}_image_root")
+        given = [name for name in DATASET_FILES if getattr(self, name) is not None]
+        if len(given) > 1:
+            raise RecipeError(f"one dataset file per run: {' or '.join(DATASET_FILES)}",
+                              key=f"inputs.annotations.{given[1]}")
+        for name in [k for name in DATASET_FILES for k in (name, f"{name}_image_root")]:
             why = escapes(getattr(self, name) or "")
             if why:
                 raise RecipeError(f"{getattr(self, name)!r} {why}", key=f"inputs.annotations.{name}")
@@ -207,6 +278,7 @@ class AnnotationsSpec(_Strict):
 def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
     """Path (relative to the input root, POSIX) of the sidecar of input ``relpath``; InputError if it leaves the
     input root."""
+    rule = rule.path_rule() if isinstance(rule, MaskRule) else rule
     if isinstance(rule, str):
         p = PurePosixPath(relpath)
         from .dataset import split_suffix
@@ -339,6 +411,7 @@ class Sidecar:
     sha256: str | None
     fmt: str = ""
     data: Any = None
+    fill: int = 0                    # a mask's value where a warp maps from outside the image (mask_fill)
 
     def copy_to(self, dest: Path) -> None:
         write_bytes_atomic(dest, self.path.read_bytes())
@@ -383,8 +456,14 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             if sc.data.shape[:2] != (h, w):
                 raise InputError(f"mask {rel} is {sc.data.shape[1]}×{sc.data.shape[0]} px, the image {relpath} "
                                  f"{w}×{h}", file=str(in_root / relpath))
+            sc.fill = mask_fill(rule, spec, rel, sc.data)
         elif role == "polygons":
             sc.data = ann_io.read_polygons(path)
+            h, w = stored_shape(data)
+            size = (sc.data.get("imageWidth"), sc.data.get("imageHeight")) if "shapes" in sc.data else (w, h)
+            if size not in ((w, h), (None, None)):
+                raise InputError(f"LabelMe file {rel} is for a {size[0]}×{size[1]} px image, {relpath} is {w}×{h}",
+                                 file=str(in_root / relpath))
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
             h, w = stored_shape(data)
@@ -441,7 +520,7 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
             if s.role == "mask":
                 values = s.data.values
                 for warp in data_out.warps:
-                    values = warp.apply_labels(values, spec.ignore_index)
+                    values = warp.apply_labels(values, s.fill)
                 mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
             elif s.role == "polygons":
@@ -472,7 +551,8 @@ def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.
     no area are dropped."""
     if not warps:
         return boxes
-    lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt == "kitti" else (-0.5, [width - 0.5, height - 0.5])
+    lo_px, hi_px = (0.0, [width - 1, height - 1]) if boxes.fmt in ("kitti", "voc") else \
+        (-0.5, [width - 0.5, height - 0.5])
     is_box = np.asarray(boxes.is_box, dtype=bool)
     move = lambda xy: forward_through(warps, xy)                                        # noqa: E731
     moved_box = iter(moved_boxes(np.reshape([p for p, b in zip(boxes.points_px, is_box) if b], (-1, 4)), move))
@@ -488,14 +568,16 @@ def warp_boxes(boxes: ann_io.Boxes2D, warps, width: int, height: int) -> ann_io.
         tokens.append(words)
         points.append(pts)
         kinds.append(bool(box))
-    return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds)
+    return ann_io.Boxes2D(boxes.fmt, tokens, points, kinds, boxes.document)
 
 
 def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:
     """A per-image polygon file (:func:`~roadview_noise.io.annotations.read_polygons`) moved through the warps: each
     object's polygon by the outline mover (edges split where the map bends them), clipped to the image (pixel
     centres on integers: edges at −½ and W − ½), to 1/1000 px; an object left with no area is dropped, one without
-    a polygon (fewer than 3 points) kept as read; every other key as read."""
+    a polygon (fewer than 3 points) kept as read; every other key as read. A LabelMe file: :func:`warp_labelme`."""
+    if "shapes" in data:
+        return warp_labelme(data, warps, width, height)
     objects = data["objects"]
     moving = [k for k, o in enumerate(objects) if len(o["polygon"]) >= 3]
     rings = [np.asarray(objects[k]["polygon"], dtype=float).reshape(-1, 2) for k in moving]
@@ -503,12 +585,92 @@ def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:
     kept = []
     for k, obj in enumerate(objects):
         if k in moved:
-            ring = clip_polygon(moved[k], width, height, origin_px=-0.5)
-            if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0):
+            ring = _clipped_ring(moved[k], width, height)
+            if ring is None:
                 continue
-            obj = {**obj, "polygon": np.round(ring, 3).tolist()}
+            obj = {**obj, "polygon": ring}
         kept.append(obj)
     return {**data, "objects": kept}
+
+
+def _clipped_ring(ring: np.ndarray, width: int, height: int) -> list | None:
+    """A moved polygon clipped to the image (pixel centres on integers), to 1/1000 px; None when no area is left."""
+    ring = clip_polygon(ring, width, height, origin_px=-0.5)
+    if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0):
+        return None
+    return np.round(ring, 3).tolist()
+
+
+def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
+    """A LabelMe file moved through the warps (pixel centres on integers, as labelme rasterises its shapes): a
+    polygon as Cityscapes polygons move; a rectangle (two corners) becomes the bounding box of its moved outline,
+    clipped to the image; lines, line strips, points and circles (centre, a point on the rim) move point by point,
+    not clipped; a mask (a base64 PNG of its box, placed at the box's first point) is resampled as label images
+    are and cut to the box of what is left. A polygon, rectangle or mask left with nothing is dropped.
+    ``imageWidth``/``imageHeight`` become the output's; ``imageData`` (the unaugmented image, base64) becomes null,
+    so LabelMe opens the augmented image at ``imagePath``. InputError for a shape type not listed here."""
+    shapes = data["shapes"]
+    kinds = [s.get("shape_type") or "polygon" for s in shapes]
+    refused = sorted({k for k in kinds if k not in ann_io.LABELME_SHAPES})
+    if refused:
+        raise InputError(f"LabelMe shapes of type {', '.join(refused)} are not moved by a geometric step; convert "
+                         "them to polygons, or use a photometric chain")
+    pts = [np.asarray(s["points"], dtype=float).reshape(-1, 2) for s in shapes]
+    move = lambda xy: forward_through(warps, xy)                                        # noqa: E731
+    rings = iter(moved_rings([p for p, k in zip(pts, kinds) if k == "polygon"], move))
+    boxes = iter(moved_boxes(np.reshape([np.r_[p.min(axis=0), p.max(axis=0)] for p, k in zip(pts, kinds)
+                                         if k == "rectangle"], (-1, 4)), move))
+    loose = [p for p, k in zip(pts, kinds) if k not in ("polygon", "rectangle", "mask")]
+    moved = iter(np.split(move(np.concatenate(loose)), np.cumsum([len(p) for p in loose])[:-1]) if loose else ())
+    kept = []
+    for shape, kind in zip(shapes, kinds):
+        if kind == "polygon":
+            points = _clipped_ring(next(rings), width, height)
+        elif kind == "rectangle":
+            box = np.clip(next(boxes).reshape(2, 2), -0.5, [width - 0.5, height - 0.5])
+            points = None if np.any(box[1] - box[0] <= 0) else np.round(box, 3).tolist()
+        elif kind == "mask":
+            shape = _moved_labelme_mask(shape, warps, width, height)
+            points = None if shape is None else shape["points"]
+        else:
+            points = np.round(next(moved), 3).tolist()
+        if points is not None:
+            kept.append({**shape, "points": points})
+    out = {**data, "shapes": kept, "imageWidth": width, "imageHeight": height}
+    return {**out, "imageData": None} if "imageData" in data else out
+
+
+def _moved_labelme_mask(shape: dict, warps, width: int, height: int) -> dict | None:
+    """A LabelMe ``mask`` shape through the warps (labelme places its bitmap at the integer part of the first
+    point): resampled in the whole frame (0 where nothing maps), cut to the box of what is left, written back as a
+    1-bit PNG; None when nothing is left."""
+    import base64
+
+    values = ann_io.read_mask_bytes(base64.b64decode(shape["mask"]), "LabelMe mask").values
+    x0, y0 = (int(v) for v in np.asarray(shape["points"][0], dtype=float))
+    moved = moved_bitmap(values.any(axis=2) if values.ndim == 3 else values != 0, x0, y0, warps, width, height)
+    if moved is None:
+        return None
+    cut, left, top = moved
+    return {**shape, "points": [[float(left), float(top)], [float(left + cut.shape[1] - 1),
+                                                             float(top + cut.shape[0] - 1)]],
+            "mask": base64.b64encode(ann_io.packed_png(cut, 1)).decode("ascii")}
+
+
+def moved_bitmap(bitmap: np.ndarray, left: int, top: int, warps, width: int, height: int):
+    """A bitmap (h, w) of a box whose first pixel is (left, top), placed in the frame (cut at its edges), resampled
+    through the warps as label images are (0 where nothing maps) and cut to the box of what is left: ``(cut uint8,
+    left, top)``, or None when nothing is left (LabelMe and CVAT mask shapes)."""
+    frame = np.zeros((height, width), np.uint8)
+    h, w = bitmap.shape[:2]
+    frame[max(top, 0):top + h, max(left, 0):left + w] = \
+        bitmap[max(-top, 0):height - top, max(-left, 0):width - left]
+    for warp in warps:
+        frame = warp.apply_labels(frame, 0)
+    rows, cols = np.flatnonzero(frame.any(axis=1)), np.flatnonzero(frame.any(axis=0))
+    if not len(rows):
+        return None
+    return frame[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1], int(cols[0]), int(rows[0])
 
 
 # --- objects -------------------------------------------------------------------------------------------------------

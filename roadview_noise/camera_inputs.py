@@ -475,12 +475,12 @@ def _depth_ground_plane(recipe: Recipe, geometry: _Geometry, signal):
 
 
 def _orientation(frame: CameraFrame | RawFrame, recipe: Recipe, origin: Any) -> tuple[int, int]:
-    """``(EXIF/TIFF orientation of the file, the one its pixels are turned upright from)``: a photo file is
-    processed upright unless ``inputs.orientation: stored``; raw Bayer frames (their CFA would turn) and bag
-    messages are processed as stored."""
+    """``(EXIF/TIFF orientation of the file, the one its pixels are turned upright from)``: a photo file and a DNG
+    (its IFD0 Orientation; the CFA pattern turns with the mosaic) are processed upright unless ``inputs.orientation:
+    stored``; bag messages state no orientation and are processed as stored."""
     from .io.image_metadata import orientation
 
-    exif = orientation(frame.encoding) if isinstance(frame, CameraFrame) else 1
+    exif = orientation(frame.encoding) if isinstance(frame, CameraFrame) else frame.encoding.orientation
     upright = exif != 1 and getattr(origin, "upright", False) and recipe.spec.inputs.orientation == "upright"
     return exif, exif if upright else 1
 

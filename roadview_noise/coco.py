@@ -41,16 +41,21 @@ EXAMPLES = 3                      # example paths in a warning
 
 
 class CocoRun:
-    """The COCO file of a run: its images by input path, the per-image records of the run's entries."""
+    """The COCO file of a run: its images by input path, the per-image records of the run's entries. Subclasses
+    (:class:`roadview_noise.scalabel.ScalabelRun`) read other one-file-per-split layouts with the same plumbing."""
+
+    KEY = "inputs.annotations.coco"
+    ITEMS = "images"                  # what the file calls its image records
+    WHAT = "COCO annotations"
 
     def __init__(self, in_root: Path, relpath: str, image_root: str | None, suffixes: list[str]):
-        key = "inputs.annotations.coco"
+        key = self.KEY
         self.relpath = posixpath.normpath(relpath)
         path = in_root / self.relpath
         if Path(os.path.realpath(in_root)) not in Path(os.path.realpath(path)).parents:
             raise RecipeError(f"{relpath!r} resolves outside the input folder; rvnoise reads only inside it", key=key)
         try:
-            self.data = coco_io.read_coco(path)
+            self.data = self.read(path)
         except InputError as exc:
             raise RecipeError(str(exc), key=key) from None
         self.path, self.sha256 = path, sha256_file(path)
@@ -58,32 +63,49 @@ class CocoRun:
                                              or ".")
         self.suffixes = suffixes
         self.by_path: dict[str, int] = {}
+        self.names: list[str] = []
         ids = set()
-        for i, img in enumerate(self.data["images"]):
-            rel = posixpath.normpath(posixpath.join(self.image_root, str(img["file_name"])))
-            if not isinstance(img["id"], (int, float, str)) or _key(img["id"]) in ids or rel in self.by_path:
-                raise RecipeError(f"{self.relpath}: images[{i}] (id {img['id']!r}, file_name {img['file_name']!r}) "
+        for i, (image_id, name) in enumerate(self.images(in_root)):
+            rel = posixpath.normpath(posixpath.join(self.image_root, str(name)))
+            if not isinstance(image_id, (int, float, str)) or _key(image_id) in ids or rel in self.by_path:
+                raise RecipeError(f"{self.relpath}: {self.ITEMS}[{i}] (id {image_id!r}, file_name {name!r}) "
                                   "repeats an id or a file_name, or its id is neither a number nor a string", key=key)
             self.by_path[rel] = i
-            ids.add(_key(img["id"]))
+            self.names.append(str(name))
+            ids.add(_key(image_id))
+        self.index()
+        self.missing = [rel for rel in self.by_path if escapes(rel) or not (in_root / rel).is_file()]
+        if self.by_path and len(self.missing) == len(self.by_path):
+            first, name = next(iter(self.by_path)), self.names[0]
+            hint = ("the file names are absolute paths: rvnoise reads them relative to the image root, so rewrite "
+                    "them relative to a folder of IN" if posixpath.isabs(name) else
+                    f"set {key}_image_root to the folder the file names are relative to")
+            raise RecipeError(f"none of the {len(self.by_path)} images of {self.relpath} is a file under the image "
+                              f"root {self.image_root!r} (e.g. file_name {name!r} → {first!r}); {hint}",
+                              key=f"{key}_image_root")
+        self.records: dict[tuple[int, int], dict] = {}            # (variant, image position) → record
+        self.failed: dict[int, list[str]] = defaultdict(list)     # variant → file names
+        self.unlisted, self.unlisted_examples = 0, []             # inputs of the run the file does not list
+
+    def read(self, path: Path):
+        return coco_io.read_coco(path)
+
+    def write(self, path: Path, data) -> None:
+        """The output file of ``data`` (what :meth:`output` made), atomically."""
+        coco_io.write_coco(path, data)
+
+    def images(self, in_root: Path) -> list[tuple[Any, str]]:
+        """(id, file name relative to the image root) of each image record, in file order."""
+        return [(img["id"], img["file_name"]) for img in self.data["images"]]
+
+    def index(self) -> None:
+        """The positions of each image's annotations in the file."""
         self.annotations_of: dict[Any, list[int]] = defaultdict(list)
         for i, ann in enumerate(self.data.get("annotations", [])):
             if not isinstance(ann["image_id"], (int, float, str)):
                 raise RecipeError(f"{self.relpath}: annotations[{i}] has image_id {ann['image_id']!r}, neither a "
-                                  "number nor a string", key=key)
+                                  "number nor a string", key=self.KEY)
             self.annotations_of[_key(ann["image_id"])].append(i)
-        self.missing = [rel for rel in self.by_path if escapes(rel) or not (in_root / rel).is_file()]
-        if self.by_path and len(self.missing) == len(self.by_path):
-            first, name = next(iter(self.by_path)), str(self.data["images"][0]["file_name"])
-            hint = ("the file names are absolute paths: rvnoise reads them relative to coco_image_root, so rewrite "
-                    "them relative to a folder of IN" if posixpath.isabs(name) else
-                    "set inputs.annotations.coco_image_root to the folder the file names are relative to")
-            raise RecipeError(f"none of the {len(self.by_path)} images of {self.relpath} is a file under the image "
-                              f"root {self.image_root!r} (e.g. file_name {name!r} → {first!r}); {hint}",
-                              key="inputs.annotations.coco_image_root")
-        self.records: dict[tuple[int, int], dict] = {}            # (variant, image position) → record
-        self.failed: dict[int, list[str]] = defaultdict(list)     # variant → file names
-        self.unlisted, self.unlisted_examples = 0, []             # inputs of the run the file does not list
 
     def notes(self) -> list[str]:
         """What the user should know before the run (file names that resolve to no file)."""
@@ -96,19 +118,22 @@ class CocoRun:
     # --- the plan and the results -------------------------------------------------------------------------------
 
     def attach(self, task):
-        """The task with its image's :class:`CocoImage` (unchanged when the file does not list the image)."""
+        """The task with its image's payload (:meth:`payload`; unchanged when the file does not list the image)."""
         pos = self.by_path.get(task.sample.relpath)
         if pos is None:
             if task.variant_index == 0:
                 self.unlisted += 1
                 self.unlisted_examples = (self.unlisted_examples + [task.sample.relpath])[:EXAMPLES]
             return task
+        return dataclasses.replace(task, coco=self.payload(pos))
+
+    def payload(self, pos: int) -> CocoImage:
+        """What the worker needs of the image at ``pos`` (its ``move(shape, warps)`` makes the record)."""
         img = self.data["images"][pos]
         anns = self.data.get("annotations", [])
-        payload = CocoImage(img["id"], str(img["file_name"]), img.get("width"), img.get("height"), self.sha256,
-                            [(i, {k: anns[i][k] for k in GEOMETRY_KEYS if k in anns[i]})
-                             for i in self.annotations_of.get(_key(img["id"]), ())])
-        return dataclasses.replace(task, coco=payload)
+        return CocoImage(img["id"], str(img["file_name"]), img.get("width"), img.get("height"), self.sha256,
+                         [(i, {k: anns[i][k] for k in GEOMETRY_KEYS if k in anns[i]})
+                          for i in self.annotations_of.get(_key(img["id"]), ())])
 
     def keeps(self, task, entry: dict) -> bool:
         """Whether ``--resume`` may keep an earlier entry: it has the record of this file for a listed image (with
@@ -117,9 +142,12 @@ class CocoRun:
         record = entry.get("coco")
         if not listed:
             return record is None
-        # a record of a moved image without its distortion is from a version that did not state it: redone
-        return record is not None and record.get("sha256") == self.sha256 and \
-            ("moved" not in record or "distortion" in record)
+        return record is not None and record.get("sha256") == self.sha256 and self.complete(record)
+
+    def complete(self, record: dict) -> bool:
+        """Whether a kept record is of this version: a COCO record of a moved image without its distortion is from
+        a version that did not state it (redone)."""
+        return "moved" not in record or "distortion" in record
 
     def collect(self, entry: dict) -> None:
         """Take the record of a released entry (fresh or kept), or its failure."""
@@ -129,7 +157,7 @@ class CocoRun:
         if entry.get("status") == "ok" and "coco" in entry:
             self.records[(entry.get("variant_index", 0), pos)] = entry["coco"]
         elif entry.get("status") != "ok":
-            self.failed[entry.get("variant_index", 0)].append(str(self.data["images"][pos]["file_name"]))
+            self.failed[entry.get("variant_index", 0)].append(self.names[pos])
 
     # --- the output ----------------------------------------------------------------------------------------------
 
@@ -185,7 +213,7 @@ class CocoRun:
                         write_bytes_atomic(out_root / out_rel, raw)          # byte for byte, as masks are
                         entry["copied_unchanged"] = True
                     else:
-                        coco_io.write_coco(out_root / out_rel, data or self.data)
+                        self.write(out_root / out_rel, data or self.data)
                 files = [(tmp.relative_to(out_root).as_posix(), final.relative_to(out_root).as_posix())
                          for tmp, final in stage.files]
                 entry.update(status="ok", files=[{"path": f, "sha256": sha256_file(out_root / t)} for t, f in files],
@@ -204,7 +232,7 @@ class CocoRun:
         if self.unlisted:
             notes.append(f"{self.unlisted} input image(s) have no record in {self.relpath} under the image root "
                          f"{self.image_root!r} (e.g. {', '.join(self.unlisted_examples)}): they are augmented "
-                         "without COCO annotations")
+                         f"without {self.WHAT}")
         return notes
 
 
@@ -214,8 +242,18 @@ def _key(image_id: Any) -> Any:
 
 
 def open_run(in_root: Path, recipe) -> CocoRun | None:
-    """The run's COCO file (RecipeError when it cannot be used), or None when the recipe has none."""
+    """The run's dataset file — COCO, Scalabel / BDD100K (:mod:`.scalabel`) or CVAT for images (:mod:`.cvat`) —
+    (RecipeError when it cannot be used), or None when the recipe has none."""
     spec = recipe.spec.inputs.annotations
+    suffixes = [v.suffix for v in recipe.variants]
+    if spec.scalabel is not None:
+        from .scalabel import ScalabelRun
+
+        return ScalabelRun(in_root, spec.scalabel, spec.scalabel_image_root, suffixes)
+    if spec.cvat is not None:
+        from .cvat import CvatRun
+
+        return CvatRun(in_root, spec.cvat, spec.cvat_image_root, suffixes)
     if spec.coco is None:
         return None
-    return CocoRun(in_root, spec.coco, spec.coco_image_root, [v.suffix for v in recipe.variants])
+    return CocoRun(in_root, spec.coco, spec.coco_image_root, suffixes)

@@ -55,6 +55,9 @@ class CocoImage:
     sha256: str                                    # of the COCO file (a resumed run redoes records of another one)
     annotations: list[tuple[int, dict]] = field(default_factory=list)
 
+    def move(self, shape: tuple[int, int], warps) -> dict:
+        return move_image(self, shape, warps)
+
 
 def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     """The manifest record of one image: ``moved`` [[position, changed fields], …], ``dropped`` [[position, id],
@@ -62,11 +65,8 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     the file's size of the image is not the image's, or an annotation is malformed (naming its id). Every outline
     and point of the image moves in one batch."""
     h, w = shape
-    if (image.width, image.height) != (None, None) and (image.width, image.height) != (w, h):
-        raise InputError(f"the COCO file gives {image.file_name!r} {image.width}×{image.height} px, the image is "
-                         f"{w}×{h} px")
+    warps = moving_warps("COCO", image.file_name, (image.width, image.height), shape, warps)
     record: dict[str, Any] = {"image_id": image.image_id, "sha256": image.sha256}
-    warps = [wp for wp in warps if not _is_identity(wp)]
     if not warps:
         return record
     record["distortion"] = coco_camera.steps(warps)          # the image is no longer pinhole (coco_camera)
@@ -90,6 +90,15 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     return {**record, "moved": moved, "dropped": dropped}
 
 
+def moving_warps(kind: str, file_name: str, stated: tuple, shape: tuple[int, int], warps) -> list:
+    """The warps that move anything (all but exact identities); InputError when the ``kind`` file states another
+    size (W, H) for the image than its ``shape`` (H, W)."""
+    h, w = shape
+    if tuple(stated) != (None, None) and tuple(stated) != (w, h):
+        raise InputError(f"the {kind} file gives {file_name!r} {stated[0]}×{stated[1]} px, the image is {w}×{h} px")
+    return [wp for wp in warps if not is_identity(wp)]
+
+
 def _guarded(ann: dict, name: str, fn, *args):
     try:
         return fn(*args)
@@ -97,7 +106,7 @@ def _guarded(ann: dict, name: str, fn, *args):
         raise InputError(f"annotation id {ann.get('id')!r} of {name!r}: {exc}") from None
 
 
-def _is_identity(warp) -> bool:
+def is_identity(warp) -> bool:
     h, w = warp.shape
     return bool(np.array_equal(warp.map_x, np.broadcast_to(np.arange(w, dtype=warp.map_x.dtype), (h, w))) and
                 np.array_equal(warp.map_y, np.broadcast_to(np.arange(h, dtype=warp.map_y.dtype)[:, None], (h, w))))

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from .physics.warp import Warp
-from .types import CameraFrame, CameraProfile
+from .types import CameraFrame, CameraProfile, RawFrame
 
 # orientation → (transpose, flip columns, flip rows) taking the stored pixels to the displayed ones
 _STEPS = {1: (False, False, False), 2: (False, True, False), 3: (False, True, True), 4: (False, False, True),
@@ -159,9 +159,22 @@ class StoredWarp(Warp):
         return stored_xy(self.upright_warp.forward(q), self.turn, size)
 
 
-def upright_frame(frame: CameraFrame, turn: int) -> CameraFrame:
-    """A frame read as stored, turned upright (pixels with their sRGB codes, alpha), remembering ``turn``."""
+def upright_frame(frame: CameraFrame | RawFrame, turn: int) -> CameraFrame | RawFrame:
+    """A frame read as stored, turned upright (pixels with their sRGB codes, alpha; a raw mosaic with its CFA
+    pattern), remembering ``turn``."""
     return _turned(frame, upright, turn, orientation=turn, profile=upright_profile(frame.profile, turn))
+
+
+def cfa_pattern(pattern: str, turn: int, shape: tuple[int, int], to_upright: bool) -> str:
+    """The 2×2 CFA pattern (colours of the top-left sites, row by row) of a mosaic of ``shape`` (H, W, as it is now)
+    turned upright by ``turn`` (``to_upright``), or turned back to its stored layout: each new top-left site's
+    colour is that of the site it comes from (a flip of an even side shifts the phase)."""
+    sites = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], dtype=np.float64)       # x, y of the new top-left 2×2
+    swap = transposes(turn)
+    new_shape = shape[::-1] if swap else shape
+    src = stored_xy(sites, turn, new_shape) if to_upright else upright_xy(sites, turn, new_shape)
+    src = np.rint(src).astype(int)
+    return "".join(pattern[(y % 2) * 2 + x % 2] for x, y in src)
 
 
 def as_stored(frame):
@@ -175,14 +188,17 @@ def as_stored(frame):
                    warps=tuple(StoredWarp.of(w, turn) for w in frame.warps))
 
 
-def _turned(frame: CameraFrame, move, turn: int, **fields) -> CameraFrame:
+def _turned(frame: CameraFrame | RawFrame, move, turn: int, **fields) -> CameraFrame | RawFrame:
     """``frame`` with every pixel-aligned array moved by ``move(array, turn)`` and ``fields`` replaced; 8-bit sRGB
-    codes the pixels hold move along (a permutation keeps their decoding exact)."""
+    codes the pixels hold move along (a permutation keeps their decoding exact); a mosaic's CFA pattern follows."""
     from .physics import srgb
 
-    codes = frame.undecoded_srgb8_codes()
     aligned = {k: move(getattr(frame, k), turn) for k in ("alpha", "depth_m", "depth_valid")
-               if getattr(frame, k) is not None}
+               if getattr(frame, k, None) is not None}
+    if isinstance(frame, RawFrame):
+        pattern = cfa_pattern(frame.cfa_pattern, turn, frame.shape, to_upright=move is upright)
+        return dataclasses.replace(frame, dn=move(frame.dn, turn), cfa_pattern=pattern, **aligned, **fields)
+    codes = frame.undecoded_srgb8_codes()
     if codes is not None:                               # not decoded: the moved codes stand in until replaced
         codes = move(codes, turn)
         return dataclasses.replace(frame, linear_rgb=codes, **aligned, **fields).with_srgb8_codes(codes)

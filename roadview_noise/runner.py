@@ -27,7 +27,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
-from . import annotations, coco, coco_warp, prestart, profiling
+from . import annotations, coco, prestart, profiling
 from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
@@ -72,7 +72,7 @@ class Task:
     variant_index: int
     out_relpath: str
     index: int = 0                      # position in the plan (walk failures included)
-    coco: Any = field(default=None, compare=False)   # coco_warp.CocoImage of a COCO file's image (coco.CocoRun)
+    coco: Any = field(default=None, compare=False)   # an image of the run's dataset file (coco.CocoRun): .move()
 
 
 @dataclass(frozen=True)
@@ -413,7 +413,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
                           if v})
             if task.coco is not None:
-                entry["coco"] = coco_warp.move_image(task.coco, orientation.stored_shape(data), out.warps)
+                entry["coco"] = task.coco.move(orientation.stored_shape(data), out.warps)
             with confined_to(ctx.out_root), staged_writes(sync=ctx.fsync_outputs) as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)
@@ -621,13 +621,22 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
     return PreviousRun(manifest)
 
 
+def _turned_dng(path: Path) -> bool:
+    """A DNG whose Orientation turns it (an entry without ``inputs.orientation`` for it is from before round 21,
+    which processed it as stored)."""
+    from .io.raw import dng_orientation
+
+    return path.suffix.lower() == ".dng" and dng_orientation(path) != 1
+
+
 def _still_valid(ctx: RunContext, task: Task, entry: dict) -> bool:
     """A previous entry ``--resume`` can keep: same variant, same input (and depth) bytes, files intact."""
     if entry.get("variant_index") != task.variant_index or entry.get("input") != task.sample.relpath:
         return False
     turned = (entry.get("inputs") or {}).get("orientation")
-    if turned and turned["processed"] != "upright" and ctx.recipe.spec.inputs.orientation == "upright":
-        return False                  # a photo stored turned, processed as stored before round 20: redone upright
+    if ctx.recipe.spec.inputs.orientation == "upright" and (turned["processed"] != "upright" if turned else
+                                                            _turned_dng(ctx.in_root / task.sample.relpath)):
+        return False     # a photo stored turned, processed as stored before round 20 (a DNG: 21): redone upright
     try:
         if sha256_file(ctx.in_root / task.sample.relpath) != entry.get("input_sha256"):
             return False

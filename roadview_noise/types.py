@@ -195,7 +195,8 @@ class ImageEncoding:
     exif: bytes | None = None          # EXIF (TIFF-structured, orientation included) of the file, written back unchanged
     jpeg_sampling: int | None = None   # JPEG chroma subsampling as OpenCV's IMWRITE_JPEG_SAMPLING_FACTOR code
     jpeg_progressive: bool = False     # JPEG: progressive (SOF2) rather than baseline
-    metadata: tuple = ()               # the file's PNG ancillary chunks or TIFF tags, written back (io/image_metadata)
+    metadata: tuple = ()               # the file's PNG ancillary chunks, TIFF tags or JPEG JFIF density (io/image_metadata)
+    tiff_associated_alpha: bool = False   # TIFF: its alpha is associated (colours premultiplied), written so
 
 
 @dataclass(frozen=True, eq=False)
@@ -290,6 +291,7 @@ class RawEncoding:
     fmt: str = "dng"           # dng | raw (plain uint16 + YAML sidecar)
     bits_per_sample: int = 16
     sidecar: tuple = ()        # a plain raw's input sidecar as (key, value) pairs, in order: written back with it
+    orientation: int = 1       # a DNG's Orientation tag (IFD0, 1–8): the mosaic is processed upright (orientation)
 
 
 @dataclass(frozen=True, eq=False)
@@ -308,6 +310,7 @@ class RawFrame:
     depth_valid: np.ndarray | None = None
     input_notes: Mapping[str, Any] = field(default_factory=dict)
     warps: tuple = ()                        # physics.warp.Warp of each geometric step so far (masks, boxes follow)
+    orientation: int = 1                     # ≠ 1: the stored mosaic turned upright by it (orientation.upright_frame)
 
     @property
     def shape(self) -> tuple[int, int]:

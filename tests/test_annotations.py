@@ -243,8 +243,10 @@ def test_annotations_that_do_not_fit_the_recipe_are_recipe_errors(tmp_path):
     with pytest.raises(RecipeError, match="weather_class"):
         _recipe({"cnf": "CNF19", "inputs": {"annotations": {"weather_class": {"hail": 3}}}}, tmp_path)
     # box files a user has that boxes_2d cannot read: at validate, not "line 1: 1 values, KITTI label_2 has 15" per file
-    with pytest.raises(RecipeError, match="boxes_2d: .*Pascal VOC XML is not read"):
+    with pytest.raises(RecipeError, match="boxes_2d: .*Pascal VOC XML is read with boxes_2d_format: voc"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml"}}}, tmp_path)
+    assert _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": "../Annotations/{stem}.xml",
+                                                               "boxes_2d_format": "voc"}}}, tmp_path)
     with pytest.raises(RecipeError, match="boxes_2d: .*goes under annotations.coco"):
         _recipe({"cnf": "CNF05", "inputs": {"annotations": {"boxes_2d": {"replace": {".jpg": ".JSON"}}}}}, tmp_path)
     # Cityscapes' polygons next to its label images (round 19): validate passed, then every image failed with "not
@@ -419,8 +421,9 @@ def _gt(suffix: str) -> dict:
 
 
 def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_path):
-    """The mask is resampled through the very map that moved the image (nearest neighbour, 255 where the map
-    leaves the image), pixel for pixel; the image is the map applied to the input; the masks are no inputs."""
+    """The mask is resampled through the very map that moved the image (nearest neighbour; where the map leaves
+    the image Cityscapes' label-id and instance-id maps get 0, "unlabeled", not 255, an id their devkit does not
+    know), pixel for pixel; the image is the map applied to the input; the masks are no inputs."""
     recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
         "camera": "**/*.png", "annotations": {"masks": [_gt("gtFine_labelIds.png"), _gt("gtFine_instanceIds.png")],
                                               "boxes_2d": _gt("label_2.txt")}}}, tmp_path)
@@ -443,7 +446,7 @@ def test_mask_through_a_geometric_model_equals_the_image_map(cityscapes, tmp_pat
         mask_out = cv2.imread(str(out / f"gtFine/val/lindau/lindau_000001_000019_gtFine_{name}.png"),
                               cv2.IMREAD_UNCHANGED)
         assert mask_out.dtype == mask_in.dtype and mask_out.shape == mask_in.shape
-        oracle = np.where(inside, mask_in[np.clip(ys, 0, 59), np.clip(xs, 0, 79)], 255)
+        oracle = np.where(inside, mask_in[np.clip(ys, 0, 59), np.clip(xs, 0, 79)], 0)      # class 0 "unlabeled"
         np.testing.assert_array_equal(mask_out, oracle)
         assert np.any(~inside)
     # KITTI boxes: corners through the closed-form forward map, clipped; other fields kept; a box pushed off the
@@ -503,6 +506,75 @@ def test_palette_and_rgba_masks_keep_their_kind_through_a_warp(cityscapes, tmp_p
                                                   255))
 
 
+def _warp_test_inside(root: Path, recipe):
+    """The pull map of WarpTestCamera on the Cityscapes fixture's image, rounded, and where it lies in the image."""
+    frame = load(Sample("leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png", "camera",
+                        "leftImg8bit/val/lindau"), root, recipe)
+    warp = WarpTestCamera().warp(frame, state={}, drawn={})
+    xs, ys = np.rint(warp.map_x).astype(int), np.rint(warp.map_y).astype(int)
+    return np.clip(xs, 0, 79), np.clip(ys, 0, 59), (xs >= 0) & (xs < 80) & (ys >= 0) & (ys < 60)
+
+
+def test_one_bit_and_four_bit_masks_keep_their_bit_depth_through_a_warp(cityscapes, tmp_path):
+    """A 1-bit grey PNG (a binary segmentation mask) and a 4-bit palette PNG come out with their bit depth (and
+    palette), their values the input's levels through the map; where nothing maps they get 0, since the default
+    ignore_index 255 does not fit. Before, both were written 8-bit, the binary mask as 0/255 with 255 fill."""
+    from PIL import Image
+
+    gt = cityscapes / "gtFine/val/lindau"
+    rng = np.random.default_rng(12)
+    binary = rng.integers(0, 2, (60, 80)).astype(bool)
+    Image.fromarray(binary).save(gt / "lindau_000001_000019_binary.png")            # mode "1": 1-bit grey
+    classes = rng.integers(0, 11, (60, 80)).astype(np.uint8)
+    small = Image.fromarray(classes, "P")
+    palette = rng.integers(0, 256, 33).astype(np.uint8).tolist()
+    small.putpalette(palette)
+    small.save(gt / "lindau_000001_000019_p4.png", bits=4)
+    head = {n: (gt / f"lindau_000001_000019_{n}.png").read_bytes()[24:26] for n in ("binary", "p4")}
+    assert head == {"binary": b"\x01\x00", "p4": b"\x04\x03"}                      # bit depth, colour type
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [_gt("binary.png"), _gt("p4.png")]}}}, tmp_path)
+    out = tmp_path / "out/gtFine/val/lindau"
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    for name, levels in (("binary", binary.astype(np.uint8)), ("p4", classes)):
+        data = (out / f"lindau_000001_000019_{name}.png").read_bytes()
+        assert data[24:26] == head[name]
+        with Image.open(out / f"lindau_000001_000019_{name}.png") as written:
+            values = np.asarray(written).astype(np.uint8)
+            if name == "p4":
+                assert written.mode == "P" and written.getpalette()[:33] == palette
+        np.testing.assert_array_equal(values, np.where(inside, levels[ys, xs], 0))
+        np.testing.assert_array_equal(ann_io.read_mask(out / f"lindau_000001_000019_{name}.png").values,
+                                      np.where(inside, levels[ys, xs], 0))
+
+
+def test_a_mask_fill_value_is_per_mask_and_must_fit(cityscapes, tmp_path):
+    """``{replace: …, fill: N}`` (or ``{pattern: …, fill: N}``) sets what an uncovered pixel of that mask gets;
+    a fill the mask's values cannot hold fails that image naming the mask."""
+    fill_7 = {**_gt("gtFine_labelIds.png"), "fill": 7}
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [fill_7, {**_gt("gtFine_instanceIds.png"),
+                                                                             "fill": 40000}]}}}, tmp_path)
+    out = tmp_path / "out/gtFine/val/lindau"
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    for name, fill in (("labelIds", 7), ("instanceIds", 40000)):
+        mask_in = cv2.imread(str(cityscapes / f"gtFine/val/lindau/lindau_000001_000019_gtFine_{name}.png"),
+                             cv2.IMREAD_UNCHANGED)
+        mask_out = cv2.imread(str(out / f"lindau_000001_000019_gtFine_{name}.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(mask_out, np.where(inside, mask_in[ys, xs], fill))
+    bad = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {"camera": "leftImg8bit/**/*.png",
+                   "annotations": {"masks": {"pattern": "../../../gtFine/val/lindau/{stem}.png", "fill": 300}}}},
+                  tmp_path)
+    cv2.imwrite(str(cityscapes / "gtFine/val/lindau/lindau_000001_000019_leftImg8bit.png"),
+                np.zeros((60, 80), np.uint8))
+    summary = run(bad, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None)
+    assert summary.failed == 1
+    error = read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
+    assert "fill 300" in error and "lindau_000001_000019_leftImg8bit.png" in error and "0 … 255" in error
+
+
 def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
         "camera": "leftImg8bit/**/*.png", "annotations": {
@@ -526,6 +598,55 @@ def test_yolo_boxes_and_polygons_follow_the_map(cityscapes, tmp_path):
     got = np.array(poly[1:], float).reshape(-1, 2)
     assert len(got) == 3
     np.testing.assert_allclose(got[np.lexsort(got.T[::-1])], np.array(sorted(map(tuple, [*cut, c]))), atol=1e-5)
+
+
+VOC_XML = """<?xml version="1.0" encoding="utf-8"?>
+<annotation>
+  <folder>VOC2012</folder><filename>lindau_000001_000019_leftImg8bit.png</filename>
+  <source><database>The VOC2007 Database</database></source>
+  <size><width>80</width><height>60</height><depth>3</depth></size>
+  <segmented>0</segmented>
+  <object><name>person</name><pose>Left</pose><truncated>0</truncated><difficult>0</difficult>
+    <bndbox><xmin>11</xmin><ymin>13</ymin><xmax>41</xmax><ymax>31</ymax></bndbox>
+    <part><name>head</name><bndbox><xmin>20.5</xmin><ymin>14</ymin><xmax>26</xmax><ymax>19</ymax></bndbox></part>
+    <part><name>hand</name><bndbox><xmin>1</xmin><ymin>1</ymin><xmax>3</xmax><ymax>3</ymax></bndbox></part>
+  </object>
+  <object><name>car</name><truncated>1</truncated><bndbox><xmin>1</xmin><ymin>1</ymin><xmax>3</xmax><ymax>2</ymax>
+    </bndbox></object>
+</annotation>
+"""
+
+
+def test_pascal_voc_boxes_and_parts_follow_the_map(cityscapes, tmp_path):
+    """Pascal VOC XML (was refused): object and part boxes (1-based pixel indices) move as KITTI boxes do, integers
+    stay integers, a box pushed off the image drops its part or object, every other element is kept; a file for
+    another image size fails the image naming both sizes."""
+    from xml.etree import ElementTree
+
+    gt = cityscapes / "gtFine/val/lindau"
+    (gt / "lindau_000001_000019_voc.xml").write_text(VOC_XML)
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {"camera": "leftImg8bit/**/*.png",
+                      "annotations": {"boxes_2d": _gt("voc.xml"), "boxes_2d_format": "voc"}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    root = ElementTree.parse(tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_voc.xml").getroot()
+    objects = root.findall("object")
+    assert [o.findtext("name") for o in objects] == ["person"]                    # the car left the image
+    assert [p.findtext("name") for p in objects[0].findall("part")] == ["head"]
+    assert root.findtext("source/database") == "The VOC2007 Database" and root.findtext("size/width") == "80"
+    assert objects[0].findtext("pose") == "Left"
+    model = WarpTestCamera()
+    box = objects[0].find("bndbox")
+    x0, y0 = model.forward(10.0, 12.0, 80, 60)                                   # 1-based index − 1
+    x1, y1 = model.forward(40.0, 30.0, 80, 60)
+    assert [box.findtext(k) for k in ("xmin", "ymin", "xmax", "ymax")] == \
+        [str(int(round(v + 1))) for v in (x0, y0, x1, y1)]
+    head = objects[0].find("part/bndbox")
+    hx0, hy0 = model.forward(19.5, 13.0, 80, 60)
+    assert float(head.findtext("xmin")) == pytest.approx(hx0 + 1, abs=1e-3) and head.findtext("ymin") == \
+        str(int(round(hy0 + 1)))
+    (gt / "lindau_000001_000019_voc.xml").write_text(VOC_XML.replace("<width>80</width>", "<width>800</width>"))
+    assert run(recipe, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None).failed == 1
+    assert "its size is 800×60 px, the image 80×60" in read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
 
 
 def test_a_yolo_image_without_a_label_file_is_an_image_without_objects(cityscapes, tmp_path):
@@ -627,6 +748,96 @@ def test_cityscapes_polygons_follow_the_map_and_are_copied_by_photometric_chains
     assert run(_recipe({"chain": [{"model": "compression.camera"}], "inputs": spec}, tmp_path), cityscapes, out2,
                workers=1, progress=False, echo=lambda *_: None).failed == 0
     assert (out2 / rel).read_bytes() == (cityscapes / rel).read_bytes()
+
+
+def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
+    """A LabelMe JSON (shapes with points and shape_type) under ``polygons``: polygons move and are clipped, a
+    rectangle becomes the box of its moved outline, lines, points and circles move point by point (closed-form
+    oracle), a shape pushed off the image is dropped, imageData (the unaugmented image) becomes null, every other key
+    is kept; a shape type LabelMe does not have fails the image naming it; a file for another image size fails
+    naming both sizes."""
+    gt = cityscapes / "gtFine/val/lindau"
+    shapes = [{"label": "car", "points": [[10, 12], [40, 12.5], [38, 30], [11, 29]], "group_id": None,
+               "shape_type": "polygon", "flags": {}, "description": ""},
+              {"label": "sign", "points": [[50, 20], [60, 35]], "group_id": 3, "shape_type": "rectangle", "flags": {}},
+              {"label": "lane", "points": [[5, 55], [20, 40], [30, 33]], "shape_type": "linestrip", "flags": {}},
+              {"label": "light", "points": [[44, 7]], "shape_type": "point", "flags": {}},
+              {"label": "wheel", "points": [[25, 25], [28, 25]], "shape_type": "circle", "flags": {}},
+              {"label": "gone", "points": [[0, 0], [2, 0], [1, 2]], "shape_type": "polygon", "flags": {}}]
+    data = {"version": "5.4.1", "flags": {"night": False}, "shapes": shapes, "imagePath": "../x.png",
+            "imageData": "iVBORw0KGgo=", "imageHeight": 60, "imageWidth": 80}
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("labelme.json")}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    out = json.loads((tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_labelme.json").read_text())
+    assert out["imageData"] is None and {k: out[k] for k in ("version", "flags", "imagePath", "imageHeight",
+                                                             "imageWidth")} == {k: data[k] for k in
+                                                                                ("version", "flags", "imagePath",
+                                                                                 "imageHeight", "imageWidth")}
+    model = WarpTestCamera()
+    forward = lambda p: np.stack(model.forward(*np.asarray(p, float).T, 80, 60), axis=1)   # noqa: E731
+    moved = {sh["label"]: sh for sh in out["shapes"]}
+    assert list(moved) == ["car", "sign", "lane", "light", "wheel"]                  # "gone" left the image
+    assert {k: v for k, v in moved["sign"].items() if k != "points"} == \
+        {k: v for k, v in shapes[1].items() if k != "points"}
+    np.testing.assert_allclose(moved["car"]["points"], forward(shapes[0]["points"]), atol=2e-3)     # affine
+    np.testing.assert_allclose(moved["sign"]["points"], forward(shapes[1]["points"]), atol=2e-3)
+    for k in (2, 3, 4):
+        np.testing.assert_allclose(moved[shapes[k]["label"]]["points"], forward(shapes[k]["points"]), atol=2e-3)
+    data["shapes"].append({"label": "blob", "points": [[1, 1], [5, 5]], "shape_type": "ellipse"})
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
+    assert run(recipe, cityscapes, tmp_path / "out2", workers=1, progress=False, echo=lambda *_: None).failed == 1
+    assert "shapes of type ellipse" in read_manifest(tmp_path / "out2/manifest.jsonl")[0]["error"]
+    data["shapes"].pop()
+    data["imageWidth"] = 640
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(data))
+    assert run(recipe, cityscapes, tmp_path / "out3", workers=1, progress=False, echo=lambda *_: None).failed == 1
+    assert "640×60 px image" in read_manifest(tmp_path / "out3/manifest.jsonl")[0]["error"]
+
+
+def test_a_labelme_mask_shape_is_resampled_like_a_label_image(cityscapes, tmp_path):
+    """A LabelMe ``mask`` shape (labelme ≥ 5.3: a 1-bit PNG of its box in base64, placed at the box's first point,
+    as in labelme's examples/primitives) goes through the image's map as masks do (nearest neighbour, 0 where
+    nothing maps) and is cut to the box of what is left; one pushed off the image is dropped."""
+    import base64
+    import io
+
+    from PIL import Image
+
+    blob = np.random.default_rng(3).integers(0, 2, (20, 30)).astype(bool)
+    shapes = [{"label": "blob", "points": [[30.6, 20.0], [59.6, 39.0]], "shape_type": "mask", "flags": {},
+               "mask": base64.b64encode(_png_of(blob)).decode()},
+              {"label": "gone", "points": [[0, 0], [1, 1]], "shape_type": "mask",
+               "mask": base64.b64encode(_png_of(np.ones((2, 2), bool))).decode()}]
+    (cityscapes / "gtFine/val/lindau/lindau_000001_000019_labelme.json").write_text(json.dumps(
+        {"version": "5.7.0", "flags": {}, "shapes": shapes, "imagePath": "x.png", "imageData": None,
+         "imageHeight": 60, "imageWidth": 80}))
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("labelme.json")}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    out = json.loads((tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_labelme.json").read_text())
+    assert [s["label"] for s in out["shapes"]] == ["blob"]
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    frame = np.zeros((60, 80), bool)
+    frame[20:40, 30:60] = blob
+    oracle = frame[ys, xs] & inside
+    rows, cols = np.flatnonzero(oracle.any(axis=1)), np.flatnonzero(oracle.any(axis=0))
+    moved = out["shapes"][0]
+    assert moved["points"] == [[cols[0], rows[0]], [cols[-1], rows[-1]]]
+    with Image.open(io.BytesIO(base64.b64decode(moved["mask"]))) as written:
+        assert written.mode == "1"
+        np.testing.assert_array_equal(np.asarray(written), oracle[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1])
+
+
+def _png_of(bitmap: np.ndarray) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(bitmap).save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscapes, tmp_path):

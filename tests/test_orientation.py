@@ -288,3 +288,73 @@ def test_the_alpha_plane_of_a_turned_photo_is_written_back_where_it_was(tmp_path
                echo=lambda *_: None).failed == 0
     _, _, alpha = read_image(tmp_path / "out" / "f.png")
     assert np.array_equal(alpha, rgba[..., 3])
+
+
+SAMPLE_RAW = Path(__file__).resolve().parents[1] / "sample_data/raw/seq0"
+
+
+@pytest.mark.parametrize("turn", range(1, 9))
+@pytest.mark.parametrize("shape", [(4, 6), (5, 7), (4, 7)])
+def test_a_cfa_pattern_turns_with_its_mosaic(turn, shape):
+    """The CFA pattern of a mosaic turned upright (and back) is the colours of its new top-left sites, also when a
+    flip of an even side shifts the phase: the oracle turns the whole colour map."""
+    from roadview_noise.orientation import cfa_pattern
+
+    for pattern in ("RGGB", "GRBG", "GBRG", "BGGR"):
+        colours = np.array(list(pattern)).reshape(2, 2)[np.arange(shape[0])[:, None] % 2, np.arange(shape[1]) % 2]
+        up = upright(colours.view(np.uint32), turn).view(colours.dtype)
+        assert cfa_pattern(pattern, turn, shape, to_upright=True) == "".join(up[:2, :2].ravel())
+        assert cfa_pattern("".join(up[:2, :2].ravel()), turn, up.shape, to_upright=False) == pattern
+
+
+@pytest.mark.parametrize("turn", [3, 6])
+def test_a_dng_is_processed_upright_by_its_orientation_tag(tmp_path, monkeypatch, turn):
+    """A DNG whose IFD0 Orientation turns it for display (a camera held sideways) is processed upright — the mosaic
+    with its CFA pattern and depth — and written back as stored with its tag: the output is the upright DNG's
+    output turned back (CNF05: fog, then windscreen distortion). Before round 21 a DNG was processed as stored:
+    ``--resume`` redoes such an output (its entry has no ``inputs.orientation``)."""
+    import tifffile
+
+    from roadview_noise.io.image import read_exr_channels, write_exr_channels
+    from roadview_noise.io.raw import read_dng, write_dng
+    from roadview_noise.manifest import read_manifest
+    from roadview_noise.orientation import cfa_pattern
+
+    if not (SAMPLE_RAW / "000000.dng").is_file():
+        pytest.skip("sample_data/raw is absent")
+    dn, pattern, black, white = read_dng(SAMPLE_RAW / "000000.dng")
+    depth = read_exr_channels(SAMPLE_RAW / "000000_depth.exr")[0]
+    imwrite = tifffile.imwrite
+    for name, tag in (("turned", turn), ("up", 1)):
+        folder = tmp_path / name / "raw"
+        folder.mkdir(parents=True)
+        mosaic = dn if tag != 1 else upright(dn, turn)
+        cfa = pattern if tag != 1 else cfa_pattern(pattern, turn, dn.shape, to_upright=True)
+        monkeypatch.setattr(tifffile, "imwrite", lambda *a, extratags=(), **k: imwrite(
+            *a, extratags=[*extratags, (274, "H", 1, tag, True)], **k))
+        write_dng(folder / "f.dng", mosaic, cfa, black, white)
+        write_exr_channels(folder / "f_depth.exr", {k: v if tag != 1 else upright(v, turn) for k, v in depth.items()})
+    monkeypatch.setattr(tifffile, "imwrite", imwrite)
+    recipe = parse_recipe({"schema": "rvnoise.recipe/1", "seed": 3, "cnf": "CNF05",
+                           "inputs": {"raw": "raw/*.dng", "depth": "{stem}_depth.exr"}}, base_dir=tmp_path)
+    for name in ("turned", "up"):
+        assert run(recipe, tmp_path / name, tmp_path / f"out_{name}", workers=1, progress=False,
+                   echo=lambda *_: None).failed == 0
+    out_up = read_dng(tmp_path / "out_up/raw/f.dng")
+    out_turned = read_dng(tmp_path / "out_turned/raw/f.dng")
+    assert out_turned[1] == pattern and out_up[1] == cfa_pattern(pattern, turn, dn.shape, to_upright=True)
+    assert not np.array_equal(out_up[0], upright(dn, turn))                        # fogged and distorted
+    np.testing.assert_array_equal(out_turned[0], stored(out_up[0], turn))
+    with tifffile.TiffFile(tmp_path / "out_turned/raw/f.dng") as tif:
+        assert tif.pages[0].tags[274].value == turn
+    entry = read_manifest(tmp_path / "out_turned/manifest.jsonl")[0]
+    assert entry["inputs"]["orientation"] == {"exif": turn, "processed": "upright"}
+    kw = {"workers": 1, "progress": False, "echo": lambda *_: None, "resume": True}
+    assert run(recipe, tmp_path / "turned", tmp_path / "out_turned", **kw).skipped == 1
+    manifest = tmp_path / "out_turned/manifest.jsonl"            # as an earlier version wrote it: no orientation
+    lines = [json.loads(line) for line in manifest.read_text().splitlines()]
+    for e in lines:
+        e.get("inputs", {}).pop("orientation", None)
+    manifest.write_text("".join(json.dumps(e) + "\n" for e in lines))
+    summary = run(recipe, tmp_path / "turned", tmp_path / "out_turned", **kw)
+    assert summary.skipped == 0 and summary.done == 1                 # redone upright

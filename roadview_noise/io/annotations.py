@@ -17,7 +17,8 @@ Masks: PNG/TIFF label images of any integer dtype and channel count (Cityscapes 
 PNG (Pascal VOC, Mapillary Vistas) as its indices, written back with its palette (:class:`Mask`); a ``.npy`` array
 (labelme's ``SegmentationClassNpy``) as it is.
 
-2-D boxes: KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
+2-D boxes: Pascal VOC XML (``object/bndbox`` and ``part`` boxes, 1-based pixel indices, every other element kept),
+KITTI ``label_2`` text (``type truncated occluded alpha left top right bottom h w l x y z ry [score]``,
 pixels, within [0, W − 1]) and YOLO txt (``class cx cy w h`` or ``class x1 y1 x2 y2 …`` polygons, normalised to the
 image size: 0 and 1 are the image edges, i.e. pixel positions −½ and W − ½ with pixel centres at integers).
 
@@ -47,7 +48,7 @@ from .atomic import write_bytes_atomic
 POINT_LABEL_FORMATS = {"semantickitti": "<u4", "nuscenes_lidarseg": "|u1", "nuscenes_panoptic": None, "npy": None}
 PANOPTIC_CLASS_SCALE = 1000            # nuScenes-panoptic: class · 1000 + instance
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)      # the time stamp written into an .npz: the bytes do not depend on the run
-BOX_2D_FORMATS = ("kitti", "yolo")
+BOX_2D_FORMATS = ("kitti", "yolo", "voc")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
 BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
     "kitti": "KITTI label_2 lines: type truncated occluded alpha left top right bottom h w l x y z rotation_y [score]",
@@ -127,31 +128,51 @@ def write_point_labels(path: str | os.PathLike, labels: np.ndarray, fmt: str) ->
 class Mask:
     """A label image: its values (H × W or H × W × C, any integer dtype) and, for a palette PNG (Pascal VOC's
     ``SegmentationClass``, Mapillary Vistas' labels), the file's ``PLTE`` and ``tRNS`` chunks: the values are then
-    the palette indices, the class ids those datasets' loaders read, and are written back with the same palette."""
+    the palette indices, the class ids those datasets' loaders read, and are written back with the same palette.
+    ``bit_depth`` 1, 2 or 4: a PNG of that many bits per sample (a binary segmentation mask is 1-bit grey), whose
+    values are its levels (0 … 2^bit_depth − 1, not OpenCV's 0–255 scaling) and which is written back so."""
 
     values: np.ndarray
     palette_chunks: tuple[bytes, ...] = ()
+    bit_depth: int = 0                                       # 0: as OpenCV writes the dtype (8 or 16 bits)
 
     @property
     def shape(self) -> tuple[int, ...]:
         return self.values.shape
 
+    @property
+    def max_level(self) -> int | None:
+        """The highest value the file can hold (None: the dtype's)."""
+        return 2 ** self.bit_depth - 1 if self.bit_depth else None
+
 
 def read_mask(path: str | os.PathLike) -> Mask:
-    from .png import PNG_SIGNATURE                          # here: a LiDAR or radar worker never imports the codecs
-
     data = _read(Path(path))
     if Path(path).suffix.lower() == ".npy":                # labelme's SegmentationClassNpy/, any integer dtype
         try:
             return Mask(np.load(io.BytesIO(data), allow_pickle=False))
         except ValueError as exc:
             raise InputError(f"not a NumPy .npy array ({exc})", file=str(path)) from None
+    return read_mask_bytes(data, path)
+
+
+def read_mask_bytes(data: bytes, path) -> Mask:
+    """A PNG/TIFF label image's :class:`Mask` from its bytes (``path`` names it in errors)."""
+    from .png import PNG_SIGNATURE                          # here: a LiDAR or radar worker never imports the codecs
+
     if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_PALETTE:
         return _palette_mask(data, path)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise InputError("not an image OpenCV can decode (masks are PNG/TIFF label images)", file=str(path))
+    if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_GREY and data[24] < 8:
+        return Mask(_levels(img, data[24]), bit_depth=data[24])
     return Mask(img)
+
+
+def _levels(decoded: np.ndarray, bit_depth: int) -> np.ndarray:
+    """The stored samples of a 1/2/4-bit PNG that OpenCV scaled to 0–255 (by 255, 85, 17)."""
+    return decoded // (255 // (2 ** bit_depth - 1)) if bit_depth < 8 else decoded
 
 
 def _palette_mask(data: bytes, path) -> Mask:
@@ -164,7 +185,7 @@ def _palette_mask(data: bytes, path) -> Mask:
     if grey is None:
         raise InputError("cannot decode this palette PNG", file=str(path))
     bit_depth = data[24]
-    return Mask(grey // (255 // (2 ** bit_depth - 1)) if bit_depth < 8 else grey, chunks)
+    return Mask(_levels(grey, bit_depth), chunks, bit_depth if bit_depth < 8 else 0)
 
 
 def write_mask(path: str | os.PathLike, mask: Mask) -> None:
@@ -174,24 +195,46 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
         np.save(buf, mask.values, allow_pickle=False)
         write_bytes_atomic(path, buf.getvalue())
         return
-    ok, buf = cv2.imencode(suffix, mask.values)
-    if not ok:
-        raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
-    data = buf.tobytes()
+    if mask.bit_depth:
+        data = packed_png(mask.values, mask.bit_depth)
+    else:
+        ok, buf = cv2.imencode(suffix, mask.values)
+        if not ok:
+            raise InputError(f"cannot encode a {mask.values.dtype} mask as {suffix}", file=str(path))
+        data = buf.tobytes()
     if mask.palette_chunks:
         data = _as_palette_png(data, mask)
     write_bytes_atomic(path, data)
 
 
+def packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
+    """A grey PNG of ``bit_depth`` (1, 2, 4) bits per sample: each row's samples packed from the high bit (PNG spec
+    §7.2), filter type 0, one IDAT. ValueError names a level the depth cannot hold."""
+    from .png import PNG_SIGNATURE
+
+    top = int(levels.max(initial=0))
+    if top >= 2 ** bit_depth:
+        raise ValueError(f"value {top} does not fit a {bit_depth}-bit mask")
+    h, w = levels.shape
+    bits = (levels[..., None].astype(np.uint8) >> np.arange(bit_depth - 1, -1, -1, dtype=np.uint8)) & 1
+    rows = np.packbits(bits.reshape(h, w * bit_depth), axis=1)          # each row padded to whole bytes
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
+    ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([bit_depth, _PNG_GREY, 0, 0, 0])
+    return PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(raw, 9)) + _PNG_END
+
+
+def _png_chunk(kind: bytes, body: bytes) -> bytes:
+    return len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
+
+
 def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
-    """An 8-bit grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up
-    to the highest index (a warp's fill value)."""
+    """A grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up to the
+    highest index (a warp's fill value)."""
     chunks = list(mask.palette_chunks)
     entries = int.from_bytes(chunks[0][:4], "big") // 3 if chunks and chunks[0][4:8] == b"PLTE" else 0
     needed = int(mask.values.max(initial=0)) + 1
     if chunks and entries < needed:
-        body = chunks[0][8:-4] + bytes(3 * (needed - entries))
-        chunks[0] = len(body).to_bytes(4, "big") + b"PLTE" + body + zlib.crc32(b"PLTE" + body).to_bytes(4, "big")
+        chunks[0] = _png_chunk(b"PLTE", chunks[0][8:-4] + bytes(3 * (needed - entries)))
     return _retyped_png(grey, _PNG_PALETTE, tuple(chunks))
 
 
@@ -211,17 +254,22 @@ def _retyped_png(data: bytes, colour_type: int, chunks: tuple[bytes, ...] = ()) 
 # --- polygon files ---------------------------------------------------------------------------------------------
 
 
+LABELME_SHAPES = ("polygon", "rectangle", "circle", "line", "linestrip", "point", "points", "mask")   # moved
+
+
 def read_polygons(path: str | os.PathLike) -> dict:
-    """A per-image polygon JSON as Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 write it:
-    ``objects``, each with a ``polygon`` of [x, y] pixel positions (pixel centres on integers); every key kept."""
+    """A per-image polygon JSON: Cityscapes (``*_gtFine_polygons.json``) and Mapillary Vistas v2 — ``objects``, each
+    with a ``polygon`` of [x, y] pixel positions (pixel centres on integers) — or LabelMe — ``shapes``, each with
+    ``points`` and a ``shape_type`` (polygon, rectangle, circle, line, linestrip, point, mask) —; every key kept."""
     try:
         data = json.loads(_read(Path(path)))
-        for k, obj in enumerate(data["objects"]):
-            if np.asarray(obj["polygon"], dtype=float).reshape(-1, 2).shape[0] != len(obj["polygon"]):
-                raise ValueError(f"objects[{k}].polygon is not a list of [x, y] pairs")
+        key, points = ("shapes", "points") if isinstance(data, dict) and "shapes" in data else ("objects", "polygon")
+        for k, obj in enumerate(data[key]):
+            if np.asarray(obj[points], dtype=float).reshape(-1, 2).shape[0] != len(obj[points]):
+                raise ValueError(f"{key}[{k}].{points} is not a list of [x, y] pairs")
     except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"not a Cityscapes-style polygon file (objects with [x, y] polygons): {exc}",
-                         file=str(path)) from None
+        raise InputError(f"not a Cityscapes-style polygon file (objects with [x, y] polygons) nor a LabelMe file "
+                         f"(shapes with [x, y] points): {exc}", file=str(path)) from None
     return data
 
 
@@ -238,12 +286,68 @@ class Boxes2D:
     KITTI and YOLO boxes as their 2 corners, YOLO polygons as their vertices."""
 
     fmt: str
-    tokens: list[list[str]]
+    tokens: list
     points_px: list[np.ndarray]
     is_box: list[bool]
+    document: bytes = b""          # Pascal VOC: the XML as read (tokens: (object, part or None) of each box)
+
+
+VOC_BOX = ("xmin", "ymin", "xmax", "ymax")
+
+
+def _voc_boxes(path, data: bytes, width: int, height: int) -> Boxes2D:
+    """Pascal VOC XML: each ``object``'s ``bndbox`` and its ``part`` boxes (person layout), 1-based pixel indices
+    (VOC devkit), as pixel positions (centres on integers: index − 1)."""
+    from xml.etree import ElementTree
+
+    try:
+        root = ElementTree.fromstring(data)
+        size = root.find("size")
+        stated = (int(float(size.findtext("width"))), int(float(size.findtext("height")))) if size is not None \
+            else (width, height)
+        tokens, points = [], []
+        for i, obj in enumerate(root.findall("object")):
+            for j, box in [(None, obj.find("bndbox"))] + list(enumerate(b.find("bndbox") for b in obj.findall("part"))):
+                if box is None:
+                    raise ValueError(f"object {i + 1} has a part without a bndbox" if j is not None else
+                                     f"object {i + 1} ({obj.findtext('name')}) has no bndbox")
+                tokens.append((i, j))
+                points.append(np.array([float(box.findtext(k)) for k in VOC_BOX]).reshape(2, 2) - 1.0)
+    except (ElementTree.ParseError, ValueError, TypeError) as exc:
+        raise InputError(f"not a Pascal VOC annotation (annotation/object/bndbox with xmin … ymax): {exc}",
+                         file=str(path)) from None
+    if stated != (width, height):
+        raise InputError(f"its size is {stated[0]}×{stated[1]} px, the image {width}×{height}", file=str(path))
+    return Boxes2D("voc", tokens, points, [True] * len(tokens), data)
+
+
+def _write_voc(path, boxes: Boxes2D) -> None:
+    """The VOC XML as read with each kept box's moved corners (integers when the input's were, else to 1/1000 px)
+    and the objects and parts whose box left the image removed."""
+    from xml.etree import ElementTree
+
+    root = ElementTree.fromstring(boxes.document)
+    objects = root.findall("object")
+    moved = dict(zip(boxes.tokens, boxes.points_px))
+    for i, obj in enumerate(objects):
+        if (i, None) not in moved:
+            root.remove(obj)
+            continue
+        for j, part in [(None, obj)] + list(enumerate(obj.findall("part"))):
+            if (i, j) not in moved:
+                obj.remove(part)
+                continue
+            box = part.find("bndbox")
+            for k, v in zip(VOC_BOX, moved[(i, j)].ravel() + 1.0):
+                whole = box.findtext(k).strip().lstrip("-").isdigit()
+                box.find(k).text = str(int(round(v))) if whole else f"{v:.3f}"
+    head = b'<?xml version="1.0" encoding="utf-8"?>\n' if boxes.document.lstrip().startswith(b"<?xml") else b""
+    write_bytes_atomic(path, head + ElementTree.tostring(root, encoding="utf-8", xml_declaration=False))
 
 
 def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) -> Boxes2D:
+    if fmt == "voc":
+        return _voc_boxes(path, _read(Path(path)), width, height)
     text = _read(Path(path)).decode("utf-8", errors="replace")
     tokens, points, is_box = [], [], []
     for i, line in enumerate(text.splitlines(), 1):
@@ -275,6 +379,8 @@ def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) ->
 
 
 def write_boxes_2d(path: str | os.PathLike, boxes: Boxes2D, width: int, height: int) -> None:
+    if boxes.fmt == "voc":
+        return _write_voc(path, boxes)
     lines = []
     for words, pts, box in zip(boxes.tokens, boxes.points_px, boxes.is_box):
         if boxes.fmt == "kitti":

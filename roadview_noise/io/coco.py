@@ -32,14 +32,7 @@ from .atomic import write_bytes_atomic
 def read_coco(path: str | os.PathLike) -> dict[str, Any]:
     """The parsed dataset; InputError names the file when it is not a COCO dataset (``images`` with ``id`` and
     ``file_name``, ``annotations`` with ``image_id``)."""
-    try:
-        data = json.loads(Path(path).read_bytes())
-    except FileNotFoundError:
-        raise InputError("the COCO file of inputs.annotations.coco does not exist", file=str(path)) from None
-    except OSError as exc:
-        raise InputError(f"cannot read the COCO file: {exc.strerror or exc}", file=str(path)) from None
-    except ValueError as exc:
-        raise InputError(f"not JSON ({exc})", file=str(path)) from None
+    data = read_dataset_json(path, "COCO", "coco")
     if not isinstance(data, dict) or not isinstance(data.get("images"), list):
         raise InputError("not a COCO dataset: no list 'images' at the top level", file=str(path))
     for key, required in (("images", ("id", "file_name")), ("annotations", ("image_id",))):
@@ -51,6 +44,18 @@ def read_coco(path: str | os.PathLike) -> dict[str, Any]:
             if missing:
                 raise InputError(f"{key}[{i}] has no {', '.join(repr(k) for k in missing)}", file=str(path))
     return data
+
+
+def read_dataset_json(path: str | os.PathLike, kind: str, key: str) -> Any:
+    """A dataset file's parsed JSON (``kind`` and its recipe ``key`` under inputs.annotations name it in errors)."""
+    try:
+        return json.loads(Path(path).read_bytes())
+    except FileNotFoundError:
+        raise InputError(f"the {kind} file of inputs.annotations.{key} does not exist", file=str(path)) from None
+    except OSError as exc:
+        raise InputError(f"cannot read the {kind} file: {exc.strerror or exc}", file=str(path)) from None
+    except ValueError as exc:
+        raise InputError(f"not JSON ({exc})", file=str(path)) from None
 
 
 def write_coco(path: str | os.PathLike, data: dict[str, Any]) -> None:

@@ -61,6 +61,7 @@ class DngLayout:
     black_source: str                   # the tags it comes from, for messages
     active_origin: tuple[int, int] = (0, 0)      # top, left of the active area in the raw image (any parity)
     raw_hw: tuple[int, int] | None = None        # rows, columns of the raw IFD's image
+    orientation: int = 1                         # IFD0's Orientation (274), 1–8: how the raw image is displayed
 
 
 def inspect(tif: tifffile.TiffFile, path: str | os.PathLike) -> DngLayout:
@@ -87,8 +88,9 @@ def inspect(tif: tifffile.TiffFile, path: str | os.PathLike) -> DngLayout:
     _check_compression(ifd, path)
     _check_chunks(ifd, h, w, path)
     top, left, bottom, right = _ints(ifd.tags.get(50829), (0, 0, h, w))           # ActiveArea
+    turn = tif.pages[0].tags.get(274)                                               # Orientation (DNG: IFD0)
     return DngLayout((bottom - top, right - left), *_black(ifd.tags, bottom - top, right - left, path), (top, left),
-                     (h, w))
+                     (h, w), int(turn.value) if turn is not None and 1 <= int(turn.value) <= 8 else 1)
 
 
 def raw_ifd(tif: tifffile.TiffFile, path: str | os.PathLike):

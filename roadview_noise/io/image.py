@@ -97,18 +97,25 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
             page = tif.pages[0]
             photometric, metadata = page.photometric, image_metadata.tiff_tags(page)
-            icc, tiled = _tiff_icc(page), page.is_tiled
+            icc, tiled, extras = _tiff_icc(page), page.is_tiled, tuple(page.extrasamples)
     else:
-        photometric, icc = None, icc_profile(data, fmt)
-        metadata = image_metadata.png_chunks(data) if fmt == "png" else ()
-    codes = decode_codes(data, fmt, source=source, photometric=photometric)
-    if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
-        codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
+        photometric, icc, extras = None, icc_profile(data, fmt), ()
+        metadata = image_metadata.png_chunks(data) if fmt == "png" else image_metadata.jfif_density(data)
+    alpha_tiff = fmt == "tiff" and len(extras) == 1 and photometric in _TIFF_ALPHA_PHOTOMETRICS
+    codes = _tiff_with_alpha(data) if alpha_tiff else None
+    if codes is None:
+        codes = decode_codes(data, fmt, source=source, photometric=photometric)
+        if fmt == "tiff" and photometric != tifffile.PHOTOMETRIC.PALETTE:
+            codes = _tiff_as_stored(codes, image_metadata.tiff_orientation(metadata), tiled, source)
+        if alpha_tiff and extras[0] == tifffile.EXTRASAMPLE.UNASSALPHA:
+            codes = _unpremultiplied(codes)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
     transfer = "srgb" if fmt == "jpeg" else image_metadata.stated_transfer(fmt, metadata, icc) or untagged_transfer
     linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc,
                                                transfer=transfer)
     layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
+    if alpha_tiff and extras[0] == tifffile.EXTRASAMPLE.ASSOCALPHA:
+        layout["tiff_associated_alpha"] = True
     return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=metadata, **layout), alpha
 
 
@@ -153,6 +160,37 @@ def _tiff_as_stored(codes: np.ndarray, turn: int, tiled: bool, source) -> np.nda
     return stored(codes, turn)
 
 
+_TIFF_ALPHA_PHOTOMETRICS = (tifffile.PHOTOMETRIC.RGB, tifffile.PHOTOMETRIC.MINISBLACK)
+
+
+def _tiff_with_alpha(data: bytes) -> np.ndarray | None:
+    """RGBA codes of an RGB or grey TIFF with one alpha sample, as stored (tifffile): OpenCV (libtiff's RGBA read)
+    multiplies 8-bit colours by an unassociated alpha — a half-transparent pixel came out half as bright — and turns
+    the pixels by the orientation tag. Grey + alpha becomes RGBA, as a grey + alpha PNG does. None when tifffile
+    cannot decode it (LZW and JPEG need the ``imagecodecs`` package): OpenCV's then, :func:`_unpremultiplied`."""
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            page = tif.pages[0]
+            codes = page.asarray()
+            if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE:
+                codes = np.moveaxis(codes, 0, -1)
+    except Exception:                                  # a codec tifffile lacks; several exception types
+        return None
+    if codes.shape[-1] == 2:
+        codes = codes[..., [0, 0, 0, 1]]
+    return np.ascontiguousarray(codes)
+
+
+def _unpremultiplied(codes: np.ndarray) -> np.ndarray:
+    """8-bit RGBA codes OpenCV multiplied by their unassociated alpha (libtiff: round(c · a / 255)) divided back,
+    to within 255 / (2a) codes (exact at full alpha; a colour under alpha 0 is lost); 16-bit ones it leaves."""
+    if codes.dtype != np.uint8 or codes.ndim != 3 or codes.shape[2] != 4:
+        return codes
+    alpha = codes[..., 3:].astype(np.float32)
+    colour = np.where(alpha > 0, np.rint(codes[..., :3] * (np.float32(255) / np.maximum(alpha, 1))), 0)
+    return np.concatenate([np.clip(colour, 0, 255).astype(np.uint8), codes[..., 3:]], axis=2)
+
+
 def _palette_tiff_rgb(data: bytes) -> np.ndarray:
     """8-bit RGB codes of a palette TIFF (its 16-bit colour map's high bytes, TIFF 6.0 §5); OpenCV reads the
     palette's grey levels instead of its colours."""
@@ -170,6 +208,19 @@ def _undecoded_variant(data: bytes, fmt: str) -> str:
         return "a lossless JPEG (SOF3): convert it to a 16-bit PNG or TIFF"
     if seg and seg[0] != 8:
         return f"a {seg[0]}-bit JPEG: OpenCV reads 8-bit ones; convert it to a 16-bit PNG or TIFF"
+    if fmt == "tiff":
+        try:
+            with tifffile.TiffFile(io.BytesIO(data)) as tif:
+                page = tif.pages[0]
+                bits, kind, stated = page.bitspersample, page.sampleformat, 262 in page.tags
+        except Exception:                              # tifffile raises several types for a damaged directory
+            return "corrupt or unsupported variant"
+        if not stated:
+            return "no PhotometricInterpretation tag (262), which OpenCV needs: add it (tiffset -s 262 1)"
+        if (bits, int(kind)) not in ((8, 1), (16, 1), (32, 3)):
+            what = {1: "unsigned", 2: "signed", 3: "floating-point"}.get(int(kind), "")
+            return (f"{bits}-bit {what} samples: rvnoise reads 8- and 16-bit unsigned and 32-bit float TIFFs; "
+                    "convert it (e.g. to an 8-bit PNG)")
     return "corrupt or unsupported variant"
 
 
@@ -272,7 +323,7 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     """PNG, JPEG (``encoding.jpeg_quality``) or TIFF bytes of grey or RGB(A) code values, with
     ``encoding.icc_profile`` embedded."""
     if encoding.fmt == "tiff":
-        return _encode_tiff(codes, encoding.icc_profile, encoding.metadata)
+        return _encode_tiff(codes, encoding.icc_profile, encoding.metadata, encoding.tiff_associated_alpha)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
@@ -287,7 +338,8 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(codes), params)
     if not ok:
         raise OSError(f"{name}: OpenCV could not encode {encoding}")
-    return embed_exif(embed_icc_profile(buf.tobytes(), encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
+    jpeg = image_metadata.with_jfif_density(buf.tobytes(), encoding.metadata)
+    return embed_exif(embed_icc_profile(jpeg, encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
 
 
 def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str, *, refuse_nan: bool = True
@@ -324,13 +376,14 @@ def _refuse_nan(linear: np.ndarray, name: str) -> None:
         raise ValueError(f"{name}: image has {n_nan} NaN values; a model produced invalid radiance")
 
 
-def _encode_tiff(codes: np.ndarray, icc: bytes | None, metadata: tuple = ()) -> bytes:
-    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha, the ICC profile and the
-    input's kept tags (:func:`.image_metadata.tiff_tags`)."""
+def _encode_tiff(codes: np.ndarray, icc: bytes | None, metadata: tuple = (), associated: bool = False) -> bytes:
+    """TIFF bytes (Deflate) of RGB(A) or grey code values, with an unassociated alpha (associated: premultiplied,
+    as the input stated), the ICC profile and the input's kept tags (:func:`.image_metadata.tiff_tags`)."""
     buf = io.BytesIO()
     colour = codes.ndim == 3
     tifffile.imwrite(buf, codes, photometric="rgb" if colour else "minisblack",
-                     extrasamples=("unassalpha",) if colour and codes.shape[2] == 4 else None,
+                     extrasamples=("assocalpha" if associated else "unassalpha",) if colour and codes.shape[2] == 4
+                     else None,
                      compression="zlib", metadata=None, iccprofile=icc,
                      **image_metadata.tiff_write_args(metadata))
     return buf.getvalue()

@@ -7,6 +7,7 @@
   encoding is written back). Left out: what depends on the colour type or palette (``tRNS`` is the alpha plane,
   ``bKGD``, ``sBIT``, ``hIST``, ``sPLT``), ``tIME`` (the last modification) and animation chunks.
 - TIFF: orientation (274), description, make, model, date, artist, copyright, XMP (700) and the resolution.
+- JPEG: the JFIF density (APP0: units and X, Y density, the dots per inch viewers show), which OpenCV writes 1:1.
 - An ICC profile whose colour space the written image cannot have (a grey profile on the RGBA file a grey + alpha
   PNG becomes, a CMYK profile on the RGB file OpenCV decodes a CMYK JPEG to) is dropped: ICC.1 §7.2.6, a viewer
   would reject or misread it (an RGB profile on a grey file is kept, as the input had it).
@@ -63,6 +64,26 @@ def embed_png_chunks(data: bytes, chunks: tuple[bytes, ...]) -> bytes:
         return data
     ihdr_end = len(PNG_SIGNATURE) + 12 + int.from_bytes(data[8:12], "big")
     return data[:ihdr_end] + b"".join(chunks) + data[ihdr_end:]
+
+
+_JFIF = b"\xff\xd8\xff\xe0"                 # SOI, then an APP0 segment …
+_JFIF_ID, _JFIF_DENSITY = slice(6, 11), slice(13, 18)     # … "JFIF\0"; units, X density, Y density (JFIF 1.02)
+
+
+def jfif_density(data: bytes) -> tuple[bytes, ...]:
+    """A JPEG's JFIF density — units (0 aspect ratio, 1 dots per inch, 2 per cm), X and Y density: the "dpi" viewers
+    and print layouts read — as a one-item metadata tuple (empty without a JFIF APP0 segment)."""
+    if data.startswith(_JFIF) and data[_JFIF_ID] == b"JFIF\x00" and len(data) > _JFIF_DENSITY.stop:
+        return (data[_JFIF_DENSITY],)
+    return ()
+
+
+def with_jfif_density(data: bytes, metadata: tuple) -> bytes:
+    """JPEG bytes (OpenCV writes a JFIF APP0 with a 1:1 aspect ratio) with the input's JFIF density
+    (:func:`jfif_density`)."""
+    if len(metadata) != 1 or not jfif_density(data):
+        return data
+    return data[:_JFIF_DENSITY.start] + metadata[0] + data[_JFIF_DENSITY.stop:]
 
 
 def tiff_tags(page) -> tuple:

@@ -49,7 +49,8 @@ def read_raw(path: str | os.PathLike, black_level_dn: BlackOverride = None
     ``black_level_dn``: the black level to use instead of the file's (:func:`black_override`)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".dng":
-        return (*read_dng(path, black_level_dn), RawEncoding(fmt="dng"))
+        parts, layout = _read_dng(path, black_level_dn)
+        return (*parts, RawEncoding(fmt="dng", orientation=layout.orientation))
     if suffix == ".raw":
         meta = _read_sidecar(Path(path))
         dn, pattern, black, white = read_plain_raw(path, meta)
@@ -92,6 +93,11 @@ def read_dng(path: str | os.PathLike, black_level_dn: BlackOverride = None) -> R
     ``black_level_dn`` instead of the file's black-level tags when given (:func:`black_override`). The TIFF
     structure is checked first (:func:`check_dng_structure`), so a truncated file or one rvnoise cannot use is
     named as such."""
+    return _read_dng(path, black_level_dn)[0]
+
+
+def _read_dng(path, black_level_dn: BlackOverride) -> tuple[RawParts, dng_layout.DngLayout]:
+    """:func:`read_dng`'s parts and the file's layout (its orientation: :class:`.dng_layout.DngLayout`)."""
     layout = check_dng_structure(path)
     try:
         with rawpy.imread(str(path)) as raw:
@@ -108,13 +114,13 @@ def read_dng(path: str | os.PathLike, black_level_dn: BlackOverride = None) -> R
     if pattern not in CFA_PATTERNS:
         raise InputError(f"CFA pattern {pattern!r} is not one of {CFA_PATTERNS}", file=str(path))
     if black_level_dn is not None:
-        return dn, pattern, black_override(black_level_dn, white, path), white
+        return (dn, pattern, black_override(black_level_dn, white, path), white), layout
     if layout.black_spread_dn > MAX_BLACK_SPREAD_DN:
         raise InputError(f"the black level varies by {layout.black_spread_dn:g} DN over the frame "
                          f"({layout.black_source}), more than {MAX_BLACK_SPREAD_DN} DN; rvnoise needs one black level",
                          file=str(path))
     if layout.black_mean_dn is not None:
-        return dn, pattern, layout.black_mean_dn, white
+        return (dn, pattern, layout.black_mean_dn, white), layout
     if np.ptp(blacks) > MAX_BLACK_SPREAD_DN:         # no black tag: LibRaw's estimate (e.g. from masked areas)
         raise InputError(f"per-channel black levels {blacks.tolist()} differ by more than {MAX_BLACK_SPREAD_DN} DN; "
                          "rvnoise needs one black level", file=str(path))
@@ -125,7 +131,7 @@ def read_dng(path: str | os.PathLike, black_level_dn: BlackOverride = None) -> R
             f"below {UNTAGGED_BLACK_HINT:.0%} of white: the sensor's black is likely higher (e.g. PiDNG files of "
             "Raspberry Pi cameras), and noise and weather radiances would then ride on that offset; if so, add the "
             "tag (e.g. with exiftool) or set the recipe's inputs.raw_black_level_dn"))
-    return dn, pattern, black, white
+    return (dn, pattern, black, white), layout
 
 
 def _active_area(raw, layout: dng_layout.DngLayout) -> tuple[np.ndarray, np.ndarray]:
@@ -149,6 +155,16 @@ _LIBRAW_WORDS = {
     "LibRawRequestForNonexistentImageError": "the DNG holds no raw image",
     "LibRawTooBigError": "the DNG declares an image too large to decode",
 }
+
+
+def dng_orientation(path: str | os.PathLike) -> int:
+    """A DNG's IFD0 Orientation (1–8; 1 when absent, invalid or the file unreadable): IFD0 only, no pixels read."""
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tag = tif.pages[0].tags.get(274)
+            return int(tag.value) if tag is not None and 1 <= int(tag.value) <= 8 else 1
+    except Exception:                              # tifffile raises many types for a damaged directory
+        return 1
 
 
 def check_dng_structure(path: str | os.PathLike) -> dng_layout.DngLayout:

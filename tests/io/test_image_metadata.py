@@ -45,6 +45,21 @@ def test_no_exif_adds_none(tmp_path):
     assert enc.exif is None and dict(Image.open(dst).getexif()) == {}
 
 
+@pytest.mark.parametrize("dpi,mode", [((300, 300), "L"), ((72, 144), "RGB")])
+def test_jpeg_jfif_density_is_kept(tmp_path, dpi, mode):
+    """A JPEG's JFIF density (the dpi viewers show; hopper.jpg of Pillow's tests: 96 dpi) was written as OpenCV's
+    1:1 aspect ratio (no dpi); a file without JFIF gets none added."""
+    src, dst = tmp_path / "in.jpg", tmp_path / "out.jpg"
+    _photo().convert(mode).save(src, quality=90, dpi=dpi)
+    _roundtrip(src, dst)
+    assert tuple(round(v) for v in Image.open(dst).info["dpi"]) == dpi
+    stripped = tmp_path / "bare.jpg"                  # no APP0 at all: SOI, then the rest of the file
+    data = src.read_bytes()
+    stripped.write_bytes(data[:2] + data[4 + int.from_bytes(data[4:6], "big"):])
+    _roundtrip(stripped, dst)
+    assert "dpi" not in Image.open(dst).info or Image.open(dst).info["dpi"] == (1, 1)
+
+
 @pytest.mark.parametrize("subsampling,layer", [(0, (1, 1, 1)), (1, (2, 1, 1)), (2, (2, 2, 1))])
 @pytest.mark.parametrize("progressive", [False, True])
 def test_jpeg_chroma_subsampling_and_progressive_are_kept(tmp_path, subsampling, layer, progressive):
@@ -161,6 +176,63 @@ def test_icc_profile_of_another_colour_space_than_the_output_is_dropped(tmp_path
     _, enc = _roundtrip(src, dst)
     assert (enc.icc_profile == bytes(icc)) == kept
     assert (Image.open(dst).info.get("icc_profile") == bytes(icc)) == kept
+
+
+def test_a_tiff_opencv_cannot_decode_is_refused_naming_why(tmp_path):
+    """2/4-bit grey TIFFs (Pillow's hopper_gray_4bpp.tif) were refused as "corrupt or unsupported variant"; the
+    error now names the layout (and a missing PhotometricInterpretation tag, Pillow's 10ct_32bit_128.tiff)."""
+    import tifffile
+
+    from roadview_noise.errors import InputError
+
+    codes = (np.arange(48 * 64).reshape(48, 64) % 4).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "four.tif", codes, photometric="minisblack")
+    with tifffile.TiffFile(tmp_path / "four.tif", mode="r+b") as tif:
+        tif.pages[0].tags[258].overwrite(4)                      # BitsPerSample 4 (tifffile cannot pack them here)
+    with pytest.raises(InputError, match="4-bit unsigned samples: rvnoise reads 8- and 16-bit"):
+        read_image(tmp_path / "four.tif")
+
+
+@pytest.mark.parametrize("extra,dtype", [("unassalpha", np.uint8), ("assocalpha", np.uint8),
+                                         ("unassalpha", np.uint16), ("assocalpha", np.uint16)])
+@pytest.mark.parametrize("turn", [1, 6])
+def test_a_tiff_alpha_keeps_its_colours_and_kind(tmp_path, extra, dtype, turn):
+    """An RGBA TIFF read and written back unchanged keeps its samples and its ExtraSamples kind. OpenCV multiplied
+    8-bit colours by an unassociated alpha (100 at alpha 128 came out 50) and an associated alpha was written as
+    unassociated; read as stored, also with an orientation tag."""
+    import tifffile
+
+    full = np.iinfo(dtype).max
+    rgba = np.zeros((30, 40, 4), dtype)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2] = full // 5 * 2, full // 5, full // 10
+    rgba[..., 3] = np.linspace(0, full, 40).astype(dtype)
+    rgba[5, 7] = [full, 0, 0, full]                               # a marker the orientation must not move
+    src, dst = tmp_path / "in.tif", tmp_path / "out.tif"
+    tifffile.imwrite(src, rgba, photometric="rgb", extrasamples=[extra], extratags=[(274, "H", 1, turn, True)])
+    linear, enc, alpha = read_image(src)
+    write_image(dst, linear, enc, alpha)
+    with tifffile.TiffFile(dst) as tif:
+        assert tif.pages[0].extrasamples[0].name.lower() == extra
+        np.testing.assert_array_equal(tif.pages[0].asarray(), rgba)
+
+
+def test_an_lzw_rgba_tiff_tifffile_cannot_decode_is_unpremultiplied(tmp_path):
+    """Without imagecodecs tifffile decodes no LZW: such an RGBA TIFF (Pillow's tiff_16bit_RGBa.tiff; Pillow's own
+    RGBA files, ExtraSamples 2) is OpenCV's, whose 8-bit colours under alpha a are divided back to within
+    255 / (2a) codes (they came out multiplied by a / 255: 100 at alpha 128 written 50)."""
+    rgba = np.zeros((30, 40, 4), np.uint8)
+    rgba[..., 0], rgba[..., 1], rgba[..., 2] = 100, 200, 30
+    rgba[..., 3] = np.linspace(8, 255, 40).astype(np.uint8)
+    src, dst = tmp_path / "in.tif", tmp_path / "out.tif"
+    Image.fromarray(rgba, "RGBA").save(src, compression="tiff_lzw")
+    linear, enc, alpha = read_image(src)
+    write_image(dst, linear, enc, alpha)
+    with Image.open(dst) as out:
+        written = np.asarray(out)
+    np.testing.assert_array_equal(written[..., 3], rgba[..., 3])
+    tolerance = np.ceil(255 / (2 * rgba[..., 3:].astype(float)))
+    assert np.all(np.abs(written[..., :3].astype(int) - rgba[..., :3]) <= tolerance)
+    assert np.array_equal(written[:, -1, :3], rgba[:, -1, :3])               # full alpha: exact
 
 
 def test_a_12_bit_jpeg_is_refused_saying_so(tmp_path):
