@@ -578,16 +578,20 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
     s, change, top = 0, 0, len(tan_mid)                 # its sorted position, the change that led to it
     for b0 in range(0, n, block):
         m = min(n, b0 + block) - b0
-        for i in range(m):
-            x[i], y[i], z[i] = positions[b0 + i, 0], positions[b0 + i, 1], positions[b0 + i, 2]
+        xyz = positions[b0:b0 + m]                      # (the block's views: loop indices from 0, contiguous
+        for i in range(m):                              # stores, no negative-index wraparound compiled)
+            x[i], y[i], z[i] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         if ranges:
+            rb = range_m[b0:b0 + m]
             for i in range(m):                          # (the expression of lidar_rays' ranges: the same bits)
                 ri = math.sqrt(x[i] ** 2 + y[i] ** 2 + z[i] ** 2)
-                range_m[b0 + i] = ri if (ri > 0) & (ri >= min_range_m) else 0.0
+                rb[i] = ri if (ri > 0) & (ri >= min_range_m) else 0.0
         if not rings:
             continue
+        fb = firing[b0:b0 + m]
         for i in range(m):                              # one vectorised loop over contiguous coordinates
-            firing[b0 + i] = atan2(y[i], x[i])
+            fb[i] = atan2(y[i], x[i])
+        gb = ring[b0:b0 + m]
         if recover:
             for i in range(m):                          # z/ρ from the beam origin, vectorised (NaN: sorted_beam's)
                 rho = math.sqrt(x[i] * x[i] + y[i] * y[i]) - rho_offset
@@ -602,10 +606,10 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
                     low = tan_mid[s - 1] if s > 0 else -math.inf
                     high = tan_mid[s] if s < top else math.inf
                     beam = order[s]
-                ring[b0 + i] = beam
-        for p in range(b0, b0 + m):
-            b = np.uintp(ring[p])                       # (unsigned: no negative-index wraparound compiled)
-            firing[p] += offsets[b]
+                gb[i] = beam
+        for i in range(m):
+            b = np.uintp(gb[i])                         # (unsigned: no negative-index wraparound compiled)
+            fb[i] += offsets[b]
             counts[b] += 1
     return ring, firing, counts, range_m
 
