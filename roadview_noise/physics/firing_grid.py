@@ -259,32 +259,38 @@ def _wrap(k, n):       # pragma: no cover - compiled
 
 
 @jit
-def _empty_cells(occupied, words, fires, in_view, shift, offsets, step):       # pragma: no cover - compiled
-    """(ring, column) of the cells without a return on firing beams whose own azimuth
-    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view. ``words``: ``occupied`` read 8 cells at a
-    time (empty unless a row is whole words): 8 occupied cells are skipped at once."""
+def _empty_cells(occupied, words, fires, in_view, shift, offsets, step, returned, nearest):       # pragma: no cover
+    """(ring, column, like) of the cells without a return on firing beams whose own azimuth
+    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view, and how many of them lie on the beams that
+    ``returned``. ``words``: ``occupied`` read 8 cells at a time (empty unless a row is whole words): 8 occupied cells
+    are skipped at once. ``like``: per cell ``nearest`` of its column (:func:`_nearest_filled`)."""
     channels, columns = occupied.shape
     ring = np.empty(channels * columns, np.int64)
     col = np.empty(channels * columns, np.int64)
+    like = np.empty(channels * columns, np.int64)
     per_row = len(words) // channels
     full = np.uint64(0x0101010101010101)
-    m = 0
+    m = on_returned = 0
     for b in range(channels):
         if not fires[b]:
             continue
         c = 0
+        first = m
+        beam_shift, beam_offset = shift[b], offsets[b] / step      # (per beam: the same values per cell)
         while c < columns:
-            if c % 8 == 0 and c < 8 * per_row and words[b * per_row + c // 8] == full:
+            if c & 7 == 0 and c < 8 * per_row and words[np.uintp(b * per_row + (c >> 3))] == full:
                 c += 8
                 continue
-            if not occupied[b, c]:
-                k = _wrap(int(math.floor(-(c + shift[b]) - offsets[b] / step)), columns)
-                if in_view[k]:
-                    ring[m] = b
-                    col[m] = c
+            if not occupied[b, np.uintp(c)]:
+                k = _wrap(int(math.floor(-(c + beam_shift) - beam_offset)), columns)
+                if in_view[np.uintp(k)]:
+                    at = np.uintp(m)                   # (unsigned: no negative-index wraparound compiled)
+                    ring[at], col[at], like[at] = b, c, nearest[np.uintp(c)]
                     m += 1
             c += 1
-    return ring[:m], col[:m]
+        if returned[b]:
+            on_returned += m - first
+    return ring[:m], col[:m], like[:m], on_returned
 
 
 @jit
@@ -300,9 +306,9 @@ def beam_gaps(firing, ring, valid, sampled, counts):       # pragma: no cover - 
     f = np.empty(start[channels])
     at = start[:channels].copy()
     for i in range(len(ring)):
-        b = ring[i]
+        b = np.uintp(ring[i])                          # (unsigned: no negative-index wraparound compiled)
         if valid[i] and sampled[b]:
-            f[at[b]] = np.mod(firing[i], TWO_PI)
+            f[np.uintp(at[b])] = np.mod(firing[i], TWO_PI)
             at[b] += 1
     gap = np.empty(len(f))
     m = returns = 0
@@ -447,10 +453,11 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     words = occupied.reshape(-1).view(np.uint64) if columns % 8 == 0 else np.zeros(0, np.uint64)
     returned = occupied.any(axis=1)
-    er, ec = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets, step)
-    _warn_sparse(int(np.count_nonzero(returned[er])), int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
+    er, ec, el, on_returned = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets,
+                                           step, returned, _nearest_filled(like))
+    _warn_sparse(on_returned, int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
                  columns, profile)
-    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
+    return FiringGrid(er, ec, el, columns, shift, profile, firing,
                       int(np.count_nonzero(~in_view)), measured.gaps_columns)
 
 
