@@ -121,7 +121,8 @@ def _directions(cells, ring, column, scale, ca, sa, cb, sb, ce, se):       # pra
     """Rows ``scale · (cos e cos(a + b), cos e sin(a + b), sin e)`` of the cells (a: column angle, b: beam angle)."""
     out = np.empty((len(cells), 3))
     for i in range(len(cells)):
-        b, c = ring[cells[i]], column[cells[i]]
+        cell = np.uintp(cells[i])                      # (unsigned: no negative-index wraparound compiled)
+        b, c = np.uintp(ring[cell]), np.uintp(column[cell])
         h = scale[i] * ce[b]
         out[i, 0] = h * (ca[c] * cb[b] - sa[c] * sb[b])
         out[i, 1] = h * (sa[c] * cb[b] + ca[c] * sb[b])

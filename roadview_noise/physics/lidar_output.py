@@ -211,31 +211,11 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     if return_ranges.wanted():                         # for the metrics' summaries of the input and the output
         for counted in (cloud.positions_m, out.positions_m):
             return_ranges.note_counted(counted, return_ranges.bin_count(profile))
-    points_in, empty, faint, removed_faint = _ray_counts(rays.has_target, rays.range_m, rays.signal, n,
-                                                        rays.datasheet_threshold, removed)
-    counts = {"points_in": points_in, "kept": kept, "attenuated": attenuated, "moved": moved, "removed": n_removed,
-              "added": added, "below_threshold_in": faint, "removed_below_threshold_in": removed_faint,
-              **empty_ray_counts(rays, empty)}
+    faint = rays.faint
+    counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
+              "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": int(np.count_nonzero(faint)),
+              "removed_below_threshold_in": int(np.count_nonzero(removed & faint)), **empty_ray_counts(rays)}
     return out, counts
-
-
-@jit
-def _ray_counts(has, range_m, signal, n, datasheet_threshold, removed):       # pragma: no cover - compiled
-    """The counts of :func:`assemble` in one pass over the rays (no temporaries): rays with a target, empty rays
-    (:attr:`Rays.empty`), the first ``n`` rays' faint returns (:attr:`Rays.faint`) and how many of them were
-    ``removed``."""
-    targets = empty = faint = removed_faint = 0
-    for i in range(n):
-        h = has[i]
-        targets += h
-        empty += (not h) & (range_m[i] > 0)
-        below = h & (signal[i] < datasheet_threshold)
-        faint += below
-        removed_faint += below & removed[i]
-    for i in range(n, len(has)):
-        targets += has[i]
-        empty += (not has[i]) & (range_m[i] > 0)
-    return targets, empty, faint, removed_faint
 
 
 def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
@@ -251,10 +231,10 @@ def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, re
     positions[:] = listed.directions(cells, range_m[cells])
 
 
-def empty_ray_counts(rays: Rays, empty: int | None = None) -> dict:
-    """Diagnostics of the empty rays: how many could return weather (``empty`` if counted already), the firing grid's
-    columns of a point list (0: none) and where they came from (or why a list has none)."""
-    return {"empty_rays": int(np.count_nonzero(rays.empty)) if empty is None else int(empty),
+def empty_ray_counts(rays: Rays) -> dict:
+    """Diagnostics of the empty rays: how many could return weather, the firing grid's columns of a point list
+    (0: none) and where they came from (or why a list has none)."""
+    return {"empty_rays": int(np.count_nonzero(rays.empty)),
             "firing_grid_columns": 0 if rays.listed is None else rays.listed.columns,
             "empty_rays_source": rays.empty_source}
 
