@@ -121,7 +121,8 @@ def _directions(cells, ring, column, scale, ca, sa, cb, sb, ce, se):       # pra
     """Rows ``scale · (cos e cos(a + b), cos e sin(a + b), sin e)`` of the cells (a: column angle, b: beam angle)."""
     out = np.empty((len(cells), 3))
     for i in range(len(cells)):
-        b, c = ring[cells[i]], column[cells[i]]
+        cell = np.uintp(cells[i])                      # (unsigned: no negative-index wraparound compiled)
+        b, c = np.uintp(ring[cell]), np.uintp(column[cell])
         h = scale[i] * ce[b]
         out[i, 0] = h * (ca[c] * cb[b] - sa[c] * sb[b])
         out[i, 1] = h * (sa[c] * cb[b] + ca[c] * sb[b])
@@ -259,32 +260,38 @@ def _wrap(k, n):       # pragma: no cover - compiled
 
 
 @jit
-def _empty_cells(occupied, words, fires, in_view, shift, offsets, step):       # pragma: no cover - compiled
-    """(ring, column) of the cells without a return on firing beams whose own azimuth
-    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view. ``words``: ``occupied`` read 8 cells at a
-    time (empty unless a row is whole words): 8 occupied cells are skipped at once."""
+def _empty_cells(occupied, words, fires, in_view, shift, offsets, step, returned, nearest):       # pragma: no cover
+    """(ring, column, like) of the cells without a return on firing beams whose own azimuth
+    ``−(c + shift)·step − offset`` lies in a one-step azimuth bin in view, and how many of them lie on the beams that
+    ``returned``. ``words``: ``occupied`` read 8 cells at a time (empty unless a row is whole words): 8 occupied cells
+    are skipped at once. ``like``: per cell ``nearest`` of its column (:func:`_nearest_filled`)."""
     channels, columns = occupied.shape
     ring = np.empty(channels * columns, np.int64)
     col = np.empty(channels * columns, np.int64)
+    like = np.empty(channels * columns, np.int64)
     per_row = len(words) // channels
     full = np.uint64(0x0101010101010101)
-    m = 0
+    m = on_returned = 0
     for b in range(channels):
         if not fires[b]:
             continue
         c = 0
+        first = m
+        beam_shift, beam_offset = shift[b], offsets[b] / step      # (per beam: the same values per cell)
         while c < columns:
-            if c % 8 == 0 and c < 8 * per_row and words[b * per_row + c // 8] == full:
+            if c & 7 == 0 and c < 8 * per_row and words[np.uintp(b * per_row + (c >> 3))] == full:
                 c += 8
                 continue
-            if not occupied[b, c]:
-                k = _wrap(int(math.floor(-(c + shift[b]) - offsets[b] / step)), columns)
-                if in_view[k]:
-                    ring[m] = b
-                    col[m] = c
+            if not occupied[b, np.uintp(c)]:
+                k = _wrap(int(math.floor(-(c + beam_shift) - beam_offset)), columns)
+                if in_view[np.uintp(k)]:
+                    at = np.uintp(m)                   # (unsigned: no negative-index wraparound compiled)
+                    ring[at], col[at], like[at] = b, c, nearest[np.uintp(c)]
                     m += 1
             c += 1
-    return ring[:m], col[:m]
+        if returned[b]:
+            on_returned += m - first
+    return ring[:m], col[:m], like[:m], on_returned
 
 
 @jit
@@ -300,9 +307,9 @@ def beam_gaps(firing, ring, valid, sampled, counts):       # pragma: no cover - 
     f = np.empty(start[channels])
     at = start[:channels].copy()
     for i in range(len(ring)):
-        b = ring[i]
+        b = np.uintp(ring[i])                          # (unsigned: no negative-index wraparound compiled)
         if valid[i] and sampled[b]:
-            f[at[b]] = np.mod(firing[i], TWO_PI)
+            f[np.uintp(at[b])] = np.mod(firing[i], TWO_PI)
             at[b] += 1
     gap = np.empty(len(f))
     m = returns = 0
@@ -447,10 +454,11 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     words = occupied.reshape(-1).view(np.uint64) if columns % 8 == 0 else np.zeros(0, np.uint64)
     returned = occupied.any(axis=1)
-    er, ec = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets, step)
-    _warn_sparse(int(np.count_nonzero(returned[er])), int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
+    er, ec, el, on_returned = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets,
+                                           step, returned, _nearest_filled(like))
+    _warn_sparse(on_returned, int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
                  columns, profile)
-    return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
+    return FiringGrid(er, ec, el, columns, shift, profile, firing,
                       int(np.count_nonzero(~in_view)), measured.gaps_columns)
 
 
@@ -578,16 +586,20 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
     s, change, top = 0, 0, len(tan_mid)                 # its sorted position, the change that led to it
     for b0 in range(0, n, block):
         m = min(n, b0 + block) - b0
-        for i in range(m):
-            x[i], y[i], z[i] = positions[b0 + i, 0], positions[b0 + i, 1], positions[b0 + i, 2]
+        xyz = positions[b0:b0 + m]                      # (the block's views: loop indices from 0, contiguous
+        for i in range(m):                              # stores, no negative-index wraparound compiled)
+            x[i], y[i], z[i] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         if ranges:
+            rb = range_m[b0:b0 + m]
             for i in range(m):                          # (the expression of lidar_rays' ranges: the same bits)
                 ri = math.sqrt(x[i] ** 2 + y[i] ** 2 + z[i] ** 2)
-                range_m[b0 + i] = ri if (ri > 0) & (ri >= min_range_m) else 0.0
+                rb[i] = ri if (ri > 0) & (ri >= min_range_m) else 0.0
         if not rings:
             continue
+        fb = firing[b0:b0 + m]
         for i in range(m):                              # one vectorised loop over contiguous coordinates
-            firing[b0 + i] = atan2(y[i], x[i])
+            fb[i] = atan2(y[i], x[i])
+        gb = ring[b0:b0 + m]
         if recover:
             for i in range(m):                          # z/ρ from the beam origin, vectorised (NaN: sorted_beam's)
                 rho = math.sqrt(x[i] * x[i] + y[i] * y[i]) - rho_offset
@@ -602,10 +614,10 @@ def _rings_and_azimuths(positions, carried, z_offset, rho_offset, tan_mid, order
                     low = tan_mid[s - 1] if s > 0 else -math.inf
                     high = tan_mid[s] if s < top else math.inf
                     beam = order[s]
-                ring[b0 + i] = beam
-        for p in range(b0, b0 + m):
-            b = np.uintp(ring[p])                       # (unsigned: no negative-index wraparound compiled)
-            firing[p] += offsets[b]
+                gb[i] = beam
+        for i in range(m):
+            b = np.uintp(gb[i])                         # (unsigned: no negative-index wraparound compiled)
+            fb[i] += offsets[b]
             counts[b] += 1
     return ring, firing, counts, range_m
 

@@ -15,7 +15,7 @@ from ..types import LidarProfile, PointCloud
 from .compiled import jit
 from .firing_grid import FiringGrid
 from .laser_order import FIRING_COLUMN
-from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
+from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, TARGET, WEATHER, RayReturns
 from .lidar_geometry import RING, beam_means, elevation_rad, far_returns, unit_vectors
 from .lidar_intensity import intensity_resolution, stored_signal
 from .lidar_rays import Rays
@@ -109,9 +109,11 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
     kept = attenuated = moved = n_removed = added = 0
     o = 0                                              # output index
     for i in range(n):
+        q = np.uintp(o)                                # (unsigned: no negative-index wraparound compiled)
+        k = kind[i]
         scale = 1.0                                    # of the position
         effect = 0                                     # KEPT
-        if kind[i] == NO_RETURN:
+        if k == NO_RETURN:
             value = intensity_in[i]
             if has[i]:
                 removed[i] = True
@@ -124,7 +126,7 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
         else:
             v = min(reported[i], full_scale)
             value = round(v) if integer else v
-            if kind[i] == WEATHER:
+            if k == WEATHER:
                 if has[i]:
                     scale = return_range_m[i] / ray_range_m[i]
                     effect = MOVED
@@ -133,18 +135,17 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
                     scale = 0.0                        # filled by the caller (directions of empty cells)
                     effect = ADDED
                     added += 1
+        intensity_out[q] = value
+        if k == TARGET:                                # the stored (converted) value decides
+            if abs(float(intensity_out[q]) - float(intensity_in[i])) >= half_step:
+                effect = ATTENUATED
+                attenuated += 1
             else:
-                intensity_out[o] = value               # the stored (converted) value decides
-                if abs(float(intensity_out[o]) - float(intensity_in[i])) >= half_step:
-                    effect = ATTENUATED
-                    attenuated += 1
-                else:
-                    kept += 1
-        intensity_out[o] = value
-        effect_out[o] = effect
-        origin_out[o] = i
+                kept += 1
+        effect_out[q] = effect
+        origin_out[q] = i
         for c in range(3):
-            positions_out[o, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
+            positions_out[q, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
         o += 1
     return removed, o, kept, attenuated, moved, n_removed, added
 

@@ -308,3 +308,69 @@ def test_list_rings_are_each_points_nearest_beam_in_any_order():
         points = list_points(listed, profile)
         np.testing.assert_array_equal(points.ring, recover_ring(positions, profile))
         np.testing.assert_array_equal(points.counts, np.bincount(points.ring, minlength=profile.channels))
+
+
+def test_list_points_firing_azimuths_and_ranges_are_numpys():
+    """:func:`list_points`' one pass in blocks of 1 024 points (views of the block: no negative-index wraparound)
+    gives NumPy's firing azimuths (:func:`lidar_geometry.firing_azimuth_rad` with its rings) and ranges (``|p|``, 0 for
+    zero points and returns nearer than ``min_range_m``), carried rings or recovered, on a list of 3 blocks and a tail
+    with several returns per ray (the same direction at three ranges), zero points and near points."""
+    from roadview_noise.physics.firing_grid import list_points
+    from roadview_noise.physics.lidar_geometry import firing_azimuth_rad, recover_ring
+
+    profile = dataclasses.replace(os1_128(), min_range_m=0.5)
+    cloud, _, _ = scan(profile, 64, fill=0.6, seed=11)
+    p = cloud.positions_m[:1000]
+    pos = np.concatenate([p, p * 0.5, p * 0.25, np.zeros((40, 3)), p[:30] * 1e-3, cloud.positions_m[1000:1500]])
+    carried = np.concatenate([cloud.fields["ring"][:1000]] * 3 + [np.zeros(40, np.uint16),
+                             cloud.fields["ring"][:30], cloud.fields["ring"][1000:1500]])
+    assert len(pos) > 3 * 1024
+    norm = np.linalg.norm(pos, axis=1)
+    ranges = np.where((norm > 0) & (norm >= profile.min_range_m), norm, 0.0)
+    for fields in ({"intensity": np.ones(len(pos))}, {"intensity": np.ones(len(pos)), "ring": carried}):
+        listed = PointCloud(pos, fields, "lidar", cloud.profile)
+        points = list_points(listed, listed.profile)
+        ring = carried if "ring" in fields else recover_ring(pos, listed.profile)
+        np.testing.assert_array_equal(points.ring, ring)
+        np.testing.assert_array_equal(points.firing_rad, firing_azimuth_rad(pos, ring, listed.profile))
+        np.testing.assert_array_equal(points.range_m, ranges)
+        np.testing.assert_array_equal(points.counts, np.bincount(ring, minlength=profile.channels))
+
+
+@pytest.mark.parametrize("seed, fill", [(0, 0.7), (1, 0.3), (2, 0.95)])
+def test_empty_cells_take_their_nearest_filled_column_and_count_the_returning_beams(seed, fill):
+    """The firing grid's empty cells give, in their own pass, each cell's ``like`` (a return of the nearest column
+    that has one: NumPy's ``_nearest_filled(like)[column]``) and how many lie on beams that returned (NumPy's
+    ``count_nonzero(returned[ring])``, which the sparse-list warning compares), on lists with dead beams, a cropped
+    view, columns without any return, beams above every return (sky: filled, not returning) and several returns
+    per ray."""
+    from roadview_noise.physics import firing_grid as fg
+
+    profile = os1_128()
+    cloud, occupied, _ = scan(profile, 512, fill=fill, seed=seed)
+    keep = ~np.isin(cloud.fields["ring"], (0, 1, 50, 51))      # the top beams (sky above the others) and dead ones
+    col = np.rint(-(np.arctan2(cloud.positions_m[:, 1], cloud.positions_m[:, 0]) - 0.3) / (2 * np.pi / 512)) % 512
+    keep &= ~((col > 100) & (col < 140))                                       # a crop: 40 columns without returns
+    twice = np.flatnonzero(keep)[::7]                                          # several returns per ray
+    idx = np.concatenate([np.flatnonzero(keep), twice])
+    pos = cloud.positions_m[idx] * np.where(np.arange(len(idx)) < keep.sum(), 1.0, 0.6)[:, None]
+    listed = PointCloud(pos, {k: v[idx] for k, v in cloud.fields.items()}, "lidar", cloud.profile)
+    measured = fg.firing_columns(listed, listed.profile)
+    assert not isinstance(measured, str), measured
+    grid = fg.empty_rays(measured, listed.profile)
+    offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
+    step = 2 * np.pi / measured.columns
+    occupied, like, seen = fg._cells(measured.firing_rad, measured.valid, measured.ring, offsets, measured.shift, step,
+                                     measured.columns, profile.channels)
+    returned = occupied.any(axis=1)
+    assert not returned.all() and len(grid.ring) > 0
+    np.testing.assert_array_equal(grid.like, fg._nearest_filled(like)[grid.column])
+    m = fg.VIEW_MARGIN_STEPS
+    in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
+    words = occupied.reshape(-1).view(np.uint64)
+    ring, column, like_cells, on_returned = fg._empty_cells(occupied, words, fg._firing_beams(returned, profile),
+                                                            in_view, measured.shift, offsets, step, returned,
+                                                            fg._nearest_filled(like))
+    np.testing.assert_array_equal(ring, grid.ring)
+    np.testing.assert_array_equal(column, grid.column)
+    assert on_returned == np.count_nonzero(returned[ring]) < len(ring)
