@@ -13,7 +13,9 @@ of a shared machine does not move (wall and CPU times on the 2-core VM swing by 
 
 Numba compiles for an AVX2 target (``NUMBA_CPU_NAME=haswell``: valgrind runs no AVX-512) and a native run of each
 harness fills its caches and the physics table cache first. ``--base DIR`` (e.g. ``git archive main | tar -x -C
-DIR``) runs DIR's code the same way, alternating with this tree's.
+DIR``) runs DIR's code the same way, alternating with this tree's. The recipe name ``copy`` counts the plain copy's
+task of ``bench/run.py`` (``bench/plain_copy.copy_one``: read, decode, encode, write; its fsync is kernel time) in
+the same loop, against which the radar line of issue 19 is stated.
 
     .venv/bin/python bench/bench_radar_instructions.py [--files 300] [--workers 2] [--base DIR] [--split [F,…]]
                                                        [--recipes weather-fog-radar,weather-rain-radar,...]
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import shutil
@@ -45,6 +48,8 @@ from pathlib import Path
 from roadview_noise.recipe import parse_recipe
 from roadview_noise import runner
 name, tree, out, recipes, n = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]), int(sys.argv[5])
+copy = name == "copy"
+name = "weather-fog-radar" if copy else name
 lib = ctypes.CDLL(os.environ["RVNOISE_VG_LIB"]) if os.environ.get("RVNOISE_VG_ON") else None
 body = yaml.safe_load((recipes / (name + ".yaml")).read_text())
 body["inputs"] = {"radar": "radar/**/*.pcd"}
@@ -52,13 +57,22 @@ recipe = parse_recipe(body, source=name, base_dir=recipes)
 """
 WORKER = COMMON + r"""
 ctx = runner.RunContext(tree, out, recipe, capture_output=True, fsync_outputs=False)
-payloads = [pickle.dumps((i, t), pickle.HIGHEST_PROTOCOL) for i, t in enumerate(runner.plan(tree, recipe)[:n])]
+tasks = runner.plan(tree, recipe)[:n]
 staged = []
+if copy:                        # the plain copy's task (bench/plain_copy.py: read, decode, encode, write + fsync)
+    from plain_copy import copy_one
+    payloads = [pickle.dumps((i, ("radar", str(tree / t.sample.relpath), str(out / f"{i:06d}.pcd"), False, None)),
+                             pickle.HIGHEST_PROTOCOL) for i, t in enumerate(tasks)]
+else:
+    payloads = [pickle.dumps((i, t), pickle.HIGHEST_PROTOCOL) for i, t in enumerate(tasks)]
 
 
 def one_pass():
     for p in payloads:
         tid, task = pickle.loads(p)
+        if copy:
+            pickle.dumps([(tid, copy_one(task))], pickle.HIGHEST_PROTOCOL)
+            continue
         result = runner.process_encoded(task, ctx)
         pickle.dumps([(tid, result)], pickle.HIGHEST_PROTOCOL)
         staged.extend(result["staged"])
@@ -136,7 +150,7 @@ def counted(code: Path, script: str, args: list, tmp: Path, valgrind: bool, spli
     cg = tmp / "cg"
     shutil.rmtree(cg, ignore_errors=True)
     cg.mkdir()
-    env = {**os.environ, **VG_TARGET, "PYTHONPATH": str(code), "RVNOISE_TABLE_CACHE": str(tmp / "tables"),
+    env = {**os.environ, **VG_TARGET, "PYTHONPATH": f"{code}:{ROOT / 'bench'}", "RVNOISE_TABLE_CACHE": str(tmp / "tables"),
            "RVNOISE_VG_LIB": str(tmp / "libvg.so")}
     vg = []
     if valgrind:
@@ -208,9 +222,11 @@ def main() -> None:
                 if args.split:
                     parts[label] = {k.removeprefix("seg "): v / n for k, v in worker(True).items()}
                     continue
-                main_run(small, False)
                 w = worker(True)["files"] / n
-                m = (main_run(n, True) - main_run(small, True)) / (n - small)
+                m = math.nan
+                if name != "copy":
+                    main_run(small, False)
+                    m = (main_run(n, True) - main_run(small, True)) / (n - small)
                 cells += [f"{w / 1e6:.3f}", f"{m / 1e6:.3f}"]
                 print("    " + json.dumps({"recipe": name, "code": label, "worker": w, "main": m}), flush=True)
             if args.split:
