@@ -34,14 +34,11 @@ import sys
 import tempfile
 from pathlib import Path
 
+from bench_metrics import VG_LIB, VG_TARGET    # bench/ is the script's folder, first on sys.path
+from bench_small_files import build_tree
+
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = "weather-fog-radar,weather-rain-radar,weather-snow-radar,cnf25-radar"
-VG_LIB = """#include <valgrind/callgrind.h>
-void vg_start(void) { CALLGRIND_START_INSTRUMENTATION; }
-void vg_dump(const char *label) { CALLGRIND_DUMP_STATS_AT(label); }
-"""
-VG_TARGET = {"NUMBA_CPU_NAME": "haswell", "NUMBA_CPU_FEATURES": ""}
-
 COMMON = r"""
 import ctypes, gc, os, pickle, sys, yaml
 from pathlib import Path
@@ -132,26 +129,14 @@ assert s.done == n and not s.failed, s
 """
 
 
-def build_tree(root: Path, files: int) -> Path:
-    src = ROOT / "sample_data" / "radar" / "seq0"
-    dst = root / "in" / "radar" / "seq0"
-    dst.mkdir(parents=True)
-    for side in src.glob("*.yaml"):
-        shutil.copy(side, dst)
-    pcds = sorted(src.glob("*.pcd"))
-    for k in range(files):
-        shutil.copy(pcds[k % len(pcds)], dst / f"{k:06d}.pcd")
-    return (root / "in").resolve()
-
-
 def counted(code: Path, script: str, args: list, tmp: Path, valgrind: bool, split: str = "") -> dict[str, int]:
     """Instructions of the run's dumps by label ({} without valgrind: the native warm run); ``split``: the functions
     the worker harness counts apart (``seg NAME``; ``seg rest``: outside them)."""
     cg = tmp / "cg"
     shutil.rmtree(cg, ignore_errors=True)
     cg.mkdir()
-    env = {**os.environ, **VG_TARGET, "PYTHONPATH": f"{code}:{ROOT / 'bench'}", "RVNOISE_TABLE_CACHE": str(tmp / "tables"),
-           "RVNOISE_VG_LIB": str(tmp / "libvg.so")}
+    env = {**os.environ, **VG_TARGET, "PYTHONPATH": f"{code}:{ROOT / 'bench'}",
+           "RVNOISE_TABLE_CACHE": str(tmp / "tables"), "RVNOISE_VG_LIB": str(tmp / "libvg.so")}
     vg = []
     if valgrind:
         env["RVNOISE_VG_ON"] = "1"
@@ -185,7 +170,7 @@ def main() -> None:
     ap.add_argument("--recipes", default=RECIPES)
     ap.add_argument("--base", type=Path, help="a second checkout's root (run as 'base')")
     ap.add_argument("--split", nargs="?", const=SPLIT_DEFAULT,
-                    help="the worker only, its instructions per file by function (module.attr,…; default: its phases)")
+                    help="the worker only: its instructions per file by function (module.attr,…; default: phases)")
     args = ap.parse_args()
     codes = {"this": ROOT, **({"base": args.base.resolve()} if args.base else {})}
     n, small = args.files, max(1, args.files // 5)
@@ -193,7 +178,7 @@ def main() -> None:
         tmp = Path(tmp)
         (tmp / "vg.c").write_text(VG_LIB)
         subprocess.run(["gcc", "-shared", "-fPIC", "-O1", "-o", str(tmp / "libvg.so"), str(tmp / "vg.c")], check=True)
-        tree = build_tree(tmp, n)
+        tree = build_tree(tmp, n).resolve()
         if args.split:
             print(f"worker instructions per radar file by function (callgrind, exclusive of the other functions "
                   f"named; k; {n} files, third pass; the wrappers' own dumps included)")

@@ -61,10 +61,9 @@ _METRICS_AT = f'"metrics": {dumps(_METRICS_MARK)}'
 def entry_line(entry: dict) -> str:
     """The manifest line of an entry (no newline; its ``staged`` temporaries are not recorded): the one a worker
     encoded (:func:`encoded`), else encoded here. The metrics of a one-step chain, which are its step's (the same
-    dict), are encoded once: the line is encoded with a mark in both places, and the mark's two occurrences
-    (``"metrics": "\u0000…"``, which no string value's text can hold: its quotes would be escaped) are replaced by
-    the metrics' text — one encoder call less than encoding them twice, or than encoding the line in pieces (≈ 12 µs
-    of a radar file's worker, issue 19)."""
+    dict), are encoded once: the line is encoded with a mark in their two places, whose text (``"metrics": "``, NUL,
+    …) is then replaced by theirs; a line holding the mark's text elsewhere is encoded whole. One encoder call instead
+    of the line in pieces (≈ 12 µs of a radar file's worker, issue 19)."""
     line = entry.get(LINE)
     if line is not None:
         return line
