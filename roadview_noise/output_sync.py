@@ -47,7 +47,8 @@ class SyncPool:
         self._finished = threading.Condition()
         self._done: set[int] = set()
         self._errors: dict[int, Exception] = {}
-        self.wake, self._wake_w = os.pipe()                # a byte per finished fsync (ProcessExecutor.wake)
+        self.wake, self._wake_w = os.pipe()                # readable: an fsync finished (ProcessExecutor.wake)
+        self._signalled = False                            # a byte is in the pipe since the last :meth:`woken`
         os.set_blocking(self.wake, False)
         os.set_blocking(self._wake_w, False)
         self._threads = [threading.Thread(target=self._work, name="rvnoise-fsync", daemon=True)
@@ -71,10 +72,12 @@ class SyncPool:
                     self._errors[index] = error
                 self._done.add(index)
                 self._finished.notify_all()
-            try:
-                os.write(self._wake_w, b"s")
-            except BlockingIOError:                         # full: the reader is woken already
-                pass
+                wake, self._signalled = not self._signalled, True
+            if wake:
+                try:
+                    os.write(self._wake_w, b"s")
+                except BlockingIOError:                     # full: the reader is woken already
+                    pass
 
     def submit(self, index: int, staged: list[list[str]]) -> None:
         self.pending += 1
@@ -82,12 +85,17 @@ class SyncPool:
         self._todo.put((index, [f"{root}/{tmp}" for tmp, _ in staged]))   # no pathlib per file (issue 19)
 
     def woken(self) -> None:
-        """Empty the :attr:`wake` pipe (the caller is about to collect what finished)."""
+        """Empty the :attr:`wake` pipe (the caller is about to collect what finished). A finished fsync writes its
+        byte only when none is pending since the caller's last call (one system call per wake-up, not per file:
+        behind short tasks the executor does not watch the pipe and the caller collects after each result); the mark
+        is cleared after the pipe is emptied, so an fsync that finishes meanwhile wakes it again."""
         try:
             while os.read(self.wake, 4096):
                 pass
         except BlockingIOError:
             pass
+        with self._finished:
+            self._signalled = False
 
     def done(self, index: int) -> tuple[bool, Exception | None]:
         """Whether entry ``index``'s fsync finished, and its error (collected: ask once after it is done)."""

@@ -19,6 +19,7 @@ live in a private temporary SQLite database (:class:`DiskIndex`), and released e
 
 from __future__ import annotations
 
+import _signal
 import json
 import os
 import signal
@@ -152,22 +153,40 @@ class Ledger:
 
     def _release(self, entry: dict) -> dict:
         files = listed_files(entry) if entry.get("status") == "ok" else []
-        owners = ((f, self.claimed.get(f)) for f in files)
-        clash = next(((f, o) for f, o in owners if o is not None and o != entry["input"]), None)
+        claimed, clash = self._claim(files, entry["input"])
         if clash is not None:
+            self._unclaim(claimed)
             discard(self.out_root, entry)
             entry = _failed(entry, f"{entry['input']}: its output file {clash[0]!r} is also written for "
                                    f"{clash[1]!r}; two inputs must not write one file (rename one of them)")
-            files = []
+            claimed = []
         with ctrl_c_held():                             # a line and its files' renames: both or neither
-            return self._record(entry, files)
+            return self._record(entry, claimed)
 
-    def _record(self, entry: dict, files: list[str]) -> dict:
+    def _claim(self, files: list[str], owner: str) -> tuple[list[str], tuple[str, str] | None]:
+        """Claim ``files`` for the input ``owner``, one SQLite statement per file unless another input has it:
+        (the files claimed here, the first file another input claimed before and that input, or None)."""
+        claimed = []
+        for f in files:
+            before = self.claimed.put_new(f, owner)
+            if before is None:
+                claimed.append(f)
+            elif before != owner:
+                return claimed, (f, before)
+        return claimed, None
+
+    def _unclaim(self, files: list[str]) -> None:
+        for f in files:
+            self.claimed.pop(f)
+
+    def _record(self, entry: dict, claimed: list[str]) -> dict:
+        """Write the entry's line, then rename its files; on a failure the files it ``claimed`` are released."""
         try:
             self._write(entry)
         except OSError as exc:
             self.on_log_error(exc)
             discard(self.out_root, entry)
+            self._unclaim(claimed)
             entry = _failed(entry, f"{entry['input']}: could not record it in the manifest "
                                    f"({exc.strerror or exc}); its output was not kept")
             return entry
@@ -175,6 +194,7 @@ class Ledger:
             self.folders.commit(entry)
         except OSError as exc:
             discard(self.out_root, entry)
+            self._unclaim(claimed)
             entry = _failed(entry, f"{entry['input']}: could not move its output into place: {exc}")
             try:
                 self._write(entry)                      # supersedes the line above (the last line wins)
@@ -182,8 +202,6 @@ class Ledger:
             except OSError as log_exc:
                 self.on_log_error(log_exc)
             return entry
-        for f in files:
-            self.claimed.put(f, entry["input"])
         return entry
 
     def _write(self, entry: dict) -> None:
@@ -203,16 +221,19 @@ class Ledger:
 def ctrl_c_held() -> Iterator[None]:
     """Ctrl-C (SIGINT) in the block takes effect when the block ends (main thread; elsewhere the block runs as is):
     an entry's manifest line and the renames of the files it lists happen both or neither — interrupted between
-    them, the line named files whose temporaries the run then removed."""
+    them, the line named files whose temporaries the run then removed. The handlers are swapped with ``_signal``'s
+    ``signal``, which ``signal.signal`` wraps: the wrapper tries each handler as a ``Handlers`` enum member, and a
+    function is not one (a ValueError raised and caught per call: ≈ 12 of the block's 14 µs, per output of a run's
+    main process; issue 19)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     caught: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    previous = _signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
+        _signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
         if caught:
             signal.raise_signal(signal.SIGINT)          # the run's own handling (KeyboardInterrupt), now
 
@@ -253,6 +274,12 @@ class DiskIndex:
 
     def put(self, key: str, value: str) -> None:
         self._db.execute("INSERT OR REPLACE INTO m (k, v) VALUES (?, ?)", (key, value))
+
+    def put_new(self, key: str, value: str) -> str | None:
+        """Map ``key`` to ``value`` unless it is mapped: None when it was not, else its value (left as it is)."""
+        if self._db.execute("INSERT OR IGNORE INTO m (k, v) VALUES (?, ?)", (key, value)).rowcount == 1:
+            return None
+        return self.get(key)
 
     def __contains__(self, key: str) -> bool:
         return self.get(key) is not None

@@ -588,6 +588,40 @@ def test_ledger_fails_the_later_of_two_entries_claiming_one_file(tmp_path):
     assert [json.loads(line)["status"] for line in log.getvalue().splitlines()] == ["ok", "failed"]
 
 
+def test_a_file_whose_entry_failed_to_be_recorded_or_moved_is_free_for_the_next_input(tmp_path, monkeypatch):
+    """Claims are taken before the line is written (one SQLite statement per file): an entry that then fails gives
+    them back, as an entry that never claimed them."""
+    import io
+
+    from roadview_noise import output_folders
+    from roadview_noise.outputs import Ledger
+
+    out = tmp_path / "o"
+    out.mkdir()
+    for name in "abc":
+        (out / f".{name}.tmp").write_text(name)
+    log = io.StringIO()
+    ledger = Ledger(out, log, lambda e: None)
+    entry = lambda name: {"input": f"{name}.pcd", "output": f"{name}.pcd", "status": "ok",      # noqa: E731
+                          "files": [{"path": "x.label", "sha256": name}], "staged": [[f".{name}.tmp", "x.label"]]}
+    real_commit = output_folders.OutputFolders.commit
+
+    def failing_commit(self, e):
+        if e["input"] == "a.pcd":
+            raise OSError(errno.EIO, "the rename failed")
+        return real_commit(self, e)
+
+    monkeypatch.setattr(output_folders.OutputFolders, "commit", failing_commit)
+    real_write = Ledger._write
+    monkeypatch.setattr(Ledger, "_write", lambda self, e: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full"))
+                        if e["input"] == "b.pcd" else real_write(self, e))
+    a, b, c = ledger.put(0, entry("a")) + ledger.put(1, entry("b")) + ledger.put(2, entry("c"))
+    assert a["status"] == "failed" and "could not move its output" in a["error"]
+    assert b["status"] == "failed" and "could not record it" in b["error"]
+    assert c["status"] == "ok" and (out / "x.label").read_text() == "c"
+    assert ledger.claimed.get("x.label") == "c.pcd"
+
+
 def test_ctrl_c_between_a_line_and_its_renames_waits_for_the_renames(tmp_path, monkeypatch):
     """Ctrl-C right after an entry's manifest line is written: the files it names are moved into place first, then
     the run stops (KeyboardInterrupt) — the line never names a file whose temporary the run then removes."""

@@ -158,3 +158,29 @@ def test_a_dask_or_replay_context_still_fsyncs_in_the_worker():
 
     assert RunContext(Path("."), Path("."), None).fsync_outputs       # the default: the worker's own fsync
     assert outputs.Ledger(Path("."), io.StringIO(), lambda e: None).sync is None
+
+
+def test_finished_fsyncs_wake_the_main_loop_once_until_it_collects(tmp_path, monkeypatch):
+    written = []
+    real_write = os.write
+
+    def counted(fd, data):
+        written.append(fd)
+        return real_write(fd, data)
+
+    monkeypatch.setattr(output_sync.os, "write", counted)
+    sync = output_sync.SyncPool(tmp_path)
+    wake = lambda wait=0.0: bool(select.select([sync.wake], [], [], wait)[0])          # noqa: E731
+    assert not wake()
+    for round_ in range(3):
+        for i in range(5):
+            (tmp_path / f"f{round_}{i}").write_text("x")
+            sync.submit(10 * round_ + i, [[f"f{round_}{i}", f"f{round_}{i}"]])
+        for i in range(5):
+            sync.wait(10 * round_ + i)
+        assert wake(5.0)                            # what finished since the last collection wakes the loop …
+        assert len(written) == round_ + 1           # … with one byte, however many finished
+        sync.woken()
+        assert not wake()                           # collected: quiet until the next fsync ends
+        assert all(sync.done(10 * round_ + i) == (True, None) for i in range(5))
+    sync.close()

@@ -40,6 +40,13 @@ def test_a_one_step_chains_shared_metrics_give_the_line_json_dumps_gives():
     assert entry_line({**entry, "metrics": dict(metrics)}) == want          # not shared: encoded twice, same text
     for obj in ("é\u2028", 1, 2.5, math.inf, None, [], {}, {"a": [1, {"b": np.int64(3)}]}):
         assert dumps(obj) == _json(obj)
+    # the line is encoded with a mark in the metrics' two places: a value or key holding the mark's text (a file
+    # named so, a diagnostic) still gives json.dumps' line
+    mark = "\x00rvnoise-metrics\x00"
+    for odd in ({"output": f'a"{mark}.pcd'}, {"output": mark}, {"metrics": metrics, "note": {"metrics": mark}},
+                {"steps": [{**step, "diagnostics": {"metrics": mark}}]}, {"files": [{"path": f'{mark}", "x'}]}):
+        e = {**entry, **odd}
+        assert entry_line(e) == _json({k: v for k, v in e.items() if k != "staged"})
 
 
 class _Pieces(io.RawIOBase):
