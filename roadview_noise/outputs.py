@@ -41,6 +41,16 @@ def listed_files(entry: dict) -> list[str]:
     return [entry["output"]] if entry.get("status") == "ok" and entry.get("output") else []
 
 
+def owner(entry: dict, rel: str) -> str:
+    """Who claims the output file ``rel`` of an entry: its input, or — for an annotation file copied unchanged to
+    the same path (a sequence's calib or label file that each of its frames reads, KITTI tracking's
+    ``calib/0000.txt``) — that copy, which every input reading the same file writes byte for byte."""
+    sha = next((f["sha256"] for f in entry.get("files") or () if f["path"] == rel), None)
+    copied = sha is not None and any(a.get("path") == rel and a.get("sha256") == sha
+                                     for a in entry.get("annotations_read") or ())
+    return f"unchanged copy of {rel} ({sha})" if copied else entry["input"]
+
+
 def _inside(out_root: Path, rel: str) -> Path | None:
     """``out_root / rel`` if ``rel`` stays inside ``out_root`` (no ``..``, not absolute, no symlinked folder
     leading out), else None."""
@@ -153,7 +163,7 @@ class Ledger:
     def _release(self, entry: dict) -> dict:
         files = listed_files(entry) if entry.get("status") == "ok" else []
         owners = ((f, self.claimed.get(f)) for f in files)
-        clash = next(((f, o) for f, o in owners if o is not None and o != entry["input"]), None)
+        clash = next(((f, o) for f, o in owners if o is not None and o != owner(entry, f)), None)
         if clash is not None:
             discard(self.out_root, entry)
             entry = _failed(entry, f"{entry['input']}: its output file {clash[0]!r} is also written for "
@@ -183,7 +193,7 @@ class Ledger:
                 self.on_log_error(log_exc)
             return entry
         for f in files:
-            self.claimed.put(f, entry["input"])
+            self.claimed.put(f, owner(entry, f))
         return entry
 
     def _write(self, entry: dict) -> None:
@@ -193,7 +203,7 @@ class Ledger:
     def claim(self, entry: dict) -> None:
         """Files of an entry kept from a previous run (``--resume``)."""
         for f in listed_files(entry):
-            self.claimed.put(f, entry["input"])
+            self.claimed.put(f, owner(entry, f))
 
     def close(self) -> None:
         self.claimed.close()

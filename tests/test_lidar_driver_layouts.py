@@ -235,7 +235,7 @@ def test_weather_returns_get_their_own_reflectivity(tmp_path):
     """ouster-ros' ``reflectivity`` of a fog return (a point moved to a droplet or added on an empty ray) is the
     reading its own return gives in the 8-bit reflectivity channel (W·S·R²/K of its signal S at its range R, W =
     100, K the profile's; a faint one reads 1), not the reflectivity of the object behind the fog, which it kept
-    before. Returns that are the input's keep theirs."""
+    before. Returns that are the input's keep theirs (attenuated ones: next test)."""
     rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
     cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
     out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k", sequence_id="s",
@@ -252,3 +252,26 @@ def test_weather_returns_get_their_own_reflectivity(tmp_path):
     kept = (effect == 0) | (effect == 1)
     np.testing.assert_array_equal(back.fields["reflectivity"][kept], rec["reflectivity"][kept])
     assert not np.array_equal(back.fields["reflectivity"][effect == 2], rec["reflectivity"][effect == 2])
+
+
+@pytest.mark.parametrize("model, params", [("rain.lidar", {"rain_rate_mm_per_h": 10.0}),
+                                           ("fog.lidar", {"visibility_m": 100.0})])
+def test_attenuated_returns_reflectivity_follows_their_signal(tmp_path, model, params):
+    """ouster-ros' ``reflectivity`` of a return the weather attenuated: the sensor computes its calibrated
+    reflectivity from the signal photons it measured, scaled by range (Ouster FW manual, "Calibrated
+    Reflectivity"), so at its unchanged range the reading falls with the signal: its recorded reading times
+    I_out / I_in, rounded, at least 1 — the unit's own calibration kept. Before: its recorded reading, as if the
+    sensor had seen it in clear air. Returns kept (a change below one photon) keep theirs."""
+    rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, _ = apply_models([get_model(model)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    write_pointcloud(tmp_path / "out.pcd", out)
+    back = read_pointcloud(tmp_path / "out.pcd")
+    effect = np.asarray(back.fields["rv_effect"])
+    attenuated = effect == 1
+    assert np.count_nonzero(attenuated) > 300
+    ratio = back.fields["intensity"][attenuated].astype(float) / rec["intensity"][attenuated]
+    want = np.maximum(np.rint(rec["reflectivity"][attenuated] * ratio), 1)
+    np.testing.assert_array_equal(back.fields["reflectivity"][attenuated], want)
+    assert (want < rec["reflectivity"][attenuated]).mean() > 0.5
+    np.testing.assert_array_equal(back.fields["reflectivity"][effect == 0], rec["reflectivity"][effect == 0])

@@ -18,6 +18,9 @@ that ``beams × columns`` grid that hold no point:
 - each beam's columns may be shifted by a fraction of a step (Velodyne firing sequence): the shift is measured per
   beam (circular mean weighted by range, against the parallax of near returns), so a return never lands in its
   neighbour's cell;
+- a list that stores its no-return rays as points (nuScenes: within the profile's ``min_range_m``) has each such
+  point's empty cell found from its storage order (:func:`_placeholder_hosts`): a weather return on that ray takes
+  the placeholder's row, so the output has one return per ray;
 - which cells are empty rays: those whose own azimuth (beam offsets included) lies within 4 steps of a return of
   any beam — a cropped field of view or lost packets are not filled, while a sparse ground beam keeps the open sky
   above it in view — on the beams that returned something and on every beam above the highest of them (they saw
@@ -52,6 +55,7 @@ FIT_STEPS = 0.25                # gaps within this of a whole number of steps re
 UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it to win over twice its columns
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
 MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returning beams: fewer beams (warned)
+FIRING_ORDER = 0.9              # returns stored next to each other, rings rising, in one column: stored by firing
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +77,7 @@ class FiringGrid:
     out_of_view: int = 0        # azimuth bins (of ``columns``) farther than the view margin from every return
     gaps_columns: int | None = None     # the count the gaps gave when the profile's won (:func:`undecided_columns`)
     measured_elevation_rad: np.ndarray | None = None    # per beam, from the list (:func:`measured_elevations`)
+    host: np.ndarray | None = None      # per empty cell, the no-return point stored on it (−1: none; None: no such)
 
     def elevation_rad(self) -> np.ndarray:
         """Each beam's elevation: the profile's, or the list's own when its ring field counts other beams."""
@@ -96,7 +101,8 @@ class FiringGrid:
 
     def subset(self, keep: np.ndarray) -> FiringGrid:
         """The empty cells where ``keep`` (a boolean mask over them) holds."""
-        return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep])
+        return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep],
+                                   host=None if self.host is None else self.host[keep])
 
     def describe(self) -> str:
         crop = (f"; {self.out_of_view} of {self.columns} columns out of view (a crop, an azimuth window or lost "
@@ -418,7 +424,7 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
     measured = firing_columns(cloud, profile, range_m, points)
     if isinstance(measured, str):
         return measured
-    grid = empty_rays(measured, profile)
+    grid = empty_rays(measured, profile, hosts=ring_source(cloud) != "elevation")
     if ring_source(cloud) == "field" and int(measured.ring.max()) + 1 != profile.channels:
         grid = dataclasses.replace(grid, measured_elevation_rad=measured_elevations(cloud, measured, profile))
     return grid
@@ -436,8 +442,9 @@ def measured_elevations(cloud, measured: FiringColumns, profile: LidarProfile) -
     return beam_means(measured.ring[far], elevation_rad(p[far]), profile.channels)
 
 
-def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
-    """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc)."""
+def empty_rays(measured: FiringColumns, profile: LidarProfile, hosts: bool = False) -> FiringGrid:
+    """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc); ``hosts``
+    (rings carried, not recovered from positions): the no-return points stored on them (:func:`_placeholder_hosts`)."""
     ring, firing, columns, shift, valid = (measured.ring, measured.firing_rad, measured.columns, measured.shift,
                                            measured.valid)
     offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
@@ -450,8 +457,52 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
     er, ec = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets, step)
     _warn_sparse(int(np.count_nonzero(returned[er])), int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
                  columns, profile)
+    host = _placeholder_hosts(measured, er, ec, profile.channels) if hosts and not valid.all() else None
     return FiringGrid(er, ec, _nearest_filled(like)[ec], columns, shift, profile, firing,
-                      int(np.count_nonzero(~in_view)), measured.gaps_columns)
+                      int(np.count_nonzero(~in_view)), measured.gaps_columns, host=host)
+
+
+def _placeholder_hosts(measured: FiringColumns, er: np.ndarray, ec: np.ndarray, channels: int) -> np.ndarray:
+    """Per empty cell (``er``, ``ec``): the list's no-return point stored on it, −1 for none. A list that stores
+    every firing (nuScenes: a firing's rings in increasing order, a no-return as a point within ``min_range_m``)
+    puts a no-return point in its firing's column: the column of the nearest return before or after it in storage
+    order with no firing start between (the ring does not increase), both when both are (else none: a whole firing
+    of no-returns). The first such point of a cell is its host. None at all unless the list is stored firing by
+    firing: 90 % of its neighbouring returns with rising rings lie in one column (a shuffled or re-sorted list:
+    ≈ 0 %)."""
+    ring, valid, columns = measured.ring, measured.valid, measured.columns
+    n = len(ring)
+    index = np.arange(n)
+    before = np.maximum.accumulate(np.where(valid, index, -1))
+    after = np.minimum.accumulate(np.where(valid, index, n)[::-1])[::-1]
+    firing = np.cumsum(np.concatenate([[0], ring[1:] <= ring[:-1]]))       # firing count: a new one at a ring drop
+    returns = np.flatnonzero(valid)
+    same = firing[returns[1:]] == firing[returns[:-1]]
+    if np.count_nonzero(same) < MIN_GAPS or np.mean(_column_of(measured, returns[1:][same])
+                                                   == _column_of(measured, returns[:-1][same])) < FIRING_ORDER:
+        return np.full(len(er), -1, np.int64)                             # not stored firing by firing
+    idle = np.flatnonzero(~valid)
+    p, q = before[idle], after[idle]
+    by_p = (p >= 0) & (firing[np.maximum(p, 0)] == firing[idle])
+    by_q = (q < n) & (firing[np.minimum(q, n - 1)] == firing[idle])
+    p, q = np.maximum(p, 0), np.minimum(q, n - 1)
+    column = np.where(by_p, _column_of(measured, p), _column_of(measured, q))
+    placed = (by_p | by_q) & ~(by_p & by_q & (column != _column_of(measured, q)))
+    cell = np.full(channels * columns, -1, np.int64)
+    cell[er * columns + ec] = np.arange(len(er))
+    on = cell[ring[idle[placed]].astype(np.int64) * columns + column[placed]]
+    hosted, first = np.unique(on[on >= 0], return_index=True)
+    host = np.full(len(er), -1, np.int64)
+    host[hosted] = idle[placed][on >= 0][first]
+    return host
+
+
+def _column_of(measured: FiringColumns, points: np.ndarray) -> np.ndarray:
+    """The firing-grid column of the returns ``points`` (as :func:`_cells` finds it)."""
+    step = TWO_PI / measured.columns
+    ring = measured.ring[points].astype(np.int64)
+    return np.mod(np.floor(-measured.firing_rad[points] / step - measured.shift[ring] + 0.5).astype(np.int64),
+                  measured.columns)
 
 
 def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:
