@@ -275,3 +275,21 @@ def test_attenuated_returns_reflectivity_follows_their_signal(tmp_path, model, p
     np.testing.assert_array_equal(back.fields["reflectivity"][attenuated], want)
     assert (want < rec["reflectivity"][attenuated]).mean() > 0.5
     np.testing.assert_array_equal(back.fields["reflectivity"][effect == 0], rec["reflectivity"][effect == 0])
+
+
+@pytest.mark.parametrize("model, params", [("power.lidar", {}),
+                                           ("occlusion.lidar", {"seed_probability": 0.05, "opacity": 0.6})])
+def test_reflectivity_follows_the_signal_other_steps_change(tmp_path, model, params):
+    """The same rule for the other steps that change a return's signal in place: laser power variance and partial
+    soiling. Every return whose stored signal changed reads ρ · I_out / I_in (at least 1); the others keep theirs."""
+    rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, _ = apply_models([get_model(model)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    same_row = np.asarray(out.fields["intensity"]) != 0
+    changed = same_row & (np.asarray(out.fields["intensity"]) != rec["intensity"]) & (rec["intensity"] > 0)
+    assert np.count_nonzero(changed) > 50
+    ratio = out.fields["intensity"][changed].astype(float) / rec["intensity"][changed]
+    want = np.maximum(np.rint(rec["reflectivity"][changed] * ratio), 1)
+    np.testing.assert_array_equal(out.fields["reflectivity"][changed], np.minimum(want, 255))
+    unchanged = same_row & (np.asarray(out.fields["intensity"]) == rec["intensity"])
+    np.testing.assert_array_equal(out.fields["reflectivity"][unchanged], rec["reflectivity"][unchanged])
