@@ -255,6 +255,9 @@ def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) ->
             if fmt == "kitti":
                 if len(words) < 15:
                     raise ValueError(f"{len(words)} values, KITTI label_2 has 15 (16 with a score)")
+                if _is_int(words[0]):
+                    raise ValueError("a KITTI tracking label (frame track_id type …, one file per sequence): boxes_2d "
+                                     "moves the boxes of per-image label_2 files; a sequence file's are not moved")
                 left, top, right, bottom = map(float, words[4:8])
                 pts, box = np.array([[left, top], [right, bottom]]), True
             else:
