@@ -467,50 +467,67 @@ def _placeholder_hosts(measured: FiringColumns, er: np.ndarray, ec: np.ndarray, 
     every firing (nuScenes: a no-return as a point within ``min_range_m``) stores each ring's points in firing
     order, so a no-return point between two returns of its ring lies in the column as far between theirs as it is
     in storage (rounded; the columns of returns come from their azimuths, which jitter by a column between beams:
-    14 % of a nuScenes firing's neighbouring returns). A cell that two such points round to takes the last, a cell
+    14 % of a nuScenes firing's neighbouring returns). A cell that two such points round to takes the later, a cell
     none rounds to keeps its weather return appended; so do the cells before a ring's first and after its last
     return. None at all unless the list's rings are stored in firing order: 90 % of the steps between a ring's
     successive returns go 1 … 8 columns one way (a shuffled or re-sorted list: ≈ 0 %)."""
-    ring, valid, columns = measured.ring.astype(np.int64), measured.valid, measured.columns
+    return _hosts(measured.ring, measured.valid, measured.firing_rad, measured.shift, measured.columns / TWO_PI,
+                  measured.columns, channels, er, ec)
+
+
+@jit
+def _hosts(ring, valid, firing, shift, inv_step, columns, channels, er, ec):       # pragma: no cover - compiled
+    """:func:`_placeholder_hosts`: two passes over the list in storage order give each return's column (as
+    :func:`_cells` finds it), each point's ordinal within its ring and each no-return point's previous and next
+    return of its ring, and count the steps between a ring's successive returns that go 1 … ``MAX_GAP_STEPS``
+    columns forward and backward; then each no-return point between two returns is placed."""
+    n = len(ring)
     host = np.full(len(er), -1, np.int64)
-    order = np.argsort(ring, kind="stable")                 # each ring's points in storage order, ring after ring
-    placed = np.flatnonzero(valid[order])                   # the returns' positions in ``order``
-    returns = order[placed]
-    column = _column_of(measured, returns)
-    one_ring = ring[returns[1:]] == ring[returns[:-1]]
-    step = np.mod(column[1:] - column[:-1], columns)[one_ring]
-    if len(step) < MIN_GAPS:
-        return host
-    forward = np.mean((step >= 1) & (step <= MAX_GAP_STEPS))
-    backward = np.mean((columns - step >= 1) & (columns - step <= MAX_GAP_STEPS))
-    if max(forward, backward) < FIRING_ORDER:
-        return host                                         # not stored in firing order
+    column = np.full(n, -1, np.int64)
+    seq = np.empty(n, np.int64)
+    prev = np.full(n, -1, np.int64)
+    count = np.zeros(channels, np.int64)
+    last = np.full(channels, -1, np.int64)
+    forward = backward = steps = 0
+    for i in range(n):
+        r = np.uintp(ring[i])
+        seq[i] = count[r]
+        count[r] += 1
+        if not valid[i]:
+            prev[i] = last[r]
+            continue
+        c = _wrap(int(math.floor(-firing[i] * inv_step - shift[r] + 0.5)), columns)
+        column[i] = c
+        if last[r] >= 0:
+            gap = _wrap(c - column[last[r]], columns)
+            steps += 1
+            forward += 1 <= gap <= MAX_GAP_STEPS
+            backward += 1 <= columns - gap <= MAX_GAP_STEPS
+        last[r] = i
+    if steps < MIN_GAPS or max(forward, backward) < FIRING_ORDER * steps:
+        return host                                          # not stored in firing order
     sign = 1 if forward >= backward else -1
-    at = np.flatnonzero(~valid[order])                      # the no-return points' positions
-    before = np.searchsorted(placed, at) - 1                # their previous return (in ``returns``); next: + 1
-    inside = (before >= 0) & (before + 1 < len(returns))
-    at, before = at[inside], before[inside]
-    own = ring[order[at]]
-    between = (ring[returns[before]] == own) & (ring[returns[before + 1]] == own)
-    at, before = at[between], before[between]
-    firings = placed[before + 1] - placed[before]           # firings from one return to the next
-    turn = np.mod(sign * (column[before + 1] - column[before]), columns)      # columns, the way the sensor turns
-    fits = (turn >= 1) & (turn <= MAX_GAP_STEPS * firings)
-    at, before, firings, turn = at[fits], before[fits], firings[fits], turn[fits]
-    cells = np.mod(column[before] + sign * np.rint(turn * (at - placed[before]) / firings).astype(np.int64), columns)
     cell = np.full(channels * columns, -1, np.int64)
-    cell[er * columns + ec] = np.arange(len(er))
-    on = cell[ring[order[at]] * columns + cells]
-    host[on[on >= 0]] = order[at[on >= 0]]
+    for k in range(len(er)):
+        cell[er[k] * columns + ec[k]] = k
+    last[:] = -1
+    for i in range(n - 1, -1, -1):                           # the next return of each no-return point's ring
+        r = np.uintp(ring[i])
+        if valid[i]:
+            last[r] = i
+            continue
+        p, q = prev[i], last[r]
+        if p < 0 or q < 0:
+            continue
+        firings = seq[q] - seq[p]
+        turn = _wrap(sign * (column[q] - column[p]), columns)     # columns, the way the sensor turns
+        if turn < 1 or turn > MAX_GAP_STEPS * firings:
+            continue
+        c = _wrap(column[p] + sign * int(np.rint(turn * (seq[i] - seq[p]) / firings)), columns)
+        k = cell[r * columns + c]
+        if k >= 0 and host[k] < 0:                           # (the last in storage order: the first met here)
+            host[k] = i
     return host
-
-
-def _column_of(measured: FiringColumns, points: np.ndarray) -> np.ndarray:
-    """The firing-grid column of the returns ``points`` (as :func:`_cells` finds it)."""
-    step = TWO_PI / measured.columns
-    ring = measured.ring[points].astype(np.int64)
-    return np.mod(np.floor(-measured.firing_rad[points] / step - measured.shift[ring] + 0.5).astype(np.int64),
-                  measured.columns)
 
 
 def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:

@@ -17,7 +17,7 @@ from .firing_grid import FiringGrid
 from .laser_order import FIRING_COLUMN
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, WEATHER, RayReturns
 from .lidar_geometry import RING, beam_means, elevation_rad, far_returns, unit_vectors
-from .lidar_intensity import intensity_resolution, reflectivity_following, stored_signal
+from .lidar_intensity import intensity_resolution, ouster_signal_layout, reflectivity_following, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
 
@@ -182,7 +182,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
-    at, rows = _hosted(rays.listed, cells, origin[:n_out])
+    at, rows = _hosted(rays.listed, cells, origin[:n_out] if n_removed else None)
     if len(at):                                        # weather on a stored no-return point's ray takes its row
         positions[rows], intensity[rows] = _listed_returns(rays.listed, cells[at], returns.range_m[n:], reported[n:],
                                                            float(profile.intensity_full_scale), integer)
@@ -214,7 +214,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             if len(cells) and FIRING_COLUMN in attributes:  # ... and its firing column its cell's (laser order)
                 attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
         origin[n_out:] = NEW
-    if attenuated:                                     # an ouster-ros reflectivity reading follows its signal
+    if attenuated and ouster_signal_layout(fields):    # an ouster-ros reflectivity reading follows its signal
         rows = np.flatnonzero(effect[:total] == ATTENUATED)
         fields = {**fields, **reflectivity_following(fields, rows, intensity_in[rows if origin is None else
                                                                                  origin[rows]], intensity[rows])}
@@ -240,15 +240,15 @@ def _listed_returns(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, 
     return listed.directions(cells, range_m[cells]), (np.round(value) if integer else value)
 
 
-def _hosted(listed: FiringGrid | None, cells: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _hosted(listed: FiringGrid | None, cells: np.ndarray, origin: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Of a list's empty rays ``cells`` that return weather, those whose no-return point is stored in the list
     (:attr:`FiringGrid.host`): (their positions in ``cells``, their output rows; ``origin``: the input point of each
-    output row so far, increasing — no-return points are never removed)."""
+    output row so far, increasing — no-return points are never removed —, None when no point was removed)."""
     if listed is None or listed.host is None or not len(cells):
         return np.zeros(0, np.intp), np.zeros(0, np.intp)
     host = listed.host[cells]
     at = np.flatnonzero(host >= 0)
-    return at, np.searchsorted(origin, host[at])
+    return at, (host[at] if origin is None else np.searchsorted(origin, host[at]))
 
 
 def empty_ray_counts(rays: Rays) -> dict:
