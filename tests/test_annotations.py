@@ -727,7 +727,7 @@ def test_kitti_tracking_sequence_files_reach_every_frame(tmp_path):
     ``calib/0000.txt`` with KITTI tracking's colon-less ``R_rect`` and ``Tr_velo_cam`` lines, ``label_02/0000.txt``
     whose lines lead with ``frame track_id``): ``{parent}`` (the scan's folder: the sequence) reaches them, each
     frame counts the boxes of its own lines (ids: track ids; DontCare, track −1, skipped), and the two files are
-    written once per frame, unchanged. Before: the pattern knew only ``{stem}``/``{name}``, so no frame could name
+    written once per frame, unchanged, no clash between the frames (nor on --resume). Before: the pattern knew only ``{stem}``/``{name}``, so no frame could name
     its sequence's files, and the calib's colon-less lines were refused. The same file named as 2-D boxes of an
     image is refused (it was read shifted by two columns: the track id as the box's left edge)."""
     cloud, boxes = _object_scene()
@@ -755,6 +755,9 @@ def test_kitti_tracking_sequence_files_reach_every_frame(tmp_path):
     assert objects["000000.pcd"][0]["points_before"] == objects["000001.pcd"][0]["points_before"] > 50
     for rel in ("label_02/0000.txt", "calib/0000.txt"):
         assert (out / "training" / rel).read_bytes() == (root / rel).read_bytes()
+    write_pointcloud(root / "velodyne" / "0000" / "000002.pcd", cloud)             # a frame added: --resume
+    again = run(recipe, tmp_path / "in", out, workers=1, resume=True, progress=False, echo=lambda *_: None)
+    assert (again.done, again.skipped, again.failed) == (1, 2, 0)
     with pytest.raises(InputError, match="KITTI tracking label .* a sequence file's are not moved"):
         ann_io.read_boxes_2d(root / "label_02" / "0000.txt", "kitti", 1242, 375)    # before: garbage boxes
     with pytest.raises(InputError, match="frame numbers"):
