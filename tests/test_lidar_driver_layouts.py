@@ -231,6 +231,28 @@ def test_ouster_ros_intensity_is_stated_signal_by_its_fields(tmp_path):
         chain_intensity_scale(cloud.replace(fields=fields), "fog.lidar")
 
 
+def test_ouster_ros_1_cloud_with_noise_field_is_stated_signal(tmp_path):
+    """ouster_ros 1.x (ouster_example) names the ambient channel ``noise`` (``x y z intensity t reflectivity ring
+    noise range``, a list saved as PCD, ring u8): its intensity is the signal too, stated by the fields (before: the
+    data decided, here fractional photons, refused; and its weather returns kept the hidden object's reflectivity)."""
+    from roadview_noise.physics.lidar_intensity import chain_intensity_scale
+    from roadview_noise.profiles.lidar import default_profile
+
+    rec = ouster_ros_pcd(tmp_path / "in.pcd")
+    path = tmp_path / "old.pcd"
+    path.write_bytes((tmp_path / "in.pcd").read_bytes().replace(b"ring ambient", b"ring noise", 1))
+    cloud = read_pointcloud(path).replace(profile=default_profile())
+    assert "noise" in cloud.fields
+    scale = chain_intensity_scale(cloud, "fog.lidar")
+    assert scale.warning is None and "stated by the cloud's fields (ouster-ros" in scale.note
+    out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud.replace(
+        profile=load_lidar_profile("os1-128")), seed=1, key="k", sequence_id="s", metrics=False)
+    write_pointcloud(tmp_path / "out.pcd", out)                # weather returns' reflectivity: written (derived)
+    back = read_pointcloud(tmp_path / "out.pcd")
+    moved = np.asarray(back.fields["rv_effect"]) == 2
+    assert moved.sum() > 100 and (back.fields["reflectivity"][moved] != rec.ravel()["reflectivity"][moved]).mean() > 0.5
+
+
 def test_weather_returns_get_their_own_reflectivity(tmp_path):
     """ouster-ros' ``reflectivity`` of a fog return (a point moved to a droplet or added on an empty ray) is the
     reading its own return gives in the 8-bit reflectivity channel (W·S·R²/K of its signal S at its range R, W =

@@ -371,9 +371,10 @@ def no_strength_error(model_id: str) -> ModelError:
 
 #: built-in profiles to suggest for a ring field counting this many beams
 PROFILE_FOR_BEAMS = {32: "hdl-32e for a Velodyne HDL-32E (nuScenes)", 64: "kitti-hdl64 for KITTI, carla-64 for CARLA"}
-#: fields only Ouster's drivers write (ouster-ros: ambient; ouster-sdk and newer ouster-ros: near_ir); Livox writes
+#: fields only Ouster's drivers write (ouster-ros: ambient; ouster-sdk and newer ouster-ros: near_ir; ouster_ros 1.x
+#: of ouster_example: noise, its point ``x y z intensity t reflectivity ring noise range``); Livox writes
 #: ``reflectivity`` too, so that one says nothing
-OUSTER_FIELDS = frozenset({"ambient", "near_ir"})
+OUSTER_FIELDS = frozenset({"ambient", "near_ir", "noise"})
 
 
 def ouster_signal_layout(fields) -> bool:
