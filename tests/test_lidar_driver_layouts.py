@@ -253,6 +253,44 @@ def test_ouster_ros_1_cloud_with_noise_field_is_stated_signal(tmp_path):
     assert moved.sum() > 100 and (back.fields["reflectivity"][moved] != rec.ravel()["reflectivity"][moved]).mean() > 0.5
 
 
+def test_range_saved_as_float_follows_moved_points(tmp_path):
+    """An Ouster list converted by a tool that stores every field as float (``FIELDS x y z intensity t reflectivity
+    ring ambient range``, ``TYPE F F F F F U U U F``: range in millimetres as float, as found in public Ouster PCDs):
+    a point moved to a fog droplet gets its own range in the unit the recorded points follow (mm), not the range of
+    the object behind the fog, which it kept before (only a uint32 ``range`` was updated); in fog that moved every
+    point, millimetres because the values exceed 1 000."""
+    rec = ouster_ros_pcd(tmp_path / "grid.pcd").ravel()
+    hit = rec["range"] > 0
+    header = ("VERSION 0.7\nFIELDS x y z intensity t reflectivity ring ambient range\nSIZE 4 4 4 4 4 2 1 2 4\n"
+              "TYPE F F F F F U U U F\nCOUNT 1 1 1 1 1 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+              "POINTS {n}\nDATA binary\n")
+    listed = np.zeros(np.count_nonzero(hit), np.dtype([(k, t) for k, t in zip(
+        ("x", "y", "z", "intensity", "t", "reflectivity", "ring", "ambient", "range"),
+        ("<f4", "<f4", "<f4", "<f4", "<f4", "<u2", "u1", "<u2", "<f4"))]))
+    for k in listed.dtype.names:
+        listed[k] = rec[k][hit]
+    (tmp_path / "list.pcd").write_bytes(header.format(n=len(listed)).encode() + listed.tobytes())
+    cloud = read_pointcloud(tmp_path / "list.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, _ = apply_models([get_model("fog.lidar")(visibility_m=100.0)], cloud, seed=1, key="k", sequence_id="s",
+                          metrics=False)
+    write_pointcloud(tmp_path / "out.pcd", out)
+    back = read_pointcloud(tmp_path / "out.pcd")
+    effect = np.asarray(back.fields["rv_effect"])
+    new = (effect == 2) | (effect == 3)
+    assert np.count_nonzero(effect == 2) > 100
+    np.testing.assert_allclose(back.fields["range"][new], np.linalg.norm(back.positions_m[new], axis=1) * 1000,
+                               rtol=1e-6)
+    kept = ~new                                                  # the input's returns keep their recorded range
+    assert np.count_nonzero(kept) > 100
+    np.testing.assert_array_equal(back.fields["range"][kept], listed["range"][out.origin[kept]])
+    dense, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k", sequence_id="s",
+                            metrics=False)                       # every point moved: no recorded one to fit on
+    assert (np.asarray(dense.effect) >= 2).all()
+    write_pointcloud(tmp_path / "dense.pcd", dense)
+    back = read_pointcloud(tmp_path / "dense.pcd")
+    np.testing.assert_allclose(back.fields["range"], np.linalg.norm(back.positions_m, axis=1) * 1000, rtol=1e-6)
+
+
 def test_weather_returns_get_their_own_reflectivity(tmp_path):
     """ouster-ros' ``reflectivity`` of a fog return (a point moved to a droplet or added on an empty ray) is the
     reading its own return gives in the 8-bit reflectivity channel (W·S·R²/K of its signal S at its range R, W =
