@@ -253,6 +253,14 @@ def test_ouster_ros_1_cloud_with_noise_field_is_stated_signal(tmp_path):
     assert moved.sum() > 100 and (back.fields["reflectivity"][moved] != rec.ravel()["reflectivity"][moved]).mean() > 0.5
 
 
+def _written(tmp_path, cloud, model: str, name: str = "out.pcd", **params):
+    """(the chain's output, that output written as a PCD and read back, its ``rv_effect`` codes)."""
+    out, _ = apply_models([get_model(model)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    write_pointcloud(tmp_path / name, out)
+    back = read_pointcloud(tmp_path / name)
+    return out, back, np.asarray(back.fields["rv_effect"])
+
+
 def test_range_saved_as_float_follows_moved_points(tmp_path):
     """An Ouster list converted by a tool that stores every field as float (``FIELDS x y z intensity t reflectivity
     ring ambient range``, ``TYPE F F F F F U U U F``: range in millimetres as float, as found in public Ouster PCDs):
@@ -271,11 +279,7 @@ def test_range_saved_as_float_follows_moved_points(tmp_path):
         listed[k] = rec[k][hit]
     (tmp_path / "list.pcd").write_bytes(header.format(n=len(listed)).encode() + listed.tobytes())
     cloud = read_pointcloud(tmp_path / "list.pcd").replace(profile=load_lidar_profile("os1-128"))
-    out, _ = apply_models([get_model("fog.lidar")(visibility_m=100.0)], cloud, seed=1, key="k", sequence_id="s",
-                          metrics=False)
-    write_pointcloud(tmp_path / "out.pcd", out)
-    back = read_pointcloud(tmp_path / "out.pcd")
-    effect = np.asarray(back.fields["rv_effect"])
+    out, back, effect = _written(tmp_path, cloud, "fog.lidar", visibility_m=100.0)
     new = (effect == 2) | (effect == 3)
     assert np.count_nonzero(effect == 2) > 100
     np.testing.assert_allclose(back.fields["range"][new], np.linalg.norm(back.positions_m[new], axis=1) * 1000,
@@ -283,11 +287,8 @@ def test_range_saved_as_float_follows_moved_points(tmp_path):
     kept = ~new                                                  # the input's returns keep their recorded range
     assert np.count_nonzero(kept) > 100
     np.testing.assert_array_equal(back.fields["range"][kept], listed["range"][out.origin[kept]])
-    dense, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k", sequence_id="s",
-                            metrics=False)                       # every point moved: no recorded one to fit on
-    assert (np.asarray(dense.effect) >= 2).all()
-    write_pointcloud(tmp_path / "dense.pcd", dense)
-    back = read_pointcloud(tmp_path / "dense.pcd")
+    _, back, effect = _written(tmp_path, cloud, "fog.lidar", "dense.pcd", visibility_m=30.0)
+    assert (effect >= 2).all()                                   # every point moved: no recorded one to fit on
     np.testing.assert_allclose(back.fields["range"], np.linalg.norm(back.positions_m, axis=1) * 1000, rtol=1e-6)
 
 
@@ -298,11 +299,7 @@ def test_weather_returns_get_their_own_reflectivity(tmp_path):
     before. Returns that are the input's keep theirs (attenuated ones: next test)."""
     rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
     cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
-    out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k", sequence_id="s",
-                          metrics=False)
-    write_pointcloud(tmp_path / "out.pcd", out)
-    back = read_pointcloud(tmp_path / "out.pcd")
-    effect = np.asarray(back.fields["rv_effect"])
+    _, back, effect = _written(tmp_path, cloud, "fog.lidar", visibility_m=30.0)
     new = (effect == 2) | (effect == 3)                                       # MOVED, ADDED
     assert np.count_nonzero(effect == 2) > 100 and np.count_nonzero(effect == 3) > 100
     r = np.linalg.norm(back.positions_m[new], axis=1)
@@ -324,10 +321,7 @@ def test_attenuated_returns_reflectivity_follows_their_signal(tmp_path, model, p
     sensor had seen it in clear air. Returns kept (a change below one photon) keep theirs."""
     rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
     cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
-    out, _ = apply_models([get_model(model)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
-    write_pointcloud(tmp_path / "out.pcd", out)
-    back = read_pointcloud(tmp_path / "out.pcd")
-    effect = np.asarray(back.fields["rv_effect"])
+    _, back, effect = _written(tmp_path, cloud, model, **params)
     attenuated = effect == 1
     assert np.count_nonzero(attenuated) > 300
     ratio = back.fields["intensity"][attenuated].astype(float) / rec["intensity"][attenuated]
