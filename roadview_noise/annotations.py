@@ -26,7 +26,8 @@ instance 0). Raw SemanticKITTI ids (0–259) use 20 for
 other-vehicle: give ``weather_class`` (e.g. 1, "outlier") for such data.
 
 Sidecar paths (``point_labels``, ``masks``, ``boxes_2d``, ``boxes_3d``, ``calib``) are a pattern relative to the
-input file's folder (``{stem}``, ``{name}``; ``..`` allowed), ``{replace: {old: new, …}}`` applied in order to the
+input file's folder (``{stem}``, ``{name}``, ``{base}``, ``{parent}``: the folder's name — KITTI tracking's
+sequence —, ``{parts[i]}``; ``..`` allowed), ``{replace: {old: new, …}}`` applied in order to the
 input's path relative to the input root, or for nuScenes-lidarseg ``{nuscenes: v1.0-trainval}`` (the tables
 ``sample_data.json`` and ``lidarseg.json`` under that folder of the input root; nuScenes-panoptic: ``{nuscenes:
 v1.0-trainval, table: panoptic}``, ``panoptic.json``). Every path must resolve inside
@@ -233,6 +234,7 @@ class AnnotationsSpec(_Strict):
         """RecipeError for annotations the chain's sensor has none of (masks of a cloud, point labels of an image)."""
         from .errors import RecipeError
         from .input_checks import escapes
+        from .recipe import check_pattern
 
         wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
                                                                                    *DATASET_FILES)
@@ -240,6 +242,12 @@ class AnnotationsSpec(_Strict):
             if getattr(self, name):
                 raise RecipeError(f"{name} annotate {'point clouds' if sensor == 'camera' else 'images'}; this "
                                   f"chain acts on {sensor} data", key=f"inputs.annotations.{name}")
+        for role, rule in self.rules():
+            if isinstance(rule, str):
+                try:
+                    check_pattern(rule)
+                except ValueError as e:
+                    raise RecipeError(str(e), key=f"inputs.annotations.{role}") from None
         if self.calib is not None and self.boxes_3d is None:
             raise RecipeError("calib goes with boxes_3d (KITTI)", key="inputs.annotations.calib")
         ends = _rule_ends(self.boxes_2d)
@@ -279,14 +287,10 @@ def sidecar_relpath(rule: PathRule, relpath: str, in_root: Path) -> str:
     """Path (relative to the input root, POSIX) of the sidecar of input ``relpath``; InputError if it leaves the
     input root."""
     rule = rule.path_rule() if isinstance(rule, MaskRule) else rule
-    if isinstance(rule, str):
-        p = PurePosixPath(relpath)
-        from .dataset import split_suffix
+    if isinstance(rule, (str, ReplaceRule)):
+        from .dataset import depth_relpath_for
 
-        stem = split_suffix(p.name)[0]
-        rel = posixpath.join(str(p.parent), rule.format(stem=stem, name=p.name))
-    elif isinstance(rule, ReplaceRule):
-        rel = rule.applied(relpath)
+        rel = depth_relpath_for(relpath, rule)
     else:
         rel = _nuscenes_index(str(Path(in_root).resolve() / rule.nuscenes), rule.table).get(relpath)
         if rel is None:
@@ -430,6 +434,7 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
     """Read the sidecars of one input (InputError names the file and the problem); an image's are in its stored
     pixel coordinates, also when it is processed upright (:mod:`.orientation`)."""
     from .manifest import sha256_file
+    from .dataset import split_suffix
     from .orientation import stored_shape
 
     out = []
@@ -474,7 +479,8 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
         calib = next((in_root / s.relpath for s in out if s.role == "calib"), None)
         suffix = PurePosixPath(boxes.relpath).suffix.lower().lstrip(".")
         boxes.fmt = spec.boxes_3d_format or (suffix if suffix in ("json", "csv") else "kitti")
-        boxes.data = ann_io.read_boxes_3d(in_root / boxes.relpath, boxes.fmt, calib)
+        boxes.data = ann_io.read_boxes_3d(in_root / boxes.relpath, boxes.fmt, calib,
+                                          split_suffix(PurePosixPath(relpath).name)[0])
     return out
 
 

@@ -42,6 +42,19 @@ def listed_files(entry: dict) -> list[str]:
     return [entry["output"]] if entry.get("status") == "ok" and entry.get("output") else []
 
 
+def owner(entry: dict, rel: str) -> str:
+    """Who claims the output file ``rel`` of an entry: its input, or — for an annotation file copied unchanged to
+    the same path (a sequence's calib or label file that each of its frames reads, KITTI tracking's
+    ``calib/0000.txt``) — that copy, which every input reading the same file writes byte for byte."""
+    read = entry.get("annotations_read")
+    if not read:
+        return entry["input"]
+    sha = next((f["sha256"] for f in entry.get("files") or () if f["path"] == rel), None)
+    copied = sha is not None and any(a.get("path") == rel and a.get("sha256") == sha
+                                     for a in read)
+    return f"unchanged copy of {rel} ({sha})" if copied else entry["input"]
+
+
 def _inside(out_root: Path, rel: str) -> Path | None:
     """``out_root / rel`` if ``rel`` stays inside ``out_root`` (no ``..``, not absolute, no symlinked folder
     leading out), else None."""
@@ -153,7 +166,7 @@ class Ledger:
 
     def _release(self, entry: dict) -> dict:
         files = listed_files(entry) if entry.get("status") == "ok" else []
-        claimed, clash = self._claim(files, entry["input"])
+        claimed, clash = self._claim(files, entry)
         if clash is not None:
             self._unclaim(claimed)
             discard(self.out_root, entry)
@@ -163,15 +176,16 @@ class Ledger:
         with ctrl_c_held():                             # a line and its files' renames: both or neither
             return self._record(entry, claimed)
 
-    def _claim(self, files: list[str], owner: str) -> tuple[list[str], tuple[str, str] | None]:
-        """Claim ``files`` for the input ``owner``, one SQLite statement per file unless another input has it:
-        (the files claimed here, the first file another input claimed before and that input, or None)."""
+    def _claim(self, files: list[str], entry: dict) -> tuple[list[str], tuple[str, str] | None]:
+        """Claim ``files`` for their :func:`owner`, one SQLite statement per file unless another owner has it:
+        (the files claimed here, the first file another owner claimed before and that owner, or None)."""
         claimed = []
         for f in files:
-            before = self.claimed.put_new(f, owner)
+            who = owner(entry, f)
+            before = self.claimed.put_new(f, who)
             if before is None:
                 claimed.append(f)
-            elif before != owner:
+            elif before != who:
                 return claimed, (f, before)
         return claimed, None
 
@@ -211,7 +225,7 @@ class Ledger:
     def claim(self, entry: dict) -> None:
         """Files of an entry kept from a previous run (``--resume``)."""
         for f in listed_files(entry):
-            self.claimed.put(f, entry["input"])
+            self.claimed.put(f, owner(entry, f))
 
     def close(self) -> None:
         self.claimed.close()

@@ -18,7 +18,7 @@ import pytest
 from roadview_noise import annotations
 from roadview_noise.compound import apply_models
 from roadview_noise.dataset import Sample, discover, load
-from roadview_noise.errors import InputError
+from roadview_noise.errors import InputError, RecipeError
 from roadview_noise.io import annotations as ann_io
 from roadview_noise.io.image import read_image, write_image
 from roadview_noise.io.pointcloud import read_pointcloud, write_pointcloud
@@ -931,6 +931,51 @@ def test_kitti_boxes_read_the_calibration_files_datasets_ship(tmp_path):
     (tmp_path / "none.txt").write_text(rect + "Tr_velo_to_cam_1: " + tr + "\n")
     with pytest.raises(InputError, match="Tr_velo_to_cam"):
         ann_io.read_boxes_3d(label, "kitti", tmp_path / "none.txt")
+
+
+def test_kitti_tracking_sequence_files_reach_every_frame(tmp_path):
+    """KITTI tracking ships one calib and one label file per sequence (``training/velodyne/0000/000001.bin``,
+    ``calib/0000.txt`` with KITTI tracking's colon-less ``R_rect`` and ``Tr_velo_cam`` lines, ``label_02/0000.txt``
+    whose lines lead with ``frame track_id``): ``{parent}`` (the scan's folder: the sequence) reaches them, each
+    frame counts the boxes of its own lines (ids: track ids; DontCare, track −1, skipped), and the two files are
+    written once per frame, unchanged, no clash between the frames (nor on --resume). Before: the pattern knew only ``{stem}``/``{name}``, so no frame could name
+    its sequence's files, and the calib's colon-less lines were refused. The same file named as 2-D boxes of an
+    image is refused (it was read shifted by two columns: the track id as the box's left edge)."""
+    cloud, boxes = _object_scene()
+    root = tmp_path / "in" / "training"
+    for frame in ("000000", "000001"):
+        write_pointcloud(root / "velodyne" / "0000" / f"{frame}.pcd", cloud)
+    (root / "calib").mkdir()
+    (root / "calib" / "0000.txt").write_text(
+        "".join(f"P{i}: {' '.join(['0'] * 12)}\n" for i in range(4))
+        + "R_rect 1 0 0 0 1 0 0 0 1\nTr_velo_cam 0 -1 0 0 0 0 -1 0 1 0 0 0\nTr_imu_velo 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    lines = ["0 -1 DontCare -1 -1 -10 0 0 10 10 -1000 -1000 -1000 -10 -10 -10 -10"]
+    for frame, track, b in ((0, 3, boxes[0]), (1, 3, boxes[0]), (1, 7, boxes[1])):
+        (x, y, z), (ln, wd, ht) = b["center_m"], b["size_m"]
+        lines.append(f"{frame} {track} Car 0 0 0 0 0 10 10 {ht} {wd} {ln} {-y} {-z + ht / 2} {x} "
+                     f"{-b['yaw_rad'] - np.pi / 2}")
+    (root / "label_02").mkdir()
+    (root / "label_02" / "0000.txt").write_text("\n".join(lines) + "\n")
+    recipe = _recipe({"chain": [{"model": "fog.lidar", "params": {"visibility_m": 12.0}}],
+                      "inputs": {"lidar": "training/velodyne/*/*.pcd", "annotations": {
+                          "boxes_3d": "../../label_02/{parent}.txt", "calib": "../../calib/{parent}.txt"}}}, tmp_path)
+    out = tmp_path / "out"
+    assert run(recipe, tmp_path / "in", out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    objects = {e["input"].rsplit("/", 1)[-1]: e["objects"] for e in read_manifest(out / "manifest.jsonl")}
+    assert [o["id"] for o in objects["000000.pcd"]] == ["3"] and [o["id"] for o in objects["000001.pcd"]] == ["3", "7"]
+    assert objects["000000.pcd"][0]["points_before"] == objects["000001.pcd"][0]["points_before"] > 50
+    for rel in ("label_02/0000.txt", "calib/0000.txt"):
+        assert (out / "training" / rel).read_bytes() == (root / rel).read_bytes()
+    write_pointcloud(root / "velodyne" / "0000" / "000002.pcd", cloud)             # a frame added: --resume
+    again = run(recipe, tmp_path / "in", out, workers=1, resume=True, progress=False, echo=lambda *_: None)
+    assert (again.done, again.skipped, again.failed) == (1, 2, 0)
+    with pytest.raises(InputError, match="KITTI tracking label .* a sequence file's are not moved"):
+        ann_io.read_boxes_2d(root / "label_02" / "0000.txt", "kitti", 1242, 375)    # before: garbage boxes
+    with pytest.raises(InputError, match="frame numbers"):
+        ann_io.read_boxes_3d(root / "label_02" / "0000.txt", "kitti", root / "calib" / "0000.txt", "scan_a")
+    with pytest.raises(RecipeError, match="parts"):
+        _recipe({"chain": [{"model": "fog.lidar"}], "inputs": {"lidar": "*.pcd", "annotations": {
+            "boxes_3d": "../{folder}.txt", "calib": "c.txt"}}}, tmp_path)
 
 
 def test_objects_count_their_points_before_and_after(tmp_path):

@@ -231,18 +231,75 @@ def test_ouster_ros_intensity_is_stated_signal_by_its_fields(tmp_path):
         chain_intensity_scale(cloud.replace(fields=fields), "fog.lidar")
 
 
+def test_ouster_ros_1_cloud_with_noise_field_is_stated_signal(tmp_path):
+    """ouster_ros 1.x (ouster_example) names the ambient channel ``noise`` (``x y z intensity t reflectivity ring
+    noise range``, a list saved as PCD, ring u8): its intensity is the signal too, stated by the fields (before: the
+    data decided, here fractional photons, refused; and its weather returns kept the hidden object's reflectivity)."""
+    from roadview_noise.physics.lidar_intensity import chain_intensity_scale
+    from roadview_noise.profiles.lidar import default_profile
+
+    rec = ouster_ros_pcd(tmp_path / "in.pcd")
+    path = tmp_path / "old.pcd"
+    path.write_bytes((tmp_path / "in.pcd").read_bytes().replace(b"ring ambient", b"ring noise", 1))
+    cloud = read_pointcloud(path).replace(profile=default_profile())
+    assert "noise" in cloud.fields
+    scale = chain_intensity_scale(cloud, "fog.lidar")
+    assert scale.warning is None and "stated by the cloud's fields (ouster-ros" in scale.note
+    out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud.replace(
+        profile=load_lidar_profile("os1-128")), seed=1, key="k", sequence_id="s", metrics=False)
+    write_pointcloud(tmp_path / "out.pcd", out)                # weather returns' reflectivity: written (derived)
+    back = read_pointcloud(tmp_path / "out.pcd")
+    moved = np.asarray(back.fields["rv_effect"]) == 2
+    assert moved.sum() > 100 and (back.fields["reflectivity"][moved] != rec.ravel()["reflectivity"][moved]).mean() > 0.5
+
+
+def _written(tmp_path, cloud, model: str, name: str = "out.pcd", **params):
+    """(the chain's output, that output written as a PCD and read back, its ``rv_effect`` codes)."""
+    out, _ = apply_models([get_model(model)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    write_pointcloud(tmp_path / name, out)
+    back = read_pointcloud(tmp_path / name)
+    return out, back, np.asarray(back.fields["rv_effect"])
+
+
+def test_range_saved_as_float_follows_moved_points(tmp_path):
+    """An Ouster list converted by a tool that stores every field as float (``FIELDS x y z intensity t reflectivity
+    ring ambient range``, ``TYPE F F F F F U U U F``: range in millimetres as float, as found in public Ouster PCDs):
+    a point moved to a fog droplet gets its own range in the unit the recorded points follow (mm), not the range of
+    the object behind the fog, which it kept before (only a uint32 ``range`` was updated); in fog that moved every
+    point, millimetres because the values exceed 1 000."""
+    rec = ouster_ros_pcd(tmp_path / "grid.pcd").ravel()
+    hit = rec["range"] > 0
+    header = ("VERSION 0.7\nFIELDS x y z intensity t reflectivity ring ambient range\nSIZE 4 4 4 4 4 2 1 2 4\n"
+              "TYPE F F F F F U U U F\nCOUNT 1 1 1 1 1 1 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+              "POINTS {n}\nDATA binary\n")
+    listed = np.zeros(np.count_nonzero(hit), np.dtype([(k, t) for k, t in zip(
+        ("x", "y", "z", "intensity", "t", "reflectivity", "ring", "ambient", "range"),
+        ("<f4", "<f4", "<f4", "<f4", "<f4", "<u2", "u1", "<u2", "<f4"))]))
+    for k in listed.dtype.names:
+        listed[k] = rec[k][hit]
+    (tmp_path / "list.pcd").write_bytes(header.format(n=len(listed)).encode() + listed.tobytes())
+    cloud = read_pointcloud(tmp_path / "list.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, back, effect = _written(tmp_path, cloud, "fog.lidar", visibility_m=100.0)
+    new = (effect == 2) | (effect == 3)
+    assert np.count_nonzero(effect == 2) > 100
+    np.testing.assert_allclose(back.fields["range"][new], np.linalg.norm(back.positions_m[new], axis=1) * 1000,
+                               rtol=1e-6)
+    kept = ~new                                                  # the input's returns keep their recorded range
+    assert np.count_nonzero(kept) > 100
+    np.testing.assert_array_equal(back.fields["range"][kept], listed["range"][out.origin[kept]])
+    _, back, effect = _written(tmp_path, cloud, "fog.lidar", "dense.pcd", visibility_m=30.0)
+    assert (effect >= 2).all()                                   # every point moved: no recorded one to fit on
+    np.testing.assert_allclose(back.fields["range"], np.linalg.norm(back.positions_m, axis=1) * 1000, rtol=1e-6)
+
+
 def test_weather_returns_get_their_own_reflectivity(tmp_path):
     """ouster-ros' ``reflectivity`` of a fog return (a point moved to a droplet or added on an empty ray) is the
     reading its own return gives in the 8-bit reflectivity channel (W·S·R²/K of its signal S at its range R, W =
     100, K the profile's; a faint one reads 1), not the reflectivity of the object behind the fog, which it kept
-    before. Returns that are the input's keep theirs."""
+    before. Returns that are the input's keep theirs (attenuated ones: next test)."""
     rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
     cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
-    out, _ = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k", sequence_id="s",
-                          metrics=False)
-    write_pointcloud(tmp_path / "out.pcd", out)
-    back = read_pointcloud(tmp_path / "out.pcd")
-    effect = np.asarray(back.fields["rv_effect"])
+    _, back, effect = _written(tmp_path, cloud, "fog.lidar", visibility_m=30.0)
     new = (effect == 2) | (effect == 3)                                       # MOVED, ADDED
     assert np.count_nonzero(effect == 2) > 100 and np.count_nonzero(effect == 3) > 100
     r = np.linalg.norm(back.positions_m[new], axis=1)
@@ -252,3 +309,41 @@ def test_weather_returns_get_their_own_reflectivity(tmp_path):
     kept = (effect == 0) | (effect == 1)
     np.testing.assert_array_equal(back.fields["reflectivity"][kept], rec["reflectivity"][kept])
     assert not np.array_equal(back.fields["reflectivity"][effect == 2], rec["reflectivity"][effect == 2])
+
+
+@pytest.mark.parametrize("model, params", [("rain.lidar", {"rain_rate_mm_per_h": 10.0}),
+                                           ("fog.lidar", {"visibility_m": 100.0})])
+def test_attenuated_returns_reflectivity_follows_their_signal(tmp_path, model, params):
+    """ouster-ros' ``reflectivity`` of a return the weather attenuated: the sensor computes its calibrated
+    reflectivity from the signal photons it measured, scaled by range (Ouster FW manual, "Calibrated
+    Reflectivity"), so at its unchanged range the reading falls with the signal: its recorded reading times
+    I_out / I_in, rounded, at least 1 — the unit's own calibration kept. Before: its recorded reading, as if the
+    sensor had seen it in clear air. Returns kept (a change below one photon) keep theirs."""
+    rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
+    _, back, effect = _written(tmp_path, cloud, model, **params)
+    attenuated = effect == 1
+    assert np.count_nonzero(attenuated) > 300
+    ratio = back.fields["intensity"][attenuated].astype(float) / rec["intensity"][attenuated]
+    want = np.maximum(np.rint(rec["reflectivity"][attenuated] * ratio), 1)
+    np.testing.assert_array_equal(back.fields["reflectivity"][attenuated], want)
+    assert (want < rec["reflectivity"][attenuated]).mean() > 0.5
+    np.testing.assert_array_equal(back.fields["reflectivity"][effect == 0], rec["reflectivity"][effect == 0])
+
+
+@pytest.mark.parametrize("model, params", [("power.lidar", {}),
+                                           ("occlusion.lidar", {"seed_probability": 0.05, "opacity": 0.6})])
+def test_reflectivity_follows_the_signal_other_steps_change(tmp_path, model, params):
+    """The same rule for the other steps that change a return's signal in place: laser power variance and partial
+    soiling. Every return whose stored signal changed reads ρ · I_out / I_in (at least 1); the others keep theirs."""
+    rec = ouster_ros_pcd(tmp_path / "in.pcd").ravel()
+    cloud = read_pointcloud(tmp_path / "in.pcd").replace(profile=load_lidar_profile("os1-128"))
+    out, _ = apply_models([get_model(model)(**params)], cloud, seed=1, key="k", sequence_id="s", metrics=False)
+    same_row = np.asarray(out.fields["intensity"]) != 0
+    changed = same_row & (np.asarray(out.fields["intensity"]) != rec["intensity"]) & (rec["intensity"] > 0)
+    assert np.count_nonzero(changed) > 50
+    ratio = out.fields["intensity"][changed].astype(float) / rec["intensity"][changed]
+    want = np.maximum(np.rint(rec["reflectivity"][changed] * ratio), 1)
+    np.testing.assert_array_equal(out.fields["reflectivity"][changed], np.minimum(want, 255))
+    unchanged = same_row & (np.asarray(out.fields["intensity"]) == rec["intensity"])
+    np.testing.assert_array_equal(out.fields["reflectivity"][unchanged], rec["reflectivity"][unchanged])

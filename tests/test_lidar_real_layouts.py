@@ -67,6 +67,61 @@ def test_nuscenes_no_return_placeholders_are_empty_rays():
     assert cloud_rays(before, "fog.lidar").listed is None
 
 
+def test_weather_on_a_placeholder_ray_takes_its_row():
+    """A weather return on the ray of a nuScenes no-return placeholder is written in the placeholder's row (ADDED,
+    its origin and ring kept), not appended next to it: one point per ray, and the rows (and a lidarseg label file
+    carried by them: nuScenes' class 0 "noise" on the weather returns) stay those of the input — every empty ray of this scan has its placeholder, so nothing is
+    appended. Placeholders that got no weather keep their bytes. Before: the placeholder stayed and the weather
+    return was appended, two points on one ray."""
+    from roadview_noise.annotations import carry_values
+    from roadview_noise.compound import apply_models
+    from roadview_noise.registry import get_model
+
+    cloud, empty = nuscenes_like(fill=0.6, columns=400)
+    out, records = apply_models([get_model("fog.lidar")(visibility_m=30.0)], cloud, seed=1, key="k",
+                                sequence_id="s", metrics=False)
+    n = len(cloud)
+    effect = np.asarray(out.effect)
+    hosted = empty & (effect[:n] == 3)
+    added = records[0].diagnostics["added"]
+    appended = len(out) - n                  # the cells before a ring's first return or after its last one
+    assert added == np.count_nonzero(hosted) + appended and np.count_nonzero(hosted) > 0.98 * added > 1000
+    np.testing.assert_array_equal(out.origin[:n], np.arange(n))
+    assert (out.origin[n:] == -1).all() and (effect[n:] == 3).all()
+    np.testing.assert_array_equal(out.fields["ring"][:n], cloud.fields["ring"])
+    out = out.select(np.arange(n))
+    r = np.linalg.norm(out.positions_m, axis=1)
+    assert (r[hosted] > 1.0).all() and (r[empty & ~hosted] < 1.0).all()
+    np.testing.assert_array_equal(out.positions_m[empty & ~hosted], cloud.positions_m[empty & ~hosted])
+    # the hosted return lies on its placeholder's ray: its ring's elevation, its firing's azimuth
+    el = np.deg2rad(np.asarray(cloud.profile.beam_elevation_deg))[cloud.fields["ring"].astype(int)]
+    p = out.positions_m[hosted]
+    assert np.abs(np.arcsin(p[:, 2] / r[hosted]) - el[hosted]).max() < 1e-3
+    az_firing = 0.4 - 2 * np.pi * (np.flatnonzero(hosted) // 32) / 400
+    assert np.abs(np.angle(np.exp(1j * (np.arctan2(p[:, 1], p[:, 0]) - az_firing)))).max() < 0.3 * 2 * np.pi / 400
+    labels = np.arange(n, dtype=np.uint8) % 31 + 1                      # lidarseg: one class per input row
+    carried = carry_values(labels, out, 0)
+    new = (effect[:n] == 2) | hosted                                     # moved to a droplet, or on a placeholder
+    assert (carried[new] == 0).all() and np.array_equal(carried[~new], labels[~new])
+
+
+def test_placeholders_of_a_list_not_stored_firing_by_firing_host_nothing():
+    """A list whose rows are shuffled (rings do not rise within a firing): no placeholder can be placed in a firing,
+    so weather returns are appended (the placeholders keep their rows), as before."""
+    from roadview_noise.compound import apply_models
+    from roadview_noise.registry import get_model
+
+    cloud, empty = nuscenes_like(fill=0.6, columns=400)
+    order = np.random.default_rng(3).permutation(len(cloud))
+    shuffled = cloud.select(order)
+    out, records = apply_models([get_model("fog.lidar")(visibility_m=30.0)], shuffled, seed=1, key="k",
+                                sequence_id="s", metrics=False)
+    n = len(cloud)
+    added = records[0].diagnostics["added"]
+    assert added > 1000 and len(out) == n + added - records[0].diagnostics["removed"]
+    np.testing.assert_array_equal(np.asarray(out.effect)[-added:], 3)
+
+
 def test_ring_field_of_a_smaller_sensor_is_pointed_out():
     """A nuScenes scan read with the default OS1-128 (nothing stated): its rings 0–31 index the OS1's top 32 beams;
     the warning says so and names hdl-32e. A ring field spanning the profile's beams adds nothing."""

@@ -103,11 +103,15 @@ def _cityscapes(data: dict, path: str) -> Calibration:
 
 
 def kitti_rows(text: str) -> dict[str, np.ndarray]:
-    """The numeric ``KEY: values`` lines of a KITTI calibration text (others, e.g. ``calib_time: 09-Jan-2012
-    13:57:47`` or an empty ``Tr_imu_to_velo:`` as View-of-Delft writes it, skipped)."""
+    """The numeric ``KEY: values`` lines of a KITTI calibration text, and ``KEY values`` lines without the colon
+    (KITTI tracking's ``R_rect`` and ``Tr_velo_cam``); others (e.g. ``calib_time: 09-Jan-2012 13:57:47`` or an empty
+    ``Tr_imu_to_velo:`` as View-of-Delft writes it) skipped."""
     rows = {}
     for line in text.splitlines():
         key, sep, values = line.partition(":")
+        if not sep:
+            key, sep, values = line.strip().partition(" ")
+            sep = sep if key[:1].isalpha() else ""           # (a line of numbers: no key)
         if sep and values.strip():
             try:
                 rows[key.strip()] = np.array(values.split(), dtype=float)
@@ -120,7 +124,7 @@ def kitti_lidar_to_rectified(rows: dict[str, np.ndarray], camera: int,
                              path: str) -> tuple[np.ndarray, np.ndarray] | None:
     """``(R_rect, Tr_velo_to_cam)`` (4 × 4 each; their product maps a Velodyne point into the rectified camera
     frame): camera N's ``Tr_velo_to_cam_N`` (Waymo in mmdetection3d's KITTI format), else ``Tr_velo_to_cam`` (or
-    ``Tr_velo_cam``), else the raw recordings' ``R``/``T``; ``R0_rect`` or ``R_rect_00``. None without a Velodyne
+    ``Tr_velo_cam``), else the raw recordings' ``R``/``T``; ``R0_rect``, ``R_rect_00`` or ``R_rect`` (tracking). None without a Velodyne
     transform."""
     velo_key = next((k for k in (f"Tr_velo_to_cam_{camera}", "Tr_velo_to_cam", "Tr_velo_cam") if k in rows), None)
     if velo_key is not None:
@@ -131,7 +135,7 @@ def kitti_lidar_to_rectified(rows: dict[str, np.ndarray], camera: int,
     else:
         return None
     r_rect = np.eye(4)
-    r_rect[:3, :3] = _first(rows, ("R0_rect", "R_rect_00"), path).reshape(3, 3)
+    r_rect[:3, :3] = _first(rows, ("R0_rect", "R_rect_00", "R_rect"), path).reshape(3, 3)
     return r_rect, velo
 
 

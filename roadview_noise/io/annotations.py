@@ -51,7 +51,8 @@ _ZIP_TIME = (1980, 1, 1, 0, 0, 0)      # the time stamp written into an .npz: th
 BOX_2D_FORMATS = ("kitti", "yolo", "voc")
 BOX_3D_FORMATS = ("kitti", "json", "csv")
 BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
-    "kitti": "KITTI label_2 lines: type truncated occluded alpha left top right bottom h w l x y z rotation_y [score]",
+    "kitti": "KITTI label_2 lines: type truncated occluded alpha left top right bottom h w l x y z rotation_y [score] "
+             "(KITTI tracking's label_02: frame track_id first)",
     "json": '[{"id", "class", "center_m": [x, y, z], "size_m": [length, width, height], "yaw_rad"}] (or that list '
             'under "boxes") in the sensor frame; a segments.ai / View-of-Delft label JSON or nuScenes\' '
             'sample_annotation.json is another layout: give KITTI label_2 + calib files',
@@ -358,6 +359,9 @@ def read_boxes_2d(path: str | os.PathLike, fmt: str, width: int, height: int) ->
             if fmt == "kitti":
                 if len(words) < 15:
                     raise ValueError(f"{len(words)} values, KITTI label_2 has 15 (16 with a score)")
+                if _is_int(words[0]):
+                    raise ValueError("a KITTI tracking label (frame track_id type …, one file per sequence): boxes_2d "
+                                     "moves the boxes of per-image label_2 files; a sequence file's are not moved")
                 left, top, right, bottom = map(float, words[4:8])
                 pts, box = np.array([[left, top], [right, bottom]]), True
             else:
@@ -412,11 +416,13 @@ class Boxes3D:
     up_axis: int = 2                 # 2: z up (sensor frame); 1: y down (KITTI camera: boxes stand on their base)
 
 
-def read_boxes_3d(path: str | os.PathLike, fmt: str, calib_path: str | os.PathLike | None = None) -> Boxes3D:
+def read_boxes_3d(path: str | os.PathLike, fmt: str, calib_path: str | os.PathLike | None = None,
+                  frame: str = "") -> Boxes3D:
+    """The 3-D boxes of a scan; ``frame``: its file's stem, which picks a KITTI tracking label file's lines."""
     raw = _read(Path(path)).decode("utf-8", errors="replace")
     try:
         if fmt == "kitti":
-            return _kitti_boxes(raw, calib_path, path)
+            return _kitti_boxes(raw, calib_path, path, frame)
         rows = _json_rows(raw) if fmt == "json" else _csv_rows(raw)
         center = np.array([r[2] for r in rows], dtype=float).reshape(-1, 3)
         size = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
@@ -444,26 +450,39 @@ def _csv_rows(raw: str) -> list:
     return rows
 
 
-def _kitti_boxes(raw: str, calib_path, path) -> Boxes3D:
+def _kitti_boxes(raw: str, calib_path, path, frame: str) -> Boxes3D:
     """KITTI object labels: ``h w l`` and bottom-centre ``x y z`` in the rectified camera frame (y down),
     ``rotation_y`` about its y axis; the calib's ``R0_rect · Tr_velo_to_cam`` maps LiDAR points into it. DontCare
-    regions are skipped."""
+    regions are skipped. A KITTI tracking label file (``label_02/0000.txt``: one per sequence, each line led by its
+    ``frame`` and ``track_id``) gives the lines of the scan's frame (its file's stem, ``000042`` → 42), ids the
+    track ids."""
     if calib_path is None:
         raise InputError("KITTI 3-D boxes need the calib file (annotations.calib)", file=str(path))
     calib = _kitti_calib(_read(Path(calib_path)).decode("utf-8", errors="replace"), calib_path)
+    lines = [w for w in (line.split() for line in raw.splitlines()) if w]
+    tracking = bool(lines) and _is_int(lines[0][0])
+    if tracking:
+        if not frame.isdigit():
+            raise InputError(f"a KITTI tracking label file (frame, track_id, type, …) gives the boxes of frame "
+                             f"numbers; the scan's name {frame!r} is none", file=str(path))
+        lines = [w[1:] for w in lines if _is_int(w[0]) and int(w[0]) == int(frame)]
     ids, classes, center, size, yaw = [], [], [], [], []
-    for i, line in enumerate(raw.splitlines()):
-        w = line.split()
+    for i, w in enumerate(lines):
+        ident, w = (w[0], w[1:]) if tracking else (str(i), w)
         if len(w) < 15 or w[0] == "DontCare":
             continue
         h, wd, ln, x, y, z, ry = map(float, w[8:15])
-        ids.append(str(i))
+        ids.append(ident)
         classes.append(w[0])
         center.append([x, y - h / 2, z])
         size.append([ln, h, wd])                      # along the camera-frame box axes x (length), y, z (width)
         yaw.append(ry)
     return Boxes3D(ids, classes, np.array(center).reshape(-1, 3), np.array(size).reshape(-1, 3), np.array(yaw),
                    calib, up_axis=1)
+
+
+def _is_int(word: str) -> bool:
+    return word.lstrip("-").isdigit()
 
 
 def _kitti_calib(text: str, path) -> np.ndarray:

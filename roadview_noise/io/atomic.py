@@ -19,6 +19,7 @@ two process-wide settings the batch runner makes here apply to all of them:
 from __future__ import annotations
 
 import hashlib
+import itertools
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -31,6 +32,8 @@ from ..real_folders import real_folder
 from .writeback import start_writeback
 
 TMP_SUFFIX = ".rvnoise-tmp"
+_TEMPORARIES = itertools.count()     # a temporary's name is its process's own: two outputs staged by one worker
+#                                      that both hold the same file (a sequence's calib copied per frame) do not share it
 WRITE_PIECE_BYTES = 1 << 20         # write() size of write_bytes_atomic (see there)
 WRITEBACK_MIN_BYTES = 64 * 1024      # a staged file this large starts its writeback at once (below: the fsync's I/O
                                      # is a few pages, not worth a system call more per file)
@@ -196,7 +199,7 @@ def atomic_path(path: str | os.PathLike, size: int | None = None) -> Iterator[Pa
         path.parent.mkdir(parents=True, exist_ok=True)
     if _stage is not None and path in _stage.finals():
         raise ValueError(f"{path.name} is written twice for one output (a sidecar name collides)")
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}{TMP_SUFFIX}{path.suffix}")
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{next(_TEMPORARIES)}{TMP_SUFFIX}{path.suffix}")
     done = False
     try:
         yield tmp

@@ -6,7 +6,8 @@
   added on an empty ray (ADDED) gets ``|p|`` (``rint(|p| · 1000)`` for ``range``): the distance from the cloud's
   origin, which differs from the sensor's own by its beam-origin offset (−12 … +14 mm on a real OS1-128 scan);
   before, such a point kept the range of the object behind the particle (median 12.8 m off under fog 30 m) or of the
-  point its other fields were copied from.
+  point its other fields were copied from. A ``range`` stored in another type (a float ``range`` a conversion tool
+  wrote) gets the unit its recorded points follow, millimetres or metres (:func:`_range_unit`; neither: untouched).
 - ``azimuth`` and ``elevation`` (nebula's radians, or any other unit, sign and zero): an ADDED point takes the
   direction of its position in the convention the cloud's own points follow (fitted on them: ``value = k·(s·angle +
   c)``, k rad/deg/centideg, s ±1; azimuth wrapped as the recorded values are); before, it kept the angles of the
@@ -40,7 +41,8 @@ def with_derived(values: np.ndarray, file_name: str, dt: str, cloud: PointCloud)
         return _weather_reflectivity(values, cloud)
     kind = np.dtype(dt).kind
     stored = f"u{np.dtype(dt).itemsize}" if kind == "u" else kind
-    if cloud.effect is None or not (RANGE_UNITS.get(file_name, ("",))[0] == stored
+    fitted = file_name in RANGE_UNITS and RANGE_UNITS[file_name][0] != stored and kind in "fiu"
+    if cloud.effect is None or not (RANGE_UNITS.get(file_name, ("",))[0] == stored or fitted
                                     or (file_name in ANGLE_FIELDS and kind in "fiu")):
         return values
     from ..provenance import Effect
@@ -52,8 +54,11 @@ def with_derived(values: np.ndarray, file_name: str, dt: str, cloud: PointCloud)
     out = np.array(values, dtype=np.float64)
     p = cloud.positions_m[new]
     if file_name in RANGE_UNITS:
-        r = np.linalg.norm(p, axis=1) * RANGE_UNITS[file_name][1]
-        out[new] = np.rint(r) if kind == "u" else r
+        per_m = _range_unit(out, cloud.positions_m, moved_or_added) if fitted else RANGE_UNITS[file_name][1]
+        if per_m is None:
+            return values
+        r = np.linalg.norm(p, axis=1) * per_m
+        out[new] = np.rint(r) if kind in "iu" else r
         return out
     recorded = np.flatnonzero(~moved_or_added & np.isfinite(out) & np.any(cloud.positions_m != 0, axis=1))
     recorded = recorded[::max(1, len(recorded) // ANGLE_SAMPLE)]
@@ -81,6 +86,20 @@ def _weather_reflectivity(values: np.ndarray, cloud: PointCloud) -> np.ndarray:
     out = np.array(values, dtype=np.float64)
     out[new] = li.stored_intensity(li.reported_intensity(signal, r, channel), channel)
     return out
+
+
+def _range_unit(values: np.ndarray, positions: np.ndarray, new: np.ndarray) -> float | None:
+    """The stored value per metre of a range field stored in another type than its driver's (a ``range`` saved as
+    float by a conversion tool): millimetres or metres, whichever the recorded points (not ``new``) beyond 2 m agree
+    with within 2 % (median), None if neither; with fewer than 8 such points (dense fog moved them all), millimetres
+    if a value exceeds 1 000 (no LiDAR reports a kilometre), else metres."""
+    r = np.linalg.norm(positions, axis=1)
+    far = (r > 2.0) & ~new & np.isfinite(values)
+    if np.count_nonzero(far) < 8:
+        finite = values[np.isfinite(values)]
+        return 1000.0 if len(finite) and finite.max() > 1000.0 else 1.0
+    ratio = float(np.median(values[far] / r[far]))
+    return next((k for k in (1000.0, 1.0) if abs(ratio / k - 1.0) < 0.02), None)
 
 
 def _azimuth(p: np.ndarray) -> np.ndarray:

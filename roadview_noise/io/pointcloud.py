@@ -94,8 +94,27 @@ def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
                          "sensors, indexed by scenes.json), and rvnoise augments one frame per file; write each "
                          "scan as a PCD with roadview_noise.io.radar_formats.radarscenes_scan (README: Radar inputs)",
                          file=str(path))
+    why = next((w for ends, w in NOT_READ.items() if name.endswith(ends)), "")
     raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin or .pcd.bin"
-                     + (" (.txt: radar only)" if name.endswith(".txt") else ""), file=str(path))
+                     + (" (.txt: radar only)" if name.endswith(".txt") else "") + (f"; {why}" if why else ""),
+                     file=str(path))
+
+
+NOT_READ = {      # point-cloud containers users bring that are not read, and the way to what is (the refusal says it)
+    (".pcap", ".pcapng"): "a packet capture holds a sensor's raw UDP packets, many scans each: decode it into one "
+                          "PCD per scan with the sensor's SDK (ouster-sdk, velodyne_decoder, the Hesai SDK), or give "
+                          "rvnoise the bag its ROS driver recorded (README: ROS bags)",
+    (".osf",): "an Ouster OSF file holds a whole recording: save its scans as PCD files with ouster-sdk, or give "
+               "rvnoise the bag ouster-ros recorded (README: ROS bags)",
+    (".bag", ".mcap", ".db3"): "a ROS bag is augmented as a whole: rvnoise augment --recipe R.yaml drive.bag "
+                               "out/drive.bag (README: ROS bags)",
+    (".las", ".laz", ".e57"): "a survey/mapping format (often an accumulated map, no firing grid): convert it to PCD "
+                              "or PLY (PDAL, CloudCompare) and give the weather models empty_rays: ignore",
+    (".npy", ".npz"): "NumPy arrays (A2D2's .npz: points, reflectance, … per key) are not read: write the scan as a "
+                      "float32 .bin (x y z first) and name its columns in the recipe, inputs.bin_fields (README: "
+                      "LiDAR inputs)",
+    (".feather", ".parquet", ".csv"): "a table (Argoverse 2's .feather) is not read: convert it to PCD, its columns "
+                                      "the PCD's fields"}
 
 
 def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",

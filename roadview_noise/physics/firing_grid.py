@@ -18,6 +18,9 @@ that ``beams × columns`` grid that hold no point:
 - each beam's columns may be shifted by a fraction of a step (Velodyne firing sequence): the shift is measured per
   beam (circular mean weighted by range, against the parallax of near returns), so a return never lands in its
   neighbour's cell;
+- a list that stores its no-return rays as points (nuScenes: within the profile's ``min_range_m``) has each such
+  point's empty cell found from its storage order (:func:`_placeholder_hosts`): a weather return on that ray takes
+  the placeholder's row, so the output has one return per ray;
 - which cells are empty rays: those whose own azimuth (beam offsets included) lies within 4 steps of a return of
   any beam — a cropped field of view or lost packets are not filled, while a sparse ground beam keeps the open sky
   above it in view — on the beams that returned something and on every beam above the highest of them (they saw
@@ -52,6 +55,7 @@ FIT_STEPS = 0.25                # gaps within this of a whole number of steps re
 UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it to win over twice its columns
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
 MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returning beams: fewer beams (warned)
+FIRING_ORDER = 0.9              # a ring's successive returns 1 … 8 columns apart, one way: stored in firing order
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,6 +77,7 @@ class FiringGrid:
     out_of_view: int = 0        # azimuth bins (of ``columns``) farther than the view margin from every return
     gaps_columns: int | None = None     # the count the gaps gave when the profile's won (:func:`undecided_columns`)
     measured_elevation_rad: np.ndarray | None = None    # per beam, from the list (:func:`measured_elevations`)
+    host: np.ndarray | None = None      # per empty cell, the no-return point stored on it (−1: none; None: no such)
 
     def elevation_rad(self) -> np.ndarray:
         """Each beam's elevation: the profile's, or the list's own when its ring field counts other beams."""
@@ -96,7 +101,8 @@ class FiringGrid:
 
     def subset(self, keep: np.ndarray) -> FiringGrid:
         """The empty cells where ``keep`` (a boolean mask over them) holds."""
-        return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep])
+        return dataclasses.replace(self, ring=self.ring[keep], column=self.column[keep], like=self.like[keep],
+                                   host=None if self.host is None else self.host[keep])
 
     def describe(self) -> str:
         crop = (f"; {self.out_of_view} of {self.columns} columns out of view (a crop, an azimuth window or lost "
@@ -425,7 +431,7 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
     measured = firing_columns(cloud, profile, range_m, points)
     if isinstance(measured, str):
         return measured
-    grid = empty_rays(measured, profile)
+    grid = empty_rays(measured, profile, hosts=ring_source(cloud) != "elevation")
     if ring_source(cloud) == "field" and int(measured.ring.max()) + 1 != profile.channels:
         grid = dataclasses.replace(grid, measured_elevation_rad=measured_elevations(cloud, measured, profile))
     return grid
@@ -443,8 +449,9 @@ def measured_elevations(cloud, measured: FiringColumns, profile: LidarProfile) -
     return beam_means(measured.ring[far], elevation_rad(p[far]), profile.channels)
 
 
-def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
-    """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc)."""
+def empty_rays(measured: FiringColumns, profile: LidarProfile, hosts: bool = False) -> FiringGrid:
+    """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc); ``hosts``
+    (rings carried, not recovered from positions): the no-return points stored on them (:func:`_placeholder_hosts`)."""
     ring, firing, columns, shift, valid = (measured.ring, measured.firing_rad, measured.columns, measured.shift,
                                            measured.valid)
     offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
@@ -458,8 +465,77 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile) -> FiringGrid:
                                            step, returned, _nearest_filled(like))
     _warn_sparse(on_returned, int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
                  columns, profile)
+    host = _placeholder_hosts(measured, er, ec, profile.channels) if hosts and not valid.all() else None
     return FiringGrid(er, ec, el, columns, shift, profile, firing,
-                      int(np.count_nonzero(~in_view)), measured.gaps_columns)
+                      int(np.count_nonzero(~in_view)), measured.gaps_columns, host=host)
+
+
+def _placeholder_hosts(measured: FiringColumns, er: np.ndarray, ec: np.ndarray, channels: int) -> np.ndarray:
+    """Per empty cell (``er``, ``ec``): the list's no-return point stored on it, −1 for none. A list that stores
+    every firing (nuScenes: a no-return as a point within ``min_range_m``) stores each ring's points in firing
+    order, so a no-return point between two returns of its ring lies in the column as far between theirs as it is
+    in storage (rounded; the columns of returns come from their azimuths, which jitter by a column between beams:
+    14 % of a nuScenes firing's neighbouring returns). A cell that two such points round to takes the later, a cell
+    none rounds to keeps its weather return appended; so do the cells before a ring's first and after its last
+    return. None at all unless the list's rings are stored in firing order: 90 % of the steps between a ring's
+    successive returns go 1 … 8 columns one way (a shuffled or re-sorted list: ≈ 0 %)."""
+    return _hosts(measured.ring, measured.valid, measured.firing_rad, measured.shift, measured.columns / TWO_PI,
+                  measured.columns, channels, er, ec)
+
+
+@jit
+def _hosts(ring, valid, firing, shift, inv_step, columns, channels, er, ec):       # pragma: no cover - compiled
+    """:func:`_placeholder_hosts`: two passes over the list in storage order give each return's column (as
+    :func:`_cells` finds it), each point's ordinal within its ring and each no-return point's previous and next
+    return of its ring, and count the steps between a ring's successive returns that go 1 … ``MAX_GAP_STEPS``
+    columns forward and backward; then each no-return point between two returns is placed."""
+    n = len(ring)
+    host = np.full(len(er), -1, np.int64)
+    column = np.full(n, -1, np.int64)
+    seq = np.empty(n, np.int64)
+    prev = np.full(n, -1, np.int64)
+    count = np.zeros(channels, np.int64)
+    last = np.full(channels, -1, np.int64)
+    forward = backward = steps = 0
+    for i in range(n):
+        r = np.uintp(ring[i])
+        seq[i] = count[r]
+        count[r] += 1
+        if not valid[i]:
+            prev[i] = last[r]
+            continue
+        c = _wrap(int(math.floor(-firing[i] * inv_step - shift[r] + 0.5)), columns)
+        column[i] = c
+        if last[r] >= 0:
+            gap = _wrap(c - column[last[r]], columns)
+            steps += 1
+            forward += 1 <= gap <= MAX_GAP_STEPS
+            backward += 1 <= columns - gap <= MAX_GAP_STEPS
+        last[r] = i
+    if steps < MIN_GAPS or max(forward, backward) < FIRING_ORDER * steps:
+        return host                                          # not stored in firing order
+    sign = 1 if forward >= backward else -1
+    cell = np.full(channels * columns, -1, np.int64)
+    for k in range(len(er)):
+        cell[er[k] * columns + ec[k]] = k
+    last[:] = -1
+    for i in range(n - 1, -1, -1):                           # the next return of each no-return point's ring
+        r = np.uintp(ring[i])
+        if valid[i]:
+            last[r] = i
+            continue
+        p, q = prev[i], last[r]
+        if p < 0 or q < 0:
+            continue
+        firings = seq[q] - seq[p]
+        turn = _wrap(sign * (column[q] - column[p]), columns)     # columns, the way the sensor turns
+        if turn < 1 or turn > MAX_GAP_STEPS * firings:
+            continue
+        c = _wrap(column[p] + sign * int(np.rint(turn * (seq[i] - seq[p]) / firings)), columns)
+        k = cell[r * columns + c]
+        if k >= 0 and host[k] < 0:                           # (the last in storage order: the first met here)
+            host[k] = i
+    return host
 
 
 def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:

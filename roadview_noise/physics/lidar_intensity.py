@@ -371,9 +371,10 @@ def no_strength_error(model_id: str) -> ModelError:
 
 #: built-in profiles to suggest for a ring field counting this many beams
 PROFILE_FOR_BEAMS = {32: "hdl-32e for a Velodyne HDL-32E (nuScenes)", 64: "kitti-hdl64 for KITTI, carla-64 for CARLA"}
-#: fields only Ouster's drivers write (ouster-ros: ambient; ouster-sdk and newer ouster-ros: near_ir); Livox writes
+#: fields only Ouster's drivers write (ouster-ros: ambient; ouster-sdk and newer ouster-ros: near_ir; ouster_ros 1.x
+#: of ouster_example: noise, its point ``x y z intensity t reflectivity ring noise range``); Livox writes
 #: ``reflectivity`` too, so that one says nothing
-OUSTER_FIELDS = frozenset({"ambient", "near_ir"})
+OUSTER_FIELDS = frozenset({"ambient", "near_ir", "noise"})
 
 
 def ouster_signal_layout(fields) -> bool:
@@ -382,6 +383,29 @@ def ouster_signal_layout(fields) -> bool:
     ``intensity`` is the signal photons; its native point: ``signal``). A cloud whose only strength field is
     ``reflectivity`` reads that one as its intensity and has no such second field."""
     return "intensity" in fields and "reflectivity" in fields and not OUSTER_FIELDS.isdisjoint(fields)
+
+
+def reflectivity_following(fields, rows: np.ndarray, before, after) -> dict:
+    """``{"reflectivity": values}`` of an ouster-ros cloud (:func:`ouster_signal_layout`) whose returns ``rows`` kept
+    their range while their stored signal went from ``before`` to ``after`` (weather, soiling, laser power); ``{}``
+    for any other cloud. The sensor computes its calibrated reflectivity from the signal photons it measured, scaled
+    by range and its sensitivity (Ouster FW user manual, "Calibrated Reflectivity"), so at an unchanged range the
+    reading follows the signal (models.md §3.1: I_hard = I·exp(−2αR)): ``rint(ρ · after / before)``, the unit's
+    own calibration kept (not the profile's W·S·R²/K, which weather returns get: :mod:`io.derived_fields`); at
+    least 1 for a return that read ≥ 1 (the channel's faintest reading, :func:`reflectivity_variant`), at most 255
+    (or its recorded value above); a return recorded with signal 0 keeps its reading."""
+    if not ouster_signal_layout(fields) or not len(rows):
+        return {}
+    values = np.asarray(fields["reflectivity"])
+    read = values[rows].astype(np.float64)
+    before = np.asarray(before, dtype=np.float64)
+    ratio = np.where(before > 0, np.asarray(after, dtype=np.float64) / np.where(before > 0, before, 1.0), 1.0)
+    out = values.copy()
+    out[rows] = np.minimum(np.maximum(np.rint(read * ratio), np.minimum(read, 1.0)),
+                           np.maximum(read, 255.0)).astype(values.dtype)
+    return {"reflectivity": out}
+
+
 OUSTER_FIT = "FILE.json, the unit's Ouster metadata (its beam angles and packet profile)"
 
 

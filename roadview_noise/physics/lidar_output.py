@@ -17,7 +17,7 @@ from .firing_grid import FiringGrid
 from .laser_order import FIRING_COLUMN
 from .lidar_echo import ADDED, ATTENUATED, MOVED, NO_RETURN, REMOVED, TARGET, WEATHER, RayReturns
 from .lidar_geometry import RING, beam_means, elevation_rad, far_returns, unit_vectors
-from .lidar_intensity import intensity_resolution, stored_signal
+from .lidar_intensity import intensity_resolution, ouster_signal_layout, reflectivity_following, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
 
@@ -152,13 +152,14 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
 
 def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
     """Build the output cloud: targets stay in place, weather returns move the point along its ray (MOVED) or fill an
-    empty ray of a full grid (ADDED), rays without a return lose their point (removed from a point list, zeroed in a
+    empty ray (ADDED: a full grid's cell, a no-return point a list stores on the ray — nuScenes' placeholders —, else
+    appended to the list), rays without a return lose their point (removed from a point list, zeroed in a
     full grid like :meth:`PointCloud.drop`). Intensities are written back in the input's unit, kind and dtype
     (:func:`lidar_intensity.stored_signal`: the reported intensity at the return's range as the sensor stores it); every
     other field is the ray's.
 
     Provenance (:mod:`roadview_noise.provenance`): ``origin`` is the input point of the output's ray (NEW for the
-    empty rays of a point list), ``effect`` the Effect code; targets in place are ATTENUATED when the stored
+    empty rays of a point list appended), ``effect`` the Effect code; targets in place are ATTENUATED when the stored
     intensity changed by at least half a step of the input's resolution (:func:`intensity_resolution`: 1 photon,
     1 count, 1/255 of a [0, 1] scale), else KEPT (a change below the file's resolution is no visible change; the
     sub-step value is still written). Attributes follow the fields; a ``ring`` (field or attribute) of an added point
@@ -182,6 +183,13 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
+    at, rows = _hosted(rays.listed, cells, origin[:n_out] if n_removed else None)
+    if len(at):                                        # weather on a stored no-return point's ray takes its row
+        positions[rows], intensity[rows] = _listed_returns(rays.listed, cells[at], returns.range_m[n:], reported[n:],
+                                                           float(profile.intensity_full_scale), integer)
+        effect[rows] = ADDED
+        added += len(at)
+        cells = np.delete(cells, at)
     total = n_out + len(cells)
     fields = {**cloud.fields, "intensity": intensity[:total]}
     origin, attributes = origin[:total], cloud.attributes
@@ -193,8 +201,9 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
         origin = None                                  # point i is input point i
     else:
         if len(cells):
-            _write_listed(rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale),
-                          integer, positions[n_out:total], intensity[n_out:total], effect[n_out:total])
+            positions[n_out:total], intensity[n_out:total] = _listed_returns(
+                rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale), integer)
+            effect[n_out:total] = ADDED
             added += len(cells)
         if len(fields) > 1 or attributes:              # the ray each output takes its other fields from
             index = np.concatenate([origin[:n_out], rays.listed.like[cells]]) if len(cells) else origin
@@ -206,6 +215,10 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             if len(cells) and FIRING_COLUMN in attributes:  # ... and its firing column its cell's (laser order)
                 attributes[FIRING_COLUMN][n_out:] = rays.listed.column[cells]
         origin[n_out:] = NEW
+    if attenuated and ouster_signal_layout(fields):    # an ouster-ros reflectivity reading follows its signal
+        rows = np.flatnonzero(effect[:total] == ATTENUATED)
+        fields = {**fields, **reflectivity_following(fields, rows, intensity_in[rows if origin is None else
+                                                                                 origin[rows]], intensity[rows])}
     out = cloud.replace(positions_m=positions[:total], fields=fields, origin=origin, effect=effect[:total],
                         attributes=attributes)
     if return_ranges.wanted():                         # for the metrics' summaries of the input and the output
@@ -218,17 +231,25 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     return out, counts
 
 
-def _write_listed(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
-                  full_scale: float, integer: bool, positions: np.ndarray, intensity: np.ndarray,
-                  effect: np.ndarray) -> None:
-    """The weather returns of a point list's empty rays ``cells`` as ADDED points, written to the given output
-    slices: along the cell's direction at the return's range, intensity as :func:`_place` stores it (the
-    caller gives them the cell's ``ring`` and copies every other field from a return of the same firing column, same
-    firing time)."""
+def _listed_returns(listed: FiringGrid, cells: np.ndarray, range_m: np.ndarray, reported: np.ndarray,
+                    full_scale: float, integer: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(positions, stored intensities) of the weather returns of a point list's empty rays ``cells``: along the
+    cell's direction at the return's range, intensity as :func:`_place` stores it. The caller writes them as ADDED
+    points, appended (it gives them the cell's ``ring`` and copies every other field from a return of the same
+    firing column, same firing time) or on the no-return point stored on the ray (:func:`_hosted`)."""
     value = np.minimum(reported[cells], full_scale)
-    intensity[:] = np.round(value) if integer else value
-    effect[:] = ADDED
-    positions[:] = listed.directions(cells, range_m[cells])
+    return listed.directions(cells, range_m[cells]), (np.round(value) if integer else value)
+
+
+def _hosted(listed: FiringGrid | None, cells: np.ndarray, origin: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Of a list's empty rays ``cells`` that return weather, those whose no-return point is stored in the list
+    (:attr:`FiringGrid.host`): (their positions in ``cells``, their output rows; ``origin``: the input point of each
+    output row so far, increasing — no-return points are never removed —, None when no point was removed)."""
+    if listed is None or listed.host is None or not len(cells):
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    host = listed.host[cells]
+    at = np.flatnonzero(host >= 0)
+    return at, (host[at] if origin is None else np.searchsorted(origin, host[at]))
 
 
 def empty_ray_counts(rays: Rays) -> dict:

@@ -11,7 +11,7 @@ import numpy as np
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
 from ...physics.lidar_geometry import ring_index
-from ...physics.lidar_intensity import intensity_resolution, stored_intensity, too_faint
+from ...physics.lidar_intensity import intensity_resolution, reflectivity_following, stored_intensity, too_faint
 from ...physics.lidar_rays import cloud_rays
 from ...physics.window_obstruction import SHAPES, WINDOWS, PatchSpec, column_scale, window_pattern, window_transmission
 from ...provenance import Effect, mark
@@ -138,5 +138,7 @@ def _attenuate(cloud: PointCloud, at: np.ndarray, t: np.ndarray, model_id: str
     values[at] = stored.astype(field.dtype)
     changed = np.zeros(len(cloud), dtype=bool)
     changed[at] = ~below_at & (np.abs(stored - field[at]) >= 0.5 * intensity_resolution(profile))
-    out = mark(cloud.with_fields(intensity=values), changed, Effect.ATTENUATED)
+    rows = np.flatnonzero(changed)
+    out = mark(cloud.with_fields(intensity=values, **reflectivity_following(cloud.fields, rows, field[rows],
+                                                                            values[rows])), changed, Effect.ATTENUATED)
     return out, at[below_at], int(np.count_nonzero(~below_at)), {k: v for k, v in rays.notes.items()}

@@ -24,7 +24,7 @@ import numpy as np
 from ...errors import ModelError
 from ...model import Model, Scope, Stage, param
 from ...physics.lidar_geometry import has_return, with_ring
-from ...physics.lidar_intensity import IntensityWarning, chain_intensity_scale
+from ...physics.lidar_intensity import IntensityWarning, chain_intensity_scale, reflectivity_following
 from ...registry import register
 from ...types import IntensityUnit, LidarProfile, PointCloud
 
@@ -73,7 +73,8 @@ def _with_intensity_counts(cloud: PointCloud, counts: np.ndarray, read: _Counts)
     out[hit] = values.astype(field.dtype)
     before = field[hit].astype(np.float64)
     n = int(hit.sum())
-    return cloud.with_fields(intensity=out), {
+    rows = np.flatnonzero(hit)
+    return cloud.with_fields(intensity=out, **reflectivity_following(cloud.fields, rows, field[rows], out[rows])), {
         "points": n,
         "mean_intensity_in": float(before.mean()) if n else 0.0,
         "mean_intensity_out": float(out[hit].astype(np.float64).mean()) if n else 0.0,
