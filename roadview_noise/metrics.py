@@ -5,7 +5,8 @@
 input against the written output). Pure NumPy/OpenCV plus compiled passes over clouds; no I/O. Each data object is
 summarised once (cached while it lives; a step that returns the same pixels shares its input's summary), so a
 chain of n steps costs at most n + 1 summaries and n + 1 comparisons; positions and depth maps that steps hand on
-unchanged are binned once.
+unchanged are binned once. A run's radar chain is compared without summaries, in one compiled call at its end
+(:class:`Deferred`, :func:`_radar_chain_pass`).
 
 Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relative luminance Y = 0.2126 R +
 0.7152 G + 0.0722 B of the linear signal (raw Bayer: the mean of each 2×2 CFA cell), clipped to [0, 1] and
