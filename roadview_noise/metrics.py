@@ -158,7 +158,13 @@ class Deferred:
                 self._calls = calls[i:]
                 return
             result.update(compare(before, after))
-        if keep is None and self._radar:
+        if keep is None:
+            self.settle_clouds()
+
+    def settle_clouds(self) -> None:
+        """Fill the dicts of a held radar chain's calls now (the chain has ended: no later pass goes through a
+        cloud, so a run need not wait for its writer)."""
+        if self._radar:
             radar, self._radar = self._radar, []
             _compare_radar_chain(radar)
 

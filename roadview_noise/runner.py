@@ -407,6 +407,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                     entry["metrics"] = records[0].metrics
                 else:
                     entry["metrics"] = deferred.compare(data, out)
+                deferred.settle_clouds()                   # a radar chain's, before the writer (metrics.Deferred)
             out = orientation.as_stored(out)             # a photo processed upright is written and labelled as stored
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)

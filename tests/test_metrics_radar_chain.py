@@ -111,3 +111,16 @@ def test_calls_that_are_no_chain_are_compared_one_by_one():
     deferred.settle()
     assert got["objects"] == compare(dataclasses.replace(with_ids[0]), dataclasses.replace(with_ids[1]),
                                      outputs[0])["objects"]
+
+
+def test_settle_clouds_fills_a_held_chain_before_the_writer():
+    """The runner settles a radar chain's calls before writing (``settle_clouds``), so that the line of a failed
+    write keeps its metrics; a second call finds nothing held."""
+    clouds, outputs = hand_chain()
+    deferred = Deferred(radar_chains=True)
+    got = [deferred.compare(clouds[0], clouds[1], outputs[0]), deferred.compare(clouds[1], clouds[2], outputs[1]),
+           deferred.compare(clouds[0], clouds[2])]
+    deferred.settle_clouds()
+    assert repr(got) == repr(one_by_one(clouds, outputs))
+    deferred.settle_clouds()                       # nothing held: nothing changes
+    assert repr(got) == repr(one_by_one(clouds, outputs))
