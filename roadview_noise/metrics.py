@@ -158,7 +158,7 @@ class Deferred:
                 self._calls = calls[i:]
                 return
             result.update(compare(before, after))
-        if keep is None:
+        if keep is None and self._radar:
             self.settle_clouds()
 
     def settle_clouds(self) -> None:
