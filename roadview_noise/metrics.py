@@ -5,7 +5,8 @@
 input against the written output). Pure NumPy/OpenCV plus compiled passes over clouds; no I/O. Each data object is
 summarised once (cached while it lives; a step that returns the same pixels shares its input's summary), so a
 chain of n steps costs at most n + 1 summaries and n + 1 comparisons; positions and depth maps that steps hand on
-unchanged are binned once.
+unchanged are binned once. A run's radar chain is compared without summaries, in one compiled call at its end
+(:class:`Deferred`, :func:`_radar_chain_pass`).
 
 Camera (``CameraFrame``, ``RawFrame``) — on the grey image as displayed: relative luminance Y = 0.2126 R +
 0.7152 G + 0.0722 B of the linear signal (raw Bayer: the mean of each 2×2 CFA cell), clipped to [0, 1] and
@@ -116,34 +117,56 @@ def compare(before: SensorData, after: SensorData, step: SensorData | None = Non
 class Deferred:
     """:func:`compare` calls whose results are filled in later, by :meth:`settle`: by then a camera frame may have
     gone through an 8-bit sRGB pass that kept its luminance blocks (:func:`luminance.collect`: the next step's JPEG
-    encode, the writer's encode), so its summary reads no full frame of its own. The results are :func:`compare`'s,
-    computed in the order of the calls; other data (raw frames, clouds) is compared at once."""
+    encode, the writer's encode), so its summary reads no full frame of its own. With ``radar_chains`` a radar
+    chain's comparisons (each step's, the output's) are held to the chain's end too and made together in one
+    compiled call over its clouds (:func:`_compare_radar_chain`; a radar file's metrics are Python and call
+    overhead, not arithmetic); the clouds are then not summarised, so a later :func:`compare` or
+    :func:`correspondence` of them would link the output to the input by position, not through the steps (on in
+    the runner, which compares nothing after the chain; off for callers that do: preview, bags).
+    The results are :func:`compare`'s, computed in the order of the calls; other data (raw frames, LiDAR clouds)
+    is compared at once."""
 
-    def __init__(self) -> None:
+    def __init__(self, radar_chains: bool = False) -> None:
         self._calls: list[tuple[SensorData, SensorData, dict]] = []
+        self._radar: list[tuple[PointCloud, PointCloud, SensorData | None, dict]] | None = [] if radar_chains \
+            else None
 
     def compare(self, before: SensorData, after: SensorData, step: SensorData | None = None) -> dict[str, Any]:
-        """An empty dict that :meth:`settle` fills with ``compare(before, after)`` (at once unless a frame, then
-        with ``step``: :func:`compare`)."""
+        """An empty dict that :meth:`settle` fills with ``compare(before, after)`` (at once unless a frame or a
+        held radar chain's, then with ``step``: :func:`compare`)."""
+        if self._radar is not None and isinstance(after, PointCloud) and after.sensor == "radar" and \
+                isinstance(before, PointCloud):
+            result: dict[str, Any] = {}
+            self._radar.append((before, after, step, result))
+            return result
         if not isinstance(after, CameraFrame):
             self.settle()
             return compare(before, after, step)
         for frame in (before, after):
             if isinstance(frame, CameraFrame) and frame.undecoded_srgb8_codes() is None:   # not a JPEG output's
                 want(frame.linear_rgb)
-        result: dict[str, Any] = {}
+        result = {}
         self._calls.append((before, after, result))
         return result
 
     def settle(self, keep: SensorData | None = None) -> None:
         """Fill the dicts of the calls made so far, in order, up to the first whose ``after`` is ``keep`` (data that
-        a later pass may still go through)."""
+        a later pass may still go through); a held radar chain's when no ``keep`` is given (the chain's end)."""
         calls, self._calls = self._calls, []
         for i, (before, after, result) in enumerate(calls):
             if after is keep:
                 self._calls = calls[i:]
                 return
             result.update(compare(before, after))
+        if keep is None and self._radar:
+            self.settle_clouds()
+
+    def settle_clouds(self) -> None:
+        """Fill the dicts of a held radar chain's calls now (the chain has ended: no later pass goes through a
+        cloud, so a run need not wait for its writer)."""
+        if self._radar:
+            radar, self._radar = self._radar, []
+            _compare_radar_chain(radar)
 
 
 def _summary(data: SensorData, before: dict | None = None, step: PointCloud | None = None) -> dict:
@@ -767,12 +790,10 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place), from
     ``step``'s provenance when given (:func:`compare`). Counts and range bins are Python lists, made once (the
     pass trims the bins, ``tolist`` converts them) for every comparison that reads them."""
-    if cloud.sensor == "radar":
-        return _radar_summary(cloud, before, step)
     codes = effect_codes(cloud)
     codes = _NO_CODES if codes is None else np.asarray(codes)
-    values = cloud.fields.get("intensity")
-    values = _NO_VALUES if values is None or np.ndim(values) != 1 else np.asarray(values)
+    radar = cloud.sensor == "radar"
+    values = _values(cloud)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     n_bins = return_ranges.bin_count(cloud.profile)
     s = {"positions": positions, "values": values, "grid": cloud.grid_shape is not None, "effect": codes}
@@ -782,7 +803,7 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(
         positions, codes, values, n_bins, link, before, provenance, before is not None and _cell_by_cell(before, s))
     s.update({"returns": returns, "codes": counts.tolist(), "max_range_m": max_r, "hist": hist.tolist(),
-              "radar": False, "mean_value": total / finite if finite else None, "valid": valid})
+              "radar": radar, "mean_value": total / finite if finite else None, "valid": valid})
     if before is not None:
         s["parent"] = (before, None, None, matched[2]) if link == SAME_LINK else (before, *matched)
     if isinstance(cloud.profile, LidarProfile):
@@ -946,56 +967,196 @@ def _compare_clouds(b: dict, a: dict) -> dict[str, Any]:
     return out
 
 
-# --- radar ---------------------------------------------------------------------------------------------------------
-# A radar cloud holds tens of points: its metrics cost Python and numba's call overhead, not arithmetic (≈ 14 % of a
-# ≈ 2.6 ms CNF25 file in round 19's count; docs/metrics-cost.md, round 20). Its summary is :func:`_cloud_summary`'s,
-# made with one compiled call (:func:`_radar_pass`) and no geometry notes: a full pass over tens of points costs less
-# than looking the geometry up, and gives the same values.
+# --- radar chains ---------------------------------------------------------------------------------------------------
+# A radar cloud holds tens of points: its metrics cost Python and numba's call overhead, not arithmetic (a run's
+# radar file ≈ 2.6 ms CPU; docs/metrics-cost.md, rounds 19–21). A run holds a radar chain's comparisons to the
+# chain's end (:class:`Deferred`) and makes them all — every step's and the output's — in one compiled call over its
+# clouds, with no summaries: :func:`_radar_chain_pass` gives :func:`compare`'s values bit for bit.
+
+_SIZES = 6                                              # per cloud in the layout: points, codes, values, origin,
+#                                                         step codes, range bins
 
 
-def _radar_summary(cloud: PointCloud, before: dict | None, step: PointCloud | None) -> dict:
-    """:func:`_cloud_summary` of a radar cloud (values: the SNR, ``snr_db``)."""
-    codes = cloud.effect
-    codes = _NO_CODES if codes is None else np.asarray(codes)
-    values = cloud.fields.get("snr_db")
-    values = _NO_VALUES if values is None else np.asarray(values)
-    if values.ndim != 1:
-        values = _NO_VALUES
-    positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
-    s = {"positions": positions, "values": values, "grid": cloud.grid_shape is not None, "effect": codes}
-    origin, step_codes = _step_provenance(step)
-    if before is None:
-        link, pb, valid_b, values_b = NO_LINK, positions[:0], _NO_MASK, values[:0]
-    else:
-        link = _same_points(_link_mode(before, s, step is not None), before, s, origin)
-        cells = _cell_by_cell(before, s)
-        pb, valid_b, values_b = before["positions"], before["valid"] if link != SAME_LINK or cells else _NO_MASK, \
-            before["values"]
-    ints, valid, index, moved, max_r, total, change = _radar_pass(
-        positions, codes, values, return_ranges.bin_count(cloud.profile), link, pb, valid_b, values_b, origin,
-        step_codes)
-    ints = ints.tolist()
-    s.update({"returns": ints[0], "codes": ints[1:5], "max_range_m": max_r, "hist": ints[6:], "radar": True,
-              "mean_value": total / ints[5] if ints[5] else None, "valid": valid})
-    if before is not None:
-        s["parent"] = (before, None, None, change) if link == SAME_LINK else (before, index, moved, change)
-    ids = object_ids(cloud)
-    if ids is not None:
-        s["objects"] = points_per_object(cloud, ids, codes)
-    return s
+def _compare_radar_chain(calls: list[tuple[PointCloud, PointCloud, SensorData | None, dict]]) -> None:
+    """Fill the dicts of a radar chain's held :func:`compare` calls — each step's (``before``, its output as
+    ``after`` and the step's own output: consecutive) and any pair of its clouds without a step, the earlier one
+    first (the output's) — from one :func:`_radar_chain_pass`; calls of another shape, grids and clouds with
+    object ids are compared one by one."""
+    clouds, steps, pairs = [calls[0][0]], [None], []
+    for before, after, step, _ in calls:
+        if before is clouds[-1] and after is not before and isinstance(step, PointCloud):
+            clouds.append(after)
+            steps.append(step)
+            pairs += (len(clouds) - 2, len(clouds) - 1)
+            continue
+        i, j = _index_of(clouds, before), _index_of(clouds, after)
+        if step is not None or j <= i or i < 0:
+            return _compare_one_by_one(calls)
+        pairs += (i, j)
+    layout, values, codes, step_codes, origins = [len(clouds), len(calls)], [], [], [], []
+    n_bins = return_ranges.bin_count(clouds[0].profile)
+    for c, step in zip(clouds, steps):
+        if c.grid_shape is not None or object_ids(c) is not None:
+            return _compare_one_by_one(calls)
+        value, code = _values(c), c.effect
+        origin, by_step = (None, None) if step is None else (step.origin, step.effect)
+        values.append(value)
+        if code is not None:
+            codes.append(code)
+        if by_step is not None:
+            step_codes.append(by_step)
+        if origin is not None:
+            origins.append(origin)
+        layout += (len(c.positions_m), 0 if code is None else len(code), len(value), 0 if origin is None else
+                   len(origin), 0 if by_step is None else len(by_step),
+                   n_bins if c.profile is clouds[0].profile else return_ranges.bin_count(c.profile))
+    ints, floats = _radar_chain_pass(  # two arrays: each array argument and each concatenation costs ≈ 1–12 k
+        np.concatenate([*(c.positions_m.reshape(-1) for c in clouds), *values], dtype=np.float64),
+        np.concatenate([layout + pairs, *origins, *codes, *step_codes], dtype=np.int64))
+    ints, floats = ints.tolist(), floats.tolist()
+    k = len(clouds)
+    means = [m if finite else None for m, finite in zip(floats[k: 2 * k], ints)]
+    o = k
+    for q, call in enumerate(calls):
+        i, j, n, change = pairs[2 * q], pairs[2 * q + 1], ints[o + 7], floats[2 * k + q]
+        call[3].update({
+            "points_in": ints[o], "points_out": ints[o + 1], "kept": ints[o + 2], "attenuated": ints[o + 3],
+            "moved": ints[o + 4], "added": ints[o + 5], "removed": ints[o + 6], "max_range_m_in": floats[i],
+            "max_range_m_out": floats[j], "points_per_10m_in": ints[o + 8: o + 8 + n],
+            "points_per_10m_out": ints[o + 8 + n: o + 8 + 2 * n], "mean_snr_in_db": means[i],
+            "mean_snr_out_db": means[j], "mean_snr_change_db": change if change == change else None})
+        o += 8 + 2 * n
+
+
+def _compare_one_by_one(calls: list[tuple[PointCloud, PointCloud, SensorData | None, dict]]) -> None:
+    """Fill the dicts of held calls with :func:`compare`'s results, in order."""
+    for before, after, step, result in calls:
+        result.update(compare(before, after, step))
+
+
+def _index_of(clouds: list, cloud: SensorData) -> int:
+    """The position of ``cloud`` (identity) in ``clouds``, −1 if absent."""
+    return next((i for i, c in enumerate(clouds) if c is cloud), -1)
+
+
+def _values(cloud: PointCloud) -> np.ndarray:
+    """A cloud's metric values, one per point: the LiDAR intensity, the radar SNR (dB); none: empty."""
+    values = cloud.fields.get("snr_db" if cloud.sensor == "radar" else "intensity")
+    return _NO_VALUES if values is None or np.ndim(values) != 1 else np.asarray(values)
 
 
 @jit
-def _radar_pass(positions, codes, values, n_bins, link, pb, valid_b, values_b, origin,
-                step_codes):  # pragma: no cover - compiled
-    """:func:`_pass` (returns not known, ``link`` given at run time) with its counts in one array — returns, the
-    counts per effect code, the number of finite values, then the range bins — so that a call boxes four arrays."""
-    (returns, hist, max_r, valid), counts, total, finite, (index, moved, change) = _pass(
-        positions, _NO_MASK, codes, values, RANGE_BIN_M, n_bins, link, False, pb, valid_b, values_b,
-        (origin, step_codes))
-    ints = np.empty(6 + hist.shape[0], np.int64)
-    ints[0] = returns
-    ints[1:5] = counts
-    ints[5] = finite
-    ints[6:] = hist
-    return ints, valid, index, moved, max_r, total, change
+def _radar_chain_pass(data, layout):  # pragma: no cover - compiled
+    """:func:`_compare_clouds` of a chain's clouds, concatenated: ``layout`` = [clouds k, pairs p, per cloud its
+    number of points, effect codes, values (0 or as many as the points), its step's origin and effect codes (the
+    step's own output; cloud 0: none), range bins (:func:`return_ranges.bin_count`), then the p pairs (before,
+    after) of cloud indices, the steps' origins, the clouds' effect codes, the steps' effect codes]; ``data``: the
+    clouds' positions (m, x y z per point), then their values. Cloud 0 is summarised unlinked, cloud c linked to
+    cloud c − 1 by its step (:func:`_pass` with STEP_LINK, or SAME_LINK as :func:`_same_points` finds it); a pair
+    of consecutive clouds takes the step's mean value change, a pair further apart the change through the steps'
+    links composed (:func:`_mean_change`: summed over ``before``'s points in order). Returns (int64: per cloud its number of
+    finite values, then per pair points in/out, kept, attenuated, moved, added, removed, n bins, the two clouds'
+    returns per bin padded to n; float64: per cloud the farthest return's range, the mean value (NaN: none), then
+    per pair the mean value change, NaN if none)."""
+    k, p = layout[0], layout[1]
+    no_mask = np.zeros(0, np.bool_)
+    n_bins = 0
+    for c in range(k):
+        n_bins = max(n_bins, layout[2 + _SIZES * c + 5])
+    returns, finite, used = np.zeros(k, np.int64), np.zeros(k, np.int64), np.zeros(k, np.int64)
+    counts, hists = np.zeros((k, 4), np.int64), np.zeros((k, n_bins), np.int64)
+    floats = np.full(2 * k + p, np.nan)
+    change = np.full(k, np.nan)
+    link_at = np.zeros(k + 1, np.int64)             # cloud c's link to c − 1: entries link_at[c] … of index, moved
+    for c in range(1, k):
+        link_at[c + 1] = link_at[c] + layout[2 + _SIZES * (c - 1)]
+    index, moved = np.empty(link_at[k], np.int32), np.empty(link_at[k], np.bool_)
+    start = np.zeros(5, np.int64)                   # cloud c's first point, code, value, origin, step code
+    start[3] = 2 + _SIZES * k + 2 * p
+    points, codes_at = 0, start[3]
+    for c in range(k):
+        points += layout[2 + _SIZES * c]
+        codes_at += layout[2 + _SIZES * c + 3]
+        start[4] += layout[2 + _SIZES * c + 1]
+    codes = layout[codes_at:]
+    positions, values = data[: 3 * points].reshape((points, 3)), data[3 * points:]
+    prev = np.zeros(5, np.int64)
+    prev_valid = no_mask
+    for c in range(k):
+        at = 2 + _SIZES * c
+        n, nc, nv, no, ns, nb = layout[at], layout[at + 1], layout[at + 2], layout[at + 3], layout[at + 4], \
+            layout[at + 5]
+        pos = positions[start[0]: start[0] + n]
+        value = values[start[2]: start[2] + nv]
+        if c == 0:
+            link, pb, valid_b, values_b = NO_LINK, pos[:0], no_mask, value[:0]
+        else:
+            link = SAME_LINK if nc == 0 and no == 0 and n == layout[2 + _SIZES * (c - 1)] else STEP_LINK
+            pb = positions[prev[0]: start[0]]
+            valid_b = no_mask if link == SAME_LINK else prev_valid
+            values_b = values[prev[2]: start[2]]
+        (r, hist, max_r, valid), counted, total, fin, (idx, mv, ch) = _pass(
+            pos, no_mask, codes[start[1]: start[1] + nc], value, RANGE_BIN_M, nb, link, False, pb, valid_b,
+            values_b, (layout[start[3]: start[3] + no], codes[start[4]: start[4] + ns]))
+        returns[c], floats[c], finite[c], change[c] = r, max_r, fin, ch
+        counts[c] = counted
+        used[c] = hist.shape[0]
+        hists[c, : used[c]] = hist
+        floats[k + c] = total / finite[c] if finite[c] else np.nan
+        for i in range(link_at[c + 1] - link_at[c]):  # SAME_LINK: point i is point i
+            index[link_at[c] + i] = i if link == SAME_LINK else idx[i]
+            moved[link_at[c] + i] = False if link == SAME_LINK else mv[i]
+        prev[:] = start
+        start[0] += n
+        start[1] += nc
+        start[2] += nv
+        start[3] += no
+        start[4] += ns
+        prev_valid = valid
+    pairs = layout[2 + _SIZES * k: 2 + _SIZES * k + 2 * p]
+    size = k
+    for q in range(p):
+        size += 8 + 2 * max(used[pairs[2 * q]], used[pairs[2 * q + 1]])
+    ints = np.zeros(size, np.int64)
+    ints[:k] = finite
+    o = k
+    for q in range(p):
+        i, j = pairs[2 * q], pairs[2 * q + 1]
+        nb = max(used[i], used[j])
+        ints[o], ints[o + 1], ints[o + 2], ints[o + 7] = returns[i], returns[j], counts[j, 0], nb
+        for e in range(1, 4):                       # attenuated, moved, added: the change of their counts
+            ints[o + 2 + e] = counts[j, e] - counts[i, e]
+        ints[o + 6] = (returns[i] - counts[i, 3]) - (returns[j] - counts[j, 3])
+        ints[o + 8: o + 8 + used[i]] = hists[i, : used[i]]
+        ints[o + 8 + nb: o + 8 + nb + used[j]] = hists[j, : used[j]]
+        o += 8 + 2 * nb
+        floats[2 * k + q] = change[j] if j == i + 1 else _change_through(i, j, layout, values, index, moved, link_at)
+    return ints, floats
+
+
+@jit
+def _change_through(i, j, layout, values, index, moved, link_at):  # pragma: no cover - compiled
+    """:func:`_mean_change` from cloud ``i`` to cloud ``j`` > i + 1 of :func:`_radar_chain_pass`'s chain: the mean of
+    the value change of cloud i's points (in order) that reach cloud j through the links, moved by none (NaN: none,
+    or a cloud without values)."""
+    first_value = 0
+    for c in range(i):
+        first_value += layout[2 + _SIZES * c + 2]
+    last_value = first_value
+    for c in range(i, j):
+        last_value += layout[2 + _SIZES * c + 2]
+    if layout[2 + _SIZES * i + 2] == 0 or layout[2 + _SIZES * j + 2] == 0:
+        return np.nan
+    total, n = 0.0, 0
+    for x in range(layout[2 + _SIZES * i]):
+        at, away, s = x, False, i + 1
+        while s <= j and at >= 0:
+            away = away or moved[link_at[s] + at]
+            at = index[link_at[s] + at]
+            s += 1
+        if at >= 0 and not away:
+            d = _change(values, first_value + x, values, last_value + at)
+            if np.isfinite(d):
+                total += d
+                n += 1
+    return total / n if n else np.nan

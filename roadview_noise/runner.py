@@ -374,7 +374,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
         from . import luminance, metrics, orientation      # numba, OpenCV: imported where files are processed only
 
         luminance.collect(recipe.spec.output.metrics)   # the frames' sRGB passes keep their luminance for the metrics
-        deferred = metrics.Deferred()                   # filled after the writer's encode (metrics.Deferred)
+        deferred = metrics.Deferred(radar_chains=True)  # filled after the writer's encode (metrics.Deferred)
         source = input_path(ctx.in_root, s.relpath)
         entry["input_sha256"], content = sha256_input(source, whole=_read_whole(s, source))
         depth = None
@@ -407,6 +407,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
                     entry["metrics"] = records[0].metrics
                 else:
                     entry["metrics"] = deferred.compare(data, out)
+                deferred.settle_clouds()                   # a radar chain's, before the writer (metrics.Deferred)
             out = orientation.as_stored(out)             # a photo processed upright is written and labelled as stored
             out, annotated = annotations.carry(sidecars, spec, data, out, recipe.model_ids, ctx.out_root,
                                                recipe.variants[task.variant_index].suffix)
