@@ -38,7 +38,7 @@ _POINTS = {"roadview_noise.io.pointcloud": None, "roadview_noise.physics.return_
                                       "_counted_plain_pass", "_counted_grid_pass", "_counted_list_pass",
                                       "_counted_step_pass", "_counted_same_pass",
                                       "_same_position", "_is_return", "_compose", "_same_ray", "_change",
-                                      "_mean_change_through", "_return_value_sum", "_radar_pass")}
+                                      "_mean_change_through", "_return_value_sum", "_radar_chain_pass")}
 KIND_KERNELS = {"camera": _IMAGE, "lidar": _POINTS, "radar": _POINTS}
 
 
