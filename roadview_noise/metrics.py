@@ -713,20 +713,22 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
 def _return_sums(valid, codes, values):       # pragma: no cover - compiled
     """:func:`_pass`'s counts per effect code (none given: all KEPT) and (sum, number) of the finite ``values`` over
     the returns ``valid``, in order."""
-    counts = np.zeros(4, np.int64)
+    c0 = c1 = c2 = c3 = 0                     # (in registers: an array's increments would wait on each other)
     total, finite = 0.0, 0
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
     for j in range(valid.shape[0]):
         if valid[j]:
             c = codes[j] if has_codes else 0
-            if c <= 3:
-                counts[c] += 1
+            c0 += c == 0
+            c1 += c == 1
+            c2 += c == 2
+            c3 += c == 3
             if has_values:
                 v = float(values[j])
                 if np.isfinite(v):
                     total += v
                     finite += 1
-    return counts, total, finite
+    return np.array([c0, c1, c2, c3], np.int64), total, finite
 
 
 @jit

@@ -104,12 +104,30 @@ def _bin_points(flat, inv_bin, top, bins, valid):       # pragma: no cover - com
     return largest
 
 
+@jit(inline="always")
+def _histogram(bins, hist):       # pragma: no cover - compiled
+    """Add the count of each value of ``bins`` to ``hist`` in four interleaved partial histograms: a scan's
+    successive points mostly share a bin, and one histogram's increments would then wait on each other through
+    memory (≈ 0.30 ms for 235 k points against 0.10, one core)."""
+    k = np.uint64(hist.shape[0])
+    part = np.zeros(4 * hist.shape[0], np.int64)
+    n4 = bins.shape[0] - bins.shape[0] % 4
+    for j in range(0, n4, 4):
+        part[np.uint64(bins[j])] += 1
+        part[k + np.uint64(bins[j + 1])] += 1
+        part[2 * k + np.uint64(bins[j + 2])] += 1
+        part[3 * k + np.uint64(bins[j + 3])] += 1
+    for j in range(n4, bins.shape[0]):
+        part[np.uint64(bins[j])] += 1
+    for i in range(hist.shape[0]):
+        hist[i] += part[i] + part[k + i] + part[2 * k + i] + part[3 * k + i]
+
+
 @jit
 def _count(flat, inv_bin, bins, valid, hist):       # pragma: no cover - compiled
     """:func:`count`'s geometry, ``hist`` (one more entry than bins, zeros) counting :func:`_bin_points`' bins."""
     largest = _bin_points(flat, inv_bin, hist.shape[0] - 2, bins, valid)
-    for j in range(bins.shape[0]):
-        hist[bins[j]] += 1
+    _histogram(bins, hist)
     return geometry_of(bins.shape[0] - hist[0], hist[1:], np.array([largest]).view(np.float64)[0], valid)
 
 
