@@ -211,7 +211,7 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
 def packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
     """A grey PNG of ``bit_depth`` (1, 2, 4) bits per sample: each row's samples packed from the high bit (PNG spec
     §7.2), filter type 0, one IDAT. ValueError names a level the depth cannot hold."""
-    from .png import PNG_SIGNATURE
+    from .png import PNG_SIGNATURE, png_chunk
 
     top = int(levels.max(initial=0))
     if top >= 2 ** bit_depth:
@@ -221,21 +221,19 @@ def packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
     rows = np.packbits(bits.reshape(h, w * bit_depth), axis=1)          # each row padded to whole bytes
     raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
     ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([bit_depth, _PNG_GREY, 0, 0, 0])
-    return PNG_SIGNATURE + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", zlib.compress(raw, 9)) + _PNG_END
-
-
-def _png_chunk(kind: bytes, body: bytes) -> bytes:
-    return len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
+    return PNG_SIGNATURE + png_chunk(b"IHDR", ihdr) + png_chunk(b"IDAT", zlib.compress(raw, 9)) + _PNG_END
 
 
 def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
     """A grey PNG of the indices made a palette PNG with the input's palette, extended with black entries up to the
     highest index (a warp's fill value)."""
+    from .png import png_chunk
+
     chunks = list(mask.palette_chunks)
     entries = int.from_bytes(chunks[0][:4], "big") // 3 if chunks and chunks[0][4:8] == b"PLTE" else 0
     needed = int(mask.values.max(initial=0)) + 1
     if chunks and entries < needed:
-        chunks[0] = _png_chunk(b"PLTE", chunks[0][8:-4] + bytes(3 * (needed - entries)))
+        chunks[0] = png_chunk(b"PLTE", chunks[0][8:-4] + bytes(3 * (needed - entries)))
     return _retyped_png(grey, _PNG_PALETTE, tuple(chunks))
 
 

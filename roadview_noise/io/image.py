@@ -44,7 +44,7 @@ from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
 from . import image_metadata
 from .atomic import atomic_path, write_bytes_atomic
-from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png
+from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png, png_chunk
 
 SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr"}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -490,9 +490,8 @@ def embed_icc_profile(data: bytes, fmt: str, icc: bytes | None) -> bytes:
 
 def _insert_png_chunk(data: bytes, kind: bytes, body: bytes) -> bytes:
     """PNG bytes with the chunk ``kind`` holding ``body`` right after IHDR (before any IDAT)."""
-    chunk = len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
     ihdr_end = len(PNG_SIGNATURE) + 12 + int.from_bytes(data[8:12], "big")
-    return data[:ihdr_end] + chunk + data[ihdr_end:]
+    return data[:ihdr_end] + png_chunk(kind, body) + data[ihdr_end:]
 
 
 def _insert_jpeg_segments(data: bytes, segments: bytes) -> bytes:

@@ -166,6 +166,11 @@ def _with_window(stream: bytes, size: int) -> bytes:
     return bytes([cmf, flg]) + stream[2:]
 
 
+def png_chunk(kind: bytes, body: bytes) -> bytes:
+    """One PNG chunk: length, type, ``body``, CRC-32 of type and body (PNG spec §5.3)."""
+    return b"".join(_chunk(kind, body))
+
+
 def _chunk(kind: bytes, body) -> tuple:
     """The pieces of a chunk (length and type, the body as given, CRC), to be joined once with the file's others."""
     return len(body).to_bytes(4, "big") + kind, body, zlib_ng.crc32(body, zlib_ng.crc32(kind)).to_bytes(4, "big")
