@@ -12,10 +12,14 @@ xbr − xtl, ybr − ytl`` as the box), written with two decimals:
 - ``polygon`` (``points="x,y;x,y;…"``): moved as COCO polygons (edges split where bent), clipped to the image;
   removed with no area left.
 - ``polyline`` and ``points``: point by point, not clipped.
+- ``skeleton`` (round 22; before: its image failed under a geometric step): each of its ``points`` children point by
+  point, not clipped, as ``points`` shapes; a point moved out of the image gets ``outside="1"`` (CVAT's mark of a
+  skeleton point not in the frame), as COCO keypoints leaving the image become "not labelled".
+- ``cuboid`` (round 22; before: refused): its eight corners (``xtl1 ytl1 … xbr2 ybr2``) point by point, not clipped.
 - ``mask`` (``rle`` run lengths over its box, row by row, starting with a run of 0; ``left top width height``):
   placed in the frame, resampled as label images are (0 where nothing maps) and cut to the box of what is left.
-- ``tag``: kept. ``ellipse``, ``cuboid``, ``skeleton``: an image that has one fails under a geometric step (named),
-  since they are not moved; a photometric chain copies the file byte for byte.
+- ``tag``: kept. ``ellipse``: an image that has one fails under a geometric step (named), since a distortion does not
+  map an ellipse to an ellipse; a photometric chain copies the file byte for byte.
 
 Every other element and attribute (``meta``, ``attribute`` children, ``occluded``, ``z_order``, ``source`` …) is kept.
 """
@@ -37,7 +41,8 @@ from .io.atomic import write_bytes_atomic
 from .physics.outline_warp import clip_polygon, forward_through, moved_boxes, moved_rings
 
 BOX = ("xtl", "ytl", "xbr", "ybr")
-MOVED = ("box", "polygon", "polyline", "points", "mask")
+CUBOID = tuple(f"{c}{k}" for k in "12" for corner in ("tl", "bl", "tr", "br") for c in (f"x{corner}", f"y{corner}"))
+MOVED = ("box", "polygon", "polyline", "points", "mask", "skeleton", "cuboid")
 KEPT = ("tag",)
 
 
@@ -80,7 +85,8 @@ class CvatRun(CocoRun):
     def payload(self, pos: int) -> "CvatImage":
         img = self.elements[pos]
         size = tuple(int(float(img.get(k))) if img.get(k) else None for k in ("width", "height"))
-        shapes = [(k, s.tag, dict(s.attrib)) for k, s in enumerate(img) if s.tag not in KEPT]
+        shapes = [(k, s.tag, _skeleton_points(s) if s.tag == "skeleton" else dict(s.attrib))
+                  for k, s in enumerate(img) if s.tag not in KEPT]
         return CvatImage(pos, self.names[pos], self.sha256, size, shapes)
 
     def complete(self, record: dict) -> bool:
@@ -98,8 +104,11 @@ class CvatRun(CocoRun):
                 continue
             done += 1
             children = list(img)
-            for k, attrs in record.get("moved", ()):
+            for k, attrs, *inner in record.get("moved", ()):
                 children[k].attrib.update(attrs)
+                parts = list(children[k])
+                for j, part_attrs in inner[0] if inner else ():       # a skeleton's points
+                    parts[j].attrib.update(part_attrs)
             for k in sorted((k for k, _ in record.get("dropped", ())), reverse=True):
                 img.remove(children[k])
             moved_n, dropped_n = moved_n + len(record.get("moved", ())), dropped_n + len(record.get("dropped", ()))
@@ -121,7 +130,7 @@ class CvatRun(CocoRun):
 @dataclass
 class CvatImage:
     """What a worker needs of one ``image`` element: its position, name, the file's sha256, its stated size and its
-    shapes (position among the element's children, tag, attributes)."""
+    shapes (position among the element's children, tag, attributes; a skeleton's: :func:`_skeleton_points`)."""
 
     image_id: int
     file_name: str
@@ -130,7 +139,8 @@ class CvatImage:
     shapes: list[tuple[int, str, dict]] = field(default_factory=list)
 
     def move(self, shape: tuple[int, int], warps) -> dict:
-        """The manifest record: ``moved`` [[child position, changed attributes], …], ``dropped`` [[position, tag],
+        """The manifest record: ``moved`` [[child position, changed attributes(, [[a skeleton's point position,
+        its changed attributes], …])], …], ``dropped`` [[position, tag],
         …]; none when no warp moves anything. InputError for a size that is not the image's, a shape not moved
         under a geometric step, or a malformed one."""
         h, w = shape
@@ -146,6 +156,11 @@ class CvatImage:
             return {**record, **_moved_shapes(self.shapes, warps, w, h)}
         except (ValueError, TypeError, KeyError) as exc:
             raise InputError(f"a shape of {self.file_name!r} in the CVAT file: {exc}") from None
+
+
+def _skeleton_points(skeleton) -> dict:
+    """``{position among the skeleton's children: points attribute}`` of a skeleton element's ``points``."""
+    return {j: part.get("points") for j, part in enumerate(skeleton) if part.tag == "points"}
 
 
 def _points(text: str) -> np.ndarray:
@@ -174,12 +189,13 @@ def _moved_mask(attributes: dict, warps, width: int, height: int) -> dict | None
 
 
 def _moved_shapes(shapes: list[tuple[int, str, dict]], warps, width: int, height: int) -> dict:
-    """Every box, polygon, polyline and point set of an image through the warps in one batch each."""
+    """Every box, polygon, polyline, point set, skeleton and cuboid of an image through the warps in one batch
+    each."""
     move = lambda xy: forward_through(warps, xy, shift_px=0.5)                          # noqa: E731
     boxes = iter(moved_boxes(np.array([[float(a[k]) for k in BOX] for _, t, a in shapes if t == "box"]).reshape(-1, 4),
                              move))
     rings = iter(moved_rings([_points(a["points"]) for _, t, a in shapes if t == "polygon"], move))
-    loose = [_points(a["points"]) for _, t, a in shapes if t in ("polyline", "points")]
+    loose = [part for _, t, a in shapes for part in _point_sets(t, a)]
     lines = iter(np.split(move(np.concatenate(loose)), np.cumsum([len(p) for p in loose])[:-1]) if loose else ())
     moved, dropped = [], []
     for k, tag, attributes in shapes:
@@ -193,10 +209,32 @@ def _moved_shapes(shapes: list[tuple[int, str, dict]], warps, width: int, height
             ring = clip_polygon(next(rings), width, height)
             attrs = None if len(ring) < 3 or np.any(ring.max(axis=0) - ring.min(axis=0) <= 0) else \
                 {"points": _text(ring)}
+        elif tag == "skeleton":
+            attrs = {}, [[j, _skeleton_point(next(lines), width, height)] for j in attributes]
+        elif tag == "cuboid":
+            attrs = {key: f"{v:.2f}" for key, v in zip(CUBOID, np.round(next(lines), 2).ravel() + 0.0)}
         else:
             attrs = {"points": _text(next(lines))}
         if attrs is None:
             dropped.append([k, tag])
         else:
-            moved.append([k, attrs])
+            moved.append([k, *attrs] if isinstance(attrs, tuple) else [k, attrs])
     return {"moved": moved, "dropped": dropped}
+
+
+def _point_sets(tag: str, attributes: dict) -> list[np.ndarray]:
+    """The point sets of a shape moved point by point, in the order :func:`_moved_shapes` takes them."""
+    if tag in ("polyline", "points"):
+        return [_points(attributes["points"])]
+    if tag == "skeleton":
+        return [_points(text) for text in attributes.values()]
+    if tag == "cuboid":
+        return [np.array([float(attributes[k]) for k in CUBOID]).reshape(-1, 2)]
+    return []
+
+
+def _skeleton_point(point: np.ndarray, width: int, height: int) -> dict:
+    """A moved skeleton point's attributes: ``outside="1"`` when it left the image [0, W] × [0, H]."""
+    (x, y), = point
+    inside = 0 <= x <= width and 0 <= y <= height
+    return {"points": _text(point)} if inside else {"points": _text(point), "outside": "1"}

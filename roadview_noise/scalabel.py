@@ -18,7 +18,9 @@ to ``scalabel_image_root/<videoName>``; BDD100K's tracking sets), ``labels`` (a 
 
 - ``rle`` ``{counts, size}`` (BDD100K's instance and panoptic segmentation, COCO's compressed RLE): decoded,
   resampled through the map as label images are (0 where nothing maps), encoded again; removed when empty.
-- ``graph`` (BDD100K pose keypoints): not moved; a frame that has one fails under a geometric step, named.
+- ``graph`` (BDD100K pose keypoints: ``nodes`` with a ``location`` [x, y], ``category``, ``visibility``): each
+  node's location moves point by point, not clipped, as a polyline's vertices (round 22; before: the frame failed
+  under a geometric step); ``visibility`` and the ``edges`` are kept. A 3-D location (x, y, z) is kept.
   ``box3d`` (camera coordinates, metres) is kept, as COCO's ``bbox_cam3d``.
 
 A label that had geometry and has none left is dropped (its id recorded in the manifest, as COCO's). Every other key
@@ -160,9 +162,6 @@ class ScalabelImage:
         record: dict[str, Any] = {"image_id": self.image_id, "sha256": self.sha256}
         if not warps:
             return record
-        if any("graph" in lab for _, lab in self.labels):
-            raise InputError(f"frame {self.file_name!r} has pose graphs (graph), which a geometric step does not "
-                             "move; use a photometric chain for it")
         try:
             return {**record, **_moved_labels(self.labels, warps, w, h)}
         except (ValueError, TypeError, KeyError) as exc:
@@ -174,14 +173,15 @@ def _straight_closed(poly: dict) -> bool:
 
 
 def _moved_labels(labels: list[tuple[int, dict]], warps, width: int, height: int) -> dict:
-    """Every box, closed polygon and polyline of a frame through the warps in one batch each (module docstring)."""
+    """Every box, closed polygon, polyline and pose graph of a frame through the warps in one batch each (module
+    docstring)."""
     move = lambda xy: forward_through(warps, xy)                                        # noqa: E731
     boxes = [lab["box2d"] for _, lab in labels if "box2d" in lab]
     moved_box = iter(moved_boxes(np.array([[float(b[k]) for k in BOX_KEYS] for b in boxes]).reshape(-1, 4), move))
     polys = [p for _, lab in labels for p in lab.get("poly2d", ())]
     rings = [np.asarray(p["vertices"], dtype=float).reshape(-1, 2) for p in polys if _straight_closed(p)]
     moved_ring = iter(moved_rings(rings, move))
-    lines = [np.asarray(p["vertices"], dtype=float).reshape(-1, 2) for p in polys if not _straight_closed(p)]
+    lines = [part for _, lab in labels for part in _point_sets(lab)]
     moved_line = iter(np.split(move(np.concatenate(lines)), np.cumsum([len(v) for v in lines])[:-1])
                       if lines else ())
     moved, dropped = [], []
@@ -204,6 +204,11 @@ def _moved_labels(labels: list[tuple[int, dict]], warps, width: int, height: int
                     out.append({**poly, "vertices": _rounded(next(moved_line))})
             kept += len(out)
             fields["poly2d"] = out
+        if "graph" in lab:
+            nodes = [{**n, "location": _rounded(next(moved_line)[0])} if _flat(n) else n
+                     for n in lab["graph"].get("nodes", ())]
+            kept += 1
+            fields["graph"] = {**lab["graph"], "nodes": nodes}
         if "rle" in lab:
             mask = coco_io.rle_decode(lab["rle"])
             if mask.shape != (height, width):
@@ -218,6 +223,20 @@ def _moved_labels(labels: list[tuple[int, dict]], warps, width: int, height: int
         else:
             dropped.append([pos, lab.get("id")])
     return {"moved": moved, "dropped": dropped}
+
+
+def _point_sets(label: dict) -> list[np.ndarray]:
+    """A label's parts moved point by point, in the order :func:`_moved_labels` takes them: its open or curved
+    ``poly2d`` vertices, then its graph's 2-D node locations (one point each)."""
+    return [np.asarray(p["vertices"], dtype=float).reshape(-1, 2) for p in label.get("poly2d", ())
+            if not _straight_closed(p)] + \
+        [np.asarray(n["location"], dtype=float).reshape(1, 2) for n in label.get("graph", {}).get("nodes", ())
+         if _flat(n)]
+
+
+def _flat(node: dict) -> bool:
+    """A graph node in image coordinates (a 2-D location; a 3-D one is in camera space)."""
+    return len(node["location"]) == 2
 
 
 def _rounded(a) -> list:

@@ -119,3 +119,39 @@ def test_photometric_chain_copies_and_unmoved_shapes_fail_their_image(cvat_tree,
     (cvat_tree / "annotations.xml").write_text("<dataset/>")
     with pytest.raises(RecipeError, match="not a CVAT for images XML"):
         _run("warp_test.camera", cvat_tree, tmp_path / "out4")
+
+
+SKELETON = """<skeleton label="person" source="manual" z_order="0">
+      <points label="nose" source="manual" outside="0" occluded="0" points="30.00,20.00"></points>
+      <attribute name="pose">walking</attribute>
+      <points label="ankle" source="manual" outside="0" occluded="1" points="79.00,59.00"></points>
+    </skeleton>
+    <cuboid label="truck" source="manual" occluded="0" z_order="0" xtl1="10.00" ytl1="10.00" xbl1="10.00"
+            ybl1="30.00" xtr1="30.00" ytr1="10.00" xbr1="30.00" ybr1="30.00" xtl2="35.00" ytl2="5.00" xbl2="35.00"
+            ybl2="25.00" xtr2="50.00" ytr2="5.00" xbr2="50.00" ybr2="25.00"/>
+    <tag label="daytime" source="manual"/>"""
+
+
+def test_skeleton_points_and_cuboid_corners_move_point_by_point(cvat_tree, tmp_path):
+    """A skeleton's points (CVAT 2.x) move as ``points`` shapes, one leaving the image marked ``outside="1"``, its
+    attribute child and every attribute kept; a cuboid's eight corners move point by point. Before round 22 the
+    image failed under a geometric step."""
+    (cvat_tree / "annotations.xml").write_text(CVAT_XML.replace('<tag label="daytime" source="manual"/>', SKELETON))
+    assert _run("warp_test.camera", cvat_tree, tmp_path / "out").failed == 0
+    a = ElementTree.parse(tmp_path / "out/annotations.xml").getroot().find("image")
+    skeleton = a.find("skeleton")
+    assert [c.tag for c in skeleton] == ["points", "attribute", "points"] and skeleton.find("attribute").text == \
+        "walking"
+    nose, ankle = skeleton.findall("points")
+    moved = _forward([[30.0, 20.0], [79.0, 59.0]])
+    assert moved[1, 0] > W
+    np.testing.assert_allclose(_pts(nose.get("points")), moved[:1], atol=6e-3)
+    np.testing.assert_allclose(_pts(ankle.get("points")), moved[1:], atol=6e-3)
+    assert (nose.get("outside"), ankle.get("outside"), ankle.get("occluded"), nose.get("label")) == \
+        ("0", "1", "1", "nose")
+    cuboid = a.find("cuboid")
+    source = ElementTree.fromstring(f"<i>{SKELETON}</i>").find("cuboid")
+    corners = [k + n for n in "12" for c in ("tl", "bl", "tr", "br") for k in ("x" + c, "y" + c)]
+    np.testing.assert_allclose([float(cuboid.get(k)) for k in corners],
+                               _forward([float(source.get(k)) for k in corners]).ravel(), atol=6e-3)
+    assert cuboid.get("label") == "truck" and a.find("tag").get("label") == "daytime"

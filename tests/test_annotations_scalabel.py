@@ -142,8 +142,8 @@ def test_a_photometric_chain_copies_the_file_and_frames_wrappers_are_read(bdd_tr
 
 
 def test_what_is_not_a_scalabel_file_is_refused_naming_it(bdd_tree, tmp_path):
-    """A COCO file, a box without its corners: refused before the run; a pose graph under a geometric step fails
-    its frame (a photometric chain copies it)."""
+    """A COCO file, a box without its corners: refused before the run; a pose graph node without its location
+    fails its frame, named."""
     src = bdd_tree / "labels/det_20/det_val.json"
     src.write_text(json.dumps({"images": [], "annotations": []}))
     with pytest.raises(RecipeError, match="not a Scalabel / BDD100K label file.*annotations.coco"):
@@ -154,13 +154,45 @@ def test_what_is_not_a_scalabel_file_is_refused_naming_it(bdd_tree, tmp_path):
     with pytest.raises(RecipeError, match=r"frames\[0\] labels\[0\].box2d is not"):
         _run(_recipe("warp_test.camera", tmp_path), bdd_tree, tmp_path / "out")
     frames = _frames()
-    frames[0]["labels"].append({"id": "7", "category": "pedestrian", "graph": {"nodes": [], "edges": []}})
+    frames[0]["labels"].append({"id": "7", "category": "pedestrian", "graph": {"nodes": [{"category": "head"}]}})
     src.write_text(json.dumps(frames))
     assert _run(_recipe("warp_test.camera", tmp_path), bdd_tree, tmp_path / "out5").failed == 1
-    assert any("pose graphs (graph)" in e.get("error", "") for e in read_manifest(tmp_path / "out5/manifest.jsonl"))
-    assert _run(_recipe("compression.camera", tmp_path), bdd_tree, tmp_path / "out6").failed == 0
+    assert any("a label of frame 'a.png'" in e.get("error", "") and "location" in e["error"]
+               for e in read_manifest(tmp_path / "out5/manifest.jsonl"))
     with pytest.raises(RecipeError, match="one dataset file per run"):
         _recipe("warp_test.camera", tmp_path, coco="x.json")
+
+
+POSE = [[30.0, 20.0], [79.0, 59.0], [33.5, 40.25]]
+
+
+def test_pose_graph_nodes_move_as_points(bdd_tree, tmp_path):
+    """BDD100K pose (``graph`` nodes, ``Pose2D-18Joints_Pretty``): every 2-D node location moves through the map
+    point by point, unclipped (one leaves the image), visibility, edges and every other key kept, in a label that
+    also has a box and a lane (the point sets are taken in label order); before round 22 the frame failed."""
+    frames = _frames()
+    nodes = [{"location": xy, "category": c, "visibility": v, "id": str(k)}
+             for k, (xy, c, v) in enumerate(zip(POSE, ("head", "left_ankle", "right_ankle"), "VNV"))]
+    graph = {"nodes": nodes, "edges": [{"source": "0", "target": "2", "type": "body"}], "type": "Pose2D-18Joints_Pretty"}
+    frames[0]["labels"].insert(0, {"id": "7", "category": "pedestrian", "graph": graph,
+                                   "box2d": {"x1": 25.0, "y1": 15.0, "x2": 40.0, "y2": 45.0},
+                                   "poly2d": [{"vertices": LANE, "types": "LLLL", "closed": False}]})
+    frames[0]["labels"].append({"id": "8", "category": "pedestrian",
+                                "graph": {"nodes": [{"location": [1.0, 2.0, 3.0], "category": "head", "id": "0"}],
+                                          "edges": []}})
+    (bdd_tree / "labels/det_20/det_val.json").write_text(json.dumps(frames))
+    assert _run(_recipe("warp_test.camera", tmp_path), bdd_tree, tmp_path / "out").failed == 0
+    labels = {lab["id"]: lab for lab in json.loads((tmp_path / "out/labels/det_20/det_val.json").read_text())[0]
+              ["labels"]}
+    moved = labels["7"]["graph"]
+    assert moved["edges"] == graph["edges"] and moved["type"] == graph["type"]
+    assert [{k: v for k, v in n.items() if k != "location"} for n in moved["nodes"]] == \
+        [{k: v for k, v in n.items() if k != "location"} for n in nodes]
+    expected = _forward(POSE)
+    assert expected[1, 0] > W                                     # the ankle leaves the image: kept, not clipped
+    np.testing.assert_allclose([n["location"] for n in moved["nodes"]], expected, atol=2e-3)
+    np.testing.assert_allclose(labels["7"]["poly2d"][0]["vertices"], _forward(LANE), atol=2e-3)
+    assert labels["8"]["graph"]["nodes"][0]["location"] == [1.0, 2.0, 3.0]    # 3-D: camera space, kept
 
 
 def test_unset_dataset_file_keys_leave_the_recorded_recipe_as_it_was():
