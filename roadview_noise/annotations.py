@@ -423,9 +423,12 @@ class Sidecar:
 
 @dataclass
 class Annotated:
-    """What the annotations of one output are: files to write (absolute path, writer), manifest records."""
+    """What the annotations of one output are: files to write (absolute path, writer), files that embed the output
+    image (absolute path, writer of the path and the image file's bytes: a LabelMe ``imageData``), manifest
+    records."""
 
     writes: list[tuple[Path, Any]] = field(default_factory=list)
+    embedding: list[tuple[Path, Any]] = field(default_factory=list)
     read: list[dict] = field(default_factory=list)
     objects: list[dict] | None = None
 
@@ -496,7 +499,11 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
     for s in sidecars:
-        if s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
+        if camera and not data_out.warps and _embeds_image(s):
+            result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix),
+                                     lambda p, image, s=s: write_bytes_atomic(
+                                         p, ann_io.labelme_with_image(s.path.read_bytes(), image))))
+        elif s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
         label_fmt = next((s.fmt for s in sidecars if s.role == "point_labels"), None)
@@ -529,6 +536,10 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
                     values = warp.apply_labels(values, s.fill)
                 mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
+            elif s.role == "polygons" and _embeds_image(s):
+                moved = warp_polygon_objects(s.data, data_out.warps, w, h)
+                result.embedding.append((dest, lambda p, image, d=moved: ann_io.write_polygons(
+                    p, {**d, "imageData": ann_io.labelme_image_data(image)})))
             elif s.role == "polygons":
                 moved = warp_polygon_objects(s.data, data_out.warps, w, h)
                 result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
@@ -538,13 +549,21 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     return data_out, result
 
 
-def write(annotated: Annotated | None) -> list[Path]:
-    """Write the annotation files (atomically, by the io writers); returns their paths."""
+def _embeds_image(s: Sidecar) -> bool:
+    """A LabelMe file holding its image (``imageData`` not null): written with the output image's bytes there."""
+    return s.role == "polygons" and "shapes" in s.data and s.data.get("imageData") is not None
+
+
+def write(annotated: Annotated | None, image: bytes | None = None) -> list[Path]:
+    """Write the annotation files (atomically, by the io writers), those embedding the image with ``image``, the
+    output image file's bytes; returns their paths."""
     if annotated is None:
         return []
     for path, writer in annotated.writes:
         writer(path)
-    return [p for p, _ in annotated.writes]
+    for path, writer in annotated.embedding:
+        writer(path, image)
+    return [p for p, _ in annotated.writes + annotated.embedding]
 
 
 # --- camera boxes --------------------------------------------------------------------------------------------------
@@ -613,8 +632,8 @@ def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
     clipped to the image; lines, line strips, points and circles (centre, a point on the rim) move point by point,
     not clipped; a mask (a base64 PNG of its box, placed at the box's first point) is resampled as label images
     are and cut to the box of what is left. A polygon, rectangle or mask left with nothing is dropped.
-    ``imageWidth``/``imageHeight`` become the output's; ``imageData`` (the unaugmented image, base64) becomes null,
-    so LabelMe opens the augmented image at ``imagePath``. InputError for a shape type not listed here."""
+    ``imageWidth``/``imageHeight`` become the output's; ``imageData`` (the image, base64) is the writer's:
+    :func:`carry` puts the output image there. InputError for a shape type not listed here."""
     shapes = data["shapes"]
     kinds = [s.get("shape_type") or "polygon" for s in shapes]
     refused = sorted({k for k in kinds if k not in ann_io.LABELME_SHAPES})
@@ -642,8 +661,7 @@ def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
             points = np.round(next(moved), 3).tolist()
         if points is not None:
             kept.append({**shape, "points": points})
-    out = {**data, "shapes": kept, "imageWidth": width, "imageHeight": height}
-    return {**out, "imageData": None} if "imageData" in data else out
+    return {**data, "shapes": kept, "imageWidth": width, "imageHeight": height}
 
 
 def _moved_labelme_mask(shape: dict, warps, width: int, height: int) -> dict | None:

@@ -340,11 +340,12 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
     cloud's ``rv_effect``) and annotation files; a DNG keeps the colour metadata of its ``source``. Returns every
     file written (recorded by ``io/atomic``, so no writer can forget one), the main output first: the runner records
     each with its sha256 in the manifest."""
+    image = None                               # the camera output's bytes, for label files that embed the image
     with recorded_writes() as written:         # each writer imported for its kind only (a cloud's: no OpenCV/TIFF)
         if isinstance(data, CameraFrame):
             from .io import image as image_io
 
-            image_io.write_frame(out_path, data)
+            image = image_io.write_frame(out_path, data)
         elif isinstance(data, RawFrame):
             from .io import raw as raw_io
 
@@ -354,5 +355,5 @@ def save(data: SensorData, out_path: Path, recipe: Recipe, source: Path | None =
             from .io import pointcloud as cloud_io
 
             cloud_io.write_pointcloud(out_path, data, effect=recipe.spec.output.effect)
-        write_annotations(annotations)
+        write_annotations(annotations, image)
     return sorted(written, key=lambda p: p.name != Path(out_path).name)

@@ -4,6 +4,7 @@ LiDAR/radar CNF, SemanticKITTI and nuScenes-lidarseg trees, masks and 2-D boxes 
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import json
 import shutil
@@ -753,8 +754,8 @@ def test_cityscapes_polygons_follow_the_map_and_are_copied_by_photometric_chains
 def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
     """A LabelMe JSON (shapes with points and shape_type) under ``polygons``: polygons move and are clipped, a
     rectangle becomes the box of its moved outline, lines, points and circles move point by point (closed-form
-    oracle), a shape pushed off the image is dropped, imageData (the unaugmented image) becomes null, every other key
-    is kept; a shape type LabelMe does not have fails the image naming it; a file for another image size fails
+    oracle), a shape pushed off the image is dropped, imageData (the image, base64) holds the augmented image's file
+    (before round 22: null), every other key is kept; a shape type LabelMe does not have fails the image naming it; a file for another image size fails
     naming both sizes."""
     gt = cityscapes / "gtFine/val/lindau"
     shapes = [{"label": "car", "points": [[10, 12], [40, 12.5], [38, 30], [11, 29]], "group_id": None,
@@ -771,7 +772,8 @@ def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
         "camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("labelme.json")}}}, tmp_path)
     assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
     out = json.loads((tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_labelme.json").read_text())
-    assert out["imageData"] is None and {k: out[k] for k in ("version", "flags", "imagePath", "imageHeight",
+    image = tmp_path / "out/leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png"
+    assert base64.b64decode(out["imageData"]) == image.read_bytes() and {k: out[k] for k in ("version", "flags", "imagePath", "imageHeight",
                                                              "imageWidth")} == {k: data[k] for k in
                                                                                 ("version", "flags", "imagePath",
                                                                                  "imageHeight", "imageWidth")}
@@ -796,11 +798,38 @@ def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
     assert "640×60 px image" in read_manifest(tmp_path / "out3/manifest.jsonl")[0]["error"]
 
 
+def test_a_labelme_file_embeds_the_augmented_image_under_a_photometric_chain(cityscapes, tmp_path):
+    """LabelMe shows ``imageData`` when a file has it, not ``imagePath``: under fog the file copied as read (before
+    round 22) showed the clear input with the foggy file beside it. The augmented image's bytes go there, every
+    other byte of the file as read; a file without imageData (null) is copied byte for byte."""
+    gt = cityscapes / "gtFine/val/lindau"
+    source = cityscapes / "leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png"
+    text = ('{\n  "version": "5.4.1",\n  "flags": {},\n  "shapes": [\n    {"label": "car", "points": [[10, 12], '
+            '[40, 12], [40, 30]], "shape_type": "polygon"}\n  ],\n  "imagePath": "../x.png",\n  "imageData": "'
+            + base64.b64encode(source.read_bytes()).decode() + '",\n  "imageHeight": 60,\n  "imageWidth": 80\n}')
+    (gt / "a_labelme.json").write_text(text)
+    (gt / "b_labelme.json").write_text(text.replace(text[text.index('"imageData"'):text.index(',\n  "imageH')],
+                                                    '"imageData": null'))
+    for name, want in (("a", "a_labelme.json"), ("b", "b_labelme.json")):
+        recipe = _recipe({"chain": [{"model": "compression.camera", "params": {"quality": 40}}], "inputs": {
+            "camera": "leftImg8bit/**/*.png", "annotations": {"polygons": "../../../gtFine/val/lindau/" + want}}},
+            tmp_path)
+        out = tmp_path / f"out_{name}"
+        assert run(recipe, cityscapes, out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+        written = (out / "gtFine/val/lindau" / want).read_text()
+        if name == "b":
+            assert written == (gt / want).read_text()
+            continue
+        augmented = (out / "leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png").read_bytes()
+        assert augmented != source.read_bytes()
+        assert written == text.replace(base64.b64encode(source.read_bytes()).decode(),
+                                       base64.b64encode(augmented).decode())
+
+
 def test_a_labelme_mask_shape_is_resampled_like_a_label_image(cityscapes, tmp_path):
     """A LabelMe ``mask`` shape (labelme ≥ 5.3: a 1-bit PNG of its box in base64, placed at the box's first point,
     as in labelme's examples/primitives) goes through the image's map as masks do (nearest neighbour, 0 where
     nothing maps) and is cut to the box of what is left; one pushed off the image is dropped."""
-    import base64
     import io
 
     from PIL import Image

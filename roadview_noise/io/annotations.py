@@ -30,10 +30,12 @@ width_m,height_m,yaw_rad``; centre of the box, yaw about z from x).
 
 from __future__ import annotations
 
+import base64
 import csv
 import io
 import json
 import os
+import re
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -274,6 +276,26 @@ def read_polygons(path: str | os.PathLike) -> dict:
 
 def write_polygons(path: str | os.PathLike, data: dict) -> None:
     write_bytes_atomic(path, json.dumps(data, ensure_ascii=False).encode("utf-8"))
+
+
+def labelme_image_data(image: bytes | None) -> str | None:
+    """LabelMe's ``imageData`` of an image file's bytes: base64 (labelme decodes it with Pillow, whatever the
+    format); None (null: LabelMe then opens ``imagePath``) without bytes (an EXR output)."""
+    return None if image is None else base64.b64encode(image).decode("ascii")
+
+
+_IMAGE_DATA = re.compile(rb'"imageData"\s*:\s*"([A-Za-z0-9+/=\\\s]*)"')
+
+
+def labelme_with_image(raw: bytes, image: bytes | None) -> bytes:
+    """A LabelMe file's bytes with its ``imageData`` replaced by :func:`labelme_image_data` of ``image``, every other
+    byte as read (the base64 string is swapped in place); a file whose ``imageData`` string is not found once as
+    such is written again as compact JSON."""
+    found = list(_IMAGE_DATA.finditer(raw))
+    value = labelme_image_data(image)
+    if len(found) != 1:
+        return json.dumps({**json.loads(raw), "imageData": value}, ensure_ascii=False).encode("utf-8")
+    return raw[:found[0].start(1) - 1] + json.dumps(value).encode("ascii") + raw[found[0].end(1) + 1:]
 
 
 # --- 2-D boxes -----------------------------------------------------------------------------------------------------

@@ -256,29 +256,33 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
 
 
 def write_image(path: str | os.PathLike, linear_rgb: np.ndarray, encoding: ImageEncoding,
-                alpha: np.ndarray | None = None) -> None:
+                alpha: np.ndarray | None = None) -> bytes | None:
     """Encode (H, W, 3) linear RGB like ``encoding`` (sRGB or linear, bit depth, channels, JPEG quality, ICC
-    profile) and write it atomically. Integer encodings are clipped to [0, 1] and rounded here, once; float32 TIFF
-    and EXR are written unclipped. A 4-channel encoding without ``alpha`` gets an opaque alpha plane."""
+    profile) and write it atomically; returns the bytes written (None for EXR, written by OpenEXR). Integer
+    encodings are clipped to [0, 1] and rounded here, once; float32 TIFF and EXR are written unclipped. A 4-channel
+    encoding without ``alpha`` gets an opaque alpha plane."""
     name = _checked_name(path, encoding)
     if encoding.fmt == "exr":
         _write_exr_image(path, _stored_pixels(linear_rgb, encoding, name), encoding, alpha)
-        return
-    write_bytes_atomic(path, encode_image(linear_rgb, encoding, alpha, name=name))
+        return None
+    data = encode_image(linear_rgb, encoding, alpha, name=name)
+    write_bytes_atomic(path, data)
+    return data
 
 
-def write_frame(path: str | Path, frame: CameraFrame) -> None:
-    """:func:`write_image` of a camera frame; for an 8-bit sRGB colour encoding, the codes the frame holds
-    (:meth:`CameraFrame.srgb8_codes`: a JPEG output, an unchanged decoded file) are stored as they are and its
-    linear values are never decoded."""
+def write_frame(path: str | Path, frame: CameraFrame) -> bytes | None:
+    """:func:`write_image` of a camera frame (the bytes written, None for EXR); for an 8-bit sRGB colour encoding,
+    the codes the frame holds (:meth:`CameraFrame.srgb8_codes`: a JPEG output, an unchanged decoded file) are
+    stored as they are and its linear values are never decoded."""
     enc = frame.encoding
     kept = frame.srgb8_codes() if (enc.transfer, enc.bit_depth) == ("srgb", 8) and enc.channels in (3, 4) \
         and enc.fmt != "exr" else None
     if kept is None:
-        write_image(path, frame.linear_rgb, enc, alpha=frame.alpha)
-        return
+        return write_image(path, frame.linear_rgb, enc, alpha=frame.alpha)
     name = _checked_name(path, enc)
-    write_bytes_atomic(path, encode_codes(_with_alpha(kept, enc, frame.alpha), enc, name=name))
+    data = encode_codes(_with_alpha(kept, enc, frame.alpha), enc, name=name)
+    write_bytes_atomic(path, data)
+    return data
 
 
 def _checked_name(path: str | Path, encoding: ImageEncoding) -> str:
