@@ -550,6 +550,33 @@ def test_one_bit_and_four_bit_masks_keep_their_bit_depth_through_a_warp(cityscap
                                       np.where(inside, levels[ys, xs], 0))
 
 
+def test_one_bit_tiff_masks_keep_their_bit_depth_and_white_level(cityscapes, tmp_path):
+    """A 1-bit TIFF mask — Pillow's mode "1" with CCITT group 4 (a scanner's or GIS tool's binary mask) and a
+    MinIsWhite one (fax convention: 0 is white) — comes out 1-bit with its photometric interpretation, reading as
+    the input read (Pillow: white = True) through the map, 0 where nothing maps. Before round 22 both came out
+    8-bit 0/255 with fill 255, the MinIsWhite one as MinIsBlack."""
+    import tifffile
+    from PIL import Image
+
+    gt = cityscapes / "gtFine/val/lindau"
+    binary = np.random.default_rng(13).integers(0, 2, (60, 80)).astype(bool)
+    Image.fromarray(binary).save(gt / "lindau_000001_000019_g4.tif", compression="group4")
+    tifffile.imwrite(gt / "lindau_000001_000019_white0.tif", ~binary, photometric="miniswhite")
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "leftImg8bit/**/*.png", "annotations": {"masks": [_gt("g4.tif"), _gt("white0.tif")]}}}, tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    xs, ys, inside = _warp_test_inside(cityscapes, recipe)
+    oracle = np.where(inside, binary[ys, xs], False)
+    for name, photometric in (("g4", tifffile.PHOTOMETRIC.MINISBLACK), ("white0", tifffile.PHOTOMETRIC.MINISWHITE)):
+        path = tmp_path / f"out/gtFine/val/lindau/lindau_000001_000019_{name}.tif"
+        with tifffile.TiffFile(path) as tif:
+            assert (tif.pages[0].bitspersample, tif.pages[0].photometric) == (1, photometric)
+        with Image.open(gt / path.name) as read_in, Image.open(path) as written:
+            assert read_in.mode == written.mode == "1"
+            np.testing.assert_array_equal(np.asarray(read_in), binary)
+            np.testing.assert_array_equal(np.asarray(written), oracle)
+
+
 def test_a_mask_fill_value_is_per_mask_and_must_fit(cityscapes, tmp_path):
     """``{replace: …, fill: N}`` (or ``{pattern: …, fill: N}``) sets what an uncovered pixel of that mask gets;
     a fill the mask's values cannot hold fails that image naming the mask."""

@@ -60,6 +60,7 @@ BOX_3D_LAYOUTS = {      # what a box file holds (a refusal names it)
             'sample_annotation.json is another layout: give KITTI label_2 + calib files',
     "csv": "a header id,class,x_m,y_m,z_m,length_m,width_m,height_m,yaw_rad (sensor frame)"}
 _PNG_GREY, _PNG_PALETTE = 0, 3                   # PNG colour types
+_TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*")
 _PALETTE_CHUNKS = (b"PLTE", b"tRNS", b"bKGD", b"hIST", b"sPLT")   # chunks whose content is palette indices/colours
 _PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
 
@@ -132,12 +133,15 @@ class Mask:
     """A label image: its values (H × W or H × W × C, any integer dtype) and, for a palette PNG (Pascal VOC's
     ``SegmentationClass``, Mapillary Vistas' labels), the file's ``PLTE`` and ``tRNS`` chunks: the values are then
     the palette indices, the class ids those datasets' loaders read, and are written back with the same palette.
-    ``bit_depth`` 1, 2 or 4: a PNG of that many bits per sample (a binary segmentation mask is 1-bit grey), whose
-    values are its levels (0 … 2^bit_depth − 1, not OpenCV's 0–255 scaling) and which is written back so."""
+    ``bit_depth`` 1, 2 or 4: a PNG of that many bits per sample (a binary segmentation mask is 1-bit grey), or a
+    1-bit TIFF, whose values are its levels (0 … 2^bit_depth − 1, not OpenCV's 0–255 scaling) and which is written
+    back so; ``min_is_white``: a 1-bit TIFF storing white as 0 (PhotometricInterpretation 0, fax and scanner
+    masks), whose levels are as readers show them (white 1, as Pillow's and OpenCV's) and stored inverted again."""
 
     values: np.ndarray
     palette_chunks: tuple[bytes, ...] = ()
     bit_depth: int = 0                                       # 0: as OpenCV writes the dtype (8 or 16 bits)
+    min_is_white: bool = False
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -170,7 +174,20 @@ def read_mask_bytes(data: bytes, path) -> Mask:
         raise InputError("not an image OpenCV can decode (masks are PNG/TIFF label images)", file=str(path))
     if data.startswith(PNG_SIGNATURE) and len(data) > 25 and data[25] == _PNG_GREY and data[24] < 8:
         return Mask(_levels(img, data[24]), bit_depth=data[24])
+    if data[:4] in _TIFF_SIGNATURES and img.ndim == 2:
+        bits, min_is_white = _tiff_bits(data)
+        if bits == 1:
+            return Mask(_levels(img, 1), bit_depth=1, min_is_white=min_is_white)
     return Mask(img)
+
+
+def _tiff_bits(data: bytes) -> tuple[int, bool]:
+    """A TIFF's bits per sample and whether it stores white as 0 (its first page's tags)."""
+    import tifffile
+
+    with tifffile.TiffFile(io.BytesIO(data)) as tif:
+        page = tif.pages[0]
+        return page.bitspersample, page.photometric == tifffile.PHOTOMETRIC.MINISWHITE
 
 
 def _levels(decoded: np.ndarray, bit_depth: int) -> np.ndarray:
@@ -198,7 +215,9 @@ def write_mask(path: str | os.PathLike, mask: Mask) -> None:
         np.save(buf, mask.values, allow_pickle=False)
         write_bytes_atomic(path, buf.getvalue())
         return
-    if mask.bit_depth:
+    if mask.bit_depth and suffix.lower() in (".tif", ".tiff"):
+        data = bilevel_tiff(mask.values, mask.min_is_white)
+    elif mask.bit_depth:
         data = packed_png(mask.values, mask.bit_depth)
     else:
         ok, buf = cv2.imencode(suffix, mask.values)
@@ -224,6 +243,20 @@ def packed_png(levels: np.ndarray, bit_depth: int) -> bytes:
     raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
     ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes([bit_depth, _PNG_GREY, 0, 0, 0])
     return PNG_SIGNATURE + png_chunk(b"IHDR", ihdr) + png_chunk(b"IDAT", zlib.compress(raw, 9)) + _PNG_END
+
+
+def bilevel_tiff(levels: np.ndarray, min_is_white: bool = False) -> bytes:
+    """A 1-bit TIFF (Deflate) of 0/1 levels, white = 1: stored as they are (MinIsBlack) or inverted (MinIsWhite).
+    ValueError names a level that does not fit."""
+    import tifffile
+
+    top = int(levels.max(initial=0))
+    if top > 1:
+        raise ValueError(f"value {top} does not fit a 1-bit mask")
+    buf = io.BytesIO()
+    tifffile.imwrite(buf, (levels == 0) if min_is_white else levels.astype(bool), compression="zlib", metadata=None,
+                     photometric="miniswhite" if min_is_white else "minisblack")
+    return buf.getvalue()
 
 
 def _as_palette_png(grey: bytes, mask: Mask) -> bytes:
