@@ -120,6 +120,10 @@ def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: An
             frame = dataclasses.replace(frame, encoding=dataclasses.replace(frame.encoding, jpeg_quality=stated))
         notes["jpeg_quality"] = {"value": frame.encoding.jpeg_quality, "from": "recipe output.jpeg_quality"
                                  if stated is not None else "input (estimated from its quantisation tables)"}
+    if isinstance(frame, CameraFrame) and frame.encoding.fmt == "webp":
+        quality = frame.encoding.webp_quality
+        notes["webp_quality"] = {"value": "lossless", "from": "input (a VP8L bitstream)"} if quality is None else \
+            {"value": quality, "from": "input (estimated from its VP8 quantiser indices)"}
     geometry = _Geometry(origin, recipe, w, h, turn)
     if needs_camera_geometry(recipe):
         geometry.profile                                    # resolved now: a step of the chain uses it

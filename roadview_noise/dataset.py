@@ -25,7 +25,7 @@ from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
 from .walk import Matcher, WalkFailure, walk
 
 DEFAULT_GLOBS = {
-    "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff"],
+    "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff", "**/*.webp"],
     "raw": ["**/*.dng", "**/*.raw"],
     "lidar": ["**/*.pcd", "**/*.bin", "**/*.ply"],
     "radar": ["**/*.pcd", "**/*.bin"],

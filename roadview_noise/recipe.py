@@ -76,7 +76,7 @@ class GroundPlaneSpec(_Strict):
     objects: bool = True              # vertical objects standing on the ground (depth/stixels.py); false: flat only
 
 
-PHOTO_SUFFIXES_NOT_READ = ("webp", "heic", "heif", "avif", "jxl", "jp2", "bmp", "gif", "mpo")
+PHOTO_SUFFIXES_NOT_READ = ("heic", "heif", "avif", "jxl", "jp2", "bmp", "gif", "mpo")
 
 
 class InputsSpec(_Strict):
@@ -145,7 +145,7 @@ class InputsSpec(_Strict):
             suffix = glob.rsplit(".", 1)[-1].lower() if "." in glob.rsplit("/", 1)[-1] else ""
             if suffix in PHOTO_SUFFIXES_NOT_READ:
                 raise ValueError(f"camera: {glob!r} names .{suffix} files, which rvnoise does not read (camera "
-                                 "images: .png .jpg .jpeg .tif .tiff .exr); convert them to PNG or JPEG first")
+                                 "images: .png .jpg .jpeg .tif .tiff .webp .exr); convert them to PNG or JPEG first")
         return self
 
     @model_validator(mode="after")

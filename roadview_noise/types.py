@@ -186,7 +186,7 @@ SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]
 class ImageEncoding:
     """How a camera frame is stored, so the writer can put it back the same way."""
 
-    fmt: str = "png"           # png | jpeg | tiff | exr
+    fmt: str = "png"           # png | jpeg | tiff | exr | webp
     bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF); EXR: 16 (half) | 32 (float)
     transfer: str = "srgb"     # srgb | linear
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
@@ -197,6 +197,7 @@ class ImageEncoding:
     jpeg_progressive: bool = False     # JPEG: progressive (SOF2) rather than baseline
     metadata: tuple = ()               # the file's PNG ancillary chunks, TIFF tags or JPEG JFIF density (io/image_metadata)
     tiff_associated_alpha: bool = False   # TIFF: its alpha is associated (colours premultiplied), written so
+    webp_quality: int | None = None       # WebP: the lossy quality (1–100) written, None: lossless
 
 
 @dataclass(frozen=True, eq=False)

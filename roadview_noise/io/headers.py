@@ -35,6 +35,8 @@ def image_pixels(path: str | os.PathLike) -> tuple[int, int] | None:
         return _jpeg(path)
     if suffix in (".tif", ".tiff"):
         return _tiff(path)
+    if suffix == ".webp":
+        return _webp(_head(path, 30))
     if suffix == ".dng":
         return _dng(path)
     if suffix == ".exr":
@@ -50,6 +52,22 @@ def _png(head: bytes) -> tuple[int, int] | None:
     if len(head) < 24 or head[12:16] != b"IHDR":
         return None
     return struct.unpack(">II", head[16:24])
+
+
+def _webp(head: bytes) -> tuple[int, int] | None:
+    """The canvas of an extended WebP (VP8X), or the size in a lossy (VP8 key frame) or lossless (VP8L) bitstream's
+    header (WebP container specification; RFC 6386 §9.1)."""
+    if len(head) < 30 or head[:4] != b"RIFF" or head[8:12] != b"WEBP":
+        return None
+    kind = head[12:16]
+    if kind == b"VP8X":
+        return int.from_bytes(head[24:27], "little") + 1, int.from_bytes(head[27:30], "little") + 1
+    if kind == b"VP8 ":
+        return int.from_bytes(head[26:28], "little") & 0x3FFF, int.from_bytes(head[28:30], "little") & 0x3FFF
+    if kind == b"VP8L":
+        bits = int.from_bytes(head[21:25], "little")
+        return (bits & 0x3FFF) + 1, (bits >> 14 & 0x3FFF) + 1
+    return None
 
 
 def _jpeg(path: Path) -> tuple[int, int] | None:

@@ -42,11 +42,12 @@ from ..errors import InputError
 from ..physics import srgb
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
-from . import image_metadata
+from . import image_metadata, webp
 from .atomic import atomic_path, write_bytes_atomic
 from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png, png_chunk
 
-SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr"}
+SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr",
+                  ".webp": "webp"}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 _RGB_ORDER = {3: slice(None, None, -1), 4: [2, 1, 0, 3]}    # OpenCV's BGR(A) → RGB(A) (3 channels: a view)
 
@@ -64,7 +65,7 @@ _OPENCV_SAMPLING = {0x11: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444, 0x21: cv2.IMWRIT
 
 
 def image_format(path: str | os.PathLike) -> str:
-    """``png`` | ``jpeg`` | ``tiff`` | ``exr`` from the file suffix (case-insensitive)."""
+    """``png`` | ``jpeg`` | ``tiff`` | ``exr`` | ``webp`` from the file suffix (case-insensitive)."""
     fmt = SUFFIX_FORMATS.get(Path(path).suffix.lower())
     if fmt is None:
         raise InputError(f"unknown image suffix {Path(path).suffix!r}; expected one of {sorted(SUFFIX_FORMATS)}",
@@ -89,9 +90,10 @@ def read_image(path: str | os.PathLike, data: bytes | None = None, *, untagged_t
 
 def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srgb"
                  ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
-    """:func:`read_image` of the bytes of a PNG, JPEG or TIFF file (also a ROS CompressedImage's data); ``source``
-    names it in errors. Integer codes are sRGB unless the file states linear (:func:`.image_metadata.stated_transfer`)
-    or, stating nothing, ``untagged_transfer`` says so (a JPEG is sRGB)."""
+    """:func:`read_image` of the bytes of a PNG, JPEG, TIFF or WebP file (also a ROS CompressedImage's data);
+    ``source`` names it in errors. Integer codes are sRGB unless the file states linear
+    (:func:`.image_metadata.stated_transfer`) or, stating nothing, ``untagged_transfer`` says so (a JPEG or WebP is
+    sRGB)."""
     check_structure(data, fmt, source)
     if fmt == "tiff":                               # the first page's directory, parsed once
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
@@ -100,7 +102,8 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
             icc, tiled, extras = _tiff_icc(page), page.is_tiled, tuple(page.extrasamples)
     else:
         photometric, icc, extras = None, icc_profile(data, fmt), ()
-        metadata = image_metadata.png_chunks(data) if fmt == "png" else image_metadata.jfif_density(data)
+        metadata = image_metadata.png_chunks(data) if fmt == "png" else webp.metadata(data)[2] if fmt == "webp" \
+            else image_metadata.jfif_density(data)
     alpha_tiff = fmt == "tiff" and len(extras) == 1 and photometric in _TIFF_ALPHA_PHOTOMETRICS
     codes = _tiff_with_alpha(data) if alpha_tiff else None
     if codes is None:
@@ -110,10 +113,12 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
         if alpha_tiff and extras[0] == tifffile.EXTRASAMPLE.UNASSALPHA:
             codes = _unpremultiplied(codes)
     quality = _jpeg_quality(data) if fmt == "jpeg" else ImageEncoding.jpeg_quality
-    transfer = "srgb" if fmt == "jpeg" else image_metadata.stated_transfer(fmt, metadata, icc) or untagged_transfer
+    transfer = "srgb" if fmt in ("jpeg", "webp") else \
+        image_metadata.stated_transfer(fmt, metadata, icc) or untagged_transfer
     linear, encoding, alpha = image_from_codes(codes, fmt, source=source, jpeg_quality=quality, icc=icc,
                                                transfer=transfer)
-    layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {}
+    layout = _jpeg_frame_layout(data) if fmt == "jpeg" else {"webp_quality": webp.quality(data)} if fmt == "webp" \
+        else {}
     if alpha_tiff and extras[0] == tifffile.EXTRASAMPLE.ASSOCALPHA:
         layout["tiff_associated_alpha"] = True
     return linear, dataclasses.replace(encoding, exif=exif_block(data, fmt), metadata=metadata, **layout), alpha
@@ -295,10 +300,10 @@ def _checked_name(path: str | Path, encoding: ImageEncoding) -> str:
 
 def encode_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
                  name: str = "image") -> bytes:
-    """The PNG, JPEG or TIFF file bytes :func:`write_image` writes (also a ROS CompressedImage's data); only
-    OpenCV's JPEG encoder gets the codes stored in BGR order."""
-    return encode_codes(codes_from_image(linear_rgb, encoding, alpha, name=name, bgr=encoding.fmt == "jpeg"),
-                        encoding, name=name)
+    """The PNG, JPEG, TIFF or WebP file bytes :func:`write_image` writes (also a ROS CompressedImage's data); only
+    OpenCV's JPEG and WebP encoders get the codes stored in BGR order."""
+    return encode_codes(codes_from_image(linear_rgb, encoding, alpha, name=name,
+                                         bgr=encoding.fmt in ("jpeg", "webp")), encoding, name=name)
 
 
 def codes_from_image(linear_rgb: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | None = None, *,
@@ -324,10 +329,12 @@ def _with_alpha(codes: np.ndarray, encoding: ImageEncoding, alpha: np.ndarray | 
 
 
 def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "image") -> bytes:
-    """PNG, JPEG (``encoding.jpeg_quality``) or TIFF bytes of grey or RGB(A) code values, with
-    ``encoding.icc_profile`` embedded."""
+    """PNG, JPEG (``encoding.jpeg_quality``), TIFF or WebP (``encoding.webp_quality``, None: lossless) bytes of grey
+    or RGB(A) code values, with ``encoding.icc_profile`` embedded."""
     if encoding.fmt == "tiff":
         return _encode_tiff(codes, encoding.icc_profile, encoding.metadata, encoding.tiff_associated_alpha)
+    if encoding.fmt == "webp":
+        return _encode_webp(codes, encoding, name)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
@@ -344,6 +351,19 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
         raise OSError(f"{name}: OpenCV could not encode {encoding}")
     jpeg = image_metadata.with_jfif_density(buf.tobytes(), encoding.metadata)
     return embed_exif(embed_icc_profile(jpeg, encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
+
+
+def _encode_webp(codes: np.ndarray, encoding: ImageEncoding, name: str) -> bytes:
+    """WebP bytes of RGB(A) codes (a grey encoding's written as colour: WebP has no grey), lossless or at the
+    encoding's quality (OpenCV: a quality above 100 is lossless), with the input's ICC, EXIF and XMP chunks."""
+    if codes.ndim == 2:
+        codes = np.repeat(codes[..., None], 3, axis=2)
+    quality = 101 if encoding.webp_quality is None else int(encoding.webp_quality)
+    ok, buf = cv2.imencode(".webp", np.ascontiguousarray(bgr_order(codes)), [cv2.IMWRITE_WEBP_QUALITY, quality])
+    if not ok:
+        raise OSError(f"{name}: OpenCV could not encode {encoding}")
+    h, w = codes.shape[:2]
+    return webp.with_metadata(buf.tobytes(), w, h, encoding.icc_profile, encoding.exif, encoding.metadata)
 
 
 def _stored_pixels(linear_rgb: np.ndarray, encoding: ImageEncoding, name: str, *, refuse_nan: bool = True
@@ -447,7 +467,10 @@ def _write_exr_image(path, pixels: np.ndarray, encoding: ImageEncoding, alpha: n
 
 
 def icc_profile(data: bytes, fmt: str) -> bytes | None:
-    """The ICC profile embedded in a PNG (``iCCP``), JPEG (``APP2 ICC_PROFILE``, in sequence) or TIFF (tag 34675)."""
+    """The ICC profile embedded in a PNG (``iCCP``), JPEG (``APP2 ICC_PROFILE``, in sequence), TIFF (tag 34675) or
+    WebP (``ICCP``)."""
+    if fmt == "webp":
+        return webp.metadata(data)[0]
     if fmt == "png":
         pos = len(PNG_SIGNATURE)
         while pos + 8 <= len(data):
@@ -511,11 +534,14 @@ def _insert_jpeg_segments(data: bytes, segments: bytes) -> bytes:
 
 def exif_block(data: bytes, fmt: str) -> bytes | None:
     """The EXIF data (a TIFF structure: byte order, IFD0 with the orientation tag 274, …) of a JPEG (``APP1
-    Exif``, CIPA DC-008 §4.7.2) or PNG (``eXIf`` chunk, PNG 1.5 extensions); None for TIFF and files without.
+    Exif``, CIPA DC-008 §4.7.2), PNG (``eXIf`` chunk, PNG 1.5 extensions) or WebP (``EXIF`` chunk); None for TIFF
+    and files without.
 
     Pixels are read as stored (no EXIF rotation), so the EXIF is written back unchanged: a viewer shows the output
     turned like the input, and boxes and masks in stored pixel coordinates stay aligned. Its thumbnail, if any, is
     the input's."""
+    if fmt == "webp":
+        return webp.metadata(data)[1]
     if fmt == "jpeg":
         for marker, segment in _jpeg_segments(data):
             if marker == 0xE1 and segment.startswith(_EXIF_JPEG_HEADER):
@@ -611,7 +637,9 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding, *, bgr: bool = Tr
 
 def check_structure(data: bytes, fmt: str, path) -> None:
     """Raise :class:`InputError` for a file that is not ``fmt`` or is cut short (see module docstring)."""
-    if fmt == "png":
+    if fmt == "webp":
+        webp.check_structure(data, path)
+    elif fmt == "png":
         if not data.startswith(PNG_SIGNATURE):
             raise InputError("not a PNG file (bad signature)", file=str(path))
         if data.rfind(_PNG_IEND) < 0:

@@ -141,7 +141,7 @@ def orientation(encoding) -> int:
     viewer turns or mirrors the stored pixels to show them (CIPA DC-008 §4.6.4); 1 when the file states none."""
     if encoding.fmt == "tiff":
         return tiff_orientation(encoding.metadata)
-    exif = encoding.exif or b""
+    exif = (encoding.exif or b"").removeprefix(b"Exif\x00\x00")     # a WebP EXIF chunk may keep JPEG's header
     if exif[:4] not in (b"II*\x00", b"MM\x00*"):
         return 1
     order = "little" if exif[:2] == b"II" else "big"
