@@ -467,8 +467,8 @@ def _write_exr_image(path, pixels: np.ndarray, encoding: ImageEncoding, alpha: n
 
 
 def icc_profile(data: bytes, fmt: str) -> bytes | None:
-    """The ICC profile embedded in a PNG (``iCCP``), JPEG (``APP2 ICC_PROFILE``, in sequence), TIFF (tag 34675) or
-    WebP (``ICCP``)."""
+    """The ICC profile embedded in a PNG (``iCCP``; None when its stream does not inflate, and the file is read as
+    sRGB), JPEG (``APP2 ICC_PROFILE``, in sequence), TIFF (tag 34675) or WebP (``ICCP``)."""
     if fmt == "webp":
         return webp.metadata(data)[0]
     if fmt == "png":
@@ -477,8 +477,11 @@ def icc_profile(data: bytes, fmt: str) -> bytes | None:
             length, kind = int.from_bytes(data[pos:pos + 4], "big"), data[pos + 4:pos + 8]
             if kind == b"iCCP":
                 body = data[pos + 8:pos + 8 + length]
-                name_end = body.index(b"\x00")
-                return zlib.decompress(body[name_end + 2:])       # name, NUL, compression method 0, zlib stream
+                name_end = body.find(b"\x00")
+                try:                                               # name, NUL, compression method 0, zlib stream
+                    return zlib.decompress(body[name_end + 2:]) if name_end > 0 else None
+                except zlib.error:         # not a zlib stream (Pillow's icc_profile_none.png): no profile, as Pillow
+                    return None
             if kind == b"IDAT":
                 return None
             pos += 12 + length

@@ -178,6 +178,26 @@ def test_icc_profile_of_another_colour_space_than_the_output_is_dropped(tmp_path
     assert (Image.open(dst).info.get("icc_profile") == bytes(icc)) == kept
 
 
+def test_a_png_icc_chunk_that_does_not_inflate_is_no_profile(tmp_path):
+    """Pillow's icc_profile_none.png: an iCCP chunk whose stream has no zlib header. Reading it raised an internal
+    zlib error (the image failed); now the image reads as sRGB without a profile, as Pillow reads it, and its
+    output has none."""
+    import zlib
+
+    from roadview_noise.io.png import png_chunk
+
+    src, dst = tmp_path / "in.png", tmp_path / "out.png"
+    _photo().save(src)
+    data = src.read_bytes()
+    deflate = zlib.compressobj(wbits=-15)                            # a raw deflate stream: no zlib header
+    body = b"ICC Profile\x00\x00" + deflate.compress(bytes(300)) + deflate.flush()
+    src.write_bytes(data[:33] + png_chunk(b"iCCP", body) + data[33:])
+    linear, enc = _roundtrip(src, dst)
+    assert enc.icc_profile is None and linear.shape == (64, 96, 3)
+    with Image.open(src) as read_in, Image.open(dst) as written:
+        assert read_in.info.get("icc_profile") is None and written.info.get("icc_profile") is None
+
+
 def test_a_tiff_opencv_cannot_decode_is_refused_naming_why(tmp_path):
     """2/4-bit grey TIFFs (Pillow's hopper_gray_4bpp.tif) were refused as "corrupt or unsupported variant"; the
     error now names the layout (and a missing PhotometricInterpretation tag, Pillow's 10ct_32bit_128.tiff)."""
