@@ -467,11 +467,12 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             sc.fill = mask_fill(rule, spec, rel, sc.data)
         elif role == "polygons":
             sc.data = ann_io.read_polygons(path)
-            h, w = stored_shape(data)
+            h, w = labelme_shape(data)
             size = (sc.data.get("imageWidth"), sc.data.get("imageHeight")) if "shapes" in sc.data else (w, h)
             if size not in ((w, h), (None, None)):
-                raise InputError(f"LabelMe file {rel} is for a {size[0]}×{size[1]} px image, {relpath} is {w}×{h}",
-                                 file=str(in_root / relpath))
+                shown = f" as displayed (EXIF orientation {labelme_turn(data)})" if labelme_turn(data) != 1 else ""
+                raise InputError(f"LabelMe file {rel} is for a {size[0]}×{size[1]} px image, {relpath} is {w}×{h}"
+                                 f"{shown}", file=str(in_root / relpath))
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
             h, w = stored_shape(data)
@@ -498,11 +499,12 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
                              {"role": s.role, "path": s.relpath, "absent": NO_YOLO_FILE} for s in sidecars])
     sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
+    upright = labelme_turn(data_in) == 1     # a turned photo's bytes are not what LabelMe shows: imageData null
     for s in sidecars:
         if camera and not data_out.warps and _embeds_image(s):
-            result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix),
-                                     lambda p, image, s=s: write_bytes_atomic(
-                                         p, ann_io.labelme_with_image(s.path.read_bytes(), image))))
+            result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix), lambda p, image, s=s:
+                                     write_bytes_atomic(p, ann_io.labelme_with_image(s.path.read_bytes(),
+                                                                                     image if upright else None))))
         elif s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
@@ -536,10 +538,13 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
                     values = warp.apply_labels(values, s.fill)
                 mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
-            elif s.role == "polygons" and _embeds_image(s):
-                moved = warp_polygon_objects(s.data, data_out.warps, w, h)
-                result.embedding.append((dest, lambda p, image, d=moved: ann_io.write_polygons(
-                    p, {**d, "imageData": ann_io.labelme_image_data(image)})))
+            elif s.role == "polygons" and "shapes" in s.data:
+                moved = warp_labelme_displayed(s.data, data_out.warps, (h, w), labelme_turn(data_in))
+                if _embeds_image(s):
+                    result.embedding.append((dest, lambda p, image, d=moved: ann_io.write_polygons(
+                        p, {**d, "imageData": ann_io.labelme_image_data(image if upright else None)})))
+                else:
+                    result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
             elif s.role == "polygons":
                 moved = warp_polygon_objects(s.data, data_out.warps, w, h)
                 result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
@@ -662,6 +667,53 @@ def warp_labelme(data: dict, warps, width: int, height: int) -> dict:
         if points is not None:
             kept.append({**shape, "points": points})
     return {**data, "shapes": kept, "imageWidth": width, "imageHeight": height}
+
+
+def labelme_turn(data) -> int:
+    """The EXIF orientation of a photo as read: labelme shows a photo turned by it (``apply_exif_orientation`` when
+    it loads the file), so a LabelMe file's shapes, ``imageWidth`` and ``imageHeight`` are the photo's as displayed,
+    whether rvnoise processes it upright or as stored."""
+    from .io.image_metadata import orientation
+
+    return orientation(data.encoding) if isinstance(data, CameraFrame) else 1
+
+
+def labelme_shape(data) -> tuple[int, int]:
+    """(H, W) of the photo as labelme displays it (:func:`labelme_turn`)."""
+    from .orientation import stored_shape, transposes
+
+    h, w = stored_shape(data)
+    return (w, h) if transposes(labelme_turn(data)) else (h, w)
+
+
+def warp_labelme_displayed(data: dict, warps, stored_shape: tuple[int, int], turn: int) -> dict:
+    """:func:`warp_labelme` of a file in the displayed coordinates of a photo with EXIF orientation ``turn``: its
+    points turned to stored pixels, moved by the stored warps, turned back (``imageWidth``/``imageHeight`` the
+    displayed size). InputError for a ``mask`` shape of a turned photo (its bitmap is not turned)."""
+    from .orientation import stored_xy, transposes, upright_xy
+
+    h, w = stored_shape
+    if turn == 1:
+        return warp_labelme(data, warps, w, h)
+    if any(s.get("shape_type") == "mask" for s in data["shapes"]):
+        raise InputError(f"LabelMe mask shapes of a photo with EXIF orientation {turn} are not moved by a geometric "
+                         "step; convert them to polygons, or use a photometric chain")
+    shown = (w, h) if transposes(turn) else (h, w)
+    stored = warp_labelme(_labelme_points(data, lambda q: stored_xy(q, turn, shown)), warps, w, h)
+    return {**_labelme_points(stored, lambda q: upright_xy(q, turn, (h, w))), "imageWidth": shown[1],
+            "imageHeight": shown[0]}
+
+
+def _labelme_points(data: dict, convert) -> dict:
+    """A LabelMe file with every shape's points through ``convert`` ((N, 2) → (N, 2)), to 1/1000 px; a rectangle
+    as its lowest and highest corner."""
+    shapes = []
+    for shape in data["shapes"]:
+        q = convert(np.asarray(shape["points"], dtype=float).reshape(-1, 2))
+        if shape.get("shape_type") == "rectangle":
+            q = np.stack([q.min(axis=0), q.max(axis=0)])
+        shapes.append({**shape, "points": (np.round(q, 3) + 0.0).tolist()})
+    return {**data, "shapes": shapes}
 
 
 def _moved_labelme_mask(shape: dict, warps, width: int, height: int) -> dict | None:

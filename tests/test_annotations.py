@@ -853,6 +853,39 @@ def test_a_labelme_file_embeds_the_augmented_image_under_a_photometric_chain(cit
                                        base64.b64encode(augmented).decode())
 
 
+def test_labelme_shapes_of_a_turned_phone_photo_are_in_displayed_coordinates(tmp_path, monkeypatch):
+    """labelme turns a photo by its EXIF orientation when it opens it, so a phone JPEG stored 80×60 with orientation
+    6 is labelled as a 60×80 image. Such a file failed ("for a 60×80 px image, … is 80×60"); now its shapes move as
+    the displayed photo's (oracle: the test warp's closed form on the 60×80 upright frame, which the chain warps),
+    its size stays the displayed one, and imageData becomes null (the output's bytes are stored turned, which
+    LabelMe would show unturned)."""
+    from PIL import Image
+
+    monkeypatch.setitem(MODELS, WarpTestCamera.id, WarpTestCamera)
+    root = tmp_path / "in"
+    (root / "phone").mkdir(parents=True)
+    exif = Image.Exif()
+    exif[274] = 6
+    stored = (np.random.default_rng(5).uniform(0, 255, (60, 80, 3))).astype(np.uint8)
+    Image.fromarray(stored).save(root / "phone/IMG_1.jpg", quality=95, exif=exif.tobytes())
+    shapes = [{"label": "car", "points": [[10, 12], [40, 12.5], [38, 50], [11, 49]], "shape_type": "polygon"},
+              {"label": "sign", "points": [[45, 60], [30, 20]], "shape_type": "rectangle"},
+              {"label": "light", "points": [[20, 7]], "shape_type": "point"}]
+    (root / "phone/IMG_1.json").write_text(json.dumps(
+        {"version": "5.4.1", "flags": {}, "shapes": shapes, "imagePath": "IMG_1.jpg", "imageData": "/9j/",
+         "imageHeight": 80, "imageWidth": 60}))
+    recipe = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": {
+        "camera": "phone/*.jpg", "annotations": {"polygons": "{stem}.json"}}}, tmp_path)
+    assert run(recipe, root, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    out = json.loads((tmp_path / "out/phone/IMG_1.json").read_text())
+    assert (out["imageWidth"], out["imageHeight"], out["imageData"]) == (60, 80, None)
+    forward = lambda p: np.stack(WarpTestCamera().forward(*np.asarray(p, float).T, 60, 80), axis=1)  # noqa: E731
+    moved = {sh["label"]: np.array(sh["points"]) for sh in out["shapes"]}
+    np.testing.assert_allclose(moved["car"], forward(shapes[0]["points"]), atol=2e-3)
+    np.testing.assert_allclose(moved["sign"], forward([[30, 20], [45, 60]]), atol=2e-3)
+    np.testing.assert_allclose(moved["light"], forward(shapes[2]["points"]), atol=2e-3)
+
+
 def test_a_labelme_mask_shape_is_resampled_like_a_label_image(cityscapes, tmp_path):
     """A LabelMe ``mask`` shape (labelme ≥ 5.3: a 1-bit PNG of its box in base64, placed at the box's first point,
     as in labelme's examples/primitives) goes through the image's map as masks do (nearest neighbour, 0 where
