@@ -103,7 +103,7 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
     else:
         photometric, icc, extras = None, icc_profile(data, fmt), ()
         metadata = image_metadata.png_chunks(data) if fmt == "png" else webp.metadata(data)[2] if fmt == "webp" \
-            else image_metadata.jfif_density(data)
+            else image_metadata.jfif_density(data) + _jpeg_descriptive_segments(data)
     alpha_tiff = fmt == "tiff" and len(extras) == 1 and photometric in _TIFF_ALPHA_PHOTOMETRICS
     codes = _tiff_with_alpha(data) if alpha_tiff else None
     if codes is None:
@@ -350,7 +350,8 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     if not ok:
         raise OSError(f"{name}: OpenCV could not encode {encoding}")
     jpeg = image_metadata.with_jfif_density(buf.tobytes(), encoding.metadata)
-    return embed_exif(embed_icc_profile(jpeg, encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
+    jpeg = embed_exif(embed_icc_profile(jpeg, encoding.fmt, encoding.icc_profile), "jpeg", encoding.exif)
+    return _with_segments_before_tables(jpeg, b"".join(m for m in encoding.metadata if m.startswith(b"\xff")))
 
 
 def _encode_webp(codes: np.ndarray, encoding: ImageEncoding, name: str) -> bytes:
@@ -573,6 +574,29 @@ def embed_exif(data: bytes, fmt: str, exif: bytes | None) -> bytes:
     if len(body) + 2 > 0xFFFF:
         return data
     return _insert_jpeg_segments(data, b"\xff\xe1" + (len(body) + 2).to_bytes(2, "big") + body)
+
+
+_JPEG_DESCRIPTIVE = ((0xE1, b"http://ns.adobe.com/xap/1.0/\x00"), (0xE1, b"http://ns.adobe.com/xmp/extension/\x00"),
+                     (0xED, b"Photoshop 3.0\x00"), (0xFE, b""))      # XMP, extended XMP, IPTC, comment
+
+
+def _jpeg_descriptive_segments(data: bytes) -> tuple[bytes, ...]:
+    """The XMP, IPTC and comment marker segments of a JPEG, whole (marker, length, payload), in file order
+    (:mod:`.image_metadata`)."""
+    return tuple(b"\xff" + bytes([marker]) + (len(seg) + 2).to_bytes(2, "big") + seg
+                 for marker, seg in _jpeg_segments(data)
+                 if any(marker == m and seg.startswith(head) for m, head in _JPEG_DESCRIPTIVE))
+
+
+def _with_segments_before_tables(data: bytes, segments: bytes) -> bytes:
+    """JPEG bytes with marker ``segments`` after the application segments (APP0–APP15) that open the file, before
+    its first table."""
+    if not segments:
+        return data
+    pos = 2
+    while pos + 4 <= len(data) and data[pos] == 0xFF and 0xE0 <= data[pos + 1] <= 0xEF:
+        pos += 2 + int.from_bytes(data[pos + 2:pos + 4], "big")
+    return data[:pos] + segments + data[pos:]
 
 
 def _jpeg_frame_layout(data: bytes) -> dict:

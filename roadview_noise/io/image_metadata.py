@@ -7,7 +7,10 @@
   encoding is written back). Left out: what depends on the colour type or palette (``tRNS`` is the alpha plane,
   ``bKGD``, ``sBIT``, ``hIST``, ``sPLT``), ``tIME`` (the last modification) and animation chunks.
 - TIFF: orientation (274), description, make, model, date, artist, copyright, XMP (700) and the resolution.
-- JPEG: the JFIF density (APP0: units and X, Y density, the dots per inch viewers show), which OpenCV writes 1:1.
+- JPEG: the JFIF density (APP0: units and X, Y density, the dots per inch viewers show), which OpenCV writes 1:1,
+  and the descriptive marker segments, whole: XMP (APP1 ``http://ns.adobe.com/xap/1.0/``, extended XMP), IPTC
+  (APP13 ``Photoshop 3.0``) and comments (COM). Left out: MPF (APP2: offsets of the images a phone appends after
+  the end of the image, which are not written) and other application segments.
 - An ICC profile whose colour space the written image cannot have (a grey profile on the RGBA file a grey + alpha
   PNG becomes, a CMYK profile on the RGB file OpenCV decodes a CMYK JPEG to) is dropped: ICC.1 §7.2.6, a viewer
   would reject or misread it (an RGB profile on a grey file is kept, as the input had it).
@@ -80,10 +83,11 @@ def jfif_density(data: bytes) -> tuple[bytes, ...]:
 
 def with_jfif_density(data: bytes, metadata: tuple) -> bytes:
     """JPEG bytes (OpenCV writes a JFIF APP0 with a 1:1 aspect ratio) with the input's JFIF density
-    (:func:`jfif_density`)."""
-    if len(metadata) != 1 or not jfif_density(data):
+    (:func:`jfif_density`: the one item of a JPEG's metadata that is no marker segment)."""
+    density = next((m for m in metadata if not m.startswith(b"\xff")), None)
+    if density is None or not jfif_density(data):
         return data
-    return data[:_JFIF_DENSITY.start] + metadata[0] + data[_JFIF_DENSITY.stop:]
+    return data[:_JFIF_DENSITY.start] + density + data[_JFIF_DENSITY.stop:]
 
 
 def tiff_tags(page) -> tuple:

@@ -104,6 +104,35 @@ def test_jpeg_with_data_after_its_end_is_read(tmp_path):
         read_image(tmp_path / "cut.jpg")
 
 
+def _segment(marker: int, payload: bytes) -> bytes:
+    return bytes([0xFF, marker]) + (len(payload) + 2).to_bytes(2, "big") + payload
+
+
+def test_jpeg_xmp_iptc_and_comment_segments_are_kept_and_mpf_is_not(tmp_path):
+    """A camera JPEG's XMP (APP1, as Pillow's xmp_test.jpg: provenance, ratings, the orientation too), IPTC (APP13
+    Photoshop 3.0) and comment (COM) come out byte for byte, in their order, after the EXIF (round 22; before: all
+    dropped); an MPF segment (APP2: offsets of the images a phone appends after the end, which are not written) is
+    not copied."""
+    src, dst = tmp_path / "in.jpg", tmp_path / "out.jpg"
+    exif = Image.Exif()
+    exif[274] = 1
+    _photo().save(src, quality=90, exif=exif.tobytes())
+    data = src.read_bytes()
+    kept = [_segment(0xE1, b"http://ns.adobe.com/xap/1.0/\x00<x:xmpmeta xmlns:x='adobe:ns:meta/'/>"),
+            _segment(0xED, b"Photoshop 3.0\x008BIM\x04\x04\x00\x00\x00\x00\x00\x05\x1c\x02\x00\x00\x02"),
+            _segment(0xFE, b"recorded by the test rig")]
+    mpf = _segment(0xE2, b"MPF\x00MM\x00*\x00\x00\x00\x08")
+    at = data.index(b"\xff\xdb")                                     # before the first quantisation table
+    src.write_bytes(data[:at] + kept[0] + mpf + b"".join(kept[1:]) + data[at:])
+    _roundtrip(src, dst)
+    out = dst.read_bytes()
+    positions = [out.find(k) for k in kept]
+    assert -1 not in positions and positions == sorted(positions) and mpf not in out
+    with Image.open(src) as read_in, Image.open(dst) as written:
+        assert written.info["exif"] == read_in.info["exif"] and written.info["xmp"] == read_in.info["xmp"]
+        assert written.info["comment"] == b"recorded by the test rig"
+
+
 def test_png_text_colour_and_imagemagick_exif_chunks_are_kept(tmp_path):
     """ImageMagick keeps a PNG's EXIF (orientation included) in a ``Raw profile type exif`` text chunk and Adobe
     the XMP in iTXt; gAMA, cHRM, sRGB and pHYs say how to show it: all were dropped on write-back."""
