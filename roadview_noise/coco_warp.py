@@ -40,7 +40,7 @@ from .physics.outline_warp import box_ring, clip_polygon, forward_through, moved
 
 DECIMALS = 3
 SEGMENTATION_BOX_PX = 1.0       # a bbox within this of the segmentation's box is that box
-GEOMETRY_KEYS = ("id", "bbox", "segmentation", "area", "keypoints", "num_keypoints", "center2d")
+GEOMETRY_KEYS = ("id", "bbox", "segmentation", "area", "keypoints", "num_keypoints", "center2d", "segments_info")
 
 
 @dataclass
@@ -69,6 +69,10 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
     record: dict[str, Any] = {"image_id": image.image_id, "sha256": image.sha256}
     if not warps:
         return record
+    if any("segments_info" in ann for _, ann in image.annotations):
+        raise InputError(f"COCO panoptic annotations (segments_info) of {image.file_name!r}: their bbox and area "
+                         "describe the panoptic PNG, which a geometric step moves, and are not recomputed; use a "
+                         "photometric chain for a panoptic file (its PNGs go under masks)")
     record["distortion"] = coco_camera.steps(warps)          # the image is no longer pinhole (coco_camera)
     mover = _Mover(warps, w, h)
     parsed = []

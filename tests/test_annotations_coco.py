@@ -393,3 +393,21 @@ def test_resume_redoes_images_whose_record_is_for_another_coco_file(coco_tree, t
     assert again.skipped == 0 and again.done == 3                       # every record was of the old file
     (bx0, _), _ = forward_coco([12.0, 32.0], [10.0, 25.0])
     assert _by_id(_out(out))[21]["bbox"][0] == pytest.approx(bx0, abs=2e-3)
+
+
+def test_a_coco_panoptic_file_is_refused_under_a_warp_and_copied_otherwise(coco_tree, tmp_path):
+    """COCO panoptic (Mapillary Vistas v2 ``panoptic_2020.json``, Cityscapes' ``cityscapes_panoptic_val.json``):
+    ``annotations`` per image with ``file_name`` of the panoptic PNG and ``segments_info`` (id, category_id, area,
+    bbox). It passed as a COCO file and, under a warp, came out with every segment's bbox and area as read while
+    the image moved; now such an image fails, named, and a photometric chain copies the file."""
+    panoptic = {"images": [{"id": 1, "file_name": "a.png", "width": W, "height": H}],
+                "annotations": [{"image_id": 1, "file_name": "a_panoptic.png", "segments_info": [
+                    {"id": 7, "category_id": 3, "area": 120, "bbox": [10, 12, 15, 8], "iscrowd": 0}]}],
+                "categories": [{"id": 3, "name": "car", "isthing": 1, "color": [0, 0, 142]}]}
+    (coco_tree / "annotations/instances.json").write_text(json.dumps(panoptic))
+    summary = _run(_recipe("warp_test.camera", tmp_path), coco_tree, tmp_path / "out")
+    errors = [e.get("error", "") for e in read_manifest(tmp_path / "out/manifest.jsonl")]
+    assert summary.failed == 1 and any("COCO panoptic annotations (segments_info) of 'a.png'" in e for e in errors)
+    assert _run(_recipe("compression.camera", tmp_path), coco_tree, tmp_path / "out2").failed == 0
+    assert (tmp_path / "out2/annotations/instances.json").read_bytes() == \
+        (coco_tree / "annotations/instances.json").read_bytes()
