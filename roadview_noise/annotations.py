@@ -161,12 +161,16 @@ MASK_FILES_NOT_READ = {      # label files a user may name as masks that are no 
 
 # Label images a camera glob may sweep up with the photos: folders and name endings of the datasets' label trees
 # (Cityscapes gtFine/gtCoarse *_labelIds, *_instanceIds, *_labelTrainIds, *_color; Pascal VOC SegmentationClass/
-# SegmentationObject; BDD100K, Mapillary Vistas, KITTI-STEP, mmsegmentation and CamVid label folders). Not "gt":
-# dehazing sets (RESIDE, O-HAZE) keep their clear photos in GT/.
+# SegmentationObject; BDD100K, Mapillary Vistas, KITTI-STEP, mmsegmentation and CamVid label folders; KITTI and
+# KITTI-360 semantics' instance/, semantic_rgb/, confidence/; ACDC's and Dark Zurich's *_gt_labelColor,
+# *_gt_invIds, *_gt_invGray, *_gt_panoptic in gt/). Not "gt": dehazing sets (RESIDE, O-HAZE) keep their clear
+# photos in GT/.
 LABEL_FOLDERS = frozenset({"gtfine", "gtcoarse", "segmentationclass", "segmentationclassaug", "segmentationobject",
-                           "labels", "label", "masks", "mask", "instances", "panoptic", "panoptic_maps", "bitmasks",
-                           "semantic", "ann_dir", "annotations", "trainannot", "valannot", "testannot"})
-LABEL_NAME_ENDINGS = ("_labelids", "_instanceids", "_labeltrainids", "_gtfine_color", "_gtcoarse_color")
+                           "labels", "label", "masks", "mask", "instances", "instance", "panoptic", "panoptic_maps",
+                           "gt_panoptic", "bitmasks", "semantic", "semantic_rgb", "confidence", "ann_dir",
+                           "annotations", "trainannot", "valannot", "testannot"})
+LABEL_NAME_ENDINGS = ("_labelids", "_instanceids", "_labeltrainids", "_gtfine_color", "_gtcoarse_color",
+                      "_gt_labelcolor", "_gt_invids", "_gt_invgray", "_gt_panoptic")
 
 
 def label_image_reason(relpath: str, globs: list[str]) -> str | None:

@@ -951,6 +951,25 @@ def test_label_images_a_camera_glob_sweeps_up_fail_alone_naming_the_fix(cityscap
     assert annotations.label_image_reason("x/a_gtFine_labelIds.png", ["**/*_labelIds.png"]) is None
 
 
+@pytest.mark.parametrize("rel,why", [
+    ("gt/fog/train/GOPR0475/GOPR0475_frame_000041_gt_invIds.png", "named like a label image, *_gt_invIds.png"),
+    ("gt/fog/train/GOPR0475/GOPR0475_frame_000041_gt_labelColor.png", "named like a label image, *_gt_labelColor.png"),
+    ("gt/val/night/GOPR0356/GOPR0356_frame_000321_gt_invGray.png", "named like a label image, *_gt_invGray.png"),
+    ("data_2d_semantics/train/2013_05_28_drive_0000_sync/image_00/semantic_rgb/0000000250.png",
+     "in a label folder, semantic_rgb/"),
+    ("data_2d_semantics/train/2013_05_28_drive_0000_sync/image_00/confidence/0000000250.png",
+     "in a label folder, confidence/"),
+    ("data_semantics/training/instance/000000_10.png", "in a label folder, instance/"),
+    ("rgb_anon/fog/train/GOPR0475/GOPR0475_frame_000041_rgb_anon.png", None),
+    ("leftImg8bit_foggy/train/aachen/aachen_000000_000019_leftImg8bit_foggy_beta_0.02.png", None),
+    ("data_2d_raw/2013_05_28_drive_0000_sync/image_00/data_rect/0000000250.png", None)])
+def test_adverse_weather_and_kitti_360_label_images_are_not_photos(rel, why):
+    """ACDC's and Dark Zurich's gt/ (invalid-pixel masks, colour label images: not named *_labelIds), KITTI-360's
+    and KITTI semantics' semantic_rgb/, confidence/, instance/ folders: a ``**/*.png`` camera glob on such a root
+    fogged them as photos before round 22; their photos (rgb_anon/, leftImg8bit_foggy/, data_rect/) stay photos."""
+    assert annotations.label_image_reason(rel, ["**/*.png"]) == why
+
+
 def test_mask_of_another_size_fails_that_image(cityscapes, tmp_path):
     rel = "gtFine/val/lindau/lindau_000001_000019_gtFine_labelIds.png"
     cv2.imwrite(str(cityscapes / rel), np.zeros((30, 40), np.uint8))
