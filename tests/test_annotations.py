@@ -782,8 +782,8 @@ def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
     """A LabelMe JSON (shapes with points and shape_type) under ``polygons``: polygons move and are clipped, a
     rectangle becomes the box of its moved outline, lines, points and circles move point by point (closed-form
     oracle), a shape pushed off the image is dropped, imageData (the image, base64) holds the augmented image's file
-    (before round 22: null), every other key is kept; a shape type LabelMe does not have fails the image naming it; a file for another image size fails
-    naming both sizes."""
+    (before round 22: null), every other key is kept; a shape type LabelMe does not have fails the image naming it;
+    a file for another image size fails naming both sizes."""
     gt = cityscapes / "gtFine/val/lindau"
     shapes = [{"label": "car", "points": [[10, 12], [40, 12.5], [38, 30], [11, 29]], "group_id": None,
                "shape_type": "polygon", "flags": {}, "description": ""},
@@ -800,10 +800,9 @@ def test_labelme_shapes_follow_the_map(cityscapes, tmp_path):
     assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
     out = json.loads((tmp_path / "out/gtFine/val/lindau/lindau_000001_000019_labelme.json").read_text())
     image = tmp_path / "out/leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png"
-    assert base64.b64decode(out["imageData"]) == image.read_bytes() and {k: out[k] for k in ("version", "flags", "imagePath", "imageHeight",
-                                                             "imageWidth")} == {k: data[k] for k in
-                                                                                ("version", "flags", "imagePath",
-                                                                                 "imageHeight", "imageWidth")}
+    kept = ("version", "flags", "imagePath", "imageHeight", "imageWidth")
+    assert base64.b64decode(out["imageData"]) == image.read_bytes()
+    assert {k: out[k] for k in kept} == {k: data[k] for k in kept}
     model = WarpTestCamera()
     forward = lambda p: np.stack(model.forward(*np.asarray(p, float).T, 80, 60), axis=1)   # noqa: E731
     moved = {sh["label"]: sh for sh in out["shapes"]}

@@ -173,7 +173,8 @@ def test_pose_graph_nodes_move_as_points(bdd_tree, tmp_path):
     frames = _frames()
     nodes = [{"location": xy, "category": c, "visibility": v, "id": str(k)}
              for k, (xy, c, v) in enumerate(zip(POSE, ("head", "left_ankle", "right_ankle"), "VNV"))]
-    graph = {"nodes": nodes, "edges": [{"source": "0", "target": "2", "type": "body"}], "type": "Pose2D-18Joints_Pretty"}
+    graph = {"nodes": nodes, "edges": [{"source": "0", "target": "2", "type": "body"}],
+             "type": "Pose2D-18Joints_Pretty"}
     frames[0]["labels"].insert(0, {"id": "7", "category": "pedestrian", "graph": graph,
                                    "box2d": {"x1": 25.0, "y1": 15.0, "x2": 40.0, "y2": 45.0},
                                    "poly2d": [{"vertices": LANE, "types": "LLLL", "closed": False}]})

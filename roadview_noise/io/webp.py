@@ -83,10 +83,13 @@ def vp8_quality(vp8: bytes) -> int:
     encoded at, from its quantiser indices (RFC 6386 §9.3, §9.6): libwebp sets segment i's index to
     127·(1 − c^(1 − a·α_i)), c = (linear quality)^(1/3) (quant_enc.c ``QualityToCompression``), α_i ∈ [−127, 127]
     its segment's complexity (analysis_enc.c), a = 0.9 · sns 50 / 100 / 128; the most-quantised segment is taken at
-    α = −127. On 448 encodes by libwebp (7 photos at two sizes, qualities 5–98, segmentation on) the estimate is
-    within ±1 of the quality for 90 % of them, within ±5 for all."""
+    α = −127, all segments at one index as no noise shaping. libwebp's default noise shaping (sns 50: OpenCV's,
+    Pillow's and cwebp's default) is assumed; another ``-sns`` is not modelled. On 448 encodes by libwebp (7
+    photos at two sizes, qualities 5–98, segmentation on) the estimate is within ±1 of the quality for 90 % of
+    them, within ±5 for all."""
     indices = _vp8_quantiser_indices(vp8)
-    c = (1 - (max(indices) + 0.5) / 127) ** (1 / (_HARDEST_SEGMENT_EXPONENT if len(indices) > 1 else 1))
+    spread = max(indices) != min(indices)           # segments of one index: no noise shaping (sns 0)
+    c = (1 - (max(indices) + 0.5) / 127) ** (1 / (_HARDEST_SEGMENT_EXPONENT if spread else 1))
     linear = c ** 3
     q = linear * 1.5 if linear < 0.5 else (linear + 1) / 2
     return int(np.clip(np.rint(100 * q), 1, 100))
