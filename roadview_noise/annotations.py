@@ -609,9 +609,8 @@ def warp_polygon_objects(data: dict, warps, width: int, height: int) -> dict:
     """A per-image polygon file (:func:`~roadview_noise.io.annotations.read_polygons`) moved through the warps: each
     object's polygon by the outline mover (edges split where the map bends them), clipped to the image (pixel
     centres on integers: edges at −½ and W − ½), to 1/1000 px; an object left with no area is dropped, one without
-    a polygon (fewer than 3 points) kept as read; every other key as read. A LabelMe file: :func:`warp_labelme`."""
-    if "shapes" in data:
-        return warp_labelme(data, warps, width, height)
+    a polygon (fewer than 3 points) kept as read; every other key as read (a LabelMe file:
+    :func:`warp_labelme_displayed`)."""
     objects = data["objects"]
     moving = [k for k, o in enumerate(objects) if len(o["polygon"]) >= 3]
     rings = [np.asarray(objects[k]["polygon"], dtype=float).reshape(-1, 2) for k in moving]
