@@ -6,7 +6,8 @@
   orientation), ``pHYs`` (pixel size) and the colour chunks ``gAMA``, ``cHRM``, ``sRGB``, ``cICP`` (the same colour
   encoding is written back). Left out: what depends on the colour type or palette (``tRNS`` is the alpha plane,
   ``bKGD``, ``sBIT``, ``hIST``, ``sPLT``), ``tIME`` (the last modification) and animation chunks.
-- TIFF: orientation (274), description, make, model, date, artist, copyright, XMP (700) and the resolution.
+- TIFF: orientation (274), description, make, model, date, artist, copyright, XMP (700), the resolution and the
+  GeoTIFF tags (an aerial or mapping camera's georeference: 33550, 33922, 34264, 34735–34737).
 - JPEG: the JFIF density (APP0: units and X, Y density, the dots per inch viewers show), which OpenCV writes 1:1,
   and the descriptive marker segments, whole: XMP (APP1 ``http://ns.adobe.com/xap/1.0/``, extended XMP), IPTC
   (APP13 ``Photoshop 3.0``) and comments (COM). Left out: MPF (APP2: offsets of the images a phone appends after
@@ -24,7 +25,8 @@ import tifffile
 from .png import PNG_SIGNATURE
 
 _PNG_KEPT = (b"tEXt", b"zTXt", b"iTXt", b"pHYs", b"gAMA", b"cHRM", b"sRGB", b"cICP")
-_TIFF_KEPT = (270, 271, 272, 274, 306, 315, 700, 33432)  # description … orientation, datetime, artist, XMP, copyright
+_TIFF_KEPT = (270, 271, 272, 274, 306, 315, 700, 33432,  # description … orientation, datetime, artist, XMP, copyright
+              33550, 33922, 34264, 34735, 34736, 34737)  # GeoTIFF: pixel scale, tie points, transformation, geo keys
 _TIFF_RESOLUTION = (282, 283, 296)                       # XResolution, YResolution, ResolutionUnit
 _ICC_NEVER_WRITTEN = (b"CMYK", b"CMY ")                     # ICC data colour spaces rvnoise never writes
 

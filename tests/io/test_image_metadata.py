@@ -175,6 +175,21 @@ def test_tiff_orientation_resolution_and_description_are_kept(tmp_path):
         assert tif.pages[0].tags[274].value == 6 and tif.pages[0].tags[282].value == (1, 1)
 
 
+def test_geotiff_tags_are_kept(tmp_path):
+    """A georeferenced TIFF (imageio's test_images/geotiff.tif layout: ModelPixelScale, ModelTiepoint, GeoKeyDirectory,
+    GeoAsciiParams) keeps its georeference through a write-back (round 22; before: the four tags were dropped)."""
+    import tifffile
+
+    geo = [(33550, "d", 3, (32.8, 32.8, 0.0), True), (33922, "d", 6, (0.0, 0.0, 0.0, 681480.0, 1913050.0, 0.0), True),
+           (34735, "H", 8, (1, 0, 2, 1, 1024, 0, 1, 1), True), (34737, "s", 0, "NAD27 in Feet|", True)]
+    src, dst = tmp_path / "in.tif", tmp_path / "out.tif"
+    tifffile.imwrite(src, np.asarray(_photo()), photometric="rgb", extratags=geo, metadata=None)
+    _roundtrip(src, dst)
+    with tifffile.TiffFile(src) as read_in, tifffile.TiffFile(dst) as written:
+        for code, *_ in geo:
+            assert written.pages[0].tags[code].value == read_in.pages[0].tags[code].value
+
+
 def test_multi_page_tiff_is_refused_naming_its_pages(tmp_path):
     """Only the first page was read and written: the others were lost without a word."""
     import tifffile
