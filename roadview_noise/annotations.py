@@ -505,10 +505,9 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     camera = isinstance(data_out, (CameraFrame, RawFrame))
     upright = labelme_turn(data_in) == 1     # a turned photo's bytes are not what LabelMe shows: imageData null
     for s in sidecars:
-        if camera and not data_out.warps and _embeds_image(s):
-            result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix), lambda p, image, s=s:
-                                     write_bytes_atomic(p, ann_io.labelme_with_image(s.path.read_bytes(),
-                                                                                     image if upright else None))))
+        if camera and not data_out.warps and _is_labelme(s) and (_embeds_image(s) or variant_suffix):
+            result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix),
+                                     _labelme_writer(s, None, variant_suffix, upright)))
         elif s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
@@ -542,13 +541,9 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
                     values = warp.apply_labels(values, s.fill)
                 mask = dataclasses.replace(s.data, values=values)
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
-            elif s.role == "polygons" and "shapes" in s.data:
+            elif _is_labelme(s):
                 moved = warp_labelme_displayed(s.data, data_out.warps, (h, w), labelme_turn(data_in))
-                if _embeds_image(s):
-                    result.embedding.append((dest, lambda p, image, d=moved: ann_io.write_polygons(
-                        p, {**d, "imageData": ann_io.labelme_image_data(image if upright else None)})))
-                else:
-                    result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
+                result.embedding.append((dest, _labelme_writer(s, moved, variant_suffix, upright)))
             elif s.role == "polygons":
                 moved = warp_polygon_objects(s.data, data_out.warps, w, h)
                 result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
@@ -558,9 +553,34 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     return data_out, result
 
 
+def _is_labelme(s: Sidecar) -> bool:
+    return s.role == "polygons" and "shapes" in s.data
+
+
 def _embeds_image(s: Sidecar) -> bool:
     """A LabelMe file holding its image (``imageData`` not null): written with the output image's bytes there."""
-    return s.role == "polygons" and "shapes" in s.data and s.data.get("imageData") is not None
+    return _is_labelme(s) and s.data.get("imageData") is not None
+
+
+def _labelme_writer(s: Sidecar, moved: dict | None, suffix: str, upright: bool):
+    """The writer (path, output image bytes) of a LabelMe file, ``moved`` by the warps or (None) as read: an
+    ``imageData`` it held becomes the output image's (null for a turned photo, ``upright`` False), ``imagePath``
+    names a sweep variant's image (``suffix``); as read, without a variant, only the base64 string is swapped."""
+    from .dataset import output_relpath
+
+    def write(path: Path, image: bytes | None) -> None:
+        shown = image if upright else None
+        if moved is None and not suffix:
+            write_bytes_atomic(path, ann_io.labelme_with_image(s.path.read_bytes(), shown))
+            return
+        doc = dict(s.data if moved is None else moved)
+        if doc.get("imageData") is not None:
+            doc["imageData"] = ann_io.labelme_image_data(shown)
+        if suffix and isinstance(doc.get("imagePath"), str):
+            doc["imagePath"] = output_relpath(doc["imagePath"], suffix)
+        ann_io.write_polygons(path, doc)
+
+    return write
 
 
 def write(annotated: Annotated | None, image: bytes | None = None) -> list[Path]:

@@ -852,6 +852,31 @@ def test_a_labelme_file_embeds_the_augmented_image_under_a_photometric_chain(cit
                                        base64.b64encode(augmented).decode())
 
 
+def test_a_sweep_variant_labelme_file_names_its_own_image(cityscapes, tmp_path):
+    """Under a sweep each variant's LabelMe file (``x__quality-40.json``) says ``imagePath`` of its own image
+    (``x__quality-40.png``) and embeds that image; before round 22 every variant named the unsuffixed input image,
+    which the output tree does not have."""
+    gt = cityscapes / "gtFine/val/lindau"
+    source = cityscapes / "leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png"
+    doc = {"version": "5.4.1", "flags": {}, "shapes": [{"label": "car", "points": [[10, 12], [40, 12], [40, 30]],
+                                                        "shape_type": "polygon"}],
+           "imagePath": "../../../leftImg8bit/val/lindau/lindau_000001_000019_leftImg8bit.png",
+           "imageData": base64.b64encode(source.read_bytes()).decode(), "imageHeight": 60, "imageWidth": 80}
+    (gt / "lindau_000001_000019_labelme.json").write_text(json.dumps(doc))
+    recipe = _recipe({"chain": [{"model": "compression.camera"}], "sweep": {"compression.camera.quality": [40, 80]},
+                      "inputs": {"camera": "leftImg8bit/**/*.png", "annotations": {"polygons": _gt("labelme.json")}}},
+                     tmp_path)
+    assert run(recipe, cityscapes, tmp_path / "out", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    written = sorted((tmp_path / "out/gtFine/val/lindau").glob("*labelme*.json"))
+    assert len(written) == 2
+    for path in written:
+        out = json.loads(path.read_text())
+        image = (path.parent / out["imagePath"]).resolve()
+        suffix = path.stem.removeprefix("lindau_000001_000019_labelme")
+        assert suffix and image.name == f"lindau_000001_000019_leftImg8bit{suffix}.png" and image.is_file()
+        assert base64.b64decode(out["imageData"]) == image.read_bytes() and out["shapes"] == doc["shapes"]
+
+
 def test_labelme_shapes_of_a_turned_phone_photo_are_in_displayed_coordinates(tmp_path, monkeypatch):
     """labelme turns a photo by its EXIF orientation when it opens it, so a phone JPEG stored 80×60 with orientation
     6 is labelled as a 60×80 image. Such a file failed ("for a 60×80 px image, … is 80×60"); now its shapes move as
