@@ -41,6 +41,23 @@ coordinates (x_cc … y_seq) and uuids for added detections; rvnoise's tasks are
 :func:`radarscenes_scan` turns one scan's rows into a 2-D radar cloud in its sensor's frame to write as a PCD
 (README, "Radar inputs").
 
+TJ4DRadSet (``training/velodyne/*.bin``, Oculii Eagle 4D radar; github.com/TJRadarLab/TJ4DRadSet) stores each frame
+as N×8 float32 ``x y z V_r Range Power Alpha Beta`` — the same ``.bin`` suffix and folder as View-of-Delft's N×7,
+and N×8×4 bytes is also a whole number of VoD points when N is a multiple of 7 (6 of the 41 sample frames), so the
+layout is told from the data (:func:`radar_bin_format`): the dataset's README names the columns, and its 41 sample
+frames (108 222 detections) show ``Range`` = ``|p|`` (within 3.1e-5 m), ``Alpha`` = ``−atan2(y, x)`` and ``Beta``
+= ``−atan2(z, x)`` in degrees (within 1.4e-5°): columns that restate the position, recomputed on writing where a
+point no longer matches them (added, moved or turned: :func:`tj4d_derived`). ``V_r`` is the raw range rate,
+positive receding (the README's "relative radial velocity"; a stationary world, car at about 17 m/s, gives
+−17 m/s ahead and −9 m/s at 57°), read as ``v_r_m_per_s``; ``Power`` is "in dB scale and represents the signal to
+noise ratio of the detection" (README), read as ``snr_db``. No RCS: the weather models add no clutter
+(``clutter_skipped``).
+
+A radar ``.bin`` in neither layout (Dual-Radar's Arbe Phoenix and ARS548 RDI clouds are N×5 float32, named ``x y z
+intensity dopple`` in its devkit's dataset configs, units not documented) is read with the recipe's
+``inputs.radar_bin_fields`` (format ``radar_bin``); without it, a size that fits neither layout is refused naming
+both.
+
 The devkit reads exactly these 18 fields (``RadarPointCloud.nbr_dims() == 18``, asserted) and finds
 ``invalid_state`` as the 4th row from the end, so an extra ``rv_effect`` field would make it fail; such a file gets
 its effect codes in the ``.rv_effect`` sidecar instead, as a fixed-layout ``.bin`` does (:func:`fixed_field_layout`).
@@ -64,6 +81,9 @@ NUSCENES_TYPICAL = ("pdh0", "x_rms", "y_rms", "vx_rms", "vy_rms")
 ASTYX_COLUMNS = ("X", "Y", "Z", "V_r", "Mag")
 ASTYX_FIELD_MAP = {"X": "x", "Y": "y", "Z": "z", "V_r": "v_r_m_per_s", "Mag": "power_db"}
 ASTYX_NEGATED = {"V_r": "v_r_m_per_s"}       # stored positive approaching (module docstring)
+TJ4D_COLUMNS = ("x", "y", "z", "V_r", "Range", "Power", "Alpha", "Beta")
+TJ4D_FIELD_MAP = {"V_r": "v_r_m_per_s", "Power": "snr_db"}
+TJ4D_TOLERANCE = {"Range": 5e-4, "Alpha": 1e-3, "Beta": 1e-3}   # m, deg: 16–70× the 41 sample frames' largest
 RADARSCENES_FIELDS = ("timestamp", "sensor_id", "range_sc", "azimuth_sc", "rcs", "vr", "vr_compensated", "x_cc",
                       "y_cc", "x_seq", "y_seq", "uuid", "track_id", "label_id")
 
@@ -74,7 +94,8 @@ class RadarProfileWarning(UserWarning):
 
 def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
     """(dataset, built-in profile) whose file layout ``cloud`` was read in — a View-of-Delft ``.bin``: vod, a
-    nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455 — or None."""
+    nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455, a TJ4DRadSet ``.bin``:
+    oculii-eagle — or None."""
     layout = cloud.layout
     names = tuple(name for _, name, _ in layout.fields) if layout is not None else ()
     if layout is not None and layout.fmt == "vod_bin":
@@ -83,6 +104,8 @@ def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
         return "nuScenes (Continental ARS 408-21)", "ars408"
     if layout is not None and layout.fmt == "txt" and names == ASTYX_COLUMNS:
         return "Astyx HiRes2019", "astyx-6455"
+    if layout is not None and layout.fmt == "tj4d_bin":
+        return "TJ4DRadSet (Oculii Eagle)", "oculii-eagle"
     return None
 
 
@@ -118,10 +141,65 @@ def text_table_fields(names: tuple[str, ...], field_map: Mapping[str, str] | Non
     header) and the columns stored with the opposite sign of their field."""
     if names != ASTYX_COLUMNS:
         return field_map, ()
+    merged = _completed(field_map, ASTYX_FIELD_MAP)
+    return merged, tuple(f for f, c in ASTYX_NEGATED.items() if merged.get(f) == c)
+
+
+def bin_field_map(fmt: str, field_map: Mapping[str, str] | None) -> Mapping[str, str] | None:
+    """The field map of a ``.bin`` in format ``fmt``: the recipe's, completed with TJ4DRadSet's for its layout."""
+    return _completed(field_map, TJ4D_FIELD_MAP) if fmt == "tj4d_bin" else field_map
+
+
+def _completed(field_map: Mapping[str, str] | None, dataset: Mapping[str, str]) -> dict[str, str]:
+    """The recipe's ``field_map`` with a dataset's own names for the fields and targets it leaves free."""
     given = dict(field_map or {})
     taken = set(given.values())
-    merged = {**{f: c for f, c in ASTYX_FIELD_MAP.items() if f not in given and c not in taken}, **given}
-    return merged, tuple(f for f, c in ASTYX_NEGATED.items() if merged.get(f) == c)
+    return {**{f: c for f, c in dataset.items() if f not in given and c not in taken}, **given}
+
+
+def radar_bin_format(data: bytes, columns: tuple[str, ...] | None, path) -> str:
+    """The layout of a radar ``.bin`` (module docstring): ``radar_bin`` when the recipe names its ``columns``, else
+    ``tj4d_bin`` when its size fits 8 float32 columns and every point's Range and Alpha restate its position,
+    ``vod_bin`` when it fits 7; :class:`InputError` otherwise."""
+    if columns is not None:
+        return "radar_bin"
+    n = len(data) // 32
+    if n and len(data) % 32 == 0:
+        table = np.frombuffer(data, "<f4", count=8 * n).reshape(n, 8)
+        if all(np.all(_restated(table[:, i], name, table[:, :3])) for i, name in ((4, "Range"), (6, "Alpha"))):
+            return "tj4d_bin"
+    if len(data) % 28 == 0:
+        return "vod_bin"
+    raise InputError(f"size {len(data)} bytes fits neither View-of-Delft's radar .bin (7 float32 columns: x y z RCS "
+                     "v_r v_r_compensated time) nor TJ4DRadSet's (8: x y z V_r Range Power Alpha Beta, Range = |p|); "
+                     "name its float32 columns in the recipe, inputs.radar_bin_fields (x, y, z first; Dual-Radar's "
+                     "are 5: README, Radar inputs)", file=str(path))
+
+
+def _tj4d_value(name: str, positions: np.ndarray) -> np.ndarray:
+    """TJ4DRadSet's Range (m), Alpha, Beta (deg) of ``positions`` (module docstring)."""
+    p = np.asarray(positions, dtype=np.float64)
+    if name == "Range":
+        return np.linalg.norm(p, axis=1)
+    return -np.degrees(np.arctan2(p[:, 1 if name == "Alpha" else 2], p[:, 0]))
+
+
+def _restated(values: np.ndarray, name: str, positions: np.ndarray) -> np.ndarray:
+    """Which stored ``values`` of TJ4DRadSet's column ``name`` restate their point's position."""
+    return np.abs(values - _tj4d_value(name, positions)) <= TJ4D_TOLERANCE[name]
+
+
+def tj4d_derived(values: np.ndarray, file_name: str, cloud: PointCloud) -> np.ndarray:
+    """A TJ4DRadSet column that restates the position (Range, Alpha, Beta), recomputed for the points whose stored
+    value no longer does (added, moved or turned by the chain); every other value as read."""
+    if file_name not in TJ4D_TOLERANCE:
+        return values
+    stale = ~_restated(np.asarray(values, dtype=np.float64), file_name, cloud.positions_m)
+    if not stale.any():
+        return values
+    out = np.array(values, dtype=np.float64)
+    out[stale] = _tj4d_value(file_name, cloud.positions_m[stale])
+    return out
 
 
 def radarscenes_scan(rows: np.ndarray, first_row: int = 0) -> PointCloud:

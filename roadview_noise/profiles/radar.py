@@ -27,6 +27,12 @@ mapping):
   resolution (the generic grid). Elevation is measured (z varies). Its ``Mag`` is a relative level in dB
   (``power_db``, ``power_unit: relative``): the threshold is the frame's weakest detection (45 in every frame
   checked); there is no RCS, so no clutter.
+- ``oculii-eagle``: Oculii Eagle, the 4D radar of TJ4DRadSet (``training/velodyne/*.bin``, io/radar_formats.py).
+  From the Oculii EAGLE User's Manual (§4.5, sensor radiation cone): 120° horizontal × 40° vertical field of view.
+  From the 41 sample frames of the dataset (github.com/TJRadarLab/TJ4DRadSet, 108 222 detections): detections out
+  to 374 m (``max_range_m`` 375) and within ±60° azimuth. Assumed (no datasheet figures found; override if yours
+  differ): 77 GHz, 1° × 2° angular cells and 0.2 m range bins (the generic grid). Elevation is measured. Its
+  ``Power`` is the detection SNR in dB (``snr_db``, dataset README); there is no RCS, so no clutter.
 
 Every profile has a Doppler bin width ``velocity_resolution_m_per_s`` (default 0.1035 m/s, the RISE analysis: 512
 bins over ±26.5 m/s; it sets the Doppler cells of the clutter model) and a ``power_unit``: ``relative`` (default;
@@ -81,10 +87,17 @@ def astyx_6455() -> RadarProfile:
                         velocity_resolution_m_per_s=0.0812, max_range_m=100.0, elevation_measured=True)
 
 
+def oculii_eagle() -> RadarProfile:
+    """Oculii Eagle (TJ4DRadSet): manual and file values, assumptions marked (module docstring)."""
+    return RadarProfile("oculii-eagle", frequency_hz=77e9, fov_azimuth_deg=120.0, fov_elevation_deg=40.0,
+                        azimuth_resolution_deg=1.0, elevation_resolution_deg=2.0, range_resolution_m=0.2,
+                        max_range_m=375.0, elevation_measured=True)
+
+
 POWER_UNITS = ("relative", "dBm")
 
 BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod, "ars408": ars408,
-           "astyx-6455": astyx_6455}
+           "astyx-6455": astyx_6455, "oculii-eagle": oculii_eagle}
 
 
 def default_radar_profile() -> RadarProfile:

@@ -394,7 +394,7 @@ def test_bad_bin_size_nan_empty_and_suffix(tmp_path):
     np.zeros(4 * 7 + 3, np.uint8).tofile(tmp_path / "odd.bin")
     _expect(tmp_path / "odd.bin", "not a multiple of the 16-byte point")
     np.zeros(5 * 7 + 1, np.float32).tofile(tmp_path / "vod.bin")
-    _expect(tmp_path / "vod.bin", "not a multiple of the 28-byte point", sensor="radar")
+    _expect(tmp_path / "vod.bin", "size 144 bytes fits neither View-of-Delft.s radar .bin", sensor="radar")
 
     table = np.ones((5, 4), np.float32)
     table[1, 0], table[3, 2] = np.nan, np.inf
