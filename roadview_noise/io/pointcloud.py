@@ -38,7 +38,7 @@ from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
 from . import text_table
-from .radar_formats import TJ4D_COLUMNS, bin_field_map, fixed_field_layout, radar_bin_format, text_table_fields
+from .radar_formats import TJ4D_COLUMNS, fixed_field_layout, layout_field_map, radar_bin_format, text_table_fields
 
 FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "tj4d_bin", "radar_bin", "txt")
 
@@ -154,7 +154,6 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
     else:
         if fmt == "vod_bin":
             fmt = radar_bin_format(data, None if bin_fields is None else tuple(bin_fields), path)
-            field_map = bin_field_map(fmt, field_map)
         columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path, fmt), "binary"
     return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
                               field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
@@ -200,6 +199,8 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
     """A cloud from stored columns (file name, dtype string, values) in storage order: canonical names, float64
     positions, the layout to store it back with (``text``: a text table's, io/text_table.py); :class:`InputError`
     (naming ``source``) for an empty cloud, missing or non-scalar x/y/z and non-finite coordinates."""
+    if sensor == "radar":
+        field_map = layout_field_map(tuple(c[0] for c in columns), field_map)
     keys = _canonical_keys([c[0] for c in columns], field_map, source)
     n = len(columns[0][2])
     if n == 0:

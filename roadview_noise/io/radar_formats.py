@@ -58,6 +58,15 @@ intensity dopple`` in its devkit's dataset configs, units not documented) is rea
 ``inputs.radar_bin_fields`` (format ``radar_bin``); without it, a size that fits neither layout is refused naming
 both.
 
+ars548_ros (github.com/robotics-upo/ars548_ros, the open ROS driver of the Continental ARS 548 RDI) publishes its
+detections as ``PointCloudDetection`` with the fields ``x y z v r RCS azimuth elevation`` (float32, RCS int8;
+src/ars548_driver.cpp, detection_list.h): ``v`` the sensor's f_RangeRate ("Detection Radial Velocity", m/s; a
+rate of range, so positive receding — by its name, not checked on recordings), ``r`` its f_Range (m), ``RCS``
+s_RCS (int8; dBsm, Continental's unit, not stated by the driver), azimuth and elevation in radians, x y z computed
+from them. In this layout ``v`` is read as ``v_r_m_per_s`` and ``r`` restates the position
+(:data:`RESTATING`: an added clutter point gets its own |p|, not 0); azimuth and elevation follow
+io/derived_fields.py.
+
 The devkit reads exactly these 18 fields (``RadarPointCloud.nbr_dims() == 18``, asserted) and finds
 ``invalid_state`` as the 4th row from the end, so an extra ``rv_effect`` field would make it fail; such a file gets
 its effect codes in the ``.rv_effect`` sidecar instead, as a fixed-layout ``.bin`` does (:func:`fixed_field_layout`).
@@ -83,7 +92,8 @@ ASTYX_FIELD_MAP = {"X": "x", "Y": "y", "Z": "z", "V_r": "v_r_m_per_s", "Mag": "p
 ASTYX_NEGATED = {"V_r": "v_r_m_per_s"}       # stored positive approaching (module docstring)
 TJ4D_COLUMNS = ("x", "y", "z", "V_r", "Range", "Power", "Alpha", "Beta")
 TJ4D_FIELD_MAP = {"V_r": "v_r_m_per_s", "Power": "snr_db"}
-TJ4D_TOLERANCE = {"Range": 5e-4, "Alpha": 1e-3, "Beta": 1e-3}   # m, deg: 16–70× the 41 sample frames' largest
+ARS548_ROS_FIELDS = ("x", "y", "z", "v", "r", "RCS", "azimuth", "elevation")      # ars548_ros PointCloudDetection
+ARS548_ROS_FIELD_MAP = {"v": "v_r_m_per_s"}
 RADARSCENES_FIELDS = ("timestamp", "sensor_id", "range_sc", "azimuth_sc", "rcs", "vr", "vr_compensated", "x_cc",
                       "y_cc", "x_seq", "y_seq", "uuid", "track_id", "label_id")
 
@@ -95,7 +105,7 @@ class RadarProfileWarning(UserWarning):
 def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
     """(dataset, built-in profile) whose file layout ``cloud`` was read in — a View-of-Delft ``.bin``: vod, a
     nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455, a TJ4DRadSet ``.bin``:
-    oculii-eagle — or None."""
+    oculii-eagle, an ars548_ros detection cloud: ars548 — or None."""
     layout = cloud.layout
     names = tuple(name for _, name, _ in layout.fields) if layout is not None else ()
     if layout is not None and layout.fmt == "vod_bin":
@@ -106,6 +116,8 @@ def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
         return "Astyx HiRes2019", "astyx-6455"
     if layout is not None and layout.fmt == "tj4d_bin":
         return "TJ4DRadSet (Oculii Eagle)", "oculii-eagle"
+    if names == ARS548_ROS_FIELDS:
+        return "ars548_ros (Continental ARS 548 RDI)", "ars548"
     return None
 
 
@@ -145,9 +157,11 @@ def text_table_fields(names: tuple[str, ...], field_map: Mapping[str, str] | Non
     return merged, tuple(f for f, c in ASTYX_NEGATED.items() if merged.get(f) == c)
 
 
-def bin_field_map(fmt: str, field_map: Mapping[str, str] | None) -> Mapping[str, str] | None:
-    """The field map of a ``.bin`` in format ``fmt``: the recipe's, completed with TJ4DRadSet's for its layout."""
-    return _completed(field_map, TJ4D_FIELD_MAP) if fmt == "tj4d_bin" else field_map
+def layout_field_map(names: tuple[str, ...], field_map: Mapping[str, str] | None) -> Mapping[str, str] | None:
+    """The field map of a radar cloud stored with the fields ``names``: the recipe's, completed with the dataset's
+    or driver's own for a layout it names (TJ4DRadSet's ``.bin``, ars548_ros' PointCloudDetection)."""
+    own = {TJ4D_COLUMNS: TJ4D_FIELD_MAP, ARS548_ROS_FIELDS: ARS548_ROS_FIELD_MAP}.get(tuple(names))
+    return field_map if own is None else _completed(field_map, own)
 
 
 def _completed(field_map: Mapping[str, str] | None, dataset: Mapping[str, str]) -> dict[str, str]:
@@ -166,7 +180,8 @@ def radar_bin_format(data: bytes, columns: tuple[str, ...] | None, path) -> str:
     n = len(data) // 32
     if n and len(data) % 32 == 0:
         table = np.frombuffer(data, "<f4", count=8 * n).reshape(n, 8)
-        if all(np.all(_restated(table[:, i], name, table[:, :3])) for i, name in ((4, "Range"), (6, "Alpha"))):
+        rules = RESTATING[TJ4D_COLUMNS]
+        if all(np.all(_restated(table[:, i], rules[n], table[:, :3])) for i, n in ((4, "Range"), (6, "Alpha"))):
             return "tj4d_bin"
     if len(data) % 28 == 0:
         return "vod_bin"
@@ -176,29 +191,41 @@ def radar_bin_format(data: bytes, columns: tuple[str, ...] | None, path) -> str:
                      "are 5: README, Radar inputs)", file=str(path))
 
 
-def _tj4d_value(name: str, positions: np.ndarray) -> np.ndarray:
-    """TJ4DRadSet's Range (m), Alpha, Beta (deg) of ``positions`` (module docstring)."""
-    p = np.asarray(positions, dtype=np.float64)
-    if name == "Range":
-        return np.linalg.norm(p, axis=1)
-    return -np.degrees(np.arctan2(p[:, 1 if name == "Alpha" else 2], p[:, 0]))
+def _range_m(p: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(p, axis=1)
 
 
-def _restated(values: np.ndarray, name: str, positions: np.ndarray) -> np.ndarray:
-    """Which stored ``values`` of TJ4DRadSet's column ``name`` restate their point's position."""
-    return np.abs(values - _tj4d_value(name, positions)) <= TJ4D_TOLERANCE[name]
+def _minus_deg(axis: int):
+    """−atan2(p_axis, x) in degrees: TJ4DRadSet's Alpha (axis 1) and Beta (axis 2)."""
+    return lambda p: -np.degrees(np.arctan2(p[:, axis], p[:, 0]))
 
 
-def tj4d_derived(values: np.ndarray, file_name: str, cloud: PointCloud) -> np.ndarray:
-    """A TJ4DRadSet column that restates the position (Range, Alpha, Beta), recomputed for the points whose stored
-    value no longer does (added, moved or turned by the chain); every other value as read."""
-    if file_name not in TJ4D_TOLERANCE:
-        return values
-    stale = ~_restated(np.asarray(values, dtype=np.float64), file_name, cloud.positions_m)
+# columns of a layout (its file field names) that restate a point's position: (value of positions, tolerance in the
+# column's unit — TJ4DRadSet's 16–70× the largest difference on its 41 sample frames; ars548_ros' r: float32 ranges)
+RESTATING = {TJ4D_COLUMNS: {"Range": (_range_m, 5e-4), "Alpha": (_minus_deg(1), 1e-3),
+                            "Beta": (_minus_deg(2), 1e-3)},
+             ARS548_ROS_FIELDS: {"r": (_range_m, 1e-3)}}
+
+
+def _restated(values: np.ndarray, rule, positions: np.ndarray) -> np.ndarray:
+    """Which stored ``values`` restate their point's position under ``rule`` (an entry of :data:`RESTATING`)."""
+    value, tolerance = rule
+    return np.abs(values - value(np.asarray(positions, dtype=np.float64))) <= tolerance
+
+
+def restated_column(values: np.ndarray, file_name: str, cloud: PointCloud) -> np.ndarray | None:
+    """A column of ``cloud``'s layout that restates the position (:data:`RESTATING`: TJ4DRadSet's Range, Alpha,
+    Beta; ars548_ros' r), recomputed for the points whose stored value no longer does (added, moved or turned by the
+    chain), every other value as read; None for any other column."""
+    names = tuple(name for _, name, _ in cloud.layout.fields) if cloud.layout is not None else ()
+    rule = RESTATING.get(names, {}).get(file_name)
+    if rule is None:
+        return None
+    stale = ~_restated(np.asarray(values, dtype=np.float64), rule, cloud.positions_m)
     if not stale.any():
         return values
     out = np.array(values, dtype=np.float64)
-    out[stale] = _tj4d_value(file_name, cloud.positions_m[stale])
+    out[stale] = rule[0](np.asarray(cloud.positions_m[stale], dtype=np.float64))
     return out
 
 

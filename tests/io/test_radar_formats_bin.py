@@ -154,3 +154,57 @@ def test_cli_augments_a_dual_radar_tree_with_radar_bin_fields_and_a_tj4d_tree_wi
         manifest = (tmp_path / f"out_{folder}" / "manifest.jsonl").read_text()
         entries = [json.loads(line) for line in manifest.splitlines()]
         assert [e.get("status", "ok") for e in entries if "input" in e] == ["ok"], entries
+
+
+# --- ars548_ros PointCloudDetection (x y z v r RCS azimuth elevation; PointCloud2Modifier packs them unpadded) ------
+
+ARS548_FIELDS = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("v", 12, 7), ("r", 16, 7), ("RCS", 20, 1),
+                 ("azimuth", 21, 7), ("elevation", 25, 7)]            # datatype 7 FLOAT32, 1 INT8; point_step 29
+
+
+def ars548_cloud2(n: int = 400, seed: int = 7):
+    from rosbags.typesys import Stores, get_typestore
+
+    from roadview_noise.io import ros_messages as rm
+
+    types = get_typestore(Stores.ROS2_HUMBLE).types
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(1.5, 60, n).astype("<f4")
+    az, el = rng.uniform(-1.0, 1.0, n).astype("<f4"), rng.uniform(-0.2, 0.2, n).astype("<f4")
+    record = np.dtype({"names": [f[0] for f in ARS548_FIELDS], "offsets": [f[1] for f in ARS548_FIELDS],
+                       "formats": ["<" + rm.POINTFIELD_TYPES[f[2]] for f in ARS548_FIELDS], "itemsize": 29})
+    points = np.zeros(n, record)
+    points["x"], points["y"], points["z"] = r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)
+    points["v"] = -12.0 * np.cos(az) * np.cos(el)                   # a stationary world, car at 12 m/s
+    points["r"], points["RCS"], points["azimuth"], points["elevation"] = r, rng.integers(-10, 30, n), az, el
+    pf = types["sensor_msgs/msg/PointField"]
+    header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="r")
+    return types["sensor_msgs/msg/PointCloud2"](
+        header=header, height=1, width=n, fields=[pf(name=a, offset=b, datatype=c, count=1) for a, b, c in
+                                                  ARS548_FIELDS],
+        is_bigendian=False, point_step=29, row_step=29 * n, data=points.view(np.uint8), is_dense=True)
+
+
+def test_an_ars548_ros_detection_cloud_reads_v_as_range_rate_and_added_clutter_gets_its_own_r():
+    from roadview_noise.io import ros_messages as rm
+    from roadview_noise.provenance import Effect
+
+    msg = ars548_cloud2()
+    cloud = rm.cloud_to_pointcloud(msg, sensor="radar", profile=load_radar_profile("ars548"), field_map=None,
+                                   source="t")
+    assert [k for k, _, _ in cloud.layout.fields] == ["x", "y", "z", "v_r_m_per_s", "r", "rcs_dbsm", "azimuth",
+                                                      "elevation"]
+    assert dataset_profile(cloud) == ("ars548_ros (Continental ARS 548 RDI)", "ars548")
+    assert bytes(rm.pointcloud_to_cloud2(msg, cloud, effect="none", source="t").data) == bytes(msg.data)
+    out, rec = apply_models([get_model("rain.radar")(rain_rate_mm_per_h=50)], cloud, seed=1, key="f",
+                            sequence_id="s")
+    added = out.effect == Effect.ADDED
+    assert rec[0].diagnostics["clutter_points"] == int(added.sum()) > 0
+    back = rm.cloud_columns(rm.pointcloud_to_cloud2(msg, out, effect="none", source="t"), source="t")
+    values = {name: col for name, _, col in back}
+    p = out.positions_m[added]
+    np.testing.assert_allclose(values["r"][added], np.linalg.norm(p, axis=1), rtol=1e-6)        # before: 0
+    np.testing.assert_allclose(values["azimuth"][added], np.arctan2(p[:, 1], p[:, 0]), atol=1e-5)
+    kept = ~added
+    np.testing.assert_array_equal(values["r"][kept], cloud.fields["r"][out.origin[kept]])
+    assert (values["RCS"].dtype == np.int8) and values["v"].dtype == np.float32
