@@ -38,7 +38,8 @@ from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
 from . import text_table
-from .radar_formats import TJ4D_COLUMNS, fixed_field_layout, layout_field_map, radar_bin_format, text_table_fields
+from .radar_formats import TJ4D_COLUMNS, check_vod_columns, fixed_field_layout, layout_field_map, radar_bin_format, \
+    text_table_fields
 
 FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "tj4d_bin", "radar_bin", "txt")
 
@@ -155,8 +156,11 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
         if fmt == "vod_bin":
             fmt = radar_bin_format(data, None if bin_fields is None else tuple(bin_fields), path)
         columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path, fmt), "binary"
-    return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
-                              field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
+    cloud = cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
+                               field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
+    if fmt == "vod_bin":
+        check_vod_columns(cloud, path)
+    return cloud
 
 
 def firing_row_columns(ring: np.ndarray) -> tuple[int, ...] | None:

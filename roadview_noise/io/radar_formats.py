@@ -53,7 +53,8 @@ positive receding (the README's "relative radial velocity"; a stationary world, 
 noise ratio of the detection" (README), read as ``snr_db``. No RCS: the weather models add no clutter
 (``clutter_skipped``).
 
-A radar ``.bin`` in neither layout (Dual-Radar's Arbe Phoenix and ARS548 RDI clouds are N×5 float32, named ``x y z
+A ``.bin`` read as View-of-Delft's must also behave as one (:func:`check_vod_columns`). A radar ``.bin`` in neither
+layout (Dual-Radar's Arbe Phoenix and ARS548 RDI clouds are N×5 float32, named ``x y z
 intensity dopple`` in its devkit's dataset configs, units not documented) is read with the recipe's
 ``inputs.radar_bin_fields`` (format ``radar_bin``); without it, a size that fits neither layout is refused naming
 both.
@@ -189,6 +190,21 @@ def radar_bin_format(data: bytes, columns: tuple[str, ...] | None, path) -> str:
                      "v_r v_r_compensated time) nor TJ4DRadSet's (8: x y z V_r Range Power Alpha Beta, Range = |p|); "
                      "name its float32 columns in the recipe, inputs.radar_bin_fields (x, y, z first; Dual-Radar's "
                      "are 5: README, Radar inputs)", file=str(path))
+
+
+def check_vod_columns(cloud: PointCloud, path) -> None:
+    """Refuse a ``.bin`` read as View-of-Delft's whose ``v_r_compensated − v_r`` follows no sensor velocity (RMS
+    above physics/radar_frame.EGO_FIT_MAX_RMS_M_PER_S): the columns are another layout's — a Dual-Radar N×5 frame of
+    7k points fits the 28-byte VoD point too. View-of-Delft's 3 example frames fit within 0.01 m/s; a Dual-Radar-like
+    frame read so, 24 m/s."""
+    from ..physics.radar_frame import EGO_FIT_MAX_RMS_M_PER_S, ego_velocity_from_data
+
+    _, rms = ego_velocity_from_data(cloud, planar=False)
+    if rms > EGO_FIT_MAX_RMS_M_PER_S:
+        raise InputError(f"read as View-of-Delft's radar .bin (x y z RCS v_r v_r_compensated time) its columns do not "
+                         f"behave as VoD's: v_r_compensated − v_r fits no sensor velocity (RMS {rms:.3g} m/s, above "
+                         f"{EGO_FIT_MAX_RMS_M_PER_S}); if it holds another layout (Dual-Radar's 5 columns), name its "
+                         "float32 columns in inputs.radar_bin_fields", file=str(path))
 
 
 def _range_m(p: np.ndarray) -> np.ndarray:

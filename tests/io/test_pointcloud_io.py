@@ -161,6 +161,8 @@ def test_organised_pcd_keeps_grid(tmp_path):
 ])
 def test_bin_formats_roundtrip(tmp_path, name, sensor, columns, fmt, canonical):
     table = np.random.default_rng(5).normal(0, 20, (111, columns)).astype(np.float32)
+    if fmt == "vod_bin":                   # v_r_compensated − v_r = v_ego·r̂ (radar_formats.check_vod_columns)
+        table[:, 5] = table[:, 4] + 4.0 * table[:, 0] / np.linalg.norm(table[:, :3], axis=1)
     table.tofile(tmp_path / name)
     cloud = read_pointcloud(tmp_path / name, sensor=sensor)
     assert cloud.layout.fmt == fmt and [k for k, _, _ in cloud.layout.fields] == canonical

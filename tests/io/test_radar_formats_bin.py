@@ -52,8 +52,9 @@ def test_a_tj4d_frame_is_read_in_its_own_layout_and_written_back_byte_for_byte(t
 
 def test_a_view_of_delft_frame_whose_size_also_fits_8_columns_stays_view_of_delft(tmp_path):
     rng = np.random.default_rng(1)
-    vod = rng.normal(0, 10, (64, 7)).astype("<f4")            # 64 × 28 bytes = 56 rows of 32 bytes
-    (tmp_path / "00001.bin").write_bytes(vod.tobytes())
+    vod = rng.normal(0, 10, (64, 7))                          # 64 × 28 bytes = 56 rows of 32 bytes
+    vod[:, 5] = vod[:, 4] + 3.0 * vod[:, 0] / np.linalg.norm(vod[:, :3], axis=1)      # v_r_comp − v_r = v_ego·r̂
+    (tmp_path / "00001.bin").write_bytes(vod.astype("<f4").tobytes())
     cloud = read_pointcloud(tmp_path / "00001.bin", sensor="radar")
     assert cloud.layout.fmt == "vod_bin" and len(cloud) == 64
     assert [k for k, _, _ in cloud.layout.fields] == VOD_NAMES
@@ -70,6 +71,16 @@ def test_a_radar_bin_in_neither_layout_is_refused_naming_both_and_the_recipe_key
     (tmp_path / "000002.bin").write_bytes(rows.tobytes())
     with pytest.raises(InputError, match="fits neither"):
         read_pointcloud(tmp_path / "000002.bin", sensor="radar")
+
+
+def test_a_dual_radar_frame_of_7k_points_is_not_taken_for_view_of_delft(tmp_path):
+    rng = np.random.default_rng(8)
+    r, az = rng.uniform(3, 60, 70), rng.uniform(-1, 1, 70)        # 70 × 20 bytes = 50 VoD points of 28 bytes
+    rows = np.column_stack([r * np.cos(az), r * np.sin(az), rng.uniform(-2, 2, 70), rng.uniform(0, 40, 70),
+                            -10 * np.cos(az)]).astype("<f4")
+    (tmp_path / "000000.bin").write_bytes(rows.tobytes())
+    with pytest.raises(InputError, match=r"fits no sensor velocity \(RMS .* m/s.*radar_bin_fields"):
+        read_pointcloud(tmp_path / "000000.bin", sensor="radar")
 
 
 def test_radar_bin_fields_read_a_dual_radar_frame_and_write_it_back(tmp_path):
