@@ -68,6 +68,11 @@ from them. In this layout ``v`` is read as ``v_r_m_per_s`` and ``r`` restates th
 (:data:`RESTATING`: an added clutter point gets its own |p|, not 0); azimuth and elevation follow
 io/derived_fields.py.
 
+Oculii Eagle clouds recorded in ROS (NTU4DRadLM, as read by github.com/zhuge2333/4DRadarSLAM's ``EaglePointXYZIVRAB``:
+float32 ``x y z snr_db doppler range alpha beta``) are pointed to ``oculii-eagle`` when no profile is stated;
+``doppler`` and ``snr_db`` are read by their names, ``range`` follows io/derived_fields.py; the sign of ``doppler``
+and the convention of ``alpha``/``beta`` were not checked on recordings (none at hand).
+
 The devkit reads exactly these 18 fields (``RadarPointCloud.nbr_dims() == 18``, asserted) and finds
 ``invalid_state`` as the 4th row from the end, so an extra ``rv_effect`` field would make it fail; such a file gets
 its effect codes in the ``.rv_effect`` sidecar instead, as a fixed-layout ``.bin`` does (:func:`fixed_field_layout`).
@@ -95,6 +100,7 @@ TJ4D_COLUMNS = ("x", "y", "z", "V_r", "Range", "Power", "Alpha", "Beta")
 TJ4D_FIELD_MAP = {"V_r": "v_r_m_per_s", "Power": "snr_db"}
 ARS548_ROS_FIELDS = ("x", "y", "z", "v", "r", "RCS", "azimuth", "elevation")      # ars548_ros PointCloudDetection
 ARS548_ROS_FIELD_MAP = {"v": "v_r_m_per_s"}
+EAGLE_ROS_FIELDS = ("x", "y", "z", "snr_db", "doppler", "range", "alpha", "beta")   # Oculii Eagle PointCloud2
 RADARSCENES_FIELDS = ("timestamp", "sensor_id", "range_sc", "azimuth_sc", "rcs", "vr", "vr_compensated", "x_cc",
                       "y_cc", "x_seq", "y_seq", "uuid", "track_id", "label_id")
 
@@ -106,7 +112,7 @@ class RadarProfileWarning(UserWarning):
 def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
     """(dataset, built-in profile) whose file layout ``cloud`` was read in — a View-of-Delft ``.bin``: vod, a
     nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455, a TJ4DRadSet ``.bin``:
-    oculii-eagle, an ars548_ros detection cloud: ars548 — or None."""
+    oculii-eagle, an ars548_ros detection cloud: ars548, an Oculii Eagle PointCloud2: oculii-eagle — or None."""
     layout = cloud.layout
     names = tuple(name for _, name, _ in layout.fields) if layout is not None else ()
     if layout is not None and layout.fmt == "vod_bin":
@@ -119,6 +125,8 @@ def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
         return "TJ4DRadSet (Oculii Eagle)", "oculii-eagle"
     if names == ARS548_ROS_FIELDS:
         return "ars548_ros (Continental ARS 548 RDI)", "ars548"
+    if names == EAGLE_ROS_FIELDS:
+        return "Oculii Eagle PointCloud2", "oculii-eagle"
     return None
 
 

@@ -219,3 +219,15 @@ def test_an_ars548_ros_detection_cloud_reads_v_as_range_rate_and_added_clutter_g
     kept = ~added
     np.testing.assert_array_equal(values["r"][kept], cloud.fields["r"][out.origin[kept]])
     assert (values["RCS"].dtype == np.int8) and values["v"].dtype == np.float32
+
+
+def test_an_oculii_eagle_pointcloud2_layout_is_pointed_to_its_profile(tmp_path):
+    """NTU4DRadLM's Eagle clouds (EaglePointXYZIVRAB: x y z snr_db doppler range alpha beta, float32), as a PCD."""
+    rows = tj4d_rows(20)[:, [0, 1, 2, 5, 3, 4, 6, 7]]
+    names = "x y z snr_db doppler range alpha beta"
+    header = (f"VERSION 0.7\nFIELDS {names}\nSIZE {' '.join(['4'] * 8)}\nTYPE {' '.join(['F'] * 8)}\n"
+              f"COUNT {' '.join(['1'] * 8)}\nWIDTH 20\nHEIGHT 1\nPOINTS 20\nDATA binary\n")
+    (tmp_path / "e.pcd").write_bytes(header.encode() + rows.tobytes())
+    cloud = read_pointcloud(tmp_path / "e.pcd", sensor="radar")
+    assert dataset_profile(cloud) == ("Oculii Eagle PointCloud2", "oculii-eagle")
+    assert {"snr_db", "v_r_m_per_s", "range"} <= set(cloud.fields)
