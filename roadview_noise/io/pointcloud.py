@@ -38,8 +38,8 @@ from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
 from . import text_table
-from .radar_formats import TJ4D_COLUMNS, check_vod_columns, fixed_field_layout, layout_field_map, radar_bin_format, \
-    text_table_fields
+from .radar_formats import TJ4D_COLUMNS, check_vod_columns, fixed_field_layout, is_tj4d_bin, layout_field_map, \
+    radar_bin_format, text_table_fields
 
 FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "tj4d_bin", "radar_bin", "txt")
 
@@ -155,6 +155,10 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
     else:
         if fmt == "vod_bin":
             fmt = radar_bin_format(data, None if bin_fields is None else tuple(bin_fields), path)
+        elif fmt == "kitti_bin" and bin_fields is None and is_tj4d_bin(data):
+            raise InputError("a TJ4DRadSet 4D-radar .bin (8 float32 columns x y z V_r Range Power Alpha Beta, Range = "
+                             "|p|) read as a LiDAR scan: read it as radar (the recipe's inputs.radar glob, e.g. "
+                             "'training/velodyne/*.bin'; rvnoise preview --sensor radar)", file=str(path))
         columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path, fmt), "binary"
     cloud = cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
                                field_map=field_map, source=path, text=table, lasers_by_ring=lasers)

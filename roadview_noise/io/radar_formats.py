@@ -186,18 +186,26 @@ def radar_bin_format(data: bytes, columns: tuple[str, ...] | None, path) -> str:
     ``vod_bin`` when it fits 7; :class:`InputError` otherwise."""
     if columns is not None:
         return "radar_bin"
-    n = len(data) // 32
-    if n and len(data) % 32 == 0:
-        table = np.frombuffer(data, "<f4", count=8 * n).reshape(n, 8)
-        rules = RESTATING[TJ4D_COLUMNS]
-        if all(np.all(_restated(table[:, i], rules[n], table[:, :3])) for i, n in ((4, "Range"), (6, "Alpha"))):
-            return "tj4d_bin"
+    if is_tj4d_bin(data):
+        return "tj4d_bin"
     if len(data) % 28 == 0:
         return "vod_bin"
     raise InputError(f"size {len(data)} bytes fits neither View-of-Delft's radar .bin (7 float32 columns: x y z RCS "
                      "v_r v_r_compensated time) nor TJ4DRadSet's (8: x y z V_r Range Power Alpha Beta, Range = |p|); "
                      "name its float32 columns in the recipe, inputs.radar_bin_fields (x, y, z first; Dual-Radar's "
                      "are 5: README, Radar inputs)", file=str(path))
+
+
+def is_tj4d_bin(data: bytes | memoryview) -> bool:
+    """The bytes hold TJ4DRadSet's N×8 float32 layout: every point's Range and Alpha restate its position (the first
+    64 points first: a LiDAR ``.bin`` is told apart without a pass over the file)."""
+    n = len(data) // 32
+    if not n or len(data) % 32:
+        return False
+    table = np.frombuffer(data, "<f4", count=8 * n).reshape(n, 8)
+    rules = RESTATING[TJ4D_COLUMNS]
+    return all(np.all(_restated(rows[:, i], rules[name], rows[:, :3]))
+               for rows in (table[:64], table) for i, name in ((4, "Range"), (6, "Alpha")))
 
 
 def check_vod_columns(cloud: PointCloud, path) -> None:

@@ -231,3 +231,18 @@ def test_an_oculii_eagle_pointcloud2_layout_is_pointed_to_its_profile(tmp_path):
     cloud = read_pointcloud(tmp_path / "e.pcd", sensor="radar")
     assert dataset_profile(cloud) == ("Oculii Eagle PointCloud2", "oculii-eagle")
     assert {"snr_db", "v_r_m_per_s", "range"} <= set(cloud.fields)
+
+
+def test_a_tj4d_frame_read_as_lidar_is_refused_and_preview_guesses_radar(tmp_path):
+    from roadview_noise.preview import guess_sensor
+
+    path = tmp_path / "TJ4DRadSet_4DRadar" / "training" / "velodyne" / "070070.bin"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(tj4d_rows(50).tobytes())             # 32-byte points: 100 KITTI points of 16 bytes
+    with pytest.raises(InputError, match="TJ4DRadSet 4D-radar .bin .* read as a LiDAR scan"):
+        read_pointcloud(path)
+    assert guess_sensor(path) == "radar"
+    kitti = tmp_path / "kitti" / "training" / "velodyne" / "000000.bin"
+    kitti.parent.mkdir(parents=True)
+    kitti.write_bytes(np.random.default_rng(9).uniform(-40, 40, (100, 4)).astype("<f4").tobytes())
+    assert guess_sensor(kitti) == "lidar" and len(read_pointcloud(kitti)) == 100
