@@ -251,6 +251,29 @@ def test_livox_custom_msg_is_refused_naming_topic_and_fix(tmp_path):
     assert not out.exists()
 
 
+def test_radar_scan_is_refused_naming_topic_and_fix(tmp_path):
+    """A radar_msgs RadarScan topic (TIER IV's ars408_driver) mapped as radar is refused before anything is written,
+    saying what it holds and what to convert it to."""
+    from rosbags.typesys import get_types_from_msg
+
+    types = store(False)
+    ret = "float32 range\nfloat32 azimuth\nfloat32 elevation\nfloat32 doppler_velocity\nfloat32 amplitude\n"
+    scan_def = "std_msgs/Header header\nRadarReturn[] returns\n"
+    types.register({**get_types_from_msg(ret, "radar_msgs/msg/RadarReturn"),
+                    **get_types_from_msg(scan_def, "radar_msgs/msg/RadarScan")})
+    r = types.types["radar_msgs/msg/RadarReturn"](range=12.0, azimuth=0.1, elevation=0.0, doppler_velocity=-3.0,
+                                                  amplitude=10.0)
+    msg = types.types["radar_msgs/msg/RadarScan"](header=header(types, False, "radar"), returns=[r])
+    src = tmp_path / "ars408.bag"
+    write_bag(src, False, types, [("/radar/scan", "radar_msgs/msg/RadarScan", msg)])
+    recipe = parse_bag_recipe({"seed": 5, "topics": {"/radar/scan": {"sensor": "radar"}},
+                               "chains": {"radar": "CNF25"}}, base_dir=ROOT)
+    out = tmp_path / "out.bag"
+    with pytest.raises(RecipeError, match=r"/radar/scan carries radar_msgs/msg/RadarScan.*doppler_velocity"):
+        run_bag(recipe, src, out, workers=1, progress=False)
+    assert not out.exists()
+
+
 def test_export_of_a_nan_marked_velodyne_cloud_augments_like_the_bag(tmp_path):
     """`rvnoise export` writes the NaN-marked, firing-major cloud as the beam-major PCD grid with zeros for no
     return (the file path's convention); augmenting that PCD with the same chain and seed gives the bag's points
