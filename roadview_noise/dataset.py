@@ -296,8 +296,9 @@ def _read(sample: Sample, in_root: Path, recipe: Recipe, content: bytes | None, 
         profile = cloud_profile_for(sample.modality, inputs, file_dir, recipe)
         if profiles is not None:
             profiles[key] = profile
+    bin_fields = inputs.radar_bin_fields if sample.modality == "radar" else inputs.bin_fields
     cloud = cloud_io.read_pointcloud(path, sensor=sample.modality, profile=profile,
-                                     field_map=dict(inputs.field_map) or None, bin_fields=inputs.bin_fields,
+                                     field_map=dict(inputs.field_map) or None, bin_fields=bin_fields,
                                      data=content)
     if sample.modality == "radar" and inputs.radar_profile is None:
         _radar_profile_hint(cloud, file_dir)

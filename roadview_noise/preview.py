@@ -68,7 +68,7 @@ def guess_sensor(path: Path) -> str:
     """camera for images and raw files; for clouds radar when the file has radar fields (RCS, Doppler, SNR), else
     lidar; a ``.txt`` table is radar (Astyx); a ``.bin`` is radar when the nearest folder named for a sensor
     (``radar*`` or ``lidar*``) is a radar's (View-of-Delft's ``radar/training/velodyne/``, as the recipes'
-    ``radar/**/*.bin`` globs read it), else lidar."""
+    ``radar/**/*.bin`` globs read it), or when it holds TJ4DRadSet's layout (``training/velodyne/``), else lidar."""
     name = path.name.lower()
     if name.endswith(CAMERA_SUFFIXES + RAW_SUFFIXES):
         return "camera"
@@ -76,7 +76,11 @@ def guess_sensor(path: Path) -> str:
         return "radar"
     if name.endswith(".bin"):
         named = [p.lower()[:5] for p in reversed(path.resolve().parent.parts) if p.lower()[:5] in ("radar", "lidar")]
-        return named[0] if named else "lidar"
+        if named:
+            return named[0]
+        from .io.radar_formats import is_tj4d_bin
+
+        return "radar" if path.is_file() and is_tj4d_bin(path.read_bytes()) else "lidar"   # TJ4DRadSet's layout
     from .io.pointcloud import read_pointcloud
 
     fields = read_pointcloud(path, sensor="lidar").fields

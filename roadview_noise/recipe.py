@@ -115,6 +115,8 @@ class InputsSpec(_Strict):
     field_map: dict[str, str] = Field(default_factory=dict)  # file field name → canonical name
     bin_fields: tuple[str, ...] | None = None  # a LiDAR .bin's float32 columns when not KITTI's (x y z intensity) or
                                                # nuScenes' .pcd.bin (+ ring): e.g. Waymo's KITTI-format export
+    radar_bin_fields: tuple[str, ...] | None = None  # a radar .bin's float32 columns when neither View-of-Delft's
+                                                     # nor TJ4DRadSet's (Dual-Radar: 5); io/radar_formats.py
     sequence: Literal["folder", "file"] = "folder"           # sensor instance = input folder (default) or each file
     ego_velocity_m_per_s: tuple[float, float, float] | None = None  # sensor velocity, sensor frame (x fwd, y left)
     annotations: AnnotationsSpec = Field(default_factory=AnnotationsSpec)  # label sidecars, masks, boxes
@@ -124,11 +126,13 @@ class InputsSpec(_Strict):
 
     @model_serializer(mode="wrap")
     def _dump(self, handler) -> dict[str, Any]:
-        """The default ``orientation`` is left out, so run.json and the recipe's sha256 (resume) stay those of a
-        recipe written before the key existed."""
+        """The default ``orientation`` and an unset ``radar_bin_fields`` are left out, so run.json and the recipe's
+        sha256 (resume) stay those of a recipe written before the keys existed."""
         d = handler(self)
         if self.orientation == "upright":
             d.pop("orientation", None)
+        if self.radar_bin_fields is None:
+            d.pop("radar_bin_fields", None)
         return d
 
     @model_validator(mode="after")

@@ -227,6 +227,19 @@ def test_ros2_qos_and_counts_survive(tmp_path):
         assert b.message_count == 3 and [t for _, t, _ in a.messages()] == [t for _, t, _ in b.messages()]
 
 
+def _refused_topic(tmp_path, types, topic: str, msgtype: str, msg, sensor: str, chain: str, match: str) -> None:
+    """A bag whose ``topic`` carries ``msg`` mapped as ``sensor`` is refused with ``match`` before anything is
+    written."""
+    src = tmp_path / "in.bag"
+    write_bag(src, False, types, [(topic, msgtype, msg)])
+    recipe = parse_bag_recipe({"seed": 5, "topics": {topic: {"sensor": sensor}}, "chains": {sensor: chain}},
+                              base_dir=ROOT)
+    out = tmp_path / "out.bag"
+    with pytest.raises(RecipeError, match=match):
+        run_bag(recipe, src, out, workers=1, progress=False)
+    assert not out.exists()
+
+
 def test_livox_custom_msg_is_refused_naming_topic_and_fix(tmp_path):
     """A Livox CustomMsg topic mapped as a LiDAR is refused before anything is written, saying what it is and how
     to record a PointCloud2 instead."""
@@ -241,14 +254,25 @@ def test_livox_custom_msg_is_refused_naming_topic_and_fix(tmp_path):
     cls = types.types["livox_ros_driver2/msg/CustomMsg"]
     msg = cls(header=header(types, False, "livox_frame"), timebase=STAMP, point_num=0, lidar_id=0,
               rsvd=np.zeros(3, np.uint8), points=[])
-    src = tmp_path / "livox.bag"
-    write_bag(src, False, types, [("/livox/lidar", "livox_ros_driver2/msg/CustomMsg", msg)])
-    recipe = parse_bag_recipe({"seed": 5, "topics": {"/livox/lidar": {"sensor": "lidar"}},
-                               "chains": {"lidar": "CNF20"}}, base_dir=ROOT)
-    out = tmp_path / "out.bag"
-    with pytest.raises(RecipeError, match=r"/livox/lidar carries livox_ros_driver2/msg/CustomMsg.*xfer_format"):
-        run_bag(recipe, src, out, workers=1, progress=False)
-    assert not out.exists()
+    _refused_topic(tmp_path, types, "/livox/lidar", "livox_ros_driver2/msg/CustomMsg", msg, "lidar", "CNF20",
+                   r"/livox/lidar carries livox_ros_driver2/msg/CustomMsg.*xfer_format")
+
+
+def test_radar_scan_is_refused_naming_topic_and_fix(tmp_path):
+    """A radar_msgs RadarScan topic (TIER IV's ars408_driver) mapped as radar is refused before anything is written,
+    saying what it holds and what to convert it to."""
+    from rosbags.typesys import get_types_from_msg
+
+    types = store(False)
+    ret = "float32 range\nfloat32 azimuth\nfloat32 elevation\nfloat32 doppler_velocity\nfloat32 amplitude\n"
+    scan_def = "std_msgs/Header header\nRadarReturn[] returns\n"
+    types.register({**get_types_from_msg(ret, "radar_msgs/msg/RadarReturn"),
+                    **get_types_from_msg(scan_def, "radar_msgs/msg/RadarScan")})
+    r = types.types["radar_msgs/msg/RadarReturn"](range=12.0, azimuth=0.1, elevation=0.0, doppler_velocity=-3.0,
+                                                  amplitude=10.0)
+    msg = types.types["radar_msgs/msg/RadarScan"](header=header(types, False, "radar"), returns=[r])
+    _refused_topic(tmp_path, types, "/radar/scan", "radar_msgs/msg/RadarScan", msg, "radar", "CNF25",
+                   r"/radar/scan carries radar_msgs/msg/RadarScan.*doppler_velocity")
 
 
 def test_export_of_a_nan_marked_velodyne_cloud_augments_like_the_bag(tmp_path):

@@ -19,6 +19,9 @@
   cloud's profile (:func:`lidar_intensity.reflectivity_variant`: W = 100, rounded, a faint return reads 1); before,
   a fog return kept the reflectivity of the object behind it (or of the point its fields were copied from).
 
+- TJ4DRadSet's ``Range``, ``Alpha``, ``Beta`` and ars548_ros' ``r`` (io/radar_formats.RESTATING): recomputed for
+  every point whose stored value no longer restates its position (added, moved, or turned by alignment.radar).
+
 Every other point keeps the value it was recorded with. Fields of other names or types are not touched.
 """
 
@@ -27,6 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..types import PointCloud
+from .radar_formats import restated_column
 
 RANGE_UNITS = {"range": ("u4", 1000.0), "distance": ("f", 1.0)}   # field → (stored type, stored value per metre)
 ANGLE_FIELDS = ("azimuth", "elevation")
@@ -37,6 +41,9 @@ ANGLE_SAMPLE = 4096                            # recorded points the convention 
 
 def with_derived(values: np.ndarray, file_name: str, dt: str, cloud: PointCloud) -> np.ndarray:
     """``values`` of the stored field ``file_name`` with the points the chain moved or added brought up to date."""
+    restated = restated_column(values, file_name, cloud)        # radar layouts' own (io/radar_formats.py)
+    if restated is not None:
+        return restated
     if file_name == "reflectivity":
         return _weather_reflectivity(values, cloud)
     kind = np.dtype(dt).kind

@@ -9,7 +9,9 @@ Formats (by suffix, or ``fmt``):
   properties; ``ascii`` | ``binary_little_endian`` | ``binary_big_endian``, kept in ``layout.pcd_data``.
 - ``kitti_bin`` (``.bin``): N×4 float32 x, y, z, intensity.
 - ``nuscenes_bin`` (``.pcd.bin``): N×5 float32 x, y, z, intensity, ring.
-- ``vod_bin`` (``.bin`` with ``sensor="radar"``): View-of-Delft N×7 float32 x, y, z, RCS, v_r, v_r_compensated, time.
+- ``vod_bin`` (``.bin`` with ``sensor="radar"``): View-of-Delft N×7 float32 x, y, z, RCS, v_r, v_r_compensated, time;
+  ``tj4d_bin``: TJ4DRadSet N×8 float32 x, y, z, V_r, Range, Power, Alpha, Beta (told apart by the data:
+  io/radar_formats.radar_bin_format); ``radar_bin``: the float32 columns a recipe names (``radar_bin_fields``).
 - ``txt`` (``.txt`` with ``sensor="radar"``): a text table, a header line naming the columns and one point per line
   (Astyx HiRes2019 radar, io/radar_formats.py), float64; written back row for row (io/text_table.py).
 
@@ -36,9 +38,10 @@ from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
 from . import text_table
-from .radar_formats import fixed_field_layout, text_table_fields
+from .radar_formats import TJ4D_COLUMNS, check_vod_columns, fixed_field_layout, is_tj4d_bin, layout_field_map, \
+    radar_bin_format, text_table_fields
 
-FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "txt")
+FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "tj4d_bin", "radar_bin", "txt")
 
 # canonical name ← file names in priority order (the first one present in the file wins)
 ALIASES: dict[str, tuple[str, ...]] = {
@@ -57,6 +60,7 @@ BIN_FIELDS = {
     "kitti_bin": ("x", "y", "z", "intensity"),
     "nuscenes_bin": ("x", "y", "z", "intensity", "ring"),
     "vod_bin": ("x", "y", "z", "RCS", "v_r", "v_r_compensated", "time"),
+    "tj4d_bin": TJ4D_COLUMNS,
 }
 EFFECT_FIELD = "rv_effect"              # the weather-effect code (provenance.Effect), uint8
 EFFECT_DTYPE = "|u1"
@@ -124,7 +128,9 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
     """Read a cloud: float64 positions, fields under canonical names in their file dtype, and the layout to write
     it back with (see module docstring). ``bin_fields``: the float32 columns of a LiDAR ``.bin``/``.pcd.bin`` that
     is not in its fixed layout (Waymo's KITTI-format export: x y z intensity elongation timestamp); x, y, z first.
-    ``data``: the file's bytes when the caller has read them (the runner, for their sha256), else read here.
+    For a radar ``.bin``, ``bin_fields`` names its columns when it is neither View-of-Delft's nor TJ4DRadSet's
+    (io/radar_formats.py). ``data``: the file's bytes when the caller has read them (the runner, for their sha256),
+    else read here.
     """
     if sensor not in ("lidar", "radar"):
         raise ValueError(f"sensor must be 'lidar' or 'radar', got {sensor!r}")
@@ -147,9 +153,18 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
     elif fmt == "txt":
         columns, mode, table, field_map = _read_txt(data, field_map, path)
     else:
-        columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path), "binary"
-    return cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
-                              field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
+        if fmt == "vod_bin":
+            fmt = radar_bin_format(data, None if bin_fields is None else tuple(bin_fields), path)
+        elif fmt == "kitti_bin" and bin_fields is None and is_tj4d_bin(data):
+            raise InputError("a TJ4DRadSet 4D-radar .bin (8 float32 columns x y z V_r Range Power Alpha Beta, Range = "
+                             "|p|) read as a LiDAR scan: read it as radar (the recipe's inputs.radar glob, e.g. "
+                             "'training/velodyne/*.bin'; rvnoise preview --sensor radar)", file=str(path))
+        columns, mode = _read_bin(data, _bin_names(fmt, bin_fields, path), path, fmt), "binary"
+    cloud = cloud_from_columns(columns, fmt=fmt, mode=mode, grid_shape=grid_shape, sensor=sensor, profile=profile,
+                               field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
+    if fmt == "vod_bin":
+        check_vod_columns(cloud, path)
+    return cloud
 
 
 def firing_row_columns(ring: np.ndarray) -> tuple[int, ...] | None:
@@ -192,6 +207,8 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
     """A cloud from stored columns (file name, dtype string, values) in storage order: canonical names, float64
     positions, the layout to store it back with (``text``: a text table's, io/text_table.py); :class:`InputError`
     (naming ``source``) for an empty cloud, missing or non-scalar x/y/z and non-finite coordinates."""
+    if sensor == "radar":
+        field_map = layout_field_map(tuple(c[0] for c in columns), field_map)
     keys = _canonical_keys([c[0] for c in columns], field_map, source)
     n = len(columns[0][2])
     if n == 0:
@@ -691,19 +708,20 @@ def _read_txt(data: bytes, field_map: Mapping[str, str] | None, path):
 
 
 def _bin_names(fmt: str, bin_fields: Sequence[str] | None, path) -> tuple[str, ...]:
-    """The columns of a ``.bin``: the format's fixed ones, or a LiDAR file's ``bin_fields`` (x, y, z first)."""
-    if bin_fields is None or fmt == "vod_bin":
+    """The columns of a ``.bin``: the format's fixed ones, or the recipe's ``bin_fields`` (x, y, z first)."""
+    if bin_fields is None or fmt in ("vod_bin", "tj4d_bin"):
         return BIN_FIELDS[fmt]
     names = tuple(bin_fields)
     if names[:3] != ("x", "y", "z") or len(set(names)) != len(names):
-        raise InputError(f"inputs.bin_fields {list(names)} must start with x, y, z and name each column once",
+        key = "radar_bin_fields" if fmt == "radar_bin" else "bin_fields"
+        raise InputError(f"inputs.{key} {list(names)} must start with x, y, z and name each column once",
                          file=str(path))
     return names
 
 
-def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
+def _read_bin(data: bytes, names: tuple[str, ...], path, fmt: str) -> list[Column]:
     point = 4 * len(names)
-    lidar = names != BIN_FIELDS["vod_bin"]
+    lidar = fmt in ("kitti_bin", "nuscenes_bin")           # (the hints name LiDAR layouts and inputs.bin_fields)
     if len(data) % point:
         raise InputError(f"size {len(data)} bytes is not a multiple of the {point}-byte point "
                          f"({', '.join(names)} as float32)" + (_other_columns(data, names) if lidar else ""),
@@ -711,9 +729,10 @@ def _read_bin(data: bytes, names: tuple[str, ...], path) -> list[Column]:
     table = np.frombuffer(data, "<f4").reshape(-1, len(names))
     # (every column first: one contiguous pass, 10× faster than x/y/z's strided one, which only a larger value needs;
     # non-finite coordinates: refused by cloud_from_columns)
-    if lidar and _farthest_m(table) > MAX_COORDINATE_M and (top := _farthest_m(table[:, :3])) > MAX_COORDINATE_M:
+    if fmt in ("kitti_bin", "nuscenes_bin", "radar_bin") and _farthest_m(table) > MAX_COORDINATE_M \
+            and (top := _farthest_m(table[:, :3])) > MAX_COORDINATE_M:
         raise InputError(f"not N×{len(names)} float32 ({', '.join(names)}): coordinates reach {top:.3g} m"
-                         + _other_columns(data, names), file=str(path))
+                         + (_other_columns(data, names) if lidar else ""), file=str(path))
     return [(name, "<f4", table[:, i]) for i, name in enumerate(names)]      # views: see _read_pcd
 
 

@@ -41,6 +41,38 @@ coordinates (x_cc … y_seq) and uuids for added detections; rvnoise's tasks are
 :func:`radarscenes_scan` turns one scan's rows into a 2-D radar cloud in its sensor's frame to write as a PCD
 (README, "Radar inputs").
 
+TJ4DRadSet (``training/velodyne/*.bin``, Oculii Eagle 4D radar; github.com/TJRadarLab/TJ4DRadSet) stores each frame
+as N×8 float32 ``x y z V_r Range Power Alpha Beta`` — the same ``.bin`` suffix and folder as View-of-Delft's N×7,
+and N×8×4 bytes is also a whole number of VoD points when N is a multiple of 7 (6 of the 41 sample frames), so the
+layout is told from the data (:func:`radar_bin_format`): the dataset's README names the columns, and its 41 sample
+frames (108 222 detections) show ``Range`` = ``|p|`` (within 3.1e-5 m), ``Alpha`` = ``−atan2(y, x)`` and ``Beta``
+= ``−atan2(z, x)`` in degrees (within 1.4e-5°): columns that restate the position, recomputed on writing where a
+point no longer matches them (added, moved or turned: :func:`tj4d_derived`). ``V_r`` is the raw range rate,
+positive receding (the README's "relative radial velocity"; a stationary world, car at about 17 m/s, gives
+−17 m/s ahead and −9 m/s at 57°), read as ``v_r_m_per_s``; ``Power`` is "in dB scale and represents the signal to
+noise ratio of the detection" (README), read as ``snr_db``. No RCS: the weather models add no clutter
+(``clutter_skipped``).
+
+A ``.bin`` read as View-of-Delft's must also behave as one (:func:`check_vod_columns`). A radar ``.bin`` in neither
+layout (Dual-Radar's Arbe Phoenix and ARS548 RDI clouds are N×5 float32, named ``x y z
+intensity dopple`` in its devkit's dataset configs, units not documented) is read with the recipe's
+``inputs.radar_bin_fields`` (format ``radar_bin``); without it, a size that fits neither layout is refused naming
+both.
+
+ars548_ros (github.com/robotics-upo/ars548_ros, the open ROS driver of the Continental ARS 548 RDI) publishes its
+detections as ``PointCloudDetection`` with the fields ``x y z v r RCS azimuth elevation`` (float32, RCS int8;
+src/ars548_driver.cpp, detection_list.h): ``v`` the sensor's f_RangeRate ("Detection Radial Velocity", m/s; a
+rate of range, so positive receding — by its name, not checked on recordings), ``r`` its f_Range (m), ``RCS``
+s_RCS (int8; dBsm, Continental's unit, not stated by the driver), azimuth and elevation in radians, x y z computed
+from them. In this layout ``v`` is read as ``v_r_m_per_s`` and ``r`` restates the position
+(:data:`RESTATING`: an added clutter point gets its own |p|, not 0); azimuth and elevation follow
+io/derived_fields.py.
+
+Oculii Eagle clouds recorded in ROS (NTU4DRadLM, as read by github.com/zhuge2333/4DRadarSLAM's ``EaglePointXYZIVRAB``:
+float32 ``x y z snr_db doppler range alpha beta``) are pointed to ``oculii-eagle`` when no profile is stated;
+``doppler`` and ``snr_db`` are read by their names, ``range`` follows io/derived_fields.py; the sign of ``doppler``
+and the convention of ``alpha``/``beta`` were not checked on recordings (none at hand).
+
 The devkit reads exactly these 18 fields (``RadarPointCloud.nbr_dims() == 18``, asserted) and finds
 ``invalid_state`` as the 4th row from the end, so an extra ``rv_effect`` field would make it fail; such a file gets
 its effect codes in the ``.rv_effect`` sidecar instead, as a fixed-layout ``.bin`` does (:func:`fixed_field_layout`).
@@ -64,6 +96,11 @@ NUSCENES_TYPICAL = ("pdh0", "x_rms", "y_rms", "vx_rms", "vy_rms")
 ASTYX_COLUMNS = ("X", "Y", "Z", "V_r", "Mag")
 ASTYX_FIELD_MAP = {"X": "x", "Y": "y", "Z": "z", "V_r": "v_r_m_per_s", "Mag": "power_db"}
 ASTYX_NEGATED = {"V_r": "v_r_m_per_s"}       # stored positive approaching (module docstring)
+TJ4D_COLUMNS = ("x", "y", "z", "V_r", "Range", "Power", "Alpha", "Beta")
+TJ4D_FIELD_MAP = {"V_r": "v_r_m_per_s", "Power": "snr_db"}
+ARS548_ROS_FIELDS = ("x", "y", "z", "v", "r", "RCS", "azimuth", "elevation")      # ars548_ros PointCloudDetection
+ARS548_ROS_FIELD_MAP = {"v": "v_r_m_per_s"}
+EAGLE_ROS_FIELDS = ("x", "y", "z", "snr_db", "doppler", "range", "alpha", "beta")   # Oculii Eagle PointCloud2
 RADARSCENES_FIELDS = ("timestamp", "sensor_id", "range_sc", "azimuth_sc", "rcs", "vr", "vr_compensated", "x_cc",
                       "y_cc", "x_seq", "y_seq", "uuid", "track_id", "label_id")
 
@@ -74,7 +111,8 @@ class RadarProfileWarning(UserWarning):
 
 def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
     """(dataset, built-in profile) whose file layout ``cloud`` was read in — a View-of-Delft ``.bin``: vod, a
-    nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455 — or None."""
+    nuScenes ``RADAR_*`` PCD: ars408, an Astyx ``X Y Z V_r Mag`` table: astyx-6455, a TJ4DRadSet ``.bin``:
+    oculii-eagle, an ars548_ros detection cloud: ars548, an Oculii Eagle PointCloud2: oculii-eagle — or None."""
     layout = cloud.layout
     names = tuple(name for _, name, _ in layout.fields) if layout is not None else ()
     if layout is not None and layout.fmt == "vod_bin":
@@ -83,6 +121,12 @@ def dataset_profile(cloud: PointCloud) -> tuple[str, str] | None:
         return "nuScenes (Continental ARS 408-21)", "ars408"
     if layout is not None and layout.fmt == "txt" and names == ASTYX_COLUMNS:
         return "Astyx HiRes2019", "astyx-6455"
+    if layout is not None and layout.fmt == "tj4d_bin":
+        return "TJ4DRadSet (Oculii Eagle)", "oculii-eagle"
+    if names == ARS548_ROS_FIELDS:
+        return "ars548_ros (Continental ARS 548 RDI)", "ars548"
+    if names == EAGLE_ROS_FIELDS:
+        return "Oculii Eagle PointCloud2", "oculii-eagle"
     return None
 
 
@@ -118,10 +162,103 @@ def text_table_fields(names: tuple[str, ...], field_map: Mapping[str, str] | Non
     header) and the columns stored with the opposite sign of their field."""
     if names != ASTYX_COLUMNS:
         return field_map, ()
+    merged = _completed(field_map, ASTYX_FIELD_MAP)
+    return merged, tuple(f for f, c in ASTYX_NEGATED.items() if merged.get(f) == c)
+
+
+def layout_field_map(names: tuple[str, ...], field_map: Mapping[str, str] | None) -> Mapping[str, str] | None:
+    """The field map of a radar cloud stored with the fields ``names``: the recipe's, completed with the dataset's
+    or driver's own for a layout it names (TJ4DRadSet's ``.bin``, ars548_ros' PointCloudDetection)."""
+    own = {TJ4D_COLUMNS: TJ4D_FIELD_MAP, ARS548_ROS_FIELDS: ARS548_ROS_FIELD_MAP}.get(tuple(names))
+    return field_map if own is None else _completed(field_map, own)
+
+
+def _completed(field_map: Mapping[str, str] | None, dataset: Mapping[str, str]) -> dict[str, str]:
+    """The recipe's ``field_map`` with a dataset's own names for the fields and targets it leaves free."""
     given = dict(field_map or {})
     taken = set(given.values())
-    merged = {**{f: c for f, c in ASTYX_FIELD_MAP.items() if f not in given and c not in taken}, **given}
-    return merged, tuple(f for f, c in ASTYX_NEGATED.items() if merged.get(f) == c)
+    return {**{f: c for f, c in dataset.items() if f not in given and c not in taken}, **given}
+
+
+def radar_bin_format(data: bytes, columns: tuple[str, ...] | None, path) -> str:
+    """The layout of a radar ``.bin`` (module docstring): ``radar_bin`` when the recipe names its ``columns``, else
+    ``tj4d_bin`` when its size fits 8 float32 columns and every point's Range and Alpha restate its position,
+    ``vod_bin`` when it fits 7; :class:`InputError` otherwise."""
+    if columns is not None:
+        return "radar_bin"
+    if is_tj4d_bin(data):
+        return "tj4d_bin"
+    if len(data) % 28 == 0:
+        return "vod_bin"
+    raise InputError(f"size {len(data)} bytes fits neither View-of-Delft's radar .bin (7 float32 columns: x y z RCS "
+                     "v_r v_r_compensated time) nor TJ4DRadSet's (8: x y z V_r Range Power Alpha Beta, Range = |p|); "
+                     "name its float32 columns in the recipe, inputs.radar_bin_fields (x, y, z first; Dual-Radar's "
+                     "are 5: README, Radar inputs)", file=str(path))
+
+
+def is_tj4d_bin(data: bytes | memoryview) -> bool:
+    """The bytes hold TJ4DRadSet's N×8 float32 layout: every point's Range and Alpha restate its position (the first
+    64 points first: a LiDAR ``.bin`` is told apart without a pass over the file)."""
+    n = len(data) // 32
+    if not n or len(data) % 32:
+        return False
+    table = np.frombuffer(data, "<f4", count=8 * n).reshape(n, 8)
+    rules = RESTATING[TJ4D_COLUMNS]
+    return all(np.all(_restated(rows[:, i], rules[name], rows[:, :3]))
+               for rows in (table[:64], table) for i, name in ((4, "Range"), (6, "Alpha")))
+
+
+def check_vod_columns(cloud: PointCloud, path) -> None:
+    """Refuse a ``.bin`` read as View-of-Delft's whose ``v_r_compensated − v_r`` follows no sensor velocity (RMS
+    above physics/radar_frame.EGO_FIT_MAX_RMS_M_PER_S): the columns are another layout's — a Dual-Radar N×5 frame of
+    7k points fits the 28-byte VoD point too. View-of-Delft's 3 example frames fit within 0.01 m/s; a Dual-Radar-like
+    frame read so, 24 m/s."""
+    from ..physics.radar_frame import EGO_FIT_MAX_RMS_M_PER_S, ego_velocity_from_data
+
+    _, rms = ego_velocity_from_data(cloud, planar=False)
+    if rms > EGO_FIT_MAX_RMS_M_PER_S:
+        raise InputError(f"read as View-of-Delft's radar .bin (x y z RCS v_r v_r_compensated time) its columns do not "
+                         f"behave as VoD's: v_r_compensated − v_r fits no sensor velocity (RMS {rms:.3g} m/s, above "
+                         f"{EGO_FIT_MAX_RMS_M_PER_S}); if it holds another layout (Dual-Radar's 5 columns), name its "
+                         "float32 columns in inputs.radar_bin_fields", file=str(path))
+
+
+def _range_m(p: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(p, axis=1)
+
+
+def _minus_deg(axis: int):
+    """−atan2(p_axis, x) in degrees: TJ4DRadSet's Alpha (axis 1) and Beta (axis 2)."""
+    return lambda p: -np.degrees(np.arctan2(p[:, axis], p[:, 0]))
+
+
+# columns of a layout (its file field names) that restate a point's position: (value of positions, tolerance in the
+# column's unit — TJ4DRadSet's 16–70× the largest difference on its 41 sample frames; ars548_ros' r: float32 ranges)
+RESTATING = {TJ4D_COLUMNS: {"Range": (_range_m, 5e-4), "Alpha": (_minus_deg(1), 1e-3),
+                            "Beta": (_minus_deg(2), 1e-3)},
+             ARS548_ROS_FIELDS: {"r": (_range_m, 1e-3)}}
+
+
+def _restated(values: np.ndarray, rule, positions: np.ndarray) -> np.ndarray:
+    """Which stored ``values`` restate their point's position under ``rule`` (an entry of :data:`RESTATING`)."""
+    value, tolerance = rule
+    return np.abs(values - value(np.asarray(positions, dtype=np.float64))) <= tolerance
+
+
+def restated_column(values: np.ndarray, file_name: str, cloud: PointCloud) -> np.ndarray | None:
+    """A column of ``cloud``'s layout that restates the position (:data:`RESTATING`: TJ4DRadSet's Range, Alpha,
+    Beta; ars548_ros' r), recomputed for the points whose stored value no longer does (added, moved or turned by the
+    chain), every other value as read; None for any other column."""
+    names = tuple(name for _, name, _ in cloud.layout.fields) if cloud.layout is not None else ()
+    rule = RESTATING.get(names, {}).get(file_name)
+    if rule is None:
+        return None
+    stale = ~_restated(np.asarray(values, dtype=np.float64), rule, cloud.positions_m)
+    if not stale.any():
+        return values
+    out = np.array(values, dtype=np.float64)
+    out[stale] = rule[0](np.asarray(cloud.positions_m[stale], dtype=np.float64))
+    return out
 
 
 def radarscenes_scan(rows: np.ndarray, first_row: int = 0) -> PointCloud:

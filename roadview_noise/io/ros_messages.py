@@ -86,6 +86,10 @@ def type_hint(msgtype: str) -> str:
     if msgtype.startswith("livox_ros_driver") and msgtype.endswith("/CustomMsg"):
         return ("; a Livox CustomMsg is the driver's own point list, not a PointCloud2: record with "
                 "livox_ros_driver2's xfer_format 0 (PointCloud2) or convert the topic first")
+    if msgtype in ("radar_msgs/msg/RadarScan", "radar_msgs/RadarScan"):
+        return ("; a radar_msgs RadarScan (TIER IV's ars408_driver, Autoware) lists returns as range, azimuth, "
+                "elevation, doppler_velocity, amplitude, not a PointCloud2: convert the topic to PointCloud2 (x y z "
+                "from range and angles, v_r = doppler_velocity, amplitude named for its unit, rcs or snr) first")
     return ""
 
 

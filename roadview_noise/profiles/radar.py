@@ -27,6 +27,19 @@ mapping):
   resolution (the generic grid). Elevation is measured (z varies). Its ``Mag`` is a relative level in dB
   (``power_db``, ``power_unit: relative``): the threshold is the frame's weakest detection (45 in every frame
   checked); there is no RCS, so no clutter.
+- ``oculii-eagle``: Oculii Eagle, the 4D radar of TJ4DRadSet (``training/velodyne/*.bin``, io/radar_formats.py).
+  From the Oculii EAGLE User's Manual (§4.5, sensor radiation cone): 120° horizontal × 40° vertical field of view.
+  From the 41 sample frames of the dataset (github.com/TJRadarLab/TJ4DRadSet, 108 222 detections): detections out
+  to 374 m (``max_range_m`` 375) and within ±60° azimuth. Assumed (no datasheet figures found; override if yours
+  differ): 77 GHz, 1° × 2° angular cells and 0.2 m range bins (the generic grid). Elevation is measured. Its
+  ``Power`` is the detection SNR in dB (``snr_db``, dataset README); there is no RCS, so no clutter.
+- ``ars548``: Continental ARS 548 RDI (Dual-Radar's ``ars548/*.bin``; ars548_ros' PointCloudDetection). From
+  Dual-Radar's sensor table (github.com/adept-thu/Dual-Radar, README Table 1): range resolution 0.22 m, azimuth
+  resolution 1.2° within ±15° (1.68° at ±45°), elevation resolution 2.3°, 300 m, ±60° azimuth, ±14° elevation
+  (±4° at 300 m), 20 Hz; 77 GHz (ars548_ros' paper abstract). Velocity resolution not given (default).
+- ``arbe-phoenix``: Arbe Phoenix in middle-range mode (Dual-Radar's ``arbe/*.bin``). From the same table: 0.3 m,
+  1.25° azimuth, 2° elevation, 153.6 m, 100° × 30°, 20 Hz. Assumed: 77 GHz; velocity resolution default.
+  Neither Dual-Radar file states its columns' units (io/radar_formats.py): name them with ``radar_bin_fields``.
 
 Every profile has a Doppler bin width ``velocity_resolution_m_per_s`` (default 0.1035 m/s, the RISE analysis: 512
 bins over ±26.5 m/s; it sets the Doppler cells of the clutter model) and a ``power_unit``: ``relative`` (default;
@@ -81,10 +94,31 @@ def astyx_6455() -> RadarProfile:
                         velocity_resolution_m_per_s=0.0812, max_range_m=100.0, elevation_measured=True)
 
 
+def oculii_eagle() -> RadarProfile:
+    """Oculii Eagle (TJ4DRadSet): manual and file values, assumptions marked (module docstring)."""
+    return RadarProfile("oculii-eagle", frequency_hz=77e9, fov_azimuth_deg=120.0, fov_elevation_deg=40.0,
+                        azimuth_resolution_deg=1.0, elevation_resolution_deg=2.0, range_resolution_m=0.2,
+                        max_range_m=375.0, elevation_measured=True)
+
+
+def ars548() -> RadarProfile:
+    """Continental ARS 548 RDI (Dual-Radar's sensor table; module docstring)."""
+    return RadarProfile("ars548", frequency_hz=77e9, fov_azimuth_deg=120.0, fov_elevation_deg=28.0,
+                        azimuth_resolution_deg=1.2, elevation_resolution_deg=2.3, range_resolution_m=0.22,
+                        max_range_m=300.0, elevation_measured=True)
+
+
+def arbe_phoenix() -> RadarProfile:
+    """Arbe Phoenix, middle-range mode (Dual-Radar's sensor table; module docstring)."""
+    return RadarProfile("arbe-phoenix", frequency_hz=77e9, fov_azimuth_deg=100.0, fov_elevation_deg=30.0,
+                        azimuth_resolution_deg=1.25, elevation_resolution_deg=2.0, range_resolution_m=0.3,
+                        max_range_m=153.6, elevation_measured=True)
+
+
 POWER_UNITS = ("relative", "dBm")
 
 BUILTIN = {"generic-77ghz": generic_77ghz, "rehearse": rehearse, "vod": vod, "ars408": ars408,
-           "astyx-6455": astyx_6455}
+           "astyx-6455": astyx_6455, "oculii-eagle": oculii_eagle, "ars548": ars548, "arbe-phoenix": arbe_phoenix}
 
 
 def default_radar_profile() -> RadarProfile:

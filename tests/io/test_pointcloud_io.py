@@ -161,6 +161,8 @@ def test_organised_pcd_keeps_grid(tmp_path):
 ])
 def test_bin_formats_roundtrip(tmp_path, name, sensor, columns, fmt, canonical):
     table = np.random.default_rng(5).normal(0, 20, (111, columns)).astype(np.float32)
+    if fmt == "vod_bin":                   # v_r_compensated − v_r = v_ego·r̂ (radar_formats.check_vod_columns)
+        table[:, 5] = table[:, 4] + 4.0 * table[:, 0] / np.linalg.norm(table[:, :3], axis=1)
     table.tofile(tmp_path / name)
     cloud = read_pointcloud(tmp_path / name, sensor=sensor)
     assert cloud.layout.fmt == fmt and [k for k, _, _ in cloud.layout.fields] == canonical
@@ -394,7 +396,7 @@ def test_bad_bin_size_nan_empty_and_suffix(tmp_path):
     np.zeros(4 * 7 + 3, np.uint8).tofile(tmp_path / "odd.bin")
     _expect(tmp_path / "odd.bin", "not a multiple of the 16-byte point")
     np.zeros(5 * 7 + 1, np.float32).tofile(tmp_path / "vod.bin")
-    _expect(tmp_path / "vod.bin", "not a multiple of the 28-byte point", sensor="radar")
+    _expect(tmp_path / "vod.bin", "size 144 bytes fits neither View-of-Delft.s radar .bin", sensor="radar")
 
     table = np.ones((5, 4), np.float32)
     table[1, 0], table[3, 2] = np.nan, np.inf

@@ -424,7 +424,8 @@ def test_power_noise():
 # --- profiles and recipes ---------------------------------------------------------------------------------------
 
 def test_radar_profiles(tmp_path):
-    assert set(BUILTIN) == {"generic-77ghz", "rehearse", "vod", "ars408", "astyx-6455"}
+    assert set(BUILTIN) == {"generic-77ghz", "rehearse", "vod", "ars408", "astyx-6455", "oculii-eagle", "ars548",
+                            "arbe-phoenix"}
     assert load_radar_profile(None).name == "generic-77ghz" and load_radar_profile("vod").max_range_m == 100.0
     f = tmp_path / "r.yaml"
     f.write_text(yaml.safe_dump({"base": "rehearse", "snr_threshold_db": 11, "rcs_compensates_weather": True}))

@@ -224,8 +224,9 @@ def test_a_dataset_layout_without_a_stated_profile_is_pointed_out(tmp_path, layo
     folder.mkdir(parents=True)
     if layout == "vod":
         rng = np.random.default_rng(4)
-        np.column_stack([rng.uniform(2, 40, (60, 3)), rng.normal(-30, 5, (60, 4))]).astype("<f4").tofile(
-            folder / "00001.bin")
+        table = np.column_stack([rng.uniform(2, 40, (60, 3)), rng.normal(-30, 5, (60, 4))])
+        table[:, 5] = table[:, 4] + 6.0 * table[:, 0] / np.linalg.norm(table[:, :3], axis=1)   # v_ego 6 m/s
+        table.astype("<f4").tofile(folder / "00001.bin")
         name, glob = "vod", "radar/*.bin"
     else:
         nuscenes_pcd(folder / "00001.pcd")
