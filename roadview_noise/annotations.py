@@ -236,7 +236,7 @@ class AnnotationsSpec(_Strict):
         from .input_checks import escapes
         from .recipe import check_pattern
 
-        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
+        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons",
                                                                                    *DATASET_FILES)
         for name in wrong:
             if getattr(self, name):
@@ -402,6 +402,7 @@ def new_classes(cloud: PointCloud, classes: dict[str, int], model_ids) -> Any:
 
 
 NO_YOLO_FILE = "no YOLO label file: an image without objects"
+KITTI_TRACKING = "kitti_tracking"      # a boxes_2d file of KITTI tracking (label_02: one per sequence), not moved
 
 
 @dataclass
@@ -469,6 +470,10 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             if size not in ((w, h), (None, None)):
                 raise InputError(f"LabelMe file {rel} is for a {size[0]}×{size[1]} px image, {relpath} is {w}×{h}",
                                  file=str(in_root / relpath))
+        elif role == "boxes_2d" and isinstance(data, PointCloud):
+            sc.fmt = spec.boxes_2d_format                     # image boxes of a scan's frame: copied (carry)
+        elif role == "boxes_2d" and spec.boxes_2d_format == "kitti" and ann_io.is_kitti_tracking(path):
+            sc.fmt = KITTI_TRACKING                           # a sequence's file: copied unless a warp moves boxes
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
             h, w = stored_shape(data)
@@ -495,8 +500,16 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
                              {"role": s.role, "path": s.relpath, "absent": NO_YOLO_FILE} for s in sidecars])
     sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
-    for s in sidecars:
-        if s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
+    for s, entry in zip(sidecars, [e for e in result.read if "absent" not in e]):
+        if s.role == "boxes_2d" and (not camera or s.fmt == KITTI_TRACKING):
+            if camera and data_out.warps:
+                raise InputError(f"{s.relpath} is a KITTI tracking label file (frame track_id first: every frame of "
+                                 f"the sequence in one file); this frame's warp ({', '.join(model_ids)}) would move "
+                                 f"its boxes, which one file shared by the sequence's frames cannot hold: give "
+                                 f"per-frame label_2 files, or a chain without geometric steps", file=str(s.path))
+            entry["unchanged"] = ("image boxes: a point-cloud chain moves none, copied as they are" if not camera else
+                                  "KITTI tracking sequence file: copied as it is, the chain warps no frame")
+        if s.role in ("boxes_3d", "calib") or (camera and not data_out.warps) or (s.role == "boxes_2d" and not camera):
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
         label_fmt = next((s.fmt for s in sidecars if s.role == "point_labels"), None)
