@@ -7,6 +7,8 @@ that ``beams × columns`` grid that hold no point:
 
 - ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
   the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
+- a sweep merging several sensors in one frame (Argoverse 2's two VLP-32C: profile ``storage_order: merged``) has
+  no single grid: weather on its returns only;
 - a ring-less list stored laser by laser (KITTI: profile ``storage_order: laser``) has its rings and firing columns
   recovered from that order on the chain's input (:mod:`laser_order`; its encoder's 0.09° azimuth steps are no
   whole number of firing steps) and carried as attributes; the rest below holds for it with no per-beam shift;
@@ -56,6 +58,9 @@ UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it t
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
 MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returning beams: fewer beams (warned)
 FIRING_ORDER = 0.9              # a ring's successive returns 1 … 8 columns apart, one way: stored in firing order
+MERGED_SENSORS = "merged"       # LidarProfile.storage_order of a sweep merging several sensors (Argoverse 2): no grid
+MERGED_REASON = ("the sweep merges several sensors in one frame (profile storage_order: merged; Argoverse 2's two "
+                 "VLP-32C, the lower one upside down): no single firing grid")
 FULL_SWEEP = 0.98               # points stored per ring, of the columns, for a list that stores every firing
 
 
@@ -643,9 +648,9 @@ def list_points(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     laser = profile.storage_order == LASER_ORDER and (FIRING_COLUMN in cloud.attributes
                                                       or ring_source(cloud) == "elevation")
-    reason = ""
+    reason = MERGED_REASON if profile.storage_order == MERGED_SENSORS else ""
     try:
-        carried = (np.zeros(0, np.int64) if laser or ring_source(cloud) == "elevation"
+        carried = (np.zeros(0, np.int64) if laser or reason or ring_source(cloud) == "elevation"
                    else ring_index(cloud, profile))
     except InputError as e:
         reason, carried = str(e), np.zeros(0, np.int64)
