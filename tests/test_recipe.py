@@ -123,6 +123,8 @@ def test_calibration_from_the_nuscenes_tables_takes_no_label_table():
 @pytest.mark.parametrize("sensor, glob, why", [
     ("lidar", "lidar_frontcenter/*.npz", "unknown point-cloud suffix '.npz'"),        # A2D2
     ("lidar", "sensors/lidar/*.parquet", r".*a table is not read: convert it to PCD"),
+    ("lidar", "lidar/*.pkl.gz", r".*a pickle is not read .* PandaSet's lidar/NN.pkl.gz"),
+    ("lidar", "training/*.tfrecord", r".*Waymo Open Dataset TFRecord .* inputs.bin_fields"),
     ("lidar", "velodyne/*.txt", r".*\(\.txt: radar only\)"),
     ("lidar", "capture/*.pcap", r".*packet capture .* one PCD per scan"),                   # Ouster/Velodyne SDKs
     ("lidar", "maps/*.laz", r".*convert it to PCD or PLY .* empty_rays: ignore"),

@@ -121,7 +121,14 @@ NOT_READ = {      # point-cloud containers users bring that are not read, and th
                       "float32 .bin (x y z first) and name its columns in the recipe, inputs.bin_fields (README: "
                       "LiDAR inputs)",
     (".parquet", ".csv"): "a table is not read: convert it to PCD, its columns the PCD's fields (or to Feather, "
-                          "read for LiDAR)"}
+                          "read for LiDAR)",
+    (".pkl", ".pkl.gz", ".pickle"): "a pickle is not read (loading one runs code the file names): PandaSet's "
+                                    "lidar/NN.pkl.gz is a pandas DataFrame x y z i t d of both its sensors in world "
+                                    "coordinates; move one sensor's points (d) into its frame with lidar/poses.json "
+                                    "and write them as a PCD or Feather table",
+    (".tfrecord",): "a Waymo Open Dataset TFRecord holds a whole segment as range images: export its frames with "
+                    "the dataset's tools (mmdetection3d's KITTI-format .bin: 6 float32 columns, read with "
+                    "inputs.bin_fields, README: LiDAR inputs)"}
 
 
 def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
