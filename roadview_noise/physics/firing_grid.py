@@ -565,17 +565,22 @@ def _stored_rays(ring, valid, firing, shift, inv_step, columns, channels, er, ec
             k = cell[r * columns + placed[i]]
             if k >= 0 and not every:                          # its cell is its ray, not another one
                 keep[k] = False
-    kept = np.flatnonzero(keep)
-    stored = np.flatnonzero(placed >= 0)
-    m = len(kept) + len(stored)
+    m = 0                                                    # (loops: np.flatnonzero cost 4x the passes above)
+    for k in range(len(er)):
+        m += keep[k]
+    for i in range(n):
+        m += placed[i] >= 0
     out_ring, out_col, out_like, host = (np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.int64),
                                          np.full(m, -1, np.int64))
-    for j in range(len(kept)):
-        k = kept[j]
-        out_ring[j], out_col[j], out_like[j] = er[k], ec[k], el[k]
-    for j in range(len(stored)):
-        i, at = stored[j], len(kept) + j
-        out_ring[at], out_col[at], out_like[at], host[at] = ring[i], placed[i], nearest[placed[i]], i
+    j = 0
+    for k in range(len(er)):
+        if keep[k]:
+            out_ring[j], out_col[j], out_like[j] = er[k], ec[k], el[k]
+            j += 1
+    for i in range(n):
+        if placed[i] >= 0:
+            out_ring[j], out_col[j], out_like[j], host[j] = ring[i], placed[i], nearest[placed[i]], i
+            j += 1
     return out_ring, out_col, out_like, host
 
 
