@@ -25,10 +25,11 @@ VLP32C_DEG = (-25, -1, -1.667, -15.639, -11.31, 0, -0.667, -8.843, -7.254, 0.333
               -1.333)                   # the VLP-32C manual's vertical angles, by laser ID
 
 
-def av2_sweep(path, firings: int = 300, seed: int = 0) -> dict:
+def av2_sweep(path, firings: int = 300, seed: int = 0, coordinate=np.float16) -> dict:
     """An Argoverse 2 sweep: 64 beams (av2-vlp32c's table) × ``firings`` azimuths, returns 3–80 m from the sensors'
     origin, stored in the vehicle frame (origin + point) as halffloat, the av2 devkit's columns and metadata; written
-    in two record batches as the real files are. Returns the columns as stored."""
+    in two record batches as the real files are (``coordinate``: the x, y, z dtype; the devkit's docs say float32).
+    Returns the columns as stored."""
     rng = np.random.default_rng(seed)
     elevation = np.deg2rad(np.asarray(load_lidar_profile("av2-vlp32c").beam_elevation_deg))
     laser = np.tile(np.arange(64), firings)
@@ -36,7 +37,7 @@ def av2_sweep(path, firings: int = 300, seed: int = 0) -> dict:
     r = rng.uniform(3, 80, len(laser))
     p = r[:, None] * np.stack([np.cos(elevation[laser]) * np.cos(az), np.cos(elevation[laser]) * np.sin(az),
                                np.sin(elevation[laser])], 1) + AV2_SENSOR_ORIGIN_M
-    cols = {"x": p[:, 0].astype(np.float16), "y": p[:, 1].astype(np.float16), "z": p[:, 2].astype(np.float16),
+    cols = {"x": p[:, 0].astype(coordinate), "y": p[:, 1].astype(coordinate), "z": p[:, 2].astype(coordinate),
             "intensity": rng.integers(0, 256, len(laser)).astype(np.uint8), "laser_number": laser.astype(np.uint8),
             "offset_ns": (np.arange(len(laser)) * 5000).astype(np.int32)}
     meta = {b"pandas": json.dumps({"index_columns": [], "columns": [{"name": k} for k in cols]}).encode()}
@@ -58,13 +59,14 @@ def test_av2_profile_is_the_vlp32c_table_twice():
                                                                                    903e-9)
 
 
-def test_feather_sweep_reads_about_the_sensors_and_writes_back_every_column(tmp_path):
+@pytest.mark.parametrize("coordinate", [np.float16, np.float32])
+def test_feather_sweep_reads_about_the_sensors_and_writes_back_every_column(tmp_path, coordinate):
     """Read: ring from laser_number, positions about the sensors' origin, every column in its dtype. Written back:
     the same schema (order, Arrow types, pandas metadata) and, for an unchanged cloud, the same values — the vehicle
-    frame's halffloat positions bit for bit — readable by pyarrow.feather.read_table; the effect codes go to a
+    frame's positions bit for bit, halffloat as in the real sweeps or float32 — readable by pyarrow.feather.read_table; the effect codes go to a
     sidecar, not into the table. Before (round 21): refused as "a table"."""
     src = tmp_path / "315966265259836000.feather"
-    cols = av2_sweep(src)
+    cols = av2_sweep(src, coordinate=coordinate)
     cloud = read_pointcloud(src, profile=load_lidar_profile("av2-vlp32c"))
     assert cloud.layout.fmt == "feather" and [f[1] for f in cloud.layout.fields] == list(cols)
     np.testing.assert_array_equal(cloud.fields["ring"], cols["laser_number"])
