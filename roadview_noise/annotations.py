@@ -240,7 +240,7 @@ class AnnotationsSpec(_Strict):
         from .input_checks import escapes
         from .recipe import check_pattern
 
-        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons", "boxes_2d",
+        wrong = ("point_labels", "boxes_3d", "calib") if sensor == "camera" else ("masks", "polygons",
                                                                                    *DATASET_FILES)
         for name in wrong:
             if getattr(self, name):
@@ -406,6 +406,7 @@ def new_classes(cloud: PointCloud, classes: dict[str, int], model_ids) -> Any:
 
 
 NO_YOLO_FILE = "no YOLO label file: an image without objects"
+KITTI_TRACKING = "kitti_tracking"      # a boxes_2d file of KITTI tracking (label_02: one per sequence), not moved
 
 
 @dataclass
@@ -477,6 +478,10 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
                 shown = f" as displayed (EXIF orientation {labelme_turn(data)})" if labelme_turn(data) != 1 else ""
                 raise InputError(f"LabelMe file {rel} is for a {size[0]}×{size[1]} px image, {relpath} is {w}×{h}"
                                  f"{shown}", file=str(in_root / relpath))
+        elif role == "boxes_2d" and isinstance(data, PointCloud):
+            sc.fmt = spec.boxes_2d_format                     # image boxes of a scan's frame: copied (carry)
+        elif role == "boxes_2d" and spec.boxes_2d_format == "kitti" and ann_io.is_kitti_tracking(path):
+            sc.fmt = KITTI_TRACKING                           # a sequence's file: copied unless a warp moves boxes
         elif role == "boxes_2d":
             sc.fmt = spec.boxes_2d_format
             h, w = stored_shape(data)
@@ -504,11 +509,20 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
     sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
     upright = labelme_turn(data_in) == 1     # a turned photo's bytes are not what LabelMe shows: imageData null
-    for s in sidecars:
+    for s, entry in zip(sidecars, [e for e in result.read if "absent" not in e]):
+        if s.role == "boxes_2d" and (not camera or s.fmt == KITTI_TRACKING):
+            if camera and data_out.warps:
+                raise InputError(f"{s.relpath} is a KITTI tracking label file (frame track_id first: every frame of "
+                                 f"the sequence in one file); this frame's warp ({', '.join(model_ids)}) would move "
+                                 f"its boxes, which one file shared by the sequence's frames cannot hold: give "
+                                 f"per-frame label_2 files, or a chain without geometric steps", file=str(s.path))
+            entry["unchanged"] = ("image boxes: a point-cloud chain moves none, copied as they are" if not camera else
+                                  "KITTI tracking sequence file: copied as it is, the chain warps no frame")
         if camera and not data_out.warps and _is_labelme(s) and (_embeds_image(s) or variant_suffix):
             result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix),
                                      _labelme_writer(s, None, variant_suffix, upright)))
-        elif s.role in ("boxes_3d", "calib") or (camera and not data_out.warps):
+        elif s.role in ("boxes_3d", "calib") or (camera and not data_out.warps) or \
+                (s.role == "boxes_2d" and not camera):
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
         label_fmt = next((s.fmt for s in sidecars if s.role == "point_labels"), None)

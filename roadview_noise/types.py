@@ -149,6 +149,8 @@ class LidarProfile:
     #                                            firing columns from that order (physics/laser_order.py)
     beam_z_offset_m: tuple[float, ...] = ()    # per beam: height of its origin above the scan's (KITTI's HDL-64E:
     #                                            fitted 0.2 m / 0.1 m), for placing a crop's laser runs; () = 0
+    sensor_origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)   # the sensor in the frame a file's points are
+    #                                            in (Argoverse 2: the vehicle frame); the chain works about it
 
     @property
     def channels(self) -> int:
@@ -346,13 +348,16 @@ class CloudLayout:
     Canonical names: x, y, z, intensity, ring, time_s, rcs_dbsm, v_r_m_per_s, v_r_comp_m_per_s, snr_db, power_db;
     any other field (``label`` included) keeps its file name."""
 
-    fmt: str                                             # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | txt | npz
+    fmt: str                                     # pcd | kitti_bin | nuscenes_bin | ply | vod_bin | txt | npz | feather
     fields: tuple[tuple[str, str, str], ...]
     pcd_data: str = "binary"       # PCD: ascii | binary | binary_compressed; PLY: ascii | binary_little_endian | ...
     no_return: str = "zero"        # a grid's no-return cells as stored: "zero" x/y/z, or "nan" (PCL's organised clouds)
     text: object = None            # txt: header, rows and number formats to write back (io/text_table.TextTable)
     lasers_by_ring: tuple[int, ...] | None = None   # an organised PCD stored a row per firing (Velodyne's): the stored
     #                                column of each grid row (io/pointcloud.firing_row_columns); None: stored as the grid
+    schema: object = None          # feather: the Arrow schema (column types, metadata) to write back (io/feather.py)
+    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)   # the sensor's origin in the file's frame: subtracted
+    #                                from the positions read, added back when written (LidarProfile.sensor_origin_m)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1110,6 +1110,48 @@ def test_kitti_tracking_sequence_files_reach_every_frame(tmp_path):
             "boxes_3d": "../{folder}.txt", "calib": "c.txt"}}}, tmp_path)
 
 
+def test_kitti_tracking_2d_boxes_are_copied_where_no_warp_moves_them(tmp_path, monkeypatch):
+    """KITTI tracking's ``label_02/0000.txt`` (frame track_id type truncated occluded alpha left top right bottom …,
+    every frame of a sequence in one file) named as ``boxes_2d``: a chain without a geometric step moves no box, so
+    the file is copied as it is, once per frame, and the manifest says so (``unchanged``); a LiDAR chain may name the
+    image boxes of its scans too (copied, said so). Only a camera warp, which would have to move them in a file the
+    sequence's frames share, fails the frame, naming the file. Before (round 21): every such frame failed, whatever
+    the chain, and a LiDAR recipe refused boxes_2d ("annotate images")."""
+    monkeypatch.setitem(MODELS, WarpTestCamera.id, WarpTestCamera)
+    root = tmp_path / "in" / "training"
+    rng = np.random.default_rng(4)
+    for frame in ("000000", "000001"):
+        write_image(root / "image_02" / "0000" / f"{frame}.png", rng.random((60, 80, 3)), ImageEncoding())
+    (root / "label_02").mkdir()
+    label = root / "label_02" / "0000.txt"
+    label.write_text("0 -1 DontCare -1 -1 -10.000000 5.0 6.0 20.0 30.0 -1000 -1000 -1000 -10 -10 -10 -10\n"
+                     "0 3 Car 0 0 -1.57 10.5 12.0 40.25 30.0 1.50 1.60 3.90 -1.00 1.70 12.00 -1.59\n"
+                     "1 3 Car 0 0 -1.57 11.5 12.0 41.25 30.0 1.50 1.60 3.90 -1.00 1.70 11.00 -1.59\n")
+    spec = {"camera": "training/image_02/*/*.png", "annotations": {"boxes_2d": "../../label_02/{parent}.txt"}}
+    photometric = _recipe({"chain": [{"model": "compression.camera"}], "inputs": spec}, tmp_path)
+    out = tmp_path / "out"
+    assert run(photometric, tmp_path / "in", out, workers=1, progress=False, echo=lambda *_: None).failed == 0
+    assert (out / "training" / "label_02" / "0000.txt").read_bytes() == label.read_bytes()
+    for entry in read_manifest(out / "manifest.jsonl"):
+        read, = entry["annotations_read"]
+        assert read["role"] == "boxes_2d" and "KITTI tracking sequence file: copied" in read["unchanged"]
+    warped = _recipe({"chain": [{"model": "warp_test.camera"}], "inputs": spec}, tmp_path)
+    result = run(warped, tmp_path / "in", tmp_path / "out_w", workers=1, progress=False, echo=lambda *_: None)
+    assert result.failed == 2
+    errors = [e["error"] for e in read_manifest(tmp_path / "out_w" / "manifest.jsonl")]
+    assert all("label_02/0000.txt is a KITTI tracking label file" in e and "warp_test.camera" in e for e in errors)
+    assert not (tmp_path / "out_w" / "training" / "label_02").exists()
+    # a LiDAR chain: its scans' image boxes are copied, said so
+    cloud, _ = _object_scene()
+    write_pointcloud(root / "velodyne" / "0000" / "000000.pcd", cloud)
+    lidar = _recipe({"chain": [{"model": "fog.lidar", "params": {"visibility_m": 30.0}}], "inputs": {
+        "lidar": "training/velodyne/*/*.pcd", "annotations": {"boxes_2d": "../../label_02/{parent}.txt"}}}, tmp_path)
+    assert run(lidar, tmp_path / "in", tmp_path / "out_l", workers=1, progress=False, echo=lambda *_: None).failed == 0
+    assert (tmp_path / "out_l" / "training" / "label_02" / "0000.txt").read_bytes() == label.read_bytes()
+    read, = read_manifest(tmp_path / "out_l" / "manifest.jsonl")[0]["annotations_read"]
+    assert read["unchanged"].startswith("image boxes: a point-cloud chain moves none")
+
+
 def test_objects_count_their_points_before_and_after(tmp_path):
     """JSON boxes in the sensor frame and the same boxes as KITTI label_2 + calib give the same counts; in dense fog
     the far car keeps none of its points: the manifest marks it lost."""

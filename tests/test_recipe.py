@@ -123,13 +123,15 @@ def test_calibration_from_the_nuscenes_tables_takes_no_label_table():
 
 @pytest.mark.parametrize("sensor, glob, why", [
     ("lidar", "lidar_frontcenter/*.npz", "unknown point-cloud suffix '.npz'"),        # A2D2
-    ("lidar", "sensors/lidar/*.feather", "unknown point-cloud suffix '.feather'"),    # Argoverse 2
+    ("lidar", "sensors/lidar/*.parquet", r".*a table is not read: convert it to PCD"),
+    ("lidar", "lidar/*.pkl.gz", r".*a pickle is not read .* PandaSet's lidar/NN.pkl.gz"),
+    ("lidar", "training/*.tfrecord", r".*Waymo Open Dataset TFRecord .* inputs.bin_fields"),
     ("lidar", "velodyne/*.txt", r".*\(\.txt: radar only\)"),
     ("lidar", "capture/*.pcap", r".*packet capture .* one PCD per scan"),                   # Ouster/Velodyne SDKs
     ("lidar", "maps/*.laz", r".*convert it to PCD or PLY .* empty_rays: ignore"),
     ("radar", "sequence_1/radar_data.h5", "HDF5 is not read: a RadarScenes")])
 def test_cloud_globs_of_formats_not_read_are_refused_at_validate(sensor, glob, why):
-    """A2D2's .npz, Argoverse 2's .feather, RadarScenes' .h5 passed validate, then every file failed with the
+    """A2D2's .npz, a .parquet table, RadarScenes' .h5 passed validate, then every file failed with the
     reader's refusal; validate now gives it, naming the glob, and for containers users bring (a packet capture, a
     LAZ map) the way to what is read. Globs whose suffix is a wildcard are left to the walk."""
     model = {"lidar": "fog.lidar", "radar": "rain.radar"}[sensor]

@@ -534,6 +534,14 @@ def _kitti_boxes(raw: str, calib_path, path, frame: str) -> Boxes3D:
                    calib, up_axis=1)
 
 
+def is_kitti_tracking(path: str | os.PathLike) -> bool:
+    """Whether a KITTI label file is KITTI tracking's (``label_02/0000.txt``: one per sequence, each line led by
+    ``frame track_id``) rather than a per-frame ``label_2`` file (led by the object's type)."""
+    words = next((line.split() for line in _read(Path(path)).decode("utf-8", errors="replace").splitlines()
+                  if line.strip()), [])
+    return bool(words) and _is_int(words[0])
+
+
 def _is_int(word: str) -> bool:
     return word.lstrip("-").isdigit()
 

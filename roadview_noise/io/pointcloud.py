@@ -14,6 +14,8 @@ Formats (by suffix, or ``fmt``):
   io/radar_formats.radar_bin_format); ``radar_bin``: the float32 columns a recipe names (``radar_bin_fields``).
 - ``txt`` (``.txt`` with ``sensor="radar"``): a text table, a header line naming the columns and one point per line
   (Astyx HiRes2019 radar, io/radar_formats.py), float64; written back row for row (io/text_table.py).
+- ``feather`` (``.feather``): an Arrow table, a row per point (Argoverse 2's LiDAR sweeps, io/feather.py); positions
+  about the profile's ``sensor_origin_m`` (Argoverse 2 stores the vehicle frame), put back when written.
 
 File fields get canonical names (types.CloudLayout) through :data:`ALIASES` (first alias present wins; a recipe's
 ``field_map`` {file name: canonical} overrides); every other field (a user's ``label`` too) keeps its file name and
@@ -26,6 +28,7 @@ Not kept: PCD VIEWPOINT/VERSION (written as identity / 0.7) and PLY comments.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -37,17 +40,18 @@ from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
+from .feather import feather_bytes, read_feather
 from . import text_table
 from .radar_formats import TJ4D_COLUMNS, check_vod_columns, fixed_field_layout, is_tj4d_bin, layout_field_map, \
     radar_bin_format, text_table_fields
 
-FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "tj4d_bin", "radar_bin", "txt")
+FORMATS = ("pcd", "ply", "kitti_bin", "nuscenes_bin", "vod_bin", "tj4d_bin", "radar_bin", "txt", "feather")
 
 # canonical name ← file names in priority order (the first one present in the file wins)
 ALIASES: dict[str, tuple[str, ...]] = {
     "x": ("x",), "y": ("y",), "z": ("z",),
     "intensity": ("intensity", "signal", "i", "I", "reflectivity"),
-    "ring": ("ring", "channel", "laser_id"),
+    "ring": ("ring", "channel", "laser_id", "laser_number"),
     "time_s": ("time_s", "time"),          # seconds (Velodyne ROS convention); Ouster `t` (ns) keeps its name
     "rcs_dbsm": ("rcs_dbsm", "rcs", "RCS"),
     "v_r_m_per_s": ("v_r_m_per_s", "v_r", "vr", "velocity", "doppler"),
@@ -93,13 +97,16 @@ def cloud_format(path: str | os.PathLike, sensor: str = "lidar") -> str:
         return "ply"
     if name.endswith(".txt") and sensor == "radar":
         return "txt"
+    if name.endswith(".feather") and sensor == "lidar":
+        return "feather"
     if name.endswith((".h5", ".hdf5")):
         raise InputError("HDF5 is not read: a RadarScenes radar_data.h5 holds a whole sequence (every scan of its 4 "
                          "sensors, indexed by scenes.json), and rvnoise augments one frame per file; write each "
                          "scan as a PCD with roadview_noise.io.radar_formats.radarscenes_scan (README: Radar inputs)",
                          file=str(path))
     why = next((w for ends, w in NOT_READ.items() if name.endswith(ends)), "")
-    raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin or .pcd.bin"
+    raise InputError(f"unknown point-cloud suffix {Path(path).suffix!r}; expected .pcd, .ply, .bin, .pcd.bin or "
+                     ".feather (LiDAR)"
                      + (" (.txt: radar only)" if name.endswith(".txt") else "") + (f"; {why}" if why else ""),
                      file=str(path))
 
@@ -117,8 +124,15 @@ NOT_READ = {      # point-cloud containers users bring that are not read, and th
     (".npy", ".npz"): "NumPy arrays (A2D2's .npz: points, reflectance, … per key) are not read: write the scan as a "
                       "float32 .bin (x y z first) and name its columns in the recipe, inputs.bin_fields (README: "
                       "LiDAR inputs)",
-    (".feather", ".parquet", ".csv"): "a table (Argoverse 2's .feather) is not read: convert it to PCD, its columns "
-                                      "the PCD's fields"}
+    (".parquet", ".csv"): "a table is not read: convert it to PCD, its columns the PCD's fields (or to Feather, "
+                          "read for LiDAR)",
+    (".pkl", ".pkl.gz", ".pickle"): "a pickle is not read (loading one runs code the file names): PandaSet's "
+                                    "lidar/NN.pkl.gz is a pandas DataFrame x y z i t d of both its sensors in world "
+                                    "coordinates; move one sensor's points (d) into its frame with lidar/poses.json "
+                                    "and write them as a PCD or Feather table",
+    (".tfrecord",): "a Waymo Open Dataset TFRecord holds a whole segment as range images: export its frames with "
+                    "the dataset's tools (mmdetection3d's KITTI-format .bin: 6 float32 columns, read with "
+                    "inputs.bin_fields, README: LiDAR inputs)"}
 
 
 def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
@@ -144,8 +158,11 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
         raise InputError(f"cannot read point cloud: {exc.strerror or exc}", file=str(path)) from exc
     if not data:                       # no header either: a failed copy, not a frame without points
         raise InputError("the file is empty (0 bytes)", file=str(path))
-    grid_shape, table, lasers = None, None, None
-    if fmt == "pcd":
+    grid_shape, table, lasers, schema = None, None, None, None
+    if fmt == "feather":
+        columns, schema = read_feather(data, path)
+        mode = "lz4"
+    elif fmt == "pcd":
         columns, mode, grid_shape = _read_pcd(data, path)
         columns, grid_shape, lasers = _as_beam_rows(columns, grid_shape, field_map, path)
     elif fmt == "ply":
@@ -164,7 +181,7 @@ def read_pointcloud(path: str | os.PathLike, *, sensor: str = "lidar",
                                field_map=field_map, source=path, text=table, lasers_by_ring=lasers)
     if fmt == "vod_bin":
         check_vod_columns(cloud, path)
-    return cloud
+    return cloud if schema is None else about_sensor(cloud, schema, profile, path)
 
 
 def firing_row_columns(ring: np.ndarray) -> tuple[int, ...] | None:
@@ -238,6 +255,21 @@ def cloud_from_columns(columns: list[Column], *, fmt: str, mode: str, grid_shape
                       grid_shape=grid_shape)
 
 
+def about_sensor(cloud: PointCloud, schema, profile, path) -> PointCloud:
+    """A Feather table's cloud with its Arrow ``schema`` in the layout and its positions about the profile's
+    ``sensor_origin_m``. An Argoverse 2 sweep (``laser_number`` and ``offset_ns`` columns: the vehicle frame, its
+    origin on the ground 1.35 m behind the sensors and 1.6 m below them) read with a profile that states no origin
+    is refused: ranges, rays and the points weather moves along them would be the vehicle origin's."""
+    origin = tuple(float(v) for v in getattr(profile, "sensor_origin_m", (0.0, 0.0, 0.0)))
+    names = {name for _, name, _ in cloud.layout.fields}
+    if profile is not None and not any(origin) and {"laser_number", "offset_ns"} <= names:
+        raise InputError(f"an Argoverse 2 sweep (columns {sorted(names)}) is in the vehicle frame, not the sensor's: "
+                         f"give lidar_profile: av2-vlp32c (its sensors' origin in that frame), not "
+                         f"{getattr(profile, 'name', profile)!r}", file=str(path))
+    layout = dataclasses.replace(cloud.layout, schema=schema, origin_m=origin)
+    return dataclasses.replace(cloud, positions_m=cloud.positions_m - np.asarray(origin), layout=layout)
+
+
 def _non_finite_rows(positions: np.ndarray) -> np.ndarray:
     """Rows of ``positions`` (N, 3) with a NaN or infinite coordinate. A finite total means every coordinate is finite
     (one pass; NumPy's reductions along a row of 3 are ≈ 15× slower than along the columns)."""
@@ -276,7 +308,7 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
     if _family(cloud_format(path, cloud.sensor)) != family:
         raise ValueError(f"{name}: suffix does not match the cloud's layout format {layout.fmt!r}")
     columns, added = output_columns(cloud, layout, effect=effect, name=name)
-    sidecar = family == "bin" or fixed_field_layout(layout)
+    sidecar = family in ("bin", "feather") or fixed_field_layout(layout)
     if added is not None and not sidecar:
         columns.append(added)
     if layout.fmt == "pcd":
@@ -287,6 +319,8 @@ def write_pointcloud(path: str | os.PathLike, cloud: PointCloud, *, effect: str 
         data = _pcd_bytes(columns, layout.pcd_data, grid)
     elif layout.fmt == "ply":
         data = _ply_bytes(columns, layout.pcd_data)
+    elif layout.fmt == "feather":
+        data = feather_bytes(columns, layout.schema)
     elif layout.fmt == "txt":
         data = text_table.table_bytes(columns, layout.text or text_table.new_table(tuple(c[0] for c in columns)),
                                       cloud.origin)
@@ -320,7 +354,7 @@ def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "aut
     if extra or missing:
         raise ValueError(f"{name}: cloud fields do not match the {layout.fmt} layout "
                          f"(not in layout: {extra}; missing from cloud: {missing})")
-    positions = cloud.positions_m
+    positions = cloud.positions_m + np.asarray(layout.origin_m) if any(layout.origin_m) else cloud.positions_m
     if layout.no_return == "nan" and cloud.grid_shape is not None:     # no-return cells as the input marked them
         no_return = (positions[:, 0] == 0) & (positions[:, 1] == 0) & (positions[:, 2] == 0)     # (by column: fast)
         positions = np.where(no_return[:, None], np.nan, positions) if no_return.any() else positions
@@ -335,8 +369,8 @@ def output_columns(cloud: PointCloud, layout: CloudLayout, *, effect: str = "aut
 
 
 def _family(fmt: str) -> str:
-    """``pcd`` | ``ply`` | ``txt`` | ``bin``: the formats a file suffix can tell apart."""
-    return fmt if fmt in ("pcd", "ply", "txt") else "bin"
+    """``pcd`` | ``ply`` | ``txt`` | ``feather`` | ``bin``: the formats a file suffix can tell apart."""
+    return fmt if fmt in ("pcd", "ply", "txt", "feather") else "bin"
 
 
 def effect_sidecar_path(path: str | os.PathLike) -> Path:

@@ -7,6 +7,8 @@ that ``beams × columns`` grid that hold no point:
 
 - ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
   the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
+- a sweep merging several sensors in one frame (Argoverse 2's two VLP-32C: profile ``storage_order: merged``) has
+  no single grid: weather on its returns only;
 - a ring-less list stored laser by laser (KITTI: profile ``storage_order: laser``) has its rings and firing columns
   recovered from that order on the chain's input (:mod:`laser_order`; its encoder's 0.09° azimuth steps are no
   whole number of firing steps) and carried as attributes; the rest below holds for it with no per-beam shift;
@@ -18,9 +20,9 @@ that ``beams × columns`` grid that hold no point:
 - each beam's columns may be shifted by a fraction of a step (Velodyne firing sequence): the shift is measured per
   beam (circular mean weighted by range, against the parallax of near returns), so a return never lands in its
   neighbour's cell;
-- a list that stores its no-return rays as points (nuScenes: within the profile's ``min_range_m``) has each such
-  point's empty cell found from its storage order (:func:`_placeholder_hosts`): a weather return on that ray takes
-  the placeholder's row, so the output has one return per ray;
+- a list that stores its no-return rays as points (nuScenes: within the profile's ``min_range_m``): each such
+  point is an empty ray, in the cell its storage order gives (:func:`_placeholder_rays`): a weather return on that
+  ray takes the placeholder's row, so the output has one return per ray;
 - which cells are empty rays: those whose own azimuth (beam offsets included) lies within 4 steps of a return of
   any beam — a cropped field of view or lost packets are not filled, while a sparse ground beam keeps the open sky
   above it in view — on the beams that returned something and on every beam above the highest of them (they saw
@@ -56,6 +58,10 @@ UNDECIDED_WHOLE_FRACTION = 0.7  # whole-step gaps on the profile's grid for it t
 VIEW_MARGIN_STEPS = 4           # an azimuth is in view within this many steps of a return (any beam)
 MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returning beams: fewer beams (warned)
 FIRING_ORDER = 0.9              # a ring's successive returns 1 … 8 columns apart, one way: stored in firing order
+MERGED_SENSORS = "merged"       # LidarProfile.storage_order of a sweep merging several sensors (Argoverse 2): no grid
+MERGED_REASON = ("the sweep merges several sensors in one frame (profile storage_order: merged; Argoverse 2's two "
+                 "VLP-32C, the lower one upside down): no single firing grid")
+FULL_SWEEP = 0.98               # points stored per ring, of the columns, for a list that stores every firing
 
 
 @dataclass(frozen=True, eq=False)
@@ -451,7 +457,7 @@ def measured_elevations(cloud, measured: FiringColumns, profile: LidarProfile) -
 
 def empty_rays(measured: FiringColumns, profile: LidarProfile, hosts: bool = False) -> FiringGrid:
     """The empty rays of the firing grid ``measured`` (:func:`firing_columns`) of a list (module doc); ``hosts``
-    (rings carried, not recovered from positions): the no-return points stored on them (:func:`_placeholder_hosts`)."""
+    (rings carried, not recovered from positions): the no-return points stored as rays (:func:`_placeholder_rays`)."""
     ring, firing, columns, shift, valid = (measured.ring, measured.firing_rad, measured.columns, measured.shift,
                                            measured.valid)
     offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
@@ -461,36 +467,46 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile, hosts: bool = Fal
     in_view = np.convolve(np.concatenate([seen[-m:], seen, seen[:m]]), np.ones(2 * m + 1), "valid") > 0
     words = occupied.reshape(-1).view(np.uint64) if columns % 8 == 0 else np.zeros(0, np.uint64)
     returned = occupied.any(axis=1)
+    nearest = _nearest_filled(like)
     er, ec, el, on_returned = _empty_cells(occupied, words, _firing_beams(returned, profile), in_view, shift, offsets,
-                                           step, returned, _nearest_filled(like))
+                                           step, returned, nearest)
     _warn_sparse(on_returned, int(np.count_nonzero(returned)) * int(np.count_nonzero(in_view)),
                  columns, profile)
-    host = _placeholder_hosts(measured, er, ec, profile.channels) if hosts and not valid.all() else None
+    host = None
+    if hosts and not valid.all():
+        er, ec, el, host = _placeholder_rays(measured, er, ec, el, nearest, profile.channels)
     return FiringGrid(er, ec, el, columns, shift, profile, firing,
                       int(np.count_nonzero(~in_view)), measured.gaps_columns, host=host)
 
 
-def _placeholder_hosts(measured: FiringColumns, er: np.ndarray, ec: np.ndarray, channels: int) -> np.ndarray:
-    """Per empty cell (``er``, ``ec``): the list's no-return point stored on it, −1 for none. A list that stores
-    every firing (nuScenes: a no-return as a point within ``min_range_m``) stores each ring's points in firing
-    order, so a no-return point between two returns of its ring lies in the column as far between theirs as it is
-    in storage (rounded; the columns of returns come from their azimuths, which jitter by a column between beams:
-    14 % of a nuScenes firing's neighbouring returns). A cell that two such points round to takes the later, a cell
-    none rounds to keeps its weather return appended; so do the cells before a ring's first and after its last
-    return. None at all unless the list's rings are stored in firing order: 90 % of the steps between a ring's
-    successive returns go 1 … 8 columns one way (a shuffled or re-sorted list: ≈ 0 %)."""
-    return _hosts(measured.ring, measured.valid, measured.firing_rad, measured.shift, measured.columns / TWO_PI,
-                  measured.columns, channels, er, ec)
+def _placeholder_rays(measured: FiringColumns, er: np.ndarray, ec: np.ndarray, el: np.ndarray,
+                      nearest: np.ndarray, channels: int) -> tuple[np.ndarray, ...]:
+    """The empty rays (ring, column, like, host) of a list that stores its no-return rays as points (nuScenes: within
+    ``min_range_m``), from the empty cells ``er``, ``ec``, ``el`` and each column's return ``nearest``: every such
+    point is an empty ray of its own (``host``: the point; its weather return takes its row) in the column as far
+    between its ring's neighbouring returns' columns as it is in storage (rounded), or one column per firing on from
+    the nearest of them at a ring's ends; the columns of returns come from their azimuths, which jitter by a column
+    between beams (14 % of a nuScenes firing's neighbouring returns), so a cell holding no point is no ray where the
+    list stores every firing (each ring with returns ≥ ``FULL_SWEEP`` of the columns): its empty rays are its
+    no-return points; in a list storing fewer firings the empty cells no such point lies on stay empty rays too
+    (``host`` −1, appended). Unchanged (``host`` −1) unless the list's rings are stored in firing order: 90 % of
+    the steps between a ring's successive returns go 1 … 8 columns one way (a shuffled or re-sorted list: ≈ 0 %).
+
+    Real scan (nuScenes LIDAR_TOP, 34 688 rows, 1 084 firings a ring on 1 081 columns, 8 029 placeholders): of its
+    8 705 empty cells 914 hold no placeholder, 452 of them between two consecutive firings of their ring (jitter),
+    most others beside returns within 5 m (parallax); 238 placeholders rounded to a cell another one or a return
+    took."""
+    return _stored_rays(measured.ring, measured.valid, measured.firing_rad, measured.shift,
+                        measured.columns / TWO_PI, measured.columns, channels, er, ec, el, nearest)
 
 
 @jit
-def _hosts(ring, valid, firing, shift, inv_step, columns, channels, er, ec):       # pragma: no cover - compiled
-    """:func:`_placeholder_hosts`: two passes over the list in storage order give each return's column (as
-    :func:`_cells` finds it), each point's ordinal within its ring and each no-return point's previous and next
-    return of its ring, and count the steps between a ring's successive returns that go 1 … ``MAX_GAP_STEPS``
-    columns forward and backward; then each no-return point between two returns is placed."""
+def _stored_rays(ring, valid, firing, shift, inv_step, columns, channels, er, ec, el, nearest):  # pragma: no cover
+    """:func:`_placeholder_rays`: one pass over the list in storage order gives each return's column (as
+    :func:`_cells` finds it), each point's ordinal within its ring, each no-return point's previous return of its
+    ring, and counts the steps between a ring's successive returns that go 1 … ``MAX_GAP_STEPS`` columns forward
+    and backward; one pass back places each no-return point between its ring's previous and next return."""
     n = len(ring)
-    host = np.full(len(er), -1, np.int64)
     column = np.full(n, -1, np.int64)
     seq = np.empty(n, np.int64)
     prev = np.full(n, -1, np.int64)
@@ -513,29 +529,59 @@ def _hosts(ring, valid, firing, shift, inv_step, columns, channels, er, ec):    
             backward += 1 <= columns - gap <= MAX_GAP_STEPS
         last[r] = i
     if steps < MIN_GAPS or max(forward, backward) < FIRING_ORDER * steps:
-        return host                                          # not stored in firing order
+        return er, ec, el, np.full(len(er), -1, np.int64)   # not stored in firing order
     sign = 1 if forward >= backward else -1
+    rings = full = 0
+    for r in range(channels):
+        if last[r] >= 0:
+            rings += 1
+            full += count[r] >= FULL_SWEEP * columns
+    every = full == rings                                    # every firing stored: a cell without a point is no ray
     cell = np.full(channels * columns, -1, np.int64)
     for k in range(len(er)):
         cell[er[k] * columns + ec[k]] = k
+    keep = np.full(len(er), not every)
+    placed = np.full(n, -1, np.int64)                        # each no-return point's column
     last[:] = -1
-    for i in range(n - 1, -1, -1):                           # the next return of each no-return point's ring
+    for i in range(n - 1, -1, -1):                           # the next return of each point's ring
         r = np.uintp(ring[i])
+        p, q = prev[i], last[r]
         if valid[i]:
             last[r] = i
             continue
-        p, q = prev[i], last[r]
-        if p < 0 or q < 0:
-            continue
-        firings = seq[q] - seq[p]
-        turn = _wrap(sign * (column[q] - column[p]), columns)     # columns, the way the sensor turns
-        if turn < 1 or turn > MAX_GAP_STEPS * firings:
-            continue
-        c = _wrap(column[p] + sign * int(np.rint(turn * (seq[i] - seq[p]) / firings)), columns)
-        k = cell[r * columns + c]
-        if k >= 0 and host[k] < 0:                           # (the last in storage order: the first met here)
-            host[k] = i
-    return host
+        c = 0
+        if p >= 0 and q >= 0:
+            firings = seq[q] - seq[p]
+            turn = _wrap(sign * (column[q] - column[p]), columns)     # columns, the way the sensor turns
+            ahead = seq[i] - seq[p]
+            c = column[p] + sign * (int(np.rint(turn * ahead / firings)) if 1 <= turn <= MAX_GAP_STEPS * firings
+                                    else ahead)
+        elif p >= 0:
+            c = column[p] + sign * (seq[i] - seq[p])
+        elif q >= 0:
+            c = column[q] - sign * (seq[q] - seq[i])
+        if p >= 0 or q >= 0:                                 # (a ring without returns: none)
+            placed[i] = _wrap(c, columns)
+            k = cell[r * columns + placed[i]]
+            if k >= 0 and not every:                          # its cell is its ray, not another one
+                keep[k] = False
+    m = 0                                                    # (loops: np.flatnonzero cost 4x the passes above)
+    for k in range(len(er)):
+        m += keep[k]
+    for i in range(n):
+        m += placed[i] >= 0
+    out_ring, out_col, out_like, host = (np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.int64),
+                                         np.full(m, -1, np.int64))
+    j = 0
+    for k in range(len(er)):
+        if keep[k]:
+            out_ring[j], out_col[j], out_like[j] = er[k], ec[k], el[k]
+            j += 1
+    for i in range(n):
+        if placed[i] >= 0:
+            out_ring[j], out_col[j], out_like[j], host[j] = ring[i], placed[i], nearest[placed[i]], i
+            j += 1
+    return out_ring, out_col, out_like, host
 
 
 def _warn_sparse(empty: int, cells: int, columns: int, profile: LidarProfile) -> None:
@@ -607,9 +653,9 @@ def list_points(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     laser = profile.storage_order == LASER_ORDER and (FIRING_COLUMN in cloud.attributes
                                                       or ring_source(cloud) == "elevation")
-    reason = ""
+    reason = MERGED_REASON if profile.storage_order == MERGED_SENSORS else ""
     try:
-        carried = (np.zeros(0, np.int64) if laser or ring_source(cloud) == "elevation"
+        carried = (np.zeros(0, np.int64) if laser or reason or ring_source(cloud) == "elevation"
                    else ring_index(cloud, profile))
     except InputError as e:
         reason, carried = str(e), np.zeros(0, np.int64)

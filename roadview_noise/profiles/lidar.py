@@ -25,6 +25,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
+from ..physics.firing_grid import MERGED_SENSORS
 from ..physics.lidar_intensity import OUSTER_WHITE_REFLECTIVITY, reflectivity_variant
 from ..types import IntensityUnit, LidarProfile
 from . import check_keys, load_profile
@@ -41,6 +42,7 @@ OS1_THRESHOLD_OVER_NOISE = 3.28         # one background photon per pulse window
 HDL32_SENSOR_CONSTANT = 25_000.0        # m², fitted on a real nuScenes scan (see hdl_32e)
 HDL32_WHITE_REFLECTIVITY = 100.0        # HDL-32E FW 2.0: diffuse 0–100 for 0–100 %
 KITTI_INTENSITY_STEP = 0.01             # KITTI stores the HDL-64E intensity as multiples of 0.01
+AV2_SENSOR_ORIGIN_M = (1.35, 0.0, 1.58)  # Argoverse 2's two VLP-32C in its vehicle frame (see av2_vlp32c)
 #: Ouster lidar packet profiles that carry only the 8-bit calibrated reflectivity (no signal channel)
 OUSTER_REFLECTIVITY_ONLY = ("RNG15_RFL8_NIR8", "FUSA_RNG15_RFL8_NIR8_DUAL")
 
@@ -191,8 +193,36 @@ def hdl_32e() -> LidarProfile:
         detection_threshold=1.0, window="rotating", threshold_calibration="datasheet")
 
 
+def av2_vlp32c() -> LidarProfile:
+    """Argoverse 2's LiDAR (its sensor dataset's ``sensors/lidar/*.feather`` sweeps): two stacked Velodyne VLP-32C,
+    64 beams, ring = ``laser_number`` (0–31 the upper sensor, 32–63 the lower one, mounted upside down and tilted
+    11.6°, each in the same order). Beam table ``data/av2_vlp32c.yaml``: the VLP-32C manual's vertical angles
+    (−25° … +15°) in the order of Argoverse 2's ``laser_number``, matched on real sweeps (the median elevation of
+    each laser_number in its own sensor's frame within 0.03°); no azimuth offsets (no firing grid is measured).
+
+    The sweep stores the vehicle frame (origin on the ground under the rear axle); the sensors' origins lie at
+    (1.350, 0.000, 1.640) m and (1.347–1.357, −0.003–0.005, 1.522–1.526) m in it (``egovehicle_SE3_sensor`` of the
+    devkit's four test logs), so ``sensor_origin_m`` = (1.35, 0.0, 1.58): both within 6 cm, the chain's ranges and
+    rays about it, the positions written back in the vehicle frame (:mod:`io.feather`). ``storage_order: merged``:
+    one sweep of two sensors, the lower one flipped, has no single firing grid — weather acts on the returns only
+    (the empty rays, which would need each sensor's grid in its own frame, get none; the manifest's
+    ``empty_rays_source`` says so).
+    Radiometry, as the Velodyne family's (HDL-32E, VLP-16 manuals): 8-bit calibrated reflectivity, diffuse white
+    W = 100 (ASSUMPTION for the VLP-32C); 903 nm; 200 m (datasheet); K = 200² / 0.4 = 100 000 m², ASSUMPTION (the
+    datasheet's 200 m read at ρ = 0.4, the HDL-32E's reading of its datasheet). Threshold: the datasheet's
+    (``threshold_calibration: datasheet``): real sweeps read 2 at 100–110 m, not radiometric (as nuScenes').
+    Columns 1808: a 55.296 µs firing cycle at 10 Hz (the manual's timing) — not used without a firing grid.
+    Beam radius, divergence, pulse and receiver: the HDL-32E's (:func:`hdl_32e`), ASSUMPTION."""
+    t = _table("av2_vlp32c.yaml")
+    elevation = tuple(float(e) for e in t["beam_elevation_deg"]) * 2
+    return dataclasses.replace(
+        hdl_32e(), name="av2-vlp32c", beam_elevation_deg=elevation, beam_azimuth_offset_deg=(0.0,) * 64,
+        columns=1808, wavelength_m=903e-9, max_range_m=200.0, min_range_m=0.0, sensor_constant=200.0 ** 2 / 0.4,
+        sensor_origin_m=AV2_SENSOR_ORIGIN_M, storage_order=MERGED_SENSORS)
+
+
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
-           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64, "hdl-32e": hdl_32e}
+           "carla-64": carla_64, "kitti-hdl64": kitti_hdl64, "hdl-32e": hdl_32e, "av2-vlp32c": av2_vlp32c}
 
 
 def from_ouster_metadata(path: Path, **overrides) -> LidarProfile:
