@@ -26,10 +26,10 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer, model_validator
 
 from .annotations import AnnotationsSpec, NuscenesRule, ReplaceRule
-from .compound import cnf_chain, order_chain
+from .compound import CNFS, cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .input_checks import check_inputs
-from .registry import get_model, suggest
+from .registry import get_model, known, suggest
 
 SCHEMA = "rvnoise.recipe/1"
 DISTRIBUTIONS = ("uniform", "choice", "normal")
@@ -402,6 +402,14 @@ def draw_value(value: Any, rng, *, integer: bool = False) -> Any:
     return tuple(choice) if isinstance(choice, list) else choice
 
 
+def _step_hint(model_id: str, ids: Sequence[str], *, cnf: bool) -> str:
+    """What to tell a user whose ``params:`` name a model that is not a step: the step it misspells, or, for a real
+    model, how to add it (a step is not suggested for a model that merely shares its sensor)."""
+    if not known(model_id):
+        return suggest(model_id, ids)
+    return "; to add a model to a CNF, write its steps as `chain:`" if cnf else f"; add {model_id} to `chain:`"
+
+
 def _suffix_text(v: Any) -> str:
     return str(v).replace("/", "_").replace(" ", "")
 
@@ -419,7 +427,10 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             name = str(err["loc"][-1])
             raise RecipeError(f"unknown key {name!r}{suggest(name, _allowed_keys(err['loc']))}",
                               file=source, key=key) from None
-        raise RecipeError(err["msg"], file=source, key=key) from None
+        got = err.get("input")
+        hint = suggest(str(got), CNFS) if key == "cnf" else ""
+        shown = f", got {got!r}{hint}" if isinstance(got, (str, int, float, bool)) else ""
+        raise RecipeError(f"{err['msg']}{shown}", file=source, key=key) from None
 
     if (spec.cnf is None) == (spec.chain is None):
         raise RecipeError("give exactly one of `cnf:` or `chain:`", file=source)
@@ -431,7 +442,8 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             unknown = set(spec.params) - set(ids)
             if unknown:
                 m = sorted(unknown)[0]
-                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)})", key=f"params.{m}")
+                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)}){_step_hint(m, ids, cnf=True)}",
+                                  key=f"params.{m}")
         else:
             if not spec.chain:
                 raise RecipeError("the chain is empty", key="chain")
@@ -439,7 +451,7 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             step_params = [dict(s.params) for s in spec.chain]
             for m, p in spec.params.items():
                 if m not in ids:
-                    raise RecipeError(f"{m!r} is not in the chain{suggest(m, ids)}", key=f"params.{m}")
+                    raise RecipeError(f"{m!r} is not in the chain{_step_hint(m, ids, cnf=False)}", key=f"params.{m}")
                 step_params[ids.index(m)].update(p)
         if spec.sensor is not None and get_model(ids[0]).sensor != spec.sensor:
             raise RecipeError(f"the chain acts on {get_model(ids[0]).sensor}, not {spec.sensor}", key="sensor")
