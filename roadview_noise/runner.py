@@ -32,6 +32,7 @@ from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
+from .input_survey import no_inputs_message
 from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
 from .executor import NOT_NOW, Counted, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
 from .invalid_points import drop_invalid_points
@@ -114,6 +115,10 @@ class RunSummary:
 def check_roots(in_root: Path, out_root: Path) -> tuple[Path, Path]:
     """Real paths of the roots; refuses a missing input, an output that is a file, and overlapping roots (the input
     tree is never written)."""
+    if Path(in_root).exists() and not Path(in_root).is_dir():
+        raise RecipeError(f"input {str(in_root)!r} is a file; augment reads a folder (its files that the recipe's "
+                          "inputs globs match): give the folder holding it, or see one file's result with `rvnoise "
+                          "preview`")
     if not Path(in_root).is_dir():
         raise RecipeError(f"input folder {str(in_root)!r} does not exist")
     if Path(out_root).exists() and not Path(out_root).is_dir():
@@ -520,13 +525,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         raise RecipeError(f"the recipe plans more than {cap:,} outputs ({len(recipe.variants):,} variant(s) per "
                           "input); say --yes to run it anyway, or narrow the sweep or the inputs (--limit)")
     if planned == 0 and unreadable == 0:
-        inputs = recipe.spec.inputs
-        globs = "; ".join(f"inputs.{k}: {getattr(inputs, k)}" for k in ("camera", "raw", "lidar", "radar")
-                          if getattr(inputs, k))
-        example = (", e.g. camera: 'samples/CAM_*/*.jpg' (nuScenes), '**/image_2/*.png' (KITTI)"
-                   if recipe.sensor == "camera" else "")
-        raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs"
-                          f"{f' ({globs})' if globs else ''}; set the globs of your layout{example}")
+        raise RecipeError(no_inputs_message(in_real, str(in_root), recipe))
     coco_run = coco.open_run(in_real, recipe)
     for note in coco_run.notes() if coco_run else ():
         warn(f"rvnoise: warning: {note}")

@@ -1,0 +1,62 @@
+"""A new user's first hour (round 22, ux38): the mistakes users make on the command line each give exit 2 and one
+line that names the problem and what to do, and nothing is written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from roadview_noise.cli.main import app
+from roadview_noise.io.image import write_image
+from roadview_noise.types import ImageEncoding
+
+runner = CliRunner()
+FOG_LIDAR = {"chain": [{"model": "fog.lidar"}], "inputs": {"lidar": ["lidar/**/*.pcd", "lidar/**/*.bin"]}}
+JPEG = {"chain": [{"model": "compression.camera"}], "inputs": {"camera": ["camera/**/*.png"]}}
+
+
+@pytest.fixture
+def photos(tmp_path: Path) -> Path:
+    """A folder of photos at its top level, as a user's own pictures are."""
+    rng = np.random.default_rng(0)
+    for i in range(2):
+        write_image(tmp_path / "photos" / f"IMG_{i}.png", rng.uniform(0, 1, (16, 24, 3)).astype(np.float32),
+                    ImageEncoding())
+    return tmp_path / "photos"
+
+
+def _augment(tmp_path: Path, body: dict, in_dir: Path, *extra) -> object:
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(yaml.safe_dump(body))
+    return runner.invoke(app, ["augment", "--recipe", str(recipe), str(in_dir), str(tmp_path / "out"), "--quiet",
+                               *map(str, extra)])
+
+
+def test_a_single_file_as_input_is_named_a_file(tmp_path, photos):
+    r = _augment(tmp_path, JPEG, photos / "IMG_0.png")
+    assert r.exit_code == 2 and "is a file" in r.output and "does not exist" not in r.output
+    assert "rvnoise preview" in r.output and not (tmp_path / "out").exists()
+
+
+def test_a_lidar_recipe_on_photos_says_what_the_folder_holds(tmp_path, photos):
+    r = _augment(tmp_path, FOG_LIDAR, photos)
+    assert r.exit_code == 2 and not (tmp_path / "out").exists()
+    assert "2 camera image(s)" in r.output and "'IMG_0.png'" in r.output and "is for lidar data" in r.output
+
+
+def test_globs_that_miss_the_photos_get_a_glob_that_takes_them(tmp_path, photos):
+    r = _augment(tmp_path, JPEG, photos)
+    assert r.exit_code == 2 and "2 camera image(s) or raw frame(s) they miss" in r.output
+    assert "set inputs.camera to a glob that matches them, e.g. '**/*.png'" in r.output
+    body = {**JPEG, "inputs": {"camera": "**/*.png"}}                  # the suggested glob runs
+    assert _augment(tmp_path, body, photos).exit_code == 0 and (tmp_path / "out" / "IMG_1.png").is_file()
+
+
+def test_an_empty_folder_says_it_holds_nothing_readable(tmp_path):
+    (tmp_path / "empty").mkdir()
+    r = _augment(tmp_path, JPEG, tmp_path / "empty")
+    assert r.exit_code == 2 and "holds no file rvnoise reads" in r.output and not (tmp_path / "out").exists()
