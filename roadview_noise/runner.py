@@ -830,6 +830,9 @@ def _finish(ctx: RunContext, previous: PreviousRun, tally: _Tally, log: _Log, su
             claimed.close()
     summary.seconds = time.time() - started
     summary.warnings = tally.warnings()
+    if any("no space left" in f.lower() for f in summary.failures):     # in run.json's notes too
+        summary.notes.append("the disk filled up: free space and run again with --resume to write the missing "
+                             "outputs")
     final = {**record, "state": summary.state, "wall_seconds": round(summary.seconds, 3),
              "worker_start_seconds": summary.worker_start_s,
              "warnings": summary.warnings,
@@ -842,9 +845,6 @@ def _finish(ctx: RunContext, previous: PreviousRun, tally: _Tally, log: _Log, su
             raise OutputError(f"cannot write {out / RUN_NAME}: {os_error_text(e)}") from None
         lock.release_reserve()                          # the lock file's reserved space makes room
         write_run_json(out / RUN_NAME, final)
-    if any("no space left" in f.lower() for f in summary.failures):
-        summary.notes.append("the disk filled up: free space and run again with --resume to write the missing "
-                             "outputs")
 
 
 def _final_lines(manifest: Path, start: int, kept: Iterable[dict], tally: _Tally) -> Iterator[dict]:

@@ -60,3 +60,38 @@ def test_an_empty_folder_says_it_holds_nothing_readable(tmp_path):
     (tmp_path / "empty").mkdir()
     r = _augment(tmp_path, JPEG, tmp_path / "empty")
     assert r.exit_code == 2 and "holds no file rvnoise reads" in r.output and not (tmp_path / "out").exists()
+
+
+def test_a_short_write_without_errno_is_named_a_full_disk():
+    """numpy's tofile (tifffile's DNG pixel data) reports a full disk as a bare short write."""
+    from roadview_noise.output_sync import write_error
+
+    text = write_error("raw/a.dng", "raw/a.dng", OSError("177144 requested and 32528 written"))
+    assert "no space left on device" in text and "32528 of 177144 bytes" in text and "--resume" in text
+    assert "--resume" not in write_error("a.png", "a.png", OSError("cannot encode"))
+
+
+def test_a_full_disk_under_dng_outputs_says_so_in_each_entry_and_in_run_json(tmp_path):
+    import json
+    import shutil
+    import subprocess
+
+    from roadview_noise.manifest import read_manifest
+
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600k", "tmpfs", str(mnt)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("needs permission to mount a tmpfs")
+    try:
+        shutil.copytree(Path(__file__).parents[1] / "sample_data" / "raw", tmp_path / "in" / "raw")
+        body = {"chain": [{"model": "fog.camera"}], "inputs": {"raw": "raw/**/*.dng", "depth": "{stem}_depth.exr"}}
+        (tmp_path / "r.yaml").write_text(yaml.safe_dump(body))
+        r = runner.invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(tmp_path / "in"),
+                                str(mnt / "out"), "--quiet", "--workers", "1"])
+        assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+        failed = [e for e in read_manifest(mnt / "out" / "manifest.jsonl") if e["status"] == "failed"]
+        assert failed and all("no space left on device" in e["error"] and "--resume" in e["error"] for e in failed)
+        assert any("disk filled up" in n for n in json.loads((mnt / "out" / "run.json").read_text())["notes"])
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
