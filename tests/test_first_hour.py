@@ -95,3 +95,31 @@ def test_a_full_disk_under_dng_outputs_says_so_in_each_entry_and_in_run_json(tmp
         assert any("disk filled up" in n for n in json.loads((mnt / "out" / "run.json").read_text())["notes"])
     finally:
         subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def test_more_workers_than_cores_are_run_and_said_to_share_them():
+    from roadview_noise.resources import WORKER_PEAK_BYTES, choose_workers
+
+    n, why = choose_workers(8, 100, available=100 * WORKER_PEAK_BYTES, cores=2)
+    assert n == 8 and "8 workers on 2 cores" in why and "no faster than --workers 2" in why
+    n, why = choose_workers(64, 6, available=100 * WORKER_PEAK_BYTES, cores=2)
+    assert n == 6 and "capped to 6: 6 output(s) to write" in why and "6 workers on 2 cores" in why
+    assert choose_workers(None, 100, available=100 * WORKER_PEAK_BYTES, cores=3) == (3, None)
+    assert choose_workers(2, 100, available=100 * WORKER_PEAK_BYTES, cores=2) == (2, None)
+
+
+def test_the_default_workers_follow_the_cpus_this_process_may_use(monkeypatch):
+    import os
+
+    from roadview_noise import resources
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)   # taskset -c 0 on any machine
+    assert resources.usable_cores() == 1
+    assert resources.choose_workers(None, 100, available=100 * resources.WORKER_PEAK_BYTES)[0] == 1
+
+
+@pytest.mark.parametrize("workers", ["0", "-1", "two"])
+def test_workers_zero_or_not_a_number_is_refused_before_anything_is_written(tmp_path, photos, workers):
+    r = _augment(tmp_path, {**JPEG, "inputs": {"camera": "*.png"}}, photos, "--workers", workers)
+    assert r.exit_code == 2 and "--workers" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "out").exists()
