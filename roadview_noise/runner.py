@@ -32,9 +32,9 @@ from .allocator import keep_freed_memory
 from .camera_inputs import InputWarnings
 from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
-from .input_survey import no_inputs_message
 from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
 from .executor import NOT_NOW, Counted, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
+from .input_survey import no_inputs_message
 from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
