@@ -370,6 +370,9 @@ def _check_value(model_id: str, name: str, value: Any, key: str, source: str) ->
         problem = specs[name].check(tuple(v) if isinstance(v, list) else v)
         if problem:
             raise RecipeError(problem, file=source, key=key)
+        if specs[name].unit == "path" and isinstance(v, str) and not Path(v).is_file():   # read by every file's step
+            raise RecipeError(f"no file {v!r} (a path relative to the folder rvnoise runs in, {str(Path.cwd())!r})",
+                              file=source, key=key)
 
 
 def _check_normal(spec, mean: float, sd: float, key: str, source: str) -> None:

@@ -174,3 +174,12 @@ def test_a_number_written_as_text_says_how_to_write_it(value, says):
     assert e.key == "chain[0].params.visibility_m" and f"got {value!r}" in str(e) and says in str(e)
     if value == "30 km":
         assert "visibility_m: 30" not in str(e)          # a unit it does not convert is never read as metres
+
+
+def test_a_model_file_that_does_not_exist_is_refused_at_validate(tmp_path, monkeypatch):
+    """README's ray-drop recipe names `model_file: ray_drop.json`; without it every file used to fail one by one."""
+    monkeypatch.chdir(tmp_path)
+    body = {"cnf": "CNF28", "params": {"ray_drop.lidar": {"backend": "learned", "model_file": "ray_drop.json"}}}
+    e = err(body)
+    assert e.key == "params.ray_drop.lidar.model_file" and "no file 'ray_drop.json'" in str(e)
+    assert str(tmp_path) in str(e)
