@@ -246,9 +246,9 @@ def _show_model(mid: str, models: dict, prefix: str = "") -> None:
         typer.echo(f"     {p.name:<28} {p.unit:<10} default {p.default!s:<12} {p.range_text():<20} {p.doc}")
 
 
-@app.command(epilog="Example: `rvnoise replay out/demo/manifest.jsonl --key camera/seq0/000000.png`")
+@app.command(epilog="Example: `rvnoise replay out/demo/cnf16-camera-wind-rain/manifest.jsonl --key camera/seq0/000000.png` (after `make demo`)")
 def replay(
-    manifest: Path = typer.Argument(..., help="A run's manifest.jsonl (run.json must be next to it)."),
+    manifest: Path = typer.Argument(..., help="A run's manifest.jsonl (run.json must be next to it), or its folder."),
     key: str = typer.Option(..., "--key", "-k", help="Output path relative to the output root, or TOPIC@STAMP "
                                                      "for a bag's manifest (OUT.manifest.jsonl)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Also write the reproduced file here."),

@@ -890,6 +890,12 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
     from .recipe import parse_recipe
 
     manifest_path = Path(manifest_path)
+    if manifest_path.is_dir():                          # OUT/ for OUT/manifest.jsonl
+        manifest_path = manifest_path / MANIFEST_NAME
+    if not manifest_path.is_file():                     # make demo's out/demo is a folder of runs
+        runs = sorted(f"{p.parent.name}/{MANIFEST_NAME}" for p in manifest_path.parent.glob(f"*/{MANIFEST_NAME}"))
+        hint = f"; {str(manifest_path.parent)!r} holds runs: give one's manifest ({', '.join(runs)})" if runs else ""
+        raise RecipeError(f"no manifest {str(manifest_path)!r}{hint}")
     run_path = manifest_path.with_name(RUN_NAME)
     if not run_path.is_file():
         raise RecipeError(f"no {RUN_NAME} next to {str(manifest_path)!r}; replay needs the run record")

@@ -123,3 +123,16 @@ def test_workers_zero_or_not_a_number_is_refused_before_anything_is_written(tmp_
     r = _augment(tmp_path, {**JPEG, "inputs": {"camera": "*.png"}}, photos, "--workers", workers)
     assert r.exit_code == 2 and "--workers" in r.output and "Traceback" not in r.output
     assert not (tmp_path / "out").exists()
+
+
+def test_replay_of_a_folder_of_runs_names_its_runs_and_a_run_folder_replays(tmp_path, photos):
+    body = {**JPEG, "inputs": {"camera": "*.png"}}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(body))
+    for name in ("a", "b"):                            # make demo's layout: out/demo/<run>/manifest.jsonl
+        r = runner.invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(photos),
+                                str(tmp_path / "demo" / name), "--quiet"])
+        assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["replay", str(tmp_path / "demo" / "manifest.jsonl"), "--key", "IMG_0.png"])
+    assert r.exit_code == 2 and "a/manifest.jsonl, b/manifest.jsonl" in r.output and "run.json" not in r.output
+    r = runner.invoke(app, ["replay", str(tmp_path / "demo" / "a"), "--key", "IMG_0.png"])
+    assert r.exit_code == 0 and r.output.startswith("match: IMG_0.png")
