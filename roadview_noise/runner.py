@@ -603,7 +603,8 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
     if not (manifest.exists() or run_json.exists()):
         return PreviousRun()
     if not (resume or overwrite):
-        raise OutputError(f"{str(out_root)!r} holds an earlier run; use --resume to complete it or --overwrite")
+        raise OutputError(f"{str(out_root)!r} holds an earlier run{_run_state(run_json, recipe)}; use --resume to "
+                          "complete it (the same recipe only) or --overwrite to replace it")
     if overwrite:
         remove_listed(out_root, iter_manifest(manifest))
         for p in (manifest, run_json):
@@ -619,6 +620,18 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
                           f" this one {recipe.sha256()[:12]}…); --resume continues the same recipe only: use "
                           "--overwrite to replace that run, or another output folder")
     return PreviousRun(manifest)
+
+
+def _run_state(run_json: Path, recipe: Recipe) -> str:
+    """`` (interrupted: 121 of 600 outputs done, another recipe)``: what an earlier run's record says, or ''."""
+    try:
+        record = json.loads(run_json.read_text())
+        counts = record.get("counts") or {}
+        done = (counts.get("done") or 0) + (counts.get("skipped") or 0)
+        other = ", another recipe" if record.get("recipe_sha256") != recipe.sha256() else ""
+        return f" ({record['state']}: {done} of {counts.get('planned', '?')} outputs done{other})"
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return ""
 
 
 def _turned_dng(path: Path) -> bool:

@@ -136,3 +136,18 @@ def test_replay_of_a_folder_of_runs_names_its_runs_and_a_run_folder_replays(tmp_
     assert r.exit_code == 2 and "a/manifest.jsonl, b/manifest.jsonl" in r.output and "run.json" not in r.output
     r = runner.invoke(app, ["replay", str(tmp_path / "demo" / "a"), "--key", "IMG_0.png"])
     assert r.exit_code == 0 and r.output.startswith("match: IMG_0.png")
+
+
+def test_the_same_command_again_says_what_the_earlier_run_did(tmp_path, photos):
+    import json
+
+    body = {**JPEG, "inputs": {"camera": "*.png"}}
+    assert _augment(tmp_path, body, photos).exit_code == 0
+    record = json.loads((tmp_path / "out" / "run.json").read_text())
+    record.update(state="interrupted", counts={"planned": 2, "done": 1, "skipped": 0, "failed": 0})
+    (tmp_path / "out" / "run.json").write_text(json.dumps(record))      # as a Ctrl-C after the first file leaves it
+    r = _augment(tmp_path, body, photos)
+    assert r.exit_code == 2 and "(interrupted: 1 of 2 outputs done)" in r.output and "--resume" in r.output
+    r = _augment(tmp_path, {**body, "seed": 5}, photos)
+    assert r.exit_code == 2 and "(interrupted: 1 of 2 outputs done, another recipe)" in r.output
+    assert _augment(tmp_path, body, photos, "--resume").exit_code == 0
