@@ -445,8 +445,8 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             unknown = set(spec.params) - set(ids)
             if unknown:
                 m = sorted(unknown)[0]
-                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)}){_step_hint(m, ids, cnf=True)}",
-                                  key=f"params.{m}")
+                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)})"
+                                  f"{_step_hint(m, ids, cnf=True)}", key=f"params.{m}")
         else:
             if not spec.chain:
                 raise RecipeError("the chain is empty", key="chain")

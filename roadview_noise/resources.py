@@ -3,7 +3,8 @@
 A worker's peak resident memory on the shipped recipes at the sensors' full resolutions (camera 1936×1464 with
 depth, raw DNG, OS1-128 2048 columns, VLS-128, radar) is at most 600 MB (CNF06 on the camera; LiDAR recipes ≤ 375 MB), 207 MB of it libraries
 (``bench/bench_worker_memory.py``); :data:`WORKER_PEAK_BYTES` adds a margin. The number of workers is
-``min(requested or the usable CPUs (affinity), outputs to write, available memory // WORKER_PEAK_BYTES)``, at least 1; the
+``min(requested or the usable CPUs (affinity), outputs to write, available memory // WORKER_PEAK_BYTES)``, at least
+1 (more than the usable CPUs run, with a line saying they share them); the
 available memory is the kernel's ``MemAvailable``, lowered to what the cgroup still allows when it sets a limit.
 Larger inputs need proportionally more (85–95 MB per camera megapixel): lower ``--workers`` or ``--max-pixels``
 for them; a worker the kernel kills for memory is recorded as such and the run goes on.

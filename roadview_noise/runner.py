@@ -603,8 +603,8 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
     if not (manifest.exists() or run_json.exists()):
         return PreviousRun()
     if not (resume or overwrite):
-        raise OutputError(f"{str(out_root)!r} holds an earlier run{_run_state(run_json, recipe)}; use --resume to "
-                          "complete it (the same recipe only) or --overwrite to replace it")
+        raise OutputError(f"{str(out_root)!r} holds an earlier run{_earlier_run_text(run_json, recipe)}; use "
+                          "--resume to complete it (the same recipe only) or --overwrite to replace it")
     if overwrite:
         remove_listed(out_root, iter_manifest(manifest))
         for p in (manifest, run_json):
@@ -622,7 +622,7 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
     return PreviousRun(manifest)
 
 
-def _run_state(run_json: Path, recipe: Recipe) -> str:
+def _earlier_run_text(run_json: Path, recipe: Recipe) -> str:
     """`` (interrupted: 121 of 600 outputs done, another recipe)``: what an earlier run's record says, or ''."""
     try:
         record = json.loads(run_json.read_text())
