@@ -68,7 +68,7 @@ def suggest(name: str, choices) -> str:
     choices = [str(c) for c in choices]
     cnf = re.fullmatch(r"\s*(?:cnf)?\s*0*(\d{1,2})\s*", str(name), re.IGNORECASE)
     close = [c for c in choices if cnf and c == f"CNF{int(cnf.group(1)):02d}"]
-    close = close or [c for c in choices if c.partition(".")[0] == name and "." in c]
+    close = close or sorted(c for c in choices if c.partition(".")[0] == name and "." in c)
     close = close or difflib.get_close_matches(str(name), choices, n=3, cutoff=0.5)
     return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""
 
