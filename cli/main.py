@@ -327,6 +327,7 @@ def preview(
             else:
                 r = pv.recipe_from(recipe, sensor or (kind if kind != "camera" else None), seed)
                 r = with_input_overrides(r, depth=depth, depth_source=depth_source)
+                pv.check_fits(r, kind, f)
                 sample, root = pv.sample_for(f, r, input_root)
                 img = pv.render(pv.run_chain(r, sample, root, title=f"{f.name}: {' -> '.join(r.model_ids)}"),
                                 panel_px or 480, colour)

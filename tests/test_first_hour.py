@@ -151,3 +151,13 @@ def test_the_same_command_again_says_what_the_earlier_run_did(tmp_path, photos):
     r = _augment(tmp_path, {**body, "seed": 5}, photos)
     assert r.exit_code == 2 and "(interrupted: 1 of 2 outputs done, another recipe)" in r.output
     assert _augment(tmp_path, body, photos, "--resume").exit_code == 0
+
+
+@pytest.mark.parametrize("recipe, says", [
+    ("CNF5", "neither a recipe file nor a CNF id (did you mean 'CNF05'?)"),
+    ("CNF20", "is a camera image, but the recipe's chain (alignment.lidar → fog.lidar) is for lidar data"),
+])
+def test_preview_names_a_cnf_without_its_zero_and_a_recipe_for_another_sensor(tmp_path, photos, recipe, says):
+    r = runner.invoke(app, ["preview", "--recipe", recipe, str(photos / "IMG_0.png"), "-o", str(tmp_path / "p.png")])
+    assert r.exit_code == 2 and says in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "p.png").exists()
