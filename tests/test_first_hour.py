@@ -161,3 +161,11 @@ def test_preview_names_a_cnf_without_its_zero_and_a_recipe_for_another_sensor(tm
     r = runner.invoke(app, ["preview", "--recipe", recipe, str(photos / "IMG_0.png"), "-o", str(tmp_path / "p.png")])
     assert r.exit_code == 2 and says in r.output and "Traceback" not in r.output
     assert not (tmp_path / "p.png").exists()
+
+
+def test_a_contact_sheet_shows_its_progress_one_step_per_cnf(photos, capsys):
+    from roadview_noise.preview import contact_sheet
+
+    contact_sheet(photos / "IMG_0.png", "camera", progress=True, panel_px=120, depth_source="ground_plane")
+    err = capsys.readouterr().err
+    assert "0/18 " in err and "CNF/s" in err                        # CNF01–CNF18 on a camera frame
