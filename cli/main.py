@@ -242,11 +242,16 @@ def _show_model(mid: str, models: dict, prefix: str = "") -> None:
         return
     c = models[mid]
     typer.echo(f"{prefix}{mid}  [{c.stage.name}, {c.scope.value}] {c.summary}")
-    for p in c.param_specs():
-        typer.echo(f"     {p.name:<28} {p.unit:<10} default {p.default!s:<12} {p.range_text():<20} {p.doc}")
+    specs = c.param_specs()
+    rows = [(p.name, p.unit, str(p.default), p.range_text(), p.doc) for p in specs]
+    widths = [max([w] + [len(r[i]) + 1 for r in rows]) for i, w in enumerate((28, 10, 12, 20))]   # ≥ 2 spaces apart
+    for name, unit, default, allowed, doc in rows:
+        typer.echo(f"     {name:<{widths[0]}} {unit:<{widths[1]}} default {default:<{widths[2]}} "
+                   f"{allowed:<{widths[3]}} {doc}")
 
 
-@app.command(epilog="Example: `rvnoise replay out/demo/cnf16-camera-wind-rain/manifest.jsonl --key camera/seq0/000000.png` (after `make demo`)")
+@app.command(epilog="Example: `rvnoise replay out/demo/cnf16-camera-wind-rain/manifest.jsonl --key "
+                    "camera/seq0/000000.png` (after `make demo`)")
 def replay(
     manifest: Path = typer.Argument(..., help="A run's manifest.jsonl (run.json must be next to it), or its folder."),
     key: str = typer.Option(..., "--key", "-k", help="Output path relative to the output root, or TOPIC@STAMP "

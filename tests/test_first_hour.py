@@ -169,3 +169,13 @@ def test_a_contact_sheet_shows_its_progress_one_step_per_cnf(photos, capsys):
     contact_sheet(photos / "IMG_0.png", "camera", progress=True, panel_px=120, depth_source="ground_plane")
     err = capsys.readouterr().err
     assert "0/18 " in err and "CNF/s" in err                        # CNF01–CNF18 on a camera frame
+
+
+def test_show_keeps_its_columns_apart_for_long_names_and_defaults():
+    """fog.lidar's backscatter_times_visibility_per_sr ran into its unit, 'default sensor_constant' into its range."""
+    r = runner.invoke(app, ["show", "fog.lidar"])
+    rows = [line for line in r.output.splitlines() if " default " in line]
+    assert r.exit_code == 0 and len(rows) >= 7
+    assert len({line.index(" default ") for line in rows}) == 1                  # the default column is aligned
+    assert all("backscatter_times_visibility_per_sr sr" not in line for line in rows)
+    assert any("default sensor_constant  " in line for line in rows)
