@@ -297,7 +297,8 @@ def preview(
                                               "draws follow the path relative to it [default: the file's folder]."),
     seed: int = typer.Option(0, "--seed", help="Seed of a CNF given by its id, and of --all-cnfs."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Image to write (.png/.jpg) [default: "
-                                       "preview.png]; a folder when several files are given."),
+                                       "preview.png]; a folder (an existing one, or a name without a suffix) "
+                                       "when several files are given, or to hold one file's preview."),
     panel_px: Optional[int] = typer.Option(None, "--panel-px", min=120, help="Width of one panel "
                                            "[default: 480, 320 on contact sheets]."),
     colour: str = typer.Option("range", "--colour", help="LiDAR colour: range or intensity."),
@@ -310,6 +311,7 @@ def preview(
     bird's-eye views; removed, moved and added points highlighted."""
     from roadview_noise import preview as pv
     from roadview_noise.overrides import with_input_overrides
+    from roadview_noise.walk import os_error_text
 
     if sensor not in (None, "camera", "lidar", "radar"):
         _fail(f"--sensor must be camera, lidar or radar, got {sensor!r}")
@@ -321,11 +323,14 @@ def preview(
         _fail("give either --recipe (a recipe file or a CNF id) or --all-cnfs")
     if out is None:
         out = Path("preview.png") if len(files) == 1 else Path("preview")
+    into_folder = len(files) > 1 or out.is_dir() or not out.suffix      # `-o sheets/` for one file too
     failed = []
     for f in files:                        # a file that fails is named, and the others are still previewed
         try:
             kind = sensor or pv.guess_sensor(f)
-            target = out if len(files) == 1 else out / f"{pv.file_label(f, input_root)}-{kind}.png"
+            target = out / f"{pv.file_label(f, input_root)}-{kind}.png" if into_folder else out
+            if any(target.resolve() == g.resolve() for g in files):
+                raise RvNoiseError(f"-o {str(target)!r} is an input file; a preview never writes over its input")
             if all_cnfs:
                 img = pv.contact_sheet(f, kind, in_root=input_root, seed=seed, panel_px=panel_px or 320,
                                        colour_by=colour, depth=depth, depth_source=depth_source)
@@ -341,6 +346,10 @@ def preview(
         except RvNoiseError as e:
             failed.append(f)
             typer.secho(f"rvnoise: {e}" if str(f) in str(e) or f.name in str(e) else f"rvnoise: {f}: {e}",
+                        fg=typer.colors.RED, err=True)
+        except OSError as e:               # the preview cannot be written (a folder in its place, no space, …)
+            failed.append(f)
+            typer.secho(f"rvnoise: {f}: cannot write the preview {str(target)!r}: {os_error_text(e)}",
                         fg=typer.colors.RED, err=True)
     if failed:
         raise typer.Exit(2)

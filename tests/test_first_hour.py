@@ -179,3 +179,17 @@ def test_show_keeps_its_columns_apart_for_long_names_and_defaults():
     assert len({line.index(" default ") for line in rows}) == 1                  # the default column is aligned
     assert all("backscatter_times_visibility_per_sr sr" not in line for line in rows)
     assert any("default sensor_constant  " in line for line in rows)
+
+
+def test_preview_never_writes_over_its_input_and_takes_a_folder_for_one_file(tmp_path, photos):
+    from roadview_noise.manifest import sha256_file
+
+    photo = photos / "IMG_0.png"
+    before = sha256_file(photo)
+    r = runner.invoke(app, ["preview", "--recipe", "CNF11", str(photo), "-o", str(photo), "--depth-source",
+                            "ground_plane"])
+    assert r.exit_code == 2 and "is an input file" in r.output and sha256_file(photo) == before
+    (tmp_path / "sheets").mkdir()                    # README: `--all-cnfs FILE -o sheets/` (was a traceback)
+    r = runner.invoke(app, ["preview", "--all-cnfs", str(photo), "-o", str(tmp_path / "sheets"), "--depth-source",
+                            "ground_plane", "--panel-px", "120"])
+    assert r.exit_code == 0 and "Traceback" not in r.output and len(list((tmp_path / "sheets").glob("*.png"))) == 1
