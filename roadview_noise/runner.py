@@ -924,6 +924,12 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
                           "records): replay an image")
     recipe = parse_recipe(record["recipe"], source=str(run_path), base_dir=Path(record["recipe_base_dir"]))
     in_root = Path(os.path.realpath(input_root or record["input_root"]))
+    if out_file is not None:                            # never into IN, nor into OUT (OUT equals its manifest)
+        target = Path(os.path.realpath(out_file))
+        for root, what in ((in_root, "input tree"), (Path(os.path.realpath(manifest_path.parent)), "output folder")):
+            if target == root or root in target.parents:
+                raise RecipeError(f"--out {str(out_file)!r} is inside the run's {what} {str(root)!r}; replay writes "
+                                  "into neither: give a path outside them")
     limits = Limits(**{k: v for k, v in record.get("limits", {}).items() if k in Limits.__dataclass_fields__})
     task = Task(Sample(entry["input"], entry["modality"], entry["sequence"], entry.get("depth")),
                 entry["variant_index"], key)

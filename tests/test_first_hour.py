@@ -193,3 +193,20 @@ def test_preview_never_writes_over_its_input_and_takes_a_folder_for_one_file(tmp
     r = runner.invoke(app, ["preview", "--all-cnfs", str(photo), "-o", str(tmp_path / "sheets"), "--depth-source",
                             "ground_plane", "--panel-px", "120"])
     assert r.exit_code == 0 and "Traceback" not in r.output and len(list((tmp_path / "sheets").glob("*.png"))) == 1
+
+
+def test_replay_and_report_never_write_over_the_inputs(tmp_path, photos):
+    from roadview_noise.manifest import sha256_file
+
+    body = {**JPEG, "inputs": {"camera": "*.png"}}
+    assert _augment(tmp_path, body, photos).exit_code == 0
+    before = {p.name: sha256_file(p) for p in photos.iterdir()}
+    for target, where in ((photos / "IMG_0.png", "input tree"), (tmp_path / "out" / "x.png", "output folder")):
+        r = runner.invoke(app, ["replay", str(tmp_path / "out"), "--key", "IMG_0.png", "--out", str(target)])
+        assert r.exit_code == 2 and f"inside the run's {where}" in r.output
+    assert not (tmp_path / "out" / "x.png").exists()
+    r = runner.invoke(app, ["report", str(tmp_path / "out"), "-o", str(photos / "IMG_1.png")])
+    assert r.exit_code == 2 and "give a .html name" in r.output
+    assert {p.name: sha256_file(p) for p in photos.iterdir()} == before
+    r = runner.invoke(app, ["replay", str(tmp_path / "out"), "--key", "IMG_0.png", "--out", str(tmp_path / "r.png")])
+    assert r.exit_code == 0 and sha256_file(tmp_path / "r.png") == sha256_file(tmp_path / "out" / "IMG_0.png")
