@@ -210,3 +210,27 @@ def test_replay_and_report_never_write_over_the_inputs(tmp_path, photos):
     assert {p.name: sha256_file(p) for p in photos.iterdir()} == before
     r = runner.invoke(app, ["replay", str(tmp_path / "out"), "--key", "IMG_0.png", "--out", str(tmp_path / "r.png")])
     assert r.exit_code == 0 and sha256_file(tmp_path / "r.png") == sha256_file(tmp_path / "out" / "IMG_0.png")
+
+
+def test_a_run_started_inside_another_checkout_runs_the_installed_code_in_its_workers(tmp_path, photos):
+    """The fork server imported its preloads from the current folder: run from a folder holding another
+    roadview_noise (another checkout, an older copy), every worker ran that copy."""
+    import shutil
+    import subprocess
+    import sys
+
+    import roadview_noise
+
+    other = tmp_path / "checkout"
+    shutil.copytree(Path(roadview_noise.__file__).parent, other / "roadview_noise",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    with open(other / "roadview_noise" / "runner.py", "a") as fh:
+        fh.write("\n\ndef _process(*a, **k):\n    raise RuntimeError('the checkout in the current folder ran')\n")
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump({**JPEG, "inputs": {"camera": "*.png"}}))
+    rvnoise = Path(sys.executable).parent / "rvnoise"
+    if not rvnoise.is_file():
+        pytest.skip("needs the installed rvnoise script")
+    r = subprocess.run([str(rvnoise), "augment", "--recipe", str(tmp_path / "r.yaml"), str(photos),
+                        str(tmp_path / "out"), "--quiet", "--workers", "1"], cwd=other, capture_output=True, text=True)
+    assert r.returncode == 0 and "checkout in the current folder" not in r.stderr, r.stderr
+    assert (tmp_path / "out" / "IMG_0.png").is_file()
