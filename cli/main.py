@@ -69,7 +69,9 @@ def augment(
     output_dir: Path = typer.Argument(..., help="Output tree (augmented files, manifest.jsonl, run.json), or the "
                                                 "output bag (OUT.manifest.jsonl and OUT.run.json beside it)."),
     recipe: Path = typer.Option(..., "--recipe", "-r", help="Recipe YAML (a CNF or a chain of models)."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: the cores this process may use; capped at the outputs and the memory, see README]."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: the "
+                                          "cores this process may use; capped at the outputs and the memory, see "
+                                          "README]."),
     resume: bool = typer.Option(False, "--resume", help="Skip outputs already in the manifest with matching sha256."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in OUTPUT_DIR."),
     dry_run: bool = typer.Option(False, "--dry-run", help="List what would be done; write nothing."),
