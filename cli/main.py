@@ -69,7 +69,9 @@ def augment(
     output_dir: Path = typer.Argument(..., help="Output tree (augmented files, manifest.jsonl, run.json), or the "
                                                 "output bag (OUT.manifest.jsonl and OUT.run.json beside it)."),
     recipe: Path = typer.Option(..., "--recipe", "-r", help="Recipe YAML (a CNF or a chain of models)."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: all cores; capped at the outputs and the memory, see README]."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-j", min=1, help="Worker processes [default: the "
+                                          "cores this process may use; capped at the outputs and the memory, see "
+                                          "README]."),
     resume: bool = typer.Option(False, "--resume", help="Skip outputs already in the manifest with matching sha256."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier run in OUTPUT_DIR."),
     dry_run: bool = typer.Option(False, "--dry-run", help="List what would be done; write nothing."),
@@ -242,13 +244,18 @@ def _show_model(mid: str, models: dict, prefix: str = "") -> None:
         return
     c = models[mid]
     typer.echo(f"{prefix}{mid}  [{c.stage.name}, {c.scope.value}] {c.summary}")
-    for p in c.param_specs():
-        typer.echo(f"     {p.name:<28} {p.unit:<10} default {p.default!s:<12} {p.range_text():<20} {p.doc}")
+    specs = c.param_specs()
+    rows = [(p.name, p.unit, str(p.default), p.range_text(), p.doc) for p in specs]
+    widths = [max([w] + [len(r[i]) + 1 for r in rows]) for i, w in enumerate((28, 10, 12, 20))]   # ≥ 2 spaces apart
+    for name, unit, default, allowed, doc in rows:
+        typer.echo(f"     {name:<{widths[0]}} {unit:<{widths[1]}} default {default:<{widths[2]}} "
+                   f"{allowed:<{widths[3]}} {doc}")
 
 
-@app.command(epilog="Example: `rvnoise replay out/demo/manifest.jsonl --key camera/seq0/000000.png`")
+@app.command(epilog="Example: `rvnoise replay out/demo/cnf16-camera-wind-rain/manifest.jsonl --key "
+                    "camera/seq0/000000.png` (after `make demo`)")
 def replay(
-    manifest: Path = typer.Argument(..., help="A run's manifest.jsonl (run.json must be next to it)."),
+    manifest: Path = typer.Argument(..., help="A run's manifest.jsonl (run.json must be next to it), or its folder."),
     key: str = typer.Option(..., "--key", "-k", help="Output path relative to the output root, or TOPIC@STAMP "
                                                      "for a bag's manifest (OUT.manifest.jsonl)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Also write the reproduced file here."),
@@ -292,7 +299,8 @@ def preview(
                                               "draws follow the path relative to it [default: the file's folder]."),
     seed: int = typer.Option(0, "--seed", help="Seed of a CNF given by its id, and of --all-cnfs."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Image to write (.png/.jpg) [default: "
-                                       "preview.png]; a folder when several files are given."),
+                                       "preview.png]; a folder (an existing one, or a name without a suffix) "
+                                       "when several files are given, or to hold one file's preview."),
     panel_px: Optional[int] = typer.Option(None, "--panel-px", min=120, help="Width of one panel "
                                            "[default: 480, 320 on contact sheets]."),
     colour: str = typer.Option("range", "--colour", help="LiDAR colour: range or intensity."),
@@ -305,6 +313,7 @@ def preview(
     bird's-eye views; removed, moved and added points highlighted."""
     from roadview_noise import preview as pv
     from roadview_noise.overrides import with_input_overrides
+    from roadview_noise.walk import os_error_text
 
     if sensor not in (None, "camera", "lidar", "radar"):
         _fail(f"--sensor must be camera, lidar or radar, got {sensor!r}")
@@ -316,17 +325,21 @@ def preview(
         _fail("give either --recipe (a recipe file or a CNF id) or --all-cnfs")
     if out is None:
         out = Path("preview.png") if len(files) == 1 else Path("preview")
+    into_folder = len(files) > 1 or out.is_dir() or not out.suffix      # `-o sheets/` for one file too
     failed = []
     for f in files:                        # a file that fails is named, and the others are still previewed
         try:
             kind = sensor or pv.guess_sensor(f)
-            target = out if len(files) == 1 else out / f"{pv.file_label(f, input_root)}-{kind}.png"
+            target = out / f"{pv.file_label(f, input_root)}-{kind}.png" if into_folder else out
+            if any(target.resolve() == g.resolve() for g in files):
+                raise RvNoiseError(f"-o {str(target)!r} is an input file; a preview never writes over its input")
             if all_cnfs:
                 img = pv.contact_sheet(f, kind, in_root=input_root, seed=seed, panel_px=panel_px or 320,
                                        colour_by=colour, depth=depth, depth_source=depth_source)
             else:
                 r = pv.recipe_from(recipe, sensor or (kind if kind != "camera" else None), seed)
                 r = with_input_overrides(r, depth=depth, depth_source=depth_source)
+                pv.check_fits(r, kind, f)
                 sample, root = pv.sample_for(f, r, input_root)
                 img = pv.render(pv.run_chain(r, sample, root, title=f"{f.name}: {' -> '.join(r.model_ids)}"),
                                 panel_px or 480, colour)
@@ -335,6 +348,10 @@ def preview(
         except RvNoiseError as e:
             failed.append(f)
             typer.secho(f"rvnoise: {e}" if str(f) in str(e) or f.name in str(e) else f"rvnoise: {f}: {e}",
+                        fg=typer.colors.RED, err=True)
+        except OSError as e:               # the preview cannot be written (a folder in its place, no space, …)
+            failed.append(f)
+            typer.secho(f"rvnoise: {f}: cannot write the preview {str(target)!r}: {os_error_text(e)}",
                         fg=typer.colors.RED, err=True)
     if failed:
         raise typer.Exit(2)

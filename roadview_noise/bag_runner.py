@@ -15,7 +15,6 @@ so files and bag carry the same pixels and points.
 from __future__ import annotations
 
 import hashlib
-import os
 import pickle
 import struct
 import sys
@@ -37,6 +36,7 @@ from .io.atomic import atomic_path
 from .io.rosbag import bag_kind, bag_output, header_stamp_ns, open_bag, output_kind, remove_stale_siblings
 from .io.spool import Payload, Spool, load, put_beside
 from .manifest import dumps, library_versions, read_manifest, write_run_json
+from .resources import usable_cores
 from .runner import RunSummary
 
 DEPTH_WINDOW_NS = 1_000_000_000       # an aligned depth message is looked for within ±1 s of record time
@@ -494,7 +494,7 @@ def run_bag(recipe: BagRecipe, in_bag: Path, out_bag: Path, *, workers: int | No
     keep_freed_memory()                 # the serial reading and writing here reuse their buffers' pages
     in_bag, out_bag = Path(in_bag), Path(out_bag)
     check_bag_paths(in_bag, out_bag, overwrite)
-    n_workers = workers or os.cpu_count() or 1
+    n_workers = workers or usable_cores()
     summary = RunSummary()
     tally = _Tally(summary)                    # counts, failures and warning lines, as a file run folds them
     topics: dict[str, dict[str, int]] = {t: {"messages": 0, "ok": 0, "failed": 0} for t in recipe.topics}

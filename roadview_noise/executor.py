@@ -62,6 +62,7 @@ from collections import deque
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
+from pathlib import Path
 from typing import Any, Callable, Generic, Iterable, Iterator, Protocol, Sequence, TypeVar
 
 T = TypeVar("T")
@@ -259,6 +260,19 @@ def _in_order(answers: list, queue: deque) -> int:
     return n
 
 
+def _safe_path() -> dict[str, str]:
+    """``PYTHONSAFEPATH=1`` when the current folder holds a ``roadview_noise`` other than the one running: the fork
+    server, started as ``python -c …``, imports PRELOAD with the current folder first on its path (Python 3.11 does
+    not pass it the caller's), so a run started inside another checkout of rvnoise ran that checkout's code in its
+    workers (round 22: a run from a newer checkout failed every file, "write() takes 1 positional argument")."""
+    try:
+        here = Path.cwd() / "roadview_noise"
+        other = here.is_dir() and here.resolve() != Path(__file__).resolve().parent
+    except OSError:                        # the current folder was removed: nothing to import from it
+        other = False
+    return {"PYTHONSAFEPATH": "1"} if other else {}
+
+
 @contextmanager
 def _starting() -> Iterator[None]:
     """Around starting a worker or the fork server: one thread per numeric library in the environment, and no
@@ -266,8 +280,9 @@ def _starting() -> Iterator[None]:
     are imported by name), and multiprocessing's default would re-import the main script in every worker:
     slow (a script that imports open3d pays it per worker) and wrong for a script without the
     ``if __name__ == "__main__"`` guard."""
-    saved = {k: os.environ.get(k) for k in THREAD_ENV}
-    os.environ.update(THREAD_ENV)
+    env = {**THREAD_ENV, **_safe_path()}
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
     original = getattr(mp_spawn, "get_preparation_data", None)
 
     def without_main(name):

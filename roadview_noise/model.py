@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import re
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import Enum, IntEnum
@@ -74,6 +75,25 @@ class ParamSpec:
         hi = f"≤ {self.le:g}" if self.le is not None else (f"< {self.lt:g}" if self.lt is not None else "")
         return ", ".join(p for p in (lo, hi) if p) or "any"
 
+    def _number_hint(self, value: Any) -> str:
+        """How to write a number given as text: ``'30'`` without quotes; ``'30m'`` for a parameter in m as 30 (the
+        unit is in the parameter's name); another unit is not converted (``'30 km'``: say it in m)."""
+        number = re.fullmatch(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*", value) \
+            if isinstance(value, str) else None
+        if number is None:
+            text = value.strip().lower() if isinstance(value, str) else ""
+            sign = "-" if text.startswith("-") else ""
+            return f": YAML writes infinity .inf, {self.name}: {sign}.inf" if text.lstrip("+-") in ("inf", "infinity") \
+                else ""
+        digits, written = number.groups()
+        if not written:
+            return f": write it without quotes, {self.name}: {digits}"
+        if self.unit in ("1", ""):
+            return ": write a bare number (this parameter has no unit)"
+        if written.replace(" ", "") == self.unit.replace(" ", ""):
+            return f": write the bare number (its unit, {self.unit}, is part of the name), {self.name}: {digits}"
+        return f": write the number in {self.unit}, bare (the unit is part of the name; no unit is converted)"
+
     def check(self, value: Any) -> str | None:
         """None if ``value`` is allowed, else the reason."""
         if self.choices is not None:
@@ -82,7 +102,7 @@ class ParamSpec:
             return None if isinstance(value, bool) else f"must be true or false, got {value!r}"
         if isinstance(self.default, (int, float)) and not isinstance(self.default, bool):
             if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                return f"must be a number, got {value!r}"
+                return f"must be a number, got {value!r}{self._number_hint(value)}"
             if isinstance(self.default, int) and not float(value).is_integer():
                 return f"must be an integer, got {value!r}"
             v = float(value)

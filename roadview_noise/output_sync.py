@@ -12,8 +12,10 @@ also cost the disk fewer flushes than one fsync per file in turn.
 
 from __future__ import annotations
 
+import errno
 import os
 import queue
+import re
 import threading
 from pathlib import Path
 
@@ -122,8 +124,16 @@ class SyncPool:
         os.close(self._wake_w)
 
 
+# numpy's ``tofile`` (tifffile writes DNG/TIFF pixel data with it) reports a short write without an errno: on a
+# regular file only a full disk or quota cuts a write short
+SHORT_WRITE = re.compile(r"(\d+) requested and (\d+) written")
+
+
 def write_error(relpath: str, out_relpath: str, exc: BaseException) -> str:
     """A manifest entry's error for an output that could not be written (disk full: how to go on)."""
     what = os_error_text(exc) if getattr(exc, "strerror", None) else str(exc)
-    hint = "; free space and run again with --resume" if getattr(exc, "errno", None) == 28 else ""
-    return f"{relpath}: cannot write {out_relpath}: {what}{hint}"
+    short = SHORT_WRITE.search(str(exc)) if getattr(exc, "errno", None) is None else None
+    if short:
+        what = f"no space left on device or quota (short write: {short[2]} of {short[1]} bytes)"
+    full = short or getattr(exc, "errno", None) == errno.ENOSPC
+    return f"{relpath}: cannot write {out_relpath}: {what}{'; free space and run again with --resume' if full else ''}"

@@ -26,10 +26,10 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_serializer, model_validator
 
 from .annotations import AnnotationsSpec, NuscenesRule, ReplaceRule
-from .compound import cnf_chain, order_chain
+from .compound import CNFS, cnf_chain, order_chain
 from .errors import ModelError, RecipeError
 from .input_checks import check_inputs
-from .registry import get_model, suggest
+from .registry import get_model, known, suggest
 
 SCHEMA = "rvnoise.recipe/1"
 DISTRIBUTIONS = ("uniform", "choice", "normal")
@@ -374,6 +374,9 @@ def _check_value(model_id: str, name: str, value: Any, key: str, source: str) ->
         problem = specs[name].check(tuple(v) if isinstance(v, list) else v)
         if problem:
             raise RecipeError(problem, file=source, key=key)
+        if specs[name].unit == "path" and isinstance(v, str) and not Path(v).is_file():   # read by every file's step
+            raise RecipeError(f"no file {v!r} (a path relative to the folder rvnoise runs in, {str(Path.cwd())!r})",
+                              file=source, key=key)
 
 
 def _check_normal(spec, mean: float, sd: float, key: str, source: str) -> None:
@@ -406,6 +409,14 @@ def draw_value(value: Any, rng, *, integer: bool = False) -> Any:
     return tuple(choice) if isinstance(choice, list) else choice
 
 
+def _step_hint(model_id: str, ids: Sequence[str], *, cnf: bool) -> str:
+    """What to tell a user whose ``params:`` name a model that is not a step: the step it misspells, or, for a real
+    model, how to add it (a step is not suggested for a model that merely shares its sensor)."""
+    if not known(model_id):
+        return suggest(model_id, ids)
+    return "; to add a model to a CNF, write its steps as `chain:`" if cnf else f"; add {model_id} to `chain:`"
+
+
 def _suffix_text(v: Any) -> str:
     return str(v).replace("/", "_").replace(" ", "")
 
@@ -423,7 +434,10 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             name = str(err["loc"][-1])
             raise RecipeError(f"unknown key {name!r}{suggest(name, _allowed_keys(err['loc']))}",
                               file=source, key=key) from None
-        raise RecipeError(err["msg"], file=source, key=key) from None
+        got = err.get("input")
+        hint = suggest(str(got), CNFS) if key == "cnf" else ""
+        shown = f", got {got!r}{hint}" if isinstance(got, (str, int, float, bool)) else ""
+        raise RecipeError(f"{err['msg']}{shown}", file=source, key=key) from None
 
     if (spec.cnf is None) == (spec.chain is None):
         raise RecipeError("give exactly one of `cnf:` or `chain:`", file=source)
@@ -435,7 +449,8 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             unknown = set(spec.params) - set(ids)
             if unknown:
                 m = sorted(unknown)[0]
-                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)})", key=f"params.{m}")
+                raise RecipeError(f"{m!r} is not a step of {spec.cnf.upper()} ({', '.join(ids)})"
+                                  f"{_step_hint(m, ids, cnf=True)}", key=f"params.{m}")
         else:
             if not spec.chain:
                 raise RecipeError("the chain is empty", key="chain")
@@ -443,7 +458,7 @@ def parse_recipe(data: Any, *, source: str = "<recipe>", base_dir: Path | None =
             step_params = [dict(s.params) for s in spec.chain]
             for m, p in spec.params.items():
                 if m not in ids:
-                    raise RecipeError(f"{m!r} is not in the chain{suggest(m, ids)}", key=f"params.{m}")
+                    raise RecipeError(f"{m!r} is not in the chain{_step_hint(m, ids, cnf=False)}", key=f"params.{m}")
                 step_params[ids.index(m)].update(p)
         if spec.sensor is not None and get_model(ids[0]).sensor != spec.sensor:
             raise RecipeError(f"the chain acts on {get_model(ids[0]).sensor}, not {spec.sensor}", key="sensor")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import difflib
 import importlib
 import pkgutil
+import re
 
 from .errors import ModelError
 from .model_index import MODULES
@@ -61,7 +62,14 @@ def adopt(models: tuple[tuple[str, str], ...]) -> None:
 
 
 def suggest(name: str, choices) -> str:
-    close = difflib.get_close_matches(name, list(choices), n=3, cutoff=0.5)
+    """`` (did you mean 'a', 'b'?)`` for the choices closest to ``name``, or ''. A CNF number without its zero or
+    in lower case (``cnf5``) names its CNF (``CNF05``); a model id without its sensor (``fog``) names every sensor's
+    (``fog.camera``, ``fog.lidar``, ``fog.radar``); else the nearest by spelling."""
+    choices = [str(c) for c in choices]
+    cnf = re.fullmatch(r"\s*(?:cnf)?\s*0*(\d{1,2})\s*", str(name), re.IGNORECASE)
+    close = [c for c in choices if cnf and c == f"CNF{int(cnf.group(1)):02d}"]
+    close = close or sorted(c for c in choices if c.partition(".")[0] == name and "." in c)
+    close = close or difflib.get_close_matches(str(name), choices, n=3, cutoff=0.5)
     return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""
 
 

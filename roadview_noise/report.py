@@ -488,6 +488,9 @@ def write_report(root: Path, out: Path | None = None, *, echo: Callable[[str], N
     """Write the page (default ``root/report.html``) and its numbers beside it under the page's name with ``.json``
     (``report.json``; ``-o DIR/x.html`` → ``DIR/x.json``, so two reports in one folder keep their own); return the
     page's path."""
+    if out is not None and Path(out).suffix.lower() not in (".html", ".htm"):     # `-o photo.png` wrote HTML over it
+        raise RecipeError(f"-o {str(out)!r}: the report is an HTML page (its numbers go beside it as .json); give a "
+                          ".html name")
     page, numbers = build(root, echo=echo)
     out = Path(out) if out is not None else Path(root) / REPORT_NAME
     out.parent.mkdir(parents=True, exist_ok=True)

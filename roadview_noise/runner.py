@@ -34,6 +34,7 @@ from .compound import apply_models
 from .dataset import Sample, iter_inputs, load, output_relpath, save
 from .errors import EmptyCloudError, InputError, OutputError, RecipeError, RvNoiseError
 from .executor import NOT_NOW, Counted, InlineExecutor, ProcessExecutor, TaskError, WorkerDeath, start_server
+from .input_survey import no_inputs_message
 from .invalid_points import drop_invalid_points
 from .io.atomic import confined_to, remove_stale_temporaries, staged_writes, write_bytes_atomic
 from .io.headers import check_size
@@ -114,6 +115,10 @@ class RunSummary:
 def check_roots(in_root: Path, out_root: Path) -> tuple[Path, Path]:
     """Real paths of the roots; refuses a missing input, an output that is a file, and overlapping roots (the input
     tree is never written)."""
+    if Path(in_root).exists() and not Path(in_root).is_dir():
+        raise RecipeError(f"input {str(in_root)!r} is a file; augment reads a folder (its files that the recipe's "
+                          "inputs globs match): give the folder holding it, or see one file's result with `rvnoise "
+                          "preview`")
     if not Path(in_root).is_dir():
         raise RecipeError(f"input folder {str(in_root)!r} does not exist")
     if Path(out_root).exists() and not Path(out_root).is_dir():
@@ -520,13 +525,7 @@ def run(recipe: Recipe, in_root: Path, out_root: Path, *, workers: int | None = 
         raise RecipeError(f"the recipe plans more than {cap:,} outputs ({len(recipe.variants):,} variant(s) per "
                           "input); say --yes to run it anyway, or narrow the sweep or the inputs (--limit)")
     if planned == 0 and unreadable == 0:
-        inputs = recipe.spec.inputs
-        globs = "; ".join(f"inputs.{k}: {getattr(inputs, k)}" for k in ("camera", "raw", "lidar", "radar")
-                          if getattr(inputs, k))
-        example = (", e.g. camera: 'samples/CAM_*/*.jpg' (nuScenes), '**/image_2/*.png' (KITTI)"
-                   if recipe.sensor == "camera" else "")
-        raise RecipeError(f"no {recipe.sensor} inputs under {str(in_root)!r} match the recipe's inputs"
-                          f"{f' ({globs})' if globs else ''}; set the globs of your layout{example}")
+        raise RecipeError(no_inputs_message(in_real, str(in_root), recipe))
     coco_run = coco.open_run(in_real, recipe)
     for note in coco_run.notes() if coco_run else ():
         warn(f"rvnoise: warning: {note}")
@@ -604,7 +603,8 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
     if not (manifest.exists() or run_json.exists()):
         return PreviousRun()
     if not (resume or overwrite):
-        raise OutputError(f"{str(out_root)!r} holds an earlier run; use --resume to complete it or --overwrite")
+        raise OutputError(f"{str(out_root)!r} holds an earlier run{_earlier_run_text(run_json, recipe)}; use "
+                          "--resume to complete it (the same recipe only) or --overwrite to replace it")
     if overwrite:
         remove_listed(out_root, iter_manifest(manifest))
         for p in (manifest, run_json):
@@ -620,6 +620,18 @@ def _previous_run(out_root: Path, recipe: Recipe, resume: bool, overwrite: bool)
                           f" this one {recipe.sha256()[:12]}…); --resume continues the same recipe only: use "
                           "--overwrite to replace that run, or another output folder")
     return PreviousRun(manifest)
+
+
+def _earlier_run_text(run_json: Path, recipe: Recipe) -> str:
+    """`` (interrupted: 121 of 600 outputs done, another recipe)``: what an earlier run's record says, or ''."""
+    try:
+        record = json.loads(run_json.read_text())
+        counts = record.get("counts") or {}
+        done = (counts.get("done") or 0) + (counts.get("skipped") or 0)
+        other = ", another recipe" if record.get("recipe_sha256") != recipe.sha256() else ""
+        return f" ({record['state']}: {done} of {counts.get('planned', '?')} outputs done{other})"
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return ""
 
 
 def _turned_dng(path: Path) -> bool:
@@ -831,6 +843,9 @@ def _finish(ctx: RunContext, previous: PreviousRun, tally: _Tally, log: _Log, su
             claimed.close()
     summary.seconds = time.time() - started
     summary.warnings = tally.warnings()
+    if any("no space left" in f.lower() for f in summary.failures):     # in run.json's notes too
+        summary.notes.append("the disk filled up: free space and run again with --resume to write the missing "
+                             "outputs")
     final = {**record, "state": summary.state, "wall_seconds": round(summary.seconds, 3),
              "worker_start_seconds": summary.worker_start_s,
              "warnings": summary.warnings,
@@ -843,9 +858,6 @@ def _finish(ctx: RunContext, previous: PreviousRun, tally: _Tally, log: _Log, su
             raise OutputError(f"cannot write {out / RUN_NAME}: {os_error_text(e)}") from None
         lock.release_reserve()                          # the lock file's reserved space makes room
         write_run_json(out / RUN_NAME, final)
-    if any("no space left" in f.lower() for f in summary.failures):
-        summary.notes.append("the disk filled up: free space and run again with --resume to write the missing "
-                             "outputs")
 
 
 def _final_lines(manifest: Path, start: int, kept: Iterable[dict], tally: _Tally) -> Iterator[dict]:
@@ -891,6 +903,12 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
     from .recipe import parse_recipe
 
     manifest_path = Path(manifest_path)
+    if manifest_path.is_dir():                          # OUT/ for OUT/manifest.jsonl
+        manifest_path = manifest_path / MANIFEST_NAME
+    if not manifest_path.is_file():                     # make demo's out/demo is a folder of runs
+        runs = sorted(f"{p.parent.name}/{MANIFEST_NAME}" for p in manifest_path.parent.glob(f"*/{MANIFEST_NAME}"))
+        hint = f"; {str(manifest_path.parent)!r} holds runs: give one's manifest ({', '.join(runs)})" if runs else ""
+        raise RecipeError(f"no manifest {str(manifest_path)!r}{hint}")
     run_path = manifest_path.with_name(RUN_NAME)
     if not run_path.is_file():
         raise RecipeError(f"no {RUN_NAME} next to {str(manifest_path)!r}; replay needs the run record")
@@ -906,6 +924,12 @@ def replay(manifest_path: Path, key: str, *, out_file: Path | None = None,
                           "records): replay an image")
     recipe = parse_recipe(record["recipe"], source=str(run_path), base_dir=Path(record["recipe_base_dir"]))
     in_root = Path(os.path.realpath(input_root or record["input_root"]))
+    if out_file is not None:                            # never into IN, nor into OUT (OUT equals its manifest)
+        target = Path(os.path.realpath(out_file))
+        for root, what in ((in_root, "input tree"), (Path(os.path.realpath(manifest_path.parent)), "output folder")):
+            if target == root or root in target.parents:
+                raise RecipeError(f"--out {str(out_file)!r} is inside the run's {what} {str(root)!r}; replay writes "
+                                  "into neither: give a path outside them")
     limits = Limits(**{k: v for k, v in record.get("limits", {}).items() if k in Limits.__dataclass_fields__})
     task = Task(Sample(entry["input"], entry["modality"], entry["sequence"], entry.get("depth")),
                 entry["variant_index"], key)

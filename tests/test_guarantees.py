@@ -216,7 +216,7 @@ def test_workers_capped_at_outputs_and_memory(tmp_path, tree, monkeypatch):
     peak = resources.WORKER_PEAK_BYTES
     n, why = resources.choose_workers(8, 100, available=int(2.5 * peak))
     assert n == 2 and "holds 2 workers" in why
-    assert resources.choose_workers(None, 100, available=10 * peak) == (min(os.cpu_count(), 10), None)
+    assert resources.choose_workers(None, 100, available=10 * peak) == (min(resources.usable_cores(), 10), None)
     monkeypatch.setattr(resources, "available_memory_bytes", lambda: int(1.2 * peak))
     assert resources.choose_workers(4, 100)[0] == 1
 

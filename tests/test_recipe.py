@@ -138,3 +138,51 @@ def test_cloud_globs_of_formats_not_read_are_refused_at_validate(sensor, glob, w
     with pytest.raises(RecipeError, match=rf"{sensor}: .* names files rvnoise does not read: {why}"):
         parse_recipe({"chain": [{"model": model}], "inputs": {sensor: ["**/*.pcd", glob]}})
     parse_recipe({"chain": [{"model": model}], "inputs": {sensor: ["**/*.PCD", "**/*.pcd.bin", "**/*", "a/*.p*"]}})
+
+
+# --- a new user's mistakes (round 22, ux38): each names the key and says what was meant ------------------------------
+
+
+@pytest.mark.parametrize("cnf", ["cnf5", "CNF5", "cnf 05", 5])
+def test_a_cnf_without_its_zero_suggests_that_cnf_only(cnf):
+    e = err({"cnf": cnf})
+    assert e.key == "cnf" and "(did you mean 'CNF05'?)" in str(e)
+    if not isinstance(cnf, str):
+        assert "got 5" in str(e)
+
+
+def test_a_model_without_its_sensor_suggests_every_sensors_model():
+    e = err({"chain": [{"model": "fog"}]})
+    assert "(did you mean 'fog.camera', 'fog.lidar', 'fog.radar'?)" in str(e)
+
+
+def test_params_of_a_misspelt_step_suggest_the_step_and_a_real_model_how_to_add_it():
+    e = err({"cnf": "CNF05", "params": {"fog.camra": {"visibility_m": 10}}})
+    assert e.key == "params.fog.camra" and "(did you mean 'fog.camera'?)" in str(e)
+    e = err({"cnf": "CNF05", "params": {"rain.camera": {"rain_rate_mm_per_h": 10}}})
+    assert "did you mean" not in str(e) and "`chain:`" in str(e)
+    e = err({"chain": [{"model": "fog.camera"}], "params": {"rain.camera": {"rain_rate_mm_per_h": 10}}})
+    assert "add rain.camera to `chain:`" in str(e)
+
+
+@pytest.mark.parametrize("value, says", [
+    ("30m", "its unit, m, is part of the name), visibility_m: 30"),
+    ("30 m", "visibility_m: 30"),
+    ("30", "without quotes, visibility_m: 30"),
+    ("30 km", "write the number in m, bare"),
+    ("inf", "visibility_m: .inf"),
+])
+def test_a_number_written_as_text_says_how_to_write_it(value, says):
+    e = err({"chain": [{"model": "fog.camera", "params": {"visibility_m": value}}]})
+    assert e.key == "chain[0].params.visibility_m" and f"got {value!r}" in str(e) and says in str(e)
+    if value == "30 km":
+        assert "visibility_m: 30" not in str(e)          # a unit it does not convert is never read as metres
+
+
+def test_a_model_file_that_does_not_exist_is_refused_at_validate(tmp_path, monkeypatch):
+    """README's ray-drop recipe names `model_file: ray_drop.json`; without it every file used to fail one by one."""
+    monkeypatch.chdir(tmp_path)
+    body = {"cnf": "CNF28", "params": {"ray_drop.lidar": {"backend": "learned", "model_file": "ray_drop.json"}}}
+    e = err(body)
+    assert e.key == "params.ray_drop.lidar.model_file" and "no file 'ray_drop.json'" in str(e)
+    assert str(tmp_path) in str(e)
