@@ -80,11 +80,14 @@ def test_missing_onnx_model_says_what_to_do(tmp_path):
 
 
 def test_a_dataset_layout_the_recipe_globs_miss_is_named(tmp_path):
-    """nuScenes keeps its photos in samples/CAM_*/: the shipped recipes' camera/** globs find nothing there."""
+    """nuScenes keeps its photos in samples/CAM_*/: the shipped recipes' camera/** globs find nothing there; the
+    message names the photos they miss and a glob that takes them."""
     root = tmp_path / "nuscenes"
     (root / "samples" / "CAM_FRONT").mkdir(parents=True)
     Image.fromarray(np.zeros((9, 16, 3), np.uint8)).save(root / "samples" / "CAM_FRONT" / "a.jpg")
     r = runner.invoke(app, ["augment", "--recipe", str(ROOT / "recipes" / "weather-fog.yaml"), str(root),
                             str(tmp_path / "out"), "--quiet"])
     assert r.exit_code == 2
-    assert "inputs.camera: ['camera/**/*.png', 'camera/**/*.jpg']" in r.output and "samples/CAM_*/*.jpg" in r.output
+    out = " ".join(r.output.split())
+    assert "inputs.camera: ['camera/**/*.png', 'camera/**/*.jpg']" in out and "'samples/CAM_FRONT/a.jpg'" in out
+    assert "set inputs.camera to a glob that matches them, e.g. '**/*.jpg'" in out
