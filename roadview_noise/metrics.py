@@ -493,6 +493,7 @@ _NO_STEP = (np.zeros(0, np.int64), np.zeros(0, np.uint8))
 _NO_CODES, _NO_VALUES = np.zeros(0, np.uint8), np.zeros(0)     # a cloud without effect codes, without values
 _NO_INDEX, _NO_MASK = np.zeros(0, np.int32), np.zeros(0, np.bool_)
 _NOT_LINKED = (_NO_INDEX, _NO_MASK, math.nan)                   # a NO_LINK pass's correspondence
+_NO_SUMS = (0, 0, 0, 0, 0.0, 0)                 # :func:`_add_return_sums` of no point
 
 
 def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
@@ -509,7 +510,8 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
     returns per range bin — or, when ``known`` (``known_valid``, as many as the points, says which are returns),
     none of these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
-    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_return_sums`, after).
+    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_add_return_sums`, after
+    each block of :data:`return_ranges.BLOCK` points).
 
     With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK), in the same pass: :func:`correspondence` of the
     points of ``before`` (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the
@@ -547,62 +549,65 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
                     survivors -= 1
         in_order = survivors == nb
     change, changed, i = 0.0, 0, 0
-    for j in range(n):
-        c = codes[j] if has_codes else 0
-        found, away = False, False          # the point of before it is (index i), moved along its ray
-        if link == GRID_LINK:
-            i, found, away = j, True, c == 2
-        elif link == LIST_LINK and c != 3 and i < nb:   # ADDED: new, never a survivor
-            found, away = True, c == 2
-            if not in_order:
-                while i < nb:
-                    if _same_position(pb, i, positions, j) and valid_b[i]:
-                        away = False
-                        break
-                    if _same_ray(pb, i, positions, j):
-                        away = True
-                        break
-                    i += 1                  # before's point i was removed
-                found = i < nb
-        elif link == SAME_LINK:
-            i, found = j, True
-        elif link == STEP_LINK and c != 3:
-            i = step_origin[j] if has_origin else j
-            found = i >= 0
-            if in_order:
-                away = c == 2
-            else:                           # moved by the step, unless to where it was
-                away = found and has_step_codes and step_codes[j] == 2 and not (
-                    _same_position(pb, np.uint64(i), positions, j) and valid_b[np.uint64(i)])
-        if known:
-            ok = valid[j]
-        else:
-            x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
-            r2 = x * x + y * y + z * z
-            ok = r2 > 0.0 and r2 < np.inf
-            valid[j] = ok
-            if ok:
-                returns += 1
-                max_r2 = max(max_r2, r2)
-                b = math.sqrt(r2) * inv_bin
-                hist[np.int64(b) if b < top else top] += 1
-        if not found or ((link == GRID_LINK or masked) and not (ok and valid_b[j])):
-            continue
-        k = np.uint64(i)                    # ≥ 0 here: indexed without the wrap-around test
-        if link != SAME_LINK:
-            index[k] = j
-            moved[k] = away
-        if changes and not away:
-            d = _change(values_b, k, values, j)
-            if np.isfinite(d):
-                change += d
-                changed += 1
-        i += 1
+    sums = _NO_SUMS
+    for start in range(0, n, return_ranges.BLOCK):
+        stop = min(start + return_ranges.BLOCK, n)
+        for j in range(start, stop):
+            c = codes[j] if has_codes else 0
+            found, away = False, False          # the point of before it is (index i), moved along its ray
+            if link == GRID_LINK:
+                i, found, away = j, True, c == 2
+            elif link == LIST_LINK and c != 3 and i < nb:   # ADDED: new, never a survivor
+                found, away = True, c == 2
+                if not in_order:
+                    while i < nb:
+                        if _same_position(pb, i, positions, j) and valid_b[i]:
+                            away = False
+                            break
+                        if _same_ray(pb, i, positions, j):
+                            away = True
+                            break
+                        i += 1                  # before's point i was removed
+                    found = i < nb
+            elif link == SAME_LINK:
+                i, found = j, True
+            elif link == STEP_LINK and c != 3:
+                i = step_origin[j] if has_origin else j
+                found = i >= 0
+                if in_order:
+                    away = c == 2
+                else:                           # moved by the step, unless to where it was
+                    away = found and has_step_codes and step_codes[j] == 2 and not (
+                        _same_position(pb, np.uint64(i), positions, j) and valid_b[np.uint64(i)])
+            if known:
+                ok = valid[j]
+            else:
+                x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
+                r2 = x * x + y * y + z * z
+                ok = r2 > 0.0 and r2 < np.inf
+                valid[j] = ok
+                if ok:
+                    returns += 1
+                    max_r2 = max(max_r2, r2)
+                    b = math.sqrt(r2) * inv_bin
+                    hist[np.int64(b) if b < top else top] += 1
+            if not found or ((link == GRID_LINK or masked) and not (ok and valid_b[j])):
+                continue
+            k = np.uint64(i)                    # ≥ 0 here: indexed without the wrap-around test
+            if link != SAME_LINK:
+                index[k] = j
+                moved[k] = away
+            if changes and not away:
+                d = _change(values_b, k, values, j)
+                if np.isfinite(d):
+                    change += d
+                    changed += 1
+            i += 1
+        sums = _add_return_sums(valid, codes, values, start, stop, sums)   # (the link's loop holds fewer values)
     used = n_bins                           # the bins up to the farthest return's
     while used > 0 and hist[used - 1] == 0:
         used -= 1
-    counts, total, finite = _return_sums(valid, codes, values)  # in a loop of their own: the link's holds fewer values
-    return ((returns, hist[:used], math.sqrt(max_r2), valid), counts, total, finite,
+    return ((returns, hist[:used], math.sqrt(max_r2), valid), np.array(sums[:4], np.int64), sums[4], sums[5],
             (index, moved, change / changed if changed else np.nan))
 
 
@@ -651,7 +656,45 @@ def _step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b
 @jit
 def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
                        step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, STEP_LINK, True, pb, valid_b, values_b, step)
+    """:func:`_pass` with STEP_LINK and the returns known (a weather step's output: its model counted them), in a
+    loop of its own: the link by the step's provenance and the mean change, then the block's sums, block by block
+    (no geometry, no walk, no return test: a third of the generic loop's instructions). Same values in the same
+    order."""
+    n, nb = positions.shape[0], pb.shape[0]
+    index, moved = np.full(nb, -1, np.int32), np.zeros(nb, np.bool_)
+    has_codes = codes.shape[0] > 0
+    changes = values.shape[0] > 0 and values_b.shape[0] > 0
+    step_origin, step_codes = step
+    has_origin, has_step_codes = step_origin.shape[0] > 0, step_codes.shape[0] > 0
+    survivors = n
+    for j in range(n if has_codes else 0):          # branch-free: vectorised
+        survivors -= (codes[j] == 3) & known_valid[j]
+    in_order = survivors == nb                      # a list without removals: a MOVED code says moved
+    change, changed = 0.0, 0
+    sums = _NO_SUMS
+    for start in range(0, n, return_ranges.BLOCK):
+        stop = min(start + return_ranges.BLOCK, n)
+        for j in range(start, stop):
+            c = codes[j] if has_codes else 0
+            i = step_origin[j] if has_origin else j
+            if c == 3 or i < 0:                     # ADDED, or new by the step: no point of before
+                continue
+            k = np.uint64(i)
+            if in_order:
+                away = c == 2
+            else:                                   # moved by the step, unless to where it was
+                away = has_step_codes and step_codes[j] == 2 and not (
+                    _same_position(pb, k, positions, j) and valid_b[k])
+            index[k] = j
+            moved[k] = away
+            if changes and not away:
+                d = _change(values_b, k, values, j)
+                if np.isfinite(d):
+                    change += d
+                    changed += 1
+        sums = _add_return_sums(known_valid, codes, values, start, stop, sums)
+    return ((0, np.zeros(0, np.int64), 0.0, known_valid), np.array(sums[:4], np.int64), sums[4], sums[5],
+            (index, moved, change / changed if changed else np.nan))
 
 
 @jit
@@ -710,13 +753,13 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
 
 
 @jit(inline="always")
-def _return_sums(valid, codes, values):       # pragma: no cover - compiled
-    """:func:`_pass`'s counts per effect code (none given: all KEPT) and (sum, number) of the finite ``values`` over
-    the returns ``valid``, in order."""
-    c0 = c1 = c2 = c3 = 0                     # (in registers: an array's increments would wait on each other)
-    total, finite = 0.0, 0
+def _add_return_sums(valid, codes, values, start, stop, sums):       # pragma: no cover - compiled
+    """``sums`` (the counts per effect code KEPT, ATTENUATED, MOVED, ADDED, the sum and number of the finite
+    ``values``, over the returns ``valid``; no codes: all KEPT) with points ``start`` … ``stop`` − 1 added, in order
+    (:func:`_pass` adds each block after its link: its arrays still in the caches)."""
+    c0, c1, c2, c3, total, finite = sums     # (in registers: an array's increments would wait on each other)
     has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
-    for j in range(valid.shape[0]):
+    for j in range(start, stop):
         if valid[j]:
             c = codes[j] if has_codes else 0
             c0 += c == 0
@@ -728,7 +771,7 @@ def _return_sums(valid, codes, values):       # pragma: no cover - compiled
                 if np.isfinite(v):
                     total += v
                     finite += 1
-    return np.array([c0, c1, c2, c3], np.int64), total, finite
+    return c0, c1, c2, c3, total, finite
 
 
 @jit
