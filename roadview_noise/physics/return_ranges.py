@@ -7,11 +7,13 @@ the same expression inline, where a call compiled 15–25 % slower). While the c
 (:func:`collect`) a model notes the geometry of its input and output arrays (:func:`note`), so the metrics read
 neither array's positions again (:func:`noted`): a loop that reads and writes every position anyway (the alignment's
 :func:`write_rows`, the laser power's and the alignment's return mask of their input, :func:`returns_noted`, with
-its intensity sum) counts it on the way; the weather models' output stage
-(:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`) counts its input and output after
-placing the points (:func:`note_counted`: :func:`count`'s vectorised pass, fewer instructions than binning inside
-the placement loop, whose branches it would add to); the metrics note what they count themselves, so an array a step
-hands on unchanged is counted once. Same operations on the same values: the same geometry either way.
+its intensity sum) counts it on the way;
+the weather models' output stage (:func:`lidar_output.assemble <roadview_noise.physics.lidar_output.assemble>`)
+counts its input and output block by block as it places the points (:class:`Tally`: :func:`count`'s vectorised
+loop over each block of points right after the placement wrote it, while its positions are in the caches — fewer
+instructions than binning inside the placement loop, whose branches it would add to, and no second read of the
+clouds from memory); the metrics note what they count themselves, so an array a step hands on unchanged is counted
+once. Same operations on the same values: the same geometry either way.
 """
 
 from __future__ import annotations
@@ -255,14 +257,6 @@ def _count_rows(flat, rows, inv_bin, hist, valid, zeroed):       # pragma: no co
         valid[r] = ok
         largest = max(largest, _bits(r2) if ok else 0)
     return largest
-
-
-def note_counted(positions: np.ndarray, n_bins: int) -> None:
-    """:func:`note` the geometry of this positions array (:func:`count`) unless it is noted already or is not
-    float64 (N, 3) C-contiguous (the metrics would read a converted copy)."""
-    if (positions.ndim == 2 and positions.shape[1] == 3 and positions.dtype == np.float64
-            and positions.flags.c_contiguous and noted(positions, n_bins) is None):
-        note(positions, n_bins, count(positions, n_bins))
 
 
 @jit
