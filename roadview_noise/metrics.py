@@ -598,10 +598,7 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
                 index[k] = j
                 moved[k] = away
             if changes and not away:
-                d = _change(values_b, k, values, j)
-                if np.isfinite(d):
-                    change += d
-                    changed += 1
+                change, changed = _add_change(values_b, k, values, j, change, changed)
             i += 1
         sums = _add_return_sums(valid, codes, values, start, stop, sums)   # (the link's loop holds fewer values)
     used = n_bins                           # the bins up to the farthest return's
@@ -688,10 +685,7 @@ def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb,
             index[k] = j
             moved[k] = away
             if changes and not away:
-                d = _change(values_b, k, values, j)
-                if np.isfinite(d):
-                    change += d
-                    changed += 1
+                change, changed = _add_change(values_b, k, values, j, change, changed)
         sums = _add_return_sums(known_valid, codes, values, start, stop, sums)
     return ((0, np.zeros(0, np.int64), 0.0, known_valid), np.array(sums[:4], np.int64), sums[4], sums[5],
             (index, moved, change / changed if changed else np.nan))
@@ -942,6 +936,14 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
 def _change(values_b, i, values_a, k):       # pragma: no cover - compiled
     """Value change of point ``i`` of before, now point ``k`` of after (float64)."""
     return np.float64(values_a[k]) - np.float64(values_b[i])
+
+
+@jit(inline="always")
+def _add_change(values_b, i, values_a, k, change, changed):       # pragma: no cover - compiled
+    """``change``, ``changed`` (a sum of value changes and their number) with point ``i`` of before's, now point
+    ``k`` of after, added if it is finite."""
+    d = _change(values_b, i, values_a, k)
+    return (change + d, changed + 1) if np.isfinite(d) else (change, changed)
 
 
 @jit
