@@ -510,8 +510,7 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
     returns per range bin — or, when ``known`` (``known_valid``, as many as the points, says which are returns),
     none of these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
-    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_add_return_sums`, after
-    each block of :data:`return_ranges.BLOCK` points).
+    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_add_return_sums`, after).
 
     With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK), in the same pass: :func:`correspondence` of the
     points of ``before`` (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the
@@ -549,58 +548,55 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
                     survivors -= 1
         in_order = survivors == nb
     change, changed, i = 0.0, 0, 0
-    sums = _NO_SUMS
-    for start in range(0, n, return_ranges.BLOCK):
-        stop = min(start + return_ranges.BLOCK, n)
-        for j in range(start, stop):
-            c = codes[j] if has_codes else 0
-            found, away = False, False          # the point of before it is (index i), moved along its ray
-            if link == GRID_LINK:
-                i, found, away = j, True, c == 2
-            elif link == LIST_LINK and c != 3 and i < nb:   # ADDED: new, never a survivor
-                found, away = True, c == 2
-                if not in_order:
-                    while i < nb:
-                        if _same_position(pb, i, positions, j) and valid_b[i]:
-                            away = False
-                            break
-                        if _same_ray(pb, i, positions, j):
-                            away = True
-                            break
-                        i += 1                  # before's point i was removed
-                    found = i < nb
-            elif link == SAME_LINK:
-                i, found = j, True
-            elif link == STEP_LINK and c != 3:
-                i = step_origin[j] if has_origin else j
-                found = i >= 0
-                if in_order:
-                    away = c == 2
-                else:                           # moved by the step, unless to where it was
-                    away = found and has_step_codes and step_codes[j] == 2 and not (
-                        _same_position(pb, np.uint64(i), positions, j) and valid_b[np.uint64(i)])
-            if known:
-                ok = valid[j]
-            else:
-                x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
-                r2 = x * x + y * y + z * z
-                ok = r2 > 0.0 and r2 < np.inf
-                valid[j] = ok
-                if ok:
-                    returns += 1
-                    max_r2 = max(max_r2, r2)
-                    b = math.sqrt(r2) * inv_bin
-                    hist[np.int64(b) if b < top else top] += 1
-            if not found or ((link == GRID_LINK or masked) and not (ok and valid_b[j])):
-                continue
-            k = np.uint64(i)                    # ≥ 0 here: indexed without the wrap-around test
-            if link != SAME_LINK:
-                index[k] = j
-                moved[k] = away
-            if changes and not away:
-                change, changed = _add_change(values_b, k, values, j, change, changed)
-            i += 1
-        sums = _add_return_sums(valid, codes, values, start, stop, sums)   # (the link's loop holds fewer values)
+    for j in range(n):
+        c = codes[j] if has_codes else 0
+        found, away = False, False          # the point of before it is (index i), moved along its ray
+        if link == GRID_LINK:
+            i, found, away = j, True, c == 2
+        elif link == LIST_LINK and c != 3 and i < nb:   # ADDED: new, never a survivor
+            found, away = True, c == 2
+            if not in_order:
+                while i < nb:
+                    if _same_position(pb, i, positions, j) and valid_b[i]:
+                        away = False
+                        break
+                    if _same_ray(pb, i, positions, j):
+                        away = True
+                        break
+                    i += 1                  # before's point i was removed
+                found = i < nb
+        elif link == SAME_LINK:
+            i, found = j, True
+        elif link == STEP_LINK and c != 3:
+            i = step_origin[j] if has_origin else j
+            found = i >= 0
+            if in_order:
+                away = c == 2
+            else:                           # moved by the step, unless to where it was
+                away = found and has_step_codes and step_codes[j] == 2 and not (
+                    _same_position(pb, np.uint64(i), positions, j) and valid_b[np.uint64(i)])
+        if known:
+            ok = valid[j]
+        else:
+            x, y, z = positions[j, 0], positions[j, 1], positions[j, 2]
+            r2 = x * x + y * y + z * z
+            ok = r2 > 0.0 and r2 < np.inf
+            valid[j] = ok
+            if ok:
+                returns += 1
+                max_r2 = max(max_r2, r2)
+                b = math.sqrt(r2) * inv_bin
+                hist[np.int64(b) if b < top else top] += 1
+        if not found or ((link == GRID_LINK or masked) and not (ok and valid_b[j])):
+            continue
+        k = np.uint64(i)                    # ≥ 0 here: indexed without the wrap-around test
+        if link != SAME_LINK:
+            index[k] = j
+            moved[k] = away
+        if changes and not away:
+            change, changed = _add_change(values_b, k, values, j, change, changed)
+        i += 1
+    sums = _add_return_sums(valid, codes, values, 0, n, _NO_SUMS)  # a loop of their own: the link's holds fewer values
     used = n_bins                           # the bins up to the farthest return's
     while used > 0 and hist[used - 1] == 0:
         used -= 1
@@ -671,9 +667,9 @@ def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb,
     sums = _NO_SUMS
     for start in range(0, n, return_ranges.BLOCK):
         stop = min(start + return_ranges.BLOCK, n)
-        for j in range(start, stop):
+        for j in range(np.uint64(start), np.uint64(stop)):    # (unsigned: no wrap-around test on each index)
             c = codes[j] if has_codes else 0
-            i = step_origin[j] if has_origin else j
+            i = step_origin[j] if has_origin else np.int64(j)
             if c == 3 or i < 0:                     # ADDED, or new by the step: no point of before
                 continue
             k = np.uint64(i)
@@ -754,14 +750,14 @@ def _add_return_sums(valid, codes, values, start, stop, sums):       # pragma: n
     of their own (vectorised), the values' sum in order."""
     c0, c1, c2, c3, total, finite = sums     # (in registers: an array's increments would wait on each other)
     if codes.shape[0] > 0:
-        for j in range(start, stop):
+        for j in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
             c, ok = codes[j], valid[j]
             c0 += ok & (c == 0)
             c1 += ok & (c == 1)
             c2 += ok & (c == 2)
             c3 += ok & (c == 3)
     else:
-        for j in range(start, stop):
+        for j in range(np.uint64(start), np.uint64(stop)):
             c0 += valid[j]
     if values.shape[0] > 0:
         total, finite = return_ranges.sum_block(valid, values, start, stop, total, finite)

@@ -151,7 +151,7 @@ def _place_rows(start, stop, o, counts, kind, has, return_range_m, ray_range_m, 
     """:func:`_place`'s loop over points ``start`` … ``stop`` − 1, writing from output row ``o`` on, ``counts``
     carried: (the next output row, the counts)."""
     kept, attenuated, moved, n_removed, added = counts
-    for i in range(start, stop):
+    for i in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
         q = np.uintp(o)                                # (unsigned: no negative-index wraparound compiled)
         k = kind[i]
         scale = 1.0                                    # of the position
