@@ -651,8 +651,8 @@ def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb,
                        step):  # pragma: no cover
     """:func:`_pass` with STEP_LINK and the returns known (a weather step's output: its model counted them), in a
     loop of its own: the link by the step's provenance and the mean change, then the block's sums, block by block
-    (no geometry, no walk, no return test: a third of the generic loop's instructions). Same values in the same
-    order."""
+    (no geometry, no walk, no return test: ≈ 0.7 × the generic loop's instructions on a 220 k-point list). Same
+    values in the same order."""
     n, nb = positions.shape[0], pb.shape[0]
     index, moved = np.full(nb, -1, np.int32), np.zeros(nb, np.bool_)
     has_codes = codes.shape[0] > 0
@@ -746,8 +746,8 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
 def _add_return_sums(valid, codes, values, start, stop, sums):       # pragma: no cover - compiled
     """``sums`` (the counts per effect code KEPT, ATTENUATED, MOVED, ADDED, the sum and number of the finite
     ``values``, over the returns ``valid``; no codes: all KEPT) with points ``start`` … ``stop`` − 1 added, in order
-    (:func:`_pass` adds each block after its link: its arrays still in the caches). The counts in a branch-free loop
-    of their own (vectorised), the values' sum in order."""
+    (:func:`_counted_step_pass` adds each block after its link: its arrays still in the caches). The counts in a
+    branch-free loop of their own, the values' sum in order."""
     c0, c1, c2, c3, total, finite = sums     # (in registers: an array's increments would wait on each other)
     if codes.shape[0] > 0:
         for j in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
