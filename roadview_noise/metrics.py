@@ -493,6 +493,7 @@ _NO_STEP = (np.zeros(0, np.int64), np.zeros(0, np.uint8))
 _NO_CODES, _NO_VALUES = np.zeros(0, np.uint8), np.zeros(0)     # a cloud without effect codes, without values
 _NO_INDEX, _NO_MASK = np.zeros(0, np.int32), np.zeros(0, np.bool_)
 _NOT_LINKED = (_NO_INDEX, _NO_MASK, math.nan)                   # a NO_LINK pass's correspondence
+_NO_SUMS = (0, 0, 0, 0, 0.0, 0)                 # :func:`_add_return_sums` of no point
 
 
 def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
@@ -509,7 +510,7 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
     returns per range bin — or, when ``known`` (``known_valid``, as many as the points, says which are returns),
     none of these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
-    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_return_sums`, after).
+    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_add_return_sums`, after).
 
     With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK), in the same pass: :func:`correspondence` of the
     points of ``before`` (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the
@@ -593,16 +594,13 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
             index[k] = j
             moved[k] = away
         if changes and not away:
-            d = _change(values_b, k, values, j)
-            if np.isfinite(d):
-                change += d
-                changed += 1
+            change, changed = _add_change(values_b, k, values, j, change, changed)
         i += 1
+    sums = _add_return_sums(valid, codes, values, 0, n, _NO_SUMS)  # a loop of their own: the link's holds fewer values
     used = n_bins                           # the bins up to the farthest return's
     while used > 0 and hist[used - 1] == 0:
         used -= 1
-    counts, total, finite = _return_sums(valid, codes, values)  # in a loop of their own: the link's holds fewer values
-    return ((returns, hist[:used], math.sqrt(max_r2), valid), counts, total, finite,
+    return ((returns, hist[:used], math.sqrt(max_r2), valid), np.array(sums[:4], np.int64), sums[4], sums[5],
             (index, moved, change / changed if changed else np.nan))
 
 
@@ -651,7 +649,42 @@ def _step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b
 @jit
 def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
                        step):  # pragma: no cover
-    return _pass(positions, known_valid, codes, values, bin_m, n_bins, STEP_LINK, True, pb, valid_b, values_b, step)
+    """:func:`_pass` with STEP_LINK and the returns known (a weather step's output: its model counted them), in a
+    loop of its own: the link by the step's provenance and the mean change, then the block's sums, block by block
+    (no geometry, no walk, no return test: ≈ 0.7 × the generic loop's instructions on a 220 k-point list). Same
+    values in the same order."""
+    n, nb = positions.shape[0], pb.shape[0]
+    index, moved = np.full(nb, -1, np.int32), np.zeros(nb, np.bool_)
+    has_codes = codes.shape[0] > 0
+    changes = values.shape[0] > 0 and values_b.shape[0] > 0
+    step_origin, step_codes = step
+    has_origin, has_step_codes = step_origin.shape[0] > 0, step_codes.shape[0] > 0
+    survivors = n
+    for j in range(n if has_codes else 0):          # branch-free: vectorised
+        survivors -= (codes[j] == 3) & known_valid[j]
+    in_order = survivors == nb                      # a list without removals: a MOVED code says moved
+    change, changed = 0.0, 0
+    sums = _NO_SUMS
+    for start in range(0, n, return_ranges.BLOCK):
+        stop = min(start + return_ranges.BLOCK, n)
+        for j in range(np.uint64(start), np.uint64(stop)):    # (unsigned: no wrap-around test on each index)
+            c = codes[j] if has_codes else 0
+            i = step_origin[j] if has_origin else np.int64(j)
+            if c == 3 or i < 0:                     # ADDED, or new by the step: no point of before
+                continue
+            k = np.uint64(i)
+            if in_order:
+                away = c == 2
+            else:                                   # moved by the step, unless to where it was
+                away = has_step_codes and step_codes[j] == 2 and not (
+                    _same_position(pb, k, positions, j) and valid_b[k])
+            index[k] = j
+            moved[k] = away
+            if changes and not away:
+                change, changed = _add_change(values_b, k, values, j, change, changed)
+        sums = _add_return_sums(known_valid, codes, values, start, stop, sums)
+    return ((0, np.zeros(0, np.int64), 0.0, known_valid), np.array(sums[:4], np.int64), sums[4], sums[5],
+            (index, moved, change / changed if changed else np.nan))
 
 
 @jit
@@ -710,39 +743,32 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
 
 
 @jit(inline="always")
-def _return_sums(valid, codes, values):       # pragma: no cover - compiled
-    """:func:`_pass`'s counts per effect code (none given: all KEPT) and (sum, number) of the finite ``values`` over
-    the returns ``valid``, in order."""
-    c0 = c1 = c2 = c3 = 0                     # (in registers: an array's increments would wait on each other)
-    total, finite = 0.0, 0
-    has_codes, has_values = codes.shape[0] > 0, values.shape[0] > 0
-    for j in range(valid.shape[0]):
-        if valid[j]:
-            c = codes[j] if has_codes else 0
-            c0 += c == 0
-            c1 += c == 1
-            c2 += c == 2
-            c3 += c == 3
-            if has_values:
-                v = float(values[j])
-                if np.isfinite(v):
-                    total += v
-                    finite += 1
-    return np.array([c0, c1, c2, c3], np.int64), total, finite
+def _add_return_sums(valid, codes, values, start, stop, sums):       # pragma: no cover - compiled
+    """``sums`` (the counts per effect code KEPT, ATTENUATED, MOVED, ADDED, the sum and number of the finite
+    ``values``, over the returns ``valid``; no codes: all KEPT) with points ``start`` … ``stop`` − 1 added, in order
+    (:func:`_counted_step_pass` adds each block after its link: its arrays still in the caches). The counts in a
+    branch-free loop of their own, the values' sum in order."""
+    c0, c1, c2, c3, total, finite = sums     # (in registers: an array's increments would wait on each other)
+    if codes.shape[0] > 0:
+        for j in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
+            c, ok = codes[j], valid[j]
+            c0 += ok & (c == 0)
+            c1 += ok & (c == 1)
+            c2 += ok & (c == 2)
+            c3 += ok & (c == 3)
+    else:
+        for j in range(np.uint64(start), np.uint64(stop)):
+            c0 += valid[j]
+    if values.shape[0] > 0:
+        total, finite = return_ranges.sum_block(valid, values, start, stop, total, finite)
+    return c0, c1, c2, c3, total, finite
 
 
 @jit
 def _return_value_sum(valid, values):       # pragma: no cover - compiled
     """(sum, number) of the finite ``values`` of the returns ``valid``, in order: :func:`_pass`'s sums of a cloud
     without effect codes whose returns are known (a chain input the weather step counted)."""
-    total, finite = 0.0, 0
-    for j in range(values.shape[0]):
-        if valid[j]:
-            v = float(values[j])
-            if np.isfinite(v):
-                total += v
-                finite += 1
-    return total, finite
+    return return_ranges.sum_block(valid, values, 0, values.shape[0], 0.0, 0)
 
 
 def _link_mode(b: dict, a: dict, by_step: bool = False) -> int:
@@ -906,6 +932,14 @@ def _same_ray(p, i, q, j):       # pragma: no cover - compiled
 def _change(values_b, i, values_a, k):       # pragma: no cover - compiled
     """Value change of point ``i`` of before, now point ``k`` of after (float64)."""
     return np.float64(values_a[k]) - np.float64(values_b[i])
+
+
+@jit(inline="always")
+def _add_change(values_b, i, values_a, k, change, changed):       # pragma: no cover - compiled
+    """``change``, ``changed`` (a sum of value changes and their number) with point ``i`` of before's, now point
+    ``k`` of after, added if it is finite."""
+    d = _change(values_b, i, values_a, k)
+    return (change + d, changed + 1) if np.isfinite(d) else (change, changed)
 
 
 @jit

@@ -20,6 +20,7 @@ from .lidar_geometry import RING, beam_means, elevation_rad, far_returns, unit_v
 from .lidar_intensity import intensity_resolution, ouster_signal_layout, reflectivity_following, stored_signal
 from .lidar_rays import Rays
 from . import return_ranges
+from .return_ranges import RANGE_BIN_M
 
 
 def _column_azimuth_model(cloud: PointCloud, has_return: np.ndarray) -> tuple[float, float, bool]:
@@ -104,11 +105,53 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
     integer dtypes), effect code (provenance.Effect) and origin (the input point), written to the outputs. A point
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
     removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
-    n = len(kind)
-    removed = np.zeros(n, np.bool_)
-    kept = attenuated = moved = n_removed = added = 0
-    o = 0                                              # output index
-    for i in range(n):
+    removed = np.zeros(len(kind), np.bool_)
+    o, counts = _place_rows(0, len(kind), 0, (0, 0, 0, 0, 0), kind, has, return_range_m, ray_range_m, reported,
+                            full_scale, integer, half_step, grid, positions, intensity_in, positions_out,
+                            intensity_out, effect_out, origin_out, removed)
+    return removed, o, counts
+
+
+@jit
+def _place_counted(kind, has, return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid,
+                   positions, intensity_in, positions_out, intensity_out, effect_out, origin_out, flat_in, values_in,
+                   valid_in, hist_in, valid_out, hist_out, scratch):   # pragma: no cover - compiled
+    """:func:`_place` with the geometry of the input (unless ``flat_in`` is empty) and of the output rows counted
+    block by block as they are written (:class:`return_ranges.Tally <roadview_noise.physics.return_ranges.Tally>`'s
+    arrays, after the outputs), and the input's intensities summed over its returns (unless ``values_in`` is empty):
+    also returns the bits of the input's and the output's largest x² + y² + z², and the sum and number."""
+    removed = np.zeros(len(kind), np.bool_)
+    o, counts = 0, (0, 0, 0, 0, 0)
+    inv_bin = 1.0 / RANGE_BIN_M
+    part_in, part_out = np.zeros(4 * hist_in.shape[0], np.int64), np.zeros(4 * hist_out.shape[0], np.int64)
+    flat_out = positions_out.reshape(-1)
+    largest_in = largest_out = 0
+    total, finite = 0.0, 0
+    for start in range(0, len(kind), return_ranges.BLOCK):
+        stop, first = min(start + return_ranges.BLOCK, len(kind)), o
+        o, counts = _place_rows(start, stop, o, counts, kind, has, return_range_m, ray_range_m, reported, full_scale,
+                                integer, half_step, grid, positions, intensity_in, positions_out, intensity_out,
+                                effect_out, origin_out, removed)
+        if flat_in.shape[0] > 0:
+            largest_in = max(largest_in, return_ranges.count_block(flat_in, start, stop, inv_bin, scratch, valid_in,
+                                                                   part_in))
+            if values_in.shape[0] > 0:
+                total, finite = return_ranges.sum_block(valid_in, values_in, start, stop, total, finite)
+        largest_out = max(largest_out, return_ranges.count_block(flat_out, first, o, inv_bin, scratch, valid_out,
+                                                                 part_out))
+    return_ranges.fold_parts(part_in, hist_in)
+    return_ranges.fold_parts(part_out, hist_out)
+    return removed, o, counts, largest_in, largest_out, total, finite
+
+
+@jit(inline="always")
+def _place_rows(start, stop, o, counts, kind, has, return_range_m, ray_range_m, reported, full_scale, integer,
+                half_step, grid, positions, intensity_in, positions_out, intensity_out, effect_out, origin_out,
+                removed):   # pragma: no cover - compiled
+    """:func:`_place`'s loop over points ``start`` … ``stop`` − 1, writing from output row ``o`` on, ``counts``
+    carried: (the next output row, the counts)."""
+    kept, attenuated, moved, n_removed, added = counts
+    for i in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
         q = np.uintp(o)                                # (unsigned: no negative-index wraparound compiled)
         k = kind[i]
         scale = 1.0                                    # of the position
@@ -147,7 +190,7 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
         for c in range(3):
             positions_out[q, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
         o += 1
-    return removed, o, kept, attenuated, moved, n_removed, added
+    return o, (kept, attenuated, moved, n_removed, added)
 
 
 def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
@@ -176,13 +219,22 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     intensity = np.empty(size, intensity_in.dtype)
     grid = cloud.grid_shape is not None
     integer = bool(np.issubdtype(intensity_in.dtype, np.integer))
-    removed, n_out, kept, attenuated, moved, n_removed, added = _place(
-        returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
-        float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
-        np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect, origin)
+    place = (returns.kind[:n], rays.has_target[:n], returns.range_m[:n], rays.range_m[:n], reported[:n],
+             float(profile.intensity_full_scale), integer, 0.5 * intensity_resolution(profile), grid,
+             np.ascontiguousarray(cloud.positions_m, dtype=np.float64), intensity_in, positions, intensity, effect,
+             origin)
+    tally = (return_ranges.Tally(cloud.positions_m, intensity_in, size, return_ranges.bin_count(profile))
+             if return_ranges.wanted() else None)      # the metrics' geometry, counted as the blocks are placed
+    if tally is None:
+        removed, n_out, (kept, attenuated, moved, n_removed, added) = _place(*place)
+    else:
+        removed, n_out, (kept, attenuated, moved, n_removed, added), *counted = _place_counted(*place, *tally.arrays)
+        tally.counted(*counted)
     if added:                                          # only full grids have empty rays with a direction
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
+        if tally is not None:                          # (zeros when the blocks counted them)
+            tally.add_rows(positions, idx, zeroed=True)
     at, rows = _hosted(rays.listed, cells, origin[:n_out] if n_removed else None)
     if len(at):                                        # weather on a stored no-return point's ray takes its row
         positions[rows], intensity[rows] = _listed_returns(rays.listed, cells[at], returns.range_m[n:], reported[n:],
@@ -205,6 +257,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
                 rays.listed, cells, returns.range_m[n:], reported[n:], float(profile.intensity_full_scale), integer)
             effect[n_out:total] = ADDED
             added += len(cells)
+            if tally is not None:
+                tally.add_rows(positions, np.arange(n_out, total), zeroed=False)
         if len(fields) > 1 or attributes:              # the ray each output takes its other fields from
             index = np.concatenate([origin[:n_out], rays.listed.like[cells]]) if len(cells) else origin
             fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
@@ -221,9 +275,8 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
                                                                                  origin[rows]], intensity[rows])}
     out = cloud.replace(positions_m=positions[:total], fields=fields, origin=origin, effect=effect[:total],
                         attributes=attributes)
-    if return_ranges.wanted():                         # for the metrics' summaries of the input and the output
-        for counted in (cloud.positions_m, out.positions_m):
-            return_ranges.note_counted(counted, return_ranges.bin_count(profile))
+    if tally is not None:                              # for the metrics' summaries of the input and the output
+        tally.note(out.positions_m, recount=len(at) > 0)
     faint = rays.faint
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
               "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": int(np.count_nonzero(faint)),

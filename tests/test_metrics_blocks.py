@@ -1,0 +1,169 @@
+"""The LiDAR metrics' block passes (issue 18, round 22: fewer bytes moved per file) equal the paths they replace, value
+for value: the weather placement that counts its input's and output's geometry block by block
+(``lidar_output._place_counted`` with ``return_ranges.Tally``) against ``_place`` and ``return_ranges.count`` of the
+same arrays, and the metrics' STEP_LINK pass over a cloud whose returns are known (``metrics._counted_step_pass``)
+against the generic pass (``metrics._pass``), on hand-built clouds of several blocks: grids and lists, moved,
+removed and added points, NaN points, several returns on one ray."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from roadview_noise import metrics
+from roadview_noise.physics import lidar_output, return_ranges
+from roadview_noise.physics.lidar_echo import NO_RETURN, TARGET, WEATHER
+
+N_BINS = 32
+N = 3 * return_ranges.BLOCK + 17                 # three full blocks and a partial one
+
+
+def scan(rng: np.random.Generator, n: int = N) -> np.ndarray:
+    """Positions (m) of a scan with no-return zeros, NaN, inf and far points."""
+    positions = rng.normal(0.0, 60.0, (n, 3))
+    positions[rng.random(n) < 0.2] = 0.0
+    positions[5], positions[6, 1], positions[7] = np.nan, np.inf, [1e200, 0.0, 0.0]
+    positions[8], positions[9] = [0.0, 0.0, 10.0 * N_BINS + 3.0], [-0.0, 0.0, 2.5]
+    return positions
+
+
+def placement(rng: np.random.Generator, positions: np.ndarray, grid: bool) -> tuple:
+    """``_place``'s arguments for a weather step on these points: targets kept or attenuated, weather returns
+    moving targets and filling empty rays (ADDED, zeros until the caller writes them), lost targets."""
+    n = len(positions)
+    has = np.isfinite(positions).all(axis=1) & (np.abs(positions).sum(axis=1) > 0)
+    kind = rng.choice(np.array([TARGET, WEATHER, NO_RETURN], np.uint8), n, p=[0.6, 0.2, 0.2])
+    ray_range = np.where(has, 50.0, 0.0)
+    return_range = rng.uniform(1.0, 49.0, n)
+    reported = rng.uniform(0.0, 300.0, n)
+    intensity = rng.uniform(0.0, 300.0, n).astype(np.float32)
+    intensity[11] = np.nan
+    size = n
+    outputs = (np.empty((size, 3)), np.empty(size, np.float32), np.empty(size, np.uint8), np.empty(size, np.int64))
+    return (kind, has, return_range, ray_range, reported, 255.0, False, 0.5, grid, positions, intensity, *outputs)
+
+
+def old_sum(valid: np.ndarray, values: np.ndarray) -> tuple:
+    return metrics._return_value_sum(valid, values)
+
+
+@pytest.mark.parametrize("grid", [False, True])
+@pytest.mark.parametrize("noted_input", [False, True])
+def test_placement_counted_by_blocks_is_place_and_count(grid, noted_input):
+    rng = np.random.default_rng(3 + grid)
+    positions = scan(rng)
+    args = placement(rng, positions, grid)
+    plain = args[:11] + tuple(np.empty_like(a) for a in args[11:])
+    removed, n_out, counts = lidar_output._place(*plain)
+    return_ranges.collect(True)
+    try:
+        if noted_input:                            # a later step's input: its geometry known, not counted again
+            return_ranges.note(positions, N_BINS, return_ranges.count(positions, N_BINS))
+        tally = return_ranges.Tally(positions, args[10], len(positions), N_BINS)
+        got_removed, got_n, got_counts, *counted = lidar_output._place_counted(*args, *tally.arrays)
+        tally.counted(*counted)
+        out = args[11]
+        added = np.flatnonzero(args[13][:got_n] == 3)            # a grid's ADDED cells, written after the blocks
+        out[added] = rng.uniform(-80.0, 80.0, (len(added), 3))
+        tally.add_rows(out, added, zeroed=True)
+        total = min(got_n + 100, len(out))                       # a list's rows appended after the blocks
+        out[got_n:total] = rng.uniform(-400.0, 400.0, (total - got_n, 3))
+        out[got_n:got_n + 2] = [np.nan, 0.0, 0.0]
+        tally.add_rows(out, np.arange(got_n, total), zeroed=False)
+        outputs = out[:total]
+        tally.note(outputs)
+        noted_out = return_ranges.noted(outputs, N_BINS)
+        noted_in = return_ranges.noted(positions, N_BINS)
+        summed = return_ranges.noted_sum(positions, args[10])
+    finally:
+        return_ranges.collect(False)
+    assert got_n == n_out and got_counts == counts and np.array_equal(got_removed, removed)
+    for mine, theirs in zip(args[11:], plain[11:]):              # the same rows written
+        assert np.array_equal(mine[:n_out][~np.isin(np.arange(n_out), added)],
+                              theirs[:n_out][~np.isin(np.arange(n_out), added)], equal_nan=True)
+    want_out = return_ranges.count(outputs, N_BINS)
+    assert (noted_out[0], noted_out[1].tolist(), noted_out[2]) == (want_out[0], want_out[1].tolist(), want_out[2])
+    assert np.array_equal(noted_out[3], want_out[3])
+    want_in = return_ranges.count(positions, N_BINS)
+    assert (noted_in[0], noted_in[1].tolist(), noted_in[2]) == (want_in[0], want_in[1].tolist(), want_in[2])
+    assert np.array_equal(noted_in[3], want_in[3])
+    if noted_input:
+        assert summed is None
+    else:
+        assert summed == old_sum(want_in[3], args[10]) and summed[1] < len(positions)
+
+
+def test_tally_recounts_rewritten_rows():
+    """Rows the blocks counted and the model rewrote (a list's stored no-return points that take a weather return)
+    are counted anew."""
+    rng = np.random.default_rng(11)
+    positions = scan(rng)
+    args = placement(rng, positions, False)
+    return_ranges.collect(True)
+    try:
+        tally = return_ranges.Tally(positions, args[10], len(positions), N_BINS)
+        _, n_out, _, *counted = lidar_output._place_counted(*args, *tally.arrays)
+        tally.counted(*counted)
+        out = args[11][:n_out]
+        out[:50] = rng.uniform(-300.0, 300.0, (50, 3))
+        tally.note(out, recount=True)
+        noted = return_ranges.noted(out, N_BINS)
+    finally:
+        return_ranges.collect(False)
+    want = return_ranges.count(out, N_BINS)
+    assert (noted[0], noted[1].tolist(), noted[2]) == (want[0], want[1].tolist(), want[2])
+
+
+def step_link(rng: np.random.Generator, in_order: bool, grid: bool) -> tuple:
+    """A step's output linked to its input (``before``): kept, attenuated and moved points (some moved to where they
+    were, some to another point's ray: several returns on a ray), removed points (lists) or zeroed cells (grids),
+    ADDED points appended (lists: origin NEW) or in empty cells (grids), NaN values."""
+    pb = scan(rng)
+    nb = len(pb)
+    valid_b = return_ranges.count(pb, N_BINS)[3]
+    values_b = rng.uniform(0.0, 255.0, nb).astype(np.float32)
+    values_b[::97] = np.nan
+    keep = np.ones(nb, bool) if in_order or grid else rng.random(nb) < 0.8
+    origin = np.flatnonzero(keep)
+    positions = pb[origin].copy()
+    codes = rng.choice(np.array([0, 1, 2], np.uint8), len(origin), p=[0.6, 0.2, 0.2])
+    moved = np.flatnonzero(codes == 2)
+    positions[moved[::3]] *= rng.uniform(0.2, 0.9, (len(moved[::3]), 1))          # along the ray
+    positions[moved[1::3]] = pb[origin[moved[1::3]] - 1]                            # onto another point's ray
+    if grid:                                        # removed cells zeroed, empty cells filled with ADDED returns
+        cut = rng.random(nb) < 0.1
+        positions[cut], codes[cut] = 0.0, 0
+        fill = ~valid_b & (rng.random(nb) < 0.3)
+        positions[fill], codes[fill] = rng.uniform(-50.0, 50.0, (int(fill.sum()), 3)), 3
+        step_origin = np.zeros(0, np.int64)
+    else:
+        extra = 200
+        positions = np.vstack([positions, rng.uniform(-50.0, 50.0, (extra, 3))])
+        codes = np.concatenate([codes, np.full(extra, 3, np.uint8)])
+        step_origin = np.concatenate([origin, np.full(extra, -1)]) if not in_order else np.zeros(0, np.int64)
+        if in_order:
+            positions, codes = positions[:nb], codes[:nb]
+    values = rng.uniform(0.0, 255.0, len(positions)).astype(np.float32)
+    values[::89] = np.nan
+    return positions, codes, values, pb, valid_b, values_b, (step_origin, codes)
+
+
+@pytest.mark.parametrize("in_order,grid", [(False, False), (True, False), (True, True)])
+def test_step_pass_with_known_returns_is_the_generic_pass(in_order, grid):
+    rng = np.random.default_rng(5 + 2 * in_order + grid)
+    positions, codes, values, pb, valid_b, values_b, step = step_link(rng, in_order, grid)
+    none = np.zeros(0, np.bool_)
+    generic = metrics._cloud_pass(positions, none, codes, values, metrics.RANGE_BIN_M, N_BINS, metrics.STEP_LINK,
+                                  pb, valid_b, values_b, step)
+    valid = generic[0][3]
+    got = metrics._cloud_pass(positions, valid, codes, values, metrics.RANGE_BIN_M, N_BINS, metrics.STEP_LINK,
+                              pb, valid_b, values_b, step)
+    assert got[1].tolist() == generic[1].tolist() and got[2:4] == generic[2:4]
+    index, moved, change = got[4]
+    assert np.array_equal(index, generic[4][0]) and np.array_equal(moved, generic[4][1])
+    assert change == generic[4][2] or (np.isnan(change) and np.isnan(generic[4][2]))
+    assert moved.any() and (~moved & (index >= 0)).any() and (index < 0).any() == (not in_order or grid)
+    counts = np.bincount(codes[valid], minlength=4)              # against NumPy too
+    assert got[1].tolist() == counts.tolist()
+    finite = valid & np.isfinite(values)
+    assert got[3] == int(finite.sum()) and got[2] == pytest.approx(float(values[finite].astype(np.float64).sum()))
