@@ -53,6 +53,7 @@ from .errors import InputError
 from .io import annotations as ann_io
 from .io.atomic import write_bytes_atomic
 from .physics.outline_warp import clip_polygon, forward_through, moved_boxes, moved_rings
+from .physics.warp import moving
 from .provenance import MADE_BY_STEP, REMOVED, gather, is_new
 from .types import CameraFrame, PointCloud, RawFrame
 
@@ -141,6 +142,17 @@ def mask_fill(rule, spec: "AnnotationsSpec", relpath: str, mask: ann_io.Mask) ->
         raise InputError(f"fill {fill} of mask {relpath} does not fit its values (0 … {top}); give the mask a fill "
                          "it can hold", file=relpath)
     return fill
+
+
+def panoptic_fill(rule, relpath: str) -> int:
+    """A COCO panoptic PNG's fill: 0, the void id (:mod:`.coco_panoptic`); InputError for another fill given."""
+    from .coco_panoptic import VOID_FILL
+
+    if isinstance(rule, MaskRule) and rule.fill != VOID_FILL:
+        raise InputError(f"fill {rule.fill} of the COCO panoptic PNG {relpath}: a pixel a warp brings in from outside "
+                         f"the image is void, id {VOID_FILL} (RGB 0, 0, 0); give fill {VOID_FILL} or none",
+                         file=relpath)
+    return VOID_FILL
 
 
 BOX_FILES_NOT_READ = {        # box files a user may have whose lines are not KITTI's or YOLO's: refused at validate
@@ -430,17 +442,21 @@ class Sidecar:
 class Annotated:
     """What the annotations of one output are: files to write (absolute path, writer), files that embed the output
     image (absolute path, writer of the path and the image file's bytes: a LabelMe ``imageData``), manifest
-    records."""
+    records, and the masks moved by the frame's warps (values by path relative to the input root: where a COCO
+    panoptic annotation finds its PNG, :mod:`.coco_panoptic`)."""
 
     writes: list[tuple[Path, Any]] = field(default_factory=list)
     embedding: list[tuple[Path, Any]] = field(default_factory=list)
     read: list[dict] = field(default_factory=list)
     objects: list[dict] | None = None
+    masks: dict[str, np.ndarray] = field(default_factory=dict)
 
 
-def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidecar]:
+def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data, void_masks: frozenset[str] = frozenset()) \
+        -> list[Sidecar]:
     """Read the sidecars of one input (InputError names the file and the problem); an image's are in its stored
-    pixel coordinates, also when it is processed upright (:mod:`.orientation`)."""
+    pixel coordinates, also when it is processed upright (:mod:`.orientation`). Masks named in ``void_masks`` (the
+    image's COCO panoptic PNGs) get the fill 0, the void id."""
     from .manifest import sha256_file
     from .dataset import split_suffix
     from .orientation import stored_shape
@@ -469,7 +485,8 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
             if sc.data.shape[:2] != (h, w):
                 raise InputError(f"mask {rel} is {sc.data.shape[1]}×{sc.data.shape[0]} px, the image {relpath} "
                                  f"{w}×{h}", file=str(in_root / relpath))
-            sc.fill = mask_fill(rule, spec, rel, sc.data)
+            sc.fill = panoptic_fill(rule, rel) if PurePosixPath(rel).name in void_masks else \
+                mask_fill(rule, spec, rel, sc.data)
         elif role == "polygons":
             sc.data = ann_io.read_polygons(path)
             h, w = labelme_shape(data)
@@ -500,28 +517,30 @@ def read(relpath: str, in_root: Path, spec: AnnotationsSpec, data) -> list[Sidec
 def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, model_ids, out_root: Path,
           variant_suffix: str = ""):
     """The output with its annotation fields carried, and the annotation files to write (:class:`Annotated`): point
-    labels carried, masks and 2-D boxes through the frame's warps (copied as they are without one), 3-D boxes and
-    calib copied (they describe the scene, which the chain does not move)."""
+    labels carried, masks and 2-D boxes through the frame's warps (copied as they are without one, or when every
+    warp is exactly the identity), 3-D boxes and calib copied (they describe the scene, which the chain does not
+    move)."""
     from .dataset import output_relpath
 
     result = Annotated(read=[{"role": s.role, "path": s.relpath, "sha256": s.sha256} if s.sha256 is not None else
                              {"role": s.role, "path": s.relpath, "absent": NO_YOLO_FILE} for s in sidecars])
     sidecars = [s for s in sidecars if s.sha256 is not None]              # an absent YOLO file: none written either
     camera = isinstance(data_out, (CameraFrame, RawFrame))
+    warps = moving(data_out.warps) if camera and sidecars else []
     upright = labelme_turn(data_in) == 1     # a turned photo's bytes are not what LabelMe shows: imageData null
     for s, entry in zip(sidecars, [e for e in result.read if "absent" not in e]):
         if s.role == "boxes_2d" and (not camera or s.fmt == KITTI_TRACKING):
-            if camera and data_out.warps:
+            if camera and warps:
                 raise InputError(f"{s.relpath} is a KITTI tracking label file (frame track_id first: every frame of "
                                  f"the sequence in one file); this frame's warp ({', '.join(model_ids)}) would move "
                                  f"its boxes, which one file shared by the sequence's frames cannot hold: give "
                                  f"per-frame label_2 files, or a chain without geometric steps", file=str(s.path))
             entry["unchanged"] = ("image boxes: a point-cloud chain moves none, copied as they are" if not camera else
                                   "KITTI tracking sequence file: copied as it is, the chain warps no frame")
-        if camera and not data_out.warps and _is_labelme(s) and (_embeds_image(s) or variant_suffix):
+        if camera and not warps and _is_labelme(s) and (_embeds_image(s) or variant_suffix):
             result.embedding.append((out_root / output_relpath(s.relpath, variant_suffix),
                                      _labelme_writer(s, None, variant_suffix, upright)))
-        elif s.role in ("boxes_3d", "calib") or (camera and not data_out.warps) or \
+        elif s.role in ("boxes_3d", "calib") or (camera and not warps) or \
                 (s.role == "boxes_2d" and not camera):
             result.writes.append((out_root / output_relpath(s.relpath, variant_suffix), s.copy_to))
     if isinstance(data_out, PointCloud):
@@ -545,24 +564,25 @@ def carry(sidecars: list[Sidecar], spec: AnnotationsSpec, data_in, data_out, mod
                                       lambda p, v=values, f=s.fmt: ann_io.write_point_labels(p, v, f)))
             elif s.role == "boxes_3d":
                 result.objects = object_counts(s.data, data_in, data_out)
-    elif camera and data_out.warps:
+    elif camera and warps:
         h, w = data_out.shape
         for s in sidecars:
             dest = out_root / output_relpath(s.relpath, variant_suffix)
             if s.role == "mask":
                 values = s.data.values
-                for warp in data_out.warps:
+                for warp in warps:
                     values = warp.apply_labels(values, s.fill)
                 mask = dataclasses.replace(s.data, values=values)
+                result.masks[s.relpath] = values
                 result.writes.append((dest, lambda p, m=mask: ann_io.write_mask(p, m)))
             elif _is_labelme(s):
-                moved = warp_labelme_displayed(s.data, data_out.warps, (h, w), labelme_turn(data_in))
+                moved = warp_labelme_displayed(s.data, warps, (h, w), labelme_turn(data_in))
                 result.embedding.append((dest, _labelme_writer(s, moved, variant_suffix, upright)))
             elif s.role == "polygons":
-                moved = warp_polygon_objects(s.data, data_out.warps, w, h)
+                moved = warp_polygon_objects(s.data, warps, w, h)
                 result.writes.append((dest, lambda p, d=moved: ann_io.write_polygons(p, d)))
             elif s.role == "boxes_2d":
-                boxes = warp_boxes(s.data, data_out.warps, w, h)
+                boxes = warp_boxes(s.data, warps, w, h)
                 result.writes.append((dest, lambda p, b=boxes: ann_io.write_boxes_2d(p, b, w, h)))
     return data_out, result
 

@@ -195,6 +195,9 @@ class CocoRun:
                    "inputs_not_in_file": self.unlisted,
                    "annotations": len(annotations), "annotations_moved": sum(f is not None for f in changes.values()),
                    "annotations_dropped": dropped}
+        panoptic = [ids for r in done.values() for _, ids in r.get("segments_dropped", ())]
+        if any("segments_dropped" in r for r in done.values()):           # COCO panoptic under a warp
+            summary["segments_dropped"] = sum(len(ids) for ids in panoptic)
         return (None if not changes and not distorted and not (suffix and done) else data), summary
 
     def release(self, ledger, out_root: Path, previous) -> list[dict]:

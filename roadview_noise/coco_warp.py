@@ -22,6 +22,9 @@ annotations as read, value for value, as does a warp that is exactly the identit
   object's centre lies outside the image).
 - An annotation that had something inside the image and has nothing left (its box clipped to nothing, its polygons
   or mask empty) is dropped: the object is not in the output image. Its id is recorded.
+- COCO panoptic (``segments_info``): the image's panoptic PNG, a declared mask moved with the frame, gives each
+  segment's ``area`` and ``bbox`` (:mod:`roadview_noise.coco_panoptic`); segments with no pixel left are dropped
+  from ``segments_info`` and their ids recorded.
 
 Coordinates written are rounded to ``DECIMALS`` places (1/1000 px).
 """
@@ -33,14 +36,16 @@ from typing import Any
 
 import numpy as np
 
-from . import coco_camera
+from . import coco_camera, coco_panoptic
 from .errors import InputError
 from .io import coco as coco_io
 from .physics.outline_warp import box_ring, clip_polygon, forward_through, moved_rings
+from .physics.warp import moving
 
 DECIMALS = 3
 SEGMENTATION_BOX_PX = 1.0       # a bbox within this of the segmentation's box is that box
-GEOMETRY_KEYS = ("id", "bbox", "segmentation", "area", "keypoints", "num_keypoints", "center2d", "segments_info")
+GEOMETRY_KEYS = ("id", "bbox", "segmentation", "area", "keypoints", "num_keypoints", "center2d", "segments_info",
+                 "file_name")
 
 
 @dataclass
@@ -55,34 +60,44 @@ class CocoImage:
     sha256: str                                    # of the COCO file (a resumed run redoes records of another one)
     annotations: list[tuple[int, dict]] = field(default_factory=list)
 
-    def move(self, shape: tuple[int, int], warps) -> dict:
-        return move_image(self, shape, warps)
+    def move(self, shape: tuple[int, int], warps, masks: dict | None = None) -> dict:
+        return move_image(self, shape, warps, masks)
+
+    def panoptic_pngs(self) -> frozenset[str]:
+        """The file names of the image's panoptic PNGs (masks that get the void fill, :mod:`.coco_panoptic`)."""
+        return frozenset(str(ann["file_name"]).rsplit("/", 1)[-1] for _, ann in self.annotations
+                         if "segments_info" in ann and ann.get("file_name"))
 
 
-def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
+def move_image(image: CocoImage, shape: tuple[int, int], warps, masks: dict | None = None) -> dict:
     """The manifest record of one image: ``moved`` [[position, changed fields], …], ``dropped`` [[position, id],
-    …] and ``distortion`` (the warps as :mod:`.coco_camera` states them); none when nothing moves. InputError when
-    the file's size of the image is not the image's, or an annotation is malformed (naming its id). Every outline
-    and point of the image moves in one batch."""
+    …], ``segments_dropped`` [[position, [segment id, …]], …] (panoptic) and ``distortion`` (the warps as
+    :mod:`.coco_camera` states them); none when nothing moves. ``masks``: the frame's masks after the warps
+    (values by path), where a panoptic annotation finds its PNG. InputError when the file's size of the image is
+    not the image's, an annotation is malformed (naming its id) or a panoptic PNG is not a declared mask. Every
+    outline and point of the image moves in one batch."""
     h, w = shape
     warps = moving_warps("COCO", image.file_name, (image.width, image.height), shape, warps)
     record: dict[str, Any] = {"image_id": image.image_id, "sha256": image.sha256}
     if not warps:
         return record
-    if any("segments_info" in ann for _, ann in image.annotations):
-        raise InputError(f"COCO panoptic annotations (segments_info) of {image.file_name!r}: their bbox and area "
-                         "describe the panoptic PNG, which a geometric step moves, and are not recomputed; use a "
-                         "photometric chain for a panoptic file (its PNGs go under masks)")
     record["distortion"] = coco_camera.steps(warps)          # the image is no longer pinhole (coco_camera)
     mover = _Mover(warps, w, h)
+    panoptic = [(pos, ann) for pos, ann in image.annotations if "segments_info" in ann]
+    others = [(pos, ann) for pos, ann in image.annotations if "segments_info" not in ann]
     parsed = []
-    for _, ann in image.annotations:
+    for _, ann in others:
         parsed.append(_guarded(ann, image.file_name, _Parsed.of, ann))
     rings = moved_rings([r for g in parsed for r in g.rings_in()], mover.points,
                         [b for g in parsed for b in g.ring_is_box()])
     points = mover.points(np.concatenate([g.points for g in parsed]) if parsed else np.empty((0, 2)))
-    moved, dropped = [], []
-    for (pos, ann), g in zip(image.annotations, parsed):
+    moved, dropped, segments_dropped = [], [], []
+    for pos, ann in panoptic:
+        kept, gone = _moved_panoptic(ann, image.file_name, masks or {})
+        moved.append([pos, {"segments_info": kept}])
+        if gone:
+            segments_dropped.append([pos, gone])
+    for (pos, ann), g in zip(others, parsed):
         n = len(g.rings_in())
         g.rings_out, rings = rings[:n], rings[n:]
         g.points_out, points = points[:len(g.points)], points[len(g.points):]
@@ -91,7 +106,30 @@ def move_image(image: CocoImage, shape: tuple[int, int], warps) -> dict:
             dropped.append([pos, ann.get("id")])
         elif fields:
             moved.append([pos, fields])
-    return {**record, "moved": moved, "dropped": dropped}
+    moved.sort(key=lambda m: m[0])
+    return {**record, "moved": moved, "dropped": dropped,
+            **({"segments_dropped": segments_dropped} if panoptic else {})}
+
+
+def _moved_panoptic(ann: dict, image_name: str, masks: dict) -> tuple[list[dict], list]:
+    """A panoptic annotation's ``segments_info`` from its moved PNG among ``masks`` (by file name), and the ids of
+    the segments dropped; InputError when the PNG is not exactly one declared mask, or the annotation or PNG is
+    malformed."""
+    try:
+        name = coco_panoptic.png_name(ann)
+    except ValueError as exc:
+        raise InputError(f"{exc} ({image_name!r})") from None
+    found = [rel for rel in masks if rel.rsplit("/", 1)[-1] == name]
+    if len(found) != 1:
+        why = "is not among the masks the recipe declares" if not found else \
+            f"matches {len(found)} declared masks ({', '.join(sorted(found))})"
+        raise InputError(f"the COCO panoptic PNG {name!r} of {image_name!r} {why}: a geometric step moves the PNG "
+                         "and its segments' bbox and area are taken from it; declare the panoptic PNGs once under "
+                         "inputs.annotations.masks (e.g. \"../annotations/panoptic_val2017/{stem}.png\")")
+    try:
+        return coco_panoptic.moved_segments(ann["segments_info"], coco_panoptic.segment_ids(masks[found[0]], name))
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"the COCO panoptic annotation of {image_name!r} ({name}): {exc}") from None
 
 
 def moving_warps(kind: str, file_name: str, stated: tuple, shape: tuple[int, int], warps) -> list:
@@ -100,7 +138,7 @@ def moving_warps(kind: str, file_name: str, stated: tuple, shape: tuple[int, int
     h, w = shape
     if tuple(stated) != (None, None) and tuple(stated) != (w, h):
         raise InputError(f"the {kind} file gives {file_name!r} {stated[0]}×{stated[1]} px, the image is {w}×{h} px")
-    return [wp for wp in warps if not is_identity(wp)]
+    return moving(warps)
 
 
 def _guarded(ann: dict, name: str, fn, *args):
@@ -108,12 +146,6 @@ def _guarded(ann: dict, name: str, fn, *args):
         return fn(*args)
     except (ValueError, TypeError, KeyError, IndexError) as exc:
         raise InputError(f"annotation id {ann.get('id')!r} of {name!r}: {exc}") from None
-
-
-def is_identity(warp) -> bool:
-    h, w = warp.shape
-    return bool(np.array_equal(warp.map_x, np.broadcast_to(np.arange(w, dtype=warp.map_x.dtype), (h, w))) and
-                np.array_equal(warp.map_y, np.broadcast_to(np.arange(h, dtype=warp.map_y.dtype)[:, None], (h, w))))
 
 
 @dataclass

@@ -138,7 +138,12 @@ class CvatImage:
     size: tuple[int | None, int | None]
     shapes: list[tuple[int, str, dict]] = field(default_factory=list)
 
-    def move(self, shape: tuple[int, int], warps) -> dict:
+    def panoptic_pngs(self) -> frozenset[str]:
+        """None: panoptic PNGs are COCO's (:meth:`roadview_noise.coco_warp.CocoImage.panoptic_pngs`), and ``move``
+        reads no ``masks``."""
+        return frozenset()
+
+    def move(self, shape: tuple[int, int], warps, masks: dict | None = None) -> dict:
         """The manifest record: ``moved`` [[child position, changed attributes(, [[a skeleton's point position,
         its changed attributes], …])], …], ``dropped`` [[position, tag],
         …]; none when no warp moves anything. InputError for a size that is not the image's, a shape not moved

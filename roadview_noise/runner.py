@@ -400,7 +400,8 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             if dropped:
                 entry["input_warnings"] = dropped
             spec = recipe.spec.inputs.annotations
-            sidecars = annotations.read(s.relpath, ctx.in_root, spec, data)
+            sidecars = annotations.read(s.relpath, ctx.in_root, spec, data,
+                                        task.coco.panoptic_pngs() if task.coco is not None else frozenset())
             with profiling.span("chain"):
                 out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed,
                                             key=task.out_relpath, sequence_id=s.sequence_id,
@@ -419,7 +420,7 @@ def _process(task: Task, ctx: RunContext, entry: dict[str, Any]) -> None:
             entry.update({k: v for k, v in (("annotations_read", annotated.read), ("objects", annotated.objects))
                           if v})
             if task.coco is not None:
-                entry["coco"] = task.coco.move(orientation.stored_shape(data), out.warps)
+                entry["coco"] = task.coco.move(orientation.stored_shape(data), out.warps, annotated.masks)
             with confined_to(ctx.out_root), staged_writes(sync=ctx.fsync_outputs) as stage:
                 with profiling.phase("save", "convert", "write"):
                     save(out, ctx.out_root / task.out_relpath, recipe, source=source, annotations=annotated)

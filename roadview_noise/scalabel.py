@@ -154,7 +154,12 @@ class ScalabelImage:
     sha256: str
     labels: list[tuple[int, dict]] = field(default_factory=list)
 
-    def move(self, shape: tuple[int, int], warps) -> dict:
+    def panoptic_pngs(self) -> frozenset[str]:
+        """None: panoptic PNGs are COCO's (:meth:`roadview_noise.coco_warp.CocoImage.panoptic_pngs`), and ``move``
+        reads no ``masks``."""
+        return frozenset()
+
+    def move(self, shape: tuple[int, int], warps, masks: dict | None = None) -> dict:
         """The manifest record: ``moved`` [[label position, changed fields], …], ``dropped`` [[position, id], …];
         none when no warp moves anything. InputError names the frame when a label is malformed."""
         h, w = shape

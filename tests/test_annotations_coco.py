@@ -395,11 +395,12 @@ def test_resume_redoes_images_whose_record_is_for_another_coco_file(coco_tree, t
     assert _by_id(_out(out))[21]["bbox"][0] == pytest.approx(bx0, abs=2e-3)
 
 
-def test_a_coco_panoptic_file_is_refused_under_a_warp_and_copied_otherwise(coco_tree, tmp_path):
+def test_a_coco_panoptic_file_without_its_pngs_declared_fails_under_a_warp_and_is_copied_otherwise(coco_tree,
+                                                                                                  tmp_path):
     """COCO panoptic (Mapillary Vistas v2 ``panoptic_2020.json``, Cityscapes' ``cityscapes_panoptic_val.json``):
     ``annotations`` per image with ``file_name`` of the panoptic PNG and ``segments_info`` (id, category_id, area,
-    bbox). It passed as a COCO file and, under a warp, came out with every segment's bbox and area as read while
-    the image moved; now such an image fails, named, and a photometric chain copies the file."""
+    bbox). Under a warp the segments' bbox and area come from the moved PNG (test_annotations_coco_panoptic.py):
+    an image whose PNG is not a declared mask fails, named; a photometric chain copies the file."""
     panoptic = {"images": [{"id": 1, "file_name": "a.png", "width": W, "height": H}],
                 "annotations": [{"image_id": 1, "file_name": "a_panoptic.png", "segments_info": [
                     {"id": 7, "category_id": 3, "area": 120, "bbox": [10, 12, 15, 8], "iscrowd": 0}]}],
@@ -407,7 +408,8 @@ def test_a_coco_panoptic_file_is_refused_under_a_warp_and_copied_otherwise(coco_
     (coco_tree / "annotations/instances.json").write_text(json.dumps(panoptic))
     summary = _run(_recipe("warp_test.camera", tmp_path), coco_tree, tmp_path / "out")
     errors = [e.get("error", "") for e in read_manifest(tmp_path / "out/manifest.jsonl")]
-    assert summary.failed == 1 and any("COCO panoptic annotations (segments_info) of 'a.png'" in e for e in errors)
+    assert summary.failed == 1 and any("the COCO panoptic PNG 'a_panoptic.png' of 'a.png' is not among the masks"
+                                       in e for e in errors)
     assert _run(_recipe("compression.camera", tmp_path), coco_tree, tmp_path / "out2").failed == 0
     assert (tmp_path / "out2/annotations/instances.json").read_bytes() == \
         (coco_tree / "annotations/instances.json").read_bytes()

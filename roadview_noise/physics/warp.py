@@ -30,6 +30,12 @@ class Warp:
     def shape(self) -> tuple[int, int]:
         return self.map_x.shape
 
+    def is_identity(self) -> bool:
+        """Whether the map is exactly the identity (every output pixel samples its own position): nothing moves."""
+        h, w = self.shape
+        return bool(np.array_equal(self.map_x, np.broadcast_to(np.arange(w, dtype=self.map_x.dtype), (h, w))) and
+                    np.array_equal(self.map_y, np.broadcast_to(np.arange(h, dtype=self.map_y.dtype)[:, None], (h, w))))
+
     def apply(self, image: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR,
               border: int = cv2.BORDER_REFLECT_101, fill: float = 0.0) -> np.ndarray:
         """Resample ``image`` (H, W[, C]) through the map; OpenCV handles up to 4 channels per call."""
@@ -64,6 +70,11 @@ class Warp:
             q[:, 0] += p[:, 0] - mx
             q[:, 1] += p[:, 1] - my
         return q
+
+
+def moving(warps) -> list:
+    """The warps that move anything: all but exact identities."""
+    return [wp for wp in warps if not wp.is_identity()]
 
 
 def _bilinear(grid: np.ndarray, q: np.ndarray) -> np.ndarray:
