@@ -12,7 +12,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev,onnx,dask,arrow]'
+	$(BIN)/pip install --quiet -e '.[dev,onnx,dask,arrow,heif]'
 	@$(MAKE) --no-print-directory check-open3d
 	@touch $(STAMP)
 

@@ -124,6 +124,10 @@ def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: An
         quality = frame.encoding.webp_quality
         notes["webp_quality"] = {"value": "lossless", "from": "input (a VP8L bitstream)"} if quality is None else \
             {"value": quality, "from": "input (estimated from its VP8 quantiser indices)"}
+    if isinstance(frame, CameraFrame) and frame.encoding.fmt in ("heif", "avif"):
+        from .io.heif import QUALITY
+
+        notes["heif_quality"] = {"value": QUALITY, "from": "rvnoise's default (the file records no quality)"}
     geometry = _Geometry(origin, recipe, w, h, turn)
     if needs_camera_geometry(recipe):
         geometry.profile                                    # resolved now: a step of the chain uses it

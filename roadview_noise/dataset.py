@@ -25,7 +25,8 @@ from .types import CameraFrame, Conditions, LidarProfile, RawFrame, SensorData
 from .walk import Matcher, WalkFailure, walk
 
 DEFAULT_GLOBS = {
-    "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff", "**/*.webp"],
+    "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff", "**/*.webp", "**/*.heic", "**/*.heif",
+               "**/*.avif"],
     "raw": ["**/*.dng", "**/*.raw"],
     "lidar": ["**/*.pcd", "**/*.bin", "**/*.ply"],
     "radar": ["**/*.pcd", "**/*.bin"],

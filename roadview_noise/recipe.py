@@ -76,7 +76,15 @@ class GroundPlaneSpec(_Strict):
     objects: bool = True              # vertical objects standing on the ground (depth/stixels.py); false: flat only
 
 
-PHOTO_SUFFIXES_NOT_READ = ("heic", "heif", "avif", "jxl", "jp2", "bmp", "gif", "mpo")
+PHOTO_SUFFIXES_NOT_READ = ("jxl", "jp2", "bmp", "gif", "mpo")
+
+
+def _photo_codec_missing(suffix: str) -> str | None:
+    """Why photos of a glob's ``suffix`` cannot be read on this machine (HEIF/AVIF without the extra), else None."""
+    from .io.heif import FORMATS, missing
+
+    fmt = FORMATS.get(f".{suffix}")
+    return missing(fmt) if fmt else None
 
 
 class InputsSpec(_Strict):
@@ -149,7 +157,11 @@ class InputsSpec(_Strict):
             suffix = glob.rsplit(".", 1)[-1].lower() if "." in glob.rsplit("/", 1)[-1] else ""
             if suffix in PHOTO_SUFFIXES_NOT_READ:
                 raise ValueError(f"camera: {glob!r} names .{suffix} files, which rvnoise does not read (camera "
-                                 "images: .png .jpg .jpeg .tif .tiff .webp .exr); convert them to PNG or JPEG first")
+                                 "images: .png .jpg .jpeg .tif .tiff .webp .heic .heif .avif .exr); convert them to "
+                                 "PNG or JPEG first")
+            why = _photo_codec_missing(suffix)
+            if why:
+                raise ValueError(f"camera: {glob!r}: {why}")
         return self
 
     @model_validator(mode="after")

@@ -188,7 +188,7 @@ SensorProfile = Union[CameraProfile, LidarProfile, RadarProfile]
 class ImageEncoding:
     """How a camera frame is stored, so the writer can put it back the same way."""
 
-    fmt: str = "png"           # png | jpeg | tiff | exr | webp
+    fmt: str = "png"           # png | jpeg | tiff | exr | webp | heif | avif
     bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF); EXR: 16 (half) | 32 (float)
     transfer: str = "srgb"     # srgb | linear
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)

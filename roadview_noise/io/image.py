@@ -1,5 +1,5 @@
-"""Camera image reader/writer: PNG, JPEG, TIFF (8/16-bit sRGB, float32 linear TIFF), OpenEXR (half/float linear)
-↔ linear RGB float32.
+"""Camera image reader/writer: PNG, JPEG, TIFF (8/16-bit sRGB, float32 linear TIFF), OpenEXR (half/float linear),
+WebP (:mod:`.webp`), HEIF and AVIF (:mod:`.heif`, an optional extra) ↔ linear RGB float32.
 
 Decoding with OpenCV (``IMREAD_UNCHANGED``: no EXIF rotation, no bit-depth reduction) — the common PNG kinds (8/16-bit
 grey, RGB, RGBA) by :mod:`.png`, which gives OpenCV's pixels in half its time; BGR ↔ RGB and sRGB ↔ linear
@@ -42,12 +42,12 @@ from ..errors import InputError
 from ..physics import srgb
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
-from . import image_metadata, webp
+from . import heif, image_metadata, webp
 from .atomic import atomic_path, write_bytes_atomic
 from .png import PNG_SIGNATURE, PNGError, decode_png, encode_png, png_chunk
 
 SUFFIX_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".tif": "tiff", ".tiff": "tiff", ".exr": "exr",
-                  ".webp": "webp"}
+                  ".webp": "webp", **heif.FORMATS}
 _LUMA_709 = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 _RGB_ORDER = {3: slice(None, None, -1), 4: [2, 1, 0, 3]}    # OpenCV's BGR(A) → RGB(A) (3 channels: a view)
 
@@ -65,7 +65,8 @@ _OPENCV_SAMPLING = {0x11: cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444, 0x21: cv2.IMWRIT
 
 
 def image_format(path: str | os.PathLike) -> str:
-    """``png`` | ``jpeg`` | ``tiff`` | ``exr`` | ``webp`` from the file suffix (case-insensitive)."""
+    """``png`` | ``jpeg`` | ``tiff`` | ``exr`` | ``webp`` | ``heif`` | ``avif`` from the file suffix
+    (case-insensitive)."""
     fmt = SUFFIX_FORMATS.get(Path(path).suffix.lower())
     if fmt is None:
         raise InputError(f"unknown image suffix {Path(path).suffix!r}; expected one of {sorted(SUFFIX_FORMATS)}",
@@ -90,11 +91,16 @@ def read_image(path: str | os.PathLike, data: bytes | None = None, *, untagged_t
 
 def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srgb"
                  ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
-    """:func:`read_image` of the bytes of a PNG, JPEG, TIFF or WebP file (also a ROS CompressedImage's data);
+    """:func:`read_image` of the bytes of a PNG, JPEG, TIFF, WebP, HEIF or AVIF file (also a ROS CompressedImage's
+    data);
     ``source`` names it in errors. Integer codes are sRGB unless the file states linear
     (:func:`.image_metadata.stated_transfer`) or, stating nothing, ``untagged_transfer`` says so (a JPEG or WebP is
     sRGB)."""
     check_structure(data, fmt, source)
+    if fmt in ("heif", "avif"):                     # by Pillow (io/heif.py): codes as stored, ICC, EXIF
+        codes, icc, exif = heif.decode(data, fmt, source)
+        linear, encoding, alpha = image_from_codes(codes, fmt, source=source, icc=icc)
+        return linear, dataclasses.replace(encoding, exif=exif), alpha
     if fmt == "tiff":                               # the first page's directory, parsed once
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
             page = tif.pages[0]
@@ -335,6 +341,8 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
         return _encode_tiff(codes, encoding.icc_profile, encoding.metadata, encoding.tiff_associated_alpha)
     if encoding.fmt == "webp":
         return _encode_webp(codes, encoding, name)
+    if encoding.fmt in ("heif", "avif"):
+        return heif.encode(codes, encoding.fmt, encoding.icc_profile, encoding.exif, name)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
@@ -663,9 +671,12 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding, *, bgr: bool = Tr
 
 
 def check_structure(data: bytes, fmt: str, path) -> None:
-    """Raise :class:`InputError` for a file that is not ``fmt`` or is cut short (see module docstring)."""
+    """Raise :class:`InputError` for a file that is not ``fmt`` or is cut short (see module docstring; HEIF and
+    AVIF: the decoder reports a file cut short)."""
     if fmt == "webp":
         webp.check_structure(data, path)
+    elif fmt in ("heif", "avif"):
+        heif.check_structure(data, fmt, path)
     elif fmt == "png":
         if not data.startswith(PNG_SIGNATURE):
             raise InputError("not a PNG file (bad signature)", file=str(path))

@@ -147,18 +147,28 @@ def orientation(encoding) -> int:
     viewer turns or mirrors the stored pixels to show them (CIPA DC-008 §4.6.4); 1 when the file states none."""
     if encoding.fmt == "tiff":
         return tiff_orientation(encoding.metadata)
-    exif = (encoding.exif or b"").removeprefix(b"Exif\x00\x00")     # a WebP EXIF chunk may keep JPEG's header
-    if exif[:4] not in (b"II*\x00", b"MM\x00*"):
+    found = exif_orientation_at(encoding.exif or b"")
+    if found is None:
         return 1
-    order = "little" if exif[:2] == b"II" else "big"
-    ifd = int.from_bytes(exif[4:8], order)
-    count = int.from_bytes(exif[ifd:ifd + 2], order)
-    for k in range(count):
-        entry = exif[ifd + 2 + 12 * k:ifd + 14 + 12 * k]
+    at, order = found
+    value = int.from_bytes(encoding.exif[at:at + 2], order)
+    return value if 1 <= value <= 8 else 1
+
+
+def exif_orientation_at(exif: bytes) -> tuple[int, str] | None:
+    """(offset of the orientation value, byte order) in an EXIF block — IFD0's tag 274; the block may start with
+    JPEG's ``Exif\\0\\0`` header, as a WebP EXIF chunk or Pillow's may — or None when it states none."""
+    start = 6 if exif.startswith(b"Exif\x00\x00") else 0
+    tiff = exif[start:]
+    if tiff[:4] not in (b"II*\x00", b"MM\x00*"):
+        return None
+    order = "little" if tiff[:2] == b"II" else "big"
+    ifd = int.from_bytes(tiff[4:8], order)
+    for k in range(int.from_bytes(tiff[ifd:ifd + 2], order)):
+        entry = tiff[ifd + 2 + 12 * k:ifd + 14 + 12 * k]
         if len(entry) == 12 and int.from_bytes(entry[:2], order) == 274:
-            value = int.from_bytes(entry[8:10], order)
-            return value if 1 <= value <= 8 else 1
-    return 1
+            return start + ifd + 2 + 12 * k + 8, order
+    return None
 
 
 def tiff_orientation(metadata: tuple) -> int:
