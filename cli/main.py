@@ -17,8 +17,30 @@ from roadview_noise.prestart import local_run_recipe, start_from_command_line
 start_from_command_line(sys.argv)        # the workers' fork server imports while typer and the recipe load
 
 import typer  # noqa: E402
+from typer.core import TyperGroup  # noqa: E402
 
 from roadview_noise.errors import RvNoiseError
+
+_USAGE = sys.modules[typer.BadParameter.__module__]    # click's exceptions (typer ≥ 0.20 vendors its own click)
+
+
+class _OneLineUsage(TyperGroup):
+    """The command group, whose usage errors (an option out of its range, an unknown option, a missing argument)
+    are one line on stderr with exit 2 — ``rvnoise: augment: Invalid value for '--workers' / '-j': …`` — as the
+    module docstring promises, not typer's five-line box; everything else as click's standalone mode."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except _USAGE.NoArgsIsHelpError:
+            return super().main(args, prog_name, complete_var, standalone_mode=True, **extra)   # the help
+        except _USAGE.UsageError as e:
+            where = f"{e.ctx.info_name}: " if e.ctx is not None and e.ctx.parent is not None else ""
+            print(f"rvnoise: {where}{e.format_message()}", file=sys.stderr)
+            sys.exit(e.exit_code)
+        sys.exit(code if isinstance(code, int) else 0)
 
 
 class _App(typer.Typer):
@@ -51,7 +73,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
         print(text, file=file or sys.stderr)
 
 
-app = _App(name="rvnoise", no_args_is_help=True, add_completion=False, rich_markup_mode="markdown",
+app = _App(name="rvnoise", cls=_OneLineUsage, no_args_is_help=True, add_completion=False, rich_markup_mode="markdown",
            help="Batch augmentation of camera, raw Bayer, LiDAR and 4D-radar data with the ROADVIEW "
                 "compound sensor noise models (weather × noise factor, CNF01–CNF30).")
 

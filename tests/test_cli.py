@@ -246,3 +246,16 @@ def test_help_has_examples():
     for cmd in ("augment", "validate", "list", "show", "replay", "sample-data"):
         r = runner.invoke(app, [cmd, "--help"])
         assert r.exit_code == 0 and "Example" in r.output, cmd
+
+
+@pytest.mark.parametrize("args,line", [
+    (["--workers", "0"], "rvnoise: augment: Invalid value for '--workers' / '-j': Input should be greater than or "
+                         "equal to 1"),
+    (["--limit", "x"], "rvnoise: augment: Invalid value for '--limit': Input should be a valid integer"),
+    (["--bogus"], "rvnoise: augment: No such option: --bogus"),
+])
+def test_a_bad_option_is_one_line_naming_it_and_its_range(tmp_path, tree, args, line):
+    """Typer printed a five-line box for an option out of its range; the module docstring promises one line."""
+    r = _augment(tree, tmp_path / "o", "--recipe", _recipe(tmp_path, CAMERA), *args)
+    assert r.exit_code == 2 and r.output.strip().count("\n") == 0 and r.output.startswith(line)
+    assert not (tmp_path / "o").exists()
