@@ -296,11 +296,15 @@ def _read_whole(sample: Sample, path: Path) -> bool:
 
 def _check_sizes(sample: Sample, path: Path, depth: Path | None, ctx: RunContext, content: bytes | None) -> None:
     """The header limits of the input (a cloud's header read from ``content``, its bytes, when read already)."""
-    from .io.pointcloud import cloud_format
+    from .io.pointcloud import bin_point_bytes, cloud_format
 
     limits = ctx.limits
     if sample.modality in ("lidar", "radar"):
-        check_size(path, max_points=limits.max_points, cloud_fmt=cloud_format(path, sample.modality), data=content)
+        inputs = ctx.recipe.spec.inputs
+        fmt = cloud_format(path, sample.modality)
+        row = bin_point_bytes(fmt, inputs.radar_bin_fields if sample.modality == "radar" else inputs.bin_fields,
+                              content)
+        check_size(path, max_points=limits.max_points, cloud_fmt=fmt, data=content, point_bytes=row)
     else:
         for p in (path, depth):
             if p is not None:

@@ -150,12 +150,14 @@ def _npy(path: Path) -> tuple[int, int] | None:
     return (n, 1)
 
 
-def cloud_points(path: str | os.PathLike, fmt: str, data: bytes | None = None) -> int | None:
+def cloud_points(path: str | os.PathLike, fmt: str, data: bytes | None = None, point_bytes: int | None = None
+                 ) -> int | None:
     """Points a cloud declares: PCD ``POINTS`` (or WIDTH×HEIGHT), PLY ``element vertex``, ``.bin`` size / point
-    size; None when the header is too damaged to tell (the reader reports it). ``data``: the file's bytes when the
-    caller has read them (the runner: no second open of a small file), else its header is read here."""
+    size (``point_bytes``, the layout's row: :func:`.pointcloud.bin_point_bytes`; else the format's default row);
+    None when the header is too damaged to tell (the reader reports it). ``data``: the file's bytes when the caller
+    has read them (the runner: no second open of a small file), else its header is read here."""
     if fmt in BIN_POINT_BYTES:
-        return (len(data) if data is not None else Path(path).stat().st_size) // BIN_POINT_BYTES[fmt]
+        return (len(data) if data is not None else Path(path).stat().st_size) // (point_bytes or BIN_POINT_BYTES[fmt])
     head = _head(Path(path)) if data is None else data
     limit = min(len(head), HEADER_BYTES)
     end = head.find(b"DATA" if fmt == "pcd" else b"end_header", 0, limit)
@@ -176,9 +178,9 @@ def cloud_points(path: str | os.PathLike, fmt: str, data: bytes | None = None) -
 
 
 def check_size(path: str | os.PathLike, *, max_pixels: int | None = None, max_points: int | None = None,
-               cloud_fmt: str | None = None, data: bytes | None = None) -> None:
+               cloud_fmt: str | None = None, data: bytes | None = None, point_bytes: int | None = None) -> None:
     """Raise :class:`InputError` when the header declares more pixels or points than allowed (a cloud's header
-    taken from ``data``, its bytes, when given)."""
+    taken from ``data``, its bytes, when given; a ``.bin``'s row of ``point_bytes``: :func:`cloud_points`)."""
     try:
         if cloud_fmt is None and max_pixels is not None:
             size = image_pixels(path)
@@ -188,7 +190,7 @@ def check_size(path: str | os.PathLike, *, max_pixels: int | None = None, max_po
                                  f"{max_pixels / 1e6:g} MP (--max-pixels; a decompression bomb or an unusually "
                                  "large frame: raise the limit to process it)", file=str(path))
         elif cloud_fmt is not None and max_points is not None:
-            n = cloud_points(path, cloud_fmt, data)
+            n = cloud_points(path, cloud_fmt, data, point_bytes)
             if n is not None and n > max_points:
                 raise InputError(f"declares {n:,} points, above the limit of {max_points:,} (--max-points; raise "
                                  "the limit to process it)", file=str(path))

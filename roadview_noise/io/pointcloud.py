@@ -741,6 +741,20 @@ def _read_txt(data: bytes, field_map: Mapping[str, str] | None, path):
 # --- fixed-layout .bin ---------------------------------------------------------------------------------------------
 
 
+def bin_point_bytes(fmt: str, bin_fields: Sequence[str] | None, data: bytes | None) -> int | None:
+    """Bytes a point of a ``.bin`` of format ``fmt`` (:func:`cloud_format`) takes as :func:`read_pointcloud` reads
+    it: 4 per float32 column of the recipe's ``bin_fields`` (``radar_bin_fields`` for radar), TJ4DRadSet's 8
+    columns for a radar ``.bin`` whose ``data`` (its bytes, when read) are that layout, else the format's columns;
+    None for a format that is no ``.bin``."""
+    if fmt not in BIN_FIELDS:
+        return None
+    if bin_fields is not None:
+        return 4 * len(bin_fields)
+    if fmt == "vod_bin" and data is not None and is_tj4d_bin(data):
+        return 4 * len(BIN_FIELDS["tj4d_bin"])
+    return 4 * len(BIN_FIELDS[fmt])
+
+
 def _bin_names(fmt: str, bin_fields: Sequence[str] | None, path) -> tuple[str, ...]:
     """The columns of a ``.bin``: the format's fixed ones, or the recipe's ``bin_fields`` (x, y, z first)."""
     if bin_fields is None or fmt in ("vod_bin", "tj4d_bin"):

@@ -167,6 +167,31 @@ def test_cli_augments_a_dual_radar_tree_with_radar_bin_fields_and_a_tj4d_tree_wi
         assert [e.get("status", "ok") for e in entries if "input" in e] == ["ok"], entries
 
 
+@pytest.mark.parametrize("layout,n,row_bytes", [("tj4d", 224, 32), ("dual", 224, 20), ("vod", 224, 28)])
+def test_max_points_counts_the_points_of_each_radar_bin_layout(tmp_path, layout, n, row_bytes):
+    """``--max-points`` counted every radar ``.bin`` at View-of-Delft's 28 bytes a point: a TJ4DRadSet frame of 224
+    points read as 256 (refused at 224), a Dual-Radar one (20 B) as 160 (passed at 159). Each layout's own row."""
+    rng = np.random.default_rng(8)
+    v_r = rng.normal(0, 3, n)                                     # VoD: a standing sensor, compensated = measured
+    rows = {"tj4d": tj4d_rows(n), "vod": np.column_stack([rng.uniform(3, 60, (n, 3)), rng.normal(0, 5, n), v_r, v_r,
+                                                          np.zeros(n)]),
+            "dual": np.column_stack([rng.uniform(3, 60, (n, 3)), rng.normal(0, 5, n), rng.normal(0, 3, n)])}[layout]
+    data = rows.astype("<f4").tobytes()
+    assert len(data) == n * row_bytes
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "000000.bin").write_bytes(data)
+    fields = ", radar_bin_fields: [x, y, z, rcs, v_r]" if layout == "dual" else ""
+    (tmp_path / "r.yaml").write_text("schema: rvnoise.recipe/1\nchain: [{model: fog.radar}]\nseed: 1\n"
+                                     f"inputs: {{radar: '*.bin'{fields}}}\n")
+    for limit, failed in ((n, 0), (n - 1, 1)):
+        out = tmp_path / f"out{limit}"
+        CliRunner().invoke(app, ["augment", "--recipe", str(tmp_path / "r.yaml"), str(tmp_path / "in"), str(out),
+                                 "--max-points", str(limit), "--yes"])
+        entries = [json.loads(line) for line in (out / "manifest.jsonl").read_text().splitlines()]
+        errors = [e.get("error", "") for e in entries if e.get("status") == "failed"]
+        assert len(errors) == failed and all(f"declares {n:,} points" in e for e in errors), errors
+
+
 # --- ars548_ros PointCloudDetection (x y z v r RCS azimuth elevation; PointCloud2Modifier packs them unpadded) ------
 
 ARS548_FIELDS = [("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("v", 12, 7), ("r", 16, 7), ("RCS", 20, 1),
