@@ -49,9 +49,10 @@ def moved_segments(segments: list[dict], ids: np.ndarray) -> tuple[list[dict], l
     if len(np.unique(seg_ids)) != len(seg_ids):
         raise ValueError("segments_info lists a segment id twice")
     order = np.argsort(seg_ids)
-    sorted_ids = seg_ids[order]
+    sorted_ids = seg_ids[order].astype(ids.dtype) if (seg_ids >= 0).all() and (seg_ids < 1 << 24).all() else \
+        seg_ids[order]                     # (a PNG's ids: 24 bits; the lookup in the image's own dtype)
     h, w = ids.shape
-    flat = ids.ravel().astype(np.int64)
+    flat = ids.ravel() if sorted_ids.dtype == ids.dtype else ids.ravel().astype(np.int64)
     k = np.minimum(np.searchsorted(sorted_ids, flat), max(len(sorted_ids) - 1, 0))
     hit = (sorted_ids[k] == flat) if len(sorted_ids) else np.zeros(flat.shape, bool)
     k, pixel = k[hit], np.flatnonzero(hit)
