@@ -13,7 +13,7 @@
   without an EXIF orientation tag is read as displayed and written upright.
 - Neither format records its encoder's quality and the libraries estimate none: the output is written at
   :data:`QUALITY` (libheif's default is 50, Pillow's AVIF 75), ``inputs.heif_quality`` in the manifest; the ICC
-  profile and the EXIF block are copied as read.
+  profile and the EXIF block are copied as read, XMP is not.
 """
 
 from __future__ import annotations
