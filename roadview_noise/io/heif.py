@@ -24,7 +24,6 @@ from functools import lru_cache
 import numpy as np
 
 from ..errors import InputError
-from .image_metadata import exif_orientation_at
 
 FORMATS = {".heic": "heif", ".heif": "heif", ".avif": "avif"}
 QUALITY = 90                      # the output's encoder quality (0–100): the input's is not recorded
@@ -70,6 +69,7 @@ def decode(data: bytes, fmt: str, source) -> tuple[np.ndarray, bytes | None, byt
     """``(codes, ICC profile, EXIF)`` of a HEIF or AVIF file's primary image: uint8 codes (H, W) grey or (H, W, C)
     RGB(A) as stored, with the EXIF orientation of the file's transforms (module docstring)."""
     from ..orientation import stored
+    from .image_metadata import exif_orientation_at
 
     image_module = _image_module(fmt)
     try:
@@ -108,5 +108,7 @@ def encode(codes: np.ndarray, fmt: str, icc: bytes | None, exif: bytes | None, n
 
 def with_orientation(exif: bytes, value: int) -> bytes:
     """An EXIF block with its orientation (which it has) set to ``value``, every other byte as it was."""
+    from .image_metadata import exif_orientation_at
+
     at, order = exif_orientation_at(exif)
     return exif[:at] + value.to_bytes(2, order) + exif[at + 2:]
