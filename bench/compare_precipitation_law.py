@@ -5,10 +5,13 @@ per-frame counts of weather returns (all, on the points), kept targets and drawn
 standard errors of the difference), and over all frames the weather returns' ranges and signals (units of K) and the
 kept targets' signal ratios (stored / recorded): means, difference in standard errors, two-sample Kolmogorov–Smirnov
 statistic and p-value, 10/50/90 % quantiles. ``--rate`` compares the first tree at two rates (mm/h) instead (what a
-change of the rate does, the yardstick of a law change); without it, the model's default rate.
+change of the rate does, the yardstick of a law change); without it, the model's default rate. ``--exhaustive``: the
+first run draws every particle above the base level instead (``particle_returns(…, exhaustive=True)``, the law the
+sampler approximates).
 
     .venv/bin/python bench/compare_precipitation_law.py snow --tree /tmp/base23 --tree . [--frames 200]
     .venv/bin/python bench/compare_precipitation_law.py snow --tree /tmp/base23 --rate 2.5 --rate 2.525
+    .venv/bin/python bench/compare_precipitation_law.py snow --exhaustive --tree . --tree .
 """
 
 from __future__ import annotations
@@ -26,9 +29,9 @@ SCAN = Path(__file__).resolve().parents[2] / "shared" / "data" / "os1-128" / "sc
 FIRST_SEED = 1000
 
 
-def frames(model_id: str, out: str, count: int, rate: float | None) -> None:
-    """In a tree's process: ``count`` frames of rain or snow (``model_id``) at ``rate`` mm/h (None: the default), saved
-    to the npz ``out``."""
+def frames(model_id: str, out: str, count: int, rate: float | None, exhaustive: bool) -> None:
+    """In a tree's process: ``count`` frames of rain or snow (``model_id``) at ``rate`` mm/h (None: the default), every
+    particle drawn when ``exhaustive``, saved to the npz ``out``."""
     from roadview_noise.models.lidar.rain import RainLidar
     from roadview_noise.models.lidar.snow import SnowLidar
     from roadview_noise.physics.lidar_echo import TARGET, WEATHER
@@ -46,7 +49,7 @@ def frames(model_id: str, out: str, count: int, rate: float | None) -> None:
     counts, w_range, w_signal, t_ratio = [], [], [], []
     for seed in range(FIRST_SEED, FIRST_SEED + count):
         ret, drawn = particle_returns(np.random.default_rng(seed), rays, medium, model.return_mode,
-                                      model.draw_fraction_of_threshold)
+                                      model.draw_fraction_of_threshold, exhaustive)
         w, t = ret.kind == WEATHER, ret.kind == TARGET
         counts.append((w.sum(), (w & rays.has_target).sum(), t.sum(), drawn))
         w_range.append(ret.range_m[w])
@@ -81,13 +84,15 @@ def compare(a, b) -> None:
 
 def main() -> int:
     if sys.argv[1:2] == ["--frames-of"]:
-        frames(sys.argv[2], sys.argv[3], int(sys.argv[4]), None if sys.argv[5] == "default" else float(sys.argv[5]))
+        frames(sys.argv[2], sys.argv[3], int(sys.argv[4]), None if sys.argv[5] == "default" else float(sys.argv[5]),
+               sys.argv[6] == "exhaustive")
         return 0
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("model", choices=("rain", "snow"))
     parser.add_argument("--tree", action="append", type=Path, required=True)
     parser.add_argument("--rate", action="append", type=float)
     parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--exhaustive", action="store_true")
     a = parser.parse_args()
     if not SCAN.is_file():
         print(f"the real scan {SCAN} is absent")
@@ -99,10 +104,12 @@ def main() -> int:
         saved = []
         for i, (tree, rate) in enumerate(runs):
             out = os.path.join(tmp, f"{i}.npz")
-            subprocess.run([sys.executable, __file__, "--frames-of", a.model, out, str(a.frames), str(rate)], check=True,
+            subprocess.run([sys.executable, __file__, "--frames-of", a.model, out, str(a.frames), str(rate),
+                            "exhaustive" if a.exhaustive and i == 0 else "sampler"], check=True,
                            env={**os.environ, "PYTHONPATH": str(tree.resolve()), "OMP_NUM_THREADS": "1"})
             saved.append(np.load(out))
-        print(f"{a.model} on the real scan, {a.frames} frames (seeds {FIRST_SEED}…), tree and rate (mm/h): {runs[0]} → "
+        print(f"{a.model} on the real scan, {a.frames} frames (seeds {FIRST_SEED}…), tree and rate (mm/h): {runs[0]}"
+              f"{' (every particle drawn)' if a.exhaustive else ''} → "
               f"{runs[1]}")
         compare(*saved)
     return 0
