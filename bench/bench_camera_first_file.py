@@ -10,8 +10,8 @@ this machine's cost of a fresh-page fault (:func:`fault_us`: a first touch of an
 2-core VM): the share of the first file's extra that is its heap growing to the frame's high-water mark.
 Sides alternate (this checkout's code, then ``--against``'s, its package first on ``PYTHONPATH`` and as the working
 directory); figures are medians over workers and rounds, with their range. The physics tables are read from the
-table cache as a repeated run finds them (each side's first worker of the first round fills it). Output sha256
-must be the same on both sides (checked).
+table cache as a repeated run finds them (each side's first worker of the first round fills it). The outputs'
+decoded pixels must be the same on both sides (checked; their PNG bytes may differ: the encoder's settings).
 
     .venv/bin/python bench/bench_camera_first_file.py --against /tmp/main [--rounds 3] [--workers 3]
                                                      [--recipes weather-snow,cnf12] [--files 3]
@@ -65,7 +65,7 @@ def child(recipe_name: str, tree: Path, out_root: Path, workers: int, files: int
                              "faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults,
                              "split": {k: 1e3 * entry["profile"].get(k, 0.0) for k in PHASES},
                              "models": {k: 1e3 * v for k, v in entry["profile"]["models"].items()},
-                             "sha256": entry.get("output_sha256")})
+                             "sha256": _pixels_sha256(out, entry)})
             os.write(write_fd, json.dumps(rows).encode())
             os._exit(0)
         os.close(write_fd)
@@ -73,6 +73,19 @@ def child(recipe_name: str, tree: Path, out_root: Path, workers: int, files: int
             result.append(json.loads(fh.read()))
         os.waitpid(pid, 0)
     return result
+
+
+def _pixels_sha256(out: Path, entry: dict) -> str | None:
+    """sha256 of the decoded pixels of an entry's output image (final, or still its staged temporary), None if it
+    has none."""
+    import hashlib
+
+    import cv2
+
+    paths = [out / p for tmp, final in entry.get("staged", ()) if final == entry.get("output") for p in (final, tmp)]
+    found = [p for p in paths if p.exists()]
+    pixels = cv2.imread(str(found[0]), cv2.IMREAD_UNCHANGED) if found else None
+    return None if pixels is None else hashlib.sha256(pixels.tobytes()).hexdigest()
 
 
 def fault_us(rounds: int = 3, size: int = 32 << 20) -> float:

@@ -1,12 +1,14 @@
 """PNG codec for the kinds a camera pipeline reads and writes most: 8/16-bit grey, RGB and RGBA, not interlaced.
 
-Same pixels as OpenCV (libpng), half its time: the compressed stream is inflated by ISA-L (``isal``, ≈ 3× zlib) and
-deflated by zlib-ng (``zlib-ng``, ≈ 1.6× zlib); the PNG filters are the W3C PNG spec's (§9: None, Sub, Up, Average,
-Paeth), undone by one compiled pass. Written files use OpenCV's deflate settings — level 1 with the RLE strategy,
-8192-byte IDAT chunks — with 32 768 instead of 16 384 symbols per deflate block (memory level 9: ≈ 10 % less time,
-0.3 % smaller) and, instead of the Sub filter on every row, Sub or Up for the whole image, whichever leaves fewer
-non-zero residuals on a sample of rows: on the bench frames 0–5 % smaller than OpenCV's files for photos and rain or
-snow, 20–45 % for JPEG-compressed frames, and 4–5 ms less per noisy 1936×1464 frame (issue 19 round 10).
+Same pixels as OpenCV (libpng), a fraction of its time: the compressed stream is inflated and deflated by ISA-L
+(``isal``); the PNG filters are the W3C PNG spec's (§9: None, Sub, Up, Average, Paeth), undone by one compiled pass.
+Written files use OpenCV's IDAT chunks (8192 bytes) and, instead of its Sub filter on every row, Sub or Up for the
+whole image, whichever leaves fewer non-zero residuals on a sample of rows (issue 19 round 10). Deflate is ISA-L's
+level 1 with a 4-byte window (``_HIST_BITS``): matches reach back at most 4 bytes, close to the RLE strategy of
+OpenCV's level 1 (zlib: distance 1) — long-distance matches in noise cost more bits than they save — at ≈ 3× the
+speed of zlib-ng's RLE (a noisy 1936×1464 snow frame 37 → 12 ms, issue 19 round 23); on the bench frames the files
+are within −8 … +9 % of that RLE encoder's (snow +0.02 %, rain −0.3 %, fog −1.2 %, JPEG-compressed −0.7 … −7.5 %,
+the smallest +4 … +9 %).
 
 :func:`decode_png` returns None for a kind it does not handle (palette, grey + alpha, bit depths 1–4, Adam7
 interlacing, a ``tRNS`` transparency chunk, an animated PNG, an unknown critical chunk): the caller decodes those
@@ -20,7 +22,7 @@ import sys
 
 import cv2
 import numpy as np
-from isal import isal_zlib
+from isal import igzip_lib, isal_zlib
 from zlib_ng import zlib_ng
 
 from ..physics.compiled import jit
@@ -34,7 +36,8 @@ _CRITICAL = (b"IHDR", b"PLTE", b"IDAT", b"IEND")  # the critical chunks a decode
 _IDAT_BYTES = 8192                              # libpng's (and so OpenCV's) IDAT chunk size
 _EXTRA_BYTES = 1 << 20                          # inflated at a time past the image's bytes (then discarded)
 _SUB, _UP = 1, 2                                # PNG filter types
-_MEM_LEVEL = 9                                  # deflate's memory level: 32 768 symbols per block (zlib's 8: 16 384)
+_LEVEL, _HIST_BITS = 1, 2                       # ISA-L's deflate level and window (2² bytes back)
+_MEM_LEVEL = igzip_lib.MEM_LEVEL_MEDIUM         # its buffer (the Huffman blocks): the sizes of zlib-ng's RLE, level 1
 _SAMPLE_ROWS = 16                               # every 16th row decides an image's filter
 
 
@@ -128,8 +131,8 @@ def encode_png(codes: np.ndarray) -> bytes:
         filtered[:, 0] = _SUB if width > 1 else 0  # libpng drops Sub for a one-pixel row: the same bytes, type None
         body[:, :1] = pixels[:, :1]
         np.subtract(pixels[:, 1:], pixels[:, :-1], out=body[:, 1:])
-    deflate = zlib_ng.compressobj(1, zlib_ng.DEFLATED, 15, _MEM_LEVEL, zlib_ng.Z_RLE)
-    stream = _with_window(deflate.compress(filtered) + deflate.flush(), filtered.size)
+    stream = igzip_lib.compress(filtered, level=_LEVEL, flag=igzip_lib.COMP_ZLIB, mem_level=_MEM_LEVEL,
+                                hist_bits=_HIST_BITS)      # its zlib header states a 256-byte window, zlib's least
     header = width.to_bytes(4, "big") + height.to_bytes(4, "big") + \
         bytes([8 * codes.dtype.itemsize, _COLOUR_TYPE[channels], 0, 0, 0])
     view = memoryview(stream)
@@ -152,18 +155,6 @@ def _filter_type(pixels: np.ndarray) -> int:
     sub = np.subtract(rows, pixels[1::_SAMPLE_ROWS, :-1])
     up = np.subtract(rows, above)                   # the same bytes as ``sub``, so the counts compare like with like
     return _UP if np.count_nonzero(up) < np.count_nonzero(sub) else _SUB
-
-
-def _with_window(stream: bytes, size: int) -> bytes:
-    """The zlib stream with the smallest window size that holds ``size`` bytes in its header, as libpng states it
-    for images of ≤ 16 KiB (RFC 1950 §2.2: CINFO and the FCHECK bits); the RLE strategy matches at distance 1 only."""
-    if size > 16384:
-        return stream
-    cinfo = max(0, (size - 1).bit_length() - 8)
-    cmf = (cinfo << 4) | (stream[0] & 0x0F)
-    flg = stream[1] & 0xE0
-    flg += 31 - ((cmf << 8) + flg) % 31
-    return bytes([cmf, flg]) + stream[2:]
 
 
 def png_chunk(kind: bytes, body: bytes) -> bytes:
