@@ -143,7 +143,8 @@ def write_run_json(path: str | Path, record: dict) -> None:
 # distributions that install each library whose version is recorded (read from their metadata, not imported:
 # importing open3d alone costs a second)
 _VERSIONED = {"scipy": ("scipy",), "open3d": ("open3d", "open3d-cpu"), "rawpy": ("rawpy",),
-              "OpenEXR": ("OpenEXR", "openexr"), "tifffile": ("tifffile",), "miepython": ("miepython",)}
+              "OpenEXR": ("OpenEXR", "openexr"), "tifffile": ("tifffile",), "miepython": ("miepython",),
+              "isal": ("isal",), "pillow_heif": ("pillow-heif", "pillow_heif")}
 
 
 def library_versions() -> dict[str, str]:
