@@ -27,7 +27,7 @@ import yaml
 from ..errors import InputError
 from ..physics.firing_grid import MERGED_SENSORS
 from ..physics.lidar_intensity import OUSTER_WHITE_REFLECTIVITY, reflectivity_variant
-from ..types import IntensityUnit, LidarProfile
+from ..types import IntensityUnit, LidarProfile, SensorMount
 from . import check_keys, load_profile
 from .ouster_metadata import read_ouster_metadata
 
@@ -219,6 +219,35 @@ def av2_vlp32c() -> LidarProfile:
         hdl_32e(), name="av2-vlp32c", beam_elevation_deg=elevation, beam_azimuth_offset_deg=(0.0,) * 64,
         columns=1808, wavelength_m=903e-9, max_range_m=200.0, min_range_m=0.0, sensor_constant=200.0 ** 2 / 0.4,
         sensor_origin_m=AV2_SENSOR_ORIGIN_M, storage_order=MERGED_SENSORS)
+
+
+VLP32C_FIRING_CYCLE_S = 55.296e-6      # VLP-32C manual: 16 firings of 2 lasers, 2.304 µs apart, and recharge
+AV2_SENSORS = ("up_lidar", "down_lidar")    # Argoverse 2's sensor names (calibration), laser_number 0–31, 32–63
+
+
+def av2_sensor(name: str) -> LidarProfile:
+    """One of Argoverse 2's two VLP-32C in its own frame (``up_lidar``, ``down_lidar``: :func:`av2_mounts`): the
+    32 beams of :func:`av2_vlp32c` in the order of ``laser_number`` (less 32 for the lower sensor) with the manual's
+    azimuth offsets (``data/av2_vlp32c.yaml``, matched on real sweeps), origin at the sensor, the firing grid from
+    each return's firing time (``offset_ns``; ``firing_cycle_s`` 55.296 µs, the manual's timing:
+    :mod:`physics.firing_time`)."""
+    t = _table("av2_vlp32c.yaml")
+    return dataclasses.replace(
+        av2_vlp32c(), name=f"av2-vlp32c:{name}", beam_elevation_deg=tuple(float(e) for e in t["beam_elevation_deg"]),
+        beam_azimuth_offset_deg=tuple(float(a) for a in t["beam_azimuth_offset_deg"]), sensor_origin_m=(0.0, 0.0, 0.0),
+        storage_order="", firing_cycle_s=VLP32C_FIRING_CYCLE_S)
+
+
+def av2_mounts(poses: dict, source: str) -> tuple[SensorMount, ...]:
+    """Argoverse 2's two sensors from the log's poses ``poses`` (sensor name → (3×3 rotation, translation m), sensor →
+    vehicle frame: ``calibration/egovehicle_SE3_sensor.feather``, :func:`io.feather.read_sensor_poses`), read from
+    ``source``: ``up_lidar`` holds laser_number 0–31, ``down_lidar`` 32–63 (av2 devkit ``Sweep``)."""
+    mounts = []
+    for k, name in enumerate(AV2_SENSORS):
+        rotation, translation = poses[name]
+        mounts.append(SensorMount(name, 32 * k, tuple(tuple(float(v) for v in row) for row in rotation),
+                                  tuple(float(v) for v in translation), av2_sensor(name), source))
+    return tuple(mounts)
 
 
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
