@@ -148,7 +148,7 @@ def _sweep_order(cloud: PointCloud, source: np.ndarray, time: np.ndarray | None)
         else:
             after = np.full(len(new), len(old))
         at[new] = after + np.arange(len(new))
-        at[old] = rank + np.searchsorted(after, rank, side="right")
+        at[old] = rank + np.cumsum(np.bincount(after, minlength=len(old) + 1))[rank]     # new rows before each
     else:
         at[old] = rank
     order = np.empty(len(source), np.int64)

@@ -15,7 +15,8 @@ Formats (by suffix, or ``fmt``):
 - ``txt`` (``.txt`` with ``sensor="radar"``): a text table, a header line naming the columns and one point per line
   (Astyx HiRes2019 radar, io/radar_formats.py), float64; written back row for row (io/text_table.py).
 - ``feather`` (``.feather``): an Arrow table, a row per point (Argoverse 2's LiDAR sweeps, io/feather.py); positions
-  about the profile's ``sensor_origin_m`` (Argoverse 2 stores the vehicle frame), put back when written.
+  about the profile's ``sensor_origin_m`` (Argoverse 2 stores the vehicle frame), put back when written; each
+  sensor's pose from the log's calibration when it is beside the sweep (:func:`with_sensor_poses`).
 
 File fields get canonical names (types.CloudLayout) through :data:`ALIASES` (first alias present wins; a recipe's
 ``field_map`` {file name: canonical} overrides); every other field (a user's ``label`` too) keeps its file name and

@@ -8,7 +8,10 @@ that ``beams × columns`` grid that hold no point:
 - ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
   the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
 - a sweep merging several sensors in one frame (Argoverse 2's two VLP-32C: profile ``storage_order: merged``) has
-  no single grid: weather on its returns only;
+  no single grid: each sensor's rows go through the chain on their own in its frame (:mod:`sensor_rig`, with the
+  log's calibration), else weather on its returns only;
+- a list that stores each return's firing time (Argoverse 2's ``offset_ns``) under a profile that states its firing
+  cycle (``firing_cycle_s``) has its columns from those times (:mod:`firing_time`), not from its azimuth gaps;
 - a ring-less list stored laser by laser (KITTI: profile ``storage_order: laser``) has its rings and firing columns
   recovered from that order on the chain's input (:mod:`laser_order`; its encoder's 0.09° azimuth steps are no
   whole number of firing steps) and carried as attributes; the rest below holds for it with no per-beam shift;
@@ -647,7 +650,8 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
 class ListPoints:
     """A point list read once for its firing grid (:func:`list_points`): each point's range ``range_m`` (0: no
     return) and its ``ring``, firing azimuth ``firing_rad`` and the points per ring ``counts`` — None when a list
-    stored laser by laser takes them from its attributes, or with the ``reason`` it has no firing grid."""
+    stored laser by laser takes them from its attributes, or one with firing times from those
+    (:mod:`firing_time`), or with the ``reason`` it has no firing grid."""
 
     range_m: np.ndarray
     ring: np.ndarray | None = None

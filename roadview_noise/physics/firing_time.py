@@ -30,6 +30,7 @@ from .lidar_geometry import ring_index
 
 TIME_FIELD = "offset_ns"        # a return's firing time after the sweep's stamp, ns (Argoverse 2)
 MIN_RETURNS = 200               # fewer returns: no reliable spin rate
+RATE_STRIDE = 16                # every 16th return (in time order) fits the spin rate (a real sweep: 3 000 of them)
 MAX_TIME_GAP_S = 0.025          # a quarter turn at 10 Hz: a longer span without returns leaves the fit's turns unknown
 
 
@@ -51,12 +52,12 @@ def firing_time_columns(cloud, profile: LidarProfile, range_m: np.ndarray):
     valid = range_m > 0
     if np.count_nonzero(valid) < MIN_RETURNS:
         return f"only {np.count_nonzero(valid)} returns: no spin rate from their firing times"
-    t_s = np.asarray(cloud.fields[TIME_FIELD], dtype=np.float64) * 1e-9
-    cycle = _cycles(t_s, profile.firing_cycle_s)
+    t_ns = np.asarray(cloud.fields[TIME_FIELD]).astype(np.int64)
+    cycle = _cycles(t_ns, int(round(profile.firing_cycle_s * 1e9)))
     p = np.asarray(cloud.positions_m, dtype=np.float64)
     offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
     azimuth = np.arctan2(p[:, 1], p[:, 0]) + offsets[ring]
-    rate = _spin_rate(t_s[valid], azimuth[valid])
+    rate = _spin_rate(t_ns[valid] * 1e-9, azimuth[valid])
     if isinstance(rate, str):
         return rate
     columns = int(round(2 * math.pi / (abs(rate) * profile.firing_cycle_s)))
@@ -71,22 +72,25 @@ def firing_time_columns(cloud, profile: LidarProfile, range_m: np.ndarray):
     return FiringColumns(ring, firing, columns, shift, valid, timed=True)
 
 
-def _cycles(t_s: np.ndarray, cycle_s: float) -> np.ndarray:
-    """Each time's firing cycle ``floor((t − t₀) / T)``, ``t₀`` the middle of the widest gap of the times modulo
-    ``T`` (no laser fires there: the recharge)."""
-    phase = np.unique(np.mod(t_s, cycle_s))
-    gaps = np.diff(np.concatenate([phase, phase[:1] + cycle_s]))
+def _cycles(t_ns: np.ndarray, cycle_ns: int) -> np.ndarray:
+    """Each time's firing cycle ``floor((t − t₀) / T)`` (integer ns), ``t₀`` the middle of the widest gap of the
+    times modulo ``T`` (no laser fires there: the recharge): one pass counts the times per ns of the cycle."""
+    used = np.bincount(np.mod(t_ns, cycle_ns), minlength=cycle_ns) > 0
+    at = np.flatnonzero(used)
+    gaps = np.diff(np.concatenate([at, at[:1] + cycle_ns]))
     widest = int(np.argmax(gaps))
-    t0 = phase[widest] + 0.5 * gaps[widest]
-    return np.floor((t_s - t0) / cycle_s).astype(np.int64)
+    t0 = int(at[widest]) + int(gaps[widest]) // 2
+    return (t_ns - t0) // cycle_ns
 
 
 def _spin_rate(t_s: np.ndarray, azimuth: np.ndarray) -> float | str:
     """The head's angular rate (rad/s, signed) from the returns' times and firing azimuths: a least-squares line
-    through the azimuths unwrapped in time order; the reason there is none when a span of a quarter turn (at 10 Hz)
-    has no return."""
-    order = np.argsort(t_s, kind="stable")
-    t, a = t_s[order], np.unwrap(azimuth[order])
+    through every ``RATE_STRIDE``-th return's azimuth unwrapped in time order (their steps wrapped to ±π, summed);
+    the reason there is none when a span of a quarter turn (at 10 Hz) has no return."""
+    order = np.argsort(t_s, kind="stable")[::RATE_STRIDE]
+    t = t_s[order]
+    step = np.diff(azimuth[order])
+    a = np.concatenate([[0.0], np.cumsum(np.mod(step + math.pi, 2 * math.pi) - math.pi)])
     gap = np.diff(t).max(initial=0.0)
     if gap > MAX_TIME_GAP_S:
         return f"no return for {1e3 * gap:.1f} ms of the sweep: the spin rate is not measured from the firing times"

@@ -198,14 +198,16 @@ def av2_vlp32c() -> LidarProfile:
     64 beams, ring = ``laser_number`` (0–31 the upper sensor, 32–63 the lower one, mounted upside down and tilted
     11.6°, each in the same order). Beam table ``data/av2_vlp32c.yaml``: the VLP-32C manual's vertical angles
     (−25° … +15°) in the order of Argoverse 2's ``laser_number``, matched on real sweeps (the median elevation of
-    each laser_number in its own sensor's frame within 0.03°); no azimuth offsets (no firing grid is measured).
+    each laser_number in its own sensor's frame within 0.03°); no azimuth offsets here (each sensor's profile has
+    them).
 
     The sweep stores the vehicle frame (origin on the ground under the rear axle); the sensors' origins lie at
     (1.350, 0.000, 1.640) m and (1.347–1.357, −0.003–0.005, 1.522–1.526) m in it (``egovehicle_SE3_sensor`` of the
     devkit's four test logs), so ``sensor_origin_m`` = (1.35, 0.0, 1.58): both within 6 cm, the chain's ranges and
     rays about it, the positions written back in the vehicle frame (:mod:`io.feather`). ``storage_order: merged``:
-    one sweep of two sensors, the lower one flipped, has no single firing grid — weather acts on the returns only
-    (the empty rays, which would need each sensor's grid in its own frame, get none; the manifest's
+    one sweep of two sensors, the lower one flipped, has no single firing grid; with the log's
+    ``calibration/egovehicle_SE3_sensor.feather`` beside the sweep each sensor runs the chain in its own frame with
+    its own profile (:func:`av2_sensor`, :mod:`sensor_rig`), else weather acts on the returns only (the manifest's
     ``empty_rays_source`` says so).
     Radiometry, as the Velodyne family's (HDL-32E, VLP-16 manuals): 8-bit calibrated reflectivity, diffuse white
     W = 100 (ASSUMPTION for the VLP-32C); 903 nm; 200 m (datasheet); K = 200² / 0.4 = 100 000 m², ASSUMPTION (the
