@@ -31,10 +31,13 @@ CYCLE_NS = 55296
 COLUMNS = 360
 SPIN = {"up_lidar": -1, "down_lidar": 1}           # the head's turn in the sensor's frame (real sweeps: −10, +10 Hz)
 SLOT_NS = 2304 * (np.arange(32) // 2)              # two lasers a firing, 16 firings a cycle
+JITTER_DEG = 0.6                                   # standard deviation: 0.4 column median, as on the real sweeps
 
 
 def sensor_rays(name: str, seed: int):
-    """One sensor's fired rays: laser, firing time (ns), direction in its frame (unit), range (0: no return)."""
+    """One sensor's fired rays: laser, firing time (ns), direction in its frame (unit), range (0: no return), and the
+    direction its return is stored at (azimuth jittered by ``JITTER_DEG``, as ego-motion compensation leaves real
+    sweeps: 0.09° median off a uniform turn)."""
     rng = np.random.default_rng(seed)
     profile = av2_sensor(name)
     elevation = np.deg2rad(profile.beam_elevation_deg)
@@ -44,12 +47,15 @@ def sensor_rays(name: str, seed: int):
     t_ns = 3_000_000 * (name == "down_lidar") + cycle * CYCLE_NS + SLOT_NS[laser] + 1000
     head = 0.7 + SPIN[name] * 2 * np.pi * t_ns * 1e-9 / (COLUMNS * CYCLE_NS * 1e-9)
     azimuth = head - offset[laser]
-    d = np.stack([np.cos(elevation[laser]) * np.cos(azimuth), np.cos(elevation[laser]) * np.sin(azimuth),
-                  np.sin(elevation[laser])], 1)
     range_m = rng.uniform(4, 60, len(laser))
     sky = (elevation[laser] > np.deg2rad(2)) & (np.cos(azimuth) > 0)         # nothing up there, half the turn
     range_m[sky | (rng.random(len(laser)) < 0.05)] = 0.0
-    return laser, t_ns, d, range_m
+    seen = azimuth + rng.normal(0.0, np.deg2rad(JITTER_DEG), len(laser))    # ego-motion compensated returns
+    return laser, t_ns, _unit(elevation[laser], azimuth), range_m, _unit(elevation[laser], seen)
+
+
+def _unit(elevation, azimuth):
+    return np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], 1)
 
 
 def av2_log(root, with_calibration: bool = True, seed: int = 0, stamp: str = "315966265259836000") -> dict:
@@ -59,9 +65,9 @@ def av2_log(root, with_calibration: bool = True, seed: int = 0, stamp: str = "31
     rows, rays = [], {}
     for k, name in enumerate(POSES):
         qw, qx, qy, qz, *t = POSES[name]
-        laser, t_ns, d, range_m = rays[name] = sensor_rays(name, seed + k)
+        laser, t_ns, _, range_m, seen = rays[name] = sensor_rays(name, seed + k)
         hit = range_m > 0
-        p = (d[hit] * range_m[hit, None]) @ quaternion_matrix(qw, qx, qy, qz).T + t
+        p = (seen[hit] * range_m[hit, None]) @ quaternion_matrix(qw, qx, qy, qz).T + t
         rows.append((p, laser[hit] + 32 * k, t_ns[hit]))
     p, laser, t_ns = (np.concatenate(c) for c in zip(*rows))
     order = np.argsort(t_ns, kind="stable")
@@ -117,10 +123,12 @@ def test_calibration_beside_the_log_gives_each_sensor_its_pose_and_profile(tmp_p
 
 def test_fog_returns_on_each_sensors_empty_rays(tmp_path):
     """Fog 30 m: each sensor's rays that saw nothing get weather returns (every one of them, as on the real sweeps),
-    on their laser's direction in their sensor's frame at their firing (within 0.1°, the column's width 1°) — the
+    on their laser's direction in their sensor's frame at their firing (within 0.2°: halffloat's steps at 1.3 m from
+    the sensor; 0.05° median; a column is 1° wide) — the
     added rows' laser_number and offset_ns are those of the cell's laser and firing (±1 cycle); every input row keeps
-    its place, the rows the fog left alone their bytes; the table its schema; the rows stay in time order.
-    Before: no weather return on an empty ray (two sensors in one frame: no firing grid)."""
+    its place, the rows the fog left alone their bytes; the table its schema; the rows stay in time order. The
+    returns' azimuths jitter by 0.6° (a column is 1°; real sweeps: 0.09° median, their column 0.2°). Before: no
+    weather return on an empty ray (two sensors in one frame: no firing grid)."""
     log = av2_log(tmp_path / "in" / "log")
     table, effect, entry = augment(tmp_path, FOG)
     cols = log["cols"]
@@ -136,7 +144,7 @@ def test_fog_returns_on_each_sensors_empty_rays(tmp_path):
             np.testing.assert_array_equal(got[k][old][same], cols[k][same])
     diagnostics = entry["steps"][0]["diagnostics"]
     for k, name in enumerate(("up_lidar", "down_lidar")):
-        laser, t_ns, d, range_m = log["rays"][name]
+        laser, t_ns, d, range_m, _ = log["rays"][name]
         empty = range_m == 0
         mine = added & (got["laser_number"] // 32 == k)
         per = diagnostics["sensors"][name]
@@ -151,7 +159,7 @@ def test_fog_returns_on_each_sensors_empty_rays(tmp_path):
         # each added return: the empty cell of its laser whose direction is nearest; one cell each
         best = np.array([cell[laser[cell] == b][np.argmax(d[cell[laser[cell] == b]] @ u)] for b, u in zip(lasers, q)])
         angle = np.degrees(np.arccos(np.clip((d[best] * q).sum(1), -1, 1)))
-        assert angle.max() < 0.1 and len(np.unique(best)) == len(best)
+        assert angle.max() < 0.2 and np.median(angle) < 0.05 and len(np.unique(best)) == len(best)
         assert np.abs(got["offset_ns"][mine].astype(np.int64) - t_ns[best]).max() <= CYCLE_NS
     assert diagnostics["added"] == added.sum()
 
