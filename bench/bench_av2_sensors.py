@@ -60,7 +60,8 @@ def count(tree: Path, path: str, chain: str, work: Path) -> int:
     from callgrind_lidar_stages import TARGET
 
     key = abs(hash((str(tree.resolve()), path, chain)))
-    env = {**os.environ, **TARGET, "PYTHONPATH": str(tree), "NUMBA_CACHE_DIR": str(work / f"numba-{key}")}
+    cache = work / f"numba-{abs(hash(str(tree.resolve())))}"          # compiled once per tree
+    env = {**os.environ, **TARGET, "PYTHONPATH": str(tree), "NUMBA_CACHE_DIR": str(cache)}
     args = [sys.executable, __file__, "--frame", chain, path]
     subprocess.run(args, env=env, check=True)
     out = work / f"out-{key}"

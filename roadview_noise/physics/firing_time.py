@@ -9,11 +9,11 @@ spin — half a column.
 
 - cycle ``k = floor((t − t₀) / T)``, ``t₀`` in the widest gap of the firing times modulo ``T`` (the recharge);
 - spin rate ω: the slope of the returns' firing azimuths ``atan2(y, x) + offset`` against time (unwrapped, a least
-  squares line): the sign says which way the head turns in the sensor's frame (Argoverse 2: clockwise for the upper
+  squares line through about 4 000 returns, evenly strided: every 12th of a real sweep's sensor): the sign says which way the head turns in the sensor's frame (Argoverse 2: clockwise for the upper
   sensor, counter-clockwise for the lower one, upside down), ``W = round(2π / (|ω| T))`` columns;
 - column ``c = (−sign(ω)·k) mod W`` (:mod:`firing_grid`'s clockwise convention); per beam the azimuth of its column
-  0 (the shift, in steps) is the range-weighted circular mean of ``atan2 + offset + c·step`` over its returns (a beam
-  without returns: the mean of the others; its lasers fire within 0.7 step of each other);
+  0 (the shift, in steps) is the range-weighted circular mean of ``atan2 + offset + c·step`` over its sampled returns
+  (a beam without them: the mean of the others; its lasers fire within 0.7 step of each other);
 - each return's firing azimuth is then put on its cell (``−(c + shift)·step``), so :func:`firing_grid.empty_rays`
   finds the empty cells and their directions as for a measured grid.
 """
@@ -30,7 +30,7 @@ from .lidar_geometry import ring_index
 
 TIME_FIELD = "offset_ns"        # a return's firing time after the sweep's stamp, ns (Argoverse 2)
 MIN_RETURNS = 200               # fewer returns: no reliable spin rate
-RATE_STRIDE = 16                # every 16th return (in time order) fits the spin rate (a real sweep: 3 000 of them)
+SAMPLES = 4096                  # about this many returns (evenly strided) measure the spin rate and the beams' phase
 MAX_TIME_GAP_S = 0.025          # a quarter turn at 10 Hz: a longer span without returns leaves the fit's turns unknown
 
 
@@ -54,18 +54,21 @@ def firing_time_columns(cloud, profile: LidarProfile, range_m: np.ndarray):
         return f"only {np.count_nonzero(valid)} returns: no spin rate from their firing times"
     t_ns = np.asarray(cloud.fields[TIME_FIELD]).astype(np.int64)
     cycle = _cycles(t_ns, int(round(profile.firing_cycle_s * 1e9)))
-    p = np.asarray(cloud.positions_m, dtype=np.float64)
+    sample = np.flatnonzero(valid)
+    sample = sample[::max(1, len(sample) // SAMPLES)]
+    p = np.asarray(cloud.positions_m, dtype=np.float64)[sample]
     offsets = np.deg2rad(np.asarray(profile.beam_azimuth_offset_deg, dtype=np.float64))
-    azimuth = np.arctan2(p[:, 1], p[:, 0]) + offsets[ring]
-    rate = _spin_rate(t_ns[valid] * 1e-9, azimuth[valid])
+    azimuth = np.arctan2(p[:, 1], p[:, 0]) + offsets[ring[sample]]
+    rate = _spin_rate(t_ns[sample] * 1e-9, azimuth)
     if isinstance(rate, str):
         return rate
     columns = int(round(2 * math.pi / (abs(rate) * profile.firing_cycle_s)))
     step = 2 * math.pi / columns
     column = np.mod(-np.sign(rate) * (cycle - cycle.min()), columns).astype(np.int64)
-    phase = (range_m * np.exp(1j * (azimuth + column * step)))[valid]
-    sums = np.bincount(ring[valid], phase.real, profile.channels) + 1j * np.bincount(ring[valid], phase.imag,
-                                                                                      profile.channels)
+    angle = azimuth + column[sample] * step
+    weight = range_m[sample]
+    sums = (np.bincount(ring[sample], weight * np.cos(angle), profile.channels)
+            + 1j * np.bincount(ring[sample], weight * np.sin(angle), profile.channels))
     sums = np.where(sums != 0, sums, sums.sum())
     shift = -np.angle(sums) / step
     firing = -(column + shift[ring]) * step
@@ -84,10 +87,10 @@ def _cycles(t_ns: np.ndarray, cycle_ns: int) -> np.ndarray:
 
 
 def _spin_rate(t_s: np.ndarray, azimuth: np.ndarray) -> float | str:
-    """The head's angular rate (rad/s, signed) from the returns' times and firing azimuths: a least-squares line
-    through every ``RATE_STRIDE``-th return's azimuth unwrapped in time order (their steps wrapped to ±π, summed);
-    the reason there is none when a span of a quarter turn (at 10 Hz) has no return."""
-    order = np.argsort(t_s, kind="stable")[::RATE_STRIDE]
+    """The head's angular rate (rad/s, signed) from the sampled returns' times and firing azimuths: a least-squares
+    line through the azimuths unwrapped in time order (their steps wrapped to ±π, summed); the reason there is none
+    when a span of a quarter turn (at 10 Hz) has no return."""
+    order = np.argsort(t_s, kind="stable")
     t = t_s[order]
     step = np.diff(azimuth[order])
     a = np.concatenate([[0.0], np.cumsum(np.mod(step + math.pi, 2 * math.pi) - math.pi)])
