@@ -167,9 +167,11 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
     step's are filled in by its ``settle`` (each earlier step's when the next step has run: its JPEG encode may
     keep the frame's luminance). Each later step's cloud notes the chain's input as ``recorded`` (the sensor's own
     data), for the steps that calibrate the sensor on it. A ring-less cloud stored laser by laser (KITTI) first gets its rings
-    and firing columns from that order (:func:`~roadview_noise.physics.laser_order.with_laser_order`)."""
+    and firing columns from that order (:func:`~roadview_noise.physics.laser_order.with_laser_order`); a sweep of several
+    sensors runs each step sensor by sensor (:func:`sensor_rig.apply_per_sensor`)."""
     from .metrics import Deferred          # numba: only where a chain runs, not where recipes are checked
     from .physics import return_ranges
+    from .sensor_rig import apply_per_sensor, sensors_of
 
     pending = deferred if deferred is not None else Deferred()
     return_ranges.collect(metrics)         # models note the return geometry of the clouds they write
@@ -184,15 +186,19 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
         if model.sensor != sensor_kind(data):
             raise ModelError(f"acts on {model.sensor} data, got {sensor_kind(data)} data", model=model.id)
         t0 = time.perf_counter()
-        state = {}
-        if model.scope == Scope.SEQUENCE:
-            state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
-        rng = derive_rng(seed, key, i, model.id) if model.uses_frame_rng else None
-        drawn = model.draw(rng, data)
         given = step_input(data)
         if recorded is not None and given is not recorded and given.recorded is None:
             given = given.replace(recorded=recorded)
-        out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
+        if sensors_of(data):                    # a sweep of several sensors: each on its own rays (sensor_rig.py)
+            out, state, drawn, diagnostics = apply_per_sensor(model, given, seed=seed, key=key, step=i,
+                                                              sequence_id=sequence_id)
+        else:
+            state = {}
+            if model.scope == Scope.SEQUENCE:
+                state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
+            rng = derive_rng(seed, key, i, model.id) if model.uses_frame_rng else None
+            drawn = model.draw(rng, data)
+            out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
         before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
                                   pending.compare(before, data, out) if metrics else {}))

@@ -151,10 +151,29 @@ class LidarProfile:
     #                                            fitted 0.2 m / 0.1 m), for placing a crop's laser runs; () = 0
     sensor_origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)   # the sensor in the frame a file's points are
     #                                            in (Argoverse 2: the vehicle frame); the chain works about it
+    firing_cycle_s: float = 0.0                # time of one firing of every beam (VLP-32C: 55.296 µs): > 0, a list
+    #                                            with each return's firing time has its grid from it (firing_time.py)
+    sensors: tuple[SensorMount, ...] = ()      # a sweep merging several sensors (Argoverse 2): each one's rings, pose
+    #                                            and own profile (sensor_rig.py); () = one sensor, or poses unknown
 
     @property
     def channels(self) -> int:
         return len(self.beam_elevation_deg)
+
+
+@dataclass(frozen=True)
+class SensorMount:
+    """One sensor of a sweep that merges several (Argoverse 2's two VLP-32C): its rings ``first_ring`` … ``first_ring
+    + profile.channels − 1`` of the sweep's ring field, its pose in the sweep's frame (``rotation``: 3×3 row-major,
+    sensor → sweep frame; ``translation_m``: its origin there; a point ``p = R q + t``) and its own ``profile``
+    (its beams in its frame); ``source``: where the pose comes from (the calibration file)."""
+
+    name: str
+    first_ring: int
+    rotation: tuple[tuple[float, float, float], ...]
+    translation_m: tuple[float, float, float]
+    profile: LidarProfile
+    source: str = ""
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,8 @@ Formats (by suffix, or ``fmt``):
 - ``txt`` (``.txt`` with ``sensor="radar"``): a text table, a header line naming the columns and one point per line
   (Astyx HiRes2019 radar, io/radar_formats.py), float64; written back row for row (io/text_table.py).
 - ``feather`` (``.feather``): an Arrow table, a row per point (Argoverse 2's LiDAR sweeps, io/feather.py); positions
-  about the profile's ``sensor_origin_m`` (Argoverse 2 stores the vehicle frame), put back when written.
+  about the profile's ``sensor_origin_m`` (Argoverse 2 stores the vehicle frame), put back when written; each
+  sensor's pose from the log's calibration when it is beside the sweep (:func:`with_sensor_poses`).
 
 File fields get canonical names (types.CloudLayout) through :data:`ALIASES` (first alias present wins; a recipe's
 ``field_map`` {file name: canonical} overrides); every other field (a user's ``label`` too) keeps its file name and
@@ -40,7 +41,7 @@ from ..physics.compiled import jit
 from ..types import CloudLayout, LidarProfile, PointCloud, RadarProfile
 from .atomic import write_bytes_atomic
 from .derived_fields import with_derived
-from .feather import feather_bytes, read_feather
+from .feather import CALIBRATION, calibration_path, feather_bytes, read_feather, read_sensor_poses
 from . import text_table
 from .radar_formats import TJ4D_COLUMNS, check_vod_columns, fixed_field_layout, is_tj4d_bin, layout_field_map, \
     radar_bin_format, text_table_fields
@@ -267,7 +268,27 @@ def about_sensor(cloud: PointCloud, schema, profile, path) -> PointCloud:
                          f"give lidar_profile: av2-vlp32c (its sensors' origin in that frame), not "
                          f"{getattr(profile, 'name', profile)!r}", file=str(path))
     layout = dataclasses.replace(cloud.layout, schema=schema, origin_m=origin)
-    return dataclasses.replace(cloud, positions_m=cloud.positions_m - np.asarray(origin), layout=layout)
+    profile = with_sensor_poses(profile, names, path)
+    return dataclasses.replace(cloud, positions_m=cloud.positions_m - np.asarray(origin), layout=layout,
+                               profile=profile)
+
+
+def with_sensor_poses(profile, names: set, path):
+    """An Argoverse 2 sweep's profile (``storage_order: merged``) with each sensor's pose and own profile
+    (``LidarProfile.sensors``) when its log's ``calibration/egovehicle_SE3_sensor.feather`` is beside it
+    (:func:`io.feather.calibration_path`), so the weather acts on each sensor's rays (:mod:`sensor_rig`); else, or for
+    another table, ``profile`` unchanged."""
+    if not isinstance(profile, LidarProfile) or profile.sensors or not {"laser_number", "offset_ns"} <= names:
+        return profile
+    from ..physics.firing_grid import MERGED_SENSORS
+    from ..profiles.lidar import AV2_SENSORS, av2_mounts
+
+    calibration = calibration_path(path)
+    if profile.storage_order != MERGED_SENSORS or not calibration.is_file():
+        return profile
+
+    source = f"{calibration.parent.parent.name}/{CALIBRATION.as_posix()}"
+    return dataclasses.replace(profile, sensors=av2_mounts(read_sensor_poses(calibration, AV2_SENSORS), source))
 
 
 def _non_finite_rows(positions: np.ndarray) -> np.ndarray:

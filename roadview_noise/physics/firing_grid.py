@@ -8,7 +8,10 @@ that ``beams × columns`` grid that hold no point:
 - ring: the ``ring`` field, else the ring an earlier step stored before moving the points (``attributes``), else
   the beam of nearest elevation (:func:`lidar_geometry.ring_index`);
 - a sweep merging several sensors in one frame (Argoverse 2's two VLP-32C: profile ``storage_order: merged``) has
-  no single grid: weather on its returns only;
+  no single grid: each sensor's rows go through the chain on their own in its frame (:mod:`sensor_rig`, with the
+  log's calibration), else weather on its returns only;
+- a list that stores each return's firing time (Argoverse 2's ``offset_ns``) under a profile that states its firing
+  cycle (``firing_cycle_s``) has its columns from those times (:mod:`firing_time`), not from its azimuth gaps;
 - a ring-less list stored laser by laser (KITTI: profile ``storage_order: laser``) has its rings and firing columns
   recovered from that order on the chain's input (:mod:`laser_order`; its encoder's 0.09° azimuth steps are no
   whole number of firing steps) and carried as attributes; the rest below holds for it with no per-beam shift;
@@ -44,6 +47,7 @@ from ..types import LidarProfile
 from .compiled import jit
 from .lidar_geometry import atan2, beam_means, elevation_rad, far_returns, has_return, ring_index, \
     ring_search_table, ring_source, sorted_beam, tangent_position
+from .firing_time import TIME_FIELD, firing_time_columns, timed
 from .laser_order import FIRING_COLUMN, LASER_ORDER, laser_order
 
 TWO_PI = 2.0 * math.pi
@@ -60,7 +64,9 @@ MIN_FILLED_FRACTION = 0.2       # fewer returns per cell in view of the returnin
 FIRING_ORDER = 0.9              # a ring's successive returns 1 … 8 columns apart, one way: stored in firing order
 MERGED_SENSORS = "merged"       # LidarProfile.storage_order of a sweep merging several sensors (Argoverse 2): no grid
 MERGED_REASON = ("the sweep merges several sensors in one frame (profile storage_order: merged; Argoverse 2's two "
-                 "VLP-32C, the lower one upside down): no single firing grid")
+                 "VLP-32C, the lower one upside down): no single firing grid, and no calibration/"
+                 "egovehicle_SE3_sensor.feather of its log beside it for each sensor's own (positions about the "
+                 "profile's sensor_origin_m)")
 FULL_SWEEP = 0.98               # points stored per ring, of the columns, for a list that stores every firing
 
 
@@ -84,6 +90,7 @@ class FiringGrid:
     gaps_columns: int | None = None     # the count the gaps gave when the profile's won (:func:`undecided_columns`)
     measured_elevation_rad: np.ndarray | None = None    # per beam, from the list (:func:`measured_elevations`)
     host: np.ndarray | None = None      # per empty cell, the no-return point stored on it (−1: none; None: no such)
+    timed: bool = False                 # the grid comes from the returns' firing times (:mod:`firing_time`)
 
     def elevation_rad(self) -> np.ndarray:
         """Each beam's elevation: the profile's, or the list's own when its ring field counts other beams."""
@@ -113,6 +120,9 @@ class FiringGrid:
     def describe(self) -> str:
         crop = (f"; {self.out_of_view} of {self.columns} columns out of view (a crop, an azimuth window or lost "
                 f"packets): not filled" if self.out_of_view else "")
+        if self.timed:
+            return (f"{self.profile.channels}x{self.columns} firing grid from the returns' firing times "
+                    f"({TIME_FIELD}){crop}")
         return describe_grid(self.profile, self.columns, self.gaps_columns) + crop
 
 
@@ -396,6 +406,7 @@ class FiringColumns:
     shift: np.ndarray
     valid: np.ndarray
     gaps_columns: int | None = None
+    timed: bool = False
 
 
 class FiringGridWarning(UserWarning):
@@ -438,7 +449,7 @@ def firing_grid(cloud, profile: LidarProfile, range_m: np.ndarray | None = None,
     if isinstance(measured, str):
         return measured
     grid = empty_rays(measured, profile, hosts=ring_source(cloud) != "elevation")
-    if ring_source(cloud) == "field" and int(measured.ring.max()) + 1 != profile.channels:
+    if ring_source(cloud) == "field" and int(measured.ring.max()) + 1 != profile.channels and not measured.timed:
         grid = dataclasses.replace(grid, measured_elevation_rad=measured_elevations(cloud, measured, profile))
     return grid
 
@@ -476,7 +487,7 @@ def empty_rays(measured: FiringColumns, profile: LidarProfile, hosts: bool = Fal
     if hosts and not valid.all():
         er, ec, el, host = _placeholder_rays(measured, er, ec, el, nearest, profile.channels)
     return FiringGrid(er, ec, el, columns, shift, profile, firing,
-                      int(np.count_nonzero(~in_view)), measured.gaps_columns, host=host)
+                      int(np.count_nonzero(~in_view)), measured.gaps_columns, host=host, timed=measured.timed)
 
 
 def _placeholder_rays(measured: FiringColumns, er: np.ndarray, ec: np.ndarray, el: np.ndarray,
@@ -611,6 +622,8 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
     if points.reason:
         return points.reason
     if points.ring is None:
+        if timed(cloud, profile):
+            return firing_time_columns(cloud, profile, range_m)
         return _laser_order_columns(cloud, profile, range_m)
     ring, firing, counts = points.ring, points.firing_rad, points.counts
     valid = range_m > 0
@@ -637,7 +650,8 @@ def firing_columns(cloud, profile: LidarProfile, range_m: np.ndarray | None = No
 class ListPoints:
     """A point list read once for its firing grid (:func:`list_points`): each point's range ``range_m`` (0: no
     return) and its ``ring``, firing azimuth ``firing_rad`` and the points per ring ``counts`` — None when a list
-    stored laser by laser takes them from its attributes, or with the ``reason`` it has no firing grid."""
+    stored laser by laser takes them from its attributes, or one with firing times from those
+    (:mod:`firing_time`), or with the ``reason`` it has no firing grid."""
 
     range_m: np.ndarray
     ring: np.ndarray | None = None
@@ -652,7 +666,7 @@ def list_points(cloud, profile: LidarProfile, range_m: np.ndarray | None = None)
     the profile's ``min_range_m``: the rays' ranges of :mod:`lidar_rays`)."""
     positions = np.ascontiguousarray(cloud.positions_m, dtype=np.float64)
     laser = profile.storage_order == LASER_ORDER and (FIRING_COLUMN in cloud.attributes
-                                                      or ring_source(cloud) == "elevation")
+                                                      or ring_source(cloud) == "elevation") or timed(cloud, profile)
     reason = MERGED_REASON if profile.storage_order == MERGED_SENSORS else ""
     try:
         carried = (np.zeros(0, np.int64) if laser or reason or ring_source(cloud) == "elevation"

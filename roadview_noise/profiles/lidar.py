@@ -27,7 +27,7 @@ import yaml
 from ..errors import InputError
 from ..physics.firing_grid import MERGED_SENSORS
 from ..physics.lidar_intensity import OUSTER_WHITE_REFLECTIVITY, reflectivity_variant
-from ..types import IntensityUnit, LidarProfile
+from ..types import IntensityUnit, LidarProfile, SensorMount
 from . import check_keys, load_profile
 from .ouster_metadata import read_ouster_metadata
 
@@ -198,14 +198,16 @@ def av2_vlp32c() -> LidarProfile:
     64 beams, ring = ``laser_number`` (0–31 the upper sensor, 32–63 the lower one, mounted upside down and tilted
     11.6°, each in the same order). Beam table ``data/av2_vlp32c.yaml``: the VLP-32C manual's vertical angles
     (−25° … +15°) in the order of Argoverse 2's ``laser_number``, matched on real sweeps (the median elevation of
-    each laser_number in its own sensor's frame within 0.03°); no azimuth offsets (no firing grid is measured).
+    each laser_number in its own sensor's frame within 0.03°); no azimuth offsets here (each sensor's profile has
+    them).
 
     The sweep stores the vehicle frame (origin on the ground under the rear axle); the sensors' origins lie at
     (1.350, 0.000, 1.640) m and (1.347–1.357, −0.003–0.005, 1.522–1.526) m in it (``egovehicle_SE3_sensor`` of the
     devkit's four test logs), so ``sensor_origin_m`` = (1.35, 0.0, 1.58): both within 6 cm, the chain's ranges and
     rays about it, the positions written back in the vehicle frame (:mod:`io.feather`). ``storage_order: merged``:
-    one sweep of two sensors, the lower one flipped, has no single firing grid — weather acts on the returns only
-    (the empty rays, which would need each sensor's grid in its own frame, get none; the manifest's
+    one sweep of two sensors, the lower one flipped, has no single firing grid; with the log's
+    ``calibration/egovehicle_SE3_sensor.feather`` beside the sweep each sensor runs the chain in its own frame with
+    its own profile (:func:`av2_sensor`, :mod:`sensor_rig`), else weather acts on the returns only (the manifest's
     ``empty_rays_source`` says so).
     Radiometry, as the Velodyne family's (HDL-32E, VLP-16 manuals): 8-bit calibrated reflectivity, diffuse white
     W = 100 (ASSUMPTION for the VLP-32C); 903 nm; 200 m (datasheet); K = 200² / 0.4 = 100 000 m², ASSUMPTION (the
@@ -219,6 +221,35 @@ def av2_vlp32c() -> LidarProfile:
         hdl_32e(), name="av2-vlp32c", beam_elevation_deg=elevation, beam_azimuth_offset_deg=(0.0,) * 64,
         columns=1808, wavelength_m=903e-9, max_range_m=200.0, min_range_m=0.0, sensor_constant=200.0 ** 2 / 0.4,
         sensor_origin_m=AV2_SENSOR_ORIGIN_M, storage_order=MERGED_SENSORS)
+
+
+VLP32C_FIRING_CYCLE_S = 55.296e-6      # VLP-32C manual: 16 firings of 2 lasers, 2.304 µs apart, and recharge
+AV2_SENSORS = ("up_lidar", "down_lidar")    # Argoverse 2's sensor names (calibration), laser_number 0–31, 32–63
+
+
+def av2_sensor(name: str) -> LidarProfile:
+    """One of Argoverse 2's two VLP-32C in its own frame (``up_lidar``, ``down_lidar``: :func:`av2_mounts`): the
+    32 beams of :func:`av2_vlp32c` in the order of ``laser_number`` (less 32 for the lower sensor) with the manual's
+    azimuth offsets (``data/av2_vlp32c.yaml``, matched on real sweeps), origin at the sensor, the firing grid from
+    each return's firing time (``offset_ns``; ``firing_cycle_s`` 55.296 µs, the manual's timing:
+    :mod:`physics.firing_time`)."""
+    t = _table("av2_vlp32c.yaml")
+    return dataclasses.replace(
+        av2_vlp32c(), name=f"av2-vlp32c:{name}", beam_elevation_deg=tuple(float(e) for e in t["beam_elevation_deg"]),
+        beam_azimuth_offset_deg=tuple(float(a) for a in t["beam_azimuth_offset_deg"]), sensor_origin_m=(0.0, 0.0, 0.0),
+        storage_order="", firing_cycle_s=VLP32C_FIRING_CYCLE_S)
+
+
+def av2_mounts(poses: dict, source: str) -> tuple[SensorMount, ...]:
+    """Argoverse 2's two sensors from the log's poses ``poses`` (sensor name → (3×3 rotation, translation m), sensor →
+    vehicle frame: ``calibration/egovehicle_SE3_sensor.feather``, :func:`io.feather.read_sensor_poses`), read from
+    ``source``: ``up_lidar`` holds laser_number 0–31, ``down_lidar`` 32–63 (av2 devkit ``Sweep``)."""
+    mounts = []
+    for k, name in enumerate(AV2_SENSORS):
+        rotation, translation = poses[name]
+        mounts.append(SensorMount(name, 32 * k, tuple(tuple(float(v) for v in row) for row in rotation),
+                                  tuple(float(v) for v in translation), av2_sensor(name), source))
+    return tuple(mounts)
 
 
 BUILTIN = {"os1-128": os1_128, "os1-128-reflectivity": os1_128_reflectivity, "vls-128": vls_128,
