@@ -65,11 +65,11 @@ def test_placement_counted_by_blocks_is_place_and_count(grid, noted_input):
         out = args[11]
         added = np.flatnonzero(args[13][:got_n] == 3)            # a grid's ADDED cells, written after the blocks
         out[added] = rng.uniform(-80.0, 80.0, (len(added), 3))
-        tally.add_rows(out, added, zeroed=True)
+        tally.add_rows(out, added)
         total = min(got_n + 100, len(out))                       # a list's rows appended after the blocks
         out[got_n:total] = rng.uniform(-400.0, 400.0, (total - got_n, 3))
         out[got_n:got_n + 2] = [np.nan, 0.0, 0.0]
-        tally.add_rows(out, np.arange(got_n, total), zeroed=False)
+        tally.append(out, got_n, total)
         outputs = out[:total]
         tally.note(outputs)
         noted_out = return_ranges.noted(outputs, N_BINS)
@@ -232,3 +232,26 @@ def test_a_chain_compared_without_its_steps_links_gives_the_same_metrics(steps, 
     assert got == want
     assert all(np.array_equal(x, y) for x, y in zip(got_chain, want_chain))
     assert all(np.array_equal(x, y) for g, w in zip(got_steps, want_steps) for x, y in zip(g, w))
+
+
+def test_rows_appended_after_the_blocks_are_counted_as_count_does():
+    """A list's points appended after the blocks (more than a block of them, with zeros, NaN, inf and far points)
+    counted by ``Tally.append`` give the output's geometry as ``return_ranges.count``."""
+    rng = np.random.default_rng(23)
+    positions = scan(rng, 2 * return_ranges.BLOCK)
+    out = np.vstack([np.zeros((100, 3)), scan(rng, 2 * return_ranges.BLOCK + 5)])
+    return_ranges.collect(True)
+    try:
+        tally = return_ranges.Tally(positions, None, len(out), N_BINS)
+        largest_in = lidar_output._place_counted(*placement(rng, positions, False), *tally.arrays)[3]
+        tally.arrays[4][:100], tally.arrays[5][:] = False, 0     # the output: 100 rows of zeros placed, then
+        tally.arrays[5][0] = 100                                 # the rest appended
+        tally.counted(largest_in, 0, 0.0, 0)
+        tally.append(out, 100, len(out))
+        tally.note(out)
+        noted = return_ranges.noted(out, N_BINS)
+    finally:
+        return_ranges.collect(False)
+    want = return_ranges.count(out, N_BINS)
+    assert (noted[0], noted[1].tolist(), noted[2]) == (want[0], want[1].tolist(), want[2])
+    assert np.array_equal(noted[3], want[3]) and want[0] > return_ranges.BLOCK
