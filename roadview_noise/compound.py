@@ -201,7 +201,7 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
             out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
         before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
-                                  pending.compare(before, data, out) if metrics else {}))
+                                  pending.compare(before, data, out, linked=len(models) > 1) if metrics else {}))
         pending.settle(keep=data)
     if deferred is None:
         pending.settle()

@@ -91,13 +91,16 @@ def object_ids(cloud: PointCloud) -> np.ndarray | None:
     return None
 
 
-def compare(before: SensorData, after: SensorData, step: SensorData | None = None) -> dict[str, Any]:
+def compare(before: SensorData, after: SensorData, step: SensorData | None = None,
+            linked: bool = True) -> dict[str, Any]:
     """Metrics of ``after`` against ``before`` (the same sensor); see the module doc for names and units.
 
     ``step``: for clouds, the chain step's own output of which ``after`` is ``provenance.follow(before, step)``
     — its step-relative ``origin`` and ``effect`` tell which point of ``before`` each point of ``after`` is, so
     :func:`correspondence` reads them instead of matching positions (the same result on clouds that keep the
-    models' contract; see :func:`_pass`)."""
+    models' contract; see :func:`_pass`). ``linked=False``: no later comparison is expected to read this step's
+    correspondence (a chain of one step), so a pass that would write it does not (:func:`_link` makes it if
+    asked)."""
     if isinstance(before, PointCloud) and isinstance(after, PointCloud):
         fn = _compare_clouds
     elif isinstance(before, (CameraFrame, RawFrame)) and isinstance(after, (CameraFrame, RawFrame)):
@@ -107,7 +110,7 @@ def compare(before: SensorData, after: SensorData, step: SensorData | None = Non
     else:
         raise TypeError(f"cannot compare {type(before).__name__} with {type(after).__name__}")
     b = _summary(before)
-    a = _summary(after, b, step if isinstance(step, PointCloud) else None)
+    a = _summary(after, b, step if isinstance(step, PointCloud) else None, linked)
     done = a.setdefault("compared", {})                 # (before summary, result) by id: a chain whose step left
     if id(b) not in done:                               # the pixels alone compares input and output once
         done[id(b)] = (b, fn(b, a))
@@ -131,9 +134,10 @@ class Deferred:
         self._radar: list[tuple[PointCloud, PointCloud, SensorData | None, dict]] | None = [] if radar_chains \
             else None
 
-    def compare(self, before: SensorData, after: SensorData, step: SensorData | None = None) -> dict[str, Any]:
+    def compare(self, before: SensorData, after: SensorData, step: SensorData | None = None,
+                linked: bool = True) -> dict[str, Any]:
         """An empty dict that :meth:`settle` fills with ``compare(before, after)`` (at once unless a frame or a
-        held radar chain's, then with ``step``: :func:`compare`)."""
+        held radar chain's, then with ``step`` and ``linked``: :func:`compare`)."""
         if self._radar is not None and isinstance(after, PointCloud) and after.sensor == "radar" and \
                 isinstance(before, PointCloud):
             result: dict[str, Any] = {}
@@ -141,7 +145,7 @@ class Deferred:
             return result
         if not isinstance(after, CameraFrame):
             self.settle()
-            return compare(before, after, step)
+            return compare(before, after, step, linked)
         for frame in (before, after):
             if isinstance(frame, CameraFrame) and frame.undecoded_srgb8_codes() is None:   # not a JPEG output's
                 want(frame.linear_rgb)
@@ -169,12 +173,13 @@ class Deferred:
             _compare_radar_chain(radar)
 
 
-def _summary(data: SensorData, before: dict | None = None, step: PointCloud | None = None) -> dict:
+def _summary(data: SensorData, before: dict | None = None, step: PointCloud | None = None,
+             linked: bool = True) -> dict:
     """The summary of ``data`` (cached); a cloud's first one is linked to ``before``, its step input's, when given
     (:func:`_cloud_summary`)."""
     s = _summaries.get(data)
     if s is None:
-        s = _cloud_summary(data, before, step) if isinstance(data, PointCloud) else _frame_summary(data)
+        s = _cloud_summary(data, before, step, linked) if isinstance(data, PointCloud) else _frame_summary(data)
         _summaries[data] = s
     return s
 
@@ -496,12 +501,15 @@ _NOT_LINKED = (_NO_INDEX, _NO_MASK, math.nan)                   # a NO_LINK pass
 _NO_SUMS = (0, 0, 0, 0, 0.0, 0)                 # :func:`_add_return_sums` of no point
 
 
-def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP):
+def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP,
+                linked=True):
     """:func:`_pass` compiled for this ``link`` and for the returns known or not (constants there, so each variant's
     loop holds only its own branches: one with the returns known keeps none of the geometry's live values, and
-    spills fewer of its own)."""
+    spills fewer of its own); ``linked=False``: a STEP_LINK pass over known returns writes no correspondence
+    (:func:`_unlinked_step_pass`)."""
     counted = len(known_valid) == len(positions) and len(positions) > 0
-    return _PASSES[link, counted](positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step)
+    fn = _unlinked_step_pass if not linked and counted and link == STEP_LINK else _PASSES[link, counted]
+    return fn(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b, step)
 
 
 @jit(inline="always")
@@ -650,11 +658,27 @@ def _step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b
 def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
                        step):  # pragma: no cover
     """:func:`_pass` with STEP_LINK and the returns known (a weather step's output: its model counted them), in a
-    loop of its own: the link by the step's provenance and the mean change, then the block's sums, block by block
-    (no geometry, no walk, no return test: ≈ 0.7 × the generic loop's instructions on a 220 k-point list). Same
+    loop of its own (:func:`_known_step_pass`)."""
+    return _known_step_pass(positions, known_valid, codes, values, pb, valid_b, values_b, step, True)
+
+
+@jit
+def _unlinked_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb, valid_b, values_b,
+                        step):  # pragma: no cover
+    """:func:`_counted_step_pass` without the correspondence (``index`` and ``moved`` come back empty): the
+    step of a chain of one, whose link a run never reads (:func:`_link` makes it if asked)."""
+    return _known_step_pass(positions, known_valid, codes, values, pb, valid_b, values_b, step, False)
+
+
+@jit(inline="always")
+def _known_step_pass(positions, known_valid, codes, values, pb, valid_b, values_b, step,
+                     linked):  # pragma: no cover
+    """:func:`_pass` with STEP_LINK over a cloud whose returns are known: the link by the step's provenance and the
+    mean change, then the block's sums, block by block (no geometry, no walk, no return test: ≈ 0.7 × the generic
+    loop's instructions on a 220 k-point list); with ``linked`` (a constant) the correspondence written. Same
     values in the same order."""
     n, nb = positions.shape[0], pb.shape[0]
-    index, moved = np.full(nb, -1, np.int32), np.zeros(nb, np.bool_)
+    index, moved = np.full(nb if linked else 0, -1, np.int32), np.zeros(nb if linked else 0, np.bool_)
     has_codes = codes.shape[0] > 0
     changes = values.shape[0] > 0 and values_b.shape[0] > 0
     step_origin, step_codes = step
@@ -665,26 +689,50 @@ def _counted_step_pass(positions, known_valid, codes, values, bin_m, n_bins, pb,
     in_order = survivors == nb                      # a list without removals: a MOVED code says moved
     change, changed = 0.0, 0
     sums = _NO_SUMS
+    usual = has_codes and changes and (in_order or has_step_codes)     # a weather step's: constants below
     for start in range(0, n, return_ranges.BLOCK):
         stop = min(start + return_ranges.BLOCK, n)
-        for j in range(np.uint64(start), np.uint64(stop)):    # (unsigned: no wrap-around test on each index)
-            c = codes[j] if has_codes else 0
-            i = step_origin[j] if has_origin else np.int64(j)
-            if c == 3 or i < 0:                     # ADDED, or new by the step: no point of before
-                continue
-            k = np.uint64(i)
-            if in_order:
-                away = c == 2
-            else:                                   # moved by the step, unless to where it was
-                away = has_step_codes and step_codes[j] == 2 and not (
-                    _same_position(pb, k, positions, j) and valid_b[k])
-            index[k] = j
-            moved[k] = away
-            if changes and not away:
-                change, changed = _add_change(values_b, k, values, j, change, changed)
+        link = (start, stop, codes, step_origin, step_codes, values, values_b, pb, positions, valid_b, index, moved,
+                change, changed)
+        if usual and has_origin and in_order:
+            change, changed = _step_rows(link, True, True, linked, True, True, True)
+        elif usual and has_origin:
+            change, changed = _step_rows(link, True, False, linked, True, True, True)
+        elif usual and in_order:
+            change, changed = _step_rows(link, False, True, linked, True, True, True)
+        elif usual:
+            change, changed = _step_rows(link, False, False, linked, True, True, True)
+        else:
+            change, changed = _step_rows(link, has_origin, in_order, linked, has_codes, changes, has_step_codes)
         sums = _add_return_sums(known_valid, codes, values, start, stop, sums)
     return ((0, np.zeros(0, np.int64), 0.0, known_valid), np.array(sums[:4], np.int64), sums[4], sums[5],
             (index, moved, change / changed if changed else np.nan))
+
+
+@jit(inline="always")
+def _step_rows(link, has_origin, in_order, linked, has_codes, changes, has_step_codes):  # pragma: no cover
+    """:func:`_known_step_pass`'s link of rows ``start`` … ``stop`` − 1 (``link``: them, the arrays, ``change`` and
+    ``changed`` carried): the new ``change``, ``changed``; the flags are constants where the caller can make them
+    so (LLVM then drops their branches: ≈ 10 fewer instructions a row than with them tested on each)."""
+    start, stop, codes, origin, step_codes, values, values_b, pb, positions, valid_b, index, moved, change, \
+        changed = link
+    for j in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
+        c = codes[j] if has_codes else 0
+        i = origin[j] if has_origin else np.int64(j)
+        if c == 3 or i < 0:                             # ADDED, or new by the step: no point of before
+            continue
+        k = np.uint64(i)
+        if in_order:
+            away = c == 2
+        else:                                           # moved by the step, unless to where it was
+            away = has_step_codes and step_codes[j] == 2 and not (
+                _same_position(pb, k, positions, j) and valid_b[k])
+        if linked:
+            index[k] = j
+            moved[k] = away
+        if changes and not away:
+            change, changed = _add_change(values_b, k, values, j, change, changed)
+    return change, changed
 
 
 @jit
@@ -718,14 +766,15 @@ def _is_return(p, j):       # pragma: no cover - compiled
 
 
 def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, n_bins: int,
-                      link: int, before: dict | None, step: tuple = _NO_STEP, cells: bool = True) -> tuple:
+                      link: int, before: dict | None, step: tuple = _NO_STEP, cells: bool = True,
+                      keep_link: bool = True) -> tuple:
     """:func:`_cloud_pass`, linked to the summary ``before`` unless ``link`` is NO_LINK. The geometry of a positions
     array is found once (:mod:`~roadview_noise.physics.return_ranges`): an array a step hands on unchanged
     (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
     counted — of a chain input without codes only its values' sum (:func:`_return_value_sum`), and not even that
     when the model that read it noted the sum too (:func:`return_ranges.noted_sum`: the laser power, the
     alignment). SAME_LINK takes the mean change over the cells
-    that are returns in both when ``cells`` (grids), else over every point."""
+    that are returns in both when ``cells`` (grids), else over every point; ``keep_link``: :func:`_cloud_pass`'s ``linked``."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
     else:
@@ -739,7 +788,8 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
         full = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
         return_ranges.note(positions, n_bins, full[0])
         return full
-    return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked)[1:])
+    return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked,
+                                   linked=keep_link)[1:])
 
 
 @jit(inline="always")
@@ -794,9 +844,14 @@ def _same_points(link: int, b: dict, a: dict, step_origin: np.ndarray) -> int:
 
 def _link(s: dict) -> tuple[np.ndarray, np.ndarray]:
     """The correspondence of summary ``s`` with its parent (index, moved), made here for a SAME_LINK one (point i
-    is point i; of a grid only the cells that are returns in both, as GRID_LINK finds them)."""
+    is point i; of a grid only the cells that are returns in both, as GRID_LINK finds them) and for a step's whose
+    pass did not write it (``relink``: the step's provenance; :func:`compare`'s ``linked``), then kept."""
     before, index, moved = s["parent"][:3]
-    if index is None:
+    if index is None and "relink" in s:
+        index, moved = _cloud_pass(s["positions"], s["valid"], s["effect"], s["values"], RANGE_BIN_M, 1, STEP_LINK,
+                                   before["positions"], before["valid"], before["values"], s.pop("relink"))[-1][:2]
+        s["parent"] = (before, index, moved, s["parent"][3])
+    elif index is None:
         n = len(before["positions"])
         index, moved = np.arange(n, dtype=np.int32), np.zeros(n, np.bool_)
         if _cell_by_cell(before, s):
@@ -813,10 +868,11 @@ def _step_provenance(step: PointCloud | None) -> tuple[np.ndarray, np.ndarray]:
             _NO_STEP[1] if codes is None else np.asarray(codes, np.uint8))
 
 
-def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointCloud | None = None) -> dict:
+def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointCloud | None = None,
+                   linked: bool = True) -> dict:
     """The summary of a cloud; with ``before`` (the summary of the cloud it came from: its step's input), also
     its correspondence with ``before`` (``parent``: before, index, moved, mean value change in place), from
-    ``step``'s provenance when given (:func:`compare`). Counts and range bins are Python lists, made once (the
+    ``step``'s provenance when given (:func:`compare`; not written but made when read if not ``linked``). Counts and range bins are Python lists, made once (the
     pass trims the bins, ``tolist`` converts them) for every comparison that reads them."""
     codes = effect_codes(cloud)
     codes = _NO_CODES if codes is None else np.asarray(codes)
@@ -829,11 +885,15 @@ def _cloud_summary(cloud: PointCloud, before: dict | None = None, step: PointClo
     link = NO_LINK if before is None else _same_points(_link_mode(before, s, step is not None), before, s,
                                                        provenance[0])
     (returns, hist, max_r, valid), counts, total, finite, matched = _summarise_points(
-        positions, codes, values, n_bins, link, before, provenance, before is not None and _cell_by_cell(before, s))
+        positions, codes, values, n_bins, link, before, provenance, before is not None and _cell_by_cell(before, s),
+        linked)
     s.update({"returns": returns, "codes": counts.tolist(), "max_range_m": max_r, "hist": hist.tolist(),
               "radar": radar, "mean_value": total / finite if finite else None, "valid": valid})
     if before is not None:
-        s["parent"] = (before, None, None, matched[2]) if link == SAME_LINK else (before, *matched)
+        unlinked = link == STEP_LINK and len(matched[0]) != len(before["positions"])   # (:func:`_link` makes it)
+        s["parent"] = (before, None, None, matched[2]) if link == SAME_LINK or unlinked else (before, *matched)
+        if unlinked:
+            s["relink"] = provenance
     if isinstance(cloud.profile, LidarProfile):
         s["intensity_unit"] = cloud.profile.intensity_unit
     ids = object_ids(cloud)
@@ -879,7 +939,7 @@ def _mean_change(b: dict, a: dict) -> float:
     if len(chain) == 2:
         return a["parent"][3]
     first = chain[-2]
-    if first["parent"][1] is None and len(chain) == 3:       # a → b the same points (SAME_LINK): not made
+    if first["parent"][1] is None and "relink" not in first and len(chain) == 3:       # a → b the same points (SAME_LINK): not made
         both = first["valid"] & b["valid"] if _cell_by_cell(b, first) else _NO_MASK
         return _mean_change_through(_NO_INDEX, both, *_link(a), b["values"], a["values"])
     index, moved = _link(first)

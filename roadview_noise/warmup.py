@@ -36,7 +36,8 @@ _POINTS = {"roadview_noise.io.pointcloud": None, "roadview_noise.physics.return_
            "roadview_noise.physics.lidar_geometry": None,
            "roadview_noise.metrics": ("_pass", "_plain_pass", "_grid_pass", "_list_pass", "_step_pass", "_same_pass",
                                       "_counted_plain_pass", "_counted_grid_pass", "_counted_list_pass",
-                                      "_counted_step_pass", "_counted_same_pass",
+                                      "_counted_step_pass", "_counted_same_pass", "_unlinked_step_pass",
+                                      "_known_step_pass", "_step_rows",
                                       "_same_position", "_is_return", "_compose", "_same_ray", "_change",
                                       "_mean_change_through", "_return_value_sum", "_radar_chain_pass")}
 KIND_KERNELS = {"camera": _IMAGE, "lidar": _POINTS, "radar": _POINTS}

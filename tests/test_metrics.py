@@ -508,7 +508,7 @@ def test_a_chain_summarises_its_input_once_and_its_metrics_equal_a_fresh_computa
 
     passes = []
     real_pass = metrics_module._cloud_pass
-    monkeypatch.setattr(metrics_module, "_cloud_pass", lambda *a: passes.append(1) or real_pass(*a))
+    monkeypatch.setattr(metrics_module, "_cloud_pass", lambda *a, **k: passes.append(1) or real_pass(*a, **k))
     c = lidar_list(400, seed=3)
     kwargs = {"power.lidar": {}, "fog.lidar": {"visibility_m": 30.0}, "rain.lidar": {"rain_rate_mm_per_h": 20.0}}
     models = [get_model(m)(**kwargs[m]) for m in chain]

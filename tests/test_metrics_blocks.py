@@ -65,11 +65,11 @@ def test_placement_counted_by_blocks_is_place_and_count(grid, noted_input):
         out = args[11]
         added = np.flatnonzero(args[13][:got_n] == 3)            # a grid's ADDED cells, written after the blocks
         out[added] = rng.uniform(-80.0, 80.0, (len(added), 3))
-        tally.add_rows(out, added, zeroed=True)
+        tally.add_rows(out, added)
         total = min(got_n + 100, len(out))                       # a list's rows appended after the blocks
         out[got_n:total] = rng.uniform(-400.0, 400.0, (total - got_n, 3))
         out[got_n:got_n + 2] = [np.nan, 0.0, 0.0]
-        tally.add_rows(out, np.arange(got_n, total), zeroed=False)
+        tally.append(out, got_n, total)
         outputs = out[:total]
         tally.note(outputs)
         noted_out = return_ranges.noted(outputs, N_BINS)
@@ -167,3 +167,91 @@ def test_step_pass_with_known_returns_is_the_generic_pass(in_order, grid):
     assert got[1].tolist() == counts.tolist()
     finite = valid & np.isfinite(values)
     assert got[3] == int(finite.sum()) and got[2] == pytest.approx(float(values[finite].astype(np.float64).sum()))
+
+
+@pytest.mark.parametrize("in_order,origin", [(False, True), (True, False), (True, True)])
+@pytest.mark.parametrize("given", ["all", "no codes", "no values", "no step codes"])
+def test_unlinked_step_pass_sums_as_the_linked_one(in_order, origin, given):
+    """The STEP_LINK pass of a chain's only step (no correspondence written: ``metrics._unlinked_step_pass``) gives
+    the linked pass's counts, sums and mean change bit for bit — in the branches compiled with constant flags (a
+    weather step's output) and in the one that tests them (no codes, no values, no step codes)."""
+    rng = np.random.default_rng(17 + 2 * in_order + origin)
+    positions, codes, values, pb, valid_b, values_b, (step_origin, step_codes) = step_link(rng, in_order, False)
+    if origin and in_order:                         # an origin that says point i is point i (appended: NEW)
+        step_origin = np.concatenate([np.arange(len(pb)), np.full(len(positions) - len(pb), -1)])
+    codes = codes if given != "no codes" else np.zeros(0, np.uint8)
+    values = values if given != "no values" else np.zeros(0)
+    step = (step_origin, step_codes if given != "no step codes" else np.zeros(0, np.uint8))
+    valid = return_ranges.count(positions, N_BINS)[3]
+    args = (positions, valid, codes, values, metrics.RANGE_BIN_M, N_BINS, pb, valid_b, values_b, step)
+    linked, unlinked = metrics._counted_step_pass(*args), metrics._unlinked_step_pass(*args)
+    generic = metrics._step_pass(positions, np.zeros(0, np.bool_), *args[2:])
+    assert linked[1].tolist() == unlinked[1].tolist() == generic[1].tolist()
+    assert linked[2:4] == unlinked[2:4] == generic[2:4]
+    changes = [linked[4][2], unlinked[4][2], generic[4][2]]
+    assert all(np.array_equal(c, changes[0], equal_nan=True) for c in changes)
+    assert np.array_equal(linked[4][0], generic[4][0]) and np.array_equal(linked[4][1], generic[4][1])
+    assert len(unlinked[4][0]) == len(unlinked[4][1]) == 0
+    if given == "all":                              # the change is a sum over points: some are linked in place
+        assert not np.isnan(changes[0]) and (linked[4][0] >= 0).sum() > len(pb) // 2
+
+
+@pytest.mark.parametrize("steps", [1, 3])
+@pytest.mark.parametrize("seed", range(4))
+def test_a_chain_compared_without_its_steps_links_gives_the_same_metrics(steps, seed):
+    """A chain whose step outputs' geometry was noted (as the weather models note it in a run), compared step by
+    step with ``linked=False`` for a chain of one step (as ``apply_models`` does) and with it for three: the same
+    metrics bit for bit as with every link written, and the same correspondence when it is asked for afterwards
+    (made then from the step's provenance: ``metrics._link``)."""
+    from test_metrics_provenance import STEPS, random_list
+    from roadview_noise.provenance import follow_points, step_input
+    import dataclasses
+
+    rng = np.random.default_rng(100 + seed)
+    clouds, outputs = [random_list(rng, int(rng.integers(300, 900)), "lidar", ring=False)], [None]
+    for i, name in enumerate(rng.choice(["weather", "drop", "move", "add"], size=steps)):
+        outputs.append(STEPS[name](step_input(clouds[-1]), rng))
+        clouds.append(follow_points(clouds[-1], outputs[-1], i))
+    results = {}
+    for linked in (True, False):
+        items = [dataclasses.replace(c, positions_m=c.positions_m.copy()) for c in clouds]
+        n_bins = return_ranges.bin_count(items[0].profile)
+        return_ranges.collect(True)
+        try:
+            for c in items:                         # every cloud's geometry noted, as the models note it in a run
+                return_ranges.note(c.positions_m, n_bins, return_ranges.count(c.positions_m, n_bins))
+            got = [metrics.compare(b, a, s, linked=linked or steps > 1)
+                   for b, a, s in zip(items, items[1:], outputs[1:])]
+            got.append(metrics.compare(items[0], items[-1]))
+            assert ("relink" in metrics._summaries[items[1]]) == (not linked and steps == 1)   # the path taken
+            results[linked] = got, metrics.correspondence(items[0], items[-1]), [
+                metrics.correspondence(b, a) for b, a in zip(items, items[1:])]
+        finally:
+            return_ranges.collect(False)
+    (want, want_chain, want_steps), (got, got_chain, got_steps) = results[True], results[False]
+    assert got == want
+    assert all(np.array_equal(x, y) for x, y in zip(got_chain, want_chain))
+    assert all(np.array_equal(x, y) for g, w in zip(got_steps, want_steps) for x, y in zip(g, w))
+
+
+def test_rows_appended_after_the_blocks_are_counted_as_count_does():
+    """A list's points appended after the blocks (more than a block of them, with zeros, NaN, inf and far points)
+    counted by ``Tally.append`` give the output's geometry as ``return_ranges.count``."""
+    rng = np.random.default_rng(23)
+    positions = scan(rng, 2 * return_ranges.BLOCK)
+    out = np.vstack([np.zeros((100, 3)), scan(rng, 2 * return_ranges.BLOCK + 5)])
+    return_ranges.collect(True)
+    try:
+        tally = return_ranges.Tally(positions, None, len(out), N_BINS)
+        largest_in = lidar_output._place_counted(*placement(rng, positions, False), *tally.arrays)[3]
+        tally.arrays[4][:100], tally.arrays[5][:] = False, 0     # the output: 100 rows of zeros placed, then
+        tally.arrays[5][0] = 100                                 # the rest appended
+        tally.counted(largest_in, 0, 0.0, 0)
+        tally.append(out, 100, len(out))
+        tally.note(out)
+        noted = return_ranges.noted(out, N_BINS)
+    finally:
+        return_ranges.collect(False)
+    want = return_ranges.count(out, N_BINS)
+    assert (noted[0], noted[1].tolist(), noted[2]) == (want[0], want[1].tolist(), want[2])
+    assert np.array_equal(noted[3], want[3]) and want[0] > return_ranges.BLOCK

@@ -234,7 +234,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
         idx = np.flatnonzero((returns.kind == WEATHER) & ~rays.has_target)
         positions[idx] = empty_ray_directions(cloud, rays.has_target, idx) * returns.range_m[idx, None]
         if tally is not None:                          # (zeros when the blocks counted them)
-            tally.add_rows(positions, idx, zeroed=True)
+            tally.add_rows(positions, idx)
     at, rows = _hosted(rays.listed, cells, origin[:n_out] if n_removed else None)
     if len(at):                                        # weather on a stored no-return point's ray takes its row
         positions[rows], intensity[rows] = _listed_returns(rays.listed, cells[at], returns.range_m[n:], reported[n:],
@@ -258,7 +258,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             effect[n_out:total] = ADDED
             added += len(cells)
             if tally is not None:
-                tally.add_rows(positions, np.arange(n_out, total), zeroed=False)
+                tally.append(positions, n_out, total)
         if len(fields) > 1 or attributes:              # the ray each output takes its other fields from
             index = np.concatenate([origin[:n_out], rays.listed.like[cells]]) if len(cells) else origin
             fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}

@@ -172,7 +172,7 @@ class Tally:
     :data:`BLOCK` input points and the output rows they made), while their positions are still in the caches — not
     in passes of their own after the model, which read every position again from memory (6.3 MB a 262 k-point
     cloud) —, and the sum of the input's intensities over its returns (:func:`sum_block`, the metrics' sum). Rows the
-    model writes after the blocks are counted by :meth:`add_rows`. :func:`count`'s operations in the same order: the
+    model writes after the blocks are counted by :meth:`add_rows` and :meth:`append`. :func:`count`'s operations in the same order: the
     same geometry."""
 
     def __init__(self, inputs: np.ndarray, values: np.ndarray | None, size: int, n_bins: int) -> None:
@@ -194,12 +194,19 @@ class Tally:
         self._input = (largest_in, total, finite)
         self._largest_out = largest_out
 
-    def add_rows(self, positions: np.ndarray, rows: np.ndarray, zeroed: bool) -> None:
-        """Count output rows the model wrote after the blocks: rows of zeros the blocks counted (``zeroed``) or rows
-        after the blocks' last."""
+    def add_rows(self, positions: np.ndarray, rows: np.ndarray) -> None:
+        """Count output rows the model wrote after the blocks in rows of zeros the blocks counted (a grid's ADDED
+        cells)."""
         valid_out, hist_out = self.arrays[4], self.arrays[5]
         largest = _count_rows(positions.reshape(-1), np.asarray(rows, np.int64), 1.0 / RANGE_BIN_M, hist_out,
-                              valid_out, zeroed)
+                              valid_out)
+        self._largest_out = max(self._largest_out, largest)
+
+    def append(self, positions: np.ndarray, start: int, stop: int) -> None:
+        """Count output rows ``start`` … ``stop`` − 1 the model wrote after the blocks' last (a list's appended
+        points), block by block as the blocks are (:func:`count_block`: vectorised)."""
+        _, _, _, _, valid_out, hist_out, scratch = self.arrays
+        largest = _count_range(positions.reshape(-1), start, stop, 1.0 / RANGE_BIN_M, hist_out, valid_out, scratch)
         self._largest_out = max(self._largest_out, largest)
 
     def note(self, outputs: np.ndarray, recount: bool = False) -> None:
@@ -247,10 +254,23 @@ def sum_block(valid, values, start, stop, total, finite):       # pragma: no cov
 
 
 @jit
-def _count_rows(flat, rows, inv_bin, hist, valid, zeroed):       # pragma: no cover - compiled
+def _count_range(flat, start, stop, inv_bin, hist, valid, scratch):       # pragma: no cover - compiled
+    """Count points ``start`` … ``stop`` − 1 of the positions ``flat`` into ``hist`` (:func:`count`'s: bin + 1, 0
+    none) and ``valid`` block by block (:func:`count_block`; ``scratch``: a block's bins). Returns the bits of their
+    largest x² + y² + z²."""
+    part = np.zeros(4 * hist.shape[0], np.int64)
+    largest = 0
+    for first in range(start, stop, BLOCK):
+        largest = max(largest, count_block(flat, first, min(first + BLOCK, stop), inv_bin, scratch, valid, part))
+    fold_parts(part, hist)
+    return largest
+
+
+@jit
+def _count_rows(flat, rows, inv_bin, hist, valid):       # pragma: no cover - compiled
     """Count the points ``rows`` of the positions ``flat`` into ``hist`` (:func:`count`'s: bin + 1, 0 none) and
-    ``valid`` as :func:`_bin_points` does; ``zeroed``: each was counted before as a point of zeros. Returns the bits
-    of their largest x² + y² + z²."""
+    ``valid`` as :func:`_bin_points` does, each counted before as a point of zeros. Returns the bits of their
+    largest x² + y² + z²."""
     largest, last = 0, float(hist.shape[0] - 2)
     for r in rows:
         k = np.uint64(3 * r)
@@ -258,8 +278,7 @@ def _count_rows(flat, rows, inv_bin, hist, valid, zeroed):       # pragma: no co
         r2 = x * x + y * y + z * z
         ok = (r2 > 0.0) & (r2 <= _LARGEST)
         b = math.sqrt(r2) * inv_bin
-        if zeroed:
-            hist[0] -= 1
+        hist[0] -= 1
         hist[(np.int32(b if b < last else last) + np.int32(1)) if ok else np.int32(0)] += 1
         valid[r] = ok
         largest = max(largest, _bits(r2) if ok else 0)
