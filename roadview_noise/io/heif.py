@@ -29,7 +29,7 @@ FORMATS = {".heic": "heif", ".heif": "heif", ".avif": "avif"}
 QUALITY = 90                      # the output's encoder quality (0–100): the input's is not recorded
 EXTRA = "pip install 'roadview_noise[heif]' (make install installs it)"
 _PIL_FORMAT = {"heif": "HEIF", "avif": "AVIF"}
-_MODES = {"RGB": "RGB", "RGBA": "RGBA", "L": "L", "LA": "RGBA", "P": "RGBA", "I;16": "RGB"}
+_MODES = {"RGB": "RGB", "RGBA": "RGBA", "L": "L", "LA": "RGBA", "P": "RGBA"}   # 16-bit grey: refused, not clipped
 
 
 @lru_cache(maxsize=2)
@@ -77,7 +77,7 @@ def decode(data: bytes, fmt: str, source) -> tuple[np.ndarray, bytes | None, byt
             im.load()
             mode = _MODES.get(im.mode)
             if mode is None:
-                raise InputError(f"a {fmt.upper()} image of mode {im.mode}: rvnoise reads RGB, RGBA and grey",
+                raise InputError(f"a {fmt.upper()} image of mode {im.mode}: rvnoise reads 8-bit RGB, RGBA and grey",
                                  file=str(source))
             codes = np.asarray(im if im.mode == mode else im.convert(mode))
             icc, exif = im.info.get("icc_profile") or None, im.info.get("exif") or None

@@ -123,3 +123,13 @@ def test_not_a_heif_file_is_refused_by_name(tmp_path):
     path.write_bytes(_file("HEIF", _photo())[:300])
     with pytest.raises(InputError, match="cannot decode this HEIF file"):
         read_image(path)
+
+
+def test_a_16_bit_grey_heif_is_refused_not_clipped(tmp_path):
+    """pillow-heif reads a 16-bit grey HEIF as mode I;16, which Pillow's convert would clip to 255: refused."""
+    buf = io.BytesIO()
+    Image.fromarray((np.arange(64 * 64, dtype=np.uint16).reshape(64, 64) * 16)).save(buf, format="HEIF", quality=-1)
+    path = tmp_path / "grey16.heic"
+    path.write_bytes(buf.getvalue())
+    with pytest.raises(InputError, match="mode I;16: rvnoise reads 8-bit"):
+        read_image(path)
