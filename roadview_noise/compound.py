@@ -152,6 +152,22 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def apply_step(model: Model, data: SensorData, given: SensorData, *, seed: int, key: str, step: int,
+               sequence_id: str, sensor: tuple = ()) -> tuple[SensorData, dict, dict, dict]:
+    """One model on one input: (output, sequence state, frame values, diagnostics). The state is drawn from
+    ``derive_rng(seed, "sequence", sequence_id, model.id, *sensor)`` and ``data``, the frame's values and the model's
+    own draws from ``derive_rng(seed, key, step, model.id, *sensor)``; ``given`` is what the model applies to
+    (:func:`provenance.step_input` of ``data``); ``sensor``: a sensor's name in a sweep of several
+    (:mod:`.sensor_rig`)."""
+    state = {}
+    if model.scope == Scope.SEQUENCE:
+        state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id, *sensor), data)
+    rng = derive_rng(seed, key, step, model.id, *sensor) if model.uses_frame_rng else None
+    drawn = model.draw(rng, data)
+    out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
+    return out, state, drawn, diagnostics
+
+
 def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: str,
                  sequence_id: str, metrics: bool = True,
                  deferred: Deferred | None = None) -> tuple[SensorData, list[StepRecord]]:
@@ -193,12 +209,8 @@ def apply_models(models: Sequence[Model], data: SensorData, *, seed: int, key: s
             out, state, drawn, diagnostics = apply_per_sensor(model, given, seed=seed, key=key, step=i,
                                                               sequence_id=sequence_id)
         else:
-            state = {}
-            if model.scope == Scope.SEQUENCE:
-                state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id), data)
-            rng = derive_rng(seed, key, i, model.id) if model.uses_frame_rng else None
-            drawn = model.draw(rng, data)
-            out, diagnostics = model.apply(given, state=state, drawn=drawn, rng=rng)
+            out, state, drawn, diagnostics = apply_step(model, data, given, seed=seed, key=key, step=i,
+                                                        sequence_id=sequence_id)
         before, data = data, follow(data, out, model, state=state, drawn=drawn, step=i)
         records.append(StepRecord(model.id, model.params(), state, drawn, diagnostics, time.perf_counter() - t0,
                                   pending.compare(before, data, out, linked=len(models) > 1) if metrics else {}))

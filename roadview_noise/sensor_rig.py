@@ -28,7 +28,6 @@ import numpy as np
 from .physics.firing_time import TIME_FIELD
 from .physics.lidar_geometry import RING
 from .provenance import KEPT, NEW
-from .seeding import derive_rng
 from .types import PointCloud, SensorMount
 
 
@@ -160,18 +159,14 @@ def apply_per_sensor(model, given: PointCloud, *, seed: int, key: str, step: int
                      sequence_id: str) -> tuple[PointCloud, dict, dict, dict]:
     """One chain step on a merged sweep, sensor by sensor (module doc): (the merged output, the drawn sequence state
     and frame values per sensor, the diagnostics)."""
-    from .model import Scope
+    from .compound import apply_step
 
     parts = split(given)
     outputs, states, drawn, diagnostics = [], {}, {}, {}
     for part in parts:
         name = part.mount.name
-        state = {}
-        if model.scope == Scope.SEQUENCE:
-            state = model.draw_sequence(derive_rng(seed, "sequence", sequence_id, model.id, name), part.cloud)
-        rng = derive_rng(seed, key, step, model.id, name) if model.uses_frame_rng else None
-        values = model.draw(rng, part.cloud)
-        out, diagnostics[name] = model.apply(part.cloud, state=state, drawn=values, rng=rng)
+        out, state, values, diagnostics[name] = apply_step(model, part.cloud, part.cloud, seed=seed, key=key,
+                                                           step=step, sequence_id=sequence_id, sensor=(name,))
         diagnostics[name] = {**diagnostics[name], "sensor_frame": f"{name} of {part.mount.source}"}
         outputs.append(out)
         if state:
