@@ -124,10 +124,12 @@ def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: An
         quality = frame.encoding.webp_quality
         notes["webp_quality"] = {"value": "lossless", "from": "input (a VP8L bitstream)"} if quality is None else \
             {"value": quality, "from": "input (estimated from its VP8 quantiser indices)"}
+    codec_warnings: list[str] = []
     if isinstance(frame, CameraFrame) and frame.encoding.fmt in ("heif", "avif"):
-        from .io.heif import QUALITY
+        from .io.heif import notes as heif_notes
 
-        notes["heif_quality"] = {"value": QUALITY, "from": "rvnoise's default (the file records no quality)"}
+        heif_written, codec_warnings = heif_notes(frame.encoding)
+        notes.update(heif_written)
     geometry = _Geometry(origin, recipe, w, h, turn)
     if needs_camera_geometry(recipe):
         geometry.profile                                    # resolved now: a step of the chain uses it
@@ -138,7 +140,7 @@ def with_camera_inputs(frame: CameraFrame | RawFrame, recipe: Recipe, origin: An
         geometry.profile                                    # a depth source read the stored intrinsics: turn them
     notes.update(geometry.notes)
     warnings = geometry.warnings + _depth_warnings(notes.get("depth")) + _orientation_note(exif, turn, recipe,
-                                                                                           notes)
+                                                                                           notes) + codec_warnings
     if warnings:
         notes["warnings"] = warnings
     return dataclasses.replace(frame, profile=geometry.resolved or frame.profile, depth_m=depth, depth_valid=valid,
@@ -573,6 +575,10 @@ class InputWarnings:
                          "processed as stored (recipe inputs.orientation: stored, or an image in a bag; "
                          "inputs.orientation in the manifest): rain and snow fall and the ground-plane road lies "
                          "along the stored image, not the displayed one")
+        if "avif_8bit" in n:
+            lines.append(f"{n['avif_8bit']} AVIF file(s) of 10 or 12 bits per sample read and written at 8 bits: "
+                         "Pillow's AVIF plugin decodes and encodes 8 bits (inputs.heif_bit_depth in the manifest); "
+                         "convert them to 16-bit PNG or TIFF, or to HEIF, to keep their depth")
         if "untagged_16bit" in n:
             lines.append(f"{n['untagged_16bit']} 16-bit image(s) state no transfer function (no gAMA, sRGB, iCCP or "
                          "cICP chunk, no ICC profile): read as sRGB; machine-vision and raw-converted 16-bit images "

@@ -26,7 +26,7 @@ from .walk import Matcher, WalkFailure, walk
 
 DEFAULT_GLOBS = {
     "camera": ["**/*.png", "**/*.jpg", "**/*.jpeg", "**/*.tif", "**/*.tiff", "**/*.webp", "**/*.heic", "**/*.heif",
-               "**/*.avif"],
+               "**/*.hif", "**/*.avif"],
     "raw": ["**/*.dng", "**/*.raw"],
     "lidar": ["**/*.pcd", "**/*.bin", "**/*.ply"],
     "radar": ["**/*.pcd", "**/*.bin"],

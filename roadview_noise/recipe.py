@@ -157,8 +157,8 @@ class InputsSpec(_Strict):
             suffix = glob.rsplit(".", 1)[-1].lower() if "." in glob.rsplit("/", 1)[-1] else ""
             if suffix in PHOTO_SUFFIXES_NOT_READ:
                 raise ValueError(f"camera: {glob!r} names .{suffix} files, which rvnoise does not read (camera "
-                                 "images: .png .jpg .jpeg .tif .tiff .webp .heic .heif .avif .exr); convert them to "
-                                 "PNG or JPEG first")
+                                 "images: .png .jpg .jpeg .tif .tiff .webp .heic .heif .hif .avif .exr); convert them "
+                                 "to PNG or JPEG first")
             why = _photo_codec_missing(suffix)
             if why:
                 raise ValueError(f"camera: {glob!r}: {why}")

@@ -216,7 +216,9 @@ class ImageEncoding:
     exif: bytes | None = None          # EXIF (TIFF-structured, orientation included) of the file, written back unchanged
     jpeg_sampling: int | None = None   # JPEG chroma subsampling as OpenCV's IMWRITE_JPEG_SAMPLING_FACTOR code
     jpeg_progressive: bool = False     # JPEG: progressive (SOF2) rather than baseline
-    metadata: tuple = ()               # the file's PNG ancillary chunks, TIFF tags or JPEG JFIF density (io/image_metadata)
+    # the file's PNG ancillary chunks, TIFF tags or JPEG JFIF density (io/image_metadata); HEIF/AVIF: its settings
+    # as (name, value) pairs: bit depth, chroma, nclx, XMP (io/heif)
+    metadata: tuple = ()
     tiff_associated_alpha: bool = False   # TIFF: its alpha is associated (colours premultiplied), written so
     webp_quality: int | None = None       # WebP: the lossy quality (1–100) written, None: lossless
 

@@ -97,10 +97,10 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
     (:func:`.image_metadata.stated_transfer`) or, stating nothing, ``untagged_transfer`` says so (a JPEG or WebP is
     sRGB)."""
     check_structure(data, fmt, source)
-    if fmt in ("heif", "avif"):                     # by Pillow (io/heif.py): codes as stored, ICC, EXIF
-        codes, icc, exif = heif.decode(data, fmt, source)
+    if fmt in ("heif", "avif"):                     # io/heif.py: codes as stored, ICC, EXIF, the file's settings
+        codes, icc, exif, settings = heif.decode(data, fmt, source)
         linear, encoding, alpha = image_from_codes(codes, fmt, source=source, icc=icc)
-        return linear, dataclasses.replace(encoding, exif=exif), alpha
+        return linear, dataclasses.replace(encoding, exif=exif, metadata=settings), alpha
     if fmt == "tiff":                               # the first page's directory, parsed once
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
             page = tif.pages[0]
@@ -342,7 +342,7 @@ def encode_codes(codes: np.ndarray, encoding: ImageEncoding, *, name: str = "ima
     if encoding.fmt == "webp":
         return _encode_webp(codes, encoding, name)
     if encoding.fmt in ("heif", "avif"):
-        return heif.encode(codes, encoding.fmt, encoding.icc_profile, encoding.exif, name)
+        return heif.encode(codes, encoding.fmt, encoding.icc_profile, encoding.exif, encoding.metadata, name)
     if encoding.fmt not in ("png", "jpeg"):
         raise ValueError(f"{name}: {encoding.fmt} images are written to files only (write_image)")
     if encoding.fmt == "png":
