@@ -195,7 +195,7 @@ def test_a_grey_heif_is_read_and_written_grey_at_its_depth(tmp_path, bits):
 
 def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path):
     """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9), 4:2:2 as Canon's .HIF: written tagged so."""
-    path, out = tmp_path / "IMG_0001.HIF".lower(), tmp_path / "out.hif"
+    path, out = tmp_path / "IMG_0001.HIF", tmp_path / "out.HIF"
     path.write_bytes(_heif(_ramp(10), 10, chroma=422, color_primaries=9, transfer_characteristics=18,
                            matrix_coefficients=9))
     linear, encoding, _ = read_image(path)
