@@ -579,6 +579,10 @@ class InputWarnings:
             lines.append(f"{n['avif_8bit']} AVIF file(s) of 10 or 12 bits per sample read and written at 8 bits: "
                          "Pillow's AVIF plugin decodes and encodes 8 bits (inputs.heif_bit_depth in the manifest); "
                          "convert them to 16-bit PNG or TIFF, or to HEIF, to keep their depth")
+        if "hdr_transfer_as_srgb" in n:
+            lines.append(f"{n['hdr_transfer_as_srgb']} HEIF file(s) state a BT.2100 PQ or HLG transfer (nclx) and "
+                         "were read as sRGB: the models saw radiance decoded with the wrong curve (inputs.transfer "
+                         "in the manifest); the output keeps the file's tag")
         if "untagged_16bit" in n:
             lines.append(f"{n['untagged_16bit']} 16-bit image(s) state no transfer function (no gAMA, sRGB, iCCP or "
                          "cICP chunk, no ICC profile): read as sRGB; machine-vision and raw-converted 16-bit images "

@@ -196,11 +196,14 @@ def test_a_grey_heif_is_read_and_written_grey_at_its_depth(tmp_path, bits):
 
 
 def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path):
-    """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9), 4:2:2 as Canon's .HIF: written tagged so."""
+    """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9), 4:2:2 as Canon's .HIF: written tagged so,
+    its codes read as sRGB with a warning."""
     path, out = tmp_path / "IMG_0001.HIF", tmp_path / "out.HIF"
     path.write_bytes(_heif(_ramp(10), 10, chroma=422, color_primaries=9, transfer_characteristics=18,
                            matrix_coefficients=9))
     linear, encoding, _ = read_image(path)
+    written, warnings = heif.notes(encoding)
+    assert warnings == ["hdr_transfer_as_srgb"] and written["transfer"]["file"] == "BT.2100 HLG (nclx transfer 18)"
     write_image(out, linear, encoding)
     _, info = _heif_codes(out)
     assert info["chroma"] == 422 and info["bit_depth"] == 10
@@ -295,15 +298,25 @@ def test_codes_that_cannot_be_written_at_the_heif_s_depth_are_refused_by_name(tm
         write_image(tmp_path / "x.heic", np.full((8, 8, 3), 0.5, np.float32), encoding)
 
 
-def test_a_run_records_the_depth_and_chroma_written(tmp_path):
+def test_a_run_records_the_depth_and_chroma_written_and_warns_of_an_hdr_transfer(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
     (src / "C0001.heif").write_bytes(_heif(_ramp(10), 10, chroma=422))
+    (src / "C0002.heif").write_bytes(_heif(_ramp(12), 12, transfer_characteristics=16))     # PQ
     recipe = parse_recipe({"chain": [{"model": "rain.camera"}], "seed": 3,
                            "inputs": {"camera": "*.heif", "depth_source": "ground_plane"}})
-    assert run(recipe, src, tmp_path / "out", progress=False, echo=lambda *_: None, workers=1).failed == 0
-    entry = json.loads((tmp_path / "out/manifest.jsonl").read_text().splitlines()[0])
-    assert entry["inputs"]["heif_bit_depth"] == {"value": 10, "file": 10, "from": "the file"}
-    assert entry["inputs"]["heif_chroma"] == {"value": "4:2:2", "from": "the file"}
+    lines = []
+    assert run(recipe, src, tmp_path / "out", progress=False, echo=lines.append, workers=1).failed == 0
+    notes = {json.loads(e)["input"]: json.loads(e)["inputs"]
+             for e in (tmp_path / "out/manifest.jsonl").read_text().splitlines()}
+    assert notes["C0001.heif"]["heif_bit_depth"] == {"value": 10, "file": 10, "from": "the file"}
+    assert notes["C0001.heif"]["heif_chroma"] == {"value": "4:2:2", "from": "the file"}
+    assert "transfer" not in notes["C0001.heif"] and "hdr_transfer_as_srgb" not in notes["C0001.heif"]["warnings"]
+    assert notes["C0002.heif"]["heif_bit_depth"]["value"] == 12 and notes["C0002.heif"]["heif_chroma"]["value"] \
+        == "4:2:0"
+    assert "hdr_transfer_as_srgb" in notes["C0002.heif"]["warnings"]
+    assert sum("1 HEIF file(s) state a BT.2100 PQ or HLG transfer" in line for line in lines) == 1
     _, info = _heif_codes(tmp_path / "out/C0001.heif")
     assert info["bit_depth"] == 10 and info["chroma"] == 422
+    _, info = _heif_codes(tmp_path / "out/C0002.heif")
+    assert info["bit_depth"] == 12 and info["nclx_profile"]["transfer_characteristics"] == 16
