@@ -82,12 +82,27 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe,
 
 
 def _transfer_note(encoding, untagged: str | None) -> dict:
-    """``transfer`` of an integer PNG/TIFF when it is not the plain sRGB of a file that says so: linear as the file
-    states it; for a file that states none, the recipe's ``untagged_transfer``, or sRGB by default for a 16-bit file
-    (then warned: ``untagged_16bit``). 8-bit files that state nothing are the web's sRGB and get no note."""
-    from .io.image_metadata import stated_transfer
+    """``transfer`` of an integer PNG/TIFF/HEIF when it is not the plain sRGB of a file that says so: BT.2100 PQ or
+    HLG (with the scale of the linear values) or linear as the file states it; a ``cICP``/``nclx`` transfer rvnoise
+    does not decode, read as sRGB (warned: ``transfer_read_as_srgb``); for a PNG/TIFF that states none, the
+    recipe's ``untagged_transfer``, or sRGB by default for a 16-bit file (then warned: ``untagged_16bit``). 8-bit
+    files that state nothing are the web's sRGB and get no note."""
+    from .io.image_metadata import CICP_TRANSFER_NAMES, cicp_transfer, stated_transfer, unread_transfer
+    from .physics import bt2100
 
-    if encoding.fmt not in ("png", "tiff") or encoding.bit_depth > 16:
+    if encoding.fmt not in ("png", "tiff", "heif") or encoding.bit_depth > 16:
+        return {}
+    code = cicp_transfer(encoding.fmt, encoding.metadata)
+    stated_by = f"the file ({'PNG cICP' if encoding.fmt == 'png' else 'HEIF nclx'} transfer {code})"
+    if encoding.transfer in bt2100.CURVES:
+        return {"transfer": {"value": encoding.transfer, "scale": bt2100.SCALES[encoding.transfer],
+                             "from": stated_by}}
+    if unread_transfer(encoding.fmt, encoding.metadata) is not None:
+        return {"transfer": {"value": "srgb", "file": f"{CICP_TRANSFER_NAMES.get(code, 'reserved')} ({stated_by})",
+                             "from": "rvnoise decodes linear, sRGB, BT.2100 PQ and HLG only: read as sRGB, "
+                                     "written back with the file's tag"},
+                "warnings": ["transfer_read_as_srgb"]}
+    if encoding.fmt == "heif":
         return {}
     stated = stated_transfer(encoding.fmt, encoding.metadata, encoding.icc_profile)
     if stated is not None:
@@ -579,10 +594,11 @@ class InputWarnings:
             lines.append(f"{n['avif_8bit']} AVIF file(s) of 10 or 12 bits per sample read and written at 8 bits: "
                          "Pillow's AVIF plugin decodes and encodes 8 bits (inputs.heif_bit_depth in the manifest); "
                          "convert them to 16-bit PNG or TIFF, or to HEIF, to keep their depth")
-        if "hdr_transfer_as_srgb" in n:
-            lines.append(f"{n['hdr_transfer_as_srgb']} HEIF file(s) state a BT.2100 PQ or HLG transfer (nclx) and "
-                         "were read as sRGB: the models saw radiance decoded with the wrong curve (inputs.transfer "
-                         "in the manifest); the output keeps the file's tag")
+        if "transfer_read_as_srgb" in n:
+            lines.append(f"{n['transfer_read_as_srgb']} PNG/HEIF file(s) state a transfer function (cICP/nclx) "
+                         "rvnoise does not decode (it decodes linear, sRGB, BT.2100 PQ and HLG) and were read as "
+                         "sRGB: the models saw radiance decoded with another curve (inputs.transfer in the "
+                         "manifest); the output keeps the file's tag")
         if "untagged_16bit" in n:
             lines.append(f"{n['untagged_16bit']} 16-bit image(s) state no transfer function (no gAMA, sRGB, iCCP or "
                          "cICP chunk, no ICC profile): read as sRGB; machine-vision and raw-converted 16-bit images "

@@ -14,8 +14,9 @@ wheels) for ``.avif``.
   8 bits only: a 10/12-bit AVIF (the depth its ``av1C`` box states) is read and written at 8 bits, and
   :func:`notes` says so (manifest and a run's warning), never silently.
 - Kept from the input: the chroma subsampling (HEIF: libheif's ``chroma``; AVIF: ``av1C``), a HEIF's ``nclx``
-  colour description (primaries, transfer, matrix, range: a BT.2100 HLG file stays tagged HLG; the codes are read
-  as sRGB whatever it states), the ICC profile, the EXIF block and the XMP packet.
+  colour description (primaries, transfer, matrix, range: a BT.2100 HLG file stays tagged HLG; its transfer decodes
+  the codes as :func:`.image_metadata.stated_transfer` says: PQ, HLG, linear or sRGB), the ICC profile, the EXIF
+  block and the XMP packet.
 - Orientation as for JPEG (:mod:`roadview_noise.orientation`): the pixels as stored with the EXIF orientation
   the file's ``irot``/``imir`` transforms state. Pillow's AVIF plugin reads them so; libheif applies the
   transforms, and pillow-heif's ``set_orientation`` sets the EXIF tag to 1 and drops an XMP ``tiff:Orientation``
@@ -48,7 +49,6 @@ _PIL_MODES = {"RGB": "RGB", "RGBA": "RGBA", "L": "L", "LA": "RGBA", "P": "RGBA"}
 _NCLX = ("color_primaries", "transfer_characteristics", "matrix_coefficients", "full_range_flag")
 _AVIF_CHROMA = {(1, 1): 420, (1, 0): 422, (0, 0): 444}        # av1C (subsampling x, y) → chroma
 _SUBSAMPLING = {420: "4:2:0", 422: "4:2:2", 444: "4:4:4"}
-_HDR_TRANSFERS = {16: "BT.2100 PQ", 18: "BT.2100 HLG"}        # nclx transfer_characteristics (H.273 Table 3)
 
 
 @lru_cache(maxsize=2)
@@ -188,9 +188,8 @@ def _encode_heif(pillow_heif, codes: np.ndarray, bits: int, kept: dict, extra: d
 
 
 def notes(encoding) -> tuple[dict, list[str]]:
-    """The manifest's ``inputs`` notes of a HEIF or AVIF frame (quality, bit depth and chroma written; the transfer
-    of a file that states an HDR one) and its warnings: ``avif_8bit`` when a 10/12-bit AVIF is written at 8 bits,
-    ``hdr_transfer_as_srgb`` when a HEIF's ``nclx`` states BT.2100 PQ or HLG, whose codes are read as sRGB."""
+    """The manifest's ``inputs`` notes of a HEIF or AVIF frame (quality, bit depth and chroma written) and its
+    warnings: ``avif_8bit`` when a 10/12-bit AVIF is written at 8 bits (the transfer: ``camera_inputs``)."""
     kept = dict(encoding.metadata)
     bits, written = int(kept.get("bit_depth", 8)), written_bits(encoding.fmt, kept)
     out = {"heif_quality": {"value": QUALITY, "from": "rvnoise's default (the file records no quality)"},
@@ -198,13 +197,7 @@ def notes(encoding) -> tuple[dict, list[str]]:
                               "from": "the file" if written == bits else "Pillow's AVIF plugin codes 8 bits"}}
     if "chroma" in kept and encoding.channels != 1:
         out["heif_chroma"] = {"value": _SUBSAMPLING[kept["chroma"]], "from": "the file"}
-    warnings = ["avif_8bit"] if written < bits else []
-    transfer = kept.get("nclx", (0, 0))[1]
-    if transfer in _HDR_TRANSFERS:
-        out["transfer"] = {"value": "srgb", "file": f"{_HDR_TRANSFERS[transfer]} (nclx transfer {transfer})",
-                           "from": "rvnoise reads HEIF codes as sRGB; written back with the file's codes and tag"}
-        warnings.append("hdr_transfer_as_srgb")
-    return out, warnings
+    return out, ["avif_8bit"] if written < bits else []
 
 
 def av1_layout(data: bytes) -> tuple[int, int | None]:

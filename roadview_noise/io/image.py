@@ -4,8 +4,10 @@ WebP (:mod:`.webp`), HEIF and AVIF (:mod:`.heif`, an optional extra) ↔ linear 
 Decoding with OpenCV (``IMREAD_UNCHANGED``: no EXIF rotation, no bit-depth reduction) — the common PNG kinds (8/16-bit
 grey, RGB, RGBA) by :mod:`.png`, which gives OpenCV's pixels in half its time; BGR ↔ RGB and sRGB ↔ linear
 happen here and nowhere else (the sRGB arithmetic itself is ``physics/srgb.py``). 8/16-bit files are sRGB encoded
-(IEC 61966-2-1); float32 TIFF and EXR are linear and are written back unclipped (HDR stays HDR), EXR with the same
-half/float channel type. 1.0 is the full scale of the encoding. Grey files are replicated to three channels and
+(IEC 61966-2-1) unless they state linear, BT.2100 PQ or HLG (:func:`.image_metadata.stated_transfer`;
+``physics/bt2100.py``, reference white at 1.0, highlights above it kept up to the curve's peak); float32 TIFF and
+EXR are linear and are written back unclipped (HDR stays HDR), EXR with the same half/float channel type. 1.0 is
+the full scale of the encoding (of a PQ/HLG one: reference white). Grey files are replicated to three channels and
 written back as Rec. 709 luminance Y = 0.2126 R + 0.7152 G + 0.0722 B of the linear RGB (identity for equal
 channels).
 
@@ -39,7 +41,7 @@ import tifffile
 
 from .. import luminance
 from ..errors import InputError
-from ..physics import srgb
+from ..physics import bt2100, srgb
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
 from . import heif, image_metadata, webp
@@ -99,7 +101,8 @@ def decode_image(data: bytes, fmt: str, *, source, untagged_transfer: str = "srg
     check_structure(data, fmt, source)
     if fmt in ("heif", "avif"):                     # io/heif.py: codes as stored, ICC, EXIF, the file's settings
         codes, icc, exif, settings = heif.decode(data, fmt, source)
-        linear, encoding, alpha = image_from_codes(codes, fmt, source=source, icc=icc)
+        linear, encoding, alpha = image_from_codes(codes, fmt, source=source, icc=icc,
+                                                   transfer=image_metadata.stated_transfer(fmt, settings, icc))
         return linear, dataclasses.replace(encoding, exif=exif, metadata=settings), alpha
     if fmt == "tiff":                               # the first page's directory, parsed once
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
@@ -239,8 +242,9 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
                      icc: bytes | None = None, transfer: str = "srgb"
                      ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
     """Linear RGB, encoding and alpha of code values — grey (H, W) or RGB(A) (H, W, C); uint8/uint16 with the
-    ``transfer`` function (``srgb`` or ``linear``: code / full scale), or float32 linear for TIFF — stored as
-    ``fmt`` (also the pixels of a ROS Image)."""
+    ``transfer`` function (``srgb``; ``linear``: code / full scale; ``pq`` or ``hlg``: BT.2100, reference white
+    1.0, :mod:`..physics.bt2100`), or float32 linear for TIFF — stored as ``fmt`` (also the pixels of a ROS
+    Image)."""
     if codes.dtype == np.uint8 or codes.dtype == np.uint16:
         bit_depth = 8 * codes.dtype.itemsize
     elif codes.dtype == np.float32 and fmt == "tiff":
@@ -255,6 +259,8 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
     rgb = codes if channels == 1 else codes[..., :3]
     if transfer == "srgb":
         linear = srgb.code_to_linear(rgb, bit_depth)
+    elif transfer in bt2100.CURVES:
+        linear = bt2100.code_to_linear(rgb, transfer, bit_depth)
     elif bit_depth == 32:
         linear = rgb.astype(np.float32)
     else:
@@ -648,7 +654,8 @@ def display_srgb(linear: np.ndarray) -> np.ndarray:
 
 
 def encode_pixels(linear: np.ndarray, encoding: ImageEncoding, *, bgr: bool = True) -> np.ndarray:
-    """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped, rounded) or float32 (linear TIFF); sRGB
+    """Code values of linear pixels for ``encoding``: uint8/uint16 (clipped to the full code: 1.0, a BT.2100 curve's
+    peak; rounded) or float32 (linear TIFF); sRGB
     colour codes are the RGB view of an array in OpenCV's BGR order (``bgr``), written so by one compiled pass, or a
     plain RGB array (the PNG and TIFF writers: no reorder before the encoder, 1.6–2 ms less a 1936×1464 frame)."""
     if encoding.bit_depth == 32:
@@ -660,6 +667,8 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding, *, bgr: bool = Tr
             # the RGB view of BGR codes: bgr_order hands their storage to OpenCV as it is
             return srgb.linear_to_code(linear, encoding.bit_depth, bgr=True)[..., ::-1]
         return srgb.linear_to_code(linear, encoding.bit_depth)
+    if encoding.transfer in bt2100.CURVES:                  # RGB order whatever ``bgr`` (never JPEG or WebP)
+        return bt2100.linear_to_code(linear, encoding.transfer, encoding.bit_depth)
     if encoding.transfer == "linear" and encoding.bit_depth in (8, 16):
         full = 2 ** encoding.bit_depth - 1
         dtype = np.uint8 if encoding.bit_depth == 8 else np.uint16

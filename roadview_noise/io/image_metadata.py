@@ -180,20 +180,45 @@ def tiff_orientation(metadata: tuple) -> int:
 
 
 _PNG_GAMMA_LINEAR = 100000                  # gAMA of 1.0 (the chunk stores 100 000 × the encoding's exponent)
-_CICP_LINEAR = 8                            # cICP transfer characteristics 8: linear (ITU-T H.273 Table 3)
+#: H.273 (ITU-T H.273 Table 3) transfer characteristics rvnoise decodes as stated: PNG cICP, HEIF nclx
+CICP_TRANSFERS = {8: "linear", 13: "srgb", 16: "pq", 18: "hlg"}
+_CICP_UNSPECIFIED = 2
+CICP_TRANSFER_NAMES = {1: "BT.709", 4: "gamma 2.2", 5: "gamma 2.8", 6: "BT.601", 7: "SMPTE 240M", 8: "linear",
+                       9: "log 100:1", 10: "log 316:1", 11: "IEC 61966-2-4", 12: "BT.1361", 13: "sRGB",
+                       14: "BT.2020 10-bit", 15: "BT.2020 12-bit", 16: "BT.2100 PQ", 17: "SMPTE ST 428",
+                       18: "BT.2100 HLG"}
 
 
 def stated_transfer(fmt: str, metadata: tuple, icc: bytes | None) -> str | None:
-    """The transfer function of integer codes as the file states it: ``linear`` for a PNG ``cICP`` of transfer 8 or,
-    with no ``cICP``, ``iCCP`` or ``sRGB`` above it (PNG 3rd ed. §4.3's precedence), a ``gAMA`` of 1.0; ``srgb``
-    for any other statement (``sRGB``, ``gAMA``, ``cICP``, an ICC profile: read as sRGB, not colour-managed); None
-    when a PNG or TIFF states none — the PNG spec leaves that to the reader ("choose a likely default … but allow
-    the user to select a new one", PNG 1.2 §10.5): ``inputs.untagged_transfer``."""
+    """The transfer function of integer codes as the file states it: ``linear``, ``srgb``, ``pq`` or ``hlg`` for a
+    PNG ``cICP`` or HEIF ``nclx`` of transfer 8, 13, 16 or 18 (:data:`CICP_TRANSFERS`); ``linear`` for a PNG
+    ``gAMA`` of 1.0 with no ``cICP``, ``iCCP`` or ``sRGB`` above it (PNG 3rd ed. §4.3's precedence); ``srgb``
+    for any other statement (``sRGB``, ``gAMA``, another ``cICP``/``nclx`` transfer — :func:`unread_transfer` —,
+    an ICC profile: read as sRGB, not colour-managed); None when a PNG or TIFF states none — the PNG spec leaves
+    that to the reader ("choose a likely default … but allow the user to select a new one", PNG 1.2 §10.5):
+    ``inputs.untagged_transfer``."""
+    code = cicp_transfer(fmt, metadata)
+    if code is not None:
+        return CICP_TRANSFERS.get(code, "srgb")
     chunks = {c[4:8]: c[8:-4] for c in metadata} if fmt == "png" else {}
-    if b"cICP" in chunks:
-        return "linear" if chunks[b"cICP"][1:2] == bytes([_CICP_LINEAR]) else "srgb"
-    if icc is not None or b"sRGB" in chunks:
+    if icc is not None or b"sRGB" in chunks or fmt in ("heif", "avif"):
         return "srgb"
     if b"gAMA" in chunks:
         return "linear" if int.from_bytes(chunks[b"gAMA"], "big") == _PNG_GAMMA_LINEAR else "srgb"
     return None
+
+
+def cicp_transfer(fmt: str, metadata: tuple) -> int | None:
+    """The H.273 transfer characteristics a PNG's ``cICP`` chunk or a HEIF's ``nclx`` (:mod:`.heif` settings)
+    states, None without."""
+    if fmt == "png":
+        return next((c[9] for c in metadata if c[4:8] == b"cICP" and len(c) == 16), None)
+    return dict(metadata).get("nclx", (None, None))[1] if fmt == "heif" else None
+
+
+def unread_transfer(fmt: str, metadata: tuple) -> int | None:
+    """The H.273 transfer a PNG ``cICP`` or HEIF ``nclx`` states that rvnoise does not decode (BT.709, gamma 2.2,
+    log, …; :data:`CICP_TRANSFERS` are decoded, 2 is "unspecified"): its codes are read as sRGB, which a warning
+    says; None otherwise."""
+    code = cicp_transfer(fmt, metadata)
+    return code if code not in (None, _CICP_UNSPECIFIED, *CICP_TRANSFERS) else None

@@ -37,6 +37,7 @@ LINEAR_THRESHOLD = 0.0031308    # linear value where the power segment starts
 ENCODED_THRESHOLD = 0.04045     # the same point on the encoded axis (12.92 · 0.0031308)
 _SHIFT8, _SHIFT16 = 12, 8        # float32 bits below the bucket index of 8- and 16-bit linear → code
 _ONE_BITS = 0x3F800000          # float32 1.0
+_SRGB16_TOP = (np.uint32(_ONE_BITS), np.uint16(65535))     # top of 16-bit sRGB's bucket table: 1.0 → 65 535
 _INF_BITS = 0x7F800000          # float32 +inf; larger patterns are NaN, ≥ 2³¹ negative
 _PAIR_SHIFTS = (0, 32) if sys.byteorder == "little" else (32, 0)   # 1st and 2nd float32 of a uint64
 _BYTE_SHIFTS = (0, 8, 16, 24) if sys.byteorder == "little" else (24, 16, 8, 0)   # bytes 0–3 of a uint32
@@ -68,11 +69,12 @@ def _uint_dtype(bits: int) -> type:
 # --- linear → code ---------------------------------------------------------------------------------------------------
 
 
-def _decision_levels(bits: int) -> np.ndarray:
-    """The float32 bit patterns of the decision levels T_0 … T_{M−1}, each rounded up to a float32 (so that
-    v ≥ T ⇔ v ≥ T32 for a float32 v), followed by the pattern just above +inf (NaN)."""
+def decision_levels(bits: int, decoded=decode) -> np.ndarray:
+    """The float32 bit patterns of the decision levels T_0 … T_{M−1} of the transfer function ``decoded`` (code /
+    full scale → linear, float64), each rounded up to a float32 (so that v ≥ T ⇔ v ≥ T32 for a float32 v),
+    followed by the pattern just above +inf (NaN)."""
     full = 2 ** bits - 1
-    levels = decode((np.arange(full) + 0.5) / full)                 # float64 decision levels
+    levels = decoded((np.arange(full) + 0.5) / full)                # float64 decision levels
     levels32 = levels.astype(np.float32)
     levels32[levels32 < levels] = np.nextafter(levels32[levels32 < levels], np.float32(np.inf))
     return np.append(levels32.view(np.uint32), np.uint32(_INF_BITS + 1))
@@ -94,7 +96,7 @@ def encode8_table() -> tuple[np.ndarray, np.ndarray]:
     by 12 indexes one of 2²⁰ buckets (2 MB; negatives and NaN included). An entry < 256 is the code of the whole
     bucket; 256 + c marks a bucket that holds the decision level ``levels[c]``: the code is c + (v ≥ level). The
     bucket of +inf also holds the NaN patterns: +inf → 255, NaN → 256, which wraps to 0."""
-    levels = _decision_levels(8)
+    levels = decision_levels(8)
     code, inside = _bucket_codes(levels, _SHIFT8, 0, _INF_BITS >> _SHIFT8)     # 0 … +inf
     if inside.max() > 1:                                               # table too coarse for one comparison
         raise AssertionError("sRGB 8-bit encode table: a bucket holds two decision levels")
@@ -145,25 +147,39 @@ def _encode8_reversed_kernel(xbits, pairs, out, table, levels):
 
 @lru_cache(maxsize=1)
 def encode16_table() -> tuple[int, np.ndarray, np.ndarray]:
-    """(first bucket, code at each bucket's start, next decision level above it) of 16-bit linear → code: the bit
-    pattern shifted right by 8 indexes a bucket that holds at most one decision level (2²⁴ buckets would take 64 MB,
-    so the table starts at the bucket of T_0 / 2 and ends at 1.0)."""
-    levels = _decision_levels(16)
+    """(first bucket, code at each bucket's start, next decision level above it) of 16-bit sRGB linear → code
+    (:func:`bucket_table`, whose top is 1.0: :func:`_code16`)."""
+    return bucket_table(decision_levels(16), 1.0, "sRGB 16-bit")[:3]
+
+
+def bucket_table(levels: np.ndarray, top: float, name: str) -> tuple:
+    """(first bucket, code at each bucket's start, next decision level above it, bit pattern of ``top``, full
+    code) of linear → code for the decision ``levels`` (:func:`decision_levels`) of a transfer function whose
+    full code decodes to ``top``: the bit pattern shifted right by 8 indexes a bucket that holds at most one
+    decision level (2²⁴ buckets would take 64 MB, so the table starts at the bucket of T_0 / 2 and ends at
+    ``top``). Also the encoder of other transfer functions (``physics/bt2100.py``) and of 8-bit codes there."""
+    top_bits = int(np.float32(top).view(np.uint32))
     first = int((levels[:1].view(np.float32) / np.float32(2)).view(np.uint32)[0]) >> _SHIFT16
-    code, inside = _bucket_codes(levels, _SHIFT16, first, _ONE_BITS >> _SHIFT16)
+    code, inside = _bucket_codes(levels, _SHIFT16, first, top_bits >> _SHIFT16)
     if inside.max() > 1:                                               # table too coarse for one comparison
-        raise AssertionError("sRGB 16-bit encode table: a bucket holds two decision levels")
-    nxt = levels[code]                                                 # (the level above 65 534 is +inf + 1)
+        raise AssertionError(f"{name} encode table: a bucket holds two decision levels")
+    nxt = levels[code]                                                 # (the level above the last is +inf + 1)
     code = code.astype(np.uint16)
     code.flags.writeable = nxt.flags.writeable = False
-    return first, code, nxt
+    return first, code, nxt, np.uint32(top_bits), np.uint16(levels.size - 1)
 
 
 @jit(inline="always")
 def _code16(b, first, code, nxt_bits):
-    """16-bit code of the float32 value with bit pattern ``b`` (:func:`encode16_table`)."""
-    if b >= _ONE_BITS:                                   # ≥ 1 (or NaN / negative, sorted out here)
-        return 65535 if b <= _INF_BITS else 0
+    """16-bit sRGB code of the float32 value with bit pattern ``b`` (:func:`encode16_table`)."""
+    return _bucket_code(b, first, code, nxt_bits, _ONE_BITS, 65535)
+
+
+@jit(inline="always")
+def _bucket_code(b, first, code, nxt_bits, top_bits, full):
+    """Code of the float32 value with bit pattern ``b`` (:func:`bucket_table`)."""
+    if b >= top_bits:                                    # ≥ top (or NaN / negative, sorted out here)
+        return full if b <= _INF_BITS else 0
     n = np.int64(b >> _SHIFT16) - first                 # 0 ≤ v < 1: bit patterns sort like the values
     if n < 0:
         return 0
@@ -172,18 +188,19 @@ def _code16(b, first, code, nxt_bits):
 
 
 @jit
-def _encode16_kernel(xbits, out, first, code, nxt_bits):
-    """``out`` = 16-bit codes of the float32 values whose bit patterns are ``xbits`` (1-D, same size)."""
+def _encode16_kernel(xbits, out, first, code, nxt_bits, top_bits, full):
+    """``out`` = codes of the float32 values whose bit patterns are ``xbits`` (1-D, same size;
+    :func:`bucket_table`)."""
     for i in range(xbits.size):
-        out[i] = _code16(xbits[i], first, code, nxt_bits)
+        out[i] = _bucket_code(xbits[i], first, code, nxt_bits, top_bits, full)
 
 
 @jit
-def _encode16_reversed_kernel(xbits, out, first, code, nxt_bits):
+def _encode16_reversed_kernel(xbits, out, first, code, nxt_bits, top_bits, full):
     """As :func:`_encode16_kernel` for (N, 3) pixels, written with the channel order reversed (RGB → BGR)."""
     for p in range(xbits.shape[0]):
         for k in range(3):
-            out[p, 2 - k] = _code16(xbits[p, k], first, code, nxt_bits)
+            out[p, 2 - k] = _bucket_code(xbits[p, k], first, code, nxt_bits, top_bits, full)
 
 
 def _as_3d(a: np.ndarray) -> np.ndarray:
@@ -209,30 +226,35 @@ def reversed_rgb(a: np.ndarray) -> bool:
     return a.ndim == 3 and a.shape[2] == 3 and not a.flags.c_contiguous and a[..., ::-1].flags.c_contiguous
 
 
-def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False) -> np.ndarray:
+def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False, table: tuple | None = None
+                   ) -> np.ndarray:
     """Integer sRGB code values (uint8 or uint16) of linear radiance: clipped to [0, 1], encoded, rounded to the
     nearest code (exactly; module docstring); NaN gives 0. A new C-order array, or — for an unchanged decoded frame —
-    the read-only codes it was decoded from. ``bgr``: (H, W, 3) RGB in, C-order BGR codes out (OpenCV's order)."""
+    the read-only codes it was decoded from. ``bgr``: (H, W, 3) RGB in, C-order BGR codes out (OpenCV's order).
+    ``table``: the :func:`bucket_table` of another transfer function (``physics/bt2100.py``), clipped to [0, its
+    top] instead (no kept codes, no side pass)."""
     dtype = _uint_dtype(bits)
     if bgr and (np.ndim(linear) != 3 or np.shape(linear)[2] != 3):
         raise ValueError(f"bgr codes need (H, W, 3) RGB, got shape {np.shape(linear)}")
-    kept = attached_codes(linear, bits)
+    kept = attached_codes(linear, bits) if table is None else None
     if kept is not None:
         return bgr_order(kept) if bgr else kept
     with span("convert"):
         v = np.asarray(linear, dtype=np.float32)
         xbits = np.ascontiguousarray(v).view(np.uint32)
         out = np.empty(v.shape, dtype)
-        table = encode8_table() if bits == 8 else encode16_table()
-        if bits == 8 and side_pass is not None and side_pass.encode8(v, out, bgr):
+        eight = table is None and bits == 8             # else the bucket kernels (at the table's own depth)
+        if table is None:
+            table = encode8_table() if eight else encode16_table() + _SRGB16_TOP
+        if eight and side_pass is not None and side_pass.encode8(v, out, bgr):
             pass                                        # with the metrics' luminance (roadview_noise.luminance)
-        elif bgr and bits == 8:
+        elif bgr and eight:
             flat = xbits.reshape(-1)
             _encode8_reversed_kernel(flat, flat[:flat.size // 2 * 2].view(np.uint64), out.reshape(-1), *table)
         elif bgr:
             _encode16_reversed_kernel(xbits.reshape(-1, 3), out.reshape(-1, 3), *table)
         else:
-            (_encode8_kernel if bits == 8 else _encode16_kernel)(xbits.reshape(-1), out.reshape(-1), *table)
+            (_encode8_kernel if eight else _encode16_kernel)(xbits.reshape(-1), out.reshape(-1), *table)
     return out
 
 
@@ -304,28 +326,31 @@ def _decode_reversed_kernel(codes, table, out):
             out[p, k] = table[codes[p, 2 - k]]
 
 
-def code_to_linear(code: np.ndarray, bits: int = 8) -> np.ndarray:
+def code_to_linear(code: np.ndarray, bits: int = 8, *, table: np.ndarray | None = None) -> np.ndarray:
     """Linear radiance (float32, 0–1, C order) of integer sRGB code values, by table look-up; the result keeps
-    ``code`` (:func:`attach_codes`)."""
+    ``code`` (:func:`attach_codes`). ``table``: the 2^bits decoded values of another transfer function
+    (``physics/bt2100.py``; no kept codes, no side pass)."""
     dtype = _uint_dtype(bits)
     code = np.asarray(code)
     if code.dtype != dtype:
         raise ValueError(f"expected {np.dtype(dtype).name} code values, got {code.dtype}")
+    srgb_codes = table is None
+    table = decode_table(bits) if srgb_codes else table
     with span("convert"):
         out = np.empty(code.shape, np.float32)
-        if bits == 8 and side_pass is not None and side_pass.decode8(code, out):
+        if bits == 8 and srgb_codes and side_pass is not None and side_pass.decode8(code, out):
             pass                                        # with the metrics' luminance (roadview_noise.luminance)
         elif reversed_rgb(code):                          # OpenCV's BGR seen as RGB: read it in place
             if bits == 8:
-                _look_up_reversed(code[..., ::-1].reshape(-1), decode_table(8), out.reshape(-1))
+                _look_up_reversed(code[..., ::-1].reshape(-1), table, out.reshape(-1))
             else:
-                _decode_reversed_kernel(code[..., ::-1].reshape(-1, 3), decode_table(bits), out.reshape(-1, 3))
+                _decode_reversed_kernel(code[..., ::-1].reshape(-1, 3), table, out.reshape(-1, 3))
         elif bits == 8 and code.flags.c_contiguous:
-            _look_up(code.reshape(-1), decode_table(8), out.reshape(-1))
+            _look_up(code.reshape(-1), table, out.reshape(-1))
         else:
             src, dst = _kernel_views(code, out)
-            _decode_kernel(src, decode_table(bits), dst)
-    return attach_codes(out, code, bits)
+            _decode_kernel(src, table, dst)
+    return attach_codes(out, code, bits) if srgb_codes else out
 
 
 # --- codes kept with an unchanged frame ------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ from roadview_noise.errors import InputError, RecipeError  # noqa: E402
 from roadview_noise.io import heif  # noqa: E402
 from roadview_noise.io.image import read_image, write_image  # noqa: E402
 from roadview_noise.io.image_metadata import orientation  # noqa: E402
+from roadview_noise.physics import bt2100  # noqa: E402
 from roadview_noise.recipe import parse_recipe  # noqa: E402
 from roadview_noise.runner import run  # noqa: E402
 from roadview_noise.types import ImageEncoding  # noqa: E402
@@ -196,16 +197,21 @@ def test_a_grey_heif_is_read_and_written_grey_at_its_depth(tmp_path, bits):
 
 
 def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path):
-    """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9), 4:2:2 as Canon's .HIF: written tagged so,
-    its codes read as sRGB with a warning."""
+    """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9), 4:2:2 as Canon's .HIF: its codes decoded by
+    the HLG table (round 24; before: read as sRGB with a warning), written back tagged so with its codes."""
     path, out = tmp_path / "IMG_0001.HIF", tmp_path / "out.HIF"
     path.write_bytes(_heif(_ramp(10), 10, chroma=422, color_primaries=9, transfer_characteristics=18,
                            matrix_coefficients=9))
     linear, encoding, _ = read_image(path)
-    written, warnings = heif.notes(encoding)
-    assert warnings == ["hdr_transfer_as_srgb"] and written["transfer"]["file"] == "BT.2100 HLG (nclx transfer 18)"
+    assert encoding.transfer == "hlg" and heif.notes(encoding)[1] == []
+    before, _ = _heif_codes(path)
+    np.testing.assert_array_equal(linear, bt2100.decode_table("hlg", 16)[heif.rescaled(before, 1023, 65535)])
     write_image(out, linear, encoding)
-    _, info = _heif_codes(out)
+    direct = tmp_path / "direct.HIF"                       # the codec's own loss on the file's codes, nothing else
+    direct.write_bytes(_heif(before, 10, chroma=422, color_primaries=9, transfer_characteristics=18,
+                             matrix_coefficients=9))
+    after, info = _heif_codes(out)
+    assert np.array_equal(after, _heif_codes(direct)[0])
     assert info["chroma"] == 422 and info["bit_depth"] == 10
     assert {k: info["nclx_profile"][k] for k in ("color_primaries", "transfer_characteristics",
                                                  "matrix_coefficients")} == \
@@ -298,11 +304,12 @@ def test_codes_that_cannot_be_written_at_the_heif_s_depth_are_refused_by_name(tm
         write_image(tmp_path / "x.heic", np.full((8, 8, 3), 0.5, np.float32), encoding)
 
 
-def test_a_run_records_the_depth_and_chroma_written_and_warns_of_an_hdr_transfer(tmp_path):
+def test_a_run_records_the_depth_chroma_and_transfer_and_warns_of_a_transfer_read_as_srgb(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
     (src / "C0001.heif").write_bytes(_heif(_ramp(10), 10, chroma=422))
     (src / "C0002.heif").write_bytes(_heif(_ramp(12), 12, transfer_characteristics=16))     # PQ
+    (src / "C0003.heif").write_bytes(_heif(_ramp(10), 10, transfer_characteristics=4))      # gamma 2.2
     recipe = parse_recipe({"chain": [{"model": "rain.camera"}], "seed": 3,
                            "inputs": {"camera": "*.heif", "depth_source": "ground_plane"}})
     lines = []
@@ -311,11 +318,15 @@ def test_a_run_records_the_depth_and_chroma_written_and_warns_of_an_hdr_transfer
              for e in (tmp_path / "out/manifest.jsonl").read_text().splitlines()}
     assert notes["C0001.heif"]["heif_bit_depth"] == {"value": 10, "file": 10, "from": "the file"}
     assert notes["C0001.heif"]["heif_chroma"] == {"value": "4:2:2", "from": "the file"}
-    assert "transfer" not in notes["C0001.heif"] and "hdr_transfer_as_srgb" not in notes["C0001.heif"]["warnings"]
+    assert "transfer" not in notes["C0001.heif"] and "transfer_read_as_srgb" not in notes["C0001.heif"]["warnings"]
     assert notes["C0002.heif"]["heif_bit_depth"]["value"] == 12 and notes["C0002.heif"]["heif_chroma"]["value"] \
         == "4:2:0"
-    assert "hdr_transfer_as_srgb" in notes["C0002.heif"]["warnings"]
-    assert sum("1 HEIF file(s) state a BT.2100 PQ or HLG transfer" in line for line in lines) == 1
+    assert notes["C0002.heif"]["transfer"] == {"value": "pq", "scale": bt2100.SCALES["pq"],
+                                               "from": "the file (HEIF nclx transfer 16)"}
+    assert "transfer_read_as_srgb" not in notes["C0002.heif"]["warnings"]
+    assert notes["C0003.heif"]["transfer"]["file"] == "gamma 2.2 (the file (HEIF nclx transfer 4))"
+    assert "transfer_read_as_srgb" in notes["C0003.heif"]["warnings"]
+    assert sum("1 PNG/HEIF file(s) state a transfer function" in line for line in lines) == 1
     _, info = _heif_codes(tmp_path / "out/C0001.heif")
     assert info["bit_depth"] == 10 and info["chroma"] == 422
     _, info = _heif_codes(tmp_path / "out/C0002.heif")
