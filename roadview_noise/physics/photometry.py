@@ -91,7 +91,9 @@ def _airlight(sample: FrameSample) -> np.ndarray:
 def sky_luminance(layout: SiteLayout, signal: np.ndarray, depth_m: np.ndarray) -> float:
     """Luminance Y (BT.709 weights; on a raw mosaic the same weights on the camera's channels) of the mean sky
     radiance (sites of depth ``inf``), else — no sky in view — the mean Y of the brightest 0.1 % of the pixels with
-    a valid depth (models.md §2.1 [PROP])."""
+    a valid depth (models.md §2.1 [PROP]), each taken at most 1.0 (full scale; an HDR frame's reference white):
+    the estimate an 8-bit camera's clipped pixels give, so that on an HDR photo (PQ, HLG, EXR) a lamp or the sun
+    at 40× white is not taken for the sky (it made fog and snow 40× white)."""
     return _sky_luminance(FrameSample(layout, signal, depth_m))
 
 
@@ -99,7 +101,8 @@ def _sky_luminance(sample: FrameSample) -> float:
     sky = sample.layout.lattice_channels(sample.sites, sample.sky)
     if all(s.size >= MIN_SKY_SAMPLES for s in sky):
         return float(LUMINANCE_WEIGHTS @ np.array([s.mean(dtype=np.float64) for s in sky]))
-    y = pixel_samples(sample.layout, sample.signal, _valid_or_none(sample.depth[0])) @ LUMINANCE_WEIGHTS
+    y = np.minimum(pixel_samples(sample.layout, sample.signal, _valid_or_none(sample.depth[0])) @ LUMINANCE_WEIGHTS,
+                   1.0)
     k = max(1, math.ceil(BRIGHTEST_FRACTION * y.size))
     return float(np.partition(y, y.size - k)[y.size - k:].mean())
 

@@ -194,3 +194,19 @@ def test_models_that_assume_full_scale_1_clip_highlights_above_reference_white_a
     flat = expose(linear, dusk.settings(0.01), rng, noise=False)
     np.testing.assert_allclose(flat[bright], 1.0, atol=1e-4)                        # 1×, 3×, 49× white: saturated
     np.testing.assert_allclose(flat[~bright], 0.5, atol=1e-4)
+
+
+def test_without_a_sky_in_the_depth_a_lamp_above_white_is_not_taken_for_the_sky():
+    """The fallback sky level (the brightest 0.1 % of the pixels) takes each pixel at most at reference white, as
+    an 8-bit camera's clipped pixels give it: a lamp at 40× white in an HDR photo made the airlight 40× white."""
+    from roadview_noise.models.camera.fog import FogCamera
+
+    rng = np.random.default_rng(3)
+    linear = rng.uniform(0.05, 0.8, (40, 60, 3)).astype(np.float32)
+    linear[10:14, 20:26] = 40.0                                                   # a street lamp, 1 % of the frame
+    frame = CameraFrame(linear, nominal_profile(60, 40), depth_m=np.full((40, 60), 30.0, np.float32))
+    _, diagnostics = FogCamera().apply(frame, state=None, drawn=None, rng=None)
+    assert diagnostics["airlight"] == pytest.approx([1.0] * 3)
+    sdr = CameraFrame(linear / 50, nominal_profile(60, 40), depth_m=frame.depth_m)   # all below 1: as before
+    _, diagnostics = FogCamera().apply(sdr, state=None, drawn=None, rng=None)
+    assert diagnostics["airlight"] == pytest.approx([40.0 / 50] * 3, rel=1e-6)
