@@ -103,7 +103,7 @@ def _transfer_note(encoding, untagged: str | None) -> dict:
                                      "written back with the file's tag"},
                 "warnings": ["transfer_read_as_srgb"]}
     if encoding.fmt == "heif":
-        return {}
+        return {"transfer": {"value": "linear", "from": stated_by}} if encoding.transfer == "linear" else {}
     stated = stated_transfer(encoding.fmt, encoding.metadata, encoding.icc_profile)
     if stated is not None:
         return {"transfer": {"value": "linear", "from": "the file (PNG gAMA 1.0 or cICP)"}} if stated == "linear" else {}

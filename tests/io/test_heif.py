@@ -212,6 +212,11 @@ def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path):
                              matrix_coefficients=9))
     after, info = _heif_codes(out)
     assert np.array_equal(after, _heif_codes(direct)[0])
+    (tmp_path / "linear.heic").write_bytes(_heif(_ramp(10), 10, transfer_characteristics=8))     # linear light
+    linear, encoding, _ = read_image(tmp_path / "linear.heic")
+    before, _ = _heif_codes(tmp_path / "linear.heic")
+    assert encoding.transfer == "linear"
+    np.testing.assert_allclose(linear, heif.rescaled(before, 1023, 65535) / np.float32(65535), rtol=1e-6)
     assert info["chroma"] == 422 and info["bit_depth"] == 10
     assert {k: info["nclx_profile"][k] for k in ("color_primaries", "transfer_characteristics",
                                                  "matrix_coefficients")} == \
