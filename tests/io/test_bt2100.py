@@ -120,41 +120,42 @@ def test_a_pq_or_hlg_png_is_read_linear_and_written_back_with_its_codes_and_tag(
     np.testing.assert_array_equal(back, linear)                                      # the very codes back
 
 
-def test_fog_on_a_pq_file_is_fog_on_the_same_radiance_given_linear(tmp_path):
-    """Same physics through another curve: the PQ file's radiance (reference white 1.0, a sky at 4× white) and a
-    linear-tagged 16-bit PNG of that radiance / 49.26 (its full scale) give the same fog once scaled back — fog is
-    linear in radiance and its airlight comes from the frame's sky. Read as sRGB (before round 24) the PQ codes
-    gave radiance off by a factor of up to 4."""
+@pytest.mark.parametrize("transfer,curve", [(16, "pq"), (18, "hlg")])
+def test_fog_on_a_pq_or_hlg_file_is_fog_on_the_same_radiance_given_linear(tmp_path, transfer, curve):
+    """Same physics through another curve: the PQ (HLG) file's radiance (reference white 1.0, a sky at 3.5× white)
+    and a linear-tagged 16-bit PNG of that radiance / 49.26 (3.774: its full scale) give the same fog once scaled
+    back — fog is linear in radiance and its airlight comes from the frame's sky. Read as sRGB (before round 24)
+    the codes gave other radiance, e.g. the PQ sky at 0.47 of the linear full scale instead of 0.071."""
     h, w = 32, 48
     rng = np.random.default_rng(5)
     radiance = rng.uniform(0.02, 2.5, (h, w, 3))
-    radiance[: h // 4] = 4.0                                                    # sky, 812 cd/m²
-    pq = bt2100.linear_to_code(radiance.astype(np.float32), "pq", 16)
-    scene = bt2100.decode_table("pq", 16)[pq].astype(np.float64)                 # what the PQ file holds
-    peak = bt2100.peak("pq")
+    radiance[: h // 4] = 3.5                                                    # sky, 711 cd/m² on a PQ display
+    codes = bt2100.linear_to_code(radiance.astype(np.float32), curve, 16)
+    scene = bt2100.decode_table(curve, 16)[codes].astype(np.float64)            # what the file holds
+    peak = bt2100.peak(curve)
     src = tmp_path / "in"
     src.mkdir()
-    _png(src / "pq.png", pq, 16)
+    _png(src / "hdr.png", codes, transfer)
     data = encode_png(np.rint(scene / peak * 65535).astype(np.uint16))
     (src / "lin.png").write_bytes(data[:33] + _chunk(b"gAMA", (100000).to_bytes(4, "big")) + data[33:])
     depth = np.full((h, w), 25.0, np.float32)
     depth[: h // 4] = np.inf
-    for stem in ("pq", "lin"):
+    for stem in ("hdr", "lin"):
         np.save(src / f"{stem}_depth.npy", depth)
     recipe = parse_recipe({"chain": [{"model": "fog.camera", "params": {"visibility_m": 30}}], "seed": 1,
                            "inputs": {"camera": "*.png", "depth": "{stem}_depth.npy"}})
     assert run(recipe, src, tmp_path / "out", workers=1, progress=False).failed == 0
-    fog_pq, enc, _ = read_image(tmp_path / "out/pq.png")
+    fog_pq, enc, _ = read_image(tmp_path / "out/hdr.png")
     fog_lin, _, _ = read_image(tmp_path / "out/lin.png")
-    assert enc.transfer == "pq"
+    assert enc.transfer == curve
     np.testing.assert_allclose(fog_pq, fog_lin * peak, rtol=2e-3, atol=2 * peak / 65535)
-    assert fog_pq[: h // 4].min() > 3.9                                          # the airlight, 4× white, kept
+    assert fog_pq[: h // 4].min() > 3.45                                         # the airlight, 3.5× white, kept
     entries = {json.loads(e)["input"]: json.loads(e) for e in (tmp_path / "out/manifest.jsonl").read_text()
                .splitlines()}
-    assert entries["pq.png"]["inputs"]["transfer"] == {"value": "pq", "scale": bt2100.SCALES["pq"],
-                                                       "from": "the file (PNG cICP transfer 16)"}
-    assert "warnings" not in entries["pq.png"]["inputs"]
-    assert entries["pq.png"]["steps"][0]["diagnostics"]["airlight"] == pytest.approx([4.0] * 3, rel=2e-3)
+    assert entries["hdr.png"]["inputs"]["transfer"] == {"value": curve, "scale": bt2100.SCALES[curve],
+                                                       "from": f"the file (PNG cICP transfer {transfer})"}
+    assert "warnings" not in entries["hdr.png"]["inputs"]
+    assert entries["hdr.png"]["steps"][0]["diagnostics"]["airlight"] == pytest.approx([3.5] * 3, rel=2e-3)
 
 
 def test_a_transfer_rvnoise_does_not_decode_is_read_as_srgb_with_a_warning(tmp_path):
