@@ -81,26 +81,31 @@ def load_camera_sample(sample: Sample, in_root: Path, recipe: Recipe,
                                                    **({"warnings": warnings} if warnings else {})})
 
 
+#: the transfers of integer codes rvnoise decodes as a file states them (``io.image_metadata.CICP_TRANSFERS``)
+_DECODED_TRANSFERS = "linear, sRGB, BT.709/601/2020, gamma 2.2/2.8, BT.2100 PQ and HLG"
+
+
 def _transfer_note(encoding, untagged: str | None) -> dict:
-    """``transfer`` of an integer PNG/TIFF/HEIF when it is not the plain sRGB of a file that says so: BT.2100 PQ or
-    HLG (with the scale of the linear values) or linear as the file states it; a ``cICP``/``nclx`` transfer rvnoise
-    does not decode, read as sRGB (warned: ``transfer_read_as_srgb``); for a PNG/TIFF that states none, the
+    """``transfer`` of an integer PNG/TIFF/HEIF when it is not the plain sRGB of a file that says so: a curve of
+    :mod:`.physics.transfers` (BT.709, gamma 2.2/2.8, BT.2100 PQ, HLG; with the scale of the linear values) or
+    linear as the file states it; a ``cICP``/``nclx`` transfer rvnoise does not decode, read as sRGB (warned:
+    ``transfer_read_as_srgb``); for a PNG/TIFF that states none, the
     recipe's ``untagged_transfer``, or sRGB by default for a 16-bit file (then warned: ``untagged_16bit``). 8-bit
     files that state nothing are the web's sRGB and get no note."""
     from .io.image_metadata import CICP_TRANSFER_NAMES, cicp_transfer, stated_transfer, unread_transfer
-    from .physics import bt2100
+    from .physics import transfers
 
     if encoding.fmt not in ("png", "tiff", "heif") or encoding.bit_depth > 16:
         return {}
     code = cicp_transfer(encoding.fmt, encoding.metadata)
     stated_by = f"the file ({'PNG cICP' if encoding.fmt == 'png' else 'HEIF nclx'} transfer {code})"
-    if encoding.transfer in bt2100.CURVES:
-        return {"transfer": {"value": encoding.transfer, "scale": bt2100.SCALES[encoding.transfer],
+    if encoding.transfer in transfers.CURVES:
+        return {"transfer": {"value": encoding.transfer, "scale": transfers.TRANSFERS[encoding.transfer].scale,
                              "from": stated_by}}
     if unread_transfer(encoding.fmt, encoding.metadata) is not None:
         return {"transfer": {"value": "srgb", "file": f"{CICP_TRANSFER_NAMES.get(code, 'reserved')} ({stated_by})",
-                             "from": "rvnoise decodes linear, sRGB, BT.2100 PQ and HLG only: read as sRGB, "
-                                     "written back with the file's tag"},
+                             "from": f"rvnoise decodes {_DECODED_TRANSFERS} only: read as sRGB, written back "
+                                     "with the file's tag"},
                 "warnings": ["transfer_read_as_srgb"]}
     if encoding.fmt == "heif":
         return {"transfer": {"value": "linear", "from": stated_by}} if encoding.transfer == "linear" else {}
@@ -596,7 +601,7 @@ class InputWarnings:
                          "convert them to 16-bit PNG or TIFF, or to HEIF, to keep their depth")
         if "transfer_read_as_srgb" in n:
             lines.append(f"{n['transfer_read_as_srgb']} PNG/HEIF file(s) state a transfer function (cICP/nclx) "
-                         "rvnoise does not decode (it decodes linear, sRGB, BT.2100 PQ and HLG) and were read as "
+                         f"rvnoise does not decode (it decodes {_DECODED_TRANSFERS}) and were read as "
                          "sRGB: the models saw radiance decoded with another curve (inputs.transfer in the "
                          "manifest); the output keeps the file's tag")
         if "untagged_16bit" in n:

@@ -209,7 +209,7 @@ class ImageEncoding:
 
     fmt: str = "png"           # png | jpeg | tiff | exr | webp | heif | avif
     bit_depth: int = 8         # 8 | 16 | 32 (float32 linear TIFF); EXR: 16 (half) | 32 (float)
-    transfer: str = "srgb"     # srgb | linear | pq | hlg (BT.2100, reference white 1.0: physics/bt2100.py)
+    transfer: str = "srgb"     # srgb | linear | bt709 | gamma22 | gamma28 | pq | hlg (physics/transfers.py)
     channels: int = 3          # 1 (grey) | 3 (colour) | 4 (colour + alpha, kept in CameraFrame.alpha)
     jpeg_quality: int = 95
     icc_profile: bytes | None = None   # embedded ICC colour profile of the file, written back unchanged

@@ -4,10 +4,10 @@ WebP (:mod:`.webp`), HEIF and AVIF (:mod:`.heif`, an optional extra) ↔ linear 
 Decoding with OpenCV (``IMREAD_UNCHANGED``: no EXIF rotation, no bit-depth reduction) — the common PNG kinds (8/16-bit
 grey, RGB, RGBA) by :mod:`.png`, which gives OpenCV's pixels in half its time; BGR ↔ RGB and sRGB ↔ linear
 happen here and nowhere else (the sRGB arithmetic itself is ``physics/srgb.py``). 8/16-bit files are sRGB encoded
-(IEC 61966-2-1) unless they state linear, BT.2100 PQ or HLG (:func:`.image_metadata.stated_transfer`;
-``physics/bt2100.py``, reference white at 1.0, highlights above it kept up to the curve's peak); float32 TIFF and
-EXR are linear and are written back unclipped (HDR stays HDR), EXR with the same half/float channel type. 1.0 is
-the full scale of the encoding (of a PQ/HLG one: reference white). Grey files are replicated to three channels and
+(IEC 61966-2-1) unless they state linear or another curve — BT.709/601/2020, gamma 2.2/2.8, BT.2100 PQ or HLG
+(:func:`.image_metadata.stated_transfer`; ``physics/transfers.py``, reference white at 1.0, PQ/HLG highlights above
+it kept up to the curve's peak); float32 TIFF and EXR are linear and are written back unclipped (HDR stays HDR),
+EXR with the same half/float channel type. 1.0 is the full scale of the encoding (of a PQ/HLG one: reference white). Grey files are replicated to three channels and
 written back as Rec. 709 luminance Y = 0.2126 R + 0.7152 G + 0.0722 B of the linear RGB (identity for equal
 channels).
 
@@ -41,7 +41,7 @@ import tifffile
 
 from .. import luminance
 from ..errors import InputError
-from ..physics import bt2100, srgb
+from ..physics import srgb, transfers
 from ..physics.srgb import bgr_order
 from ..types import CameraFrame, ImageEncoding
 from . import heif, image_metadata, webp
@@ -242,9 +242,9 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
                      icc: bytes | None = None, transfer: str = "srgb"
                      ) -> tuple[np.ndarray, ImageEncoding, np.ndarray | None]:
     """Linear RGB, encoding and alpha of code values — grey (H, W) or RGB(A) (H, W, C); uint8/uint16 with the
-    ``transfer`` function (``srgb``; ``linear``: code / full scale; ``pq`` or ``hlg``: BT.2100, reference white
-    1.0, :mod:`..physics.bt2100`), or float32 linear for TIFF — stored as ``fmt`` (also the pixels of a ROS
-    Image)."""
+    ``transfer`` function (``srgb``; ``linear``: code / full scale; ``bt709``, ``gamma22``, ``gamma28``, ``pq``,
+    ``hlg``: reference white 1.0, :mod:`..physics.transfers`), or float32 linear for TIFF — stored as ``fmt`` (also
+    the pixels of a ROS Image)."""
     if codes.dtype == np.uint8 or codes.dtype == np.uint16:
         bit_depth = 8 * codes.dtype.itemsize
     elif codes.dtype == np.float32 and fmt == "tiff":
@@ -259,8 +259,8 @@ def image_from_codes(codes: np.ndarray, fmt: str, *, source, jpeg_quality: int =
     rgb = codes if channels == 1 else codes[..., :3]
     if transfer == "srgb":
         linear = srgb.code_to_linear(rgb, bit_depth)
-    elif transfer in bt2100.CURVES:
-        linear = bt2100.code_to_linear(rgb, transfer, bit_depth)
+    elif transfer in transfers.CURVES:
+        linear = transfers.code_to_linear(rgb, transfer, bit_depth)
     elif bit_depth == 32:
         linear = rgb.astype(np.float32)
     else:
@@ -667,8 +667,8 @@ def encode_pixels(linear: np.ndarray, encoding: ImageEncoding, *, bgr: bool = Tr
             # the RGB view of BGR codes: bgr_order hands their storage to OpenCV as it is
             return srgb.linear_to_code(linear, encoding.bit_depth, bgr=True)[..., ::-1]
         return srgb.linear_to_code(linear, encoding.bit_depth)
-    if encoding.transfer in bt2100.CURVES:                  # RGB order whatever ``bgr`` (never JPEG or WebP)
-        return bt2100.linear_to_code(linear, encoding.transfer, encoding.bit_depth)
+    if encoding.transfer in transfers.CURVES:               # RGB order whatever ``bgr`` (never JPEG or WebP)
+        return transfers.linear_to_code(linear, encoding.transfer, encoding.bit_depth)
     if encoding.transfer == "linear" and encoding.bit_depth in (8, 16):
         full = 2 ** encoding.bit_depth - 1
         dtype = np.uint8 if encoding.bit_depth == 8 else np.uint16

@@ -181,7 +181,9 @@ def tiff_orientation(metadata: tuple) -> int:
 
 _PNG_GAMMA_LINEAR = 100000                  # gAMA of 1.0 (the chunk stores 100 000 × the encoding's exponent)
 #: H.273 (ITU-T H.273 Table 3) transfer characteristics rvnoise decodes as stated: PNG cICP, HEIF nclx
-CICP_TRANSFERS = {8: "linear", 13: "srgb", 16: "pq", 18: "hlg"}
+#: (``physics/transfers.py``; 1, 6, 14, 15 are one OETF: BT.709, BT.601, BT.2020 10- and 12-bit)
+CICP_TRANSFERS = {1: "bt709", 4: "gamma22", 5: "gamma28", 6: "bt709", 8: "linear", 13: "srgb", 14: "bt709",
+                  15: "bt709", 16: "pq", 18: "hlg"}
 _CICP_UNSPECIFIED = 2
 CICP_TRANSFER_NAMES = {1: "BT.709", 4: "gamma 2.2", 5: "gamma 2.8", 6: "BT.601", 7: "SMPTE 240M", 8: "linear",
                        9: "log 100:1", 10: "log 316:1", 11: "IEC 61966-2-4", 12: "BT.1361", 13: "sRGB",
@@ -190,8 +192,8 @@ CICP_TRANSFER_NAMES = {1: "BT.709", 4: "gamma 2.2", 5: "gamma 2.8", 6: "BT.601",
 
 
 def stated_transfer(fmt: str, metadata: tuple, icc: bytes | None) -> str | None:
-    """The transfer function of integer codes as the file states it: ``linear``, ``srgb``, ``pq`` or ``hlg`` for a
-    PNG ``cICP`` or HEIF ``nclx`` of transfer 8, 13, 16 or 18 (:data:`CICP_TRANSFERS`); ``linear`` for a PNG
+    """The transfer function of integer codes as the file states it: :data:`CICP_TRANSFERS` for a PNG ``cICP`` or
+    HEIF ``nclx`` transfer in it (``bt709``, ``gamma22``, ``linear``, ``srgb``, ``pq``, …); ``linear`` for a PNG
     ``gAMA`` of 1.0 with no ``cICP``, ``iCCP`` or ``sRGB`` above it (PNG 3rd ed. §4.3's precedence); ``srgb``
     for any other statement (``sRGB``, ``gAMA``, another ``cICP``/``nclx`` transfer — :func:`unread_transfer` —,
     an ICC profile: read as sRGB, not colour-managed); None when a PNG or TIFF states none — the PNG spec leaves
@@ -217,8 +219,8 @@ def cicp_transfer(fmt: str, metadata: tuple) -> int | None:
 
 
 def unread_transfer(fmt: str, metadata: tuple) -> int | None:
-    """The H.273 transfer a PNG ``cICP`` or HEIF ``nclx`` states that rvnoise does not decode (BT.709, gamma 2.2,
-    log, …; :data:`CICP_TRANSFERS` are decoded, 2 is "unspecified"): its codes are read as sRGB, which a warning
-    says; None otherwise."""
+    """The H.273 transfer a PNG ``cICP`` or HEIF ``nclx`` states that rvnoise does not decode (SMPTE 240M, log,
+    IEC 61966-2-4, BT.1361, ST 428, reserved; :data:`CICP_TRANSFERS` are decoded, 2 is "unspecified"): its codes
+    are read as sRGB, which a warning says; None otherwise."""
     code = cicp_transfer(fmt, metadata)
     return code if code not in (None, _CICP_UNSPECIFIED, *CICP_TRANSFERS) else None

@@ -1,5 +1,4 @@
-"""BT.2100 HDR transfer functions, PQ (SMPTE ST 2084) and HLG, between integer codes and linear light
-(ITU-R BT.2100-2 Table 4 and Table 5).
+"""BT.2100 HDR transfer functions, PQ (SMPTE ST 2084) and HLG (ITU-R BT.2100-2 Table 4 and Table 5).
 
 The linear scale of both is **reference white at 1.0**: the diffuse white of ITU-R BT.2408 (203 cd/m² on a PQ
 display, 75 % HLG signal), the level an 8-bit sRGB photo's full scale stands for, so a model's absolute levels
@@ -10,20 +9,13 @@ display, 75 % HLG signal), the level an 8-bit sRGB photo's full scale stands for
 - HLG (scene light): ``x = E / E_ref`` with ``E = OETF⁻¹(E')`` (0 … 1) and ``E_ref = OETF⁻¹(0.75) = 0.2650``; the
   full code is 3.774.
 
-Highlights above reference white are values above 1.0 and go through the chain as such; the writer clips to
-[0, full code] only. Codes ↔ linear go through tables as for sRGB (:mod:`.srgb`: 2^bits decoded values; linear →
-code by the exact bucket table of the decision levels), never a per-pixel power.
+The curves; their tables, and the other transfers camera files state, are :mod:`.transfers`.
 """
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 
-from . import srgb
-
-CURVES = ("pq", "hlg")
 REFERENCE_WHITE_CD_PER_M2 = 203.0      # ITU-R BT.2408-7 §2.1: HDR reference white (PQ), 75 % HLG signal
 PQ_PEAK_CD_PER_M2 = 10000.0
 # BT.2100 Table 4 (PQ)
@@ -61,47 +53,3 @@ def hlg_oetf(light: np.ndarray) -> np.ndarray:
 
 
 HLG_REFERENCE_LIGHT = float(hlg_inverse_oetf(HLG_REFERENCE_SIGNAL))
-#: the scale of the linear values, as the manifest states it (``inputs.transfer.scale``)
-SCALES = {"pq": "1.0 = reference white 203 cd/m² (ITU-R BT.2408): L / 203 cd/m², full code 49.26",
-          "hlg": "1.0 = reference white, 75 % HLG signal (ITU-R BT.2408): scene light E / 0.2650 (BT.2100 "
-                 "inverse OETF), full code 3.774"}
-
-
-def decode(signal: np.ndarray, curve: str) -> np.ndarray:
-    """Linear value (reference white 1.0) of signal E' (0–1) of ``curve`` (``pq`` | ``hlg``), float64."""
-    if curve == "pq":
-        return pq_eotf(signal) / REFERENCE_WHITE_CD_PER_M2
-    if curve == "hlg":
-        return hlg_inverse_oetf(signal) / HLG_REFERENCE_LIGHT
-    raise ValueError(f"unknown BT.2100 transfer {curve!r}; expected one of {CURVES}")
-
-
-def peak(curve: str) -> float:
-    """The linear value of the full code: 49.26 (PQ), 3.774 (HLG)."""
-    return float(decode(1.0, curve))
-
-
-@lru_cache(maxsize=4)
-def decode_table(curve: str, bits: int) -> np.ndarray:
-    """The 2^bits linear values of ``curve``'s codes, float32."""
-    table = decode(np.arange(2 ** bits) / (2 ** bits - 1), curve).astype(np.float32)
-    table.flags.writeable = False
-    return table
-
-
-@lru_cache(maxsize=4)
-def encode_table(curve: str, bits: int) -> tuple:
-    """:func:`.srgb.bucket_table` of ``curve``'s ``bits``-bit linear → code."""
-    return srgb.bucket_table(srgb.decision_levels(bits, lambda e: decode(e, curve)), peak(curve),
-                             f"{curve} {bits}-bit")
-
-
-def code_to_linear(codes: np.ndarray, curve: str, bits: int) -> np.ndarray:
-    """Linear values (float32, reference white 1.0, C order) of uint8/uint16 ``curve`` codes, by table."""
-    return srgb.code_to_linear(codes, bits, table=decode_table(curve, bits))
-
-
-def linear_to_code(linear: np.ndarray, curve: str, bits: int) -> np.ndarray:
-    """``bits``-bit ``curve`` codes (uint8/uint16) of linear values: clipped to [0, :func:`peak`], rounded to the
-    nearest code exactly (the decision levels of the float64 curve); NaN gives 0."""
-    return srgb.linear_to_code(linear, bits, table=encode_table(curve, bits))

@@ -157,7 +157,7 @@ def bucket_table(levels: np.ndarray, top: float, name: str) -> tuple:
     code) of linear → code for the decision ``levels`` (:func:`decision_levels`) of a transfer function whose
     full code decodes to ``top``: the bit pattern shifted right by 8 indexes a bucket that holds at most one
     decision level (2²⁴ buckets would take 64 MB, so the table starts at the bucket of T_0 / 2 and ends at
-    ``top``). Also the encoder of other transfer functions (``physics/bt2100.py``) and of 8-bit codes there."""
+    ``top``). Also the encoder of other transfer functions (``physics/transfers.py``) and of 8-bit codes there."""
     top_bits = int(np.float32(top).view(np.uint32))
     first = int((levels[:1].view(np.float32) / np.float32(2)).view(np.uint32)[0]) >> _SHIFT16
     code, inside = _bucket_codes(levels, _SHIFT16, first, top_bits >> _SHIFT16)
@@ -231,7 +231,7 @@ def linear_to_code(linear: np.ndarray, bits: int = 8, *, bgr: bool = False, tabl
     """Integer sRGB code values (uint8 or uint16) of linear radiance: clipped to [0, 1], encoded, rounded to the
     nearest code (exactly; module docstring); NaN gives 0. A new C-order array, or — for an unchanged decoded frame —
     the read-only codes it was decoded from. ``bgr``: (H, W, 3) RGB in, C-order BGR codes out (OpenCV's order).
-    ``table``: the :func:`bucket_table` of another transfer function (``physics/bt2100.py``), clipped to [0, its
+    ``table``: the :func:`bucket_table` of another transfer function (``physics/transfers.py``), clipped to [0, its
     top] instead (no kept codes, no side pass)."""
     dtype = _uint_dtype(bits)
     if bgr and (np.ndim(linear) != 3 or np.shape(linear)[2] != 3):
@@ -329,7 +329,7 @@ def _decode_reversed_kernel(codes, table, out):
 def code_to_linear(code: np.ndarray, bits: int = 8, *, table: np.ndarray | None = None) -> np.ndarray:
     """Linear radiance (float32, 0–1, C order) of integer sRGB code values, by table look-up; the result keeps
     ``code`` (:func:`attach_codes`). ``table``: the 2^bits decoded values of another transfer function
-    (``physics/bt2100.py``; no kept codes, no side pass)."""
+    (``physics/transfers.py``; no kept codes, no side pass)."""
     dtype = _uint_dtype(bits)
     code = np.asarray(code)
     if code.dtype != dtype:

@@ -16,7 +16,7 @@ from roadview_noise.io.image import read_image, write_image
 from roadview_noise.io.png import encode_png
 from roadview_noise.models.camera.compression import CompressionCamera
 from roadview_noise.models.camera.low_light import LowLightCamera
-from roadview_noise.physics import bt2100
+from roadview_noise.physics import transfers
 from roadview_noise.physics.sensor_noise import expose
 from roadview_noise.recipe import parse_recipe
 from roadview_noise.runner import run
@@ -57,10 +57,10 @@ def test_pq_decode_and_encode_match_table_4_within_one_code(luminance, signal):
     assert pq_signal(luminance) == pytest.approx(signal, abs=1e-4)           # the BT.2408 figures (4 digits)
     code = round(pq_signal(luminance) * 65535)
     step = pq_luminance((code + 1) / 65535) - pq_luminance(code / 65535)
-    decoded = bt2100.decode_table("pq", 16)[code] * 203.0
+    decoded = transfers.decode_table("pq", 16)[code] * 203.0
     assert abs(decoded - pq_luminance(code / 65535)) <= 1e-4 * step + 1e-6 * luminance
     assert abs(decoded - luminance) <= step
-    encoded = int(bt2100.linear_to_code(np.float32([luminance / 203.0]), "pq", 16)[0])
+    encoded = int(transfers.linear_to_code(np.float32([luminance / 203.0]), "pq", 16)[0])
     assert abs(encoded - pq_signal(luminance) * 65535) <= 0.5 + 1e-3
 
 
@@ -72,30 +72,14 @@ def test_hlg_decode_and_encode_match_table_5_within_one_code(signal, light):
     assert hlg_light(signal) == pytest.approx(light, rel=1e-6)
     code = round(signal * 65535)
     step = (hlg_light(min(code + 1, 65535) / 65535) - hlg_light((code - 1) / 65535)) / 2 / reference
-    decoded = float(bt2100.decode_table("hlg", 16)[code])
+    decoded = float(transfers.decode_table("hlg", 16)[code])
     assert abs(decoded - hlg_light(code / 65535) / reference) <= 1e-6 * max(decoded, 1e-3)
     assert abs(decoded - light / reference) <= step
-    encoded = int(bt2100.linear_to_code(np.float32([light / reference]), "hlg", 16)[0])
+    encoded = int(transfers.linear_to_code(np.float32([light / reference]), "hlg", 16)[0])
     assert abs(encoded - signal * 65535) <= 0.5 + 1e-3                 # E' = 0.5 falls on a half code: either
     white = round(0.75 * 65535)
     white_step = (hlg_light((white + 1) / 65535) - hlg_light(white / 65535)) / reference
-    assert abs(bt2100.decode_table("hlg", 16)[white] - 1.0) <= white_step
-
-
-@pytest.mark.parametrize("curve", bt2100.CURVES)
-@pytest.mark.parametrize("bits", [8, 16])
-def test_every_code_decodes_and_encodes_back_and_values_between_round_to_the_nearest(curve, bits):
-    codes = np.arange(2 ** bits, dtype=np.uint8 if bits == 8 else np.uint16)
-    linear = bt2100.code_to_linear(codes, curve, bits)
-    assert np.array_equal(bt2100.linear_to_code(linear, curve, bits), codes)
-    rng = np.random.default_rng(1)
-    signal = rng.uniform(0, 1, 20000)
-    values = bt2100.decode(signal, curve).astype(np.float32)
-    exact = np.rint(signal * (2 ** bits - 1))       # the nearest code of the signal the float32 value decodes from
-    got = bt2100.linear_to_code(values, curve, bits).astype(float)
-    assert np.abs(got - exact).max() <= 1 and np.mean(got != exact) < 1e-3
-    ends = bt2100.linear_to_code(np.float32([-1.0, np.nan, 1e9, bt2100.peak(curve) * 1.01]), curve, bits)
-    assert ends.tolist() == [0, 0, 2 ** bits - 1, 2 ** bits - 1]
+    assert abs(transfers.decode_table("hlg", 16)[white] - 1.0) <= white_step
 
 
 def _ramp(bits: int, h: int = 24, w: int = 64) -> np.ndarray:
@@ -112,12 +96,40 @@ def test_a_pq_or_hlg_png_is_read_linear_and_written_back_with_its_codes_and_tag(
     _png(tmp_path / "in.png", codes, transfer)
     linear, encoding, _ = read_image(tmp_path / "in.png")
     assert encoding.transfer == curve and encoding.bit_depth == bits
-    np.testing.assert_array_equal(linear, bt2100.decode_table(curve, bits)[codes])
-    assert linear.max() == pytest.approx(bt2100.peak(curve), rel=1e-6)              # highlights above white kept
+    np.testing.assert_array_equal(linear, transfers.decode_table(curve, bits)[codes])
+    assert linear.max() == pytest.approx(transfers.peak(curve), rel=1e-6)              # highlights above white kept
     write_image(tmp_path / "out.png", linear, encoding)
     back, again, _ = read_image(tmp_path / "out.png")
     assert again.transfer == curve and again.metadata == encoding.metadata            # the cICP chunk kept
     np.testing.assert_array_equal(back, linear)                                      # the very codes back
+
+
+def fog_on_file_and_linear(tmp_path, radiance: np.ndarray, transfer: int, curve: str, bits: int = 16) -> tuple:
+    """Fog 30 m (sky: the top quarter, depth ``inf``; the rest at 25 m) on a ``bits``-bit PNG of ``radiance``
+    (reference white 1.0) coded with ``curve`` and tagged cICP ``transfer``, and on a linear-tagged 16-bit PNG of
+    the radiance that file holds / the curve's peak: (fog of the file, fog of the linear PNG × peak, the file's
+    encoding, its manifest entry)."""
+    h, w = radiance.shape[:2]
+    codes = transfers.linear_to_code(radiance.astype(np.float32), curve, bits)
+    scene = transfers.decode_table(curve, bits)[codes].astype(np.float64)          # what the file holds
+    peak = transfers.peak(curve)
+    src = tmp_path / "in"
+    src.mkdir()
+    _png(src / "coded.png", codes, transfer)
+    data = encode_png(np.rint(scene / peak * 65535).astype(np.uint16))
+    (src / "lin.png").write_bytes(data[:33] + _chunk(b"gAMA", (100000).to_bytes(4, "big")) + data[33:])
+    depth = np.full((h, w), 25.0, np.float32)
+    depth[: h // 4] = np.inf
+    for stem in ("coded", "lin"):
+        np.save(src / f"{stem}_depth.npy", depth)
+    recipe = parse_recipe({"chain": [{"model": "fog.camera", "params": {"visibility_m": 30}}], "seed": 1,
+                           "inputs": {"camera": "*.png", "depth": "{stem}_depth.npy"}})
+    assert run(recipe, src, tmp_path / "out", workers=1, progress=False).failed == 0
+    fog_coded, enc, _ = read_image(tmp_path / "out/coded.png")
+    fog_lin, _, _ = read_image(tmp_path / "out/lin.png")
+    entries = {json.loads(e)["input"]: json.loads(e) for e in (tmp_path / "out/manifest.jsonl").read_text()
+               .splitlines()}
+    return fog_coded, fog_lin * peak, enc, entries["coded.png"]
 
 
 @pytest.mark.parametrize("transfer,curve", [(16, "pq"), (18, "hlg")])
@@ -130,46 +142,29 @@ def test_fog_on_a_pq_or_hlg_file_is_fog_on_the_same_radiance_given_linear(tmp_pa
     rng = np.random.default_rng(5)
     radiance = rng.uniform(0.02, 2.5, (h, w, 3))
     radiance[: h // 4] = 3.5                                                    # sky, 711 cd/m² on a PQ display
-    codes = bt2100.linear_to_code(radiance.astype(np.float32), curve, 16)
-    scene = bt2100.decode_table(curve, 16)[codes].astype(np.float64)            # what the file holds
-    peak = bt2100.peak(curve)
-    src = tmp_path / "in"
-    src.mkdir()
-    _png(src / "hdr.png", codes, transfer)
-    data = encode_png(np.rint(scene / peak * 65535).astype(np.uint16))
-    (src / "lin.png").write_bytes(data[:33] + _chunk(b"gAMA", (100000).to_bytes(4, "big")) + data[33:])
-    depth = np.full((h, w), 25.0, np.float32)
-    depth[: h // 4] = np.inf
-    for stem in ("hdr", "lin"):
-        np.save(src / f"{stem}_depth.npy", depth)
-    recipe = parse_recipe({"chain": [{"model": "fog.camera", "params": {"visibility_m": 30}}], "seed": 1,
-                           "inputs": {"camera": "*.png", "depth": "{stem}_depth.npy"}})
-    assert run(recipe, src, tmp_path / "out", workers=1, progress=False).failed == 0
-    fog_pq, enc, _ = read_image(tmp_path / "out/hdr.png")
-    fog_lin, _, _ = read_image(tmp_path / "out/lin.png")
+    fog_pq, fog_lin, enc, entry = fog_on_file_and_linear(tmp_path, radiance, transfer, curve)
+    peak = transfers.peak(curve)
     assert enc.transfer == curve
-    np.testing.assert_allclose(fog_pq, fog_lin * peak, rtol=2e-3, atol=2 * peak / 65535)
+    np.testing.assert_allclose(fog_pq, fog_lin, rtol=2e-3, atol=2 * peak / 65535)
     assert fog_pq[: h // 4].min() > 3.45                                         # the airlight, 3.5× white, kept
-    entries = {json.loads(e)["input"]: json.loads(e) for e in (tmp_path / "out/manifest.jsonl").read_text()
-               .splitlines()}
-    assert entries["hdr.png"]["inputs"]["transfer"] == {"value": curve, "scale": bt2100.SCALES[curve],
-                                                       "from": f"the file (PNG cICP transfer {transfer})"}
-    assert "warnings" not in entries["hdr.png"]["inputs"]
-    assert entries["hdr.png"]["steps"][0]["diagnostics"]["airlight"] == pytest.approx([3.5] * 3, rel=2e-3)
+    assert entry["inputs"]["transfer"] == {"value": curve, "scale": transfers.TRANSFERS[curve].scale,
+                                           "from": f"the file (PNG cICP transfer {transfer})"}
+    assert "warnings" not in entry["inputs"]
+    assert entry["steps"][0]["diagnostics"]["airlight"] == pytest.approx([3.5] * 3, rel=2e-3)
 
 
 def test_a_transfer_rvnoise_does_not_decode_is_read_as_srgb_with_a_warning(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
-    _png(src / "bt709.png", _ramp(16), 1)                   # BT.709 OETF: not sRGB's curve
+    _png(src / "st240.png", _ramp(16), 7)                   # SMPTE 240M: not decoded
     _png(src / "hlg.png", _ramp(16), 18)
     recipe = parse_recipe({"chain": [{"model": "compression.camera"}], "seed": 1, "inputs": {"camera": "*.png"}})
     lines = []
     assert run(recipe, src, tmp_path / "out", workers=1, progress=False, echo=lines.append).failed == 0
     notes = {json.loads(e)["input"]: json.loads(e)["inputs"] for e in (tmp_path / "out/manifest.jsonl")
              .read_text().splitlines()}
-    assert notes["bt709.png"]["transfer"]["value"] == "srgb" and "BT.709" in notes["bt709.png"]["transfer"]["file"]
-    assert notes["bt709.png"]["warnings"] == ["transfer_read_as_srgb"]
+    assert notes["st240.png"]["transfer"]["value"] == "srgb" and "SMPTE 240M" in notes["st240.png"]["transfer"]["file"]
+    assert notes["st240.png"]["warnings"] == ["transfer_read_as_srgb"]
     assert notes["hlg.png"]["transfer"]["value"] == "hlg" and "warnings" not in notes["hlg.png"]
     assert sum("1 PNG/HEIF file(s) state a transfer function" in line for line in lines) == 1
 

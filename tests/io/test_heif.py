@@ -20,7 +20,7 @@ from roadview_noise.errors import InputError, RecipeError  # noqa: E402
 from roadview_noise.io import heif  # noqa: E402
 from roadview_noise.io.image import read_image, write_image  # noqa: E402
 from roadview_noise.io.image_metadata import orientation  # noqa: E402
-from roadview_noise.physics import bt2100  # noqa: E402
+from roadview_noise.physics import transfers  # noqa: E402
 from roadview_noise.recipe import parse_recipe  # noqa: E402
 from roadview_noise.runner import run  # noqa: E402
 from roadview_noise.types import ImageEncoding  # noqa: E402
@@ -196,20 +196,21 @@ def test_a_grey_heif_is_read_and_written_grey_at_its_depth(tmp_path, bits):
     assert np.abs(after - before).mean() <= 2 ** (bits - 10) + 0.5
 
 
-def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path):
-    """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9), 4:2:2 as Canon's .HIF: its codes decoded by
-    the HLG table (round 24; before: read as sRGB with a warning), written back tagged so with its codes."""
+@pytest.mark.parametrize("nclx,curve", [((9, 18, 9), "hlg"), ((1, 1, 1), "bt709")])
+def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path, nclx, curve):
+    """A 10-bit BT.2100 HLG file (primaries 9, transfer 18, matrix 9) or BT.709 one (1, 1, 1), 4:2:2 as Canon's
+    .HIF: its codes decoded by the curve's table (round 24; before: read as sRGB with a warning), written back
+    tagged so with its codes."""
     path, out = tmp_path / "IMG_0001.HIF", tmp_path / "out.HIF"
-    path.write_bytes(_heif(_ramp(10), 10, chroma=422, color_primaries=9, transfer_characteristics=18,
-                           matrix_coefficients=9))
+    tags = dict(zip(("color_primaries", "transfer_characteristics", "matrix_coefficients"), nclx))
+    path.write_bytes(_heif(_ramp(10), 10, chroma=422, **tags))
     linear, encoding, _ = read_image(path)
-    assert encoding.transfer == "hlg" and heif.notes(encoding)[1] == []
+    assert encoding.transfer == curve and heif.notes(encoding)[1] == []
     before, _ = _heif_codes(path)
-    np.testing.assert_array_equal(linear, bt2100.decode_table("hlg", 16)[heif.rescaled(before, 1023, 65535)])
+    np.testing.assert_array_equal(linear, transfers.decode_table(curve, 16)[heif.rescaled(before, 1023, 65535)])
     write_image(out, linear, encoding)
     direct = tmp_path / "direct.HIF"                       # the codec's own loss on the file's codes, nothing else
-    direct.write_bytes(_heif(before, 10, chroma=422, color_primaries=9, transfer_characteristics=18,
-                             matrix_coefficients=9))
+    direct.write_bytes(_heif(before, 10, chroma=422, **tags))
     after, info = _heif_codes(out)
     assert np.array_equal(after, _heif_codes(direct)[0])
     (tmp_path / "linear.heic").write_bytes(_heif(_ramp(10), 10, transfer_characteristics=8))     # linear light
@@ -218,9 +219,7 @@ def test_a_heif_s_nclx_and_chroma_are_kept(tmp_path):
     assert encoding.transfer == "linear"
     np.testing.assert_allclose(linear, heif.rescaled(before, 1023, 65535) / np.float32(65535), rtol=1e-6)
     assert info["chroma"] == 422 and info["bit_depth"] == 10
-    assert {k: info["nclx_profile"][k] for k in ("color_primaries", "transfer_characteristics",
-                                                 "matrix_coefficients")} == \
-        {"color_primaries": 9, "transfer_characteristics": 18, "matrix_coefficients": 9}
+    assert {k: info["nclx_profile"][k] for k in tags} == tags
 
 
 def test_a_turned_10_bit_heif_is_read_as_stored_and_written_turned(tmp_path):
@@ -314,7 +313,8 @@ def test_a_run_records_the_depth_chroma_and_transfer_and_warns_of_a_transfer_rea
     src.mkdir()
     (src / "C0001.heif").write_bytes(_heif(_ramp(10), 10, chroma=422))
     (src / "C0002.heif").write_bytes(_heif(_ramp(12), 12, transfer_characteristics=16))     # PQ
-    (src / "C0003.heif").write_bytes(_heif(_ramp(10), 10, transfer_characteristics=4))      # gamma 2.2
+    (src / "C0003.heif").write_bytes(_heif(_ramp(10), 10, transfer_characteristics=7))      # SMPTE 240M
+    (src / "C0004.heif").write_bytes(_heif(_ramp(10), 10, transfer_characteristics=4))      # gamma 2.2
     recipe = parse_recipe({"chain": [{"model": "rain.camera"}], "seed": 3,
                            "inputs": {"camera": "*.heif", "depth_source": "ground_plane"}})
     lines = []
@@ -326,11 +326,14 @@ def test_a_run_records_the_depth_chroma_and_transfer_and_warns_of_a_transfer_rea
     assert "transfer" not in notes["C0001.heif"] and "transfer_read_as_srgb" not in notes["C0001.heif"]["warnings"]
     assert notes["C0002.heif"]["heif_bit_depth"]["value"] == 12 and notes["C0002.heif"]["heif_chroma"]["value"] \
         == "4:2:0"
-    assert notes["C0002.heif"]["transfer"] == {"value": "pq", "scale": bt2100.SCALES["pq"],
+    assert notes["C0002.heif"]["transfer"] == {"value": "pq", "scale": transfers.TRANSFERS["pq"].scale,
                                                "from": "the file (HEIF nclx transfer 16)"}
     assert "transfer_read_as_srgb" not in notes["C0002.heif"]["warnings"]
-    assert notes["C0003.heif"]["transfer"]["file"] == "gamma 2.2 (the file (HEIF nclx transfer 4))"
+    assert notes["C0003.heif"]["transfer"]["file"] == "SMPTE 240M (the file (HEIF nclx transfer 7))"
     assert "transfer_read_as_srgb" in notes["C0003.heif"]["warnings"]
+    assert notes["C0004.heif"]["transfer"] == {"value": "gamma22", "scale": transfers.TRANSFERS["gamma22"].scale,
+                                               "from": "the file (HEIF nclx transfer 4)"}
+    assert "transfer_read_as_srgb" not in notes["C0004.heif"]["warnings"]
     assert sum("1 PNG/HEIF file(s) state a transfer function" in line for line in lines) == 1
     _, info = _heif_codes(tmp_path / "out/C0001.heif")
     assert info["bit_depth"] == 10 and info["chroma"] == 422
