@@ -15,8 +15,8 @@ wheels) for ``.avif``.
   :func:`notes` says so (manifest and a run's warning), never silently.
 - Kept from the input: the chroma subsampling (HEIF: libheif's ``chroma``; AVIF: ``av1C``), a HEIF's ``nclx``
   colour description (primaries, transfer, matrix, range: a BT.2100 HLG file stays tagged HLG; its transfer decodes
-  the codes as :func:`.image_metadata.stated_transfer` says: PQ, HLG, linear or sRGB), the ICC profile, the EXIF
-  block and the XMP packet.
+  the codes as :func:`.image_metadata.stated_transfer` says: BT.709, gamma, PQ, HLG, linear or sRGB), the ICC
+  profile, the EXIF block and the XMP packet.
 - Orientation as for JPEG (:mod:`roadview_noise.orientation`): the pixels as stored with the EXIF orientation
   the file's ``irot``/``imir`` transforms state. Pillow's AVIF plugin reads them so; libheif applies the
   transforms, and pillow-heif's ``set_orientation`` sets the EXIF tag to 1 and drops an XMP ``tiff:Orientation``
