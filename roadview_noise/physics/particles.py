@@ -977,27 +977,38 @@ def _transmit(t, coverage, profile, depth_m, field, d_max_m, rng, bins, blend) -
     return total / coverage.size
 
 
+@jit(inline="always")
+def _count(b, u, cuts, buckets):                                         # pragma: no cover - compiled
+    """N of :class:`UnresolvedField` for a pixel of (banded) bin ``b`` and 16-bit uniform ``u``: its bucket's
+    count, counted on through ``cuts[b]`` where the bucket says so (rare)."""
+    c = buckets[(b << (16 - BUCKET_SHIFT)) | (u >> BUCKET_SHIFT)]
+    n = np.int32(c & 127)
+    if c >= 128:
+        while u >= cuts[b, n]:
+            n += 1
+    return n
+
+
 @jit(error_model="numpy")
 def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, cuts, buckets, mark, bits, band,
                      draw, values, signal, out):                              # pragma: no cover - compiled
     """Per row: the bins (vectorised; the nearer of ``scene_bins`` and the ground's if given; in the table of the
-    pixel's ``band`` unless it is empty), the counts (from ``buckets``, vectorised; then counting on through
-    ``cuts`` where a bucket says so, rare), then M back into ``coverage`` and either t·(1 − M) back into ``t``
-    (``signal`` empty) or the blend of ``composite`` into ``out``
+    pixel's ``band`` unless it is empty), then one loop over the pixels: the count (:func:`_count`), M back into
+    ``coverage`` and either t·(1 − M) back into ``t`` (``signal`` empty) or the blend of ``composite`` into ``out``
     (:func:`~roadview_noise.physics.photometry.blend_operands`: rows of W·3 RGB values or W mosaic sites);
-    returns Σ M."""
-    one, half = np.float32(1), np.float32(0.5)
+    returns Σ M. (The count inside the blend's loop, not in loops of its own that fill a row of counts: one pass
+    less per row, docs/performance.md round 24.)"""
+    one, half, zero = np.float32(1), np.float32(0.5), np.float32(0)
     w = depth_m.shape[1]
     blend, rgb = signal.size > 0, signal.shape[1] == 3 * w
-    bins, added, walk = np.empty(w, np.uint8), np.zeros(w, np.float32), np.empty(w, np.uint8)
-    first_bin, banded = np.zeros(w, np.int32), band.size > 0          # of the pixel's band's table (0: no bands)
-    shift = BUCKET_SHIFT
+    bins = np.zeros(w, np.int32)                                         # of the pixel's band's table
     a0, a1, a2 = (values[0, 0], values[0, 1], values[0, 2]) if rgb else (one, one, one)   # S (R, G, B) on RGB rows
     total = 0.0                                                                  # Σ M
     for y in range(depth_m.shape[0]):
         d, k_row, cov, t_row = depth_m[y], k[y], coverage[y], t[y]
+        u_row = bits[y * w:(y + 1) * w]
         if draw:
-            limit, u_row = ground_z[y], bits[y * w:(y + 1) * w]
+            limit = ground_z[y]
             if scene_bins.size > 0:
                 ground_bin, scene_row = np.uint8(limit * bins_per_m + half), scene_bins[y]
                 for x in range(w):
@@ -1005,35 +1016,23 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
             else:
                 for x in range(w):
                     bins[x] = np.uint8(min(d[x] / k_row[x], limit) * bins_per_m + half)
-            if banded:                         # (a loop of its own: the offset slows the one without bands)
+            if band.size > 0:
                 band_row = band[y]
                 for x in range(w):
-                    first_bin[x] = np.int32(band_row[x]) * VEIL_LUT_SIZE
-                    b = np.int32(bins[x]) + first_bin[x]
-                    c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
-                    walk[x] = c
-                    added[x] = np.float32(c & 127) * mark[b]
-            else:
-                for x in range(w):
-                    b = np.int32(bins[x])
-                    c = buckets[(b << (16 - shift)) | (np.int32(u_row[x]) >> shift)]
-                    walk[x] = c
-                    added[x] = np.float32(c & 127) * mark[b]
-            for x in range(w):
-                if walk[x] >= 128:
-                    b, u, n = np.int32(bins[x]) + first_bin[x], np.int32(u_row[x]), np.int32(walk[x] & 127)
-                    while u >= cuts[b, n]:
-                        n += 1
-                    added[x] = np.float32(n) * mark[b]
+                    bins[x] += np.int32(band_row[x]) * VEIL_LUT_SIZE
         if not blend:
             for x in range(w):
-                m = min(cov[x] + added[x] * k_row[x], one)
+                added = np.float32(_count(bins[x], np.int32(u_row[x]), cuts, buckets)) * mark[bins[x]] if draw \
+                    else zero
+                m = min(cov[x] + added * k_row[x], one)
                 cov[x] = m
                 t_row[x] *= one - m
         elif rgb:                                  # the three values of a pixel with its t·(1 − M)
             s_row, o_row = signal[y], out[y]
             for x in range(w):
-                m = min(cov[x] + added[x] * k_row[x], one)
+                added = np.float32(_count(bins[x], np.int32(u_row[x]), cuts, buckets)) * mark[bins[x]] if draw \
+                    else zero
+                m = min(cov[x] + added * k_row[x], one)
                 cov[x] = m
                 tm = t_row[x] * (one - m)
                 o_row[3 * x] = a0 + tm * (s_row[3 * x] - a0)
@@ -1042,7 +1041,9 @@ def _transmit_kernel(t, coverage, depth_m, k, scene_bins, ground_z, bins_per_m, 
         else:
             a_row, s_row, o_row = values[y % values.shape[0]], signal[y], out[y]
             for x in range(w):
-                m = min(cov[x] + added[x] * k_row[x], one)
+                added = np.float32(_count(bins[x], np.int32(u_row[x]), cuts, buckets)) * mark[bins[x]] if draw \
+                    else zero
+                m = min(cov[x] + added * k_row[x], one)
                 cov[x] = m
                 tm = t_row[x] * (one - m)
                 o_row[x] = a_row[x] + tm * (s_row[x] - a_row[x])
