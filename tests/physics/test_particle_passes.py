@@ -86,3 +86,61 @@ def test_blend_through_particles_is_transmit_then_composite(mosaic, unresolved):
     np.testing.assert_array_equal(cov_b, cov_a)
     assert mean_b == mean_a
     assert cov_a.max() <= 1.0 and (unresolved or np.array_equal(cov_a, np.minimum(coverage, 1.0)))
+
+
+def _kernel_inputs(rng, draw, scene_bins, bands, blend):
+    """Random operands of ``P._transmit_kernel`` (37×53 pixels): bins given or from the depth, ``bands`` motion bands
+    (0: none), ``blend`` "none" (t·(1 − M) into t), "rgb" or "mosaic"."""
+    h, w, n_bins = 37, 53, P.VEIL_LUT_SIZE * max(bands, 1)
+    k = rng.uniform(1.0, 1.6, (h, w)).astype(np.float32)
+    depth = (rng.uniform(0.3, 40.0, (h, w)) * k).astype(np.float32)
+    depth[:5] = np.inf
+    cuts = np.sort(rng.integers(0, 1 << 16, (n_bins, 9)), axis=1)
+    cuts = np.concatenate([cuts, np.full((n_bins, 1), 1 << 16)], axis=1).astype(np.int32)
+    field = (cuts, P.count_buckets(cuts), rng.uniform(0, 0.01, n_bins).astype(np.float32),
+             rng.integers(0, 1 << 16, h * w).astype(np.uint16),
+             rng.integers(0, bands, (h, w)).astype(np.uint8) if bands else np.zeros((0, 0), np.uint8))
+    if not draw:
+        field = (np.zeros((0, 0), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32), np.zeros(0, np.uint16),
+                 np.zeros((0, 0), np.uint8))
+    width = {"none": 0, "rgb": 3 * w, "mosaic": w}[blend]
+    signal = rng.uniform(0, 1, (h if width else 0, width)).astype(np.float32)
+    values = {"none": np.zeros((1, 1)), "rgb": np.tile([0.6, 0.5, 0.4], (1, w)),
+              "mosaic": rng.uniform(0, 1, (2, w))}[blend].astype(np.float32)
+    scene = rng.integers(0, 256, (h, w)).astype(np.uint8) if scene_bins else np.empty((0, 0), np.uint8)
+    return [rng.uniform(0, 1, (h, w)).astype(np.float32), rng.uniform(0, 1.2, (h, w)).astype(np.float32), depth, k,
+            scene, rng.uniform(1, 30, h).astype(np.float32), np.float32(255 / 30.0), *field, draw, values, signal,
+            np.empty_like(signal)]
+
+
+@pytest.mark.parametrize("blend", ["none", "rgb", "mosaic"])
+@pytest.mark.parametrize("draw, scene_bins, bands", [(True, True, 0), (True, False, 0), (True, True, 3),
+                                                     (True, False, 2), (False, True, 0), (False, False, 0)],
+                         ids=["bins", "depth", "bins, bands", "depth, bands", "no field", "no field, depth"])
+def test_transmit_kernel_is_the_per_pixel_formula(draw, scene_bins, bands, blend):
+    """Every mode of the fused pass against the formula in NumPy float32: bin b (nearest of the scene's and the
+    ground's, + band · VEIL_LUT_SIZE), N = #cuts[b] ≤ u, M = min(coverage + N · mark[b] · k, 1), then t·(1 − M)
+    into t or S + t·(1 − M)·(I − S) into the output; Σ M returned."""
+    a = _kernel_inputs(np.random.default_rng(5), draw, scene_bins, bands, blend)
+    t, cov, depth, k, scene, ground, per_m, cuts, _, mark, bits, band, _, values, signal, _ = \
+        [x.copy() if isinstance(x, np.ndarray) else x for x in a]
+    h, w = depth.shape
+    added = np.zeros((h, w), np.float32)
+    if draw:
+        half = np.float32(0.5)
+        near = np.minimum(scene, (ground * per_m + half).astype(np.uint8)[:, None]) if scene_bins else \
+            (np.minimum(depth / k, ground[:, None]) * per_m + half).astype(np.uint8)
+        b = near.astype(np.int64) + (band.astype(np.int64) * P.VEIL_LUT_SIZE if bands else 0)
+        n = (cuts[b] <= bits.reshape(h, w)[..., None]).sum(axis=-1)
+        added = n.astype(np.float32) * mark[b]
+    m = np.minimum(cov + added * k, np.float32(1))
+    tm = t * (np.float32(1) - m)
+    total = P._transmit_kernel(*a)
+    np.testing.assert_array_equal(a[1], m)
+    if blend == "none":
+        np.testing.assert_array_equal(a[0], tm)
+    else:
+        s = values[np.arange(h) % values.shape[0]] if blend == "mosaic" else values
+        per_value = np.repeat(tm, 3, axis=1) if blend == "rgb" else tm
+        np.testing.assert_array_equal(a[-1], s + per_value * (signal - s))
+    assert total == pytest.approx(float(m.astype(np.float64).sum()), rel=1e-12)
