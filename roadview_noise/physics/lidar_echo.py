@@ -399,7 +399,7 @@ def _one_particle(r, a, t_range, t_raw, t_sig, t_bg, tgt, length, threshold, fir
 @jit(error_model="numpy", _nrt=False)
 def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_shadow, t_background, has_target, length,
                    threshold, first_mode, bg_levels, exact_background, ray_level, inv_step, bg_peaks, kind, out_range,
-                   out_signal, t_value, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max):  # pragma: no cover
+                   out_signal, t_value, cr, ca, cos_buf, sin_buf):  # pragma: no cover
     """:func:`select_returns` on the rays with particles (:func:`ray_return` per ray), written in place into
     ``kind``, ``out_range``, ``out_signal`` and ``t_value`` (``t_range`` may be ``out_range``: each ray reads its
     target first). ``t_signal``: the targets' pulses before shadowing, ``t_shadow`` a mean beam cover per ray (or
@@ -421,21 +421,20 @@ def _select_kernel(p_ray, p_range, p_signal, p_fraction, t_range, t_signal, t_sh
         kind[ray], out_range[ray], out_signal[ray], t_value[ray] = ray_return(
             p_range, p_signal, p_fraction, i, j, has_target[ray], t_range[ray], t_signal[ray],
             t_shadow[ray] if mean_shadow else 0.0, t_background[ray], length, threshold, first_mode, bg_levels,
-            exact_background, level, inv_step, bg_peaks[level], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+            exact_background, level, inv_step, bg_peaks[level], cr, ca, cos_buf, sin_buf)
         i = j
 
 
 def cluster_scratch(particles: int) -> tuple[np.ndarray, ...]:
     """Scratch space of :func:`ray_return` for rays of up to ``particles`` particles: contributions (range, signal,
-    phase cosine and sine), clusters (first contribution, sum, strongest member)."""
+    phase cosine and sine)."""
     size = particles + 1
-    return (np.empty(size), np.empty(size), np.empty(size), np.empty(size), np.empty(size + 1, np.intp),
-            np.empty(size), np.empty(size))
+    return np.empty(size), np.empty(size), np.empty(size), np.empty(size)
 
 
 @jit(inline="always")
 def ray_return(p_range, p_signal, p_fraction, lo, hi, tgt, r0, t_pulse, shadow, t_bg, length, threshold, first_mode,
-               bg_levels, bg_uncut, level, inv_step, bg_peak, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max
+               bg_levels, bg_uncut, level, inv_step, bg_peak, cr, ca, cos_buf, sin_buf
                ):       # pragma: no cover - compiled
     """:func:`select_returns` on one ray: (kind, range, value, the target's value) from its particles ``lo … hi−1``
     (sorted by range; beam fractions ``p_fraction``, or none when empty) in front of its target (``tgt``: whether it
@@ -466,42 +465,38 @@ def ray_return(p_range, p_signal, p_fraction, lo, hi, tgt, r0, t_pulse, shadow, 
         best_val, best_at, best_tgt = _one_particle(p_range[lo], p_signal[lo], r0, t_raw, t_sig, t_bg, tgt, length,
                                                     threshold, first_mode, bg_levels, bg_uncut, level, inv_step)
     else:
+        top = 0.0                                      # the strongest contribution
         for k in range(m):
             cr[k] = p_range[lo + k]
             ca[k] = p_signal[lo + k]
+            top = max(top, ca[k])
         if tgt:
             cr[m] = r0
             ca[m] = t_raw
+            top = max(top, t_raw)
             m += 1
-        n_cl = 0                                       # clusters: consecutive contributions closer than L
-        for k in range(m):
-            if k == 0 or cr[k] - cr[k - 1] >= length:
-                c_lo[n_cl] = k
-                c_sum[n_cl] = 0.0
-                c_max[n_cl] = 0.0
-                n_cl += 1
-            c_sum[n_cl - 1] += ca[k]
-            c_max[n_cl - 1] = max(c_max[n_cl - 1], ca[k])
-        c_lo[n_cl] = m
-        need = threshold
-        if not first_mode:
-            for c in range(n_cl):
-                need = max(need, c_max[c])
+        need = threshold if first_mode else max(threshold, top)
         best_val = -1.0
         best_at = 0.0
         best_tgt = False
-        for c in range(n_cl):
-            if c_sum[c] + bg_peak < need:
-                continue                               # can neither be detected first nor win a detection
-            val, at = _cluster_value(cr, ca, cos_buf, sin_buf, c_lo[c], c_lo[c + 1], length)
-            val += peak_background(at + length / 2, r0, bg_levels, bg_uncut, level, inv_step, length)
-            own = tgt and c_lo[c + 1] == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
-            if own:
-                at = cr[m - 1]
-            if val > best_val or (first_mode and val >= threshold):
-                best_val, best_at, best_tgt = val, at, own
-                if first_mode and val >= threshold:
-                    break
+        first = 0                                      # clusters: consecutive contributions closer than L, each
+        cluster_sum = 0.0                              # taken when it ends
+        for k in range(1, m + 1):
+            cluster_sum += ca[k - 1]
+            if k < m and cr[k] - cr[k - 1] < length:
+                continue
+            if not cluster_sum + bg_peak < need:       # else it can neither be detected first nor win a detection
+                val, at = _cluster_value(cr, ca, cos_buf, sin_buf, first, k, length)
+                val += peak_background(at + length / 2, r0, bg_levels, bg_uncut, level, inv_step, length)
+                own = tgt and k == m and abs(at - cr[m - 1]) <= SAME_TARGET_TOLERANCE_M
+                if own:
+                    at = cr[m - 1]
+                if val > best_val or (first_mode and val >= threshold):
+                    best_val, best_at, best_tgt = val, at, own
+                    if first_mode and val >= threshold:
+                        break
+            first = k
+            cluster_sum = 0.0
     if best_val < threshold:
         return NO_RETURN, r0, t_sig, t_sig
     return (TARGET if best_tgt else WEATHER), best_at, best_val, best_val if best_tgt else t_sig

@@ -199,8 +199,8 @@ def strongest_returns(rng: np.random.Generator, rays: Rays, medium: ParticleMedi
 def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, base, r1, step, lam, inv, band_scale,
                s_level, full, cover, bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range,
                rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k,
-               kind, out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
-               c_max):       # pragma: no cover - compiled
+               kind, out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf,
+               sin_buf):       # pragma: no cover - compiled
     """:func:`strongest_returns` ray by ray: the particles (:func:`ray_head` a ray ahead, :func:`draw_ray`), then
     the ray's candidate and the receiver's decision (:func:`ray_outcome`), written to ``kind``, ``out_range``,
     ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the number of particles drawn.
@@ -215,7 +215,7 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
     bg, rx, out, drawn_p, scratch = _outcome_arguments(
         bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor, excess,
         rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range, out_signal, p_range,
-        p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+        p_signal, p_fraction, cr, ca, cos_buf, sin_buf)
     for i in range(n):                                 # the attenuated targets first, in out_signal (read before ray
         out_signal[i] = _attenuated(signal, has_target, ray_range, alpha, i)    # i's outcome overwrites it)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
@@ -243,14 +243,14 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
 @jit(inline="always")
 def _outcome_arguments(bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad,
                        gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k, kind,
-                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
-                       c_max):       # pragma: no cover - compiled
+                       out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf,
+                       sin_buf):       # pragma: no cover - compiled
     """:func:`_strongest`'s arguments grouped for :func:`ray_outcome` (a compiled call inlines at most 30 arguments):
     the background tables, the receiver's parameters, the outputs, the drawn particles, the pulse-sum scratch."""
     return ((bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step),
             (min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf,
              below_k), (kind, out_range, out_signal), (p_range, p_signal, p_fraction),
-            (cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max))
+            (cr, ca, cos_buf, sin_buf))
 
 
 @jit(inline="always")
@@ -271,7 +271,7 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
     min_range, rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k = rx
     kind, out_range, out_signal = out
     p_range, p_signal, p_fraction = drawn_p
-    cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max = scratch
+    cr, ca, cos_buf, sin_buf = scratch
     t_bg = crest_background(big_r, level, bg_at_target, bg_far, bg_inv_step) if tgt else 0.0
     early = not tgt and m > 0 and _sure_candidate(p_signal, m, weakest)
     u0 = u1 = u2 = 0.5
@@ -287,7 +287,7 @@ def ray_outcome(rng, i, m, level, shadow, big_r, tgt, t_att, weakest, length, bg
     else:
         c, at, value, t_value = ray_return(p_range, p_signal, p_fraction, 0, m, tgt, big_r, t_att, shadow, t_bg,
                                            length, weakest, False, bg_cum, bg_uncut, level, bg_inv_step,
-                                           bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+                                           bg_peak[np.uintp(level)], cr, ca, cos_buf, sin_buf)
     out_range[i], out_signal[i] = at, value
     if c == WEATHER:
         t = t_value if tgt else 0.0

@@ -21,8 +21,8 @@ from roadview_noise.physics.lidar_strongest import CUT_OCTAVES, LEVELS_PER_OCTAV
 def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, base, r1, step, lam, inv, band_scale,
                s_level, full, cover, bg_cum, bg_uncut, bg_peak, bg_at_target, bg_far, bg_inv_step, length, min_range,
                rise_m, spad, gain, floor, excess, rx_threshold, background, detect_count, background_cdf, below_k,
-               kind, out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum,
-               c_max):       # pragma: no cover - compiled
+               kind, out_range, out_signal, p_range, p_signal, p_fraction, cr, ca, cos_buf,
+               sin_buf):       # pragma: no cover - compiled
     """:func:`strongest_returns` ray by ray: the particles (:func:`draw_ray`, each ray after the previous one), then
     :func:`lidar_strongest.ray_outcome` as main's (the candidate and the receiver's decision), written to ``kind``,
     ``out_range``, ``out_signal`` (``kind`` zeroed); the rest scratch space. Returns the number of particles drawn.
@@ -33,7 +33,7 @@ def _strongest(rng, ray_range, signal, has_target, alpha, threshold, weakest, ba
     bg, rx, out, drawn_p, scratch = _outcome_arguments(
         bg_cum, bg_uncut[:0, :0], bg_peak, bg_at_target, bg_far, bg_inv_step, min_range, rise_m, spad, gain, floor, excess,
         rx_threshold, background, detect_count, background_cdf, below_k, kind, out_range, out_signal, p_range,
-        p_signal, p_fraction, cr, ca, cos_buf, sin_buf, c_lo, c_sum, c_max)
+        p_signal, p_fraction, cr, ca, cos_buf, sin_buf)
     e = rng.standard_exponential()                     # rank of the next brightest particle over the rays to come
     for i in range(n):
         big_r = ray_range[i]
