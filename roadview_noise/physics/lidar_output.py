@@ -201,7 +201,7 @@ def _place_rows(start, stop, o, counts, change, summed, kind, has, return_range_
         if summed and effect == MOVED:
             unmoved += scale == 1.0
         elif summed and effect != ADDED:
-            d = float(intensity_out[q]) - float(intensity_in[i])       # (a TARGET's: the difference above)
+            d = np.float64(intensity_out[q]) - np.float64(intensity_in[i])   # (float64: the metrics' change)
             if np.isfinite(d):
                 change_sum += d
                 changed += 1
