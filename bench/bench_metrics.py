@@ -133,6 +133,7 @@ from roadview_noise.executor import worker_setup
 worker_setup()      # before numpy/cv2/numba load: one thread each, as in a worker
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import dataclasses  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
@@ -519,15 +520,11 @@ def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool,
 
 
 def whole_runs(names: list[str], repeat: int, frames: int) -> None:
-    from run import build_trees
-
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
-        print(f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, {repeat} rounds (one untimed): "
-              f"medians, and the median [range] of the increase paired within a round, with the 95 % bootstrap "
-              f"interval of that median; the CPU s (the worker's per-file CPU summed, plus the main process's) is the "
-              f"acceptance figure: the wall sums add the wait for a core")
+    heading = (f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, {repeat} rounds (one untimed): "
+               f"medians, and the median [range] of the increase paired within a round, with the 95 % bootstrap "
+               f"interval of that median; the CPU s (the worker's per-file CPU summed, plus the main process's) is "
+               f"the acceptance figure: the wall sums add the wait for a core")
+    with _whole_run_trees(names, frames, heading) as (tmp, trees):
         print(f"  {'recipe':<20} {'wall s':^52}   {'sum of per-file s':^52}   {'CPU s (files + main process)':^52}   "
               f"{'CPU s, files 2–n':^52}   metrics ms/file   bytes/line")
         for name in names:
@@ -542,6 +539,19 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
             (m0, b0), (m1, b1) = ([statistics.median(s[i] for s in samples[k]) for i in (2, 3)] for k in (False, True))
             print(f"  {name:<20} " + "   ".join(cols) + f"   {(m1 - m0) * 1e3:6.1f}       {b0:5.0f} → {b1:5.0f}",
                   flush=True)
+
+
+@contextlib.contextmanager
+def _whole_run_trees(names: list[str], frames: int, heading: str):
+    """A temporary folder with the ``--whole-run`` input trees of the sensors of ``names`` (bench/run.py's:
+    ``frames`` × 3 files each), ``heading`` printed first: (the folder, the trees by sensor)."""
+    from run import build_trees
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        print(heading)
+        yield tmp, build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n]
+                                                                                       for n in names})})
 
 
 def bootstrap_median(values: list[float], rounds: int = 2000) -> tuple[float, float]:
@@ -589,7 +599,7 @@ def whole_run_phases(names: list[str], repeat: int, frames: int) -> None:
     import resource
     from contextlib import contextmanager
 
-    from run import INPUTS, build_trees
+    from run import INPUTS
     from roadview_noise import profiling, runner
 
     span, split, step = profiling._span, runner._profile_split, compound.apply_step
@@ -614,12 +624,10 @@ def whole_run_phases(names: list[str], repeat: int, frames: int) -> None:
             models_s[0] += time.thread_time() - c0
 
     profiling._span, runner._profile_split, compound.apply_step = cpu_span, keeping, timed_step
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
-        print(f"per file of the --whole-run tree ({frames * 3} files a sensor), in this process, metrics off and on "
-              f"back to back, {repeat} passes: thread CPU ms per file, median off → on, the median paired increase "
-              f"and its 95 % bootstrap interval; per phase the same in ms (thread CPU of the profiled spans)")
+    heading = (f"per file of the --whole-run tree ({frames * 3} files a sensor), in this process, metrics off and on "
+               f"back to back, {repeat} passes: thread CPU ms per file, median off → on, the median paired increase "
+               f"and its 95 % bootstrap interval; per phase the same in ms (thread CPU of the profiled spans)")
+    with _whole_run_trees(names, frames, heading) as (tmp, trees):
         for name in names:
             sensor = WHOLE_RUN_TREE[name]
             ctxs = {}
@@ -683,15 +691,11 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
     tree's, each in a fresh interpreter (its workers fork from a fork server importing that tree), the order of the
     four rotating every round; medians of the sums of the per-file wall and CPU seconds and of each round's
     increase (on against the same round's off: steadier under a changing load)."""
-    from run import build_trees
-
     trees_code = {"base": baseline, "this": ROOT}
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
-        print(f"whole augment runs, 1 worker, {frames * 3} files, fresh interpreter each, {repeat} rounds (one "
-              f"untimed): medians of the sums of the per-file wall s and CPU s, off → on, and of the increase paired "
-              f"within a round [its range] with the 95 % bootstrap interval of that median")
+    heading = (f"whole augment runs, 1 worker, {frames * 3} files, fresh interpreter each, {repeat} rounds (one "
+               f"untimed): medians of the sums of the per-file wall s and CPU s, off → on, and of the increase "
+               f"paired within a round [its range] with the 95 % bootstrap interval of that median")
+    with _whole_run_trees(names, frames, heading) as (tmp, trees):
         for name in names:
             kinds = [(code, on) for code in ("base", "this") for on in ("off", "on")]
             samples: dict[tuple, list] = {k: [] for k in kinds}
