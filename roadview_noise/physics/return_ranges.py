@@ -198,7 +198,8 @@ class Tally:
                 change: tuple | None = None) -> None:
         """Keep what the blocks counted: the bits of the input's and the output's largest x² + y² + z², the sum
         and number of the input's finite values over its returns, and the output's STEP_LINK sums
-        (:func:`add_return_sums` of its rows, :data:`NO_CHANGE`'s change in place: None, none)."""
+        (:func:`add_return_sums` of its rows and the placement's change in place, as :data:`NO_CHANGE`; None: none
+        noted)."""
         self._input = (largest_in, total, finite)
         self._largest_out = largest_out
         self._link = None if sums is None or change is None else (sums, change)
