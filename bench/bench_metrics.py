@@ -67,7 +67,18 @@ what the metrics add to it (≈ +35–50 ms once); the last CPU column leaves it
 of a long run costs; the first file's CPU moved by up to ≈ 100 ms between the paired runs of a round). With
 ``--baseline DIR``: paired whole runs of DIR's code and this tree's, each run in a fresh interpreter with its tree
 first on ``PYTHONPATH`` (so its workers run that code), metrics off and on, the order rotating every round; the sums
-of the per-file wall seconds and the run's CPU seconds (all files, and files 2–n).
+of the per-file wall seconds and the run's CPU seconds (all files, and files 2–n). Each increase is also given with a
+95 % bootstrap interval of its median (the rounds' paired increases resampled: the figure's resolution at the load of
+the session; the median and [range] are computed as before, so older figures stay comparable).
+
+``--whole-run --phases``: the files of the ``--whole-run`` tree through ``runner.process`` in this process, each with
+metrics off and on back to back (the order alternating), ``--repeat`` passes after a warm one: per file the thread CPU
+time off → on, the median paired increase with its 95 % bootstrap interval, and the same per phase in ms — read,
+hash, decode, the models' steps (thread CPU around ``compound.apply_step``: what the metrics add inside a model, e.g.
+the weather placement's block counts), the chain less the models (the steps' ``compare`` calls), the ``metrics``
+spans, encode, write, the rest — from the profiled spans (patched here to sum thread CPU too), and the thread's minor
+page faults per file. Pairs a few hundred ms apart resolve ≈ 0.1 ms a file where whole runs swing by ± 10 points
+(round 24, docs/metrics-cost.md); a run's first file and main process are not in it.
 
 ``--whole-run --valgrind``: the same whole runs (the ``--whole-run`` trees, 1 worker, ``--profile``), metrics off and
 on, each in a fresh interpreter under callgrind: counts that the machine's load does not move (runs of the same code
@@ -110,6 +121,7 @@ radar rain and CNF25.
     .venv/bin/python bench/bench_metrics.py --baseline DIR [--repeat N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run [--repeat N] [--frames N] [--recipes cnf20,cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --baseline DIR [--repeat N] [--frames N] [--recipes cnf22]
+    .venv/bin/python bench/bench_metrics.py --whole-run --phases [--repeat N] [--frames N] [--recipes cnf22]
     .venv/bin/python bench/bench_metrics.py --whole-run --valgrind [--repeat N] [--frames N] [--recipes cnf10,cnf22]
         [--split [MODULE.ATTR,…]] [--keep DIR] [--last-level SIZE,ASSOC,LINE]
 """
@@ -121,6 +133,7 @@ from roadview_noise.executor import worker_setup
 worker_setup()      # before numpy/cv2/numba load: one thread each, as in a worker
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import dataclasses  # noqa: E402
 import importlib.util  # noqa: E402
 import json  # noqa: E402
@@ -507,17 +520,13 @@ def whole_run_once(name: str, sensor: str, tree: Path, out: Path, metrics: bool,
 
 
 def whole_runs(names: list[str], repeat: int, frames: int) -> None:
-    from run import build_trees
-
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
-        print(f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, {repeat} rounds (one untimed): "
-              f"medians, and the median [range] of the increase paired within a round; the CPU s (the worker's "
-              f"per-file CPU summed, plus the main process's) is the acceptance figure: the wall sums add the wait "
-              f"for a core")
-        print(f"  {'recipe':<20} {'wall s':^33}   {'sum of per-file s':^33}   {'CPU s (files + main process)':^33}   "
-              f"{'CPU s, files 2–n':^33}   metrics ms/file   bytes/line")
+    heading = (f"whole augment runs, 1 worker, {frames * 3} files, metrics off → on, {repeat} rounds (one untimed): "
+               f"medians, and the median [range] of the increase paired within a round, with the 95 % bootstrap "
+               f"interval of that median; the CPU s (the worker's per-file CPU summed, plus the main process's) is "
+               f"the acceptance figure: the wall sums add the wait for a core")
+    with _whole_run_trees(names, frames, heading) as (tmp, trees):
+        print(f"  {'recipe':<20} {'wall s':^52}   {'sum of per-file s':^52}   {'CPU s (files + main process)':^52}   "
+              f"{'CPU s, files 2–n':^52}   metrics ms/file   bytes/line")
         for name in names:
             sensor = WHOLE_RUN_TREE[name]
             samples = {False: [], True: []}
@@ -526,15 +535,145 @@ def whole_runs(names: list[str], repeat: int, frames: int) -> None:
                     got = whole_run_once(name, sensor, trees[sensor], tmp / "out", on, cpu=True)
                     if r:
                         samples[on].append(got)
-            cols = []
-            for i in (0, 1, 4, 5):
-                off, on = ([s[i] for s in samples[k]] for k in (False, True))
-                ratios = sorted((b / a - 1) * 100 for a, b in zip(off, on))
-                cols.append(f"{statistics.median(off):6.3f} → {statistics.median(on):6.3f} "
-                            f"({statistics.median(ratios):+5.1f} % [{ratios[0]:+.1f} … {ratios[-1]:+.1f}])")
+            cols = [_increase_text(*([s[i] for s in samples[k]] for k in (False, True))) for i in (0, 1, 4, 5)]
             (m0, b0), (m1, b1) = ([statistics.median(s[i] for s in samples[k]) for i in (2, 3)] for k in (False, True))
             print(f"  {name:<20} " + "   ".join(cols) + f"   {(m1 - m0) * 1e3:6.1f}       {b0:5.0f} → {b1:5.0f}",
                   flush=True)
+
+
+@contextlib.contextmanager
+def _whole_run_trees(names: list[str], frames: int, heading: str):
+    """A temporary folder with the ``--whole-run`` input trees of the sensors of ``names`` (bench/run.py's:
+    ``frames`` × 3 files each), ``heading`` printed first: (the folder, the trees by sensor)."""
+    from run import build_trees
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        print(heading)
+        yield tmp, build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n]
+                                                                                       for n in names})})
+
+
+def bootstrap_median(values: list[float], rounds: int = 2000) -> tuple[float, float]:
+    """A 95 % percentile-bootstrap interval of the median of ``values`` (paired increases: resampled with
+    replacement ``rounds`` times, a fixed seed, so a printed figure repeats): how far the median could move with
+    other rounds of the same load, which the [range] of the rounds does not say."""
+    rng = np.random.default_rng(0)
+    medians = np.sort(np.median(rng.choice(np.asarray(values, float), (rounds, len(values))), axis=1))
+    return float(medians[int(0.025 * rounds)]), float(medians[int(0.975 * rounds) - 1])
+
+
+def _increase_text(off: list[float], on: list[float]) -> str:
+    """Medians off → on and the median [range] of the paired increase (%), with its bootstrap interval."""
+    ratios = sorted((b / a - 1) * 100 for a, b in zip(off, on))
+    lo, hi = bootstrap_median(ratios)
+    return (f"{statistics.median(off):6.3f} → {statistics.median(on):6.3f} ({statistics.median(ratios):+5.1f} % "
+            f"[{ratios[0]:+.1f} … {ratios[-1]:+.1f}] 95 % {lo:+.1f} … {hi:+.1f})")
+
+
+#: --whole-run --phases: the file's phases, from the profiled spans' thread CPU (s) and the models' apply_step
+PHASES = ("read", "hash", "decode", "models", "chain − models", "metrics spans", "encode", "write", "rest")
+
+
+def _phase_cpu(spans: dict[str, float], models_s: float, cpu_s: float) -> dict[str, float]:
+    """A file's thread CPU (s) per phase (:data:`PHASES`) from its spans' ``cpu:`` entries: the chain less the models'
+    steps is what the metrics' step comparisons (and the chain's bookkeeping) take; ``rest`` is the file's CPU less
+    the others (sidecars, the manifest entry, the runner)."""
+    get = lambda k: spans.get("cpu:" + k, 0.0)       # noqa: E731
+    split = {"read": get("read"), "hash": get("hash"), "decode": get("load") - get("load.convert"),
+             "models": models_s, "chain − models": get("chain") - models_s, "metrics spans": get("metrics"),
+             "encode": get("save") - get("save.convert") - get("save.write"),
+             "write": get("save.write") + get("sync")}
+    split["rest"] = cpu_s - sum(split.values())
+    return split
+
+
+def whole_run_phases(names: list[str], repeat: int, frames: int) -> None:
+    """``--whole-run --phases``: every file of the ``--whole-run`` tree through ``runner.process`` in this process
+    (set up as a worker), metrics off and on back to back (the order alternating file by file and pass by pass),
+    ``--repeat`` passes after a warm one: per file the thread CPU of each phase (the profiled spans, patched here to
+    sum the thread's CPU time as well as the wall time; the models' steps timed around ``compound.apply_step``) and
+    the thread's minor page faults. Paired file by file, a few hundred ms apart: steadier than whole runs under a
+    changing load, and it says which phase the metrics make slower. A run's first file and its main process are not
+    in it (``--whole-run`` has them)."""
+    import resource
+    from contextlib import contextmanager
+
+    from run import INPUTS
+    from roadview_noise import profiling, runner
+
+    span, split, step = profiling._span, runner._profile_split, compound.apply_step
+    spans_of, models_s = {}, [0.0]
+
+    @contextmanager
+    def cpu_span(name, totals):
+        c0 = time.thread_time()
+        with span(name, totals):
+            yield
+        totals["cpu:" + name] = totals.get("cpu:" + name, 0.0) + time.thread_time() - c0
+
+    def keeping(spans, entry, cpu_s):
+        spans_of["last"] = dict(spans)
+        return split(spans, entry, cpu_s)
+
+    def timed_step(*args, **kwargs):
+        c0 = time.thread_time()
+        try:
+            return step(*args, **kwargs)
+        finally:
+            models_s[0] += time.thread_time() - c0
+
+    profiling._span, runner._profile_split, compound.apply_step = cpu_span, keeping, timed_step
+    heading = (f"per file of the --whole-run tree ({frames * 3} files a sensor), in this process, metrics off and on "
+               f"back to back, {repeat} passes: thread CPU ms per file, median off → on, the median paired increase "
+               f"and its 95 % bootstrap interval; per phase the same in ms (thread CPU of the profiled spans)")
+    with _whole_run_trees(names, frames, heading) as (tmp, trees):
+        for name in names:
+            sensor = WHOLE_RUN_TREE[name]
+            ctxs = {}
+            for on in (False, True):
+                body = yaml.safe_load((ROOT / "recipes" / f"{name}.yaml").read_text())
+                body["inputs"] = dict(INPUTS[sensor])
+                body.setdefault("output", {})["metrics"] = on
+                (tmp / f"out-{on}").mkdir(exist_ok=True)
+                ctxs[on] = RunContext(trees[sensor], tmp / f"out-{on}", parse_recipe(body, source=name,
+                                                                                      base_dir=ROOT / "recipes"),
+                                      profile=True)
+            tasks = plan(trees[sensor], ctxs[True].recipe)
+
+            def once(task, on):
+                models_s[0] = 0.0
+                faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+                entry = process(task, ctxs[on])
+                faults = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - faults
+                if "error" in entry:
+                    raise RuntimeError(f"{task.sample.relpath}: {entry['error']}")
+                for staged, _ in entry.get("staged", ()):
+                    (ctxs[on].out_root / staged).unlink(missing_ok=True)
+                cpu = entry["profile"]["cpu"]
+                return {"CPU": cpu, **_phase_cpu(spans_of["last"], models_s[0], cpu), "minor faults": faults / 1e3}
+
+            samples = {False: [], True: []}
+            for r in range(repeat + 1):
+                for k, task in enumerate(tasks):
+                    for on in ((False, True) if (r + k) % 2 else (True, False)):
+                        got = once(task, on)
+                        if r:
+                            samples[on].append(got)
+            off, on = samples[False], samples[True]
+            cpu_off, cpu_on = [x["CPU"] for x in off], [x["CPU"] for x in on]
+            ratios = [(b / a - 1) * 100 for a, b in zip(cpu_off, cpu_on)]
+            lo, hi = bootstrap_median(ratios)
+            print(f"  {name:<20} {len(off)} pairs: CPU {statistics.median(cpu_off) * 1e3:6.2f} → "
+                  f"{statistics.median(cpu_on) * 1e3:6.2f} ms ({statistics.median(ratios):+5.2f} % 95 % {lo:+.2f} … "
+                  f"{hi:+.2f}; sums {(sum(cpu_on) / sum(cpu_off) - 1) * 100:+5.2f} %)", flush=True)
+            for key in (*PHASES, "minor faults"):
+                a, b = [x[key] * 1e3 for x in off], [x[key] * 1e3 for x in on]
+                diff = [y - x for x, y in zip(a, b)]
+                lo, hi = bootstrap_median(diff)
+                print(f"    {key:<16} {statistics.median(a):8.3f} → {statistics.median(b):8.3f}   paired "
+                      f"{statistics.median(diff):+7.3f} (95 % {lo:+.3f} … {hi:+.3f})", flush=True)
+    profiling._span, runner._profile_split, compound.apply_step = span, split, step
 
 
 #: one whole run in a fresh interpreter (--whole-run --baseline): this bench, the code of the tree on PYTHONPATH
@@ -552,15 +691,11 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
     tree's, each in a fresh interpreter (its workers fork from a fork server importing that tree), the order of the
     four rotating every round; medians of the sums of the per-file wall and CPU seconds and of each round's
     increase (on against the same round's off: steadier under a changing load)."""
-    from run import build_trees
-
     trees_code = {"base": baseline, "this": ROOT}
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = Path(tmp)
-        trees = build_trees(tmp / "trees", frames, {s: 3 * frames for s in sorted({WHOLE_RUN_TREE[n] for n in names})})
-        print(f"whole augment runs, 1 worker, {frames * 3} files, fresh interpreter each, {repeat} rounds (one "
-              f"untimed): medians of the sums of the per-file wall s and CPU s, off → on, and of the increase paired "
-              f"within a round [its range]")
+    heading = (f"whole augment runs, 1 worker, {frames * 3} files, fresh interpreter each, {repeat} rounds (one "
+               f"untimed): medians of the sums of the per-file wall s and CPU s, off → on, and of the increase "
+               f"paired within a round [its range] with the 95 % bootstrap interval of that median")
+    with _whole_run_trees(names, frames, heading) as (tmp, trees):
         for name in names:
             kinds = [(code, on) for code in ("base", "this") for on in ("off", "on")]
             samples: dict[tuple, list] = {k: [] for k in kinds}
@@ -574,11 +709,9 @@ def whole_runs_paired(names: list[str], repeat: int, frames: int, baseline: Path
                         samples[(code, on)].append(json.loads(got))
             for code in ("base", "this"):
                 cols = []
-                for i, label in ((1, "wall"), (4, "CPU"), (5, "CPU files 2–n")):
-                    off, on = ([s[i] for s in samples[(code, k)]] for k in ("off", "on"))
-                    ratios = sorted((b / a - 1) * 100 for a, b in zip(off, on))      # paired within a round
-                    cols.append(f"{label} {statistics.median(off):5.3f} → {statistics.median(on):5.3f} s "
-                                f"({statistics.median(ratios):+5.1f} % [{ratios[0]:+.1f} … {ratios[-1]:+.1f}])")
+                for i, label in ((1, "wall"), (4, "CPU"), (5, "CPU files 2–n")):     # paired within a round
+                    cols.append(f"{label} " + _increase_text(*([s[i] for s in samples[(code, k)]]
+                                                               for k in ("off", "on"))))
                 print(f"  {name:<12} {code:<5} " + "   ".join(cols), flush=True)
 
 
@@ -1069,6 +1202,9 @@ def main() -> None:
                                               "profiled span and per function)")
     ap.add_argument("--last-level", help="--valgrind: the simulated last-level cache as SIZE,ASSOC,LINE (default "
                                          "33554432,16,64; 1048576,8,64: a Zen 4 L2, whose misses then count as LL)")
+    ap.add_argument("--phases", action="store_true",
+                    help="with --whole-run: each file of the tree off and on back to back in this process, thread "
+                         "CPU per phase, paired per file (--repeat passes)")
     ap.add_argument("--frames", type=int, default=4, help="--whole-run: frames rendered (× 3 copies; default 4)")
     args = ap.parse_args()
     args.repeat = args.repeat or (1 if args.valgrind else 7)
@@ -1080,6 +1216,9 @@ def main() -> None:
         whole_runs_valgrind(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.frames, args.repeat,
                             VG_SPLIT_DEFAULT if args.split == "camera" else args.split or "",
                             args.keep.resolve() if args.keep else None)
+        return
+    if args.whole_run and args.phases:
+        whole_run_phases(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames)
         return
     if args.whole_run and args.baseline:
         whole_runs_paired(args.recipes.split(",") if args.recipes else list(WHOLE_RUN), args.repeat, args.frames,

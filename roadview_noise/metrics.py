@@ -498,7 +498,6 @@ _NO_STEP = (np.zeros(0, np.int64), np.zeros(0, np.uint8))
 _NO_CODES, _NO_VALUES = np.zeros(0, np.uint8), np.zeros(0)     # a cloud without effect codes, without values
 _NO_INDEX, _NO_MASK = np.zeros(0, np.int32), np.zeros(0, np.bool_)
 _NOT_LINKED = (_NO_INDEX, _NO_MASK, math.nan)                   # a NO_LINK pass's correspondence
-_NO_SUMS = (0, 0, 0, 0, 0.0, 0)                 # :func:`_add_return_sums` of no point
 
 
 def _cloud_pass(positions, known_valid, codes, values, bin_m, n_bins, link, pb, valid_b, values_b, step=_NO_STEP,
@@ -518,7 +517,8 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
     """One pass over a cloud (``after``): which points are returns, how many, the farthest return's range,
     returns per range bin — or, when ``known`` (``known_valid``, as many as the points, says which are returns),
     none of these — and over the returns the counts per effect code (KEPT, ATTENUATED, MOVED, ADDED; none given: all
-    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped; :func:`_add_return_sums`, after).
+    KEPT) and the sum and count of the finite ``values`` (NaN values are skipped;
+    :func:`return_ranges.add_return_sums`, after).
 
     With ``link`` (GRID_LINK, LIST_LINK, STEP_LINK, SAME_LINK), in the same pass: :func:`correspondence` of the
     points of ``before`` (positions ``pb``, returns ``valid_b``) with this cloud's — for each point of ``before`` the
@@ -604,7 +604,8 @@ def _pass(positions, known_valid, codes, values, bin_m, n_bins, link, known, pb,
         if changes and not away:
             change, changed = _add_change(values_b, k, values, j, change, changed)
         i += 1
-    sums = _add_return_sums(valid, codes, values, 0, n, _NO_SUMS)  # a loop of their own: the link's holds fewer values
+    sums = return_ranges.add_return_sums(valid, codes, values, 0, n,    # a loop of their own: the link's holds
+                                         return_ranges.NO_SUMS)        # fewer values
     used = n_bins                           # the bins up to the farthest return's
     while used > 0 and hist[used - 1] == 0:
         used -= 1
@@ -688,7 +689,7 @@ def _known_step_pass(positions, known_valid, codes, values, pb, valid_b, values_
         survivors -= (codes[j] == 3) & known_valid[j]
     in_order = survivors == nb                      # a list without removals: a MOVED code says moved
     change, changed = 0.0, 0
-    sums = _NO_SUMS
+    sums = return_ranges.NO_SUMS
     usual = has_codes and changes and (in_order or has_step_codes)     # a weather step's: constants below
     for start in range(0, n, return_ranges.BLOCK):
         stop = min(start + return_ranges.BLOCK, n)
@@ -704,7 +705,7 @@ def _known_step_pass(positions, known_valid, codes, values, pb, valid_b, values_
             change, changed = _step_rows(link, False, False, linked, True, True, True)
         else:
             change, changed = _step_rows(link, has_origin, in_order, linked, has_codes, changes, has_step_codes)
-        sums = _add_return_sums(known_valid, codes, values, start, stop, sums)
+        sums = return_ranges.add_return_sums(known_valid, codes, values, start, stop, sums)
     return ((0, np.zeros(0, np.int64), 0.0, known_valid), np.array(sums[:4], np.int64), sums[4], sums[5],
             (index, moved, change / changed if changed else np.nan))
 
@@ -773,7 +774,8 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     (intensity models), or whose geometry the model that wrote it noted, is not read again; only the attributes are
     counted — of a chain input without codes only its values' sum (:func:`_return_value_sum`), and not even that
     when the model that read it noted the sum too (:func:`return_ranges.noted_sum`: the laser power, the
-    alignment). SAME_LINK takes the mean change over the cells
+    alignment); of a chain's only step (``keep_link`` False) nothing, when the weather placement that wrote it
+    noted the pass's sums (:func:`return_ranges.noted_link`). SAME_LINK takes the mean change over the cells
     that are returns in both when ``cells`` (grids), else over every point; ``keep_link``: :func:`_cloud_pass`'s ``linked``."""
     if before is None:
         linked = (positions[:0], np.zeros(0, np.bool_), values[:0], step)
@@ -784,34 +786,17 @@ def _summarise_points(positions: np.ndarray, codes: np.ndarray, values: np.ndarr
     if geometry is not None and link == NO_LINK and not len(codes):   # all KEPT: only the values' sum is wanted
         sums = return_ranges.noted_sum(positions, values) or _return_value_sum(geometry[3], values)
         return geometry, np.array([geometry[0], 0, 0, 0], np.int64), *sums, _NOT_LINKED
+    if geometry is not None and link == STEP_LINK and not keep_link and len(positions):
+        sums = return_ranges.noted_link(positions, codes, values, step[0], before["values"])
+        if sums is not None:                # the weather placement summed them: :func:`_unlinked_step_pass`'s
+            return (geometry, np.array(sums[:4], np.int64), sums[4], sums[5],
+                    (_NO_INDEX, _NO_MASK, sums[6] / sums[7] if sums[7] else math.nan))
     if geometry is None:
         full = _cloud_pass(positions, np.zeros(0, np.bool_), codes, values, RANGE_BIN_M, n_bins, link, *linked)
         return_ranges.note(positions, n_bins, full[0])
         return full
     return (geometry, *_cloud_pass(positions, geometry[3], codes, values, RANGE_BIN_M, n_bins, link, *linked,
                                    linked=keep_link)[1:])
-
-
-@jit(inline="always")
-def _add_return_sums(valid, codes, values, start, stop, sums):       # pragma: no cover - compiled
-    """``sums`` (the counts per effect code KEPT, ATTENUATED, MOVED, ADDED, the sum and number of the finite
-    ``values``, over the returns ``valid``; no codes: all KEPT) with points ``start`` … ``stop`` − 1 added, in order
-    (:func:`_counted_step_pass` adds each block after its link: its arrays still in the caches). The counts in a
-    branch-free loop of their own, the values' sum in order."""
-    c0, c1, c2, c3, total, finite = sums     # (in registers: an array's increments would wait on each other)
-    if codes.shape[0] > 0:
-        for j in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
-            c, ok = codes[j], valid[j]
-            c0 += ok & (c == 0)
-            c1 += ok & (c == 1)
-            c2 += ok & (c == 2)
-            c3 += ok & (c == 3)
-    else:
-        for j in range(np.uint64(start), np.uint64(stop)):
-            c0 += valid[j]
-    if values.shape[0] > 0:
-        total, finite = return_ranges.sum_block(valid, values, start, stop, total, finite)
-    return c0, c1, c2, c3, total, finite
 
 
 @jit

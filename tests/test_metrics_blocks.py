@@ -255,3 +255,124 @@ def test_rows_appended_after_the_blocks_are_counted_as_count_does():
     want = return_ranges.count(out, N_BINS)
     assert (noted[0], noted[1].tolist(), noted[2]) == (want[0], want[1].tolist(), want[2])
     assert np.array_equal(noted[3], want[3]) and want[0] > return_ranges.BLOCK
+
+
+def placed_step(rng: np.random.Generator, grid: bool, removals: bool, unmoved: bool) -> tuple:
+    """A weather step placed block by block with its metrics' sums (``_place_counted`` with ``Tally``), as
+    ``lidar_output.assemble`` places it: (the Tally, the placement's arguments, the output's rows, positions, codes,
+    intensities and origin — None: point i is input point i). Lists get rows appended after the blocks on the rays of
+    input points (several returns on one ray; origin NEW, ADDED) and, without ``removals``, no lost targets;
+    ``unmoved``: some weather returns at their target's range (MOVED at scale 1)."""
+    positions = scan(rng)
+    args = list(placement(rng, positions, grid))
+    kind, has = args[0], args[1]
+    if not removals:
+        kind[(kind == NO_RETURN) & has] = TARGET
+    if unmoved:
+        args[2][np.flatnonzero((kind == WEATHER) & has)[::50]] = 50.0          # return range = ray range
+    if not grid:                                    # lists: a weather return is on a target's ray, not an empty one
+        kind[(kind == WEATHER) & ~has] = TARGET
+    tally = return_ranges.Tally(positions, args[10], len(positions) + 300, N_BINS)
+    outputs = (np.empty((len(positions) + 300, 3)), np.empty(len(positions) + 300, np.float32),
+               np.empty(len(positions) + 300, np.uint8), np.empty(len(positions) + 300, np.int64))
+    args[11:] = outputs
+    _, n_out, counts, *counted = lidar_output._place_counted(*args, *tally.arrays)
+    tally.counted(*counted)
+    out, intensity, effect, origin = outputs
+    total = n_out if grid else n_out + 300
+    if not grid:                                    # appended: along input points' rays, some NaN
+        rays = rng.integers(0, len(positions), total - n_out)
+        out[n_out:total] = positions[rays] * rng.uniform(0.1, 0.9, (total - n_out, 1))
+        intensity[n_out:total] = rng.uniform(0.0, 255.0, total - n_out)
+        intensity[n_out + 3] = np.nan
+        effect[n_out:total], origin[n_out:total] = 3, -1
+        tally.append(out, n_out, total, effect, intensity)
+    step_origin = None if grid or not (counts[3] or total > n_out) else origin[:total]
+    return tally, args, out[:total], effect[:total], intensity[:total], step_origin
+
+
+@pytest.mark.parametrize("grid,removals", [(False, True), (False, False), (True, True)])
+@pytest.mark.parametrize("unmoved", [False, True])
+def test_the_placements_step_sums_are_the_unlinked_pass(grid, removals, unmoved):
+    """What the weather placement sums for the metrics' STEP_LINK pass over its output (the output rows' code counts
+    and value sum block by block, the change in place in ``_place_rows``) is what ``metrics._unlinked_step_pass``
+    sums over the output, bit for bit: lists with removed, moved, kept and attenuated points and rows appended on
+    the rays of input points (NaN points, NaN values), grids with zeroed cells; with a MOVED row at scale 1 (the
+    pass then asks whether it moved) nothing is noted, nor for a grid whose empty cells took returns after the
+    blocks."""
+    rng = np.random.default_rng(31 + 2 * grid + removals + 4 * unmoved)
+    return_ranges.collect(True)
+    try:
+        tally, args, out, codes, values, origin = placed_step(rng, grid, removals, unmoved)
+        tally.note(out, False, codes, values, origin)
+        step = (np.zeros(0, np.int64) if origin is None else origin, codes)
+        got = return_ranges.noted_link(out, codes, values, step[0], args[10])
+        others = [return_ranges.noted_link(out, codes, values.copy(), step[0], args[10]),
+                  return_ranges.noted_link(out, codes, values, step[0], args[10].copy())]
+        valid = return_ranges.noted(out, N_BINS)[3]
+    finally:
+        return_ranges.collect(False)
+    assert others == [None, None]                   # other arrays: not these sums
+    if unmoved:
+        assert got is None
+        return
+    pb = args[9]
+    want = metrics._unlinked_step_pass(out, valid, codes, values, metrics.RANGE_BIN_M, N_BINS, pb,
+                                       return_ranges.count(pb, N_BINS)[3], args[10], step)
+    assert got is not None and list(got[:4]) == want[1].tolist() and got[4:6] == want[2:4]
+    assert np.array_equal(got[6] / got[7], want[4][2], equal_nan=True) and got[7] > len(pb) // 4
+    assert got[2] > 0 and (origin is None) == grid
+    generic = metrics._step_pass(out, np.zeros(0, np.bool_), codes, values, metrics.RANGE_BIN_M, N_BINS, pb,
+                                 return_ranges.count(pb, N_BINS)[3], args[10], step)
+    assert list(got[:6]) == [*generic[1].tolist(), *generic[2:4]] and got[6] / got[7] == generic[4][2]
+
+
+def test_grid_cells_filled_after_the_blocks_note_no_step_sums():
+    rng = np.random.default_rng(41)
+    return_ranges.collect(True)
+    try:
+        tally, _, out, codes, values, _ = placed_step(rng, True, True, False)
+        added = np.flatnonzero(codes == 3)
+        out[added] = rng.uniform(-80.0, 80.0, (len(added), 3))
+        tally.add_rows(out, added)
+        tally.note(out, False, codes, values, None)
+        assert len(added) and return_ranges.noted_link(out, codes, values, np.zeros(0, np.int64),
+                                                        tally.values_in) is None
+    finally:
+        return_ranges.collect(False)
+
+
+@pytest.mark.parametrize("chain", [["fog.lidar"], ["rain.lidar"], ["fog.lidar", "rain.lidar", "snow.lidar"]])
+@pytest.mark.parametrize("tree", ["lidar/os1-128/", "lidar/os1-128-grid/"])
+def test_a_chain_with_the_placements_sums_gives_the_passs_metrics(monkeypatch, chain, tree):
+    """The weather models' chains of one and three steps on the sample lists and grids: the same step and output
+    metrics bit for bit with the placement's sums (a one-step chain on a list takes them) as with the pass."""
+    from pathlib import Path
+
+    from roadview_noise.compound import apply_models
+    from roadview_noise.recipe import parse_recipe
+    from roadview_noise.runner import build_models, load, plan
+
+    root = Path(__file__).resolve().parents[1]
+    steps = {"fog.lidar": {"visibility_m": 30}, "rain.lidar": {"rain_rate_mm_per_h": 20},
+             "snow.lidar": {"snowfall_rate_mm_per_h": 2.5}}
+    recipe = parse_recipe({"schema": "rvnoise.recipe/1", "seed": 20261122, "inputs": {"lidar": ["lidar/**/*.pcd"]},
+                           "chain": [{"model": m, "params": steps[m]} for m in chain]}, source="test",
+                          base_dir=root / "recipes")
+    task = next(t for t in plan(root / "sample_data", recipe) if t.sample.relpath.startswith(tree))
+    taken, noted_link = [], return_ranges.noted_link
+
+    def spying(*args):
+        got = noted_link(*args)
+        taken.append(got is not None)
+        return got
+
+    results = []
+    for sums in (False, True):
+        monkeypatch.setattr(return_ranges, "noted_link", spying if sums else lambda *args: None)
+        data = load(task.sample, root / "sample_data", recipe)
+        out, records = apply_models(build_models(recipe, task), data, seed=recipe.seed, key=task.out_relpath,
+                                    sequence_id=task.sample.sequence_id, metrics=True)
+        results.append(([r.metrics for r in records], metrics.compare(data, out)))
+    assert results[0] == results[1]
+    assert any(taken) == (len(chain) == 1 and tree == "lidar/os1-128/")

@@ -106,9 +106,9 @@ def _place(kind, has, return_range_m, ray_range_m, reported, full_scale, integer
     list's removed points are left out (outputs filled from the start), a grid's are zeroed (REMOVED). Returns the
     removed mask, the number of outputs written and the counts (kept, attenuated, moved, removed, added)."""
     removed = np.zeros(len(kind), np.bool_)
-    o, counts = _place_rows(0, len(kind), 0, (0, 0, 0, 0, 0), kind, has, return_range_m, ray_range_m, reported,
-                            full_scale, integer, half_step, grid, positions, intensity_in, positions_out,
-                            intensity_out, effect_out, origin_out, removed)
+    o, counts, _ = _place_rows(0, len(kind), 0, (0, 0, 0, 0, 0), return_ranges.NO_CHANGE, False, kind, has,
+                               return_range_m, ray_range_m, reported, full_scale, integer, half_step, grid, positions,
+                               intensity_in, positions_out, intensity_out, effect_out, origin_out, removed)
     return removed, o, counts
 
 
@@ -119,9 +119,12 @@ def _place_counted(kind, has, return_range_m, ray_range_m, reported, full_scale,
     """:func:`_place` with the geometry of the input (unless ``flat_in`` is empty) and of the output rows counted
     block by block as they are written (:class:`return_ranges.Tally <roadview_noise.physics.return_ranges.Tally>`'s
     arrays, after the outputs), and the input's intensities summed over its returns (unless ``values_in`` is empty):
-    also returns the bits of the input's and the output's largest x² + y² + z², and the sum and number."""
+    also returns the bits of the input's and the output's largest x² + y² + z², the sum and number, and what the
+    metrics' STEP_LINK pass sums over the output (:func:`return_ranges.add_return_sums
+    <roadview_noise.physics.return_ranges.add_return_sums>` of the output rows after each block's count, and
+    :func:`_place_rows`' changes in place)."""
     removed = np.zeros(len(kind), np.bool_)
-    o, counts = 0, (0, 0, 0, 0, 0)
+    o, counts, change, sums = 0, (0, 0, 0, 0, 0), return_ranges.NO_CHANGE, return_ranges.NO_SUMS
     inv_bin = 1.0 / RANGE_BIN_M
     part_in, part_out = np.zeros(4 * hist_in.shape[0], np.int64), np.zeros(4 * hist_out.shape[0], np.int64)
     flat_out = positions_out.reshape(-1)
@@ -129,9 +132,9 @@ def _place_counted(kind, has, return_range_m, ray_range_m, reported, full_scale,
     total, finite = 0.0, 0
     for start in range(0, len(kind), return_ranges.BLOCK):
         stop, first = min(start + return_ranges.BLOCK, len(kind)), o
-        o, counts = _place_rows(start, stop, o, counts, kind, has, return_range_m, ray_range_m, reported, full_scale,
-                                integer, half_step, grid, positions, intensity_in, positions_out, intensity_out,
-                                effect_out, origin_out, removed)
+        o, counts, change = _place_rows(start, stop, o, counts, change, True, kind, has, return_range_m, ray_range_m,
+                                        reported, full_scale, integer, half_step, grid, positions, intensity_in,
+                                        positions_out, intensity_out, effect_out, origin_out, removed)
         if flat_in.shape[0] > 0:
             largest_in = max(largest_in, return_ranges.count_block(flat_in, start, stop, inv_bin, scratch, valid_in,
                                                                    part_in))
@@ -139,18 +142,23 @@ def _place_counted(kind, has, return_range_m, ray_range_m, reported, full_scale,
                 total, finite = return_ranges.sum_block(valid_in, values_in, start, stop, total, finite)
         largest_out = max(largest_out, return_ranges.count_block(flat_out, first, o, inv_bin, scratch, valid_out,
                                                                  part_out))
+        sums = return_ranges.add_return_sums(valid_out, effect_out, intensity_out, first, o, sums)
     return_ranges.fold_parts(part_in, hist_in)
     return_ranges.fold_parts(part_out, hist_out)
-    return removed, o, counts, largest_in, largest_out, total, finite
+    return removed, o, counts, largest_in, largest_out, total, finite, sums, change
 
 
 @jit(inline="always")
-def _place_rows(start, stop, o, counts, kind, has, return_range_m, ray_range_m, reported, full_scale, integer,
-                half_step, grid, positions, intensity_in, positions_out, intensity_out, effect_out, origin_out,
+def _place_rows(start, stop, o, counts, change, summed, kind, has, return_range_m, ray_range_m, reported, full_scale,
+                integer, half_step, grid, positions, intensity_in, positions_out, intensity_out, effect_out, origin_out,
                 removed):   # pragma: no cover - compiled
     """:func:`_place`'s loop over points ``start`` … ``stop`` − 1, writing from output row ``o`` on, ``counts``
-    carried: (the next output row, the counts)."""
+    carried: (the next output row, the counts, ``change``). With ``summed`` (a constant) ``change`` carries the
+    metrics' mean change in place (:data:`return_ranges.NO_CHANGE <roadview_noise.physics.return_ranges.NO_CHANGE>`):
+    the sum and number of the finite out − in of the rows neither MOVED nor ADDED, in order, and the MOVED rows at
+    scale 1 (:func:`return_ranges.noted_link <roadview_noise.physics.return_ranges.noted_link>`)."""
     kept, attenuated, moved, n_removed, added = counts
+    change_sum, changed, unmoved = change
     for i in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
         q = np.uintp(o)                                # (unsigned: no negative-index wraparound compiled)
         k = kind[i]
@@ -190,7 +198,14 @@ def _place_rows(start, stop, o, counts, kind, has, return_range_m, ray_range_m, 
         for c in range(3):
             positions_out[q, c] = positions[i, c] * scale if scale != 0.0 else 0.0     # no −0.0
         o += 1
-    return o, (kept, attenuated, moved, n_removed, added)
+        if summed and effect == MOVED:
+            unmoved += scale == 1.0
+        elif summed and effect != ADDED:
+            d = np.float64(intensity_out[q]) - np.float64(intensity_in[i])   # (float64: the metrics' change)
+            if np.isfinite(d):
+                change_sum += d
+                changed += 1
+    return o, (kept, attenuated, moved, n_removed, added), (change_sum, changed, unmoved)
 
 
 def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointCloud, dict]:
@@ -258,7 +273,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
             effect[n_out:total] = ADDED
             added += len(cells)
             if tally is not None:
-                tally.append(positions, n_out, total)
+                tally.append(positions, n_out, total, effect, intensity)
         if len(fields) > 1 or attributes:              # the ray each output takes its other fields from
             index = np.concatenate([origin[:n_out], rays.listed.like[cells]]) if len(cells) else origin
             fields = {k: (v if k == "intensity" else np.asarray(v).take(index, axis=0)) for k, v in fields.items()}
@@ -276,7 +291,7 @@ def assemble(cloud: PointCloud, rays: Rays, returns: RayReturns) -> tuple[PointC
     out = cloud.replace(positions_m=positions[:total], fields=fields, origin=origin, effect=effect[:total],
                         attributes=attributes)
     if tally is not None:                              # for the metrics' summaries of the input and the output
-        tally.note(out.positions_m, recount=len(at) > 0)
+        tally.note(out.positions_m, len(at) > 0, out.effect, out.fields["intensity"], out.origin)
     faint = rays.faint
     counts = {"points_in": int(np.count_nonzero(rays.has_target)), "kept": kept, "attenuated": attenuated,
               "moved": moved, "removed": n_removed, "added": added, "below_threshold_in": int(np.count_nonzero(faint)),

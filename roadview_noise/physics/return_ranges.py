@@ -36,6 +36,9 @@ _KEPT = 4                            # arrays whose geometry is kept (a chain's 
 _collecting = [False]
 _noted: dict[int, tuple] = {}        # id(array) → (weakref to it, key, geometry)
 _sums: dict[int, tuple] = {}         # id(values) → (weakref to them, weakref to the positions, (sum, number))
+_links: dict[int, tuple] = {}        # id(positions) → (weakrefs to the step output's arrays, its STEP_LINK sums)
+NO_SUMS = (0, 0, 0, 0, 0.0, 0)       # :func:`add_return_sums` of no point
+NO_CHANGE = (0.0, 0, 0)              # the placement's sum of changes in place, their number, MOVED rows at scale 1
 _NO_VALUES = np.zeros(0)
 _LARGEST = np.finfo(np.float64).max
 
@@ -173,7 +176,9 @@ class Tally:
     in passes of their own after the model, which read every position again from memory (6.3 MB a 262 k-point
     cloud) —, and the sum of the input's intensities over its returns (:func:`sum_block`, the metrics' sum). Rows the
     model writes after the blocks are counted by :meth:`add_rows` and :meth:`append`. :func:`count`'s operations in the same order: the
-    same geometry."""
+    same geometry. The blocks also sum what the metrics' STEP_LINK pass over the output sums (:func:`add_return_sums`
+    of the output rows, the placement's changes in place), so that a chain of one step reads its output no more
+    (:func:`noted_link`)."""
 
     def __init__(self, inputs: np.ndarray, values: np.ndarray | None, size: int, n_bins: int) -> None:
         self.n_bins = n_bins
@@ -186,33 +191,48 @@ class Tally:
         self.arrays = (inputs.reshape(-1) if counted else _NO_VALUES, values if summed else _NO_VALUES,
                        np.empty(n, np.bool_), np.zeros(n_bins + 1, np.int64), np.empty(size, np.bool_),
                        np.zeros(n_bins + 1, np.int64), np.empty(BLOCK, np.uint8 if n_bins < 256 else np.uint16))
-        self._input = self._largest_out = None
+        self.values_in = values
+        self._input = self._largest_out = self._link = None
 
-    def counted(self, largest_in: int, largest_out: int, total: float, finite: int) -> None:
-        """Keep what the blocks counted: the bits of the input's and the output's largest x² + y² + z² and the sum
-        and number of the input's finite values over its returns."""
+    def counted(self, largest_in: int, largest_out: int, total: float, finite: int, sums: tuple | None = None,
+                change: tuple | None = None) -> None:
+        """Keep what the blocks counted: the bits of the input's and the output's largest x² + y² + z², the sum
+        and number of the input's finite values over its returns, and the output's STEP_LINK sums
+        (:func:`add_return_sums` of its rows and the placement's change in place, as :data:`NO_CHANGE`; None: none
+        noted)."""
         self._input = (largest_in, total, finite)
         self._largest_out = largest_out
+        self._link = None if sums is None or change is None else (sums, change)
 
     def add_rows(self, positions: np.ndarray, rows: np.ndarray) -> None:
         """Count output rows the model wrote after the blocks in rows of zeros the blocks counted (a grid's ADDED
-        cells)."""
+        cells: they become returns out of the sums' order, so no STEP_LINK sums are noted)."""
+        self._link = None
         valid_out, hist_out = self.arrays[4], self.arrays[5]
         largest = _count_rows(positions.reshape(-1), np.asarray(rows, np.int64), 1.0 / RANGE_BIN_M, hist_out,
                               valid_out)
         self._largest_out = max(self._largest_out, largest)
 
-    def append(self, positions: np.ndarray, start: int, stop: int) -> None:
+    def append(self, positions: np.ndarray, start: int, stop: int, codes: np.ndarray | None = None,
+               values: np.ndarray | None = None) -> None:
         """Count output rows ``start`` … ``stop`` − 1 the model wrote after the blocks' last (a list's appended
-        points), block by block as the blocks are (:func:`count_block`: vectorised)."""
+        points), block by block as the blocks are (:func:`count_block`: vectorised), and add them to the STEP_LINK
+        sums with their effect ``codes`` and ``values`` (the output's arrays; not given: no sums noted)."""
         _, _, _, _, valid_out, hist_out, scratch = self.arrays
         largest = _count_range(positions.reshape(-1), start, stop, 1.0 / RANGE_BIN_M, hist_out, valid_out, scratch)
         self._largest_out = max(self._largest_out, largest)
+        if self._link is not None and codes is not None and values is not None:
+            self._link = (add_return_sums(valid_out, codes, values, start, stop, self._link[0]), self._link[1])
+        else:
+            self._link = None
 
-    def note(self, outputs: np.ndarray, recount: bool = False) -> None:
+    def note(self, outputs: np.ndarray, recount: bool = False, codes: np.ndarray | None = None,
+             values: np.ndarray | None = None, origin: np.ndarray | None = None) -> None:
         """:func:`note` the output's geometry (``outputs``: the output cloud's positions, rows 0 … of the blocks'
         array; ``recount``: rows the blocks counted were rewritten, so count it anew), then the input's and its
-        intensity sum (:func:`noted_sum`)."""
+        intensity sum (:func:`noted_sum`), and the output's STEP_LINK sums for :func:`noted_link` (``codes``,
+        ``values``, ``origin``: the output cloud's effect codes, intensities and origin — None: point i is input
+        point i —; not noted when rows were rewritten or a MOVED row kept its position: see :func:`noted_link`)."""
         _, _, valid_in, hist_in, valid_out, hist_out, _ = self.arrays
         n = len(outputs)
         note(outputs, self.n_bins, count(outputs, self.n_bins) if recount else geometry_of(
@@ -223,6 +243,11 @@ class Tally:
                                                        valid_in))
             if self.values is not None:
                 _sums[id(self.values)] = (weakref.ref(self.values), weakref.ref(self.inputs), (total, finite))
+        if not recount and self._link is not None and self._link[1][2] == 0 and codes is not None \
+                and values is not None and isinstance(self.values_in, np.ndarray):
+            refs = tuple(None if a is None else weakref.ref(a) for a in (outputs, codes, values, origin,
+                                                                          self.values_in))
+            _links[id(outputs)] = (refs, (*self._link[0], *self._link[1][:2]))
 
 
 def _value(bits: int) -> float:
@@ -251,6 +276,29 @@ def sum_block(valid, values, start, stop, total, finite):       # pragma: no cov
                 total += v
                 finite += 1
     return total, finite
+
+
+@jit(inline="always")
+def add_return_sums(valid, codes, values, start, stop, sums):       # pragma: no cover - compiled
+    """``sums`` (the counts per effect code KEPT, ATTENUATED, MOVED, ADDED, the sum and number of the finite
+    ``values``, over the returns ``valid``; no codes: all KEPT; :data:`NO_SUMS`: none yet) with points ``start`` …
+    ``stop`` − 1 added, in order: the metrics' pass over a cloud adds each block after its link, the weather
+    placement each block after placing it (their arrays still in the caches). The counts in a branch-free loop of
+    their own, the values' sum in order."""
+    c0, c1, c2, c3, total, finite = sums     # (in registers: an array's increments would wait on each other)
+    if codes.shape[0] > 0:
+        for j in range(np.uint64(start), np.uint64(stop)):     # (unsigned: no wrap-around test on each index)
+            c, ok = codes[j], valid[j]
+            c0 += ok & (c == 0)
+            c1 += ok & (c == 1)
+            c2 += ok & (c == 2)
+            c3 += ok & (c == 3)
+    else:
+        for j in range(np.uint64(start), np.uint64(stop)):
+            c0 += valid[j]
+    if values.shape[0] > 0:
+        total, finite = sum_block(valid, values, start, stop, total, finite)
+    return c0, c1, c2, c3, total, finite
 
 
 @jit
@@ -367,6 +415,25 @@ def noted_sum(positions: np.ndarray, values: np.ndarray) -> tuple | None:
     return got[2]
 
 
+def noted_link(positions: np.ndarray, codes: np.ndarray, values: np.ndarray, origin: np.ndarray,
+               values_before: np.ndarray) -> tuple | None:
+    """What the metrics' STEP_LINK pass over a weather step's output sums (:func:`add_return_sums`' counts and
+    value sum, then the sum and number of the finite changes ``values`` − ``values_before`` of the rows neither MOVED
+    nor ADDED, in order) as the placement summed them (:meth:`Tally.note`), when noted for these very arrays
+    (``origin``: the step's, empty for none), else None. The pass takes a MOVED row as moved unless it is at its
+    input's position and that is a return; a row moved by the factor ``scale`` ≠ 1 (return range / ray range) has
+    another position whenever its input is a return (r² > 0: a coordinate of magnitude ≥ 1e-154, which × scale
+    rounds to another float), so with no MOVED row at scale 1 the sums need neither the walk nor ``before``'s
+    positions."""
+    got = _links.get(id(positions))
+    if got is None:
+        return None
+    want = (positions, codes, values, origin if len(origin) else None, values_before)
+    if not all((None if r is None else r()) is w for r, w in zip(got[0], want)):
+        return None
+    return got[1]
+
+
 @jit
 def geometry_of(returns, hist, max_r2, valid):       # pragma: no cover - compiled
     """The geometry as :func:`noted` gives it: (returns, the bins up to the farthest return's, its range m, the
@@ -384,6 +451,7 @@ def collect(on: bool) -> None:
     if not on:
         _noted.clear()
         _sums.clear()
+        _links.clear()
 
 
 def wanted() -> bool:
@@ -402,6 +470,7 @@ def note(positions: np.ndarray, n_bins: int, geometry: tuple) -> None:
         for k in [k for k, (ref, _, _) in _noted.items() if ref() is None] or list(_noted)[:1]:
             del _noted[k]
         _sums.clear()
+        _links.clear()
     _noted[id(positions)] = (weakref.ref(positions), _key(positions, n_bins), geometry)
 
 
