@@ -576,51 +576,55 @@ class InputWarnings:
                 self.doubts.setdefault(doubt["reason"], f"{entry['input']}: {doubt['text']}")
 
     def lines(self) -> list[str]:
-        n, lines = self.files, []
-        if "depth_holes_filled" in n:
-            lines.append(f"depth holes filled from their neighbours in {n['depth_holes_filled']} file(s), up to "
-                         f"{100 * self.worst_hole_fraction:.1f} % of a frame (inputs.depth_holes: fill; counts in "
-                         "the manifest, inputs.depth)")
-        if "depth_doubtful" in n:
-            lines.append(f"depth of {n['depth_doubtful']} file(s) does not look like metres along the ray ("
-                         f"{'; '.join(self.doubts.values())}): fog, rain and snow would be far too strong or weak; "
-                         "depth files are metres (EXR/NPY: range, or depth_kind: planar), not millimetres, inverse "
-                         "depth or disparity (inputs.depth.doubt in the manifest)")
-        if "yolo_file_absent" in n:
-            lines.append(f"{n['yolo_file_absent']} image(s) have no YOLO label file: augmented as images without "
-                         "objects (YOLO's background images) and written without one; if they should have labels, "
-                         "check inputs.annotations.boxes_2d (annotations_read in the manifest)")
-        if "turned_photo" in n:
-            lines.append(f"{n['turned_photo']} photo(s) stored turned or mirrored (EXIF orientation 2–8) were "
-                         "processed as stored (recipe inputs.orientation: stored, or an image in a bag; "
-                         "inputs.orientation in the manifest): rain and snow fall and the ground-plane road lies "
-                         "along the stored image, not the displayed one")
-        if "avif_8bit" in n:
-            lines.append(f"{n['avif_8bit']} AVIF file(s) of 10 or 12 bits per sample read and written at 8 bits: "
-                         "Pillow's AVIF plugin decodes and encodes 8 bits (inputs.heif_bit_depth in the manifest); "
-                         "convert them to 16-bit PNG or TIFF, or to HEIF, to keep their depth")
-        if "transfer_read_as_srgb" in n:
-            lines.append(f"{n['transfer_read_as_srgb']} PNG/HEIF file(s) state a transfer function (cICP/nclx) "
-                         f"rvnoise does not decode (it decodes {_DECODED_TRANSFERS}) and were read as "
-                         "sRGB: the models saw radiance decoded with another curve (inputs.transfer in the "
-                         "manifest); the output keeps the file's tag")
-        if "untagged_16bit" in n:
-            lines.append(f"{n['untagged_16bit']} 16-bit image(s) state no transfer function (no gAMA, sRGB, iCCP or "
-                         "cICP chunk, no ICC profile): read as sRGB; machine-vision and raw-converted 16-bit images "
-                         "usually hold linear counts — then state inputs.untagged_transfer: linear (inputs.transfer "
-                         "in the manifest)")
-        if "intrinsics_from_fov" in n:
-            lines.append(f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics from the image size "
-                         f"and a horizontal FOV of {', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square "
-                         "pixels, centred); state them with inputs.camera_profile, --camera-profile or "
-                         "inputs.camera_fov_h_deg (values in the manifest, inputs.camera)")
-        if "depth_ground_plane" in n:
-            lines.append(f"depth of {n['depth_ground_plane']} file(s) from the ground-plane prior: a flat road "
-                         "(with objects standing on it unless inputs.ground_plane.objects is false) and one distance "
-                         "for the sky, a crude guess (parameters in the manifest, inputs.depth)")
-        if "ground_plane_profile_height" in n:
-            lines.append(f"ground plane of {n['ground_plane_profile_height']} file(s) seen from the camera "
-                         f"profile's height {', '.join(f'{h:g}' for h in sorted(self.heights))} m, not your camera's "
-                         "(1.51 m on nuScenes, 1.65 m on KITTI): state inputs.ground_plane.camera_height_m or a "
-                         "calibration with the height")
-        return lines
+        """The run's warning lines, in :data:`_RUN_LINES`' order: a count of files, and for some kinds what the
+        files had (the worst hole fraction, the FOVs, the doubts, the camera heights)."""
+        n = self.files
+        detailed = {
+            "depth_holes_filled": lambda: f"depth holes filled from their neighbours in {n['depth_holes_filled']} "
+                                          f"file(s), up to {100 * self.worst_hole_fraction:.1f} % of a frame "
+                                          "(inputs.depth_holes: fill; counts in the manifest, inputs.depth)",
+            "depth_doubtful": lambda: f"depth of {n['depth_doubtful']} file(s) does not look like metres along the "
+                                      f"ray ({'; '.join(self.doubts.values())}): fog, rain and snow would be far too "
+                                      "strong or weak; depth files are metres (EXR/NPY: range, or depth_kind: "
+                                      "planar), not millimetres, inverse depth or disparity (inputs.depth.doubt in "
+                                      "the manifest)",
+            "intrinsics_from_fov": lambda: f"no camera profile for {n['intrinsics_from_fov']} file(s): intrinsics "
+                                           "from the image size and a horizontal FOV of "
+                                           f"{', '.join(f'{f:g}' for f in sorted(self.fovs))}° (square pixels, "
+                                           "centred); state them with inputs.camera_profile, --camera-profile or "
+                                           "inputs.camera_fov_h_deg (values in the manifest, inputs.camera)",
+            "ground_plane_profile_height": lambda: f"ground plane of {n['ground_plane_profile_height']} file(s) seen "
+                                                   "from the camera profile's height "
+                                                   f"{', '.join(f'{h:g}' for h in sorted(self.heights))} m, not your "
+                                                   "camera's (1.51 m on nuScenes, 1.65 m on KITTI): state "
+                                                   "inputs.ground_plane.camera_height_m or a calibration with the "
+                                                   "height"}
+        return [detailed[kind]() if text is None else text.format(n=n[kind]) for kind, text in _RUN_LINES.items()
+                if kind in n]
+
+
+#: warning kind → its run line ({n}: the number of files; None: :meth:`InputWarnings.lines` says what they had)
+_RUN_LINES = {
+    "depth_holes_filled": None,
+    "depth_doubtful": None,
+    "yolo_file_absent": "{n} image(s) have no YOLO label file: augmented as images without objects (YOLO's background "
+                        "images) and written without one; if they should have labels, check "
+                        "inputs.annotations.boxes_2d (annotations_read in the manifest)",
+    "turned_photo": "{n} photo(s) stored turned or mirrored (EXIF orientation 2–8) were processed as stored (recipe "
+                    "inputs.orientation: stored, or an image in a bag; inputs.orientation in the manifest): rain and "
+                    "snow fall and the ground-plane road lies along the stored image, not the displayed one",
+    "avif_8bit": "{n} AVIF file(s) of 10 or 12 bits per sample read and written at 8 bits: Pillow's AVIF plugin "
+                 "decodes and encodes 8 bits (inputs.heif_bit_depth in the manifest); convert them to 16-bit PNG or "
+                 "TIFF, or to HEIF, to keep their depth",
+    "transfer_read_as_srgb": "{n} PNG/HEIF file(s) state a transfer function (cICP/nclx) rvnoise does not decode (it "
+                             f"decodes {_DECODED_TRANSFERS}) and were read as sRGB: the models saw radiance decoded "
+                             "with another curve (inputs.transfer in the manifest); the output keeps the file's tag",
+    "untagged_16bit": "{n} 16-bit image(s) state no transfer function (no gAMA, sRGB, iCCP or cICP chunk, no ICC "
+                      "profile): read as sRGB; machine-vision and raw-converted 16-bit images usually hold linear "
+                      "counts — then state inputs.untagged_transfer: linear (inputs.transfer in the manifest)",
+    "intrinsics_from_fov": None,
+    "depth_ground_plane": "depth of {n} file(s) from the ground-plane prior: a flat road (with objects standing on it "
+                          "unless inputs.ground_plane.objects is false) and one distance for the sky, a crude guess "
+                          "(parameters in the manifest, inputs.depth)",
+    "ground_plane_profile_height": None,
+}
